@@ -1,0 +1,239 @@
+"""Robot configuration: YAML files validated on load.
+
+Every error names the file, the key path and what was expected, e.g.
+``configs/sim.yaml: robot.wheel_radius: Input should be greater than 0 (got -0.05)``.
+Unknown keys are errors (typos must not silently fall back to defaults).
+
+Driver-specific ``options`` blocks are validated by the chosen driver's own
+``Options`` model (see vbnav.drivers.registry), so adding a driver never edits
+this file beyond the registry line.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from vbnav.drivers import registry
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.geometry import CameraMount
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+class ConfigError(ValueError):
+    """A configuration file is missing, malformed or invalid. The message says where."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class RobotConfig(Strict):
+    name: str = Field("sim", pattern=r"^[A-Za-z0-9_\-]+$", description="robot name, used in telemetry keys")
+    wheel_radius: float = Field(0.05, gt=0, le=1.0, description="m")
+    wheel_separation: float = Field(0.30, gt=0, le=5.0, description="distance between wheel contact points, m")
+    max_wheel_speed: float = Field(20.0, gt=0, description="rad/s, per wheel")
+    max_linear_speed: float = Field(0.5, gt=0, description="m/s")
+    max_angular_speed: float = Field(1.5, gt=0, description="rad/s")
+    max_linear_accel: float = Field(1.0, gt=0, description="m/s^2")
+    max_angular_accel: float = Field(4.0, gt=0, description="rad/s^2")
+
+
+class MountConfig(Strict):
+    height: float = Field(0.25, gt=0, description="optical centre above the floor, m")
+    forward: float = Field(0.10, description="ahead of the axle centre, m")
+    lateral: float = Field(0.0, description="to the right of the axle centre, m")
+    pitch_deg: float = Field(0.0, ge=-90, le=90, description="positive looking down")
+    yaw_deg: float = Field(0.0, ge=-180, le=180, description="positive looking right")
+
+    def to_mount(self) -> CameraMount:
+        return CameraMount(self.height, self.forward, self.lateral, math.radians(self.pitch_deg),
+                           math.radians(self.yaw_deg))
+
+
+class CameraConfig(Strict):
+    driver: str = "sim"
+    model: Literal["pinhole", "fisheye"] = "pinhole"
+    width: int = Field(640, gt=0)
+    height: int = Field(480, gt=0)
+    fx: float = Field(400.0, gt=0)
+    fy: float = Field(400.0, gt=0)
+    cx: float = 319.5
+    cy: float = 239.5
+    distortion: list[float] = Field(default_factory=list, max_length=14)
+    calibration_file: Optional[str] = Field(None, description="OpenCV or ROS calibration file; overrides intrinsics")
+    rate_hz: float = Field(15.0, gt=0, le=1000)
+    stale_after_s: float = Field(0.5, gt=0, description="older frames are a safety stop")
+    mount: MountConfig = Field(default_factory=MountConfig)
+    options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
+
+    def to_model(self):
+        cls = FisheyeCamera if self.model == "fisheye" else PinholeCamera
+        dist = tuple(self.distortion)
+        if self.model == "fisheye":
+            dist = (tuple(dist) + (0.0,) * 4)[:4]
+        return cls(self.width, self.height, self.fx, self.fy, self.cx, self.cy, dist)
+
+
+class DriveConfig(Strict):
+    driver: str = "sim"
+    invert_left: bool = Field(False, description="flip the sign of the left wheel")
+    invert_right: bool = Field(False, description="flip the sign of the right wheel")
+    options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
+
+
+class LoopConfig(Strict):
+    rate_hz: float = Field(100.0, gt=0, le=5000)
+    overrun_policy: Literal["skip", "catch_up"] = Field(
+        "skip", description="skip: a late cycle drops the missed ticks and re-aligns to the grid; "
+                            "catch_up: run missed ticks back to back")
+    max_missed_streak: int = Field(5, ge=1, description="consecutive overruns that trigger a safety stop")
+    spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, us")
+
+
+class SafetyConfig(Strict):
+    command_timeout_s: float = Field(0.5, gt=0, description="teleop/network command silence that stops the robot")
+    estimate_timeout_s: float = Field(1.0, gt=0, description="vision estimate age that stops a vision controller")
+
+
+class SimConfig(Strict):
+    seed: int = 0
+    realtime: bool = Field(False, description="run on the wall clock instead of the simulated clock")
+    world: str = "room"
+    motor_time_constant_s: float = Field(0.05, ge=0)
+    wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
+    encoder_ticks_per_rev: int = Field(4096, gt=0)
+    slip_std: float = Field(0.01, ge=0, description="relative wheel slip noise (fraction of wheel travel)")
+    image_noise_std: float = Field(2.0, ge=0, description="grey levels")
+
+
+class ControllerConfig(Strict):
+    kind: Literal["idle", "scripted", "teleop", "repeat", "teach", "goto"] = "scripted"
+    script: list[list[float]] = Field(
+        default_factory=lambda: [[0.3, 0.0, 3.0], [0.3, 0.4, 4.0], [0.0, 0.0, 1.0]],
+        description="[linear m/s, angular rad/s, duration s] segments for the scripted drive")
+
+
+class Config(Strict):
+    robot: RobotConfig = Field(default_factory=RobotConfig)
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    drive: DriveConfig = Field(default_factory=DriveConfig)
+    loop: LoopConfig = Field(default_factory=LoopConfig)
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    sim: SimConfig = Field(default_factory=SimConfig)
+    controller: ControllerConfig = Field(default_factory=ControllerConfig)
+    # Sections of later features are plain dicts validated by their own modules
+    # (telemetry, obstacles, vbc, vslam); they live here so that unknown keys are still errors.
+    telemetry: dict[str, Any] = Field(default_factory=dict)
+    obstacles: dict[str, Any] = Field(default_factory=dict)
+    vbc: dict[str, Any] = Field(default_factory=dict)
+    vslam: dict[str, Any] = Field(default_factory=dict)
+
+    source: Optional[str] = Field(None, exclude=True, description="file this was loaded from")
+
+    @model_validator(mode="after")
+    def _speeds_reachable(self):
+        r = self.robot
+        if r.max_linear_speed > r.max_wheel_speed * r.wheel_radius + 1e-9:
+            raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
+                             f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
+        return self
+
+
+def _format_loc(loc) -> str:
+    return ".".join(str(p) for p in loc) or "<top level>"
+
+
+def _format_errors(source: str, exc: ValidationError, prefix: str = "") -> str:
+    lines = []
+    for err in exc.errors():
+        loc = _format_loc(((prefix,) if prefix else ()) + tuple(err["loc"]))
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key (check the spelling; see README 'Configuration reference')"
+        got = err.get("input")
+        got_s = "" if err["type"] in ("missing", "extra_forbidden") or isinstance(got, dict) else f" (got {got!r})"
+        lines.append(f"{source}: {loc}: {msg}{got_s}")
+    return "\n".join(lines)
+
+
+def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, Any]:
+    """Validate camera.options and drive.options against the chosen drivers' Options models.
+
+    Returns {"camera": options_model, "drive": options_model}.
+    """
+    out = {}
+    for section, table in (("camera", registry.CAMERAS), ("drive", registry.DRIVES)):
+        sec = getattr(cfg, section)
+        if sec.driver not in table:
+            raise ConfigError(f"{source}: {section}.driver: unknown driver {sec.driver!r}; "
+                              f"expected one of {', '.join(sorted(table))}")
+        try:
+            cls = registry.load(table, sec.driver)
+        except registry.DriverNotAvailable as exc:
+            raise ConfigError(f"{source}: {section}.driver: {exc}") from exc
+        options_model = getattr(cls, "Options", None)
+        if options_model is None:
+            out[section] = sec.options
+            continue
+        try:
+            out[section] = options_model.model_validate(sec.options)
+        except ValidationError as exc:
+            raise ConfigError(_format_errors(source, exc, prefix=f"{section}.options")) from None
+    return out
+
+
+def parse_config(data: Any, source: str = "<config>") -> Config:
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    try:
+        cfg = Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc)) from None
+    cfg.source = source
+    validate_driver_options(cfg, source)
+    return cfg
+
+
+def resolve_config_path(path: str | Path | None) -> Path:
+    """A config path as given, or the name of a file in configs/ ('sim' -> configs/sim.yaml)."""
+    if path is None:
+        return CONFIG_DIR / "sim.yaml"
+    p = Path(path)
+    if not p.exists() and not p.suffix and (CONFIG_DIR / f"{p}.yaml").exists():
+        return CONFIG_DIR / f"{p}.yaml"
+    return p
+
+
+def load_config(path: str | Path | None = None, overrides: Optional[dict] = None) -> Config:
+    """Load and validate a YAML config. ``overrides`` is merged (deep) on top."""
+    p = resolve_config_path(path)
+    if not p.exists():
+        raise ConfigError(f"{p}: config file not found (give --config FILE, or a name from {CONFIG_DIR})")
+    if p.is_dir():
+        raise ConfigError(f"{p}: is a directory, expected a YAML config file")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"{p}:{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+    if overrides:
+        data = deep_merge(data or {}, overrides)
+    return parse_config(data, str(p))
+
+
+def deep_merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out

@@ -1,0 +1,137 @@
+"""Poses and frames shared by every module.
+
+Conventions (DESIGN.md): camera frame is OpenCV's (x right, y down, z forward).
+The world frame uses the same axes, with the floor at y = 0 (so points above the
+floor have y < 0). A planar robot pose (x, z, theta) has its heading direction
+(sin theta, cos theta) in the (x, z) plane: theta grows when the robot turns
+toward +x (right, clockwise seen from above). Angular rates follow theta.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def wrap_angle(a: float) -> float:
+    """Wrap to (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+@dataclass(frozen=True)
+class Pose2:
+    """Planar pose on the floor: position (x, z) in m, heading theta in rad."""
+
+    x: float = 0.0
+    z: float = 0.0
+    theta: float = 0.0
+
+    def compose(self, other: "Pose2") -> "Pose2":
+        """self * other: ``other`` expressed in self's frame, mapped to self's parent."""
+        c, s = math.cos(self.theta), math.sin(self.theta)
+        # Robot-frame (x right, z forward) to parent: rot_y(theta) on (x, z).
+        return Pose2(self.x + c * other.x + s * other.z,
+                     self.z - s * other.x + c * other.z,
+                     wrap_angle(self.theta + other.theta))
+
+    def inverse(self) -> "Pose2":
+        c, s = math.cos(self.theta), math.sin(self.theta)
+        return Pose2(-(c * self.x - s * self.z), -(s * self.x + c * self.z), wrap_angle(-self.theta))
+
+    def between(self, other: "Pose2") -> "Pose2":
+        """``other`` expressed in this pose's frame (self^-1 * other)."""
+        return self.inverse().compose(other)
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.x, self.z, self.theta])
+
+    def rotation3(self) -> np.ndarray:
+        return rot_y(self.theta)
+
+    def translation3(self) -> np.ndarray:
+        return np.array([self.x, 0.0, self.z])
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """Where the camera sits on the robot.
+
+    height: optical centre above the floor, m. forward/lateral: offset from the
+    wheel-axle centre along the robot's z (forward) and x (right), m.
+    pitch: rad, positive looking down. yaw: rad, positive looking right.
+    """
+
+    height: float = 0.25
+    forward: float = 0.0
+    lateral: float = 0.0
+    pitch: float = 0.0
+    yaw: float = 0.0
+
+    def rotation(self) -> np.ndarray:
+        """R_robot_camera: camera axes expressed in the robot frame."""
+        return rot_y(self.yaw) @ rot_x(-self.pitch)
+
+    def translation(self) -> np.ndarray:
+        return np.array([self.lateral, -self.height, self.forward])
+
+
+def camera_pose(robot: Pose2, mount: CameraMount) -> tuple[np.ndarray, np.ndarray]:
+    """World-from-camera (R_wc, t_wc) for a robot pose and a camera mount."""
+    R_wr = robot.rotation3()
+    R_wc = R_wr @ mount.rotation()
+    t_wc = R_wr @ mount.translation() + robot.translation3()
+    return R_wc, t_wc
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle of a rotation matrix, rad (robust near 0 and pi)."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(math.acos(max(-1.0, min(1.0, c))))
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(qx, qy, qz, qw) with qw >= 0, from a rotation matrix."""
+    m = np.asarray(R, dtype=float)
+    t = np.trace(m)
+    if t > 0:
+        s = math.sqrt(t + 1.0) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def matrix_from_quat(q) -> np.ndarray:
+    x, y, z, w = (float(v) for v in q)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
