@@ -1,0 +1,101 @@
+"""What the runtime plugs together: vision stages, estimates and controllers.
+
+Data flow (DESIGN.md): a camera frame goes through the configured vision stages
+(VBC, VSLAM, obstacles), each of which returns an Estimate; the fixed-rate loop
+gives the latest estimates (with their age) and odometry to one controller,
+which returns a Twist; the safety monitor may override it; the drive executes.
+
+Controllers never touch I/O. Vision stages are pure with respect to the robot
+(frame and odometry in, estimate out); they may keep state (tracks, keyframe
+index) but must not block on anything but computation.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from vbnav.drivers.camera import Frame
+from vbnav.drivers.wheels import WheelState
+from vbnav.vision.geometry import Pose2
+
+
+@dataclass(frozen=True)
+class Twist:
+    """Body velocity command: v forward m/s, w rad/s (positive turns right, see vision/geometry.py)."""
+
+    v: float = 0.0
+    w: float = 0.0
+
+
+STOP = Twist(0.0, 0.0)
+
+
+@dataclass
+class Estimate:
+    """Output of a vision stage for one frame.
+
+    stamp_ns: the frame's stamp (not the time processing finished), so its age
+    says how old the information is. kind: the stage's name ('vbc', 'vslam',
+    'obstacles'). ok: whether the stage trusts it. value: stage-specific result.
+    """
+
+    stamp_ns: int
+    kind: str
+    ok: bool
+    value: Any = None
+    info: dict = field(default_factory=dict)
+
+    def age_s(self, now_ns: int) -> float:
+        return (now_ns - self.stamp_ns) * 1e-9
+
+
+@dataclass
+class ControlContext:
+    now_ns: int
+    dt: float                       # s since the previous cycle
+    odom: Pose2                     # dead-reckoned pose from wheel odometry
+    wheels: WheelState
+    estimates: dict[str, Optional[Estimate]]  # latest per stage kind (may be None)
+    cycle: int = 0
+
+    def estimate(self, kind: str, max_age_s: float) -> Optional[Estimate]:
+        """The latest estimate of ``kind`` if it is younger than ``max_age_s``."""
+        e = self.estimates.get(kind)
+        if e is None or e.age_s(self.now_ns) > max_age_s:
+            return None
+        return e
+
+
+class VisionStage(abc.ABC):
+    """One vision computation run on every frame (on the vision thread)."""
+
+    kind: str = "vision"
+
+    @abc.abstractmethod
+    def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
+        """Estimate from one frame; ``odom`` is the wheel odometry at (about) the frame time."""
+
+
+class Controller(abc.ABC):
+    """Turns odometry and estimates into a Twist, at the loop rate."""
+
+    name: str = "controller"
+    #: estimate kinds this controller needs fresh; the safety monitor stops the robot when
+    #: one is older than safety.estimate_timeout_s.
+    requires: tuple[str, ...] = ()
+
+    def start(self, ctx: ControlContext) -> None:
+        """Called once before the first update."""
+
+    @abc.abstractmethod
+    def update(self, ctx: ControlContext) -> Twist: ...
+
+    @property
+    def finished(self) -> bool:
+        """True when the job is done (route completed, script ended); the runtime then stops."""
+        return False
+
+    def status(self) -> dict:
+        """Small JSON-able summary for progress lines and telemetry."""
+        return {}
