@@ -239,7 +239,7 @@ class EmulatedServo:
             self._position = angle / (2 * 3.141592653589793) * TICKS_PER_REV
             self._velocity = rate / (2 * 3.141592653589793) * 60.0 / VELOCITY_UNIT_RPM
         else:
-            accel = self.get(ADDR_PROFILE_ACCEL, 4) * PROFILE_ACCEL_UNIT_RPM2 / 3600.0 / VELOCITY_UNIT_RPM
+            accel = self.get(ADDR_PROFILE_ACCEL, 4) * PROFILE_ACCEL_UNIT_RPM2 / 60.0 / VELOCITY_UNIT_RPM
             dv = target - self._velocity
             if accel > 0:
                 dv = max(-accel * dt, min(accel * dt, dv))
