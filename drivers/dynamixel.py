@@ -51,6 +51,7 @@ VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0  # one Goal/Present Velocity 
 ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0  # one Profile Acceleration unit (rev/min^2)
 TICKS_PER_REV = 4096
 WATCHDOG_UNIT_S = 0.020
+BRING_UP_EXTRA_MS = 20.0  # answer window added during bring-up: not time-critical, and must not flake
 
 MODEL_NUMBERS = {"XL430-W250": 1060, "XM430-W350": 1020, "XM430-W210": 1030, "XM540-W270": 1120,
                  "XL330-M288": 1200}
@@ -80,10 +81,22 @@ if sdk is not None:
             super().__init__(port_name)
             self.latency_ms = latency_ms
             self.margin_ms = margin_ms
+            self.extra_ms = 0.0  # raised during bring-up, where time is not critical
+
+        def relaxed(self, extra_ms: float):
+            port = self
+
+            class _Relaxed:
+                def __enter__(self):
+                    port.extra_ms = extra_ms
+
+                def __exit__(self, *exc):
+                    port.extra_ms = 0.0
+            return _Relaxed()
 
         def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK name
             self.packet_start_time = self.getCurrentTime()
-            self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_ms + self.margin_ms
+            self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_ms + self.margin_ms + self.extra_ms
 
         def readPort(self, length):  # noqa: N802 - SDK name
             # The SDK polls readPort in a loop with a zero timeout: a busy-wait that burns a core and,
@@ -159,7 +172,8 @@ class DynamixelDrive(WheelDrive):
         with self._lock:
             self._open_port()
             try:
-                self._bring_up()
+                with self.port.relaxed(BRING_UP_EXTRA_MS):
+                    self._bring_up()
             except DriveError:
                 self._torque_off_best_effort()
                 self._close_port()
@@ -172,15 +186,20 @@ class DynamixelDrive(WheelDrive):
                 raise DriveError(f"dynamixel drive on {self.opt.port} is not connected")
             if self.faults:
                 raise DriveError(f"dynamixel drive has faults, clear them first (clear_faults): {'; '.join(self.faults)}")
-            for i in self.ids:
-                # a watchdog that expired while we were away reads 0xFF and locks the goals: clear, re-arm
-                self._write(i, ADDR_BUS_WATCHDOG, 1, 0, "Bus Watchdog")
-                self._write(i, ADDR_GOAL_VELOCITY, 4, 0, "Goal Velocity")
-                self._write(i, ADDR_BUS_WATCHDOG, 1, self._watchdog_units, "Bus Watchdog")
-            for i in self.ids:
-                self._write(i, ADDR_TORQUE_ENABLE, 1, 1, "Torque Enable")
+            with self.port.relaxed(BRING_UP_EXTRA_MS):
+                self._arm()
             self._enabled = True
             self._last_write_ns = self.clock.now_ns()
+
+    def _arm(self) -> None:
+        """Zero goals, re-arm the watchdog, torque on."""
+        for i in self.ids:
+            # a watchdog that expired while we were away reads 0xFF and locks the goals: clear, re-arm
+            self._write(i, ADDR_BUS_WATCHDOG, 1, 0, "Bus Watchdog")
+            self._write(i, ADDR_GOAL_VELOCITY, 4, 0, "Goal Velocity")
+            self._write(i, ADDR_BUS_WATCHDOG, 1, self._watchdog_units, "Bus Watchdog")
+        for i in self.ids:
+            self._write(i, ADDR_TORQUE_ENABLE, 1, 1, "Torque Enable")
 
     def write(self, left: float, right: float) -> None:
         with self._lock:
@@ -237,7 +256,8 @@ class DynamixelDrive(WheelDrive):
                 self._last_raw[i] = None  # position restarts within one turn; keep accumulating from there
             self.faults.clear()
             self._missed_reads = 0
-            self._bring_up()
+            with self.port.relaxed(BRING_UP_EXTRA_MS):
+                self._bring_up()
 
     # -- bring-up -----------------------------------------------------------------------------
     def _open_port(self) -> None:
@@ -402,9 +422,11 @@ class DynamixelDrive(WheelDrive):
         raise DriveError(msg) from exc
 
     def _fault(self, cause: str):
-        """Record, stop everything reachable, raise."""
-        if cause not in self.faults:
-            self.faults.append(cause)
+        """Record, stop everything reachable, raise. A fault already reported is not raised again:
+        read() then keeps returning states that list it, so the operator sees it until cleared."""
+        if cause in self.faults:
+            return
+        self.faults.append(cause)
         self._enabled = False
         self._torque_off_best_effort()
         raise DriveError(f"dynamixel drive fault: {cause}")
