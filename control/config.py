@@ -129,10 +129,10 @@ class Config(Strict):
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     # Sections of later features are plain dicts validated by their own modules
     # (telemetry, obstacles, vbc, vslam); they live here so that unknown keys are still errors.
-    telemetry: dict[str, Any] = Field(default_factory=dict)
-    obstacles: dict[str, Any] = Field(default_factory=dict)
-    vbc: dict[str, Any] = Field(default_factory=dict)
-    vslam: dict[str, Any] = Field(default_factory=dict)
+    telemetry: dict[str, Any] = Field(default_factory=dict, description="zenoh telemetry and commands, see docs/telemetry.md")
+    obstacles: dict[str, Any] = Field(default_factory=dict, description="obstacle detection and stop zones (control/obstacle_monitor.py)")
+    vbc: dict[str, Any] = Field(default_factory=dict, description="teach-and-repeat settings (control/teach_repeat.py)")
+    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM settings (control/vo.py)")
 
     source: Optional[str] = Field(None, exclude=True, description="file this was loaded from")
 
