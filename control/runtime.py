@@ -167,6 +167,7 @@ class Runtime:
                     return self._finish(now, "exception", self.pipeline.fault)
                 estimates = dict(self.pipeline.latest)
                 self._check_camera(now)
+                self._apply_speed_scales(now, estimates)
             ctx = ControlContext(now, dt, odom, wheels, estimates, cycle)
             self.ctx = ctx
             stage = "commands"
@@ -224,6 +225,18 @@ class Runtime:
             age = (now - stamp) * 1e-9
             stale = age > limit
         self.safety.hold(now, "camera_stale", stale, f"last frame {age:.2f} s old (limit {limit:g} s)")
+
+    def _apply_speed_scales(self, now: int, estimates: dict) -> None:
+        """Estimates may carry ``info['speed_scale']`` in [0, 1] (obstacle zones): the smallest applies,
+        and 0 is a held stop until the zone has been clear for the release time."""
+        scale = 1.0
+        why = ""
+        for e in estimates.values():
+            s = e.info.get("speed_scale") if e is not None else None
+            if s is not None and s < scale:
+                scale, why = float(s), e.info.get("reason", e.kind)
+        self.safety.speed_scale = max(0.0, scale)
+        self.safety.hold(now, "obstacle", scale <= 0.0, why or "obstacle in the stop zone")
 
     def _check_estimates(self, ctx: ControlContext) -> None:
         limit = self.cfg.safety.estimate_timeout_s
