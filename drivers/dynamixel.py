@@ -162,6 +162,11 @@ class DynamixelDrive(WheelDrive):
         self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
 
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "DynamixelDrive":
+        """As the runtime's factory builds drives: the robot config, its clock, the validated options."""
+        return cls(cfg, clock, options=options)
+
     # -- lifecycle ------------------------------------------------------------------------
     @property
     def is_connected(self) -> bool:

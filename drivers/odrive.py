@@ -108,6 +108,11 @@ class ODriveDrive(WheelDrive):
         self._rx = b""
         self._state = WheelState(self.clock.now_ns(), (0.0, 0.0), (0.0, 0.0))
 
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "ODriveDrive":
+        """As the runtime's factory builds drives: the robot config, its clock, the validated options."""
+        return cls(cfg, clock, options=options)
+
     # -- lifecycle ---------------------------------------------------------------------
     @property
     def is_connected(self) -> bool:
