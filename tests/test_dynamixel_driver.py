@@ -250,3 +250,14 @@ def test_vbnav_emulate_dynamixel_prints_device_path_first(tmp_path):
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=5) == 0
+
+
+def test_a_stalled_controller_finds_the_watchdog_expired(bus, drive):
+    drive_for(drive, 2.0, 2.0)
+    time.sleep(WATCHDOG_S * 2)  # the loop stalls longer than the watchdog: the servos stop themselves
+    assert wheels_stopped(bus)
+    with pytest.raises(DriveError, match=r"bus watchdog expired after \d+ ms without commands \(limit 100 ms\)"):
+        drive.write(1.0, 1.0)
+    drive.clear_faults()
+    drive.enable()  # clears the latched watchdog error (0xFF) and re-arms it
+    assert drive_for(drive, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
