@@ -51,7 +51,8 @@ VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0  # one Goal/Present Velocity 
 ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0  # one Profile Acceleration unit (rev/min^2)
 TICKS_PER_REV = 4096
 WATCHDOG_UNIT_S = 0.020
-BRING_UP_EXTRA_MS = 20.0  # answer window added during bring-up: not time-critical, and must not flake
+BRING_UP_EXTRA_MS = 30.0  # answer window added during bring-up: not time-critical, and must not flake
+BRING_UP_ATTEMPTS = 3
 
 MODEL_NUMBERS = {"XL430-W250": 1060, "XM430-W350": 1020, "XM430-W210": 1030, "XM540-W270": 1120,
                  "XL330-M288": 1200}
@@ -293,7 +294,10 @@ class DynamixelDrive(WheelDrive):
     def _bring_up(self) -> None:
         accepted = {MODEL_NUMBERS[self.opt.model]} if self.opt.model else set(MODEL_NUMBERS.values())
         for i in self.ids:
-            model, res, err = self._guard_io(lambda: self.ph.ping(self.port, i))
+            for _attempt in range(BRING_UP_ATTEMPTS):  # a servo just powered may miss the first packet
+                model, res, err = self._guard_io(lambda: self.ph.ping(self.port, i))
+                if res == sdk.COMM_SUCCESS:
+                    break
             if res != sdk.COMM_SUCCESS:
                 raise DriveError(f"servo {i} ({self.sides[i]}) on {self.opt.port} did not answer ping: "
                                  f"{self.ph.getTxRxResult(res)}")
@@ -324,8 +328,12 @@ class DynamixelDrive(WheelDrive):
         self._state = WheelState(self.clock.now_ns(), self._positions(), (0.0, 0.0))
 
     def _write(self, i: int, addr: int, size: int, value: int, what: str) -> None:
+        """A confirmed register write (bring-up, enable): retried, since none of them is time-critical."""
         fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
-        res, err = self._guard_io(lambda: fn(self.port, i, addr, value & ((1 << (8 * size)) - 1)))
+        for _attempt in range(BRING_UP_ATTEMPTS):
+            res, err = self._guard_io(lambda: fn(self.port, i, addr, value & ((1 << (8 * size)) - 1)))
+            if res == sdk.COMM_SUCCESS:
+                break
         if res != sdk.COMM_SUCCESS:
             raise DriveError(f"servo {i} ({self.sides[i]}): writing {what} ({addr}) = {value} got no answer: "
                              f"{self.ph.getTxRxResult(res)}")

