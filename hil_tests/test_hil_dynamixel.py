@@ -16,7 +16,7 @@ def test_scripted_route_odometry_matches_simulator():
     result, rt, coupling = run_route(
         "sentry-dynamixel.yaml",
         lambda c: DynamixelBus([1, 2], "XL430-W250", coupling=c),
-        {"margin_ms": 5.0, "max_missed_reads": 3}, SCRIPT, channels={1: (0, 1), 2: (1, -1)})
+        {"margin_ms": 5.0, "max_missed_reads": 3, "bus_watchdog_s": 0.5}, SCRIPT, channels={1: (0, 1), 2: (1, -1)})
     assert result.reason == "finished", result.message
     truth, odom = coupling.true_pose, rt.odometry.pose
     travelled = 0.15 * 1.5 + 0.12 * 1.5

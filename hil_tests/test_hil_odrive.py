@@ -13,7 +13,7 @@ SCRIPT = [[0.3, 0.0, 1.5], [0.25, 0.6, 1.5], [0.0, 0.0, 0.4]]
 def test_scripted_route_odometry_matches_simulator():
     result, rt, coupling = run_route(
         "sentry-odrive.yaml", lambda c: ODriveEmulator(coupling=c),
-        {"reply_timeout_s": 0.02}, SCRIPT, channels={0: (0, 1), 1: (1, -1)})
+        {"reply_timeout_s": 0.02, "watchdog_s": 0.5}, SCRIPT, channels={0: (0, 1), 1: (1, -1)})
     assert result.reason == "finished", result.message
     truth, odom = coupling.true_pose, rt.odometry.pose
     travelled = 0.3 * 1.5 + 0.25 * 1.5

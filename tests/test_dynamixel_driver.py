@@ -19,7 +19,7 @@ from vbnav.drivers import dynamixel_emulator as de
 from vbnav.drivers.dynamixel import VELOCITY_UNIT_RAD_S, DynamixelDrive
 from vbnav.drivers.wheels import DriveError
 
-WATCHDOG_S = 0.1
+WATCHDOG_S = 0.2  # generous: a loaded CI machine may pause a test thread for 100+ ms
 
 
 @pytest.fixture
@@ -75,7 +75,7 @@ def test_bring_up_in_safe_order(bus):
         steps = [(a, v) for k, (_, a, v) in enumerate(ops) if k > 0 and (a, v) != ops[k - 1][1:]]
         assert [a for a, _ in steps] == [64, 11, 44, 108, 9, 98, 98], steps
         values = dict(steps)
-        assert values[11] == 1 and values[9] == 0 and values[98] == 5
+        assert values[11] == 1 and values[9] == 0 and values[98] == round(WATCHDOG_S / 0.02)
         assert values[44] == round(5.0 / VELOCITY_UNIT_RAD_S)
         assert not bus.servo(i).torque_on
     d.enable()
@@ -233,7 +233,7 @@ def test_controlling_process_killed_with_sigkill(bus):
         last_packet = max(e.t for e in bus.log if e.op == "write")
     # the wheel stops within the configured watchdog time (plus the emulator's 1 ms step)
     for e in expired:
-        assert WATCHDOG_S <= e.t - last_packet <= WATCHDOG_S + 0.02, e.t - last_packet
+        assert WATCHDOG_S <= e.t - last_packet <= WATCHDOG_S + 0.05, e.t - last_packet
     assert math.isclose(bus.servo(1).get(de.ADDR_BUS_WATCHDOG, 1, signed=True), -1)
 
 
@@ -257,7 +257,7 @@ def test_a_stalled_controller_finds_the_watchdog_expired(bus, drive):
     drive_for(drive, 2.0, 2.0)
     time.sleep(WATCHDOG_S * 2)  # the loop stalls longer than the watchdog: the servos stop themselves
     assert wheels_stopped(bus)
-    with pytest.raises(DriveError, match=r"bus watchdog expired after \d+ ms without commands \(limit 100 ms\)"):
+    with pytest.raises(DriveError, match=r"bus watchdog expired after \d+ ms without commands \(limit \d+ ms\)"):
         drive.write(1.0, 1.0)
     drive.clear_faults()
     drive.enable()  # clears the latched watchdog error (0xFF) and re-arms it

@@ -15,7 +15,7 @@ from vbnav.drivers import odrive_emulator as oe
 from vbnav.drivers.odrive import ODriveDrive, decode_bits, MOTOR_ERRORS
 from vbnav.drivers.wheels import DriveError
 
-WATCHDOG_S = 0.1
+WATCHDOG_S = 0.2  # generous: a loaded CI machine may pause a test thread for 100+ ms
 
 
 # -- protocol ---------------------------------------------------------------------------------
@@ -218,7 +218,7 @@ def test_controlling_process_killed_with_sigkill(emu):
         last_cmd = max(t for t, text in emu.log if text.startswith("v "))
     assert len(expired) == 2
     for t in expired:
-        assert WATCHDOG_S <= t - last_cmd <= WATCHDOG_S + 0.02
+        assert WATCHDOG_S <= t - last_cmd <= WATCHDOG_S + 0.05
 
 
 def test_vbnav_emulate_odrive_prints_device_path_first():
