@@ -20,7 +20,7 @@ import glob
 import os
 import threading
 import time
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -48,6 +48,11 @@ class V4L2Camera(Camera):
         replay_rate_hz: Optional[float] = Field(None, ge=0, description="files: frames per second "
                                                 "(None: the file's own rate, 0: as fast as read)")
         loop: bool = Field(False, description="files: start again at the end")
+        source: Literal["auto", "device", "file"] = Field(
+            "auto", description="auto: a regular file is replayed, anything else is a live device")
+        backend: Literal["v4l2", "any"] = Field(
+            "v4l2", description="OpenCV capture backend for live devices (any: OpenCV chooses, e.g. for "
+                                "GStreamer/FFmpeg URLs)")
 
         @field_validator("fourcc")
         @classmethod
@@ -66,7 +71,7 @@ class V4L2Camera(Camera):
         self.width = width or (cam.width if cam is not None else 640)
         self.height = height or (cam.height if cam is not None else 480)
         self.fps = fps or (cam.rate_hz if cam is not None else 30.0)
-        self.is_file = os.path.isfile(options.device)
+        self.is_file = options.source == "file" or (options.source == "auto" and os.path.isfile(options.device))
         self.error: Optional[str] = None
         self.reconnects = 0
         self.finished = False
@@ -129,11 +134,14 @@ class V4L2Camera(Camera):
         if self.is_file:
             return self._open_file()
         dev = self.opt.device
-        if not os.path.exists(dev):
+        if self.opt.backend == "v4l2" and not os.path.exists(dev):
             raise CameraError(f"camera {dev} not found; video devices present: {', '.join(self.find()) or 'none'}")
-        cap = cv2.VideoCapture(dev, cv2.CAP_V4L2)
+        if not os.path.exists(dev) and "://" not in dev:
+            raise CameraError(f"camera {dev} not found")
+        cap = cv2.VideoCapture(dev, cv2.CAP_V4L2 if self.opt.backend == "v4l2" else cv2.CAP_ANY)
         if not cap.isOpened():
-            raise CameraError(f"camera {dev} cannot be opened through V4L2 (busy, or not a capture device?)")
+            raise CameraError(f"camera {dev} cannot be opened through {self.opt.backend} "
+                              f"(busy, or not a capture device?)")
         cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.opt.fourcc))
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)

@@ -111,3 +111,30 @@ def test_format_verification_names_each_mismatch(video):
         cap.release()
     msg = str(err.value)
     assert "format MJPG instead of YUYV" in msg and "size 64x48 instead of 64x32" in msg and "30 fps instead of 15" in msg
+
+
+def test_reconnects_after_the_device_goes_away_and_comes_back(video, tmp_path):
+    # A live source that stops delivering and whose path disappears, as an unplugged camera does.
+    # The "device" is the clip behind a symlink opened as a live source (OpenCV picks the backend);
+    # the end of the clip is the moment it stops delivering.
+    link = tmp_path / "video-by-id"
+    link.symlink_to(video)
+    cam = V4L2Camera(options=V4L2Camera.Options(device=str(link), source="device", backend="any",
+                                                stall_timeout_s=0.1, reconnect_interval_s=0.05),
+                     width=W, height=H, fps=30.0)
+    cam.connect()
+    try:
+        seen = [cam.read(timeout_s=1.0)]
+        link.unlink()  # unplugged
+        deadline = time.monotonic() + 5.0
+        while (cam.error is None or "not found" not in cam.error) and time.monotonic() < deadline:
+            cam.read(timeout_s=0.05)
+        assert cam.error and f"camera {link} not found" in cam.error
+        link.symlink_to(video)  # plugged back
+        while cam.reconnects == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.reconnects >= 1
+        f = cam.read(timeout_s=1.0)
+        assert f is not None and f.seq > seen[0].seq and f.meta["reconnects"] >= 1
+    finally:
+        cam.disconnect()
