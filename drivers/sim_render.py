@@ -49,6 +49,25 @@ def _pyramid(tex: np.ndarray, min_size: int = 8) -> list[np.ndarray]:
     return levels
 
 
+def _polygon_areas(px: np.ndarray, poly: np.ndarray) -> tuple[float, float]:
+    """Areas of a small polygon: on screen (shoelace, px^2) and in space (m^2).
+
+    Plain Python over <= 9 vertices: cheaper than numpy's per-call overhead.
+    """
+    p2, p3 = px.tolist(), poly.tolist()
+    k = len(p2)
+    a2 = 0.0
+    sx = sy = sz = 0.0
+    for i in range(k):
+        (x0, y0), (x1, y1) = p2[i], p2[(i + 1) % k]
+        a2 += x0 * y1 - x1 * y0
+        (ax, ay, az), (bx, by, bz) = p3[i], p3[(i + 1) % k]
+        sx += ay * bz - az * by
+        sy += az * bx - ax * bz
+        sz += ax * by - ay * bx
+    return 0.5 * abs(a2), 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)
+
+
 class _Tiles:
     """The world's quads cut into tiles, as flat arrays for vectorised culling."""
 
@@ -227,8 +246,7 @@ class Renderer:
         th, tw = quad.texture.shape[:2]
         sa, sb = quad.width / tw, quad.height / th          # metres per level-0 texel
         # Mip level from the tile's mean texel density on screen (area ratio).
-        area_px = 0.5 * abs(np.dot(px[:, 0], np.roll(px[:, 1], -1)) - np.dot(px[:, 1], np.roll(px[:, 0], -1)))
-        area_m = 0.5 * np.linalg.norm(np.cross(poly_c, np.roll(poly_c, -1, axis=0)).sum(axis=0))
+        area_px, area_m = _polygon_areas(px, poly_c)
         level = 0
         if area_px > 1e-6:
             ratio = area_m / (sa * sb) / area_px
