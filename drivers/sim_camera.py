@@ -79,7 +79,8 @@ def interpolate_pose(p0: Pose2, p1: Pose2, a: float) -> Pose2:
 class SimCamera(Camera):
     """A camera looking at a simulated World from the pose given by ``pose_fn``.
 
-    world: the World to render. camera_model: PinholeCamera without distortion.
+    world: the World to render. camera_model: PinholeCamera (OpenCV distortion is
+    rendered by remapping an ideal pinhole image; stereo needs none).
     mount: where the camera sits on the robot. pose_fn: returns the TRUE robot
     Pose2 now (the simulated base's ``true_pose``). clock: ``now_ns()`` and
     ``sleep_until(ns)``. rate_hz: frame rate. noise_std: grey levels.
@@ -107,6 +108,9 @@ class SimCamera(Camera):
             raise ValueError(f"SimCamera rate_hz must be > 0, got {rate_hz}")
         if stereo_baseline is not None and stereo_baseline <= 0:
             raise ValueError(f"SimCamera stereo_baseline must be > 0 m or None, got {stereo_baseline}")
+        if stereo_baseline is not None and camera_model.has_distortion:
+            raise ValueError("SimCamera stereo pairs are rectified: give a camera model without distortion "
+                             f"(got dist={camera_model.dist})")
         self.world = world
         self.model = camera_model
         self.mount = mount
@@ -119,7 +123,7 @@ class SimCamera(Camera):
         self.gain = float(gain)
         self.color = bool(color)
         self.occluded = False
-        self.renderer = Renderer(world, camera_model)   # validates the model (pinhole, no distortion)
+        self.renderer = Renderer(world, camera_model)   # validates the model (pinhole)
         self._connected = False
         self._next_index = 0
         self._seq = 0

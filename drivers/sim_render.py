@@ -104,9 +104,12 @@ class Renderer:
     def __init__(self, world, camera: PinholeCamera, tile_m: float = 2.0):
         if not isinstance(camera, PinholeCamera):
             raise TypeError(f"the simulated renderer supports PinholeCamera models, got {type(camera).__name__}")
+        self._distorted: Optional[_DistortionRemap] = None
         if camera.has_distortion:
-            raise ValueError("the simulated renderer draws an ideal pinhole image: give a camera model "
-                             f"without distortion (got dist={camera.dist})")
+            # Render an ideal pinhole image that covers the distorted view, then remap it.
+            self._distorted = _DistortionRemap(camera)
+            self._ideal = Renderer(world, self._distorted.ideal, tile_m)
+            return
         self.world = world
         self.cam = camera
         self.tile_m = float(tile_m)
@@ -147,6 +150,9 @@ class Renderer:
     def render(self, R_wc: np.ndarray, t_wc: np.ndarray, *, image: bool = True, depth: bool = False,
                ids: bool = False, color: bool = False) -> RenderOutput:
         """Draw the world seen from world-from-camera pose (R_wc, t_wc)."""
+        if self._distorted is not None:
+            out = self._ideal.render(R_wc, t_wc, image=image, depth=depth, ids=ids, color=color)
+            return self._distorted.apply(out)
         cam = self.cam
         H, W = cam.height, cam.width
         tiles = self._sync()
@@ -263,3 +269,44 @@ class Renderer:
         M[1] -= y0 * M[2]
         return cv2.warpPerspective(levels[level], M, (bw, bh), flags=cv2.INTER_LINEAR,
                                    borderMode=cv2.BORDER_REPLICATE)
+
+
+class _DistortionRemap:
+    """Maps an ideal pinhole rendering onto the pixel grid of a camera with OpenCV distortion.
+
+    For every output pixel, its undistorted normalised coordinates (the camera
+    model's own ``normalized``) give a position in an ideal pinhole image with the
+    same focal lengths, large enough to hold them all. Images are resampled
+    bilinearly; ids and depth take the nearest ideal pixel (within 0.5 px).
+    """
+
+    MAX_SCALE = 3.0     # refuse ideal canvases larger than 3x the image per side
+
+    def __init__(self, camera: PinholeCamera):
+        W, H = camera.width, camera.height
+        v, u = np.mgrid[0:H, 0:W]
+        xy = camera.normalized(np.column_stack((u.ravel(), v.ravel())).astype(np.float64))
+        if not np.isfinite(xy).all():
+            raise ValueError(f"camera distortion {camera.dist} cannot be inverted over the whole image")
+        xmin, ymin = xy.min(axis=0)
+        xmax, ymax = xy.max(axis=0)
+        iw = int(math.ceil((xmax - xmin) * camera.fx)) + 4
+        ih = int(math.ceil((ymax - ymin) * camera.fy)) + 4
+        if iw > self.MAX_SCALE * W or ih > self.MAX_SCALE * H:
+            raise ValueError(f"camera distortion {camera.dist} is too strong for the pinhole renderer "
+                             f"(ideal image {iw}x{ih} for {W}x{H}); use a smaller field of view")
+        cx, cy = -xmin * camera.fx + 2.0, -ymin * camera.fy + 2.0
+        self.ideal = PinholeCamera(iw, ih, camera.fx, camera.fy, cx, cy)
+        self.map_x = (xy[:, 0] * camera.fx + cx).reshape(H, W).astype(np.float32)
+        self.map_y = (xy[:, 1] * camera.fy + cy).reshape(H, W).astype(np.float32)
+        # Ideal-camera z equals the real camera's z (same optical axis), so depth maps over unchanged.
+
+    def apply(self, out: RenderOutput) -> RenderOutput:
+        def remap(a, interp):
+            return None if a is None else cv2.remap(a, self.map_x, self.map_y, interp,
+                                                    borderMode=cv2.BORDER_REPLICATE)
+        ids = out.ids
+        if ids is not None:   # cv2.remap has no int32 nearest path on every build: go through float32 ids
+            ids = remap(ids.astype(np.float32), cv2.INTER_NEAREST).astype(np.int32)
+        return RenderOutput(image=remap(out.image, cv2.INTER_LINEAR), depth=remap(out.depth, cv2.INTER_NEAREST),
+                            ids=ids, inv_depth=remap(out.inv_depth, cv2.INTER_NEAREST))

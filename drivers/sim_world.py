@@ -357,6 +357,27 @@ class World:
         """name -> (center_xz, size_xyz, yaw) of every box."""
         return {b.name: (b.center_xz, b.size_xyz, b.yaw) for b in self._boxes.values()}
 
+    def footprints(self) -> list[tuple[str, str, np.ndarray]]:
+        """Plan view for plots: (name, kind, (N, 2) array of (x, z)) per object.
+
+        Walls and risers are 2-point segments; boxes and sheets closed outlines
+        (their top quad's corners); floors and ceilings are left out.
+        """
+        out = []
+        for name, pids in self._groups.items():
+            quads = [self._quads[p] for p in pids]
+            kinds = {q.kind for q in quads}
+            if kinds & {"floor", "ceiling"} or (kinds == {"step"} and abs(quads[0].normal[1]) > 0.5):
+                continue
+            if kinds <= {"wall", "step"}:
+                for q in quads:
+                    c = q.corners
+                    out.append((name, q.kind, c[[0, 1]][:, [0, 2]]))
+                continue
+            top = min(quads, key=lambda q: q.center[1])   # highest face: the box top / the sheet
+            out.append((name, top.kind, top.corners[:, [0, 2]]))
+        return out
+
     def clearance(self, x: float, z: float) -> float:
         """Plan-view distance (m) from (x, z) to the nearest wall or box footprint (< 0 inside a box)."""
         best = math.inf

@@ -28,8 +28,13 @@ def room():
     return World.room(seed=0)
 
 
-@pytest.mark.parametrize("yaw,pitch,dist", [(0.0, 0.0, 2.0), (0.35, -0.2, 3.0), (-0.2, 0.15, 1.6)])
-def test_rendered_corners_land_where_the_camera_model_projects(yaw, pitch, dist):
+DISTORTED = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5, (-0.28, 0.07, 0.001, -0.0005))
+
+
+@pytest.mark.parametrize("yaw,pitch,dist,cam", [(0.0, 0.0, 2.0, CAM), (0.35, -0.2, 3.0, CAM),
+                                                (-0.2, 0.15, 1.6, CAM), (0.35, -0.2, 2.0, DISTORTED),
+                                                (-0.2, 0.15, 1.3, DISTORTED)])
+def test_rendered_corners_land_where_the_camera_model_projects(yaw, pitch, dist, cam):
     # One 1.2 m x 0.8 m checkerboard quad (6 x 4 squares of 0.2 m), seen obliquely.
     w = World(background=128)
     tex = checker_texture()
@@ -37,11 +42,11 @@ def test_rendered_corners_land_where_the_camera_model_projects(yaw, pitch, dist)
                    ppm=tex.shape[1] / 1.2, two_sided=True)
     R_wc = rot_y(yaw) @ rot_x(pitch)
     t_wc = np.array([0.1, -0.55, 0.0])
-    img = Renderer(w, CAM).render(R_wc, t_wc).image
+    img = Renderer(w, cam).render(R_wc, t_wc).image
     # Interior X-corners of the board: plane coordinates (0.2 i, 0.2 j).
     pts_w = np.array([q.point(0.2 * i, 0.2 * j) for i in range(1, 6) for j in range(1, 4)])
-    px, front = CAM.project((pts_w - t_wc) @ R_wc)
-    assert front.all() and CAM.in_image(px, 10).all()
+    px, front = cam.project((pts_w - t_wc) @ R_wc)
+    assert front.all() and cam.in_image(px, 10).all()
     found = cv2.cornerSubPix(img, (px + 1.2).astype(np.float32).reshape(-1, 1, 2), (6, 6), (-1, -1),
                              (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)).reshape(-1, 2)
     err = np.linalg.norm(found - px, axis=1)
@@ -237,9 +242,9 @@ def test_color_option_and_options_model(room):
         SimCamera.Options.model_validate({"baseline": 0.1})
     with pytest.raises(ValidationError):
         SimCamera.Options.model_validate({"stereo_baseline": -1})
-    with pytest.raises(ValueError, match="distortion"):
+    with pytest.raises(ValueError, match="rectified"):
         SimCamera(room, PinholeCamera(640, 480, 400, 400, 320, 240, (0.1, 0, 0, 0)), MOUNT, lambda: Pose2(),
-                  SimClock(), 15)
+                  SimClock(), 15, stereo_baseline=0.1)
 
 
 def test_built_from_the_default_configuration():
@@ -305,3 +310,23 @@ def test_klt_tracks_between_consecutive_frames_agree_with_the_true_motion(room):
         p = q
     assert min(kept) > 0.85, kept
     assert max(errs) < 0.2, errs
+
+
+def test_descriptors_match_nearby_views_but_not_other_places(room):
+    """Textures do not repeat: ORB + ratio test finds many matches to a view 10-30 cm away
+    and few to views of other parts of the room (keyframe re-acquisition is not fooled)."""
+    cam = SimCamera(room, CAM, MOUNT, lambda: Pose2(), SimClock(), 15, noise_std=2.0)
+    orb = cv2.ORB_create(1000)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def features(pose, seq):
+        return orb.detectAndCompute(cam.render_frame(pose, seq=seq).image, None)[1]
+
+    def ratio_matches(a, b):
+        return sum(1 for m, n in matcher.knnMatch(a, b, k=2) if m.distance < 0.8 * n.distance)
+    base = Pose2(-3.5, -2.0, 0.0)
+    ref = features(base, 0)
+    near = [base.compose(Pose2(0.05, 0.1, 0.05)), base.compose(Pose2(0.3, 0.0, 0.17))]
+    elsewhere = [Pose2(3.5, 2.0, math.pi), Pose2(-3.5, 2.0, math.pi / 2), Pose2(0.0, -2.0, -1.5)]
+    assert min(ratio_matches(ref, features(p, 1)) for p in near) >= 300
+    assert max(ratio_matches(ref, features(p, 1)) for p in elsewhere) <= 60

@@ -157,3 +157,13 @@ def test_by_name_and_bad_names():
         w.add_box("b", (0, 0), (1, 1, 1))
     with pytest.raises(TypeError):
         Renderer(w, object())
+
+
+def test_footprints_give_walls_and_box_outlines(room):
+    fp = {name: (kind, pts) for name, kind, pts in room.footprints()}
+    assert {"wall_south", "box_a", "box_e"} <= set(fp) and "floor" not in fp
+    kind, pts = fp["box_e"]          # 1.2 m x 0.5 m box at (0.5, 3.55), no yaw
+    assert kind == "box" and pts.shape == (4, 2)
+    assert np.allclose(np.sort(pts[:, 0]), [-0.1, -0.1, 1.1, 1.1])
+    assert np.allclose(np.sort(pts[:, 1]), [3.3, 3.3, 3.8, 3.8])
+    assert fp["wall_south"][1].shape == (2, 2)
