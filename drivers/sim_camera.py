@@ -130,9 +130,19 @@ class SimCamera(Camera):
         self._last_sample: Optional[tuple[int, Pose2]] = None
 
     @classmethod
-    def from_config(cls, cfg, pose_fn: Callable[[], Pose2], clock, world: Optional[World] = None) -> "SimCamera":
-        """Build from a validated vbnav Config (duck-typed: drivers do not import control)."""
-        opts = cls.Options.model_validate(cfg.camera.options)
+    def from_config(cls, cfg, clock, options=None, pose_fn: Optional[Callable[[], Pose2]] = None,
+                    world: Optional[World] = None) -> "SimCamera":
+        """Build from a validated vbnav Config (duck-typed: drivers do not import control).
+
+        options: a ``SimCamera.Options`` (or its dict; default ``cfg.camera.options``).
+        pose_fn: the simulated base's true pose (required). world: default
+        ``World.by_name(cfg.sim.world, cfg.sim.seed)``.
+        """
+        if pose_fn is None:
+            raise ValueError("camera.driver 'sim' needs pose_fn: the simulated base's true pose")
+        if options is None:
+            options = cfg.camera.options
+        opts = options if isinstance(options, cls.Options) else cls.Options.model_validate(options)
         if world is None:
             world = World.by_name(cfg.sim.world, cfg.sim.seed)
         return cls(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn, clock,
@@ -162,17 +172,18 @@ class SimCamera(Camera):
     def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
         """The newest due frame not yet returned, or None.
 
-        If none is due and the next one is due within ``timeout_s``, sleeps on
-        the clock until it is (on a SimClock that advances simulated time).
+        If none is due, waits on the clock for the next one, at most
+        ``timeout_s`` (like a real camera; on a SimClock waiting advances
+        simulated time, so the simulated loop calls ``read(0)``).
         """
         if not self._connected:
             raise CameraError("sim camera: read() before connect()")
         now = self.clock.now_ns()
         due = self.due_ns(self._next_index)
         if due > now:
-            if timeout_s > 0 and due - now <= timeout_s * 1e9:
+            if timeout_s > 0:
                 self._sample(now)
-                self.clock.sleep_until(due)
+                self.clock.sleep_until(min(due, now + int(timeout_s * 1e9)))
                 now = self.clock.now_ns()
             if due > now:
                 self._sample(now)

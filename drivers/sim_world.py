@@ -206,6 +206,11 @@ class World:
     def polygons(self) -> list[Quad]:
         return list(self._quads.values())
 
+    @property
+    def quads(self) -> list[Quad]:
+        """Same as ``polygons``."""
+        return self.polygons
+
     def polygon(self, pid: int) -> Quad:
         return self._quads[pid]
 

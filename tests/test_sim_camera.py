@@ -188,7 +188,8 @@ def test_late_reader_gets_the_newest_frame_and_timeout_waits_on_the_clock(room):
     assert f.stamp_ns == 300_000_000 and f.meta["dropped"] == 2 and f.seq == 1
     f = cam.read(timeout_s=0.2)                     # next due at 0.4 s: waits for it
     assert f.stamp_ns == 400_000_000 and clock.now_ns() == 400_000_000
-    assert cam.read(timeout_s=0.05) is None         # next due in 0.1 s: beyond the timeout
+    assert cam.read(timeout_s=0.05) is None         # next due in 0.1 s: waits 0.05 s, then gives up
+    assert clock.now_ns() == 450_000_000
 
 
 def test_lighting_gain_scales_the_mean_brightness(room):
@@ -255,7 +256,9 @@ def test_built_from_the_default_configuration():
     data = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
     cfg = Config.model_validate(deep_merge(data, {"camera": {"options": {"stereo_baseline": 0.08}}}))
     clock = SimClock()
-    cam = SimCamera.from_config(cfg, lambda: Pose2(-3.5, -2.0, 0.0), clock)
+    with pytest.raises(ValueError, match="pose_fn"):
+        SimCamera.from_config(cfg, clock)
+    cam = SimCamera.from_config(cfg, clock, pose_fn=lambda: Pose2(-3.5, -2.0, 0.0))
     assert cam.rate_hz == cfg.camera.rate_hz and cam.noise_std == cfg.sim.image_noise_std
     with cam:
         f = cam.read()
