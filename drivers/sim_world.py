@@ -16,6 +16,11 @@ Typical use::
     world.move_box("box_a", (0.5, 1.0))        # "two boxes moved" scenario
     world.add_box("obstacle", (0.0, 3.0), (0.3, 0.02, 0.3))   # a 2 cm box
     ids, depth = world.label_image(camera, R_wc, t_wc)        # ground truth
+    height = -world.surface_points(camera, R_wc, t_wc)[..., 1]  # m above the floor
+
+Worlds: ``World.room(seed, boxes=True)``, ``World.corridor(seed, ...)``,
+``World.corridor_with_step(seed, step_at=3.0, step_depth=0.15)``,
+``World.by_name(name, seed)`` for configuration (``sim.world``).
 
 Polygon ids (``Quad.pid``) are stable for the life of the world (moving a box
 keeps its ids); ``world.kind_image(ids)`` maps them to class names.
@@ -239,6 +244,22 @@ class World:
         from vbnav.drivers.sim_render import Renderer
         out = Renderer(self, camera).render(R_wc, t_wc, image=False, depth=True, ids=True)
         return out.ids, out.depth
+
+    def surface_points(self, camera, R_wc: np.ndarray, t_wc: np.ndarray) -> np.ndarray:
+        """World point (x, y, z) seen at every pixel centre, (H, W, 3) float32, NaN where none.
+
+        Height above the floor is ``-points[..., 1]`` (e.g. the ground truth of
+        an obstacle mask: pixels more than 1 cm above the floor).
+        """
+        _, depth = self.label_image(camera, R_wc, t_wc)
+        H, W = depth.shape
+        v, u = np.mgrid[0:H, 0:W]
+        uv = camera.normalized(np.column_stack((u.ravel(), v.ravel())).astype(np.float64))
+        z = depth.reshape(-1).astype(np.float64)
+        z = np.where(np.isfinite(z), z, np.nan)
+        pc = np.column_stack((uv * z[:, None], z))
+        pw = pc @ np.asarray(R_wc, float).T + np.asarray(t_wc, float).reshape(1, 3)
+        return pw.reshape(H, W, 3).astype(np.float32)
 
     # ---------------------------------------------------------------- building
     def add_quad(self, name: str, kind: str, origin, u, v, width: float, height: float, *,

@@ -112,7 +112,11 @@ def test_small_box_and_floor_sheet_on_the_floor():
     R, t = camera_pose(Pose2(0.0, 0.0, 0.0), CameraMount(height=0.4, pitch=math.radians(15)))
     ids, depth = w.label_image(CAM, R, t)
     kinds = w.kind_image(ids)
-    assert (kinds == KINDS.index("box")).sum() > 100          # a 1 cm box at 3 m is visible
+    box = kinds == KINDS.index("box")
+    assert box.sum() > 100                                      # a 1 cm box at 3 m is visible
+    height = -w.surface_points(CAM, R, t)[..., 1]
+    assert height[box].max() == pytest.approx(0.01, abs=1e-4) and height[box].min() > -1e-4
+    assert np.median(np.abs(height[kinds == KINDS.index("floor")])) < 1e-5
     sheet = kinds == KINDS.index("sheet")
     assert sheet.sum() > 2000
     # The sheet lies 1 mm above the floor: its depth is the floor's depth to < 1 %.
@@ -142,6 +146,10 @@ def test_corridor_step_down_is_labelled():
     z_low = (0.15 - t[1]) / ray_w[1]
     assert depth[r, cidx] == pytest.approx(z_low, rel=1e-3)
     assert depth[r, cidx] > z_floor0 * 1.1
+    pts = w.surface_points(CAM, R, t)
+    assert pts[r, cidx, 1] == pytest.approx(0.15, abs=1e-4)          # 15 cm below the floor
+    floor = kinds == KINDS.index("floor")
+    assert np.abs(pts[floor][:, 1]).max() < 1e-3
 
 
 def test_by_name_and_bad_names():
