@@ -219,8 +219,8 @@ def _robust_weights(d2: np.ndarray, loss: str, k: float) -> np.ndarray:
 
 def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current_beta,
                   inv_height_var=None, *, forward: float = 0.0, lateral: float = 0.0,
-                  sigma: float = 1.5e-3, initial: Pose2 | None = None, max_iter: int = 30,
-                  tol: float = 1e-7, huber_iters: int = 4, min_landmarks: int = 4) -> VBCResult:
+                  sigma: float = 1.5e-3, initial: Pose2 | None = None, max_iter: int = 40,
+                  tol: float = 1e-6, huber_iters: int = 3, min_landmarks: int = 4) -> VBCResult:
     """Planar pose of the robot relative to the taught pose from matched bearings.
 
     taught_alpha/beta: levelled bearings stored with the keyframe; inv_heights:
@@ -230,9 +230,10 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
     bearing noise. sigma: bearing noise (rad), e.g. 1 px / focal length.
     forward/lateral: camera offset from the rotation centre.
 
-    Gauss-Newton on the exact bearing model with robust IRLS: ``huber_iters``
-    Huber iterations (with a MAD scale estimate, floored at sigma) to get into
-    the basin, then Cauchy, which down-weights gross outliers to ~0.
+    Gauss-Newton on the exact bearing model with robust IRLS: at least
+    ``huber_iters`` Huber iterations (with a MAD scale estimate, floored at
+    sigma) until the steps are small, then Cauchy with that scale frozen, which
+    down-weights gross outliers to ~0, until the step is below ``tol``.
     """
     a0 = np.asarray(taught_alpha, dtype=np.float64).ravel()
     b0 = np.asarray(taught_beta, dtype=np.float64).ravel()
@@ -259,22 +260,26 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
     pose = initial
     scale = sigma
     converged = False
+    phase = "huber"          # Huber with a re-estimated scale until the steps are small, then Cauchy
+    huber_done = 0
     it = 0
     for it in range(1, max_iter + 1):
         pa, pb = predict_bearings(a0, b0, rho, pose, forward, lateral)
         ra = np.angle(np.exp(1j * (a1 - pa)))
         rb = b1 - pb
-        da, db = _rho_sensitivity(a0, b0, rho, pose, forward, lateral)
+        if phase == "huber":
+            # Height uncertainty inflates each landmark's noise by how much its predicted bearing
+            # moves with rho at this pose; frozen once in the Cauchy phase, as pose-dependent
+            # weights would let Gauss-Newton cycle.
+            da, db = _rho_sensitivity(a0, b0, rho, pose, forward, lateral)
+            # Robust scale: the median of sqrt(d2/2) is 0.8326 for Gaussian residuals of unit
+            # scale (Rayleigh median / sqrt 2); never below the stated noise nor wildly above it.
+            d2 = ra * ra / (scale * scale + da * da * var_rho) + rb * rb / (scale * scale + db * db * var_rho)
+            scale = max(sigma, min(float(np.median(np.sqrt(d2 / 2.0))) / 0.8326 * scale, 50 * sigma))
         var_a = scale * scale + da * da * var_rho
         var_b = scale * scale + db * db * var_rho
         d2 = ra * ra / var_a + rb * rb / var_b
-        # Robust scale: the median of sqrt(d2/2) is 0.8326 for Gaussian residuals of unit scale
-        # (Rayleigh median / sqrt 2); never below the stated noise, never wildly above it.
-        scale = max(sigma, min(float(np.median(np.sqrt(d2 / 2.0))) / 0.8326 * scale, 50 * sigma))
-        d2 = ra * ra / (scale * scale + da * da * var_rho) + rb * rb / (scale * scale + db * db * var_rho)
-        var_a = scale * scale + da * da * var_rho
-        var_b = scale * scale + db * db * var_rho
-        wts = _robust_weights(d2, "huber" if it <= huber_iters else "cauchy", 2.0 if it <= huber_iters else 2.5)
+        wts = _robust_weights(d2, "huber", 2.0) if phase == "huber" else _robust_weights(d2, "cauchy", 2.5)
         J = _jacobian_at(pa, pb, rho, t0, forward, lateral)
         Wa, Wb = wts / var_a, wts / var_b
         H = (np.einsum("n,ni,nj->ij", Wa, J[:, 0], J[:, 0])
@@ -285,7 +290,12 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
         except np.linalg.LinAlgError:
             return _failed(n, pose, "singular normal matrix")
         pose = pose.compose(Pose2(*delta))
-        if it > huber_iters and float(np.max(np.abs(delta))) < tol:
+        step = float(np.max(np.abs(delta)))
+        if phase == "huber":
+            huber_done += 1
+            if huber_done >= huber_iters and (step < 1e-4 or huber_done >= 3 * huber_iters):
+                phase = "cauchy"
+        elif step < tol:
             converged = True
             break
 
@@ -339,9 +349,14 @@ class InverseHeightEstimator:
         s x v = 0                           (azimuth: lateral parallax)
         tan(beta_k) (s . v) = tan(beta0)    (elevation: forward motion)
     Both are *linear* in rho0 = w tan(beta0), each with residual ~ one bearing
-    error, so pooling all frames of the track is a one-unknown least squares
-    kept as running sums. The variance comes from the bearing noise, inflated
-    by the fit's own chi^2 when that is larger (bad tracks).
+    error. The anchor's own bearing error would enter every row alike and not
+    average out, so it is estimated too: the unknowns are (rho0, d alpha0,
+    d tan beta0), linear to first order, with the anchor observation as a prior
+    row for each correction. Pooling all frames of a track is then a 3x3 least
+    squares kept as running sums. The variance comes from the bearing noise,
+    inflated by the fit's own chi^2 when that is larger (bad tracks).
+    ``bearings_at`` gives the de-noised bearings of tracks at any pose, which is
+    what a keyframe should store (its own single observation is noisier).
     """
 
     def __init__(self, mount: CameraMount = CameraMount(), sigma: float = 1.5e-3):
@@ -352,12 +367,12 @@ class InverseHeightEstimator:
         self._a0 = np.zeros(0)
         self._t0 = np.zeros(0)
         self._pose0 = np.zeros((0, 3))
-        self._saa = np.zeros(0)   # sum a^2
-        self._sab = np.zeros(0)   # sum a b
-        self._sbb = np.zeros(0)   # sum b^2
-        self._sa1 = np.zeros(0)   # sum of a over azimuth rows (anchor-azimuth sensitivity)
-        self._sa2 = np.zeros(0)   # same for elevation rows
+        self._A = np.zeros((0, 3, 3))     # normal matrix of (rho0, d alpha0, d tan beta0)
+        self._r = np.zeros((0, 3))        # right-hand side
+        self._bb = np.zeros(0)            # sum of squared right-hand sides (for chi^2)
         self._n = np.zeros(0, dtype=np.int64)
+
+    _FIELDS = ("_ids", "_a0", "_t0", "_pose0", "_A", "_r", "_bb", "_n")
 
     def __len__(self) -> int:
         return len(self._ids)
@@ -370,91 +385,124 @@ class InverseHeightEstimator:
         ids = np.asarray(track_ids, dtype=np.int64).ravel()
         alpha = np.asarray(alpha, dtype=np.float64).ravel()
         beta = np.asarray(beta, dtype=np.float64).ravel()
-        keep = np.isin(self._ids, ids)
-        self._select(keep)
-        pos = np.searchsorted(self._ids, ids) if len(self._ids) else np.zeros(len(ids), dtype=np.int64)
-        pos = np.minimum(pos, max(len(self._ids) - 1, 0))
-        seen = (len(self._ids) > 0) & (self._ids[pos] == ids) if len(self._ids) else np.zeros(len(ids), bool)
+        self._select(np.isin(self._ids, ids))
+        seen, pos = self._find(ids)
         if seen.any():
             self._accumulate(pos[seen], alpha[seen], beta[seen], odom)
-        new = ~seen
-        if new.any():
-            self._append(ids[new], alpha[new], beta[new], odom)
+        if (~seen).any():
+            self._append(ids[~seen], alpha[~seen], beta[~seen], odom)
+
+    def _find(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not len(self._ids):
+            return np.zeros(len(ids), bool), np.zeros(len(ids), np.int64)
+        pos = np.minimum(np.searchsorted(self._ids, ids), len(self._ids) - 1)
+        return self._ids[pos] == ids, pos
 
     def _select(self, keep: np.ndarray) -> None:
-        for name in ("_ids", "_a0", "_t0", "_pose0", "_saa", "_sab", "_sbb", "_sa1", "_sa2", "_n"):
+        for name in self._FIELDS:
             setattr(self, name, getattr(self, name)[keep])
 
     def _append(self, ids, alpha, beta, odom: Pose2) -> None:
         m = len(ids)
-        self._ids = np.concatenate([self._ids, ids])
-        self._a0 = np.concatenate([self._a0, alpha])
-        self._t0 = np.concatenate([self._t0, np.tan(beta)])
-        self._pose0 = np.concatenate([self._pose0, np.tile(odom.as_array(), (m, 1))])
-        for name in ("_saa", "_sab", "_sbb", "_sa1", "_sa2"):
-            setattr(self, name, np.concatenate([getattr(self, name), np.zeros(m)]))
-        self._n = np.concatenate([self._n, np.zeros(m, dtype=np.int64)])
-        order = np.argsort(self._ids, kind="stable")
-        self._select(order)
+        A = np.zeros((m, 3, 3))
+        A[:, 1, 1] = 1.0                              # prior row: d alpha0 = 0 +- sigma
+        A[:, 2, 2] = np.cos(beta) ** 4                # prior row: cos^2(beta0) d tan beta0 = 0 +- sigma
+        new = {"_ids": ids, "_a0": alpha, "_t0": np.tan(beta), "_pose0": np.tile(odom.as_array(), (m, 1)),
+               "_A": A, "_r": np.zeros((m, 3)), "_bb": np.zeros(m), "_n": np.zeros(m, dtype=np.int64)}
+        for name in self._FIELDS:
+            setattr(self, name, np.concatenate([getattr(self, name), new[name]]))
+        self._select(np.argsort(self._ids, kind="stable"))
 
-    def _accumulate(self, pos, alpha, beta, odom: Pose2) -> None:
-        # Relative robot pose p = P0^-1 Pk per anchor, vectorised Pose2.between.
+    def _relative(self, pos, odom: Pose2):
+        """p = P0^-1 Pk per anchor (vectorised Pose2.between): (px, pz, theta)."""
         p0 = self._pose0[pos]
         c0, s0 = np.cos(p0[:, 2]), np.sin(p0[:, 2])
         dxw, dzw = odom.x - p0[:, 0], odom.z - p0[:, 1]
-        px = c0 * dxw - s0 * dzw
-        pz = s0 * dxw + c0 * dzw
-        th = odom.theta - p0[:, 2]
+        return c0 * dxw - s0 * dzw, s0 * dxw + c0 * dzw, odom.theta - p0[:, 2]
+
+    def _accumulate(self, pos, alpha, beta, odom: Pose2) -> None:
+        px, pz, th = self._relative(pos, odom)
         c, s = np.cos(th), np.sin(th)
         f, l = self.forward, self.lateral
         dx = l - (px + c * l + s * f)       # d = m - p*m, in the anchor frame
         dz = f - (pz - s * l + c * f)
         a0 = self._a0[pos]
-        gx, gz = c * np.sin(a0) - s * np.cos(a0), s * np.sin(a0) + c * np.cos(a0)
-        hx, hz = c * dx - s * dz, s * dx + c * dz
+        sa0, ca0 = np.sin(a0), np.cos(a0)
+        gx, gz = c * sa0 - s * ca0, s * sa0 + c * ca0          # R^T g0
+        gpx, gpz = c * ca0 + s * sa0, s * ca0 - c * sa0        # R^T dg0/dalpha0
+        hx, hz = c * dx - s * dz, s * dx + c * dz              # R^T d
         sx, sz = np.sin(alpha), np.cos(alpha)
         tk = np.tan(beta)
-        # Equation rows a rho = b, each with residual ~ one bearing error.
-        a1, b1 = sx * hz - sz * hx, -(sx * gz - sz * gx)
-        cb2 = np.cos(beta) ** 2      # d/dbeta of tan(beta)(s.v) ~ 1/cos^2: rescale to ~ rad
-        a2, b2 = cb2 * tk * (sx * hx + sz * hz), cb2 * (self._t0[pos] - tk * (sx * gx + sz * gz))
-        self._saa[pos] += a1 * a1 + a2 * a2
-        self._sab[pos] += a1 * b1 + a2 * b2
-        self._sbb[pos] += b1 * b1 + b2 * b2
-        # The anchor's bearing error enters every row's b with coefficient ~1 (azimuth rows) and
-        # cos^2(beta_k)/cos^2(beta0) (elevation rows): it does not average out, so keep its lever.
-        self._sa1[pos] += a1
-        self._sa2[pos] += a2 * cb2 * (1.0 + self._t0[pos] ** 2)
+        cb2 = np.cos(beta) ** 2      # d/dbeta_k of tan(beta_k)(s.v) ~ 1/cos^2: rescale rows to ~ rad
+        row1 = np.column_stack((sx * hz - sz * hx, sx * gpz - sz * gpx, np.zeros(len(pos))))
+        b1 = -(sx * gz - sz * gx)
+        row2 = np.column_stack((cb2 * tk * (sx * hx + sz * hz), cb2 * tk * (sx * gpx + sz * gpz), -cb2))
+        b2 = cb2 * (self._t0[pos] - tk * (sx * gx + sz * gz))
+        self._A[pos] += row1[:, :, None] * row1[:, None, :] + row2[:, :, None] * row2[:, None, :]
+        self._r[pos] += row1 * b1[:, None] + row2 * b2[:, None]
+        self._bb[pos] += b1 * b1 + b2 * b2
         self._n[pos] += 1
+
+    def _solve(self, p):
+        """(rho0, d alpha0, d tan beta0), var(rho0), informative mask for stored rows ``p``."""
+        A, r = self._A[p], self._r[p]
+        x = np.linalg.solve(A + 1e-15 * np.eye(3), r[:, :, None])[:, :, 0]
+        Ainv = np.linalg.inv(A + 1e-15 * np.eye(3))
+        chi2 = np.maximum(self._bb[p] - np.einsum("ni,ni->n", x, r), 0.0)
+        dof = np.maximum(2 * self._n[p] - 3, 1)
+        s2 = np.maximum(self.sigma ** 2, chi2 / dof)
+        var_rho = s2 * Ainv[:, 0, 0]
+        informative = (self._n[p] >= 2) & (Ainv[:, 0, 0] < 1e12)
+        return x, var_rho, informative
 
     def estimate(self, track_ids=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids, w, var_w) for ``track_ids`` (all tracks if None); unknown tracks get NaN and inf."""
         if track_ids is None:
-            ids = self._ids.copy()
-            pos = np.arange(len(ids))
-            found = np.ones(len(ids), bool)
+            ids, found, pos = self._ids.copy(), np.ones(len(self._ids), bool), np.arange(len(self._ids))
         else:
             ids = np.asarray(track_ids, dtype=np.int64).ravel()
-            pos = np.minimum(np.searchsorted(self._ids, ids), max(len(self._ids) - 1, 0))
-            found = (self._ids[pos] == ids) if len(self._ids) else np.zeros(len(ids), bool)
+            found, pos = self._find(ids)
         w = np.full(len(ids), np.nan)
         var = np.full(len(ids), np.inf)
         if not found.any():
             return ids, w, var
         p = pos[found]
-        saa, sab, sbb, n = self._saa[p], self._sab[p], self._sbb[p], self._n[p]
-        info = saa > 1e-18
-        rho = np.where(info, sab / np.where(info, saa, 1.0), np.nan)
-        dof = np.maximum(2 * n - 1, 1)
-        chi2 = np.maximum(sbb - np.where(info, sab * sab / np.where(info, saa, 1.0), 0.0), 0.0)
-        s2 = np.maximum(self.sigma ** 2, chi2 / dof)
-        saa_safe = np.where(info, saa, 1.0)
-        anchor = self.sigma ** 2 * (self._sa1[p] ** 2 + self._sa2[p] ** 2) / saa_safe ** 2
-        var_rho = np.where(info, s2 / saa_safe + anchor, np.inf)
-        t0 = _safe_tan(np.arctan(self._t0[p]))
-        w[found] = rho / t0
-        var[found] = var_rho / (t0 * t0)
+        x, var_rho, ok = self._solve(p)
+        t0 = self._t0[p] + x[:, 2]
+        t0 = np.where(np.abs(t0) < _MIN_TAN, np.copysign(_MIN_TAN, t0), t0)
+        w[found] = np.where(ok, x[:, 0] / t0, np.nan)
+        var[found] = np.where(ok, var_rho / (t0 * t0), np.inf)
         return ids, w, var
+
+    def bearings_at(self, track_ids, odom: Pose2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """De-noised levelled bearings of tracks seen from ``odom``: (alpha, beta, valid).
+
+        Predicted by the exact model from the track's corrected anchor bearings and
+        rho0; invalid (NaN) for unknown tracks or tracks without parallax yet.
+        """
+        ids = np.asarray(track_ids, dtype=np.int64).ravel()
+        found, pos = self._find(ids)
+        alpha = np.full(len(ids), np.nan)
+        beta = np.full(len(ids), np.nan)
+        if not found.any():
+            return alpha, beta, found
+        p = pos[found]
+        x, _, ok = self._solve(p)
+        a0 = self._a0[p] + x[:, 1]
+        b0 = np.arctan(self._t0[p] + x[:, 2])
+        rho = np.where(ok, x[:, 0], 0.0)
+        px, pz, th = self._relative(p, odom)
+        c, s = np.cos(th), np.sin(th)
+        f, l = self.forward, self.lateral
+        dx = l - (px + c * l + s * f)
+        dz = f - (pz - s * l + c * f)
+        ux, uz = np.sin(a0) + rho * dx, np.cos(a0) + rho * dz
+        vx, vz = c * ux - s * uz, s * ux + c * uz
+        alpha[found] = np.arctan2(vx, vz)
+        beta[found] = np.arctan2(np.tan(b0), np.hypot(vx, vz))
+        valid = np.zeros(len(ids), bool)
+        valid[found] = ok
+        return alpha, beta, valid
 
     def anchor_bearings(self, track_ids) -> tuple[np.ndarray, np.ndarray]:
         """Anchor (first-seen) bearings of tracks, for diagnostics."""
