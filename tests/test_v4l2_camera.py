@@ -33,22 +33,25 @@ def level(frame) -> int:
     return int(round(float(frame.image.mean()) / 5.0))
 
 
-def test_replays_every_frame_in_order_when_read_fast_enough(video):
+def test_replays_the_file_in_order_at_its_rate(video):
     cam = camera(video, replay_rate_hz=50.0)
     cam.connect()
     try:
         got = []
-        while len(got) < N:
+        while True:
             f = cam.read(timeout_s=1.0)
             if f is None:
                 break
             got.append(f)
     finally:
         cam.disconnect()
-    assert [level(f) for f in got] == list(range(N))
-    assert [f.seq for f in got] == list(range(1, N + 1))
+    # every frame delivered is the right one; a frame the reader was too slow for shows as a seq gap
+    assert all(level(f) == f.seq - 1 for f in got)
+    assert all(b.seq > a.seq and b.stamp_ns > a.stamp_ns for a, b in zip(got, got[1:]))
+    assert got[-1].seq == N and len(got) >= N // 2
     assert got[0].image.shape == (H, W) and got[0].image.dtype == np.uint8  # grey by default
-    assert all(b.stamp_ns > a.stamp_ns for a, b in zip(got, got[1:]))
+    span_s = (got[-1].stamp_ns - got[0].stamp_ns) * 1e-9
+    assert span_s > 0.5 * (got[-1].seq - got[0].seq) / 50.0  # paced, not decoded as fast as possible
 
 
 def test_only_the_latest_frame_is_kept(video):
