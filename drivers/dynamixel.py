@@ -129,8 +129,10 @@ class DynamixelDrive(WheelDrive):
         profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
         bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
         latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")
-        margin_ms: float = Field(1.0, ge=0, le=20, description="extra wait for an answer, ms")
-        max_missed_reads: int = Field(2, ge=1, description="consecutive failed reads that make a fault")
+        margin_ms: float = Field(2.0, ge=0, le=20, description="extra wait for an answer, ms (raise it for an "
+                                 "emulator on a busy machine)")
+        max_missed_reads: int = Field(5, ge=1, description="consecutive failed reads that make a fault "
+                                      "(the state is held meanwhile)")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["DynamixelDrive.Options"] = None,

@@ -287,15 +287,22 @@ class ODriveDrive(WheelDrive):
         return line
 
     def _feedback(self) -> tuple[Optional[list], str]:
+        """``f`` for both axes in one write, then both answer lines: one round trip per cycle, not two."""
+        self._rx = b""
+        self.ser.reset_input_buffer()
+        self.ser.write(b"".join(self._frame(f"f {ax}") for ax in self.axes))
+        end = time.monotonic() + self.opt.reply_timeout_s
         out = []
         for ax in self.axes:
-            try:
-                line = self._query(f"f {ax}", self.opt.reply_timeout_s)
-            except _Corrupt as exc:
-                return None, f"axis{ax} ({self.sides[ax]}): corrupted answer: {exc}"
+            line = self._readline(max(0.0, end - time.monotonic()))
             if line is None:
                 return None, f"axis{ax} ({self.sides[ax]}): no answer to 'f {ax}' within " \
                              f"{self.opt.reply_timeout_s * 1000:.0f} ms"
+            if self.opt.checksum:
+                body, star, given = line.rpartition("*")
+                if not star or not given.isdigit() or int(given) != xor_checksum(body):
+                    return None, f"axis{ax} ({self.sides[ax]}): corrupted answer (bad checksum): {line!r}"
+                line = body
             try:
                 pos, vel = (float(x) for x in line.split())
             except ValueError:
