@@ -227,6 +227,9 @@ class DynamixelDrive(WheelDrive):
             if not self._connected:
                 self._try_reconnect()
             if not self._connected:
+                if self._port_present() and self.faults:
+                    raise DriveError(f"dynamixel adapter {self.opt.port} is back but not usable: "
+                                     f"{'; '.join(self.faults)}")
                 raise DriveError(f"dynamixel adapter {self.opt.port} is gone; waiting for it to come back")
             ok, err = self._guard(self._sync_read_state, "sync read of Present Velocity/Position")
             if ok:
@@ -249,23 +252,31 @@ class DynamixelDrive(WheelDrive):
             self._connected = False
 
     def clear_faults(self) -> None:
-        """REBOOT servos that report a hardware error (only a reboot clears it), then bring them up again."""
+        """REBOOT servos that report a hardware error (only a reboot clears it), then bring them up again.
+
+        Works also when connect() itself failed on a hardware error."""
         with self._lock:
-            if not self._connected:
-                self.connect()
-            for i in self.ids:
-                bits, res, err = self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR)
-                if res == sdk.COMM_SUCCESS and bits == 0:
-                    continue
-                res, err = self.ph.reboot(self.port, i)
-                if res != sdk.COMM_SUCCESS:
-                    raise DriveError(f"servo {i} ({self.sides[i]}): REBOOT failed: {self.ph.getTxRxResult(res)}")
-                time.sleep(0.05)  # the servo restarts before it answers again
-                self._last_raw[i] = None  # position restarts within one turn; keep accumulating from there
-            self.faults.clear()
-            self._missed_reads = 0
-            with self.port.relaxed(BRING_UP_EXTRA_MS):
-                self._bring_up()
+            if self.port is None:
+                self._open_port()
+            try:
+                with self.port.relaxed(BRING_UP_EXTRA_MS):
+                    for i in self.ids:
+                        bits, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR))
+                        if res == sdk.COMM_SUCCESS and bits == 0:
+                            continue
+                        res, _ = self._guard_io(lambda: self.ph.reboot(self.port, i))
+                        if res != sdk.COMM_SUCCESS:
+                            raise DriveError(f"servo {i} ({self.sides[i]}): REBOOT failed: "
+                                             f"{self.ph.getTxRxResult(res)}")
+                        time.sleep(0.05)  # the servo restarts before it answers again
+                        self._last_raw[i] = None  # position restarts within one turn; keep accumulating
+                    self.faults.clear()
+                    self._missed_reads = 0
+                    self._bring_up()
+            except DriveError:
+                self._torque_off_best_effort()
+                raise
+            self._connected = True
 
     # -- bring-up -----------------------------------------------------------------------------
     def _open_port(self) -> None:
@@ -465,5 +476,7 @@ class DynamixelDrive(WheelDrive):
         try:
             self.faults = []
             self.connect()
-        except DriveError:
+        except DriveError as exc:
             self._connected = False
+            if not any(f in str(exc) for f in self.faults):
+                self.faults.append(str(exc))

@@ -262,3 +262,16 @@ def test_a_stalled_controller_finds_the_watchdog_expired(bus, drive):
     drive.clear_faults()
     drive.enable()  # clears the latched watchdog error (0xFF) and re-arms it
     assert drive_for(drive, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
+
+
+def test_hardware_error_found_at_bring_up_then_cleared(bus):
+    bus.servo(1).set_hardware_error(1 << 2)
+    d = make_drive(bus)
+    with pytest.raises(DriveError, match=r"servo 1 \(left\) hardware error: overheating \(bit 2\).*REBOOT"):
+        d.connect()
+    assert not any(bus.servo(i).torque_on for i in (1, 2))
+    d.clear_faults()
+    assert [e.dxl_id for e in bus.log if e.op == "reboot"] == [1]
+    d.enable()
+    assert drive_for(d, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
+    d.close()
