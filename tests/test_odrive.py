@@ -218,7 +218,8 @@ def test_controlling_process_killed_with_sigkill(emu):
         last_cmd = max(t for t, text in emu.log if text.startswith("v "))
     assert len(expired) == 2
     for t in expired:
-        assert WATCHDOG_S <= t - last_cmd <= WATCHDOG_S + 0.05
+        # Never before the watchdog time; the upper bound only allows for emulator-thread scheduling under load.
+        assert WATCHDOG_S <= t - last_cmd <= WATCHDOG_S + 0.5
 
 
 def test_vbnav_emulate_odrive_prints_device_path_first():
