@@ -31,7 +31,7 @@ import functools
 import math
 import zlib
 from dataclasses import dataclass, field
-from typing import Iterable, Optional
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -504,7 +504,3 @@ class World:
 
     def __repr__(self) -> str:
         return f"World(seed={self.seed}, quads={len(self._quads)}, objects={self.names()})"
-
-
-def iter_quads(world: World) -> Iterable[Quad]:
-    return world.polygons
