@@ -14,9 +14,10 @@ depth is its inverse and true disparity for a baseline B is fx * B / z.
 Quads are clipped against the view frustum (near plane z >= 5 cm and the four
 image sides) before projection, so planes extending behind the camera (the
 floor under the robot) project correctly. Large quads are split into tiles of
-at most ``tile_m`` metres, and each tile picks a mip level (Gaussian pyramid
-of its texture) from its projected texel density, so distant surfaces are
-anti-aliased and close ones stay sharp: KLT tracks stay stable.
+at most ``tile_m`` metres, and each tile picks a pre-filtered texture level per
+texture axis (a rip-map) from its projected texel density, so distant and
+grazing surfaces are anti-aliased and close ones stay sharp: KLT tracks stay
+stable.
 """
 from __future__ import annotations
 

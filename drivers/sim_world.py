@@ -3,7 +3,7 @@
 Coordinates follow vision/geometry.py: x right, y down, z forward, floor at
 y = 0, points above the floor have y < 0. Every surface is a rectangle
 (``Quad``) with its own procedural texture, generated from a seed so the same
-world renders byte-for-byte the same image on every machine.
+world renders byte-for-byte the same image in every run.
 
 Textures are rich in corners at several scales (large shaded blobs, random
 rectangles / ellipses / triangles / bars of 2-60 cm, fine grain) and never
@@ -499,8 +499,6 @@ class World:
         if name not in makers:
             raise ValueError(f"unknown simulated world {name!r}; expected one of {', '.join(makers)}")
         return makers[name]()
-
-    WORLD_NAMES: tuple = ("room", "empty_room", "corridor", "corridor_step")
 
     def __repr__(self) -> str:
         return f"World(seed={self.seed}, quads={len(self._quads)}, objects={self.names()})"
