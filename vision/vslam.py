@@ -38,13 +38,13 @@ class VslamConfig(BaseModel):
     min_landmarks: int = Field(250, gt=3, description="below this many tracked, new landmarks are added")
     max_candidates: int = Field(300, ge=0, description="monocular: features waiting for enough parallax")
     min_parallax_deg: float = Field(2.0, gt=0, description="gate of the spherical disparity (monocular)")
-    inlier_threshold_px: float = Field(1.5, gt=0, description="ray angle, in pixels at the focal length")
+    inlier_threshold_px: float = Field(1.0, gt=0, description="ray angle, in pixels at the focal length")
     handoff_fraction: float = Field(0.4, ge=0, le=1,
                                     description="hand-off when fewer of the reference frame's own landmarks "
                                                 "than this fraction remain")
     handoff_min: int = Field(40, ge=3, description="hand-off when fewer of its own landmarks remain visible")
     min_inliers: int = Field(8, ge=3, description="fewer inliers than this: frame lost")
-    stereo_max_depth_baselines: float = Field(150.0, gt=0,
+    stereo_max_depth_baselines: float = Field(80.0, gt=0,
                                               description="stereo landmarks farther than this many baselines "
                                                           "are not used (too little disparity)")
     min_depth: float = Field(0.0, ge=0, description="landmarks nearer than this (m) are not created")
