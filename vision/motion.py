@@ -208,7 +208,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
                           prior: tuple[np.ndarray, np.ndarray] | None = None, threshold: float = 0.004,
                           angular: bool = False, confidence: float = 0.999, max_hypotheses: int = 200,
                           batch: int = 32, minimal_iters: int = 15, refine_rounds: int = 3,
-                          rng: np.random.Generator | None = None, tol: float = 1e-9) -> MotionEstimate:
+                          rng: np.random.Generator | None = None, tol: float = 1e-6) -> MotionEstimate:
     """Outlier-robust motion: 3-point hypotheses (the chapter's minimal set), then robust reweighting.
 
     Hypotheses run the alternation on 3 landmarks from the same initial depths
