@@ -17,6 +17,7 @@ import yaml
 from vbnav.vision.geometry import quat_from_matrix
 
 RATE_HZ = 30.0
+GRID_ROWS, GRID_COLS = 4, 3
 VISP_CORNERS_IN_CV_ORDER = np.array([[1, -1], [-1, -1], [-1, 1], [1, 1]]) * 0.5
 
 
@@ -25,18 +26,25 @@ def build_desk_view(src: Path, dst: Path) -> Path:
     cam = json.loads((src / "cam.json").read_text())
     s = float(data["tag_size"])
     grids = [np.array(g) for g in data["grid"]]
-    corners: dict[int, list] = {}
+    # Tag centres in the grid frame (median over frames of inv(grid) @ cMo_tag); the physical board is a
+    # regular 3 x 4 grid (ids column by column) of tags turned 90 degrees about the normal, in the z = 0
+    # plane: fit that regular layout rather than trusting each tag's noisy pose.
+    centres: dict[int, list] = {}
     for G, det in zip(grids, data["detections"]):
         Ginv = np.linalg.inv(G)
         for tid, d in det.items():
-            M = Ginv @ np.array(d["cMo"])
-            pts = np.column_stack((VISP_CORNERS_IN_CV_ORDER * s, np.zeros(4), np.ones(4)))
-            corners.setdefault(int(tid), []).append((pts @ M.T)[:, :3])
+            centres.setdefault(int(tid), []).append((Ginv @ np.array(d["cMo"]))[:3, 3])
+    ids = np.array(sorted(centres))
+    med = np.array([np.median(centres[i], axis=0) for i in ids])
+    col, row = ids // GRID_ROWS, ids % GRID_ROWS
+    ax = np.linalg.lstsq(np.column_stack((np.ones(len(ids)), col)), med[:, 0], rcond=None)[0]
+    ay = np.linalg.lstsq(np.column_stack((np.ones(len(ids)), row)), med[:, 1], rcond=None)[0]
+    R_tag = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    local = np.column_stack((VISP_CORNERS_IN_CV_ORDER * s, np.zeros(4)))
     layout = {}
-    for tid, lst in corners.items():
-        c = np.median(np.array(lst), axis=0)
-        c[:, 2] = 0.0  # the tags lie in the grid's plane
-        layout[tid] = c.round(5).tolist()
+    for tid in range(GRID_ROWS * GRID_COLS):
+        c = np.array([ax[0] + ax[1] * (tid // GRID_ROWS), ay[0] + ay[1] * (tid % GRID_ROWS), 0.0])
+        layout[tid] = (local @ R_tag.T + c).round(5).tolist()
     dst.mkdir(parents=True, exist_ok=True)
     rgb, gt = ["# timestamp filename"], ["# timestamp tx ty tz qx qy qz qw"]
     for i, G in enumerate(grids):
