@@ -23,6 +23,7 @@ squared ray angle, the right metric for pixel noise on deep scenes (KITTI).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,9 +92,21 @@ def _det3(m: np.ndarray) -> float:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
+try:  # the bare gufunc behind np.linalg.svd: half the per-call overhead on 3x3 matrices
+    from numpy.linalg import _umath_linalg as _ul
+
+    _ul.svd_f(np.eye(3), signature="d->ddd")
+
+    def _svd3(H: np.ndarray):
+        return _ul.svd_f(H, signature="d->ddd")
+except Exception:  # pragma: no cover - other numpy versions
+    def _svd3(H: np.ndarray):
+        return np.linalg.svd(H)
+
+
 def _rotation_from_cross_covariance(H: np.ndarray) -> np.ndarray:
     """R = V U^T for H = U S V^T, with det R = +1 (reflection guard)."""
-    U, _, Vt = np.linalg.svd(H)
+    U, _, Vt = _svd3(H)
     dH = _det3(H)
     scale = float(np.abs(H).max()) ** 3
     sign = (1.0 if dH > 0 else -1.0) if abs(dH) > 1e-12 * scale else np.sign(_det3(U) * _det3(Vt))
@@ -141,7 +154,7 @@ class _ObjectSpaceIteration:
 
 def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | float | None = None, *,
                    prior: tuple[np.ndarray, np.ndarray] | None = None, weights: np.ndarray | None = None,
-                   angular: bool = False, max_iter: int = 200, tol: float = 1e-6) -> MotionEstimate:
+                   angular: bool = False, max_iter: int = 200, tol: float = 1e-5) -> MotionEstimate:
     """The alternation 11.15-11.17 for n >= 3 landmarks.
 
     points (N, 3): landmarks in the reference frame; rays (N, 3): unit rays in
@@ -180,7 +193,9 @@ def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | fl
         it += 1
         R_new = solver.step(R)
         T_new = solver.translation(R_new)
-        change = float(np.linalg.norm(R_new - R)) * pmax + float(np.linalg.norm(T_new - T))
+        dR = (R_new - R).ravel()
+        dT = T_new - T
+        change = math.sqrt(float(dR @ dR)) * pmax + math.sqrt(float(dT @ dT))
         R, T = R_new, T_new
         if change <= bound:
             converged = True
@@ -189,6 +204,17 @@ def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | fl
     D = np.einsum("ij,ij->i", X, n)
     ang = angular_residuals(P, n, R, T)
     return MotionEstimate(R, T, D, it, float(np.sqrt(np.mean(ang ** 2))), np.ones(N, bool), converged)
+
+
+def _three_distinct(rng: np.random.Generator, N: int, h: int) -> np.ndarray:
+    """h random triples of distinct indices in [0, N), vectorised."""
+    a = rng.integers(0, N, h)
+    b = (a + rng.integers(1, N, h)) % N
+    c = rng.integers(0, N - 2, h)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    c = c + (c >= lo)
+    c = c + (c >= hi)
+    return np.column_stack((a, b, c))
 
 
 def _minimal_hypotheses(P: np.ndarray, n: np.ndarray, D0: np.ndarray, samples: np.ndarray, iters: int
@@ -207,8 +233,8 @@ def _minimal_hypotheses(P: np.ndarray, n: np.ndarray, D0: np.ndarray, samples: n
 def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | float | None = None, *,
                           prior: tuple[np.ndarray, np.ndarray] | None = None, threshold: float = 0.004,
                           angular: bool = False, confidence: float = 0.999, max_hypotheses: int = 200,
-                          batch: int = 32, minimal_iters: int = 15, refine_rounds: int = 3,
-                          rng: np.random.Generator | None = None, tol: float = 1e-6) -> MotionEstimate:
+                          batch: int = 16, minimal_iters: int = 8, refine_rounds: int = 3, score_factor: float = 3.0,
+                          rng: np.random.Generator | None = None, tol: float = 1e-5) -> MotionEstimate:
     """Outlier-robust motion: 3-point hypotheses (the chapter's minimal set), then robust reweighting.
 
     Hypotheses run the alternation on 3 landmarks from the same initial depths
@@ -231,20 +257,23 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
     else:
         D0 = np.broadcast_to(np.asarray(depths, float), (N,)).copy()
 
+    # Hypotheses are scored with a looser gate than the final inlier test: a 3-point pose (or a
+    # predicted one) is itself noisy, and a tight gate would pick a biased consensus set.
+    gate = np.cos(score_factor * threshold)
     best_count, best = -1, None
     if prior is not None:
-        best_count = int(np.sum(angular_residuals(P, n, *prior) < threshold))
+        best_count = int(np.sum(angular_residuals(P, n, *prior) < score_factor * threshold))
         best = prior
     tried = 0
     if N > 3 and best_count < N:
         needed = max_hypotheses
         while tried < min(needed, max_hypotheses):
             h = min(batch, max_hypotheses - tried)
-            samples = np.array([rng.choice(N, 3, replace=False) for _ in range(h)])
+            samples = _three_distinct(rng, N, h)
             Rs, Ts = _minimal_hypotheses(P, n, D0, samples, minimal_iters)
             X = np.einsum("hij,kj->hki", Rs, P) + Ts[:, None]
             X /= np.linalg.norm(X, axis=2, keepdims=True)
-            counts = np.sum(np.einsum("hki,ki->hk", X, n) > np.cos(threshold), axis=1)
+            counts = np.sum(np.einsum("hki,ki->hk", X, n) > gate, axis=1)
             k = int(np.argmax(counts))
             tried += h
             if counts[k] > best_count:
@@ -254,7 +283,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
     if best is None:  # N == 3: the minimal set is all we have
         best = (None, None)
     inl = (np.ones(N, bool) if best[0] is None
-           else angular_residuals(P, n, *best) < threshold)
+           else angular_residuals(P, n, *best) < score_factor * threshold)
     if inl.sum() < 3:
         inl = np.ones(N, bool)
     est_prior = None if best[0] is None else best

@@ -80,14 +80,16 @@ class _Landmarks:
     P: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # in the reference frame
     px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # pixel in the last image
     own: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # created with the reference frame
+    count: np.ndarray = field(default_factory=lambda: np.zeros(0))  # measurements averaged into P
 
     def keep(self, m: np.ndarray) -> None:
-        self.P, self.px, self.own = self.P[m], self.px[m], self.own[m]
+        self.P, self.px, self.own, self.count = self.P[m], self.px[m], self.own[m], self.count[m]
 
     def add(self, P: np.ndarray, px: np.ndarray, own: bool) -> None:
         self.P = np.vstack((self.P, P))
         self.px = np.vstack((self.px, px))
         self.own = np.concatenate((self.own, np.full(len(P), own)))
+        self.count = np.concatenate((self.count, np.ones(len(P))))
 
 
 @dataclass
@@ -128,6 +130,7 @@ class Vslam:
         self.frame = 0
         self.rng = np.random.default_rng(0)
         self.stats: list[MotionEstimate] = []
+        self._history: list[np.ndarray] = []  # last two good world-from-camera poses
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -148,6 +151,7 @@ class Vslam:
         self.R, self.T = np.eye(3), np.zeros(3)
         self.references = [ReferenceFrame(self.frame, np.eye(4) if pose_wc is None else np.asarray(pose_wc, float),
                                           len(self.lm.P))]
+        self._history = [self.references[0].pose_wc]
         self.prev = image
         added = self._add_landmarks(image, right, depth, own=True)
         self.references[-1].landmarks = len(self.lm.P)
@@ -181,14 +185,15 @@ class Vslam:
             return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"), reference=len(self.references) - 1)
         rays = self.camera.rays(self.lm.px)
         f = float(getattr(self.camera, "fx", 500.0))
-        est = recover_motion_robust(self.lm.P, rays, prior=(self.R, self.T), threshold=cfg.inlier_threshold_px / f,
-                                    angular=True, rng=self.rng)
+        est = recover_motion_robust(self.lm.P, rays, prior=self._predicted_motion(),
+                                    threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng)
         self.stats.append(est)
         inl = est.inliers & (est.depths > 0)
         if inl.sum() < cfg.min_inliers:
             return FrameResult(False, self.pose_wc, tracked, int(inl.sum()), est.iterations, float("nan"),
                                reference=len(self.references) - 1)
         self.R, self.T = est.R, est.T
+        self._history = [self._history[-1], self.pose_wc] if self._history else [self.pose_wc]
         self.lm.keep(inl)
         handoff = self._maybe_handoff()
         added = 0
@@ -196,6 +201,15 @@ class Vslam:
             added = self._add_landmarks(image, right, depth, own=False)
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
+
+    def _predicted_motion(self) -> tuple[np.ndarray, np.ndarray]:
+        """Reference -> camera motion predicted at constant velocity from the last two poses."""
+        if len(self._history) < 2:
+            return self.R, self.T
+        W1, W2 = self._history
+        W = W2 @ np.linalg.inv(W1) @ W2  # W_k = W_{k-1} (W_{k-2}^-1 W_{k-1})
+        M = np.linalg.inv(W) @ self.references[-1].pose_wc  # reference -> predicted camera
+        return M[:3, :3], M[:3, 3]
 
     # ------------------------------------------------------------------ reference set
     def _maybe_handoff(self) -> bool:
