@@ -1,0 +1,200 @@
+"""Visual odometry over a recorded dataset: run the VSLAM front end, write and evaluate the trajectory.
+
+Evaluation is implemented here rather than through ``evo``: ATE with an
+SE(3) (or Sim(3)) Umeyama alignment and RPE over a frame delta are a few lines
+of numpy, and evo would pull a large dependency tree into the robot's
+install for two numbers. The definitions follow evo's ``evo_ape tum -a`` and
+``evo_rpe tum`` (translation part, RMSE).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from vbnav.drivers.datasets import Dataset
+from vbnav.vision.geometry import quat_from_matrix
+from vbnav.vision.vslam import FrameResult, Vslam, VslamConfig
+from vbnav.vision.vslam_init import TagGrid, init_from_tags, init_two_view
+
+INIT_MODES = ("stereo", "depth", "tags", "essential")
+
+
+class VoError(RuntimeError):
+    """The dataset cannot be processed with the chosen initialisation."""
+
+
+@dataclass
+class VoResult:
+    stamps: np.ndarray  # seconds of the tracked frames
+    poses: np.ndarray  # (K, 4, 4) world-from-camera
+    frames: list[int]  # dataset index of each tracked frame
+    results: list[FrameResult] = field(default_factory=list)
+    init: str = ""
+    scale_known: bool = True
+    references: int = 1
+
+
+def default_init(ds: Dataset) -> str:
+    if ds.right is not None:
+        return "stereo"
+    if ds.depth is not None and ds.depth_image(0) is not None:
+        return "depth"
+    if "tag_grid" in ds.extras:
+        return "tags"
+    return "essential"
+
+
+def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig] = None,
+           progress: Optional[Callable[[str], None]] = None, essential_frames: int = 10) -> VoResult:
+    init = init or default_init(ds)
+    if init not in INIT_MODES:
+        raise VoError(f"unknown --init {init!r} (expected one of {', '.join(INIT_MODES)})")
+    say = progress or (lambda s: None)
+    slam = Vslam(ds.camera, config, stereo_baseline=ds.stereo_baseline if init == "stereo" else None)
+    scale_known = True
+    if init == "stereo":
+        if ds.right is None:
+            raise VoError(f"{ds.root}: --init stereo needs right images (image_r/)")
+        slam.initialise_stereo(ds.image(0), ds.right_image(0))
+        start = 1
+    elif init == "depth":
+        depth = ds.depth_image(0)
+        if depth is None:
+            raise VoError(f"{ds.root}: --init depth needs a depth image for the first frame (depth.txt)")
+        slam.initialise_depth(ds.image(0), depth)
+        start = 1
+    elif init == "tags":
+        if "tag_grid" not in ds.extras:
+            raise VoError(f"{ds.root}: --init tags needs a 'tag_grid' block in the camera YAML")
+        grid = TagGrid.from_spec(ds.extras["tag_grid"])
+        img = ds.image(0)
+        extra = slam.tracker.detect(img, slam.cfg.max_landmarks)
+        s = init_from_tags(img, ds.camera, grid, extra_pixels=extra)
+        say(f"tags {s.info['tags']} seen; grid pose from {len(s.pixels)} landmarks, "
+            f"{s.info['iterations']} iterations, residual {s.info['residual_px']:.2f} px")
+        slam.initialise(img, s.pixels, s.points_cam, s.pose_wc)
+        start = 1
+    else:
+        start, scale_known = _init_essential(ds, slam, essential_frames, say)
+    stamps, poses, frames, results = [ds.stamps[start - 1]], [slam.pose_wc], [start - 1], []
+    for i in range(start, len(ds)):
+        r = slam.process(ds.image(i), ds.right_image(i) if init == "stereo" else None,
+                         ds.depth_image(i) if init == "depth" else None)
+        results.append(r)
+        if r.ok:
+            stamps.append(ds.stamps[i])
+            poses.append(r.pose_wc)
+            frames.append(i)
+        if i % 10 == 0 or i == len(ds) - 1 or not r.ok:
+            say(f"frame {i}/{len(ds) - 1}: {'ok' if r.ok else 'LOST'} landmarks {r.tracked} inliers {r.inliers} "
+                f"iterations {r.iterations} residual {r.residual_px:.2f} px references {r.reference + 1}")
+    return VoResult(np.array(stamps), np.array(poses), frames, results, init, scale_known, len(slam.references))
+
+
+def _init_essential(ds: Dataset, slam: Vslam, max_frames: int, say) -> tuple[int, bool]:
+    """Track corners from frame 0 until the parallax is enough, then two-view initialisation."""
+    img0 = ds.image(0)
+    px0 = slam.tracker.detect(img0, slam.cfg.max_landmarks)
+    px, keep, prev = px0.copy(), np.ones(len(px0), bool), img0
+    for k in range(1, min(max_frames, len(ds) - 1) + 1):
+        img = ds.image(k)
+        nxt, ok = slam.tracker.track(prev, img, px[keep])
+        idx = np.flatnonzero(keep)
+        keep[idx[~ok]] = False
+        px[idx[ok]] = nxt[ok]
+        prev = img
+        flow = np.median(np.linalg.norm(px[keep] - px0[keep], axis=1)) if keep.any() else 0.0
+        if flow > 20.0 or k == min(max_frames, len(ds) - 1):
+            break
+    if keep.sum() < 8:
+        raise VoError(f"{ds.root}: essential initialisation lost the features in the first {k} frames")
+    tv = init_two_view(ds.camera.rays(px0[keep]), ds.camera.rays(px[keep]))
+    say(f"two-view initialisation frames 0-{k}: {tv.model} (E singular values {np.round(tv.singular_values, 3)}, "
+        f"null-space ratio {tv.null_space_ratio:.2f}), {int(tv.valid.sum())} landmarks, unit baseline")
+    v = tv.valid
+    X1 = tv.depths1[v, None] * ds.camera.rays(px0[keep][v])
+    X2 = X1 @ tv.R.T + tv.T
+    pose_wc = np.eye(4)
+    pose_wc[:3, :3], pose_wc[:3, 3] = tv.R.T, -tv.R.T @ tv.T
+    slam.prev = None
+    slam.initialise(img, px[keep][v], X2, pose_wc)
+    return k + 1, False
+
+
+def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
+    """``timestamp tx ty tz qx qy qz qw`` per line (camera-to-world), written atomically."""
+    path = Path(path)
+    lines = []
+    for t, M in zip(stamps, poses):
+        q = quat_from_matrix(M[:3, :3])
+        lines.append(f"{t:.6f} {M[0, 3]:.6f} {M[1, 3]:.6f} {M[2, 3]:.6f} {q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "\n".join(lines) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (a ** 2).sum(1).mean()) if with_scale else 1.0
+    return R, mu_d - s * R @ mu_s, s
+
+
+def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple[float, np.ndarray]:
+    """Absolute trajectory error (translation RMSE, m) after aligning est to gt; also the aligned est."""
+    R, t, s = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale)
+    aligned = s * est[:, :3, 3] @ R.T + t
+    return float(np.sqrt(np.mean(np.sum((aligned - gt[:, :3, 3]) ** 2, axis=1)))), aligned
+
+
+def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> tuple[float, float]:
+    """Relative pose error over ``delta`` frames: (translation RMSE m, rotation RMSE deg)."""
+    te, re = [], []
+    for i in range(len(est) - delta):
+        E = np.linalg.inv(est[i]) @ est[i + delta]
+        G = np.linalg.inv(gt[i]) @ gt[i + delta]
+        D = np.linalg.inv(G) @ E
+        te.append(np.linalg.norm(D[:3, 3]))
+        re.append(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
+    if not te:
+        return float("nan"), float("nan")
+    return float(np.sqrt(np.mean(np.square(te)))), float(np.sqrt(np.mean(np.square(re))))
+
+
+def plot_trajectory(path: str | Path, aligned: np.ndarray, gt: np.ndarray, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.plot(gt[:, 0], gt[:, 2], "k-", label="ground truth")
+    ax.plot(aligned[:, 0], aligned[:, 2], "r-", label="vbnav vo (aligned)")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("z [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend()
+    ax.set_title(title)
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".png", dir=path.parent if str(path.parent) else ".")
+    os.close(fd)
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)

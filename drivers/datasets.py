@@ -1,0 +1,294 @@
+"""Readers for recorded image sequences: KITTI odometry and TUM RGB-D layouts.
+
+KITTI odometry layout (a folder):
+    image_l/*.png            left images (``image_0/`` is accepted too), sorted by name
+    image_r/*.png            optional right images (``image_1/``), same count
+    calib.txt                P0 and P1 3x4 projection matrices, one per line
+                             (with or without the ``P0:`` labels)
+    poses.txt                optional: one 3x4 row-major camera-to-world matrix per frame
+    times.txt                optional: one time in seconds per frame; 10 Hz otherwise
+
+TUM RGB-D layout (a folder):
+    rgb.txt                  ``timestamp path`` per line, ``#`` comments
+    depth.txt                optional, same format (16-bit PNG, or .npz with key ``data``)
+    groundtruth.txt          optional: ``timestamp tx ty tz qx qy qz qw`` camera-to-world
+    camera.yaml              intrinsics (or a file given explicitly), see ``load_camera_yaml``
+
+Every problem is a ``DatasetError`` naming the file and what was expected.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+import yaml
+
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.geometry import matrix_from_quat
+
+KITTI_RATE_HZ = 10.0
+
+
+class DatasetError(ValueError):
+    """A dataset folder or file is missing or malformed."""
+
+
+@dataclass
+class Dataset:
+    """One recorded sequence, loaded lazily frame by frame."""
+
+    root: Path
+    layout: str  # "kitti" or "tum"
+    camera: PinholeCamera | FisheyeCamera
+    stamps: np.ndarray  # seconds, one per frame
+    left: list[Path]
+    right: Optional[list[Path]] = None
+    stereo_baseline: Optional[float] = None  # metres, right camera at +baseline along x
+    depth: Optional[list[Optional[Path]]] = None
+    depth_scale: float = 0.001  # metres per depth unit
+    gt_stamps: Optional[np.ndarray] = None
+    gt_poses: Optional[np.ndarray] = None  # (M, 4, 4) camera-to-world
+    extras: dict = field(default_factory=dict)  # e.g. the tag_grid block of camera.yaml
+
+    def __len__(self) -> int:
+        return len(self.left)
+
+    def image(self, i: int, grey: bool = True) -> np.ndarray:
+        return _read_image(self.left[i], grey)
+
+    def right_image(self, i: int) -> Optional[np.ndarray]:
+        return None if self.right is None else _read_image(self.right[i], True)
+
+    def depth_image(self, i: int) -> Optional[np.ndarray]:
+        """Depth in metres (float32, 0 where unknown), or None."""
+        if self.depth is None or self.depth[i] is None:
+            return None
+        p = self.depth[i]
+        if p.suffix == ".npz":
+            try:
+                raw = np.load(p)["data"]
+            except Exception as exc:
+                raise DatasetError(f"{p}: cannot read depth npz (expected key 'data'): {exc}") from exc
+        else:
+            raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            if raw is None:
+                raise DatasetError(f"{p}: cannot read depth image")
+        return raw.astype(np.float32) * float(self.depth_scale)
+
+    def ground_truth_at(self, stamps: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-truth poses nearest to each stamp (within max_dt s): (mask, poses)."""
+        if self.gt_poses is None:
+            return np.zeros(len(stamps), bool), np.zeros((0, 4, 4))
+        idx = np.clip(np.searchsorted(self.gt_stamps, stamps), 1, len(self.gt_stamps) - 1)
+        left = self.gt_stamps[idx - 1]
+        right = self.gt_stamps[idx]
+        idx = np.where(np.abs(stamps - left) <= np.abs(right - stamps), idx - 1, idx)
+        if len(self.gt_stamps) == 1:
+            idx = np.zeros(len(stamps), int)
+        ok = np.abs(self.gt_stamps[idx] - stamps) <= max_dt
+        return ok, self.gt_poses[idx]
+
+
+def _read_image(path: Path, grey: bool) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
+    if img is None:
+        raise DatasetError(f"{path}: missing or not a readable image")
+    return img
+
+
+def _numbers(path: Path, per_line: int, what: str, labelled: bool = False) -> np.ndarray:
+    rows = []
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
+    for k, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        if labelled and ":" in line:
+            line = line.split(":", 1)[1]
+        try:
+            vals = [float(v) for v in line.split()]
+        except ValueError:
+            raise DatasetError(f"{path}:{k}: expected {per_line} numbers ({what}), got {line[:60]!r}") from None
+        if len(vals) != per_line:
+            raise DatasetError(f"{path}:{k}: expected {per_line} numbers ({what}), got {len(vals)}")
+        rows.append(vals)
+    if not rows:
+        raise DatasetError(f"{path}: empty, expected {what}")
+    return np.array(rows)
+
+
+def detect_layout(root: Path) -> str:
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset folder does not exist")
+    if (root / "rgb.txt").is_file():
+        return "tum"
+    if (root / "calib.txt").is_file() or (root / "image_l").is_dir() or (root / "image_0").is_dir():
+        return "kitti"
+    raise DatasetError(f"{root}: neither a KITTI odometry folder (image_l/ + calib.txt) "
+                       f"nor a TUM RGB-D folder (rgb.txt)")
+
+
+def open_dataset(root: str | Path, camera_yaml: str | Path | None = None, layout: str = "auto") -> Dataset:
+    root = Path(root)
+    layout = detect_layout(root) if layout == "auto" else layout
+    if layout == "kitti":
+        return open_kitti(root, camera_yaml)
+    if layout == "tum":
+        return open_tum(root, camera_yaml)
+    raise DatasetError(f"unknown dataset layout {layout!r} (expected kitti, tum or auto)")
+
+
+def _image_dir(root: Path, names: tuple[str, ...]) -> Optional[Path]:
+    for n in names:
+        if (root / n).is_dir():
+            return root / n
+    return None
+
+
+def _images_in(d: Path) -> list[Path]:
+    return sorted(p for p in d.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".pgm", ".bmp"))
+
+
+def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
+    left_dir = _image_dir(root, ("image_l", "image_0"))
+    if left_dir is None:
+        raise DatasetError(f"{root}: KITTI layout needs a folder image_l/ (or image_0/) of left images")
+    left = _images_in(left_dir)
+    if not left:
+        raise DatasetError(f"{left_dir}: no images (.png/.jpg) found")
+    right_dir = _image_dir(root, ("image_r", "image_1"))
+    right = _images_in(right_dir) if right_dir is not None else None
+    if right is not None and len(right) != len(left):
+        raise DatasetError(f"{right_dir}: {len(right)} right images but {len(left)} left images in {left_dir}")
+    first = _read_image(left[0], True)
+    h, w = first.shape[:2]
+    calib_path = root / "calib.txt"
+    baseline = None
+    if camera_yaml is not None:
+        camera, extras = load_camera_yaml(camera_yaml)
+    else:
+        if not calib_path.is_file():
+            raise DatasetError(f"{calib_path}: missing (KITTI layout needs P0 and P1 projection matrices)")
+        P = _numbers(calib_path, 12, "a 3x4 projection matrix per line", labelled=True).reshape(-1, 3, 4)
+        P0 = P[0]
+        camera = PinholeCamera(w, h, float(P0[0, 0]), float(P0[1, 1]), float(P0[0, 2]), float(P0[1, 2]))
+        extras = {}
+        if len(P) > 1:
+            # P1 = K [I | -b e_x]: P1[0, 3] = -fx b (rectified pair, right camera at +b along x)
+            baseline = float(-(P[1][0, 3] - P0[0, 3]) / P0[0, 0])
+    if right is not None and baseline is None:
+        baseline = extras.get("baseline")
+        if baseline is None:
+            raise DatasetError(f"{calib_path}: image_r/ present but no P1 line (or 'baseline' in the camera YAML)")
+    times_path = root / "times.txt"
+    if times_path.is_file():
+        stamps = _numbers(times_path, 1, "one time in seconds per line").ravel()
+        if len(stamps) != len(left):
+            raise DatasetError(f"{times_path}: {len(stamps)} times but {len(left)} images")
+    else:
+        stamps = np.arange(len(left)) / KITTI_RATE_HZ
+    gt_stamps = gt_poses = None
+    poses_path = root / "poses.txt"
+    if poses_path.is_file():
+        rows = _numbers(poses_path, 12, "a row-major 3x4 camera-to-world matrix per line")
+        if len(rows) != len(left):
+            raise DatasetError(f"{poses_path}: {len(rows)} poses but {len(left)} images")
+        gt_poses = np.tile(np.eye(4), (len(rows), 1, 1))
+        gt_poses[:, :3, :] = rows.reshape(-1, 3, 4)
+        gt_stamps = stamps.copy()
+    return Dataset(root, "kitti", camera, stamps, left, right, baseline, gt_stamps=gt_stamps, gt_poses=gt_poses,
+                   extras=extras)
+
+
+def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
+    stamps, names = [], []
+    for k, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            stamps.append(float(parts[0]))
+        except ValueError:
+            raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}") from None
+        if len(parts) < 2:
+            raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}")
+        names.append(parts[1])
+    if not stamps:
+        raise DatasetError(f"{path}: no entries (expected 'timestamp {what}' lines)")
+    return np.array(stamps), names
+
+
+def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
+    rgb_path = root / "rgb.txt"
+    if not rgb_path.is_file():
+        raise DatasetError(f"{rgb_path}: missing (TUM layout needs rgb.txt)")
+    stamps, names = _tum_list(rgb_path, "path/to/image.png")
+    left = [root / n for n in names]
+    for p in left:
+        if not p.is_file():
+            raise DatasetError(f"{p}: listed in {rgb_path} but missing")
+    yaml_path = Path(camera_yaml) if camera_yaml is not None else root / "camera.yaml"
+    if not yaml_path.is_file():
+        raise DatasetError(f"{yaml_path}: missing (TUM layout needs intrinsics: pass --camera FILE "
+                           f"or put camera.yaml in the folder)")
+    camera, extras = load_camera_yaml(yaml_path)
+    depth = None
+    depth_path = root / "depth.txt"
+    if depth_path.is_file():
+        d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
+        depth = []
+        for t in stamps:  # nearest depth image within 20 ms of each colour image
+            k = int(np.argmin(np.abs(d_stamps - t)))
+            depth.append(root / d_names[k] if abs(d_stamps[k] - t) <= 0.02 else None)
+    gt_stamps = gt_poses = None
+    gt_path = root / "groundtruth.txt"
+    if gt_path.is_file():
+        rows = _numbers(gt_path, 8, "timestamp tx ty tz qx qy qz qw")
+        order = np.argsort(rows[:, 0])
+        rows = rows[order]
+        gt_stamps = rows[:, 0]
+        gt_poses = np.tile(np.eye(4), (len(rows), 1, 1))
+        for k, r in enumerate(rows):
+            gt_poses[k, :3, :3] = matrix_from_quat(r[4:8])
+            gt_poses[k, :3, 3] = r[1:4]
+    return Dataset(root, "tum", camera, stamps, left, None, extras.get("baseline"), depth,
+                   float(extras.get("depth_scale", 1.0 / 5000.0)), gt_stamps, gt_poses, extras)
+
+
+def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, dict]:
+    """Intrinsics YAML: fx, fy, cx, cy, width, height, optional model (pinhole|fisheye), dist,
+    depth_scale (metres per depth unit), baseline (stereo, m), tag_grid (see vision/vslam_init.py).
+    Returns the camera model and the remaining keys."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise DatasetError(f"{path}: cannot read camera YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: expected a mapping with fx, fy, cx, cy, width, height")
+    missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
+    if missing:
+        raise DatasetError(f"{path}: missing key(s) {', '.join(missing)} (camera intrinsics)")
+    try:
+        args = dict(width=int(data["width"]), height=int(data["height"]), fx=float(data["fx"]),
+                    fy=float(data["fy"]), cx=float(data["cx"]), cy=float(data["cy"]),
+                    dist=tuple(float(v) for v in data.get("dist", []) or []))
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(f"{path}: intrinsics must be numbers: {exc}") from exc
+    model = data.get("model", "pinhole")
+    if model == "pinhole":
+        cam = PinholeCamera(**args)
+    elif model == "fisheye":
+        cam = FisheyeCamera(**{**args, "dist": args["dist"] or (0.0, 0.0, 0.0, 0.0)})
+    else:
+        raise DatasetError(f"{path}: model must be 'pinhole' or 'fisheye', got {model!r}")
+    extras = {k: v for k, v in data.items() if k not in ("fx", "fy", "cx", "cy", "width", "height", "dist", "model")}
+    return cam, extras

@@ -1,0 +1,160 @@
+"""Replay camera: recorded image sequences served like a live camera.
+
+Layouts: a plain folder of images (sorted by name), KITTI odometry (left and,
+when present, right images: ``Frame.right``) and TUM RGB-D (colour images,
+depth in ``Frame.meta["depth"]`` in metres). Frames come at the recorded rate
+(dataset stamps) or at ``rate_hz``, on the given clock: under the simulated
+clock ``read(timeout)`` jumps to the next frame's time, so replays are exact
+and fast. Like a live camera, ``read`` returns the latest frame that is due;
+frames that fell due while nobody read are dropped (``meta["dropped"]`` counts
+them), which is what the vision thread would see from a real device.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.clock import MonotonicClock
+from vbnav.drivers.datasets import DatasetError, _images_in, _read_image, open_dataset
+
+FOLDER_DEFAULT_RATE_HZ = 10.0
+
+
+class ReplayCamera(Camera):
+    name = "replay"
+
+    class Options(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        path: str = Field(..., description="folder of images, KITTI odometry folder or TUM RGB-D folder")
+        layout: Literal["auto", "folder", "kitti", "tum"] = Field(
+            "auto", description="auto: TUM if rgb.txt, KITTI if calib.txt or image_l/, else a folder of images")
+        rate_hz: Optional[float] = Field(None, gt=0, description="fixed rate; None: the recorded times "
+                                                                   "(folders without times: 10 Hz)")
+        loop: bool = Field(False, description="start again after the last frame")
+        camera_yaml: Optional[str] = Field(None, description="TUM intrinsics if not camera.yaml in the folder")
+        grey: bool = Field(True, description="single-channel images (the vision code works in grey)")
+
+    def __init__(self, options: "ReplayCamera.Options | dict", clock=None):
+        self.opt = options if isinstance(options, self.Options) else self.Options.model_validate(options)
+        self.clock = clock or MonotonicClock()
+        self._connected = False
+        self._files: list[Path] = []
+        self._right: Optional[list[Path]] = None
+        self._depth = None
+        self._stamps = np.zeros(0)
+        self._dataset = None
+        self._next = 0  # index of the next frame not yet returned
+        self._t0_ns = 0
+        self._seq = 0
+        self._lap = 0
+        self.finished = False
+
+    @classmethod
+    def from_config(cls, cfg: Any, clock, options=None) -> "ReplayCamera":
+        if options is None:
+            options = cls.Options.model_validate(getattr(getattr(cfg, "camera", None), "options", {}) or {})
+        return cls(options, clock)
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def __len__(self) -> int:
+        return len(self._files)
+
+    def connect(self) -> None:
+        root = Path(self.opt.path)
+        if not root.exists():
+            raise CameraError(f"replay camera: {root} does not exist")
+        layout = self.opt.layout
+        if layout == "auto":
+            layout = "tum" if (root / "rgb.txt").is_file() else (
+                "kitti" if (root / "calib.txt").is_file() or (root / "image_l").is_dir() else "folder")
+        try:
+            if layout == "folder":
+                if not root.is_dir():
+                    raise DatasetError(f"{root}: not a folder of images")
+                self._files = _images_in(root)
+                if not self._files:
+                    raise DatasetError(f"{root}: no images (.png/.jpg/.pgm/.bmp) found")
+                self._stamps = np.arange(len(self._files)) / FOLDER_DEFAULT_RATE_HZ
+            else:
+                ds = open_dataset(root, self.opt.camera_yaml, layout)
+                self._dataset = ds
+                self._files, self._right, self._depth, self._stamps = ds.left, ds.right, ds.depth, ds.stamps
+            _read_image(self._files[0], self.opt.grey)  # fail now, not in the loop
+        except DatasetError as exc:
+            raise CameraError(f"replay camera: {exc}") from exc
+        if self.opt.rate_hz is not None:
+            self._stamps = np.arange(len(self._files)) / self.opt.rate_hz
+        self._period_s = float(np.median(np.diff(self._stamps))) if len(self._stamps) > 1 else 0.1
+        self._t0_ns = self.clock.now_ns()
+        self._next = 0
+        self._lap = 0
+        self.finished = False
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def dataset(self):
+        """The opened KITTI/TUM dataset (intrinsics, ground truth), None for a plain folder."""
+        return self._dataset
+
+    def _due_ns(self, k: int, lap: int) -> int:
+        span = (self._stamps[-1] - self._stamps[0]) + self._period_s
+        return self._t0_ns + int(round(((self._stamps[k] - self._stamps[0]) + lap * span) * 1e9))
+
+    def _latest_due(self, now: int) -> Optional[tuple[int, int]]:
+        """(index, lap) of the latest frame due at ``now`` at or after the next unread one."""
+        k, lap = self._next, self._lap
+        if k >= len(self._files):
+            if not self.opt.loop:
+                return None
+            k, lap = 0, lap + 1
+        if self._due_ns(k, lap) > now:
+            return None
+        while True:
+            k2, lap2 = k + 1, lap
+            if k2 >= len(self._files):
+                if not self.opt.loop:
+                    break
+                k2, lap2 = 0, lap + 1
+            if self._due_ns(k2, lap2) > now:
+                break
+            k, lap = k2, lap2
+        return k, lap
+
+    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
+        if not self._connected:
+            raise CameraError("replay camera: read() before connect()")
+        now = self.clock.now_ns()
+        hit = self._latest_due(now)
+        if hit is None and timeout_s > 0 and not self.finished:
+            k, lap = (self._next, self._lap) if self._next < len(self._files) else (0, self._lap + 1)
+            if self._next < len(self._files) or self.opt.loop:
+                self.clock.sleep_until(min(self._due_ns(k, lap), now + int(timeout_s * 1e9)))
+                hit = self._latest_due(self.clock.now_ns())
+        if hit is None:
+            if self._next >= len(self._files) and not self.opt.loop:
+                self.finished = True
+            return None
+        k, lap = hit
+        skipped = (k - self._next) if lap == self._lap else (len(self._files) - self._next + k)
+        self._next, self._lap = k + 1, lap
+        self._seq += 1
+        try:
+            image = _read_image(self._files[k], self.opt.grey)
+            right = _read_image(self._right[k], True) if self._right is not None else None
+            meta = {"index": k, "lap": lap, "path": str(self._files[k]), "dropped": int(skipped),
+                    "dataset_stamp_s": float(self._stamps[k])}
+            if self._depth is not None and self._dataset is not None:
+                meta["depth"] = self._dataset.depth_image(k)
+        except DatasetError as exc:
+            raise CameraError(f"replay camera: {exc}") from exc
+        return Frame(image, self._due_ns(k, lap), self._seq, right=right, meta=meta)

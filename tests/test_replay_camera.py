@@ -1,0 +1,102 @@
+"""ReplayCamera over folders, KITTI and TUM layouts, on the simulated clock."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from vbnav.drivers.camera import CameraError
+from vbnav.drivers.clock import SimClock
+from vbnav.drivers.registry import CAMERAS, load
+from vbnav.drivers.replay_camera import ReplayCamera
+
+S = 1_000_000_000
+
+
+def write_folder(path, n, rng):
+    path.mkdir(parents=True, exist_ok=True)
+    imgs = []
+    for i in range(n):
+        img = rng.integers(0, 255, (24, 32), dtype=np.uint8)
+        cv2.imwrite(str(path / f"{i:06d}.png"), img)
+        imgs.append(img)
+    return imgs
+
+
+def test_registry_name_resolves_and_options_are_strict():
+    assert load(CAMERAS, "replay") is ReplayCamera
+    with pytest.raises(ValidationError, match="rate"):
+        ReplayCamera.Options(path="x", rate=3)
+    with pytest.raises(ValidationError):
+        ReplayCamera.Options(path="x", rate_hz=-1)
+
+
+def test_folder_replay_at_a_fixed_rate_drops_late_frames_and_loops(tmp_path, rng):
+    imgs = write_folder(tmp_path / "seq", 5, rng)
+    clock = SimClock()
+    with ReplayCamera({"path": str(tmp_path / "seq"), "rate_hz": 20.0, "loop": True}, clock) as cam:
+        f0 = cam.read()
+        assert f0.meta["index"] == 0 and np.array_equal(f0.image, imgs[0])
+        assert cam.read() is None  # frame 1 is not due yet
+        f1 = cam.read(timeout_s=1.0)  # sleeps (on the simulated clock) until frame 1 is due
+        assert f1.meta["index"] == 1 and f1.stamp_ns - f0.stamp_ns == S // 20
+        clock.advance(3 * S // 20)  # frames 2, 3 and 4 fall due; a live camera gives the latest
+        f = cam.read()
+        assert f.meta["index"] == 4 and f.meta["dropped"] == 2 and f.seq == 3
+        f = cam.read(timeout_s=1.0)
+        assert f.meta["index"] == 0 and f.meta["lap"] == 1  # looped, one period after the last frame
+
+
+def test_kitti_replay_at_recorded_rate_gives_stereo_pairs(tmp_path, rng):
+    root = tmp_path / "kitti"
+    write_folder(root / "image_l", 3, rng)
+    write_folder(root / "image_r", 3, rng)
+    (root / "calib.txt").write_text("P0: 500 0 16 0 0 500 12 0 0 0 1 0\nP1: 500 0 16 -250 0 500 12 0 0 0 1 0\n")
+    (root / "times.txt").write_text("0.0\n0.25\n0.5\n")
+    clock = SimClock()
+    cam = ReplayCamera({"path": str(root)}, clock)
+    cam.connect()
+    assert cam.dataset.stereo_baseline == pytest.approx(0.5)
+    frames = [cam.read(timeout_s=1.0) for _ in range(4)]
+    assert [f.meta["index"] for f in frames[:3]] == [0, 1, 2] and frames[3] is None and cam.finished
+    assert all(f.right is not None and f.right.shape == (24, 32) for f in frames[:3])
+    assert frames[2].stamp_ns - frames[0].stamp_ns == S // 2
+
+
+def test_tum_replay_delivers_depth_in_metres(tmp_path, rng):
+    root = tmp_path / "tum"
+    write_folder(root / "rgb", 2, rng)
+    (root / "depth").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(root / "depth" / f"{i}.png"), np.full((24, 32), 5000 * (i + 1), np.uint16))
+    (root / "rgb.txt").write_text("# colour\n10.0 rgb/000000.png\n10.1 rgb/000001.png\n")
+    (root / "depth.txt").write_text("10.001 depth/0.png\n10.101 depth/1.png\n")
+    (root / "camera.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32\nheight: 24\n")
+    clock = SimClock()
+    with ReplayCamera({"path": str(root)}, clock) as cam:
+        f0, f1 = cam.read(), cam.read(timeout_s=1.0)
+    assert f0.meta["depth"][0, 0] == pytest.approx(1.0) and f1.meta["depth"][0, 0] == pytest.approx(2.0)
+    assert f1.stamp_ns - f0.stamp_ns == pytest.approx(S // 10, abs=1000)
+
+
+def test_errors_name_the_missing_thing(tmp_path):
+    with pytest.raises(CameraError, match="does not exist"):
+        ReplayCamera({"path": str(tmp_path / "none")}, SimClock()).connect()
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CameraError, match="no images"):
+        ReplayCamera({"path": str(tmp_path / "empty")}, SimClock()).connect()
+    (tmp_path / "tum").mkdir()
+    (tmp_path / "tum" / "rgb.txt").write_text("0 a.png\n")
+    with pytest.raises(CameraError, match="a.png"):
+        ReplayCamera({"path": str(tmp_path / "tum")}, SimClock()).connect()
+
+
+def test_replays_the_real_kitti_sequence(shared_data):
+    clock = SimClock()
+    with ReplayCamera({"path": str(shared_data / "kitti06_stereo")}, clock) as cam:
+        frames = []
+        while (f := cam.read(timeout_s=1.0)) is not None:
+            frames.append(f)
+    assert len(frames) == 51 and frames[-1].right.shape == (370, 1226)
+    assert (frames[-1].stamp_ns - frames[0].stamp_ns) == 5 * S  # 10 Hz without times.txt

@@ -1,0 +1,315 @@
+"""Monocular VSLAM front end of section 11.3: one reference set of landmarks, pose against it.
+
+Landmarks live in the frame of the current *reference frame* (a camera pose).
+Every image: track the landmarks' pixels (KLT), turn them into rays (11.9),
+recover the motion reference -> current camera from those rays and the
+landmarks' reference coordinates (11.15-11.17, robust), never by chaining
+frame-to-frame motions (11.3.3.2). New landmarks are reconstructed by the
+spherical-disparity equation (11.11), either from the calibrated stereo pair
+(known (R, T) between the cameras: metric scale for the whole run), from a
+depth image, or from the camera's own motion once the parallax is large enough,
+then transformed back into the reference frame: the reference set grows in
+every direction the camera looks. When too few of the reference frame's own
+landmarks remain visible, the current frame becomes the new reference frame
+(hand-off); the chain of reference frames is kept.
+
+Pure computation: images and arrays in, poses out.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.klt_tracker import KltTracker
+from vbnav.vision.motion import MotionEstimate, recover_motion_robust
+from vbnav.vision.spherical import spherical_disparity
+
+
+class VslamConfig(BaseModel):
+    """Settings of the VSLAM front end (the ``vslam:`` section of a robot configuration)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_landmarks: int = Field(400, gt=10, description="landmarks tracked at most")
+    min_landmarks: int = Field(250, gt=3, description="below this many tracked, new landmarks are added")
+    max_candidates: int = Field(300, ge=0, description="monocular: features waiting for enough parallax")
+    min_parallax_deg: float = Field(2.0, gt=0, description="gate of the spherical disparity (monocular)")
+    inlier_threshold_px: float = Field(1.0, gt=0, description="ray angle, in pixels at the focal length")
+    handoff_fraction: float = Field(0.4, ge=0, le=1,
+                                    description="hand-off when fewer of the reference frame's own landmarks "
+                                                "than this fraction remain")
+    handoff_min: int = Field(40, ge=3, description="hand-off when fewer of its own landmarks remain visible")
+    min_inliers: int = Field(8, ge=3, description="fewer inliers than this: frame lost")
+    stereo_max_depth_baselines: float = Field(80.0, gt=0,
+                                              description="stereo landmarks farther than this many baselines "
+                                                          "are not used (too little disparity)")
+    min_depth: float = Field(0.0, ge=0, description="landmarks nearer than this (m) are not created")
+    klt_window: int = Field(21, ge=5)
+    klt_levels: int = Field(3, ge=0)
+    min_distance_px: float = Field(12.0, gt=0)
+
+
+@dataclass
+class ReferenceFrame:
+    """A reference frame of the chain: its world-from-camera pose and when it was created."""
+
+    index: int  # frame counter at creation
+    pose_wc: np.ndarray  # 4x4 world-from-reference-camera
+    landmarks: int  # landmarks it owned at creation
+
+
+@dataclass
+class FrameResult:
+    ok: bool
+    pose_wc: np.ndarray  # 4x4 world-from-camera (last good pose if not ok)
+    tracked: int
+    inliers: int
+    iterations: int
+    residual_px: float
+    handoff: bool = False
+    added: int = 0
+    reference: int = 0  # index of the reference frame the pose was computed against
+
+
+@dataclass
+class _Landmarks:
+    P: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # in the reference frame
+    px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # pixel in the last image
+    own: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # created with the reference frame
+    count: np.ndarray = field(default_factory=lambda: np.zeros(0))  # measurements averaged into P
+
+    def keep(self, m: np.ndarray) -> None:
+        self.P, self.px, self.own, self.count = self.P[m], self.px[m], self.own[m], self.count[m]
+
+    def add(self, P: np.ndarray, px: np.ndarray, own: bool) -> None:
+        self.P = np.vstack((self.P, P))
+        self.px = np.vstack((self.px, px))
+        self.own = np.concatenate((self.own, np.full(len(P), own)))
+        self.count = np.concatenate((self.count, np.ones(len(P))))
+
+
+@dataclass
+class _Candidates:
+    """Monocular: features waiting for parallax; first ray and pose (ref -> camera) at first sight."""
+
+    px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    ray0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    R0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    T0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def keep(self, m: np.ndarray) -> None:
+        self.px, self.ray0, self.R0, self.T0 = self.px[m], self.ray0[m], self.R0[m], self.T0[m]
+
+
+def _to_h(R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, T
+    return M
+
+
+class Vslam:
+    """The front end. ``initialise`` once with metric landmarks, then ``process`` every image."""
+
+    def __init__(self, camera: PinholeCamera | FisheyeCamera, config: VslamConfig | None = None,
+                 stereo_baseline: Optional[float] = None):
+        self.camera = camera
+        self.cfg = config or VslamConfig()
+        self.baseline = stereo_baseline
+        self.tracker = KltTracker(window=self.cfg.klt_window, levels=self.cfg.klt_levels,
+                                  min_distance=self.cfg.min_distance_px)
+        self.lm = _Landmarks()
+        self.cand = _Candidates()
+        self.R = np.eye(3)  # reference -> current camera
+        self.T = np.zeros(3)
+        self.references: list[ReferenceFrame] = []
+        self.prev: Optional[np.ndarray] = None
+        self.frame = 0
+        self.rng = np.random.default_rng(0)
+        self.stats: list[MotionEstimate] = []
+        self._history: list[np.ndarray] = []  # last two good world-from-camera poses
+
+    # ------------------------------------------------------------------ set-up
+    @property
+    def initialised(self) -> bool:
+        return self.prev is not None
+
+    @property
+    def pose_wc(self) -> np.ndarray:
+        return self.references[-1].pose_wc @ np.linalg.inv(_to_h(self.R, self.T))
+
+    def initialise(self, image: np.ndarray, pixels: np.ndarray, points_cam: np.ndarray,
+                   pose_wc: np.ndarray | None = None, right: np.ndarray | None = None,
+                   depth: np.ndarray | None = None) -> int:
+        """Start with landmarks of known metric position in this camera's frame (from stereo, a depth
+        image or a known reference structure); this camera becomes the first reference frame."""
+        self.lm = _Landmarks()
+        self.lm.add(np.asarray(points_cam, float).reshape(-1, 3), np.asarray(pixels, float).reshape(-1, 2), True)
+        self.R, self.T = np.eye(3), np.zeros(3)
+        self.references = [ReferenceFrame(self.frame, np.eye(4) if pose_wc is None else np.asarray(pose_wc, float),
+                                          len(self.lm.P))]
+        self._history = [self.references[0].pose_wc]
+        self.prev = image
+        added = self._add_landmarks(image, right, depth, own=True)
+        self.references[-1].landmarks = len(self.lm.P)
+        self.frame += 1
+        return len(self.lm.P) + added * 0
+
+    def initialise_stereo(self, left: np.ndarray, right: np.ndarray, pose_wc: np.ndarray | None = None) -> int:
+        if self.baseline is None:
+            raise ValueError("stereo initialisation needs the stereo baseline")
+        return self.initialise(left, np.zeros((0, 2)), np.zeros((0, 3)), pose_wc, right=right)
+
+    def initialise_depth(self, image: np.ndarray, depth: np.ndarray, pose_wc: np.ndarray | None = None) -> int:
+        return self.initialise(image, np.zeros((0, 2)), np.zeros((0, 3)), pose_wc, depth=depth)
+
+    # ------------------------------------------------------------------ per frame
+    def process(self, image: np.ndarray, right: np.ndarray | None = None, depth: np.ndarray | None = None
+                ) -> FrameResult:
+        if not self.initialised:
+            raise RuntimeError("Vslam.process before initialise")
+        cfg = self.cfg
+        n_lm = len(self.lm.P)
+        pts = np.vstack((self.lm.px, self.cand.px))
+        new_px, ok = self.tracker.track(self.prev, image, pts)
+        self.lm.px, self.cand.px = new_px[:n_lm], new_px[n_lm:]
+        self.cand.keep(ok[n_lm:])
+        self.lm.keep(ok[:n_lm])
+        tracked = len(self.lm.P)
+        self.prev = image
+        self.frame += 1
+        if tracked < max(cfg.min_inliers, 3):
+            return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"), reference=len(self.references) - 1)
+        rays = self.camera.rays(self.lm.px)
+        f = float(getattr(self.camera, "fx", 500.0))
+        est = recover_motion_robust(self.lm.P, rays, prior=self._predicted_motion(),
+                                    threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng)
+        self.stats.append(est)
+        inl = est.inliers & (est.depths > 0)
+        if inl.sum() < cfg.min_inliers:
+            return FrameResult(False, self.pose_wc, tracked, int(inl.sum()), est.iterations, float("nan"),
+                               reference=len(self.references) - 1)
+        self.R, self.T = est.R, est.T
+        self._history = [self._history[-1], self.pose_wc] if self._history else [self.pose_wc]
+        self.lm.keep(inl)
+        handoff = self._maybe_handoff()
+        added = 0
+        if len(self.lm.P) < cfg.min_landmarks or (self.baseline is None and depth is None):
+            added = self._add_landmarks(image, right, depth, own=False)
+        return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
+                           handoff, added, len(self.references) - 1)
+
+    def _predicted_motion(self) -> tuple[np.ndarray, np.ndarray]:
+        """Reference -> camera motion predicted at constant velocity from the last two poses."""
+        if len(self._history) < 2:
+            return self.R, self.T
+        W1, W2 = self._history
+        W = W2 @ np.linalg.inv(W1) @ W2  # W_k = W_{k-1} (W_{k-2}^-1 W_{k-1})
+        M = np.linalg.inv(W) @ self.references[-1].pose_wc  # reference -> predicted camera
+        return M[:3, :3], M[:3, 3]
+
+    # ------------------------------------------------------------------ reference set
+    def _maybe_handoff(self) -> bool:
+        own = int(self.lm.own.sum())
+        ref = self.references[-1]
+        if own >= max(self.cfg.handoff_min, self.cfg.handoff_fraction * ref.landmarks):
+            return False
+        # Re-express the surviving landmarks in the current camera, which becomes the reference frame.
+        self.lm.P = self.lm.P @ self.R.T + self.T
+        self.lm.own[:] = True
+        Rc, Tc = self.cand.R0, self.cand.T0
+        if len(Rc):  # candidates' first poses: ref_old -> cam0 becomes ref_new -> cam0
+            Rinv = self.R.T
+            self.cand.R0 = Rc @ Rinv
+            self.cand.T0 = Tc - np.einsum("hij,j->hi", self.cand.R0, self.T)
+        self.references.append(ReferenceFrame(self.frame - 1, self.pose_wc, len(self.lm.P)))
+        self.R, self.T = np.eye(3), np.zeros(3)
+        return True
+
+    def _add_landmarks(self, image, right, depth, own: bool) -> int:
+        if self.baseline is not None and right is not None:
+            n = self._add_from_stereo(image, right, own)
+        elif depth is not None:
+            n = self._add_from_depth(image, depth, own)
+        else:
+            n = self._add_from_motion(image, own)
+        if own:
+            self.references[-1].landmarks = len(self.lm.P)
+        return n
+
+    def _to_reference(self, X_cam: np.ndarray) -> np.ndarray:
+        return (X_cam - self.T) @ self.R  # R^T (X - T)
+
+    def _new_corners(self, image, budget: int) -> np.ndarray:
+        existing = np.vstack((self.lm.px, self.cand.px))
+        return self.tracker.detect(image, budget, existing)
+
+    def _add_from_stereo(self, left, right, own: bool) -> int:
+        """Spherical disparity (11.11) with the known stereo motion: X_right = X_left - (b, 0, 0)."""
+        px = self._new_corners(left, self.cfg.max_landmarks - len(self.lm.P))
+        if len(px) == 0:
+            return 0
+        px_r, ok = self.tracker.track(left, right, px, levels=4)
+        dx = px[:, 0] - px_r[:, 0]
+        ok &= (np.abs(px_r[:, 1] - px[:, 1]) < 1.0) & (dx > 0.3)
+        if not ok.any():
+            return 0
+        px, px_r = px[ok], px_r[ok]
+        T = np.array([-self.baseline, 0.0, 0.0])
+        n_l, n_r = self.camera.rays(px), self.camera.rays(px_r)
+        rec = spherical_disparity(n_l, n_r, np.eye(3), T, min_parallax=0.0, max_residual_ratio=0.2)
+        good = rec.valid & (rec.depth_ref < self.cfg.stereo_max_depth_baselines * self.baseline) \
+            & (rec.depth_ref > self.cfg.min_depth)
+        X = rec.depth_ref[good, None] * n_l[good]
+        self.lm.add(self._to_reference(X), px[good], own)
+        return int(good.sum())
+
+    def _add_from_depth(self, image, depth, own: bool) -> int:
+        px = self._new_corners(image, self.cfg.max_landmarks - len(self.lm.P))
+        if len(px) == 0:
+            return 0
+        ij = np.round(px).astype(int)
+        z = depth[np.clip(ij[:, 1], 0, depth.shape[0] - 1), np.clip(ij[:, 0], 0, depth.shape[1] - 1)]
+        good = np.isfinite(z) & (z > max(self.cfg.min_depth, 1e-6))
+        n = self.camera.rays(px[good])
+        X = n * (z[good] / n[:, 2])[:, None]  # depth images hold z, not the radial distance
+        self.lm.add(self._to_reference(X), px[good], own)
+        return int(good.sum())
+
+    def _add_from_motion(self, image, own: bool) -> int:
+        """Monocular: triangulate waiting candidates by spherical disparity between their first view
+        and now, once the parallax passes the gate; then top up the candidates."""
+        added = 0
+        c = self.cand
+        if len(c.px):
+            rays = self.camera.rays(c.px)
+            # first view -> now: X_now = R X_ref + T, X_0 = R0 X_ref + T0  =>  R_rel = R R0^T, T_rel = T - R_rel T0
+            R_rel = np.einsum("ij,hkj->hik", self.R, c.R0)
+            T_rel = self.T - np.einsum("hij,hj->hi", R_rel, c.T0)
+            d0 = np.full(len(rays), np.nan)
+            ok = np.zeros(len(rays), bool)
+            for k in range(len(rays)):  # small systems; vectorising over distinct (R, T) is not worth it
+                rec = spherical_disparity(c.ray0[k:k + 1], rays[k:k + 1], R_rel[k], T_rel[k],
+                                          min_parallax=np.deg2rad(self.cfg.min_parallax_deg),
+                                          max_residual_ratio=0.05)
+                ok[k], d0[k] = rec.valid[0], rec.depth_ref[0]
+            ok &= d0 > self.cfg.min_depth
+            if ok.any():
+                X0 = d0[ok, None] * c.ray0[ok]
+                P = np.einsum("hji,hj->hi", c.R0[ok], X0 - c.T0[ok])  # R0^T (X0 - T0)
+                self.lm.add(P, c.px[ok], own)
+                added = int(ok.sum())
+                c.keep(~ok)
+        budget = self.cfg.max_candidates - len(c.px)
+        if budget > 0 and len(self.lm.P) < self.cfg.max_landmarks:
+            px = self._new_corners(image, budget)
+            if len(px):
+                m = len(px)
+                c.px = np.vstack((c.px, px))
+                c.ray0 = np.vstack((c.ray0, self.camera.rays(px)))
+                c.R0 = np.concatenate((c.R0, np.repeat(self.R[None], m, 0)))
+                c.T0 = np.vstack((c.T0, np.repeat(self.T[None], m, 0)))
+        return added
