@@ -52,6 +52,11 @@ def camera(world, gain=1.0):
 
 @pytest.fixture(scope="module")
 def taught(world):
+    return teach_route(world)
+
+
+def teach_route(world):
+    """Teach SCRIPT from START on rendered frames; (route, true path (N, 2))."""
     cam = camera(world)
     stage = TeachStage(CAM, MOUNT, VBCConfig())
     true, odom = START, Pose2()
