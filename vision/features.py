@@ -65,7 +65,7 @@ class FeatureTracker:
         self.redetect_fraction = redetect_fraction
         self.mask = mask
         self.border = border
-        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03)
         self.reset()
 
     def reset(self) -> None:
@@ -120,8 +120,10 @@ class FeatureTracker:
         p0 = p0.reshape(-1, 1, 2).astype(np.float32)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_pyr, pyr, p0, None, winSize=self.win,
                                               maxLevel=self.levels, criteria=self._criteria)
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, p1, None, winSize=self.win,
-                                               maxLevel=self.levels, criteria=self._criteria)
+        # Backward pass started at the origin: a good track converges there in a step or two.
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, p1, p0.copy(), winSize=self.win,
+                                               maxLevel=self.levels, criteria=self._criteria,
+                                               flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
         p1 = p1.reshape(-1, 2)
         h, w = shape[:2]
