@@ -101,6 +101,53 @@ def rendered_scene(passes: int):
     return ours, peer, len(route.keyframes), stage.stats
 
 
+def components_at_200(passes: int):
+    """Each stage at exactly 200 features on rendered frames: tracking, re-acquisition, pose."""
+    from test_teach_repeat_rendered import CAM, START, camera, drive, World
+    from vbc_scenes import bearings, levelled_points, room_points
+    from vbnav.vision.features import FeatureTracker, describe, detect_and_describe, geometric_inliers, \
+        match_descriptors
+    from vbnav.vision.vbc import estimate_pose
+    cam = camera(World.room(seed=1))
+    frames, p = [], START
+    for i in range(60):
+        frames.append(cam.render_frame(p, i, i).image)
+        p = drive(p, 0.25, -0.2, 1 / 14)
+    t_track, t_match, t_pose = [], [], []
+    for _ in range(passes):
+        tr = FeatureTracker(max_features=200, win_size=11)
+        tr.track(frames[0])
+        for img in frames[1:]:
+            t0 = time.perf_counter()
+            tr.track(img)
+            t_track.append(time.perf_counter() - t0)
+        kf_desc, _ = describe(frames[0], FeatureTracker(max_features=200).track(frames[0]).pts)
+        for img in frames[10::5]:
+            t0 = time.perf_counter()
+            pts, desc = detect_and_describe(img, 500)
+            pairs = match_descriptors(desc, kf_desc)
+            if len(pairs) >= 8:
+                geometric_inliers(CAM.rays(pts[pairs[:, 0]]), CAM.rays(pts[pairs[:, 0]]), 2.0 / 400)
+            t_match.append(time.perf_counter() - t0)
+    rng = np.random.default_rng(0)
+    mount = CameraMount(0.25, 0.10)
+    for _ in range(30 * passes):
+        pts = room_points(rng, 200, mount)
+        truth = Pose2(rng.normal(0, 0.1), rng.normal(-0.2, 0.1), rng.normal(0, 0.1))
+        a0, b0 = bearings(Pose2(), mount, pts)
+        a1, b1 = bearings(truth, mount, pts)
+        a1 += rng.normal(0, 1 / 400, 200)
+        b1 += rng.normal(0, 1 / 400, 200)
+        bad = rng.random(200) < 0.2
+        a1[bad] += rng.uniform(-0.1, 0.1, bad.sum())
+        w = 1 / levelled_points(Pose2(), mount, pts)[:, 1]
+        guess = truth.compose(Pose2(0.01, 0.01, 0.005))          # the last fix moved by odometry
+        t0 = time.perf_counter()
+        estimate_pose(a0, b0, w, a1, b1, forward=0.10, sigma=1 / 400, initial=guess)
+        t_pose.append(time.perf_counter() - t0)
+    return t_track, t_match, t_pose
+
+
 def pct(a, q):
     return float(np.percentile(np.asarray(a) * 1e3, q))
 
@@ -120,6 +167,11 @@ def main() -> int:
     print(f"OpenCV bare goodFeaturesToTrack(200) + calcOpticalFlowPyrLK: median {pct(peer, 50):.2f} ms, "
           f"p99 {pct(peer, 99):.2f} ms")
     print(f"ratio VBC / bare OpenCV (median): {pct(ours, 50) / pct(peer, 50):.2f}")
+    tt, tm, tp = components_at_200(max(1, args.passes // 2))
+    print(f"  components at 200 features: KLT tracking (fb-checked, re-detection when short) median "
+          f"{pct(tt, 50):.2f} ms p99 {pct(tt, 99):.2f}; VBC pose (200 landmarks, 20 % outliers, warm start) "
+          f"median {pct(tp, 50):.2f} ms p99 {pct(tp, 99):.2f}; re-acquisition (500 ORB vs 200) median "
+          f"{pct(tm, 50):.2f} ms")
     print()
     cam, left, right, odom, baseline = load(root)
     mount = CameraMount(height=1.65)

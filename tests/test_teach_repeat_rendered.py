@@ -117,6 +117,12 @@ def test_rendered_repeat_from_offset(world, taught):
     print(f"rendered repeat: settled lateral RMS {100 * rms:.2f} cm, max {100 * lat[settled].max():.2f} cm, "
           f"{len(route.keyframes)} keyframes, re-acquired {stage.stats['reacquired']}")
     assert rms < 0.03 and lat[settled].max() < 0.06
+    # smooth through all keyframe switches: no jumps in the commands after the start
+    w = np.array([c.w for _, _, c in trace])
+    v = np.array([c.v for _, _, c in trace])
+    after = t[1:] > 0.5
+    assert stage.stats["switches"] == len(route.keyframes) - 1
+    assert np.abs(np.diff(w))[after].max() < 0.08 and np.abs(np.diff(v))[after].max() < 0.02
     end = trace[-1][1]
     assert math.hypot(end.x - path[-1, 0], end.z - path[-1, 1]) < 0.1
 
