@@ -142,3 +142,25 @@ def test_rendered_repeat_through_occlusion_lighting_and_moved_boxes(taught, gain
     print(f"gain {gain}, boxes moved, occluded 2 s: max lateral {100 * lat.max():.2f} cm, {stage.stats}")
     assert np.all(v[(t > 5.5) & (t < 6.0)] < VBCConfig().cruise_speed)     # slowed or stopped while blind
     assert lat.max() < 0.05
+
+
+def test_route_round_trip_through_disk_localises(world, taught, tmp_path):
+    """Keyframes written by RouteWriter and read by load_route give the same fixes as in memory."""
+    from vbnav.control.route import RouteWriter, load_route
+    route, _ = taught
+    with RouteWriter(tmp_path / "route", "sim", CAM, MOUNT) as w:
+        for kf in route.keyframes:
+            w.append(kf)
+    loaded = load_route(tmp_path / "route")
+    assert len(loaded) == len(route) and loaded.camera == CAM and loaded.mount == MOUNT
+    cam = camera(world)
+    fixes = []
+    for r in (route, loaded):
+        stage = RepeatStage(r, VBCConfig())
+        pose = START.compose(Pose2(0.1, 0.0, 0.05))
+        for i in range(4):
+            est = stage.process(cam.render_frame(pose, i, i), Pose2(0.0, 0.02 * i, 0.0))
+            pose = drive(pose, 0.2, 0.0, 0.1)
+        assert est.ok and est.value.n_agree > 50
+        fixes.append(est.value.pose.as_array())
+    np.testing.assert_allclose(fixes[0], fixes[1], atol=1e-9)
