@@ -8,9 +8,10 @@
   ``pop_keyframes()`` into a ``RouteWriter``.
 - ``RepeatStage`` (vision thread, while repeating): localises each frame against the
   keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
-  when too few remain, e.g. after an occlusion or a jump), computes the VBC pose
-  relative to that keyframe and advances when the robot passes it. Returns
-  ``Estimate(kind="vbc", value=VBCFix)``.
+  when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
+  KLT from the keyframe image started at the pixels the current fix predicts, after
+  each keyframe switch), computes the VBC pose relative to that keyframe and
+  advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
 - ``RepeatController`` (loop rate): dead-reckons from the latest fix with odometry,
   follows the taught keyframe path with pure pursuit (a nonholonomic base corrects
   lateral error through heading), slows and stops when too few landmarks agree,
