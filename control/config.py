@@ -107,7 +107,8 @@ class SimConfig(Strict):
     motor_time_constant_s: float = Field(0.05, ge=0)
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
     encoder_ticks_per_rev: int = Field(4096, gt=0)
-    slip_std: float = Field(0.01, ge=0, description="relative wheel slip noise (fraction of wheel travel)")
+    slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
+    vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
 
 
