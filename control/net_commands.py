@@ -17,14 +17,12 @@ into zenoh or the loop and never move the robot. Unauthorised peers are stopped
 earlier, by zenoh's access control (see network.py): their messages never
 arrive.
 
-``TeleopWatchdog`` turns the teleop stream into a twist and makes its silence a
-stop condition: it is driven by the loop's clock, so tests run it on a
-``SimClock``.
+Teleop silence is a stop condition of the runtime's ``TeleopController``
+(control/manual.py, ``safety.command_timeout_s``), driven by the loop's clock.
 """
 from __future__ import annotations
 
 import json
-import math
 import queue
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -125,13 +123,16 @@ RejectFn = Callable[[str, str, str], None]   # (command kind, reason, payload ex
 class CommandInbox:
     """Thread-safe hand-over from network callbacks to the loop.
 
-    ``submit`` (any thread) validates and queues or rejects; ``drain`` (loop thread) returns queued
-    commands without ever blocking.
+    ``submit`` (any thread) validates, then either passes the command to ``deliver`` (e.g.
+    ``Runtime.submit``, itself a thread-safe queue the loop drains) or, without ``deliver``, queues it
+    for ``drain`` (loop thread, never blocks). Invalid commands go to ``on_reject``.
     """
 
-    def __init__(self, limits: TeleopLimits, on_reject: Optional[RejectFn] = None):
+    def __init__(self, limits: TeleopLimits, on_reject: Optional[RejectFn] = None,
+                 deliver: Optional[Callable[[NetCommand], None]] = None):
         self.limits = limits
         self._on_reject = on_reject
+        self._deliver = deliver
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self.accepted = 0
         self.rejected = 0
@@ -147,7 +148,10 @@ class CommandInbox:
         except Exception as exc:  # never let a command crash the zenoh callback thread
             self._reject(kind, f"internal error: {exc!r}", payload)
             return None
-        self._q.put(cmd)
+        if self._deliver is not None:
+            self._deliver(cmd)
+        else:
+            self._q.put(cmd)
         self.accepted += 1
         return cmd
 
@@ -196,52 +200,5 @@ class CommandSubscriber:
             pass
 
 
-class TeleopWatchdog:
-    """The latest teleop twist, valid for ``timeout_s`` of loop time after it arrived.
-
-    ``update(now_ns)`` returns the twist to drive, (0, 0) once the stream went silent (and keeps
-    returning (0, 0) until a new teleop message arrives), or None if teleop never started or was
-    cancelled. ``expired`` becomes True on the cycle the silence is first detected, so the runtime
-    can publish one ``teleop_timeout`` event.
-    """
-
-    def __init__(self, timeout_s: float):
-        if not timeout_s > 0:
-            raise ValueError(f"teleop timeout must be > 0 s, got {timeout_s}")
-        self.timeout_ns = int(round(timeout_s * 1e9))
-        self._twist: Optional[tuple[float, float]] = None
-        self._last_ns: Optional[int] = None
-        self._silent = False
-        self.expired = False
-
-    def feed(self, cmd: TeleopCmd, now_ns: int) -> None:
-        self._twist = (float(cmd.linear), float(cmd.angular))
-        self._last_ns = now_ns
-        self._silent = False
-
-    def cancel(self) -> None:
-        self._twist, self._last_ns, self._silent = None, None, False
-
-    @property
-    def active(self) -> bool:
-        return self._twist is not None
-
-    def update(self, now_ns: int) -> Optional[tuple[float, float]]:
-        self.expired = False
-        if self._twist is None:
-            return None
-        if self._silent:
-            return (0.0, 0.0)
-        if now_ns - self._last_ns > self.timeout_ns:
-            self._silent = True
-            self.expired = True
-            return (0.0, 0.0)
-        return self._twist
-
-
 def limits_from_config(cfg) -> TeleopLimits:
     return TeleopLimits(cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
-
-
-def is_finite(*xs: float) -> bool:
-    return all(math.isfinite(x) for x in xs)

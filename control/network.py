@@ -63,8 +63,6 @@ class TelemetryConfig(_Strict):
     image_rate_hz: float = Field(0.0, ge=0, le=60, description="rate of vbnav/<robot>/image JPEGs; 0 = off")
     image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled to this width, px")
     jpeg_quality: int = Field(70, ge=10, le=100)
-    teleop_timeout_s: Optional[float] = Field(
-        None, gt=0, le=10, description="teleop silence that stops the robot; default safety.command_timeout_s")
     listen: list[str] = Field(default_factory=lambda: [DEFAULT_ENDPOINT], max_length=8,
                               description="zenoh endpoints the robot listens on")
     connect: list[str] = Field(default_factory=list, max_length=8,

@@ -79,7 +79,7 @@ VBNAV_SCHEMAS = {
 }
 
 # Event kinds that Foxglove's log panel should show as warnings / errors.
-_LOG_LEVEL = {"safety_stop": 4, "fault": 4, "estop": 4, "command_rejected": 3, "teleop_timeout": 3}
+_LOG_LEVEL = {"safety_trip": 4, "safety_hold": 3, "command_rejected": 3}
 
 
 def _ts(stamp_ns: int) -> dict:

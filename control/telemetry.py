@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import base64
 import json
-import math
 import queue
 import threading
 import time
@@ -171,6 +170,9 @@ class TelemetryPublisher:
         self._image_period_ns = int(round(1e9 / image_rate_hz)) if image_rate_hz > 0 else 0
         self._image_width, self._jpeg_quality = image_width, jpeg_quality
         self._next_state_ns: Optional[int] = None
+        # Loop stamps are wake-up times that jitter after their tick: accept a sample up to half a
+        # loop period before the grid point so jitter never pushes a message to the next cycle.
+        self._tol_ns = int(0.5e9 / loop_rate_hz) if loop_rate_hz > 0 else 0
         self._next_image_ns: Optional[int] = None
         self._now_ns = now_ns
         self._q: queue.SimpleQueue = queue.SimpleQueue()
@@ -185,20 +187,20 @@ class TelemetryPublisher:
     def state_due(self, stamp_ns: int) -> bool:
         """True when a state sample stamped ``stamp_ns`` would be published (saves building it)."""
         nxt = self._next_state_ns
-        return nxt is None or stamp_ns >= nxt
+        return nxt is None or stamp_ns >= nxt - self._tol_ns
 
     def offer_state(self, sample: StateSample) -> bool:
         """Queue ``sample`` if a state message is due at its stamp. Never blocks; returns whether queued."""
         stamp = sample.stamp_ns
         nxt = self._next_state_ns
-        if nxt is not None and stamp < nxt:
+        if nxt is not None and stamp < nxt - self._tol_ns:
             return False
         period = self._state_period_ns
         # Stay on the grid start + k*period; after a stall, jump to the next grid point ahead.
         if nxt is None:
             self._next_state_ns = stamp + period
         else:
-            self._next_state_ns = nxt + period * ((stamp - nxt) // period + 1)
+            self._next_state_ns = nxt + period * (max(0, stamp - nxt) // period + 1)
         return self._put(("state", sample))
 
     # ---- any thread ----------------------------------------------------------------------
@@ -318,7 +320,3 @@ def decode(payload: bytes | str) -> dict:
     if not isinstance(msg, dict) or not str(msg.get("schema", "")).startswith("vbnav."):
         raise ValueError("not a vbnav telemetry message")
     return msg
-
-
-def finite(x: float) -> bool:
-    return math.isfinite(x)

@@ -19,6 +19,11 @@ def register(sub) -> None:
     p.add_argument("--no-camera", action="store_true",
                    help="do not open the camera (by default it runs, so a stale camera stops the robot)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
+    p.add_argument("--record", default=None, metavar="PATH",
+                   help="record state, events and images to an MCAP file (opens in Foxglove; see "
+                        "docs/telemetry.md); written as PATH.part and renamed when the run ends")
+    p.add_argument("--no-telemetry", action="store_true",
+                   help="do not open the zenoh session (no telemetry, no network commands)")
     p.set_defaults(func=run)
 
 
@@ -34,6 +39,20 @@ def build_controller(cfg, kind: str):
                      f"teach and repeat have their own commands)")
 
 
+def attach_telemetry(rt, cfg, args):
+    """Telemetry, network commands and --record for a runtime; None (after a message) if zenoh cannot open."""
+    import sys
+
+    from vbnav.control.telemetry_link import TelemetryLink
+    if getattr(args, "no_telemetry", False):
+        cfg = cfg.model_copy(update={"telemetry": {**cfg.telemetry, "enabled": False}})
+    try:
+        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None))
+    except ConnectionError as exc:
+        print(f"vbnav: {exc}", file=sys.stderr)
+        return None
+
+
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.factory import make_robot
@@ -45,6 +64,9 @@ def run(args) -> int:
     controller = build_controller(cfg, kind)
     clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
     rt = Runtime(cfg, drive, controller, clock, pipeline)
+    link = attach_telemetry(rt, cfg, args)
+    if link is None:
+        return 3
     printer = ProgressPrinter()
 
     def progress(r: Runtime) -> None:
@@ -57,7 +79,11 @@ def run(args) -> int:
     duration = args.duration
     if duration is None and kind != "scripted" and clock.simulated:
         duration = 10.0  # a simulated teleop/idle run has nobody to stop it
-    result = rt.run(duration, progress)
+    result = None
+    try:
+        result = rt.run(duration, progress)
+    finally:
+        link.close(result)
     printer.done()
     summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
                "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],

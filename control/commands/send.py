@@ -21,7 +21,7 @@ def register(sub) -> None:
     r = cmds.add_parser("resume", help="clear an estop latch")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
-                                    "telemetry.teleop_timeout_s. Without --duration one message is sent.")
+                                    "safety.command_timeout_s (and only a run with controller teleop follows it). Without --duration one message is sent.")
     t.add_argument("v", type=float, metavar="V", help="linear velocity, m/s")
     t.add_argument("w", type=float, metavar="W", help="angular velocity, rad/s")
     t.add_argument("--duration", type=float, default=0.0, metavar="S", help="keep sending for S seconds")
