@@ -40,6 +40,7 @@ from typing import Iterator, Optional
 from vbnav.control.telemetry import Sink
 
 PART_SUFFIX = ".part"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 _TIME = {"type": "object", "title": "time",
          "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}}}
@@ -259,18 +260,17 @@ def iter_recording(path: str | os.PathLike, summary: Optional[RecordingSummary] 
 def read_recording(path: str | os.PathLike) -> RecordingSummary:
     """Channels, message counts and time span of a recording (complete or interrupted)."""
     p = resolve_recording(path)
-    from mcap.exceptions import InvalidMagic
+    with open(p, "rb") as f:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise ValueError(f"{p}: not an MCAP file (no MCAP magic at the start)")
     summary = RecordingSummary(p)
-    try:
-        for topic, schema, t, _ in iter_recording(p, summary):
-            ch = summary.channels.get(topic)
-            if ch is None:
-                ch = summary.channels[topic] = ChannelSummary(topic, schema)
-            ch.count += 1
-            ch.first_ns = t if ch.first_ns is None else min(ch.first_ns, t)
-            ch.last_ns = t if ch.last_ns is None else max(ch.last_ns, t)
-    except InvalidMagic:
-        raise ValueError(f"{p}: not an MCAP file") from None
+    for topic, schema, t, _ in iter_recording(p, summary):
+        ch = summary.channels.get(topic)
+        if ch is None:
+            ch = summary.channels[topic] = ChannelSummary(topic, schema)
+        ch.count += 1
+        ch.first_ns = t if ch.first_ns is None else min(ch.first_ns, t)
+        ch.last_ns = t if ch.last_ns is None else max(ch.last_ns, t)
     return summary
 
 

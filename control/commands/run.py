@@ -59,7 +59,10 @@ def run(args) -> int:
     from vbnav.control.progress import ProgressPrinter
     from vbnav.control.runtime import Runtime
 
+    from vbnav.control.network import telemetry_config
+
     cfg = load_config(args.config)
+    telemetry_config(cfg)  # refuse unsafe network settings before any device opens
     kind = args.controller or cfg.controller.kind
     controller = build_controller(cfg, kind)
     clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
