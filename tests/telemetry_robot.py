@@ -16,7 +16,7 @@ import sys
 
 from runtime_helpers import RecordingDrive  # same directory
 
-from vbnav.control.config import Config
+from vbnav.control.config import Config, ConfigError
 from vbnav.control.manual import IdleController, ScriptedController, TeleopController
 from vbnav.control.runtime import Runtime
 from vbnav.control.telemetry_link import TelemetryLink
@@ -35,12 +35,15 @@ def main() -> int:
     ap.add_argument("--remote", default=None, metavar="DICTFILE", help="listen on 0.0.0.0 with usrpwd + ACL")
     ap.add_argument("--operators", default="operator")
     ap.add_argument("--report", default=None)
+    ap.add_argument("--listen", default=None, help="override telemetry.listen (no auth added)")
     a = ap.parse_args()
 
     tele = {"listen": [f"tcp/127.0.0.1:{a.port}"], "state_rate_hz": a.state_rate}
     if a.remote:
         tele.update(listen=[f"tcp/0.0.0.0:{a.port}"], operators=a.operators.split(","),
                     auth={"usrpwd": {"user": "robot", "password": "robot-secret", "dictionary_file": a.remote}})
+    if a.listen:
+        tele["listen"] = [a.listen]
     cfg = Config.model_validate({"loop": {"rate_hz": a.rate}, "telemetry": tele,
                                  "controller": {"kind": a.controller},
                                  "safety": {"command_timeout_s": 0.5}})
@@ -58,7 +61,11 @@ def main() -> int:
         submit(cmd)
 
     rt.submit = logged_submit
-    link = TelemetryLink.attach(rt, cfg, record=a.record)
+    try:
+        link = TelemetryLink.attach(rt, cfg, record=a.record)
+    except ConfigError as exc:
+        print(f"configuration error: {exc}", file=sys.stderr)
+        return 2
     print("READY", flush=True)
     result = None
     try:

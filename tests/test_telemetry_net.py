@@ -1,0 +1,232 @@
+"""Telemetry and commands between two processes on loopback (the real Runtime in a robot process).
+
+One robot process per scenario (tests/telemetry_robot.py); this process is the operator: a zenoh client
+that subscribes to state and events and sends commands. Every test uses a free port, never 7447.
+"""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from vbnav.control.network import client_session_config, open_session
+
+HERE = Path(__file__).resolve().parent
+ROBOT = HERE / "telemetry_robot.py"
+PERIOD_NS = 10_000_000        # robot loop at 100 Hz
+STATE_PERIOD_NS = 50_000_000  # state at 20 Hz
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_robot(*args, timeout_s: float = 30.0) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, str(ROBOT), *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=str(HERE))
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if line.strip() == "READY":
+            return proc
+        if not line and proc.poll() is not None:
+            raise RuntimeError(f"robot exited {proc.returncode}: {proc.stderr.read()}")
+    proc.kill()
+    raise RuntimeError("robot did not start")
+
+
+class Operator:
+    """A zenoh client in this process: collects state/events, sends commands."""
+
+    def __init__(self, port: int, robot: str = "sim", user=None, password=None):
+        self.session = open_session(client_session_config([f"tcp/127.0.0.1:{port}"], user, password))
+        self.robot = robot
+        self.lock = threading.Lock()
+        self.states: list[tuple[float, dict]] = []
+        self.events: list[dict] = []
+        self.session.declare_subscriber(f"vbnav/{robot}/state", self._on_state)
+        self.session.declare_subscriber(f"vbnav/{robot}/events", self._on_event)
+
+    def _on_state(self, sample):
+        msg = json.loads(sample.payload.to_bytes())
+        with self.lock:
+            self.states.append((time.monotonic(), msg))
+
+    def _on_event(self, sample):
+        with self.lock:
+            self.events.append(json.loads(sample.payload.to_bytes()))
+
+    def send(self, what: str, **body):
+        import zenoh
+        self.session.put(f"vbnav/{self.robot}/cmd/{what}", json.dumps(body),
+                         congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def teleop_for(self, seconds: float, v: float, w: float, rate_hz: float = 20.0):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.send("teleop", linear=v, angular=w)
+            time.sleep(1.0 / rate_hz)
+
+    def close(self):
+        self.session.close()
+
+
+def finish(proc: subprocess.Popen, timeout_s: float = 20.0) -> None:
+    try:
+        proc.wait(timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, proc.stderr.read()
+
+
+@pytest.fixture(scope="module")
+def teleop_session(tmp_path_factory):
+    """13 s robot run: teleop 2 s, silence 1.5 s, teleop 1 s, estop (teleop continues 1 s), then watch."""
+    tmp = tmp_path_factory.mktemp("net")
+    port = free_port()
+    report = tmp / "report.json"
+    proc = start_robot("--port", port, "--controller", "teleop", "--duration", 13, "--report", report)
+    op = Operator(port)
+    try:
+        t0 = time.monotonic()
+        time.sleep(0.5)
+        op.teleop_for(2.0, 0.3, 0.2)
+        time.sleep(1.5)
+        op.teleop_for(1.0, 0.3, -0.2)
+        op.send("estop", reason="test")
+        op.teleop_for(1.0, 0.3, 0.0)   # must not move a latched robot
+        time.sleep(max(0.0, t0 + 11.0 - time.monotonic()))
+        with op.lock:
+            states, events = list(op.states), list(op.events)
+    finally:
+        op.close()
+    finish(proc)
+    return {"states": states, "events": events, "report": json.loads(report.read_text())}
+
+
+def test_state_arrives_at_the_configured_rate_without_gaps_for_10s(teleop_session):
+    states = teleop_session["states"]
+    t_first = states[0][0]
+    window = [(t, m) for t, m in states if t - t_first <= 10.0]
+    seqs = [m["seq"] for _, m in window]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "missing or reordered state messages"
+    assert len(window) >= 10.0 * 20 - 2
+    stamps = [m["stamp_ns"] for _, m in window]
+    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    # Stamps are loop wake-up times, 5 loop periods apart give or take the wake-up jitter; no state tick
+    # is missing (a gap would be a whole state period more).
+    assert all(STATE_PERIOD_NS - PERIOD_NS < g < 1.5 * STATE_PERIOD_NS for g in gaps), (min(gaps), max(gaps))
+    rx = [t for t, _ in window]
+    assert max(b - a for a, b in zip(rx, rx[1:])) < 1.0   # and none was held back for long in transit
+    assert all(m["schema"] == "vbnav.state" and m["version"] == 1 for _, m in window)
+
+
+def test_teleop_silence_stops_the_robot_after_the_timeout(teleop_session):
+    rep = teleop_session["report"]
+    teleops = [c["t_ns"] for c in rep["received"] if c["kind"] == "teleop"]
+    silence = [(a, b) for a, b in zip(teleops, teleops[1:]) if b - a > 1e9]
+    assert len(silence) == 1
+    last, resumed = silence[0]
+    log = [(t, l, r, p) for t, l, r, p in rep["drive_log"]]
+    moving = [t for t, l, r, p in log if p and (l or r) and last - 0.5e9 < t < resumed]
+    assert moving and max(moving) > last                         # drove on until the timeout ...
+    assert max(moving) <= last + 0.5e9 + 2 * PERIOD_NS           # ... and not longer
+    assert any(e["kind"] == "safety_hold" and e["cause"] == "command_timeout" for e in teleop_session["events"])
+
+
+def test_estop_from_another_process_zeroes_both_wheels_within_two_periods(teleop_session):
+    rep = teleop_session["report"]
+    t_e = next(c["t_ns"] for c in rep["received"] if c["kind"] == "estop")
+    log = rep["drive_log"]
+    assert any(p and (l or r) for t, l, r, p in log if t_e - 0.2e9 < t < t_e), "robot was not moving at estop"
+    after = [(l, r, p) for t, l, r, p in log if t >= t_e + 2 * PERIOD_NS]
+    assert after and all((not p) or (l == 0 and r == 0) for l, r, p in after)
+    states = [m for _, m in teleop_session["states"] if m["stamp_ns"] >= t_e + 2 * PERIOD_NS]
+    assert states
+    for m in states:
+        assert m["safety"]["state"] == "estop" and any(f.startswith("estop") for f in m["safety"]["faults"])
+        assert m["wheels"]["cmd"] == {"left": 0.0, "right": 0.0}
+    trips = [e for e in teleop_session["events"] if e["kind"] == "safety_trip"]
+    assert trips and trips[0]["cause"] == "estop"
+
+
+def test_unauthorised_peer_is_refused_commands_but_receives_telemetry(tmp_path):
+    users = tmp_path / "users.txt"
+    users.write_text("robot:robot-secret\noperator:operator-pw\nviewer:viewer-pw1\n")
+    port = free_port()
+    report = tmp_path / "report.json"
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 6, "--report", report,
+                       "--remote", users, "--operators", "operator")
+    try:
+        with pytest.raises(Exception):          # wrong password: no session at all
+            open_session(client_session_config([f"tcp/127.0.0.1:{port}"], "viewer", "wrong-password"))
+        viewer = Operator(port, user="viewer", password="viewer-pw1")
+        time.sleep(0.7)
+        for _ in range(5):
+            viewer.send("estop", reason="viewer")
+            time.sleep(0.1)
+        time.sleep(1.0)
+        operator = Operator(port, user="operator", password="operator-pw")
+        time.sleep(0.7)
+        operator.send("estop", reason="operator")
+        time.sleep(1.0)
+        with viewer.lock:
+            viewer_states = [m for _, m in viewer.states]
+        viewer.close()
+        operator.close()
+    finally:
+        finish(proc)
+    rep = json.loads(report.read_text())
+    estops = [c["args"] for c in rep["received"] if c["kind"] == "estop"]
+    assert estops == [["operator"]]                     # the viewer's five never reached the runtime
+    assert len(viewer_states) >= 40                     # ~3 s of 20 Hz state reached the viewer meanwhile
+    assert viewer_states[-1]["safety"]["state"] == "estop"   # and it saw the operator's estop take effect
+
+
+def test_non_loopback_listener_without_authentication_is_refused_at_start_up():
+    port = free_port()
+    r = subprocess.run([sys.executable, str(ROBOT), "--port", str(port), "--listen", f"tcp/0.0.0.0:{port}"],
+                       capture_output=True, text=True, timeout=60, cwd=str(HERE))
+    assert r.returncode == 2 and "READY" not in r.stdout
+    assert "remote access (tcp/0.0.0.0" in r.stderr and "authentication" in r.stderr
+    with pytest.raises(Exception):  # and nothing is listening
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+
+
+def test_vbnav_run_refuses_a_public_listener(tmp_path):
+    from vbnav.control.cli import main
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text("telemetry:\n  listen: ['tcp/0.0.0.0:7447']\n")
+    try:
+        from vbnav.control.config import load_config
+        load_config(cfg)
+    except Exception as exc:  # the default simulated camera driver is another engineer's, may be missing
+        pytest.skip(f"configs need drivers not on this branch yet: {exc}")
+    assert main(["run", "--config", str(cfg), "--duration", "1"]) == 2
+
+
+def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path):
+    from vbnav.control.recording import read_recording
+    port = free_port()
+    path = tmp_path / "crash.mcap"
+    proc = start_robot("--port", port, "--controller", "scripted", "--duration", 30, "--record", path)
+    time.sleep(3.0)
+    proc.kill()
+    proc.wait(10)
+    assert not path.exists() and (tmp_path / "crash.mcap.part").exists()
+    s = read_recording(path)
+    assert not s.complete
+    state = s.channels["/vbnav/state"]
+    # flushed every second: at least the first ~2 s of 20 Hz state, contiguous from the start
+    assert state.count >= 35 and state.rate_hz == pytest.approx(20.0, rel=0.05)
+    assert s.channels["/vbnav/events"].count >= 2          # run_start, mode_change
