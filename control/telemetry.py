@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 import queue
 import threading
 import time
@@ -67,6 +68,12 @@ class StateSample(NamedTuple):
     route: Optional[str] = None
 
 
+def _num(x) -> Optional[float]:
+    """A JSON-safe float: NaN and infinities (a failed sensor read) become null, not invalid JSON."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
 def _pose(p) -> Optional[dict]:
     if p is None:
         return None
@@ -74,7 +81,10 @@ def _pose(p) -> Optional[dict]:
         x, z, th = p.x, p.z, p.theta
     else:
         x, z, th = p
-    return {"x": round(float(x), 6), "z": round(float(z), 6), "theta": round(float(th), 6)}
+    x, z, th = _num(x), _num(z), _num(th)
+    if x is None or z is None or th is None:
+        return None
+    return {"x": round(x, 6), "z": round(z, 6), "theta": round(th, 6)}
 
 
 def state_message(robot: str, seq: int, s: StateSample, rate_hz: float) -> dict:
@@ -86,9 +96,9 @@ def state_message(robot: str, seq: int, s: StateSample, rate_hz: float) -> dict:
         "safety": {"state": s.safety, "faults": list(s.faults)},
         "pose": {"odom": _pose(s.odom), "vbc": _pose(s.vbc), "vslam": _pose(s.vslam)},
         "keyframe": s.keyframe,
-        "wheels": {"cmd": {"left": float(s.cmd_left), "right": float(s.cmd_right)},
-                   "meas": {"left": float(s.meas_left), "right": float(s.meas_right)}},
-        "twist": {"linear": float(s.linear), "angular": float(s.angular)},
+        "wheels": {"cmd": {"left": _num(s.cmd_left), "right": _num(s.cmd_right)},
+                   "meas": {"left": _num(s.meas_left), "right": _num(s.meas_right)}},
+        "twist": {"linear": _num(s.linear), "angular": _num(s.angular)},
         "loop": {"rate_hz": rate_hz, "compute_ms": s.compute_ns * 1e-6, "lateness_ms": s.lateness_ns * 1e-6,
                  "overruns": int(s.overruns)},
     }
@@ -300,7 +310,7 @@ class TelemetryPublisher:
         return self._seq[kind]
 
     def _emit(self, kind: str, stamp: int, msg: dict, jpeg: bytes = b"") -> None:
-        payload = json.dumps(msg, separators=(",", ":"), allow_nan=True).encode()
+        payload = json.dumps(msg, separators=(",", ":"), allow_nan=False, default=str).encode()
         for s in self.sinks:
             try:
                 if kind == "state":

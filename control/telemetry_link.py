@@ -44,7 +44,7 @@ class TelemetryLink:
         self.session = session
         self.recorder = recorder
         self.commands: Optional[CommandSubscriber] = None
-        self.inbox: Optional[CommandInbox] = None
+        self.inbox: CommandInbox
         self._mode: Optional[str] = None
         self._closed = False
 
@@ -76,8 +76,9 @@ class TelemetryLink:
                                        image_width=tcfg.image_width, jpeg_quality=tcfg.jpeg_quality,
                                        now_ns=clock.now_ns)
         link = cls(runtime, tcfg, publisher, session, recorder)
+        # The inbox also takes commands from local sources (tests, a future local console).
+        link.inbox = CommandInbox(limits_from_config(cfg), on_reject=link._on_reject, deliver=link._deliver)
         if session is not None:
-            link.inbox = CommandInbox(limits_from_config(cfg), on_reject=link._on_reject, deliver=link._deliver)
             link.commands = CommandSubscriber(session, robot, link.inbox)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)

@@ -306,3 +306,45 @@ def test_record_info_cli(tmp_path, capsys):
     assert main(["record-info", str(tmp_path / "missing.mcap")]) == 2
     (tmp_path / "bad.mcap").write_text("hello")
     assert main(["record-info", str(tmp_path / "bad.mcap")]) == 2
+
+
+def test_images_and_rejected_mode_commands_reach_the_recording(tmp_path):
+    import base64
+
+    import cv2
+    import numpy as np
+
+    from runtime_helpers import make_runtime
+    from vbnav.control.manual import ScriptedController
+    cfg = Config.model_validate({"telemetry": {"enabled": False, "image_rate_hz": 5, "image_width": 32}})
+    rt, drive, clock = make_runtime(ScriptedController([[0.2, 0.0, 4.0]]), cfg=cfg, cam_kw={"rate_hz": 15})
+    path = tmp_path / "img.mcap"
+    link = TelemetryLink.attach(rt, cfg, record=str(path))
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.cycle == 100:
+            link.inbox.submit("mode", '{"mode": "teach", "route": "r.json"}')   # valid, but this run has no modes
+            link.inbox.submit("teleop", '{"linear": 9, "angular": 0}')          # out of range
+
+    rt.cycle_observers.append(operator)
+    link.close(rt.run())
+    s = read_recording(path)
+    assert abs(s.channels["/vbnav/image"].count - 4 * 5) <= 1
+    assert s.channels["/vbnav/image"].schema == "foxglove.CompressedImage"
+    img = next(json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/image")
+    assert img["format"] == "jpeg" and set(img["timestamp"]) == {"sec", "nsec"}
+    decoded = cv2.imdecode(np.frombuffer(base64.b64decode(img["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert decoded.shape == (24, 32)                           # 48x64 test frames scaled to width 32
+    events = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
+    rejected = {e["command"]: e["reason"] for e in events if e["kind"] == "command_rejected"}
+    assert "not supported by this run" in rejected["mode"] and "outside" in rejected["teleop"]
+    logs = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/log"]
+    assert any(entry["level"] == 3 and "command_rejected" in entry["message"] for entry in logs)
+
+
+def test_non_finite_numbers_are_sent_as_null():
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], state_rate_hz=20)
+    pub.offer_state(StateSample(1, 0, "idle", "ok", (), (float("nan"), 0, 0), meas_left=float("inf")))
+    pub.close()
+    assert sink.states[0]["pose"]["odom"] is None and sink.states[0]["wheels"]["meas"]["left"] is None
