@@ -230,3 +230,31 @@ def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path):
     # flushed every second: at least the first ~2 s of 20 Hz state, contiguous from the start
     assert state.count >= 35 and state.rate_hz == pytest.approx(20.0, rel=0.05)
     assert s.channels["/vbnav/events"].count >= 2          # run_start, mode_change
+
+
+def test_monitor_and_send_command_line_tools(tmp_path):
+    port = free_port()
+    report = tmp_path / "report.json"
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 6, "--report", report)
+    ep = ["--connect", f"tcp/127.0.0.1:{port}"]
+    cli = [sys.executable, "-m", "vbnav.control.cli"]
+    try:
+        mon = subprocess.run(cli + ["monitor", "--once", "--json", *ep], capture_output=True, text=True, timeout=30)
+        assert mon.returncode == 0, mon.stderr
+        state = json.loads(mon.stdout)
+        assert state["schema"] == "vbnav.state" and state["mode"] == "idle" and state["safety"]["state"] == "ok"
+        sent = subprocess.run(cli + ["send", "estop", "--reason", "cli", *ep], capture_output=True, text=True,
+                              timeout=30)
+        assert sent.returncode == 0, sent.stderr
+        bad = subprocess.run(cli + ["send", "mode", "repeat", *ep], capture_output=True, text=True, timeout=30)
+        assert bad.returncode == 2 and "needs a route" in bad.stderr      # refused locally, nothing sent
+        time.sleep(0.3)
+        mon = subprocess.run(cli + ["monitor", "--once", *ep], capture_output=True, text=True, timeout=30)
+        assert mon.returncode == 0 and "safety  estop" in mon.stdout and "estop from zenoh" in mon.stdout
+    finally:
+        finish(proc)
+    rep = json.loads(report.read_text())
+    assert [c["args"] for c in rep["received"]] == [["cli"]]
+    nobody = subprocess.run(cli + ["monitor", "--once", "--connect", f"tcp/127.0.0.1:{free_port()}"],
+                            capture_output=True, text=True, timeout=30)
+    assert nobody.returncode == 3 and "cannot connect" in nobody.stderr
