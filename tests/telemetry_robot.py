@@ -33,6 +33,8 @@ def main() -> int:
     ap.add_argument("--sim-clock", action="store_true")
     ap.add_argument("--record", default=None)
     ap.add_argument("--remote", default=None, metavar="DICTFILE", help="listen on 0.0.0.0 with usrpwd + ACL")
+    ap.add_argument("--tls", default=None, metavar="DIR", help="listen on tls/0.0.0.0 with mutual TLS + ACL "
+                    "(DIR holds ca.pem, robot.pem, robot.key)")
     ap.add_argument("--operators", default="operator")
     ap.add_argument("--report", default=None)
     ap.add_argument("--listen", default=None, help="override telemetry.listen (no auth added)")
@@ -42,6 +44,10 @@ def main() -> int:
     if a.remote:
         tele.update(listen=[f"tcp/0.0.0.0:{a.port}"], operators=a.operators.split(","),
                     auth={"usrpwd": {"user": "robot", "password": "robot-secret", "dictionary_file": a.remote}})
+    if a.tls:
+        tele.update(listen=[f"tls/0.0.0.0:{a.port}"], operators=a.operators.split(","),
+                    auth={"tls": {"root_ca_certificate": f"{a.tls}/ca.pem", "listen_certificate": f"{a.tls}/robot.pem",
+                                  "listen_private_key": f"{a.tls}/robot.key"}})
     if a.listen:
         tele["listen"] = [a.listen]
     cfg = Config.model_validate({"loop": {"rate_hz": a.rate}, "telemetry": tele,

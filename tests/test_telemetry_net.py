@@ -258,3 +258,50 @@ def test_monitor_and_send_command_line_tools(tmp_path):
     nobody = subprocess.run(cli + ["monitor", "--once", "--connect", f"tcp/127.0.0.1:{free_port()}"],
                             capture_output=True, text=True, timeout=30)
     assert nobody.returncode == 3 and "cannot connect" in nobody.stderr
+
+
+def _make_pki(d: Path) -> None:
+    """A test CA and certificates for robot, operator and viewer (CN = name; SAN localhost, 127.0.0.1)."""
+    def ssl(*args):
+        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=d)
+    ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "1",
+        "-subj", "/CN=vbnav-test-ca")
+    (d / "ext.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    for name in ("robot", "operator", "viewer"):
+        ssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
+            "-subj", f"/CN={name}")
+        ssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", f"{name}.pem", "-days", "1", "-extfile", "ext.cnf")
+
+
+def test_mutual_tls_operator_commands_viewer_refused_via_the_cli(tmp_path):
+    import shutil
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is needed to make test certificates")
+    _make_pki(tmp_path)
+    port = free_port()
+    report = tmp_path / "report.json"
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 7, "--report", report,
+                       "--tls", tmp_path, "--operators", "operator")
+    cli = [sys.executable, "-m", "vbnav.control.cli"]
+
+    def as_(name):
+        return ["--connect", f"tls/localhost:{port}", "--tls-ca", str(tmp_path / "ca.pem"),
+                "--tls-cert", str(tmp_path / f"{name}.pem"), "--tls-key", str(tmp_path / f"{name}.key")]
+    try:
+        r = subprocess.run(cli + ["send", "estop", "--reason", "viewer", *as_("viewer")], capture_output=True,
+                           text=True, timeout=30)
+        assert r.returncode == 0, r.stderr        # connected and sent, but the robot's ACL drops it
+        r = subprocess.run(cli + ["monitor", "--once", "--json", *as_("viewer")], capture_output=True, text=True,
+                           timeout=30)
+        assert r.returncode == 0 and json.loads(r.stdout)["safety"]["state"] == "ok"   # telemetry flows
+        with pytest.raises(Exception):            # no client certificate: the robot refuses the session
+            open_session(client_session_config([f"tls/localhost:{port}"],
+                                               tls={"root_ca_certificate": str(tmp_path / "ca.pem")}))
+        r = subprocess.run(cli + ["send", "estop", "--reason", "operator", *as_("operator")],
+                           capture_output=True, text=True, timeout=30)
+        assert r.returncode == 0, r.stderr
+    finally:
+        finish(proc)
+    rep = json.loads(report.read_text())
+    assert [c["args"] for c in rep["received"] if c["kind"] == "estop"] == [["operator"]]

@@ -15,6 +15,9 @@ def add_net_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--password-env", default="VBNAV_ZENOH_PASSWORD", metavar="VAR",
                    help="environment variable holding the password (default VBNAV_ZENOH_PASSWORD); "
                         "never pass passwords on the command line")
+    p.add_argument("--tls-ca", default=None, metavar="PEM", help="CA certificate, for a robot listening on tls/")
+    p.add_argument("--tls-cert", default=None, metavar="PEM", help="this client's certificate (mutual TLS)")
+    p.add_argument("--tls-key", default=None, metavar="PEM", help="this client's private key (mutual TLS)")
 
 
 def open_client(args):
@@ -22,8 +25,14 @@ def open_client(args):
     password = os.environ.get(args.password_env) if args.user else None
     if args.user and password is None:
         raise ConnectionError(f"--user {args.user} given but ${args.password_env} is not set")
+    tls = None
+    if args.tls_ca or args.tls_cert or args.tls_key:
+        if not (args.tls_ca and args.tls_cert and args.tls_key):
+            raise ConnectionError("mutual TLS needs all of --tls-ca, --tls-cert and --tls-key")
+        tls = {"root_ca_certificate": args.tls_ca, "connect_certificate": args.tls_cert,
+               "connect_private_key": args.tls_key, "enable_mtls": True}
     try:
-        return open_session(client_session_config([args.connect], args.user, password))
+        return open_session(client_session_config([args.connect], args.user, password, tls))
     except Exception as exc:
         raise ConnectionError(f"cannot connect to {args.connect}: {exc} (is `vbnav run` going, with its "
                               f"telemetry.listen on this endpoint?)") from None
