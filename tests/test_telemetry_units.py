@@ -7,7 +7,7 @@ import math
 import pytest
 
 from runtime_helpers import RecordingDrive
-from vbnav.control.config import Config, ConfigError, load_config
+from vbnav.control.config import Config, ConfigError
 from vbnav.control.manual import IdleController, TeleopController
 from vbnav.control.net_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected, INBOX_LIMIT
 from vbnav.control.network import (DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint,
@@ -213,8 +213,8 @@ def test_a_failing_sink_does_not_stop_the_others():
 
 # ---- commands into the real runtime, on the simulated clock ---------------------------------
 
-def _runtime(controller, clock, record=None, tmp_path=None, enabled=False):
-    cfg = Config.model_validate({"telemetry": {"enabled": enabled}, "safety": {"command_timeout_s": 0.5}})
+def _runtime(controller, clock):
+    cfg = Config.model_validate({"telemetry": {"enabled": False}, "safety": {"command_timeout_s": 0.5}})
     drive = RecordingDrive(clock)
     rt = Runtime(cfg, drive, controller, clock)
     return cfg, drive, rt

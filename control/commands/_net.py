@@ -1,4 +1,9 @@
-"""Arguments and session set-up shared by the network subcommands (monitor, send)."""
+"""Network arguments shared by subcommands.
+
+- Clients (monitor, send): ``add_net_args`` and ``open_client``.
+- Robot runs (run, and teach/repeat/demo): ``add_telemetry_args`` (--record, --no-telemetry) and
+  ``attach_telemetry(runtime, cfg, args)`` which connects telemetry, network commands and the recording.
+"""
 from __future__ import annotations
 
 import argparse
@@ -36,3 +41,28 @@ def open_client(args):
     except Exception as exc:
         raise ConnectionError(f"cannot connect to {args.connect}: {exc} (is `vbnav run` going, with its "
                               f"telemetry.listen on this endpoint?)") from None
+
+
+def add_telemetry_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--record", default=None, metavar="PATH",
+                   help="record state, events and images to an MCAP file (opens in Foxglove; see "
+                        "docs/telemetry.md); written as PATH.part and renamed when the run ends")
+    p.add_argument("--no-telemetry", action="store_true",
+                   help="do not open the zenoh session (no telemetry, no network commands)")
+
+
+def attach_telemetry(rt, cfg, args):
+    """TelemetryLink for a runtime, or None (after a message on stderr) if the zenoh session cannot open.
+
+    Call after building the Runtime and before ``rt.run``; call ``link.close(result)`` after it.
+    """
+    import sys
+
+    from vbnav.control.telemetry_link import TelemetryLink
+    if getattr(args, "no_telemetry", False):
+        cfg = cfg.model_copy(update={"telemetry": {**cfg.telemetry, "enabled": False}})
+    try:
+        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None))
+    except ConnectionError as exc:
+        print(f"vbnav: {exc}", file=sys.stderr)
+        return None

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
 
 def register(sub) -> None:
@@ -19,11 +20,7 @@ def register(sub) -> None:
     p.add_argument("--no-camera", action="store_true",
                    help="do not open the camera (by default it runs, so a stale camera stops the robot)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
-    p.add_argument("--record", default=None, metavar="PATH",
-                   help="record state, events and images to an MCAP file (opens in Foxglove; see "
-                        "docs/telemetry.md); written as PATH.part and renamed when the run ends")
-    p.add_argument("--no-telemetry", action="store_true",
-                   help="do not open the zenoh session (no telemetry, no network commands)")
+    add_telemetry_args(p)
     p.set_defaults(func=run)
 
 
@@ -37,20 +34,6 @@ def build_controller(cfg, kind: str):
         return IdleController()
     raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run' (use scripted, teleop or idle; "
                      f"teach and repeat have their own commands)")
-
-
-def attach_telemetry(rt, cfg, args):
-    """Telemetry, network commands and --record for a runtime; None (after a message) if zenoh cannot open."""
-    import sys
-
-    from vbnav.control.telemetry_link import TelemetryLink
-    if getattr(args, "no_telemetry", False):
-        cfg = cfg.model_copy(update={"telemetry": {**cfg.telemetry, "enabled": False}})
-    try:
-        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None))
-    except ConnectionError as exc:
-        print(f"vbnav: {exc}", file=sys.stderr)
-        return None
 
 
 def run(args) -> int:
