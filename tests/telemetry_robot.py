@@ -82,7 +82,9 @@ def main() -> int:
         with open(a.report, "w") as f:
             json.dump({"received": received, "period_ns": rt.loop.period_ns, "reason": result.reason,
                        "drive_log": drive.log, "published": link.publisher.published,
-                       "dropped": link.publisher.dropped}, f)
+                       "dropped": link.publisher.dropped,
+                       "overruns": rt.loop.timing.overruns,
+                       "max_lateness_ms": rt.loop.timing.max_lateness_ns * 1e-6}, f)
     return 0
 
 

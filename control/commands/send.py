@@ -31,6 +31,8 @@ def register(sub) -> None:
     m.add_argument("--route", default=None, metavar="PATH", help="route file to repeat (or to teach into)")
     for sp in (e, r, t, m):
         add_net_args(sp)
+        sp.add_argument("--wait", type=float, default=3.0, metavar="S",
+                        help="wait up to S seconds for the robot's command subscriber (default 3)")
     p.set_defaults(func=_run)
 
 
@@ -69,7 +71,12 @@ def _run(args) -> int:
     opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
     try:
         pub = session.declare_publisher(key, **opts)
-        time.sleep(0.2)  # let the robot's subscriber declaration reach this fresh session
+        # Wait for the robot's subscriber declaration to reach this fresh session (it never comes when the
+        # robot is not running; it may or may not come when the robot's access control refuses this user).
+        deadline = time.monotonic() + args.wait
+        while not pub.matching_status and time.monotonic() < deadline:
+            time.sleep(0.02)
+        matched = pub.matching_status
         n = max(1, int(args.duration * args.rate)) if what == "teleop" and args.duration > 0 else 1
         for i in range(n):
             body["seq"] = i
@@ -79,5 +86,9 @@ def _run(args) -> int:
         time.sleep(0.1)  # flush before closing
     finally:
         session.close()
+    if not matched:
+        print(f"vbnav send: sent {what} to {key}, but no robot subscribed to it within {args.wait:g} s: is the robot "
+              f"running under that name, and is this user one of its operators?", file=sys.stderr)
+        return 1
     print(f"sent {what} to {key}" + (f" ({n} messages)" if n > 1 else ""))
     return 0
