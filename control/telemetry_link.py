@@ -55,21 +55,23 @@ class TelemetryLink:
         tcfg = telemetry_config(cfg)
         robot = cfg.robot.name
         sinks, session, recorder = [], None, None
-        if tcfg.enabled:
-            conf = robot_session_config(tcfg, robot)
-            try:
-                session = open_session(conf)
-            except Exception as exc:
-                raise ConnectionError(f"telemetry: cannot open the zenoh session listening on "
-                                      f"{', '.join(tcfg.listen) or '(nothing)'}: {exc} (another vbnav run on the "
-                                      f"same port? set telemetry.listen)") from None
-            sinks.append(ZenohSink(session, robot))
-        if record:
+        if record:  # first: a bad path fails before any network resource is opened
             from vbnav.control.recording import McapRecorder
             recorder = McapRecorder(record, robot, metadata={"config": cfg.source or "",
                                                              "loop_rate_hz": cfg.loop.rate_hz,
                                                              "state_rate_hz": tcfg.state_rate_hz})
             sinks.append(recorder)
+        if tcfg.enabled:
+            conf = robot_session_config(tcfg, robot)
+            try:
+                session = open_session(conf)
+            except Exception as exc:
+                if recorder is not None:
+                    recorder.close()
+                raise ConnectionError(f"telemetry: cannot open the zenoh session listening on "
+                                      f"{', '.join(tcfg.listen) or '(nothing)'}: {exc} (another vbnav run on the "
+                                      f"same port? set telemetry.listen)") from None
+            sinks.append(ZenohSink(session, robot))
         clock = runtime.clock
         publisher = TelemetryPublisher(robot, sinks, state_rate_hz=tcfg.state_rate_hz,
                                        loop_rate_hz=cfg.loop.rate_hz, image_rate_hz=tcfg.image_rate_hz,
@@ -158,7 +160,8 @@ class TelemetryLink:
         if self.commands is not None:
             self.commands.close()
         if result is not None:
-            self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles)
+            self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
+                                 telemetry_dropped=self.publisher.dropped)
         self.publisher.close()
         if self.session is not None:
             time.sleep(0.05)  # let the last express puts leave before the transport closes

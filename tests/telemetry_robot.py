@@ -67,6 +67,14 @@ def main() -> int:
         submit(cmd)
 
     rt.submit = logged_submit
+    cycle_log = []   # (loop cycle, left, right, powered) of every write, to count periods in cycles
+    write = drive.write
+
+    def logged_write(left, right):
+        write(left, right)
+        cycle_log.append((rt.cycle, left, right, drive.physics.powered))
+
+    drive.write = logged_write
     try:
         link = TelemetryLink.attach(rt, cfg, record=a.record)
     except ConfigError as exc:
@@ -81,7 +89,7 @@ def main() -> int:
     if a.report:
         with open(a.report, "w") as f:
             json.dump({"received": received, "period_ns": rt.loop.period_ns, "reason": result.reason,
-                       "drive_log": drive.log, "published": link.publisher.published,
+                       "drive_log": drive.log, "cycle_log": cycle_log, "published": link.publisher.published,
                        "dropped": link.publisher.dropped,
                        "overruns": rt.loop.timing.overruns,
                        "max_lateness_ms": rt.loop.timing.max_lateness_ns * 1e-6}, f)

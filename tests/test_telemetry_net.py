@@ -79,7 +79,10 @@ class Operator:
         self.session.close()
 
 
-def finish(proc: subprocess.Popen, timeout_s: float = 20.0) -> None:
+def finish(proc: subprocess.Popen, timeout_s: float = 20.0, stop: bool = False) -> None:
+    """Wait for the robot (after SIGTERM if ``stop``: the runtime stops cleanly and writes its report)."""
+    if stop and proc.poll() is None:
+        proc.terminate()
     try:
         proc.wait(timeout_s)
     finally:
@@ -143,16 +146,21 @@ def test_teleop_silence_stops_the_robot_after_the_timeout(teleop_session):
     log = [(t, l, r, p) for t, l, r, p in rep["drive_log"]]
     moving = [t for t, l, r, p in log if p and (l or r) and last - 0.5e9 < t < resumed]
     assert moving and max(moving) > last                         # drove on until the timeout ...
-    assert max(moving) <= last + 0.5e9 + 2 * PERIOD_NS           # ... and not longer
+    # ... and not longer: the last message takes effect at the next cycle, which may wake late on a
+    # loaded machine by up to the loop's worst lateness.
+    assert max(moving) <= last + 0.5e9 + 2 * PERIOD_NS + rep["max_lateness_ms"] * 1e6
     assert any(e["kind"] == "safety_hold" and e["cause"] == "command_timeout" for e in teleop_session["events"])
 
 
 def test_estop_from_another_process_zeroes_both_wheels_within_two_periods(teleop_session):
     rep = teleop_session["report"]
-    t_e = next(c["t_ns"] for c in rep["received"] if c["kind"] == "estop")
+    estop = next(c for c in rep["received"] if c["kind"] == "estop")
+    t_e, c_e = estop["t_ns"], estop["cycle"]      # arrival time, and the loop cycle running at that moment
     log = rep["drive_log"]
     assert any(p and (l or r) for t, l, r, p in log if t_e - 0.2e9 < t < t_e), "robot was not moving at estop"
-    after = [(l, r, p) for t, l, r, p in log if t >= t_e + 2 * PERIOD_NS]
+    # Within two loop periods counted in cycles: the cycle running when it arrived may still write its
+    # command, the next one applies the estop. (In wall time that is two periods unless the loop is late.)
+    after = [(l, r, p) for c, l, r, p in rep["cycle_log"] if c >= c_e + 2]
     assert after and all((not p) or (l == 0 and r == 0) for l, r, p in after)
     states = [m for _, m in teleop_session["states"] if m["stamp_ns"] >= t_e + 2 * PERIOD_NS]
     assert states
@@ -168,7 +176,7 @@ def test_unauthorised_peer_is_refused_commands_but_receives_telemetry(tmp_path):
     users.write_text("robot:robot-secret\noperator:operator-pw\nviewer:viewer-pw1\n")
     port = free_port()
     report = tmp_path / "report.json"
-    proc = start_robot("--port", port, "--controller", "idle", "--duration", 6, "--report", report,
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--report", report,
                        "--remote", users, "--operators", "operator")
     try:
         with pytest.raises(Exception):          # wrong password: no session at all
@@ -188,7 +196,7 @@ def test_unauthorised_peer_is_refused_commands_but_receives_telemetry(tmp_path):
         viewer.close()
         operator.close()
     finally:
-        finish(proc)
+        finish(proc, stop=True)
     rep = json.loads(report.read_text())
     estops = [c["args"] for c in rep["received"] if c["kind"] == "estop"]
     assert estops == [["operator"]]                     # the viewer's five never reached the runtime
@@ -238,7 +246,7 @@ def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path):
 def test_monitor_and_send_command_line_tools(tmp_path):
     port = free_port()
     report = tmp_path / "report.json"
-    proc = start_robot("--port", port, "--controller", "idle", "--duration", 6, "--report", report)
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--report", report)
     ep = ["--connect", f"tcp/127.0.0.1:{port}"]
     cli = [sys.executable, "-m", "vbnav.control.cli"]
     try:
@@ -255,7 +263,7 @@ def test_monitor_and_send_command_line_tools(tmp_path):
         mon = subprocess.run(cli + ["monitor", "--once", *ep], capture_output=True, text=True, timeout=30)
         assert mon.returncode == 0 and "safety  estop" in mon.stdout and "estop from zenoh" in mon.stdout
     finally:
-        finish(proc)
+        finish(proc, stop=True)
     rep = json.loads(report.read_text())
     assert [c["args"] for c in rep["received"]] == [["cli"]]
     nobody = subprocess.run(cli + ["monitor", "--once", "--connect", f"tcp/127.0.0.1:{free_port()}"],
@@ -284,7 +292,7 @@ def test_mutual_tls_operator_commands_viewer_refused_via_the_cli(tmp_path):
     _make_pki(tmp_path)
     port = free_port()
     report = tmp_path / "report.json"
-    proc = start_robot("--port", port, "--controller", "idle", "--duration", 7, "--report", report,
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--report", report,
                        "--tls", tmp_path, "--operators", "operator")
     cli = [sys.executable, "-m", "vbnav.control.cli"]
 
@@ -307,7 +315,7 @@ def test_mutual_tls_operator_commands_viewer_refused_via_the_cli(tmp_path):
                            capture_output=True, text=True, timeout=30)
         assert r.returncode == 0, r.stderr
     finally:
-        finish(proc)
+        finish(proc, stop=True)
     rep = json.loads(report.read_text())
     assert [c["args"] for c in rep["received"] if c["kind"] == "estop"] == [["operator"]]
 

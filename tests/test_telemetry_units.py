@@ -348,3 +348,11 @@ def test_non_finite_numbers_are_sent_as_null():
     pub.offer_state(StateSample(1, 0, "idle", "ok", (), (float("nan"), 0, 0), meas_left=float("inf")))
     pub.close()
     assert sink.states[0]["pose"]["odom"] is None and sink.states[0]["wheels"]["meas"]["left"] is None
+
+
+def test_record_into_a_missing_directory_fails_before_opening_the_network(tmp_path):
+    clock = SimClock()
+    cfg = Config.model_validate({"telemetry": {"listen": ["tcp/127.0.0.1:1"]}})  # would fail to open anyway
+    rt = Runtime(cfg, RecordingDrive(clock), IdleController(), clock)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        TelemetryLink.attach(rt, cfg, record=str(tmp_path / "no" / "such" / "dir" / "r.mcap"))
