@@ -340,3 +340,20 @@ def test_vbnav_run_record_is_read_back_with_every_channel_at_its_rate(tmp_path):
     assert s.channels["/vbnav/pose/odom"].count == s.channels["/vbnav/state"].count
     kinds = [json.loads(d)["kind"] for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
     assert kinds[0] == "run_start" and kinds[-1] == "run_end"
+
+
+def test_a_second_robot_on_the_same_port_gets_a_clear_error():
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.manual import IdleController
+    from vbnav.control.runtime import Runtime
+    from vbnav.control.telemetry_link import TelemetryLink
+    from vbnav.drivers.clock import SimClock
+    cfg = Config.model_validate({"telemetry": {"listen": [f"tcp/127.0.0.1:{free_port()}"]}})
+    clock = SimClock()
+    first = TelemetryLink.attach(Runtime(cfg, RecordingDrive(clock), IdleController(), clock), cfg)
+    try:
+        with pytest.raises(ConnectionError, match="cannot open the zenoh session listening on tcp/127.0.0.1"):
+            TelemetryLink.attach(Runtime(cfg, RecordingDrive(clock), IdleController(), clock), cfg)
+    finally:
+        first.close()
