@@ -8,7 +8,9 @@ commands zero, disables the drive in the same cycle, and is reported.
 """
 from __future__ import annotations
 
+import os
 import signal
+import sys
 import threading
 import traceback
 from collections import deque
@@ -90,6 +92,7 @@ class Runtime:
     def run(self, duration_s: Optional[float] = None,
             progress: Optional[Callable[["Runtime"], None]] = None, progress_every_s: float = 1.0) -> RunResult:
         handlers = self._install_signal_handlers()
+        restore_scheduling = self._apply_scheduling()
         next_progress = [0]
         try:
             self.drive.connect()
@@ -130,6 +133,7 @@ class Runtime:
             if self.pipeline is not None:
                 self.pipeline.stop()
             self._restore_signal_handlers(handlers)
+            restore_scheduling()
         reason, message = self._end or ("stopped", "loop stopped")
         return RunResult(reason, message, timing, list(self.safety.events), self.cycle)
 
@@ -163,6 +167,7 @@ class Runtime:
                     return self._finish(now, "exception", self.pipeline.fault)
                 estimates = dict(self.pipeline.latest)
                 self._check_camera(now)
+                self._apply_speed_scales(now, estimates)
             ctx = ControlContext(now, dt, odom, wheels, estimates, cycle)
             self.ctx = ctx
             stage = "commands"
@@ -221,6 +226,18 @@ class Runtime:
             stale = age > limit
         self.safety.hold(now, "camera_stale", stale, f"last frame {age:.2f} s old (limit {limit:g} s)")
 
+    def _apply_speed_scales(self, now: int, estimates: dict) -> None:
+        """Estimates may carry ``info['speed_scale']`` in [0, 1] (obstacle zones): the smallest applies,
+        and 0 is a held stop until the zone has been clear for the release time."""
+        scale = 1.0
+        why = ""
+        for e in estimates.values():
+            s = e.info.get("speed_scale") if e is not None else None
+            if s is not None and s < scale:
+                scale, why = float(s), e.info.get("reason", e.kind)
+        self.safety.speed_scale = max(0.0, scale)
+        self.safety.hold(now, "obstacle", scale <= 0.0, why or "obstacle in the stop zone")
+
     def _check_estimates(self, ctx: ControlContext) -> None:
         limit = self.cfg.safety.estimate_timeout_s
         for kind in self.controller.requires:
@@ -265,6 +282,41 @@ class Runtime:
         except Exception:
             pass
         self._enabled = False
+
+    # -- scheduling ----------------------------------------------------------
+    def _apply_scheduling(self):
+        """Real-time settings for the loop's thread (real clock only). Returns an undo function."""
+        if getattr(self.clock, "simulated", False):
+            return lambda: None
+        lc = self.cfg.loop
+        old_interval = sys.getswitchinterval()
+        sys.setswitchinterval(lc.gil_switch_interval_us * 1e-6)
+        undo = [lambda: sys.setswitchinterval(old_interval)]
+        now = self.clock.now_ns()
+        if lc.cpu_affinity:
+            try:
+                old_aff = os.sched_getaffinity(0)
+                os.sched_setaffinity(0, set(lc.cpu_affinity))
+                undo.append(lambda: os.sched_setaffinity(0, old_aff))
+            except (OSError, AttributeError) as exc:
+                self.safety.events.append(SafetyEvent(now, "warning", "scheduling", f"cpu_affinity: {exc}"))
+        if lc.realtime_priority:
+            try:
+                old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(lc.realtime_priority))
+                undo.append(lambda: os.sched_setscheduler(0, old_policy, old_param))
+            except (OSError, AttributeError) as exc:
+                self.safety.events.append(SafetyEvent(
+                    now, "warning", "scheduling", f"SCHED_FIFO priority {lc.realtime_priority} refused ({exc}); "
+                    "running with normal scheduling"))
+
+        def restore():
+            for fn in reversed(undo):
+                try:
+                    fn()
+                except OSError:
+                    pass
+        return restore
 
     # -- signals -------------------------------------------------------------
     def _install_signal_handlers(self):

@@ -149,3 +149,28 @@ def test_estop_latches_until_resume():
     moving = [t for t, l, r, p in drive.log if p and l != 0]
     assert not [t for t in moving if T0 + 1_000_000_000 + 2 * PERIOD_NS <= t < T0 + 2_000_000_000]
     assert any(t > T0 + 2_000_000_000 for t in moving)
+
+
+def test_obstacle_speed_scale_slows_and_stops():
+    from vbnav.control.controller import Estimate
+
+    class Zone(VisionStage):
+        """Reports a slow-down zone between 1 and 2 s and a stop zone between 2 and 3 s."""
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            scale = 0.5 if 1.0 <= t < 2.0 else (0.0 if 2.0 <= t < 3.0 else 1.0)
+            return Estimate(frame.stamp_ns, self.kind, True, None, {"speed_scale": scale, "reason": "box ahead"})
+
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 5.0]]), stages=[Zone()])
+    rt.run()
+    cmd = {t: (l, p) for t, l, r, p in drive.log}
+    full = 0.3 / 0.05
+    at = lambda s: cmd[min(cmd, key=lambda t: abs(t - (T0 + int(s * 1e9))))]
+    assert at(0.8)[0] == pytest.approx(full)
+    assert at(1.7)[0] == pytest.approx(full / 2, rel=1e-6)
+    assert at(2.5) == (0.0, False)
+    assert at(4.5)[0] == pytest.approx(full, rel=1e-6)
+    holds = [e for e in rt.safety.events if e.cause == "obstacle"]
+    assert holds[0].kind == "hold" and holds[0].message == "box ahead" and holds[1].kind == "release"
