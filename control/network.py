@@ -60,7 +60,8 @@ class TelemetryConfig(_Strict):
 
     enabled: bool = Field(True, description="open a zenoh session, publish telemetry, accept commands")
     state_rate_hz: float = Field(20.0, gt=0, le=1000, description="rate of vbnav/<robot>/state")
-    image_rate_hz: float = Field(0.0, ge=0, le=60, description="rate of vbnav/<robot>/image JPEGs; 0 = off")
+    image_rate_hz: float = Field(2.0, ge=0, le=60, description="rate of vbnav/<robot>/image JPEGs (and in "
+                                                                "recordings); 0 = off")
     image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled to this width, px")
     jpeg_quality: int = Field(70, ge=10, le=100)
     listen: list[str] = Field(default_factory=lambda: [DEFAULT_ENDPOINT], max_length=8,

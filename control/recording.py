@@ -15,7 +15,10 @@ extra for recording. Channels (message encoding ``json``, schema encoding
 Poses are given in frame ``odom`` in Foxglove's convention (x forward, y left,
 z up): (x_fg, y_fg, yaw_fg) = (z, -x, -theta) of vbnav's planar pose.
 Log times are the loop clock's stamps (monotonic or simulated ns); the wall
-clock at the start is in the ``vbnav`` metadata record.
+clock at the start is in the ``vbnav`` metadata record. A file may hold several
+runs (``vbnav demo``: teach, then each repeat, each on a fresh simulated clock):
+each run is a segment logged one second after the previous one ends
+(``new_segment``); the ``stamp_ns`` inside the messages stays the loop's own.
 
 Crash safety: the file is chunked and the chunk in progress is finished and
 flushed to the OS at least every ``flush_interval_s``, so a process killed with
@@ -118,6 +121,12 @@ class McapRecorder(Sink):
         self._last_flush = time.monotonic()
         self._closed = False
         self.counts: dict[str, int] = {}
+        # Log time = loop stamp + offset. Each run of a multi-run recording (vbnav demo: teach, then
+        # repeats, each on a fresh simulated clock) is a segment placed after the previous one.
+        self._offset_ns = 0
+        self._last_log_ns = 0
+        self._rebase_gap_ns: Optional[int] = None
+        self.segments: list[str] = []
         for topic, schema in (("/vbnav/state", "vbnav.state"), ("/vbnav/events", "vbnav.event"),
                               ("/vbnav/log", "foxglove.Log"), ("/vbnav/pose/odom", "foxglove.PoseInFrame")):
             self._channel(topic, schema)
@@ -134,12 +143,26 @@ class McapRecorder(Sink):
             self._channels[topic] = self._writer.register_channel(topic, "json", self._schema(schema))
         return self._channels[topic]
 
-    def _write(self, topic: str, schema: str, stamp_ns: int, data: bytes) -> None:
+    def new_segment(self, name: str, gap_s: float = 1.0) -> None:
+        """Start a new run in the same file: its first message is logged ``gap_s`` after the last one."""
+        if self.segments:
+            self._rebase_gap_ns = int(gap_s * 1e9)
+        self.segments.append(name)
+
+    def log_time(self, stamp_ns: int) -> int:
+        """The file's log time of a loop stamp (stamps of a new segment are re-based on first use)."""
+        if self._rebase_gap_ns is not None:
+            self._offset_ns = self._last_log_ns + self._rebase_gap_ns - int(stamp_ns)
+            self._rebase_gap_ns = None
+        return int(stamp_ns) + self._offset_ns
+
+    def _write(self, topic: str, schema: str, log_ns: int, data: bytes) -> None:
         if self._closed:
             return
         cid = self._channel(topic, schema)
         seq = self.counts.get(topic, 0)
-        self._writer.add_message(cid, log_time=int(stamp_ns), publish_time=int(stamp_ns), data=data, sequence=seq)
+        self._writer.add_message(cid, log_time=log_ns, publish_time=log_ns, data=data, sequence=seq)
+        self._last_log_ns = max(self._last_log_ns, log_ns)
         self.counts[topic] = seq + 1
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval_s:
@@ -148,13 +171,14 @@ class McapRecorder(Sink):
 
     # ---- Sink ----------------------------------------------------------------------------
     def state(self, stamp_ns, payload, msg):
-        self._write("/vbnav/state", "vbnav.state", stamp_ns, payload)
+        t = self.log_time(stamp_ns)
+        self._write("/vbnav/state", "vbnav.state", t, payload)
         for name, pose in msg["pose"].items():
             if pose is not None:
-                self._write(f"/vbnav/pose/{name}", "foxglove.PoseInFrame", stamp_ns,
-                            json.dumps(_pose_msg(stamp_ns, pose)).encode())
+                self._write(f"/vbnav/pose/{name}", "foxglove.PoseInFrame", t, json.dumps(_pose_msg(t, pose)).encode())
 
     def event(self, stamp_ns, payload, msg):
+        stamp_ns = self.log_time(stamp_ns)
         self._write("/vbnav/events", "vbnav.event", stamp_ns, payload)
         text = " ".join(f"{k}={v}" for k, v in msg.items()
                         if k not in ("schema", "version", "robot", "seq", "stamp_ns", "kind"))
@@ -164,6 +188,7 @@ class McapRecorder(Sink):
         self._write("/vbnav/log", "foxglove.Log", stamp_ns, json.dumps(log).encode())
 
     def image(self, stamp_ns, payload, msg, jpeg):
+        stamp_ns = self.log_time(stamp_ns)
         img = {"timestamp": _ts(stamp_ns), "frame_id": "camera", "format": "jpeg",
                "data": base64.b64encode(jpeg).decode("ascii")}
         self._write("/vbnav/image", "foxglove.CompressedImage", stamp_ns, json.dumps(img).encode())

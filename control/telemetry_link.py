@@ -27,6 +27,30 @@ from vbnav.control.network import TelemetryConfig, open_session, robot_session_c
 from vbnav.control.telemetry import StateSample, TelemetryPublisher, ZenohSink
 
 
+class _Borrowed:
+    """A sink shared with other runs: written to, flushed, never closed by this link."""
+
+    def __init__(self, sink):
+        self._sink = sink
+
+    def state(self, *a):
+        self._sink.state(*a)
+
+    def event(self, *a):
+        self._sink.event(*a)
+
+    def image(self, *a):
+        self._sink.image(*a)
+
+    def close(self):
+        pass
+
+
+def attach(cfg, runtime, record: Optional[str] = None, **kw) -> TelemetryLink:
+    """``TelemetryLink.attach`` with the argument order of the teach/repeat commands."""
+    return TelemetryLink.attach(runtime, cfg, record=record, **kw)
+
+
 def _estimate_pose(est):
     """A planar pose from an Estimate whose value is Pose2-like (x, z, theta), else None."""
     if est is None or not getattr(est, "ok", False):
@@ -50,18 +74,27 @@ class TelemetryLink:
 
     # ---- construction ----------------------------------------------------------------------
     @classmethod
-    def attach(cls, runtime, cfg, record: Optional[str] = None) -> "TelemetryLink":
-        """Validate, open and hook everything into ``runtime``; raises ConfigError / ConnectionError."""
+    def attach(cls, runtime, cfg, record: Optional[str] = None, recorder=None, network: bool = True,
+               segment: str = "run") -> "TelemetryLink":
+        """Validate, open and hook everything into ``runtime``; raises ConfigError / ConnectionError.
+
+        record: MCAP path for this run. recorder: an open McapRecorder shared by several runs (it gets a
+        new segment and is not closed by this link). network: False skips zenoh even when enabled.
+        """
         tcfg = telemetry_config(cfg)
         robot = cfg.robot.name
-        sinks, session, recorder = [], None, None
-        if record:  # first: a bad path fails before any network resource is opened
+        sinks, session = [], None
+        if recorder is not None:
+            recorder.new_segment(segment)
+            sinks.append(_Borrowed(recorder))
+            recorder = None
+        elif record:  # first: a bad path fails before any network resource is opened
             from vbnav.control.recording import McapRecorder
             recorder = McapRecorder(record, robot, metadata={"config": cfg.source or "",
                                                              "loop_rate_hz": cfg.loop.rate_hz,
                                                              "state_rate_hz": tcfg.state_rate_hz})
             sinks.append(recorder)
-        if tcfg.enabled:
+        if tcfg.enabled and network:
             conf = robot_session_config(tcfg, robot)
             try:
                 session = open_session(conf)
@@ -88,8 +121,8 @@ class TelemetryLink:
             runtime.pipeline.frame_listeners.append(link._on_frame)
         publisher.start()
         publisher.event("run_start", controller=getattr(runtime.controller, "name", "?"),
-                        loop_rate_hz=cfg.loop.rate_hz, listen=list(tcfg.listen) if tcfg.enabled else [],
-                        recording=str(record) if record else None)
+                        loop_rate_hz=cfg.loop.rate_hz, listen=list(tcfg.listen) if session is not None else [],
+                        recording=str(record) if record else None, segment=segment)
         return link
 
     # ---- runtime hooks (loop thread) -------------------------------------------------------
