@@ -325,7 +325,7 @@ def test_vbnav_run_record_is_read_back_with_every_channel_at_its_rate(tmp_path):
     from vbnav.control.config import load_config
     from vbnav.control.recording import iter_recording, read_recording
     cfg = tmp_path / "robot.yaml"
-    cfg.write_text(f"telemetry:\n  listen: ['tcp/127.0.0.1:{free_port()}']\n  state_rate_hz: 20\n"
+    cfg.write_text("telemetry:\n  state_rate_hz: 20\n"    # simulated clock: records, opens no network
                    "controller:\n  kind: scripted\n  script: [[0.3, 0.0, 3.0], [0.3, 0.4, 3.0]]\n")
     try:
         load_config(cfg)
@@ -357,3 +357,34 @@ def test_a_second_robot_on_the_same_port_gets_a_clear_error():
             TelemetryLink.attach(Runtime(cfg, RecordingDrive(clock), IdleController(), clock), cfg)
     finally:
         first.close()
+
+
+def test_vbnav_run_in_real_time_publishes_and_obeys_an_estop(tmp_path):
+    port = free_port()
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text(f"sim:\n  realtime: true\ntelemetry:\n  listen: ['tcp/127.0.0.1:{port}']\n"
+                   "controller:\n  kind: scripted\n  script: [[0.2, 0.0, 60.0]]\n")
+    cli = [sys.executable, "-m", "vbnav.control.cli"]
+    robot = subprocess.Popen(cli + ["run", "--no-camera", "-c", str(cfg), "--duration", "30", "--json"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ep = ["--connect", f"tcp/127.0.0.1:{port}"]
+    try:
+        for _ in range(50):          # wait for the robot's listener
+            mon = subprocess.run(cli + ["monitor", "--once", "--json", *ep], capture_output=True, text=True,
+                                 timeout=30)
+            if mon.returncode == 0:
+                break
+            time.sleep(0.2)
+        state = json.loads(mon.stdout)
+        assert state["mode"] == "scripted" and state["wheels"]["cmd"]["left"] > 0
+        sent = subprocess.run(cli + ["send", "estop", *ep], capture_output=True, text=True, timeout=30)
+        assert sent.returncode == 0, sent.stderr
+        time.sleep(0.3)
+        state = json.loads(subprocess.run(cli + ["monitor", "--once", "--json", *ep], capture_output=True,
+                                          text=True, timeout=30).stdout)
+        assert state["safety"]["state"] == "estop" and state["wheels"]["cmd"] == {"left": 0.0, "right": 0.0}
+    finally:
+        robot.terminate()
+        out, err = robot.communicate(timeout=30)
+    summary = json.loads(out)
+    assert any(e["cause"] == "estop" and e["kind"] == "trip" for e in summary["events"]), summary["events"]

@@ -48,21 +48,23 @@ def add_telemetry_args(p: argparse.ArgumentParser) -> None:
                    help="record state, events and images to an MCAP file (opens in Foxglove; see "
                         "docs/telemetry.md); written as PATH.part and renamed when the run ends")
     p.add_argument("--no-telemetry", action="store_true",
-                   help="do not open the zenoh session (no telemetry, no network commands)")
+                   help="do not open the zenoh session (no telemetry, no network commands); runs on the "
+                        "simulated clock never open it")
 
 
 def attach_telemetry(rt, cfg, args):
     """TelemetryLink for a runtime, or None (after a message on stderr) if the zenoh session cannot open.
 
     Call after building the Runtime and before ``rt.run``; call ``link.close(result)`` after it.
+    The network opens only when the loop runs in real time: a run on the simulated clock is an offline
+    computation (it finishes faster than anyone could watch or command it), so it only records.
     """
     import sys
 
     from vbnav.control.telemetry_link import TelemetryLink
-    if getattr(args, "no_telemetry", False):
-        cfg = cfg.model_copy(update={"telemetry": {**cfg.telemetry, "enabled": False}})
+    network = not getattr(args, "no_telemetry", False) and not getattr(rt.clock, "simulated", False)
     try:
-        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None))
+        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None), network=network)
     except ConnectionError as exc:
         print(f"vbnav: {exc}", file=sys.stderr)
         return None
