@@ -244,7 +244,7 @@ class TelemetryPublisher:
         self._thread.start()
         return self
 
-    def close(self, timeout_s: float = 2.0) -> None:
+    def close(self, timeout_s: float = 10.0) -> None:
         """Publish what is queued, stop the thread and close the sinks (idempotent)."""
         if self._closed:
             return
@@ -252,6 +252,9 @@ class TelemetryPublisher:
         self._q.put(None)
         if self._thread is not None:
             self._thread.join(timeout_s)
+            if self._thread.is_alive():  # a sink hangs: closing it under the thread's feet would corrupt it
+                self.sink_errors += 1
+                return
         else:
             self._drain()
         for s in self.sinks:
