@@ -150,6 +150,16 @@ def main() -> int:
         runs.append((run_id, "bare: json + zenoh put on loop", rate, len(cost), cost))
         time.sleep(0.3)
 
+    # as the runtime uses it: 100 Hz loop, state at 20 Hz (state_due on every cycle, a sample every 5th)
+    run_id += 1
+    pub = TelemetryPublisher("bench", [RunTaggingSink(zpub, run_id)], state_rate_hz=20.0, loop_rate_hz=100.0)
+    pub.start()
+    cost = run_loop(100.0, a.seconds,
+                    lambda k, now: pub.offer_state(sample_for(now, k)) if pub.state_due(now) else None)
+    pub.close()
+    runs.append((run_id, "ours: 20 Hz state, per loop cycle", 100.0, len(cost) // 5, cost))
+    time.sleep(0.3)
+
     sub.stdin.write("DONE\n")
     sub.stdin.flush()
     recv = json.loads(sub.stdout.read())
@@ -166,14 +176,18 @@ def main() -> int:
     table = {}
     for rid, name, rate, sent, cost in runs:
         c50, c99 = np.percentile(cost, [50, 99]) * 1e-3
-        table[(rate, name[:4])] = c50
+        table.setdefault((rate, name[:4]), c50)
         if name.startswith("floor"):
             print(f"{rate:>6.0f}  {name:<32} {c50:>16.1f} {c99:>7.1f} {'-':>9} {'-':>14} {'-':>7}")
             continue
         lat = np.array(by_run.get(rid, [0]), dtype=np.float64) * 1e-6
-        delivered = len(by_run.get(rid, [])) / len(cost)
+        delivered = len(by_run.get(rid, [])) / (sent if name.startswith("ours: 20") else len(cost))
         l50, l99 = np.percentile(lat, [50, 99])
         print(f"{rate:>6.0f}  {name:<32} {c50:>16.1f} {c99:>7.1f} {delivered:>9.3f} {l50:>14.3f} {l99:>7.3f}")
+    for rid, name, rate, sent, cost in runs:
+        if name.startswith("ours: offer"):
+            print(f"{rate:.0f} Hz ours: {len(cost) - sent} of {len(cost)} samples dropped at the queue (publisher "
+                  f"thread behind; the loop never waits)")
     for rate in (100.0, 1000.0):
         print(f"loop-thread cost at {rate:.0f} Hz, bare put / ours (median): "
               f"{table[(rate, 'bare')] / table[(rate, 'ours')]:.1f}x")
