@@ -214,7 +214,7 @@ def test_non_loopback_listener_without_authentication_is_refused_at_start_up():
         socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
 
 
-def test_vbnav_run_refuses_a_public_listener(tmp_path):
+def test_vbnav_run_and_config_check_refuse_a_public_listener(tmp_path):
     from vbnav.control.cli import main
     cfg = tmp_path / "robot.yaml"
     cfg.write_text("telemetry:\n  listen: ['tcp/0.0.0.0:7447']\n")
@@ -224,6 +224,7 @@ def test_vbnav_run_refuses_a_public_listener(tmp_path):
     except Exception as exc:  # the default simulated camera driver is another engineer's, may be missing
         pytest.skip(f"configs need drivers not on this branch yet: {exc}")
     assert main(["run", "--config", str(cfg), "--duration", "1"]) == 2
+    assert main(["config", "check", "--config", str(cfg)]) == 2
 
 
 def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path):
