@@ -163,6 +163,8 @@ def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
              "messages": ["put"], "key_exprs": telemetry_keys},
             {"id": "telemetry-subscribe", "permission": "allow", "flows": ["ingress"],
              "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
+            {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
+             "messages": ["query", "reply", "declare_queryable"], "key_exprs": [f"{prefix}/events/recent"]},
             {"id": "commands-in", "permission": "allow", "flows": ["ingress"],
              "messages": ["put"], "key_exprs": [f"{prefix}/cmd/**"]},
             {"id": "commands-subscribe", "permission": "allow", "flows": ["egress"],
@@ -174,7 +176,8 @@ def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
             {"id": "operators-tls", "cert_common_names": list(operators)},
         ],
         "policies": [
-            {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe"], "subjects": ["everyone"]},
+            {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe", "events-history"],
+             "subjects": ["everyone"]},
             {"id": "operators-command", "rules": ["commands-in", "commands-subscribe"],
              "subjects": ["operators", "operators-tls"]},
         ],

@@ -21,6 +21,7 @@ Keys (``<robot>`` is ``robot.name``; every payload is a JSON object with
 from __future__ import annotations
 
 import base64
+import collections
 import json
 import math
 import queue
@@ -37,6 +38,7 @@ def keys(robot: str) -> dict[str, str]:
     """The zenoh key expressions of one robot."""
     p = f"vbnav/{robot}"
     return {"state": f"{p}/state", "events": f"{p}/events", "image": f"{p}/image",
+            "recent_events": f"{p}/events/recent",
             "cmd": f"{p}/cmd/**", "estop": f"{p}/cmd/estop", "resume": f"{p}/cmd/resume",
             "teleop": f"{p}/cmd/teleop", "mode": f"{p}/cmd/mode"}
 
@@ -133,9 +135,13 @@ class Sink:
 
 
 class ZenohSink(Sink):
-    """Publishes on a robot's keys. Telemetry: express (no batching delay), congestion control DROP."""
+    """Publishes on a robot's keys. Telemetry: express (no batching delay), congestion control DROP.
 
-    def __init__(self, session, robot: str):
+    Also answers queries on ``vbnav/<robot>/events/recent`` with the last ``history`` events, so a
+    monitor started late still shows what happened (a ``vbnav.events.recent`` object).
+    """
+
+    def __init__(self, session, robot: str, history: int = 20):
         import zenoh
         k = keys(robot)
         opts = dict(express=True, congestion_control=zenoh.CongestionControl.DROP)
@@ -143,18 +149,30 @@ class ZenohSink(Sink):
         # Events are rare and matter more: reliable, but still never block the publisher thread.
         self._events = session.declare_publisher(k["events"], reliability=zenoh.Reliability.RELIABLE, **opts)
         self._image = session.declare_publisher(k["image"], **opts)
+        self._recent: collections.deque = collections.deque(maxlen=history)
+        self._recent_key = k["recent_events"]
+        self._queryable = session.declare_queryable(self._recent_key, self._on_query)
+
+    def _on_query(self, query) -> None:  # zenoh thread
+        events = [json.loads(p) for p in list(self._recent)]
+        body = {"schema": "vbnav.events.recent", "version": SCHEMA_VERSION, "events": events}
+        try:
+            query.reply(self._recent_key, json.dumps(body, separators=(",", ":")))
+        except Exception:
+            pass
 
     def state(self, stamp_ns, payload, msg):
         self._state.put(payload)
 
     def event(self, stamp_ns, payload, msg):
+        self._recent.append(payload)
         self._events.put(payload)
 
     def image(self, stamp_ns, payload, msg, jpeg):
         self._image.put(payload)
 
     def close(self):
-        for p in (self._state, self._events, self._image):
+        for p in (self._queryable, self._state, self._events, self._image):
             try:
                 p.undeclare()
             except Exception:

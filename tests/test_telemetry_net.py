@@ -193,6 +193,8 @@ def test_unauthorised_peer_is_refused_commands_but_receives_telemetry(tmp_path):
         time.sleep(1.0)
         with viewer.lock:
             viewer_states = [m for _, m in viewer.states]
+        history = [json.loads(r.ok.payload.to_bytes()) for r in viewer.session.get("vbnav/sim/events/recent",
+                                                                                   timeout=2.0) if r.ok]
         viewer.close()
         operator.close()
     finally:
@@ -202,6 +204,8 @@ def test_unauthorised_peer_is_refused_commands_but_receives_telemetry(tmp_path):
     assert estops == [["operator"]]                     # the viewer's five never reached the runtime
     assert len(viewer_states) >= 40                     # ~3 s of 20 Hz state reached the viewer meanwhile
     assert viewer_states[-1]["safety"]["state"] == "estop"   # and it saw the operator's estop take effect
+    kinds = [e["kind"] for e in history[0]["events"]]         # the ACL lets readers query the event history
+    assert kinds[0] == "run_start" and "safety_trip" in kinds
 
 
 def test_non_loopback_listener_without_authentication_is_refused_at_start_up():
@@ -263,6 +267,7 @@ def test_monitor_and_send_command_line_tools(tmp_path):
         time.sleep(0.3)
         mon = subprocess.run(cli + ["monitor", "--once", *ep], capture_output=True, text=True, timeout=30)
         assert mon.returncode == 0 and "safety  estop" in mon.stdout and "estop from zenoh" in mon.stdout
+        assert "safety_trip" in mon.stdout and "run_start" in mon.stdout   # events from before it started
     finally:
         finish(proc, stop=True)
     rep = json.loads(report.read_text())

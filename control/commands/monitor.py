@@ -43,6 +43,21 @@ class View:
             self.state, self.n_state, self.last_rx = msg, self.n_state + 1, time.monotonic()
         self.got_state.set()
 
+    def load_history(self, session, key: str, timeout_s: float = 1.0) -> None:
+        """Events that happened before this monitor started (the robot keeps the last 20)."""
+        try:
+            for reply in session.get(key, timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                past = json.loads(reply.ok.payload.to_bytes()).get("events", [])
+                with self.lock:
+                    seen = {e.get("seq") for e in self.events}
+                    merged = [e for e in past if e.get("seq") not in seen] + list(self.events)
+                    self.events.clear()
+                    self.events.extend(merged)
+        except Exception:
+            pass  # history is a convenience: live events still arrive
+
     def on_event(self, sample) -> None:
         try:
             msg = json.loads(sample.payload.to_bytes())
@@ -105,6 +120,7 @@ def _run(args) -> int:
     try:
         session.declare_subscriber(f"vbnav/{args.robot}/state", view.on_state)
         session.declare_subscriber(f"vbnav/{args.robot}/events", view.on_event)
+        view.load_history(session, f"vbnav/{args.robot}/events/recent")
         if args.once:
             if not view.got_state.wait(args.timeout):
                 print(f"vbnav monitor: no state on vbnav/{args.robot}/state within {args.timeout} s",
