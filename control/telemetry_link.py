@@ -52,11 +52,14 @@ def attach(cfg, runtime, record: Optional[str] = None, **kw) -> TelemetryLink:
 
 
 def _estimate_pose(est):
-    """A planar pose from an Estimate whose value is Pose2-like (x, z, theta), else None."""
+    """The planar pose in a trusted Estimate: its value if Pose2-like, or ``value.pose`` (VBCFix), else None."""
     if est is None or not getattr(est, "ok", False):
         return None
     v = est.value
-    return v if hasattr(v, "theta") else None
+    if hasattr(v, "theta"):
+        return v
+    pose = getattr(v, "pose", None)
+    return pose if hasattr(pose, "theta") else None
 
 
 class TelemetryLink:

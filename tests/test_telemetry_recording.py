@@ -48,8 +48,11 @@ def test_demo_teach_and_repeat_segments_in_one_recording(tmp_path):
     # Segments follow each other in log time although each run's simulated clock starts at the same value.
     times = [t for topic, _, t, _ in iter_recording(rec_path) if topic == "/vbnav/state"]
     assert times == sorted(times) and 10.0 < (times[-1] - times[0]) * 1e-9 < 12.0
-    modes = [json.loads(d)["mode"] for topic, _, _, d in iter_recording(rec_path) if topic == "/vbnav/state"]
-    assert modes[0] != modes[-1]                                      # the teach driver, then the repeat controller
+    states = [json.loads(d) for topic, _, _, d in iter_recording(rec_path) if topic == "/vbnav/state"]
+    assert states[0]["mode"] != states[-1]["mode"]                   # the teach driver, then the repeat controller
+    repeat = [m for m in states if m["mode"] == states[-1]["mode"]]
+    assert any(m["keyframe"] is not None for m in repeat) and any(m["pose"]["vbc"] for m in repeat)
+    assert "/vbnav/pose/vbc" in s.channels
 
 
 @pytest.mark.slow

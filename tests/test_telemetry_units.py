@@ -356,3 +356,15 @@ def test_record_into_a_missing_directory_fails_before_opening_the_network(tmp_pa
     rt = Runtime(cfg, RecordingDrive(clock), IdleController(), clock)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         TelemetryLink.attach(rt, cfg, record=str(tmp_path / "no" / "such" / "dir" / "r.mcap"))
+
+
+def test_vbc_pose_and_keyframe_come_from_the_repeat_estimate():
+    from vbnav.control.controller import Estimate
+    from vbnav.control.teach_repeat import VBCFix
+    from vbnav.control.telemetry_link import _estimate_pose
+    from vbnav.vision.geometry import Pose2
+    fix = VBCFix(7, Pose2(0.05, -0.4, 0.02), Pose2(1.0, 2.0, 0.1), 12)
+    assert _estimate_pose(Estimate(1, "vbc", True, fix, {"keyframe": 7})) == Pose2(0.05, -0.4, 0.02)
+    assert _estimate_pose(Estimate(1, "vbc", False, fix, {"keyframe": 7})) is None     # not trusted
+    assert _estimate_pose(Estimate(1, "vslam", True, Pose2(3, 4, 5))) == Pose2(3, 4, 5)
+    assert _estimate_pose(Estimate(1, "obstacles", True, {"zones": []})) is None
