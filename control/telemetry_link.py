@@ -118,6 +118,7 @@ class TelemetryLink:
         link.inbox = CommandInbox(limits_from_config(cfg), on_reject=link._on_reject, deliver=link._deliver)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox)
+        runtime.command_handlers.append(link._on_mode_command)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
         if runtime.pipeline is not None and tcfg.image_rate_hz > 0:
@@ -157,6 +158,21 @@ class TelemetryLink:
             ctx.odom, _estimate_pose(vbc), _estimate_pose(vslam), keyframe,
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
             twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns))
+
+    def _on_mode_command(self, rt, cmd, now_ns: int) -> bool:
+        """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
+        if cmd.kind != "mode":
+            return False
+        from vbnav.control.safety import SafetyEvent
+        target, current = cmd.args[0], getattr(rt.controller, "name", "?")
+        if target == current:
+            self.publisher.event("mode_unchanged", stamp_ns=now_ns, mode=current)
+        else:
+            how = {"idle": "stop this run", "teach": "vbnav teach --out ROUTE",
+                   "repeat": "vbnav repeat --path ROUTE"}.get(target, "a new run")
+            rt.safety._emit(SafetyEvent(now_ns, "rejected", "mode", f"this run is '{current}'; switching to "
+                                        f"'{target}' needs a new run ({how})"))
+        return True
 
     def _on_safety(self, ev) -> None:
         if ev.kind == "rejected":

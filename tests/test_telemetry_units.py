@@ -337,7 +337,7 @@ def test_images_and_rejected_mode_commands_reach_the_recording(tmp_path):
     assert decoded.shape == (24, 32)                           # 48x64 test frames scaled to width 32
     events = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
     rejected = {e["command"]: e["reason"] for e in events if e["kind"] == "command_rejected"}
-    assert "not supported by this run" in rejected["mode"] and "outside" in rejected["teleop"]
+    assert "switching to 'teach' needs a new run" in rejected["mode"] and "outside" in rejected["teleop"]
     logs = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/log"]
     assert any(entry["level"] == 3 and "command_rejected" in entry["message"] for entry in logs)
 
