@@ -30,6 +30,7 @@ class Box:
     z0: float
     z1: float
     height: float
+    texel: float = 0.004    # texture scale, m; far surfaces need coarser texture to stay matchable
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,7 @@ def _cast(scene: Scene, rig: StereoRig, cam_x: float) -> Rendered:
         t_floor = np.where(rw[..., 1] > 1e-12, scene.camera_height / rw[..., 1], np.inf)
         if scene.step_z is not None:
             z_hit = C[2] + t_floor * rw[..., 2]
-            beyond = z_hit > scene.step_z
+            beyond = np.isfinite(t_floor) & (z_hit > scene.step_z)
             t_low = (scene.camera_height + scene.step_depth) / rw[..., 1]
             surf_floor = np.where(beyond, LOWER_FLOOR, FLOOR)
             t_floor = np.where(beyond, t_low, t_floor)
@@ -85,7 +86,8 @@ def _cast(scene: Scene, rig: StereoRig, cam_x: float) -> Rendered:
             hit = (tmax >= tmin) & (tmin > 0) & (tmin < t)
             t[hit], surf[hit] = tmin[hit], BOX0 + i
             axis[hit] = np.nanargmax(near, axis=-1)[hit]
-    P = C + t[..., None] * rw
+    with np.errstate(invalid="ignore"):
+        P = C + t[..., None] * rw
     z_cam = t                                            # the camera-frame ray has z = 1
     disp = np.where(np.isfinite(t), rig.fb / z_cam, np.nan).astype(np.float32)
     elev = np.where(np.isfinite(t), -P[..., 1], np.nan).astype(np.float32)
@@ -105,7 +107,7 @@ def _texture_tile(seed: int, size: int = 512) -> np.ndarray:
     return tile
 
 
-def _shade(rendered: Rendered, tile: np.ndarray, texel: float = 0.004) -> np.ndarray:
+def _shade(rendered: Rendered, tile: np.ndarray, texel: np.ndarray) -> np.ndarray:
     """Grey image: the tile sampled at 2 world coordinates chosen by the surface's orientation."""
     P = rendered.points
     s = rendered.surface
@@ -115,6 +117,7 @@ def _shade(rendered: Rendered, tile: np.ndarray, texel: float = 0.004) -> np.nda
     b = np.where(ax == 1, P[..., 2], P[..., 1])
     offset = (s.astype(np.float32) * 97.0)
     n = tile.shape[0]
+    a, b = np.nan_to_num(a), np.nan_to_num(b)
     mapx = np.mod(a / texel + offset, n - 1).astype(np.float32)
     mapy = np.mod(b / texel + offset * 0.5, n - 1).astype(np.float32)
     img = cv2.remap(tile, mapx, mapy, cv2.INTER_LINEAR)
@@ -126,11 +129,12 @@ def textured_pair(scene: Scene, rig: StereoRig, noise_std: float = 1.0,
                   rng: Optional[np.random.Generator] = None) -> tuple[np.ndarray, np.ndarray, Rendered]:
     """Rectified grey uint8 left/right images of the scene (right camera at +baseline in x)."""
     tile = _texture_tile(scene.texture_seed)
+    texel = np.array([0.004, 0.004] + [b.texel for b in scene.boxes], np.float32)   # per surface id
     left = _cast(scene, rig, 0.0)
     right = _cast(scene, rig, rig.baseline)
     rng = rng or np.random.default_rng(0)
     out = []
     for r in (left, right):
-        img = _shade(r, tile) * 255.0 + rng.normal(0.0, noise_std, r.disparity.shape)
+        img = _shade(r, tile, texel[np.clip(r.surface, 0, None)]) * 255.0 + rng.normal(0.0, noise_std, r.disparity.shape)
         out.append(np.clip(img, 0, 255).astype(np.uint8))
     return out[0], out[1], left

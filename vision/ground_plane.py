@@ -139,7 +139,7 @@ class PlaneFitParams:
     min_disparity: float = 0.5          # ground is only sought where the prior predicts more, px
     prior_tolerance_rel: float = 0.35   # seed pool: |D - D_prior| < rel * D_prior + px
     prior_tolerance_px: float = 2.0
-    inlier_height: float = 0.03         # m
+    inlier_height: float = 0.02         # m
     inlier_min_px: float = 0.35         # px
     hypotheses: int = 96
     score_points: int = 3000            # hypotheses are scored on at most this many pool points

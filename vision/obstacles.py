@@ -53,6 +53,7 @@ class ObstacleParams:
     max_height: Optional[float] = None  # m; higher points (table tops the robot passes under) are unknown
     max_range: Optional[float] = None  # m; farther points are unknown
     min_ground_disparity: float = 0.5  # px; ground is expected where the plane predicts more
+    smooth_columns: int = 5            # horizontal mean over this many pixels before thresholding (1: off)
     report_range: float = 10.0         # m; obstacle points beyond are not listed for the zones
 
 
@@ -79,12 +80,16 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
              params: ObstacleParams = ObstacleParams()) -> np.ndarray:
     """Per-pixel PixelClass labels (uint8) of a float32 disparity image (NaN unknown)."""
     p = params
-    D = disparity
-    h, w = D.shape
+    h, w = disparity.shape
     Dg = plane.image(h, w)
     H = floor.height
     with np.errstate(invalid="ignore"):
-        valid = D > 0
+        valid = disparity > 0
+        # A short horizontal mean cuts the matcher's noise while keeping every row (a low
+        # obstacle is only a few rows tall); holes are filled with the plane for the mean only.
+        D = disparity
+        if p.smooth_columns > 1:
+            D = cv2.blur(np.where(valid, disparity, Dg), (p.smooth_columns, 1))
         resid = D - Dg
         ground_expected = Dg > p.min_ground_disparity
         obs = valid & (resid > np.maximum(Dg * np.float32(p.obstacle_height / (H - p.obstacle_height)),
