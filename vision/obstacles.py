@@ -53,6 +53,7 @@ class ObstacleParams:
     max_height: Optional[float] = None  # m; higher points (table tops the robot passes under) are unknown
     max_range: Optional[float] = None  # m; farther points are unknown
     min_ground_disparity: float = 0.5  # px; ground is expected where the plane predicts more
+    missing_negative_rows: int = 63    # missing runs up to this long next to a negative become negative
     smooth_columns: int = 5            # horizontal mean over this many pixels before thresholding (1: off)
     report_range: float = 10.0         # m; obstacle points beyond are not listed for the zones
 
@@ -110,7 +111,7 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
         obs = _drop_small_blobs(obs, p.min_blob_pixels)
         neg = _drop_small_blobs(neg, p.min_blob_pixels)
     if neg.any():
-        neg |= _missing_next_to(neg, ~valid & ground_expected)
+        neg |= _missing_next_to(neg, ~valid & ground_expected, p.missing_negative_rows)
     labels = np.full((h, w), PixelClass.UNKNOWN, np.uint8)
     labels[valid & ground_expected & ~out_of_scope] = PixelClass.GROUND
     labels[neg] = PixelClass.NEGATIVE
@@ -155,18 +156,20 @@ def _drop_small_blobs(mask: np.ndarray, min_pixels: int) -> np.ndarray:
     return out
 
 
-def _missing_next_to(neg: np.ndarray, missing: np.ndarray) -> np.ndarray:
-    """Missing pixels whose column run of missing pixels touches a negative pixel above or below."""
-    h = neg.shape[0]
-    rows = np.arange(h, dtype=np.int32)[:, None]
-    known = ~missing
-    # index of the nearest known row at or above / at or below each pixel
-    above = np.maximum.accumulate(np.where(known, rows, -1), axis=0)
-    below = np.flipud(np.minimum.accumulate(np.flipud(np.where(known, rows, h)), axis=0))
-    cols = np.arange(neg.shape[1])[None, :]
-    neg_pad = np.vstack([neg, np.zeros((1, neg.shape[1]), bool)])   # row h (and -1) are "not negative"
-    touch = neg_pad[above, cols] | neg_pad[np.minimum(below, h), cols]
-    return missing & touch & (above >= 0)
+def _missing_next_to(neg: np.ndarray, missing: np.ndarray, max_rows: int) -> np.ndarray:
+    """Missing pixels joined to a negative pixel by an unbroken vertical run of missing pixels
+    (at most ``max_rows`` long), above or below it. Path doubling: log2(max_rows) slice steps."""
+    out = np.zeros_like(neg)
+    for flip in (False, True):
+        R = (neg[::-1] if flip else neg).copy()      # reached: negative, or missing joined to one
+        C = (missing[::-1] if flip else missing).copy()   # C[v]: rows v-s+1..v all missing
+        s = 1
+        while s <= max_rows:
+            R[s:] |= R[:-s] & C[s:]
+            C[s:] &= C[:-s]
+            s *= 2
+        out |= R[::-1] if flip else R
+    return out & missing
 
 
 def floor_coordinates(u: np.ndarray, v: np.ndarray, d: np.ndarray, rig: StereoRig,
