@@ -52,7 +52,7 @@ def test_pair_to_json_mask_and_overlay(files, capsys):
     mask = cv2.imread(str(d / "m.png"), cv2.IMREAD_UNCHANGED)
     assert mask.shape == (480, 640) and set(np.unique(mask)) <= {0, 1, 2, 255}
     box = truth.surface == ds.BOX0
-    assert np.mean(mask[box] == 1) > 0.9
+    assert np.mean(mask[box] == 1) > 0.8            # the lowest 2 cm of its face are below the threshold
     assert np.mean(mask[truth.surface == ds.FLOOR] == 0) > 0.9
     o = cv2.imread(str(d / "o.png"))
     assert o.shape == (480, 640, 3)
