@@ -53,7 +53,9 @@ def test_pair_to_json_mask_and_overlay(files, capsys):
     assert mask.shape == (480, 640) and set(np.unique(mask)) <= {0, 1, 2, 255}
     box = truth.surface == ds.BOX0
     assert np.mean(mask[box] == 1) > 0.8            # the lowest 2 cm of its face are below the threshold
-    assert np.mean(mask[truth.surface == ds.FLOOR] == 0) > 0.9
+    floor = mask[truth.surface == ds.FLOOR]
+    assert np.mean(floor == 1) < 0.005
+    assert np.mean(floor[floor != 255] == 0) > 0.99     # SGBM leaves the leftmost columns unknown
     o = cv2.imread(str(d / "o.png"))
     assert o.shape == (480, 640, 3)
     assert not [p for p in d.iterdir() if p.name.startswith(".tmp-")]      # atomic writes leave nothing
