@@ -62,7 +62,8 @@ def register(subparsers) -> None:
     det.add_argument("--corridor-range", type=float, default=10.0, help="m, for the nearest obstacle")
     det.add_argument("--block-size", type=int, default=5, help="SGBM block size (odd)")
     det.add_argument("--min-depth", type=float, default=None,
-                     help="m, nearest depth SGBM must cover (sets numDisparities); default 8 baselines")
+                     help="m, nearest depth SGBM must cover (sets numDisparities); default: 8 baselines, or 0.85 x "
+                          "the nearest floor depth in view if that is nearer")
     out = p.add_argument_group("output")
     out.add_argument("--mask-out", metavar="M.png", help="labels: 0 ground, 1 obstacle, 2 negative, 255 unknown")
     out.add_argument("--overlay-out", metavar="O.png", help="the classes drawn on the left image")
@@ -135,6 +136,18 @@ def _nearest_json(n):
             "lateral_m": round(n.lateral, 3)}
 
 
+def _min_depth(args, rig, prior) -> float:
+    """Nearest depth SGBM must cover: 8 baselines, or nearer if the floor in view is nearer."""
+    if args.min_depth:
+        return args.min_depth
+    depth = 8.0 * rig.baseline
+    if prior is not None:
+        d_floor = float(prior.image(rig.height, rig.width)[-1, [0, -1]].max())
+        if d_floor > 0:
+            depth = min(depth, 0.85 * rig.fb / d_floor)
+    return depth
+
+
 def run(args) -> int:
     t0 = time.perf_counter()
     if args.disparity is None and not (args.left and args.right):
@@ -161,16 +174,15 @@ def run(args) -> int:
     except (CalibrationError, ValueError, FileNotFoundError) as exc:
         return _bad(str(exc))
 
-    t1 = time.perf_counter()
-    if disp is None:
-        min_depth = args.min_depth if args.min_depth else 8.0 * rig.baseline
-        disp = sgbm_disparity(image, right, sgbm_params_for(rig, min_depth, args.block_size))
-    t2 = time.perf_counter()
-
     height = args.camera_height if args.camera_height is not None else calib.mount_height
     pitch = args.pitch_deg if args.pitch_deg is not None else calib.mount_pitch_deg
     prior = expected_plane(rig, height, math.radians(pitch), math.radians(calib.mount_roll_deg)) \
         if height is not None else None
+
+    t1 = time.perf_counter()
+    if disp is None:
+        disp = sgbm_disparity(image, right, sgbm_params_for(rig, _min_depth(args, rig, prior), args.block_size))
+    t2 = time.perf_counter()
     params = ObstacleParams(obstacle_height=args.obstacle_height, negative_depth=args.negative_depth,
                             noise_px=args.noise_px, max_height=args.max_height, max_range=args.max_range,
                             report_range=args.corridor_range)
