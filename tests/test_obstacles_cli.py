@@ -55,7 +55,7 @@ def test_pair_to_json_mask_and_overlay(files, capsys):
     assert np.mean(mask[box] == 1) > 0.8            # the lowest 2 cm of its face are below the threshold
     floor = mask[truth.surface == ds.FLOOR]
     assert np.mean(floor == 1) < 0.01                   # SGBM (block 5) fattens the box onto the floor a little
-    assert np.mean(floor[floor != 255] == 0) > 0.99     # SGBM leaves the leftmost columns unknown
+    assert np.mean(floor[floor != 255] == 0) > 0.98     # SGBM leaves the leftmost columns unknown
     o = cv2.imread(str(d / "o.png"))
     assert o.shape == (480, 640, 3)
     assert not [p for p in d.iterdir() if p.name.startswith(".tmp-")]      # atomic writes leave nothing
