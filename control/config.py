@@ -93,6 +93,12 @@ class LoopConfig(Strict):
                             "catch_up: run missed ticks back to back")
     max_missed_streak: int = Field(5, ge=1, description="consecutive overruns that trigger a safety stop")
     spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, us")
+    realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the loop thread "
+                                   "(0: normal scheduling); needs root or CAP_SYS_NICE, else a warning event")
+    cpu_affinity: list[int] = Field(default_factory=list, description="CPUs the loop thread may run on (empty: any)")
+    gil_switch_interval_us: int = Field(500, ge=50, le=5000, description="Python's thread switch interval "
+                                        "while a real-time loop runs: how long a busy vision thread may "
+                                        "keep the loop waiting for the GIL (Python's default is 5000)")
 
 
 class SafetyConfig(Strict):
@@ -107,7 +113,8 @@ class SimConfig(Strict):
     motor_time_constant_s: float = Field(0.05, ge=0)
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
     encoder_ticks_per_rev: int = Field(4096, gt=0)
-    slip_std: float = Field(0.01, ge=0, description="relative wheel slip noise (fraction of wheel travel)")
+    slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
+    vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
 
 
@@ -128,10 +135,10 @@ class Config(Strict):
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     # Sections of later features are plain dicts validated by their own modules
     # (telemetry, obstacles, vbc, vslam); they live here so that unknown keys are still errors.
-    telemetry: dict[str, Any] = Field(default_factory=dict)
-    obstacles: dict[str, Any] = Field(default_factory=dict)
-    vbc: dict[str, Any] = Field(default_factory=dict)
-    vslam: dict[str, Any] = Field(default_factory=dict)
+    telemetry: dict[str, Any] = Field(default_factory=dict, description="zenoh telemetry and commands, see docs/telemetry.md")
+    obstacles: dict[str, Any] = Field(default_factory=dict, description="obstacle detection and stop zones (control/obstacle_monitor.py)")
+    vbc: dict[str, Any] = Field(default_factory=dict, description="teach-and-repeat settings (control/teach_repeat.py)")
+    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM settings (control/vo.py)")
 
     source: Optional[str] = Field(None, exclude=True, description="file this was loaded from")
 

@@ -99,3 +99,11 @@ class Controller(abc.ABC):
     def status(self) -> dict:
         """Small JSON-able summary for progress lines and telemetry."""
         return {}
+
+    def safety_conditions(self) -> dict[str, tuple[bool, str]]:
+        """Held stop conditions the controller detects: cause -> (active, message).
+
+        The runtime feeds them to the safety monitor, which stops the wheels at once
+        (not through the acceleration limiter) while one is active.
+        """
+        return {}

@@ -99,6 +99,23 @@ def camera_pose(robot: Pose2, mount: CameraMount) -> tuple[np.ndarray, np.ndarra
     return R_wc, t_wc
 
 
+def arc_step(pose: Pose2, ds: float, dth: float) -> Pose2:
+    """Pose after moving ``ds`` metres along a circular arc that turns by ``dth`` rad.
+
+    Exact for constant wheel rates between two samples (the chord of the arc),
+    unlike the Euler step ``x += ds sin(theta)`` which drifts on tight turns.
+    """
+    th0 = pose.theta
+    if abs(dth) < 1e-9:
+        thm = th0 + 0.5 * dth  # second-order limit: chord at the mid heading
+        return Pose2(pose.x + ds * math.sin(thm), pose.z + ds * math.cos(thm), wrap_angle(th0 + dth))
+    radius = ds / dth
+    th1 = th0 + dth
+    return Pose2(pose.x + radius * (math.cos(th0) - math.cos(th1)),
+                 pose.z + radius * (math.sin(th1) - math.sin(th0)),
+                 wrap_angle(th1))
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """Angle of a rotation matrix, rad (robust near 0 and pi)."""
     c = (np.trace(R) - 1.0) / 2.0

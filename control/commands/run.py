@@ -1,0 +1,76 @@
+"""vbnav run: the loop with the configured drivers and controller."""
+from __future__ import annotations
+
+import json
+
+from vbnav.control.commands._common import add_config_arg
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="run the control loop with the configured drivers and controller",
+                       description="Run the fixed-rate control loop with the drivers and controller named in the "
+                                   "configuration (controller.kind: scripted, teleop, idle). Prints progress and a "
+                                   "timing summary. Stops on SIGINT/SIGTERM with the wheels at zero.")
+    add_config_arg(p)
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds (simulated seconds on the simulated clock)")
+    p.add_argument("--controller", choices=["scripted", "teleop", "idle"], default=None,
+                   help="override controller.kind from the configuration")
+    p.add_argument("--no-camera", action="store_true",
+                   help="do not open the camera (by default it runs, so a stale camera stops the robot)")
+    p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def build_controller(cfg, kind: str):
+    from vbnav.control.manual import IdleController, ScriptedController, TeleopController
+    if kind == "scripted":
+        return ScriptedController(cfg.controller.script)
+    if kind == "teleop":
+        return TeleopController(cfg.safety.command_timeout_s)
+    if kind == "idle":
+        return IdleController()
+    raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run' (use scripted, teleop or idle; "
+                     f"teach and repeat have their own commands)")
+
+
+def run(args) -> int:
+    from vbnav.control.config import load_config
+    from vbnav.control.factory import make_robot
+    from vbnav.control.progress import ProgressPrinter
+    from vbnav.control.runtime import Runtime
+
+    cfg = load_config(args.config)
+    kind = args.controller or cfg.controller.kind
+    controller = build_controller(cfg, kind)
+    clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
+    rt = Runtime(cfg, drive, controller, clock, pipeline)
+    printer = ProgressPrinter()
+
+    def progress(r: Runtime) -> None:
+        t = (r.clock.now_ns() - r._start_ns) * 1e-9
+        p = r.odometry.pose
+        printer(f"t={t:6.1f}s  pose x={p.x:+.2f} z={p.z:+.2f} th={p.theta:+.2f}  "
+                f"cmd v={r.last_twist.v:+.2f} w={r.last_twist.w:+.2f}  "
+                f"safety={'ok' if r.safety.may_move else ','.join(r.safety.reasons())}")
+
+    duration = args.duration
+    if duration is None and kind != "scripted" and clock.simulated:
+        duration = 10.0  # a simulated teleop/idle run has nobody to stop it
+    result = rt.run(duration, progress)
+    printer.done()
+    summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
+               "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],
+               "final_odometry": rt.odometry.pose.as_array().tolist()}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"run ended: {result.reason} ({result.message})")
+        print("timing: " + result.timing.line())
+        for e in result.events:
+            print(f"safety {e.kind}: {e.cause}: {e.message}")
+    if result.reason == "signal":
+        return 130
+    if result.reason == "drive":
+        return 3
+    return 0 if result.ok else 1

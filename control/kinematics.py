@@ -1,0 +1,74 @@
+"""Differential-drive kinematics and command limits.
+
+v = r (w_l + w_r) / 2,   w = r (w_l - w_r) / L
+(w > 0 turns right, toward +x; see vision/geometry.py). Wheel rates in rad/s.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from vbnav.control.controller import Twist
+
+
+@dataclass(frozen=True)
+class DiffDriveKinematics:
+    wheel_radius: float
+    wheel_separation: float
+
+    def wheels(self, twist: Twist) -> tuple[float, float]:
+        """(left, right) wheel rates, rad/s, for a body twist."""
+        half = 0.5 * self.wheel_separation * twist.w
+        return (twist.v + half) / self.wheel_radius, (twist.v - half) / self.wheel_radius
+
+    def twist(self, left: float, right: float) -> Twist:
+        r = self.wheel_radius
+        return Twist(0.5 * r * (left + right), r * (left - right) / self.wheel_separation)
+
+
+@dataclass
+class TwistLimiter:
+    """Velocity, acceleration and wheel-speed limits on commanded twists.
+
+    Wheel saturation scales v and w together, so the path's curvature is kept
+    (a turn stays the same turn, only slower). ``stop()`` bypasses the
+    acceleration limit: a safety stop commands zero at once and leaves the
+    deceleration to the motors' own limits.
+    """
+
+    kinematics: DiffDriveKinematics
+    max_v: float
+    max_w: float
+    max_dv: float        # m/s^2
+    max_dw: float        # rad/s^2
+    max_wheel: float     # rad/s
+    last: Twist = Twist()
+
+    @classmethod
+    def from_config(cls, robot) -> "TwistLimiter":
+        return cls(DiffDriveKinematics(robot.wheel_radius, robot.wheel_separation), robot.max_linear_speed,
+                   robot.max_angular_speed, robot.max_linear_accel, robot.max_angular_accel,
+                   robot.max_wheel_speed)
+
+    def apply(self, twist: Twist, dt: float) -> Twist:
+        v = _clip(twist.v, self.max_v)
+        w = _clip(twist.w, self.max_w)
+        if not (math.isfinite(v) and math.isfinite(w)):
+            v = w = 0.0
+        v = self.last.v + _clip(v - self.last.v, self.max_dv * dt)
+        w = self.last.w + _clip(w - self.last.w, self.max_dw * dt)
+        left, right = self.kinematics.wheels(Twist(v, w))
+        peak = max(abs(left), abs(right))
+        if peak > self.max_wheel:
+            s = self.max_wheel / peak
+            v, w = v * s, w * s
+        self.last = Twist(v, w)
+        return self.last
+
+    def stop(self) -> Twist:
+        self.last = Twist(0.0, 0.0)
+        return self.last
+
+
+def _clip(x: float, limit: float) -> float:
+    return max(-limit, min(limit, x))

@@ -1,0 +1,117 @@
+"""Camera + vision stages, producing the latest estimate of each kind.
+
+Two modes, same stages:
+- threaded (real time): one thread reads the camera and runs the stages on each
+  new frame; the loop only picks up the latest results (never waits on it).
+- inline (simulated clock): ``poll`` reads the camera and runs the stages in the
+  loop's thread when a frame is due, and releases the result ``latency_s``
+  later in simulated time. Deterministic, and as fast as the computation allows.
+
+A stage exception is captured as ``fault`` (the loop turns it into a safety
+trip); the pipeline never raises into the loop.
+"""
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from collections import deque
+from typing import Callable, Optional
+
+from vbnav.control.controller import Estimate, VisionStage
+from vbnav.drivers.camera import Camera, Frame
+from vbnav.vision.geometry import Pose2
+
+
+class VisionPipeline:
+    def __init__(self, camera: Optional[Camera], stages: list[VisionStage], clock, inline: bool,
+                 latency_s: float = 0.0):
+        self.camera = camera
+        self.stages = list(stages)
+        self.clock = clock
+        self.inline = inline
+        self.latency_ns = int(latency_s * 1e9)
+        self.latest: dict[str, Estimate] = {}
+        self.last_frame: Optional[Frame] = None
+        self.frames = 0
+        self.fault: Optional[str] = None
+        self.frame_listeners: list[Callable[[Frame, dict], None]] = []
+        self.odom: Pose2 = Pose2()          # written by the loop every cycle
+        self._pending: deque = deque()      # inline mode: (release_ns, frame, estimates)
+        self._thread: Optional[threading.Thread] = None
+        self._stop = threading.Event()
+        self.process_ms: deque = deque(maxlen=1000)
+
+    # -- lifecycle ---------------------------------------------------------
+    def start(self) -> None:
+        if self.camera is not None and not self.camera.is_connected:
+            self.camera.connect()
+        if not self.inline and self.camera is not None:
+            self._thread = threading.Thread(target=self._run, name="vbnav-vision", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self.camera is not None:
+            try:
+                self.camera.disconnect()
+            except Exception:
+                pass
+
+    @property
+    def last_frame_stamp(self) -> Optional[int]:
+        f = self.last_frame
+        return None if f is None else f.stamp_ns
+
+    # -- work --------------------------------------------------------------
+    def poll(self, now_ns: int, odom: Pose2) -> None:
+        """Called by the loop every cycle."""
+        self.odom = odom
+        if not self.inline or self.camera is None:
+            return
+        frame = self.camera.read(0.0)
+        if frame is not None:
+            self._pending.append((frame.stamp_ns + self.latency_ns, frame, self._process(frame, odom)))
+        while self._pending and self._pending[0][0] <= now_ns:
+            _, frame, results = self._pending.popleft()
+            self._publish(frame, results)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                frame = self.camera.read(0.05)
+            except Exception as exc:
+                self.fault = f"camera {getattr(self.camera, 'name', '')}: {exc!r}"
+                return
+            if frame is None:
+                time.sleep(0.001)
+                continue
+            results = self._process(frame, self.odom)
+            self._publish(frame, results)
+
+    def _process(self, frame: Frame, odom: Pose2) -> dict:
+        out = {}
+        t0 = time.perf_counter()
+        for stage in self.stages:
+            try:
+                est = stage.process(frame, odom)
+            except Exception as exc:
+                self.fault = f"vision stage '{stage.kind}': {exc!r}"
+                self.fault_traceback = traceback.format_exc()
+                break
+            if est is not None:
+                out[stage.kind] = est
+        self.process_ms.append((time.perf_counter() - t0) * 1e3)
+        return out
+
+    def _publish(self, frame: Frame, results: dict) -> None:
+        self.latest.update(results)
+        self.last_frame = frame
+        self.frames += 1
+        for fn in self.frame_listeners:
+            try:
+                fn(frame, results)
+            except Exception as exc:
+                self.fault = f"frame listener {getattr(fn, '__qualname__', fn)}: {exc!r}"

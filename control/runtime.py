@@ -1,0 +1,335 @@
+"""The runtime: one fixed-rate loop owning the order read -> update -> write.
+
+Per cycle: read the wheels, integrate odometry, pick up the latest vision
+estimates (inline pipeline: run them), apply operator commands, run the
+controller, apply limits and the safety monitor, write the wheels, notify
+observers (telemetry). Any exception, signal, deadline streak or drive loss
+commands zero, disables the drive in the same cycle, and is reported.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import traceback
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+from vbnav.control.controller import STOP, ControlContext, Controller, Twist
+from vbnav.control.kinematics import TwistLimiter
+from vbnav.control.loop import FixedRateLoop, TimingSummary
+from vbnav.control.odometry import Odometry
+from vbnav.control.pipeline import VisionPipeline
+from vbnav.control.safety import SafetyEvent, SafetyMonitor
+from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+
+
+@dataclass
+class OperatorCommand:
+    """A command from outside the loop (network, CLI, tests). Applied at the next cycle.
+
+    kind: "estop" | "resume" | "teleop" (args: v, w) | "mode" (args: mode[, route]).
+    """
+
+    kind: str
+    args: tuple = ()
+    source: str = "local"
+
+
+@dataclass
+class RunResult:
+    reason: str                       # "finished", "duration", "stopped", or a fatal cause
+    message: str
+    timing: TimingSummary
+    events: list = field(default_factory=list)
+    cycles: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return self.reason in ("finished", "duration", "stopped")
+
+
+class Runtime:
+    def __init__(self, cfg, drive: WheelDrive, controller: Controller, clock,
+                 pipeline: Optional[VisionPipeline] = None):
+        self.cfg = cfg
+        self.drive = drive
+        self.controller = controller
+        self.clock = clock
+        self.pipeline = pipeline
+        self.loop = FixedRateLoop(cfg.loop.rate_hz, clock, cfg.loop.overrun_policy)
+        self.limiter = TwistLimiter.from_config(cfg.robot)
+        self.kin = self.limiter.kinematics
+        self.odometry = Odometry(cfg.robot.wheel_radius, cfg.robot.wheel_separation)
+        self.safety = SafetyMonitor(release_s=0.5)
+        self.commands: deque[OperatorCommand] = deque(maxlen=256)
+        self.cycle_observers: list[Callable[["Runtime", ControlContext, Twist, tuple], None]] = []
+        self.command_handlers: list[Callable[["Runtime", OperatorCommand, int], bool]] = []
+        self.wheel_command = (0.0, 0.0)
+        self.last_twist = STOP
+        self.wheels: Optional[WheelState] = None
+        self.ctx: Optional[ControlContext] = None
+        self.cycle = 0
+        self._signal: Optional[int] = None
+        self._enabled = False
+        self._end: Optional[tuple[str, str]] = None
+        self._last_now = 0
+        self._start_ns = 0
+        self._deadline_ns: Optional[int] = None
+        self.fault_traceback: Optional[str] = None
+
+    # -- thread-safe inputs -------------------------------------------------
+    def submit(self, cmd: OperatorCommand) -> None:
+        """Queue an operator command from any thread (deque.append is atomic)."""
+        self.commands.append(cmd)
+
+    def request_stop(self, signum: int = signal.SIGTERM) -> None:
+        self._signal = signum
+
+    # -- main --------------------------------------------------------------
+    def run(self, duration_s: Optional[float] = None,
+            progress: Optional[Callable[["Runtime"], None]] = None, progress_every_s: float = 1.0) -> RunResult:
+        handlers = self._install_signal_handlers()
+        restore_scheduling = self._apply_scheduling()
+        next_progress = [0]
+        try:
+            self.drive.connect()
+            if self.pipeline is not None:
+                self.pipeline.start()
+            self.drive.enable()
+            self._enabled = True
+            self._start_ns = self.clock.now_ns()
+            self._deadline_ns = None if duration_s is None else self._start_ns + int(duration_s * 1e9)
+            next_progress[0] = self._start_ns
+
+            def step(cycle: int, now_ns: int) -> bool:
+                keep = self._cycle(cycle, now_ns)
+                if progress is not None and now_ns >= next_progress[0]:
+                    next_progress[0] = now_ns + int(progress_every_s * 1e9)
+                    progress(self)
+                return keep
+
+            timing = self.loop.run(step)
+        except KeyboardInterrupt:  # pragma: no cover - handlers normally catch it first
+            self._make_safe()
+            self._end = ("signal", "SIGINT")
+            timing = self.loop.timing.summary(self.loop.rate_hz)
+        except Exception as exc:
+            # Failure before or outside a cycle (connect, enable): still leave the wheels safe.
+            self.fault_traceback = traceback.format_exc()
+            self._make_safe()
+            reason = "drive" if isinstance(exc, DriveError) else "exception"
+            self.safety.trip(self.clock.now_ns(), reason, f"start-up: {exc}")
+            self._end = (reason, f"start-up: {exc}")
+            timing = self.loop.timing.summary(self.loop.rate_hz)
+        finally:
+            self._make_safe()
+            try:
+                self.drive.close()
+            except Exception:
+                pass
+            if self.pipeline is not None:
+                self.pipeline.stop()
+            self._restore_signal_handlers(handlers)
+            restore_scheduling()
+        reason, message = self._end or ("stopped", "loop stopped")
+        return RunResult(reason, message, timing, list(self.safety.events), self.cycle)
+
+    # -- one cycle -----------------------------------------------------------
+    def _cycle(self, cycle: int, now: int) -> bool:
+        self.cycle = cycle
+        dt = (now - self._last_now) * 1e-9 if self._last_now else 1.0 / self.loop.rate_hz
+        self._last_now = now
+        stage = "read"
+        try:
+            if self._signal is not None:
+                name = signal.Signals(self._signal).name
+                return self._finish(now, "signal", f"received {name}")
+            if self.loop.timing.streak >= self.cfg.loop.max_missed_streak:
+                return self._finish(now, "deadline",
+                                    f"{self.loop.timing.streak} consecutive missed deadlines "
+                                    f"(period {1e3 / self.loop.rate_hz:.1f} ms, last compute "
+                                    f"{self.loop.timing.last_compute_ns() * 1e-6:.1f} ms)")
+            wheels = self.drive.read()
+            self.wheels = wheels
+            if wheels.faults:
+                return self._finish(now, "drive", "drive fault: " + "; ".join(wheels.faults))
+            stage = "odometry"
+            odom = self.odometry.update(wheels)
+            stage = "vision"
+            estimates = {}
+            if self.pipeline is not None:
+                self.pipeline.poll(now, odom)
+                if self.pipeline.fault:
+                    self.fault_traceback = getattr(self.pipeline, "fault_traceback", None)
+                    return self._finish(now, "exception", self.pipeline.fault)
+                estimates = dict(self.pipeline.latest)
+                self._check_camera(now)
+                self._apply_speed_scales(now, estimates)
+            ctx = ControlContext(now, dt, odom, wheels, estimates, cycle)
+            self.ctx = ctx
+            stage = "commands"
+            self._apply_commands(now)
+            stage = "controller"
+            if cycle == 0:
+                self.controller.start(ctx)
+            twist = self.controller.update(ctx)
+            for cause, (active, message) in self.controller.safety_conditions().items():
+                self.safety.hold(now, cause, active, message)
+            self._check_estimates(ctx)
+            stage = "safety"
+            if self.safety.may_move:
+                s = self.safety.speed_scale
+                twist = self.limiter.apply(Twist(twist.v * s, twist.w * s), dt)
+                if not self._enabled:
+                    self.drive.enable()
+                    self._enabled = True
+            else:
+                twist = self.limiter.stop()
+                if self._enabled:
+                    self.drive.write(0.0, 0.0)
+                    self.drive.disable()
+                    self._enabled = False
+            stage = "write"
+            left, right = self.kin.wheels(twist)
+            if self._enabled:
+                self.drive.write(left, right)
+            self.wheel_command = (left, right) if self._enabled else (0.0, 0.0)
+            self.last_twist = twist
+            stage = "observers"
+            for fn in self.cycle_observers:
+                fn(self, ctx, twist, self.wheel_command)
+            if self.controller.finished:
+                return self._finish(now, "finished", "controller finished")
+            if self._deadline_ns is not None and now >= self._deadline_ns:
+                return self._finish(now, "duration", "duration reached")
+            return True
+        except DriveError as exc:
+            return self._finish(now, "drive", f"{stage}: {exc}")
+        except Exception as exc:
+            self.fault_traceback = traceback.format_exc()
+            return self._finish(now, "exception", f"exception in {stage}: {exc!r}")
+
+    def _check_camera(self, now: int) -> None:
+        cam = self.pipeline.camera
+        if cam is None:
+            return
+        limit = self.cfg.camera.stale_after_s
+        stamp = self.pipeline.last_frame_stamp
+        if stamp is None:  # grace period at start-up: the camera may take a moment
+            stale = now - self._start_ns > (limit + 2.0) * 1e9
+            age = (now - self._start_ns) * 1e-9
+        else:
+            age = (now - stamp) * 1e-9
+            stale = age > limit
+        self.safety.hold(now, "camera_stale", stale, f"last frame {age:.2f} s old (limit {limit:g} s)")
+
+    def _apply_speed_scales(self, now: int, estimates: dict) -> None:
+        """Estimates may carry ``info['speed_scale']`` in [0, 1] (obstacle zones): the smallest applies,
+        and 0 is a held stop until the zone has been clear for the release time."""
+        scale = 1.0
+        why = ""
+        for e in estimates.values():
+            s = e.info.get("speed_scale") if e is not None else None
+            if s is not None and s < scale:
+                scale, why = float(s), e.info.get("reason", e.kind)
+        self.safety.speed_scale = max(0.0, scale)
+        self.safety.hold(now, "obstacle", scale <= 0.0, why or "obstacle in the stop zone")
+
+    def _check_estimates(self, ctx: ControlContext) -> None:
+        limit = self.cfg.safety.estimate_timeout_s
+        for kind in self.controller.requires:
+            e = ctx.estimates.get(kind)
+            stale = e is None and ctx.now_ns - self._start_ns > (limit + 2.0) * 1e9 \
+                or (e is not None and e.age_s(ctx.now_ns) > limit)
+            self.safety.hold(ctx.now_ns, f"{kind}_stale", stale, f"no {kind} estimate newer than {limit:g} s")
+
+    def _apply_commands(self, now: int) -> None:
+        while self.commands:
+            cmd = self.commands.popleft()
+            handled = False
+            for fn in self.command_handlers:
+                handled = fn(self, cmd, now) or handled
+            if cmd.kind == "estop":
+                self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
+            elif cmd.kind == "resume":
+                self.safety.reset(now, f"resume from {cmd.source}")
+            elif cmd.kind == "teleop" and hasattr(self.controller, "set_command"):
+                self.controller.set_command(float(cmd.args[0]), float(cmd.args[1]), now)
+            elif not handled:
+                self.safety.events.append(SafetyEvent(now, "rejected", cmd.kind,
+                                                      f"command {cmd.kind!r} not supported by this run"))
+
+    def _finish(self, now: int, reason: str, message: str) -> bool:
+        if reason not in ("finished", "duration"):
+            self.safety.trip(now, reason, message)
+        self._make_safe()
+        self._end = (reason, message)
+        return False
+
+    def _make_safe(self) -> None:
+        self.wheel_command = (0.0, 0.0)
+        self.limiter.stop()
+        try:
+            self.drive.write(0.0, 0.0)
+        except Exception:
+            pass
+        try:
+            self.drive.disable()
+        except Exception:
+            pass
+        self._enabled = False
+
+    # -- scheduling ----------------------------------------------------------
+    def _apply_scheduling(self):
+        """Real-time settings for the loop's thread (real clock only). Returns an undo function."""
+        if getattr(self.clock, "simulated", False):
+            return lambda: None
+        lc = self.cfg.loop
+        old_interval = sys.getswitchinterval()
+        sys.setswitchinterval(lc.gil_switch_interval_us * 1e-6)
+        undo = [lambda: sys.setswitchinterval(old_interval)]
+        now = self.clock.now_ns()
+        if lc.cpu_affinity:
+            try:
+                old_aff = os.sched_getaffinity(0)
+                os.sched_setaffinity(0, set(lc.cpu_affinity))
+                undo.append(lambda: os.sched_setaffinity(0, old_aff))
+            except (OSError, AttributeError) as exc:
+                self.safety.events.append(SafetyEvent(now, "warning", "scheduling", f"cpu_affinity: {exc}"))
+        if lc.realtime_priority:
+            try:
+                old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(lc.realtime_priority))
+                undo.append(lambda: os.sched_setscheduler(0, old_policy, old_param))
+            except (OSError, AttributeError) as exc:
+                self.safety.events.append(SafetyEvent(
+                    now, "warning", "scheduling", f"SCHED_FIFO priority {lc.realtime_priority} refused ({exc}); "
+                    "running with normal scheduling"))
+
+        def restore():
+            for fn in reversed(undo):
+                try:
+                    fn()
+                except OSError:
+                    pass
+        return restore
+
+    # -- signals -------------------------------------------------------------
+    def _install_signal_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        old = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.getsignal(sig)
+            signal.signal(sig, lambda signum, frame: self.request_stop(signum))
+        return old
+
+    @staticmethod
+    def _restore_signal_handlers(old) -> None:
+        if not old:
+            return
+        for sig, handler in old.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,184 @@
+"""Simulated differential-drive base.
+
+``DiffDrivePhysics`` is the robot: two motors with first-order lag and an
+acceleration (torque) limit, wheel slip noise on the ground contact, encoders
+quantised to ticks, and the true pose. It is stepped in fixed small substeps,
+so results do not depend on how often it is read.
+
+``SimDiffDrive`` is the WheelDrive driver for it, on a clock: reading or
+writing first advances the physics to the clock's time. With a ``SimClock`` it
+runs faster than real time and is deterministic for a seed; with the
+``MonotonicClock`` it runs in real time. Device emulators (Dynamixel, ODrive)
+couple to the same ``DiffDrivePhysics``.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+from vbnav.vision.geometry import Pose2, arc_step
+
+SUBSTEP_NS = 1_000_000  # 1 ms physics step
+
+
+@dataclass
+class BaseParams:
+    wheel_radius: float = 0.05
+    wheel_separation: float = 0.30
+    motor_time_constant_s: float = 0.05
+    wheel_accel_limit: float = 40.0       # rad/s^2
+    max_wheel_speed: float = 25.0         # rad/s, motor saturation
+    encoder_ticks_per_rev: int = 4096
+    slip_std: float = 0.002               # m per sqrt(m) of wheel travel (random walk)
+
+    @classmethod
+    def from_config(cls, cfg) -> "BaseParams":
+        s, r = cfg.sim, cfg.robot
+        return cls(r.wheel_radius, r.wheel_separation, s.motor_time_constant_s, s.wheel_accel_limit,
+                   r.max_wheel_speed * 1.25, s.encoder_ticks_per_rev, s.slip_std)
+
+
+class DiffDrivePhysics:
+    """Ground-truth dynamics of a differential-drive robot. Not thread-safe by itself."""
+
+    def __init__(self, params: BaseParams, seed: int = 0, pose: Pose2 = Pose2()):
+        self.p = params
+        self.rng = np.random.default_rng(seed)
+        self.pose = pose
+        self.command = np.zeros(2)        # commanded wheel rates, rad/s
+        self.rate = np.zeros(2)           # actual motor rates, rad/s
+        self.angle = np.zeros(2)          # true motor shaft angles, rad
+        self.powered = False
+        self.time_ns = 0
+
+    def step(self, dt: float) -> None:
+        p = self.p
+        target = np.clip(self.command, -p.max_wheel_speed, p.max_wheel_speed) if self.powered else np.zeros(2)
+        if p.motor_time_constant_s > 0:
+            accel = (target - self.rate) / max(p.motor_time_constant_s, dt)
+        else:
+            accel = (target - self.rate) / dt
+        accel = np.clip(accel, -p.wheel_accel_limit, p.wheel_accel_limit)
+        new_rate = self.rate + accel * dt
+        dphi = 0.5 * (self.rate + new_rate) * dt
+        self.rate = new_rate
+        self.angle += dphi
+        # Ground travel of each wheel with slip noise whose std per step scales
+        # with sqrt(travel): the error is a random walk in distance (slip_std
+        # metres per sqrt(metre) of travel), independent of the step size.
+        travel = dphi * p.wheel_radius
+        if p.slip_std > 0:
+            travel = travel + self.rng.normal(0.0, 1.0, 2) * p.slip_std * np.sqrt(np.abs(travel))
+        ds = 0.5 * (travel[0] + travel[1])
+        dth = (travel[0] - travel[1]) / p.wheel_separation
+        self.pose = arc_step(self.pose, ds, dth)
+
+    def advance_to(self, t_ns: int) -> None:
+        while self.time_ns + SUBSTEP_NS <= t_ns:
+            self.step(SUBSTEP_NS * 1e-9)
+            self.time_ns += SUBSTEP_NS
+        if t_ns > self.time_ns:
+            self.step((t_ns - self.time_ns) * 1e-9)
+            self.time_ns = t_ns
+
+    def encoder_angles(self) -> tuple[float, float]:
+        q = 2 * math.pi / self.p.encoder_ticks_per_rev
+        return tuple(float(math.floor(a / q) * q) for a in self.angle)
+
+
+class SimDiffDrive(WheelDrive):
+    """WheelDrive on DiffDrivePhysics and a clock."""
+
+    name = "sim"
+
+    class Options(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        fail_after_s: Optional[float] = Field(None, gt=0, description="testing: lose the bus after this time")
+
+    def __init__(self, params: BaseParams, clock, seed: int = 0, start: Pose2 = Pose2(),
+                 options: Optional["SimDiffDrive.Options"] = None):
+        self.physics = DiffDrivePhysics(params, seed, start)
+        self.clock = clock
+        self.options = options or SimDiffDrive.Options()
+        self._lock = threading.Lock()
+        self._connected = False
+        self._t0: Optional[int] = None
+        self.writes = 0
+
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "SimDiffDrive":
+        return cls(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed, options=options)
+
+    # -- lifecycle ---------------------------------------------------------
+    def connect(self) -> None:
+        with self._lock:
+            self._t0 = self.clock.now_ns()
+            self.physics.time_ns = self._t0
+            self._connected = True
+
+    def enable(self) -> None:
+        self._check()
+        with self._lock:
+            self._advance()
+            self.physics.command[:] = 0.0
+            self.physics.powered = True
+
+    def write(self, left: float, right: float) -> None:
+        self._check()
+        if not (math.isfinite(left) and math.isfinite(right)):
+            raise DriveError(f"sim drive: non-finite wheel command ({left}, {right})")
+        with self._lock:
+            self._advance()
+            if self.physics.powered:
+                self.physics.command[:] = (left, right)
+            self.writes += 1
+
+    def read(self) -> WheelState:
+        self._check()
+        with self._lock:
+            self._advance()
+            ph = self.physics
+            return WheelState(ph.time_ns, ph.encoder_angles(), (float(ph.rate[0]), float(ph.rate[1])),
+                              (), ph.powered)
+
+    def disable(self) -> None:
+        with self._lock:
+            if self._connected:
+                self._advance()
+            self.physics.command[:] = 0.0
+            self.physics.powered = False
+
+    def close(self) -> None:
+        self.disable()
+        self._connected = False
+
+    # -- simulation access -------------------------------------------------
+    @property
+    def true_pose(self) -> Pose2:
+        with self._lock:
+            self._advance()
+            return self.physics.pose
+
+    def pose_at_now(self) -> Pose2:
+        return self.true_pose
+
+    @property
+    def commanded(self) -> tuple[float, float]:
+        return float(self.physics.command[0]), float(self.physics.command[1])
+
+    def _advance(self) -> None:
+        self.physics.advance_to(self.clock.now_ns())
+
+    def _check(self) -> None:
+        if not self._connected:
+            raise DriveError("sim drive: not connected")
+        if self.options.fail_after_s is not None and self._t0 is not None:
+            if self.clock.now_ns() - self._t0 > self.options.fail_after_s * 1e9:
+                self.physics.powered = False
+                raise DriveError("sim drive: bus lost (injected by options.fail_after_s)")

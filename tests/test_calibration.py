@@ -1,0 +1,119 @@
+"""Calibration files: OpenCV YAML/XML and ROS camera_info, with clear errors."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.drivers.calibration import CalibrationError, load_calibration
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+
+K = np.array([[520.5, 0, 321.2], [0, 519.8, 243.9], [0, 0, 1.0]])
+D = np.array([0.11, -0.25, 0.001, -0.002, 0.08])
+
+
+def write_opencv(path, k_name="camera_matrix", d_name="distortion_coefficients", model=None, d=D):
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write(k_name, K)
+    fs.write(d_name, d.reshape(1, -1))
+    if model:
+        fs.write("distortion_model", model)
+    fs.release()
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".xml"])
+@pytest.mark.parametrize("names", [("camera_matrix", "distortion_coefficients"), ("K", "D")])
+def test_opencv_filestorage(tmp_path, suffix, names):
+    p = tmp_path / f"calib{suffix}"
+    write_opencv(p, *names)
+    cam = load_calibration(p)
+    assert isinstance(cam, PinholeCamera)
+    assert (cam.width, cam.height) == (640, 480)
+    np.testing.assert_allclose(cam.K, K)
+    np.testing.assert_allclose(cam.dist, D)
+
+
+def test_opencv_fisheye(tmp_path):
+    p = tmp_path / "fish.yaml"
+    write_opencv(p, model="fisheye", d=np.array([0.01, -0.02, 0.003, -0.001]))
+    cam = load_calibration(p)
+    assert isinstance(cam, FisheyeCamera) and cam.dist == (0.01, -0.02, 0.003, -0.001)
+
+
+ROS = """image_width: 640
+image_height: 480
+camera_name: front
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [520.5, 0, 321.2, 0, 519.8, 243.9, 0, 0, 1]
+distortion_model: {model}
+distortion_coefficients:
+  rows: 1
+  cols: {n}
+  data: {d}
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+"""
+
+
+def test_ros_plumb_bob(tmp_path):
+    p = tmp_path / "front.yaml"
+    p.write_text(ROS.format(model="plumb_bob", n=5, d=D.tolist()))
+    cam = load_calibration(p)
+    assert isinstance(cam, PinholeCamera)
+    np.testing.assert_allclose(cam.K, K)
+    np.testing.assert_allclose(cam.dist, D)
+
+
+def test_ros_rational_polynomial(tmp_path):
+    p = tmp_path / "front.yaml"
+    d8 = D.tolist() + [0.01, 0.02, 0.03]
+    p.write_text(ROS.format(model="rational_polynomial", n=8, d=d8))
+    assert len(load_calibration(p).dist) == 8
+
+
+def test_ros_equidistant_is_fisheye(tmp_path):
+    p = tmp_path / "front.yaml"
+    p.write_text(ROS.format(model="equidistant", n=4, d=[0.1, 0.01, 0.0, 0.0]))
+    cam = load_calibration(p)
+    assert isinstance(cam, FisheyeCamera)
+    # the model round-trips a ray (sanity of the loaded numbers)
+    px, _ = cam.project(np.array([[0.3, -0.2, 1.0]]))
+    ray = cam.rays(px)[0]
+    np.testing.assert_allclose(ray, np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0]), atol=1e-9)
+
+
+@pytest.mark.parametrize("text, match", [
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("image_width: 640\n", ""), "image_width: missing"),
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("[520.5, 0, 321.2, 0, 519.8, 243.9, 0, 0, 1]",
+                                                            "[520.5, 0, 321.2]"), "camera_matrix: expected 3x3"),
+    (ROS.format(model="weird_model", n=5, d=D.tolist()), "distortion_model: 'weird_model' is not supported"),
+    (ROS.format(model="plumb_bob", n=3, d=[0.1, 0.2, 0.3]), "distortion_coefficients: expected 4, 5"),
+    ("foo: [1, 2", "not valid YAML"),
+    ("width: 640\nheight: 480\n", "camera_matrix: missing"),
+])
+def test_errors_name_file_and_field(tmp_path, text, match):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(CalibrationError, match=match) as e:
+        load_calibration(p)
+    assert "bad.yaml" in str(e.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(CalibrationError, match="does not exist"):
+        load_calibration(tmp_path / "nope.yaml")
+
+
+def test_opencv_file_without_matrix(tmp_path):
+    p = tmp_path / "c.yaml"
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 640)
+    fs.release()
+    with pytest.raises(CalibrationError, match="c.yaml: camera_matrix: missing"):
+        load_calibration(p)

@@ -1,0 +1,35 @@
+"""`vbnav run` as a process: finishes a scripted drive, stops on real SIGINT/SIGTERM."""
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
+
+
+def test_run_scripted_sim_clock(tmp_path):
+    r = subprocess.run(VBNAV + ["run", "--no-camera", "--json"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["reason"] == "finished"
+    x, z, th = summary["final_odometry"]
+    # Default script: 3 s straight at 0.3 m/s, then a 4 s arc at 0.4 rad/s: it ends ahead and to the right.
+    assert z > 1.5 and x > 0.3 and th > 1.0
+    assert summary["timing"]["cycles"] > 700
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 130)])
+def test_run_realtime_stops_on_signal(tmp_path, sig, code):
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text("sim:\n  realtime: true\ncontroller:\n  kind: scripted\n  script: [[0.2, 0.0, 60.0]]\n")
+    p = subprocess.Popen(VBNAV + ["run", "--no-camera", "-c", str(cfg)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    time.sleep(2.5)
+    p.send_signal(sig)
+    out, err = p.communicate(timeout=30)
+    assert p.returncode == code, (out, err)
+    assert f"run ended: signal (received {signal.Signals(sig).name})" in out
+    assert "safety trip: signal" in out

@@ -1,0 +1,86 @@
+"""Bad configurations stop start-up with the file, key path and expectation."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vbnav.control.cli import main
+from vbnav.control.config import Config, ConfigError, load_config, parse_config
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def write(tmp_path, text: str) -> Path:
+    p = tmp_path / "robot.yaml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text, key, expected", [
+    ("robot:\n  wheel_radius: -0.05\n", "robot.wheel_radius", "greater than 0"),
+    ("loop:\n  rate_hz: 0\n", "loop.rate_hz", "greater than 0"),
+    ("robot:\n  wheel_radius: fast\n", "robot.wheel_radius", "valid number"),
+    ("robot:\n  wheel_radus: 0.05\n", "robot.wheel_radus", "unknown key"),
+    ("drive:\n  driver: warp\n", "drive.driver", "unknown driver 'warp'"),
+    ("camera:\n  driver: kinect\n", "camera.driver", "expected one of"),
+    ("loop:\n  overrun_policy: hope\n", "loop.overrun_policy", "'skip' or 'catch_up'"),
+    ("camera:\n  mount:\n    pitch_deg: 120\n", "camera.mount.pitch_deg", "less than or equal to 90"),
+    ("drive:\n  driver: sim\n  options:\n    fail_after_s: -1\n", "drive.options.fail_after_s", "greater than 0"),
+    ("robot:\n  max_linear_speed: 5.0\n", "max_linear_speed", "exceeds what the wheels can do"),
+])
+def test_bad_values_name_file_key_and_expectation(tmp_path, text, key, expected):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert str(p) in msg and key in msg and expected in msg, msg
+
+
+def test_missing_file_and_bad_yaml(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.yaml")
+    p = write(tmp_path, "robot: [1, 2\n")
+    with pytest.raises(ConfigError, match=r"robot.yaml: line \d+, column \d+: not valid YAML"):
+        load_config(p)
+    p = write(tmp_path, "- just\n- a list\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load_config(p)
+
+
+def test_cli_exits_nonzero_with_message(tmp_path, capsys):
+    p = write(tmp_path, "robot:\n  wheel_radius: -1\n")
+    assert main(["config", "check", "--config", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "robot.wheel_radius" in err and str(p) in err
+    assert main(["run", "--config", str(p), "--duration", "1"]) == 2
+
+
+def test_cli_subprocess_exit_code(tmp_path):
+    p = write(tmp_path, "loop:\n  rate_hz: 0\n")
+    r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "run", "--config", str(p)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "loop.rate_hz" in r.stderr
+
+
+def test_every_shipped_config_loads():
+    files = sorted((REPO / "configs").glob("*.yaml"))
+    assert files
+    for f in files:
+        cfg = load_config(f)
+        assert cfg.robot.wheel_radius > 0
+
+
+def test_defaults_match_sim_yaml():
+    """configs/sim.yaml spells out the defaults; drift between them would confuse users."""
+    data = yaml.safe_load((REPO / "configs" / "sim.yaml").read_text())
+    assert parse_config(data).model_dump() == Config.model_validate(data).model_dump()
+    assert Config().model_dump()["robot"] == Config.model_validate(data).model_dump()["robot"]
+
+
+def test_reference_documents_every_key():
+    from vbnav.control.commands.config import reference_markdown
+    ref = reference_markdown(Config)
+    for key in ("robot.wheel_radius", "loop.overrun_policy", "camera.mount.pitch_deg", "sim.slip_std"):
+        assert f"`{key}`" in ref

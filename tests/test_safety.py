@@ -1,0 +1,176 @@
+"""Every safety trigger stops both wheels within two loop periods and says why."""
+import os
+import signal
+
+import pytest
+
+from vbnav.control.controller import ControlContext, Controller, Twist, VisionStage
+from vbnav.control.manual import ScriptedController, TeleopController
+from vbnav.control.runtime import OperatorCommand
+from runtime_helpers import PERIOD_NS, make_runtime
+
+T0 = 1_000_000_000  # SimClock start
+
+
+class Cruise(Controller):
+    """Drives forward and calls ``hook(ctx)`` every cycle (to inject a failure at a chosen time)."""
+
+    def __init__(self, hook=None):
+        self.hook = hook
+
+    def update(self, ctx: ControlContext) -> Twist:
+        if self.hook:
+            self.hook(ctx)
+        return Twist(0.3, 0.1)
+
+
+def assert_stopped_within_two_periods(drive, trigger_ns):
+    assert drive.last_motion_ns() < trigger_ns + 2 * PERIOD_NS, (drive.last_motion_ns() - trigger_ns) / 1e6
+    assert drive.stopped_since(trigger_ns + 2 * PERIOD_NS)
+    assert drive.log[-1][3] is False, "drive left powered"
+    assert drive.last_motion_ns() > trigger_ns - 5 * PERIOD_NS, "robot was not moving before the trigger"
+
+
+def test_stale_camera_stops_and_recovers():
+    stop_at = T0 + 2_000_000_000
+    resume_at = T0 + 4_000_000_000
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 6.0]]),
+                                    cam_kw={"stop_at_ns": stop_at, "resume_at_ns": resume_at})
+    result = rt.run()
+    assert result.reason == "finished"
+    holds = [e for e in result.events if e.kind == "hold" and e.cause == "camera_stale"]
+    assert len(holds) == 1 and "old" in holds[0].message
+    # Last frame before the gap was at most one camera period before stop_at.
+    trigger = holds[0].stamp_ns
+    assert stop_at < trigger <= stop_at + int(0.5e9) + PERIOD_NS
+    moving_in_gap = [t for t, l, r, p in drive.log if p and l != 0 and trigger + 2 * PERIOD_NS <= t < resume_at]
+    assert not moving_in_gap
+    assert any(e.kind == "release" and e.cause == "camera_stale" for e in result.events)
+    # It drives again after frames return.
+    assert any(t > resume_at and p and l > 0 for t, l, r, p in drive.log)
+
+
+def test_exception_in_vision_stage():
+    class Exploding(VisionStage):
+        kind = "boom"
+
+        def process(self, frame, odom):
+            if frame.stamp_ns >= T0 + 1_000_000_000:
+                raise RuntimeError("tracker diverged")
+            return None
+
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 5.0]]), stages=[Exploding()])
+    result = rt.run()
+    assert result.reason == "exception"
+    assert "boom" in result.message and "tracker diverged" in result.message
+    first_bad_frame = T0 + 1_000_000_000 + (-(1_000_000_000) % int(1e9 / 15))
+    assert_stopped_within_two_periods(drive, first_bad_frame)
+
+
+def test_exception_in_controller():
+    def hook(ctx):
+        if ctx.now_ns >= T0 + 1_500_000_000:
+            raise ZeroDivisionError("bad gain")
+
+    rt, drive, clock = make_runtime(Cruise(hook))
+    result = rt.run(duration_s=5)
+    assert result.reason == "exception" and "controller" in result.message and "bad gain" in result.message
+    assert_stopped_within_two_periods(drive, T0 + 1_500_000_000)
+
+
+def test_missed_deadline_streak():
+    def hook(ctx):
+        if ctx.now_ns >= T0 + 1_000_000_000:
+            rt.clock.advance(25_000_000)  # the cycle's work takes 25 ms at 100 Hz
+
+    rt, drive, clock = make_runtime(Cruise(hook))
+    result = rt.run(duration_s=5)
+    assert result.reason == "deadline" and "consecutive missed deadlines" in result.message
+    assert result.timing.overruns >= rt.cfg.loop.max_missed_streak
+    # Every slow cycle overruns; the stop comes once the streak reaches the limit.
+    streak_full = T0 + 1_000_000_000 + rt.cfg.loop.max_missed_streak * 30_000_000
+    assert_stopped_within_two_periods(drive, streak_full)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signals(sig):
+    def hook(ctx):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            os.kill(os.getpid(), sig)
+
+    rt, drive, clock = make_runtime(Cruise(hook))
+    result = rt.run(duration_s=5)
+    assert result.reason == "signal" and signal.Signals(sig).name in result.message
+    assert_stopped_within_two_periods(drive, T0 + 1_000_000_000)
+    # The handlers are restored afterwards.
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_lost_drive():
+    rt, drive, clock = make_runtime(Cruise(), drive_kw={})
+    drive.options = drive.Options(fail_after_s=1.0)
+    result = rt.run(duration_s=5)
+    assert result.reason == "drive" and "bus lost" in result.message
+    assert drive.physics.powered is False
+    assert drive.last_motion_ns() <= T0 + 1_000_000_000
+
+
+def test_teleop_command_silence_stops_robot():
+    teleop = TeleopController(timeout_s=0.5)
+
+    def feed(r, ctx, twist, wheels):
+        # An operator sends 10 Hz commands for 2 s, then goes silent.
+        t = ctx.now_ns - T0
+        if t < 2_000_000_000 and t % 100_000_000 == 0:
+            r.submit(OperatorCommand("teleop", (0.3, 0.0), "test"))
+
+    rt, drive, clock = make_runtime(teleop)
+    rt.cycle_observers.append(feed)
+    rt.run(duration_s=4)
+    last_cmd = T0 + 1_900_000_000
+    assert drive.last_motion_ns() < last_cmd + int(0.5e9) + 2 * PERIOD_NS
+    assert drive.last_motion_ns() > T0 + 1_800_000_000
+    assert teleop.timed_out
+
+
+def test_estop_latches_until_resume():
+    def feed(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        if t == 1_000_000_000:
+            r.submit(OperatorCommand("estop", ("test button",), "test"))
+        if t == 2_000_000_000:
+            r.submit(OperatorCommand("resume", (), "test"))
+
+    rt, drive, clock = make_runtime(Cruise())
+    rt.cycle_observers.append(feed)
+    result = rt.run(duration_s=3)
+    trips = [e for e in result.events if e.kind == "trip" and e.cause == "estop"]
+    assert trips and "test button" in trips[0].message
+    moving = [t for t, l, r, p in drive.log if p and l != 0]
+    assert not [t for t in moving if T0 + 1_000_000_000 + 2 * PERIOD_NS <= t < T0 + 2_000_000_000]
+    assert any(t > T0 + 2_000_000_000 for t in moving)
+
+
+def test_obstacle_speed_scale_slows_and_stops():
+    from vbnav.control.controller import Estimate
+
+    class Zone(VisionStage):
+        """Reports a slow-down zone between 1 and 2 s and a stop zone between 2 and 3 s."""
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            scale = 0.5 if 1.0 <= t < 2.0 else (0.0 if 2.0 <= t < 3.0 else 1.0)
+            return Estimate(frame.stamp_ns, self.kind, True, None, {"speed_scale": scale, "reason": "box ahead"})
+
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 5.0]]), stages=[Zone()])
+    rt.run()
+    cmd = {t: (l, p) for t, l, r, p in drive.log}
+    full = 0.3 / 0.05
+    at = lambda s: cmd[min(cmd, key=lambda t: abs(t - (T0 + int(s * 1e9))))]
+    assert at(0.8)[0] == pytest.approx(full)
+    assert at(1.7)[0] == pytest.approx(full / 2, rel=1e-6)
+    assert at(2.5) == (0.0, False)
+    assert at(4.5)[0] == pytest.approx(full, rel=1e-6)
+    holds = [e for e in rt.safety.events if e.cause == "obstacle"]
+    assert holds[0].kind == "hold" and holds[0].message == "box ahead" and holds[1].kind == "release"

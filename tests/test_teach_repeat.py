@@ -1,0 +1,164 @@
+"""Teach and repeat in closed loop on synthetic landmarks (no renderer): keyframes, heights, convergence."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbnav.control.controller import ControlContext, Estimate
+from vbnav.control.route import Route
+from vbnav.control.teach_repeat import RepeatController, RepeatStage, TeachStage, VBCConfig
+from vbnav.drivers.wheels import WheelState
+from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
+
+CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
+MOUNT = CameraMount(height=0.25, forward=0.10)
+DT = 0.01          # control period
+FRAME_EVERY = 7    # ~14 Hz camera
+NOISE_PX = 0.5
+
+
+def room_landmarks(rng, n_per_wall=220):
+    """Points on the walls of an 8 x 9 m room (x in [-4, 4], z in [-2.5, 6.5]), 0.05..2.2 m high."""
+    pts = []
+    for wall in range(4):
+        u = rng.uniform(0, 1, n_per_wall)
+        h = rng.uniform(0.05, 2.2, n_per_wall)
+        if wall == 0:
+            xz = np.column_stack((-4 + 8 * u, np.full(n_per_wall, 6.5)))
+        elif wall == 1:
+            xz = np.column_stack((-4 + 8 * u, np.full(n_per_wall, -2.5)))
+        elif wall == 2:
+            xz = np.column_stack((np.full(n_per_wall, 4.0), -2.5 + 9 * u))
+        else:
+            xz = np.column_stack((np.full(n_per_wall, -4.0), -2.5 + 9 * u))
+        pts.append(np.column_stack((xz[:, 0], -h, xz[:, 1])))
+    return np.vstack(pts)
+
+
+def observe(pose: Pose2, pts: np.ndarray, rng):
+    R, t = camera_pose(pose, MOUNT)
+    pc = (pts - t) @ R
+    px, front = CAM.project(pc)
+    vis = front & (pc[:, 2] > 0.3) & CAM.in_image(px, margin=5)
+    ids = np.flatnonzero(vis)
+    return ids, px[vis] + rng.normal(0, NOISE_PX, (len(ids), 2))
+
+
+def drive(pose, v, w, dt):
+    return pose.compose(Pose2(0.0, v * dt, w * dt))
+
+
+SCRIPT = [(0.25, 0.0, 6.0), (0.25, 0.5, math.pi / 2 / 0.5), (0.25, 0.0, 4.0)]   # straight, 90 deg right, straight
+
+
+def teach(rng, pts, cfg):
+    stage = TeachStage(CAM, MOUNT, cfg)
+    true, odom = Pose2(), Pose2()
+    truth_path = [true]
+    step = 0
+    for v, w, dur in SCRIPT:
+        for _ in range(int(round(dur / DT))):
+            if step % FRAME_EVERY == 0:
+                ids, px = observe(true, pts, rng)
+                stage.update(ids, px, odom, step)
+            true = drive(true, v, w, DT)
+            odom = drive(odom, v * 1.01, w * 1.005, DT)       # 1 % scale, 0.5 % turn-rate error
+            truth_path.append(true)
+            step += 1
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    return Route(None, "sim", "now", CAM, MOUNT, True, kfs), np.array([[p.x, p.z] for p in truth_path])
+
+
+def lateral_error(path: np.ndarray, p: Pose2) -> float:
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    t = np.clip(((p.x - a[:, 0]) * ab[:, 0] + (p.z - a[:, 1]) * ab[:, 1]) / np.maximum((ab ** 2).sum(1), 1e-12), 0, 1)
+    q = a + t[:, None] * ab
+    return float(np.min(np.hypot(q[:, 0] - p.x, q[:, 1] - p.z)))
+
+
+def repeat(rng, pts, route, cfg, start: Pose2, occlude=None, max_time=40.0):
+    stage = RepeatStage(route, cfg)
+    ctl = RepeatController(route, cfg, max_linear_speed=0.5, max_angular_speed=1.5)
+    true, odom = start, Pose2()
+    est = None
+    trace = []
+    for step in range(int(max_time / DT)):
+        t = step * DT
+        if step % FRAME_EVERY == 0:
+            ids, px = observe(true, pts, rng)
+            if occlude and occlude[0] <= t < occlude[1]:
+                ids, px = ids[:0], px[:0]
+            est = stage.localise(ids, px, odom, step)
+        ctx = ControlContext(step, DT, odom, WheelState(step, (0.0, 0.0), (0.0, 0.0)), {"vbc": est}, step)
+        cmd = ctl.update(ctx)
+        if ctl.finished:
+            break
+        true = drive(true, cmd.v, cmd.w, DT)
+        odom = drive(odom, cmd.v * 0.99, cmd.w * 1.01, DT)        # a different odometry error than teaching
+        trace.append((t, true, cmd, est.ok if est else False, ctl.status()))
+    return ctl, stage, trace
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(3)
+    pts = room_landmarks(rng)
+    cfg = VBCConfig()
+    route, truth = teach(rng, pts, cfg)
+    return pts, cfg, route, truth
+
+
+def test_teaching_emits_keyframes_with_heights(scene):
+    pts, cfg, route, truth = scene
+    kfs = route.keyframes
+    length = sum(v * d for v, _, d in SCRIPT)
+    assert len(kfs) >= length / cfg.keyframe_distance_m          # distance and rotation both trigger
+    assert [k.index for k in kfs] == list(range(len(kfs)))
+    assert np.all(np.diff([k.distance for k in kfs]) > 0)
+    # heights: the landmark's true height below the camera vs 1/w, for well-observed ones
+    errs = []
+    for kf in kfs[:-1]:
+        good = np.isfinite(kf.inv_height) & (kf.inv_height_var < (0.2 * kf.inv_height) ** 2)
+        assert good.mean() > 0.5
+        y_true = -pts[kf.track_ids[good], 1] - MOUNT.height
+        y_true = -y_true        # camera y is down: height below the camera = cam_height - point height
+        errs.append(np.abs(1 / kf.inv_height[good] - (MOUNT.height - (-pts[kf.track_ids[good], 1]))))
+    errs = np.concatenate(errs)
+    assert np.median(errs) < 0.02
+
+
+def test_repeat_from_offset_converges_and_finishes(scene):
+    pts, cfg, route, truth = scene
+    rng = np.random.default_rng(11)
+    start = Pose2().compose(Pose2(0.3, 0.0, math.radians(10)))     # 0.3 m right, 10 deg right
+    ctl, stage, trace = repeat(rng, pts, route, cfg, start)
+    assert ctl.finished and stage.index == len(route.keyframes) - 1
+    lat = np.array([lateral_error(truth, p) for _, p, *_ in trace])
+    t = np.array([x[0] for x in trace])
+    settled = t > 6.0                                      # after the start transient
+    assert lat[0] > 0.25
+    assert np.sqrt(np.mean(lat[settled] ** 2)) < 0.02, np.sqrt(np.mean(lat[settled] ** 2))
+    assert lat[settled].max() < 0.05
+    end = trace[-1][1]
+    assert math.hypot(end.x - truth[-1, 0], end.z - truth[-1, 1]) < 0.1
+
+
+def test_repeat_slows_stops_and_resumes_through_an_occlusion(scene):
+    pts, cfg, route, truth = scene
+    rng = np.random.default_rng(12)
+    ctl, stage, trace = repeat(rng, pts, route, cfg, Pose2(), occlude=(3.0, 7.0))
+    t = np.array([x[0] for x in trace])
+    v = np.array([x[2].v for x in trace])
+    blind = (t > 3.2) & (t < 7.0)
+    before = (t > 2.0) & (t < 3.0)
+    assert v[before].min() > 0.2
+    assert 0 < v[blind].max() <= cfg.blind_speed_factor * cfg.cruise_speed + 1e-9     # slowed
+    assert np.all(v[(t > 6.0) & (t < 7.0)] == 0)                                         # then stopped
+    assert ctl.finished                                                                  # resumed, completed
+    lat = np.array([lateral_error(truth, p) for _, p, *_ in trace])
+    assert lat.max() < 0.05

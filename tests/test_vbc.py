@@ -1,0 +1,137 @@
+"""VBC core: Jacobian vs finite differences, inverse heights from odometry, robust planar pose."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.vbc import (InverseHeightEstimator, estimate_pose, inverse_range, jacobian,
+                              predict_bearings)
+
+from vbc_scenes import bearings, levelled_points, room_points
+
+MOUNT = CameraMount(height=0.25, forward=0.12, lateral=0.03)
+
+
+def test_jacobian_matches_central_differences(rng):
+    for _ in range(20):
+        robot = Pose2(*rng.uniform(-1, 1, 2), rng.uniform(-math.pi, math.pi))
+        pts = room_points(rng, 30, MOUNT, min_range=0.8, heights=(-0.5, 2.5))
+        pts = pts @ robot.rotation3().T + robot.translation3()    # in front of this robot
+        a, b = bearings(robot, MOUNT, pts)
+        y = levelled_points(robot, MOUNT, pts)[:, 1]
+        J = jacobian(a, b, 1.0 / y, MOUNT.forward, MOUNT.lateral)
+        h = 1e-6
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = h
+            ap, bp = bearings(robot.compose(Pose2(*d)), MOUNT, pts)
+            am, bm = bearings(robot.compose(Pose2(*(-d))), MOUNT, pts)
+            np.testing.assert_allclose(J[:, 0, k], (ap - am) / (2 * h), atol=1e-7, rtol=1e-6)
+            np.testing.assert_allclose(J[:, 1, k], (bp - bm) / (2 * h), atol=1e-7, rtol=1e-6)
+
+
+def test_horizon_landmarks_inform_heading_only():
+    J = jacobian(np.array([0.3, -0.2]), np.array([1e-4, -1e-4]), np.array([4.0, -4.0]))
+    assert np.all(np.abs(J[:, :, :2]) < 1e-3)
+    assert np.allclose(J[:, 0, 2], -1.0, atol=1e-3)
+
+
+def test_exact_model_matches_geometry(rng):
+    pts = room_points(rng, 50, MOUNT)
+    a0, b0 = bearings(Pose2(), MOUNT, pts)
+    y = levelled_points(Pose2(), MOUNT, pts)[:, 1]
+    rel = Pose2(0.3, -0.4, math.radians(12))
+    a1, b1 = bearings(rel, MOUNT, pts)
+    pa, pb = predict_bearings(a0, b0, inverse_range(b0, 1 / y), rel, MOUNT.forward, MOUNT.lateral)
+    np.testing.assert_allclose(pa, a1, atol=1e-12)
+    np.testing.assert_allclose(pb, b1, atol=1e-12)
+
+
+def test_inverse_heights_from_noisy_small_motions(rng):
+    sigma = 1.0 / 400.0          # 1 px at f = 400
+    pts = room_points(rng, 80, MOUNT, min_range=2.0, max_range=5.0, heights=(0.0, 2.0))
+    pts = pts[np.abs(pts[:, 1] + MOUNT.height) > 0.3]          # at least 0.3 m from the camera's height
+    est = InverseHeightEstimator(MOUNT, sigma)
+    ids = np.arange(len(pts)) + 100
+    odom = Pose2()
+    for k in range(40):          # 40 frames, 2.5 cm forward and a slight curve each
+        a, b = bearings(odom, MOUNT, pts)
+        est.observe(ids, a + rng.normal(0, sigma, len(a)), b + rng.normal(0, sigma, len(b)), odom)
+        odom = odom.compose(Pose2(0.0, 0.025, math.radians(0.4)))
+    _, w, var = est.estimate(ids)
+    y_true = levelled_points(Pose2(), MOUNT, pts)[:, 1]
+    err = np.abs(1.0 / w - y_true)
+    assert np.median(err) < 0.03
+    assert np.percentile(err / np.abs(y_true), 90) < 0.15
+    # the reported variance is honest: normalised errors of w are ~unit size
+    z = (w - 1 / y_true) / np.sqrt(var)
+    assert 0.3 < np.sqrt(np.mean(z ** 2)) < 3.0
+
+
+def test_unseen_tracks_are_unknown():
+    est = InverseHeightEstimator(MOUNT)
+    est.observe([1, 2], [0.1, 0.2], [0.1, 0.2], Pose2())
+    ids, w, var = est.estimate([2, 3])
+    assert list(ids) == [2, 3] and np.all(np.isnan(w)) and np.all(np.isinf(var))
+
+
+def _scene_case(rng, n=150, outlier_frac=0.2, noise_px=1.0, f=400.0):
+    sigma = noise_px / f
+    pts = room_points(rng, n, MOUNT, min_range=1.5, max_range=6.0, fov=1.4, heights=(0.0, 2.2))
+    truth = Pose2(0.3, 0.05, math.radians(10))      # 0.3 m right, 10 deg turned right
+    a0, b0 = bearings(Pose2(), MOUNT, pts)
+    a1, b1 = bearings(truth, MOUNT, pts)
+    a1 = a1 + rng.normal(0, sigma, n)
+    b1 = b1 + rng.normal(0, sigma, n)
+    bad = rng.random(n) < outlier_frac
+    a1[bad] += rng.uniform(-0.2, 0.2, bad.sum())
+    b1[bad] += rng.uniform(-0.1, 0.1, bad.sum())
+    y = levelled_points(Pose2(), MOUNT, pts)[:, 1]
+    return truth, a0, b0, 1.0 / y, a1, b1, sigma, bad
+
+
+def test_pose_recovery_with_offset_noise_and_outliers(rng):
+    errs = []
+    for _ in range(10):
+        truth, a0, b0, w, a1, b1, sigma, bad = _scene_case(rng)
+        res = estimate_pose(a0, b0, w, a1, b1, forward=MOUNT.forward, lateral=MOUNT.lateral, sigma=sigma)
+        assert res.ok and res.quality.converged
+        errs.append((abs(res.pose.x - truth.x), abs(res.pose.z - truth.z), abs(res.pose.theta - truth.theta)))
+        # outliers are found: nearly all planted outliers are rejected, nearly all good kept
+        assert np.mean(res.inliers[bad]) < 0.1
+        assert np.mean(res.inliers[~bad]) > 0.95
+    errs = np.array(errs)
+    assert np.max(errs[:, :2]) < 0.008, errs       # a few mm
+    assert np.max(np.degrees(errs[:, 2])) < 0.1, errs
+
+
+def test_pose_with_noisy_heights_uses_variances(rng):
+    truth, a0, b0, w, a1, b1, sigma, bad = _scene_case(rng, outlier_frac=0.0)
+    var = (0.1 * w) ** 2
+    w_noisy = w * (1 + rng.normal(0, 0.1, len(w)))
+    res = estimate_pose(a0, b0, w_noisy, a1, b1, var, forward=MOUNT.forward, lateral=MOUNT.lateral,
+                        sigma=sigma)
+    assert res.ok
+    assert abs(res.pose.x - truth.x) < 0.03 and abs(res.pose.theta - truth.theta) < math.radians(0.3)
+
+
+def test_unknown_heights_still_give_heading(rng):
+    truth, a0, b0, w, a1, b1, sigma, bad = _scene_case(rng, outlier_frac=0.0)
+    truth = Pose2(0.0, 0.0, math.radians(7))
+    pts_a1, pts_b1 = predict_bearings(a0, b0, inverse_range(b0, w), truth, MOUNT.forward, MOUNT.lateral)
+    res = estimate_pose(a0, b0, np.full(len(w), np.nan), pts_a1, pts_b1, forward=MOUNT.forward,
+                        lateral=MOUNT.lateral, sigma=sigma)
+    assert abs(res.pose.theta - truth.theta) < math.radians(0.5)
+
+
+def test_too_few_landmarks_is_not_ok():
+    res = estimate_pose([0.1, 0.2], [0.1, 0.2], [1.0, 1.0], [0.1, 0.2], [0.1, 0.2])
+    assert not res.ok and res.quality.n_inliers == 0
+
+
+def test_mismatched_lengths_raise():
+    with pytest.raises(ValueError, match="same length"):
+        estimate_pose([0.1], [0.1, 0.2], [1.0], [0.1], [0.1])

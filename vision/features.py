@@ -1,0 +1,239 @@
+"""Feature tracks and keyframe re-acquisition.
+
+``FeatureTracker`` keeps about ``max_features`` Shi-Tomasi corners alive with
+pyramidal KLT, checked forward-backward (a point tracked forward and then
+back must land within ``fb_threshold`` px of where it started, which rejects
+points that slid along edges or onto occluders). Each track keeps an integer
+id for its whole life. Lost tracks are replaced by detecting only in image
+cells that have room, away from surviving tracks, and only when the count has
+dropped below ``redetect_fraction`` of the target: detection is the costly
+step, so steady-state frames only pay for the two KLT passes.
+
+``describe`` / ``match_descriptors`` / ``geometric_inliers`` re-acquire a
+keyframe after a jump or an occlusion: ORB descriptors at given points, ratio
+test + mutual check in Hamming space, then an essential-matrix RANSAC on
+normalised coordinates from the camera model.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return image
+
+
+@dataclass
+class Tracks:
+    """Current tracks: ids (N,) int64, pts (N, 2) float32 pixels, age (N,) frames since detection."""
+
+    ids: np.ndarray
+    pts: np.ndarray
+    age: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @staticmethod
+    def empty() -> "Tracks":
+        return Tracks(np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.int32))
+
+    def subset(self, mask: np.ndarray) -> "Tracks":
+        return Tracks(self.ids[mask], self.pts[mask], self.age[mask])
+
+
+class FeatureTracker:
+    """GFTT + forward-backward pyramidal KLT with persistent track ids."""
+
+    def __init__(self, max_features: int = 200, min_distance: float = 12.0, quality: float = 0.01,
+                 block_size: int = 5, win_size: int = 15, levels: int = 3, fb_threshold: float = 1.0,
+                 grid: tuple[int, int] = (4, 3), redetect_fraction: float = 0.85,
+                 mask: np.ndarray | None = None, border: int = 8):
+        self.max_features = max_features
+        self.min_distance = min_distance
+        self.quality = quality
+        self.block_size = block_size
+        self.win = (win_size, win_size)
+        self.levels = levels
+        self.fb_threshold = fb_threshold
+        self.grid = grid
+        self.redetect_fraction = redetect_fraction
+        self.mask = mask
+        self.border = border
+        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+        self.reset()
+
+    def reset(self) -> None:
+        self.tracks = Tracks.empty()
+        self._prev_pyr = None
+        self._next_id = 0
+        self.stats = {"tracked": 0, "lost": 0, "detected": 0}
+
+    def _pyramid(self, grey: np.ndarray):
+        # Python cannot pass prebuilt pyramids to calcOpticalFlowPyrLK (opencv issue #4777), so the
+        # "pyramid" kept between frames is the image itself and LK builds its levels per call.
+        return grey
+
+    def track(self, image: np.ndarray) -> Tracks:
+        """Track into ``image`` (grey or BGR), re-detect if needed; returns the current tracks."""
+        grey = to_grey(image)
+        pyr = self._pyramid(grey)
+        lost = 0
+        if self._prev_pyr is not None and len(self.tracks):
+            keep, new_pts = self._klt(self._prev_pyr, pyr, self.tracks.pts, grey.shape)
+            lost = int((~keep).sum())
+            self.tracks = Tracks(self.tracks.ids[keep], new_pts[keep], self.tracks.age[keep] + 1)
+        detected = 0
+        if len(self.tracks) < self.redetect_fraction * self.max_features:
+            detected = self._detect(grey)
+        self._prev_pyr = pyr
+        self.stats = {"tracked": len(self.tracks) - detected, "lost": lost, "detected": detected}
+        return self.tracks
+
+    def track_points(self, image: np.ndarray, pts: np.ndarray, ids: np.ndarray) -> Tracks:
+        """Replace the tracks by given points (e.g. re-acquired keyframe landmarks) in ``image``."""
+        grey = to_grey(image)
+        self.tracks = Tracks(np.asarray(ids, np.int64), np.asarray(pts, np.float32).reshape(-1, 2),
+                             np.zeros(len(ids), np.int32))
+        self._prev_pyr = self._pyramid(grey)
+        if len(ids):
+            self._next_id = max(self._next_id, int(np.max(ids)) + 1)
+        return self.tracks
+
+    def add_points(self, pts: np.ndarray, ids: np.ndarray) -> None:
+        """Add points (in the last tracked image) with given ids, skipping ids already tracked."""
+        ids = np.asarray(ids, np.int64)
+        new = ~np.isin(ids, self.tracks.ids)
+        if not new.any():
+            return
+        self.tracks = Tracks(np.concatenate([self.tracks.ids, ids[new]]),
+                             np.concatenate([self.tracks.pts, np.asarray(pts, np.float32).reshape(-1, 2)[new]]),
+                             np.concatenate([self.tracks.age, np.zeros(int(new.sum()), np.int32)]))
+        self._next_id = max(self._next_id, int(ids.max()) + 1)
+
+    def _klt(self, prev_pyr, pyr, p0: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+        p0 = p0.reshape(-1, 1, 2).astype(np.float32)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_pyr, pyr, p0, None, winSize=self.win,
+                                              maxLevel=self.levels, criteria=self._criteria)
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, p1, None, winSize=self.win,
+                                               maxLevel=self.levels, criteria=self._criteria)
+        fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
+        p1 = p1.reshape(-1, 2)
+        h, w = shape[:2]
+        b = self.border
+        inside = (p1[:, 0] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] >= b) & (p1[:, 1] < h - b)
+        keep = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.fb_threshold) & inside
+        return keep, p1
+
+    def _detect(self, grey: np.ndarray) -> int:
+        want = self.max_features - len(self.tracks)
+        if want <= 0:
+            return 0
+        mask = self._free_mask(grey.shape)
+        pts = cv2.goodFeaturesToTrack(grey, maxCorners=want, qualityLevel=self.quality,
+                                      minDistance=self.min_distance, mask=mask, blockSize=self.block_size)
+        if pts is None:
+            return 0
+        pts = pts.reshape(-1, 2).astype(np.float32)
+        n = len(pts)
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        self.tracks = Tracks(np.concatenate([self.tracks.ids, ids]), np.concatenate([self.tracks.pts, pts]),
+                             np.concatenate([self.tracks.age, np.zeros(n, np.int32)]))
+        return n
+
+    def _free_mask(self, shape) -> np.ndarray:
+        """Where new corners may go: inside the border, outside full cells and away from tracks."""
+        h, w = shape[:2]
+        mask = np.zeros((h, w), np.uint8)
+        b = self.border
+        mask[b:h - b, b:w - b] = 255
+        if self.mask is not None:
+            mask &= self.mask
+        if not len(self.tracks):
+            return mask
+        gx, gy = self.grid
+        cap = int(np.ceil(self.max_features / (gx * gy)))
+        cx = np.clip((self.tracks.pts[:, 0] * gx / w).astype(int), 0, gx - 1)
+        cy = np.clip((self.tracks.pts[:, 1] * gy / h).astype(int), 0, gy - 1)
+        counts = np.bincount(cy * gx + cx, minlength=gx * gy)
+        for cell in np.flatnonzero(counts >= cap):           # full cells get nothing new
+            r, c = divmod(int(cell), gx)
+            mask[r * h // gy:(r + 1) * h // gy, c * w // gx:(c + 1) * w // gx] = 0
+        rad = int(self.min_distance)
+        for x, y in self.tracks.pts.astype(int):
+            mask[max(y - rad, 0):y + rad + 1, max(x - rad, 0):x + rad + 1] = 0
+        return mask
+
+
+_ORB = None
+
+
+def _orb():
+    global _ORB
+    if _ORB is None:
+        # Upright descriptors (keypoint angle 0): a ground robot's camera does not roll, and
+        # skipping orientation makes matching more discriminative.
+        _ORB = cv2.ORB_create(nfeatures=1000, edgeThreshold=19, patchSize=19)
+    return _ORB
+
+
+def describe(image: np.ndarray, pts: np.ndarray, size: float = 19.0) -> tuple[np.ndarray, np.ndarray]:
+    """ORB descriptors at given points: (descriptors (M, 32) uint8, index of each described point).
+
+    Points too close to the border to describe are dropped (their index is absent).
+    """
+    grey = to_grey(image)
+    pts = np.asarray(pts, np.float32).reshape(-1, 2)
+    kps = [cv2.KeyPoint(float(x), float(y), size, 0.0, 0.0, 0, i) for i, (x, y) in enumerate(pts)]
+    kps, desc = _orb().compute(grey, kps)
+    if desc is None or not kps:
+        return np.zeros((0, 32), np.uint8), np.zeros(0, np.int64)
+    return desc, np.array([k.class_id for k in kps], np.int64)
+
+
+def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float = 0.8,
+                      max_distance: int = 64) -> np.ndarray:
+    """Pairs (K, 2) of (query index, train index): Lowe's ratio test and mutual best match."""
+    if len(query) < 2 or len(train) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    fwd = bf.knnMatch(query, train, k=2)
+    back = bf.match(train, query)
+    best_back = np.full(len(train), -1, np.int64)
+    for m in back:
+        best_back[m.queryIdx] = m.trainIdx
+    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in fwd
+             if len(m) == 2 and m[0].distance < ratio * m[1].distance and m[0].distance <= max_distance
+             and best_back[m[0].trainIdx] == m[0].queryIdx]
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def geometric_inliers(rays_a: np.ndarray, rays_b: np.ndarray, threshold: float = 2e-3,
+                      seed: int = 0) -> np.ndarray:
+    """Mask of correspondences consistent with one essential matrix (RANSAC).
+
+    rays_*: unit rays (N, 3) from the camera model; threshold: in normalised
+    image units (~ pixels / focal length). Rays behind either camera and
+    fewer than 8 pairs give an all-False / pass-through answer respectively.
+    """
+    a = np.asarray(rays_a, np.float64).reshape(-1, 3)
+    b = np.asarray(rays_b, np.float64).reshape(-1, 3)
+    front = (a[:, 2] > 1e-3) & (b[:, 2] > 1e-3)
+    mask = np.zeros(len(a), bool)
+    if front.sum() < 8:
+        mask[front] = True
+        return mask
+    pa = a[front, :2] / a[front, 2:]
+    pb = b[front, :2] / b[front, 2:]
+    cv2.setRNGSeed(seed)
+    E, inl = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=threshold)
+    if E is None or inl is None:
+        return mask
+    mask[np.flatnonzero(front)] = inl.ravel()[: front.sum()] > 0
+    return mask
