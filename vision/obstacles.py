@@ -15,7 +15,8 @@ Two refinements make the labels usable:
 - Vertical growth: the lowest rows of a box's front face are closer to the floor
   than any threshold. A vertical surface keeps its disparity down a column while
   the floor's changes by rho_2 per row, so a pixel just below an obstacle pixel
-  joins it when its disparity is nearer the obstacle's than the plane's.
+  joins it when its disparity is nearer the obstacle's than the plane's, or when
+  it is above a weak threshold (hysteresis: weak_fraction of the height).
 - Blobs smaller than ``min_blob_pixels`` are matching noise, not obstacles, and
   become unknown.
 Missing disparity in a column run that borders a negative obstacle (the band
@@ -49,6 +50,7 @@ class ObstacleParams:
     negative_depth: float = 0.03       # m below the floor: deeper is a negative obstacle
     noise_px: float = 0.0              # disparity noise floor, px (about 0.5 for SGBM, 0 for true disparity)
     grow_rows: int = 3                 # rows a vertical surface may grow down toward its foot
+    weak_fraction: float = 0.25        # growth also takes pixels above weak_fraction * obstacle_height
     min_blob_pixels: int = 12          # smaller connected obstacle regions are noise
     max_height: Optional[float] = None  # m; higher points (table tops the robot passes under) are unknown
     max_range: Optional[float] = None  # m; farther points are unknown
@@ -106,7 +108,9 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
     box = _bbox(obs) if p.grow_rows > 0 else None
     if box is not None:            # only the obstacles' rows and the few below them can change
         rs = slice(box[0].start, min(h, box[0].stop + p.grow_rows))
-        obs[rs] = _grow_down(D[rs], resid[rs], (valid & ~neg & ~out_of_scope)[rs], obs[rs], p.grow_rows)
+        h_weak = p.weak_fraction * p.obstacle_height
+        weak = resid[rs] > np.maximum(Dg[rs] * np.float32(h_weak / (H - h_weak)), np.float32(p.noise_px))
+        obs[rs] = _grow_down(D[rs], resid[rs], (valid & ~neg & ~out_of_scope)[rs], obs[rs], p.grow_rows, weak)
     if p.min_blob_pixels > 1:
         obs = _drop_small_blobs(obs, p.min_blob_pixels)
         neg = _drop_small_blobs(neg, p.min_blob_pixels)
@@ -119,15 +123,16 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
     return labels
 
 
-def _grow_down(D, resid, allowed, obs, rows: int) -> np.ndarray:
-    """Grow obstacle pixels down their column while the disparity stays that of the surface above."""
+def _grow_down(D, resid, allowed, obs, rows: int, weak) -> np.ndarray:
+    """Grow obstacle pixels down their column while the disparity stays that of the surface above
+    (nearer it than the plane's), or while the pixel is above the weak (hysteresis) threshold."""
     obs = obs.copy()
     seed = np.where(obs, D, np.nan).astype(np.float32)
     abs_resid = np.abs(resid)
     for _ in range(rows):
         above = seed[:-1]
         with np.errstate(invalid="ignore"):
-            cand = allowed[1:] & ~obs[1:] & (np.abs(D[1:] - above) < abs_resid[1:])
+            cand = allowed[1:] & ~obs[1:] & ~np.isnan(above) & ((np.abs(D[1:] - above) < abs_resid[1:]) | weak[1:])
         if not cand.any():
             break
         obs[1:] |= cand
