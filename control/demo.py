@@ -148,3 +148,202 @@ def plot_paths(png: Path, taught: np.ndarray, repeats: list[np.ndarray], keyfram
     fig.savefig(tmp)
     plt.close(fig)
     os.replace(tmp, png)
+
+
+# ----------------------------------------------------------------------------- runs
+@dataclass
+class SimRobot:
+    """One simulated robot on its own clock: base, camera, pipeline pieces."""
+
+    clock: SimClock
+    drive: SimDiffDrive
+    camera: object
+    world: object
+
+
+def make_sim_robot(cfg: Config, world, start: Pose2, seed_offset: int = 0) -> SimRobot:
+    from vbnav.control.config import validate_driver_options
+    from vbnav.drivers.sim_camera import SimCamera
+
+    clock = SimClock()
+    drive = SimDiffDrive(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed * 1000 + seed_offset, start=start)
+    opts = validate_driver_options(cfg, cfg.source or "<config>")["camera"]
+    camera = SimCamera.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose, world=world)
+    camera.seed = cfg.sim.seed * 1000 + seed_offset
+    return SimRobot(clock, drive, camera, world)
+
+
+@dataclass
+class TeachResult:
+    trace: RunTrace
+    keyframes: int
+    keyframe_xz: np.ndarray
+    reason: str
+    message: str
+    timing: object
+
+
+def teach_route(cfg: Config, robot: SimRobot, controller, route_dir: Path,
+                progress: Optional[Callable[[str], None]] = None, duration_s: Optional[float] = None) -> TeachResult:
+    """Drive with ``controller`` while a TeachStage records keyframes into ``route_dir``."""
+    from vbnav.control.route import RouteWriter
+    from vbnav.control.teach_repeat import TeachStage, teach_repeat_config
+
+    model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
+    stage = TeachStage(model, mount, teach_repeat_config(cfg.vbc))
+    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage])
+    trace = RunTrace()
+    stamps: dict[int, int] = {}
+    with RouteWriter(route_dir, cfg.robot.name, model, mount, overwrite=True) as writer:
+        def save(frame, results):
+            for kf in stage.pop_keyframes():
+                writer.append(kf)
+                stamps[kf.index] = kf.stamp_ns
+
+        pipeline.frame_listeners.append(save)
+        rt = Runtime(cfg, robot.drive, controller, robot.clock, pipeline)
+        rt.cycle_observers.append(trace.observer(robot.drive))
+        rt.cycle_observers.append(_stamp_pose_recorder(robot.drive, stamps_pose := {}))
+        result = rt.run(duration_s, _progress_fn(progress, "teach", lambda: f"{stage.n_keyframes} keyframes"))
+        stage.finish()
+        save(None, None)
+    kf_xz = np.array([_nearest_pose(stamps_pose, s) for _, s in sorted(stamps.items())]).reshape(-1, 2)
+    return TeachResult(trace, len(stamps), kf_xz, result.reason, result.message, result.timing)
+
+
+@dataclass
+class RepeatResult:
+    trace: RunTrace
+    completed: bool
+    reason: str
+    message: str
+    keyframe_reached: int
+    events: list
+    timing: object
+    stops: int
+
+
+def repeat_route(cfg: Config, robot: SimRobot, route, progress: Optional[Callable[[str], None]] = None,
+                 duration_s: float = 240.0, events: Optional[Callable] = None,
+                 extra_stages: tuple = ()) -> RepeatResult:
+    """Patrol ``route`` with the RepeatStage/RepeatController; ``events(rt, ctx)`` injects scenario changes."""
+    from vbnav.control.teach_repeat import RepeatController, RepeatStage, teach_repeat_config
+
+    vcfg = teach_repeat_config(cfg.vbc)
+    stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
+    controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
+    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, *extra_stages])
+    rt = Runtime(cfg, robot.drive, controller, robot.clock, pipeline)
+    trace = RunTrace()
+    rt.cycle_observers.append(trace.observer(robot.drive))
+    if events is not None:
+        rt.cycle_observers.append(lambda r, ctx, twist, wheels: events(r, ctx))
+    result = rt.run(duration_s, _progress_fn(progress, "repeat",
+                                             lambda: f"keyframe {stage.index + 1}/{len(route.keyframes)}"))
+    stops = sum(1 for e in result.events if e.kind == "hold")
+    return RepeatResult(trace, result.reason == "finished", result.reason, result.message, stage.index,
+                        [e.as_dict() for e in result.events], result.timing, stops)
+
+
+def _stamp_pose_recorder(drive, store: dict):
+    def fn(rt, ctx, twist, wheels):
+        p = drive.physics.pose
+        store[ctx.now_ns] = (p.x, p.z)
+    return fn
+
+
+def _nearest_pose(store: dict, stamp: int):
+    if not store:
+        return (np.nan, np.nan)
+    keys = np.fromiter(store.keys(), dtype=np.int64)
+    return store[int(keys[np.argmin(np.abs(keys - stamp))])]
+
+
+def _progress_fn(progress, label: str, extra: Callable[[], str]):
+    if progress is None:
+        return None
+
+    def fn(rt: Runtime) -> None:
+        t = (rt.clock.now_ns() - rt._start_ns) * 1e-9
+        safety = "ok" if rt.safety.may_move else "STOP " + ",".join(rt.safety.latched | rt.safety.holds)
+        progress(f"{label}: t={t:5.1f}s  travelled {rt.odometry.distance:5.1f} m  {extra()}  "
+                 f"v={rt.last_twist.v:+.2f} w={rt.last_twist.w:+.2f}  {safety}")
+    return fn
+
+
+# ----------------------------------------------------------------------------- the scenario
+def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Config] = None,
+             progress: Optional[Callable[[str], None]] = None, record: Optional[str] = None) -> dict:
+    """Teach the demo route, repeat it ``scenario.repeats`` times; write metrics.json, paths.png, route/."""
+    from vbnav.control.route import load_route
+    from vbnav.drivers.sim_world import World
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cfg = demo_config(scenario.seed, cfg)
+    say = progress or (lambda s: None)
+    path = demo_route()
+    start = start_pose(path)
+    t_wall = time.perf_counter()
+
+    world = World.by_name(cfg.sim.world, cfg.sim.seed)
+    robot = make_sim_robot(cfg, world, start, seed_offset=0)
+    teach = teach_route(cfg, robot, PathFollower(path, scenario.speed, start=start), out_dir / "route", say)
+    if progress:
+        say(f"taught {teach.keyframes} keyframes over {path_length(teach.trace.array()):.1f} m")
+    route = load_route(out_dir / "route")
+    taught_xz = teach.trace.array()
+
+    repeats = []
+    for i in range(scenario.repeats):
+        world_i = World.by_name(cfg.sim.world, cfg.sim.seed)
+        for name, xz in scenario.moved_boxes.get(i, {}).items():
+            world_i.move_box(name, xz)
+        offset = Pose2(scenario.offset_lateral_m * (1 if i % 2 == 0 else -1), 0.0,
+                       math.radians(scenario.offset_heading_deg) * (1 if i % 2 == 0 else -1))
+        robot_i = make_sim_robot(cfg, world_i, start.compose(offset), seed_offset=i + 1)
+        robot_i.camera.gain = scenario.lighting.get(i, 1.0)
+        events = _scenario_events(scenario, i, robot_i)
+        rep = repeat_route(cfg, robot_i, route, say, scenario.max_repeat_s, events)
+        errs = summarise_errors(rep.trace, taught_xz, scenario.settle_m)
+        repeats.append({"index": i + 1, "completed": rep.completed, "end": rep.reason, "message": rep.message,
+                        "keyframe_reached": rep.keyframe_reached + 1, "start_offset": offset.as_array().tolist(),
+                        "lighting_gain": robot_i.camera.gain, "safety_stops": rep.stops,
+                        "duration_s": rep.trace.t[-1] - rep.trace.t[0] if rep.trace.t else 0.0,
+                        "loop_timing": rep.timing.as_dict(), **errs})
+        if progress:
+            say(f"repeat {i + 1}: {'completed' if rep.completed else 'NOT completed (' + rep.message + ')'}, "
+                f"RMS lateral error {errs['rms_lateral_error_m'] * 100:.1f} cm, "
+                f"max {errs['max_lateral_error_m'] * 100:.1f} cm")
+        repeats[-1]["_trace"] = rep.trace.array()
+
+    all_err = []
+    for r in repeats:
+        all_err.append((r["rms_lateral_error_m"], r["max_lateral_error_m"]))
+    metrics = {
+        "schema": "vbnav.demo.metrics", "version": 1, "seed": scenario.seed,
+        "route_length_m": path_length(taught_xz), "keyframes": teach.keyframes,
+        "completed": all(r["completed"] for r in repeats),
+        "rms_lateral_error_m": float(np.sqrt(np.mean([e[0] ** 2 for e in all_err]))),
+        "max_lateral_error_m": float(max(e[1] for e in all_err)),
+        "settle_m": scenario.settle_m,
+        "repeats": [{k: v for k, v in r.items() if not k.startswith("_")} for r in repeats],
+        "wall_time_s": time.perf_counter() - t_wall,
+    }
+    write_json_atomic(out_dir / "metrics.json", metrics)
+    plot_paths(out_dir / "paths.png", taught_xz, [r["_trace"] for r in repeats], teach.keyframe_xz, world,
+               f"seed {scenario.seed}: {teach.keyframes} keyframes, RMS lateral "
+               f"{metrics['rms_lateral_error_m'] * 100:.1f} cm, max {metrics['max_lateral_error_m'] * 100:.1f} cm")
+    return metrics
+
+
+def _scenario_events(scenario: Scenario, i: int, robot: SimRobot):
+    occ = scenario.occlusion if scenario.occlusion and scenario.occlusion[0] == i else None
+    if occ is None:
+        return None
+    t0 = robot.clock.now_ns()
+
+    def events(rt, ctx):
+        t = (ctx.now_ns - t0) * 1e-9
+        robot.camera.occluded = occ[1] <= t < occ[1] + occ[2]
+    return events

@@ -51,33 +51,41 @@ class DiffDrivePhysics:
         self.p = params
         self.rng = np.random.default_rng(seed)
         self.pose = pose
-        self.command = np.zeros(2)        # commanded wheel rates, rad/s
-        self.rate = np.zeros(2)           # actual motor rates, rad/s
-        self.angle = np.zeros(2)          # true motor shaft angles, rad
+        self.command = [0.0, 0.0]         # commanded wheel rates, rad/s
+        self.rate = [0.0, 0.0]            # actual motor rates, rad/s
+        self.angle = [0.0, 0.0]           # true motor shaft angles, rad
+        self._noise_buf: list[float] = []
         self.powered = False
         self.time_ns = 0
 
     def step(self, dt: float) -> None:
+        # Scalar math: two wheels are too few for numpy to pay off (this runs 1000 times per simulated second).
         p = self.p
-        target = np.clip(self.command, -p.max_wheel_speed, p.max_wheel_speed) if self.powered else np.zeros(2)
-        if p.motor_time_constant_s > 0:
-            accel = (target - self.rate) / max(p.motor_time_constant_s, dt)
-        else:
-            accel = (target - self.rate) / dt
-        accel = np.clip(accel, -p.wheel_accel_limit, p.wheel_accel_limit)
-        new_rate = self.rate + accel * dt
-        dphi = 0.5 * (self.rate + new_rate) * dt
-        self.rate = new_rate
-        self.angle += dphi
-        # Ground travel of each wheel with slip noise whose std per step scales
-        # with sqrt(travel): the error is a random walk in distance (slip_std
-        # metres per sqrt(metre) of travel), independent of the step size.
-        travel = dphi * p.wheel_radius
-        if p.slip_std > 0:
-            travel = travel + self.rng.normal(0.0, 1.0, 2) * p.slip_std * np.sqrt(np.abs(travel))
-        ds = 0.5 * (travel[0] + travel[1])
-        dth = (travel[0] - travel[1]) / p.wheel_separation
-        self.pose = arc_step(self.pose, ds, dth)
+        tau = max(p.motor_time_constant_s, dt)
+        amax = p.wheel_accel_limit
+        vmax = p.max_wheel_speed
+        travel = [0.0, 0.0]
+        for i in (0, 1):
+            target = max(-vmax, min(vmax, self.command[i])) if self.powered else 0.0
+            rate = self.rate[i]
+            accel = max(-amax, min(amax, (target - rate) / tau))
+            new_rate = rate + accel * dt
+            dphi = 0.5 * (rate + new_rate) * dt
+            self.rate[i] = new_rate
+            self.angle[i] += dphi
+            t = dphi * p.wheel_radius
+            if p.slip_std > 0:
+                # Slip noise whose std per step scales with sqrt(travel): the error is a random walk in
+                # distance (slip_std metres per sqrt(metre) of travel), independent of the step size.
+                t += self._noise() * p.slip_std * math.sqrt(abs(t))
+            travel[i] = t
+        self.pose = arc_step(self.pose, 0.5 * (travel[0] + travel[1]),
+                             (travel[0] - travel[1]) / p.wheel_separation)
+
+    def _noise(self) -> float:
+        if not self._noise_buf:
+            self._noise_buf = self.rng.normal(0.0, 1.0, 4096).tolist()
+        return self._noise_buf.pop()
 
     def advance_to(self, t_ns: int) -> None:
         while self.time_ns + SUBSTEP_NS <= t_ns:
@@ -126,7 +134,7 @@ class SimDiffDrive(WheelDrive):
         self._check()
         with self._lock:
             self._advance()
-            self.physics.command[:] = 0.0
+            self.physics.command = [0.0, 0.0]
             self.physics.powered = True
 
     def write(self, left: float, right: float) -> None:
@@ -136,7 +144,7 @@ class SimDiffDrive(WheelDrive):
         with self._lock:
             self._advance()
             if self.physics.powered:
-                self.physics.command[:] = (left, right)
+                self.physics.command = [float(left), float(right)]
             self.writes += 1
 
     def read(self) -> WheelState:
@@ -151,7 +159,7 @@ class SimDiffDrive(WheelDrive):
         with self._lock:
             if self._connected:
                 self._advance()
-            self.physics.command[:] = 0.0
+            self.physics.command = [0.0, 0.0]
             self.physics.powered = False
 
     def close(self) -> None:
