@@ -13,13 +13,18 @@ Rates: fraction of each object's visible pixels labelled obstacle (negative for 
 lower floor), fraction of floor pixels labelled obstacle. Rows "pitch+1deg" give both
 methods a mounting that is 1 degree off (ours fits the plane; naive trusts the mounting).
 
-Run: .venv/bin/python benchmarks/obstacles.py [--repeats N]
+With --kitti DIR (default: ../shared/data/kitti06_stereo when present) it also prints, for
+every frame of KITTI 06 (SGBM, 10 cm thresholds), the fitted camera height / pitch / roll and
+the fraction of the road region ahead (tests/test_obstacles_kitti.py's trapezoid) that is ground.
+
+Run: .venv/bin/python benchmarks/obstacles.py [--repeats N] [--kitti DIR | --no-kitti]
 """
 from __future__ import annotations
 
 import argparse
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -56,6 +61,17 @@ def naive_detect(disp: np.ndarray, rig: StereoRig, height: float, pitch: float, 
     labels[valid & (elev > h_obs)] = PixelClass.OBSTACLE
     labels[valid & (elev < -h_neg)] = PixelClass.NEGATIVE
     return labels
+
+
+def _data_dir() -> Path:
+    """$VBNAV_DATA, else the first shared/data beside the repository or one level up."""
+    import os
+    if os.environ.get("VBNAV_DATA"):
+        return Path(os.environ["VBNAV_DATA"])
+    for up in Path(__file__).resolve().parents[1:4]:
+        if (up / "shared" / "data").is_dir():
+            return up / "shared" / "data"
+    return Path("shared/data")
 
 
 def timed(fn, repeats):
@@ -97,6 +113,9 @@ def rates(world, ids, labels, objects):
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--kitti", default=str(_data_dir() / "kitti06_stereo"),
+                    help="KITTI 06 folder (calib.txt, image_l, image_r)")
+    ap.add_argument("--no-kitti", action="store_true")
     args = ap.parse_args(argv)
     scenes = build_scenes()
     world, frame, ids = scenes["sim"]
@@ -151,6 +170,36 @@ def main(argv=None) -> None:
     for meth, lab in (("ours", s.labels), ("naive", naive)):
         print(f"{meth:6s} lower floor {100 * np.mean(lab[lower] == PixelClass.NEGATIVE):6.1f}%   "
               f"floor {100 * np.mean(lab[floor] == PixelClass.NEGATIVE):5.2f}%")
+    if not args.no_kitti and Path(args.kitti).is_dir():
+        kitti_report(Path(args.kitti))
+
+
+def kitti_report(root: Path) -> None:
+    import cv2
+
+    from vbnav.drivers.stereo_calib import load_stereo_calibration
+    road_poly = np.array([[470, 365], [790, 365], [660, 215], [575, 215]], np.int32)
+    calib = load_stereo_calibration(root / "calib.txt")
+    rig = calib.rig(1226, 370)
+    prior = expected_plane(rig, 1.65, 0.0)
+    road = np.zeros((370, 1226), np.uint8)
+    cv2.fillPoly(road, [road_poly], 1)
+    road = road.astype(bool)
+    params = ObstacleParams(obstacle_height=0.10, negative_depth=0.10, noise_px=0.4, max_height=2.0)
+    fr, hs = [], []
+    print("\n== KITTI 06 (Geiger et al., CC BY-NC-SA 3.0): road region ahead labelled ground ==")
+    for f in range(len(list((root / "image_l").glob("*.png")))):
+        left = cv2.imread(str(root / "image_l" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        right = cv2.imread(str(root / "image_r" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        s = detect_obstacles(sgbm_disparity(left, right, SgbmParams(128, 5)), rig, prior, params=params)
+        fl = s.fit.floor
+        fr.append(float(np.mean(s.labels[road] == PixelClass.GROUND)))
+        hs.append((fl.height, math.degrees(fl.pitch), math.degrees(fl.roll)))
+    hs = np.array(hs)
+    print(f"frames {len(fr)}: road ground min {100 * min(fr):.1f}%  mean {100 * np.mean(fr):.1f}%  "
+          f"frames >= 95%: {sum(x >= 0.95 for x in fr)}/{len(fr)}")
+    print(f"fitted camera height {hs[:, 0].min():.3f}..{hs[:, 0].max():.3f} m (nominal 1.65), "
+          f"pitch {hs[:, 1].min():.2f}..{hs[:, 1].max():.2f} deg, roll {hs[:, 2].min():.2f}..{hs[:, 2].max():.2f} deg")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ published subsets) are accepted too. fx = P0[0,0], fy = P0[1,1], cx = P0[0,2],
 cy = P0[1,2]; the baseline is B = -P1[0,3] / P1[0,0] (P1 = K [I | -B e_x]).
 The image size is not in the file; it comes from the images.
 
-vbnav stereo YAML (``*.yaml`` / ``*.yml``), documented in docs/stereo_calibration.md::
+vbnav stereo YAML (``*.yaml`` / ``*.yml``), documented in docs/obstacles.md::
 
     width: 640            # px, rectified images
     height: 480

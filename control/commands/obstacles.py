@@ -44,7 +44,7 @@ def register(subparsers) -> None:
                           "are multiplied by --disparity-scale; 0 or NaN is unknown")
     src.add_argument("--image", metavar="IMG", help="image for the overlay when --disparity is given")
     src.add_argument("--calib", required=True, metavar="FILE",
-                     help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (docs/stereo_calibration.md)")
+                     help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (docs/obstacles.md)")
     src.add_argument("--disparity-scale", type=float, default=None,
                      help="px per unit of an integer disparity image (default: the YAML's disparity_scale, "
                           "else 1/256 for 16-bit as in KITTI's devkit, 1 for 8-bit)")
