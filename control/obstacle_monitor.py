@@ -22,7 +22,7 @@ condition has been clear for ``release_s`` (debounce on release, frame stamps).
 Config section ``obstacles:`` (validated here by ``ObstaclesConfig``)::
 
     obstacles:
-      enabled: true
+      enabled: true           # off by default: a mono camera has no disparity (the stage would stop the robot)
       source: auto            # auto: Frame.disparity if present, else SGBM on image/right
       baseline: 0.075         # m; default: camera.options.stereo_baseline
       obstacle_height: 0.02   # m above the floor
@@ -79,7 +79,7 @@ def _default_zones() -> list[ZoneConfig]:
 
 
 class ObstaclesConfig(_Strict):
-    enabled: bool = True
+    enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
     source: Literal["auto", "disparity", "sgbm"] = "auto"
     baseline: Optional[float] = Field(None, gt=0, description="m; default camera.options.stereo_baseline")
     obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
@@ -112,6 +112,12 @@ def obstacles_config(section: Optional[dict], source: str = "<config>") -> Obsta
     except ValidationError as exc:
         from vbnav.control.config import ConfigError, _format_errors
         raise ConfigError(_format_errors(source, exc, prefix="obstacles")) from None
+
+
+def make_obstacle_stage(cfg) -> Optional["ObstacleStage"]:
+    """The obstacle stage for a vbnav Config, or None when ``obstacles.enabled`` is false."""
+    ocfg = obstacles_config(cfg.obstacles, cfg.source or "<config>")
+    return ObstacleStage.from_config(cfg) if ocfg.enabled else None
 
 
 # --------------------------------------------------------------------------- zones

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from vbnav.control.demo import demo_config, make_sim_robot, repeat_route, teach_route
-from vbnav.control.obstacle_monitor import ObstacleStage
+from vbnav.control.obstacle_monitor import make_obstacle_stage
 from vbnav.control.path_tools import PathFollower
 from vbnav.control.route import load_route
 from vbnav.drivers.sim_world import World
@@ -38,11 +38,11 @@ def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(
     route = load_route(tmp_path / "route")
 
     cfg.camera.options = {**cfg.camera.options, "stereo_baseline": 0.075}
-    cfg.obstacles = {"persist_k": 2, "persist_n": 3, "release_s": 0.5}
+    cfg.obstacles = {"enabled": True, "persist_k": 2, "persist_n": 3, "release_s": 0.5}
     world = World.room(seed=0)
     world.add_box("intruder", BOX_AT, BOX_SIZE)
     robot = make_sim_robot(cfg, world, START, seed_offset=1)
-    stage = ObstacleStage.from_config(cfg)
+    stage = make_obstacle_stage(cfg)
     state = {"held_since": None, "removed_at": None, "min_clearance": math.inf, "speed_scales": []}
 
     def events(rt, ctx):

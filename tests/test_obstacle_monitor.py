@@ -8,7 +8,8 @@ import pytest
 
 from vbnav.control.config import ConfigError, parse_config
 from vbnav.control.obstacle_monitor import (ObstacleMonitor, ObstaclesConfig, ObstacleStage, ZoneConfig,
-                                            obstacles_config, points_in_polygon, to_robot_frame, zone_counts)
+                                            make_obstacle_stage, obstacles_config, points_in_polygon,
+                                            to_robot_frame, zone_counts)
 from vbnav.drivers.camera import Frame
 from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -118,6 +119,19 @@ def test_stage_uses_sgbm_without_disparity_and_stops_when_blind():
     assert not e.ok and e.info["speed_scale"] == 0.0 and "no disparity" in e.info["reason"]
 
 
+def test_make_obstacle_stage_only_when_enabled():
+    assert make_obstacle_stage(parse_config({})) is None
+    st = make_obstacle_stage(_stage_cfg(enabled=True))
+    assert isinstance(st, ObstacleStage)
+
+
 def test_stage_needs_a_baseline():
     with pytest.raises(ConfigError, match="obstacles.baseline"):
         ObstacleStage.from_config(parse_config({}))
+
+
+def test_shipped_stereo_config_builds_the_stage():
+    from vbnav.control.config import load_config
+    stage = make_obstacle_stage(load_config("sim_stereo"))
+    assert stage is not None and stage.rig.baseline == 0.075
+    assert [z.action for z in stage.cfg.zones] == ["stop", "slow"]
