@@ -183,7 +183,8 @@ def _plausible(rho: np.ndarray, rig: StereoRig, prior: Optional[FloorGeometry], 
     if prior is None:
         return ok & (w[..., 1] > 0)             # floor below the optical axis's horizon line
     g = w / np.where(ok, n, 1.0)[..., None]
-    cos_tilt = g @ np.asarray(prior.down)
+    pd = prior.down
+    cos_tilt = g[..., 0] * pd[0] + g[..., 1] * pd[1] + g[..., 2] * pd[2]
     height = rig.fb / np.where(ok, n, 1.0)
     ratio = height / prior.height
     return (ok & (cos_tilt > math.cos(math.radians(p.max_tilt_change_deg)))
@@ -191,8 +192,22 @@ def _plausible(rho: np.ndarray, rig: StereoRig, prior: Optional[FloorGeometry], 
 
 
 def _least_squares(A: np.ndarray, d: np.ndarray) -> np.ndarray:
-    A64 = A.astype(np.float64)
-    return np.linalg.solve(A64.T @ A64, A64.T @ d.astype(np.float64))
+    """Normal equations of D = rho . (u, v, 1), summed elementwise: numpy's BLAS matrix products
+    spawn threads, which costs milliseconds on a busy 2-core machine for these small sizes."""
+    u, v, dd = (x.astype(np.float64) for x in (A[:, 0], A[:, 1], d))
+    n = float(len(dd))
+    su, sv, suu, svv, suv = u.sum(), v.sum(), (u * u).sum(), (v * v).sum(), (u * v).sum()
+    M = np.array([[suu, suv, su], [suv, svv, sv], [su, sv, n]])
+    b = np.array([(u * dd).sum(), (v * dd).sum(), dd.sum()])
+    return np.linalg.solve(M, b)
+
+
+def _predict(rho: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """rho (3,) or (k, 3) applied to points A (n, 3) = (u, v, 1): (n,) or (k, n), without BLAS."""
+    r = np.asarray(rho, dtype=np.float32)
+    if r.ndim == 1:
+        return A[:, 0] * r[0] + A[:, 1] * r[1] + r[2]
+    return A[None, :, 0] * r[:, 0:1] + A[None, :, 1] * r[:, 1:2] + r[:, 2:3]
 
 
 def fit_ground_plane(disparity: np.ndarray, rig: StereoRig, prior: Optional[DisparityPlane] = None,
@@ -247,14 +262,14 @@ def fit_ground_plane(disparity: np.ndarray, rig: StereoRig, prior: Optional[Disp
 
     sub = rng.choice(n, size=min(n, p.score_points), replace=False) if n > p.score_points else slice(None)
     As, ds = A[sub], dd[sub]
-    pred = rhos.astype(np.float32) @ As.T                   # (hyp, pts)
+    pred = _predict(rhos, As)                                # (hyp, pts)
     wn = np.linalg.norm(_w(rhos, rig), axis=1).astype(np.float32)[:, None]
     scores = (np.abs(ds[None, :] - pred) < _band(pred, wn, rig, p)).sum(axis=1)
     rho = rhos[int(np.argmax(scores))]
 
     inl = np.zeros(n, bool)
     for _ in range(p.refine_iterations):
-        pr = A @ rho.astype(np.float32)
+        pr = _predict(rho, A)
         inl = np.abs(dd - pr) < _band(pr, np.float32(np.linalg.norm(_w(rho, rig))), rig, p)
         if inl.sum() < p.min_inliers:
             return fallback(f"only {int(inl.sum())} inliers after refinement")

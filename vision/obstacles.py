@@ -112,15 +112,16 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
         weak = resid[rs] > np.maximum(Dg[rs] * np.float32(h_weak / (H - h_weak)), np.float32(p.noise_px))
         obs[rs] = _grow_down(D[rs], resid[rs], (valid & ~neg & ~out_of_scope)[rs], obs[rs], p.grow_rows, weak)
     if p.min_blob_pixels > 1:
-        obs = _drop_small_blobs(obs, p.min_blob_pixels)
-        neg = _drop_small_blobs(neg, p.min_blob_pixels)
+        # one labelling pass for both kinds (a blob touching both counts all its pixels)
+        keep = _drop_small_blobs(obs | neg, p.min_blob_pixels)
+        obs &= keep
+        neg &= keep
     if neg.any():
         neg |= _missing_next_to(neg, ~valid & ground_expected, p.missing_negative_rows)
-    labels = np.full((h, w), PixelClass.UNKNOWN, np.uint8)
-    labels[valid & ground_expected & ~out_of_scope] = PixelClass.GROUND
-    labels[neg] = PixelClass.NEGATIVE
-    labels[obs] = PixelClass.OBSTACLE
-    return labels
+    ground = valid & ground_expected & ~out_of_scope
+    u8 = np.uint8
+    return np.where(obs, u8(PixelClass.OBSTACLE), np.where(neg, u8(PixelClass.NEGATIVE),
+                    np.where(ground, u8(PixelClass.GROUND), u8(PixelClass.UNKNOWN))))
 
 
 def _grow_down(D, resid, allowed, obs, rows: int, weak) -> np.ndarray:
@@ -204,8 +205,10 @@ def _points(mask: np.ndarray, disp: np.ndarray, rig: StereoRig, floor: FloorGeom
 
 
 def class_fractions(labels: np.ndarray) -> dict:
-    counts = np.bincount(labels.ravel(), minlength=256)
-    return {c.name.lower(): float(counts[c]) / labels.size for c in PixelClass}
+    n = labels.size
+    out = {c.name.lower(): np.count_nonzero(labels == c) / n for c in PixelClass if c != PixelClass.UNKNOWN}
+    out["unknown"] = 1.0 - sum(out.values())
+    return out
 
 
 def detect_obstacles(disparity: np.ndarray, rig: StereoRig, prior: Optional[DisparityPlane] = None,
