@@ -24,7 +24,7 @@ Config section ``obstacles:`` (validated here by ``ObstaclesConfig``)::
     obstacles:
       enabled: true           # off by default: a mono camera has no disparity (the stage would stop the robot)
       source: auto            # auto: Frame.disparity if present, else SGBM on image/right
-      baseline: 0.075         # m; default: camera.options.stereo_baseline
+      baseline: 0.075         # m; default: camera.options.stereo_baseline, else frame.meta['baseline_m']
       obstacle_height: 0.02   # m above the floor
       negative_depth: 0.03    # m below the floor
       zones:
@@ -81,7 +81,8 @@ def _default_zones() -> list[ZoneConfig]:
 class ObstaclesConfig(_Strict):
     enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
     source: Literal["auto", "disparity", "sgbm"] = "auto"
-    baseline: Optional[float] = Field(None, gt=0, description="m; default camera.options.stereo_baseline")
+    baseline: Optional[float] = Field(None, gt=0, description="m; default camera.options.stereo_baseline, "
+                                                              "else the frames' meta['baseline_m'] (OAK)")
     obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
     negative_depth: float = Field(0.03, gt=0, description="m below the floor that is a negative obstacle")
     noise_px: float = Field(0.4, ge=0, description="disparity noise floor, px")
@@ -223,34 +224,55 @@ class ObstacleStage(VisionStage):
 
     kind = "obstacles"
 
-    def __init__(self, rig: StereoRig, mount: CameraMount, cfg: Optional[ObstaclesConfig] = None,
-                 keep_labels: bool = False):
+    def __init__(self, rig: Optional[StereoRig], mount: CameraMount, cfg: Optional[ObstaclesConfig] = None,
+                 keep_labels: bool = False, intrinsics: Optional[tuple] = None):
+        """``rig``: the stereo pair; or None with ``intrinsics`` = (width, height, fx, fy, cx, cy), and the
+        baseline (and K, if given) is taken from the first frame's meta["baseline_m"] / meta["K"]
+        (the OAK driver reports its device calibration there)."""
         self.cfg = cfg or ObstaclesConfig()
-        self.rig = rig
         self.mount = mount
-        self.prior = expected_plane(rig, mount.height, mount.pitch)
         self.params = ObstacleParams(obstacle_height=self.cfg.obstacle_height,
                                      negative_depth=self.cfg.negative_depth, noise_px=self.cfg.noise_px,
                                      min_blob_pixels=self.cfg.min_blob_pixels, max_height=self.cfg.max_height,
                                      max_range=self.cfg.max_range, report_range=self.cfg.max_range)
         self.fit_params = PlaneFitParams(inlier_height=self.cfg.fit_inlier_height)
-        nearest_floor = mount.height / max(1e-3, math.tan(math.atan2(rig.height - 1 - rig.cy, rig.fy) + mount.pitch))
-        self.sgbm = sgbm_params_for(rig, 0.85 * nearest_floor, self.cfg.sgbm_block_size)
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
         self._stop_half_width = min((z.half_width for z in self.cfg.zones if z.half_width), default=0.25)
+        self._intrinsics = intrinsics
+        self.rig: Optional[StereoRig] = None
+        if rig is not None:
+            self._set_rig(rig)
+        elif intrinsics is None:
+            raise ValueError("ObstacleStage needs a StereoRig, or the camera intrinsics and frames that carry "
+                             "meta['baseline_m']")
+
+    def _set_rig(self, rig: StereoRig) -> None:
+        self.rig = rig
+        self.prior = expected_plane(rig, self.mount.height, self.mount.pitch)
+        bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + self.mount.pitch   # lowest ray below level
+        nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
+        self.sgbm = sgbm_params_for(rig, 0.85 * nearest_floor, self.cfg.sgbm_block_size)
+
+    def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
+        if self.rig is None and frame.meta.get("baseline_m"):
+            w, h, fx, fy, cx, cy = self._intrinsics
+            K = frame.meta.get("K")
+            if K is not None:
+                fx, fy, cx, cy = float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2])
+            self._set_rig(StereoRig(w, h, fx, fy, cx, cy, float(frame.meta["baseline_m"])))
+        return self.rig
 
     @classmethod
     def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
-        """From a vbnav Config: camera intrinsics and mount, ``obstacles:`` section, baseline
-        from ``obstacles.baseline`` or ``camera.options.stereo_baseline``."""
+        """From a vbnav Config: camera intrinsics and mount, ``obstacles:`` section, baseline from
+        ``obstacles.baseline``, ``camera.options.stereo_baseline`` or, failing both, the frames' meta."""
         ocfg = obstacles_config(cfg.obstacles, cfg.source or "<config>")
         baseline = ocfg.baseline or (cfg.camera.options or {}).get("stereo_baseline")
-        if not baseline:
-            from vbnav.control.config import ConfigError
-            raise ConfigError(f"{cfg.source or '<config>'}: obstacles.baseline: missing (and camera.options has no "
-                              "stereo_baseline); the obstacle stage needs the stereo baseline in metres")
         c = cfg.camera
+        if not baseline:
+            return cls(None, c.mount.to_mount(), ocfg, keep_labels, intrinsics=(c.width, c.height, c.fx, c.fy,
+                                                                                c.cx, c.cy))
         rig = StereoRig(c.width, c.height, c.fx, c.fy, c.cx, c.cy, float(baseline))
         return cls(rig, c.mount.to_mount(), ocfg, keep_labels)
 
@@ -263,6 +285,11 @@ class ObstacleStage(VisionStage):
         return None
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
+        if self._rig_for(frame) is None:
+            return Estimate(frame.stamp_ns, self.kind, False, None, {
+                "speed_scale": 0.0, "reason": "obstacles: no stereo baseline (set obstacles.baseline or "
+                                              "camera.options.stereo_baseline, or use a camera reporting "
+                                              "meta['baseline_m'])"})
         disp = self.disparity(frame)
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).

@@ -125,9 +125,18 @@ def test_make_obstacle_stage_only_when_enabled():
     assert isinstance(st, ObstacleStage)
 
 
-def test_stage_needs_a_baseline():
-    with pytest.raises(ConfigError, match="obstacles.baseline"):
-        ObstacleStage.from_config(parse_config({}))
+def test_stage_takes_the_baseline_from_the_frames_when_the_config_has_none():
+    stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
+    assert stage.rig is None
+    rig = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+    disp = ds.render(ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.1, 0.1, 0.55, 0.7, 0.05),)), rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=disp), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "baseline" in e.info["reason"]
+    K = [[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075, "K": K}), Pose2())
+    assert e.ok and stage.rig == rig and e.info["speed_scale"] == 0.0      # the box is in the stop band
+    assert e.value.nearest[0] == pytest.approx(0.65, abs=0.02)
 
 
 def test_shipped_stereo_config_builds_the_stage():
