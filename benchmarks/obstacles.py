@@ -35,12 +35,12 @@ from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_x
 from vbnav.vision.ground_plane import expected_plane
 from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles
-from vbnav.vision.stereo import SgbmParams, StereoRig, sgbm_disparity
+from vbnav.vision.stereo import SGBM_640x480, SGBM_KITTI, StereoRig, sgbm_disparity
 
 CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 MOUNT = CameraMount(0.25, 0.10, 0.0, 0.0)
 RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
-SGBM = SgbmParams(num_disparities=80, block_size=5)
+SGBM = SGBM_640x480
 
 
 def naive_detect(disp: np.ndarray, rig: StereoRig, height: float, pitch: float, h_obs: float, h_neg: float,
@@ -191,7 +191,7 @@ def kitti_report(root: Path) -> None:
     for f in range(len(list((root / "image_l").glob("*.png")))):
         left = cv2.imread(str(root / "image_l" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
         right = cv2.imread(str(root / "image_r" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        s = detect_obstacles(sgbm_disparity(left, right, SgbmParams(128, 5)), rig, prior, params=params)
+        s = detect_obstacles(sgbm_disparity(left, right, SGBM_KITTI), rig, prior, params=params)
         fl = s.fit.floor
         fr.append(float(np.mean(s.labels[road] == PixelClass.GROUND)))
         hs.append((fl.height, math.degrees(fl.pitch), math.degrees(fl.roll)))

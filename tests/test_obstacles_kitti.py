@@ -17,7 +17,7 @@ import pytest
 from vbnav.drivers.stereo_calib import load_stereo_calibration
 from vbnav.vision.ground_plane import expected_plane
 from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles, nearest_in_corridor
-from vbnav.vision.stereo import SgbmParams, sgbm_disparity
+from vbnav.vision.stereo import SGBM_KITTI, sgbm_disparity
 
 pytestmark = pytest.mark.realdata
 
@@ -41,7 +41,7 @@ def kitti(shared_data):
     for f in FRAMES:
         left = cv2.imread(str(root / "image_l" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
         right = cv2.imread(str(root / "image_r" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        disp = sgbm_disparity(left, right, SgbmParams(num_disparities=128, block_size=5))
+        disp = sgbm_disparity(left, right, SGBM_KITTI)
         out[f] = detect_obstacles(disp, rig, prior, params=PARAMS)
     return out, road.astype(bool)
 

@@ -77,6 +77,12 @@ class SgbmParams:
 _MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "sgbm_3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
           "hh": cv2.STEREO_SGBM_MODE_HH}
 
+#: 640x480 robot camera (fx 400, B 7.5 cm): 80 disparities reach 0.375 m, nearer than the lowest
+#: floor ray of a level camera 0.25 m up (0.42 m).
+SGBM_640x480 = SgbmParams(num_disparities=80, block_size=5)
+#: KITTI (1226x370, fx 707, B 0.54 m): 128 disparities reach 3 m.
+SGBM_KITTI = SgbmParams(num_disparities=128, block_size=5)
+
 
 def sgbm_params_for(rig: StereoRig, min_depth: float = 0.4, block_size: int = 5) -> SgbmParams:
     """Settings that cover depths from ``min_depth`` to infinity on this rig.
