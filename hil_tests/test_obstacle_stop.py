@@ -73,3 +73,27 @@ def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(
     # the stop came from the obstacle zone, and it was released after the removal
     holds = [e for e in rep.events if e["cause"] == "obstacle"]
     assert [e["kind"] for e in holds][:2] == ["hold", "release"]
+
+
+@pytest.mark.slow
+def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
+    """A scripted drive straight at a 15 cm drop (World.corridor_with_step, edge 3 m ahead) is held
+    by the negative obstacle in the stop zone; the wheels never carry the robot over the edge."""
+    from vbnav.control.config import load_config
+    from vbnav.control.factory import make_robot
+    from vbnav.control.manual import ScriptedController
+    from vbnav.control.runtime import Runtime
+
+    cfg = load_config("sim_stereo").model_copy(deep=True)
+    cfg.sim.world = "corridor_step"
+    clock, drive, pipeline = make_robot(cfg, [make_obstacle_stage(cfg)])
+    rt = Runtime(cfg, drive, ScriptedController([[0.3, 0.0, 14.0]]), clock, pipeline)
+    front = []
+    rt.cycle_observers.append(lambda r, ctx, twist, wheels: front.append(drive.true_pose.z + ROBOT_HALF_LENGTH))
+    result = rt.run(16.0)
+    assert result.ok, result.message
+    holds = [e for e in result.events if e.cause == "obstacle" and e.kind == "hold"]
+    assert holds, "the step was never a stop"
+    print(f"step: front bumper stopped at z = {max(front):.2f} m (edge at 3.0 m)")
+    assert max(front) < 3.0 - 0.3                       # stopped with margin, never over the edge
+    assert max(front) > 1.5                             # but it did drive toward it
