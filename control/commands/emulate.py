@@ -1,0 +1,72 @@
+"""``vbnav emulate {dynamixel,odrive}``: a device emulator on a pseudo-terminal.
+
+Prints the device path as the first line of standard output, then serves until
+interrupted (Ctrl-C or SIGTERM). Point a robot configuration's ``drive.options.port``
+at that path to run the real driver without hardware.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+
+def _ids(text: str) -> list[int]:
+    try:
+        ids = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated servo ids like 1,2, got {text!r}") from None
+    if not ids or any(not 0 <= i <= 252 for i in ids) or len(set(ids)) != len(ids):
+        raise argparse.ArgumentTypeError(f"servo ids must be distinct integers in 0..252, got {text!r}")
+    return ids
+
+
+def register(sub) -> None:
+    p = sub.add_parser("emulate", help="run a Dynamixel bus or ODrive emulator on a pseudo-terminal",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    dev = p.add_subparsers(dest="device", metavar="DEVICE", required=True)
+    d = dev.add_parser("dynamixel", help="Dynamixel X-series servos, Protocol 2.0")
+    d.add_argument("--ids", type=_ids, default=[1, 2], help="servo ids on the bus, comma-separated (default 1,2)")
+    d.add_argument("--model", default="XL430-W250", help="servo model: XL430-W250 (default) or XM430-W350")
+    d.add_argument("--link", default=None, metavar="PATH", help="also create this symlink to the pty "
+                   "(a stable path, like /dev/serial/by-id/...); the symlink is what gets printed")
+    d.set_defaults(func=_run_dynamixel)
+    o = dev.add_parser("odrive", help="ODrive with two axes, ASCII protocol")
+    o.add_argument("--link", default=None, metavar="PATH", help="also create this symlink to the pty")
+    o.add_argument("--watchdog-s", type=float, default=0.0,
+                   help="axis watchdog timeout preset, s (0 = off until the driver sets it)")
+    o.set_defaults(func=_run_odrive)
+
+
+def _serve(emulator) -> int:
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *a: stop.set())
+    path = emulator.start()
+    print(path, flush=True)
+    try:
+        while not stop.wait(0.2):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emulator.stop()
+    return 0
+
+
+def _run_dynamixel(args) -> int:
+    from vbnav.drivers.dynamixel_emulator import DynamixelBus, model_by_name
+    try:
+        model = model_by_name(args.model)
+    except ValueError as exc:
+        print(f"vbnav emulate dynamixel: {exc}", file=sys.stderr)
+        return 2
+    return _serve(DynamixelBus(args.ids, model, link=args.link))
+
+
+def _run_odrive(args) -> int:
+    from vbnav.drivers.odrive_emulator import ODriveEmulator
+    emu = ODriveEmulator(link=args.link)
+    for axis in emu.axes:
+        axis.watchdog_timeout = args.watchdog_s
+    return _serve(emu)

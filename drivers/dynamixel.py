@@ -1,0 +1,482 @@
+"""Dynamixel X-series wheels (Protocol 2.0, velocity mode) through the real dynamixel-sdk.
+
+Per control cycle the bus carries one GroupSyncWrite of Goal Velocity (no
+answer) and one GroupSyncRead of Present Velocity + Present Position (one
+status packet per servo). The SDK's answer timeout is budgeted: its stock
+``PortHandler`` waits ``2 x LATENCY_TIMER(16 ms) + 2 ms`` busy for every
+missing status packet, which at 100 Hz would cost 3 periods per absent servo.
+``BudgetedPort`` replaces that with the adapter's real latency (set the FTDI
+latency timer of a U2D2 to 1 ms: ``echo 1 > /sys/bus/usb-serial/devices/ttyUSB0/latency_timer``)
+plus a margin, so a silent servo costs a few milliseconds.
+
+Safety: torque goes off on ``disable()``/``close()`` and on every failure
+path that can still reach the bus; when the bus itself is gone, the servos'
+Bus Watchdog (configured at bring-up) stops them on their own.
+"""
+from __future__ import annotations
+
+import math
+import os
+import select
+import threading
+import time
+from typing import Any, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.drivers.clock import MonotonicClock
+from vbnav.drivers.dynamixel_protocol import to_signed
+from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+
+try:  # imported lazily by the registry; a clear error if the SDK is missing
+    import dynamixel_sdk as sdk
+except ImportError as _exc:  # pragma: no cover - dependency is in pyproject
+    sdk = None
+    _SDK_ERROR = _exc
+
+ADDR_MODEL_NUMBER = 0
+ADDR_RETURN_DELAY = 9
+ADDR_OPERATING_MODE = 11
+ADDR_VELOCITY_LIMIT = 44
+ADDR_TORQUE_ENABLE = 64
+ADDR_HW_ERROR = 70
+ADDR_BUS_WATCHDOG = 98
+ADDR_GOAL_VELOCITY = 104
+ADDR_PROFILE_ACCEL = 108
+ADDR_PRESENT_VELOCITY = 128
+ADDR_PRESENT_POSITION = 132
+
+MODE_VELOCITY = 1
+VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0  # one Goal/Present Velocity unit
+ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0  # one Profile Acceleration unit (rev/min^2)
+TICKS_PER_REV = 4096
+WATCHDOG_UNIT_S = 0.020
+BRING_UP_EXTRA_MS = 30.0  # answer window added during bring-up: not time-critical, and must not flake
+BRING_UP_ATTEMPTS = 3
+
+MODEL_NUMBERS = {"XL430-W250": 1060, "XM430-W350": 1020, "XM430-W210": 1030, "XM540-W270": 1120,
+                 "XL330-M288": 1200}
+
+HW_ERROR_BITS = {0: "input voltage error", 2: "overheating", 3: "motor encoder error",
+                 4: "electrical shock", 5: "overload"}
+
+
+def decode_hardware_error(bits: int) -> str:
+    names = [f"{name} (bit {b})" for b, name in HW_ERROR_BITS.items() if bits & (1 << b)]
+    return ", ".join(names) or f"unknown bits 0x{bits:02x}"
+
+
+def rad_s_to_units(rate: float) -> int:
+    return int(round(rate / VELOCITY_UNIT_RAD_S))
+
+
+def units_to_rad_s(units: int) -> float:
+    return units * VELOCITY_UNIT_RAD_S
+
+
+if sdk is not None:
+    class BudgetedPort(sdk.PortHandler):
+        """PortHandler whose answer timeout is the adapter latency, not the SDK's 16 ms constant."""
+
+        def __init__(self, port_name: str, latency_ms: float, margin_ms: float):
+            super().__init__(port_name)
+            self.latency_ms = latency_ms
+            self.margin_ms = margin_ms
+            self.extra_ms = 0.0  # raised during bring-up, where time is not critical
+
+        def relaxed(self, extra_ms: float):
+            port = self
+
+            class _Relaxed:
+                def __enter__(self):
+                    port.extra_ms = extra_ms
+
+                def __exit__(self, *exc):
+                    port.extra_ms = 0.0
+            return _Relaxed()
+
+        def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK name
+            self.packet_start_time = self.getCurrentTime()
+            self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_ms + self.margin_ms + self.extra_ms
+
+        def readPort(self, length):  # noqa: N802 - SDK name
+            # The SDK polls readPort in a loop with a zero timeout: a busy-wait that burns a core and,
+            # in Python, keeps other threads from the GIL. Block in select() until bytes come or the
+            # answer window closes instead; the SDK's own timeout logic is unchanged.
+            data = self.ser.read(length)
+            if not data:
+                remaining_ms = self.packet_timeout - self.getTimeSinceStart()
+                if remaining_ms > 0:
+                    select.select([self.ser.fd], [], [], min(remaining_ms, 5.0) * 1e-3)
+                    data = self.ser.read(length)
+            return data
+
+
+class DynamixelDrive(WheelDrive):
+    """Two Dynamixel X servos in velocity mode as the left and right wheel."""
+
+    name = "dynamixel"
+
+    class Options(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        port: str = Field("/dev/ttyUSB0", description="serial device of the U2D2 (prefer /dev/serial/by-id/...)")
+        baudrate: int = Field(1_000_000, description="bus rate, bit/s")
+        left_id: int = Field(1, ge=0, le=252)
+        right_id: int = Field(2, ge=0, le=252)
+        model: Optional[Literal["XL430-W250", "XM430-W350", "XM430-W210", "XM540-W270", "XL330-M288"]] = Field(
+            None, description="expected servo model; None accepts any known X-series model")
+        velocity_limit_rad_s: float = Field(6.0, gt=0, description="written to Velocity Limit (44); commands clamp")
+        profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
+        bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
+        latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")
+        margin_ms: float = Field(2.0, ge=0, le=20, description="extra wait for an answer, ms (raise it for an "
+                                 "emulator on a busy machine)")
+        max_missed_reads: int = Field(5, ge=1, description="consecutive failed reads that make a fault "
+                                      "(the state is held meanwhile)")
+        reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
+
+    def __init__(self, cfg: Any = None, clock=None, *, options: Optional["DynamixelDrive.Options"] = None,
+                 invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
+        if sdk is None:  # pragma: no cover
+            raise DriveError(f"dynamixel-sdk is not installed: {_SDK_ERROR}")
+        drive_cfg = getattr(cfg, "drive", None)
+        if options is None:
+            options = self.Options.model_validate(drive_cfg.options if drive_cfg is not None else {})
+        self.opt = options
+        self.clock = clock or MonotonicClock()
+        inv_l = invert_left if invert_left is not None else bool(getattr(drive_cfg, "invert_left", False))
+        inv_r = invert_right if invert_right is not None else bool(getattr(drive_cfg, "invert_right", False))
+        self.ids = (options.left_id, options.right_id)
+        self.sides = {options.left_id: "left", options.right_id: "right"}
+        self.signs = (-1 if inv_l else 1, -1 if inv_r else 1)
+        self.port = None
+        self.ph = None
+        self.faults: list[str] = []
+        self.models: dict[int, int] = {}
+        self._enabled = False
+        self._connected = False
+        self._lock = threading.RLock()
+        self._last_raw: dict[int, Optional[int]] = {i: None for i in self.ids}
+        self._ticks = {i: 0 for i in self.ids}
+        self._state = WheelState(self.clock.now_ns(), (0.0, 0.0), (0.0, 0.0))
+        self._missed_reads = 0
+        self._last_write_ns: Optional[int] = None
+        self._next_reconnect_ns = 0
+        self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
+        self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
+
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "DynamixelDrive":
+        """As the runtime's factory builds drives: the robot config, its clock, the validated options."""
+        return cls(cfg, clock, options=options)
+
+    # -- lifecycle ------------------------------------------------------------------------
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def connect(self) -> None:
+        """Open the adapter and bring the servos up in the safe order; torque stays off."""
+        with self._lock:
+            self._open_port()
+            try:
+                with self.port.relaxed(BRING_UP_EXTRA_MS):
+                    self._bring_up()
+            except DriveError:
+                self._torque_off_best_effort()
+                self._close_port()
+                raise
+            self._connected = True
+
+    def enable(self) -> None:
+        with self._lock:
+            if not self._connected:
+                raise DriveError(f"dynamixel drive on {self.opt.port} is not connected")
+            if self.faults:
+                raise DriveError(f"dynamixel drive has faults, clear them first (clear_faults): {'; '.join(self.faults)}")
+            with self.port.relaxed(BRING_UP_EXTRA_MS):
+                self._arm()
+            self._enabled = True
+            self._last_write_ns = self.clock.now_ns()
+
+    def _arm(self) -> None:
+        """Zero goals, re-arm the watchdog, torque on."""
+        for i in self.ids:
+            # a watchdog that expired while we were away reads 0xFF and locks the goals: clear, re-arm
+            self._write(i, ADDR_BUS_WATCHDOG, 1, 0, "Bus Watchdog")
+            self._write(i, ADDR_GOAL_VELOCITY, 4, 0, "Goal Velocity")
+            self._write(i, ADDR_BUS_WATCHDOG, 1, self._watchdog_units, "Bus Watchdog")
+        for i in self.ids:
+            self._write(i, ADDR_TORQUE_ENABLE, 1, 1, "Torque Enable")
+
+    def write(self, left: float, right: float) -> None:
+        with self._lock:
+            if self.faults:
+                raise DriveError(f"dynamixel drive faulted: {'; '.join(self.faults)}")
+            if not self._enabled:
+                raise DriveError("dynamixel drive is not enabled")
+            now = self.clock.now_ns()
+            if self._last_write_ns is not None and (now - self._last_write_ns) * 1e-9 > self._watchdog_units * WATCHDOG_UNIT_S:
+                self._check_watchdog(now)
+            units = [self._to_units(self.signs[k] * v) for k, v in enumerate((left, right))]
+            self._guard(lambda: self._sync_write_velocity(units), "sync write of Goal Velocity")
+            self._last_write_ns = now
+
+    def read(self) -> WheelState:
+        with self._lock:
+            if not self._connected:
+                self._try_reconnect()
+            if not self._connected:
+                if self._port_present() and self.faults:
+                    raise DriveError(f"dynamixel adapter {self.opt.port} is back but not usable: "
+                                     f"{'; '.join(self.faults)}")
+                raise DriveError(f"dynamixel adapter {self.opt.port} is gone; waiting for it to come back")
+            ok, err = self._guard(self._sync_read_state, "sync read of Present Velocity/Position")
+            if ok:
+                self._missed_reads = 0
+            else:
+                self._missed_reads += 1
+                if self._missed_reads >= self.opt.max_missed_reads:
+                    self._fault(err)
+            return self._state
+
+    def disable(self) -> None:
+        with self._lock:
+            self._enabled = False
+            self._torque_off_best_effort()
+
+    def close(self) -> None:
+        with self._lock:
+            self.disable()
+            self._close_port()
+            self._connected = False
+
+    def clear_faults(self) -> None:
+        """REBOOT servos that report a hardware error (only a reboot clears it), then bring them up again.
+
+        Works also when connect() itself failed on a hardware error."""
+        with self._lock:
+            if self.port is None:
+                self._open_port()
+            try:
+                with self.port.relaxed(BRING_UP_EXTRA_MS):
+                    for i in self.ids:
+                        bits, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR))
+                        if res == sdk.COMM_SUCCESS and bits == 0:
+                            continue
+                        res, _ = self._guard_io(lambda: self.ph.reboot(self.port, i))
+                        if res != sdk.COMM_SUCCESS:
+                            raise DriveError(f"servo {i} ({self.sides[i]}): REBOOT failed: "
+                                             f"{self.ph.getTxRxResult(res)}")
+                        time.sleep(0.05)  # the servo restarts before it answers again
+                        self._last_raw[i] = None  # position restarts within one turn; keep accumulating
+                    self.faults.clear()
+                    self._missed_reads = 0
+                    self._bring_up()
+            except DriveError:
+                self._torque_off_best_effort()
+                raise
+            self._connected = True
+
+    # -- bring-up -----------------------------------------------------------------------------
+    def _open_port(self) -> None:
+        if not os.path.exists(self.opt.port):
+            raise DriveError(f"dynamixel adapter {self.opt.port} not found (is the U2D2 plugged in? "
+                             f"see /dev/serial/by-id/)")
+        self.port = BudgetedPort(self.opt.port, self.opt.latency_ms, self.opt.margin_ms)
+        self.ph = sdk.PacketHandler(2.0)
+        try:
+            ok = self.port.openPort() and self.port.setBaudRate(self.opt.baudrate)
+        except Exception as exc:  # serial.SerialException, OSError
+            raise DriveError(f"cannot open dynamixel adapter {self.opt.port}: {exc}") from exc
+        if not ok:
+            raise DriveError(f"cannot open dynamixel adapter {self.opt.port} at {self.opt.baudrate} bit/s")
+        self._sync_write = sdk.GroupSyncWrite(self.port, self.ph, ADDR_GOAL_VELOCITY, 4)
+        self._sync_read = sdk.GroupSyncRead(self.port, self.ph, ADDR_PRESENT_VELOCITY, 8)
+        for i in self.ids:
+            self._sync_read.addParam(i)
+
+    def _close_port(self) -> None:
+        if self.port is not None:
+            try:
+                self.port.closePort()
+            except Exception:
+                pass
+        self.port = None
+
+    def _bring_up(self) -> None:
+        accepted = {MODEL_NUMBERS[self.opt.model]} if self.opt.model else set(MODEL_NUMBERS.values())
+        for i in self.ids:
+            for _attempt in range(BRING_UP_ATTEMPTS):  # a servo just powered may miss the first packet
+                model, res, err = self._guard_io(lambda: self.ph.ping(self.port, i))
+                if res == sdk.COMM_SUCCESS:
+                    break
+            if res != sdk.COMM_SUCCESS:
+                raise DriveError(f"servo {i} ({self.sides[i]}) on {self.opt.port} did not answer ping: "
+                                 f"{self.ph.getTxRxResult(res)}")
+            if model not in accepted:
+                names = {v: k for k, v in MODEL_NUMBERS.items()}
+                raise DriveError(f"servo {i} ({self.sides[i]}) is model number {model} "
+                                 f"({names.get(model, 'unknown')}); expected {self.opt.model or 'an X-series model'} "
+                                 f"({', '.join(str(a) for a in sorted(accepted))})")
+            self.models[i] = model
+        for i in self.ids:
+            bits, res, err = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR))
+            if res == sdk.COMM_SUCCESS and bits:
+                msg = f"servo {i} ({self.sides[i]}) hardware error: {decode_hardware_error(bits)}"
+                self.faults.append(msg)
+                raise DriveError(msg + "; only a REBOOT clears it (clear_faults)")
+        accel_units = int(round(self.opt.profile_acceleration_rad_s2 / ACCEL_UNIT_RAD_S2))
+        steps = [(ADDR_TORQUE_ENABLE, 1, 0, "Torque Enable"),
+                 (ADDR_OPERATING_MODE, 1, MODE_VELOCITY, "Operating Mode"),
+                 (ADDR_VELOCITY_LIMIT, 4, self._limit_units, "Velocity Limit"),
+                 (ADDR_PROFILE_ACCEL, 4, accel_units, "Profile Acceleration"),
+                 (ADDR_RETURN_DELAY, 1, 0, "Return Delay Time"),
+                 (ADDR_BUS_WATCHDOG, 1, 0, "Bus Watchdog"),  # clears a latched watchdog error (0xFF)
+                 (ADDR_BUS_WATCHDOG, 1, self._watchdog_units, "Bus Watchdog")]
+        for addr, size, value, what in steps:
+            for i in self.ids:
+                self._write(i, addr, size, value, what)
+        self._last_raw = {i: None for i in self.ids}
+        self._state = WheelState(self.clock.now_ns(), self._positions(), (0.0, 0.0))
+
+    def _write(self, i: int, addr: int, size: int, value: int, what: str) -> None:
+        """A confirmed register write (bring-up, enable): retried, since none of them is time-critical."""
+        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
+        for _attempt in range(BRING_UP_ATTEMPTS):
+            res, err = self._guard_io(lambda: fn(self.port, i, addr, value & ((1 << (8 * size)) - 1)))
+            if res == sdk.COMM_SUCCESS:
+                break
+        if res != sdk.COMM_SUCCESS:
+            raise DriveError(f"servo {i} ({self.sides[i]}): writing {what} ({addr}) = {value} got no answer: "
+                             f"{self.ph.getTxRxResult(res)}")
+        if err & 0x7F:
+            raise DriveError(f"servo {i} ({self.sides[i]}): writing {what} ({addr}) = {value} refused: "
+                             f"{self.ph.getRxPacketError(err)}")
+
+    # -- per-cycle I/O ---------------------------------------------------------------------------
+    def _to_units(self, rate: float) -> int:
+        return max(-self._limit_units, min(self._limit_units, rad_s_to_units(rate)))
+
+    def _sync_write_velocity(self, units: list[int]) -> tuple[bool, str]:
+        self._sync_write.clearParam()
+        for i, u in zip(self.ids, units):
+            self._sync_write.addParam(i, list((u & 0xFFFFFFFF).to_bytes(4, "little")))
+        res = self._sync_write.txPacket()
+        if res != sdk.COMM_SUCCESS:
+            return False, f"sync write failed: {self.ph.getTxRxResult(res)}"
+        return True, ""
+
+    def _sync_read_state(self) -> tuple[bool, str]:
+        """One sync read; each servo's status is received with its error byte (GroupSyncRead's own
+        rxPacket drops it, and with it the hardware-alert bit)."""
+        res = self._sync_read.txPacket()
+        if res != sdk.COMM_SUCCESS:
+            return False, f"sync read could not be sent: {self.ph.getTxRxResult(res)}"
+        values = {}
+        alerts = []
+        for i in self.ids:
+            data, res, err = self.ph.readRx(self.port, i, 8)
+            if res != sdk.COMM_SUCCESS:
+                why = "no status packet (servo not answering)" if res == sdk.COMM_RX_TIMEOUT else \
+                    "corrupted status packet (bad CRC or truncated)" if res == sdk.COMM_RX_CORRUPT else \
+                    self.ph.getTxRxResult(res)
+                return False, f"servo {i} ({self.sides[i]}): {why}"
+            if err & 0x80:
+                alerts.append(i)
+            values[i] = (to_signed(int.from_bytes(bytes(data[0:4]), "little"), 4),
+                         int.from_bytes(bytes(data[4:8]), "little"))
+        now = self.clock.now_ns()
+        for i, (vel, raw_pos) in values.items():
+            last = self._last_raw[i]
+            # Present Position is a 32-bit multi-turn count; unwrap across its overflow and reboots
+            self._ticks[i] += 0 if last is None else to_signed(raw_pos - last, 4)
+            self._last_raw[i] = raw_pos
+        vel = tuple(self.signs[k] * units_to_rad_s(values[i][0]) for k, i in enumerate(self.ids))
+        self._state = WheelState(now, self._positions(), vel, tuple(self.faults), self._enabled,
+                                 {"raw_velocity": [values[i][0] for i in self.ids]})
+        if alerts:
+            msgs = []
+            for i in alerts:
+                bits, res, _ = self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR)
+                detail = decode_hardware_error(bits) if res == sdk.COMM_SUCCESS else "unreadable"
+                msgs.append(f"servo {i} ({self.sides[i]}) hardware error: {detail}")
+            self._fault("; ".join(msgs) + "; only a REBOOT clears it (clear_faults)")
+        return True, ""
+
+    def _positions(self) -> tuple[float, float]:
+        return tuple(self.signs[k] * self._ticks[i] * 2 * math.pi / TICKS_PER_REV for k, i in enumerate(self.ids))
+
+    def _check_watchdog(self, now: int) -> None:
+        for i in self.ids:
+            v, res, _ = self.ph.read1ByteTxRx(self.port, i, ADDR_BUS_WATCHDOG)
+            if res == sdk.COMM_SUCCESS and v == 0xFF:
+                gap = (now - self._last_write_ns) * 1e-9
+                self._fault(f"servo {i} ({self.sides[i]}): bus watchdog expired after {gap * 1000:.0f} ms "
+                            f"without commands (limit {self._watchdog_units * 20} ms); wheels stopped, enable() again")
+
+    # -- failure handling ---------------------------------------------------------------------------
+    def _guard_io(self, fn):
+        """Run one SDK call; a vanished adapter becomes DriveError (after marking us disconnected)."""
+        try:
+            return fn()
+        except DriveError:
+            raise
+        except Exception as exc:  # serial.SerialException, OSError, TypeError from a closed port
+            self._lost(exc)
+
+    def _guard(self, fn, what: str) -> tuple[bool, str]:
+        ok, err = self._guard_io(fn)
+        if not ok and not self._port_present():
+            self._lost(OSError(err))
+        if not ok and what.startswith("sync write"):
+            self._fault(f"{what}: {err}")
+        return ok, err
+
+    def _port_present(self) -> bool:
+        return os.path.exists(self.opt.port)
+
+    def _lost(self, exc: BaseException):
+        self._enabled = False
+        self._connected = False
+        self._close_port()
+        self._next_reconnect_ns = self.clock.now_ns() + int(self.opt.reconnect_interval_s * 1e9)
+        msg = (f"dynamixel adapter {self.opt.port} lost ({type(exc).__name__}: {exc}); "
+               f"the servos' bus watchdog ({self._watchdog_units * 20} ms) stops the wheels; "
+               f"reconnecting when the device is back")
+        self.faults = [msg]
+        raise DriveError(msg) from exc
+
+    def _fault(self, cause: str):
+        """Record, stop everything reachable, raise. A fault already reported is not raised again:
+        read() then keeps returning states that list it, so the operator sees it until cleared."""
+        if cause in self.faults:
+            return
+        self.faults.append(cause)
+        self._enabled = False
+        self._torque_off_best_effort()
+        raise DriveError(f"dynamixel drive fault: {cause}")
+
+    def _torque_off_best_effort(self) -> None:
+        if self.port is None or self.ph is None:
+            return
+        for i in self.ids:
+            try:
+                self.port.is_using = False  # an exception mid-transfer leaves the SDK's flag set
+                self.ph.write4ByteTxRx(self.port, i, ADDR_GOAL_VELOCITY, 0)
+                self.ph.write1ByteTxRx(self.port, i, ADDR_TORQUE_ENABLE, 0)
+            except Exception:
+                pass
+
+    def _try_reconnect(self) -> None:
+        now = self.clock.now_ns()
+        if now < self._next_reconnect_ns or not self._port_present():
+            return
+        self._next_reconnect_ns = now + int(self.opt.reconnect_interval_s * 1e9)
+        try:
+            self.faults = []
+            self.connect()
+        except DriveError as exc:
+            self._connected = False
+            if not any(f in str(exc) for f in self.faults):
+                self.faults.append(str(exc))

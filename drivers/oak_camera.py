@@ -1,0 +1,320 @@
+"""Luxonis OAK cameras through depthai 3.x: a mono or colour stream plus on-device stereo disparity.
+
+Start-up never lets depthai wait for an implicit device (``dai.Pipeline()``
+with no device blocks ~11 s before failing): devices are listed first
+(``dai.Device.getAllAvailableDevices()``, ~0.5 s) under a hard time limit, and
+with none, or not the one asked for, ``connect()`` fails within
+``discovery_timeout_s`` naming what it found.
+
+Images and disparity come from non-blocking output queues of size 1 (latest
+only) and are paired by sequence number. Intrinsics and the stereo baseline
+come from the calibration stored on the device (``readCalibration``).
+
+``replay_file`` runs a host-only pipeline (``dai.Pipeline(createImplicitDevice=False)``
+with a ReplayVideo node) that needs no hardware: the same host-side code path
+(queues, ImgFrame conversion) for tests and CI.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from datetime import timedelta
+from typing import Any, Literal, Optional
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.clock import MonotonicClock
+
+try:
+    import depthai as dai
+except ImportError as _exc:  # pragma: no cover - depthai is a dependency
+    dai = None
+    _DAI_ERROR = _exc
+
+
+def timedelta_ns(td: timedelta) -> int:
+    """Exact integer nanoseconds of a timedelta (depthai stamps are steady-clock = CLOCK_MONOTONIC)."""
+    return ((td.days * 86400 + td.seconds) * 1_000_000 + td.microseconds) * 1000
+
+
+def disparity_px(frame: "dai.ImgFrame", subpixel_bits: int = 3) -> np.ndarray:
+    """Disparity in pixels (float32, NaN where the device found no match) from a StereoDepth output.
+
+    RAW16 with subpixel carries ``subpixel_bits`` fractional bits; RAW8 is whole pixels.
+    """
+    raw = frame.getFrame()
+    typ = frame.getType()
+    out = raw.astype(np.float32)
+    if typ == dai.ImgFrame.Type.RAW16 and subpixel_bits:
+        out /= float(1 << subpixel_bits)
+    elif typ not in (dai.ImgFrame.Type.RAW8, dai.ImgFrame.Type.RAW16):
+        raise CameraError(f"disparity frame has type {typ}, expected RAW8 or RAW16")
+    out[raw == 0] = np.nan
+    return out
+
+
+def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = None, seq: int = 0,
+                         grey: bool = True, subpixel_bits: int = 3, meta: Optional[dict] = None) -> Frame:
+    """Host-side conversion of depthai messages into our Frame."""
+    image = img.getCvFrame()
+    if grey and image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    disparity = None
+    if disp is not None:
+        disparity = disparity_px(disp, subpixel_bits)
+        if disparity.shape[:2] != image.shape[:2]:
+            raise CameraError(f"disparity {disparity.shape[1]}x{disparity.shape[0]} is not aligned with the image "
+                              f"{image.shape[1]}x{image.shape[0]} (set the stereo depth alignment and output size)")
+    m = {"device_seq": img.getSequenceNum()}
+    m.update(meta or {})
+    return Frame(np.ascontiguousarray(image), timedelta_ns(img.getTimestamp()), seq, disparity=disparity, meta=m)
+
+
+def list_devices(timeout_s: float) -> list:
+    """``dai.Device.getAllAvailableDevices()`` under a hard time limit (None if it did not return in time)."""
+    result: list = []
+    done = threading.Event()
+
+    def work():
+        try:
+            result.extend(dai.Device.getAllAvailableDevices())
+        finally:
+            done.set()
+
+    threading.Thread(target=work, name="oak-discovery", daemon=True).start()
+    if not done.wait(timeout_s):
+        return None
+    return result
+
+
+def describe(info) -> str:
+    try:
+        return f"{info.getDeviceId()} ({info.name}, {info.state.name})"
+    except Exception:  # pragma: no cover - field names differ between depthai versions
+        return str(info)
+
+
+class OakCamera(Camera):
+    name = "oak"
+
+    class Options(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        device_id: Optional[str] = Field(None, description="device id (MxID) or IP; None: the only device attached")
+        stream: Literal["mono", "color"] = Field("mono", description="mono: rectified left camera; color: CAM_A")
+        disparity: bool = Field(True, description="on-device stereo disparity aligned with the stream")
+        subpixel: bool = False
+        subpixel_bits: int = Field(3, ge=3, le=5, description="fractional bits of subpixel disparity")
+        extended_disparity: bool = False
+        lr_check: bool = True
+        use_device_calibration: bool = Field(True, description="intrinsics and baseline from the device EEPROM")
+        grey: bool = Field(True, description="deliver single-channel images")
+        discovery_timeout_s: float = Field(2.0, gt=0, le=30, description="fail start-up after this long")
+        replay_file: Optional[str] = Field(None, description="host-only replay of a recorded video (no device)")
+        replay_fps: float = Field(30.0, gt=0)
+
+    def __init__(self, cfg: Any = None, clock=None, *, options: Optional["OakCamera.Options"] = None,
+                 width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
+        if dai is None:  # pragma: no cover
+            raise CameraError(f"depthai is not installed: {_DAI_ERROR}")
+        cam = getattr(cfg, "camera", None)
+        if options is None:
+            options = self.Options.model_validate(cam.options if cam is not None else {})
+        self.opt = options
+        self.clock = clock or MonotonicClock()
+        self.width = width or (cam.width if cam is not None else 640)
+        self.height = height or (cam.height if cam is not None else 400)
+        self.fps = fps or (cam.rate_hz if cam is not None else 30.0)
+        self.intrinsics: Optional[np.ndarray] = None
+        self.distortion: Optional[np.ndarray] = None
+        self.baseline_m: Optional[float] = None
+        self.device_id: Optional[str] = None
+        self.error: Optional[str] = None
+        self._device = None
+        self._pipeline = None
+        self._img_q = self._disp_q = None
+        self._latest: Optional[Frame] = None
+        self._returned_seq = 0
+        self._seq = 0
+        self._pending_disp: dict[int, Any] = {}
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._connected = False
+
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "OakCamera":
+        return cls(cfg, clock, options=options)
+
+    @staticmethod
+    def find(timeout_s: float = 2.0) -> list[str]:
+        devices = list_devices(timeout_s) or []
+        return [describe(d) for d in devices]
+
+    # -- lifecycle ------------------------------------------------------------------------
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def connect(self) -> None:
+        if self.opt.replay_file:
+            self._build_replay()
+        else:
+            self._build_device()
+        self._pipeline.start()
+        self._connected = True
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._grab_loop, name="oak-grab", daemon=True)
+        self._thread.start()
+
+    def disconnect(self) -> None:
+        self._stop.set()
+        if self._pipeline is not None:
+            try:
+                self._pipeline.stop()
+            except Exception:
+                pass
+        if self._thread is not None:
+            self._thread.join(timeout=3.0)
+            self._thread = None
+        if self._device is not None:
+            try:
+                self._device.close()
+            except Exception:
+                pass
+        self._pipeline = self._device = None
+        self._connected = False
+
+    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            while self._latest is None or self._latest.seq <= self._returned_seq:
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+            self._returned_seq = self._latest.seq
+            return self._latest
+
+    # -- pipelines --------------------------------------------------------------------------
+    def _build_replay(self) -> None:
+        import os
+        if not os.path.isfile(self.opt.replay_file):
+            raise CameraError(f"OAK replay file {self.opt.replay_file} not found")
+        p = dai.Pipeline(createImplicitDevice=False)
+        replay = p.create(dai.node.ReplayVideo)
+        replay.setReplayVideoFile(self.opt.replay_file)
+        replay.setOutFrameType(dai.ImgFrame.Type.GRAY8 if self.opt.grey else dai.ImgFrame.Type.BGR888i)
+        replay.setSize(self.width, self.height)
+        replay.setFps(self.opt.replay_fps)
+        replay.setLoop(False)
+        self._pipeline = p
+        self._img_q = replay.out.createOutputQueue(maxSize=1, blocking=False)
+        self._disp_q = None
+        self.device_id = "replay:" + self.opt.replay_file
+
+    def _select_device(self):
+        t0 = time.monotonic()
+        devices = list_devices(self.opt.discovery_timeout_s)
+        took = time.monotonic() - t0
+        if devices is None:
+            raise CameraError(f"OAK device discovery did not finish within {self.opt.discovery_timeout_s:g} s")
+        found = ", ".join(describe(d) for d in devices) or "none"
+        if not devices:
+            raise CameraError(f"no OAK device found (searched {took:.1f} s over USB and network; found: {found}). "
+                              f"Check the cable/power and the udev rule for Movidius (03e7) devices.")
+        if self.opt.device_id is None:
+            if len(devices) > 1:
+                raise CameraError(f"{len(devices)} OAK devices found ({found}); set camera.options.device_id")
+            return devices[0]
+        for d in devices:
+            if self.opt.device_id in (d.getDeviceId(), getattr(d, "name", None)):
+                return d
+        raise CameraError(f"OAK device {self.opt.device_id} not found; found: {found}")
+
+    def _build_device(self) -> None:
+        info = self._select_device()
+        try:
+            self._device = dai.Device(info)
+        except Exception as exc:
+            raise CameraError(f"OAK device {describe(info)} cannot be opened: {exc}") from exc
+        self.device_id = info.getDeviceId()
+        calib = self._device.readCalibration()
+        p = dai.Pipeline(self._device)
+        size = (self.width, self.height)
+        mono_type = dai.ImgFrame.Type.GRAY8
+        if self.opt.stream == "mono" or self.opt.disparity:
+            left = p.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
+            right = p.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
+            left_out = left.requestOutput(size, mono_type, fps=self.fps)
+            right_out = right.requestOutput(size, mono_type, fps=self.fps)
+        stereo = None
+        if self.opt.disparity:
+            stereo = p.create(dai.node.StereoDepth)
+            stereo.setLeftRightCheck(self.opt.lr_check)
+            stereo.setSubpixel(self.opt.subpixel)
+            if self.opt.subpixel:
+                stereo.setSubpixelFractionalBits(self.opt.subpixel_bits)
+            stereo.setExtendedDisparity(self.opt.extended_disparity)
+            left_out.link(stereo.left)
+            right_out.link(stereo.right)
+        if self.opt.stream == "mono":
+            socket = dai.CameraBoardSocket.CAM_B
+            img_out = stereo.rectifiedLeft if stereo is not None else left_out
+        else:
+            socket = dai.CameraBoardSocket.CAM_A
+            color = p.create(dai.node.Camera).build(socket)
+            img_out = color.requestOutput(size, dai.ImgFrame.Type.BGR888i, fps=self.fps)
+            if stereo is not None:
+                stereo.setDepthAlign(socket)
+                stereo.setOutputSize(self.width, self.height)
+        if stereo is not None and self.opt.stream == "mono":
+            stereo.setDepthAlign(dai.StereoDepthConfig.AlgorithmControl.DepthAlign.RECTIFIED_LEFT)
+        if self.opt.use_device_calibration:
+            self.intrinsics = np.array(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=float)
+            self.distortion = np.array(calib.getDistortionCoefficients(socket), dtype=float)
+            self.baseline_m = float(calib.getBaselineDistance(dai.CameraBoardSocket.CAM_C,
+                                                              dai.CameraBoardSocket.CAM_B)) / 100.0
+        self._pipeline = p
+        self._img_q = img_out.createOutputQueue(maxSize=1, blocking=False)
+        self._disp_q = stereo.disparity.createOutputQueue(maxSize=4, blocking=False) if stereo is not None else None
+
+    # -- grabbing ----------------------------------------------------------------------------------
+    def _meta(self) -> dict:
+        m = {"device": self.device_id}
+        if self.intrinsics is not None:
+            m["K"] = self.intrinsics
+            m["baseline_m"] = self.baseline_m
+        return m
+
+    def _grab_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                if not self._pipeline.isRunning():
+                    self.error = self.error or "OAK pipeline stopped (device lost or replay finished)"
+                    return
+                img = self._img_q.tryGet()
+                if self._disp_q is not None:
+                    for d in self._disp_q.tryGetAll():
+                        self._pending_disp[d.getSequenceNum()] = d
+                if img is None:
+                    time.sleep(0.002)
+                    continue
+                disp = None
+                if self._disp_q is not None:
+                    # disparity and its rectified image share the device sequence number
+                    disp = self._pending_disp.pop(img.getSequenceNum(), None)
+                    for k in [k for k in self._pending_disp if k < img.getSequenceNum()]:
+                        del self._pending_disp[k]
+                with self._cond:
+                    self._seq += 1
+                    self._latest = frame_from_imgframes(img, disp, self._seq, self.opt.grey,
+                                                        self.opt.subpixel_bits, self._meta())
+                    self._cond.notify_all()
+            except Exception as exc:  # device unplugged mid-stream: report, the runtime sees stale frames
+                if self._stop.is_set():
+                    return
+                self.error = f"OAK camera {self.device_id} failed: {exc}"
+                return

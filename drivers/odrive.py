@@ -1,0 +1,393 @@
+"""ODrive wheels over the ASCII protocol (pyserial), closed-loop velocity control of two axes.
+
+Per cycle: ``v <axis> <turns/s>`` for both axes (it feeds the axis watchdog in
+the firmware; ``u`` feeds it where no command is due) and ``f <axis>`` for
+position and velocity. Every ``error_poll_every`` cycles the axis error words
+are read; any error (or an axis that left closed loop) is a fault: both axes go
+to IDLE and ``DriveError`` names the decoded bits. ``clear_faults()`` sends
+``sc``. Optional ``*<xor>`` checksums on every line (answers are checked too).
+
+Units: wheel rad/s <-> motor turns/s through ``gear_ratio`` (motor turns per wheel turn).
+"""
+from __future__ import annotations
+
+import math
+import os
+import select
+import threading
+import time
+from typing import Any, Optional
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.drivers.clock import MonotonicClock
+from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+
+try:
+    import serial
+except ImportError as _exc:  # pragma: no cover - pyserial is a dependency
+    serial = None
+
+AXIS_STATE_IDLE = 1
+AXIS_STATE_CLOSED_LOOP = 8
+CONTROL_MODE_VELOCITY = 2
+INPUT_MODE_PASSTHROUGH = 1
+INPUT_MODE_VEL_RAMP = 2
+
+# firmware 0.5.x error bits (a subset named; others print as hex)
+AXIS_ERRORS = {0x1: "INVALID_STATE", 0x40: "MOTOR_FAILED", 0x100: "ENCODER_FAILED", 0x200: "CONTROLLER_FAILED",
+               0x800: "WATCHDOG_TIMER_EXPIRED", 0x2000: "MAX_ENDSTOP_PRESSED", 0x4000: "ESTOP_REQUESTED",
+               0x20000: "HOMING_WITHOUT_ENDSTOP", 0x40000: "OVER_TEMP", 0x80000: "UNKNOWN_POSITION"}
+MOTOR_ERRORS = {0x1: "PHASE_RESISTANCE_OUT_OF_RANGE", 0x2: "PHASE_INDUCTANCE_OUT_OF_RANGE", 0x8: "DRV_FAULT",
+                0x10: "CONTROL_DEADLINE_MISSED", 0x80: "MODULATION_MAGNITUDE", 0x400: "CURRENT_SENSE_SATURATION",
+                0x1000: "CURRENT_LIMIT_VIOLATION", 0x10000: "MODULATION_IS_NAN", 0x20000: "MOTOR_THERMISTOR_OVER_TEMP",
+                0x40000: "FET_THERMISTOR_OVER_TEMP"}
+ENCODER_ERRORS = {0x1: "UNSTABLE_GAIN", 0x2: "CPR_POLEPAIRS_MISMATCH", 0x4: "NO_RESPONSE",
+                  0x8: "UNSUPPORTED_ENCODER_MODE", 0x10: "ILLEGAL_HALL_STATE", 0x20: "INDEX_NOT_FOUND_YET",
+                  0x40: "ABS_SPI_TIMEOUT", 0x80: "ABS_SPI_COM_FAIL", 0x100: "ABS_SPI_NOT_READY"}
+CONTROLLER_ERRORS = {0x1: "OVERSPEED", 0x2: "INVALID_INPUT_MODE", 0x4: "UNSTABLE_GAIN", 0x8: "INVALID_MIRROR_AXIS",
+                     0x10: "INVALID_LOAD_ENCODER", 0x20: "INVALID_ESTIMATE", 0x40: "INVALID_CIRCULAR_RANGE",
+                     0x80: "SPINOUT_DETECTED"}
+
+
+def decode_bits(value: int, table: dict[int, str]) -> list[str]:
+    names = [name for bit, name in table.items() if value & bit]
+    rest = value & ~sum(b for b in table if value & b)
+    if rest:
+        names.append(f"0x{rest:x}")
+    return names
+
+
+def xor_checksum(text: str) -> int:
+    c = 0
+    for b in text.encode("ascii"):
+        c ^= b
+    return c
+
+
+class ODriveDrive(WheelDrive):
+    name = "odrive"
+
+    class Options(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        port: str = Field("/dev/ttyACM0", description="ODrive USB CDC or UART device")
+        baudrate: int = Field(115200, description="UART rate (ignored by USB CDC)")
+        left_axis: int = Field(0, ge=0, le=1)
+        right_axis: int = Field(1, ge=0, le=1)
+        gear_ratio: float = Field(1.0, gt=0, description="motor turns per wheel turn")
+        vel_limit_turns_s: float = Field(2.0, gt=0, description="axisN.controller.config.vel_limit")
+        vel_ramp_rate: float = Field(0.0, ge=0, description="turns/s^2 (input_mode VEL_RAMP); 0 = passthrough")
+        watchdog_s: float = Field(0.1, gt=0, description="axis watchdog: the axis disarms after this silence")
+        checksum: bool = Field(False, description="append *<xor> to every line and check answers")
+        reply_timeout_s: float = Field(0.005, gt=0, le=0.5, description="wait for one answer line in the loop")
+        setup_timeout_s: float = Field(0.1, gt=0, le=2.0, description="wait for an answer during setup")
+        error_poll_every: int = Field(10, ge=1, description="read the error words every N cycles")
+        max_missed_reads: int = Field(2, ge=1)
+        reconnect_interval_s: float = Field(0.5, gt=0)
+
+    def __init__(self, cfg: Any = None, clock=None, *, options: Optional["ODriveDrive.Options"] = None,
+                 invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
+        drive_cfg = getattr(cfg, "drive", None)
+        if options is None:
+            options = self.Options.model_validate(drive_cfg.options if drive_cfg is not None else {})
+        self.opt = options
+        self.clock = clock or MonotonicClock()
+        inv_l = invert_left if invert_left is not None else bool(getattr(drive_cfg, "invert_left", False))
+        inv_r = invert_right if invert_right is not None else bool(getattr(drive_cfg, "invert_right", False))
+        self.axes = (options.left_axis, options.right_axis)
+        self.sides = {options.left_axis: "left", options.right_axis: "right"}
+        self.signs = (-1 if inv_l else 1, -1 if inv_r else 1)
+        self.ser = None
+        self.faults: list[str] = []
+        self._connected = False
+        self._enabled = False
+        self._lock = threading.RLock()
+        self._cycle = 0
+        self._missed = 0
+        self._next_reconnect_ns = 0
+        self._rx = b""
+        self._state = WheelState(self.clock.now_ns(), (0.0, 0.0), (0.0, 0.0))
+
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "ODriveDrive":
+        """As the runtime's factory builds drives: the robot config, its clock, the validated options."""
+        return cls(cfg, clock, options=options)
+
+    # -- lifecycle ---------------------------------------------------------------------
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def connect(self) -> None:
+        self._connect(clear_errors=False)
+
+    def _connect(self, clear_errors: bool) -> None:
+        with self._lock:
+            if not os.path.exists(self.opt.port):
+                raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
+            try:
+                self.ser = serial.Serial(self.opt.port, self.opt.baudrate, timeout=0)
+            except (serial.SerialException, OSError) as exc:
+                raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
+            try:
+                t = self.opt.setup_timeout_s
+                vbus = self._query("r vbus_voltage", t)
+                if vbus is None:
+                    raise DriveError(f"ODrive on {self.opt.port} does not answer 'r vbus_voltage'")
+                self.vbus_voltage = float(vbus)
+                if clear_errors:
+                    self._send("sc")
+                for ax in self.axes:
+                    self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
+                errors = self._read_errors(t)
+                if errors:
+                    self.faults = errors
+                    raise DriveError("ODrive reports errors: " + "; ".join(errors) + " (clear with clear_faults)")
+                mode = INPUT_MODE_VEL_RAMP if self.opt.vel_ramp_rate > 0 else INPUT_MODE_PASSTHROUGH
+                for ax in self.axes:
+                    self._send(f"w axis{ax}.controller.config.control_mode {CONTROL_MODE_VELOCITY}")
+                    self._send(f"w axis{ax}.controller.config.input_mode {mode}")
+                    self._send(f"w axis{ax}.controller.config.vel_limit {self.opt.vel_limit_turns_s:.4f}")
+                    if self.opt.vel_ramp_rate > 0:
+                        self._send(f"w axis{ax}.controller.config.vel_ramp_rate {self.opt.vel_ramp_rate:.4f}")
+                    self._send(f"w axis{ax}.controller.input_vel 0")
+                    self._send(f"w axis{ax}.config.watchdog_timeout {self.opt.watchdog_s:.4f}")
+                    self._send(f"w axis{ax}.config.enable_watchdog 1")
+                    got = self._query(f"r axis{ax}.controller.config.control_mode", t)
+                    if got is None or int(float(got)) != CONTROL_MODE_VELOCITY:
+                        raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
+            except DriveError:
+                self._close_serial()
+                raise
+            except (serial.SerialException, OSError) as exc:
+                self._close_serial()
+                raise DriveError(f"ODrive {self.opt.port} failed during setup: {exc}") from exc
+            self._connected = True
+
+    def enable(self) -> None:
+        with self._lock:
+            if not self._connected:
+                raise DriveError(f"ODrive on {self.opt.port} is not connected")
+            if self.faults:
+                raise DriveError("ODrive has faults, clear them first (clear_faults): " + "; ".join(self.faults))
+            self._io(self._arm)
+            self._enabled = True
+
+    def _arm(self) -> None:
+        for ax in self.axes:
+            self._send(f"v {ax} 0")
+            self._send(f"u {ax}")
+            self._send(f"w axis{ax}.requested_state {AXIS_STATE_CLOSED_LOOP}")
+        for ax in self.axes:
+            state = self._query(f"r axis{ax}.current_state", self.opt.setup_timeout_s)
+            if state is None or int(float(state)) != AXIS_STATE_CLOSED_LOOP:
+                errors = self._read_errors(self.opt.setup_timeout_s)
+                self._disarm()
+                raise DriveError(f"ODrive axis{ax} ({self.sides[ax]}) did not enter closed loop "
+                                 f"(state {state}); errors: {'; '.join(errors) or 'none'}")
+
+    def write(self, left: float, right: float) -> None:
+        with self._lock:
+            if self.faults:
+                raise DriveError("ODrive faulted: " + "; ".join(self.faults))
+            if not self._enabled:
+                raise DriveError("ODrive drive is not enabled")
+            rates = (left, right)
+            for k, ax in enumerate(self.axes):
+                turns = self.signs[k] * rates[k] / (2 * math.pi) * self.opt.gear_ratio
+                turns = max(-self.opt.vel_limit_turns_s, min(self.opt.vel_limit_turns_s, turns))
+                self._io(lambda: self._send(f"v {ax} {turns:.4f}"))
+
+    def read(self) -> WheelState:
+        with self._lock:
+            if not self._connected:
+                self._try_reconnect()
+            if not self._connected:
+                if os.path.exists(self.opt.port) and self.faults:
+                    raise DriveError(f"ODrive {self.opt.port} is back but not usable: {'; '.join(self.faults)}")
+                raise DriveError(f"ODrive {self.opt.port} is gone; waiting for it to come back")
+            self._cycle += 1
+            values, why = self._io(self._feedback)
+            if values is None:
+                self._missed += 1
+                if self._missed >= self.opt.max_missed_reads:
+                    self._fault(why)
+                return self._state
+            self._missed = 0
+            pos = tuple(self.signs[k] * values[k][0] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
+            vel = tuple(self.signs[k] * values[k][1] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
+            self._state = WheelState(self.clock.now_ns(), pos, vel, tuple(self.faults), self._enabled)
+            if self._enabled and self._cycle % self.opt.error_poll_every == 0:
+                errors = self._io(lambda: self._read_errors(self.opt.reply_timeout_s * 4))
+                if errors:
+                    self._fault("; ".join(errors))
+            return self._state
+
+    def disable(self) -> None:
+        with self._lock:
+            self._enabled = False
+            self._disarm()
+
+    def close(self) -> None:
+        with self._lock:
+            self.disable()
+            self._close_serial()
+            self._connected = False
+
+    def clear_faults(self) -> None:
+        """``sc`` clears the error words of both axes; enable() re-arms."""
+        with self._lock:
+            if not self._connected:
+                self._connect(clear_errors=True)
+            self._io(lambda: self._send("sc"))
+            errors = self._io(lambda: self._read_errors(self.opt.setup_timeout_s))
+            if errors:
+                raise DriveError("ODrive errors remain after clearing: " + "; ".join(errors))
+            self.faults = []
+            self._missed = 0
+
+    # -- protocol --------------------------------------------------------------------------
+    def _frame(self, text: str) -> bytes:
+        if self.opt.checksum:
+            text = f"{text}*{xor_checksum(text)}"
+        return (text + "\n").encode("ascii")
+
+    def _send(self, text: str) -> None:
+        self.ser.write(self._frame(text))
+
+    def _readline(self, timeout_s: float) -> Optional[str]:
+        end = time.monotonic() + timeout_s
+        while b"\n" not in self._rx:
+            remaining = end - time.monotonic()
+            if remaining <= 0:
+                return None
+            # select() instead of changing ser.timeout: pyserial reconfigures the tty on every change
+            ready, _, _ = select.select([self.ser.fd], [], [], remaining)
+            chunk = self.ser.read(self.ser.in_waiting or 1) if ready else b""
+            if chunk:
+                self._rx += chunk
+            elif not os.path.exists(self.opt.port):
+                raise OSError(f"{self.opt.port} disappeared")
+        line, _, self._rx = self._rx.partition(b"\n")
+        return line.decode("ascii", "replace").strip()
+
+    def _query(self, text: str, timeout_s: float) -> Optional[str]:
+        """Send a line and return its answer (checksum verified), None on timeout."""
+        self._rx = b""
+        self.ser.reset_input_buffer()
+        self._send(text)
+        line = self._readline(timeout_s)
+        if line is None:
+            return None
+        if self.opt.checksum:
+            body, star, given = line.rpartition("*")
+            if not star or not given.isdigit() or int(given) != xor_checksum(body):
+                raise _Corrupt(f"answer to {text!r} has a bad checksum: {line!r}")
+            line = body
+        return line
+
+    def _feedback(self) -> tuple[Optional[list], str]:
+        """``f`` for both axes in one write, then both answer lines: one round trip per cycle, not two."""
+        self._rx = b""
+        self.ser.reset_input_buffer()
+        self.ser.write(b"".join(self._frame(f"f {ax}") for ax in self.axes))
+        end = time.monotonic() + self.opt.reply_timeout_s
+        out = []
+        for ax in self.axes:
+            line = self._readline(max(0.0, end - time.monotonic()))
+            if line is None:
+                return None, f"axis{ax} ({self.sides[ax]}): no answer to 'f {ax}' within " \
+                             f"{self.opt.reply_timeout_s * 1000:.0f} ms"
+            if self.opt.checksum:
+                body, star, given = line.rpartition("*")
+                if not star or not given.isdigit() or int(given) != xor_checksum(body):
+                    return None, f"axis{ax} ({self.sides[ax]}): corrupted answer (bad checksum): {line!r}"
+                line = body
+            try:
+                pos, vel = (float(x) for x in line.split())
+            except ValueError:
+                return None, f"axis{ax} ({self.sides[ax]}): corrupted answer to 'f {ax}': {line!r}"
+            out.append((pos, vel))
+        return out, ""
+
+    def _read_errors(self, timeout_s: float) -> list[str]:
+        found = []
+        for ax in self.axes:
+            words = {}
+            for name in ("error", "motor.error", "encoder.error", "controller.error"):
+                try:
+                    got = self._query(f"r axis{ax}.{name}", timeout_s)
+                    words[name] = int(float(got)) if got is not None else None
+                except (_Corrupt, ValueError):
+                    words[name] = None
+            if words["error"] is None:
+                found.append(f"axis{ax} ({self.sides[ax]}): error word unreadable")
+                continue
+            parts = []
+            for name, table in (("error", AXIS_ERRORS), ("motor.error", MOTOR_ERRORS),
+                                ("encoder.error", ENCODER_ERRORS), ("controller.error", CONTROLLER_ERRORS)):
+                if words[name]:
+                    parts.append(f"{name}={'|'.join(decode_bits(words[name], table))}")
+            if parts:
+                found.append(f"axis{ax} ({self.sides[ax]}): " + ", ".join(parts))
+        return found
+
+    # -- failure handling -----------------------------------------------------------------------
+    def _io(self, fn):
+        try:
+            return fn()
+        except (DriveError, _Corrupt):
+            raise
+        except Exception as exc:  # SerialException, OSError from a vanished device
+            self._lost(exc)
+
+    def _lost(self, exc: BaseException):
+        self._enabled = False
+        self._connected = False
+        self._close_serial()
+        self._next_reconnect_ns = self.clock.now_ns() + int(self.opt.reconnect_interval_s * 1e9)
+        msg = (f"ODrive {self.opt.port} lost ({type(exc).__name__}: {exc}); its axis watchdog "
+               f"({self.opt.watchdog_s * 1000:.0f} ms) disarms the motors; reconnecting when the device is back")
+        self.faults = [msg]
+        raise DriveError(msg) from exc
+
+    def _fault(self, cause: str):
+        if cause in self.faults:
+            return
+        self.faults.append(cause)
+        self._enabled = False
+        self._disarm()
+        raise DriveError(f"ODrive fault: {cause}")
+
+    def _disarm(self) -> None:
+        if self.ser is None:
+            return
+        for ax in self.axes:
+            try:
+                self._send(f"v {ax} 0")
+                self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
+            except Exception:
+                pass
+
+    def _close_serial(self) -> None:
+        if self.ser is not None:
+            try:
+                self.ser.close()
+            except Exception:
+                pass
+        self.ser = None
+
+    def _try_reconnect(self) -> None:
+        now = self.clock.now_ns()
+        if now < self._next_reconnect_ns or not os.path.exists(self.opt.port):
+            return
+        self._next_reconnect_ns = now + int(self.opt.reconnect_interval_s * 1e9)
+        try:
+            self.faults = []
+            self.connect()
+        except DriveError:
+            self._connected = False
+
+
+class _Corrupt(Exception):
+    """An answer whose checksum does not match."""

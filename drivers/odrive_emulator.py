@@ -1,0 +1,349 @@
+"""An emulated ODrive (firmware 0.5.x ASCII protocol) behind a pseudo-terminal.
+
+Commands served (one per line, optionally followed by ``*<xor of the bytes before *>``;
+answers to a checksummed command carry a checksum too, as the firmware does):
+
+- ``v <axis> <vel turns/s> [torque_ff]``: velocity setpoint (feeds the watchdog)
+- ``f <axis>``: answers ``<pos turns> <vel turns/s>``
+- ``u <axis>``: feeds the watchdog
+- ``r <property>`` / ``w <property> <value>``: read / write a property
+- ``sc``: clear errors on both axes (the axes stay idle until requested again)
+
+Axis behaviour: the velocity loop runs only in CLOSED_LOOP_CONTROL (state 8)
+with control_mode VELOCITY (2). An axis error drops the axis to IDLE (1). The
+watchdog (``axisN.config.enable_watchdog``, ``axisN.config.watchdog_timeout``)
+expires without feeds in closed loop: AXIS_ERROR_WATCHDOG_TIMER_EXPIRED (0x800).
+Faults: ``no_answer`` (the whole device silent), ``corrupt`` (answers with a
+wrong checksum or garbled text), ``axis(n).inject(motor=..., encoder=...)``.
+"""
+from __future__ import annotations
+
+import math
+import os
+import select
+import threading
+import time
+import tty
+from pathlib import Path
+from typing import Optional
+
+from vbnav.drivers.dynamixel_emulator import WheelCoupling
+
+AXIS_STATE_IDLE = 1
+AXIS_STATE_CLOSED_LOOP = 8
+CONTROL_MODE_VELOCITY = 2
+AXIS_ERROR_INVALID_STATE = 0x1
+AXIS_ERROR_MOTOR_FAILED = 0x40
+AXIS_ERROR_ENCODER_FAILED = 0x100
+AXIS_ERROR_WATCHDOG_EXPIRED = 0x800
+
+
+def checksum(text: str) -> int:
+    c = 0
+    for b in text.encode("ascii"):
+        c ^= b
+    return c
+
+
+class EmulatedAxis:
+    def __init__(self, index: int):
+        self.index = index
+        self.current_state = AXIS_STATE_IDLE
+        self.error = 0
+        self.motor_error = 0
+        self.encoder_error = 0
+        self.controller_error = 0
+        self.control_mode = 3  # position control at power-on
+        self.input_mode = 1  # passthrough
+        self.input_vel = 0.0
+        self.vel_limit = 2.0  # turns/s
+        self.vel_ramp_rate = 1.0  # turns/s^2
+        self.watchdog_timeout = 0.0
+        self.enable_watchdog = False
+        self.pos = 0.0
+        self.vel = 0.0
+        self.last_feed = time.monotonic()
+        self.time_constant_s = 0.02  # velocity loop response
+
+    def properties(self) -> dict[str, tuple]:
+        """name -> (getter, setter or None)."""
+        def attr(name, kind=float):
+            return (lambda: getattr(self, name),
+                    lambda v: setattr(self, name, kind(v)))
+        return {
+            "current_state": (lambda: self.current_state, None),
+            "requested_state": (lambda: 0, self.request_state),
+            "error": attr("error", int),
+            "motor.error": attr("motor_error", int),
+            "encoder.error": attr("encoder_error", int),
+            "controller.error": attr("controller_error", int),
+            "controller.config.control_mode": attr("control_mode", int),
+            "controller.config.input_mode": attr("input_mode", int),
+            "controller.config.vel_limit": attr("vel_limit"),
+            "controller.config.vel_ramp_rate": attr("vel_ramp_rate"),
+            "controller.input_vel": attr("input_vel"),
+            "config.watchdog_timeout": attr("watchdog_timeout"),
+            "config.enable_watchdog": (lambda: int(self.enable_watchdog),
+                                       lambda v: setattr(self, "enable_watchdog", bool(int(float(v))))),
+            "encoder.pos_estimate": (lambda: self.pos, None),
+            "encoder.vel_estimate": (lambda: self.vel, None),
+        }
+
+    def any_error(self) -> bool:
+        return bool(self.error or self.motor_error or self.encoder_error or self.controller_error)
+
+    def request_state(self, value) -> None:
+        state = int(float(value))
+        if state == AXIS_STATE_CLOSED_LOOP:
+            if self.any_error():
+                self.error |= AXIS_ERROR_INVALID_STATE
+                return
+            self.last_feed = time.monotonic()
+            self.current_state = AXIS_STATE_CLOSED_LOOP
+        elif state == AXIS_STATE_IDLE:
+            self.current_state = AXIS_STATE_IDLE
+
+    def inject(self, motor: int = 0, encoder: int = 0, controller: int = 0) -> None:
+        """A hardware fault: the axis records it and disarms."""
+        self.motor_error |= motor
+        self.encoder_error |= encoder
+        self.controller_error |= controller
+        if motor:
+            self.error |= AXIS_ERROR_MOTOR_FAILED
+        if encoder:
+            self.error |= AXIS_ERROR_ENCODER_FAILED
+        self.current_state = AXIS_STATE_IDLE
+
+    def clear_errors(self) -> None:
+        self.error = self.motor_error = self.encoder_error = self.controller_error = 0
+
+    def feed(self) -> None:
+        self.last_feed = time.monotonic()
+
+    def check_watchdog(self, now: float) -> bool:
+        if (self.enable_watchdog and self.watchdog_timeout > 0 and self.current_state == AXIS_STATE_CLOSED_LOOP
+                and now - self.last_feed > self.watchdog_timeout):
+            self.error |= AXIS_ERROR_WATCHDOG_EXPIRED
+            self.current_state = AXIS_STATE_IDLE
+            return True
+        return False
+
+    def target(self) -> float:
+        if self.current_state != AXIS_STATE_CLOSED_LOOP or self.control_mode != CONTROL_MODE_VELOCITY:
+            return 0.0
+        return max(-self.vel_limit, min(self.vel_limit, self.input_vel))
+
+    def step(self, dt: float, coupling: Optional[WheelCoupling] = None) -> None:
+        target = self.target()
+        if coupling is not None:
+            coupling.command(self.index, target * 2 * math.pi)
+            angle, rate = coupling.measure(self.index)
+            self.pos, self.vel = angle / (2 * math.pi), rate / (2 * math.pi)
+            return
+        alpha = 1.0 - math.exp(-dt / self.time_constant_s) if self.time_constant_s > 0 else 1.0
+        self.vel += (target - self.vel) * alpha
+        self.pos += self.vel * dt
+
+
+class ODriveEmulator:
+    """A two-axis ODrive on a pty. ``start()`` returns the device path."""
+
+    def __init__(self, link: str | Path | None = None, coupling: Optional[WheelCoupling] = None,
+                 step_s: float = 0.001):
+        self.axes = [EmulatedAxis(0), EmulatedAxis(1)]
+        self.link = Path(link) if link else None
+        self.coupling = coupling
+        self.step_s = step_s
+        self.vbus_voltage = 24.0
+        self.no_answer = False
+        self.corrupt = False
+        self.lock = threading.RLock()
+        self.log: list[tuple[float, str]] = []
+        self._master = self._slave = -1
+        self.slave_path = ""
+        self._buf = b""
+        self._thread: Optional[threading.Thread] = None
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+
+    def axis(self, n: int) -> EmulatedAxis:
+        return self.axes[n]
+
+    @property
+    def path(self) -> str:
+        return str(self.link) if self.link else self.slave_path
+
+    # -- lifecycle (same shape as the Dynamixel bus) ---------------------------------
+    def start(self) -> str:
+        self._open_pty()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="odrive-emulator", daemon=True)
+        self._thread.start()
+        return self.path
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        self._close_pty()
+
+    def __enter__(self) -> "ODriveEmulator":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def unplug(self) -> None:
+        with self.lock:
+            self._close_pty()
+
+    def replug(self) -> None:
+        with self.lock:
+            self._open_pty()
+
+    def _open_pty(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        self._master, self._slave = master, slave
+        self.slave_path = os.ttyname(slave)
+        self._buf = b""
+        if self.link:
+            tmp = self.link.with_name(self.link.name + ".tmp")
+            if tmp.is_symlink() or tmp.exists():
+                tmp.unlink()
+            tmp.symlink_to(self.slave_path)
+            os.replace(tmp, self.link)
+
+    def _close_pty(self) -> None:
+        if self.link and self.link.is_symlink():
+            self.link.unlink()
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._master = self._slave = -1
+
+    def _run(self) -> None:
+        last = time.monotonic()
+        while not self._stop.is_set():
+            fd = self._master
+            data = b""
+            if fd >= 0:
+                try:
+                    r, _, _ = select.select([fd], [], [], self.step_s)
+                    if r:
+                        data = os.read(fd, 4096)
+                except (OSError, ValueError):
+                    data = b""
+            else:
+                time.sleep(self.step_s)
+            now = time.monotonic()
+            with self.lock:
+                if data:
+                    out = self.handle_bytes(data)
+                    if out and self._master >= 0:
+                        try:
+                            os.write(self._master, out)
+                        except OSError:
+                            pass
+                dt = now - last
+                if dt >= self.step_s * 0.5:
+                    for ax in self.axes:
+                        if ax.check_watchdog(now):
+                            self._log(f"watchdog_expired {ax.index}")
+                        ax.step(dt, self.coupling)
+                    last = now
+
+    def _log(self, text: str) -> None:
+        self.log.append((time.monotonic() - self._t0, text))
+        if len(self.log) > 20000:
+            del self.log[:10000]
+
+    # -- protocol ----------------------------------------------------------------------
+    def handle_bytes(self, data: bytes) -> bytes:
+        """Feed raw bytes; return the answer bytes (used by the pty thread and by tests)."""
+        with self.lock:
+            self._buf += data
+            out = []
+            while b"\n" in self._buf:
+                line, _, self._buf = self._buf.partition(b"\n")
+                text = line.decode("ascii", "replace").strip("\r ")
+                if not text:
+                    continue
+                answer = self._line(text)
+                if answer is not None and not self.no_answer:
+                    out.append(answer)
+            return "".join(out).encode("ascii")
+
+    def _line(self, text: str) -> Optional[str]:
+        use_checksum = False
+        if "*" in text:
+            body, _, given = text.rpartition("*")
+            try:
+                ok = int(given) == checksum(body)
+            except ValueError:
+                ok = False
+            if not ok:
+                return None  # the firmware silently drops a line with a bad checksum
+            text, use_checksum = body.strip(), True
+        self._log(text)
+        reply = self._command(text.split())
+        if reply is None:
+            return None
+        if use_checksum:
+            reply = f"{reply}*{checksum(reply) ^ (0xFF if self.corrupt else 0)}"
+        elif self.corrupt:
+            reply = reply.replace(" ", "#")
+        return reply + "\r\n"
+
+    def _command(self, tok: list[str]) -> Optional[str]:
+        cmd = tok[0]
+        try:
+            if cmd == "v":
+                ax = self.axes[int(tok[1])]
+                ax.input_vel = float(tok[2])
+                ax.feed()
+                return None
+            if cmd == "f":
+                ax = self.axes[int(tok[1])]
+                return f"{ax.pos:.6f} {ax.vel:.6f}"
+            if cmd == "u":
+                self.axes[int(tok[1])].feed()
+                return None
+            if cmd == "sc":
+                for ax in self.axes:
+                    ax.clear_errors()
+                return None
+            if cmd == "r":
+                getter, _ = self._property(tok[1])
+                if getter is None:
+                    return "invalid property"
+                value = getter()
+                return f"{value:.6f}" if isinstance(value, float) else str(value)
+            if cmd == "w":
+                _, setter = self._property(tok[1])
+                if setter is None:
+                    return "invalid property"
+                setter(tok[2])
+                return None
+        except (IndexError, ValueError):
+            return "invalid command format"
+        return "unknown command"
+
+    def _property(self, name: str):
+        if name == "vbus_voltage":
+            return (lambda: self.vbus_voltage), None
+        if name == "fw_version_minor":
+            return (lambda: 5), None
+        if name.startswith("axis") and "." in name:
+            head, _, rest = name.partition(".")
+            try:
+                ax = self.axes[int(head[4:])]
+            except (ValueError, IndexError):
+                return None, None
+            return ax.properties().get(rest, (None, None))
+        return None, None

@@ -1,0 +1,239 @@
+"""USB (UVC) cameras through OpenCV's V4L2 backend, or a video file for replay.
+
+After opening, the driver reads back what the device actually delivers (FOURCC,
+size, frame rate) and refuses to start if it differs from the configuration:
+intrinsics calibrated at 640x480 are wrong at 1280x720, and a camera that
+silently falls back to YUYV at 5 fps makes the vision stale.
+
+A grabbing thread keeps only the latest frame (a mailbox, not a queue: the
+loop wants the newest image, never a backlog). If the device stops delivering
+(unplugged) the thread releases it and tries to reopen it every
+``reconnect_interval_s``, verifying the format again; ``read()`` meanwhile
+returns None and the runtime's stale-frame check stops the robot.
+
+A ``device`` that is a regular file is replayed at the file's frame rate (or
+``replay_rate_hz``), with the same mailbox semantics.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import threading
+import time
+from typing import Any, Literal, Optional
+
+import cv2
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.clock import MonotonicClock
+
+
+def fourcc_to_str(value: float) -> str:
+    v = int(value)
+    return "".join(chr((v >> (8 * i)) & 0xFF) for i in range(4)) if v > 0 else "????"
+
+
+class V4L2Camera(Camera):
+    name = "v4l2"
+
+    class Options(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        device: str = Field("/dev/video0", description="V4L2 device (prefer /dev/v4l/by-id/...) or a video file")
+        fourcc: str = Field("MJPG", description="pixel format to request, e.g. MJPG, YUYV, GREY")
+        grey: bool = Field(True, description="deliver single-channel images (the vision code works in grey)")
+        fps_tolerance: float = Field(0.5, ge=0, description="accepted |delivered - requested| frame rate")
+        reconnect_interval_s: float = Field(1.0, gt=0)
+        stall_timeout_s: float = Field(1.0, gt=0, description="no frame for this long counts as unplugged")
+        replay_rate_hz: Optional[float] = Field(None, ge=0, description="files: frames per second "
+                                                "(None: the file's own rate, 0: as fast as read)")
+        loop: bool = Field(False, description="files: start again at the end")
+        source: Literal["auto", "device", "file"] = Field(
+            "auto", description="auto: a regular file is replayed, anything else is a live device")
+        backend: Literal["v4l2", "any"] = Field(
+            "v4l2", description="OpenCV capture backend for live devices (any: OpenCV chooses, e.g. for "
+                                "GStreamer/FFmpeg URLs)")
+
+        @field_validator("fourcc")
+        @classmethod
+        def _four_chars(cls, v: str) -> str:
+            if len(v) != 4:
+                raise ValueError(f"a FOURCC has 4 characters, got {v!r}")
+            return v.upper()
+
+    def __init__(self, cfg: Any = None, clock=None, *, options: Optional["V4L2Camera.Options"] = None,
+                 width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
+        cam = getattr(cfg, "camera", None)
+        if options is None:
+            options = self.Options.model_validate(cam.options if cam is not None else {})
+        self.opt = options
+        self.clock = clock or MonotonicClock()
+        self.width = width or (cam.width if cam is not None else 640)
+        self.height = height or (cam.height if cam is not None else 480)
+        self.fps = fps or (cam.rate_hz if cam is not None else 30.0)
+        self.is_file = options.source == "file" or (options.source == "auto" and os.path.isfile(options.device))
+        self.error: Optional[str] = None
+        self.reconnects = 0
+        self.finished = False
+        self._cap = None
+        self._latest: Optional[Frame] = None
+        self._returned_seq = 0
+        self._seq = 0
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._connected = False
+
+    @classmethod
+    def from_config(cls, cfg, clock, options=None) -> "V4L2Camera":
+        return cls(cfg, clock, options=options)
+
+    @staticmethod
+    def find() -> list[str]:
+        """Video devices present, stable names first."""
+        return sorted(glob.glob("/dev/v4l/by-id/*")) + sorted(glob.glob("/dev/video*"))
+
+    # -- lifecycle -----------------------------------------------------------------------
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def connect(self) -> None:
+        self._cap = self._open()
+        self._connected = True
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._grab_loop, name=f"v4l2:{self.opt.device}", daemon=True)
+        self._thread.start()
+
+    def disconnect(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        self._release()
+        self._connected = False
+
+    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            while self._latest is None or self._latest.seq <= self._returned_seq:
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+            self._returned_seq = self._latest.seq
+            return self._latest
+
+    def latest_age_s(self) -> Optional[float]:
+        """Age of the newest frame grabbed (returned or not), None before the first."""
+        f = self._latest
+        return None if f is None else f.age_s(self.clock.now_ns())
+
+    # -- opening and verifying ------------------------------------------------------------------
+    def _open(self):
+        if self.is_file:
+            return self._open_file()
+        dev = self.opt.device
+        if self.opt.backend == "v4l2" and not os.path.exists(dev):
+            raise CameraError(f"camera {dev} not found; video devices present: {', '.join(self.find()) or 'none'}")
+        if not os.path.exists(dev) and "://" not in dev:
+            raise CameraError(f"camera {dev} not found")
+        cap = cv2.VideoCapture(dev, cv2.CAP_V4L2 if self.opt.backend == "v4l2" else cv2.CAP_ANY)
+        if not cap.isOpened():
+            raise CameraError(f"camera {dev} cannot be opened through {self.opt.backend} "
+                              f"(busy, or not a capture device?)")
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.opt.fourcc))
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
+        cap.set(cv2.CAP_PROP_FPS, self.fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the driver's queue: keep it short, we want the newest frame
+        try:
+            self._verify(cap)
+        except CameraError:
+            cap.release()
+            raise
+        return cap
+
+    def _verify(self, cap) -> None:
+        got_fourcc = fourcc_to_str(cap.get(cv2.CAP_PROP_FOURCC))
+        got_w, got_h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        got_fps = float(cap.get(cv2.CAP_PROP_FPS))
+        problems = []
+        if got_fourcc != self.opt.fourcc:
+            problems.append(f"format {got_fourcc} instead of {self.opt.fourcc}")
+        if (got_w, got_h) != (self.width, self.height):
+            problems.append(f"size {got_w}x{got_h} instead of {self.width}x{self.height}")
+        if abs(got_fps - self.fps) > self.opt.fps_tolerance:
+            problems.append(f"{got_fps:g} fps instead of {self.fps:g}")
+        if problems:
+            raise CameraError(f"camera {self.opt.device} delivers {', '.join(problems)}; change camera.width/"
+                              f"height/rate_hz or camera.options.fourcc to a mode it supports "
+                              f"(list them with: v4l2-ctl -d {self.opt.device} --list-formats-ext)")
+
+    def _open_file(self):
+        cap = cv2.VideoCapture(self.opt.device)
+        if not cap.isOpened():
+            raise CameraError(f"video file {self.opt.device} cannot be opened (unknown container or codec?)")
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if (w, h) != (self.width, self.height):
+            cap.release()
+            raise CameraError(f"video file {self.opt.device} is {w}x{h}, the configuration expects "
+                              f"{self.width}x{self.height} (camera.width/height must match its calibration)")
+        file_fps = float(cap.get(cv2.CAP_PROP_FPS)) or self.fps
+        rate = self.opt.replay_rate_hz if self.opt.replay_rate_hz is not None else file_fps
+        self._replay_period = 1.0 / rate if rate > 0 else 0.0
+        return cap
+
+    def _release(self) -> None:
+        if self._cap is not None:
+            try:
+                self._cap.release()
+            except Exception:
+                pass
+        self._cap = None
+
+    # -- grabbing thread ----------------------------------------------------------------------------
+    def _grab_loop(self) -> None:
+        next_due = time.monotonic()
+        last_frame = time.monotonic()
+        while not self._stop.is_set():
+            if self._cap is None:
+                if self._stop.wait(self.opt.reconnect_interval_s):
+                    return
+                self._try_reopen()
+                last_frame = time.monotonic()
+                continue
+            if self.is_file and self._replay_period:
+                delay = next_due - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                next_due = max(next_due + self._replay_period, time.monotonic() - self._replay_period)
+            ok, img = self._cap.read()
+            if not ok or img is None:
+                if self.is_file:
+                    if self.opt.loop:
+                        self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                        continue
+                    self.finished = True
+                    return
+                if time.monotonic() - last_frame > self.opt.stall_timeout_s or not os.path.exists(self.opt.device):
+                    self.error = f"camera {self.opt.device} stopped delivering frames (unplugged?); reconnecting"
+                    self._release()
+                continue
+            last_frame = time.monotonic()
+            stamp = self.clock.now_ns()
+            if self.opt.grey and img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            with self._cond:
+                self._seq += 1
+                self._latest = Frame(img, stamp, self._seq, meta={"device": self.opt.device,
+                                                                   "reconnects": self.reconnects})
+                self._cond.notify_all()
+
+    def _try_reopen(self) -> None:
+        try:
+            self._cap = self._open()
+            self.reconnects += 1
+            self.error = None
+        except CameraError as exc:
+            self.error = str(exc)

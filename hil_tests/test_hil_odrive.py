@@ -1,0 +1,23 @@
+"""The full control loop with the ODrive driver over a pty to the emulated ODrive on the simulated base."""
+from __future__ import annotations
+
+import math
+
+from hil_helpers import run_route
+
+from vbnav.drivers.odrive_emulator import ODriveEmulator
+
+SCRIPT = [[0.3, 0.0, 1.5], [0.25, 0.6, 1.5], [0.0, 0.0, 0.4]]
+
+
+def test_scripted_route_odometry_matches_simulator():
+    result, rt, coupling = run_route(
+        "sentry-odrive.yaml", lambda c: ODriveEmulator(coupling=c),
+        {"reply_timeout_s": 0.02, "watchdog_s": 0.5}, SCRIPT, channels={0: (0, 1), 1: (1, -1)})
+    assert result.reason == "finished", result.message
+    truth, odom = coupling.true_pose, rt.odometry.pose
+    travelled = 0.3 * 1.5 + 0.25 * 1.5
+    assert 0.85 * travelled < rt.odometry.distance < 1.1 * travelled
+    assert odom.z > 0.4 and odom.x > 0.05
+    assert math.hypot(truth.x - odom.x, truth.z - odom.z) < 0.005
+    assert abs(math.remainder(truth.theta - odom.theta, 2 * math.pi)) < 0.005

@@ -1,0 +1,277 @@
+"""The real dynamixel-sdk driver against the emulated bus over a pseudo-terminal.
+
+Fault tests each end by checking, in the emulator, that both wheels stand still
+and that the driver's error names the cause.
+"""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from vbnav.drivers import dynamixel_emulator as de
+from vbnav.drivers.dynamixel import VELOCITY_UNIT_RAD_S, DynamixelDrive
+from vbnav.drivers.wheels import DriveError
+
+WATCHDOG_S = 0.2  # generous: a loaded CI machine may pause a test thread for 100+ ms
+
+
+@pytest.fixture
+def bus(tmp_path):
+    b = de.DynamixelBus([1, 2], "XL430-W250", link=tmp_path / "ttyDXL")
+    b.start()
+    yield b
+    b.stop()
+
+
+def make_drive(bus, **opts) -> DynamixelDrive:
+    options = DynamixelDrive.Options(port=bus.path, bus_watchdog_s=WATCHDOG_S, margin_ms=8.0, **opts)
+    return DynamixelDrive(options=options, invert_right=True)
+
+
+@pytest.fixture
+def drive(bus):
+    d = make_drive(bus)
+    d.connect()
+    d.enable()
+    yield d
+    d.close()
+
+
+def wait_until(pred, timeout=2.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()
+
+
+def wheels_stopped(bus) -> bool:
+    return all(abs(bus.servo(i)._velocity) < 0.5 and bus.servo(i).target_velocity() == 0 for i in (1, 2))
+
+
+def drive_for(drive, left, right, cycles=10):
+    for _ in range(cycles):
+        drive.write(left, right)
+        state = drive.read()
+        time.sleep(0.005)
+    return state
+
+
+def test_bring_up_in_safe_order(bus):
+    d = make_drive(bus, profile_acceleration_rad_s2=20.0, velocity_limit_rad_s=5.0)
+    d.connect()
+    for i in (1, 2):
+        ops = [(e.op, e.addr, e.value) for e in bus.log if e.dxl_id == i and e.op in ("ping", "write")]
+        assert ops[0][0] == "ping"
+        # (a write retried after a late answer would repeat itself: collapse repeats)
+        steps = [(a, v) for k, (_, a, v) in enumerate(ops) if k > 0 and (a, v) != ops[k - 1][1:]]
+        assert [a for a, _ in steps] == [64, 11, 44, 108, 9, 98, 98], steps
+        values = dict(steps)
+        assert values[11] == 1 and values[9] == 0 and values[98] == round(WATCHDOG_S / 0.02)
+        assert values[44] == round(5.0 / VELOCITY_UNIT_RAD_S)
+        assert not bus.servo(i).torque_on
+    d.enable()
+    assert all(bus.servo(i).torque_on for i in (1, 2))
+    last = [e for e in bus.writes(1)][-1]
+    assert (last.addr, last.value) == (64, 1)
+    d.close()
+    assert not any(bus.servo(i).torque_on for i in (1, 2))
+
+
+def test_wrong_model_is_refused(tmp_path):
+    with de.DynamixelBus([1, 2], "XM430-W350", link=tmp_path / "tty") as b:
+        d = DynamixelDrive(options=DynamixelDrive.Options(port=b.path, model="XL430-W250"))
+        with pytest.raises(DriveError, match="model number 1020"):
+            d.connect()
+
+
+def test_missing_adapter_is_a_clear_error(tmp_path):
+    d = DynamixelDrive(options=DynamixelDrive.Options(port=str(tmp_path / "nothing")))
+    with pytest.raises(DriveError, match="not found"):
+        d.connect()
+
+
+def test_velocity_commands_reach_servos_and_read_back_signed(bus, drive):
+    before = bus.packets_seen
+    drive.write(1.0, -0.5)
+    drive.read()
+    assert bus.packets_seen - before == 2  # one sync write + one sync read per cycle
+    assert bus.servo(1).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == round(1.0 / VELOCITY_UNIT_RAD_S)
+    # right wheel is mounted mirrored (invert_right): -0.5 rad/s is +21 units on the servo
+    assert bus.servo(2).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == round(0.5 / VELOCITY_UNIT_RAD_S)
+    assert wait_until(lambda: bus.servo(1).get(de.ADDR_PRESENT_VELOCITY, 4) != 0)
+    state = drive_for(drive, -1.0, 0.5, cycles=5)
+    assert state.velocity[0] == pytest.approx(-1.0, abs=VELOCITY_UNIT_RAD_S)
+    assert state.velocity[1] == pytest.approx(0.5, abs=VELOCITY_UNIT_RAD_S)
+    assert state.enabled and not state.faults
+
+
+def test_commands_clamp_to_velocity_limit(bus, drive):
+    drive.write(100.0, -100.0)
+    drive.read()  # the answer comes after the servos processed the write
+    limit = round(6.0 / VELOCITY_UNIT_RAD_S)
+    assert bus.servo(1).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == limit
+    assert bus.servo(2).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == limit
+
+
+def test_position_unwraps_across_int32_overflow(bus, drive):
+    with bus.lock:
+        bus.servo(1)._position = 2 ** 31 - 300.0
+        bus.servo(1)._sync_present()
+    start = drive.read().position[0]
+    end = drive_for(drive, 6.0, 0.0, cycles=40).position[0]
+    assert bus.servo(1).get(de.ADDR_PRESENT_POSITION, 4, signed=True) < 0  # the register wrapped
+    assert 0 < end - start < 3.0  # ~0.2-0.5 s at 6 rad/s, continuous
+
+
+def test_budgeted_answer_window_is_milliseconds():
+    d = DynamixelDrive(options=DynamixelDrive.Options(port="/dev/null", latency_ms=1.0, margin_ms=1.0))
+    from vbnav.drivers.dynamixel import BudgetedPort
+    p = BudgetedPort("/dev/null", 1.0, 1.0)
+    p.tx_time_per_byte = 0.01  # 1 Mbps
+    p.setPacketTimeout((11 + 8) * 2)
+    assert p.packet_timeout < 4.0  # ms; the stock SDK waits 2 x 16 + 2 = 34 ms
+    assert d._watchdog_units == 5
+
+
+def test_servo_that_stops_answering(bus, drive):
+    drive_for(drive, 2.0, 2.0)
+    bus.servo(2).no_answer = True
+    with pytest.raises(DriveError, match=r"servo 2 \(right\).*not answering"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: wheels_stopped(bus))
+    assert bus.servo(2).get(de.ADDR_BUS_WATCHDOG, 1) == 0xFF  # the silent one was stopped by its watchdog
+    assert not bus.servo(1).torque_on
+    with pytest.raises(DriveError, match="faulted"):
+        drive.write(1.0, 1.0)
+
+
+def test_corrupted_packets(bus, drive):
+    drive_for(drive, 2.0, 2.0)
+    bus.servo(1).corrupt = True
+    with pytest.raises(DriveError, match=r"servo 1 \(left\).*corrupted"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: wheels_stopped(bus))
+    assert not bus.servo(1).torque_on and not bus.servo(2).torque_on
+
+
+def test_hardware_error_bit_then_reboot(bus, drive):
+    drive_for(drive, 2.0, 2.0)
+    with bus.lock:
+        bus.servo(2).set_hardware_error(1 << 5)
+    with pytest.raises(DriveError, match=r"servo 2 \(right\) hardware error: overload \(bit 5\)"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: wheels_stopped(bus))
+    assert any("overload" in f for f in drive.read().faults)
+    with pytest.raises(DriveError):
+        drive.enable()
+    drive.clear_faults()
+    assert [e.dxl_id for e in bus.log if e.op == "reboot"] == [2]
+    assert bus.servo(2).hardware_error == 0
+    drive.enable()
+    state = drive_for(drive, 1.0, 1.0, cycles=20)
+    assert state.velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S) and not state.faults
+
+
+def test_adapter_disappears_then_comes_back(bus, drive):
+    drive_for(drive, 2.0, 2.0)
+    bus.unplug()
+    with pytest.raises(DriveError, match=r"ttyDXL lost.*watchdog"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: wheels_stopped(bus))  # by the servos' own bus watchdog
+    with pytest.raises(DriveError, match="gone"):
+        drive.read()
+    bus.replug()
+    assert wait_until(lambda: _reads(drive), timeout=3.0)
+    drive.enable()
+    state = drive_for(drive, 1.0, 1.0, cycles=20)
+    assert state.velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
+
+
+def _reads(drive) -> bool:
+    try:
+        drive.read()
+        return True
+    except DriveError:
+        return False
+
+
+CONTROLLER = textwrap.dedent("""
+    import sys, time
+    from vbnav.drivers.dynamixel import DynamixelDrive
+    d = DynamixelDrive(options=DynamixelDrive.Options(port=sys.argv[1], bus_watchdog_s=float(sys.argv[2])))
+    d.connect(); d.enable()
+    print("running", flush=True)
+    while True:
+        d.write(3.0, 3.0); d.read(); time.sleep(0.01)
+""")
+
+
+def test_controlling_process_killed_with_sigkill(bus):
+    proc = subprocess.Popen([sys.executable, "-c", CONTROLLER, bus.path, str(WATCHDOG_S)],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "running"
+        assert wait_until(lambda: abs(bus.servo(1)._velocity) > 100, timeout=3.0)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=5)
+        assert wait_until(lambda: wheels_stopped(bus), timeout=2.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    with bus.lock:
+        expired = [e for e in bus.log if e.op == "watchdog_expired"]
+        assert sorted(e.dxl_id for e in expired) == [1, 2]
+        last_packet = max(e.t for e in bus.log if e.op == "write")
+    # the wheel stops within the configured watchdog time (plus the emulator's 1 ms step)
+    for e in expired:
+        assert WATCHDOG_S <= e.t - last_packet <= WATCHDOG_S + 0.5, e.t - last_packet  # upper: emulator scheduling slack
+    assert math.isclose(bus.servo(1).get(de.ADDR_BUS_WATCHDOG, 1, signed=True), -1)
+
+
+def test_vbnav_emulate_dynamixel_prints_device_path_first(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "emulate", "dynamixel", "--ids", "3,4",
+                             "--model", "XM430-W350"], stdout=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        assert os.path.exists(path)
+        d = DynamixelDrive(options=DynamixelDrive.Options(port=path, left_id=3, right_id=4, model="XM430-W350",
+                                                          margin_ms=3.0))
+        d.connect()
+        assert d.models == {3: 1020, 4: 1020}
+        d.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=5) == 0
+
+
+def test_a_stalled_controller_finds_the_watchdog_expired(bus, drive):
+    drive_for(drive, 2.0, 2.0)
+    time.sleep(WATCHDOG_S * 2)  # the loop stalls longer than the watchdog: the servos stop themselves
+    assert wheels_stopped(bus)
+    with pytest.raises(DriveError, match=r"bus watchdog expired after \d+ ms without commands \(limit \d+ ms\)"):
+        drive.write(1.0, 1.0)
+    drive.clear_faults()
+    drive.enable()  # clears the latched watchdog error (0xFF) and re-arms it
+    assert drive_for(drive, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
+
+
+def test_hardware_error_found_at_bring_up_then_cleared(bus):
+    bus.servo(1).set_hardware_error(1 << 2)
+    d = make_drive(bus)
+    with pytest.raises(DriveError, match=r"servo 1 \(left\) hardware error: overheating \(bit 2\).*REBOOT"):
+        d.connect()
+    assert not any(bus.servo(i).torque_on for i in (1, 2))
+    d.clear_faults()
+    assert [e.dxl_id for e in bus.log if e.op == "reboot"] == [1]
+    d.enable()
+    assert drive_for(d, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
+    d.close()

@@ -1,0 +1,236 @@
+"""ODrive ASCII protocol: the emulator's answers, and the pyserial driver against it over a pty."""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from vbnav.drivers import odrive_emulator as oe
+from vbnav.drivers.odrive import ODriveDrive, decode_bits, MOTOR_ERRORS
+from vbnav.drivers.wheels import DriveError
+
+WATCHDOG_S = 0.2  # generous: a loaded CI machine may pause a test thread for 100+ ms
+
+
+# -- protocol ---------------------------------------------------------------------------------
+def test_checksum_is_xor_of_the_bytes_before_the_star():
+    assert oe.checksum("f 0") == ord("f") ^ ord(" ") ^ ord("0")
+
+
+def test_feedback_velocity_and_properties():
+    emu = oe.ODriveEmulator()
+    ax = emu.axis(1)
+    assert emu.handle_bytes(b"r axis1.current_state\n") == b"1\r\n"
+    emu.handle_bytes(b"w axis1.controller.config.control_mode 2\nw axis1.requested_state 8\nv 1 1.5\n")
+    assert ax.current_state == oe.AXIS_STATE_CLOSED_LOOP and ax.input_vel == 1.5
+    for _ in range(300):
+        ax.step(0.001)
+    pos, vel = (float(x) for x in emu.handle_bytes(b"f 1\n").split())
+    assert vel == pytest.approx(1.5, rel=1e-3)
+    assert 0.3 < pos < 0.45  # 0.3 s at 1.5 turns/s minus the 20 ms lag
+    assert emu.handle_bytes(b"r axis7.error\n") == b"invalid property\r\n"
+    assert emu.handle_bytes(b"x 1\n") == b"unknown command\r\n"
+
+
+def test_checksummed_lines_answer_with_checksum_and_bad_ones_are_dropped():
+    emu = oe.ODriveEmulator()
+    line = "r vbus_voltage"
+    answer = emu.handle_bytes(f"{line}*{oe.checksum(line)}\n".encode()).decode().strip()
+    body, _, cs = answer.rpartition("*")
+    assert float(body) == 24.0 and int(cs) == oe.checksum(body)
+    assert emu.handle_bytes(f"{line}*{oe.checksum(line) ^ 1}\n".encode()) == b""
+
+
+def test_errors_disarm_and_sc_clears_them():
+    emu = oe.ODriveEmulator()
+    ax = emu.axis(0)
+    emu.handle_bytes(b"w axis0.controller.config.control_mode 2\nw axis0.requested_state 8\n")
+    ax.inject(motor=0x1000)
+    assert ax.current_state == oe.AXIS_STATE_IDLE
+    assert emu.handle_bytes(b"r axis0.motor.error\n") == b"4096\r\n"
+    emu.handle_bytes(b"w axis0.requested_state 8\n")
+    assert ax.current_state == oe.AXIS_STATE_IDLE  # refused while errors are set
+    emu.handle_bytes(b"sc\n")
+    assert emu.handle_bytes(b"r axis0.error\n") == b"0\r\n"
+    emu.handle_bytes(b"w axis0.requested_state 8\n")
+    assert ax.current_state == oe.AXIS_STATE_CLOSED_LOOP
+
+
+def test_watchdog_expiry():
+    emu = oe.ODriveEmulator()
+    ax = emu.axis(0)
+    emu.handle_bytes(b"w axis0.config.watchdog_timeout 0.1\nw axis0.config.enable_watchdog 1\n"
+                     b"w axis0.controller.config.control_mode 2\nw axis0.requested_state 8\nu 0\n")
+    t0 = ax.last_feed
+    assert not ax.check_watchdog(t0 + 0.09)
+    assert ax.check_watchdog(t0 + 0.11)
+    assert ax.error & oe.AXIS_ERROR_WATCHDOG_EXPIRED and ax.target() == 0.0
+
+
+def test_decode_bits_names_known_and_shows_unknown():
+    assert decode_bits(0x1000 | 0x8 | 0x4000_0000, MOTOR_ERRORS) == ["DRV_FAULT", "CURRENT_LIMIT_VIOLATION",
+                                                                    "0x40000000"]
+
+
+# -- driver over the pty -----------------------------------------------------------------------
+@pytest.fixture
+def emu(tmp_path):
+    e = oe.ODriveEmulator(link=tmp_path / "ttyODRV")
+    e.start()
+    yield e
+    e.stop()
+
+
+def make_drive(emu, **opts):
+    opts.setdefault("reply_timeout_s", 0.02)
+    return ODriveDrive(options=ODriveDrive.Options(port=emu.path, watchdog_s=WATCHDOG_S, gear_ratio=2.0, **opts),
+                       invert_right=True)
+
+
+@pytest.fixture(params=[False, True], ids=["plain", "checksum"])
+def drive(emu, request):
+    d = make_drive(emu, checksum=request.param, error_poll_every=2)
+    d.connect()
+    d.enable()
+    yield d
+    d.close()
+
+
+def wait_until(pred, timeout=2.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()
+
+
+def stopped(emu) -> bool:
+    return all(abs(a.vel) < 1e-3 and a.target() == 0.0 for a in emu.axes)
+
+
+def drive_for(drive, left, right, cycles=10):
+    for _ in range(cycles):
+        drive.write(left, right)
+        state = drive.read()
+        time.sleep(0.005)
+    return state
+
+
+def test_setup_configures_velocity_control_and_watchdog(emu, drive):
+    for ax in emu.axes:
+        assert ax.control_mode == oe.CONTROL_MODE_VELOCITY
+        assert ax.enable_watchdog and ax.watchdog_timeout == pytest.approx(WATCHDOG_S)
+        assert ax.current_state == oe.AXIS_STATE_CLOSED_LOOP
+
+
+def test_velocity_reaches_axes_and_reads_back_signed(emu, drive):
+    state = drive_for(drive, 2.0, -1.0, cycles=30)
+    # gear 2: 2 rad/s at the wheel = 2/(2 pi)*2 motor turns/s; right axis mirrored
+    assert emu.axis(0).input_vel == pytest.approx(2.0 / math.pi, abs=1e-4)
+    assert emu.axis(1).input_vel == pytest.approx(1.0 / math.pi, abs=1e-4)
+    assert state.velocity == pytest.approx((2.0, -1.0), abs=0.05)
+    assert state.position[0] > 0 > state.position[1]
+
+
+def test_motor_error_is_a_fault_with_decoded_bits(emu, drive):
+    drive_for(drive, 2.0, 2.0)
+    with emu.lock:
+        emu.axis(1).inject(motor=0x1000)
+    with pytest.raises(DriveError, match=r"axis1 \(right\).*MOTOR_FAILED.*CURRENT_LIMIT_VIOLATION"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: stopped(emu))
+    drive.clear_faults()
+    drive.enable()
+    assert drive_for(drive, 1.0, 1.0, cycles=30).velocity == pytest.approx((1.0, 1.0), abs=0.05)
+
+
+def test_device_that_stops_answering(emu, drive):
+    drive_for(drive, 2.0, 2.0)
+    emu.no_answer = True
+    with pytest.raises(DriveError, match="no answer to 'f 0'"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: stopped(emu))  # the disarm commands still reach it
+
+
+def test_corrupted_answers(emu, drive):
+    drive_for(drive, 2.0, 2.0)
+    emu.corrupt = True
+    with pytest.raises(DriveError, match="corrupted answer"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: stopped(emu))
+
+
+def test_device_disappears_then_comes_back(emu, drive):
+    drive_for(drive, 2.0, 2.0)
+    emu.unplug()
+    with pytest.raises(DriveError, match=r"ttyODRV lost.*watchdog"):
+        drive_for(drive, 2.0, 2.0)
+    assert wait_until(lambda: stopped(emu))  # by the axis watchdog
+    assert any(a.error & oe.AXIS_ERROR_WATCHDOG_EXPIRED for a in emu.axes)
+    emu.replug()
+    # the watchdog error is still latched: reconnect reports it, clear_faults clears it
+    assert wait_until(lambda: _reconnected(drive), timeout=3.0)
+    drive.clear_faults()
+    drive.enable()
+    assert drive_for(drive, 1.0, 1.0, cycles=30).velocity == pytest.approx((1.0, 1.0), abs=0.05)
+
+
+def _reconnected(drive) -> bool:
+    try:
+        drive.read()
+    except DriveError as exc:
+        return "WATCHDOG_TIMER_EXPIRED" in str(drive.faults) or "reports errors" in str(exc)
+    return True
+
+
+CONTROLLER = textwrap.dedent("""
+    import sys, time
+    from vbnav.drivers.odrive import ODriveDrive
+    d = ODriveDrive(options=ODriveDrive.Options(port=sys.argv[1], watchdog_s=float(sys.argv[2])))
+    d.connect(); d.enable()
+    print("running", flush=True)
+    while True:
+        d.write(3.0, 3.0); d.read(); time.sleep(0.01)
+""")
+
+
+def test_controlling_process_killed_with_sigkill(emu):
+    proc = subprocess.Popen([sys.executable, "-c", CONTROLLER, emu.path, str(WATCHDOG_S)],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "running"
+        assert wait_until(lambda: emu.axis(0).vel > 0.3, timeout=3.0)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=5)
+        assert wait_until(lambda: stopped(emu), timeout=2.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    with emu.lock:
+        expired = [t for t, text in emu.log if text.startswith("watchdog_expired")]
+        last_cmd = max(t for t, text in emu.log if text.startswith("v "))
+    assert len(expired) == 2
+    for t in expired:
+        # Never before the watchdog time; the upper bound only allows for emulator-thread scheduling under load.
+        assert WATCHDOG_S <= t - last_cmd <= WATCHDOG_S + 0.5
+
+
+def test_vbnav_emulate_odrive_prints_device_path_first():
+    proc = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "emulate", "odrive"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        d = ODriveDrive(options=ODriveDrive.Options(port=path, checksum=True, reply_timeout_s=0.05))
+        d.connect()
+        assert d.vbus_voltage == 24.0
+        d.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=5) == 0

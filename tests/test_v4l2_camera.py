@@ -1,0 +1,143 @@
+"""V4L2Camera: format verification and the latest-frame mailbox, on video files made here."""
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.drivers.camera import CameraError
+from vbnav.drivers.v4l2_camera import V4L2Camera, fourcc_to_str
+
+W, H, N = 64, 48, 40
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory):
+    """N frames; frame k is uniformly grey at level 5*k (survives MJPEG compression)."""
+    path = tmp_path_factory.mktemp("video") / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (W, H))
+    assert writer.isOpened()
+    for k in range(N):
+        writer.write(np.full((H, W, 3), 5 * k, np.uint8))
+    writer.release()
+    return path
+
+
+def camera(path, **opts):
+    return V4L2Camera(options=V4L2Camera.Options(device=str(path), **opts), width=W, height=H, fps=30.0)
+
+
+def level(frame) -> int:
+    return int(round(float(frame.image.mean()) / 5.0))
+
+
+def test_replays_the_file_in_order_at_its_rate(video):
+    cam = camera(video, replay_rate_hz=50.0)
+    cam.connect()
+    try:
+        got = []
+        while True:
+            f = cam.read(timeout_s=1.0)
+            if f is None:
+                break
+            got.append(f)
+    finally:
+        cam.disconnect()
+    # every frame delivered is the right one; a frame the reader was too slow for shows as a seq gap
+    assert all(level(f) == f.seq - 1 for f in got)
+    assert all(b.seq > a.seq and b.stamp_ns > a.stamp_ns for a, b in zip(got, got[1:]))
+    assert got[-1].seq == N and len(got) >= N // 2
+    assert got[0].image.shape == (H, W) and got[0].image.dtype == np.uint8  # grey by default
+    span_s = (got[-1].stamp_ns - got[0].stamp_ns) * 1e-9
+    assert span_s > 0.5 * (got[-1].seq - got[0].seq) / 50.0  # paced, not decoded as fast as possible
+
+
+def test_only_the_latest_frame_is_kept(video):
+    cam = camera(video, replay_rate_hz=0, grey=False)  # as fast as the file decodes
+    cam.connect()
+    try:
+        assert cam.read(timeout_s=1.0) is not None
+        deadline = time.monotonic() + 5.0
+        while not cam.finished and time.monotonic() < deadline:
+            time.sleep(0.01)
+        last = cam.read(timeout_s=0.5)
+        assert last is not None and last.image.shape == (H, W, 3)
+        assert level(last) == N - 1 and last.seq == N  # older frames were overwritten, not queued
+        assert cam.read(timeout_s=0.05) is None  # nothing newer than what was returned
+        assert cam.latest_age_s() >= 0.0
+    finally:
+        cam.disconnect()
+
+
+def test_loop_replay_wraps_around(video):
+    cam = camera(video, replay_rate_hz=0, loop=True)
+    cam.connect()
+    try:
+        deadline = time.monotonic() + 5.0
+        seq = 0
+        while seq <= N + 5 and time.monotonic() < deadline:
+            f = cam.read(timeout_s=0.5)
+            seq = f.seq if f else seq
+        assert seq > N
+    finally:
+        cam.disconnect()
+
+
+def test_wrong_size_fails_clearly(video):
+    cam = V4L2Camera(options=V4L2Camera.Options(device=str(video)), width=640, height=480, fps=30.0)
+    with pytest.raises(CameraError, match=r"is 64x48, the configuration expects 640x480"):
+        cam.connect()
+
+
+def test_missing_device_lists_what_exists(tmp_path):
+    cam = V4L2Camera(options=V4L2Camera.Options(device="/dev/video-nonexistent"))
+    with pytest.raises(CameraError, match="not found; video devices present"):
+        cam.connect()
+
+
+def test_fourcc_option_is_validated():
+    with pytest.raises(ValueError, match="4 characters"):
+        V4L2Camera.Options(fourcc="MJPEG")
+    assert fourcc_to_str(cv2.VideoWriter_fourcc(*"YUYV")) == "YUYV"
+
+
+def test_format_verification_names_each_mismatch(video):
+    # a capture whose read-back differs from the request: the video file reports MJPG 64x48 at 30 fps
+    cam = V4L2Camera(options=V4L2Camera.Options(device=str(video), fourcc="YUYV"), width=W, height=32, fps=15.0)
+    cap = cv2.VideoCapture(str(video))
+    try:
+        with pytest.raises(CameraError) as err:
+            cam._verify(cap)
+    finally:
+        cap.release()
+    msg = str(err.value)
+    assert "format MJPG instead of YUYV" in msg and "size 64x48 instead of 64x32" in msg and "30 fps instead of 15" in msg
+
+
+def test_reconnects_after_the_device_goes_away_and_comes_back(video, tmp_path):
+    # A live source that stops delivering and whose path disappears, as an unplugged camera does.
+    # The "device" is the clip behind a symlink opened as a live source (OpenCV picks the backend);
+    # the end of the clip is the moment it stops delivering.
+    link = tmp_path / "video-by-id"
+    link.symlink_to(video)
+    cam = V4L2Camera(options=V4L2Camera.Options(device=str(link), source="device", backend="any",
+                                                stall_timeout_s=0.1, reconnect_interval_s=0.05),
+                     width=W, height=H, fps=30.0)
+    cam.connect()
+    try:
+        seen = [cam.read(timeout_s=1.0)]
+        link.unlink()  # unplugged
+        deadline = time.monotonic() + 5.0
+        while (cam.error is None or "not found" not in cam.error) and time.monotonic() < deadline:
+            cam.read(timeout_s=0.05)
+        assert cam.error and f"camera {link} not found" in cam.error
+        link.symlink_to(video)  # plugged back
+        while cam.reconnects == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.reconnects >= 1
+        f = cam.read(timeout_s=1.0)
+        assert f is not None and f.seq > seen[0].seq and f.meta["reconnects"] >= 1
+    finally:
+        cam.disconnect()
