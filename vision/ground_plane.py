@@ -141,8 +141,8 @@ class PlaneFitParams:
     prior_tolerance_px: float = 2.0
     inlier_height: float = 0.02         # m
     inlier_min_px: float = 0.35         # px
-    hypotheses: int = 96
-    score_points: int = 3000            # hypotheses are scored on at most this many pool points
+    hypotheses: int = 64
+    score_points: int = 2000            # hypotheses are scored on at most this many pool points
     refine_iterations: int = 3
     min_inliers: int = 60
     max_tilt_change_deg: float = 8.0    # fitted floor normal vs prior
