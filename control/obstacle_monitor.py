@@ -40,6 +40,7 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from vbnav.control.config import ConfigError, _format_errors
 from vbnav.control.controller import Estimate, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -111,7 +112,6 @@ def obstacles_config(section: Optional[dict], source: str = "<config>") -> Obsta
     try:
         return ObstaclesConfig.model_validate(section or {})
     except ValidationError as exc:
-        from vbnav.control.config import ConfigError, _format_errors
         raise ConfigError(_format_errors(source, exc, prefix="obstacles")) from None
 
 
