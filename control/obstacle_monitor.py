@@ -46,7 +46,7 @@ from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import KOfN, ObstacleParams, detect_obstacles, nearest_in_corridor
-from vbnav.vision.stereo import SgbmParams, StereoRig, sgbm_disparity, sgbm_params_for
+from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
 
 
 class _Strict(BaseModel):

@@ -8,7 +8,7 @@ import pytest
 
 from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
-from vbnav.vision.ground_plane import (DisparityPlane, PlaneFitParams, expected_plane, fit_ground_plane,
+from vbnav.vision.ground_plane import (DisparityPlane, expected_plane, fit_ground_plane,
                                        plane_from_floor)
 from vbnav.vision.stereo import StereoRig
 
