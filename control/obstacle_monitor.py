@@ -223,6 +223,9 @@ class ObstacleStage(VisionStage):
     """Stereo obstacle detection and stop zones as a vision stage (kind "obstacles")."""
 
     kind = "obstacles"
+    #: the runtime stops the robot when this stage's estimate is older than safety.estimate_timeout_s,
+    #: so a slow or stalled disparity source never leaves an old "clear" in force.
+    safety_critical = True
 
     def __init__(self, rig: Optional[StereoRig], mount: CameraMount, cfg: Optional[ObstaclesConfig] = None,
                  keep_labels: bool = False, intrinsics: Optional[tuple] = None):
