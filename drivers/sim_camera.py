@@ -239,7 +239,5 @@ class SimCamera(Camera):
             R_r, t_r = right_camera_pose(R_wc, t_wc, self.stereo_baseline)
             right = apply_effects(self.renderer.render(R_r, t_r, image=True, color=self.color).image,
                                   self.gain, self.noise_std, rng, self.seed)
-            w = out.inv_depth
-            disparity = np.where(w > 0, w * np.float32(self.model.fx * self.stereo_baseline),
-                                 np.float32(np.nan)).astype(np.float32)
+            disparity = out.disparity(self.model.fx, self.stereo_baseline)
         return Frame(left, int(stamp_ns), int(seq), disparity=disparity, right=right, meta=meta)

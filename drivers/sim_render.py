@@ -14,9 +14,10 @@ depth is its inverse and true disparity for a baseline B is fx * B / z.
 Quads are clipped against the view frustum (near plane z >= 5 cm and the four
 image sides) before projection, so planes extending behind the camera (the
 floor under the robot) project correctly. Large quads are split into tiles of
-at most ``tile_m`` metres, and each tile picks a mip level (Gaussian pyramid
-of its texture) from its projected texel density, so distant surfaces are
-anti-aliased and close ones stay sharp: KLT tracks stay stable.
+at most ``tile_m`` metres, and each tile picks a pre-filtered texture level per
+texture axis (a rip-map) from its projected texel density, so distant and
+grazing surfaces are anti-aliased and close ones stay sharp: KLT tracks stay
+stable.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ from vbnav.vision.camera_model import PinholeCamera
 
 NEAR_Z = 0.05          # m, near clipping plane
 FRUSTUM_MARGIN_PX = 2.0
-MIP_BIAS = 0.5         # level = floor(0.5 * log2(texels per pixel) + bias)
+MIP_BIAS = 0.5         # level = floor(log2(texels per pixel along a texture axis) + bias)
 
 
 @dataclass
@@ -41,31 +42,47 @@ class RenderOutput:
     ids: Optional[np.ndarray] = None       # HxW int32 Quad.pid, 0 where no surface
     inv_depth: Optional[np.ndarray] = None  # HxW float32 1/z, 0 where no surface
 
-
-def _pyramid(tex: np.ndarray, min_size: int = 8) -> list[np.ndarray]:
-    levels = [np.ascontiguousarray(tex)]
-    while min(levels[-1].shape[:2]) >= 2 * min_size and len(levels) < 9:
-        levels.append(cv2.pyrDown(levels[-1]))
-    return levels
+    def disparity(self, fx: float, baseline: float) -> np.ndarray:
+        """True disparity fx * B / z of a rectified pair with baseline B (m), float32, NaN where no surface."""
+        w = self.inv_depth
+        return np.where(w > 0, w * np.float32(fx * baseline), np.float32(np.nan)).astype(np.float32)
 
 
-def _polygon_areas(px: np.ndarray, poly: np.ndarray) -> tuple[float, float]:
-    """Areas of a small polygon: on screen (shoelace, px^2) and in space (m^2).
+_BINOMIAL = np.array([1, 4, 6, 4, 1], np.float32) / 16.0   # cv2.pyrDown's kernel
+_ONE = np.ones(1, np.float32)
 
-    Plain Python over <= 9 vertices: cheaper than numpy's per-call overhead.
+
+class _RipMap:
+    """Texture pre-filtered and halved independently along x and y (a "rip-map"), built lazily.
+
+    Level (lx, ly) has texel (col, row) at level-0 texel (2^lx col, 2^ly row)
+    (binomial filter, then every other sample, as cv2.pyrDown does). A floor seen
+    at a grazing angle is squeezed along one texture axis only: halving just that
+    axis removes the aliasing without blurring the other, which a plain
+    mip-map cannot do.
     """
-    p2, p3 = px.tolist(), poly.tolist()
-    k = len(p2)
-    a2 = 0.0
-    sx = sy = sz = 0.0
-    for i in range(k):
-        (x0, y0), (x1, y1) = p2[i], p2[(i + 1) % k]
-        a2 += x0 * y1 - x1 * y0
-        (ax, ay, az), (bx, by, bz) = p3[i], p3[(i + 1) % k]
-        sx += ay * bz - az * by
-        sy += az * bx - ax * bz
-        sz += ax * by - ay * bx
-    return 0.5 * abs(a2), 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)
+
+    MIN_SIZE = 4
+
+    def __init__(self, texture: np.ndarray):
+        self.levels = {(0, 0): np.ascontiguousarray(texture)}
+        h, w = texture.shape[:2]
+        self.max_lx = max(0, int(math.log2(max(w, 1) / self.MIN_SIZE)))
+        self.max_ly = max(0, int(math.log2(max(h, 1) / self.MIN_SIZE)))
+
+    def get(self, lx: int, ly: int) -> np.ndarray:
+        key = (min(max(lx, 0), self.max_lx), min(max(ly, 0), self.max_ly))
+        tex = self.levels.get(key)
+        if tex is None:
+            lx, ly = key
+            if lx > 0:     # halve along x from the level one step finer in x
+                src = self.get(lx - 1, ly)
+                tex = cv2.sepFilter2D(src, -1, _BINOMIAL, _ONE, borderType=cv2.BORDER_REFLECT_101)[:, ::2]
+            else:
+                src = self.get(lx, ly - 1)
+                tex = cv2.sepFilter2D(src, -1, _ONE, _BINOMIAL, borderType=cv2.BORDER_REFLECT_101)[::2]
+            tex = self.levels[key] = np.ascontiguousarray(tex)
+        return tex
 
 
 class _Tiles:
@@ -115,7 +132,7 @@ class Renderer:
         self.tile_m = float(tile_m)
         self._version = None
         self._tiles: Optional[_Tiles] = None
-        self._pyr: dict[tuple, list] = {}
+        self._rips: dict[tuple, _RipMap] = {}
         W, H = camera.width, camera.height
         m = FRUSTUM_MARGIN_PX
         xl, xr = (-0.5 - m - camera.cx) / camera.fx, (W - 0.5 + m - camera.cx) / camera.fx
@@ -123,6 +140,7 @@ class Renderer:
         # Half-spaces n . P >= off, camera frame: near, left, right, top, bottom.
         self._planes = np.array([[0, 0, 1], [1, 0, -xl], [-1, 0, xr], [0, 1, -yt], [0, -1, yb]], float)
         self._offsets = np.array([NEAR_Z, 0, 0, 0, 0], float)
+        self._plane_list = list(zip(self._planes.tolist(), self._offsets.tolist()))
         self._xs = np.arange(W, dtype=np.float32)
         self._ys = np.arange(H, dtype=np.float32)
 
@@ -132,19 +150,19 @@ class Renderer:
             self._tiles = _Tiles(self.world, self.tile_m)
             self._version = self.world.version
             live = {(id(q.texture), c) for q in self._tiles.quads for c in (False, True)}
-            self._pyr = {k: v for k, v in self._pyr.items() if k in live}
+            self._rips = {k: v for k, v in self._rips.items() if k in live}
         return self._tiles
 
-    def _levels(self, quad, color: bool) -> list[np.ndarray]:
+    def _ripmap(self, quad, color: bool) -> _RipMap:
         key = (id(quad.texture), color)
-        lv = self._pyr.get(key)
-        if lv is None:
+        rip = self._rips.get(key)
+        if rip is None:
             tex = quad.texture
             if color:
                 tint = np.asarray(quad.tint, np.float32)
                 tex = np.clip(tex[..., None].astype(np.float32) * tint, 0, 255).astype(np.uint8)
-            lv = self._pyr[key] = _pyramid(tex)
-        return lv
+            rip = self._rips[key] = _RipMap(tex)
+        return rip
 
     # ------------------------------------------------------------- rendering
     def render(self, R_wc: np.ndarray, t_wc: np.ndarray, *, image: bool = True, depth: bool = False,
@@ -213,7 +231,11 @@ class Renderer:
                 np.copyto(idimg[y0:y1, x0:x1], np.int32(tiles.quads[qi].pid), where=upd)
             if img is not None:
                 quad = tiles.quads[qi]
-                warped = self._warp_tile(quad, poly, px, K, R_wc, c, x0, y0, bw, bh, color)
+                # Filter levels are chosen where the tile's projected vertices' mean hits the plane.
+                pu, pv = float(px[:, 0].mean()), float(px[:, 1].mean())
+                inv_z = A * pu + B * pv + C
+                pm = np.array([(pu - cx) / fx, (pv - cy) / fy, 1.0]) / inv_z if inv_z > 0 else poly.mean(axis=0)
+                warped = self._warp_tile(quad, pm, K, R_wc, c, x0, y0, bw, bh, color)
                 region = img[y0:y1, x0:x1]
                 np.copyto(region, warped, where=upd[..., None] if color else upd)
         return self._output(img, zbuf, idimg, depth)
@@ -226,49 +248,74 @@ class Renderer:
         return out
 
     def _clip(self, poly: np.ndarray) -> Optional[np.ndarray]:
-        """Sutherland-Hodgman clipping of a convex 3D polygon against the frustum half-spaces."""
-        for n, off in zip(self._planes, self._offsets):
-            s = poly @ n - off
-            if (s >= 0).all():
+        """Sutherland-Hodgman clipping of a convex 3D polygon against the frustum half-spaces.
+
+        Plain Python on <= 9 vertices: several times cheaper than numpy per call.
+        """
+        pts = poly.tolist()
+        for (nx, ny, nz), off in self._plane_list:
+            s = [nx * p[0] + ny * p[1] + nz * p[2] - off for p in pts]
+            if min(s) >= 0:
                 continue
-            if (s < 0).all():
+            if max(s) < 0:
                 return None
             out = []
-            k = len(poly)
+            k = len(pts)
             for i in range(k):
                 j = (i + 1) % k
                 if s[i] >= 0:
-                    out.append(poly[i])
+                    out.append(pts[i])
                 if (s[i] >= 0) != (s[j] >= 0):
                     a = s[i] / (s[i] - s[j])
-                    out.append(poly[i] + a * (poly[j] - poly[i]))
+                    pi, pj = pts[i], pts[j]
+                    out.append([pi[0] + a * (pj[0] - pi[0]), pi[1] + a * (pj[1] - pi[1]), pi[2] + a * (pj[2] - pi[2])])
             if len(out) < 3:
                 return None
-            poly = np.array(out)
-        return poly
+            pts = out
+        return np.array(pts)
 
-    def _warp_tile(self, quad, poly_c, px, K, R_wc, c, x0, y0, bw, bh, color):
-        levels = self._levels(quad, color)
+    def _warp_tile(self, quad, pm, K, R_wc, c, x0, y0, bw, bh, color):
+        rip = self._ripmap(quad, color)
         th, tw = quad.texture.shape[:2]
         sa, sb = quad.width / tw, quad.height / th          # metres per level-0 texel
-        # Mip level from the tile's mean texel density on screen (area ratio).
-        area_px, area_m = _polygon_areas(px, poly_c)
-        level = 0
-        if area_px > 1e-6:
-            ratio = area_m / (sa * sb) / area_px
-            if ratio > 1.0:
-                level = int(min(len(levels) - 1, max(0, math.floor(0.5 * math.log2(ratio) + MIP_BIAS))))
-        k = float(1 << level)
-        # Level-l texel (col, row) is level-0 texel (k col, k row) (pyrDown centres on even
-        # pixels), i.e. plane point a = (k col + 0.5) sa, b = (k row + 0.5) sb.
+        # Level-0 texel (col, row) is the plane point a = (col + 0.5) sa, b = (row + 0.5) sb.
         Ru, Rv = R_wc.T @ quad.u, R_wc.T @ quad.v
         o = R_wc.T @ (quad.origin - c) + 0.5 * sa * Ru + 0.5 * sb * Rv
-        G = np.column_stack((Ru * (k * sa), Rv * (k * sb), o))
-        M = K @ G
+        M = K @ np.column_stack((Ru * sa, Rv * sb, o))      # level-0 texture -> image
+        lx, ly = _filter_levels(M, pm, o, Ru, Rv, sa, sb)
+        # Level (lx, ly) texel (col, row) is level-0 texel (2^lx col, 2^ly row).
+        M[:, 0] *= float(1 << lx)
+        M[:, 1] *= float(1 << ly)
         M[0] -= x0 * M[2]
         M[1] -= y0 * M[2]
-        return cv2.warpPerspective(levels[level], M, (bw, bh), flags=cv2.INTER_LINEAR,
+        return cv2.warpPerspective(rip.get(lx, ly), M, (bw, bh), flags=cv2.INTER_LINEAR,
                                    borderMode=cv2.BORDER_REPLICATE)
+
+
+def _filter_levels(M: np.ndarray, pm: np.ndarray, o, Ru, Rv, sa: float, sb: float) -> tuple[int, int]:
+    """Rip-map levels for the texture -> image homography M around camera-frame point pm.
+
+    pm (on the plane) is texel (col, row) with pm = o + col sa Ru + row sb Rv.
+    The inverse of the homography's Jacobian there says how many texels along
+    each texture axis one pixel step covers; each axis is halved until that is ~1.
+    """
+    d = pm - o
+    col, row = float(d @ Ru) / sa, float(d @ Rv) / sb
+    x = M @ np.array([col, row, 1.0])
+    w = x[2]
+    if w <= 1e-9:
+        return 0, 0
+    px, py = x[0] / w, x[1] / w
+    j00, j01 = (M[0, 0] - px * M[2, 0]) / w, (M[0, 1] - px * M[2, 1]) / w   # d(pixel) / d(texel)
+    j10, j11 = (M[1, 0] - py * M[2, 0]) / w, (M[1, 1] - py * M[2, 1]) / w
+    det = abs(j00 * j11 - j01 * j10)
+    if det < 1e-18:
+        return 0, 0
+    # Rows of the inverse Jacobian: texels along col / row per pixel step.
+    levels = []
+    for s in (math.hypot(j11, j01) / det, math.hypot(j10, j00) / det):
+        levels.append(max(0, int(math.floor(math.log2(s) + MIP_BIAS))) if s > 1e-12 else 0)
+    return levels[0], levels[1]
 
 
 class _DistortionRemap:

@@ -3,7 +3,7 @@
 Coordinates follow vision/geometry.py: x right, y down, z forward, floor at
 y = 0, points above the floor have y < 0. Every surface is a rectangle
 (``Quad``) with its own procedural texture, generated from a seed so the same
-world renders byte-for-byte the same image on every machine.
+world renders byte-for-byte the same image in every run.
 
 Textures are rich in corners at several scales (large shaded blobs, random
 rectangles / ellipses / triangles / bars of 2-60 cm, fine grain) and never
@@ -31,7 +31,7 @@ import functools
 import math
 import zlib
 from dataclasses import dataclass, field
-from typing import Iterable, Optional
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -264,14 +264,14 @@ class World:
     # ---------------------------------------------------------------- building
     def add_quad(self, name: str, kind: str, origin, u, v, width: float, height: float, *,
                  seed: Optional[int] = None, ppm: Optional[float] = None, two_sided: bool = False,
-                 texture: Optional[np.ndarray] = None) -> Quad:
+                 texture: Optional[np.ndarray] = None, _pid: Optional[int] = None) -> Quad:
         """Add one textured rectangle to the group ``name`` (created if new)."""
         if kind not in KINDS[1:]:
             raise ValueError(f"quad kind must be one of {KINDS[1:]}, got {kind!r}")
         if not (width > 0 and height > 0):
             raise ValueError(f"quad {name!r}: width and height must be > 0 m, got {width}, {height}")
         ppm = self.ppm if ppm is None else float(ppm)
-        pid = self._next_pid
+        pid = self._next_pid if _pid is None else int(_pid)
         tex_seed = _seed_for(self.seed if seed is None else seed, f"{name}/{len(self._groups.get(name, []))}")
         if texture is None:
             texture = make_texture(tex_seed, max(2, round(width * ppm)), max(2, round(height * ppm)), ppm)
@@ -279,7 +279,8 @@ class World:
                  float(width), float(height), texture, ppm, two_sided, _tint(tex_seed))
         self._quads[pid] = q
         self._groups.setdefault(name, []).append(pid)
-        self._next_pid += 1
+        if _pid is None:
+            self._next_pid += 1
         self.version += 1
         return q
 
@@ -325,7 +326,7 @@ class World:
         self._build_box(box, textures=None)
         return self.group(name)
 
-    def _build_box(self, box: _Box, textures: Optional[list]) -> None:
+    def _build_box(self, box: _Box, textures: Optional[list], pids: Optional[list] = None) -> None:
         sx, sy, sz = box.size_xyz
         c, s = math.cos(box.yaw), math.sin(box.yaw)
         ex = np.array([c, 0.0, -s])      # box x axis in the world (rot_y(yaw))
@@ -341,19 +342,21 @@ class World:
         ]
         for i, (cen, nrm, hint, w, h) in enumerate(faces):
             tex = None if textures is None else textures[i]
-            self.add_rect(box.name, "box", cen, nrm, hint, w, h, seed=box.seed, texture=tex)
+            self.add_rect(box.name, "box", cen, nrm, hint, w, h, seed=box.seed, texture=tex,
+                          _pid=None if pids is None else pids[i])
 
     def move_box(self, name: str, new_center_xz, yaw: Optional[float] = None) -> None:
         """Move a box (same textures, same size) to a new floor position."""
         box = self._boxes.get(name)
         if box is None:
             raise KeyError(f"world has no box named {name!r}; boxes: {sorted(self._boxes)}")
-        textures = [q.texture for q in self.group(name)]
+        faces = self.group(name)
+        textures, pids = [q.texture for q in faces], [q.pid for q in faces]
         self._drop_group(name)
         box.center_xz = tuple(float(c) for c in new_center_xz)
         if yaw is not None:
             box.yaw = float(yaw)
-        self._build_box(box, textures)
+        self._build_box(box, textures, pids)
 
     def remove(self, name: str) -> None:
         """Remove a named object (box, sheet, wall...)."""
@@ -497,11 +500,5 @@ class World:
             raise ValueError(f"unknown simulated world {name!r}; expected one of {', '.join(makers)}")
         return makers[name]()
 
-    WORLD_NAMES: tuple = ("room", "empty_room", "corridor", "corridor_step")
-
     def __repr__(self) -> str:
         return f"World(seed={self.seed}, quads={len(self._quads)}, objects={self.names()})"
-
-
-def iter_quads(world: World) -> Iterable[Quad]:
-    return world.polygons

@@ -146,6 +146,12 @@ def test_enough_corners_everywhere_along_a_route(room):
         if k % 4 == 0:
             orb_counts.append(len(orb.detect(img)))
     assert len(counts) >= 35
+    # The room is closed and tiles overlap: no pixel of any view shows the background.
+    renderer = Renderer(room, CAM)
+    for pose in route_poses()[::3]:
+        for turn in (0.0, 0.8, -2.0):
+            ids = renderer.render(*camera_pose(pose.compose(Pose2(0, 0, turn)), MOUNT), image=False, ids=True).ids
+            assert (ids > 0).all()
     assert min(counts) >= 200, counts
     assert min(orb_counts) >= 200, orb_counts
 

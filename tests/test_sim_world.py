@@ -94,6 +94,7 @@ def test_move_and_remove_boxes_change_the_view():
     tex_before = [q.texture for q in w.group("box_a")]
     w.move_box("box_a", (-2.0, 2.5))
     assert [q.texture for q in w.group("box_a")] == tex_before        # same box, moved
+    assert {q.pid for q in w.group("box_a")} == box_a                 # same ids
     ids1, _ = w.label_image(CAM, R, t)
     assert np.isin(ids1, [q.pid for q in w.group("box_a")]).sum() != n0
     w.remove("box_a")
