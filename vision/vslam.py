@@ -179,10 +179,10 @@ class Vslam:
                                           len(self.lm.P))]
         self._history = [self.references[0].pose_wc]
         self.prev = image
-        added = self._add_landmarks(image, right, depth, own=True)
+        self._add_landmarks(image, right, depth, own=True)
         self.references[-1].landmarks = len(self.lm.P)
         self.frame += 1
-        return len(self.lm.P) + added * 0
+        return len(self.lm.P)
 
     def initialise_stereo(self, left: np.ndarray, right: np.ndarray, pose_wc: np.ndarray | None = None) -> int:
         if self.baseline is None:
