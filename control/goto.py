@@ -16,8 +16,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from vbnav.control.config import ConfigError, _format_errors
 from vbnav.control.controller import ControlContext, Controller, Estimate, Twist, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import PinholeCamera
@@ -38,6 +39,14 @@ class GotoConfig(BaseModel):
     k_bearing: float = Field(2.0, gt=0, description="1/s: turn rate per radian of bearing error")
     k_heading: float = Field(1.5, gt=0, description="1/s: turn rate per radian of final heading error")
     estimate_max_age_s: float = Field(1.0, gt=0, description="older VSLAM poses stop the robot")
+
+
+def vslam_config(section: dict | None, source: str = "<config>") -> VslamConfig:
+    """Validate the free ``vslam:`` configuration section; errors name the file and key path."""
+    try:
+        return VslamConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vslam")) from None
 
 
 @dataclass

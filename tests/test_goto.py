@@ -59,3 +59,12 @@ def test_goto_reaches_a_goal_3m_away():
     # odometry alone would have missed: the VSLAM pose is what got it there
     odom_err = math.hypot(odom.x - reached.x, odom.z - reached.z)
     assert odom_err > 0.05
+
+
+def test_vslam_section_is_validated_with_key_paths():
+    from vbnav.control.config import ConfigError
+    from vbnav.control.goto import vslam_config
+
+    assert vslam_config({"min_landmarks": 100}).min_landmarks == 100
+    with pytest.raises(ConfigError, match=r"robot.yaml.*vslam.min_landmark"):
+        vslam_config({"min_landmark": 100}, "robot.yaml")
