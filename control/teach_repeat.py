@@ -529,7 +529,13 @@ class RepeatController(Controller):
             seg += 1
 
 
-def teach_repeat_config(section: dict | None) -> VBCConfig:
-    """Validate the free ``vbc:`` configuration section."""
-    return VBCConfig(**(section or {}))
+def teach_repeat_config(section: dict | None, source: str = "<config>") -> VBCConfig:
+    """Validate the free ``vbc:`` configuration section; errors name the file and key path."""
+    from pydantic import ValidationError
+
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return VBCConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vbc")) from None
 
