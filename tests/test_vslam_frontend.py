@@ -72,3 +72,24 @@ def test_lost_reference_landmarks_are_found_again_on_return(sequence):
     assert _.reacquired == 0
     end_err = np.linalg.norm(results[-1].pose_wc[:3, 3] - truth[-1][:3, 3])
     assert end_err < 0.02
+
+
+def test_landmark_normal_equations_survive_a_reference_change(rng):
+    """N-view least squares of a landmark: exact from noise-free rays, and the same point after the
+    normal equations are re-expressed in another reference frame (the hand-off)."""
+    from vbnav.vision.geometry import rot_y
+    from vbnav.vision.vslam import _Landmarks
+
+    X = np.array([0.3, -0.2, 2.0])
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in ([0, 0, 0], [0.1, 0.02, 0], [0.2, -0.05, 0.1]):
+        m = (X - c) / np.linalg.norm(X - c)
+        Q = np.eye(3) - np.outer(m, m)
+        A += Q / np.sum((X - c) ** 2)
+        b += Q @ np.asarray(c) / np.sum((X - c) ** 2)
+    L = _Landmarks()
+    L.add(X[None] + rng.normal(0, 0.1, 3), np.zeros((1, 2)), False, A=A[None], b=b[None], refine=np.ones(1, bool))
+    np.testing.assert_allclose(np.linalg.solve(L.A[0], L.b[0]), X, atol=1e-9)
+    R, T = rot_y(0.4), np.array([0.5, -1.0, 0.3])
+    L.transform(R, T)
+    np.testing.assert_allclose(np.linalg.solve(L.A[0], L.b[0]), R @ X + T, atol=1e-9)

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
+import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -53,6 +54,12 @@ class VslamConfig(BaseModel):
                                                        "(0: never; lost landmarks are then forgotten)")
     reacquire_radius_px: float = Field(12.0, gt=0, description="re-found corner within this of the prediction")
     max_dormant: int = Field(5000, ge=0, description="lost landmarks kept for re-acquisition")
+    anchor_tracks: bool = Field(False, description="refine every track by KLT from the image where its feature "
+                                                   "was detected (removes the random walk of frame-to-frame KLT)")
+    anchor_max_shift_px: float = Field(2.0, gt=0, description="anchored position accepted within this of the "
+                                                              "frame-to-frame track")
+    refine_landmarks: bool = Field(True, description="monocular landmarks: least-squares position over all "
+                                                     "views (11.11 generalised to N views), updated every frame")
     klt_window: int = Field(21, ge=5)
     klt_levels: int = Field(3, ge=0)
     min_distance_px: float = Field(12.0, gt=0)
@@ -87,17 +94,39 @@ class _Landmarks:
     own: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # created with the reference frame
     desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # ORB at creation
     described: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # frame where the feature was detected
+    apx: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # its pixel there
+    # Monocular landmarks: normal equations of the N-view least squares, sum_k w_k Q_k (X - C_k) = 0 with
+    # Q_k = I - m_k m_k^T (m_k the ray, C_k the camera centre of view k, both in the reference frame).
+    A: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    refine: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    _ROWS = ("P", "px", "own", "desc", "described", "anchor", "apx", "A", "b", "refine")
 
     def keep(self, m: np.ndarray) -> "_Landmarks":
         """Keep the rows in ``m``; return the others (for the dormant set)."""
-        gone = _Landmarks(self.P[~m], self.px[~m], self.own[~m], self.desc[~m], self.described[~m])
-        self.P, self.px, self.own = self.P[m], self.px[m], self.own[m]
-        self.desc, self.described = self.desc[m], self.described[m]
+        gone = _Landmarks(**{k: getattr(self, k)[~m] for k in self._ROWS})
+        for k in self._ROWS:
+            setattr(self, k, getattr(self, k)[m])
         return gone
 
+    def transform(self, R: np.ndarray, T: np.ndarray) -> None:
+        """Re-express in a new reference frame, X' = R X + T (normal equations included: A' = R A R^T,
+        b' = R b + A' T keep A' X' = b' equivalent to A X = b)."""
+        self.P = self.P @ R.T + T
+        self.A = np.einsum("ij,njk,lk->nil", R, self.A, R)
+        self.b = self.b @ R.T + np.einsum("nij,j->ni", self.A, T)
+
     def add(self, P: np.ndarray, px: np.ndarray, own: bool, image: np.ndarray | None = None,
-            desc: np.ndarray | None = None, described: np.ndarray | None = None) -> None:
+            desc: np.ndarray | None = None, described: np.ndarray | None = None, anchor=None, apx=None,
+            A=None, b=None, refine=None) -> None:
         n = len(P)
+        self.anchor = np.concatenate((self.anchor, np.broadcast_to(np.asarray(-1 if anchor is None else anchor), n)))
+        self.apx = np.vstack((self.apx, px if apx is None else apx))
+        self.A = np.concatenate((self.A, np.zeros((n, 3, 3)) if A is None else A))
+        self.b = np.vstack((self.b, np.zeros((n, 3)) if b is None else b))
+        self.refine = np.concatenate((self.refine, np.zeros(n, bool) if refine is None else refine))
         if desc is None:
             desc = np.zeros((n, 32), np.uint8)
             described = np.zeros(n, bool)
@@ -111,7 +140,8 @@ class _Landmarks:
         self.described = np.concatenate((self.described, described))
 
     def extend(self, other: "_Landmarks", own: bool = False) -> None:
-        self.add(other.P, other.px, own, desc=other.desc, described=other.described)
+        self.add(other.P, other.px, own, desc=other.desc, described=other.described, anchor=other.anchor,
+                 apx=other.apx, A=other.A, b=other.b, refine=other.refine)
 
 
 @dataclass
@@ -122,9 +152,12 @@ class _Candidates:
     ray0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     R0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     T0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    apx: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def keep(self, m: np.ndarray) -> None:
         self.px, self.ray0, self.R0, self.T0 = self.px[m], self.ray0[m], self.R0[m], self.T0[m]
+        self.anchor, self.apx = self.anchor[m], self.apx[m]
 
 
 def _to_h(R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -155,6 +188,8 @@ class Vslam:
         self.rng = np.random.default_rng(0)
         self.stats: list[MotionEstimate] = []
         self._history: list[np.ndarray] = []  # last two good world-from-camera poses
+        self._img_id = 0  # frame counter of the image being processed
+        self._anchors: dict[int, np.ndarray] = {}  # images where live features were detected
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -170,9 +205,11 @@ class Vslam:
                    depth: np.ndarray | None = None) -> int:
         """Start with landmarks of known metric position in this camera's frame (from stereo, a depth
         image or a known reference structure); this camera becomes the first reference frame."""
+        self._img_id = self.frame
+        self._anchors = {self._img_id: image}
         self.lm = _Landmarks()
         self.lm.add(np.asarray(points_cam, float).reshape(-1, 3), np.asarray(pixels, float).reshape(-1, 2), True,
-                    image=image)
+                    image=image, anchor=self._img_id)
         self.dormant = _Landmarks()
         self.R, self.T = np.eye(3), np.zeros(3)
         self.references = [ReferenceFrame(self.frame, np.eye(4) if pose_wc is None else np.asarray(pose_wc, float),
@@ -207,6 +244,10 @@ class Vslam:
         tracked = len(self.lm.P)
         self.prev = image
         self.frame += 1
+        self._img_id = self.frame - 1
+        self._anchors[self._img_id] = image
+        if cfg.anchor_tracks:
+            self._refine_from_anchors(image)
         if tracked < max(cfg.min_inliers, 3):
             return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"), reference=len(self.references) - 1)
         rays = self.camera.rays(self.lm.px)
@@ -221,14 +262,70 @@ class Vslam:
         self.R, self.T = est.R, est.T
         self._history = [self._history[-1], self.pose_wc] if self._history else [self.pose_wc]
         self.lm.keep(inl)
+        if cfg.refine_landmarks:
+            self._refine_landmarks(self.camera.rays(self.lm.px))
         handoff = self._maybe_handoff()
         added = 0
         if cfg.reacquire_every and self.frame % cfg.reacquire_every == 0:
             self._reacquire(image)
         if len(self.lm.P) < cfg.min_landmarks or (self.baseline is None and depth is None):
             added = self._add_landmarks(image, right, depth, own=False)
+        self._forget_anchors()
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
+
+    # ------------------------------------------------------------------ tracks and landmark positions
+    def _refine_from_anchors(self, image: np.ndarray) -> None:
+        """Frame-to-frame KLT drifts by a random walk; the feature's own patch in the image where it was
+        detected does not. Track again from there, started at the frame-to-frame position; keep the
+        result when it agrees with it (large viewpoint changes make the old patch useless)."""
+        lim = self.cfg.anchor_max_shift_px
+        params = dict(winSize=(self.cfg.klt_window, self.cfg.klt_window), maxLevel=1,
+                      criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        for S in (self.lm, self.cand):
+            for a in np.unique(S.anchor):
+                src = self._anchors.get(int(a))
+                if src is None or int(a) == self._img_id:
+                    continue
+                idx = np.flatnonzero(S.anchor == a)
+                guess = S.px[idx].astype(np.float32).reshape(-1, 1, 2).copy()
+                out, st, _ = cv2.calcOpticalFlowPyrLK(src, image, S.apx[idx].astype(np.float32).reshape(-1, 1, 2),
+                                                      guess, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **params)
+                out = out.reshape(-1, 2).astype(np.float64)
+                good = (st.ravel() == 1) & (np.linalg.norm(out - S.px[idx], axis=1) < lim)
+                S.px[idx[good]] = out[good]
+
+    def _forget_anchors(self) -> None:
+        used = set(np.unique(self.lm.anchor).tolist()) | set(np.unique(self.cand.anchor).tolist())
+        for k in [k for k in self._anchors if k not in used and k != self._img_id]:
+            del self._anchors[k]
+
+    def _refine_landmarks(self, rays: np.ndarray) -> None:
+        """Monocular landmarks: add this view to each one's N-view least squares (rays weighted by 1/D^2,
+        i.e. angular error) and move it to the solution when the system is well conditioned."""
+        L = self.lm
+        r = np.flatnonzero(L.refine)
+        if len(r) == 0:
+            return
+        C = -self.R.T @ self.T  # camera centre in the reference frame
+        m = rays[r] @ self.R  # R^T n: rays in the reference frame
+        D2 = np.sum((L.P[r] - C) ** 2, axis=1)
+        w = 1.0 / np.maximum(D2, 1e-12)
+        Q = np.eye(3)[None] - m[:, :, None] * m[:, None, :]
+        L.A[r] += w[:, None, None] * Q
+        L.b[r] += w[:, None] * np.einsum("nij,j->ni", Q, C)
+        ev = np.linalg.eigvalsh(L.A[r])
+        good = ev[:, 0] > self._min_conditioning * ev.sum(axis=1)
+        if good.any():
+            g = r[good]
+            P = np.linalg.solve(L.A[g], L.b[g][:, :, None])[:, :, 0]
+            front = (P @ self.R.T + self.T)[:, 2] > 0
+            L.P[g[front]] = P[front]
+
+    @property
+    def _min_conditioning(self) -> float:
+        # two views at the parallax gate theta: eigenvalues ~ (2, 2 - theta^2/2, theta^2/2) / (D^2): ratio theta^2/8
+        return np.deg2rad(self.cfg.min_parallax_deg) ** 2 / 8.0
 
     def _predicted_motion(self) -> tuple[np.ndarray, np.ndarray]:
         """Reference -> camera motion predicted at constant velocity from the last two poses."""
@@ -246,8 +343,8 @@ class Vslam:
         if own >= max(self.cfg.handoff_min, self.cfg.handoff_fraction * ref.landmarks):
             return False
         # Re-express the surviving landmarks in the current camera, which becomes the reference frame.
-        self.lm.P = self.lm.P @ self.R.T + self.T
-        self.dormant.P = self.dormant.P @ self.R.T + self.T
+        self.lm.transform(self.R, self.T)
+        self.dormant.transform(self.R, self.T)
         self.lm.own[:] = True
         Rc, Tc = self.cand.R0, self.cand.T0
         if len(Rc):  # candidates' first poses: ref_old -> cam0 becomes ref_new -> cam0
@@ -312,9 +409,24 @@ class Vslam:
         found = d.keep(~back)  # d keeps the rest; ``found`` holds the re-found rows in index order
         order = np.argsort(li)
         found.px = corners[ci[order]]
+        found.anchor[:], found.apx = self._img_id, found.px.copy()  # its old patch may be long gone
         self.lm.extend(found)
         self.reacquired += len(li)
         return len(li)
+
+    def _two_view_normal_equations(self, P, ray0, R0, T0, rays):
+        """Normal equations of the first view and the current one (reference-frame rays and centres)."""
+        m0 = np.einsum("hji,hj->hi", R0, ray0)  # R0^T n0
+        C0 = -np.einsum("hji,hj->hi", R0, T0)
+        m1 = rays @ self.R
+        C1 = np.broadcast_to(-self.R.T @ self.T, P.shape)
+        A, b = np.zeros((len(P), 3, 3)), np.zeros((len(P), 3))
+        for m, C in ((m0, C0), (m1, C1)):
+            w = 1.0 / np.maximum(np.sum((P - C) ** 2, axis=1), 1e-12)
+            Q = np.eye(3)[None] - m[:, :, None] * m[:, None, :]
+            A += w[:, None, None] * Q
+            b += w[:, None] * np.einsum("nij,nj->ni", Q, C)
+        return A, b
 
     def _to_reference(self, X_cam: np.ndarray) -> np.ndarray:
         return (X_cam - self.T) @ self.R  # R^T (X - T)
@@ -340,7 +452,7 @@ class Vslam:
         good = rec.valid & (rec.depth_ref < self.cfg.stereo_max_depth_baselines * self.baseline) \
             & (rec.depth_ref > self.cfg.min_depth)
         X = rec.depth_ref[good, None] * n_l[good]
-        self.lm.add(self._to_reference(X), px[good], own, image=left)
+        self.lm.add(self._to_reference(X), px[good], own, image=left, anchor=self._img_id)
         return int(good.sum())
 
     def _add_from_depth(self, image, depth, own: bool) -> int:
@@ -352,7 +464,7 @@ class Vslam:
         good = np.isfinite(z) & (z > max(self.cfg.min_depth, 1e-6))
         n = self.camera.rays(px[good])
         X = n * (z[good] / n[:, 2])[:, None]  # depth images hold z, not the radial distance
-        self.lm.add(self._to_reference(X), px[good], own, image=image)
+        self.lm.add(self._to_reference(X), px[good], own, image=image, anchor=self._img_id)
         return int(good.sum())
 
     def _add_from_motion(self, image, own: bool) -> int:
@@ -376,7 +488,9 @@ class Vslam:
             if ok.any():
                 X0 = d0[ok, None] * c.ray0[ok]
                 P = np.einsum("hji,hj->hi", c.R0[ok], X0 - c.T0[ok])  # R0^T (X0 - T0)
-                self.lm.add(P, c.px[ok], own, image=image)
+                A, b = self._two_view_normal_equations(P, c.ray0[ok], c.R0[ok], c.T0[ok], rays[ok])
+                self.lm.add(P, c.px[ok], own, image=image, anchor=c.anchor[ok], apx=c.apx[ok], A=A, b=b,
+                            refine=np.full(int(ok.sum()), self.cfg.refine_landmarks))
                 added = int(ok.sum())
                 c.keep(~ok)
         budget = self.cfg.max_candidates - len(c.px)
@@ -388,4 +502,6 @@ class Vslam:
                 c.ray0 = np.vstack((c.ray0, self.camera.rays(px)))
                 c.R0 = np.concatenate((c.R0, np.repeat(self.R[None], m, 0)))
                 c.T0 = np.vstack((c.T0, np.repeat(self.T[None], m, 0)))
+                c.anchor = np.concatenate((c.anchor, np.full(m, self._img_id)))
+                c.apx = np.vstack((c.apx, px))
         return added
