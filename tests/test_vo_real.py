@@ -53,8 +53,10 @@ def test_desk_tag_grid_init_then_natural_features(shared_data, tmp_path, capsys)
     assert len(np.loadtxt(out)) >= 95
 
 
-# The issue asks 1.5 cm; measured 2.04 cm. Per-frame poses from OpenCV's tag corners alone differ from
-# the ViSP grid poses (the ground truth) by 1-2 cm, so the ground truth is not much better than the bound.
+# The issue asks 1.5 cm; measured 1.96 cm. NOT a ground-truth limit: a per-frame OpenCV PnP on the tag
+# corners scores 0.66 cm against the grid poses with the same alignment (benchmarks/desk_groundtruth.py).
+# Our error sits in frames 45-59 and 78-87 (2.9-3.3 cm rms), after the tracked tag corners are lost and
+# the pose rests on monocular landmarks triangulated from earlier, drifting poses.
 DESK_ATE_BOUND = 0.025
 
 
