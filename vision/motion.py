@@ -257,14 +257,16 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
                           prior: tuple[np.ndarray, np.ndarray] | None = None, threshold: float = 0.004,
                           angular: bool = False, confidence: float = 0.999, max_hypotheses: int = 200,
                           batch: int = 16, minimal_iters: int = 8, refine_rounds: int = 3, score_factor: float = 3.0,
-                          rng: np.random.Generator | None = None, tol: float = 1e-5) -> MotionEstimate:
+                          rng: np.random.Generator | None = None, tol: float = 1e-5,
+                          weights: np.ndarray | None = None) -> MotionEstimate:
     """Outlier-robust motion: 3-point hypotheses (the chapter's minimal set), then robust reweighting.
 
     Hypotheses run the alternation on 3 landmarks from the same initial depths
     (batched); each is scored by the number of rays within ``threshold`` rad.
     The prior pose, when given, is one more hypothesis. The best consensus set
     is refined by the full alternation with Cauchy weights on the ray angles,
-    ``refine_rounds`` times, the inlier set recomputed each round.
+    ``refine_rounds`` times, the inlier set recomputed each round. ``weights``
+    (N,), if given, multiply the Cauchy weights (confidence in each landmark).
     """
     P = np.asarray(points, float).reshape(-1, 3)
     n = np.asarray(rays, float).reshape(-1, 3)
@@ -315,7 +317,8 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         inl = np.ones(N, bool)
     est_prior = None if best[0] is None else best
     total_iters = 0
-    weights = np.ones(N)
+    prior_w = np.ones(N) if weights is None else np.asarray(weights, float).reshape(N)
+    weights = prior_w.copy()
     est = None
     for _ in range(max(1, refine_rounds)):
         idx = np.flatnonzero(inl)
@@ -328,7 +331,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         if new_inl.sum() < 3:
             break
         sigma = max(threshold / 3.0, float(np.median(r[new_inl])) * 1.4826)
-        weights = 1.0 / (1.0 + (r / sigma) ** 2)  # Cauchy
+        weights = prior_w / (1.0 + (r / sigma) ** 2)  # Cauchy
         if np.array_equal(new_inl, inl) and _ > 0:
             inl = new_inl
             break

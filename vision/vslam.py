@@ -60,6 +60,11 @@ class VslamConfig(BaseModel):
                                                               "frame-to-frame track")
     refine_landmarks: bool = Field(True, description="monocular landmarks: least-squares position over all "
                                                      "views (11.11 generalised to N views), updated every frame")
+    weight_by_uncertainty: bool = Field(True, description="monocular landmarks weigh in the pose by the "
+                                                          "confidence of their N-view position")
+    min_landmark_weight: float = Field(0.01, ge=0, le=1,
+                                       description="floor of that weight: with only poorly known landmarks "
+                                                   "(forward motion) the pose must not rest on a handful")
     klt_window: int = Field(21, ge=5)
     klt_levels: int = Field(3, ge=0)
     min_distance_px: float = Field(12.0, gt=0)
@@ -253,7 +258,8 @@ class Vslam:
         rays = self.camera.rays(self.lm.px)
         f = float(getattr(self.camera, "fx", 500.0))
         est = recover_motion_robust(self.lm.P, rays, prior=self._predicted_motion(),
-                                    threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng)
+                                    threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
+                                    weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
         self.stats.append(est)
         inl = est.inliers & (est.depths > 0)
         if inl.sum() < cfg.min_inliers:
@@ -294,6 +300,21 @@ class Vslam:
                 out = out.reshape(-1, 2).astype(np.float64)
                 good = (st.ravel() == 1) & (np.linalg.norm(out - S.px[idx], axis=1) < lim)
                 S.px[idx[good]] = out[good]
+
+    def _confidence(self, f: float) -> np.ndarray:
+        """Weight of each landmark in the pose: 1 for landmarks of known position (structure, stereo,
+        depth image); for monocular ones sigma^2 / (sigma^2 + sigma_lm^2), sigma the ray noise (one pixel
+        at the focal length) and sigma_lm^2 = sigma^2 lambda_max(A^-1) / D^2 the angle its position
+        uncertainty subtends from here (A: its N-view normal equations, weighted by 1/D^2 per view).
+        sigma cancels: w = 1 / (1 + 1 / (lambda_min(A) D^2)), no noise level to tune."""
+        L = self.lm
+        w = np.ones(len(L.P))
+        r = np.flatnonzero(L.refine)
+        if len(r):
+            ev = np.linalg.eigvalsh(L.A[r])[:, 0]
+            D2 = np.sum((L.P[r] + self.R.T @ self.T) ** 2, axis=1)
+            w[r] = np.maximum(1.0 / (1.0 + 1.0 / np.maximum(ev * D2, 1e-12)), self.cfg.min_landmark_weight)
+        return w
 
     def _forget_anchors(self) -> None:
         used = set(np.unique(self.lm.anchor).tolist()) | set(np.unique(self.cand.anchor).tolist())
