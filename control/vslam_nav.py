@@ -1,0 +1,305 @@
+"""The VSLAM on the robot (chapter section 11.3) and the ``goto`` controller built on it.
+
+- ``VslamStage`` (vision thread, kind "vslam"): runs ``vision.vslam.Vslam`` on the
+  robot's frames. Metric scale comes from the calibrated stereo pair (the right
+  image of the frame, section 11.3.1.1) or, on cameras that deliver only a
+  disparity image (OAK), from the depth that disparity gives. The world frame is
+  the robot's odometry frame at the first frame (the robot's start pose), so a
+  goal "in the reference frame" is a pose relative to where the robot started.
+  Each reference frame of the VSLAM's chain is kept as an *anchor*: its
+  landmarks (world coordinates) with ORB descriptors. When the robot comes back
+  near an older anchor, the frame is matched against that anchor's landmarks and
+  the pose is computed against them (11.15-11.17), not through the chain of
+  hand-offs: returning to the start gives the pose against the first reference
+  set. The stage reports the robot's planar pose (camera pose through the mount).
+- ``GotoController`` (loop rate): dead-reckons from the latest VSLAM pose with
+  odometry (a complementary filter, as ``RepeatController`` does with VBC fixes)
+  and drives to a goal pose (x, z, theta) with the polar-coordinate law of
+  Astolfi (rho, alpha, beta), slowing near the goal, then turns on the spot to
+  the goal heading and finishes when both are within tolerance.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.control.controller import STOP, ControlContext, Controller, Estimate, Twist, VisionStage
+from vbnav.drivers.camera import Frame
+from vbnav.vision.features import describe, match_descriptors, to_grey
+from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y, wrap_angle
+from vbnav.vision.motion import recover_motion_robust
+from vbnav.vision.vslam import Vslam, VslamConfig
+
+
+class GotoConfig(BaseModel):
+    """``vslam.goto``: the go-to controller's gains and tolerances."""
+
+    model_config = ConfigDict(extra="forbid")
+    cruise_speed: float = Field(0.3, gt=0, description="m/s")
+    k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
+    k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
+    k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
+    position_tolerance_m: float = Field(0.02, gt=0, description="goal reached within this distance (estimate)")
+    heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
+    approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
+    final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
+    settle_s: float = Field(0.3, ge=0, description="stopped this long within tolerance before finishing")
+    fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
+    max_estimate_age_s: float = Field(0.5, gt=0)
+    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
+
+
+class VslamNavConfig(VslamConfig):
+    """The ``vslam:`` section: the front end's settings plus the robot-side ones."""
+
+    relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
+                                                              "to where it was set (0: never)")
+    relocalise_heading_deg: float = Field(35.0, gt=0, description="... and heading within this of it")
+    relocalise_every: int = Field(3, ge=1, description="frames between relocalisation attempts")
+    relocalise_min_inliers: int = Field(40, ge=6, description="landmarks that must agree with an anchor")
+    anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
+    max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
+                                                                 "than this: the pose is not trusted")
+    goto: GotoConfig = Field(default_factory=GotoConfig)
+
+
+def vslam_nav_config(section: dict | None) -> VslamNavConfig:
+    """Validate the free ``vslam:`` configuration section."""
+    return VslamNavConfig(**(section or {}))
+
+
+# ------------------------------------------------------------------------------------- poses
+def to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, t
+    return M
+
+
+def robot_to_camera_matrix(pose: Pose2, mount: CameraMount) -> np.ndarray:
+    """4x4 world-from-camera of the camera on a robot at ``pose``."""
+    return to_matrix(*camera_pose(pose, mount))
+
+
+def camera_to_robot(pose_wc: np.ndarray, mount: CameraMount) -> tuple[Pose2, float, float]:
+    """Planar robot pose from a 6-DoF world-from-camera pose and the mount.
+
+    Returns (pose, height error m, tilt error rad): how far the camera is from
+    where a robot on the floor would hold it (a check of the estimate, since the
+    VSLAM does not know the robot stays on the floor).
+    """
+    R_wr = pose_wc[:3, :3] @ mount.rotation().T        # R_wc = R_wr R_rc
+    theta = math.atan2(R_wr[0, 2], R_wr[2, 2])          # rot_y(theta): [0,2] = sin, [2,2] = cos
+    R_planar = rot_y(theta)
+    p = pose_wc[:3, 3] - R_planar @ mount.translation()
+    tilt = math.acos(max(-1.0, min(1.0, float(R_wr[1, 1]))))
+    return Pose2(float(p[0]), float(p[2]), theta), float(p[1]), tilt
+
+
+# ------------------------------------------------------------------------------------- stage
+@dataclass
+class VslamFix:
+    """A VSLAM result: the robot pose in the reference (world) frame at the frame's time."""
+
+    pose: Pose2
+    odom: Pose2                  # odometry at the frame
+    pose_wc: np.ndarray          # 4x4 world-from-camera
+    inliers: int
+    reference: int               # index of the reference frame of the chain the tracker uses
+    anchor: Optional[int] = None  # anchor the pose was computed against directly (relocalisation), if any
+    quality: dict = field(default_factory=dict)
+
+
+@dataclass
+class Anchor:
+    """A reference frame kept for relocalisation: its landmarks in world coordinates with descriptors."""
+
+    index: int
+    pose_wc: np.ndarray
+    robot: Pose2
+    points_w: np.ndarray         # (N, 3)
+    descriptors: np.ndarray      # (N, 32) uint8
+
+
+class VslamStage(VisionStage):
+    """Runs the VSLAM on every frame; the estimate is the robot's pose in the reference frame."""
+
+    kind = "vslam"
+
+    def __init__(self, camera, mount: CameraMount, stereo_baseline: float, cfg: VslamNavConfig | None = None):
+        if stereo_baseline is None or stereo_baseline <= 0:
+            raise ValueError("the VSLAM stage needs a stereo camera for metric scale: set the stereo baseline "
+                             "(camera.options.stereo_baseline for the simulated camera)")
+        self.camera = camera
+        self.mount = mount
+        self.baseline = float(stereo_baseline)
+        self.cfg = cfg or VslamNavConfig()
+        self.slam = Vslam(camera, self.cfg, stereo_baseline=self.baseline)
+        self.anchors: list[Anchor] = []
+        self.correction = np.eye(4)  # world-from-chain: aligns the hand-off chain with the last relocalisation
+        self._frames = 0
+        self._last_anchor_ref = -1
+        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0}
+
+    # -- per frame
+    def process(self, frame: Frame, odom: Pose2) -> Estimate:
+        image = to_grey(frame.image)
+        right, depth = self._metric_input(frame)
+        self._frames += 1
+        self.stats["frames"] += 1
+        if not self.slam.initialised:
+            pose_wc = robot_to_camera_matrix(odom, self.mount)
+            if right is not None:
+                self.slam.initialise_stereo(image, right, pose_wc)
+            else:
+                self.slam.initialise_depth(image, depth, pose_wc)
+            self._maybe_add_anchor(image)
+            return self._estimate(frame, odom, True, self.slam.pose_wc, len(self.slam.lm.P), None)
+        res = self.slam.process(image, right, depth)
+        self.stats["lost"] += int(not res.ok)
+        self.stats["handoffs"] += int(res.handoff)
+        pose_wc = self.correction @ res.pose_wc
+        anchor = None
+        if res.ok:
+            self._maybe_add_anchor(image)
+            reloc = self._relocalise(image, pose_wc)
+            if reloc is not None:
+                anchor, pose_wc = reloc
+                self.correction = pose_wc @ np.linalg.inv(res.pose_wc)
+                self.stats["relocalised"] += 1
+        return self._estimate(frame, odom, res.ok, pose_wc, res.inliers, anchor,
+                              {"iterations": res.iterations, "residual_px": res.residual_px,
+                               "tracked": res.tracked, "handoff": res.handoff})
+
+    def _metric_input(self, frame: Frame):
+        if frame.right is not None:
+            return to_grey(frame.right), None
+        if frame.disparity is not None:
+            d = np.asarray(frame.disparity, np.float32)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = np.where(d > 0, float(self.camera.fx) * self.baseline / d, np.nan)
+            return None, depth
+        raise ValueError("the VSLAM stage needs stereo frames (a right image or a disparity image); this camera "
+                         "delivers neither (camera.options.stereo_baseline for the simulated camera)")
+
+    def _estimate(self, frame: Frame, odom: Pose2, ok: bool, pose_wc: np.ndarray, inliers: int,
+                  anchor: Optional[int], quality: Optional[dict] = None) -> Estimate:
+        pose, dh, tilt = camera_to_robot(pose_wc, self.mount)
+        ok = ok and abs(dh) <= self.cfg.max_planar_residual_m
+        fix = VslamFix(pose, odom, pose_wc, inliers, len(self.slam.references) - 1, anchor,
+                       {**(quality or {}), "height_error_m": dh, "tilt_deg": math.degrees(tilt)})
+        return Estimate(frame.stamp_ns, self.kind, bool(ok), fix,
+                        {"inliers": inliers, "reference": fix.reference, "anchor": anchor})
+
+    # -- anchors (the chain's reference frames, kept for relocalisation)
+    def _maybe_add_anchor(self, image: np.ndarray) -> None:
+        ref_index = len(self.slam.references) - 1
+        if ref_index == self._last_anchor_ref:
+            return
+        self._last_anchor_ref = ref_index
+        lm = self.slam.lm
+        if len(lm.P) < self.cfg.anchor_min_landmarks:
+            return
+        # Landmarks are in the reference frame; the current camera is the reference frame (just handed off,
+        # or just initialised), so their pixels in this image describe them.
+        ref_wc = self.correction @ self.slam.references[-1].pose_wc
+        cur_wc = self.correction @ self.slam.pose_wc
+        desc, idx = describe(image, lm.px)
+        if len(idx) < self.cfg.anchor_min_landmarks:
+            return
+        Pw = lm.P[idx] @ ref_wc[:3, :3].T + ref_wc[:3, 3]
+        self.anchors.append(Anchor(ref_index, cur_wc, camera_to_robot(cur_wc, self.mount)[0], Pw, desc))
+
+    def _relocalise(self, image: np.ndarray, pose_wc: np.ndarray) -> Optional[tuple[int, np.ndarray]]:
+        """Pose against the oldest anchor near the current pose, or None."""
+        cfg = self.cfg
+        if cfg.relocalise_radius_m <= 0 or self._frames % cfg.relocalise_every:
+            return None
+        robot = camera_to_robot(pose_wc, self.mount)[0]
+        current_ref = len(self.slam.references) - 1
+        for a in self.anchors:
+            if a.index >= current_ref - 1:       # the tracker already measures against these
+                break
+            rel = a.robot.between(robot)
+            if math.hypot(rel.x, rel.z) > cfg.relocalise_radius_m or \
+                    abs(rel.theta) > math.radians(cfg.relocalise_heading_deg):
+                continue
+            found = self._pose_against(a, image, pose_wc)
+            if found is not None:
+                return a.index, found
+        return None
+
+    def _pose_against(self, a: Anchor, image: np.ndarray, pose_wc: np.ndarray) -> Optional[np.ndarray]:
+        corners = self.slam.tracker.detect(image, 2 * len(a.points_w))
+        if len(corners) < self.cfg.relocalise_min_inliers:
+            return None
+        desc, idx = describe(image, corners)
+        pairs = match_descriptors(desc, a.descriptors)
+        if len(pairs) < self.cfg.relocalise_min_inliers:
+            return None
+        rays = self.camera.rays(corners[idx[pairs[:, 0]]])
+        # Landmarks in the predicted camera frame, so the solve starts near the answer.
+        cw = np.linalg.inv(pose_wc)
+        P = a.points_w[pairs[:, 1]] @ cw[:3, :3].T + cw[:3, 3]
+        f = float(self.camera.fx)
+        est = recover_motion_robust(P, rays, prior=(np.eye(3), np.zeros(3)),
+                                    threshold=self.cfg.inlier_threshold_px / f, angular=True,
+                                    rng=np.random.default_rng(self._frames))
+        n_in = int((est.inliers & (est.depths > 0)).sum())
+        if n_in < self.cfg.relocalise_min_inliers:
+            return None
+        # X_cur = R X_pred + T  =>  world-from-current = world-from-pred @ inv([R, T])
+        return pose_wc @ np.linalg.inv(to_matrix(est.R, est.T))
+
+
+def stereo_baseline_of(cfg) -> Optional[float]:
+    """The stereo baseline the configured camera gives, if any (simulated: its option; OAK: from the device)."""
+    opts = cfg.camera.options or {}
+    b = opts.get("stereo_baseline")
+    return float(b) if b else None
+
+
+def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
+    return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
+                      vslam_nav_config(cfg.vslam))
+
+
+class ChainedVoStage(VisionStage):
+    """The baseline the reference set is judged against: frame-to-frame motions, chained.
+
+    Same tracker, same stereo reconstruction and same motion solver as the
+    VSLAM, but every frame's landmarks are reconstructed afresh from the
+    previous stereo pair and the pose is the product of all frame-to-frame
+    motions (what section 11.3.3.2 says the reference set avoids).
+    """
+
+    kind = "chained_vo"
+
+    def __init__(self, camera, mount: CameraMount, stereo_baseline: float, cfg: VslamConfig | None = None):
+        self.camera = camera
+        self.mount = mount
+        self.baseline = float(stereo_baseline)
+        # No landmark top-up on the current frame: the next step reconstructs its own from the stereo pair.
+        self.cfg = (cfg or VslamConfig()).model_copy(update={"min_landmarks": 4})
+        self.pose_wc: Optional[np.ndarray] = None
+        self._prev: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self.lost = 0
+
+    def process(self, frame: Frame, odom: Pose2) -> Estimate:
+        image, right = to_grey(frame.image), to_grey(frame.right)
+        if self.pose_wc is None:
+            self.pose_wc = robot_to_camera_matrix(odom, self.mount)
+        else:
+            step = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+            step.initialise_stereo(*self._prev)
+            res = step.process(image)
+            if res.ok:
+                self.pose_wc = self.pose_wc @ res.pose_wc   # res.pose_wc: previous-from-current camera
+            else:
+                self.lost += 1
+        self._prev = (image, right)
+        pose = camera_to_robot(self.pose_wc, self.mount)[0]
+        return Estimate(frame.stamp_ns, self.kind, True, VslamFix(pose, odom, self.pose_wc.copy(), 0, 0))
