@@ -138,7 +138,7 @@ class Config(Strict):
     telemetry: dict[str, Any] = Field(default_factory=dict, description="zenoh telemetry and commands, see docs/telemetry.md")
     obstacles: dict[str, Any] = Field(default_factory=dict, description="obstacle detection and stop zones (control/obstacle_monitor.py)")
     vbc: dict[str, Any] = Field(default_factory=dict, description="teach-and-repeat settings (control/teach_repeat.py)")
-    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM settings (control/vo.py)")
+    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM and goto settings (control/vslam_nav.py)")
 
     source: Optional[str] = Field(None, exclude=True, description="file this was loaded from")
 

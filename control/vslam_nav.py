@@ -43,7 +43,7 @@ class GotoConfig(BaseModel):
     k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
     k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
     k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
-    position_tolerance_m: float = Field(0.02, gt=0, description="goal reached within this distance (estimate)")
+    position_tolerance_m: float = Field(0.01, gt=0, description="goal reached within this distance (estimate)")
     heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
     approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
     final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
