@@ -59,7 +59,7 @@ class VslamNavConfig(VslamConfig):
     relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
                                                               "to where it was set (0: never)")
     relocalise_heading_deg: float = Field(35.0, gt=0, description="... and heading within this of it")
-    relocalise_every: int = Field(3, ge=1, description="frames between relocalisation attempts")
+    relocalise_every: int = Field(1, ge=1, description="frames between relocalisation attempts")
     relocalise_min_inliers: int = Field(40, ge=6, description="landmarks that must agree with an anchor")
     anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
     max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "

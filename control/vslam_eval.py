@@ -1,0 +1,109 @@
+"""Closed-loop evaluation of the VSLAM on the simulated robot (used by hil_tests and benchmarks).
+
+``run_vslam_loop`` drives the simulated robot once around a ~10 m loop with
+``PathFollower`` on odometry while two stages watch the same frames: the VSLAM
+(pose against the reference set, ``VslamStage``) and the chained frame-to-frame
+baseline (``ChainedVoStage``: same tracker, stereo reconstruction and motion
+solver). Ground truth (the pose each frame was rendered from) is used only to
+measure. Errors are planar, in the reference frame (the robot's start pose).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from vbnav.control.config import Config, load_config
+from vbnav.control.demo import make_sim_robot
+from vbnav.control.factory import make_pipeline
+from vbnav.control.path_tools import PathFollower, path_length, rounded_rectangle
+from vbnav.control.runtime import Runtime
+from vbnav.control.vslam_nav import ChainedVoStage, make_vslam_stage
+from vbnav.drivers.sim_world import World
+from vbnav.vision.geometry import Pose2, wrap_angle
+
+
+def loop_route() -> np.ndarray:
+    """A 10.3 m closed loop (3.4 m x 2.2 m, 0.5 m corner radius) in the south of World.room(), clear of boxes."""
+    return rounded_rectangle((0.0, -2.3), (3.4, 2.2), 0.5)
+
+
+def fast_stereo_config(rate_hz: float = 10.0, width: int = 320, base: Optional[Config] = None) -> Config:
+    """configs/sim-stereo.yaml at a lower camera rate and resolution (same field of view), for short tests."""
+    s = width / 640.0
+    h = int(round(480 * s))
+    over = {"camera": {"rate_hz": rate_hz, "width": width, "height": h, "fx": 400.0 * s, "fy": 400.0 * s,
+                       "cx": (width - 1) / 2.0, "cy": (h - 1) / 2.0},
+            # the comparison is about estimates, not loop timing: a loaded machine must not trip the stop
+            "loop": {"max_missed_streak": 10 ** 6}}
+    if base is not None:
+        from vbnav.control.config import deep_merge, parse_config
+        return parse_config(deep_merge(base.model_dump(), over), base.source or "<config>")
+    return load_config("sim-stereo", overrides=over)
+
+
+@dataclass
+class LoopResult:
+    stamps: np.ndarray          # s
+    truth: np.ndarray           # (K, 3) x, z, theta of the robot in the reference frame
+    vslam: np.ndarray           # (K, 3)
+    chained: np.ndarray         # (K, 3)
+    anchor: list                # per frame: anchor the VSLAM pose was computed against directly (or None)
+    vslam_ok: np.ndarray        # (K,) bool
+    distance_m: float           # true path length driven
+    stats: dict
+    chained_lost: int
+    wall_s: float
+    reason: str
+
+    @staticmethod
+    def _err(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+        return (float(math.hypot(est[0] - truth[0], est[1] - truth[1])),
+                float(abs(math.degrees(wrap_angle(est[2] - truth[2])))))
+
+    def return_frame(self, anchor: int = 0) -> int:
+        """Index of the last frame whose pose was computed directly against ``anchor`` (-1 if none)."""
+        hits = [i for i, a in enumerate(self.anchor) if a == anchor]
+        return hits[-1] if hits else -1
+
+    def errors_at(self, i: int) -> dict:
+        """Position (m) and heading (deg) errors of both estimates at frame ``i``."""
+        pv, hv = self._err(self.vslam[i], self.truth[i])
+        pc, hc = self._err(self.chained[i], self.truth[i])
+        return {"frame": i if i >= 0 else len(self.stamps) + i, "vslam_m": pv, "vslam_deg": hv,
+                "chained_m": pc, "chained_deg": hc, "ratio": pv / pc if pc > 0 else float("inf"),
+                "anchor": self.anchor[i]}
+
+    def max_vslam_error_m(self) -> float:
+        return float(np.max(np.hypot(*(self.vslam[:, :2] - self.truth[:, :2]).T)))
+
+
+def run_vslam_loop(cfg: Optional[Config] = None, speed: float = 0.4) -> LoopResult:
+    cfg = cfg or fast_stereo_config()
+    path = loop_route()
+    d = path[1] - path[0]
+    start = Pose2(float(path[0][0]), float(path[0][1]), math.atan2(d[0], d[1]))
+    robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
+    stage = make_vslam_stage(cfg)
+    chained = ChainedVoStage(stage.camera, stage.mount, stage.baseline, stage.cfg)
+    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, chained])
+    rows: list = []
+
+    def record(frame, results):
+        t = start.between(frame.meta["true_pose"])
+        v, c = results["vslam"], results["chained_vo"]
+        rows.append((frame.stamp_ns * 1e-9, t.as_array(), v.value.pose.as_array(), c.value.pose.as_array(),
+                     v.value.anchor, v.ok))
+
+    pipeline.frame_listeners.append(record)
+    rt = Runtime(cfg, robot.drive, PathFollower(path, speed, start=start), robot.clock, pipeline)
+    t0 = time.perf_counter()
+    result = rt.run(3.0 * path_length(path) / speed)
+    wall = time.perf_counter() - t0
+    truth = np.array([r[1] for r in rows])
+    return LoopResult(np.array([r[0] for r in rows]), truth, np.array([r[2] for r in rows]),
+                      np.array([r[3] for r in rows]), [r[4] for r in rows], np.array([r[5] for r in rows]),
+                      path_length(truth[:, :2]), dict(stage.stats), chained.lost, wall, result.reason)
