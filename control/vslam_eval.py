@@ -58,6 +58,7 @@ class LoopResult:
     chained_lost: int
     wall_s: float
     reason: str
+    others: dict = None         # kind -> (K, 3) poses of extra stages (peers run on the same frames)
 
     @staticmethod
     def _err(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -81,7 +82,9 @@ class LoopResult:
         return float(np.max(np.hypot(*(self.vslam[:, :2] - self.truth[:, :2]).T)))
 
 
-def run_vslam_loop(cfg: Optional[Config] = None, speed: float = 0.4) -> LoopResult:
+def run_vslam_loop(cfg: Optional[Config] = None, speed: float = 0.4, extra_stages: tuple = ()) -> LoopResult:
+    """One lap of ``loop_route()``; ``extra_stages`` (VisionStages whose Estimate.value has a ``pose``
+    Pose2 in the reference frame) run on the same frames as peers."""
     cfg = cfg or fast_stereo_config()
     path = loop_route()
     d = path[1] - path[0]
@@ -89,14 +92,14 @@ def run_vslam_loop(cfg: Optional[Config] = None, speed: float = 0.4) -> LoopResu
     robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
     stage = make_vslam_stage(cfg)
     chained = ChainedVoStage(stage.camera, stage.mount, stage.baseline, stage.cfg)
-    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, chained])
+    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, chained, *extra_stages])
     rows: list = []
 
     def record(frame, results):
         t = start.between(frame.meta["true_pose"])
         v, c = results["vslam"], results["chained_vo"]
         rows.append((frame.stamp_ns * 1e-9, t.as_array(), v.value.pose.as_array(), c.value.pose.as_array(),
-                     v.value.anchor, v.ok))
+                     v.value.anchor, v.ok, {s.kind: results[s.kind].value.pose.as_array() for s in extra_stages}))
 
     pipeline.frame_listeners.append(record)
     rt = Runtime(cfg, robot.drive, PathFollower(path, speed, start=start), robot.clock, pipeline)
@@ -106,4 +109,5 @@ def run_vslam_loop(cfg: Optional[Config] = None, speed: float = 0.4) -> LoopResu
     truth = np.array([r[1] for r in rows])
     return LoopResult(np.array([r[0] for r in rows]), truth, np.array([r[2] for r in rows]),
                       np.array([r[3] for r in rows]), [r[4] for r in rows], np.array([r[5] for r in rows]),
-                      path_length(truth[:, :2]), dict(stage.stats), chained.lost, wall, result.reason)
+                      path_length(truth[:, :2]), dict(stage.stats), chained.lost, wall, result.reason,
+                      {s.kind: np.array([r[6][s.kind] for r in rows]) for s in extra_stages})
