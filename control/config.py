@@ -205,7 +205,18 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(_format_errors(source, exc)) from None
     cfg.source = source
     validate_driver_options(cfg, source)
+    validate_feature_sections(cfg, source)
     return cfg
+
+
+def validate_feature_sections(cfg: Config, source: str = "<config>") -> None:
+    """Validate the sections owned by feature modules, so bad values stop start-up like any other."""
+    from vbnav.control.network import parse_telemetry_config
+    from vbnav.control.obstacle_monitor import obstacles_config
+    from vbnav.control.teach_repeat import teach_repeat_config
+    parse_telemetry_config(cfg.telemetry, source)
+    obstacles_config(cfg.obstacles, source)
+    teach_repeat_config(cfg.vbc, source)
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

@@ -7,7 +7,7 @@ and is used only to measure, never to steer.
 Lateral error is the distance of the repeated (true) positions to the taught
 (true) path. It is measured once the robot has recovered from the deliberate
 start offset: from ``settle_m`` metres along the route on (the recovery itself
-is reported as the distance travelled until the error first stays under 5 cm).
+is reported as the distance travelled until the error first falls under 5 cm).
 """
 from __future__ import annotations
 
@@ -103,12 +103,10 @@ def summarise_errors(trace: RunTrace, taught: np.ndarray, settle_m: float) -> di
     err = lateral_errors(xz, taught, closed=False)
     along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xz, axis=0), axis=1))])
     settled = along >= settle_m
-    recovery = None
-    under = err < 0.05
-    for i in range(len(err)):
-        if under[i:].all():
-            recovery = float(along[i])
-            break
+    # Recovery from the deliberate start offset: distance travelled until the error first falls under 5 cm.
+    # (What happens after that is judged by the RMS and max from settle_m on.)
+    under = np.flatnonzero(err < 0.05)
+    recovery = float(along[under[0]]) if len(under) else None
     e = err[settled] if settled.any() else err
     return {"rms_lateral_error_m": float(np.sqrt(np.mean(e ** 2))), "max_lateral_error_m": float(e.max()),
             "p95_lateral_error_m": float(np.percentile(e, 95)), "recovery_m": recovery,
@@ -184,7 +182,8 @@ class TeachResult:
 
 
 def teach_route(cfg: Config, robot: SimRobot, controller, route_dir: Path,
-                progress: Optional[Callable[[str], None]] = None, duration_s: Optional[float] = None) -> TeachResult:
+                progress: Optional[Callable[[str], None]] = None, duration_s: Optional[float] = None,
+                recorder=None) -> TeachResult:
     """Drive with ``controller`` while a TeachStage records keyframes into ``route_dir``."""
     from vbnav.control.route import RouteWriter
     from vbnav.control.teach_repeat import TeachStage, teach_repeat_config
@@ -204,7 +203,13 @@ def teach_route(cfg: Config, robot: SimRobot, controller, route_dir: Path,
         rt = Runtime(cfg, robot.drive, controller, robot.clock, pipeline)
         rt.cycle_observers.append(trace.observer(robot.drive))
         rt.cycle_observers.append(_stamp_pose_recorder(robot.drive, stamps_pose := {}))
-        result = rt.run(duration_s, _progress_fn(progress, "teach", lambda: f"{stage.n_keyframes} keyframes"))
+        link = _record(rt, cfg, recorder, "teach")
+        result = None
+        try:
+            result = rt.run(duration_s, _progress_fn(progress, "teach", lambda: f"{stage.n_keyframes} keyframes"))
+        finally:
+            if link is not None:
+                link.close(result)
         stage.finish()
         save(None, None)
     kf_xz = np.array([_nearest_pose(stamps_pose, s) for _, s in sorted(stamps.items())]).reshape(-1, 2)
@@ -225,7 +230,7 @@ class RepeatResult:
 
 def repeat_route(cfg: Config, robot: SimRobot, route, progress: Optional[Callable[[str], None]] = None,
                  duration_s: float = 240.0, events: Optional[Callable] = None,
-                 extra_stages: tuple = ()) -> RepeatResult:
+                 extra_stages: tuple = (), recorder=None, segment: str = "repeat") -> RepeatResult:
     """Patrol ``route`` with the RepeatStage/RepeatController; ``events(rt, ctx)`` injects scenario changes."""
     from vbnav.control.teach_repeat import RepeatController, RepeatStage, teach_repeat_config
 
@@ -238,11 +243,25 @@ def repeat_route(cfg: Config, robot: SimRobot, route, progress: Optional[Callabl
     rt.cycle_observers.append(trace.observer(robot.drive))
     if events is not None:
         rt.cycle_observers.append(lambda r, ctx, twist, wheels: events(r, ctx))
-    result = rt.run(duration_s, _progress_fn(progress, "repeat",
-                                             lambda: f"keyframe {stage.index + 1}/{len(route.keyframes)}"))
+    link = _record(rt, cfg, recorder, segment)
+    result = None
+    try:
+        result = rt.run(duration_s, _progress_fn(progress, "repeat",
+                                                 lambda: f"keyframe {stage.index + 1}/{len(route.keyframes)}"))
+    finally:
+        if link is not None:
+            link.close(result)
     stops = sum(1 for e in result.events if e.kind == "hold")
     return RepeatResult(trace, result.reason == "finished", result.reason, result.message, stage.index,
                         [e.as_dict() for e in result.events], result.timing, stops)
+
+
+def _record(rt: Runtime, cfg: Config, recorder, segment: str):
+    """Record this run into a shared MCAP recorder (no network: simulated runs go faster than real time)."""
+    if recorder is None:
+        return None
+    from vbnav.control.telemetry_link import TelemetryLink
+    return TelemetryLink.attach(rt, cfg, recorder=recorder, network=False, segment=segment)
 
 
 def _stamp_pose_recorder(drive, store: dict):
@@ -274,8 +293,10 @@ def _progress_fn(progress, label: str, extra: Callable[[], str]):
 # ----------------------------------------------------------------------------- the scenario
 def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Config] = None,
              progress: Optional[Callable[[str], None]] = None, record: Optional[str] = None) -> dict:
-    """Teach the demo route, repeat it ``scenario.repeats`` times; write metrics.json, paths.png, route/."""
-    from vbnav.control.route import load_route
+    """Teach the demo route, repeat it ``scenario.repeats`` times; write metrics.json, paths.png, route/.
+
+    ``record``: one MCAP file holding the teach run and every repeat, one segment each.
+    """
     from vbnav.drivers.sim_world import World
 
     out_dir = Path(out_dir)
@@ -288,7 +309,24 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
 
     world = World.by_name(cfg.sim.world, cfg.sim.seed)
     robot = make_sim_robot(cfg, world, start, seed_offset=0)
-    teach = teach_route(cfg, robot, PathFollower(path, scenario.speed, start=start), out_dir / "route", say)
+    recorder = None
+    if record:
+        from vbnav.control.recording import McapRecorder
+        recorder = McapRecorder(record, cfg.robot.name, metadata={"demo_seed": scenario.seed,
+                                                                  "repeats": scenario.repeats})
+    try:
+        return _run_demo_phases(out_dir, scenario, cfg, say, progress, path, start, world, robot, recorder, t_wall)
+    finally:
+        if recorder is not None:
+            recorder.close()
+
+
+def _run_demo_phases(out_dir, scenario, cfg, say, progress, path, start, world, robot, recorder, t_wall) -> dict:
+    from vbnav.control.route import load_route
+    from vbnav.drivers.sim_world import World
+
+    teach = teach_route(cfg, robot, PathFollower(path, scenario.speed, start=start), out_dir / "route", say,
+                        recorder=recorder)
     if progress:
         say(f"taught {teach.keyframes} keyframes over {path_length(teach.trace.array()):.1f} m")
     route = load_route(out_dir / "route")
@@ -304,7 +342,8 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
         robot_i = make_sim_robot(cfg, world_i, start.compose(offset), seed_offset=i + 1)
         robot_i.camera.gain = scenario.lighting.get(i, 1.0)
         events = _scenario_events(scenario, i, robot_i)
-        rep = repeat_route(cfg, robot_i, route, say, scenario.max_repeat_s, events)
+        rep = repeat_route(cfg, robot_i, route, say, scenario.max_repeat_s, events, recorder=recorder,
+                           segment=f"repeat {i + 1}")
         errs = summarise_errors(rep.trace, taught_xz, scenario.settle_m)
         repeats.append({"index": i + 1, "completed": rep.completed, "end": rep.reason, "message": rep.message,
                         "keyframe_reached": rep.keyframe_reached + 1, "start_offset": offset.as_array().tolist(),

@@ -38,6 +38,14 @@ def make_camera(cfg: Config, clock, drive=None, options=None, world=None):
 
 
 def make_pipeline(cfg: Config, clock, camera, stages) -> VisionPipeline:
+    """A pipeline with ``stages`` plus the safety stages the configuration enables (obstacle zones)."""
+    from vbnav.control.obstacle_monitor import make_obstacle_stage
+
+    stages = list(stages)
+    if not any(s.kind == "obstacles" for s in stages):
+        obstacle_stage = make_obstacle_stage(cfg)
+        if obstacle_stage is not None:
+            stages.append(obstacle_stage)
     inline = getattr(clock, "simulated", False)
     return VisionPipeline(camera, stages, clock, inline=inline,
                           latency_s=cfg.sim.vision_latency_s if inline else 0.0)
@@ -48,7 +56,7 @@ def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, world
     clock = make_clock(cfg)
     opts = validate_driver_options(cfg, cfg.source or "<config>")
     drive = make_drive(cfg, clock, opts["drive"])
-    want_camera = bool(stages) if with_camera is None else with_camera
+    want_camera = (bool(stages) or bool(cfg.obstacles.get("enabled"))) if with_camera is None else with_camera
     camera = make_camera(cfg, clock, drive, opts["camera"], world=world) if want_camera else None
     pipeline = make_pipeline(cfg, clock, camera, list(stages)) if camera is not None else None
     return clock, drive, pipeline

@@ -239,8 +239,12 @@ class Runtime:
         self.safety.hold(now, "obstacle", scale <= 0.0, why or "obstacle in the stop zone")
 
     def _check_estimates(self, ctx: ControlContext) -> None:
+        """Stages the controller needs, and safety-critical stages (obstacles), must stay fresh."""
         limit = self.cfg.safety.estimate_timeout_s
-        for kind in self.controller.requires:
+        kinds = list(self.controller.requires)
+        if self.pipeline is not None:
+            kinds += [s.kind for s in self.pipeline.stages if getattr(s, "safety_critical", False)]
+        for kind in kinds:
             e = ctx.estimates.get(kind)
             stale = e is None and ctx.now_ns - self._start_ns > (limit + 2.0) * 1e9 \
                 or (e is not None and e.age_s(ctx.now_ns) > limit)
@@ -259,8 +263,9 @@ class Runtime:
             elif cmd.kind == "teleop" and hasattr(self.controller, "set_command"):
                 self.controller.set_command(float(cmd.args[0]), float(cmd.args[1]), now)
             elif not handled:
-                self.safety.events.append(SafetyEvent(now, "rejected", cmd.kind,
-                                                      f"command {cmd.kind!r} not supported by this run"))
+                # Through _emit so safety listeners (telemetry) see the rejection too.
+                self.safety._emit(SafetyEvent(now, "rejected", cmd.kind,
+                                              f"command {cmd.kind!r} not supported by this run"))
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):

@@ -8,9 +8,10 @@
   ``pop_keyframes()`` into a ``RouteWriter``.
 - ``RepeatStage`` (vision thread, while repeating): localises each frame against the
   keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
-  when too few remain, e.g. after an occlusion or a jump), computes the VBC pose
-  relative to that keyframe and advances when the robot passes it. Returns
-  ``Estimate(kind="vbc", value=VBCFix)``.
+  when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
+  KLT from the keyframe image started at the pixels the current fix predicts, after
+  each keyframe switch), computes the VBC pose relative to that keyframe and
+  advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
 - ``RepeatController`` (loop rate): dead-reckons from the latest fix with odometry,
   follows the taught keyframe path with pure pursuit (a nonholonomic base corrects
   lateral error through heading), slows and stops when too few landmarks agree,
@@ -34,9 +35,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from vbnav.control.controller import STOP, ControlContext, Controller, Estimate, Twist, VisionStage
 from vbnav.control.route import Keyframe, Route
 from vbnav.drivers.camera import Frame
-from vbnav.vision.features import FeatureTracker, describe, geometric_inliers, match_descriptors, to_grey
+from vbnav.vision.features import (FeatureTracker, describe, detect_and_describe, geometric_inliers,
+                                   match_descriptors, to_grey)
+from vbnav.vision.camera_model import rays_from_angles
 from vbnav.vision.geometry import CameraMount, Pose2
-from vbnav.vision.vbc import InverseHeightEstimator, estimate_pose, levelled_bearings
+from vbnav.vision.vbc import (InverseHeightEstimator, estimate_pose, inverse_range, levelled_bearings,
+                              predict_bearings)
 
 
 class VBCConfig(BaseModel):
@@ -47,6 +51,8 @@ class VBCConfig(BaseModel):
     max_features: int = Field(200, ge=10, description="tracks kept alive while teaching")
     min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners")
     fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward KLT rejection threshold")
+    klt_window_px: int = Field(11, ge=5, le=41, description="KLT window side; 11 halves the cost at 15 Hz")
+    klt_levels: int = Field(3, ge=0, le=6, description="KLT pyramid levels")
     bearing_sigma_px: float = Field(1.0, gt=0, description="bearing noise, in pixels at the focal length")
     # keyframes
     keyframe_distance_m: float = Field(0.4, gt=0)
@@ -60,6 +66,9 @@ class VBCConfig(BaseModel):
     slow_landmarks: int = Field(30, ge=4, description="fewer agreeing landmarks: drive slower")
     reacquire_below: int = Field(40, ge=0, description="re-match descriptors when fewer keyframe landmarks are tracked")
     reacquire_every: int = Field(3, ge=1, description="frames between re-acquisition attempts while short")
+    guided_fraction: float = Field(0.6, ge=0, le=1, description="pull in keyframe landmarks by predicted KLT "
+                                   "when fewer than this share are tracked")
+    guided_radius_px: float = Field(25.0, gt=0, description="max distance of a guided match from its prediction")
     pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
     cruise_speed: float = Field(0.25, gt=0, description="m/s")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")
@@ -98,6 +107,7 @@ class TeachStage(VisionStage):
         self.mount = mount
         self.cfg = cfg or VBCConfig()
         self.tracker = FeatureTracker(self.cfg.max_features, self.cfg.min_distance_px,
+                                      win_size=self.cfg.klt_window_px, levels=self.cfg.klt_levels,
                                       fb_threshold=self.cfg.fb_threshold_px)
         self.heights = InverseHeightEstimator(mount, _sigma(camera, self.cfg))
         self._pending: Optional[dict] = None
@@ -226,7 +236,8 @@ class RepeatStage(VisionStage):
         self.cfg = cfg or VBCConfig()
         self.sigma = _sigma(self.camera, self.cfg)
         # Only keyframe landmarks are tracked (no detection): their ids are the taught track ids.
-        self.tracker = FeatureTracker(max_features=10_000, fb_threshold=self.cfg.fb_threshold_px,
+        self.tracker = FeatureTracker(max_features=10_000, win_size=self.cfg.klt_window_px,
+                                      levels=self.cfg.klt_levels, fb_threshold=self.cfg.fb_threshold_px,
                                       redetect_fraction=0.0)
         self.index = 0
         self.finished = False
@@ -234,7 +245,8 @@ class RepeatStage(VisionStage):
         self._odom: Optional[Pose2] = None      # odometry at that pose
         self._since_reacquire = 10 ** 9
         self._started = False
-        self.stats = {"reacquired": 0, "switches": 0}
+        self._since_guided = 10 ** 9
+        self.stats = {"reacquired": 0, "guided": 0, "switches": 0}
 
     # -- image path
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
@@ -245,25 +257,86 @@ class RepeatStage(VisionStage):
             self.tracker.track_points(image, np.zeros((0, 2)), np.zeros(0, np.int64))
             self._started = True
         self._since_reacquire += 1
-        tracked = int(np.isin(self.tracker.tracks.ids, self.kfs[self.index].track_ids).sum())
+        self._since_guided += 1
+        kf = self.kfs[self.index]
+        tracked = int(np.isin(self.tracker.tracks.ids, kf.track_ids).sum())
         if tracked < self.cfg.reacquire_below and self._since_reacquire >= self.cfg.reacquire_every:
             self._reacquire(image)
         t = self.tracker.tracks
-        return self.localise(t.ids, t.pts, odom, frame.stamp_ns)
+        index = self.index
+        est = self.localise(t.ids, t.pts, odom, frame.stamp_ns)
+        # With a trusted fix, pull in the keyframe's landmarks not tracked yet: after a keyframe
+        # switch, and whenever fewer than guided_fraction of them are tracked.
+        kf = self.kfs[self.index]
+        tracked = int(np.isin(self.tracker.tracks.ids, kf.track_ids).sum())
+        if est.ok and (self.index != index or (tracked < self.cfg.guided_fraction * len(kf)
+                                               and self._since_guided >= self.cfg.reacquire_every)):
+            self._guided(image, est.value.pose)
+        self._prune()
+        return est
+
+    def _guided(self, image: np.ndarray, pose: Pose2) -> int:
+        """KLT from the keyframe image to this one, started where the fix predicts each landmark.
+
+        Bearings are predicted with the exact model (inverse range from the landmark's height,
+        0 = far when unknown), turned back into camera rays and pixels. The keyframe image is
+        scaled to this image's mean brightness first (KLT matches intensities, lighting changes).
+        """
+        self._since_guided = 0
+        kf = self.kfs[self.index]
+        if kf.image is None or kf.image.size <= 1:
+            return 0
+        missing = np.flatnonzero(~np.isin(kf.track_ids, self.tracker.tracks.ids))
+        if len(missing) < 4:
+            return 0
+        rho = np.nan_to_num(inverse_range(kf.beta[missing], kf.inv_height[missing]), nan=0.0)
+        a, b = predict_bearings(kf.alpha[missing], kf.beta[missing], rho, pose, self.mount.forward, self.mount.lateral)
+        rays = rays_from_angles(a, b) @ self.mount.rotation()     # levelled -> camera frame
+        px, front = self.camera.project(rays)
+        inside = front & self.camera.in_image(px, margin=10)
+        if inside.sum() < 4:
+            return 0
+        missing, px = missing[inside], px[inside].astype(np.float32)
+        kimg = to_grey(kf.image)
+        m_k, m_c = float(kimg.mean()), float(image.mean())
+        if m_k > 1.0 and abs(m_c / m_k - 1.0) > 0.05:
+            kimg = cv2.convertScaleAbs(kimg, alpha=m_c / m_k)
+        p0 = kf.pixels[missing].astype(np.float32).reshape(-1, 1, 2)
+        win = (self.cfg.klt_window_px + 4,) * 2
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(kimg, image, p0, px.reshape(-1, 1, 2).copy(), winSize=win,
+                                              maxLevel=self.cfg.klt_levels, flags=flags)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(image, kimg, p1, p0.copy(), winSize=win,
+                                                maxLevel=self.cfg.klt_levels, flags=flags)
+        p1 = p1.reshape(-1, 2)
+        good = ((st1.ravel() == 1) & (st2.ravel() == 1)
+                & (np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1) < self.cfg.fb_threshold_px)
+                & (np.linalg.norm(p1 - px, axis=1) < self.cfg.guided_radius_px)
+                & self.camera.in_image(p1, margin=8))
+        self.tracker.add_points(p1[good], kf.track_ids[missing[good]])
+        self.stats["guided"] += int(good.sum())
+        return int(good.sum())
+
+    def _prune(self) -> None:
+        """Drop tracks that belong to neither the current nor the next keyframe (bounded cost)."""
+        keep_ids = self.kfs[self.index].track_ids
+        if self.index + 1 < len(self.kfs):
+            keep_ids = np.concatenate([keep_ids, self.kfs[self.index + 1].track_ids])
+        keep = np.isin(self.tracker.tracks.ids, keep_ids)
+        if not keep.all():
+            self.tracker.tracks = self.tracker.tracks.subset(keep)
 
     def _reacquire(self, image: np.ndarray) -> int:
         """Match ORB descriptors of fresh corners against the keyframe; seed tracks for the matches."""
         self._since_reacquire = 0
         kf = self.kfs[self.index]
-        corners = cv2.goodFeaturesToTrack(image, 600, 0.005, 7)
-        if corners is None or len(kf) < 8:
+        if len(kf) < 8:
             return 0
-        pts = corners.reshape(-1, 2)
-        desc, idx = describe(image, pts)
+        pts, desc = detect_and_describe(image, 500)
         pairs = match_descriptors(desc, kf.descriptors)
         if len(pairs) < 8:
             return 0
-        cur = pts[idx[pairs[:, 0]]]
+        cur = pts[pairs[:, 0]]
         lm = pairs[:, 1]
         inl = geometric_inliers(self.camera.rays(kf.pixels[lm]), self.camera.rays(cur),
                                 threshold=2.0 * self.sigma)
@@ -456,7 +529,13 @@ class RepeatController(Controller):
             seg += 1
 
 
-def teach_repeat_config(section: dict | None) -> VBCConfig:
-    """Validate the free ``vbc:`` configuration section."""
-    return VBCConfig(**(section or {}))
+def teach_repeat_config(section: dict | None, source: str = "<config>") -> VBCConfig:
+    """Validate the free ``vbc:`` configuration section; errors name the file and key path."""
+    from pydantic import ValidationError
+
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return VBCConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vbc")) from None
 

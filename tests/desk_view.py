@@ -57,9 +57,16 @@ def build_desk_view(src: Path, dst: Path) -> Path:
         W = np.linalg.inv(G)  # camera-to-world with the grid as the world
         q = quat_from_matrix(W[:3, :3])
         gt.append(f"{t:.6f} " + " ".join(f"{v:.7f}" for v in (*W[:3, 3], *q)))
+    depth = ["# timestamp filename"]
+    for p in sorted(src.glob("depth_image_*.npz")):  # depth (mm, registered to colour) for the first frames
+        i = int(p.stem.rsplit("_", 1)[1])
+        if not (dst / p.name).exists():
+            (dst / p.name).symlink_to(p)
+        depth.append(f"{i / RATE_HZ:.6f} {p.name}")
+    (dst / "depth.txt").write_text("\n".join(depth) + "\n")
     (dst / "rgb.txt").write_text("\n".join(rgb) + "\n")
     (dst / "groundtruth.txt").write_text("\n".join(gt) + "\n")
     camera = {"width": cam["w"], "height": cam["h"], "fx": cam["px"], "fy": cam["py"], "cx": cam["u0"],
-              "cy": cam["v0"], "tag_grid": {"family": "36h11", "corners": layout}}
+              "cy": cam["v0"], "depth_scale": float(cam.get("depthScale", 0.001)), "tag_grid": {"family": "36h11", "corners": layout}}
     (dst / "camera.yaml").write_text(yaml.safe_dump(camera))
     return dst

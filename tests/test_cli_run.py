@@ -25,8 +25,9 @@ def test_run_scripted_sim_clock(tmp_path):
 def test_run_realtime_stops_on_signal(tmp_path, sig, code):
     cfg = tmp_path / "rt.yaml"
     cfg.write_text("sim:\n  realtime: true\ncontroller:\n  kind: scripted\n  script: [[0.2, 0.0, 60.0]]\n")
-    p = subprocess.Popen(VBNAV + ["run", "--no-camera", "-c", str(cfg)], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+    # --no-telemetry: a real-time run would listen on tcp/127.0.0.1:7447, which parallel test runs share.
+    p = subprocess.Popen(VBNAV + ["run", "--no-camera", "--no-telemetry", "-c", str(cfg)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(2.5)
     p.send_signal(sig)
     out, err = p.communicate(timeout=30)

@@ -84,3 +84,15 @@ def test_reference_documents_every_key():
     ref = reference_markdown(Config)
     for key in ("robot.wheel_radius", "loop.overrun_policy", "camera.mount.pitch_deg", "sim.slip_std"):
         assert f"`{key}`" in ref
+
+
+@pytest.mark.parametrize("text, key", [
+    ("vbc:\n  cruise_sped: 0.2\n", "vbc.cruise_sped"),
+    ("obstacles:\n  enabled: maybe\n", "obstacles.enabled"),
+    ("telemetry:\n  rate_hz: -5\n", "telemetry.rate_hz"),
+])
+def test_feature_sections_are_validated_at_load(tmp_path, text, key):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    assert str(p) in str(err.value) and key in str(err.value), str(err.value)

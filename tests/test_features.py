@@ -90,3 +90,17 @@ def test_tracks_survive_a_real_hand_held_sequence(shared_data):
         counts.append(len(t))
     assert min(counts[1:]) > 150                        # re-detection keeps the count up
     assert len(first & set(t.ids.tolist())) > 40        # many tracks persist over 60 frames
+
+
+def test_fresh_orb_corners_match_upright_keyframe_descriptors(rng):
+    """Re-acquisition path: detect_and_describe on a shifted image matches describe() at tracked points."""
+    from vbnav.vision.features import detect_and_describe
+    img = texture(rng)
+    kf = FeatureTracker(max_features=300).track(img)
+    d_kf, idx_kf = describe(img, kf.pts)
+    cur = shift(img, 25.0, -10.0)
+    pts, d_cur = detect_and_describe(cur, 500)
+    pairs = match_descriptors(d_cur, d_kf)
+    assert len(pairs) > 50
+    err = np.linalg.norm(pts[pairs[:, 0]] - (kf.pts[idx_kf[pairs[:, 1]]] + [25.0, -10.0]), axis=1)
+    assert np.mean(err < 2.0) > 0.85

@@ -162,3 +162,13 @@ def test_repeat_slows_stops_and_resumes_through_an_occlusion(scene):
     assert ctl.finished                                                                  # resumed, completed
     lat = np.array([lateral_error(truth, p) for _, p, *_ in trace])
     assert lat.max() < 0.05
+
+
+def test_vbc_config_section_is_validated():
+    from vbnav.control.config import ConfigError
+    from vbnav.control.teach_repeat import teach_repeat_config
+    assert teach_repeat_config({"cruise_speed": 0.2}).cruise_speed == 0.2
+    with pytest.raises(ConfigError, match=r"robot.yaml: vbc.lookahed_m: unknown key"):
+        teach_repeat_config({"lookahed_m": 0.3}, "robot.yaml")   # typo: extra keys are errors
+    with pytest.raises(ConfigError, match="vbc.min_landmarks"):
+        teach_repeat_config({"min_landmarks": 2})

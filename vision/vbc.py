@@ -125,16 +125,6 @@ def _jacobian_rho(a, b, rho, w_s2, forward: float = 0.0, lateral: float = 0.0) -
     return J
 
 
-def _jacobian_at(a, b, rho0, tan_b0, forward, lateral):
-    """Jacobian at predicted bearings (a, b) of landmarks with taught inverse range rho0.
-
-    The current inverse range is rho = tan(b) * rho0 / tan(b0) (height is constant),
-    so w sin^2 b = rho sin b cos b.
-    """
-    rho = np.tan(b) * rho0 / np.where(np.abs(tan_b0) < _MIN_TAN, np.copysign(_MIN_TAN, tan_b0), tan_b0)
-    return _jacobian_rho(a, b, rho, rho * np.sin(b) * np.cos(b), forward, lateral)
-
-
 def _transform_vectors(pose: Pose2, forward: float, lateral: float):
     """(rotation cos, sin, d) with d = m - p*m, the camera displacement reversed (taught frame)."""
     c, s = math.cos(pose.theta), math.sin(pose.theta)
@@ -154,22 +144,6 @@ def predict_bearings(taught_alpha, taught_beta, rho, pose: Pose2, forward: float
     vx = c * ux - s * uz
     vz = s * ux + c * uz
     return np.arctan2(vx, vz), np.arctan2(t0, np.hypot(vx, vz))
-
-
-def _rho_sensitivity(taught_alpha, taught_beta, rho, pose, forward, lateral):
-    """d(alpha, beta)/d rho of the exact model at ``pose`` (for propagating height uncertainty)."""
-    a0 = np.asarray(taught_alpha, dtype=np.float64)
-    t0 = np.tan(np.asarray(taught_beta, dtype=np.float64))
-    c, s, d = _transform_vectors(pose, forward, lateral)
-    ux, uz = np.sin(a0) + rho * d[0], np.cos(a0) + rho * d[1]
-    vx, vz = c * ux - s * uz, s * ux + c * uz
-    hx, hz = c * d[0] - s * d[1], s * d[0] + c * d[1]
-    n2 = vx * vx + vz * vz
-    n = np.sqrt(n2)
-    da = (vz * hx - vx * hz) / n2
-    dn = (vx * hx + vz * hz) / np.maximum(n, 1e-12)
-    db = -t0 / (t0 * t0 + n2) * dn
-    return da, db
 
 
 @dataclass(frozen=True)
@@ -217,10 +191,51 @@ def _robust_weights(d2: np.ndarray, loss: str, k: float) -> np.ndarray:
     raise ValueError(f"unknown robust loss {loss!r} (expected 'huber' or 'cauchy')")
 
 
+class _Linearisation:
+    """Residuals, Jacobian rows and rho-sensitivities of all landmarks at one pose (no trig but atan2).
+
+    At the predicted direction v (module docstring): sin(alpha) = v_x/|v|, cos(alpha) = v_z/|v|,
+    the current inverse range is rho0/|v|, and w sin^2(beta) = rho sin(beta) cos(beta) with
+    tan(beta) = tan(beta0)/|v|, so the Jacobian needs no further trigonometry.
+    """
+
+    __slots__ = ("ra", "rb", "J", "da", "db")
+
+    def __init__(self, s0, c0, t0, rho, a1, b1, pose: Pose2, forward: float, lateral: float,
+                 with_sensitivity: bool):
+        c, s, d = _transform_vectors(pose, forward, lateral)
+        ux = s0 + rho * d[0]
+        uz = c0 + rho * d[1]
+        vx = c * ux - s * uz
+        vz = s * ux + c * uz
+        n2 = vx * vx + vz * vz
+        n = np.sqrt(n2)
+        self.ra = (a1 - np.arctan2(vx, vz) + math.pi) % (2 * math.pi) - math.pi
+        self.rb = b1 - np.arctan2(t0, n)
+        sa, ca = vx / n, vz / n
+        rc = rho / n
+        ws2 = rc * t0 * n / (n2 + t0 * t0)
+        m = len(a1)
+        J = np.empty((2 * m, 3))
+        J[:m, 0] = -rc * ca
+        J[:m, 1] = rc * sa
+        J[:m, 2] = -1.0 - rc * (forward * ca + lateral * sa)
+        J[m:, 0] = ws2 * sa
+        J[m:, 1] = ws2 * ca
+        J[m:, 2] = ws2 * (forward * sa - lateral * ca)
+        self.J = J
+        if with_sensitivity:
+            hx, hz = c * d[0] - s * d[1], s * d[0] + c * d[1]
+            self.da = (vz * hx - vx * hz) / n2
+            self.db = -t0 / (t0 * t0 + n2) * (vx * hx + vz * hz) / n
+        else:
+            self.da = self.db = None
+
+
 def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current_beta,
                   inv_height_var=None, *, forward: float = 0.0, lateral: float = 0.0,
                   sigma: float = 1.5e-3, initial: Pose2 | None = None, max_iter: int = 40,
-                  tol: float = 1e-6, huber_iters: int = 3, min_landmarks: int = 4) -> VBCResult:
+                  tol: float = 1e-5, huber_iters: int = 2, min_landmarks: int = 4) -> VBCResult:
     """Planar pose of the robot relative to the taught pose from matched bearings.
 
     taught_alpha/beta: levelled bearings stored with the keyframe; inv_heights:
@@ -228,12 +243,13 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
     its range treated as uncertain); current_alpha/beta: the same landmarks now.
     inv_height_var: variance of w (1/m^2), propagated into each landmark's
     bearing noise. sigma: bearing noise (rad), e.g. 1 px / focal length.
-    forward/lateral: camera offset from the rotation centre.
+    forward/lateral: camera offset from the rotation centre. initial: a pose
+    guess (e.g. the last fix moved by odometry); default: a robust heading guess.
 
     Gauss-Newton on the exact bearing model with robust IRLS: at least
     ``huber_iters`` Huber iterations (with a MAD scale estimate, floored at
     sigma) until the steps are small, then Cauchy with that scale frozen, which
-    down-weights gross outliers to ~0, until the step is below ``tol``.
+    down-weights gross outliers to ~0, until the step is below ``tol`` (m, rad).
     """
     a0 = np.asarray(taught_alpha, dtype=np.float64).ravel()
     b0 = np.asarray(taught_beta, dtype=np.float64).ravel()
@@ -253,74 +269,71 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
     var_rho = np.where(known & np.isfinite(var_rho), var_rho, UNKNOWN_RHO_VAR)
     if n < min_landmarks:
         return _failed(n, initial, "too few landmarks")
+    s0, c0 = np.sin(a0), np.cos(a0)
 
     if initial is None:
         # Turning shifts every azimuth by -dtheta: the median azimuth change is a robust heading guess.
-        initial = Pose2(0.0, 0.0, -float(np.median(np.angle(np.exp(1j * (a1 - a0))))))
+        initial = Pose2(0.0, 0.0, -float(np.median((a1 - a0 + math.pi) % (2 * math.pi) - math.pi)))
     pose = initial
     scale = sigma
     converged = False
     phase = "huber"          # Huber with a re-estimated scale until the steps are small, then Cauchy
     huber_done = 0
     it = 0
+    var = None
     for it in range(1, max_iter + 1):
-        pa, pb = predict_bearings(a0, b0, rho, pose, forward, lateral)
-        ra = np.angle(np.exp(1j * (a1 - pa)))
-        rb = b1 - pb
+        lin = _Linearisation(s0, c0, t0, rho, a1, b1, pose, forward, lateral, phase == "huber")
+        r = np.concatenate((lin.ra, lin.rb))
         if phase == "huber":
             # Height uncertainty inflates each landmark's noise by how much its predicted bearing
-            # moves with rho at this pose; frozen once in the Cauchy phase, as pose-dependent
-            # weights would let Gauss-Newton cycle.
-            da, db = _rho_sensitivity(a0, b0, rho, pose, forward, lateral)
+            # moves with rho at this pose; frozen in the Cauchy phase, as pose-dependent weights
+            # would let Gauss-Newton cycle.
+            infl = np.concatenate((lin.da * lin.da * var_rho, lin.db * lin.db * var_rho))
             # Robust scale: the median of sqrt(d2/2) is 0.8326 for Gaussian residuals of unit
             # scale (Rayleigh median / sqrt 2); never below the stated noise nor wildly above it.
-            d2 = ra * ra / (scale * scale + da * da * var_rho) + rb * rb / (scale * scale + db * db * var_rho)
+            d2 = _pair_sum(r * r / (scale * scale + infl))
             scale = max(sigma, min(float(np.median(np.sqrt(d2 / 2.0))) / 0.8326 * scale, 50 * sigma))
-        var_a = scale * scale + da * da * var_rho
-        var_b = scale * scale + db * db * var_rho
-        d2 = ra * ra / var_a + rb * rb / var_b
+            var = scale * scale + infl
+        d2 = _pair_sum(r * r / var)
         wts = _robust_weights(d2, "huber", 2.0) if phase == "huber" else _robust_weights(d2, "cauchy", 2.5)
-        J = _jacobian_at(pa, pb, rho, t0, forward, lateral)
-        Wa, Wb = wts / var_a, wts / var_b
-        H = (np.einsum("n,ni,nj->ij", Wa, J[:, 0], J[:, 0])
-             + np.einsum("n,ni,nj->ij", Wb, J[:, 1], J[:, 1]))
-        g = J[:, 0].T @ (Wa * ra) + J[:, 1].T @ (Wb * rb)
+        W = np.concatenate((wts, wts)) / var
+        JW = lin.J.T * W
         try:
-            delta = np.linalg.solve(H + 1e-12 * np.eye(3), g)
+            delta = np.linalg.solve(JW @ lin.J + 1e-12 * np.eye(3), JW @ r)
         except np.linalg.LinAlgError:
             return _failed(n, pose, "singular normal matrix")
         pose = pose.compose(Pose2(*delta))
         step = float(np.max(np.abs(delta)))
         if phase == "huber":
             huber_done += 1
-            if huber_done >= huber_iters and (step < 1e-4 or huber_done >= 3 * huber_iters):
+            if huber_done >= huber_iters and (step < 1e-3 or huber_done >= 4 * huber_iters):
                 phase = "cauchy"
         elif step < tol:
             converged = True
             break
 
-    pa, pb = predict_bearings(a0, b0, rho, pose, forward, lateral)
-    ra = np.angle(np.exp(1j * (a1 - pa)))
-    rb = b1 - pb
-    da, db = _rho_sensitivity(a0, b0, rho, pose, forward, lateral)
-    var_a = scale * scale + da * da * var_rho
-    var_b = scale * scale + db * db * var_rho
-    d2 = ra * ra / var_a + rb * rb / var_b
+    lin = _Linearisation(s0, c0, t0, rho, a1, b1, pose, forward, lateral, False)
+    r = np.concatenate((lin.ra, lin.rb))
+    d2 = _pair_sum(r * r / var)
     inliers = d2 < 9.0 * 2
-    J = _jacobian_at(pa, pb, rho, t0, forward, lateral)
-    wi = inliers.astype(float)
-    H = (np.einsum("n,ni,nj->ij", wi / var_a, J[:, 0], J[:, 0])
-         + np.einsum("n,ni,nj->ij", wi / var_b, J[:, 1], J[:, 1]))
+    W = np.concatenate((inliers, inliers)) / var
+    H = (lin.J.T * W) @ lin.J
     cond = _condition(H)
     try:
         cov = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         cov = np.full((3, 3), np.inf)
     n_in = int(inliers.sum())
-    rms = float(np.sqrt(np.mean(np.concatenate([ra[inliers], rb[inliers]]) ** 2))) if n_in else math.inf
+    rms = float(np.sqrt(np.mean(np.concatenate([lin.ra[inliers], lin.rb[inliers]]) ** 2))) if n_in else math.inf
     q = VBCQuality(n, n_in, rms, cond, it, converged)
     ok = converged and n_in >= min_landmarks and cond < 1e9
     return VBCResult(pose, cov, inliers, q, ok)
+
+
+def _pair_sum(x: np.ndarray) -> np.ndarray:
+    """Per-landmark sum of the azimuth and elevation halves of a stacked vector."""
+    m = len(x) // 2
+    return x[:m] + x[m:]
 
 
 def _condition(H: np.ndarray) -> float:

@@ -24,6 +24,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.features import describe, match_descriptors
 from vbnav.vision.klt_tracker import KltTracker
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
@@ -48,6 +49,10 @@ class VslamConfig(BaseModel):
                                               description="stereo landmarks farther than this many baselines "
                                                           "are not used (too little disparity)")
     min_depth: float = Field(0.0, ge=0, description="landmarks nearer than this (m) are not created")
+    reacquire_every: int = Field(0, ge=0, description="frames between searches for lost reference landmarks "
+                                                       "(0: never; lost landmarks are then forgotten)")
+    reacquire_radius_px: float = Field(12.0, gt=0, description="re-found corner within this of the prediction")
+    max_dormant: int = Field(5000, ge=0, description="lost landmarks kept for re-acquisition")
     klt_window: int = Field(21, ge=5)
     klt_levels: int = Field(3, ge=0)
     min_distance_px: float = Field(12.0, gt=0)
@@ -80,16 +85,33 @@ class _Landmarks:
     P: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # in the reference frame
     px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # pixel in the last image
     own: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # created with the reference frame
-    count: np.ndarray = field(default_factory=lambda: np.zeros(0))  # measurements averaged into P
+    desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))  # ORB at creation
+    described: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
-    def keep(self, m: np.ndarray) -> None:
-        self.P, self.px, self.own, self.count = self.P[m], self.px[m], self.own[m], self.count[m]
+    def keep(self, m: np.ndarray) -> "_Landmarks":
+        """Keep the rows in ``m``; return the others (for the dormant set)."""
+        gone = _Landmarks(self.P[~m], self.px[~m], self.own[~m], self.desc[~m], self.described[~m])
+        self.P, self.px, self.own = self.P[m], self.px[m], self.own[m]
+        self.desc, self.described = self.desc[m], self.described[m]
+        return gone
 
-    def add(self, P: np.ndarray, px: np.ndarray, own: bool) -> None:
+    def add(self, P: np.ndarray, px: np.ndarray, own: bool, image: np.ndarray | None = None,
+            desc: np.ndarray | None = None, described: np.ndarray | None = None) -> None:
+        n = len(P)
+        if desc is None:
+            desc = np.zeros((n, 32), np.uint8)
+            described = np.zeros(n, bool)
+            if image is not None and n:
+                d, idx = describe(image, px)
+                desc[idx], described[idx] = d, True
         self.P = np.vstack((self.P, P))
         self.px = np.vstack((self.px, px))
-        self.own = np.concatenate((self.own, np.full(len(P), own)))
-        self.count = np.concatenate((self.count, np.ones(len(P))))
+        self.own = np.concatenate((self.own, np.full(n, own)))
+        self.desc = np.vstack((self.desc, desc))
+        self.described = np.concatenate((self.described, described))
+
+    def extend(self, other: "_Landmarks", own: bool = False) -> None:
+        self.add(other.P, other.px, own, desc=other.desc, described=other.described)
 
 
 @dataclass
@@ -122,6 +144,8 @@ class Vslam:
         self.tracker = KltTracker(window=self.cfg.klt_window, levels=self.cfg.klt_levels,
                                   min_distance=self.cfg.min_distance_px)
         self.lm = _Landmarks()
+        self.dormant = _Landmarks()  # reference landmarks whose tracks were lost
+        self.reacquired = 0  # landmarks found again, in total
         self.cand = _Candidates()
         self.R = np.eye(3)  # reference -> current camera
         self.T = np.zeros(3)
@@ -147,16 +171,18 @@ class Vslam:
         """Start with landmarks of known metric position in this camera's frame (from stereo, a depth
         image or a known reference structure); this camera becomes the first reference frame."""
         self.lm = _Landmarks()
-        self.lm.add(np.asarray(points_cam, float).reshape(-1, 3), np.asarray(pixels, float).reshape(-1, 2), True)
+        self.lm.add(np.asarray(points_cam, float).reshape(-1, 3), np.asarray(pixels, float).reshape(-1, 2), True,
+                    image=image)
+        self.dormant = _Landmarks()
         self.R, self.T = np.eye(3), np.zeros(3)
         self.references = [ReferenceFrame(self.frame, np.eye(4) if pose_wc is None else np.asarray(pose_wc, float),
                                           len(self.lm.P))]
         self._history = [self.references[0].pose_wc]
         self.prev = image
-        added = self._add_landmarks(image, right, depth, own=True)
+        self._add_landmarks(image, right, depth, own=True)
         self.references[-1].landmarks = len(self.lm.P)
         self.frame += 1
-        return len(self.lm.P) + added * 0
+        return len(self.lm.P)
 
     def initialise_stereo(self, left: np.ndarray, right: np.ndarray, pose_wc: np.ndarray | None = None) -> int:
         if self.baseline is None:
@@ -177,7 +203,7 @@ class Vslam:
         new_px, ok = self.tracker.track(self.prev, image, pts)
         self.lm.px, self.cand.px = new_px[:n_lm], new_px[n_lm:]
         self.cand.keep(ok[n_lm:])
-        self.lm.keep(ok[:n_lm])
+        self._make_dormant(self.lm.keep(ok[:n_lm]))
         tracked = len(self.lm.P)
         self.prev = image
         self.frame += 1
@@ -197,6 +223,8 @@ class Vslam:
         self.lm.keep(inl)
         handoff = self._maybe_handoff()
         added = 0
+        if cfg.reacquire_every and self.frame % cfg.reacquire_every == 0:
+            self._reacquire(image)
         if len(self.lm.P) < cfg.min_landmarks or (self.baseline is None and depth is None):
             added = self._add_landmarks(image, right, depth, own=False)
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
@@ -219,6 +247,7 @@ class Vslam:
             return False
         # Re-express the surviving landmarks in the current camera, which becomes the reference frame.
         self.lm.P = self.lm.P @ self.R.T + self.T
+        self.dormant.P = self.dormant.P @ self.R.T + self.T
         self.lm.own[:] = True
         Rc, Tc = self.cand.R0, self.cand.T0
         if len(Rc):  # candidates' first poses: ref_old -> cam0 becomes ref_new -> cam0
@@ -239,6 +268,53 @@ class Vslam:
         if own:
             self.references[-1].landmarks = len(self.lm.P)
         return n
+
+    def _make_dormant(self, lost: _Landmarks) -> None:
+        """Landmarks whose track was lost stay in the reference set, to be found again later."""
+        if not self.cfg.reacquire_every or len(lost.P) == 0:
+            return
+        lost.keep(lost.described)
+        self.dormant.extend(lost)
+        extra = len(self.dormant.P) - self.cfg.max_dormant
+        if extra > 0:  # forget the oldest
+            m = np.ones(len(self.dormant.P), bool)
+            m[:extra] = False
+            self.dormant.keep(m)
+
+    def _reacquire(self, image: np.ndarray) -> int:
+        """Find dormant reference landmarks again: project them with the current pose, match ORB
+        descriptors of fresh corners near the prediction. A re-found landmark keeps its reference
+        coordinates, so coming back to a place ties the pose to the landmarks first seen there."""
+        d = self.dormant
+        if len(d.P) == 0:
+            return 0
+        X = d.P @ self.R.T + self.T
+        pred, front = self.camera.project(X)
+        vis = front & self.camera.in_image(pred, margin=16)
+        if vis.sum() < 3:
+            return 0
+        corners = self.tracker.detect(image, 2 * self.cfg.max_landmarks, self.lm.px)
+        if len(corners) < 2:
+            return 0
+        desc, idx = describe(image, corners)
+        corners = corners[idx]
+        vis_idx = np.flatnonzero(vis)
+        pairs = match_descriptors(d.desc[vis_idx], desc)
+        if len(pairs) == 0:
+            return 0
+        li, ci = vis_idx[pairs[:, 0]], pairs[:, 1]
+        near = np.linalg.norm(corners[ci] - pred[li], axis=1) < self.cfg.reacquire_radius_px
+        li, ci = li[near], ci[near]
+        if len(li) == 0:
+            return 0
+        back = np.zeros(len(d.P), bool)
+        back[li] = True
+        found = d.keep(~back)  # d keeps the rest; ``found`` holds the re-found rows in index order
+        order = np.argsort(li)
+        found.px = corners[ci[order]]
+        self.lm.extend(found)
+        self.reacquired += len(li)
+        return len(li)
 
     def _to_reference(self, X_cam: np.ndarray) -> np.ndarray:
         return (X_cam - self.T) @ self.R  # R^T (X - T)
@@ -264,7 +340,7 @@ class Vslam:
         good = rec.valid & (rec.depth_ref < self.cfg.stereo_max_depth_baselines * self.baseline) \
             & (rec.depth_ref > self.cfg.min_depth)
         X = rec.depth_ref[good, None] * n_l[good]
-        self.lm.add(self._to_reference(X), px[good], own)
+        self.lm.add(self._to_reference(X), px[good], own, image=left)
         return int(good.sum())
 
     def _add_from_depth(self, image, depth, own: bool) -> int:
@@ -276,7 +352,7 @@ class Vslam:
         good = np.isfinite(z) & (z > max(self.cfg.min_depth, 1e-6))
         n = self.camera.rays(px[good])
         X = n * (z[good] / n[:, 2])[:, None]  # depth images hold z, not the radial distance
-        self.lm.add(self._to_reference(X), px[good], own)
+        self.lm.add(self._to_reference(X), px[good], own, image=image)
         return int(good.sum())
 
     def _add_from_motion(self, image, own: bool) -> int:
@@ -300,7 +376,7 @@ class Vslam:
             if ok.any():
                 X0 = d0[ok, None] * c.ray0[ok]
                 P = np.einsum("hji,hj->hi", c.R0[ok], X0 - c.T0[ok])  # R0^T (X0 - T0)
-                self.lm.add(P, c.px[ok], own)
+                self.lm.add(P, c.px[ok], own, image=image)
                 added = int(ok.sum())
                 c.keep(~ok)
         budget = self.cfg.max_candidates - len(c.px)

@@ -182,8 +182,9 @@ def init_two_view(rays1: np.ndarray, rays2: np.ndarray, planar_ratio: float = 1.
     ``threshold`` is the RANSAC threshold on normalised image coordinates.
     Planar when the chapter's ratio s1/s2 of the linear E exceeds ``planar_ratio``,
     or when the 8-point system shows a 3-dimensional null space (sigma_7/sigma_8 below
-    ``null_space_ratio``): with noise the linear E of a plane is often close to
-    (1, 1, 0) by chance, the null-space dimension is not.
+    ``null_space_ratio``: with noise the linear E of a plane is often close to
+    (1, 1, 0) by chance, the null-space dimension is not) and a homography explains
+    at least 90 % of the points the essential matrix explains.
     """
     r1 = np.asarray(rays1, float)
     r2 = np.asarray(rays2, float)
@@ -200,15 +201,18 @@ def init_two_view(rays1: np.ndarray, rays2: np.ndarray, planar_ratio: float = 1.
     s = s / s[0]
     ratio = float(s[0] / max(s[1], 1e-12))
     null_ratio = float(sv[6] / max(sv[7], 1e-300))
-    planar = ratio > planar_ratio or null_ratio < null_space_ratio
+    H, hmask = cv2.findHomography(u1, u2, cv2.RANSAC, 3.0 * threshold)  # transfer error: noise of both views
+    h_inl = hmask.ravel().astype(bool) if hmask is not None else np.zeros(len(r1), bool)
+    # A small null-space ratio alone also happens with noise on real, deep scenes: require that the
+    # homography explains (nearly) every point the essential matrix explains.
+    planar = ratio > planar_ratio or (null_ratio < null_space_ratio and h_inl.sum() >= 0.9 * inl.sum())
     if not planar and E5 is not None:
         E = E5[:3] if E5.shape[0] > 3 else E5
         R1, R2, t = cv2.decomposeEssentialMat(E)
         cands = [(R1, t.ravel()), (R1, -t.ravel()), (R2, t.ravel()), (R2, -t.ravel())]
         model = "essential"
     else:
-        H, hmask = cv2.findHomography(u1, u2, cv2.RANSAC, 3.0 * threshold)  # transfer error: noise of both views
-        inl = hmask.ravel().astype(bool)
+        inl = h_inl
         _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
         cands = [(Rk, tk.ravel()) for Rk, tk in zip(Rs, ts)]
         model = "homography"

@@ -25,6 +25,8 @@ def run(args) -> int:
         print(reference_markdown(Config))
         return 0
     cfg = load_config(args.config)
+    from vbnav.control.network import telemetry_config
+    telemetry_config(cfg)  # the telemetry section has its own model (network exposure rules)
     if args.action == "show":
         import yaml
         print(yaml.safe_dump(cfg.model_dump(), sort_keys=False))

@@ -1,6 +1,8 @@
 """vbnav repeat: patrol a taught route."""
 from __future__ import annotations
 
+import contextlib
+
 from vbnav.control.commands._common import add_config_arg
 
 
@@ -19,7 +21,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from vbnav.control.commands.teach import _attach_telemetry
+    from vbnav.control.commands.teach import _sim_recorder
     from vbnav.control.config import load_config
     from vbnav.control.progress import ProgressPrinter
     from vbnav.control.route import RouteError, load_route
@@ -50,10 +52,19 @@ def run(args) -> int:
         from vbnav.control.factory import make_robot
         clock, drive, pipeline = make_robot(cfg, [stage])
     rt = Runtime(cfg, drive, controller, clock, pipeline)
-    _attach_telemetry(cfg, rt, args)
-    result = rt.run(args.duration, lambda r: printer(
-        f"repeat: keyframe {stage.index + 1}/{len(route.keyframes)}  {r.odometry.distance:.1f} m  "
-        f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}"))
+    simulated = cfg.camera.driver == "sim" and cfg.drive.driver == "sim"
+    with (_sim_recorder(cfg, args) if simulated else contextlib.nullcontext()) as recorder:
+        from vbnav.control.telemetry_link import TelemetryLink
+        # The simulated robot records only; a real robot also publishes and takes network commands.
+        link = TelemetryLink.attach(rt, cfg, record=None if simulated else args.record, recorder=recorder,
+                                    network=not simulated, segment="repeat")
+        result = None
+        try:
+            result = rt.run(args.duration, lambda r: printer(
+                f"repeat: keyframe {stage.index + 1}/{len(route.keyframes)}  {r.odometry.distance:.1f} m  "
+                f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}"))
+        finally:
+            link.close(result)
     printer.done()
     print(f"repeat ended: {result.reason} ({result.message}); reached keyframe {stage.index + 1} of "
           f"{len(route.keyframes)}")

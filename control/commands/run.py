@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
 
 def register(sub) -> None:
@@ -19,6 +20,7 @@ def register(sub) -> None:
     p.add_argument("--no-camera", action="store_true",
                    help="do not open the camera (by default it runs, so a stale camera stops the robot)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
+    add_telemetry_args(p)
     p.set_defaults(func=run)
 
 
@@ -40,11 +42,17 @@ def run(args) -> int:
     from vbnav.control.progress import ProgressPrinter
     from vbnav.control.runtime import Runtime
 
+    from vbnav.control.network import telemetry_config
+
     cfg = load_config(args.config)
+    telemetry_config(cfg)  # refuse unsafe network settings before any device opens
     kind = args.controller or cfg.controller.kind
     controller = build_controller(cfg, kind)
     clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
     rt = Runtime(cfg, drive, controller, clock, pipeline)
+    link = attach_telemetry(rt, cfg, args)
+    if link is None:
+        return 3
     printer = ProgressPrinter()
 
     def progress(r: Runtime) -> None:
@@ -57,7 +65,11 @@ def run(args) -> int:
     duration = args.duration
     if duration is None and kind != "scripted" and clock.simulated:
         duration = 10.0  # a simulated teleop/idle run has nobody to stop it
-    result = rt.run(duration, progress)
+    result = None
+    try:
+        result = rt.run(duration, progress)
+    finally:
+        link.close(result)
     printer.done()
     summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
                "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],

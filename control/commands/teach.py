@@ -40,7 +40,9 @@ def run(args) -> int:
         path = demo_route()
         start = start_pose(path)
         robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
-        result = teach_route(cfg, robot, PathFollower(path, 0.4, start=start), out, printer, args.duration)
+        with _sim_recorder(cfg, args) as recorder:
+            result = teach_route(cfg, robot, PathFollower(path, 0.4, start=start), out, printer, args.duration,
+                                 recorder=recorder)
     else:
         result = _teach_on_robot(cfg, out, printer, args)
     printer.done()
@@ -64,9 +66,13 @@ def _teach_on_robot(cfg, out, printer, args):
     with RouteWriter(out, cfg.robot.name, model, mount, overwrite=True) as writer:
         pipeline.frame_listeners.append(lambda f, r: [writer.append(kf) for kf in stage.pop_keyframes()])
         rt = Runtime(cfg, drive, TeleopController(cfg.safety.command_timeout_s), clock, pipeline)
-        _attach_telemetry(cfg, rt, args)
-        result = rt.run(args.duration, lambda r: printer(f"teach: {stage.n_keyframes} keyframes, "
-                                                         f"{r.odometry.distance:.1f} m"))
+        link = _attach_telemetry(cfg, rt, args)
+        result = None
+        try:
+            result = rt.run(args.duration, lambda r: printer(f"teach: {stage.n_keyframes} keyframes, "
+                                                             f"{r.odometry.distance:.1f} m"))
+        finally:
+            link.close(result)
         stage.finish()
         for kf in stage.pop_keyframes():
             writer.append(kf)
@@ -74,10 +80,27 @@ def _teach_on_robot(cfg, out, printer, args):
                        result.timing)
 
 
-def _attach_telemetry(cfg, rt, args) -> None:
-    """Telemetry and network commands, when the telemetry module is available."""
-    try:
-        from vbnav.control.telemetry_link import attach  # noqa: PLC0415
-    except ImportError:
-        return
-    attach(cfg, rt, record=getattr(args, "record", None))
+def _attach_telemetry(cfg, rt, args):
+    """Telemetry, network commands and --record for a run on the robot; close it with ``link.close(result)``."""
+    from vbnav.control.telemetry_link import TelemetryLink
+    return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None))
+
+
+class _sim_recorder:
+    """``with _sim_recorder(cfg, args) as rec``: an McapRecorder for --record on the simulated robot, or None.
+
+    Simulated runs (faster than real time) record but do not open the network.
+    """
+
+    def __init__(self, cfg, args):
+        self.cfg, self.path, self.rec = cfg, getattr(args, "record", None), None
+
+    def __enter__(self):
+        if self.path:
+            from vbnav.control.recording import McapRecorder
+            self.rec = McapRecorder(self.path, self.cfg.robot.name, metadata={"config": self.cfg.source or ""})
+        return self.rec
+
+    def __exit__(self, *exc):
+        if self.rec is not None:
+            self.rec.close()

@@ -1,0 +1,144 @@
+"""``vbnav monitor``: a live terminal view of a robot's state and events."""
+from __future__ import annotations
+
+import collections
+import json
+import sys
+import threading
+import time
+
+from vbnav.control.commands._net import add_net_args, open_client
+
+
+def register(sub) -> None:
+    p = sub.add_parser("monitor", help="live view of a robot's state and events over zenoh",
+                       description="Subscribe to vbnav/<robot>/state and /events and show mode, pose, loop "
+                                   "timing, faults and recent events (refreshes in place; Ctrl-C quits).")
+    add_net_args(p)
+    p.add_argument("--once", action="store_true", help="print the first state received and exit (for scripts)")
+    p.add_argument("--json", action="store_true", help="with --once: print the raw JSON state message")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="with --once: give up after S seconds without state (exit 1); default 5")
+    p.add_argument("--refresh", type=float, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
+    p.set_defaults(func=_run)
+
+
+class View:
+    """Latest state and recent events, filled by zenoh callbacks."""
+
+    def __init__(self, n_events: int = 10):
+        self.lock = threading.Lock()
+        self.state: dict | None = None
+        self.events: collections.deque = collections.deque(maxlen=n_events)
+        self.got_state = threading.Event()
+        self.n_state = 0
+        self.last_rx = 0.0
+
+    def on_state(self, sample) -> None:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        with self.lock:
+            self.state, self.n_state, self.last_rx = msg, self.n_state + 1, time.monotonic()
+        self.got_state.set()
+
+    def load_history(self, session, key: str, timeout_s: float = 1.0) -> None:
+        """Events that happened before this monitor started (the robot keeps the last 20)."""
+        try:
+            for reply in session.get(key, timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                past = json.loads(reply.ok.payload.to_bytes()).get("events", [])
+                with self.lock:
+                    seen = {e.get("seq") for e in self.events}
+                    merged = [e for e in past if e.get("seq") not in seen] + list(self.events)
+                    self.events.clear()
+                    self.events.extend(merged)
+        except Exception:
+            pass  # history is a convenience: live events still arrive
+
+    def on_event(self, sample) -> None:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        with self.lock:
+            self.events.append(msg)
+
+
+def _pose(p) -> str:
+    if not p:
+        return "-"
+    return f"x {p['x']:+.3f} m  z {p['z']:+.3f} m  theta {p['theta']:+.3f} rad"
+
+
+def _event_line(e: dict) -> str:
+    extra = " ".join(f"{k}={v}" for k, v in e.items()
+                     if k not in ("schema", "version", "robot", "seq", "stamp_ns", "kind"))
+    return f"#{e.get('seq', '?'):<5} {e.get('kind', '?'):<18} {extra}"[:160]
+
+
+def render(robot: str, state: dict | None, events, rx_age_s: float | None = None) -> str:
+    lines = [f"vbnav monitor  robot {robot}"]
+    if state is None:
+        lines.append("  (no state received yet)")
+    else:
+        s = state
+        safety = s.get("safety", {})
+        faults = ", ".join(safety.get("faults", [])) or "none"
+        loop = s.get("loop", {})
+        wh = s.get("wheels", {})
+        cmd, meas = wh.get("cmd", {}), wh.get("meas", {})
+        lines += [
+            f"  mode    {s.get('mode')}" + (f"  route {s['route']}" if s.get("route") else "")
+            + (f"  keyframe {s['keyframe']}" if s.get("keyframe") is not None else ""),
+            f"  safety  {safety.get('state')}   faults: {faults}",
+            f"  odom    {_pose(s.get('pose', {}).get('odom'))}",
+            f"  vbc     {_pose(s.get('pose', {}).get('vbc'))}",
+            f"  vslam   {_pose(s.get('pose', {}).get('vslam'))}",
+            f"  wheels  cmd L {cmd.get('left', 0):+.2f} R {cmd.get('right', 0):+.2f} rad/s   "
+            f"meas L {meas.get('left', 0):+.2f} R {meas.get('right', 0):+.2f} rad/s",
+            f"  twist   v {s.get('twist', {}).get('linear', 0):+.3f} m/s  w {s.get('twist', {}).get('angular', 0):+.3f} rad/s",
+            f"  loop    {loop.get('rate_hz', 0):.0f} Hz  cycle {s.get('cycle')}  compute {loop.get('compute_ms', 0):.2f} ms"
+            f"  lateness {loop.get('lateness_ms', 0):.2f} ms  overruns {loop.get('overruns', 0)}",
+        ]
+        if rx_age_s is not None:
+            lines.append(f"  last state received {rx_age_s:.1f} s ago" + ("  (STALE)" if rx_age_s > 1.0 else ""))
+    lines.append("  recent events:")
+    lines += [f"    {_event_line(e)}" for e in events] or ["    (none)"]
+    return "\n".join(lines)
+
+
+def _run(args) -> int:
+    view = View()
+    try:
+        session = open_client(args)
+    except ConnectionError as exc:
+        print(f"vbnav monitor: {exc}", file=sys.stderr)
+        return 3
+    try:
+        session.declare_subscriber(f"vbnav/{args.robot}/state", view.on_state)
+        session.declare_subscriber(f"vbnav/{args.robot}/events", view.on_event)
+        view.load_history(session, f"vbnav/{args.robot}/events/recent")
+        if args.once:
+            if not view.got_state.wait(args.timeout):
+                print(f"vbnav monitor: no state on vbnav/{args.robot}/state within {args.timeout} s",
+                      file=sys.stderr)
+                return 1
+            with view.lock:
+                state, events = view.state, list(view.events)
+            print(json.dumps(state) if args.json else render(args.robot, state, events))
+            return 0
+        period = 1.0 / max(0.5, args.refresh)
+        while True:
+            with view.lock:
+                state, events, last = view.state, list(view.events), view.last_rx
+            age = time.monotonic() - last if state is not None else None
+            sys.stdout.write("\x1b[H\x1b[2J" + render(args.robot, state, events, age) + "\n")
+            sys.stdout.flush()
+            time.sleep(period)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        session.close()

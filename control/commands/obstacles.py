@@ -1,0 +1,221 @@
+"""``vbnav obstacles``: ground-plane suppression on one stereo pair or disparity image.
+
+Prints a JSON summary; optionally writes the label mask (0 ground, 1 obstacle,
+2 negative obstacle, 255 unknown) and an overlay of the classes on the left image.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
+from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
+from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles, nearest_in_corridor
+from vbnav.vision.stereo import as_disparity, sgbm_disparity, sgbm_params_for
+
+EXIT_OK, EXIT_BAD_INPUT = 0, 2
+
+COLOURS_BGR = {PixelClass.GROUND: (60, 200, 60), PixelClass.OBSTACLE: (40, 40, 230),
+               PixelClass.NEGATIVE: (230, 120, 30)}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "obstacles", help="find obstacles in a stereo pair by ground-plane suppression",
+        description="Fit the ground plane D(u,v) = rho1 u + rho2 v + rho3 in (u, v, disparity) space, label every "
+                    "pixel ground / obstacle / negative obstacle / unknown with thresholds given in metres, and "
+                    "report the nearest obstacle in the driving corridor. Input: a rectified pair (--left/--right, "
+                    "disparity by OpenCV SGBM) or a disparity image (--disparity). Prints JSON.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    src = p.add_argument_group("input")
+    src.add_argument("--left", metavar="L", help="rectified left image")
+    src.add_argument("--right", metavar="R", help="rectified right image")
+    src.add_argument("--disparity", metavar="D",
+                     help="disparity image instead of --left/--right: .npy (float px) or PNG/TIFF; integer images "
+                          "are multiplied by --disparity-scale; 0 or NaN is unknown")
+    src.add_argument("--image", metavar="IMG", help="image for the overlay when --disparity is given")
+    src.add_argument("--calib", required=True, metavar="FILE",
+                     help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (docs/obstacles.md)")
+    src.add_argument("--disparity-scale", type=float, default=None,
+                     help="px per unit of an integer disparity image (default: the YAML's disparity_scale, "
+                          "else 1/256 for 16-bit as in KITTI's devkit, 1 for 8-bit)")
+    geo = p.add_argument_group("camera above the floor (seeds the plane fit)")
+    geo.add_argument("--camera-height", type=float, default=None,
+                     help="m; default: the YAML's mount.height; without it the fit is unseeded")
+    geo.add_argument("--pitch-deg", type=float, default=None, help="positive looking down (default: YAML or 0)")
+    det = p.add_argument_group("detection")
+    det.add_argument("--obstacle-height", type=float, default=0.05, help="m above the floor")
+    det.add_argument("--negative-depth", type=float, default=0.05, help="m below the floor")
+    det.add_argument("--noise-px", type=float, default=0.4, help="disparity noise floor, px")
+    det.add_argument("--max-height", type=float, default=None, help="m; higher points are unknown (overhangs)")
+    det.add_argument("--max-range", type=float, default=None, help="m; farther points are unknown")
+    det.add_argument("--corridor-half-width", type=float, default=0.3, help="m, for the nearest obstacle")
+    det.add_argument("--corridor-range", type=float, default=10.0, help="m, for the nearest obstacle")
+    det.add_argument("--block-size", type=int, default=5, help="SGBM block size (odd)")
+    det.add_argument("--min-depth", type=float, default=None,
+                     help="m, nearest depth SGBM must cover (sets numDisparities); default: 8 baselines, or 0.85 x "
+                          "the nearest floor depth in view if that is nearer")
+    out = p.add_argument_group("output")
+    out.add_argument("--mask-out", metavar="M.png", help="labels: 0 ground, 1 obstacle, 2 negative, 255 unknown")
+    out.add_argument("--overlay-out", metavar="O.png", help="the classes drawn on the left image")
+    p.set_defaults(func=run)
+
+
+def _bad(msg: str) -> int:
+    print(f"vbnav obstacles: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _read_image(path: str, what: str) -> np.ndarray:
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{what} {path}: file not found")
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{what} {path}: not an image OpenCV can read")
+    return img
+
+
+def _read_disparity(path: str, scale_arg, calib) -> np.ndarray:
+    if path.endswith(".npy"):
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"disparity {path}: file not found")
+        d = np.load(path)
+        scale = scale_arg if scale_arg is not None else (calib.disparity_scale or 1.0)
+    else:
+        d = _read_image(path, "disparity")
+        if d.ndim != 2:
+            raise ValueError(f"disparity {path}: expected a single-channel image, got shape {d.shape}")
+        default = 1.0 / 256.0 if d.dtype == np.uint16 else 1.0
+        scale = scale_arg if scale_arg is not None else (calib.disparity_scale or default)
+    if d.ndim != 2:
+        raise ValueError(f"disparity {path}: expected an HxW array, got shape {d.shape}")
+    return as_disparity(d.astype(np.float32) * np.float32(scale))
+
+
+def atomic_write_png(path: str, img: np.ndarray) -> None:
+    """Write to a temporary file in the same directory, then rename (no half-written PNG)."""
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError(f"{path}: could not encode PNG")
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=d)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buf.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.45) -> np.ndarray:
+    """The classes drawn over the image (BGR): ground green, obstacle red, negative blue."""
+    if image.dtype != np.uint8:
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+    colour = base.copy()
+    for cls, bgr in COLOURS_BGR.items():
+        colour[labels == cls] = bgr
+    return cv2.addWeighted(base, 1.0 - alpha, colour, alpha, 0.0)
+
+
+def _nearest_json(n):
+    if n is None:
+        return None
+    return {"distance_m": round(n.distance, 3), "bearing_deg": round(math.degrees(n.bearing), 2),
+            "lateral_m": round(n.lateral, 3)}
+
+
+def _min_depth(args, rig, prior) -> float:
+    """Nearest depth SGBM must cover: 8 baselines, or nearer if the floor in view is nearer."""
+    if args.min_depth:
+        return args.min_depth
+    depth = 8.0 * rig.baseline
+    if prior is not None:
+        d_floor = float(prior.image(rig.height, rig.width)[-1, [0, -1]].max())
+        if d_floor > 0:
+            depth = min(depth, 0.85 * rig.fb / d_floor)
+    return depth
+
+
+def run(args) -> int:
+    t0 = time.perf_counter()
+    if args.disparity is None and not (args.left and args.right):
+        return _bad("give --left and --right, or --disparity")
+    if args.disparity is not None and (args.left or args.right):
+        return _bad("give either --left/--right or --disparity, not both")
+    try:
+        calib = load_stereo_calibration(args.calib)
+        if args.disparity is not None:
+            disp = _read_disparity(args.disparity, args.disparity_scale, calib)
+            image = _read_image(args.image, "image") if args.image else None
+            source = "file"
+        else:
+            left = _read_image(args.left, "left image")
+            right = _read_image(args.right, "right image")
+            if left.shape[:2] != right.shape[:2]:
+                return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
+                            f"{right.shape[1]}x{right.shape[0]}")
+            image, disp, source = left, None, "sgbm"
+        h, w = (disp.shape if disp is not None else image.shape[:2])
+        if image is not None and image.shape[:2] != (h, w):
+            return _bad(f"image {args.image} is {image.shape[1]}x{image.shape[0]}, disparity is {w}x{h}")
+        rig = calib.rig(w, h)
+    except (CalibrationError, ValueError, FileNotFoundError) as exc:
+        return _bad(str(exc))
+
+    height = args.camera_height if args.camera_height is not None else calib.mount_height
+    pitch = args.pitch_deg if args.pitch_deg is not None else calib.mount_pitch_deg
+    prior = expected_plane(rig, height, math.radians(pitch), math.radians(calib.mount_roll_deg)) \
+        if height is not None else None
+
+    t1 = time.perf_counter()
+    if disp is None:
+        disp = sgbm_disparity(image, right, sgbm_params_for(rig, _min_depth(args, rig, prior), args.block_size))
+    t2 = time.perf_counter()
+    params = ObstacleParams(obstacle_height=args.obstacle_height, negative_depth=args.negative_depth,
+                            noise_px=args.noise_px, max_height=args.max_height, max_range=args.max_range,
+                            report_range=args.corridor_range)
+    try:
+        scene = detect_obstacles(disp, rig, prior, PlaneFitParams(), params)
+    except ValueError as exc:
+        print(f"vbnav obstacles: {exc}", file=sys.stderr)
+        return 1
+    t3 = time.perf_counter()
+    near = nearest_in_corridor(scene.obstacle_points, args.corridor_half_width, args.corridor_range)
+    near_neg = nearest_in_corridor(scene.negative_points, args.corridor_half_width, args.corridor_range)
+    fl = scene.fit.floor
+    if args.mask_out:
+        atomic_write_png(args.mask_out, scene.labels)
+    if args.overlay_out:
+        if image is None:
+            base = cv2.normalize(np.nan_to_num(disp), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        else:
+            base = image
+        atomic_write_png(args.overlay_out, overlay(base, scene.labels))
+    summary = {
+        "image": {"width": w, "height": h},
+        "disparity_source": source,
+        "plane": {"rho": [round(x, 6) for x in scene.plane.rho], "camera_height_m": round(fl.height, 4),
+                  "pitch_deg": round(math.degrees(fl.pitch), 3), "roll_deg": round(math.degrees(fl.roll), 3),
+                  "fit_ok": scene.fit.ok, "used_prior": scene.fit.used_prior,
+                  "inlier_fraction": round(scene.fit.inlier_fraction, 4), "note": scene.fit.reason},
+        "fractions": {k: round(v, 5) for k, v in scene.fractions.items()},
+        "nearest_obstacle": _nearest_json(near),
+        "nearest_negative": _nearest_json(near_neg),
+        "corridor": {"half_width_m": args.corridor_half_width, "range_m": args.corridor_range},
+        "time_ms": {"load": round((t1 - t0) * 1e3, 2), "disparity": round((t2 - t1) * 1e3, 2),
+                    "detection": round((t3 - t2) * 1e3, 2), "total": round((time.perf_counter() - t0) * 1e3, 2)},
+    }
+    print(json.dumps(summary, indent=2))
+    return EXIT_OK

@@ -1,0 +1,246 @@
+"""The ``telemetry:`` configuration section and the zenoh session built from it.
+
+Safe by default: the robot's zenoh session listens only on
+``tcp/127.0.0.1:7447``, with multicast scouting and gossip off, so nothing is
+reachable from another machine and nothing is discovered by accident.
+
+Remote access is explicit. A listener on any non-loopback address is refused
+unless the section also configures
+
+- authentication: zenoh user/password (``auth.usrpwd`` with a dictionary file of
+  accepted peers) or mutual TLS (``auth.tls`` with CA, certificate and key), and
+- ``operators``: the user names (or certificate common names) allowed to publish
+  on ``vbnav/<robot>/cmd/**``. An access-control policy is generated from it:
+  everyone authenticated may read ``state``, ``events`` and ``image``; only
+  operators may command. Everything else is denied.
+
+The zenoh config keys used here are those of zenoh 1.x (``listen/endpoints``,
+``scouting/multicast/enabled``, ``scouting/gossip/enabled``,
+``transport/auth/usrpwd``, ``transport/link/tls``, ``access_control``).
+"""
+from __future__ import annotations
+
+import ipaddress
+import json
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
+NAME_PATTERN = r"^[A-Za-z0-9_\-.@]+$"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class UsrPwdAuth(_Strict):
+    user: str = Field(..., min_length=1, pattern=NAME_PATTERN, description="this robot's own user name")
+    password: str = Field(..., min_length=8, description="this robot's own password")
+    dictionary_file: str = Field(..., min_length=1,
+                                 description="file of accepted 'user:password' lines (plain or sha256)")
+
+
+class TlsAuth(_Strict):
+    root_ca_certificate: str = Field(..., description="CA that signed every peer's certificate (PEM)")
+    listen_certificate: str = Field(..., description="this robot's certificate (PEM)")
+    listen_private_key: str = Field(..., description="this robot's private key (PEM)")
+    enable_mtls: Literal[True] = Field(True, description="peers must present a certificate too (required)")
+
+
+class AuthConfig(_Strict):
+    usrpwd: Optional[UsrPwdAuth] = None
+    tls: Optional[TlsAuth] = None
+
+
+class TelemetryConfig(_Strict):
+    """The ``telemetry:`` section of a robot configuration."""
+
+    enabled: bool = Field(True, description="open a zenoh session, publish telemetry, accept commands")
+    state_rate_hz: float = Field(20.0, gt=0, le=1000, description="rate of vbnav/<robot>/state")
+    image_rate_hz: float = Field(2.0, ge=0, le=60, description="rate of vbnav/<robot>/image JPEGs (and in "
+                                                                "recordings); 0 = off")
+    image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled to this width, px")
+    jpeg_quality: int = Field(70, ge=10, le=100)
+    listen: list[str] = Field(default_factory=lambda: [DEFAULT_ENDPOINT], max_length=8,
+                              description="zenoh endpoints the robot listens on")
+    connect: list[str] = Field(default_factory=list, max_length=8,
+                               description="zenoh endpoints the robot connects to (e.g. a base-station router)")
+    scouting: bool = Field(False, description="multicast scouting and gossip (discovery); off by default")
+    auth: AuthConfig = Field(default_factory=AuthConfig)
+    operators: list[str] = Field(default_factory=list,
+                                 description="user names / certificate common names allowed on cmd/**")
+
+    @model_validator(mode="after")
+    def _remote_access_needs_auth(self):
+        remote = [e for e in self.listen + self.connect if not is_loopback_endpoint(e)]
+        if self.scouting:
+            remote.append("multicast scouting")
+        if remote and self.enabled:
+            missing = []
+            if self.auth.usrpwd is None and self.auth.tls is None:
+                missing.append("authentication (telemetry.auth.usrpwd with a dictionary_file, or telemetry.auth.tls "
+                               "with certificates)")
+            if not self.operators:
+                missing.append("telemetry.operators (the user names or certificate common names allowed to send "
+                               "commands; an access-control rule limits cmd/** to them)")
+            if missing:
+                raise ValueError(
+                    f"remote access ({', '.join(remote)}) makes the robot reachable from other machines and needs "
+                    + " and ".join(missing)
+                    + f"; for local use only, listen on {DEFAULT_ENDPOINT}")
+        for ep in self.listen + self.connect:
+            _split_endpoint(ep)  # raises on malformed endpoints
+        if self.auth.tls is not None:
+            for ep in self.listen:
+                if not ep.startswith(("tls/", "quic/")) and not is_loopback_endpoint(ep):
+                    raise ValueError(f"telemetry.listen: {ep!r}: with auth.tls, remote listeners must use tls/ "
+                                     f"(or quic/) so certificates are checked")
+        return self
+
+    @property
+    def remote(self) -> bool:
+        return self.scouting or any(not is_loopback_endpoint(e) for e in self.listen + self.connect)
+
+
+def _split_endpoint(endpoint: str) -> tuple[str, str]:
+    """'tcp/127.0.0.1:7447#iface=lo' -> ('tcp', '127.0.0.1'). Raises ValueError on malformed input."""
+    if "/" not in endpoint:
+        raise ValueError(f"zenoh endpoint {endpoint!r}: expected PROTOCOL/ADDRESS, e.g. {DEFAULT_ENDPOINT}")
+    proto, rest = endpoint.split("/", 1)
+    rest = rest.split("?", 1)[0].split("#", 1)[0]
+    if proto in LOCAL_PROTOCOLS:
+        return proto, rest
+    if rest.startswith("["):
+        host, sep, _ = rest[1:].partition("]")
+        if not sep:
+            raise ValueError(f"zenoh endpoint {endpoint!r}: unclosed '[' in IPv6 address")
+    else:
+        host, sep, port = rest.rpartition(":")
+        if not sep or not port.isdigit():
+            raise ValueError(f"zenoh endpoint {endpoint!r}: expected HOST:PORT after {proto}/")
+    return proto, host
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True if the endpoint can only be reached from this machine."""
+    proto, host = _split_endpoint(endpoint)
+    if proto in LOCAL_PROTOCOLS:
+        return proto != "vsock"
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: may resolve anywhere
+
+
+def parse_telemetry_config(section: dict[str, Any] | None, source: str = "<config>") -> TelemetryConfig:
+    """Validate ``cfg.telemetry``; errors name the file and key, like the rest of the config."""
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return TelemetryConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="telemetry")) from None
+
+
+def telemetry_config(cfg) -> TelemetryConfig:
+    """The validated telemetry section of a loaded vbnav Config."""
+    return parse_telemetry_config(cfg.telemetry, cfg.source or "<config>")
+
+
+def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
+    """zenoh 1.x ``access_control``: telemetry readable by every authenticated peer, cmd/** only from operators."""
+    prefix = f"vbnav/{robot}"
+    telemetry_keys = [f"{prefix}/state", f"{prefix}/events", f"{prefix}/image"]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [
+            {"id": "telemetry-out", "permission": "allow", "flows": ["egress"],
+             "messages": ["put"], "key_exprs": telemetry_keys},
+            {"id": "telemetry-subscribe", "permission": "allow", "flows": ["ingress"],
+             "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
+            {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
+             "messages": ["query", "reply", "declare_queryable"], "key_exprs": [f"{prefix}/events/recent"]},
+            {"id": "commands-in", "permission": "allow", "flows": ["ingress"],
+             "messages": ["put"], "key_exprs": [f"{prefix}/cmd/**"]},
+            {"id": "commands-subscribe", "permission": "allow", "flows": ["egress"],
+             "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/cmd/**"]},
+        ],
+        "subjects": [
+            {"id": "everyone"},
+            {"id": "operators", "usernames": list(operators)},
+            {"id": "operators-tls", "cert_common_names": list(operators)},
+        ],
+        "policies": [
+            {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe", "events-history"],
+             "subjects": ["everyone"]},
+            {"id": "operators-command", "rules": ["commands-in", "commands-subscribe"],
+             "subjects": ["operators", "operators-tls"]},
+        ],
+    }
+
+
+def robot_session_config(tcfg: TelemetryConfig, robot: str) -> dict[str, Any]:
+    """The zenoh configuration (as a dict) of the robot's own session."""
+    conf: dict[str, Any] = {
+        "mode": "peer",
+        "listen": {"endpoints": list(tcfg.listen)},
+        "connect": {"endpoints": list(tcfg.connect)},
+        "scouting": {"multicast": {"enabled": tcfg.scouting}, "gossip": {"enabled": tcfg.scouting}},
+    }
+    transport: dict[str, Any] = {}
+    if tcfg.auth.usrpwd is not None:
+        transport["auth"] = {"usrpwd": _usrpwd_dict(tcfg.auth.usrpwd)}
+    if tcfg.auth.tls is not None:
+        tls = tcfg.auth.tls
+        transport["link"] = {"tls": {
+            "root_ca_certificate": _existing(tls.root_ca_certificate, "auth.tls.root_ca_certificate"),
+            "listen_certificate": _existing(tls.listen_certificate, "auth.tls.listen_certificate"),
+            "listen_private_key": _existing(tls.listen_private_key, "auth.tls.listen_private_key"),
+            "connect_certificate": tls.listen_certificate,
+            "connect_private_key": tls.listen_private_key,
+            "enable_mtls": True,
+        }}
+    if transport:
+        conf["transport"] = transport
+    if tcfg.remote:
+        conf["access_control"] = access_control_rules(robot, tcfg.operators)
+    return conf
+
+
+def client_session_config(connect: list[str], user: Optional[str] = None, password: Optional[str] = None,
+                          tls: Optional[dict[str, str]] = None) -> dict[str, Any]:
+    """A zenoh client (monitor, send, tests) that connects only where told and never scouts."""
+    conf: dict[str, Any] = {
+        "mode": "client",
+        "connect": {"endpoints": list(connect)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+    }
+    if user is not None:
+        conf.setdefault("transport", {})["auth"] = {"usrpwd": {"user": user, "password": password or ""}}
+    if tls:
+        conf.setdefault("transport", {})["link"] = {"tls": dict(tls)}
+    return conf
+
+
+def open_session(conf: dict[str, Any]):
+    """Open a zenoh session from a config dict (imports zenoh lazily: config checks need no zenoh)."""
+    import zenoh
+    return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+
+
+def _usrpwd_dict(u: UsrPwdAuth) -> dict[str, str]:
+    return {"user": u.user, "password": u.password,
+            "dictionary_file": _existing(u.dictionary_file, "auth.usrpwd.dictionary_file")}
+
+
+def _existing(path: str, key: str) -> str:
+    p = Path(path).expanduser()
+    if not p.is_file():
+        from vbnav.control.config import ConfigError
+        raise ConfigError(f"telemetry.{key}: file not found: {p}")
+    return str(p.resolve())

@@ -1,0 +1,317 @@
+"""Obstacle stop and slow-down zones (like nav2's collision monitor), fed by stereo ground suppression.
+
+``ObstacleStage`` (a VisionStage, kind "obstacles") runs on every frame: the
+disparity comes from ``Frame.disparity`` (the OAK's on-device matcher, the
+simulated camera's true disparity) or from SGBM on ``Frame.image`` /
+``Frame.right``; vision/obstacles.py labels the pixels and lists obstacle
+points on the floor; ``ObstacleMonitor`` turns those points into a speed scale
+in [0, 1] that the estimate carries in ``info["speed_scale"]`` (the runtime
+applies the smallest scale of all estimates; 0 is a held stop).
+
+Zones are in the robot frame: origin at the wheel-axle centre on the floor, x to
+the right, z forward (metres). A zone is either a band (``distance``,
+``half_width``: 0 < z <= distance, |x| <= half_width) or a polygon of (x, z)
+vertices. A "stop" zone stops the robot, a "slow" zone scales the speed by its
+``slow_scale``. A zone triggers when it holds at least ``min_points`` obstacle
+pixels (after blob filtering), or negative-obstacle pixels when
+``negative_stops``. Temporal filtering: a zone's trigger counts only when it
+held in ``persist_k`` of the last ``persist_n`` frames (one noisy frame does not
+stop the robot); the scale drops at once and rises again only after the
+condition has been clear for ``release_s`` (debounce on release, frame stamps).
+
+Config section ``obstacles:`` (validated here by ``ObstaclesConfig``)::
+
+    obstacles:
+      enabled: true           # off by default: a mono camera has no disparity (the stage would stop the robot)
+      source: auto            # auto: Frame.disparity if present, else SGBM on image/right
+      baseline: 0.075         # m; default: camera.options.stereo_baseline, else frame.meta['baseline_m']
+      obstacle_height: 0.02   # m above the floor
+      negative_depth: 0.03    # m below the floor
+      zones:
+        - {name: stop, action: stop, distance: 0.8, half_width: 0.25}
+        - {name: slow, action: slow, distance: 1.5, half_width: 0.35, slow_scale: 0.4}
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from vbnav.control.config import ConfigError, _format_errors
+from vbnav.control.controller import Estimate, VisionStage
+from vbnav.drivers.camera import Frame
+from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
+from vbnav.vision.obstacles import KOfN, ObstacleParams, detect_obstacles, nearest_in_corridor
+from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ZoneConfig(_Strict):
+    name: str
+    action: Literal["stop", "slow"] = "stop"
+    distance: Optional[float] = Field(None, gt=0, description="band: m ahead of the axle centre")
+    half_width: Optional[float] = Field(None, gt=0, description="band: m either side of the centre line")
+    polygon: Optional[list[tuple[float, float]]] = Field(None, description="(x right, z forward) vertices, m")
+    slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers")
+    min_points: int = Field(8, ge=1, description="obstacle pixels inside that trigger the zone")
+
+    @model_validator(mode="after")
+    def _shape(self):
+        band = self.distance is not None or self.half_width is not None
+        if band and self.polygon is not None:
+            raise ValueError(f"zone {self.name!r}: give either distance/half_width (a band) or polygon, not both")
+        if self.polygon is None and (self.distance is None or self.half_width is None):
+            raise ValueError(f"zone {self.name!r}: a band needs both distance and half_width (or give polygon)")
+        if self.polygon is not None and len(self.polygon) < 3:
+            raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
+        return self
+
+
+def _default_zones() -> list[ZoneConfig]:
+    return [ZoneConfig(name="stop", action="stop", distance=0.8, half_width=0.25),
+            ZoneConfig(name="slow", action="slow", distance=1.5, half_width=0.35, slow_scale=0.4)]
+
+
+class ObstaclesConfig(_Strict):
+    enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
+    source: Literal["auto", "disparity", "sgbm"] = "auto"
+    baseline: Optional[float] = Field(None, gt=0, description="m; default camera.options.stereo_baseline, "
+                                                              "else the frames' meta['baseline_m'] (OAK)")
+    obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
+    negative_depth: float = Field(0.03, gt=0, description="m below the floor that is a negative obstacle")
+    noise_px: float = Field(0.4, ge=0, description="disparity noise floor, px")
+    max_height: Optional[float] = Field(1.0, gt=0, description="m; higher points are overhangs, ignored")
+    max_range: float = Field(6.0, gt=0, description="m; farther points are ignored")
+    min_blob_pixels: int = Field(12, ge=1)
+    negative_stops: bool = Field(True, description="negative obstacles (steps down) trigger zones too")
+    fit_inlier_height: float = Field(0.02, gt=0, description="m, ground-plane fit inlier band")
+    sgbm_block_size: int = Field(3, ge=1, le=11)
+    persist_k: int = Field(2, ge=1, description="a zone must trigger in k of the last n frames")
+    persist_n: int = Field(3, ge=1)
+    release_s: float = Field(0.5, ge=0, description="clear this long before the speed rises again")
+    zones: list[ZoneConfig] = Field(default_factory=_default_zones)
+
+    @model_validator(mode="after")
+    def _k_le_n(self):
+        if self.persist_k > self.persist_n:
+            raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
+        if self.sgbm_block_size % 2 == 0:
+            raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        return self
+
+
+def obstacles_config(section: Optional[dict], source: str = "<config>") -> ObstaclesConfig:
+    """Validate the free ``obstacles:`` section; errors name the file and key path."""
+    try:
+        return ObstaclesConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="obstacles")) from None
+
+
+def make_obstacle_stage(cfg) -> Optional["ObstacleStage"]:
+    """The obstacle stage for a vbnav Config, or None when ``obstacles.enabled`` is false."""
+    ocfg = obstacles_config(cfg.obstacles, cfg.source or "<config>")
+    return ObstacleStage.from_config(cfg) if ocfg.enabled else None
+
+
+# --------------------------------------------------------------------------- zones
+
+def points_in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Even-odd rule, vectorised over points: (N, 2) x (M, 2) -> (N,) bool."""
+    x, z = pts[:, 0:1], pts[:, 1:2]
+    x0, z0 = poly[:, 0][None, :], poly[:, 1][None, :]
+    x1, z1 = np.roll(poly[:, 0], -1)[None, :], np.roll(poly[:, 1], -1)[None, :]
+    crosses = (z0 > z) != (z1 > z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = x0 + (z - z0) * (x1 - x0) / (z1 - z0)
+    return np.count_nonzero(crosses & (x < x_at), axis=1) % 2 == 1
+
+
+def zone_counts(zone: ZoneConfig, pts: np.ndarray) -> int:
+    if len(pts) == 0:
+        return 0
+    if zone.polygon is not None:
+        return int(np.count_nonzero(points_in_polygon(pts, np.asarray(zone.polygon, dtype=np.float64))))
+    x, z = pts[:, 0], pts[:, 1]
+    return int(np.count_nonzero((z > 0) & (z <= zone.distance) & (np.abs(x) <= zone.half_width)))
+
+
+@dataclass
+class ZoneVerdict:
+    scale: float
+    reason: str
+    counts: dict
+
+
+class ObstacleMonitor:
+    """Zones + k-of-n persistence + release debounce -> speed scale in [0, 1]. Pure logic, frame stamps."""
+
+    def __init__(self, cfg: ObstaclesConfig):
+        self.cfg = cfg
+        self._filters = {z.name: KOfN(cfg.persist_k, cfg.persist_n) for z in cfg.zones}
+        self.scale = 1.0
+        self.reason = ""
+        self._raise_since: Optional[int] = None
+
+    def update(self, stamp_ns: int, points: np.ndarray, negative_points: Optional[np.ndarray] = None) -> ZoneVerdict:
+        """Feed one frame's obstacle points (robot frame, (N, 2) x/z); returns the debounced verdict."""
+        pts = points
+        if self.cfg.negative_stops and negative_points is not None and len(negative_points):
+            pts = np.vstack([points, negative_points]) if len(points) else negative_points
+        target, why, counts = 1.0, "", {}
+        for z in self.cfg.zones:
+            n = zone_counts(z, pts)
+            counts[z.name] = n
+            if self._filters[z.name].update(n >= z.min_points):
+                s = 0.0 if z.action == "stop" else z.slow_scale
+                if s < target:
+                    target, why = s, f"obstacle in zone {z.name!r} ({n} px)"
+        if target < self.scale:                      # more caution: at once
+            self.scale, self.reason, self._raise_since = target, why, None
+        elif target > self.scale:                    # less caution: only after release_s clear
+            if self._raise_since is None:
+                self._raise_since = stamp_ns
+            if stamp_ns - self._raise_since >= self.cfg.release_s * 1e9:
+                self.scale, self.reason, self._raise_since = target, why, None
+        else:
+            self._raise_since = None
+            if target < 1.0:
+                self.reason = why
+        return ZoneVerdict(self.scale, self.reason, counts)
+
+    def reset(self) -> None:
+        for f in self._filters.values():
+            f.reset()
+        self.scale, self.reason, self._raise_since = 1.0, "", None
+
+
+# --------------------------------------------------------------------------- stage
+
+@dataclass
+class ObstacleReport:
+    """Estimate.value of the obstacle stage (robot frame, metres / radians)."""
+
+    speed_scale: float
+    nearest: Optional[tuple[float, float]]            # (distance ahead, bearing) in the stop zone's width
+    nearest_negative: Optional[tuple[float, float]]
+    zone_counts: dict
+    fractions: dict
+    camera_height: float
+    pitch: float
+    fit_ok: bool
+    labels: Optional[np.ndarray] = field(default=None, repr=False)
+
+
+def to_robot_frame(points: np.ndarray, mount: CameraMount) -> np.ndarray:
+    """Camera-floor (lateral, forward) points to the robot frame (x right, z forward), via the mount."""
+    if len(points) == 0:
+        return points.reshape(0, 2)
+    c, s = math.cos(mount.yaw), math.sin(mount.yaw)
+    px, pz = points[:, 0], points[:, 1]
+    # Pose2(lateral, forward, yaw).compose(point), vectorised (vision/geometry.py)
+    return np.column_stack([mount.lateral + c * px + s * pz, mount.forward - s * px + c * pz]).astype(np.float32)
+
+
+class ObstacleStage(VisionStage):
+    """Stereo obstacle detection and stop zones as a vision stage (kind "obstacles")."""
+
+    kind = "obstacles"
+    #: the runtime stops the robot when this stage's estimate is older than safety.estimate_timeout_s,
+    #: so a slow or stalled disparity source never leaves an old "clear" in force.
+    safety_critical = True
+
+    def __init__(self, rig: Optional[StereoRig], mount: CameraMount, cfg: Optional[ObstaclesConfig] = None,
+                 keep_labels: bool = False, intrinsics: Optional[tuple] = None):
+        """``rig``: the stereo pair; or None with ``intrinsics`` = (width, height, fx, fy, cx, cy), and the
+        baseline (and K, if given) is taken from the first frame's meta["baseline_m"] / meta["K"]
+        (the OAK driver reports its device calibration there)."""
+        self.cfg = cfg or ObstaclesConfig()
+        self.mount = mount
+        self.params = ObstacleParams(obstacle_height=self.cfg.obstacle_height,
+                                     negative_depth=self.cfg.negative_depth, noise_px=self.cfg.noise_px,
+                                     min_blob_pixels=self.cfg.min_blob_pixels, max_height=self.cfg.max_height,
+                                     max_range=self.cfg.max_range, report_range=self.cfg.max_range)
+        self.fit_params = PlaneFitParams(inlier_height=self.cfg.fit_inlier_height)
+        self.monitor = ObstacleMonitor(self.cfg)
+        self.keep_labels = keep_labels
+        self._stop_half_width = min((z.half_width for z in self.cfg.zones if z.half_width), default=0.25)
+        self._intrinsics = intrinsics
+        self.rig: Optional[StereoRig] = None
+        if rig is not None:
+            self._set_rig(rig)
+        elif intrinsics is None:
+            raise ValueError("ObstacleStage needs a StereoRig, or the camera intrinsics and frames that carry "
+                             "meta['baseline_m']")
+
+    def _set_rig(self, rig: StereoRig) -> None:
+        self.rig = rig
+        self.prior = expected_plane(rig, self.mount.height, self.mount.pitch)
+        bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + self.mount.pitch   # lowest ray below level
+        nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
+        self.sgbm = sgbm_params_for(rig, 0.85 * nearest_floor, self.cfg.sgbm_block_size)
+
+    def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
+        if self.rig is None and frame.meta.get("baseline_m"):
+            w, h, fx, fy, cx, cy = self._intrinsics
+            K = frame.meta.get("K")
+            if K is not None:
+                fx, fy, cx, cy = float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2])
+            self._set_rig(StereoRig(w, h, fx, fy, cx, cy, float(frame.meta["baseline_m"])))
+        return self.rig
+
+    @classmethod
+    def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
+        """From a vbnav Config: camera intrinsics and mount, ``obstacles:`` section, baseline from
+        ``obstacles.baseline``, ``camera.options.stereo_baseline`` or, failing both, the frames' meta."""
+        ocfg = obstacles_config(cfg.obstacles, cfg.source or "<config>")
+        baseline = ocfg.baseline or (cfg.camera.options or {}).get("stereo_baseline")
+        c = cfg.camera
+        if not baseline:
+            return cls(None, c.mount.to_mount(), ocfg, keep_labels, intrinsics=(c.width, c.height, c.fx, c.fy,
+                                                                                c.cx, c.cy))
+        rig = StereoRig(c.width, c.height, c.fx, c.fy, c.cx, c.cy, float(baseline))
+        return cls(rig, c.mount.to_mount(), ocfg, keep_labels)
+
+    def disparity(self, frame: Frame) -> Optional[np.ndarray]:
+        src = self.cfg.source
+        if src in ("auto", "disparity") and frame.disparity is not None:
+            return frame.disparity
+        if src in ("auto", "sgbm") and frame.right is not None:
+            return sgbm_disparity(frame.image, frame.right, self.sgbm)
+        return None
+
+    def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
+        if self._rig_for(frame) is None:
+            return Estimate(frame.stamp_ns, self.kind, False, None, {
+                "speed_scale": 0.0, "reason": "obstacles: no stereo baseline (set obstacles.baseline or "
+                                              "camera.options.stereo_baseline, or use a camera reporting "
+                                              "meta['baseline_m'])"})
+        disp = self.disparity(frame)
+        if disp is None:
+            # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
+            return Estimate(frame.stamp_ns, self.kind, False, None,
+                            {"speed_scale": 0.0, "reason": "obstacles: frame has no disparity and no right image"})
+        if disp.shape != (self.rig.height, self.rig.width):
+            raise ValueError(f"obstacle stage: disparity is {disp.shape[1]}x{disp.shape[0]}, "
+                             f"camera config says {self.rig.width}x{self.rig.height}")
+        scene = detect_obstacles(disp, self.rig, self.prior, self.fit_params, self.params)
+        pts = to_robot_frame(scene.obstacle_points, self.mount)
+        neg = to_robot_frame(scene.negative_points, self.mount)
+        verdict = self.monitor.update(frame.stamp_ns, pts, neg)
+        near = nearest_in_corridor(pts, self._stop_half_width, self.cfg.max_range)
+        near_neg = nearest_in_corridor(neg, self._stop_half_width, self.cfg.max_range)
+        fl = scene.fit.floor
+        report = ObstacleReport(verdict.scale, None if near is None else (near.distance, near.bearing),
+                                None if near_neg is None else (near_neg.distance, near_neg.bearing),
+                                verdict.counts, scene.fractions, fl.height, fl.pitch, scene.fit.ok,
+                                scene.labels if self.keep_labels else None)
+        info = {"speed_scale": verdict.scale, "reason": f"obstacles: {verdict.reason}" if verdict.reason else "",
+                "nearest_m": report.nearest[0] if report.nearest else None, "zones": verdict.counts}
+        return Estimate(frame.stamp_ns, self.kind, True, report, info)

@@ -1,0 +1,314 @@
+"""Run recordings as MCAP files that open in Foxglove.
+
+``McapRecorder`` is a telemetry ``Sink``: it runs on the telemetry publisher's
+background thread and writes what is published, so the loop pays nothing
+extra for recording. Channels (message encoding ``json``, schema encoding
+``jsonschema``):
+
+- ``/vbnav/state``       ``vbnav.state``          every state message (docs/telemetry.md)
+- ``/vbnav/events``      ``vbnav.event``          every event
+- ``/vbnav/log``         ``foxglove.Log``         the events again, for Foxglove's log panel
+- ``/vbnav/pose/odom``   ``foxglove.PoseInFrame`` odometry pose (and ``/vbnav/pose/vbc``,
+  ``/vbnav/pose/vslam`` once those estimates appear)
+- ``/vbnav/image``       ``foxglove.CompressedImage`` decimated JPEG frames
+
+Poses are given in frame ``odom`` in Foxglove's convention (x forward, y left,
+z up): (x_fg, y_fg, yaw_fg) = (z, -x, -theta) of vbnav's planar pose.
+Log times are the loop clock's stamps (monotonic or simulated ns); the wall
+clock at the start is in the ``vbnav`` metadata record. A file may hold several
+runs (``vbnav demo``: teach, then each repeat, each on a fresh simulated clock):
+each run is a segment logged one second after the previous one ends
+(``new_segment``); the ``stamp_ns`` inside the messages stays the loop's own.
+
+Crash safety: the file is chunked and the chunk in progress is finished and
+flushed to the OS at least every ``flush_interval_s``, so a process killed with
+SIGKILL leaves a file readable up to its last completed chunk (it lacks the
+summary section, so read it with ``read_recording``/``iter_recording``, which
+stream through it). The file is written as ``PATH.part`` and renamed to ``PATH``
+when the recording closes cleanly.
+"""
+from __future__ import annotations
+
+import base64
+import datetime
+import json
+import math
+import os
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional
+
+from vbnav.control.telemetry import Sink
+
+PART_SUFFIX = ".part"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+_TIME = {"type": "object", "title": "time",
+         "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}}}
+_VEC3 = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
+_QUAT = {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}
+
+FOXGLOVE_SCHEMAS = {
+    "foxglove.CompressedImage": {
+        "title": "foxglove.CompressedImage", "description": "A compressed image", "type": "object",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
+                       "data": {"type": "string", "contentEncoding": "base64"},
+                       "format": {"type": "string"}}},
+    "foxglove.PoseInFrame": {
+        "title": "foxglove.PoseInFrame", "description": "A timestamped pose in a named frame", "type": "object",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
+                       "pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}}}},
+    "foxglove.Log": {
+        "title": "foxglove.Log", "description": "A log message", "type": "object",
+        "properties": {"timestamp": _TIME, "level": {"type": "integer", "enum": [0, 1, 2, 3, 4, 5]},
+                       "message": {"type": "string"}, "name": {"type": "string"},
+                       "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}}},
+}
+
+VBNAV_SCHEMAS = {
+    "vbnav.state": {"title": "vbnav.state", "type": "object", "description": "robot state, see docs/telemetry.md",
+                    "properties": {"schema": {"type": "string"}, "version": {"type": "integer"},
+                                   "robot": {"type": "string"}, "seq": {"type": "integer"},
+                                   "stamp_ns": {"type": "integer"}, "cycle": {"type": "integer"},
+                                   "mode": {"type": "string"}, "safety": {"type": "object"},
+                                   "pose": {"type": "object"}, "keyframe": {"type": ["integer", "null"]},
+                                   "wheels": {"type": "object"}, "twist": {"type": "object"},
+                                   "loop": {"type": "object"}}},
+    "vbnav.event": {"title": "vbnav.event", "type": "object", "description": "event, see docs/telemetry.md",
+                    "properties": {"schema": {"type": "string"}, "version": {"type": "integer"},
+                                   "robot": {"type": "string"}, "seq": {"type": "integer"},
+                                   "stamp_ns": {"type": "integer"}, "kind": {"type": "string"}}},
+}
+
+# Event kinds that Foxglove's log panel should show as warnings / errors.
+_LOG_LEVEL = {"safety_trip": 4, "safety_hold": 3, "command_rejected": 3}
+
+
+def _ts(stamp_ns: int) -> dict:
+    stamp_ns = max(0, int(stamp_ns))
+    return {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000}
+
+
+def _pose_msg(stamp_ns: int, pose: dict) -> dict:
+    yaw = -float(pose["theta"])
+    return {"timestamp": _ts(stamp_ns), "frame_id": "odom",
+            "pose": {"position": {"x": pose["z"], "y": -pose["x"], "z": 0.0},
+                     "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}}}
+
+
+class McapRecorder(Sink):
+    """Writes telemetry to an MCAP file (call only from one thread: the telemetry publisher's)."""
+
+    def __init__(self, path: str | os.PathLike, robot: str, chunk_size: int = 256 * 1024,
+                 flush_interval_s: float = 1.0, metadata: Optional[dict] = None):
+        from mcap.writer import CompressionType, Writer
+        self.path = Path(path)
+        if self.path.parent and not self.path.parent.exists():
+            raise FileNotFoundError(f"--record {self.path}: directory {self.path.parent} does not exist")
+        self.part_path = self.path.with_name(self.path.name + PART_SUFFIX)
+        self._file = open(self.part_path, "wb")
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="vbnav")
+        meta = {"robot": robot, "wall_time_start": datetime.datetime.now(datetime.timezone.utc).isoformat(),
+                "monotonic_start_ns": str(time.monotonic_ns())}
+        meta.update({k: str(v) for k, v in (metadata or {}).items()})
+        self._writer.add_metadata("vbnav", meta)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._flush_interval_s = flush_interval_s
+        self._last_flush = time.monotonic()
+        self._closed = False
+        self.counts: dict[str, int] = {}
+        # Log time = loop stamp + offset. Each run of a multi-run recording (vbnav demo: teach, then
+        # repeats, each on a fresh simulated clock) is a segment placed after the previous one.
+        self._offset_ns = 0
+        self._last_log_ns = 0
+        self._rebase_gap_ns: Optional[int] = None
+        self.segments: list[str] = []
+        for topic, schema in (("/vbnav/state", "vbnav.state"), ("/vbnav/events", "vbnav.event"),
+                              ("/vbnav/log", "foxglove.Log"), ("/vbnav/pose/odom", "foxglove.PoseInFrame")):
+            self._channel(topic, schema)
+        self._writer.flush()  # header, metadata and channels reach the disk first
+
+    def _schema(self, name: str) -> int:
+        if name not in self._schemas:
+            body = FOXGLOVE_SCHEMAS.get(name) or VBNAV_SCHEMAS[name]
+            self._schemas[name] = self._writer.register_schema(name, "jsonschema", json.dumps(body).encode())
+        return self._schemas[name]
+
+    def _channel(self, topic: str, schema: str) -> int:
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(topic, "json", self._schema(schema))
+        return self._channels[topic]
+
+    def new_segment(self, name: str, gap_s: float = 1.0) -> None:
+        """Start a new run in the same file: its first message is logged ``gap_s`` after the last one."""
+        if self.segments:
+            self._rebase_gap_ns = int(gap_s * 1e9)
+        self.segments.append(name)
+
+    def log_time(self, stamp_ns: int) -> int:
+        """The file's log time of a loop stamp (stamps of a new segment are re-based on first use)."""
+        if self._rebase_gap_ns is not None:
+            self._offset_ns = self._last_log_ns + self._rebase_gap_ns - int(stamp_ns)
+            self._rebase_gap_ns = None
+        return int(stamp_ns) + self._offset_ns
+
+    def _write(self, topic: str, schema: str, log_ns: int, data: bytes) -> None:
+        if self._closed:
+            return
+        cid = self._channel(topic, schema)
+        seq = self.counts.get(topic, 0)
+        self._writer.add_message(cid, log_time=log_ns, publish_time=log_ns, data=data, sequence=seq)
+        self._last_log_ns = max(self._last_log_ns, log_ns)
+        self.counts[topic] = seq + 1
+        now = time.monotonic()
+        if now - self._last_flush >= self._flush_interval_s:
+            self._writer.flush()
+            self._last_flush = now
+
+    # ---- Sink ----------------------------------------------------------------------------
+    def state(self, stamp_ns, payload, msg):
+        t = self.log_time(stamp_ns)
+        self._write("/vbnav/state", "vbnav.state", t, payload)
+        for name, pose in msg["pose"].items():
+            if pose is not None:
+                self._write(f"/vbnav/pose/{name}", "foxglove.PoseInFrame", t, json.dumps(_pose_msg(t, pose)).encode())
+
+    def event(self, stamp_ns, payload, msg):
+        stamp_ns = self.log_time(stamp_ns)
+        self._write("/vbnav/events", "vbnav.event", stamp_ns, payload)
+        text = " ".join(f"{k}={v}" for k, v in msg.items()
+                        if k not in ("schema", "version", "robot", "seq", "stamp_ns", "kind"))
+        log = {"timestamp": _ts(stamp_ns), "level": _LOG_LEVEL.get(msg.get("kind"), 2),
+               "message": f"{msg.get('kind')}: {text}".strip(), "name": f"vbnav/{msg.get('robot')}",
+               "file": "", "line": 0}
+        self._write("/vbnav/log", "foxglove.Log", stamp_ns, json.dumps(log).encode())
+
+    def image(self, stamp_ns, payload, msg, jpeg):
+        stamp_ns = self.log_time(stamp_ns)
+        img = {"timestamp": _ts(stamp_ns), "frame_id": "camera", "format": "jpeg",
+               "data": base64.b64encode(jpeg).decode("ascii")}
+        self._write("/vbnav/image", "foxglove.CompressedImage", stamp_ns, json.dumps(img).encode())
+
+    def close(self) -> None:
+        """Write the summary and index, then rename PATH.part -> PATH (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._writer.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(self.part_path, self.path)
+
+
+# ---- reading ---------------------------------------------------------------------------
+
+@dataclass
+class ChannelSummary:
+    topic: str
+    schema: str
+    count: int = 0
+    first_ns: Optional[int] = None
+    last_ns: Optional[int] = None
+
+    @property
+    def rate_hz(self) -> float:
+        if self.count < 2 or self.last_ns == self.first_ns:
+            return 0.0
+        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+@dataclass
+class RecordingSummary:
+    path: Path
+    channels: dict[str, ChannelSummary] = field(default_factory=dict)
+    metadata: dict[str, dict] = field(default_factory=dict)
+    complete: bool = False           # summary/footer present (closed cleanly)
+    truncated_reason: str = ""
+
+    @property
+    def messages(self) -> int:
+        return sum(c.count for c in self.channels.values())
+
+    @property
+    def duration_s(self) -> float:
+        firsts = [c.first_ns for c in self.channels.values() if c.first_ns is not None]
+        lasts = [c.last_ns for c in self.channels.values() if c.last_ns is not None]
+        return (max(lasts) - min(firsts)) * 1e-9 if firsts else 0.0
+
+
+def resolve_recording(path: str | os.PathLike) -> Path:
+    """PATH, or PATH.part left by an interrupted recording."""
+    p = Path(path)
+    if p.exists():
+        return p
+    part = p.with_name(p.name + PART_SUFFIX)
+    if part.exists():
+        return part
+    raise FileNotFoundError(f"{p}: no such recording (nor {part.name} from an interrupted run)")
+
+
+def iter_recording(path: str | os.PathLike, summary: Optional[RecordingSummary] = None
+                   ) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, schema name, log_time ns, data) for every message, streaming; stops quietly at a truncation."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Footer, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    p = resolve_recording(path)
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    with open(p, "rb") as f:
+        try:
+            for rec in StreamReader(f, record_size_limit=1 << 30).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec.name
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
+                elif isinstance(rec, Message):
+                    topic, schema = channels[rec.channel_id]
+                    yield topic, schema, rec.log_time, rec.data
+                elif isinstance(rec, Metadata) and summary is not None:
+                    summary.metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Footer) and summary is not None:
+                    summary.complete = True
+        except (McapError, struct.error, EOFError, ValueError, KeyError) as exc:
+            # An interrupted file ends inside a record: everything before it is intact.
+            if summary is not None:
+                summary.truncated_reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+def read_recording(path: str | os.PathLike) -> RecordingSummary:
+    """Channels, message counts and time span of a recording (complete or interrupted)."""
+    p = resolve_recording(path)
+    with open(p, "rb") as f:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise ValueError(f"{p}: not an MCAP file (no MCAP magic at the start)")
+    summary = RecordingSummary(p)
+    for topic, schema, t, _ in iter_recording(p, summary):
+        ch = summary.channels.get(topic)
+        if ch is None:
+            ch = summary.channels[topic] = ChannelSummary(topic, schema)
+        ch.count += 1
+        ch.first_ns = t if ch.first_ns is None else min(ch.first_ns, t)
+        ch.last_ns = t if ch.last_ns is None else max(ch.last_ns, t)
+    return summary
+
+
+def format_summary(s: RecordingSummary) -> str:
+    lines = [f"{s.path}: {'complete' if s.complete else 'INTERRUPTED (read up to the last complete chunk)'}",
+             f"  duration {s.duration_s:.2f} s, {s.messages} messages, {len(s.channels)} channels"]
+    for name, meta in s.metadata.items():
+        lines.append(f"  metadata {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(meta.items())))
+    w = max((len(t) for t in s.channels), default=5)
+    lines.append(f"  {'topic':<{w}}  {'schema':<26} {'count':>7} {'rate Hz':>8}")
+    for topic in sorted(s.channels):
+        c = s.channels[topic]
+        lines.append(f"  {topic:<{w}}  {c.schema:<26} {c.count:>7} {c.rate_hz:>8.2f}")
+    if s.truncated_reason and not s.complete:
+        lines.append(f"  stopped at: {s.truncated_reason}")
+    return "\n".join(lines)

@@ -1,0 +1,223 @@
+"""Connects a Runtime to telemetry, network commands and recording.
+
+``TelemetryLink.attach(runtime, cfg, record=PATH)`` validates the ``telemetry:``
+section, opens the robot's zenoh session (loopback only unless configured
+otherwise, see network.py), and hooks into the runtime through its public
+extension points only:
+
+- ``runtime.cycle_observers``: once per cycle, after the wheels were written,
+  a ``StateSample`` is built *only when a state message is due* and dropped into
+  the publisher's queue (no JSON, no network on the loop thread);
+- ``runtime.safety.listeners``: every safety event (trip, hold, release, reset,
+  rejected command) becomes a ``vbnav/<robot>/events`` message;
+- ``runtime.submit``: validated network commands (estop, resume, teleop, mode)
+  are queued for the loop, which applies them at the start of its next cycle;
+- ``pipeline.frame_listeners``: decimated camera frames for ``.../image``.
+
+``close(result)`` publishes the ``run_end`` event, drains the queue, finishes
+the recording and closes the session.
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+from vbnav.control.net_commands import CommandInbox, CommandSubscriber, NetCommand, limits_from_config
+from vbnav.control.network import TelemetryConfig, open_session, robot_session_config, telemetry_config
+from vbnav.control.telemetry import StateSample, TelemetryPublisher, ZenohSink
+
+
+class _Borrowed:
+    """A sink shared with other runs: written to, flushed, never closed by this link."""
+
+    def __init__(self, sink):
+        self._sink = sink
+
+    def state(self, *a):
+        self._sink.state(*a)
+
+    def event(self, *a):
+        self._sink.event(*a)
+
+    def image(self, *a):
+        self._sink.image(*a)
+
+    def close(self):
+        pass
+
+
+def attach(cfg, runtime, record: Optional[str] = None, **kw) -> TelemetryLink:
+    """``TelemetryLink.attach`` with the argument order of the teach/repeat commands."""
+    return TelemetryLink.attach(runtime, cfg, record=record, **kw)
+
+
+def _estimate_pose(est):
+    """The planar pose in a trusted Estimate: its value if Pose2-like, or ``value.pose`` (VBCFix), else None."""
+    if est is None or not getattr(est, "ok", False):
+        return None
+    v = est.value
+    if hasattr(v, "theta"):
+        return v
+    pose = getattr(v, "pose", None)
+    return pose if hasattr(pose, "theta") else None
+
+
+class TelemetryLink:
+    def __init__(self, runtime, tcfg: TelemetryConfig, publisher: TelemetryPublisher, session=None,
+                 recorder=None):
+        self.runtime = runtime
+        self.tcfg = tcfg
+        self.publisher = publisher
+        self.session = session
+        self.recorder = recorder
+        self.commands: Optional[CommandSubscriber] = None
+        self.inbox: CommandInbox
+        self._mode: Optional[str] = None
+        self._closed = False
+
+    # ---- construction ----------------------------------------------------------------------
+    @classmethod
+    def attach(cls, runtime, cfg, record: Optional[str] = None, recorder=None, network: bool = True,
+               segment: str = "run") -> "TelemetryLink":
+        """Validate, open and hook everything into ``runtime``; raises ConfigError / ConnectionError.
+
+        record: MCAP path for this run. recorder: an open McapRecorder shared by several runs (it gets a
+        new segment and is not closed by this link). network: False skips zenoh even when enabled.
+        """
+        tcfg = telemetry_config(cfg)
+        robot = cfg.robot.name
+        sinks, session = [], None
+        if recorder is not None:
+            recorder.new_segment(segment)
+            sinks.append(_Borrowed(recorder))
+            recorder = None
+        elif record:  # first: a bad path fails before any network resource is opened
+            from vbnav.control.recording import McapRecorder
+            recorder = McapRecorder(record, robot, metadata={"config": cfg.source or "",
+                                                             "loop_rate_hz": cfg.loop.rate_hz,
+                                                             "state_rate_hz": tcfg.state_rate_hz})
+            sinks.append(recorder)
+        if tcfg.enabled and network:
+            conf = robot_session_config(tcfg, robot)
+            try:
+                session = open_session(conf)
+            except Exception as exc:
+                if recorder is not None:
+                    recorder.close()
+                raise ConnectionError(f"telemetry: cannot open the zenoh session listening on "
+                                      f"{', '.join(tcfg.listen) or '(nothing)'}: {exc} (another vbnav run on the "
+                                      f"same port? set telemetry.listen)") from None
+            sinks.append(ZenohSink(session, robot))
+        clock = runtime.clock
+        publisher = TelemetryPublisher(robot, sinks, state_rate_hz=tcfg.state_rate_hz,
+                                       loop_rate_hz=cfg.loop.rate_hz, image_rate_hz=tcfg.image_rate_hz,
+                                       image_width=tcfg.image_width, jpeg_quality=tcfg.jpeg_quality,
+                                       now_ns=clock.now_ns)
+        link = cls(runtime, tcfg, publisher, session, recorder)
+        # The inbox also takes commands from local sources (tests, a future local console).
+        link.inbox = CommandInbox(limits_from_config(cfg), on_reject=link._on_reject, deliver=link._deliver)
+        if session is not None:
+            link.commands = CommandSubscriber(session, robot, link.inbox)
+        runtime.command_handlers.append(link._on_mode_command)
+        runtime.cycle_observers.append(link._on_cycle)
+        runtime.safety.listeners.append(link._on_safety)
+        if runtime.pipeline is not None and tcfg.image_rate_hz > 0:
+            runtime.pipeline.frame_listeners.append(link._on_frame)
+        publisher.start()
+        publisher.event("run_start", controller=getattr(runtime.controller, "name", "?"),
+                        loop_rate_hz=cfg.loop.rate_hz, listen=list(tcfg.listen) if session is not None else [],
+                        recording=str(record) if record else None, segment=segment)
+        return link
+
+    # ---- runtime hooks (loop thread) -------------------------------------------------------
+    def _on_cycle(self, rt, ctx, twist, wheel_command) -> None:
+        mode = getattr(rt.controller, "name", "?")
+        if mode != self._mode:
+            self.publisher.event("mode_change", stamp_ns=ctx.now_ns, mode=mode, previous=self._mode)
+            self._mode = mode
+        pub = self.publisher
+        if not pub.state_due(ctx.now_ns):
+            return
+        safety = rt.safety
+        if safety.may_move:
+            state = "ok"
+        elif "estop" in safety.latched:
+            state = "estop"
+        else:
+            state = "stopped"
+        est = ctx.estimates
+        vbc, vslam = est.get("vbc"), est.get("vslam")
+        keyframe = None
+        if vbc is not None:
+            keyframe = vbc.info.get("keyframe") if isinstance(vbc.info, dict) else None
+        timing = rt.loop.timing
+        i = (timing.cycles - 1) % timing.capacity if timing.cycles else 0
+        wheels = ctx.wheels
+        pub.offer_state(StateSample(
+            ctx.now_ns, ctx.cycle, mode, state, tuple(safety.reasons()) if not safety.may_move else (),
+            ctx.odom, _estimate_pose(vbc), _estimate_pose(vslam), keyframe,
+            wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
+            twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns))
+
+    def _on_mode_command(self, rt, cmd, now_ns: int) -> bool:
+        """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
+        if cmd.kind != "mode":
+            return False
+        from vbnav.control.safety import SafetyEvent
+        target, current = cmd.args[0], getattr(rt.controller, "name", "?")
+        if target == current:
+            self.publisher.event("mode_unchanged", stamp_ns=now_ns, mode=current)
+        else:
+            how = {"idle": "stop this run", "teach": "vbnav teach --out ROUTE",
+                   "repeat": "vbnav repeat --path ROUTE"}.get(target, "a new run")
+            rt.safety._emit(SafetyEvent(now_ns, "rejected", "mode", f"this run is '{current}'; switching to "
+                                        f"'{target}' needs a new run ({how})"))
+        return True
+
+    def _on_safety(self, ev) -> None:
+        if ev.kind == "rejected":
+            self.publisher.event("command_rejected", stamp_ns=ev.stamp_ns, command=ev.cause, reason=ev.message)
+        else:
+            self.publisher.event(f"safety_{ev.kind}", stamp_ns=ev.stamp_ns, cause=ev.cause, message=ev.message)
+
+    def _on_frame(self, frame, results) -> None:
+        self.publisher.offer_image(frame.image, frame.stamp_ns, frame.seq)
+
+    # ---- network command thread ------------------------------------------------------------
+    def _deliver(self, cmd: NetCommand) -> None:
+        from vbnav.control.runtime import OperatorCommand
+        b = cmd.body
+        sender = f"zenoh:{b.sender}" if b.sender else "zenoh"
+        if cmd.kind == "estop":
+            args = (b.reason,) if b.reason else ()
+        elif cmd.kind == "teleop":
+            args = (b.linear, b.angular)
+        elif cmd.kind == "mode":
+            args = (b.mode, b.route) if b.route else (b.mode,)
+        else:
+            args = ()
+        if cmd.kind != "teleop":  # teleop streams at 10-20 Hz: its acceptance is not news
+            self.publisher.event("command", command=cmd.kind, args=list(args), sender=sender)
+        self.runtime.submit(OperatorCommand(cmd.kind, args, source=sender))
+
+    def _on_reject(self, kind: str, reason: str, excerpt: str) -> None:
+        self.publisher.event("command_rejected", command=kind, reason=reason, payload=excerpt)
+
+    # ---- end -------------------------------------------------------------------------------
+    def close(self, result=None) -> None:
+        """Publish run_end, drain, finish the recording, close zenoh (idempotent, never raises)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.commands is not None:
+            self.commands.close()
+        if result is not None:
+            self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
+                                 telemetry_dropped=self.publisher.dropped)
+        self.publisher.close()
+        if self.session is not None:
+            time.sleep(0.05)  # let the last express puts leave before the transport closes
+            try:
+                self.session.close()
+            except Exception:
+                pass

@@ -1,0 +1,99 @@
+"""A box on the taught route stops the repeating robot before contact; removed, the route completes.
+
+Real runtime (loop, safety monitor, inline vision pipeline), simulated base and stereo
+camera on the simulated clock. The robot is taught a 5 m straight segment of the demo
+route in World.room() without obstacles, then repeats it with the VBC RepeatStage, the
+RepeatController and the ObstacleStage (stop band 0.8 m, slow band 1.5 m ahead of the
+axle); an 8 cm box stands on the route 3 m ahead and is removed once the robot has been
+held for 3 s.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbnav.control.demo import demo_config, make_sim_robot, repeat_route, teach_route
+from vbnav.control.obstacle_monitor import make_obstacle_stage
+from vbnav.control.path_tools import PathFollower
+from vbnav.control.route import load_route
+from vbnav.drivers.sim_world import World
+from vbnav.vision.geometry import Pose2
+
+START = Pose2(-3.0, -2.0, math.radians(90.0))          # facing +x along the route's bottom edge
+PATH = np.column_stack([np.linspace(-3.0, 2.0, 26), np.full(26, -2.0)])
+BOX_AT = (0.0, -2.0)
+BOX_SIZE = (0.3, 0.08, 0.3)
+SEED = 0                                                 # also checked by hand with seed 1
+ROBOT_HALF_LENGTH = 0.2                                  # axle centre to the front bumper, m
+
+
+@pytest.mark.slow
+def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(tmp_path):
+    cfg = demo_config(seed=SEED)
+    teach_cfg = cfg.model_copy(deep=True)
+    robot = make_sim_robot(teach_cfg, World.room(seed=SEED), START)
+    taught = teach_route(teach_cfg, robot, PathFollower(PATH, 0.4, closed=False, start=START), tmp_path / "route")
+    assert taught.reason == "finished", taught.message
+    route = load_route(tmp_path / "route")
+
+    cfg.camera.options = {**cfg.camera.options, "stereo_baseline": 0.075}
+    cfg.obstacles = {"enabled": True, "persist_k": 2, "persist_n": 3, "release_s": 0.5}
+    world = World.room(seed=SEED)
+    world.add_box("intruder", BOX_AT, BOX_SIZE)
+    robot = make_sim_robot(cfg, world, START, seed_offset=1)
+    stage = make_obstacle_stage(cfg)
+    state = {"held_since": None, "removed_at": None, "min_clearance": math.inf, "speed_scales": []}
+
+    def events(rt, ctx):
+        held = "obstacle" in rt.safety.holds
+        if state["removed_at"] is None:
+            p = robot.drive.true_pose
+            state["min_clearance"] = min(state["min_clearance"], world.clearance(p.x, p.z) - ROBOT_HALF_LENGTH)
+            if held and state["held_since"] is None:
+                state["held_since"] = ctx.now_ns
+            if held and ctx.now_ns - state["held_since"] > 3e9:
+                world.remove("intruder")
+                state["removed_at"] = ctx.now_ns
+        e = ctx.estimates.get("obstacles")
+        if e is not None:
+            state["speed_scales"].append(e.info["speed_scale"])
+
+    rep = repeat_route(cfg, robot, route, duration_s=90.0, events=events, extra_stages=(stage,))
+    print(f"obstacle stop: held after {(state['held_since'] or 0) * 1e-9:.1f} s, min clearance to the box "
+          f"{state['min_clearance']:.2f} m, route completed: {rep.completed} ({rep.reason})")
+    assert state["held_since"] is not None, "the robot never stopped for the box"
+    assert state["removed_at"] is not None
+    assert state["min_clearance"] > 0.2, f"came within {state['min_clearance']:.2f} m of the box"
+    assert rep.completed, rep.message
+    end = robot.drive.true_pose
+    assert math.hypot(end.x - PATH[-1, 0], end.z - PATH[-1, 1]) < 0.15
+    assert 0.4 in state["speed_scales"] or min(state["speed_scales"]) == 0.0
+    # the stop came from the obstacle zone, and it was released after the removal
+    holds = [e for e in rep.events if e["cause"] == "obstacle"]
+    assert [e["kind"] for e in holds][:2] == ["hold", "release"]
+
+
+@pytest.mark.slow
+def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
+    """A scripted drive straight at a 15 cm drop (World.corridor_with_step, edge 3 m ahead) is held
+    by the negative obstacle in the stop zone; the wheels never carry the robot over the edge."""
+    from vbnav.control.config import load_config
+    from vbnav.control.factory import make_robot
+    from vbnav.control.manual import ScriptedController
+    from vbnav.control.runtime import Runtime
+
+    cfg = load_config("sim_stereo").model_copy(deep=True)
+    cfg.sim.world = "corridor_step"
+    clock, drive, pipeline = make_robot(cfg, [make_obstacle_stage(cfg)])
+    rt = Runtime(cfg, drive, ScriptedController([[0.3, 0.0, 14.0]]), clock, pipeline)
+    front = []
+    rt.cycle_observers.append(lambda r, ctx, twist, wheels: front.append(drive.true_pose.z + ROBOT_HALF_LENGTH))
+    result = rt.run(16.0)
+    assert result.ok, result.message
+    holds = [e for e in result.events if e.cause == "obstacle" and e.kind == "hold"]
+    assert holds, "the step was never a stop"
+    print(f"step: front bumper stopped at z = {max(front):.2f} m (edge at 3.0 m)")
+    assert max(front) < 3.0 - 0.3                       # stopped with margin, never over the edge
+    assert max(front) > 1.5                             # but it did drive toward it

@@ -1,0 +1,100 @@
+"""A robot process for the telemetry tests: the real Runtime with the simulated base and TelemetryLink.
+
+Run as a script (the tests start it as a separate process):
+    python tests/telemetry_robot.py --port P [--controller teleop|scripted|idle] [--duration S]
+        [--sim-clock] [--record PATH] [--remote DICTFILE --operators NAME,..] [--report PATH]
+
+Prints "READY" once the zenoh session is up and the loop is about to start. At the end writes a JSON
+report: every command the runtime received (loop time, cycle) and the drive's write log, so a test can
+check how many loop periods passed between a network estop and zero wheels.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from runtime_helpers import RecordingDrive  # same directory
+
+from vbnav.control.config import Config, ConfigError
+from vbnav.control.manual import IdleController, ScriptedController, TeleopController
+from vbnav.control.runtime import Runtime
+from vbnav.control.telemetry_link import TelemetryLink
+from vbnav.drivers.clock import MonotonicClock, SimClock
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--port", type=int, required=True)
+    ap.add_argument("--controller", default="teleop", choices=["teleop", "scripted", "idle"])
+    ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--state-rate", type=float, default=20.0)
+    ap.add_argument("--sim-clock", action="store_true")
+    ap.add_argument("--record", default=None)
+    ap.add_argument("--remote", default=None, metavar="DICTFILE", help="listen on 0.0.0.0 with usrpwd + ACL")
+    ap.add_argument("--tls", default=None, metavar="DIR", help="listen on tls/0.0.0.0 with mutual TLS + ACL "
+                    "(DIR holds ca.pem, robot.pem, robot.key)")
+    ap.add_argument("--operators", default="operator")
+    ap.add_argument("--report", default=None)
+    ap.add_argument("--listen", default=None, help="override telemetry.listen (no auth added)")
+    a = ap.parse_args()
+
+    tele = {"listen": [f"tcp/127.0.0.1:{a.port}"], "state_rate_hz": a.state_rate}
+    if a.remote:
+        tele.update(listen=[f"tcp/0.0.0.0:{a.port}"], operators=a.operators.split(","),
+                    auth={"usrpwd": {"user": "robot", "password": "robot-secret", "dictionary_file": a.remote}})
+    if a.tls:
+        tele.update(listen=[f"tls/0.0.0.0:{a.port}"], operators=a.operators.split(","),
+                    auth={"tls": {"root_ca_certificate": f"{a.tls}/ca.pem", "listen_certificate": f"{a.tls}/robot.pem",
+                                  "listen_private_key": f"{a.tls}/robot.key"}})
+    if a.listen:
+        tele["listen"] = [a.listen]
+    cfg = Config.model_validate({"loop": {"rate_hz": a.rate}, "telemetry": tele,
+                                 "controller": {"kind": a.controller},
+                                 "safety": {"command_timeout_s": 0.5}})
+    clock = SimClock() if a.sim_clock else MonotonicClock()
+    drive = RecordingDrive(clock)
+    controller = {"teleop": lambda: TeleopController(cfg.safety.command_timeout_s),
+                  "scripted": lambda: ScriptedController(cfg.controller.script, repeat=True),
+                  "idle": IdleController}[a.controller]()
+    rt = Runtime(cfg, drive, controller, clock)
+    received = []
+    submit = rt.submit
+
+    def logged_submit(cmd):  # runs on the zenoh thread: note when the command reached the runtime
+        received.append({"kind": cmd.kind, "args": list(cmd.args), "t_ns": clock.now_ns(), "cycle": rt.cycle})
+        submit(cmd)
+
+    rt.submit = logged_submit
+    cycle_log = []   # (loop cycle, left, right, powered) of every write, to count periods in cycles
+    write = drive.write
+
+    def logged_write(left, right):
+        write(left, right)
+        cycle_log.append((rt.cycle, left, right, drive.physics.powered))
+
+    drive.write = logged_write
+    try:
+        link = TelemetryLink.attach(rt, cfg, record=a.record)
+    except ConfigError as exc:
+        print(f"configuration error: {exc}", file=sys.stderr)
+        return 2
+    print("READY", flush=True)
+    result = None
+    try:
+        result = rt.run(a.duration)
+    finally:
+        link.close(result)
+    if a.report:
+        with open(a.report, "w") as f:
+            json.dump({"received": received, "period_ns": rt.loop.period_ns, "reason": result.reason,
+                       "drive_log": drive.log, "cycle_log": cycle_log, "published": link.publisher.published,
+                       "dropped": link.publisher.dropped,
+                       "overruns": rt.loop.timing.overruns,
+                       "max_lateness_ms": rt.loop.timing.max_lateness_ns * 1e-6}, f)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

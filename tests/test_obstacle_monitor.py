@@ -1,0 +1,146 @@
+"""Stop/slow zones, k-of-n persistence and release debounce (pure logic), config validation."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbnav.control.config import ConfigError, parse_config
+from vbnav.control.obstacle_monitor import (ObstacleMonitor, ObstaclesConfig, ObstacleStage, ZoneConfig,
+                                            make_obstacle_stage, obstacles_config, points_in_polygon,
+                                            to_robot_frame, zone_counts)
+from vbnav.drivers.camera import Frame
+from vbnav.vision import disparity_scenes as ds
+from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.stereo import StereoRig
+
+FRAME_NS = 66_666_667          # 15 Hz
+
+
+def _pts(z, x=0.0, n=20):
+    return np.column_stack([np.full(n, x), np.full(n, z)]).astype(np.float32)
+
+
+NONE = np.zeros((0, 2), np.float32)
+
+
+def test_band_and_polygon_zones():
+    band = ZoneConfig(name="b", distance=1.0, half_width=0.3)
+    pts = np.array([[0.0, 0.5], [0.29, 0.99], [0.31, 0.5], [0.0, 1.01], [0.0, -0.1]], np.float32)
+    assert zone_counts(band, pts) == 2
+    poly = ZoneConfig(name="p", polygon=[(-0.3, 0.0), (0.3, 0.0), (0.6, 1.0), (-0.6, 1.0)])   # widening ahead
+    assert zone_counts(poly, pts) == 3                                  # (0.31, 0.5) is inside the trapezoid
+    sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    assert points_in_polygon(np.array([[0.5, 0.5], [1.5, 0.5], [0.5, -0.1]]), sq).tolist() == [True, False, False]
+
+
+def test_monitor_stop_needs_k_of_n_and_releases_after_debounce():
+    cfg = ObstaclesConfig(persist_k=2, persist_n=3, release_s=0.5)
+    m = ObstacleMonitor(cfg)
+    t = 0
+    scales = []
+    # frame 0: one noisy frame with an obstacle in the stop zone -> no stop
+    for pts in [_pts(0.5), NONE, NONE, _pts(0.5), _pts(0.5), _pts(0.5)]:
+        scales.append(m.update(t, pts).scale)
+        t += FRAME_NS
+    assert scales[:4] == [1.0, 1.0, 1.0, 1.0]
+    assert scales[4] == 0.0 and scales[5] == 0.0 and "stop" in m.reason
+    # obstacle removed: k-of-n needs 2 clear frames, then 0.5 s debounce before moving again
+    out = []
+    for _ in range(15):
+        out.append((t, m.update(t, NONE).scale))
+        t += FRAME_NS
+    first_go = next(tt for tt, s in out if s > 0)
+    clear_from = out[0][0]
+    assert first_go - clear_from >= 0.5e9
+    assert first_go - clear_from <= 0.5e9 + 3 * FRAME_NS
+    assert out[-1][1] == 1.0
+
+
+def test_monitor_slow_zone_and_negative_points():
+    cfg = ObstaclesConfig(persist_k=1, persist_n=1, release_s=0.0)
+    m = ObstacleMonitor(cfg)
+    assert m.update(0, _pts(1.2)).scale == pytest.approx(0.4)          # slow band 1.5 m
+    assert m.update(FRAME_NS, NONE, _pts(0.6)).scale == 0.0             # a step down in the stop band
+    assert m.update(2 * FRAME_NS, NONE).scale == 1.0
+    m2 = ObstacleMonitor(ObstaclesConfig(persist_k=1, persist_n=1, negative_stops=False))
+    assert m2.update(0, NONE, _pts(0.6)).scale == 1.0
+
+
+def test_config_validation_names_the_key():
+    with pytest.raises(ConfigError, match=r"obstacles\.zones\.0: .*band needs both"):
+        obstacles_config({"zones": [{"name": "z", "distance": 1.0}]}, "robot.yaml")
+    with pytest.raises(ConfigError, match=r"robot.yaml: obstacles\.stop_distance: unknown key"):
+        obstacles_config({"stop_distance": 1.0}, "robot.yaml")
+    with pytest.raises(ConfigError, match="persist_k"):
+        obstacles_config({"persist_k": 4, "persist_n": 3})
+    assert obstacles_config(None).zones[0].action == "stop"
+
+
+def test_to_robot_frame_uses_the_mount():
+    mount = CameraMount(0.25, forward=0.1, lateral=0.05, pitch=0.0, yaw=math.radians(90))
+    out = to_robot_frame(np.array([[0.0, 1.0]], np.float32), mount)   # 1 m along a camera looking right
+    assert out[0] == pytest.approx([1.05, 0.1], abs=1e-6)
+
+
+def _stage_cfg(**kw):
+    cfg = parse_config({"camera": {"options": {"stereo_baseline": 0.075}},
+                        "obstacles": {"persist_k": 1, "persist_n": 1, "release_s": 0.2, **kw}})
+    return cfg
+
+
+def test_stage_from_config_and_frames():
+    stage = ObstacleStage.from_config(_stage_cfg())
+    assert stage.rig.baseline == 0.075 and stage.kind == "obstacles"
+    rig = stage.rig
+    near_box = ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.1, 0.1, 0.55, 0.7, 0.05),))   # 0.65 m from the axle
+    clear = ds.Scene(0.25, 0.0)
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=ds.render(clear, rig).disparity), Pose2())
+    assert e.ok and e.info["speed_scale"] == 1.0 and e.value.nearest is None
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=ds.render(near_box, rig).disparity), Pose2())
+    assert e.info["speed_scale"] == 0.0 and "stop" in e.info["reason"]
+    assert e.value.nearest[0] == pytest.approx(0.65, abs=0.02)             # camera 0.1 m ahead of the axle
+    e = stage.process(Frame(img, 2 * FRAME_NS, 3, disparity=ds.render(clear, rig).disparity), Pose2())
+    assert e.info["speed_scale"] == 0.0                                    # debounce: not yet
+    e = stage.process(Frame(img, 5 * FRAME_NS, 4, disparity=ds.render(clear, rig).disparity), Pose2())
+    assert e.info["speed_scale"] == 1.0
+
+
+def test_stage_uses_sgbm_without_disparity_and_stops_when_blind():
+    stage = ObstacleStage.from_config(_stage_cfg())
+    scene = ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.15, 0.15, 0.6, 0.75, 0.08), ds.Box(-30, 30, 12, 12.5, 8, texel=0.05)))
+    left, right, _ = ds.textured_pair(scene, stage.rig)
+    e = stage.process(Frame(left, 0, 1, right=right), Pose2())
+    assert e.ok and e.info["speed_scale"] == 0.0
+    assert e.value.nearest[0] == pytest.approx(0.7, abs=0.05)
+    e = stage.process(Frame(left, FRAME_NS, 2), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "no disparity" in e.info["reason"]
+
+
+def test_make_obstacle_stage_only_when_enabled():
+    assert make_obstacle_stage(parse_config({})) is None
+    st = make_obstacle_stage(_stage_cfg(enabled=True))
+    assert isinstance(st, ObstacleStage)
+
+
+def test_stage_takes_the_baseline_from_the_frames_when_the_config_has_none():
+    stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
+    assert stage.rig is None
+    rig = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+    disp = ds.render(ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.1, 0.1, 0.55, 0.7, 0.05),)), rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=disp), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "baseline" in e.info["reason"]
+    K = [[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075, "K": K}), Pose2())
+    assert e.ok and stage.rig == rig and e.info["speed_scale"] == 0.0      # the box is in the stop band
+    assert e.value.nearest[0] == pytest.approx(0.65, abs=0.02)
+
+
+def test_shipped_stereo_config_builds_the_stage():
+    from vbnav.control.config import load_config
+    stage = make_obstacle_stage(load_config("sim_stereo"))
+    assert stage is not None and stage.rig.baseline == 0.075
+    assert [z.action for z in stage.cfg.zones] == ["stop", "slow"]

@@ -1,0 +1,121 @@
+"""``vbnav obstacles`` end to end: files in, JSON and PNGs out, clear errors."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.control.cli import main
+from vbnav.vision import disparity_scenes as ds
+from vbnav.vision.stereo import StereoRig
+
+RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+SCENE = ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.15, 0.15, 1.5, 1.7, 0.08),
+                                   ds.Box(-30, 30, 12.0, 12.5, 8.0, texel=0.05)))
+YAML = ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 319.5\ncy: 239.5\nbaseline: 0.075\n"
+        "mount: {height: 0.25, pitch_deg: 0}\n")
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    left, right, truth = ds.textured_pair(SCENE, RIG, rng=np.random.default_rng(2))
+    cv2.imwrite(str(d / "l.png"), left)
+    cv2.imwrite(str(d / "r.png"), right)
+    np.save(d / "d.npy", np.nan_to_num(truth.disparity))
+    (d / "stereo.yaml").write_text(YAML)
+    return d, truth
+
+
+def _run(capsys, *argv):
+    code = main(["obstacles", *map(str, argv)])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_pair_to_json_mask_and_overlay(files, capsys):
+    d, truth = files
+    code, out, err = _run(capsys, "--left", d / "l.png", "--right", d / "r.png", "--calib", d / "stereo.yaml",
+                          "--obstacle-height", 0.02, "--mask-out", d / "m.png", "--overlay-out", d / "o.png")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["disparity_source"] == "sgbm" and s["plane"]["fit_ok"]
+    assert s["plane"]["camera_height_m"] == pytest.approx(0.25, abs=0.005)
+    assert abs(s["plane"]["pitch_deg"]) < 0.5
+    assert s["nearest_obstacle"]["distance_m"] == pytest.approx(1.5, abs=0.05)
+    assert abs(s["nearest_obstacle"]["bearing_deg"]) < 6
+    assert sum(s["fractions"].values()) == pytest.approx(1.0, abs=1e-4)
+    assert s["time_ms"]["total"] > 0
+    mask = cv2.imread(str(d / "m.png"), cv2.IMREAD_UNCHANGED)
+    assert mask.shape == (480, 640) and set(np.unique(mask)) <= {0, 1, 2, 255}
+    box = truth.surface == ds.BOX0
+    assert np.mean(mask[box] == 1) > 0.8            # the lowest 2 cm of its face are below the threshold
+    floor = mask[truth.surface == ds.FLOOR]
+    assert np.mean(floor == 1) < 0.01                   # SGBM (block 5) fattens the box onto the floor a little
+    assert np.mean(floor[floor != 255] == 0) > 0.98     # SGBM leaves the leftmost columns unknown
+    o = cv2.imread(str(d / "o.png"))
+    assert o.shape == (480, 640, 3)
+    assert not [p for p in d.iterdir() if p.name.startswith(".tmp-")]      # atomic writes leave nothing
+
+
+def test_disparity_input(files, capsys):
+    d, _ = files
+    code, out, err = _run(capsys, "--disparity", d / "d.npy", "--calib", d / "stereo.yaml", "--noise-px", 0.0,
+                          "--obstacle-height", 0.02, "--image", d / "l.png", "--overlay-out", d / "o2.png")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["disparity_source"] == "file"
+    assert s["nearest_obstacle"]["distance_m"] == pytest.approx(1.5, abs=0.02)
+    assert (d / "o2.png").exists()
+
+
+def test_16bit_disparity_png_uses_the_scale(files, capsys, tmp_path):
+    d, truth = files
+    png = tmp_path / "d16.png"
+    cv2.imwrite(str(png), np.round(np.nan_to_num(truth.disparity) * 256).astype(np.uint16))   # KITTI devkit style
+    code, out, err = _run(capsys, "--disparity", png, "--calib", d / "stereo.yaml", "--obstacle-height", 0.02)
+    assert code == 0, err
+    assert json.loads(out)["plane"]["camera_height_m"] == pytest.approx(0.25, abs=0.002)
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["--left", "l.png", "--calib", "stereo.yaml"], "give --left and --right"),
+    (["--left", "l.png", "--right", "r.png", "--disparity", "d.npy", "--calib", "stereo.yaml"], "either"),
+    (["--left", "l.png", "--right", "r.png", "--calib", "missing.txt"], "missing.txt: calibration file not found"),
+    (["--left", "nope.png", "--right", "r.png", "--calib", "stereo.yaml"], "nope.png: file not found"),
+    (["--left", "stereo.yaml", "--right", "r.png", "--calib", "stereo.yaml"], "not an image"),
+])
+def test_bad_input_exit_2(files, capsys, argv, match):
+    d, _ = files
+    argv = [str(d / a) if a.endswith((".png", ".yaml", ".txt", ".npy")) else a for a in argv]
+    code, out, err = _run(capsys, *argv)
+    assert code == 2
+    assert match in err
+
+
+def test_image_size_must_match_calibration(files, capsys, tmp_path):
+    d, _ = files
+    small = tmp_path / "s.png"
+    cv2.imwrite(str(small), np.zeros((240, 320), np.uint8))
+    code, _, err = _run(capsys, "--left", small, "--right", small, "--calib", d / "stereo.yaml")
+    assert code == 2 and "640x480" in err
+
+
+@pytest.mark.realdata
+def test_kitti_frame(shared_data, capsys, tmp_path):
+    k = shared_data / "kitti06_stereo"
+    code, out, err = _run(capsys, "--left", k / "image_l" / "000025.png", "--right", k / "image_r" / "000025.png",
+                          "--calib", k / "calib.txt", "--camera-height", 1.65, "--obstacle-height", 0.1,
+                          "--max-height", 2.0, "--corridor-half-width", 3.0, "--corridor-range", 20,
+                          "--mask-out", tmp_path / "m.png")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["plane"]["camera_height_m"] == pytest.approx(1.65, abs=0.07)
+    n = s["nearest_obstacle"]           # the left curb (~5 m) or the parked car on the right (~7 m)
+    assert n is not None and 4.0 < n["distance_m"] < 10.0
+    mask = cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED)
+    assert mask.shape == (370, 1226)
+    assert np.mean(mask[195:330, 820:1110] == 1) > 0.8          # the parked car
+    assert np.mean(mask[300:365, 500:760] == 0) > 0.95           # the road ahead

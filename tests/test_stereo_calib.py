@@ -1,0 +1,70 @@
+"""Stereo calibration files: KITTI calib.txt and the vbnav stereo YAML, with clear errors."""
+from __future__ import annotations
+
+import pytest
+
+from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
+
+P0 = "7.07e+02 0 6.0e+02 0 0 7.07e+02 1.83e+02 0 0 0 1 0"
+P1 = "7.07e+02 0 6.0e+02 -3.798e+02 0 7.07e+02 1.83e+02 0 0 0 1 0"
+
+
+def test_kitti_labelled_and_bare(tmp_path):
+    a = tmp_path / "calib.txt"
+    a.write_text(f"P0: {P0}\nP1: {P1}\nP2: {P0}\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    b = tmp_path / "bare.txt"
+    b.write_text(f"{P0}\n{P1}\n")
+    for f in (a, b):
+        c = load_stereo_calibration(f)
+        assert (c.fx, c.fy, c.cx, c.cy) == (707.0, 707.0, 600.0, 183.0)
+        assert c.baseline == pytest.approx(379.8 / 707.0)
+        rig = c.rig(1226, 370)
+        assert rig.fb == pytest.approx(379.8)
+
+
+@pytest.mark.parametrize("text,match", [
+    (f"P0: {P0}\n", "P1: missing"),
+    (f"P0: {P0}\nP1: 1 2 3\n", "P1 .line 2.: expected 12 numbers"),
+    (f"P0: {P0}\nP1: {P0}\n", "baseline"),
+    (f"P0: {P0}\nP1: {P1.replace('1.83e+02', '1.9e+02')}\n", "not rectified"),
+    ("P0: a b c\n", "line 1: expected numbers"),
+])
+def test_kitti_errors_name_file_and_field(tmp_path, text, match):
+    f = tmp_path / "calib.txt"
+    f.write_text(text)
+    with pytest.raises(CalibrationError, match=match) as exc:
+        load_stereo_calibration(f)
+    assert str(f) in str(exc.value)
+
+
+def test_yaml(tmp_path):
+    f = tmp_path / "stereo.yaml"
+    f.write_text("width: 640\nheight: 480\nfx: 400\nfy: 401\ncx: 319.5\ncy: 239.5\nbaseline: 0.075\n"
+                 "mount: {height: 0.25, pitch_deg: 5}\ndisparity_scale: 0.125\n")
+    c = load_stereo_calibration(f)
+    assert c.rig().width == 640 and c.fy == 401 and c.baseline == 0.075
+    assert c.mount_height == 0.25 and c.mount_pitch_deg == 5 and c.disparity_scale == 0.125
+    with pytest.raises(CalibrationError, match="640x480"):
+        c.rig(320, 240)
+
+
+@pytest.mark.parametrize("text,match", [
+    ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 1\ncy: 1\n", "baseline: Field required"),
+    ("width: 640\nheight: 480\nfx: -4\nfy: 400\ncx: 1\ncy: 1\nbaseline: 0.1\n", "fx: Input should be greater than 0"),
+    ("width: 640\nheight: 480\nfx: 4\nfy: 400\ncx: 1\ncy: 1\nbaseline: 0.1\nbasline: 2\n", "basline: unknown key"),
+    ("width: 640\nheight: 480\nfx: 4\nfy: 400\ncx: 1\ncy: 1\nbaseline: 0.1\nmount: {pitch_deg: 3}\n",
+     "mount.height: Field required"),
+    ("- 1\n- 2\n", "expected a mapping"),
+    ("a: [\n", "not valid YAML"),
+])
+def test_yaml_errors_name_file_and_field(tmp_path, text, match):
+    f = tmp_path / "stereo.yml"
+    f.write_text(text)
+    with pytest.raises(CalibrationError, match=match) as exc:
+        load_stereo_calibration(f)
+    assert str(f) in str(exc.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(CalibrationError, match="not found"):
+        load_stereo_calibration(tmp_path / "nope.yaml")

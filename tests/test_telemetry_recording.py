@@ -1,0 +1,77 @@
+"""Recordings of the simulated demo: teach and repeat runs in one MCAP file, read back by the mcap library."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from vbnav.control.recording import McapRecorder, iter_recording, read_recording
+
+
+def _events(path):
+    return [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
+
+
+def test_demo_teach_and_repeat_segments_in_one_recording(tmp_path):
+    """The demo's own teach_route/repeat_route with a shared recorder, cut short (the full demo is slow)."""
+    from vbnav.control.demo import demo_config, demo_route, make_sim_robot, repeat_route, start_pose, teach_route
+    from vbnav.control.path_tools import PathFollower
+    from vbnav.control.route import load_route
+    from vbnav.drivers.sim_world import World
+
+    cfg = demo_config(0)
+    path, start = demo_route(), None
+    start = start_pose(path)
+    world = World.by_name(cfg.sim.world, cfg.sim.seed)
+    rec_path = tmp_path / "demo.mcap"
+    rec = McapRecorder(rec_path, cfg.robot.name)
+    try:
+        teach = teach_route(cfg, make_sim_robot(cfg, world, start), PathFollower(path, 0.4, start=start),
+                            tmp_path / "route", duration_s=6.0, recorder=rec)
+        assert teach.keyframes >= 2
+        rep = repeat_route(cfg, make_sim_robot(cfg, world, start, seed_offset=1), load_route(tmp_path / "route"),
+                           duration_s=4.0, recorder=rec, segment="repeat 1")
+        assert rep.reason in ("duration", "finished")
+    finally:
+        rec.close()
+    s = read_recording(rec_path)
+    assert s.complete
+    assert set(s.channels) >= {"/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom", "/vbnav/image"}
+    assert s.channels["/vbnav/image"].schema == "foxglove.CompressedImage"
+    rate = cfg.telemetry.get("state_rate_hz", 20)
+    n_state = s.channels["/vbnav/state"].count
+    assert abs(n_state - (6.0 + 4.0) * rate) <= 2                     # both segments at the state rate
+    assert abs(s.channels["/vbnav/image"].count - (6.0 + 4.0) * 2) <= 2  # 2 Hz images
+    ev = _events(rec_path)
+    assert [e["segment"] for e in ev if e["kind"] == "run_start"] == ["teach", "repeat 1"]
+    assert [e["kind"] for e in ev].count("run_end") == 2
+    # Segments follow each other in log time although each run's simulated clock starts at the same value.
+    times = [t for topic, _, t, _ in iter_recording(rec_path) if topic == "/vbnav/state"]
+    assert times == sorted(times) and 10.0 < (times[-1] - times[0]) * 1e-9 < 12.0
+    states = [json.loads(d) for topic, _, _, d in iter_recording(rec_path) if topic == "/vbnav/state"]
+    assert states[0]["mode"] != states[-1]["mode"]                   # the teach driver, then the repeat controller
+    repeat = [m for m in states if m["mode"] == states[-1]["mode"]]
+    assert any(m["keyframe"] is not None for m in repeat) and any(m["pose"]["vbc"] for m in repeat)
+    assert "/vbnav/pose/vbc" in s.channels
+
+
+@pytest.mark.slow
+def test_vbnav_demo_record_is_read_back_with_every_channel(tmp_path):
+    from vbnav.control.cli import main
+    rec_path = tmp_path / "demo.mcap"
+    assert main(["demo", "--out", str(tmp_path / "out"), "--repeats", "1", "--record", str(rec_path)]) == 0
+    s = read_recording(rec_path)
+    assert s.complete and not (tmp_path / "demo.mcap.part").exists()
+    assert set(s.channels) >= {"/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom", "/vbnav/image"}
+    ev = _events(rec_path)
+    starts = [e for e in ev if e["kind"] == "run_start"]
+    ends = [e for e in ev if e["kind"] == "run_end"]
+    assert [e["segment"] for e in starts] == ["teach", "repeat 1"] and len(ends) == 2
+    # Counts consistent with the rates over the simulated time of both runs.
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    duration = sum(e["cycles"] for e in ends) / 100.0      # 100 Hz loop
+    n_state = s.channels["/vbnav/state"].count
+    assert abs(n_state - duration * 20) <= 4, (n_state, duration)
+    assert abs(s.channels["/vbnav/image"].count - duration * 2) <= 4
+    assert s.channels["/vbnav/pose/odom"].count == n_state
+    assert metrics["completed"]

@@ -1,0 +1,370 @@
+"""Telemetry, network commands, network configuration and recording: in-process, deterministic."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from runtime_helpers import RecordingDrive
+from vbnav.control.config import Config, ConfigError
+from vbnav.control.manual import IdleController, TeleopController
+from vbnav.control.net_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected, INBOX_LIMIT
+from vbnav.control.network import (DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint,
+                                   parse_telemetry_config, robot_session_config)
+from vbnav.control.recording import McapRecorder, format_summary, iter_recording, read_recording
+from vbnav.control.runtime import Runtime
+from vbnav.control.telemetry import QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
+from vbnav.control.telemetry_link import TelemetryLink
+from vbnav.drivers.clock import SimClock
+
+LIMITS = TeleopLimits(0.5, 1.5)
+
+
+# ---- network configuration ----------------------------------------------------------------
+
+def test_default_session_is_loopback_only_without_scouting():
+    t = TelemetryConfig()
+    conf = robot_session_config(t, "sim")
+    assert conf["listen"]["endpoints"] == [DEFAULT_ENDPOINT] == ["tcp/127.0.0.1:7447"]
+    assert conf["scouting"]["multicast"]["enabled"] is False
+    assert conf["scouting"]["gossip"]["enabled"] is False
+    assert conf["connect"]["endpoints"] == []
+    assert "access_control" not in conf and not t.remote
+
+
+@pytest.mark.parametrize("ep,loop", [("tcp/127.0.0.1:7447", True), ("tcp/127.3.0.1:1", True),
+                                     ("tcp/[::1]:7447", True), ("udp/localhost:9", True),
+                                     ("unixsock-stream//tmp/z.sock", True), ("tcp/0.0.0.0:7447", False),
+                                     ("tcp/[::]:7447", False), ("tls/192.168.1.5:7447", False),
+                                     ("tcp/robot.local:7447", False), ("tcp/127.0.0.1:7447#iface=lo", True)])
+def test_loopback_classification(ep, loop):
+    assert is_loopback_endpoint(ep) is loop
+
+
+@pytest.mark.parametrize("section", [
+    {"listen": ["tcp/0.0.0.0:7447"]},
+    {"listen": ["tcp/127.0.0.1:7447"], "connect": ["tcp/10.0.0.2:7447"]},
+    {"scouting": True},
+    {"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"]},                       # no authentication
+])
+def test_remote_access_without_auth_is_refused_with_a_clear_message(section, tmp_path):
+    with pytest.raises(ConfigError) as e:
+        parse_telemetry_config(section, "robot.yaml")
+    msg = str(e.value)
+    assert msg.startswith("robot.yaml: telemetry")
+    assert "authentication" in msg and "127.0.0.1:7447" in msg
+
+
+def test_remote_access_without_operators_is_refused(tmp_path):
+    d = tmp_path / "users.txt"
+    d.write_text("op:secretpass\n")
+    with pytest.raises(ConfigError, match="telemetry.operators"):
+        parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"],
+                                "auth": {"usrpwd": {"user": "r", "password": "robotpass", "dictionary_file": str(d)}}})
+
+
+def test_remote_config_builds_auth_and_acl_limiting_commands_to_operators(tmp_path):
+    d = tmp_path / "users.txt"
+    d.write_text("op:secretpass\n")
+    t = parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"],
+                                "auth": {"usrpwd": {"user": "r", "password": "robotpass", "dictionary_file": str(d)}}})
+    conf = robot_session_config(t, "bot1")
+    assert conf["transport"]["auth"]["usrpwd"]["dictionary_file"] == str(d.resolve())
+    acl = conf["access_control"]
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    rules = {r["id"]: r for r in acl["rules"]}
+    cmd_policies = [p for p in acl["policies"] if "commands-in" in p["rules"]]
+    assert rules["commands-in"]["key_exprs"] == ["vbnav/bot1/cmd/**"]
+    subjects = {s["id"]: s for s in acl["subjects"]}
+    assert all(subjects[s].get("usernames", subjects[s].get("cert_common_names")) == ["op"]
+               for p in cmd_policies for s in p["subjects"])
+    assert "vbnav/bot1/cmd/**" not in rules["telemetry-out"]["key_exprs"]
+
+
+def test_missing_dictionary_file_is_named(tmp_path):
+    t = parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"],
+                                "auth": {"usrpwd": {"user": "r", "password": "robotpass",
+                                                    "dictionary_file": str(tmp_path / "nope.txt")}}})
+    with pytest.raises(ConfigError, match="dictionary_file: file not found"):
+        robot_session_config(t, "sim")
+
+
+def test_unknown_telemetry_key_names_the_file_and_key(tmp_path):
+    with pytest.raises(ConfigError, match=r"robot.yaml: telemetry.state_rate: unknown key"):
+        parse_telemetry_config({"state_rate": 5}, "robot.yaml")
+
+
+# ---- command validation -------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind,payload", [
+    ("teleop", '{"linear": 0.2, "angular": -0.5}'), ("estop", ""), ("estop", '{"reason": "door"}'),
+    ("resume", "{}"), ("mode", '{"mode": "repeat", "route": "routes/a.json"}'), ("mode", '{"mode": "idle"}'),
+])
+def test_valid_commands_parse(kind, payload):
+    assert parse_command(kind, payload, LIMITS).kind == kind
+
+
+@pytest.mark.parametrize("kind,payload,why", [
+    ("teleop", '{"linear": 0.9, "angular": 0}', "outside"),
+    ("teleop", '{"linear": 0.1, "angular": -2}', "outside"),
+    ("teleop", '{"linear": NaN, "angular": 0}', "finite"),
+    ("teleop", '{"linear": "fast", "angular": 0}', "linear"),
+    ("teleop", '{"linear": 0.1}', "angular"),
+    ("teleop", '[0.1, 0]', "JSON object"),
+    ("teleop", '{"linear": 0.1, "angular": 0, "turbo": 1}', "turbo"),
+    ("teleop", '{"linear": 0.1,', "not JSON"),
+    ("mode", '{"mode": "repeat"}', "needs a route"),
+    ("mode", '{"mode": "dance"}', "mode"),
+    ("launch", '{}', "unknown command"),
+    ("estop", '{"reason": "' + "x" * 5000 + '"}', "exceeds"),
+])
+def test_bad_commands_are_rejected_with_a_reason(kind, payload, why):
+    with pytest.raises(CommandRejected, match=why):
+        parse_command(kind, payload, LIMITS)
+
+
+def test_inbox_rejects_with_events_and_bounds_its_queue():
+    rejected = []
+    inbox = CommandInbox(LIMITS, on_reject=lambda k, r, p: rejected.append((k, r)))
+    assert inbox.submit("teleop", b'{"linear": 5, "angular": 0}') is None
+    assert inbox.submit("teleop", b"\xff\xfe") is None
+    assert [k for k, _ in rejected] == ["teleop", "teleop"] and inbox.drain() == []
+    for _ in range(INBOX_LIMIT + 5):
+        inbox.submit("resume", b"{}")
+    assert len(inbox.drain()) == INBOX_LIMIT
+    assert rejected[-1][1].startswith("command queue full")
+
+
+# ---- the publisher ------------------------------------------------------------------------
+
+class ListSink(Sink):
+    def __init__(self):
+        self.states, self.events, self.images = [], [], []
+
+    def state(self, stamp_ns, payload, msg):
+        self.states.append(decode(payload))
+
+    def event(self, stamp_ns, payload, msg):
+        self.events.append(decode(payload))
+
+    def image(self, stamp_ns, payload, msg, jpeg):
+        self.images.append((decode(payload), jpeg))
+
+
+def _sample(t_ns, cycle, **kw):
+    return StateSample(t_ns, cycle, "teleop", "ok", odom=(0.1, 0.2, 0.3), **kw)
+
+
+def test_state_is_decimated_on_the_sample_clock_with_jitter_and_stalls():
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], state_rate_hz=20, loop_rate_hz=100)
+    period = 10_000_000
+    jitter = [0, 300_000, 50_000, 2_000_000, 0]  # wake-up lateness pattern, < half a period
+    for k in range(200):                          # 2 s at 100 Hz
+        pub.offer_state(_sample(k * period + jitter[k % 5], k))
+    for k in range(300, 400):                     # after a 1 s stall
+        pub.offer_state(_sample(k * period, k))
+    pub.close()
+    cycles = [s["cycle"] for s in sink.states]
+    assert cycles[:40] == list(range(0, 200, 5))
+    assert cycles[40:] == list(range(300, 400, 5))
+    assert [s["seq"] for s in sink.states] == list(range(1, len(cycles) + 1))
+
+
+def test_state_message_fields():
+    sink = ListSink()
+    pub = TelemetryPublisher("bot", [sink], state_rate_hz=20, loop_rate_hz=100)
+    pub.offer_state(StateSample(123, 7, "repeat", "estop", ("estop: from zenoh",), (1, 2, 0.5), None,
+                                (1.1, 2.1, 0.4), 3, 1.0, -1.0, 0.9, -0.8, 0.1, 0.2, 150_000, 20_000, 2, "r.json"))
+    pub.event("mode_change", stamp_ns=5, mode="repeat", previous="idle")
+    pub.close()
+    s = sink.states[0]
+    assert (s["schema"], s["version"], s["robot"], s["mode"], s["route"]) == ("vbnav.state", 1, "bot", "repeat",
+                                                                              "r.json")
+    assert s["safety"] == {"state": "estop", "faults": ["estop: from zenoh"]}
+    assert s["pose"] == {"odom": {"x": 1.0, "z": 2.0, "theta": 0.5}, "vbc": None,
+                         "vslam": {"x": 1.1, "z": 2.1, "theta": 0.4}}
+    assert s["wheels"] == {"cmd": {"left": 1.0, "right": -1.0}, "meas": {"left": 0.9, "right": -0.8}}
+    assert s["keyframe"] == 3 and s["loop"]["compute_ms"] == pytest.approx(0.15)
+    e = sink.events[0]
+    assert (e["schema"], e["kind"], e["mode"], e["previous"], e["stamp_ns"]) == ("vbnav.event", "mode_change",
+                                                                                "repeat", "idle", 5)
+
+
+def test_offer_never_blocks_and_drops_when_the_queue_is_full():
+    pub = TelemetryPublisher("sim", [ListSink()], state_rate_hz=1000, loop_rate_hz=1000)  # thread not started
+    queued = sum(pub.offer_state(_sample(k * 1_000_000, k)) for k in range(QUEUE_LIMIT + 50))
+    assert queued == QUEUE_LIMIT and pub.dropped == 50
+    pub.close()
+
+
+def test_a_failing_sink_does_not_stop_the_others():
+    class Broken(Sink):
+        def state(self, *a):
+            raise OSError("disk full")
+    good = ListSink()
+    pub = TelemetryPublisher("sim", [Broken(), good], state_rate_hz=20).start()
+    for k in range(10):
+        pub.offer_state(_sample(k * 50_000_000, k))
+    pub.close()
+    assert len(good.states) == 10 and pub.sink_errors == 10
+
+
+# ---- commands into the real runtime, on the simulated clock ---------------------------------
+
+def _runtime(controller, clock):
+    cfg = Config.model_validate({"telemetry": {"enabled": False}, "safety": {"command_timeout_s": 0.5}})
+    drive = RecordingDrive(clock)
+    rt = Runtime(cfg, drive, controller, clock)
+    return cfg, drive, rt
+
+
+def test_teleop_silence_stops_the_robot_after_the_timeout_on_the_sim_clock():
+    clock = SimClock()
+    cfg, drive, rt = _runtime(TeleopController(0.5), clock)
+    inbox = CommandInbox(LIMITS, deliver=lambda c: rt.submit(_op(c)))
+    sent = []
+
+    def operator(r, ctx, twist, wheels):  # teleop at 10 Hz for 2 s of loop time, then silence
+        if ctx.cycle % 10 == 0 and ctx.now_ns - r._start_ns < 2e9:
+            inbox.submit("teleop", json.dumps({"linear": 0.3, "angular": 0.2}))
+            sent.append(ctx.now_ns)
+
+    rt.cycle_observers.append(operator)
+    rt.run(4.0)
+    last = sent[-1]
+    period = rt.loop.period_ns
+    assert drive.last_motion_ns() > last                              # kept moving after the last message ...
+    assert drive.last_motion_ns() <= last + 0.5e9 + 2 * period        # ... until the timeout, and no longer
+    assert drive.stopped_since(last + int(0.5e9) + 2 * period)
+    assert any(e.cause == "command_timeout" and e.kind == "hold" and e.stamp_ns > last for e in rt.safety.events)
+
+
+def _op(cmd):
+    from vbnav.control.runtime import OperatorCommand
+    b = cmd.body
+    args = {"teleop": lambda: (b.linear, b.angular)}.get(cmd.kind, lambda: ())()
+    return OperatorCommand(cmd.kind, args, "test")
+
+
+def test_garbage_commands_never_move_an_idle_robot():
+    clock = SimClock()
+    cfg, drive, rt = _runtime(IdleController(), clock)
+    rejected = []
+    inbox = CommandInbox(LIMITS, on_reject=lambda *a: rejected.append(a), deliver=lambda c: rt.submit(_op(c)))
+    junk = [("teleop", b'{"linear": 99, "angular": 0}'), ("teleop", b"{{{{"), ("teleop", b'{"linear": 1e309}'),
+            ("mode", b'{"mode": "repeat"}'), ("rm -rf", b"{}"), ("teleop", bytes(range(256)))]
+
+    def attacker(r, ctx, twist, wheels):
+        if ctx.cycle < 100:
+            inbox.submit(*junk[ctx.cycle % len(junk)])
+
+    rt.cycle_observers.append(attacker)
+    result = rt.run(1.5)
+    assert result.ok and len(rejected) == 100
+    assert drive.last_motion_ns() == -1
+
+
+# ---- recording ----------------------------------------------------------------------------
+
+def test_recording_of_a_sim_run_has_every_channel_at_its_rate(tmp_path):
+    from vbnav.control.manual import ScriptedController
+    clock = SimClock()
+    cfg, drive, rt = _runtime(ScriptedController([[0.3, 0.0, 3.0], [0.3, 0.4, 4.0], [0.0, 0.0, 3.0]]), clock)
+    path = tmp_path / "run.mcap"
+    link = TelemetryLink.attach(rt, cfg, record=str(path))
+    result = rt.run()
+    link.close(result)
+    assert not (tmp_path / "run.mcap.part").exists()
+    s = read_recording(path)
+    assert s.complete and s.truncated_reason == ""
+    assert set(s.channels) == {"/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"}
+    state = s.channels["/vbnav/state"]
+    assert state.schema == "vbnav.state" and s.channels["/vbnav/pose/odom"].schema == "foxglove.PoseInFrame"
+    assert abs(state.count - 10.0 * 20) <= 1 and state.rate_hz == pytest.approx(20.0, rel=1e-6)
+    assert s.channels["/vbnav/pose/odom"].count == state.count
+    kinds = [json.loads(d)["kind"] for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
+    assert kinds[0] == "run_start" and "mode_change" in kinds and kinds[-1] == "run_end"
+    poses = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/pose/odom"]
+    final = poses[-1]["pose"]["position"]
+    assert math.hypot(final["x"], final["y"]) > 1.0               # the scripted drive went somewhere
+    assert "vbnav.state" in format_summary(s)
+
+
+def test_record_info_cli(tmp_path, capsys):
+    from vbnav.control.cli import main
+    path = tmp_path / "r.mcap"
+    rec = McapRecorder(path, "sim")
+    pub = TelemetryPublisher("sim", [rec], state_rate_hz=20)
+    for k in range(100):
+        pub.offer_state(_sample(1_000_000_000 + k * 10_000_000, k))
+    pub.close()
+    assert main(["record-info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "/vbnav/state" in out and " 20 " in out and "complete" in out
+    assert main(["record-info", str(tmp_path / "missing.mcap")]) == 2
+    (tmp_path / "bad.mcap").write_text("hello")
+    assert main(["record-info", str(tmp_path / "bad.mcap")]) == 2
+
+
+def test_images_and_rejected_mode_commands_reach_the_recording(tmp_path):
+    import base64
+
+    import cv2
+    import numpy as np
+
+    from runtime_helpers import make_runtime
+    from vbnav.control.manual import ScriptedController
+    cfg = Config.model_validate({"telemetry": {"enabled": False, "image_rate_hz": 5, "image_width": 32}})
+    rt, drive, clock = make_runtime(ScriptedController([[0.2, 0.0, 4.0]]), cfg=cfg, cam_kw={"rate_hz": 15})
+    path = tmp_path / "img.mcap"
+    link = TelemetryLink.attach(rt, cfg, record=str(path))
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.cycle == 100:
+            link.inbox.submit("mode", '{"mode": "teach", "route": "r.json"}')   # valid, but this run has no modes
+            link.inbox.submit("teleop", '{"linear": 9, "angular": 0}')          # out of range
+
+    rt.cycle_observers.append(operator)
+    link.close(rt.run())
+    s = read_recording(path)
+    assert abs(s.channels["/vbnav/image"].count - 4 * 5) <= 1
+    assert s.channels["/vbnav/image"].schema == "foxglove.CompressedImage"
+    img = next(json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/image")
+    assert img["format"] == "jpeg" and set(img["timestamp"]) == {"sec", "nsec"}
+    decoded = cv2.imdecode(np.frombuffer(base64.b64decode(img["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert decoded.shape == (24, 32)                           # 48x64 test frames scaled to width 32
+    events = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
+    rejected = {e["command"]: e["reason"] for e in events if e["kind"] == "command_rejected"}
+    assert "switching to 'teach' needs a new run" in rejected["mode"] and "outside" in rejected["teleop"]
+    logs = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/log"]
+    assert any(entry["level"] == 3 and "command_rejected" in entry["message"] for entry in logs)
+
+
+def test_non_finite_numbers_are_sent_as_null():
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], state_rate_hz=20)
+    pub.offer_state(StateSample(1, 0, "idle", "ok", (), (float("nan"), 0, 0), meas_left=float("inf")))
+    pub.close()
+    assert sink.states[0]["pose"]["odom"] is None and sink.states[0]["wheels"]["meas"]["left"] is None
+
+
+def test_record_into_a_missing_directory_fails_before_opening_the_network(tmp_path):
+    clock = SimClock()
+    cfg = Config.model_validate({"telemetry": {"listen": ["tcp/127.0.0.1:1"]}})  # would fail to open anyway
+    rt = Runtime(cfg, RecordingDrive(clock), IdleController(), clock)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        TelemetryLink.attach(rt, cfg, record=str(tmp_path / "no" / "such" / "dir" / "r.mcap"))
+
+
+def test_vbc_pose_and_keyframe_come_from_the_repeat_estimate():
+    from vbnav.control.controller import Estimate
+    from vbnav.control.teach_repeat import VBCFix
+    from vbnav.control.telemetry_link import _estimate_pose
+    from vbnav.vision.geometry import Pose2
+    fix = VBCFix(7, Pose2(0.05, -0.4, 0.02), Pose2(1.0, 2.0, 0.1), 12)
+    assert _estimate_pose(Estimate(1, "vbc", True, fix, {"keyframe": 7})) == Pose2(0.05, -0.4, 0.02)
+    assert _estimate_pose(Estimate(1, "vbc", False, fix, {"keyframe": 7})) is None     # not trusted
+    assert _estimate_pose(Estimate(1, "vslam", True, Pose2(3, 4, 5))) == Pose2(3, 4, 5)
+    assert _estimate_pose(Estimate(1, "obstacles", True, {"zones": []})) is None

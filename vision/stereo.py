@@ -1,0 +1,142 @@
+"""A rectified stereo pair and its disparity (OpenCV semi-global matching).
+
+Disparity D (pixels) and depth z (metres) are related by D = fx * B / z (11.1),
+B the baseline. Everything downstream takes disparity images as float32 with
+NaN where no disparity is known, so the source (SGBM here, the OAK's on-device
+matcher, the simulated camera's true disparity) does not matter.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """Intrinsics of the rectified left camera and the baseline (m) to the right one."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline: float
+
+    def __post_init__(self):
+        if not (self.width > 0 and self.height > 0):
+            raise ValueError(f"StereoRig: image size must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"StereoRig: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not self.baseline > 0:
+            raise ValueError(f"StereoRig: baseline must be positive (metres), got {self.baseline}")
+
+    @property
+    def fb(self) -> float:
+        """fx * baseline: disparity (px) times depth (m)."""
+        return self.fx * self.baseline
+
+    def depth(self, disparity):
+        return self.fb / disparity
+
+    def disparity_at(self, depth):
+        return self.fb / depth
+
+    def scaled(self, factor: float) -> "StereoRig":
+        return StereoRig(int(round(self.width * factor)), int(round(self.height * factor)),
+                         self.fx * factor, self.fy * factor,
+                         (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5, self.baseline)
+
+
+@dataclass(frozen=True)
+class SgbmParams:
+    """StereoSGBM settings. ``num_disparities`` must be a positive multiple of 16."""
+
+    num_disparities: int = 64
+    block_size: int = 5
+    uniqueness_ratio: int = 10
+    speckle_window: int = 100
+    speckle_range: int = 2
+    disp12_max_diff: int = 1
+    mode: str = "sgbm_3way"   # "sgbm" (5 directions), "sgbm_3way" (faster), "hh" (8 directions)
+
+    def __post_init__(self):
+        if self.num_disparities <= 0 or self.num_disparities % 16:
+            raise ValueError(f"SgbmParams.num_disparities must be a positive multiple of 16, "
+                             f"got {self.num_disparities}")
+        if self.block_size < 1 or self.block_size % 2 == 0:
+            raise ValueError(f"SgbmParams.block_size must be odd and >= 1, got {self.block_size}")
+        if self.mode not in _MODES:
+            raise ValueError(f"SgbmParams.mode must be one of {sorted(_MODES)}, got {self.mode!r}")
+
+
+_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "sgbm_3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+          "hh": cv2.STEREO_SGBM_MODE_HH}
+
+#: 640x480 robot camera (fx 400, B 7.5 cm): 80 disparities reach 0.375 m, nearer than the lowest
+#: floor ray of a level camera 0.25 m up (0.42 m).
+SGBM_640x480 = SgbmParams(num_disparities=80, block_size=5)
+#: KITTI (1226x370, fx 707, B 0.54 m): 128 disparities reach 3 m.
+SGBM_KITTI = SgbmParams(num_disparities=128, block_size=5)
+
+
+def sgbm_params_for(rig: StereoRig, min_depth: float = 0.4, block_size: int = 5) -> SgbmParams:
+    """Settings that cover depths from ``min_depth`` to infinity on this rig.
+
+    For the 640x480 robot camera (fx 400, B 7.5 cm) this gives 80 disparities; for
+    KITTI (fx 707, B 0.54 m) and min_depth 3 m it gives 128.
+    """
+    d_max = rig.fb / min_depth
+    num = int(min(256, 16 * math.ceil(d_max / 16)))
+    return SgbmParams(num_disparities=max(16, num), block_size=block_size)
+
+
+@lru_cache(maxsize=8)
+def _matcher(p: SgbmParams):
+    channels = 1
+    return cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=p.num_disparities, blockSize=p.block_size,
+        P1=8 * channels * p.block_size ** 2, P2=32 * channels * p.block_size ** 2,
+        disp12MaxDiff=p.disp12_max_diff, uniquenessRatio=p.uniqueness_ratio,
+        speckleWindowSize=p.speckle_window, speckleRange=p.speckle_range, mode=_MODES[p.mode])
+
+
+def _grey(img: np.ndarray, name: str) -> np.ndarray:
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.ndim != 2:
+        raise ValueError(f"{name} image must be HxW grey or HxWx3 BGR, got shape {img.shape}")
+    return img
+
+
+def sgbm_disparity(left: np.ndarray, right: np.ndarray, params: SgbmParams | None = None) -> np.ndarray:
+    """Disparity of the left image (float32 px, NaN where unmatched) from a rectified pair."""
+    if left.shape[:2] != right.shape[:2]:
+        raise ValueError(f"left and right images differ in size: {left.shape[:2]} vs {right.shape[:2]}")
+    p = params or SgbmParams()
+    l8, r8 = _grey(left, "left"), _grey(right, "right")
+    if l8.dtype != np.uint8:
+        l8 = cv2.normalize(l8, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        r8 = cv2.normalize(r8, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    raw = _matcher(p).compute(l8, r8)           # int16, 4 fractional bits, -16 where invalid
+    disp = raw.astype(np.float32) * np.float32(1.0 / 16.0)
+    disp[raw <= 0] = np.nan
+    return disp
+
+
+def as_disparity(disparity: np.ndarray, invalid_at_or_below: float = 0.0) -> np.ndarray:
+    """A disparity image in the convention used here: float32, NaN where unknown.
+
+    Accepts float images (NaN / <= 0 for unknown) and the OAK's or SGBM's fixed-point
+    output once scaled by the caller.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"disparity must be a HxW image, got shape {d.shape}")
+    out = d.copy()
+    out[~(out > invalid_at_or_below)] = np.nan
+    return out
