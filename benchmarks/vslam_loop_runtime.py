@@ -89,12 +89,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     ratios = []
     for seed in args.seeds:
-        cfg = fast_stereo_config(base=load_config("sim-stereo", overrides={"sim": {"seed": seed}}))
+        cfg = fast_stereo_config(base=load_config("sim_stereo", overrides={"sim": {"seed": seed}}))
         from vbnav.control.vslam_nav import make_vslam_stage
         probe = make_vslam_stage(cfg)
         r = run_vslam_loop(cfg, extra_stages=(OpenCvChainedStage(probe.camera, probe.mount, probe.baseline),))
         no_reloc = run_vslam_loop(fast_stereo_config(base=load_config(
-            "sim-stereo", overrides={"sim": {"seed": seed}, "vslam": {"relocalise_radius_m": 0.0}})))
+            "sim_stereo", overrides={"sim": {"seed": seed}, "vslam": {"relocalise_radius_m": 0.0}})))
         i = r.return_frame(0)
         if i < 0:
             print(f"seed {seed}: the VSLAM never computed a pose against the first reference set")

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.control.controller import STOP, ControlContext, Controller, Estimate, Twist, VisionStage
 from vbnav.drivers.camera import Frame
-from vbnav.vision.features import describe, match_descriptors, to_grey
+from vbnav.vision.features import describe, to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y, wrap_angle
 from vbnav.vision.motion import recover_motion_robust
 from vbnav.vision.vslam import Vslam, VslamConfig
@@ -59,8 +59,14 @@ class VslamNavConfig(VslamConfig):
     relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
                                                               "to where it was set (0: never)")
     relocalise_heading_deg: float = Field(35.0, gt=0, description="... and heading within this of it")
+    relocalise_min_travel_m: float = Field(3.0, ge=0, description="only anchors set at least this far back "
+                                                                    "along the robot's path (a loop closed)")
     relocalise_every: int = Field(1, ge=1, description="frames between relocalisation attempts")
-    relocalise_min_inliers: int = Field(40, ge=6, description="landmarks that must agree with an anchor")
+    relocalise_min_inliers: int = Field(20, ge=6, description="landmarks that must agree with an anchor")
+    relocalise_search_px: float = Field(20.0, gt=0, description="guided matching: search radius around the "
+                                                               "landmark's predicted pixel")
+    relocalise_max_correction_m: float = Field(0.5, gt=0, description="larger corrections are rejected as "
+                                                                      "wrong matches")
     anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
     max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
                                                                  "than this: the pose is not trusted")
@@ -122,6 +128,7 @@ class Anchor:
     robot: Pose2
     points_w: np.ndarray         # (N, 3)
     descriptors: np.ndarray      # (N, 32) uint8
+    travelled: float = 0.0       # odometry path length when it was set, m
 
 
 class VslamStage(VisionStage):
@@ -142,6 +149,8 @@ class VslamStage(VisionStage):
         self.correction = np.eye(4)  # world-from-chain: aligns the hand-off chain with the last relocalisation
         self._frames = 0
         self._last_anchor_ref = -1
+        self._travelled = 0.0
+        self._last_odom: Optional[Pose2] = None
         self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0}
 
     # -- per frame
@@ -150,6 +159,9 @@ class VslamStage(VisionStage):
         right, depth = self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
+        if self._last_odom is not None:
+            self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
+        self._last_odom = odom
         if not self.slam.initialised:
             pose_wc = robot_to_camera_matrix(odom, self.mount)
             if right is not None:
@@ -211,7 +223,8 @@ class VslamStage(VisionStage):
         if len(idx) < self.cfg.anchor_min_landmarks:
             return
         Pw = lm.P[idx] @ ref_wc[:3, :3].T + ref_wc[:3, 3]
-        self.anchors.append(Anchor(ref_index, cur_wc, camera_to_robot(cur_wc, self.mount)[0], Pw, desc))
+        self.anchors.append(Anchor(ref_index, cur_wc, camera_to_robot(cur_wc, self.mount)[0], Pw, desc,
+                                   self._travelled))
 
     def _relocalise(self, image: np.ndarray, pose_wc: np.ndarray) -> Optional[tuple[int, np.ndarray]]:
         """Pose against the oldest anchor near the current pose, or None."""
@@ -221,8 +234,8 @@ class VslamStage(VisionStage):
         robot = camera_to_robot(pose_wc, self.mount)[0]
         current_ref = len(self.slam.references) - 1
         for a in self.anchors:
-            if a.index >= current_ref - 1:       # the tracker already measures against these
-                break
+            if a.index >= current_ref - 1 or self._travelled - a.travelled < cfg.relocalise_min_travel_m:
+                break                             # the tracker still measures against these (or nearly)
             rel = a.robot.between(robot)
             if math.hypot(rel.x, rel.z) > cfg.relocalise_radius_m or \
                     abs(rel.theta) > math.radians(cfg.relocalise_heading_deg):
@@ -233,26 +246,55 @@ class VslamStage(VisionStage):
         return None
 
     def _pose_against(self, a: Anchor, image: np.ndarray, pose_wc: np.ndarray) -> Optional[np.ndarray]:
-        corners = self.slam.tracker.detect(image, 2 * len(a.points_w))
-        if len(corners) < self.cfg.relocalise_min_inliers:
-            return None
-        desc, idx = describe(image, corners)
-        pairs = match_descriptors(desc, a.descriptors)
-        if len(pairs) < self.cfg.relocalise_min_inliers:
-            return None
-        rays = self.camera.rays(corners[idx[pairs[:, 0]]])
-        # Landmarks in the predicted camera frame, so the solve starts near the answer.
+        """Match the anchor's landmarks in this image near where the current pose puts them (guided ORB
+        matching), then the motion recovery (11.15-11.17) against their stored positions."""
+        cfg = self.cfg
         cw = np.linalg.inv(pose_wc)
-        P = a.points_w[pairs[:, 1]] @ cw[:3, :3].T + cw[:3, 3]
+        P = a.points_w @ cw[:3, :3].T + cw[:3, 3]          # landmarks in the predicted camera frame
+        pred, front = self.camera.project(P)
+        vis = np.flatnonzero(front & self.camera.in_image(pred, margin=8))
+        if len(vis) < cfg.relocalise_min_inliers:
+            return None
+        corners = self.slam.tracker.detect(image, 2 * cfg.max_landmarks)
+        desc, idx = describe(image, corners)
+        if len(idx) < cfg.relocalise_min_inliers:
+            return None
+        corners = corners[idx]
+        lm, cn = guided_matches(pred[vis], a.descriptors[vis], corners, desc, cfg.relocalise_search_px)
+        if len(lm) < cfg.relocalise_min_inliers:
+            return None
+        rays = self.camera.rays(corners[cn])
         f = float(self.camera.fx)
-        est = recover_motion_robust(P, rays, prior=(np.eye(3), np.zeros(3)),
-                                    threshold=self.cfg.inlier_threshold_px / f, angular=True,
+        est = recover_motion_robust(P[vis[lm]], rays, prior=(np.eye(3), np.zeros(3)),
+                                    threshold=cfg.inlier_threshold_px / f, angular=True,
                                     rng=np.random.default_rng(self._frames))
         n_in = int((est.inliers & (est.depths > 0)).sum())
-        if n_in < self.cfg.relocalise_min_inliers:
+        if n_in < cfg.relocalise_min_inliers:
+            return None
+        # A correction larger than the chain can have drifted is a wrong match, not a loop closure.
+        if np.linalg.norm(est.T) > cfg.relocalise_max_correction_m:
             return None
         # X_cur = R X_pred + T  =>  world-from-current = world-from-pred @ inv([R, T])
         return pose_wc @ np.linalg.inv(to_matrix(est.R, est.T))
+
+
+def guided_matches(pred: np.ndarray, desc_a: np.ndarray, corners: np.ndarray, desc_c: np.ndarray,
+                   radius: float, max_distance: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (landmark index, corner index): for each predicted pixel the corner within ``radius`` px with
+    the nearest ORB descriptor (Hamming <= max_distance), each corner used once (nearest descriptor wins)."""
+    if len(pred) == 0 or len(corners) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    near = np.linalg.norm(pred[:, None, :] - corners[None, :, :], axis=2) <= radius
+    ham = np.unpackbits(desc_a[:, None, :] ^ desc_c[None, :, :], axis=2).sum(axis=2)
+    ham = np.where(near, ham, 10 ** 6)
+    best = np.argmin(ham, axis=1)
+    dist = ham[np.arange(len(pred)), best]
+    ok = dist <= max_distance
+    lm, cn, dist = np.flatnonzero(ok), best[ok], dist[ok]
+    order = np.argsort(dist, kind="stable")
+    _, first = np.unique(cn[order], return_index=True)
+    keep = np.sort(order[first])
+    return lm[keep], cn[keep]
 
 
 def stereo_baseline_of(cfg) -> Optional[float]:

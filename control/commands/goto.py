@@ -28,11 +28,11 @@ def register(sub) -> None:
                     "right). The VSLAM (section 11.3, stereo for metric scale) localises the robot, odometry "
                     "bridges between frames, and a polar-coordinate control law drives forward to the goal, "
                     "slowing near it, then turns on the spot to the goal heading. Needs a stereo camera "
-                    "(the default configs/sim-stereo.yaml on the simulated robot, which starts at x=%.1f z=%.1f of the "
+                    "(the default configs/sim_stereo.yaml on the simulated robot, which starts at x=%.1f z=%.1f of the "
                     "simulated room). Exit code 0 when the goal is reached, 1 when not (duration, lost)."
                     % SIM_START[:2])
     add_config_arg(p)
-    p.set_defaults(config="sim-stereo")
+    p.set_defaults(config="sim_stereo")
     p.add_argument("--goal", required=True, nargs=3, type=_finite, metavar=("X", "Z", "THETA_DEG"),
                    help="goal pose in the reference frame: x (m, right), z (m, forward), heading (degrees)")
     p.add_argument("--duration", type=float, default=120.0, metavar="S",
@@ -54,7 +54,7 @@ def run(args) -> int:
         raise ConfigError(f"{cfg.source}: vslam: {exc}") from None
     if stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "
-              "pair for metric scale (try --config sim-stereo)")
+              "pair for metric scale (try --config sim_stereo)")
         return 2
     goal = Pose2(args.goal[0], args.goal[1], math.radians(args.goal[2]))
     try:
