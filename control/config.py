@@ -214,7 +214,9 @@ def validate_feature_sections(cfg: Config, source: str = "<config>") -> None:
     from vbnav.control.network import parse_telemetry_config
     from vbnav.control.obstacle_monitor import obstacles_config
     from vbnav.control.teach_repeat import teach_repeat_config
+    from vbnav.control.vslam_nav import vslam_nav_config
     parse_telemetry_config(cfg.telemetry, source)
+    vslam_nav_config(cfg.vslam, source)
     obstacles_config(cfg.obstacles, source)
     teach_repeat_config(cfg.vbc, source)
 

@@ -73,9 +73,15 @@ class VslamNavConfig(VslamConfig):
     goto: GotoConfig = Field(default_factory=GotoConfig)
 
 
-def vslam_nav_config(section: dict | None) -> VslamNavConfig:
-    """Validate the free ``vslam:`` configuration section."""
-    return VslamNavConfig(**(section or {}))
+def vslam_nav_config(section: dict | None, source: str = "<config>") -> VslamNavConfig:
+    """Validate the free ``vslam:`` configuration section; errors name the file and key path."""
+    from pydantic import ValidationError
+
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return VslamNavConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vslam")) from None
 
 
 # ------------------------------------------------------------------------------------- poses
@@ -306,7 +312,7 @@ def stereo_baseline_of(cfg) -> Optional[float]:
 
 def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
     return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
-                      vslam_nav_config(cfg.vslam))
+                      vslam_nav_config(cfg.vslam, cfg.source or "<config>"))
 
 
 class ChainedVoStage(VisionStage):

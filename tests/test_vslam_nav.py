@@ -144,9 +144,15 @@ def test_stage_needs_stereo():
         stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
 
 
-def test_vslam_section_is_validated():
-    with pytest.raises(ValueError, match="goto"):
-        vslam_nav_config({"goto": {"k_beta": 0.5}})
-    with pytest.raises(ValueError, match="extra"):
+def test_vslam_section_is_validated_at_load_with_file_and_key_path(tmp_path):
+    from vbnav.control.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match=r"robot.yaml: vslam.goto.k_beta"):
+        vslam_nav_config({"goto": {"k_beta": 0.5}}, "robot.yaml")
+    with pytest.raises(ConfigError, match=r"vslam.relocalise_radus_m: unknown key"):
         vslam_nav_config({"relocalise_radus_m": 1.0})
-    assert vslam_nav_config({"max_landmarks": 300}).max_landmarks == 300
+    assert vslam_nav_config({"max_landmarks": 300, "goto": {"cruise_speed": 0.2}}).goto.cruise_speed == 0.2
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("vslam:\n  goto: {position_tolerance_m: -1}\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: vslam.goto.position_tolerance_m"):
+        load_config(bad)

@@ -41,17 +41,14 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from vbnav.control.config import ConfigError, load_config
+    from vbnav.control.config import load_config
     from vbnav.control.progress import ProgressPrinter
     from vbnav.control.runtime import Runtime
     from vbnav.control.vslam_nav import GotoController, make_vslam_stage, stereo_baseline_of, vslam_nav_config
     from vbnav.vision.geometry import Pose2
 
     cfg = load_config(args.config)
-    try:
-        nav = vslam_nav_config(cfg.vslam)
-    except ValueError as exc:
-        raise ConfigError(f"{cfg.source}: vslam: {exc}") from None
+    nav = vslam_nav_config(cfg.vslam, cfg.source or "<config>")
     if stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "
               "pair for metric scale (try --config sim_stereo)")
