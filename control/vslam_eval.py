@@ -1,5 +1,8 @@
 """Closed-loop evaluation of the VSLAM on the simulated robot (used by hil_tests and benchmarks).
 
+``ChainedVoStage`` is the baseline: frame-to-frame motions with the VSLAM's own
+tracker, stereo reconstruction and motion solver, chained.
+
 ``run_vslam_loop`` drives the simulated robot once around a ~10 m loop with
 ``PathFollower`` on odometry while two stages watch the same frames: the VSLAM
 (pose against the reference set, ``VslamStage``) and the chained frame-to-frame
@@ -17,13 +20,55 @@ from typing import Optional
 import numpy as np
 
 from vbnav.control.config import Config, load_config
+from vbnav.control.controller import Estimate, VisionStage
 from vbnav.control.demo import make_sim_robot
 from vbnav.control.factory import make_pipeline
 from vbnav.control.path_tools import PathFollower, path_length, rounded_rectangle
 from vbnav.control.runtime import Runtime
-from vbnav.control.vslam_nav import ChainedVoStage, make_vslam_stage
+from vbnav.control.vslam_nav import VslamFix, camera_to_robot, make_vslam_stage, robot_to_camera_matrix
+from vbnav.drivers.camera import Frame
 from vbnav.drivers.sim_world import World
-from vbnav.vision.geometry import Pose2, wrap_angle
+from vbnav.vision.features import to_grey
+from vbnav.vision.geometry import CameraMount, Pose2, wrap_angle
+from vbnav.vision.vslam import Vslam, VslamConfig
+
+
+class ChainedVoStage(VisionStage):
+    """The baseline the reference set is judged against: frame-to-frame motions, chained.
+
+    Same tracker, same stereo reconstruction and same motion solver as the
+    VSLAM, but every frame's landmarks are reconstructed afresh from the
+    previous stereo pair and the pose is the product of all frame-to-frame
+    motions (what section 11.3.3.2 says the reference set avoids).
+    """
+
+    kind = "chained_vo"
+
+    def __init__(self, camera, mount: CameraMount, stereo_baseline: float, cfg: VslamConfig | None = None):
+        self.camera = camera
+        self.mount = mount
+        self.baseline = float(stereo_baseline)
+        # No landmark top-up on the current frame: the next step reconstructs its own from the stereo pair.
+        self.cfg = (cfg or VslamConfig()).model_copy(update={"min_landmarks": 4})
+        self.pose_wc: Optional[np.ndarray] = None
+        self._prev: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self.lost = 0
+
+    def process(self, frame: Frame, odom: Pose2) -> Estimate:
+        image, right = to_grey(frame.image), to_grey(frame.right)
+        if self.pose_wc is None:
+            self.pose_wc = robot_to_camera_matrix(odom, self.mount)
+        else:
+            step = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+            step.initialise_stereo(*self._prev)
+            res = step.process(image)
+            if res.ok:
+                self.pose_wc = self.pose_wc @ res.pose_wc   # res.pose_wc: previous-from-current camera
+            else:
+                self.lost += 1
+        self._prev = (image, right)
+        pose = camera_to_robot(self.pose_wc, self.mount)[0]
+        return Estimate(frame.stamp_ns, self.kind, True, VslamFix(pose, odom, self.pose_wc.copy(), 0, 0))
 
 
 def loop_route() -> np.ndarray:

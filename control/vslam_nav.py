@@ -68,6 +68,8 @@ class VslamNavConfig(VslamConfig):
     relocalise_max_correction_m: float = Field(0.5, gt=0, description="larger corrections are rejected as "
                                                                       "wrong matches")
     anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
+    restart_after_lost: int = Field(3, ge=1, description="frames lost in a row before the front end restarts "
+                                                         "from the current stereo pair at the odometry pose")
     max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
                                                                  "than this: the pose is not trusted")
     goto: GotoConfig = Field(default_factory=GotoConfig)
@@ -157,7 +159,15 @@ class VslamStage(VisionStage):
         self._last_anchor_ref = -1
         self._travelled = 0.0
         self._last_odom: Optional[Pose2] = None
-        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0}
+        self._ref_base = 0           # reference frames of earlier runs of the front end (before a restart)
+        self._lost_streak = 0
+        self._good: Optional[tuple[Pose2, Pose2]] = None   # (robot pose, odometry) at the last good frame
+        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0}
+
+    @property
+    def reference_index(self) -> int:
+        """Index of the current reference frame in the whole chain (across restarts)."""
+        return self._ref_base + len(self.slam.references) - 1
 
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
@@ -169,16 +179,17 @@ class VslamStage(VisionStage):
             self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
         self._last_odom = odom
         if not self.slam.initialised:
-            pose_wc = robot_to_camera_matrix(odom, self.mount)
-            if right is not None:
-                self.slam.initialise_stereo(image, right, pose_wc)
-            else:
-                self.slam.initialise_depth(image, depth, pose_wc)
-            self._maybe_add_anchor(image)
-            return self._estimate(frame, odom, True, self.slam.pose_wc, len(self.slam.lm.P), None)
+            return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(odom, self.mount))
         res = self.slam.process(image, right, depth)
         self.stats["lost"] += int(not res.ok)
         self.stats["handoffs"] += int(res.handoff)
+        self._lost_streak = 0 if res.ok else self._lost_streak + 1
+        if self._lost_streak >= self.cfg.restart_after_lost and self._good is not None:
+            # Lost (covered lens, motion blur, a blank wall): start a new chain from this stereo pair at the
+            # pose odometry gives since the last good frame. Anchors are kept, so the loop still closes.
+            guess = self._good[0].compose(self._good[1].between(odom))
+            return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(guess, self.mount),
+                               restart=True)
         pose_wc = self.correction @ res.pose_wc
         anchor = None
         if res.ok:
@@ -188,9 +199,32 @@ class VslamStage(VisionStage):
                 anchor, pose_wc = reloc
                 self.correction = pose_wc @ np.linalg.inv(res.pose_wc)
                 self.stats["relocalised"] += 1
-        return self._estimate(frame, odom, res.ok, pose_wc, res.inliers, anchor,
-                              {"iterations": res.iterations, "residual_px": res.residual_px,
-                               "tracked": res.tracked, "handoff": res.handoff})
+        est = self._estimate(frame, odom, res.ok, pose_wc, res.inliers, anchor,
+                             {"iterations": res.iterations, "residual_px": res.residual_px,
+                              "tracked": res.tracked, "handoff": res.handoff})
+        if est.ok:
+            self._good = (est.value.pose, odom)
+        return est
+
+    def _start(self, frame: Frame, image, right, depth, odom: Pose2, pose_wc: np.ndarray,
+               restart: bool = False) -> Estimate:
+        """(Re)initialise the front end from this frame's stereo pair (or depth) at world pose ``pose_wc``."""
+        if restart:
+            self._ref_base = self.reference_index + 1
+            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+            self.correction = np.eye(4)
+            self.stats["restarts"] += 1
+        if right is not None:
+            n = self.slam.initialise_stereo(image, right, pose_wc)
+        else:
+            n = self.slam.initialise_depth(image, depth, pose_wc)
+        self._lost_streak = 0
+        self._maybe_add_anchor(image)
+        est = self._estimate(frame, odom, n >= self.cfg.min_inliers, self.slam.pose_wc, n, None,
+                             {"restart": restart})
+        if est.ok:
+            self._good = (est.value.pose, odom)
+        return est
 
     def _metric_input(self, frame: Frame):
         if frame.right is not None:
@@ -207,14 +241,14 @@ class VslamStage(VisionStage):
                   anchor: Optional[int], quality: Optional[dict] = None) -> Estimate:
         pose, dh, tilt = camera_to_robot(pose_wc, self.mount)
         ok = ok and abs(dh) <= self.cfg.max_planar_residual_m
-        fix = VslamFix(pose, odom, pose_wc, inliers, len(self.slam.references) - 1, anchor,
+        fix = VslamFix(pose, odom, pose_wc, inliers, self.reference_index, anchor,
                        {**(quality or {}), "height_error_m": dh, "tilt_deg": math.degrees(tilt)})
         return Estimate(frame.stamp_ns, self.kind, bool(ok), fix,
                         {"inliers": inliers, "reference": fix.reference, "anchor": anchor})
 
     # -- anchors (the chain's reference frames, kept for relocalisation)
     def _maybe_add_anchor(self, image: np.ndarray) -> None:
-        ref_index = len(self.slam.references) - 1
+        ref_index = self.reference_index
         if ref_index == self._last_anchor_ref:
             return
         self._last_anchor_ref = ref_index
@@ -238,7 +272,7 @@ class VslamStage(VisionStage):
         if cfg.relocalise_radius_m <= 0 or self._frames % cfg.relocalise_every:
             return None
         robot = camera_to_robot(pose_wc, self.mount)[0]
-        current_ref = len(self.slam.references) - 1
+        current_ref = self.reference_index
         for a in self.anchors:
             if a.index >= current_ref - 1 or self._travelled - a.travelled < cfg.relocalise_min_travel_m:
                 break                             # the tracker still measures against these (or nearly)
@@ -313,44 +347,6 @@ def stereo_baseline_of(cfg) -> Optional[float]:
 def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
     return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
                       vslam_nav_config(cfg.vslam, cfg.source or "<config>"))
-
-
-class ChainedVoStage(VisionStage):
-    """The baseline the reference set is judged against: frame-to-frame motions, chained.
-
-    Same tracker, same stereo reconstruction and same motion solver as the
-    VSLAM, but every frame's landmarks are reconstructed afresh from the
-    previous stereo pair and the pose is the product of all frame-to-frame
-    motions (what section 11.3.3.2 says the reference set avoids).
-    """
-
-    kind = "chained_vo"
-
-    def __init__(self, camera, mount: CameraMount, stereo_baseline: float, cfg: VslamConfig | None = None):
-        self.camera = camera
-        self.mount = mount
-        self.baseline = float(stereo_baseline)
-        # No landmark top-up on the current frame: the next step reconstructs its own from the stereo pair.
-        self.cfg = (cfg or VslamConfig()).model_copy(update={"min_landmarks": 4})
-        self.pose_wc: Optional[np.ndarray] = None
-        self._prev: Optional[tuple[np.ndarray, np.ndarray]] = None
-        self.lost = 0
-
-    def process(self, frame: Frame, odom: Pose2) -> Estimate:
-        image, right = to_grey(frame.image), to_grey(frame.right)
-        if self.pose_wc is None:
-            self.pose_wc = robot_to_camera_matrix(odom, self.mount)
-        else:
-            step = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
-            step.initialise_stereo(*self._prev)
-            res = step.process(image)
-            if res.ok:
-                self.pose_wc = self.pose_wc @ res.pose_wc   # res.pose_wc: previous-from-current camera
-            else:
-                self.lost += 1
-        self._prev = (image, right)
-        pose = camera_to_robot(self.pose_wc, self.mount)[0]
-        return Estimate(frame.stamp_ns, self.kind, True, VslamFix(pose, odom, self.pose_wc.copy(), 0, 0))
 
 
 # ---------------------------------------------------------------------------------- controller

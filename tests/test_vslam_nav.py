@@ -156,3 +156,47 @@ def test_vslam_section_is_validated_at_load_with_file_and_key_path(tmp_path):
     bad.write_text("vslam:\n  goto: {position_tolerance_m: -1}\n")
     with pytest.raises(ConfigError, match=r"bad.yaml: vslam.goto.position_tolerance_m"):
         load_config(bad)
+
+
+def test_stage_restarts_after_the_lens_was_covered_and_still_closes_the_loop_later():
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(30):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    stage = VslamStage(model, mount, 0.12, vslam_nav_config({}))
+    results = []
+    for i, p in enumerate(poses):
+        cam.occluded = 10 <= i < 15                    # half a second of a covered lens
+        odom = start.between(p)
+        odom = Pose2(odom.x, odom.z * 1.02, odom.theta)  # 2 % odometry scale error bridges the gap
+        results.append(stage.process(cam.render_frame(p, int(i * 1e8), i), odom))
+    assert all(r.ok for r in results[:10]) and not any(r.ok for r in results[10:15])
+    assert stage.stats["restarts"] >= 1
+    assert all(r.ok for r in results[16:])
+    refs = [r.value.reference for r in results]
+    assert refs == sorted(refs), "reference indices keep growing across a restart"
+    truth = start.between(poses[-1])
+    got = results[-1].value.pose
+    # 0.15 m bridged on odometry with 2 % error: a few mm, plus the VSLAM's own error
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+
+
+def test_guided_matches_pick_the_nearest_descriptor_inside_the_radius_once():
+    from vbnav.control.vslam_nav import guided_matches
+
+    rng = np.random.default_rng(3)
+    desc_a = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    pred = np.array([[10.0, 10.0], [50.0, 50.0], [200.0, 200.0]])
+    noisy = desc_a.copy()
+    noisy[:, 0] ^= 0b1                                  # 1 bit off
+    far = rng.integers(0, 256, (1, 32), dtype=np.uint8)
+    corners = np.array([[12.0, 9.0], [30.0, 30.0], [52.0, 50.0], [51.0, 49.0], [400.0, 400.0]])
+    desc_c = np.vstack((noisy[0], noisy[0], noisy[1], far, noisy[2]))
+    lm, cn = guided_matches(pred, desc_a, corners, desc_c, radius=5.0)
+    # landmark 0 -> corner 0 (corner 1 is as similar but outside the radius); 1 -> 2 (3 is near but unlike);
+    # landmark 2's twin is 280 px away: no match
+    assert lm.tolist() == [0, 1] and cn.tolist() == [0, 2]
