@@ -7,8 +7,10 @@ loop treats a stale frame as a safety event, not as a reason to wait.
 from __future__ import annotations
 
 import abc
+import threading
+import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -35,6 +37,44 @@ class Frame:
 
     def age_s(self, now_ns: int) -> float:
         return (now_ns - self.stamp_ns) * 1e-9
+
+
+class LatestFrame:
+    """A one-slot mailbox between a grabbing thread and the loop: the newest frame, each handed out once.
+
+    Not a queue: the loop wants the newest image, never a backlog. ``publish``
+    numbers frames with an increasing ``seq`` so a gap shows dropped frames.
+    """
+
+    def __init__(self):
+        self._latest: Optional[Frame] = None
+        self._returned_seq = 0
+        self._seq = 0
+        self._cond = threading.Condition()
+
+    def publish(self, make_frame: Callable[[int], Frame]) -> None:
+        """Store the frame ``make_frame(seq)`` builds with the next sequence number and wake readers."""
+        with self._cond:
+            self._seq += 1
+            self._latest = make_frame(self._seq)
+            self._cond.notify_all()
+
+    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
+        """The newest frame not returned before, waiting at most ``timeout_s``; None if none came."""
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            while self._latest is None or self._latest.seq <= self._returned_seq:
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+            self._returned_seq = self._latest.seq
+            return self._latest
+
+    def age_s(self, now_ns: int) -> Optional[float]:
+        """Age of the newest frame (returned or not), None before the first."""
+        f = self._latest
+        return None if f is None else f.age_s(now_ns)
 
 
 class CameraError(RuntimeError):

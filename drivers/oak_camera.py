@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.camera import Camera, CameraError, Frame, LatestFrame
 from vbnav.drivers.clock import MonotonicClock
 
 try:
@@ -135,11 +135,8 @@ class OakCamera(Camera):
         self._device = None
         self._pipeline = None
         self._img_q = self._disp_q = None
-        self._latest: Optional[Frame] = None
-        self._returned_seq = 0
-        self._seq = 0
+        self._frames = LatestFrame()
         self._pending_disp: dict[int, Any] = {}
-        self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._connected = False
@@ -188,15 +185,7 @@ class OakCamera(Camera):
         self._connected = False
 
     def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
-        end = time.monotonic() + timeout_s
-        with self._cond:
-            while self._latest is None or self._latest.seq <= self._returned_seq:
-                remaining = end - time.monotonic()
-                if remaining <= 0:
-                    return None
-                self._cond.wait(remaining)
-            self._returned_seq = self._latest.seq
-            return self._latest
+        return self._frames.read(timeout_s)
 
     # -- pipelines --------------------------------------------------------------------------
     def _build_replay(self) -> None:
@@ -308,11 +297,9 @@ class OakCamera(Camera):
                     disp = self._pending_disp.pop(img.getSequenceNum(), None)
                     for k in [k for k in self._pending_disp if k < img.getSequenceNum()]:
                         del self._pending_disp[k]
-                with self._cond:
-                    self._seq += 1
-                    self._latest = frame_from_imgframes(img, disp, self._seq, self.opt.grey,
-                                                        self.opt.subpixel_bits, self._meta())
-                    self._cond.notify_all()
+                meta = self._meta()
+                self._frames.publish(lambda seq: frame_from_imgframes(img, disp, seq, self.opt.grey,
+                                                                      self.opt.subpixel_bits, meta))
             except Exception as exc:  # device unplugged mid-stream: report, the runtime sees stale frames
                 if self._stop.is_set():
                     return

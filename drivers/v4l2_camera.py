@@ -25,7 +25,7 @@ from typing import Any, Literal, Optional
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.camera import Camera, CameraError, Frame, LatestFrame
 from vbnav.drivers.clock import MonotonicClock
 
 
@@ -76,10 +76,7 @@ class V4L2Camera(Camera):
         self.reconnects = 0
         self.finished = False
         self._cap = None
-        self._latest: Optional[Frame] = None
-        self._returned_seq = 0
-        self._seq = 0
-        self._cond = threading.Condition()
+        self._frames = LatestFrame()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._connected = False
@@ -114,20 +111,11 @@ class V4L2Camera(Camera):
         self._connected = False
 
     def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
-        end = time.monotonic() + timeout_s
-        with self._cond:
-            while self._latest is None or self._latest.seq <= self._returned_seq:
-                remaining = end - time.monotonic()
-                if remaining <= 0:
-                    return None
-                self._cond.wait(remaining)
-            self._returned_seq = self._latest.seq
-            return self._latest
+        return self._frames.read(timeout_s)
 
     def latest_age_s(self) -> Optional[float]:
         """Age of the newest frame grabbed (returned or not), None before the first."""
-        f = self._latest
-        return None if f is None else f.age_s(self.clock.now_ns())
+        return self._frames.age_s(self.clock.now_ns())
 
     # -- opening and verifying ------------------------------------------------------------------
     def _open(self):
@@ -224,11 +212,8 @@ class V4L2Camera(Camera):
             stamp = self.clock.now_ns()
             if self.opt.grey and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-            with self._cond:
-                self._seq += 1
-                self._latest = Frame(img, stamp, self._seq, meta={"device": self.opt.device,
-                                                                   "reconnects": self.reconnects})
-                self._cond.notify_all()
+            meta = {"device": self.opt.device, "reconnects": self.reconnects}
+            self._frames.publish(lambda seq: Frame(img, stamp, seq, meta=meta))
 
     def _try_reopen(self) -> None:
         try:
