@@ -119,7 +119,9 @@ class SimConfig(Strict):
 
 
 class ControllerConfig(Strict):
-    kind: Literal["idle", "scripted", "teleop", "repeat", "teach", "goto"] = "scripted"
+    kind: Literal["idle", "scripted", "teleop", "operator"] = Field(
+        "scripted", description="controller of 'vbnav run': scripted (the script below), teleop (cmd/teleop), "
+                                "operator (teleop plus cmd/mode idle/teach/repeat), idle")
     script: list[list[float]] = Field(
         default_factory=lambda: [[0.3, 0.0, 3.0], [0.3, 0.4, 4.0], [0.0, 0.0, 1.0]],
         description="[linear m/s, angular rad/s, duration s] segments for the scripted drive")

@@ -161,8 +161,8 @@ class TelemetryLink:
 
     def _on_mode_command(self, rt, cmd, now_ns: int) -> bool:
         """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
-        if cmd.kind != "mode":
-            return False
+        if cmd.kind != "mode" or getattr(rt.controller, "switches_modes", False):
+            return False   # the operator controller switches modes itself
         from vbnav.control.safety import SafetyEvent
         target, current = cmd.args[0], getattr(rt.controller, "name", "?")
         if target == current:

@@ -56,7 +56,7 @@ class DiffDrivePhysics:
         self.angle = [0.0, 0.0]           # true motor shaft angles, rad
         self._noise_buf: list[float] = []
         self.powered = False
-        self.time_ns = 0
+        self.time_ns: int | None = None   # set by the first advance_to: physics starts when time does
 
     def step(self, dt: float) -> None:
         # Scalar math: two wheels are too few for numpy to pay off (this runs 1000 times per simulated second).
@@ -88,6 +88,9 @@ class DiffDrivePhysics:
         return self._noise_buf.pop()
 
     def advance_to(self, t_ns: int) -> None:
+        if self.time_ns is None:
+            self.time_ns = int(t_ns)
+            return
         while self.time_ns + SUBSTEP_NS <= t_ns:
             self.step(SUBSTEP_NS * 1e-9)
             self.time_ns += SUBSTEP_NS
@@ -112,6 +115,7 @@ class SimDiffDrive(WheelDrive):
     def __init__(self, params: BaseParams, clock, seed: int = 0, start: Pose2 = Pose2(),
                  options: Optional["SimDiffDrive.Options"] = None):
         self.physics = DiffDrivePhysics(params, seed, start)
+        self.physics.time_ns = clock.now_ns()
         self.clock = clock
         self.options = options or SimDiffDrive.Options()
         self._lock = threading.Lock()

@@ -34,3 +34,17 @@ def test_run_realtime_stops_on_signal(tmp_path, sig, code):
     assert p.returncode == code, (out, err)
     assert f"run ended: signal (received {signal.Signals(sig).name})" in out
     assert "safety trip: signal" in out
+
+
+def test_run_realtime_with_threaded_camera(tmp_path):
+    """Real clock: the camera and vision run on their own thread; frames stay fresh (no stale-camera stop)."""
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text("sim:\n  realtime: true\ncamera:\n  rate_hz: 10\n"
+                   "controller:\n  kind: scripted\n  script: [[0.2, 0.0, 60.0]]\n")
+    r = subprocess.run(VBNAV + ["run", "-c", str(cfg), "--duration", "3", "--json", "--no-telemetry"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["reason"] == "duration"
+    assert not [e for e in summary["events"] if e["cause"] == "camera_stale"], summary["events"]
+    assert summary["final_odometry"][1] > 0.3     # it drove: ~0.2 m/s for ~3 s

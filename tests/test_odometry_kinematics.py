@@ -106,3 +106,11 @@ def test_odometry_error_within_slip_noise():
     # effect over the path is a few cm. Bound with margin, and check the noise is really there.
     assert max(errs) < 0.15
     assert np.median(errs) > 1e-3
+
+
+def test_physics_starts_when_the_clock_does():
+    """A drive built on a clock that reads hours of uptime must not integrate those hours first."""
+    clock = SimClock(start_ns=10 ** 16)          # ~4 months of uptime in 1 ms physics steps if it did
+    drive = SimDiffDrive(BaseParams(), clock)
+    assert drive.true_pose == Pose2()
+    assert drive.physics.time_ns == clock.now_ns()

@@ -10,12 +10,14 @@ from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 def register(sub) -> None:
     p = sub.add_parser("run", help="run the control loop with the configured drivers and controller",
                        description="Run the fixed-rate control loop with the drivers and controller named in the "
-                                   "configuration (controller.kind: scripted, teleop, idle). Prints progress and a "
+                                   "configuration (controller.kind: scripted, teleop, operator, idle). 'operator' is the "
+                                   "robot's everyday session: teleop driving plus cmd/mode idle, teach ROUTE and "
+                                   "repeat ROUTE from the network (vbnav send mode ...). Prints progress and a "
                                    "timing summary. Stops on SIGINT/SIGTERM with the wheels at zero.")
     add_config_arg(p)
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds (simulated seconds on the simulated clock)")
-    p.add_argument("--controller", choices=["scripted", "teleop", "idle"], default=None,
+    p.add_argument("--controller", choices=["scripted", "teleop", "operator", "idle"], default=None,
                    help="override controller.kind from the configuration")
     p.add_argument("--no-camera", action="store_true",
                    help="do not open the camera (by default it runs, so a stale camera stops the robot)")
@@ -32,8 +34,7 @@ def build_controller(cfg, kind: str):
         return TeleopController(cfg.safety.command_timeout_s)
     if kind == "idle":
         return IdleController()
-    raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run' (use scripted, teleop or idle; "
-                     f"teach and repeat have their own commands)")
+    raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run'")
 
 
 def run(args) -> int:
@@ -47,9 +48,15 @@ def run(args) -> int:
     cfg = load_config(args.config)
     telemetry_config(cfg)  # refuse unsafe network settings before any device opens
     kind = args.controller or cfg.controller.kind
-    controller = build_controller(cfg, kind)
     clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
+    if kind == "operator":
+        from vbnav.control.modes import OperatorController
+        controller = OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)
+    else:
+        controller = build_controller(cfg, kind)
     rt = Runtime(cfg, drive, controller, clock, pipeline)
+    if kind == "operator":
+        controller.attach(rt)
     link = attach_telemetry(rt, cfg, args)
     if link is None:
         return 3
@@ -69,6 +76,8 @@ def run(args) -> int:
     try:
         result = rt.run(duration, progress)
     finally:
+        if hasattr(controller, "close"):
+            controller.close()      # a route being taught keeps every keyframe so far
         link.close(result)
     printer.done()
     summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,

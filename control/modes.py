@@ -1,0 +1,193 @@
+"""Operator mode switching inside one run: idle, teach and repeat, as `cmd/mode` asks.
+
+The robot's everyday session on hardware: ``vbnav run --controller operator``
+starts idle (teleop commands drive it); ``mode teach ROUTE`` starts recording a
+route while the operator drives; ``mode idle`` closes the route (every keyframe
+is already on disk); ``mode repeat ROUTE`` patrols it and returns to idle at
+its end.
+
+Everything that touches files (opening a route writer, loading and checking a
+route) runs on a worker thread, never on the loop's thread: while it works the
+mode is ``switching`` and the robot holds still. (Under the simulated clock the
+switch is done in place: simulated time does not pass, and runs stay
+deterministic.) A route that fails to load is
+a rejected command; the robot stays in its mode.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Optional
+
+from vbnav.control.controller import STOP, ControlContext, Controller, Twist
+from vbnav.control.manual import TeleopController
+from vbnav.control.safety import SafetyEvent
+
+MODES = ("idle", "teach", "repeat")
+
+
+class OperatorController(Controller):
+    requires: tuple[str, ...] = ()
+    switches_modes = True      # telemetry leaves `cmd/mode` to this controller
+
+    def __init__(self, cfg, pipeline, teleop_timeout_s: float):
+        self.cfg = cfg
+        self.pipeline = pipeline
+        self.teleop = TeleopController(teleop_timeout_s)
+        self.mode = "idle"
+        self.active: Optional[Controller] = None        # the repeat controller in repeat mode
+        self.route_path: Optional[str] = None
+        self._base_stages = list(pipeline.stages) if pipeline is not None else []
+        self._writer = None
+        self._teach_stage = None
+        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, writer) ready to apply
+        self._worker: Optional[threading.Thread] = None
+        self.errors: list[str] = []
+
+    # -- Controller ----------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return "switching" if self._worker is not None else self.mode
+
+    def update(self, ctx: ControlContext) -> Twist:
+        if self._pending is not None:
+            self._apply_pending()
+        if self._worker is not None:
+            return STOP
+        if self.mode == "repeat" and self.active is not None:
+            twist = self.active.update(ctx)
+            if self.active.finished:
+                self._start_switch("idle", None, ctx.now_ns)
+            return twist
+        return self.teleop.update(ctx)   # idle and teach: the operator drives (STOP when silent)
+
+    def set_command(self, v: float, w: float, now_ns: int) -> None:
+        self.teleop.set_command(v, w, now_ns)
+
+    def safety_conditions(self) -> dict[str, tuple[bool, str]]:
+        # A silent teleop stream only matters while the operator drives (idle, teach).
+        if self.mode == "repeat":
+            return {"command_timeout": (False, "")}
+        return self.teleop.safety_conditions()
+
+    def status(self) -> dict:
+        s = {"mode": self.name, "route": self.route_path}
+        if self.active is not None:
+            s.update(self.active.status())
+        if self._teach_stage is not None:
+            s["keyframes"] = self._teach_stage.n_keyframes
+        return s
+
+    # -- commands ------------------------------------------------------------
+    def attach(self, runtime) -> "OperatorController":
+        runtime.command_handlers.append(self._on_command)
+        self._runtime = runtime
+        return self
+
+    def _on_command(self, rt, cmd, now_ns: int) -> bool:
+        if cmd.kind != "mode":
+            return False
+        target = cmd.args[0] if cmd.args else None
+        route = cmd.args[1] if len(cmd.args) > 1 else None
+        if target not in MODES:
+            self._reject(rt, now_ns, f"unknown mode {target!r}; expected one of {', '.join(MODES)}")
+        elif self._worker is not None:
+            self._reject(rt, now_ns, f"a switch to {self._worker.name} is still in progress")
+        elif target in ("teach", "repeat") and not route:
+            self._reject(rt, now_ns, f"mode {target!r} needs a route path")
+        elif target == "teach" and self.pipeline is None:
+            self._reject(rt, now_ns, "mode 'teach' needs a camera (this run has none)")
+        else:
+            self._start_switch(target, route, now_ns)
+        return True
+
+    def _reject(self, rt, now_ns: int, message: str) -> None:
+        rt.safety._emit(SafetyEvent(now_ns, "rejected", "mode", message))
+
+    # -- switching (worker thread) --------------------------------------------
+    def _start_switch(self, target: str, route: Optional[str], now_ns: int) -> None:
+        """On the loop thread: detach the current mode's stages, then let a worker do the file work."""
+        frames_at_swap = 0
+        if self.pipeline is not None:
+            if self._drain_keyframes in self.pipeline.frame_listeners:
+                self.pipeline.frame_listeners.remove(self._drain_keyframes)
+            self.pipeline.stages = list(self._base_stages)
+            frames_at_swap = self.pipeline.frames
+        self.active = None
+        if self.pipeline is None or self.pipeline.inline:
+            # Simulated clock: switch synchronously, so runs stay deterministic (time does not pass meanwhile).
+            self._prepare(target, route, frames_at_swap)
+            return
+        self._worker = threading.Thread(target=self._prepare, args=(target, route, frames_at_swap), name=target,
+                                        daemon=True)
+        self._worker.start()
+
+    def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0) -> None:
+        """Close what the current mode opened, then build what the target needs (off the loop thread)."""
+        try:
+            if self._teach_stage is not None and self.pipeline is not None and not self.pipeline.inline:
+                # The vision thread may still be inside the teach stage with the last frame before the swap.
+                deadline = time.monotonic() + 1.0
+                while self.pipeline.frames <= frames_at_swap + 1 and time.monotonic() < deadline:
+                    time.sleep(0.01)
+            self._close_teach()
+            stages, controller, writer, teach_stage = list(self._base_stages), None, None, None
+            if target == "teach":
+                from vbnav.control.route import RouteWriter
+                from vbnav.control.teach_repeat import TeachStage, teach_repeat_config
+                model, mount = self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount()
+                teach_stage = TeachStage(model, mount, teach_repeat_config(self.cfg.vbc, self.cfg.source or ""))
+                writer = RouteWriter(Path(route), self.cfg.robot.name, model, mount, overwrite=False)
+                stages = [teach_stage] + stages
+            elif target == "repeat":
+                from vbnav.control.route import load_route
+                from vbnav.control.teach_repeat import RepeatController, RepeatStage, teach_repeat_config
+                r = load_route(route)
+                vcfg = teach_repeat_config(self.cfg.vbc, self.cfg.source or "")
+                stages = [RepeatStage(r, vcfg, self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount())] + stages
+                controller = RepeatController(r, vcfg, self.cfg.robot.max_linear_speed,
+                                              self.cfg.robot.max_angular_speed)
+            self._pending = (target, route, stages, controller, writer, teach_stage, None)
+        except Exception as exc:  # the mode stays as it was; the operator sees why
+            self._pending = (self.mode, self.route_path, None, None, None, None, f"mode {target}: {exc}")
+
+    def _close_teach(self) -> None:
+        if self._teach_stage is not None and self._writer is not None:
+            self._teach_stage.finish()
+            for kf in self._teach_stage.pop_keyframes():
+                self._writer.append(kf)
+            self._writer.close()
+        self._teach_stage = self._writer = None
+
+    def _apply_pending(self) -> None:
+        mode, route, stages, controller, writer, teach_stage, error = self._pending
+        self._pending = None
+        self._worker = None
+        if error:
+            self.errors.append(error)
+            rt = getattr(self, "_runtime", None)
+            if rt is not None:
+                self._reject(rt, rt.clock.now_ns(), error)
+            return
+        self.mode, self.route_path, self.active = mode, route, controller
+        self.requires = ("vbc",) if mode == "repeat" else ()
+        self._writer, self._teach_stage = writer, teach_stage
+        if self.pipeline is not None:
+            if teach_stage is not None:
+                self.pipeline.frame_listeners.append(self._drain_keyframes)
+            self.pipeline.latest.pop("vbc", None)
+            self.pipeline.stages = stages    # one reference swap: the vision thread sees old or new list
+
+    def _drain_keyframes(self, frame, results) -> None:
+        stage, writer = self._teach_stage, self._writer
+        if stage is None or writer is None:
+            return
+        for kf in stage.pop_keyframes():
+            writer.append(kf)
+
+    def close(self) -> None:
+        """End of the run: a route being taught is closed with every keyframe so far."""
+        if self._worker is not None:
+            self._worker.join(timeout=5.0)
+        self._close_teach()
