@@ -34,3 +34,20 @@ def test_goto_times_out_with_exit_code_1():
     r = _run("--goal", "0", "3", "0", "--duration", "1")
     assert r.returncode == 1, r.stdout + r.stderr
     assert "goto ended: duration" in r.stdout
+
+
+def test_goto_in_real_time_with_the_threaded_vision_pipeline(tmp_path):
+    """The same command on the wall clock: the VSLAM runs on the vision thread, the loop never waits on it."""
+    import yaml
+
+    from vbnav.control.config import CONFIG_DIR
+
+    d = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    d["sim"]["realtime"] = True
+    d["loop"]["max_missed_streak"] = 1000   # a loaded test machine must not trip the deadline stop
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")
+    assert r.returncode == 0, r.stdout + r.stderr
+    err_cm = float(r.stdout.split("position error ")[1].split(" cm")[0])
+    assert err_cm < 5.0
