@@ -144,13 +144,16 @@ class VslamStage(VisionStage):
 
     kind = "vslam"
 
-    def __init__(self, camera, mount: CameraMount, stereo_baseline: float, cfg: VslamNavConfig | None = None):
-        if stereo_baseline is None or stereo_baseline <= 0:
+    def __init__(self, camera, mount: CameraMount, stereo_baseline: Optional[float],
+                 cfg: VslamNavConfig | None = None, baseline_from_frames: bool = False):
+        """stereo_baseline: metres. With ``baseline_from_frames`` it may be None: the first frame's
+        ``meta['baseline_m']`` gives it (the OAK driver reads it from the device's calibration)."""
+        if (stereo_baseline is None or stereo_baseline <= 0) and not baseline_from_frames:
             raise ValueError("the VSLAM stage needs a stereo camera for metric scale: set the stereo baseline "
                              "(camera.options.stereo_baseline for the simulated camera)")
         self.camera = camera
         self.mount = mount
-        self.baseline = float(stereo_baseline)
+        self.baseline = float(stereo_baseline) if stereo_baseline else None
         self.cfg = cfg or VslamNavConfig()
         self.slam = Vslam(camera, self.cfg, stereo_baseline=self.baseline)
         self.anchors: list[Anchor] = []
@@ -172,6 +175,13 @@ class VslamStage(VisionStage):
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image = to_grey(frame.image)
+        if self.baseline is None:
+            b = (frame.meta or {}).get("baseline_m")
+            if not b or b <= 0:
+                raise ValueError("the VSLAM stage needs the stereo baseline: the camera's frames carry no "
+                                 "meta['baseline_m'] (set camera.options.stereo_baseline)")
+            self.baseline = float(b)
+            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
         right, depth = self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
@@ -344,9 +354,14 @@ def stereo_baseline_of(cfg) -> Optional[float]:
     return float(b) if b else None
 
 
+# Camera drivers whose frames carry the stereo baseline (meta['baseline_m']) from the device's calibration.
+BASELINE_FROM_DEVICE = ("oak",)
+
+
 def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
     return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
-                      vslam_nav_config(cfg.vslam, cfg.source or "<config>"))
+                      vslam_nav_config(cfg.vslam, cfg.source or "<config>"),
+                      baseline_from_frames=cfg.camera.driver in BASELINE_FROM_DEVICE)
 
 
 # ---------------------------------------------------------------------------------- controller

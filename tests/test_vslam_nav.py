@@ -109,11 +109,11 @@ def _render(cam: SimCamera, poses, disparity_only=False):
     for i, p in enumerate(poses):
         f = cam.render_frame(p, int(i * 1e8), i)
         if disparity_only:
-            f = Frame(f.image, f.stamp_ns, f.seq, disparity=f.disparity, meta=f.meta)
+            f = Frame(f.image, f.stamp_ns, f.seq, disparity=f.disparity, meta={**f.meta, "baseline_m": 0.12})
         yield f
 
 
-@pytest.mark.parametrize("disparity_only", [False, True], ids=["stereo-pair", "disparity-image"])
+@pytest.mark.parametrize("disparity_only", [False, True], ids=["stereo-pair", "disparity-image-oak-like"])
 def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
     model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
     mount = CameraMount(0.25, 0.1)
@@ -124,7 +124,9 @@ def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
     poses = [start]
     for _ in range(50):
         poses.append(arc_step(poses[-1], 0.03, math.radians(0.6)))
-    stage = VslamStage(model, mount, 0.12, vslam_nav_config({}))
+    # OAK-like: disparity only, and the baseline comes with the frames (the device's calibration)
+    stage = (VslamStage(model, mount, None, vslam_nav_config({}), baseline_from_frames=True) if disparity_only
+             else VslamStage(model, mount, 0.12, vslam_nav_config({})))
     for f, p in zip(_render(cam, poses, disparity_only), poses):
         est = stage.process(f, start.between(p))     # odometry = truth here; only the first one is used
         assert est.ok and est.kind == "vslam"
@@ -141,6 +143,9 @@ def test_stage_needs_stereo():
         VslamStage(model, CameraMount(), None)
     stage = VslamStage(model, CameraMount(), 0.12)
     with pytest.raises(ValueError, match="right image or a disparity"):
+        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+    stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
+    with pytest.raises(ValueError, match="baseline_m"):
         stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
 
 
