@@ -11,7 +11,11 @@
   near an older anchor, the frame is matched against that anchor's landmarks and
   the pose is computed against them (11.15-11.17), not through the chain of
   hand-offs: returning to the start gives the pose against the first reference
-  set. The stage reports the robot's planar pose (camera pose through the mount).
+  set. Anchors cost ~7 kB each (about 3 per metre driven). After a few lost
+  frames in a row (a covered lens) the front end restarts from the current
+  stereo pair at the pose odometry carried since the last good frame; the
+  anchors survive, so a later loop still closes. The stage reports the robot's
+  planar pose (camera pose through the mount).
 - ``GotoController`` (loop rate): dead-reckons from the latest VSLAM pose with
   odometry (a complementary filter, as ``RepeatController`` does with VBC fixes)
   and drives to a goal pose (x, z, theta) with the polar-coordinate law of
