@@ -140,7 +140,7 @@ class Config(Strict):
     telemetry: dict[str, Any] = Field(default_factory=dict, description="zenoh telemetry and commands, see docs/telemetry.md")
     obstacles: dict[str, Any] = Field(default_factory=dict, description="obstacle detection and stop zones (control/obstacle_monitor.py)")
     vbc: dict[str, Any] = Field(default_factory=dict, description="teach-and-repeat settings (control/teach_repeat.py)")
-    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM settings (control/vo.py)")
+    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM and goto settings (control/vslam_nav.py)")
 
     source: Optional[str] = Field(None, exclude=True, description="file this was loaded from")
 
@@ -216,7 +216,9 @@ def validate_feature_sections(cfg: Config, source: str = "<config>") -> None:
     from vbnav.control.network import parse_telemetry_config
     from vbnav.control.obstacle_monitor import obstacles_config
     from vbnav.control.teach_repeat import teach_repeat_config
+    from vbnav.control.vslam_nav import vslam_nav_config
     parse_telemetry_config(cfg.telemetry, source)
+    vslam_nav_config(cfg.vslam, source)
     obstacles_config(cfg.obstacles, source)
     teach_repeat_config(cfg.vbc, source)
 

@@ -7,10 +7,14 @@ loop treats a stale frame as a safety event, not as a reason to wait.
 from __future__ import annotations
 
 import abc
+import threading
+import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
+
+from vbnav.drivers.clock import MonotonicClock
 
 
 @dataclass
@@ -35,6 +39,44 @@ class Frame:
 
     def age_s(self, now_ns: int) -> float:
         return (now_ns - self.stamp_ns) * 1e-9
+
+
+class LatestFrame:
+    """A one-slot mailbox between a grabbing thread and the loop: the newest frame, each handed out once.
+
+    Not a queue: the loop wants the newest image, never a backlog. ``publish``
+    numbers frames with an increasing ``seq`` so a gap shows dropped frames.
+    """
+
+    def __init__(self):
+        self._latest: Optional[Frame] = None
+        self._returned_seq = 0
+        self._seq = 0
+        self._cond = threading.Condition()
+
+    def publish(self, make_frame: Callable[[int], Frame]) -> None:
+        """Store the frame ``make_frame(seq)`` builds with the next sequence number and wake readers."""
+        with self._cond:
+            self._seq += 1
+            self._latest = make_frame(self._seq)
+            self._cond.notify_all()
+
+    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
+        """The newest frame not returned before, waiting at most ``timeout_s``; None if none came."""
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            while self._latest is None or self._latest.seq <= self._returned_seq:
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+            self._returned_seq = self._latest.seq
+            return self._latest
+
+    def age_s(self, now_ns: int) -> Optional[float]:
+        """Age of the newest frame (returned or not), None before the first."""
+        f = self._latest
+        return None if f is None else f.age_s(now_ns)
 
 
 class CameraError(RuntimeError):
@@ -68,3 +110,64 @@ class Camera(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.disconnect()
+
+
+class GrabbingCamera(Camera):
+    """A device camera whose frames a grabbing thread puts into a ``LatestFrame`` mailbox.
+
+    Settings come from the ``camera`` config section (``options`` validated by
+    the subclass's ``Options``; width, height and rate unless given). A
+    subclass opens its device in ``connect()`` and then calls
+    ``_start_grabbing``; ``disconnect()`` sets ``_stop``, releases what could
+    block the thread and calls ``_join_grabbing``.
+    """
+
+    Options: type  # the pydantic model of ``camera.options``
+    default_size = (640, 480)  # without a config
+
+    def __init__(self, cfg: Any = None, clock=None, *, options: Any = None, width: Optional[int] = None,
+                 height: Optional[int] = None, fps: Optional[float] = None):
+        cam = getattr(cfg, "camera", None)
+        if options is None:
+            options = self.Options.model_validate(cam.options if cam is not None else {})
+        self.opt = options
+        self.clock = clock or MonotonicClock()
+        self.width = width or (cam.width if cam is not None else self.default_size[0])
+        self.height = height or (cam.height if cam is not None else self.default_size[1])
+        self.fps = fps or (cam.rate_hz if cam is not None else 30.0)
+        self.error: Optional[str] = None
+        self._frames = LatestFrame()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._connected = False
+
+    @classmethod
+    def from_config(cls, cfg, clock, options=None):
+        return cls(cfg, clock, options=options)
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
+        return self._frames.read(timeout_s)
+
+    def latest_age_s(self) -> Optional[float]:
+        """Age of the newest frame grabbed (returned or not), None before the first."""
+        return self._frames.age_s(self.clock.now_ns())
+
+    @abc.abstractmethod
+    def _grab_loop(self) -> None:
+        """The grabbing thread: ``self._frames.publish(...)`` each frame until ``_stop`` is set."""
+
+    def _start_grabbing(self, thread_name: str) -> None:
+        self._connected = True
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._grab_loop, name=thread_name, daemon=True)
+        self._thread.start()
+
+    def _join_grabbing(self, timeout_s: float) -> None:
+        """Wait for the grabbing thread to end (``_stop`` is set)."""
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)
+            self._thread = None

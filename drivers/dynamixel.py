@@ -18,15 +18,14 @@ from __future__ import annotations
 import math
 import os
 import select
-import threading
 import time
 from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from vbnav.drivers.clock import MonotonicClock
 from vbnav.drivers.dynamixel_protocol import to_signed
-from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+from vbnav.drivers.serial_drive import SerialWheelDrive
+from vbnav.drivers.wheels import DriveError, WheelState
 
 try:  # imported lazily by the registry; a clear error if the SDK is missing
     import dynamixel_sdk as sdk
@@ -112,10 +111,12 @@ if sdk is not None:
             return data
 
 
-class DynamixelDrive(WheelDrive):
+class DynamixelDrive(SerialWheelDrive):
     """Two Dynamixel X servos in velocity mode as the left and right wheel."""
 
     name = "dynamixel"
+    drive_name = "dynamixel drive"
+    device_name = "dynamixel adapter"
 
     class Options(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -139,42 +140,20 @@ class DynamixelDrive(WheelDrive):
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
         if sdk is None:  # pragma: no cover
             raise DriveError(f"dynamixel-sdk is not installed: {_SDK_ERROR}")
-        drive_cfg = getattr(cfg, "drive", None)
-        if options is None:
-            options = self.Options.model_validate(drive_cfg.options if drive_cfg is not None else {})
-        self.opt = options
-        self.clock = clock or MonotonicClock()
-        inv_l = invert_left if invert_left is not None else bool(getattr(drive_cfg, "invert_left", False))
-        inv_r = invert_right if invert_right is not None else bool(getattr(drive_cfg, "invert_right", False))
+        super().__init__(cfg, clock, options=options, invert_left=invert_left, invert_right=invert_right)
+        options = self.opt
         self.ids = (options.left_id, options.right_id)
         self.sides = {options.left_id: "left", options.right_id: "right"}
-        self.signs = (-1 if inv_l else 1, -1 if inv_r else 1)
         self.port = None
         self.ph = None
-        self.faults: list[str] = []
         self.models: dict[int, int] = {}
-        self._enabled = False
-        self._connected = False
-        self._lock = threading.RLock()
         self._last_raw: dict[int, Optional[int]] = {i: None for i in self.ids}
         self._ticks = {i: 0 for i in self.ids}
-        self._state = WheelState(self.clock.now_ns(), (0.0, 0.0), (0.0, 0.0))
-        self._missed_reads = 0
         self._last_write_ns: Optional[int] = None
-        self._next_reconnect_ns = 0
         self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
 
-    @classmethod
-    def from_config(cls, cfg, clock, options=None) -> "DynamixelDrive":
-        """As the runtime's factory builds drives: the robot config, its clock, the validated options."""
-        return cls(cfg, clock, options=options)
-
     # -- lifecycle ------------------------------------------------------------------------
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
     def connect(self) -> None:
         """Open the adapter and bring the servos up in the safe order; torque stays off."""
         with self._lock:
@@ -183,17 +162,14 @@ class DynamixelDrive(WheelDrive):
                 with self.port.relaxed(BRING_UP_EXTRA_MS):
                     self._bring_up()
             except DriveError:
-                self._torque_off_best_effort()
-                self._close_port()
+                self._stop_wheels()
+                self._close_device()
                 raise
             self._connected = True
 
     def enable(self) -> None:
         with self._lock:
-            if not self._connected:
-                raise DriveError(f"dynamixel drive on {self.opt.port} is not connected")
-            if self.faults:
-                raise DriveError(f"dynamixel drive has faults, clear them first (clear_faults): {'; '.join(self.faults)}")
+            self._check_can_enable()
             with self.port.relaxed(BRING_UP_EXTRA_MS):
                 self._arm()
             self._enabled = True
@@ -211,10 +187,7 @@ class DynamixelDrive(WheelDrive):
 
     def write(self, left: float, right: float) -> None:
         with self._lock:
-            if self.faults:
-                raise DriveError(f"dynamixel drive faulted: {'; '.join(self.faults)}")
-            if not self._enabled:
-                raise DriveError("dynamixel drive is not enabled")
+            self._check_can_write()
             now = self.clock.now_ns()
             if self._last_write_ns is not None and (now - self._last_write_ns) * 1e-9 > self._watchdog_units * WATCHDOG_UNIT_S:
                 self._check_watchdog(now)
@@ -224,32 +197,13 @@ class DynamixelDrive(WheelDrive):
 
     def read(self) -> WheelState:
         with self._lock:
-            if not self._connected:
-                self._try_reconnect()
-            if not self._connected:
-                if self._port_present() and self.faults:
-                    raise DriveError(f"dynamixel adapter {self.opt.port} is back but not usable: "
-                                     f"{'; '.join(self.faults)}")
-                raise DriveError(f"dynamixel adapter {self.opt.port} is gone; waiting for it to come back")
+            self._ensure_connected()
             ok, err = self._guard(self._sync_read_state, "sync read of Present Velocity/Position")
             if ok:
                 self._missed_reads = 0
             else:
-                self._missed_reads += 1
-                if self._missed_reads >= self.opt.max_missed_reads:
-                    self._fault(err)
+                self._missed_read(err)
             return self._state
-
-    def disable(self) -> None:
-        with self._lock:
-            self._enabled = False
-            self._torque_off_best_effort()
-
-    def close(self) -> None:
-        with self._lock:
-            self.disable()
-            self._close_port()
-            self._connected = False
 
     def clear_faults(self) -> None:
         """REBOOT servos that report a hardware error (only a reboot clears it), then bring them up again.
@@ -274,7 +228,7 @@ class DynamixelDrive(WheelDrive):
                     self._missed_reads = 0
                     self._bring_up()
             except DriveError:
-                self._torque_off_best_effort()
+                self._stop_wheels()
                 raise
             self._connected = True
 
@@ -296,7 +250,7 @@ class DynamixelDrive(WheelDrive):
         for i in self.ids:
             self._sync_read.addParam(i)
 
-    def _close_port(self) -> None:
+    def _close_device(self) -> None:
         if self.port is not None:
             try:
                 self.port.closePort()
@@ -433,31 +387,11 @@ class DynamixelDrive(WheelDrive):
             self._fault(f"{what}: {err}")
         return ok, err
 
-    def _port_present(self) -> bool:
-        return os.path.exists(self.opt.port)
+    def _watchdog_note(self) -> str:
+        return f"the servos' bus watchdog ({self._watchdog_units * 20} ms) stops the wheels"
 
-    def _lost(self, exc: BaseException):
-        self._enabled = False
-        self._connected = False
-        self._close_port()
-        self._next_reconnect_ns = self.clock.now_ns() + int(self.opt.reconnect_interval_s * 1e9)
-        msg = (f"dynamixel adapter {self.opt.port} lost ({type(exc).__name__}: {exc}); "
-               f"the servos' bus watchdog ({self._watchdog_units * 20} ms) stops the wheels; "
-               f"reconnecting when the device is back")
-        self.faults = [msg]
-        raise DriveError(msg) from exc
-
-    def _fault(self, cause: str):
-        """Record, stop everything reachable, raise. A fault already reported is not raised again:
-        read() then keeps returning states that list it, so the operator sees it until cleared."""
-        if cause in self.faults:
-            return
-        self.faults.append(cause)
-        self._enabled = False
-        self._torque_off_best_effort()
-        raise DriveError(f"dynamixel drive fault: {cause}")
-
-    def _torque_off_best_effort(self) -> None:
+    def _stop_wheels(self) -> None:
+        """Goal Velocity 0 and torque off on every servo still answering."""
         if self.port is None or self.ph is None:
             return
         for i in self.ids:
@@ -468,15 +402,7 @@ class DynamixelDrive(WheelDrive):
             except Exception:
                 pass
 
-    def _try_reconnect(self) -> None:
-        now = self.clock.now_ns()
-        if now < self._next_reconnect_ns or not self._port_present():
-            return
-        self._next_reconnect_ns = now + int(self.opt.reconnect_interval_s * 1e9)
-        try:
-            self.faults = []
-            self.connect()
-        except DriveError as exc:
-            self._connected = False
-            if not any(f in str(exc) for f in self.faults):
-                self.faults.append(str(exc))
+    def _reconnect_failed(self, exc: DriveError) -> None:
+        # the adapter is back but the servos are not usable: read() says why
+        if not any(f in str(exc) for f in self.faults):
+            self.faults.append(str(exc))

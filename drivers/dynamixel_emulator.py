@@ -31,16 +31,13 @@ simulated base) and the present values come back from it.
 """
 from __future__ import annotations
 
-import os
-import select
-import threading
 import time
-import tty
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Protocol
 
 from vbnav.drivers import dynamixel_protocol as dp
+from vbnav.drivers.pty_device import PtyDevice
 
 # Control table addresses (X-series, Protocol 2.0).
 ADDR_MODEL_NUMBER = 0
@@ -262,7 +259,7 @@ _INST_NAMES = {dp.INST_PING: "ping", dp.INST_READ: "read", dp.INST_WRITE: "write
                dp.INST_SYNC_WRITE: "sync_write", dp.INST_BULK_READ: "bulk_read", dp.INST_BULK_WRITE: "bulk_write"}
 
 
-class DynamixelBus:
+class DynamixelBus(PtyDevice):
     """Servos on one emulated bus, served from a thread over a pty.
 
     ``start()`` returns the device path to open (the symlink ``link`` when
@@ -270,83 +267,21 @@ class DynamixelBus:
     via ``servo(id)`` under ``lock``.
     """
 
+    thread_name = "dxl-emulator"
+
     def __init__(self, ids=(1, 2), model: str | ServoModel = "XL430-W250", link: str | Path | None = None,
                  coupling: Optional[WheelCoupling] = None, step_s: float = 0.001):
         self.model = model if isinstance(model, ServoModel) else model_by_name(model)
         self.servos = {i: EmulatedServo(i, self.model) for i in ids}
-        self.link = Path(link) if link else None
+        super().__init__(link, step_s)
         self.coupling = coupling
-        self.step_s = step_s
-        self.lock = threading.RLock()
         self.log: list[LogEntry] = []
         self.packets_seen = 0
-        self._master = self._slave = -1
-        self.slave_path = ""
-        self._thread: Optional[threading.Thread] = None
-        self._stop = threading.Event()
         self._parser = dp.PacketParser()
         self._t0 = time.monotonic()
 
-    # -- lifecycle -------------------------------------------------------------------
-    @property
-    def path(self) -> str:
-        return str(self.link) if self.link else self.slave_path
-
-    def start(self) -> str:
-        self._open_pty()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="dxl-emulator", daemon=True)
-        self._thread.start()
-        return self.path
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        self._close_pty()
-
-    def __enter__(self) -> "DynamixelBus":
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    def unplug(self) -> None:
-        """The USB adapter disappears: the pty closes and the device path is gone."""
-        with self.lock:
-            self._close_pty()
-
-    def replug(self) -> None:
-        """The adapter is back (new pty, same stable path). Servo state is kept:
-        the servos have their own power supply."""
-        with self.lock:
-            self._open_pty()
-
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)  # no echo, no line discipline: bytes go through untouched
-        self._master, self._slave = master, slave
-        self.slave_path = os.ttyname(slave)
+    def _reset_input(self) -> None:
         self._parser = dp.PacketParser()
-        if self.link:
-            tmp = self.link.with_name(self.link.name + ".tmp")
-            if tmp.is_symlink() or tmp.exists():
-                tmp.unlink()
-            tmp.symlink_to(self.slave_path)
-            os.replace(tmp, self.link)
-
-    def _close_pty(self) -> None:
-        if self.link and self.link.is_symlink():
-            self.link.unlink()
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = -1
 
     # -- helpers for tests --------------------------------------------------------------
     def servo(self, dxl_id: int) -> EmulatedServo:
@@ -362,32 +297,15 @@ class DynamixelBus:
             del self.log[:10000]
 
     # -- serving ---------------------------------------------------------------------------
-    def _run(self) -> None:
-        last = time.monotonic()
-        while not self._stop.is_set():
-            fd = self._master
-            data = b""
-            if fd >= 0:
-                try:
-                    r, _, _ = select.select([fd], [], [], self.step_s)
-                    if r:
-                        data = os.read(fd, 4096)
-                except (OSError, ValueError):
-                    data = b""
-            else:
-                time.sleep(self.step_s)
-            now = time.monotonic()
-            with self.lock:
-                if data:
-                    for pkt in self._parser.feed(data):
-                        self._handle(pkt)
-                dt = now - last
-                if dt >= self.step_s * 0.5:
-                    for s in self.servos.values():
-                        if s.check_watchdog(now):
-                            self._log(s.dxl_id, "watchdog_expired")
-                        s.step(dt, self.coupling)
-                    last = now
+    def _serve_bytes(self, data: bytes) -> None:
+        for pkt in self._parser.feed(data):
+            self._handle(pkt)
+
+    def _step(self, now: float, dt: float) -> None:
+        for s in self.servos.values():
+            if s.check_watchdog(now):
+                self._log(s.dxl_id, "watchdog_expired")
+            s.step(dt, self.coupling)
 
     def handle_bytes(self, data: bytes) -> bytes:
         """Process raw instruction bytes and return the raw answer (no pty; for protocol tests)."""
@@ -398,17 +316,8 @@ class DynamixelBus:
         return bytes(out)
 
     def _handle(self, pkt: dp.Packet) -> None:
-        replies = self._answers(pkt)
-        if not replies:
-            return
-        for reply in replies:
-            self._send(reply)
-
-    def _send(self, reply: bytes) -> None:
-        try:
-            os.write(self._master, reply)
-        except OSError:
-            pass
+        for reply in self._answers(pkt):
+            self._write(reply)
 
     def _targets(self, pkt: dp.Packet) -> list[EmulatedServo]:
         if pkt.dxl_id == dp.BROADCAST_ID:

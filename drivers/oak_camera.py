@@ -25,8 +25,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from vbnav.drivers.camera import Camera, CameraError, Frame
-from vbnav.drivers.clock import MonotonicClock
+from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
 
 try:
     import depthai as dai
@@ -97,8 +96,9 @@ def describe(info) -> str:
         return str(info)
 
 
-class OakCamera(Camera):
+class OakCamera(GrabbingCamera):
     name = "oak"
+    default_size = (640, 400)  # the mono cameras' 400p mode
 
     class Options(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -119,34 +119,15 @@ class OakCamera(Camera):
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
         if dai is None:  # pragma: no cover
             raise CameraError(f"depthai is not installed: {_DAI_ERROR}")
-        cam = getattr(cfg, "camera", None)
-        if options is None:
-            options = self.Options.model_validate(cam.options if cam is not None else {})
-        self.opt = options
-        self.clock = clock or MonotonicClock()
-        self.width = width or (cam.width if cam is not None else 640)
-        self.height = height or (cam.height if cam is not None else 400)
-        self.fps = fps or (cam.rate_hz if cam is not None else 30.0)
+        super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
         self.intrinsics: Optional[np.ndarray] = None
         self.distortion: Optional[np.ndarray] = None
         self.baseline_m: Optional[float] = None
         self.device_id: Optional[str] = None
-        self.error: Optional[str] = None
         self._device = None
         self._pipeline = None
         self._img_q = self._disp_q = None
-        self._latest: Optional[Frame] = None
-        self._returned_seq = 0
-        self._seq = 0
         self._pending_disp: dict[int, Any] = {}
-        self._cond = threading.Condition()
-        self._stop = threading.Event()
-        self._thread: Optional[threading.Thread] = None
-        self._connected = False
-
-    @classmethod
-    def from_config(cls, cfg, clock, options=None) -> "OakCamera":
-        return cls(cfg, clock, options=options)
 
     @staticmethod
     def find(timeout_s: float = 2.0) -> list[str]:
@@ -154,20 +135,13 @@ class OakCamera(Camera):
         return [describe(d) for d in devices]
 
     # -- lifecycle ------------------------------------------------------------------------
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
     def connect(self) -> None:
         if self.opt.replay_file:
             self._build_replay()
         else:
             self._build_device()
         self._pipeline.start()
-        self._connected = True
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._grab_loop, name="oak-grab", daemon=True)
-        self._thread.start()
+        self._start_grabbing("oak-grab")
 
     def disconnect(self) -> None:
         self._stop.set()
@@ -176,9 +150,7 @@ class OakCamera(Camera):
                 self._pipeline.stop()
             except Exception:
                 pass
-        if self._thread is not None:
-            self._thread.join(timeout=3.0)
-            self._thread = None
+        self._join_grabbing(3.0)
         if self._device is not None:
             try:
                 self._device.close()
@@ -186,17 +158,6 @@ class OakCamera(Camera):
                 pass
         self._pipeline = self._device = None
         self._connected = False
-
-    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
-        end = time.monotonic() + timeout_s
-        with self._cond:
-            while self._latest is None or self._latest.seq <= self._returned_seq:
-                remaining = end - time.monotonic()
-                if remaining <= 0:
-                    return None
-                self._cond.wait(remaining)
-            self._returned_seq = self._latest.seq
-            return self._latest
 
     # -- pipelines --------------------------------------------------------------------------
     def _build_replay(self) -> None:
@@ -308,11 +269,9 @@ class OakCamera(Camera):
                     disp = self._pending_disp.pop(img.getSequenceNum(), None)
                     for k in [k for k in self._pending_disp if k < img.getSequenceNum()]:
                         del self._pending_disp[k]
-                with self._cond:
-                    self._seq += 1
-                    self._latest = frame_from_imgframes(img, disp, self._seq, self.opt.grey,
-                                                        self.opt.subpixel_bits, self._meta())
-                    self._cond.notify_all()
+                meta = self._meta()
+                self._frames.publish(lambda seq: frame_from_imgframes(img, disp, seq, self.opt.grey,
+                                                                      self.opt.subpixel_bits, meta))
             except Exception as exc:  # device unplugged mid-stream: report, the runtime sees stale frames
                 if self._stop.is_set():
                     return

@@ -14,14 +14,13 @@ from __future__ import annotations
 import math
 import os
 import select
-import threading
 import time
 from typing import Any, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from vbnav.drivers.clock import MonotonicClock
-from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+from vbnav.drivers.serial_drive import SerialWheelDrive
+from vbnav.drivers.wheels import DriveError, WheelState
 
 try:
     import serial
@@ -65,8 +64,10 @@ def xor_checksum(text: str) -> int:
     return c
 
 
-class ODriveDrive(WheelDrive):
+class ODriveDrive(SerialWheelDrive):
     name = "odrive"
+    drive_name = "ODrive"
+    device_name = "ODrive"
 
     class Options(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -87,37 +88,14 @@ class ODriveDrive(WheelDrive):
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["ODriveDrive.Options"] = None,
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
-        drive_cfg = getattr(cfg, "drive", None)
-        if options is None:
-            options = self.Options.model_validate(drive_cfg.options if drive_cfg is not None else {})
-        self.opt = options
-        self.clock = clock or MonotonicClock()
-        inv_l = invert_left if invert_left is not None else bool(getattr(drive_cfg, "invert_left", False))
-        inv_r = invert_right if invert_right is not None else bool(getattr(drive_cfg, "invert_right", False))
-        self.axes = (options.left_axis, options.right_axis)
-        self.sides = {options.left_axis: "left", options.right_axis: "right"}
-        self.signs = (-1 if inv_l else 1, -1 if inv_r else 1)
+        super().__init__(cfg, clock, options=options, invert_left=invert_left, invert_right=invert_right)
+        self.axes = (self.opt.left_axis, self.opt.right_axis)
+        self.sides = {self.opt.left_axis: "left", self.opt.right_axis: "right"}
         self.ser = None
-        self.faults: list[str] = []
-        self._connected = False
-        self._enabled = False
-        self._lock = threading.RLock()
         self._cycle = 0
-        self._missed = 0
-        self._next_reconnect_ns = 0
         self._rx = b""
-        self._state = WheelState(self.clock.now_ns(), (0.0, 0.0), (0.0, 0.0))
-
-    @classmethod
-    def from_config(cls, cfg, clock, options=None) -> "ODriveDrive":
-        """As the runtime's factory builds drives: the robot config, its clock, the validated options."""
-        return cls(cfg, clock, options=options)
 
     # -- lifecycle ---------------------------------------------------------------------
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
     def connect(self) -> None:
         self._connect(clear_errors=False)
 
@@ -157,19 +135,16 @@ class ODriveDrive(WheelDrive):
                     if got is None or int(float(got)) != CONTROL_MODE_VELOCITY:
                         raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
             except DriveError:
-                self._close_serial()
+                self._close_device()
                 raise
             except (serial.SerialException, OSError) as exc:
-                self._close_serial()
+                self._close_device()
                 raise DriveError(f"ODrive {self.opt.port} failed during setup: {exc}") from exc
             self._connected = True
 
     def enable(self) -> None:
         with self._lock:
-            if not self._connected:
-                raise DriveError(f"ODrive on {self.opt.port} is not connected")
-            if self.faults:
-                raise DriveError("ODrive has faults, clear them first (clear_faults): " + "; ".join(self.faults))
+            self._check_can_enable()
             self._io(self._arm)
             self._enabled = True
 
@@ -182,16 +157,13 @@ class ODriveDrive(WheelDrive):
             state = self._query(f"r axis{ax}.current_state", self.opt.setup_timeout_s)
             if state is None or int(float(state)) != AXIS_STATE_CLOSED_LOOP:
                 errors = self._read_errors(self.opt.setup_timeout_s)
-                self._disarm()
+                self._stop_wheels()
                 raise DriveError(f"ODrive axis{ax} ({self.sides[ax]}) did not enter closed loop "
                                  f"(state {state}); errors: {'; '.join(errors) or 'none'}")
 
     def write(self, left: float, right: float) -> None:
         with self._lock:
-            if self.faults:
-                raise DriveError("ODrive faulted: " + "; ".join(self.faults))
-            if not self._enabled:
-                raise DriveError("ODrive drive is not enabled")
+            self._check_can_write()
             rates = (left, right)
             for k, ax in enumerate(self.axes):
                 turns = self.signs[k] * rates[k] / (2 * math.pi) * self.opt.gear_ratio
@@ -200,20 +172,13 @@ class ODriveDrive(WheelDrive):
 
     def read(self) -> WheelState:
         with self._lock:
-            if not self._connected:
-                self._try_reconnect()
-            if not self._connected:
-                if os.path.exists(self.opt.port) and self.faults:
-                    raise DriveError(f"ODrive {self.opt.port} is back but not usable: {'; '.join(self.faults)}")
-                raise DriveError(f"ODrive {self.opt.port} is gone; waiting for it to come back")
+            self._ensure_connected()
             self._cycle += 1
             values, why = self._io(self._feedback)
             if values is None:
-                self._missed += 1
-                if self._missed >= self.opt.max_missed_reads:
-                    self._fault(why)
+                self._missed_read(why)
                 return self._state
-            self._missed = 0
+            self._missed_reads = 0
             pos = tuple(self.signs[k] * values[k][0] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
             vel = tuple(self.signs[k] * values[k][1] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
             self._state = WheelState(self.clock.now_ns(), pos, vel, tuple(self.faults), self._enabled)
@@ -222,17 +187,6 @@ class ODriveDrive(WheelDrive):
                 if errors:
                     self._fault("; ".join(errors))
             return self._state
-
-    def disable(self) -> None:
-        with self._lock:
-            self._enabled = False
-            self._disarm()
-
-    def close(self) -> None:
-        with self._lock:
-            self.disable()
-            self._close_serial()
-            self._connected = False
 
     def clear_faults(self) -> None:
         """``sc`` clears the error words of both axes; enable() re-arms."""
@@ -244,7 +198,7 @@ class ODriveDrive(WheelDrive):
             if errors:
                 raise DriveError("ODrive errors remain after clearing: " + "; ".join(errors))
             self.faults = []
-            self._missed = 0
+            self._missed_reads = 0
 
     # -- protocol --------------------------------------------------------------------------
     def _frame(self, text: str) -> bytes:
@@ -341,25 +295,11 @@ class ODriveDrive(WheelDrive):
         except Exception as exc:  # SerialException, OSError from a vanished device
             self._lost(exc)
 
-    def _lost(self, exc: BaseException):
-        self._enabled = False
-        self._connected = False
-        self._close_serial()
-        self._next_reconnect_ns = self.clock.now_ns() + int(self.opt.reconnect_interval_s * 1e9)
-        msg = (f"ODrive {self.opt.port} lost ({type(exc).__name__}: {exc}); its axis watchdog "
-               f"({self.opt.watchdog_s * 1000:.0f} ms) disarms the motors; reconnecting when the device is back")
-        self.faults = [msg]
-        raise DriveError(msg) from exc
+    def _watchdog_note(self) -> str:
+        return f"its axis watchdog ({self.opt.watchdog_s * 1000:.0f} ms) disarms the motors"
 
-    def _fault(self, cause: str):
-        if cause in self.faults:
-            return
-        self.faults.append(cause)
-        self._enabled = False
-        self._disarm()
-        raise DriveError(f"ODrive fault: {cause}")
-
-    def _disarm(self) -> None:
+    def _stop_wheels(self) -> None:
+        """Velocity 0 and IDLE on both axes (disarmed)."""
         if self.ser is None:
             return
         for ax in self.axes:
@@ -369,24 +309,13 @@ class ODriveDrive(WheelDrive):
             except Exception:
                 pass
 
-    def _close_serial(self) -> None:
+    def _close_device(self) -> None:
         if self.ser is not None:
             try:
                 self.ser.close()
             except Exception:
                 pass
         self.ser = None
-
-    def _try_reconnect(self) -> None:
-        now = self.clock.now_ns()
-        if now < self._next_reconnect_ns or not os.path.exists(self.opt.port):
-            return
-        self._next_reconnect_ns = now + int(self.opt.reconnect_interval_s * 1e9)
-        try:
-            self.faults = []
-            self.connect()
-        except DriveError:
-            self._connected = False
 
 
 class _Corrupt(Exception):

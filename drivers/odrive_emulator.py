@@ -19,15 +19,12 @@ wrong checksum or garbled text), ``axis(n).inject(motor=..., encoder=...)``.
 from __future__ import annotations
 
 import math
-import os
-import select
-import threading
 import time
-import tty
 from pathlib import Path
 from typing import Optional
 
 from vbnav.drivers.dynamixel_emulator import WheelCoupling
+from vbnav.drivers.pty_device import PtyDevice
 
 AXIS_STATE_IDLE = 1
 AXIS_STATE_CLOSED_LOOP = 8
@@ -145,118 +142,40 @@ class EmulatedAxis:
         self.pos += self.vel * dt
 
 
-class ODriveEmulator:
+class ODriveEmulator(PtyDevice):
     """A two-axis ODrive on a pty. ``start()`` returns the device path."""
+
+    thread_name = "odrive-emulator"
 
     def __init__(self, link: str | Path | None = None, coupling: Optional[WheelCoupling] = None,
                  step_s: float = 0.001):
         self.axes = [EmulatedAxis(0), EmulatedAxis(1)]
-        self.link = Path(link) if link else None
+        super().__init__(link, step_s)
         self.coupling = coupling
-        self.step_s = step_s
         self.vbus_voltage = 24.0
         self.no_answer = False
         self.corrupt = False
-        self.lock = threading.RLock()
         self.log: list[tuple[float, str]] = []
-        self._master = self._slave = -1
-        self.slave_path = ""
         self._buf = b""
-        self._thread: Optional[threading.Thread] = None
-        self._stop = threading.Event()
         self._t0 = time.monotonic()
 
     def axis(self, n: int) -> EmulatedAxis:
         return self.axes[n]
 
-    @property
-    def path(self) -> str:
-        return str(self.link) if self.link else self.slave_path
-
-    # -- lifecycle (same shape as the Dynamixel bus) ---------------------------------
-    def start(self) -> str:
-        self._open_pty()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="odrive-emulator", daemon=True)
-        self._thread.start()
-        return self.path
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        self._close_pty()
-
-    def __enter__(self) -> "ODriveEmulator":
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    def unplug(self) -> None:
-        with self.lock:
-            self._close_pty()
-
-    def replug(self) -> None:
-        with self.lock:
-            self._open_pty()
-
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        self._master, self._slave = master, slave
-        self.slave_path = os.ttyname(slave)
+    # -- serving (the pty lifecycle is PtyDevice's, shared with the Dynamixel bus) ------------
+    def _reset_input(self) -> None:
         self._buf = b""
-        if self.link:
-            tmp = self.link.with_name(self.link.name + ".tmp")
-            if tmp.is_symlink() or tmp.exists():
-                tmp.unlink()
-            tmp.symlink_to(self.slave_path)
-            os.replace(tmp, self.link)
 
-    def _close_pty(self) -> None:
-        if self.link and self.link.is_symlink():
-            self.link.unlink()
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self._master = self._slave = -1
+    def _serve_bytes(self, data: bytes) -> None:
+        out = self.handle_bytes(data)
+        if out:
+            self._write(out)
 
-    def _run(self) -> None:
-        last = time.monotonic()
-        while not self._stop.is_set():
-            fd = self._master
-            data = b""
-            if fd >= 0:
-                try:
-                    r, _, _ = select.select([fd], [], [], self.step_s)
-                    if r:
-                        data = os.read(fd, 4096)
-                except (OSError, ValueError):
-                    data = b""
-            else:
-                time.sleep(self.step_s)
-            now = time.monotonic()
-            with self.lock:
-                if data:
-                    out = self.handle_bytes(data)
-                    if out and self._master >= 0:
-                        try:
-                            os.write(self._master, out)
-                        except OSError:
-                            pass
-                dt = now - last
-                if dt >= self.step_s * 0.5:
-                    for ax in self.axes:
-                        if ax.check_watchdog(now):
-                            self._log(f"watchdog_expired {ax.index}")
-                        ax.step(dt, self.coupling)
-                    last = now
+    def _step(self, now: float, dt: float) -> None:
+        for ax in self.axes:
+            if ax.check_watchdog(now):
+                self._log(f"watchdog_expired {ax.index}")
+            ax.step(dt, self.coupling)
 
     def _log(self, text: str) -> None:
         self.log.append((time.monotonic() - self._t0, text))

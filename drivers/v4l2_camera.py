@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import glob
 import os
-import threading
 import time
 from typing import Any, Literal, Optional
 
 import cv2
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from vbnav.drivers.camera import Camera, CameraError, Frame
-from vbnav.drivers.clock import MonotonicClock
+from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
 
 
 def fourcc_to_str(value: float) -> str:
@@ -34,7 +32,7 @@ def fourcc_to_str(value: float) -> str:
     return "".join(chr((v >> (8 * i)) & 0xFF) for i in range(4)) if v > 0 else "????"
 
 
-class V4L2Camera(Camera):
+class V4L2Camera(GrabbingCamera):
     name = "v4l2"
 
     class Options(BaseModel):
@@ -63,30 +61,12 @@ class V4L2Camera(Camera):
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["V4L2Camera.Options"] = None,
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
-        cam = getattr(cfg, "camera", None)
-        if options is None:
-            options = self.Options.model_validate(cam.options if cam is not None else {})
-        self.opt = options
-        self.clock = clock or MonotonicClock()
-        self.width = width or (cam.width if cam is not None else 640)
-        self.height = height or (cam.height if cam is not None else 480)
-        self.fps = fps or (cam.rate_hz if cam is not None else 30.0)
+        super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
+        options = self.opt
         self.is_file = options.source == "file" or (options.source == "auto" and os.path.isfile(options.device))
-        self.error: Optional[str] = None
         self.reconnects = 0
         self.finished = False
         self._cap = None
-        self._latest: Optional[Frame] = None
-        self._returned_seq = 0
-        self._seq = 0
-        self._cond = threading.Condition()
-        self._stop = threading.Event()
-        self._thread: Optional[threading.Thread] = None
-        self._connected = False
-
-    @classmethod
-    def from_config(cls, cfg, clock, options=None) -> "V4L2Camera":
-        return cls(cfg, clock, options=options)
 
     @staticmethod
     def find() -> list[str]:
@@ -94,40 +74,15 @@ class V4L2Camera(Camera):
         return sorted(glob.glob("/dev/v4l/by-id/*")) + sorted(glob.glob("/dev/video*"))
 
     # -- lifecycle -----------------------------------------------------------------------
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
     def connect(self) -> None:
         self._cap = self._open()
-        self._connected = True
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._grab_loop, name=f"v4l2:{self.opt.device}", daemon=True)
-        self._thread.start()
+        self._start_grabbing(f"v4l2:{self.opt.device}")
 
     def disconnect(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        self._join_grabbing(2.0)
         self._release()
         self._connected = False
-
-    def read(self, timeout_s: float = 0.0) -> Optional[Frame]:
-        end = time.monotonic() + timeout_s
-        with self._cond:
-            while self._latest is None or self._latest.seq <= self._returned_seq:
-                remaining = end - time.monotonic()
-                if remaining <= 0:
-                    return None
-                self._cond.wait(remaining)
-            self._returned_seq = self._latest.seq
-            return self._latest
-
-    def latest_age_s(self) -> Optional[float]:
-        """Age of the newest frame grabbed (returned or not), None before the first."""
-        f = self._latest
-        return None if f is None else f.age_s(self.clock.now_ns())
 
     # -- opening and verifying ------------------------------------------------------------------
     def _open(self):
@@ -224,11 +179,8 @@ class V4L2Camera(Camera):
             stamp = self.clock.now_ns()
             if self.opt.grey and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-            with self._cond:
-                self._seq += 1
-                self._latest = Frame(img, stamp, self._seq, meta={"device": self.opt.device,
-                                                                   "reconnects": self.reconnects})
-                self._cond.notify_all()
+            meta = {"device": self.opt.device, "reconnects": self.reconnects}
+            self._frames.publish(lambda seq: Frame(img, stamp, seq, meta=meta))
 
     def _try_reopen(self) -> None:
         try:

@@ -7,13 +7,11 @@ from __future__ import annotations
 
 import math
 import os
-import signal
-import subprocess
-import sys
-import textwrap
 import time
 
 import pytest
+
+from driver_test_utils import controller_script, drive_for, emulate_cli, kill_controller_while_driving, wait_until
 
 from vbnav.drivers import dynamixel_emulator as de
 from vbnav.drivers.dynamixel import VELOCITY_UNIT_RAD_S, DynamixelDrive
@@ -44,25 +42,8 @@ def drive(bus):
     d.close()
 
 
-def wait_until(pred, timeout=2.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
-
-
 def wheels_stopped(bus) -> bool:
     return all(abs(bus.servo(i)._velocity) < 0.5 and bus.servo(i).target_velocity() == 0 for i in (1, 2))
-
-
-def drive_for(drive, left, right, cycles=10):
-    for _ in range(cycles):
-        drive.write(left, right)
-        state = drive.read()
-        time.sleep(0.005)
-    return state
 
 
 def test_bring_up_in_safe_order(bus):
@@ -204,29 +185,13 @@ def _reads(drive) -> bool:
         return False
 
 
-CONTROLLER = textwrap.dedent("""
-    import sys, time
-    from vbnav.drivers.dynamixel import DynamixelDrive
-    d = DynamixelDrive(options=DynamixelDrive.Options(port=sys.argv[1], bus_watchdog_s=float(sys.argv[2])))
-    d.connect(); d.enable()
-    print("running", flush=True)
-    while True:
-        d.write(3.0, 3.0); d.read(); time.sleep(0.01)
-""")
+CONTROLLER = controller_script("dynamixel", "DynamixelDrive", "bus_watchdog_s")
 
 
 def test_controlling_process_killed_with_sigkill(bus):
-    proc = subprocess.Popen([sys.executable, "-c", CONTROLLER, bus.path, str(WATCHDOG_S)],
-                            stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout.readline().strip() == "running"
-        assert wait_until(lambda: abs(bus.servo(1)._velocity) > 100, timeout=3.0)
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=5)
-        assert wait_until(lambda: wheels_stopped(bus), timeout=2.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    kill_controller_while_driving(CONTROLLER, bus.path, WATCHDOG_S,
+                                  moving=lambda: abs(bus.servo(1)._velocity) > 100,
+                                  stopped=lambda: wheels_stopped(bus))
     with bus.lock:
         expired = [e for e in bus.log if e.op == "watchdog_expired"]
         assert sorted(e.dxl_id for e in expired) == [1, 2]
@@ -238,19 +203,13 @@ def test_controlling_process_killed_with_sigkill(bus):
 
 
 def test_vbnav_emulate_dynamixel_prints_device_path_first(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "emulate", "dynamixel", "--ids", "3,4",
-                             "--model", "XM430-W350"], stdout=subprocess.PIPE, text=True)
-    try:
-        path = proc.stdout.readline().strip()
+    with emulate_cli("dynamixel", "--ids", "3,4", "--model", "XM430-W350") as path:
         assert os.path.exists(path)
         d = DynamixelDrive(options=DynamixelDrive.Options(port=path, left_id=3, right_id=4, model="XM430-W350",
                                                           margin_ms=3.0))
         d.connect()
         assert d.models == {3: 1020, 4: 1020}
         d.close()
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=5) == 0
 
 
 def test_a_stalled_controller_finds_the_watchdog_expired(bus, drive):

@@ -2,14 +2,10 @@
 from __future__ import annotations
 
 import math
-import os
-import signal
-import subprocess
-import sys
-import textwrap
-import time
 
 import pytest
+
+from driver_test_utils import controller_script, drive_for, emulate_cli, kill_controller_while_driving, wait_until
 
 from vbnav.drivers import odrive_emulator as oe
 from vbnav.drivers.odrive import ODriveDrive, decode_bits, MOTOR_ERRORS
@@ -102,25 +98,8 @@ def drive(emu, request):
     d.close()
 
 
-def wait_until(pred, timeout=2.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
-
-
 def stopped(emu) -> bool:
     return all(abs(a.vel) < 1e-3 and a.target() == 0.0 for a in emu.axes)
-
-
-def drive_for(drive, left, right, cycles=10):
-    for _ in range(cycles):
-        drive.write(left, right)
-        state = drive.read()
-        time.sleep(0.005)
-    return state
 
 
 def test_setup_configures_velocity_control_and_watchdog(emu, drive):
@@ -190,29 +169,12 @@ def _reconnected(drive) -> bool:
     return True
 
 
-CONTROLLER = textwrap.dedent("""
-    import sys, time
-    from vbnav.drivers.odrive import ODriveDrive
-    d = ODriveDrive(options=ODriveDrive.Options(port=sys.argv[1], watchdog_s=float(sys.argv[2])))
-    d.connect(); d.enable()
-    print("running", flush=True)
-    while True:
-        d.write(3.0, 3.0); d.read(); time.sleep(0.01)
-""")
+CONTROLLER = controller_script("odrive", "ODriveDrive", "watchdog_s")
 
 
 def test_controlling_process_killed_with_sigkill(emu):
-    proc = subprocess.Popen([sys.executable, "-c", CONTROLLER, emu.path, str(WATCHDOG_S)],
-                            stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout.readline().strip() == "running"
-        assert wait_until(lambda: emu.axis(0).vel > 0.3, timeout=3.0)
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=5)
-        assert wait_until(lambda: stopped(emu), timeout=2.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    kill_controller_while_driving(CONTROLLER, emu.path, WATCHDOG_S,
+                                  moving=lambda: emu.axis(0).vel > 0.3, stopped=lambda: stopped(emu))
     with emu.lock:
         expired = [t for t, text in emu.log if text.startswith("watchdog_expired")]
         last_cmd = max(t for t, text in emu.log if text.startswith("v "))
@@ -223,14 +185,8 @@ def test_controlling_process_killed_with_sigkill(emu):
 
 
 def test_vbnav_emulate_odrive_prints_device_path_first():
-    proc = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "emulate", "odrive"],
-                            stdout=subprocess.PIPE, text=True)
-    try:
-        path = proc.stdout.readline().strip()
+    with emulate_cli("odrive") as path:
         d = ODriveDrive(options=ODriveDrive.Options(port=path, checksum=True, reply_timeout_s=0.05))
         d.connect()
         assert d.vbus_voltage == 24.0
         d.close()
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=5) == 0

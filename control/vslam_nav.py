@@ -1,0 +1,489 @@
+"""The VSLAM on the robot (chapter section 11.3) and the ``goto`` controller built on it.
+
+- ``VslamStage`` (vision thread, kind "vslam"): runs ``vision.vslam.Vslam`` on the
+  robot's frames. Metric scale comes from the calibrated stereo pair (the right
+  image of the frame, section 11.3.1.1) or, on cameras that deliver only a
+  disparity image (OAK), from the depth that disparity gives. The world frame is
+  the robot's odometry frame at the first frame (the robot's start pose), so a
+  goal "in the reference frame" is a pose relative to where the robot started.
+  Each reference frame of the VSLAM's chain is kept as an *anchor*: its
+  landmarks (world coordinates) with ORB descriptors. When the robot comes back
+  near an older anchor, the frame is matched against that anchor's landmarks and
+  the pose is computed against them (11.15-11.17), not through the chain of
+  hand-offs: returning to the start gives the pose against the first reference
+  set. Anchors cost ~7 kB each (about 3 per metre driven). After a few lost
+  frames in a row (a covered lens) the front end restarts from the current
+  stereo pair at the pose odometry carried since the last good frame; the
+  anchors survive, so a later loop still closes. The stage reports the robot's
+  planar pose (camera pose through the mount).
+- ``GotoController`` (loop rate): dead-reckons from the latest VSLAM pose with
+  odometry (a complementary filter, as ``RepeatController`` does with VBC fixes)
+  and drives to a goal pose (x, z, theta) with the polar-coordinate law of
+  Astolfi (rho, alpha, beta), slowing near the goal, then turns on the spot to
+  the goal heading and finishes when both are within tolerance.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from vbnav.control.controller import STOP, ControlContext, Controller, Estimate, Twist, VisionStage
+from vbnav.drivers.camera import Frame
+from vbnav.vision.features import describe, to_grey
+from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y, wrap_angle
+from vbnav.vision.motion import recover_motion_robust
+from vbnav.vision.vslam import Vslam, VslamConfig
+
+
+class GotoConfig(BaseModel):
+    """``vslam.goto``: the go-to controller's gains and tolerances."""
+
+    model_config = ConfigDict(extra="forbid")
+    cruise_speed: float = Field(0.3, gt=0, description="m/s")
+    k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
+    k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
+    k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
+    position_tolerance_m: float = Field(0.01, gt=0, description="goal reached within this distance (estimate)")
+    heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
+    approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
+    final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
+    settle_s: float = Field(0.3, ge=0, description="stopped this long within tolerance before finishing")
+    fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
+    max_estimate_age_s: float = Field(0.5, gt=0)
+    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
+
+
+class VslamNavConfig(VslamConfig):
+    """The ``vslam:`` section: the front end's settings plus the robot-side ones."""
+
+    relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
+                                                              "to where it was set (0: never)")
+    relocalise_heading_deg: float = Field(35.0, gt=0, description="... and heading within this of it")
+    relocalise_min_travel_m: float = Field(3.0, ge=0, description="only anchors set at least this far back "
+                                                                    "along the robot's path (a loop closed)")
+    relocalise_every: int = Field(1, ge=1, description="frames between relocalisation attempts")
+    relocalise_min_inliers: int = Field(20, ge=6, description="landmarks that must agree with an anchor")
+    relocalise_search_px: float = Field(20.0, gt=0, description="guided matching: search radius around the "
+                                                               "landmark's predicted pixel")
+    relocalise_max_correction_m: float = Field(0.5, gt=0, description="larger corrections are rejected as "
+                                                                      "wrong matches")
+    anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
+    restart_after_lost: int = Field(3, ge=1, description="frames lost in a row before the front end restarts "
+                                                         "from the current stereo pair at the odometry pose")
+    max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
+                                                                 "than this: the pose is not trusted")
+    goto: GotoConfig = Field(default_factory=GotoConfig)
+
+
+def vslam_nav_config(section: dict | None, source: str = "<config>") -> VslamNavConfig:
+    """Validate the free ``vslam:`` configuration section; errors name the file and key path."""
+    from pydantic import ValidationError
+
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return VslamNavConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vslam")) from None
+
+
+# ------------------------------------------------------------------------------------- poses
+def to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, t
+    return M
+
+
+def robot_to_camera_matrix(pose: Pose2, mount: CameraMount) -> np.ndarray:
+    """4x4 world-from-camera of the camera on a robot at ``pose``."""
+    return to_matrix(*camera_pose(pose, mount))
+
+
+def camera_to_robot(pose_wc: np.ndarray, mount: CameraMount) -> tuple[Pose2, float, float]:
+    """Planar robot pose from a 6-DoF world-from-camera pose and the mount.
+
+    Returns (pose, height error m, tilt error rad): how far the camera is from
+    where a robot on the floor would hold it (a check of the estimate, since the
+    VSLAM does not know the robot stays on the floor).
+    """
+    R_wr = pose_wc[:3, :3] @ mount.rotation().T        # R_wc = R_wr R_rc
+    theta = math.atan2(R_wr[0, 2], R_wr[2, 2])          # rot_y(theta): [0,2] = sin, [2,2] = cos
+    R_planar = rot_y(theta)
+    p = pose_wc[:3, 3] - R_planar @ mount.translation()
+    tilt = math.acos(max(-1.0, min(1.0, float(R_wr[1, 1]))))
+    return Pose2(float(p[0]), float(p[2]), theta), float(p[1]), tilt
+
+
+# ------------------------------------------------------------------------------------- stage
+@dataclass
+class VslamFix:
+    """A VSLAM result: the robot pose in the reference (world) frame at the frame's time."""
+
+    pose: Pose2
+    odom: Pose2                  # odometry at the frame
+    pose_wc: np.ndarray          # 4x4 world-from-camera
+    inliers: int
+    reference: int               # index of the reference frame of the chain the tracker uses
+    anchor: Optional[int] = None  # anchor the pose was computed against directly (relocalisation), if any
+    quality: dict = field(default_factory=dict)
+
+
+@dataclass
+class Anchor:
+    """A reference frame kept for relocalisation: its landmarks in world coordinates with descriptors."""
+
+    index: int
+    pose_wc: np.ndarray
+    robot: Pose2
+    points_w: np.ndarray         # (N, 3)
+    descriptors: np.ndarray      # (N, 32) uint8
+    travelled: float = 0.0       # odometry path length when it was set, m
+
+
+class VslamStage(VisionStage):
+    """Runs the VSLAM on every frame; the estimate is the robot's pose in the reference frame."""
+
+    kind = "vslam"
+
+    def __init__(self, camera, mount: CameraMount, stereo_baseline: Optional[float],
+                 cfg: VslamNavConfig | None = None, baseline_from_frames: bool = False):
+        """stereo_baseline: metres. With ``baseline_from_frames`` it may be None: the first frame's
+        ``meta['baseline_m']`` gives it (the OAK driver reads it from the device's calibration)."""
+        if (stereo_baseline is None or stereo_baseline <= 0) and not baseline_from_frames:
+            raise ValueError("the VSLAM stage needs a stereo camera for metric scale: set the stereo baseline "
+                             "(camera.options.stereo_baseline for the simulated camera)")
+        self.camera = camera
+        self.mount = mount
+        self.baseline = float(stereo_baseline) if stereo_baseline else None
+        self.cfg = cfg or VslamNavConfig()
+        self.slam = Vslam(camera, self.cfg, stereo_baseline=self.baseline)
+        self.anchors: list[Anchor] = []
+        self.correction = np.eye(4)  # world-from-chain: aligns the hand-off chain with the last relocalisation
+        self._frames = 0
+        self._last_anchor_ref = -1
+        self._travelled = 0.0
+        self._last_odom: Optional[Pose2] = None
+        self._ref_base = 0           # reference frames of earlier runs of the front end (before a restart)
+        self._lost_streak = 0
+        self._good: Optional[tuple[Pose2, Pose2]] = None   # (robot pose, odometry) at the last good frame
+        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0}
+
+    @property
+    def reference_index(self) -> int:
+        """Index of the current reference frame in the whole chain (across restarts)."""
+        return self._ref_base + len(self.slam.references) - 1
+
+    # -- per frame
+    def process(self, frame: Frame, odom: Pose2) -> Estimate:
+        image = to_grey(frame.image)
+        if self.baseline is None:
+            b = (frame.meta or {}).get("baseline_m")
+            if not b or b <= 0:
+                raise ValueError("the VSLAM stage needs the stereo baseline: the camera's frames carry no "
+                                 "meta['baseline_m'] (set camera.options.stereo_baseline)")
+            self.baseline = float(b)
+            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+        right, depth = self._metric_input(frame)
+        self._frames += 1
+        self.stats["frames"] += 1
+        if self._last_odom is not None:
+            self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
+        self._last_odom = odom
+        if not self.slam.initialised:
+            return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(odom, self.mount))
+        res = self.slam.process(image, right, depth)
+        self.stats["lost"] += int(not res.ok)
+        self.stats["handoffs"] += int(res.handoff)
+        self._lost_streak = 0 if res.ok else self._lost_streak + 1
+        if self._lost_streak >= self.cfg.restart_after_lost and self._good is not None:
+            # Lost (covered lens, motion blur, a blank wall): start a new chain from this stereo pair at the
+            # pose odometry gives since the last good frame. Anchors are kept, so the loop still closes.
+            guess = self._good[0].compose(self._good[1].between(odom))
+            return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(guess, self.mount),
+                               restart=True)
+        pose_wc = self.correction @ res.pose_wc
+        anchor = None
+        if res.ok:
+            self._maybe_add_anchor(image)
+            reloc = self._relocalise(image, pose_wc)
+            if reloc is not None:
+                anchor, pose_wc = reloc
+                self.correction = pose_wc @ np.linalg.inv(res.pose_wc)
+                self.stats["relocalised"] += 1
+        est = self._estimate(frame, odom, res.ok, pose_wc, res.inliers, anchor,
+                             {"iterations": res.iterations, "residual_px": res.residual_px,
+                              "tracked": res.tracked, "handoff": res.handoff})
+        if est.ok:
+            self._good = (est.value.pose, odom)
+        return est
+
+    def _start(self, frame: Frame, image, right, depth, odom: Pose2, pose_wc: np.ndarray,
+               restart: bool = False) -> Estimate:
+        """(Re)initialise the front end from this frame's stereo pair (or depth) at world pose ``pose_wc``."""
+        if restart:
+            self._ref_base = self.reference_index + 1
+            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+            self.correction = np.eye(4)
+            self.stats["restarts"] += 1
+        if right is not None:
+            n = self.slam.initialise_stereo(image, right, pose_wc)
+        else:
+            n = self.slam.initialise_depth(image, depth, pose_wc)
+        self._lost_streak = 0
+        self._maybe_add_anchor(image)
+        est = self._estimate(frame, odom, n >= self.cfg.min_inliers, self.slam.pose_wc, n, None,
+                             {"restart": restart})
+        if est.ok:
+            self._good = (est.value.pose, odom)
+        return est
+
+    def _metric_input(self, frame: Frame):
+        if frame.right is not None:
+            return to_grey(frame.right), None
+        if frame.disparity is not None:
+            d = np.asarray(frame.disparity, np.float32)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = np.where(d > 0, float(self.camera.fx) * self.baseline / d, np.nan)
+            return None, depth
+        raise ValueError("the VSLAM stage needs stereo frames (a right image or a disparity image); this camera "
+                         "delivers neither (camera.options.stereo_baseline for the simulated camera)")
+
+    def _estimate(self, frame: Frame, odom: Pose2, ok: bool, pose_wc: np.ndarray, inliers: int,
+                  anchor: Optional[int], quality: Optional[dict] = None) -> Estimate:
+        pose, dh, tilt = camera_to_robot(pose_wc, self.mount)
+        ok = ok and abs(dh) <= self.cfg.max_planar_residual_m
+        fix = VslamFix(pose, odom, pose_wc, inliers, self.reference_index, anchor,
+                       {**(quality or {}), "height_error_m": dh, "tilt_deg": math.degrees(tilt)})
+        return Estimate(frame.stamp_ns, self.kind, bool(ok), fix,
+                        {"inliers": inliers, "reference": fix.reference, "anchor": anchor})
+
+    # -- anchors (the chain's reference frames, kept for relocalisation)
+    def _maybe_add_anchor(self, image: np.ndarray) -> None:
+        ref_index = self.reference_index
+        if ref_index == self._last_anchor_ref:
+            return
+        self._last_anchor_ref = ref_index
+        lm = self.slam.lm
+        if len(lm.P) < self.cfg.anchor_min_landmarks:
+            return
+        # Landmarks are in the reference frame; the current camera is the reference frame (just handed off,
+        # or just initialised), so their pixels in this image describe them.
+        ref_wc = self.correction @ self.slam.references[-1].pose_wc
+        cur_wc = self.correction @ self.slam.pose_wc
+        desc, idx = describe(image, lm.px)
+        if len(idx) < self.cfg.anchor_min_landmarks:
+            return
+        Pw = lm.P[idx] @ ref_wc[:3, :3].T + ref_wc[:3, 3]
+        self.anchors.append(Anchor(ref_index, cur_wc, camera_to_robot(cur_wc, self.mount)[0], Pw, desc,
+                                   self._travelled))
+
+    def _relocalise(self, image: np.ndarray, pose_wc: np.ndarray) -> Optional[tuple[int, np.ndarray]]:
+        """Pose against the oldest anchor near the current pose, or None."""
+        cfg = self.cfg
+        if cfg.relocalise_radius_m <= 0 or self._frames % cfg.relocalise_every:
+            return None
+        robot = camera_to_robot(pose_wc, self.mount)[0]
+        current_ref = self.reference_index
+        for a in self.anchors:
+            if a.index >= current_ref - 1 or self._travelled - a.travelled < cfg.relocalise_min_travel_m:
+                break                             # the tracker still measures against these (or nearly)
+            rel = a.robot.between(robot)
+            if math.hypot(rel.x, rel.z) > cfg.relocalise_radius_m or \
+                    abs(rel.theta) > math.radians(cfg.relocalise_heading_deg):
+                continue
+            found = self._pose_against(a, image, pose_wc)
+            if found is not None:
+                return a.index, found
+        return None
+
+    def _pose_against(self, a: Anchor, image: np.ndarray, pose_wc: np.ndarray) -> Optional[np.ndarray]:
+        """Match the anchor's landmarks in this image near where the current pose puts them (guided ORB
+        matching), then the motion recovery (11.15-11.17) against their stored positions."""
+        cfg = self.cfg
+        cw = np.linalg.inv(pose_wc)
+        P = a.points_w @ cw[:3, :3].T + cw[:3, 3]          # landmarks in the predicted camera frame
+        pred, front = self.camera.project(P)
+        vis = np.flatnonzero(front & self.camera.in_image(pred, margin=8))
+        if len(vis) < cfg.relocalise_min_inliers:
+            return None
+        corners = self.slam.tracker.detect(image, 2 * cfg.max_landmarks)
+        desc, idx = describe(image, corners)
+        if len(idx) < cfg.relocalise_min_inliers:
+            return None
+        corners = corners[idx]
+        lm, cn = guided_matches(pred[vis], a.descriptors[vis], corners, desc, cfg.relocalise_search_px)
+        if len(lm) < cfg.relocalise_min_inliers:
+            return None
+        rays = self.camera.rays(corners[cn])
+        f = float(self.camera.fx)
+        est = recover_motion_robust(P[vis[lm]], rays, prior=(np.eye(3), np.zeros(3)),
+                                    threshold=cfg.inlier_threshold_px / f, angular=True,
+                                    rng=np.random.default_rng(self._frames))
+        n_in = int((est.inliers & (est.depths > 0)).sum())
+        if n_in < cfg.relocalise_min_inliers:
+            return None
+        # A correction larger than the chain can have drifted is a wrong match, not a loop closure.
+        if np.linalg.norm(est.T) > cfg.relocalise_max_correction_m:
+            return None
+        # X_cur = R X_pred + T  =>  world-from-current = world-from-pred @ inv([R, T])
+        return pose_wc @ np.linalg.inv(to_matrix(est.R, est.T))
+
+
+def guided_matches(pred: np.ndarray, desc_a: np.ndarray, corners: np.ndarray, desc_c: np.ndarray,
+                   radius: float, max_distance: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (landmark index, corner index): for each predicted pixel the corner within ``radius`` px with
+    the nearest ORB descriptor (Hamming <= max_distance), each corner used once (nearest descriptor wins)."""
+    if len(pred) == 0 or len(corners) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    near = np.linalg.norm(pred[:, None, :] - corners[None, :, :], axis=2) <= radius
+    ham = np.unpackbits(desc_a[:, None, :] ^ desc_c[None, :, :], axis=2).sum(axis=2)
+    ham = np.where(near, ham, 10 ** 6)
+    best = np.argmin(ham, axis=1)
+    dist = ham[np.arange(len(pred)), best]
+    ok = dist <= max_distance
+    lm, cn, dist = np.flatnonzero(ok), best[ok], dist[ok]
+    order = np.argsort(dist, kind="stable")
+    _, first = np.unique(cn[order], return_index=True)
+    keep = np.sort(order[first])
+    return lm[keep], cn[keep]
+
+
+def stereo_baseline_of(cfg) -> Optional[float]:
+    """The stereo baseline the configured camera gives, if any (simulated: its option; OAK: from the device)."""
+    opts = cfg.camera.options or {}
+    b = opts.get("stereo_baseline")
+    return float(b) if b else None
+
+
+# Camera drivers whose frames carry the stereo baseline (meta['baseline_m']) from the device's calibration.
+BASELINE_FROM_DEVICE = ("oak",)
+
+
+def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
+    return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
+                      vslam_nav_config(cfg.vslam, cfg.source or "<config>"),
+                      baseline_from_frames=cfg.camera.driver in BASELINE_FROM_DEVICE)
+
+
+# ---------------------------------------------------------------------------------- controller
+def polar_coordinates(pose: Pose2, goal: Pose2) -> tuple[float, float, float]:
+    """(rho, alpha, beta) of Astolfi's go-to-pose law, in this package's conventions.
+
+    rho: distance to the goal; alpha: bearing of the goal seen from the robot
+    (positive to the robot's right, like theta); beta: the angle the goal heading
+    still needs beyond that bearing, so that theta_goal - theta = alpha + beta.
+    The law v = k_rho rho, w = k_alpha alpha + k_beta beta (k_rho > 0, k_beta < 0,
+    k_alpha > k_rho) is locally exponentially stable (Siegwart & Nourbakhsh,
+    "Introduction to Autonomous Mobile Robots", 3.6.2); with theta growing to the
+    right the signs of alpha, beta and w all flip together, so the gains keep theirs.
+    """
+    dx, dz = goal.x - pose.x, goal.z - pose.z
+    rho = math.hypot(dx, dz)
+    alpha = wrap_angle(math.atan2(dx, dz) - pose.theta)
+    beta = wrap_angle(goal.theta - pose.theta - alpha)
+    return rho, alpha, beta
+
+
+class GotoController(Controller):
+    """Drive to a goal pose in the reference frame, localised by the VSLAM and odometry in between.
+
+    Phases: "drive" (the polar law, forward only: a goal behind turns the robot on
+    the spot first, so the camera looks where the robot goes), "turn" (on the spot
+    to the goal heading once within the position tolerance), "settle" (stopped,
+    within both tolerances, for ``settle_s``), then finished.
+    """
+
+    name = "goto"
+    requires = ("vslam",)
+
+    def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float = 0.5,
+                 max_angular_speed: float = 1.5):
+        self.goal = goal
+        self.cfg = cfg or GotoConfig()
+        self.v_max = min(self.cfg.cruise_speed, max_linear_speed)
+        self.w_max = max_angular_speed
+        self._P: Optional[Pose2] = None          # robot pose in the reference frame
+        self._P_odom: Optional[Pose2] = None     # odometry when _P was set
+        self._last_stamp: Optional[int] = None
+        self._good_odom: Optional[Pose2] = None
+        self._phase = "waiting"
+        self._settled_ns: Optional[int] = None
+        self._finished = False
+        self._status: dict = {"state": "waiting"}
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    @property
+    def pose(self) -> Optional[Pose2]:
+        """The fused pose estimate at the last update (None before the first VSLAM pose)."""
+        return self._status.get("_pose")
+
+    def status(self) -> dict:
+        return {k: v for k, v in self._status.items() if not k.startswith("_")}
+
+    def update(self, ctx: ControlContext) -> Twist:
+        self._absorb(ctx.estimate("vslam", self.cfg.max_estimate_age_s))
+        if self._P is None or self._finished:
+            return STOP
+        P = self._P.compose(self._P_odom.between(ctx.odom))
+        blind = math.hypot(ctx.odom.x - self._good_odom.x, ctx.odom.z - self._good_odom.z)
+        rho, alpha, beta = polar_coordinates(P, self.goal)
+        dth = wrap_angle(self.goal.theta - P.theta)
+        twist = self._law(ctx.now_ns, rho, alpha, beta, dth) if blind <= self.cfg.blind_distance_m else STOP
+        self._status = {"state": self._phase if blind <= self.cfg.blind_distance_m else "blind",
+                        "distance_m": rho, "heading_error_deg": math.degrees(dth), "blind_m": blind,
+                        "x": P.x, "z": P.z, "theta_deg": math.degrees(P.theta), "_pose": P}
+        return twist
+
+    def _law(self, now_ns: int, rho: float, alpha: float, beta: float, dth: float) -> Twist:
+        c = self.cfg
+        tol_th = math.radians(c.heading_tolerance_deg)
+        if self._phase in ("waiting", "drive") and rho <= c.position_tolerance_m:
+            self._phase = "turn"
+        elif self._phase in ("turn", "settle") and rho > 2.0 * c.position_tolerance_m:
+            self._phase, self._settled_ns = "drive", None   # pushed away (or a corrected estimate): drive again
+        elif self._phase == "waiting":
+            self._phase = "drive"
+        if self._phase == "drive":
+            # Speed proportional to the distance (slows near the goal), with a floor so the last
+            # centimetres do not take forever; zero while the goal is off to the side.
+            v = max(min(c.k_rho * rho, self.v_max), 0.04) * max(math.cos(alpha), 0.0)
+            fade = min(1.0, rho / c.approach_radius_m)      # beta is ill-defined at the goal itself
+            w = c.k_alpha * alpha + c.k_beta * beta * fade
+            if abs(w) > self.w_max:                          # keep the curvature, lower the speed
+                v *= self.w_max / abs(w)
+                w = math.copysign(self.w_max, w)
+            return Twist(v, w)
+        if abs(dth) > tol_th:
+            self._phase, self._settled_ns = "turn", None
+            w = math.copysign(min(c.final_turn_speed, max(1.5 * abs(dth), 0.05)), dth)
+            return Twist(0.0, w)
+        if self._phase != "settle":
+            self._phase, self._settled_ns = "settle", now_ns
+        if (now_ns - self._settled_ns) * 1e-9 >= c.settle_s:
+            self._finished = True
+            self._phase = "finished"
+        return STOP
+
+    def _absorb(self, est: Optional[Estimate]) -> None:
+        if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VslamFix):
+            return
+        self._last_stamp = est.stamp_ns
+        if not est.ok:
+            return
+        fix: VslamFix = est.value
+        self._good_odom = fix.odom
+        if self._P is None:
+            self._P, self._P_odom = fix.pose, fix.odom
+            return
+        # Complementary filter: blend the dead-reckoned pose at the frame time toward the VSLAM pose.
+        pred = self._P.compose(self._P_odom.between(fix.odom))
+        d = pred.between(fix.pose)
+        g = self.cfg.fix_gain
+        self._P = pred.compose(Pose2(g * d.x, g * d.z, g * d.theta))
+        self._P_odom = fix.odom

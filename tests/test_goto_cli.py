@@ -1,0 +1,53 @@
+"""vbnav goto as a command: a short drive on the simulated stereo robot, and bad input refused."""
+import subprocess
+import sys
+
+VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
+
+
+def _run(*args, timeout=300):
+    return subprocess.run(VBNAV + ["goto", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_goto_reaches_a_near_goal_on_the_simulated_robot():
+    r = _run("--goal", "0.3", "0.6", "20", "--duration", "30")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "goto ended: finished" in r.stdout
+    truth = [line for line in r.stdout.splitlines() if line.startswith("simulator ground truth")]
+    assert truth and "position error" in truth[0]
+    err_cm = float(truth[0].split("position error ")[1].split(" cm")[0])
+    assert err_cm < 5.0
+
+
+def test_goto_refuses_mono_config_and_bad_goals():
+    r = _run("--config", "sim", "--goal", "0", "1", "0")
+    assert r.returncode == 2 and "stereo_baseline" in r.stdout
+    r = _run("--goal", "0", "inf", "0")
+    assert r.returncode == 2 and "finite" in r.stderr
+    r = _run("--goal", "0", "1")
+    assert r.returncode == 2 and "--goal" in r.stderr
+    r = _run("--config", "no-such-robot.yaml", "--goal", "0", "1", "0")
+    assert r.returncode == 2 and "no-such-robot.yaml" in r.stderr
+
+
+def test_goto_times_out_with_exit_code_1():
+    r = _run("--goal", "0", "3", "0", "--duration", "1")
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "goto ended: duration" in r.stdout
+
+
+def test_goto_in_real_time_with_the_threaded_vision_pipeline(tmp_path):
+    """The same command on the wall clock: the VSLAM runs on the vision thread, the loop never waits on it."""
+    import yaml
+
+    from vbnav.control.config import CONFIG_DIR
+
+    d = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    d["sim"]["realtime"] = True
+    d["loop"]["max_missed_streak"] = 1000   # a loaded test machine must not trip the deadline stop
+    cfg = tmp_path / "rt.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")
+    assert r.returncode == 0, r.stdout + r.stderr
+    err_cm = float(r.stdout.split("position error ")[1].split(" cm")[0])
+    assert err_cm < 5.0

@@ -1,0 +1,207 @@
+"""VslamStage, the mount conversion and the GotoController (control/vslam_nav.py)."""
+import math
+
+import numpy as np
+import pytest
+
+from vbnav.control.controller import ControlContext, Estimate
+from vbnav.control.vslam_nav import (GotoConfig, GotoController, VslamFix, VslamStage, camera_to_robot,
+                                     polar_coordinates, robot_to_camera_matrix, vslam_nav_config)
+from vbnav.drivers.camera import Frame
+from vbnav.drivers.sim_camera import SimCamera
+from vbnav.drivers.sim_world import World
+from vbnav.drivers.wheels import WheelState
+from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.geometry import CameraMount, Pose2, arc_step, wrap_angle
+
+
+# ------------------------------------------------------------------------------------ mount
+@pytest.mark.parametrize("mount", [CameraMount(), CameraMount(0.4, 0.12, -0.05, math.radians(15), math.radians(-20))])
+def test_camera_to_robot_inverts_camera_pose(mount, rng):
+    for _ in range(20):
+        p = Pose2(*rng.uniform(-5, 5, 2), rng.uniform(-math.pi, math.pi))
+        back, dh, tilt = camera_to_robot(robot_to_camera_matrix(p, mount), mount)
+        assert back.x == pytest.approx(p.x, abs=1e-12) and back.z == pytest.approx(p.z, abs=1e-12)
+        assert wrap_angle(back.theta - p.theta) == pytest.approx(0.0, abs=1e-12)
+        assert dh == pytest.approx(0.0, abs=1e-12) and tilt == pytest.approx(0.0, abs=1e-7)
+
+
+def test_camera_to_robot_reports_a_camera_off_the_floor():
+    mount = CameraMount(0.25, 0.1)
+    M = robot_to_camera_matrix(Pose2(1.0, 2.0, 0.3), mount)
+    M[1, 3] -= 0.05                                    # 5 cm higher (y points down)
+    _, dh, _ = camera_to_robot(M, mount)
+    assert dh == pytest.approx(-0.05)
+
+
+# ------------------------------------------------------------------------------------ polar law
+def test_polar_coordinates_signs_follow_the_package_conventions():
+    rho, alpha, beta = polar_coordinates(Pose2(), Pose2(0.0, 2.0, 0.0))
+    assert (rho, alpha, beta) == pytest.approx((2.0, 0.0, 0.0))
+    _, alpha, _ = polar_coordinates(Pose2(), Pose2(1.0, 1.0, 0.0))   # ahead and to the right
+    assert alpha == pytest.approx(math.pi / 4)                          # positive like theta (turn right)
+    pose, goal = Pose2(0.3, -0.2, 0.4), Pose2(-1.0, 2.0, -1.0)
+    _, alpha, beta = polar_coordinates(pose, goal)
+    assert wrap_angle(alpha + beta) == pytest.approx(wrap_angle(goal.theta - pose.theta))
+
+
+class Unicycle:
+    """Ideal kinematics; VSLAM fixes at 10 Hz (truth, 30 ms old); odometry with a scale and heading bias."""
+
+    def __init__(self, start: Pose2, odom_scale=1.0, odom_drift=0.0, fixes=True):
+        self.true = start
+        self.start = start
+        self.odom = Pose2()
+        self.odom_scale, self.odom_drift, self.fixes = odom_scale, odom_drift, fixes
+        self.history = []
+
+    def run(self, ctrl: GotoController, seconds=40.0, dt=0.01):
+        est, v_log = None, []
+        for k in range(int(seconds / dt)):
+            now = int(k * dt * 1e9)
+            if self.fixes and k % 10 == 0 and len(self.history) > 3:
+                t_ns, truth, odom = self.history[-3]
+                est = Estimate(t_ns, "vslam", True, VslamFix(self.start.between(truth), odom, np.eye(4), 100, 0))
+            ctx = ControlContext(now, dt, self.odom, WheelState(now, (0.0, 0.0), (0.0, 0.0)), {"vslam": est}, k)
+            tw = ctrl.update(ctx)
+            v_log.append((tw.v, tw.w))
+            self.true = arc_step(self.true, tw.v * dt, tw.w * dt)
+            self.odom = arc_step(self.odom, tw.v * dt * self.odom_scale, tw.w * dt + self.odom_drift * abs(tw.v) * dt)
+            self.history.append((now, self.true, self.odom))
+            if ctrl.finished:
+                break
+        return np.array(v_log)
+
+
+@pytest.mark.parametrize("goal", [(0.0, 3.0, 0.0), (1.8, 2.4, 90.0), (-2.0, -1.0, 180.0), (0.5, 0.0, -90.0)])
+def test_goto_converges_from_odometry_with_bias_corrected_by_vslam(goal):
+    g = Pose2(goal[0], goal[1], math.radians(goal[2]))
+    sim = Unicycle(Pose2(), odom_scale=1.05, odom_drift=0.05)
+    ctrl = GotoController(g, GotoConfig())
+    vw = sim.run(ctrl)
+    assert ctrl.finished, ctrl.status()
+    rel = sim.true
+    assert math.hypot(rel.x - g.x, rel.z - g.z) < 0.015
+    assert abs(math.degrees(wrap_angle(rel.theta - g.theta))) < 1.0
+    assert (vw[:, 0] >= 0).all(), "forward only"
+    assert np.abs(vw[:, 0]).max() <= GotoConfig().cruise_speed + 1e-9
+    near = [abs(v) for (v, w), (_, t, _) in zip(vw, sim.history) if math.hypot(t.x - g.x, t.z - g.z) < 0.05]
+    assert max(near, default=0.0) < 0.06, "slows down near the goal"
+
+
+def test_goto_waits_for_vslam_and_stops_when_driving_blind():
+    sim = Unicycle(Pose2(), fixes=False)
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0))
+    vw = sim.run(ctrl, seconds=2.0)
+    assert (vw == 0).all() and ctrl.status()["state"] == "waiting"
+    # One fix, then none: the robot drives at most blind_distance_m on odometry and stops.
+    sim = Unicycle(Pose2(), fixes=True)
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0))
+    sim.run(ctrl, seconds=0.2)
+    sim.fixes = False
+    sim.run(ctrl, seconds=10.0)
+    assert not ctrl.finished and ctrl.status()["state"] == "blind"
+    assert 0.2 < sim.true.z < GotoConfig().blind_distance_m + 0.1
+
+
+# ------------------------------------------------------------------------------------ stage
+def _render(cam: SimCamera, poses, disparity_only=False):
+    for i, p in enumerate(poses):
+        f = cam.render_frame(p, int(i * 1e8), i)
+        if disparity_only:
+            f = Frame(f.image, f.stamp_ns, f.seq, disparity=f.disparity, meta={**f.meta, "baseline_m": 0.12})
+        yield f
+
+
+@pytest.mark.parametrize("disparity_only", [False, True], ids=["stereo-pair", "disparity-image-oak-like"])
+def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    # 1.5 m forward while turning 30 degrees right, 3 cm per frame.
+    poses = [start]
+    for _ in range(50):
+        poses.append(arc_step(poses[-1], 0.03, math.radians(0.6)))
+    # OAK-like: disparity only, and the baseline comes with the frames (the device's calibration)
+    stage = (VslamStage(model, mount, None, vslam_nav_config({}), baseline_from_frames=True) if disparity_only
+             else VslamStage(model, mount, 0.12, vslam_nav_config({})))
+    for f, p in zip(_render(cam, poses, disparity_only), poses):
+        est = stage.process(f, start.between(p))     # odometry = truth here; only the first one is used
+        assert est.ok and est.kind == "vslam"
+    truth = start.between(poses[-1])
+    got = est.value.pose
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.5
+    assert abs(est.value.quality["height_error_m"]) < 0.02
+
+
+def test_stage_needs_stereo():
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    with pytest.raises(ValueError, match="stereo_baseline"):
+        VslamStage(model, CameraMount(), None)
+    stage = VslamStage(model, CameraMount(), 0.12)
+    with pytest.raises(ValueError, match="right image or a disparity"):
+        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+    stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
+    with pytest.raises(ValueError, match="baseline_m"):
+        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+
+
+def test_vslam_section_is_validated_at_load_with_file_and_key_path(tmp_path):
+    from vbnav.control.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match=r"robot.yaml: vslam.goto.k_beta"):
+        vslam_nav_config({"goto": {"k_beta": 0.5}}, "robot.yaml")
+    with pytest.raises(ConfigError, match=r"vslam.relocalise_radus_m: unknown key"):
+        vslam_nav_config({"relocalise_radus_m": 1.0})
+    assert vslam_nav_config({"max_landmarks": 300, "goto": {"cruise_speed": 0.2}}).goto.cruise_speed == 0.2
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("vslam:\n  goto: {position_tolerance_m: -1}\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: vslam.goto.position_tolerance_m"):
+        load_config(bad)
+
+
+def test_stage_restarts_after_the_lens_was_covered_and_still_closes_the_loop_later():
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(30):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    stage = VslamStage(model, mount, 0.12, vslam_nav_config({}))
+    results = []
+    for i, p in enumerate(poses):
+        cam.occluded = 10 <= i < 15                    # half a second of a covered lens
+        odom = start.between(p)
+        odom = Pose2(odom.x, odom.z * 1.02, odom.theta)  # 2 % odometry scale error bridges the gap
+        results.append(stage.process(cam.render_frame(p, int(i * 1e8), i), odom))
+    assert all(r.ok for r in results[:10]) and not any(r.ok for r in results[10:15])
+    assert stage.stats["restarts"] >= 1
+    assert all(r.ok for r in results[16:])
+    refs = [r.value.reference for r in results]
+    assert refs == sorted(refs), "reference indices keep growing across a restart"
+    truth = start.between(poses[-1])
+    got = results[-1].value.pose
+    # 0.15 m bridged on odometry with 2 % error: a few mm, plus the VSLAM's own error
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+
+
+def test_guided_matches_pick_the_nearest_descriptor_inside_the_radius_once():
+    from vbnav.control.vslam_nav import guided_matches
+
+    rng = np.random.default_rng(3)
+    desc_a = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    pred = np.array([[10.0, 10.0], [50.0, 50.0], [200.0, 200.0]])
+    noisy = desc_a.copy()
+    noisy[:, 0] ^= 0b1                                  # 1 bit off
+    far = rng.integers(0, 256, (1, 32), dtype=np.uint8)
+    corners = np.array([[12.0, 9.0], [30.0, 30.0], [52.0, 50.0], [51.0, 49.0], [400.0, 400.0]])
+    desc_c = np.vstack((noisy[0], noisy[0], noisy[1], far, noisy[2]))
+    lm, cn = guided_matches(pred, desc_a, corners, desc_c, radius=5.0)
+    # landmark 0 -> corner 0 (corner 1 is as similar but outside the radius); 1 -> 2 (3 is near but unlike);
+    # landmark 2's twin is 280 px away: no match
+    assert lm.tolist() == [0, 1] and cn.tolist() == [0, 2]
