@@ -61,6 +61,9 @@ class VBCConfig(BaseModel):
                                         "keyframe's landmarks are still tracked")
     keyframe_min_spacing_m: float = Field(0.05, ge=0, description="no overlap-triggered keyframe closer than this")
     min_keyframe_landmarks: int = Field(20, ge=4)
+    denoise_baseline_m: float = Field(0.5, ge=0, description="a keyframe stores the bearings its tracks' fit "
+                                      "predicts only for tracks first seen within this distance (odometry "
+                                      "heading drifts ~1 deg/m), else the observed ones")
     # repeat
     min_landmarks: int = Field(12, ge=4, description="fewer agreeing landmarks: the fix is not trusted")
     slow_landmarks: int = Field(30, ge=4, description="fewer agreeing landmarks: drive slower")
@@ -146,6 +149,8 @@ class TeachStage(VisionStage):
             emitted = self._finalise_pending()
             self._pending = self._candidate(ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors)
             self._last_frame = None
+            # Its tracks already have heights: a keyframe taken at the last frame must not be left without.
+            self._refresh_pending_heights()
         info = {"tracks": len(ids), "keyframes": self._count, "distance": self._distance}
         return Estimate(stamp_ns, self.kind, True, emitted, info)
 
@@ -203,7 +208,7 @@ class TeachStage(VisionStage):
         # The keyframe's own observation carries one frame's noise, and every later fix against
         # this keyframe would inherit it as a bias: store the bearings that the whole track
         # predicts at the keyframe pose instead, once its range is well determined.
-        alpha, beta, valid = self.heights.bearings_at(p["track_ids"], p["odom"])
+        alpha, beta, valid = self.heights.bearings_at(p["track_ids"], p["odom"], self.cfg.denoise_baseline_m)
         good = valid & known & (var < (0.3 * w) ** 2)
         p["alpha"][good] = alpha[good]
         p["beta"][good] = beta[good]

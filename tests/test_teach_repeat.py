@@ -172,3 +172,28 @@ def test_vbc_config_section_is_validated():
         teach_repeat_config({"lookahed_m": 0.3}, "robot.yaml")   # typo: extra keys are errors
     with pytest.raises(ConfigError, match="vbc.min_landmarks"):
         teach_repeat_config({"min_landmarks": 2})
+
+
+def test_keyframe_taken_at_the_last_frame_has_heights():
+    """A keyframe triggered by the very last frame is emitted with its tracks' heights (else a repeat
+    can never localise at the route's end)."""
+    rng = np.random.default_rng(5)
+    pts = room_landmarks(rng)
+    cfg = VBCConfig()
+    stage = TeachStage(CAM, MOUNT, cfg)
+    pose = Pose2()
+    for i in range(40):                                   # 1 m straight, a frame every 2.5 cm
+        ids, px = observe(pose, pts, rng)
+        stage.update(ids, px, pose, i)
+        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+    pose = pose.compose(Pose2(0.0, cfg.keyframe_distance_m, 0.0))   # the last frame is due a keyframe
+    ids, px = observe(pose, pts, rng)
+    before = stage.n_keyframes
+    stage.update(ids, px, pose, 41)
+    assert stage.n_keyframes == before + 1                 # the previous one emitted, the last one pending
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    assert stage.n_keyframes == before + 2                 # no extra keyframe: the last frame already was one
+    assert kfs[-1].stamp_ns == 41
+    last = kfs[-1]
+    assert np.isfinite(last.inv_height).mean() > 0.8

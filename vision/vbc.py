@@ -487,11 +487,16 @@ class InverseHeightEstimator:
         var[found] = np.where(ok, var_rho / (t0 * t0), np.inf)
         return ids, w, var
 
-    def bearings_at(self, track_ids, odom: Pose2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def bearings_at(self, track_ids, odom: Pose2, max_baseline: float = math.inf
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """De-noised levelled bearings of tracks seen from ``odom``: (alpha, beta, valid).
 
         Predicted by the exact model from the track's corrected anchor bearings and
-        rho0; invalid (NaN) for unknown tracks or tracks without parallax yet.
+        rho0; invalid (NaN) for unknown tracks or tracks without parallax yet, and for
+        tracks anchored farther than ``max_baseline`` (m) from ``odom``: the prediction
+        carries the odometry's heading error between the anchor and ``odom`` (wheel slip
+        turns it by ~1 deg per metre), which would bias every fix against a keyframe that
+        stores it, while the observation's own noise averages out over many landmarks.
         """
         ids = np.asarray(track_ids, dtype=np.int64).ravel()
         found, pos = self._find(ids)
@@ -514,7 +519,7 @@ class InverseHeightEstimator:
         alpha[found] = np.arctan2(vx, vz)
         beta[found] = np.arctan2(np.tan(b0), np.hypot(vx, vz))
         valid = np.zeros(len(ids), bool)
-        valid[found] = ok
+        valid[found] = ok & (np.hypot(px, pz) <= max_baseline)
         return alpha, beta, valid
 
     def anchor_bearings(self, track_ids) -> tuple[np.ndarray, np.ndarray]:
