@@ -254,9 +254,6 @@ def units_to_rad_s(units: float) -> float:
     return units * VELOCITY_UNIT_RPM * 2 * 3.141592653589793 / 60.0
 
 
-_INST_NAMES = {dp.INST_PING: "ping", dp.INST_READ: "read", dp.INST_WRITE: "write", dp.INST_REG_WRITE: "reg_write",
-               dp.INST_ACTION: "action", dp.INST_REBOOT: "reboot", dp.INST_SYNC_READ: "sync_read",
-               dp.INST_SYNC_WRITE: "sync_write", dp.INST_BULK_READ: "bulk_read", dp.INST_BULK_WRITE: "bulk_write"}
 
 
 class DynamixelBus(PtyDevice):
@@ -348,7 +345,6 @@ class DynamixelBus(PtyDevice):
                 return [self._status(live[0], dp.ERR_CRC)]
             return []
         inst, p = pkt.inst, pkt.params
-        name = _INST_NAMES.get(inst, f"inst_{inst:02x}")
         for s in live:
             s.last_comm = now
         unicast = pkt.dxl_id != dp.BROADCAST_ID

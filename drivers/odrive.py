@@ -24,7 +24,7 @@ from vbnav.drivers.wheels import DriveError, WheelState
 
 try:
     import serial
-except ImportError as _exc:  # pragma: no cover - pyserial is a dependency
+except ImportError:  # pragma: no cover - pyserial is a dependency
     serial = None
 
 AXIS_STATE_IDLE = 1

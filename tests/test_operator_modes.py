@@ -1,6 +1,4 @@
 """Operator session: teleop in idle, cmd/mode teach records a route, cmd/mode repeat patrols it."""
-from pathlib import Path
-
 from vbnav.control.config import load_config
 from vbnav.control.demo import make_sim_robot
 from vbnav.control.factory import make_pipeline

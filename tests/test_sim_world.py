@@ -124,7 +124,6 @@ def test_small_box_and_floor_sheet_on_the_floor():
     v = np.nonzero(sheet.any(axis=1))[0]
     row = int(np.median(v))
     cols = np.nonzero(sheet[row])[0]
-    h = 0.4
     # Floor depth along a row for a pitched camera, from the ray-plane intersection.
     ray = np.linalg.inv(CAM.K) @ np.array([cols[len(cols) // 2], row, 1.0])
     ray_w = R @ ray

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.control.controller import ControlContext, Estimate
+from vbnav.control.controller import ControlContext
 from vbnav.control.route import Route
 from vbnav.control.teach_repeat import RepeatController, RepeatStage, TeachStage, VBCConfig
 from vbnav.drivers.wheels import WheelState

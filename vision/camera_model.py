@@ -5,7 +5,6 @@ frame and must not assume z > 0 (fisheye rays can point sideways or back).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 
 import cv2

@@ -25,7 +25,6 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.demo import demo_route, make_sim_robot, start_pose, teach_route
-    from vbnav.control.manual import TeleopController
     from vbnav.control.path_tools import PathFollower
     from vbnav.control.progress import ProgressPrinter
 
