@@ -96,7 +96,7 @@ class LoopConfig(Strict):
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the loop thread "
                                    "(0: normal scheduling); needs root or CAP_SYS_NICE, else a warning event")
     cpu_affinity: list[int] = Field(default_factory=list, description="CPUs the loop thread may run on (empty: any)")
-    gil_switch_interval_us: int = Field(500, ge=50, le=5000, description="Python's thread switch interval "
+    gil_switch_interval_us: int = Field(200, ge=50, le=5000, description="Python's thread switch interval "
                                         "while a real-time loop runs: how long a busy vision thread may "
                                         "keep the loop waiting for the GIL (Python's default is 5000)")
 
