@@ -22,7 +22,6 @@ from typing import Optional
 
 from vbnav.control.controller import STOP, ControlContext, Controller, Twist
 from vbnav.control.manual import TeleopController
-from vbnav.control.safety import SafetyEvent
 
 MODES = ("idle", "teach", "repeat")
 
@@ -103,7 +102,7 @@ class OperatorController(Controller):
         return True
 
     def _reject(self, rt, now_ns: int, message: str) -> None:
-        rt.safety._emit(SafetyEvent(now_ns, "rejected", "mode", message))
+        rt.safety.reject(now_ns, "mode", message)
 
     # -- switching (worker thread) --------------------------------------------
     def _start_switch(self, target: str, route: Optional[str], now_ns: int) -> None:

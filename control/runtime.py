@@ -263,9 +263,7 @@ class Runtime:
             elif cmd.kind == "teleop" and hasattr(self.controller, "set_command"):
                 self.controller.set_command(float(cmd.args[0]), float(cmd.args[1]), now)
             elif not handled:
-                # Through _emit so safety listeners (telemetry) see the rejection too.
-                self.safety._emit(SafetyEvent(now, "rejected", cmd.kind,
-                                              f"command {cmd.kind!r} not supported by this run"))
+                self.safety.reject(now, cmd.kind, f"command {cmd.kind!r} not supported by this run")
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):

@@ -72,6 +72,10 @@ class SafetyMonitor:
             self._emit(SafetyEvent(now_ns, "reset", ",".join(cleared), message))
         return cleared
 
+    def reject(self, now_ns: int, command: str, message: str) -> None:
+        """A refused operator command: an event for the log and listeners, no change to the stop state."""
+        self._emit(SafetyEvent(now_ns, "rejected", command, message))
+
     # -- outputs -----------------------------------------------------------
     @property
     def may_move(self) -> bool:

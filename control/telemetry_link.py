@@ -163,15 +163,13 @@ class TelemetryLink:
         """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
         if cmd.kind != "mode" or getattr(rt.controller, "switches_modes", False):
             return False   # the operator controller switches modes itself
-        from vbnav.control.safety import SafetyEvent
         target, current = cmd.args[0], getattr(rt.controller, "name", "?")
         if target == current:
             self.publisher.event("mode_unchanged", stamp_ns=now_ns, mode=current)
         else:
             how = {"idle": "stop this run", "teach": "vbnav teach --out ROUTE",
                    "repeat": "vbnav repeat --path ROUTE"}.get(target, "a new run")
-            rt.safety._emit(SafetyEvent(now_ns, "rejected", "mode", f"this run is '{current}'; switching to "
-                                        f"'{target}' needs a new run ({how})"))
+            rt.safety.reject(now_ns, "mode", f"this run is '{current}'; switching to '{target}' needs a new run ({how})")
         return True
 
     def _on_safety(self, ev) -> None:
