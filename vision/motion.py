@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from vbnav.vision import motion_kernel
+
 
 @dataclass
 class MotionEstimate:
@@ -195,6 +197,19 @@ def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | fl
     if angular:
         inv2 = 1.0 / np.maximum(np.abs(D), 1e-12) ** 2
         w = inv2 if w is None else w * inv2
+    if motion_kernel.AVAILABLE:
+        ws = np.full(N, 1.0 / N) if w is None else w / w.sum()
+        R, T, D, it, res, converged = motion_kernel.solve(
+            np.ascontiguousarray(P), np.ascontiguousarray(n), np.ascontiguousarray(D, dtype=float), ws,
+            int(max_iter), float(tol), float(overrelax))
+        return MotionEstimate(R, T, D, it, res, np.ones(N, bool), converged)
+    return _recover_motion_numpy(P, n, D, w, max_iter, tol, overrelax)
+
+
+def _recover_motion_numpy(P: np.ndarray, n: np.ndarray, D: np.ndarray, w: np.ndarray | None, max_iter: int,
+                          tol: float, overrelax: float) -> MotionEstimate:
+    """The reference implementation of the alternation; motion_kernel.solve compiles the same steps."""
+    N = len(P)
     solver = _ObjectSpaceIteration(P, n, w)
     ws = np.full(N, 1.0 / N) if w is None else w / w.sum()
     Pc = P - ws @ P
@@ -211,6 +226,7 @@ def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | fl
         if overrelax > 1.0:
             # Linear convergence along a slow direction: extrapolate along the rotation step
             # (geodesic over-relaxation), kept only if it lowers the object-space error.
+            # cv2.Rodrigues returns zero under 1e-5 rad, so such steps are not extrapolated.
             v = cv2.Rodrigues(R.T @ R_new)[0]
             R_acc = R @ cv2.Rodrigues(v * overrelax)[0]
             if solver.error(R_acc) < solver.error(R_new):

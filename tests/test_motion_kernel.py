@@ -1,0 +1,104 @@
+"""The compiled alternation (vision/motion_kernel.py) against the numpy reference in vision/motion.py."""
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.vision import motion, motion_kernel as mk
+
+pytestmark = pytest.mark.skipif(not mk.AVAILABLE, reason="numba disabled (VBNAV_NO_JIT) or not installed")
+
+
+def test_numba_is_what_the_solver_uses():
+    # numba is a dependency: a silent fallback to the 10x slower numpy path would be a regression.
+    assert mk.AVAILABLE or os.environ.get("VBNAV_NO_JIT")
+
+
+def _cases(rng):
+    for k in range(400):
+        H = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-4, 4)
+        if k % 5 == 1:
+            H[:, 2] = 2.0 * H[:, 0]  # rank 2
+        elif k % 5 == 2:
+            H = -H  # det < 0: the unconstrained optimum is a reflection
+        elif k % 5 == 3:
+            H = np.outer(rng.normal(size=3), rng.normal(size=3))  # rank 1
+        yield H
+
+
+def test_svd3_factorises_with_orthogonal_factors_and_sorted_values(rng):
+    for H in _cases(rng):
+        U, s, V = mk.svd3(H)
+        scale = np.abs(H).max()
+        np.testing.assert_allclose((U * s) @ V.T, H, atol=1e-12 * scale)
+        np.testing.assert_allclose(U.T @ U, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(V.T @ V, np.eye(3), atol=1e-12)
+        assert s[0] >= s[1] >= s[2] >= 0
+        np.testing.assert_allclose(s, np.linalg.svd(H, compute_uv=False), atol=1e-12 * scale)
+    U, s, V = mk.svd3(np.zeros((3, 3)))
+    assert np.all(s == 0) and np.allclose(U.T @ U, np.eye(3))
+
+
+def test_rotation_matches_the_reference_and_is_proper(rng):
+    for H in _cases(rng):
+        R = mk.rotation_from_cross_covariance(H)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+        if np.linalg.svd(H, compute_uv=False)[1] > 1e-9 * np.abs(H).max():  # unique optimum
+            np.testing.assert_allclose(R, motion._rotation_from_cross_covariance(H), atol=1e-9)
+            # and it is the optimum: no rotation nearby does better
+            for _ in range(5):
+                dR = cv2.Rodrigues(rng.normal(0, 1e-3, 3))[0]
+                assert np.trace(R @ H) >= np.trace(dR @ R @ H) - 1e-12 * np.abs(H).max()
+
+
+def test_log_exp_so3_round_trip(rng):
+    for angle in (0.0, 1e-9, 1e-6, 1e-3, 0.5, 2.0, 2.9):
+        axis = rng.normal(size=3)
+        v = axis / np.linalg.norm(axis) * angle
+        R = mk._exp_so3(v)
+        np.testing.assert_allclose(R, cv2.Rodrigues(v)[0], atol=1e-14)
+        np.testing.assert_allclose(mk._log_so3(R), v, atol=1e-12)
+
+
+def _scene(rng, n, noise):
+    P = np.column_stack((rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(3, 10, n)))
+    R = cv2.Rodrigues(rng.normal(0, 0.2, 3))[0]
+    T = rng.normal(0, 0.4, 3)
+    X = P @ R.T + T
+    rays = X / np.linalg.norm(X, axis=1, keepdims=True) + rng.normal(0, noise, (n, 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    prior = (R @ cv2.Rodrigues(rng.normal(0, 0.02, 3))[0], T + rng.normal(0, 0.03, 3))
+    return P, rays, prior
+
+
+def test_object_space_maps_match_the_reference(rng):
+    for n in (3, 7, 60):
+        P, rays, _ = _scene(rng, n, 1e-3)
+        w = rng.uniform(0.2, 3.0, n)
+        w /= w.sum()
+        ref = motion._ObjectSpaceIteration(P, rays, w)
+        M, C, E = mk.object_space_maps(P, rays, w)
+        np.testing.assert_allclose(M, ref.M, atol=1e-11)
+        np.testing.assert_allclose(C, ref.C, atol=1e-11)
+        np.testing.assert_allclose(E, ref.E, atol=1e-10)
+
+
+@pytest.mark.parametrize("angular", [False, True])
+@pytest.mark.parametrize("overrelax", [1.0, 2.0])
+def test_compiled_solve_is_the_reference_solve(rng, angular, overrelax):
+    for n in (3, 6, 50, 200):
+        for _ in range(10):
+            P, rays, prior = _scene(rng, n, 2e-3)
+            D = np.einsum("ij,ij->i", P @ prior[0].T + prior[1], rays)
+            w = 1.0 / D ** 2 if angular else None
+            ref = motion._recover_motion_numpy(P, rays, D, w, 200, 1e-5, overrelax)
+            ws = np.full(n, 1.0 / n) if w is None else w / w.sum()
+            R, T, depths, it, res, conv = mk.solve(P, rays, D, ws, 200, 1e-5, overrelax)
+            assert it == ref.iterations and conv == ref.converged
+            np.testing.assert_allclose(R, ref.R, atol=1e-9)
+            np.testing.assert_allclose(T, ref.T, atol=1e-9)
+            np.testing.assert_allclose(depths, ref.depths, atol=1e-9)
+            assert res == pytest.approx(ref.residual, rel=1e-6, abs=1e-9)  # rad
