@@ -9,12 +9,14 @@ import pytest
 
 from vbnav.vision import motion, motion_kernel as mk
 
-pytestmark = pytest.mark.skipif(not mk.AVAILABLE, reason="numba disabled (VBNAV_NO_JIT) or not installed")
+needs_kernel = pytest.mark.skipif(not mk.AVAILABLE, reason="numba disabled (VBNAV_NO_JIT) or not installed")
 
 
 def test_numba_is_what_the_solver_uses():
     # numba is a dependency: a silent fallback to the 10x slower numpy path would be a regression.
-    assert mk.AVAILABLE or os.environ.get("VBNAV_NO_JIT")
+    if os.environ.get("VBNAV_NO_JIT"):
+        pytest.skip("VBNAV_NO_JIT is set")
+    assert mk.AVAILABLE, "numba did not import: vision/motion.py is on its slow numpy path"
 
 
 def _cases(rng):
@@ -29,6 +31,7 @@ def _cases(rng):
         yield H
 
 
+@needs_kernel
 def test_svd3_factorises_with_orthogonal_factors_and_sorted_values(rng):
     for H in _cases(rng):
         U, s, V = mk.svd3(H)
@@ -42,6 +45,7 @@ def test_svd3_factorises_with_orthogonal_factors_and_sorted_values(rng):
     assert np.all(s == 0) and np.allclose(U.T @ U, np.eye(3))
 
 
+@needs_kernel
 def test_rotation_matches_the_reference_and_is_proper(rng):
     for H in _cases(rng):
         R = mk.rotation_from_cross_covariance(H)
@@ -54,6 +58,7 @@ def test_rotation_matches_the_reference_and_is_proper(rng):
                 assert np.trace(R @ H) >= np.trace(dR @ R @ H) - 1e-12 * np.abs(H).max()
 
 
+@needs_kernel
 def test_log_exp_so3_round_trip(rng):
     for angle in (0.0, 1e-9, 1e-6, 1e-3, 0.5, 2.0, 2.9):
         axis = rng.normal(size=3)
@@ -74,6 +79,7 @@ def _scene(rng, n, noise):
     return P, rays, prior
 
 
+@needs_kernel
 def test_object_space_maps_match_the_reference(rng):
     for n in (3, 7, 60):
         P, rays, _ = _scene(rng, n, 1e-3)
@@ -86,6 +92,7 @@ def test_object_space_maps_match_the_reference(rng):
         np.testing.assert_allclose(E, ref.E, atol=1e-10)
 
 
+@needs_kernel
 @pytest.mark.parametrize("angular", [False, True])
 @pytest.mark.parametrize("overrelax", [1.0, 2.0])
 def test_compiled_solve_is_the_reference_solve(rng, angular, overrelax):
@@ -102,3 +109,24 @@ def test_compiled_solve_is_the_reference_solve(rng, angular, overrelax):
             np.testing.assert_allclose(T, ref.T, atol=1e-9)
             np.testing.assert_allclose(depths, ref.depths, atol=1e-9)
             assert res == pytest.approx(ref.residual, rel=1e-6, abs=1e-9)  # rad
+
+
+@needs_kernel
+@pytest.mark.parametrize("start", ["prior", "depths", "cold"])
+def test_recover_motion_gives_the_same_answer_with_and_without_the_kernel(rng, monkeypatch, start):
+    for angular in (False, True):
+        for n in (3, 6, 50):
+            P, rays, prior = _scene(rng, n, 2e-3)
+            kwargs = dict(angular=angular, weights=rng.uniform(0.5, 2.0, n))
+            if start == "prior":
+                kwargs["prior"] = prior
+            elif start == "depths":
+                kwargs["depths"] = np.linalg.norm(P, axis=1)
+            fast = motion.recover_motion(P, rays, **kwargs)
+            monkeypatch.setattr(mk, "AVAILABLE", False)
+            ref = motion.recover_motion(P, rays, **kwargs)
+            monkeypatch.setattr(mk, "AVAILABLE", True)
+            assert fast.iterations == ref.iterations
+            np.testing.assert_allclose(fast.R, ref.R, atol=1e-9)
+            np.testing.assert_allclose(fast.T, ref.T, atol=1e-9)
+            np.testing.assert_allclose(fast.depths, ref.depths, atol=1e-9)

@@ -188,22 +188,28 @@ def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | fl
     if N < 3 or len(n) != N:
         raise ValueError(f"motion recovery needs >= 3 landmarks with one ray each, got {N} and {len(n)}")
     if prior is not None:
-        D = np.einsum("ij,ij->i", P @ prior[0].T + prior[1], n)
+        D = None  # n' . (R P + T), formed by whichever path runs
     elif depths is None:
         D = np.full(N, float(np.median(np.linalg.norm(P, axis=1))))
     else:
         D = np.broadcast_to(np.asarray(depths, float), (N,)).copy()
-    w = None if weights is None else np.asarray(weights, float)
+    w = None if weights is None else np.asarray(weights, float).reshape(N)
+    if motion_kernel.AVAILABLE:
+        R0, T0 = (_EYE, _ZERO) if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
+        R, T, D, it, res, converged = motion_kernel.solve_from(
+            np.ascontiguousarray(P), np.ascontiguousarray(n), np.ascontiguousarray(R0), T0.reshape(3),
+            _EMPTY if D is None else D, _EMPTY if w is None else np.ascontiguousarray(w), bool(angular),
+            int(max_iter), float(tol), float(overrelax))
+        return MotionEstimate(R, T, D, it, res, np.ones(N, bool), converged)
+    if D is None:
+        D = np.einsum("ij,ij->i", P @ prior[0].T + prior[1], n)
     if angular:
         inv2 = 1.0 / np.maximum(np.abs(D), 1e-12) ** 2
         w = inv2 if w is None else w * inv2
-    if motion_kernel.AVAILABLE:
-        ws = np.full(N, 1.0 / N) if w is None else w / w.sum()
-        R, T, D, it, res, converged = motion_kernel.solve(
-            np.ascontiguousarray(P), np.ascontiguousarray(n), np.ascontiguousarray(D, dtype=float), ws,
-            int(max_iter), float(tol), float(overrelax))
-        return MotionEstimate(R, T, D, it, res, np.ones(N, bool), converged)
     return _recover_motion_numpy(P, n, D, w, max_iter, tol, overrelax)
+
+
+_EYE, _ZERO, _EMPTY = np.eye(3), np.zeros(3), np.zeros(0)
 
 
 def _recover_motion_numpy(P: np.ndarray, n: np.ndarray, D: np.ndarray, w: np.ndarray | None, max_iter: int,

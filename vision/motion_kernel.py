@@ -312,3 +312,22 @@ def solve(P, n, D, w, max_iter, tol, overrelax):
             ang = math.pi
         ss += ang * ang
     return R, T, depths, it, math.sqrt(ss / N), converged
+
+
+@_jit
+def solve_from(P, n, R0, T0, D0, weights, angular, max_iter, tol, overrelax):
+    """recover_motion's set-up, then :func:`solve`. Initial depths n . (R0 P + T0) when D0 is empty,
+    else D0; weights empty means uniform; ``angular`` multiplies them by 1/D^2; they are normalised."""
+    N = P.shape[0]
+    if D0.shape[0] == 0:
+        D = np.empty(N)
+        for i in range(N):
+            D[i] = _dot(_mv(R0, P[i]) + T0, n[i])
+    else:
+        D = D0
+    w = np.ones(N) if weights.shape[0] == 0 else weights.copy()
+    if angular:
+        for i in range(N):
+            w[i] /= max(abs(D[i]), 1e-12) ** 2
+    w /= w.sum()
+    return solve(P, n, D, w, max_iter, tol, overrelax)
