@@ -21,7 +21,7 @@ import numpy as np
 
 from vbnav.control.vo import ate_rmse, rpe, run_vo
 from vbnav.drivers.datasets import open_dataset
-from vbnav.vision.klt_tracker import KltTracker
+from vbnav.vision.features import KltTracker
 
 
 def opencv_chained_stereo(ds) -> np.ndarray:

@@ -29,8 +29,7 @@ from vbnav.control.config import load_config
 from vbnav.control.controller import Estimate, VisionStage
 from vbnav.control.vslam_eval import fast_stereo_config, run_vslam_loop
 from vbnav.control.vslam_nav import VslamFix, camera_to_robot, robot_to_camera_matrix
-from vbnav.vision.features import to_grey
-from vbnav.vision.klt_tracker import KltTracker
+from vbnav.vision.features import KltTracker, to_grey
 
 
 class OpenCvChainedStage(VisionStage):

@@ -28,6 +28,72 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     return image
 
 
+def klt_forward_backward(prev: np.ndarray, cur: np.ndarray, pts: np.ndarray, *, win: int, levels: int,
+                         criteria: tuple, fb_threshold: float, border: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 2) float32 of ``pts`` of ``prev`` in ``cur``, and a mask of good tracks.
+
+    Good: both LK passes found the point, the backward pass lands within
+    ``fb_threshold`` px of where it started, and the point is at least
+    ``border`` px inside the image (and 1 px from the far edges, which LK's
+    bilinear interpolation needs).
+    """
+    p0 = np.asarray(pts, np.float32).reshape(-1, 1, 2)
+    if len(p0) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    lk = dict(winSize=(win, win), maxLevel=levels, criteria=criteria)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
+    # Backward pass started at the origin: a good track converges there in a step or two.
+    p0r, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+    fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
+    p1 = p1.reshape(-1, 2)
+    h, w = cur.shape[:2]
+    far = max(border, 1)
+    inside = (p1[:, 0] >= border) & (p1[:, 0] < w - far) & (p1[:, 1] >= border) & (p1[:, 1] < h - far)
+    return p1, (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < fb_threshold) & inside
+
+
+@dataclass
+class KltTracker:
+    """Stateless GFTT + forward-backward KLT, for a caller that keeps its own landmarks (the VSLAM).
+
+    ``FeatureTracker`` below is the stateful version with track ids, cell-balanced re-detection and
+    keyframe re-acquisition, used by teach-and-repeat; both track with ``klt_forward_backward``.
+    """
+
+    window: int = 21
+    levels: int = 3
+    fb_threshold: float = 1.0
+    quality: float = 0.01
+    min_distance: float = 12.0
+    block_size: int = 7
+
+    def track(self, prev: np.ndarray, cur: np.ndarray, pts: np.ndarray, levels: int | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 2) float64 of ``pts`` of ``prev`` in ``cur`` and a mask of good tracks."""
+        new, ok = klt_forward_backward(prev, cur, pts, win=self.window,
+                                       levels=self.levels if levels is None else levels,
+                                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+                                       fb_threshold=self.fb_threshold)
+        return new.astype(np.float64), ok
+
+    def detect(self, image: np.ndarray, count: int, existing: np.ndarray | None = None,
+               mask: np.ndarray | None = None) -> np.ndarray:
+        """Up to ``count`` new sub-pixel corners (M, 2) at least ``min_distance`` from ``existing``."""
+        if count <= 0:
+            return np.zeros((0, 2))
+        m = np.full(image.shape[:2], 255, np.uint8) if mask is None else mask.copy()
+        if existing is not None and len(existing):
+            for x, y in np.asarray(existing).reshape(-1, 2):
+                cv2.circle(m, (int(round(x)), int(round(y))), int(self.min_distance), 0, -1)
+        pts = cv2.goodFeaturesToTrack(image, maxCorners=int(count), qualityLevel=self.quality,
+                                      minDistance=self.min_distance, mask=m, blockSize=self.block_size)
+        if pts is None:
+            return np.zeros((0, 2))
+        pts = cv2.cornerSubPix(image, pts.astype(np.float32), (5, 5), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
+        return pts.reshape(-1, 2).astype(np.float64)
+
+
 @dataclass
 class Tracks:
     """Current tracks: ids (N,) int64, pts (N, 2) float32 pixels, age (N,) frames since detection."""
@@ -117,19 +183,9 @@ class FeatureTracker:
         self._next_id = max(self._next_id, int(ids.max()) + 1)
 
     def _klt(self, prev_pyr, pyr, p0: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
-        p0 = p0.reshape(-1, 1, 2).astype(np.float32)
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_pyr, pyr, p0, None, winSize=self.win,
-                                              maxLevel=self.levels, criteria=self._criteria)
-        # Backward pass started at the origin: a good track converges there in a step or two.
-        p0r, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, p1, p0.copy(), winSize=self.win,
-                                               maxLevel=self.levels, criteria=self._criteria,
-                                               flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
-        p1 = p1.reshape(-1, 2)
-        h, w = shape[:2]
-        b = self.border
-        inside = (p1[:, 0] >= b) & (p1[:, 0] < w - b) & (p1[:, 1] >= b) & (p1[:, 1] < h - b)
-        keep = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.fb_threshold) & inside
+        p1, keep = klt_forward_backward(prev_pyr, pyr, p0, win=self.win[0], levels=self.levels,
+                                        criteria=self._criteria, fb_threshold=self.fb_threshold,
+                                        border=self.border)
         return keep, p1
 
     def _detect(self, grey: np.ndarray) -> int:

@@ -25,8 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
-from vbnav.vision.features import describe, match_descriptors
-from vbnav.vision.klt_tracker import KltTracker
+from vbnav.vision.features import KltTracker, describe, match_descriptors
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
 
