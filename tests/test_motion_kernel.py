@@ -130,3 +130,33 @@ def test_recover_motion_gives_the_same_answer_with_and_without_the_kernel(rng, m
             np.testing.assert_allclose(fast.R, ref.R, atol=1e-9)
             np.testing.assert_allclose(fast.T, ref.T, atol=1e-9)
             np.testing.assert_allclose(fast.depths, ref.depths, atol=1e-9)
+
+
+@needs_kernel
+def test_compiled_hypotheses_are_the_reference_hypotheses(rng, monkeypatch):
+    P, rays, prior = _scene(rng, 40, 1e-3)
+    rays[:6] = rays[5::-1].copy()  # swapped rays: gross outliers
+    D0 = np.einsum("ij,ij->i", P @ prior[0].T + prior[1], rays)
+    samples = motion._three_distinct(rng, 40, 64)
+    gate = np.cos(0.01)
+    fast = motion._scored_hypotheses(P, rays, D0, samples, 8, gate)
+    monkeypatch.setattr(mk, "AVAILABLE", False)
+    ref = motion._scored_hypotheses(P, rays, D0, samples, 8, gate)
+    np.testing.assert_allclose(fast[0], ref[0], atol=1e-9)
+    np.testing.assert_allclose(fast[1], ref[1], atol=1e-9)
+    np.testing.assert_array_equal(fast[2], ref[2])
+    assert ref[2].max() >= 30  # some samples are all inliers and find the consensus
+
+
+@needs_kernel
+def test_robust_solve_is_the_same_with_and_without_the_kernel(rng, monkeypatch):
+    P, rays, prior = _scene(rng, 60, 5e-4)
+    rays[:6] = rays[5::-1].copy()  # swapped rays: gross outliers
+    fast = motion.recover_motion_robust(P, rays, prior=prior, angular=True, rng=np.random.default_rng(1))
+    monkeypatch.setattr(mk, "AVAILABLE", False)
+    ref = motion.recover_motion_robust(P, rays, prior=prior, angular=True, rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(fast.inliers, ref.inliers)
+    assert not fast.inliers[:6].any() and fast.inliers[6:].all()
+    assert fast.hypotheses == ref.hypotheses and fast.iterations == ref.iterations
+    np.testing.assert_allclose(fast.R, ref.R, atol=1e-9)
+    np.testing.assert_allclose(fast.T, ref.T, atol=1e-9)

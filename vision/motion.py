@@ -271,8 +271,19 @@ def _minimal_hypotheses(P: np.ndarray, n: np.ndarray, D0: np.ndarray, samples: n
     for _ in range(iters):
         R, T = _batched_absolute_orientation(Ps, D[..., None] * ns)
         D = np.einsum("hkj,hkj->hk", np.einsum("hij,hkj->hki", R, Ps) + T[:, None], ns)
-        D = np.maximum(D, 1e-9 * (np.abs(D).max() + 1e-300))
+        D = np.maximum(D, 1e-9 * (np.abs(D).max(axis=1, keepdims=True) + 1e-300))
     return R, T
+
+
+def _scored_hypotheses(P: np.ndarray, n: np.ndarray, D0: np.ndarray, samples: np.ndarray, iters: int,
+                       gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """_minimal_hypotheses and, for each, the number of rays within the angle whose cosine is ``gate``."""
+    if motion_kernel.AVAILABLE:
+        return motion_kernel.minimal_hypotheses(P, n, D0, samples, int(iters), float(gate))
+    Rs, Ts = _minimal_hypotheses(P, n, D0, samples, iters)
+    X = np.einsum("hij,kj->hki", Rs, P) + Ts[:, None]
+    X /= np.linalg.norm(X, axis=2, keepdims=True)
+    return Rs, Ts, np.sum(np.einsum("hki,ki->hk", X, n) > gate, axis=1)
 
 
 def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | float | None = None, *,
@@ -290,8 +301,8 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
     ``refine_rounds`` times, the inlier set recomputed each round. ``weights``
     (N,), if given, multiply the Cauchy weights (confidence in each landmark).
     """
-    P = np.asarray(points, float).reshape(-1, 3)
-    n = np.asarray(rays, float).reshape(-1, 3)
+    P = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3))
+    n = np.ascontiguousarray(np.asarray(rays, float).reshape(-1, 3))
     N = len(P)
     if N < 3:
         raise ValueError(f"motion recovery needs >= 3 landmarks, got {N}")
@@ -322,10 +333,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         while tried < min(needed, max_hypotheses):
             h = min(batch, max_hypotheses - tried)
             samples = _three_distinct(rng, N, h)
-            Rs, Ts = _minimal_hypotheses(P, n, D0, samples, minimal_iters)
-            X = np.einsum("hij,kj->hki", Rs, P) + Ts[:, None]
-            X /= np.linalg.norm(X, axis=2, keepdims=True)
-            counts = np.sum(np.einsum("hki,ki->hk", X, n) > gate, axis=1)
+            Rs, Ts, counts = _scored_hypotheses(P, n, D0, samples, minimal_iters, gate)
             k = int(np.argmax(counts))
             tried += h
             if counts[k] > best_count:

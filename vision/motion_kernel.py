@@ -331,3 +331,53 @@ def solve_from(P, n, R0, T0, D0, weights, angular, max_iter, tol, overrelax):
             w[i] /= max(abs(D[i]), 1e-12) ** 2
     w /= w.sum()
     return solve(P, n, D, w, max_iter, tol, overrelax)
+
+
+@_jit
+def minimal_hypotheses(P, n, D0, samples, iters, gate):
+    """motion._minimal_hypotheses and its scoring: the alternation on each 3-point sample (centroid
+    translation) from depths D0, then the number of rays within the angle whose cosine is ``gate``.
+    Returns R (H, 3, 3), T (H, 3), counts (H,)."""
+    H = samples.shape[0]
+    N = P.shape[0]
+    Rs = np.empty((H, 3, 3))
+    Ts = np.empty((H, 3))
+    counts = np.zeros(H, np.int64)
+    Ps = np.empty((3, 3))
+    ns = np.empty((3, 3))
+    D = np.empty(3)
+    Hm = np.empty((3, 3))
+    R = np.eye(3)
+    T = np.zeros(3)
+    for h in range(H):
+        for k in range(3):
+            Ps[k] = P[samples[h, k]]
+            ns[k] = n[samples[h, k]]
+            D[k] = D0[samples[h, k]]
+        for _it in range(iters):
+            cP = (Ps[0] + Ps[1] + Ps[2]) / 3.0
+            cQ = (D[0] * ns[0] + D[1] * ns[1] + D[2] * ns[2]) / 3.0
+            Hm[:, :] = 0.0
+            for k in range(3):
+                for a in range(3):
+                    for b in range(3):
+                        Hm[a, b] += (Ps[k, a] - cP[a]) * (D[k] * ns[k, b] - cQ[b])
+            R = rotation_from_cross_covariance(Hm)
+            T = cQ - _mv(R, cP)
+            floor = 0.0
+            for k in range(3):
+                D[k] = _dot(_mv(R, Ps[k]) + T, ns[k])
+                floor = max(floor, abs(D[k]))
+            floor = 1e-9 * (floor + 1e-300)
+            for k in range(3):
+                D[k] = max(D[k], floor)
+        Rs[h] = R
+        Ts[h] = T
+        c = 0
+        for i in range(N):
+            X = _mv(R, P[i]) + T
+            nx = math.sqrt(_dot(X, X))
+            if nx > 0.0 and _dot(X, n[i]) > gate * nx:
+                c += 1
+        counts[h] = c
+    return Rs, Ts, counts
