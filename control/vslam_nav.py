@@ -2,8 +2,12 @@
 
 - ``VslamStage`` (vision thread, kind "vslam"): runs ``vision.vslam.Vslam`` on the
   robot's frames. Metric scale comes from the calibrated stereo pair (the right
-  image of the frame, section 11.3.1.1) or, on cameras that deliver only a
-  disparity image (OAK), from the depth that disparity gives. The world frame is
+  image of the frame, section 11.3.1.1), on cameras that deliver only a
+  disparity image (OAK) from the depth that disparity gives, or, with a single
+  camera (``metric_scale: odometry``), from the wheels: a two-view initialisation
+  (essential matrix or homography) between the first frame and the first one the
+  wheels put ``odometry_init_baseline_m`` away, scaled by that distance; new
+  landmarks then come from motion (11.11) in that scale. The world frame is
   the robot's odometry frame at the first frame (the robot's start pose), so a
   goal "in the reference frame" is a pose relative to where the robot started.
   Each reference frame of the VSLAM's chain is kept as an *anchor*: its
@@ -26,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -37,6 +41,7 @@ from vbnav.vision.features import describe, to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y, wrap_angle
 from vbnav.vision.motion import recover_motion_robust
 from vbnav.vision.vslam import Vslam, VslamConfig
+from vbnav.vision.vslam_init import init_two_view
 
 
 class GotoConfig(BaseModel):
@@ -55,6 +60,8 @@ class GotoConfig(BaseModel):
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
     max_estimate_age_s: float = Field(0.5, gt=0)
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
+    init_creep_speed: float = Field(0.1, ge=0, description="m/s straight ahead while a monocular VSLAM waits for "
+                                                           "the parallax to initialise (at most blind_distance_m)")
 
 
 class VslamNavConfig(VslamConfig):
@@ -76,6 +83,13 @@ class VslamNavConfig(VslamConfig):
                                                          "from the current stereo pair at the odometry pose")
     max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
                                                                  "than this: the pose is not trusted")
+    metric_scale: Literal["stereo", "odometry"] = Field(
+        "stereo", description="stereo: from the calibrated pair (or the device's disparity); odometry: a single "
+                              "camera, initialised from two views scaled by the distance the wheels measured")
+    odometry_init_baseline_m: float = Field(0.2, gt=0, description="metric_scale odometry: camera travel between "
+                                                                  "the two initialisation views")
+    odometry_init_max_frames: int = Field(100, ge=2, description="metric_scale odometry: frames to wait for that "
+                                                                 "travel before starting over from a new first view")
     goto: GotoConfig = Field(default_factory=GotoConfig)
 
 
@@ -143,6 +157,20 @@ class Anchor:
     travelled: float = 0.0       # odometry path length when it was set, m
 
 
+@dataclass
+class _MonocularStart:
+    """A monocular initialisation under way: corners of the first view tracked until the wheels say the
+    camera has moved far enough for a metric two-view initialisation."""
+
+    px0: np.ndarray              # corners in the first view
+    px: np.ndarray               # where they are now
+    keep: np.ndarray             # still tracked
+    prev: np.ndarray             # last image
+    odom0: Pose2                 # odometry at the first view
+    pose0_wc: np.ndarray         # world-from-camera of the first view
+    frames: int = 0
+
+
 class VslamStage(VisionStage):
     """Runs the VSLAM on every frame; the estimate is the robot's pose in the reference frame."""
 
@@ -152,14 +180,17 @@ class VslamStage(VisionStage):
                  cfg: VslamNavConfig | None = None, baseline_from_frames: bool = False):
         """stereo_baseline: metres. With ``baseline_from_frames`` it may be None: the first frame's
         ``meta['baseline_m']`` gives it (the OAK driver reads it from the device's calibration)."""
-        if (stereo_baseline is None or stereo_baseline <= 0) and not baseline_from_frames:
+        self.cfg = cfg or VslamNavConfig()
+        self.monocular = self.cfg.metric_scale == "odometry"
+        if not self.monocular and (stereo_baseline is None or stereo_baseline <= 0) and not baseline_from_frames:
             raise ValueError("the VSLAM stage needs a stereo camera for metric scale: set the stereo baseline "
-                             "(camera.options.stereo_baseline for the simulated camera)")
+                             "(camera.options.stereo_baseline for the simulated camera), or vslam.metric_scale: "
+                             "odometry for a single camera scaled by the wheels")
         self.camera = camera
         self.mount = mount
-        self.baseline = float(stereo_baseline) if stereo_baseline else None
-        self.cfg = cfg or VslamNavConfig()
+        self.baseline = None if self.monocular or not stereo_baseline else float(stereo_baseline)
         self.slam = Vslam(camera, self.cfg, stereo_baseline=self.baseline)
+        self._mono: Optional[_MonocularStart] = None
         self.anchors: list[Anchor] = []
         self.correction = np.eye(4)  # world-from-chain: aligns the hand-off chain with the last relocalisation
         self._frames = 0
@@ -179,20 +210,22 @@ class VslamStage(VisionStage):
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image = to_grey(frame.image)
-        if self.baseline is None:
+        if self.baseline is None and not self.monocular:
             b = (frame.meta or {}).get("baseline_m")
             if not b or b <= 0:
                 raise ValueError("the VSLAM stage needs the stereo baseline: the camera's frames carry no "
                                  "meta['baseline_m'] (set camera.options.stereo_baseline)")
             self.baseline = float(b)
             self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
-        right, depth = self._metric_input(frame)
+        right, depth = (None, None) if self.monocular else self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
         if self._last_odom is not None:
             self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
         self._last_odom = odom
         if not self.slam.initialised:
+            if self.monocular:
+                return self._start_monocular(frame, image, odom, robot_to_camera_matrix(odom, self.mount))
             return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(odom, self.mount))
         res = self.slam.process(image, right, depth)
         self.stats["lost"] += int(not res.ok)
@@ -202,6 +235,9 @@ class VslamStage(VisionStage):
             # Lost (covered lens, motion blur, a blank wall): start a new chain from this stereo pair at the
             # pose odometry gives since the last good frame. Anchors are kept, so the loop still closes.
             guess = self._good[0].compose(self._good[1].between(odom))
+            if self.monocular:
+                self._new_chain()
+                return self._start_monocular(frame, image, odom, robot_to_camera_matrix(guess, self.mount))
             return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(guess, self.mount),
                                restart=True)
         pose_wc = self.correction @ res.pose_wc
@@ -224,10 +260,7 @@ class VslamStage(VisionStage):
                restart: bool = False) -> Estimate:
         """(Re)initialise the front end from this frame's stereo pair (or depth) at world pose ``pose_wc``."""
         if restart:
-            self._ref_base = self.reference_index + 1
-            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
-            self.correction = np.eye(4)
-            self.stats["restarts"] += 1
+            self._new_chain()
         if right is not None:
             n = self.slam.initialise_stereo(image, right, pose_wc)
         else:
@@ -236,6 +269,58 @@ class VslamStage(VisionStage):
         self._maybe_add_anchor(image)
         est = self._estimate(frame, odom, n >= self.cfg.min_inliers, self.slam.pose_wc, n, None,
                              {"restart": restart})
+        if est.ok:
+            self._good = (est.value.pose, odom)
+        return est
+
+    def _new_chain(self) -> None:
+        """A fresh front end after it was lost; the anchors of the old chain stay for relocalisation."""
+        self._ref_base = self.reference_index + 1
+        self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+        self.correction = np.eye(4)
+        self.stats["restarts"] += 1
+        self._mono = None
+
+    def _start_monocular(self, frame: Frame, image, odom: Pose2, pose0_wc: np.ndarray) -> Estimate:
+        """Single camera: track the first view's corners until the wheels have moved the camera
+        ``odometry_init_baseline_m``, then the two-view initialisation (vision/vslam_init.py) with that
+        distance as the length of T. Until then the estimate is not ok and says "initialising", with the
+        pose odometry gives (the go-to controller creeps ahead for the parallax)."""
+        cfg, m = self.cfg, self._mono
+        if m is None:
+            px0 = self.slam.tracker.detect(image, cfg.max_landmarks)
+            self._mono = _MonocularStart(px0, px0.copy(), np.ones(len(px0), bool), image, odom, pose0_wc)
+            return self._estimate(frame, odom, False, pose0_wc, 0, None, {"initialising": "monocular"})
+        idx = np.flatnonzero(m.keep)
+        nxt, ok = self.slam.tracker.track(m.prev, image, m.px[idx])
+        m.keep[idx[~ok]] = False
+        m.px[idx[ok]] = nxt[ok]
+        m.prev, m.frames = image, m.frames + 1
+        # Camera motion between the views from the wheels: X_now = R X_first + T.
+        rel = np.linalg.inv(robot_to_camera_matrix(odom, self.mount)) @ robot_to_camera_matrix(m.odom0, self.mount)
+        pose_wc = m.pose0_wc @ np.linalg.inv(rel)   # where odometry puts the camera now
+        baseline = float(np.linalg.norm(rel[:3, 3]))
+        quality = {"initialising": "monocular", "baseline_m": baseline, "tracked": int(m.keep.sum())}
+        if m.keep.sum() < max(8, cfg.min_inliers) or m.frames > cfg.odometry_init_max_frames:
+            self._mono = None                        # start over from this view
+            return self._start_monocular(frame, image, odom, pose_wc)
+        if baseline < cfg.odometry_init_baseline_m:
+            return self._estimate(frame, odom, False, pose_wc, 0, None, quality)
+        px0, px = m.px0[m.keep], m.px[m.keep]
+        tv = init_two_view(self.camera.rays(px0), self.camera.rays(px), scale=baseline,
+                           translation_hint=rel[:3, 3])
+        v = tv.valid
+        if v.sum() < max(8, cfg.min_inliers):
+            self._mono = None
+            return self._start_monocular(frame, image, odom, pose_wc)
+        X_first = tv.depths1[v, None] * self.camera.rays(px0[v])
+        pose_wc = m.pose0_wc @ np.linalg.inv(to_matrix(tv.R, tv.T))
+        n = self.slam.initialise(image, px[v], X_first @ tv.R.T + tv.T, pose_wc)
+        self._mono = None
+        self._lost_streak = 0
+        self._maybe_add_anchor(image)
+        est = self._estimate(frame, odom, n >= cfg.min_inliers, self.slam.pose_wc, n, None,
+                             {"initialised": tv.model, "baseline_m": baseline})
         if est.ok:
             self._good = (est.value.pose, odom)
         return est
@@ -410,6 +495,7 @@ class GotoController(Controller):
         self._last_stamp: Optional[int] = None
         self._good_odom: Optional[Pose2] = None
         self._phase = "waiting"
+        self._creep_from: Optional[Pose2] = None  # odometry where a monocular VSLAM started initialising
         self._settled_ns: Optional[int] = None
         self._finished = False
         self._status: dict = {"state": "waiting"}
@@ -427,7 +513,13 @@ class GotoController(Controller):
         return {k: v for k, v in self._status.items() if not k.startswith("_")}
 
     def update(self, ctx: ControlContext) -> Twist:
-        self._absorb(ctx.estimate("vslam", self.cfg.max_estimate_age_s))
+        self._absorb(ctx.estimate("vslam", self.cfg.max_estimate_age_s), ctx.odom)
+        if self._creep_from is not None and not self._finished:
+            # A monocular VSLAM needs parallax before its first pose (at the start or after it was lost and
+            # restarted): creep straight ahead, not farther than blind_distance_m.
+            crept = math.hypot(ctx.odom.x - self._creep_from.x, ctx.odom.z - self._creep_from.z)
+            self._status = {"state": "initialising", "crept_m": crept}
+            return Twist(self.cfg.init_creep_speed, 0.0) if crept <= self.cfg.blind_distance_m else STOP
         if self._P is None or self._finished:
             return STOP
         P = self._P.compose(self._P_odom.between(ctx.odom))
@@ -470,12 +562,15 @@ class GotoController(Controller):
             self._phase = "finished"
         return STOP
 
-    def _absorb(self, est: Optional[Estimate]) -> None:
+    def _absorb(self, est: Optional[Estimate], odom: Pose2) -> None:
         if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VslamFix):
             return
         self._last_stamp = est.stamp_ns
         if not est.ok:
+            if self._creep_from is None and est.value.quality.get("initialising"):
+                self._creep_from = odom
             return
+        self._creep_from = None
         fix: VslamFix = est.value
         self._good_odom = fix.odom
         if self._P is None:

@@ -139,7 +139,7 @@ def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
 
 def test_stage_needs_stereo():
     model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
-    with pytest.raises(ValueError, match="stereo_baseline"):
+    with pytest.raises(ValueError, match="stereo_baseline.*metric_scale: odometry"):
         VslamStage(model, CameraMount(), None)
     stage = VslamStage(model, CameraMount(), 0.12)
     with pytest.raises(ValueError, match="right image or a disparity"):
@@ -147,6 +147,51 @@ def test_stage_needs_stereo():
     stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
     with pytest.raises(ValueError, match="baseline_m"):
         stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+
+
+def test_monocular_stage_takes_its_scale_from_the_wheels():
+    """metric_scale odometry: no stereo; the two-view initialisation happens once the wheels have moved the
+    camera 0.2 m, scaled by that distance (with a 2 % odometry scale error), then the VSLAM carries on."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0)
+    poses = [start]
+    for _ in range(60):                                 # 1.8 m forward while turning 36 degrees right
+        poses.append(arc_step(poses[-1], 0.03, math.radians(0.6)))
+    stage = VslamStage(model, mount, None, vslam_nav_config({"metric_scale": "odometry"}))
+    results = []
+    for i, p in enumerate(poses):
+        odom = start.between(p)
+        results.append(stage.process(cam.render_frame(p, int(i * 1e8), i), Pose2(odom.x, odom.z * 1.02, odom.theta)))
+    first = next(i for i, r in enumerate(results) if r.ok)
+    assert first == 7                                   # 7 x 3 cm x 1.02 >= 0.2 m
+    assert all(r.value.quality.get("initialising") == "monocular" for r in results[:first])
+    assert results[first].value.quality["initialised"] in ("essential", "homography")
+    assert all(r.ok for r in results[first:]) and stage.stats["restarts"] == 0
+    for i in (first, len(poses) - 1):
+        truth, got = start.between(poses[i]), results[i].value.pose
+        dist = math.hypot(truth.x, truth.z)
+        # at the start the scale is the wheels' (2 % off); later the monocular scale drifts a little
+        assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.05 * dist, (i, got, truth)
+        assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 1.0
+
+
+def test_goto_creeps_ahead_while_a_monocular_vslam_initialises():
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0))
+    init = VslamFix(Pose2(), Pose2(), np.eye(4), 0, -1, quality={"initialising": "monocular"})
+
+    def step(k, odom, est):
+        ctx = ControlContext(int(k * 1e7), 0.01, odom, WheelState(0, (0.0, 0.0), (0.0, 0.0)), {"vslam": est}, k)
+        return ctrl.update(ctx)
+
+    tw = step(0, Pose2(), Estimate(0, "vslam", False, init))
+    assert (tw.v, tw.w) == (GotoConfig().init_creep_speed, 0.0) and ctrl.status()["state"] == "initialising"
+    assert step(1, Pose2(0.0, 0.2), Estimate(1, "vslam", False, init)).v > 0
+    assert step(2, Pose2(0.0, 0.31), Estimate(2, "vslam", False, init)).v == 0.0   # crept blind_distance_m
+    fix = VslamFix(Pose2(0.0, 0.31), Pose2(0.0, 0.31), np.eye(4), 100, 0)
+    tw = step(3, Pose2(0.0, 0.31), Estimate(3, "vslam", True, fix))
+    assert tw.v > 0 and ctrl.status()["state"] == "drive"
 
 
 def test_vslam_section_is_validated_at_load_with_file_and_key_path(tmp_path):
