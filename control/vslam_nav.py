@@ -90,6 +90,11 @@ class VslamNavConfig(VslamConfig):
                                                                   "the two initialisation views")
     odometry_init_max_frames: int = Field(100, ge=2, description="metric_scale odometry: frames to wait for that "
                                                                  "travel before starting over from a new first view")
+    odometry_scale_gain: float = Field(0.5, ge=0, le=1, description="metric_scale odometry: at each hand-off, the "
+                                       "share (in log scale) of the wheels' correction of the scale applied; 0: "
+                                       "scale from the initialisation only")
+    odometry_scale_min_travel_m: float = Field(0.3, gt=0, description="metric_scale odometry: camera travel the "
+                                               "wheels and the VSLAM are compared over")
     goto: GotoConfig = Field(default_factory=GotoConfig)
 
 
@@ -191,6 +196,9 @@ class VslamStage(VisionStage):
         self.baseline = None if self.monocular or not stereo_baseline else float(stereo_baseline)
         self.slam = Vslam(camera, self.cfg, stereo_baseline=self.baseline)
         self._mono: Optional[_MonocularStart] = None
+        # Monocular scale: (camera position by the VSLAM in chain coordinates, by odometry) where the
+        # distance the two are compared over starts.
+        self._scale_base: Optional[tuple[np.ndarray, np.ndarray]] = None
         self.anchors: list[Anchor] = []
         self.correction = np.eye(4)  # world-from-chain: aligns the hand-off chain with the last relocalisation
         self._frames = 0
@@ -228,6 +236,8 @@ class VslamStage(VisionStage):
                 return self._start_monocular(frame, image, odom, robot_to_camera_matrix(odom, self.mount))
             return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(odom, self.mount))
         res = self.slam.process(image, right, depth)
+        if self.monocular and res.handoff:
+            res.pose_wc = self._correct_scale(odom)
         self.stats["lost"] += int(not res.ok)
         self.stats["handoffs"] += int(res.handoff)
         self._lost_streak = 0 if res.ok else self._lost_streak + 1
@@ -280,6 +290,7 @@ class VslamStage(VisionStage):
         self.correction = np.eye(4)
         self.stats["restarts"] += 1
         self._mono = None
+        self._scale_base = None
 
     def _start_monocular(self, frame: Frame, image, odom: Pose2, pose0_wc: np.ndarray) -> Estimate:
         """Single camera: track the first view's corners until the wheels have moved the camera
@@ -317,6 +328,8 @@ class VslamStage(VisionStage):
         pose_wc = m.pose0_wc @ np.linalg.inv(to_matrix(tv.R, tv.T))
         n = self.slam.initialise(image, px[v], X_first @ tv.R.T + tv.T, pose_wc)
         self._mono = None
+        self._scale_base = (self.slam.references[-1].pose_wc[:3, 3].copy(),
+                            robot_to_camera_matrix(odom, self.mount)[:3, 3])
         self._lost_streak = 0
         self._maybe_add_anchor(image)
         est = self._estimate(frame, odom, n >= cfg.min_inliers, self.slam.pose_wc, n, None,
@@ -324,6 +337,28 @@ class VslamStage(VisionStage):
         if est.ok:
             self._good = (est.value.pose, odom)
         return est
+
+    def _correct_scale(self, odom: Pose2) -> np.ndarray:
+        """At a hand-off of the monocular front end: compare the camera travel since the scale base by the
+        VSLAM and by the wheels, move the new reference frame's position along that travel and rescale its
+        structure by the ratio (to the power ``odometry_scale_gain``). Direction stays the VSLAM's; only the
+        length, which a single camera cannot observe, follows the wheels. Returns the corrected pose."""
+        ref = self.slam.references[-1]
+        p_vslam, p_odom = ref.pose_wc[:3, 3].copy(), robot_to_camera_matrix(odom, self.mount)[:3, 3]
+        if self._scale_base is None:
+            self._scale_base = (p_vslam, p_odom)
+            return self.slam.pose_wc
+        b_vslam, b_odom = self._scale_base
+        d_vslam, d_odom = np.linalg.norm(p_vslam - b_vslam), np.linalg.norm(p_odom - b_odom)
+        if d_odom < self.cfg.odometry_scale_min_travel_m or d_vslam <= 1e-9:
+            return self.slam.pose_wc
+        s = float(np.clip(d_odom / d_vslam, 0.7, 1.4)) ** self.cfg.odometry_scale_gain
+        self.slam.move_reference(b_vslam + s * (p_vslam - b_vslam))
+        self.slam.rescale(s)
+        self.stats["rescaled"] = self.stats.get("rescaled", 0) + 1
+        self.stats["last_scale"] = round(s, 4)
+        self._scale_base = (ref.pose_wc[:3, 3].copy(), p_odom)
+        return self.slam.pose_wc
 
     def _metric_input(self, frame: Frame):
         if frame.right is not None:

@@ -175,6 +175,16 @@ def test_monocular_stage_takes_its_scale_from_the_wheels():
         # at the start the scale is the wheels' (2 % off); later the monocular scale drifts a little
         assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.05 * dist, (i, got, truth)
         assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 1.0
+    assert stage.stats["rescaled"] >= 1
+    # Vslam.rescale: the same rays from the current camera, every distance times s, normal equations kept.
+    slam = stage.slam
+    X = slam.lm.P @ slam.R.T + slam.T
+    AX_b = np.einsum("nij,nj->ni", slam.lm.A, slam.lm.P) - slam.lm.b
+    slam.rescale(1.1)
+    np.testing.assert_allclose(slam.lm.P @ slam.R.T + slam.T, 1.1 * X, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", slam.lm.A, slam.lm.P) - slam.lm.b, 1.1 * AX_b, atol=1e-9)
+    with pytest.raises(ValueError, match="positive"):
+        slam.rescale(0.0)
 
 
 def test_goto_creeps_ahead_while_a_monocular_vslam_initialises():

@@ -375,6 +375,29 @@ class Vslam:
         self.R, self.T = np.eye(3), np.zeros(3)
         return True
 
+    def rescale(self, s: float) -> None:
+        """Multiply the metric scale of the current reference frame's structure by ``s`` (landmarks,
+        dormant landmarks, candidates' first poses and the current motion, about the reference origin).
+        For a monocular front end whose scale an outside sensor (wheel odometry) corrects."""
+        if not s > 0:
+            raise ValueError(f"rescale factor must be positive, got {s}")
+        for lm in (self.lm, self.dormant):
+            lm.P = lm.P * s
+            lm.b = lm.b * s  # A X = b: A holds directions only
+        self.cand.T0 = self.cand.T0 * s
+        self.T = self.T * s
+
+    def move_reference(self, position_w: np.ndarray) -> None:
+        """Put the current reference frame at world position ``position_w`` (an outside correction); the
+        recent poses the motion prediction uses move with it."""
+        ref = self.references[-1]
+        shift = np.asarray(position_w, float) - ref.pose_wc[:3, 3]
+        ref.pose_wc = ref.pose_wc.copy()
+        ref.pose_wc[:3, 3] += shift
+        for k, W in enumerate(self._history):
+            self._history[k] = W.copy()
+            self._history[k][:3, 3] += shift
+
     def _add_landmarks(self, image, right, depth, own: bool) -> int:
         if self.baseline is not None and right is not None:
             n = self._add_from_stereo(image, right, own)
