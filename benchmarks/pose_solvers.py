@@ -6,7 +6,7 @@ frame": ours starts from the previous frame's pose (2 degrees and 5 cm away),
 as it does in the VSLAM; OpenCV's solvers get no prior (they do not take
 one, except ITERATIVE, which we also give it). Printed per case: median rotation error
 (deg) and translation error (m), median iterations, median time per solve,
-and each ratio to SQPNP measured in the same run. "ours-numpy" is the same
+and each ratio to SQPNP measured in the same run (methods interleaved case by case). "ours-numpy" is the same
 solve without the numba kernel (vision/motion_kernel.py), for what it buys.
 
     .venv/bin/python benchmarks/pose_solvers.py [--trials 200] [--quick]
@@ -131,10 +131,10 @@ def main(argv=None) -> int:
                 rng = np.random.default_rng(1000 * n + int(noise * 10) + outliers)
                 cases = [make_case(rng, n, noise, outliers) for _ in range(trials)]
                 ms = [m for m in methods if not (outliers and m == "ours-numpy")] + (["RANSAC_SQPNP"] if outliers else [])
-                stats = {}
-                for m in ms:
-                    re, te, tt, it = [], [], [], []
-                    for P, px, rays, R, T, prior in cases:
+                # Methods interleaved case by case, so a burst of load on this shared machine hits them all.
+                rows = {m: ([], [], [], []) for m in ms}
+                for P, px, rays, R, T, prior in cases:
+                    for m in ms:
                         if m.startswith("ours"):
                             mode = m.split("-")[1] if "-" in m else "plain"
                             out = run_ours(P, px, rays, prior, outliers, mode)
@@ -143,10 +143,10 @@ def main(argv=None) -> int:
                         if out is None:
                             continue
                         a, b = errors(out[0], out[1], R, T)
-                        re.append(a)
-                        te.append(b)
-                        tt.append(out[2])
-                        it.append(out[3])
+                        for col, v in zip(rows[m], (a, b, out[2], out[3])):
+                            col.append(v)
+                stats = {}
+                for m, (re, te, tt, it) in rows.items():
                     if re:
                         stats[m] = (np.median(re), np.median(te), np.nanmedian(it) if not np.all(np.isnan(it))
                                     else np.nan, np.median(tt) * 1e3)

@@ -59,13 +59,17 @@ def test_rotation_matches_the_reference_and_is_proper(rng):
 
 
 @needs_kernel
-def test_log_exp_so3_round_trip(rng):
-    for angle in (0.0, 1e-9, 1e-6, 1e-3, 0.5, 2.0, 2.9):
+def test_geodesic_extrapolation_matches_rodrigues(rng):
+    out = np.empty((3, 3))
+    for angle in (2e-5, 1e-3, 0.5, 1.4, 2.9):
         axis = rng.normal(size=3)
         v = axis / np.linalg.norm(axis) * angle
-        R = mk._exp_so3(v)
-        np.testing.assert_allclose(R, cv2.Rodrigues(v)[0], atol=1e-14)
-        np.testing.assert_allclose(mk._log_so3(R), v, atol=1e-12)
+        Q = cv2.Rodrigues(v)[0]
+        for k in (1.0, 2.0, 0.5):
+            assert mk._exp_log_scaled_into(Q, k, out)
+            np.testing.assert_allclose(out, cv2.Rodrigues(k * v)[0], atol=1e-9)
+    for angle in (0.0, 5e-6, 3.1):  # too small to matter, or too close to pi to be defined
+        assert not mk._exp_log_scaled_into(cv2.Rodrigues(np.array([0.0, 0.0, angle]))[0], 2.0, out)
 
 
 def _scene(rng, n, noise):

@@ -96,10 +96,17 @@ def _inv3(m):
 
 
 @_jit
-def svd3(H):
-    """H = U diag(s) V^T for a 3x3 H, s descending, U and V orthogonal (one-sided Jacobi)."""
-    A = H.copy()
-    V = np.eye(3)
+def _svd3_into(H, work, s):
+    """H = U diag(s) V^T for a 3x3 H (one-sided Jacobi), s descending, into work[2] = U, work[3] = V.
+
+    work (4, 3, 3) and s (3,) are the caller's buffers (the alternation calls this every step: no
+    allocation). work[0] and work[1] are scratch.
+    """
+    A, V, U, Vs = work[0], work[1], work[2], work[3]
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = H[i, j]
+            V[i, j] = 1.0 if i == j else 0.0
     for _sweep in range(30):
         rotated = False
         for p in range(2):
@@ -113,76 +120,118 @@ def svd3(H):
                 zeta = (beta - alpha) / (2.0 * gamma)
                 t = (1.0 if zeta >= 0.0 else -1.0) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
                 c = 1.0 / math.sqrt(1.0 + t * t)
-                s = c * t
+                sn = c * t
                 for k in range(3):
                     ap, aq = A[k, p], A[k, q]
-                    A[k, p] = c * ap - s * aq
-                    A[k, q] = s * ap + c * aq
+                    A[k, p] = c * ap - sn * aq
+                    A[k, q] = sn * ap + c * aq
                     vp, vq = V[k, p], V[k, q]
-                    V[k, p] = c * vp - s * vq
-                    V[k, q] = s * vp + c * vq
+                    V[k, p] = c * vp - sn * vq
+                    V[k, q] = sn * vp + c * vq
         if not rotated:
             break
-    sig = np.empty(3)
+    n0 = math.sqrt(A[0, 0] * A[0, 0] + A[1, 0] * A[1, 0] + A[2, 0] * A[2, 0])
+    n1 = math.sqrt(A[0, 1] * A[0, 1] + A[1, 1] * A[1, 1] + A[2, 1] * A[2, 1])
+    n2 = math.sqrt(A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2] + A[2, 2] * A[2, 2])
+    # order of the columns by decreasing norm (a stable sort of three)
+    o0, o1, o2 = 0, 1, 2
+    v0, v1, v2 = n0, n1, n2
+    if v1 > v0:
+        o0, o1, v0, v1 = o1, o0, v1, v0
+    if v2 > v1:
+        o1, o2, v1, v2 = o2, o1, v2, v1
+        if v1 > v0:
+            o0, o1, v0, v1 = o1, o0, v1, v0
+    s[0], s[1], s[2] = v0, v1, v2
+    tiny = 1e-300 + 1e-14 * v0
     for j in range(3):
-        sig[j] = math.sqrt(A[0, j] * A[0, j] + A[1, j] * A[1, j] + A[2, j] * A[2, j])
-    order = np.argsort(-sig)
-    s = sig[order]
-    U = np.empty((3, 3))
-    Vs = np.empty((3, 3))
-    tiny = 1e-300 + 1e-14 * s[0]
-    for j in range(3):
-        o = order[j]
+        o = o0 if j == 0 else (o1 if j == 1 else o2)
         for k in range(3):
             Vs[k, j] = V[k, o]
             U[k, j] = A[k, o] / s[j] if s[j] > tiny else 0.0
     # Columns of U for (near-)zero singular values: complete an orthonormal basis.
     if s[0] <= tiny:
-        U[:, :] = np.eye(3)
+        for i in range(3):
+            for j in range(3):
+                U[i, j] = 1.0 if i == j else 0.0
     else:
         if s[1] <= tiny:  # any unit vector orthogonal to u0
-            u0 = U[:, 0]
-            a = np.array([1.0, 0.0, 0.0]) if abs(u0[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-            u1 = a - _dot(a, u0) * u0
-            U[:, 1] = u1 / math.sqrt(_dot(u1, u1))
+            a0, a1, a2 = (1.0, 0.0, 0.0) if abs(U[0, 0]) < 0.9 else (0.0, 1.0, 0.0)
+            d = a0 * U[0, 0] + a1 * U[1, 0] + a2 * U[2, 0]
+            u0, u1, u2 = a0 - d * U[0, 0], a1 - d * U[1, 0], a2 - d * U[2, 0]
+            nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            U[0, 1], U[1, 1], U[2, 1] = u0 / nu, u1 / nu, u2 / nu
         if s[2] <= tiny:
             U[0, 2] = U[1, 0] * U[2, 1] - U[2, 0] * U[1, 1]
             U[1, 2] = U[2, 0] * U[0, 1] - U[0, 0] * U[2, 1]
             U[2, 2] = U[0, 0] * U[1, 1] - U[1, 0] * U[0, 1]
-    return U, s, Vs
+
+
+@_jit
+def svd3(H):
+    """H = U diag(s) V^T for a 3x3 H, s descending, U and V orthogonal (one-sided Jacobi)."""
+    work = np.empty((4, 3, 3))
+    s = np.empty(3)
+    _svd3_into(H, work, s)
+    return work[2].copy(), s, work[3].copy()
+
+
+@_jit
+def _rotation_into(H, R, work, s):
+    """R = argmax_{R in SO(3)} trace(R H) = V diag(1, 1, det(V U^T)) U^T, written into R."""
+    _svd3_into(H, work, s)
+    U, V = work[2], work[3]
+    d = -1.0 if _det3(U) * _det3(V) < 0.0 else 1.0
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = V[i, 0] * U[j, 0] + V[i, 1] * U[j, 1] + d * V[i, 2] * U[j, 2]
 
 
 @_jit
 def rotation_from_cross_covariance(H):
     """argmax_{R in SO(3)} trace(R H) = V diag(1, 1, det(V U^T)) U^T (Arun/Umeyama, reflection-safe)."""
-    U, _s, V = svd3(H)
-    if _det3(U) * _det3(V) < 0.0:
-        V[:, 2] = -V[:, 2]
-    return _mm(V, U.T.copy())
+    R = np.empty((3, 3))
+    _rotation_into(H, R, np.empty((4, 3, 3)), np.empty(3))
+    return R
 
 
 @_jit
-def _log_so3(R):
-    """Rotation vector of R (atan2 form, accurate for small angles); zero when too close to pi to be defined."""
-    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
-    w0, w1, w2 = 0.5 * (R[2, 1] - R[1, 2]), 0.5 * (R[0, 2] - R[2, 0]), 0.5 * (R[1, 0] - R[0, 1])
-    s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)  # sin(theta)
-    theta = math.atan2(s, c)
-    if theta > 3.0:
-        return np.zeros(3)
-    f = theta / s if s > 1e-300 else 1.0
-    return np.array([f * w0, f * w1, f * w2])
+def _apply(R, T, p):
+    """R p + T as three scalars (no array allocated: this runs per point, per hypothesis)."""
+    return (R[0, 0] * p[0] + R[0, 1] * p[1] + R[0, 2] * p[2] + T[0],
+            R[1, 0] * p[0] + R[1, 1] * p[1] + R[1, 2] * p[2] + T[1],
+            R[2, 0] * p[0] + R[2, 1] * p[1] + R[2, 2] * p[2] + T[2])
 
 
 @_jit
-def _exp_so3(v):
-    theta = math.sqrt(_dot(v, v))
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    if theta < 1e-12:
-        return np.eye(3) + K
-    a = math.sin(theta) / theta
-    b = (1.0 - math.cos(theta)) / (theta * theta)
-    return np.eye(3) + a * K + b * _mm(K, K)
+def _exp_log_scaled_into(Q, k, out):
+    """out = exp(k log Q) for a rotation Q; False (out untouched) when the angle of Q is under 1e-5 rad
+    or within 0.14 rad of pi, where the extrapolation is not worth it or not defined."""
+    c = 0.5 * (Q[0, 0] + Q[1, 1] + Q[2, 2] - 1.0)
+    w0, w1, w2 = 0.5 * (Q[2, 1] - Q[1, 2]), 0.5 * (Q[0, 2] - Q[2, 0]), 0.5 * (Q[1, 0] - Q[0, 1])
+    sn = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    theta = math.atan2(sn, c)
+    if theta < 1e-5 or theta > 3.0:
+        return False
+    x, y, z = w0 / sn, w1 / sn, w2 / sn  # unit axis
+    a = k * theta
+    ca, sa = math.cos(a), math.sin(a)
+    t = 1.0 - ca
+    out[0, 0], out[0, 1], out[0, 2] = ca + t * x * x, t * x * y - sa * z, t * x * z + sa * y
+    out[1, 0], out[1, 1], out[1, 2] = t * x * y + sa * z, ca + t * y * y, t * y * z - sa * x
+    out[2, 0], out[2, 1], out[2, 2] = t * x * z - sa * y, t * y * z + sa * x, ca + t * z * z
+    return True
+
+
+@_jit
+def _quadratic(E, r):
+    acc = 0.0
+    for i in range(9):
+        row = 0.0
+        for j in range(9):
+            row += E[i, j] * r[j]
+        acc += r[i] * row
+    return acc
 
 
 @_jit
@@ -266,7 +315,7 @@ def solve(P, n, D, w, max_iter, tol, overrelax):
             for b in range(3):
                 H0[a, b] += pa * D[i] * n[i, b]
     R = rotation_from_cross_covariance(H0)
-    r = R.ravel()
+    r = R.reshape(9)  # a view: follows R
     T = _mv(C, r)
     meanD = 0.0
     for i in range(N):
@@ -276,38 +325,58 @@ def solve(P, n, D, w, max_iter, tol, overrelax):
     for i in range(N):
         pmax = max(pmax, _dot(P[i], P[i]))
     pmax = math.sqrt(pmax)
+    # The loop works in preallocated buffers: small-array allocations would cost more than the arithmetic.
+    work, sv = np.empty((4, 3, 3)), np.empty(3)
+    h = np.empty(9)
+    R_new, R_acc, Q = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    T_new = np.empty(3)
     converged = False
     it = 1
     while it < max_iter:
         it += 1
-        R_new = rotation_from_cross_covariance(_mv(M, r).reshape(3, 3))
+        for i in range(9):
+            acc = 0.0
+            for j in range(9):
+                acc += M[i, j] * r[j]
+            h[i] = acc
+        _rotation_into(h.reshape(3, 3), R_new, work, sv)
         if overrelax > 1.0:
-            v = _log_so3(_mm(R.T.copy(), R_new))
-            # Steps under 1e-5 rad are not extrapolated (as cv2.Rodrigues in the numpy path, which
-            # returns zero there): at that size a doubled step only postpones the convergence test.
-            if _dot(v, v) >= 1e-10:
-                R_acc = _mm(R, _exp_so3(overrelax * v))
-                ra, rn = R_acc.ravel(), R_new.ravel()
-                if _dot(ra, _mv(E, ra)) < _dot(rn, _mv(E, rn)):
-                    R_new = R_acc
-        r_new = R_new.ravel().copy()
-        T_new = _mv(C, r_new)
-        dR = r_new - r
-        dT = T_new - T
-        change = math.sqrt(_dot(dR, dR)) * pmax + math.sqrt(_dot(dT, dT))
-        R, r, T = R_new, r_new, T_new
-        if change <= bound:
+            # Geodesic extrapolation R exp(overrelax log(R^T R_new)). Steps under 1e-5 rad are not
+            # extrapolated (as cv2.Rodrigues in the numpy path, which returns zero there): at that size a
+            # doubled step only postpones the convergence test.
+            for i in range(3):
+                for j in range(3):
+                    Q[i, j] = R[0, i] * R_new[0, j] + R[1, i] * R_new[1, j] + R[2, i] * R_new[2, j]
+            if _exp_log_scaled_into(Q, overrelax, work[0]):
+                for i in range(3):
+                    for j in range(3):
+                        R_acc[i, j] = R[i, 0] * work[0, 0, j] + R[i, 1] * work[0, 1, j] + R[i, 2] * work[0, 2, j]
+                if _quadratic(E, R_acc.reshape(9)) < _quadratic(E, R_new.reshape(9)):
+                    R_new[:, :] = R_acc
+        rn = R_new.reshape(9)
+        for i in range(3):
+            acc = 0.0
+            for j in range(9):
+                acc += C[i, j] * rn[j]
+            T_new[i] = acc
+        dr2 = 0.0
+        for j in range(9):
+            dr2 += (rn[j] - r[j]) ** 2
+        dt2 = (T_new[0] - T[0]) ** 2 + (T_new[1] - T[1]) ** 2 + (T_new[2] - T[2]) ** 2
+        R[:, :] = R_new
+        T[:] = T_new
+        if math.sqrt(dr2) * pmax + math.sqrt(dt2) <= bound:
             converged = True
             break
     depths = np.empty(N)
     ss = 0.0
     for i in range(N):
-        X = _mv(R, P[i]) + T
-        depths[i] = _dot(X, n[i])
-        nx = math.sqrt(_dot(X, X))
+        x, y, z = _apply(R, T, P[i])
+        depths[i] = x * n[i, 0] + y * n[i, 1] + z * n[i, 2]
+        nx = math.sqrt(x * x + y * y + z * z)
         if nx > 0.0:
-            d = X / nx - n[i]
-            ang = 2.0 * math.asin(min(1.0, 0.5 * math.sqrt(_dot(d, d))))
+            dx, dy, dz = x / nx - n[i, 0], y / nx - n[i, 1], z / nx - n[i, 2]
+            ang = 2.0 * math.asin(min(1.0, 0.5 * math.sqrt(dx * dx + dy * dy + dz * dz)))
         else:
             ang = math.pi
         ss += ang * ang
@@ -322,7 +391,8 @@ def solve_from(P, n, R0, T0, D0, weights, angular, max_iter, tol, overrelax):
     if D0.shape[0] == 0:
         D = np.empty(N)
         for i in range(N):
-            D[i] = _dot(_mv(R0, P[i]) + T0, n[i])
+            x, y, z = _apply(R0, T0, P[i])
+            D[i] = x * n[i, 0] + y * n[i, 1] + z * n[i, 2]
     else:
         D = D0
     w = np.ones(N) if weights.shape[0] == 0 else weights.copy()
@@ -338,6 +408,8 @@ def minimal_hypotheses(P, n, D0, samples, iters, gate):
     """motion._minimal_hypotheses and its scoring: the alternation on each 3-point sample (centroid
     translation) from depths D0, then the number of rays within the angle whose cosine is ``gate``.
     Returns R (H, 3, 3), T (H, 3), counts (H,)."""
+    if iters < 1:
+        raise ValueError("minimal_hypotheses: iters must be >= 1")
     H = samples.shape[0]
     N = P.shape[0]
     Rs = np.empty((H, 3, 3))
@@ -347,37 +419,39 @@ def minimal_hypotheses(P, n, D0, samples, iters, gate):
     ns = np.empty((3, 3))
     D = np.empty(3)
     Hm = np.empty((3, 3))
-    R = np.eye(3)
-    T = np.zeros(3)
+    cP, cQ = np.empty(3), np.empty(3)
+    work, sv = np.empty((4, 3, 3)), np.empty(3)
     for h in range(H):
+        R, T = Rs[h], Ts[h]  # views: the hypothesis is written in place
         for k in range(3):
             Ps[k] = P[samples[h, k]]
             ns[k] = n[samples[h, k]]
             D[k] = D0[samples[h, k]]
         for _it in range(iters):
-            cP = (Ps[0] + Ps[1] + Ps[2]) / 3.0
-            cQ = (D[0] * ns[0] + D[1] * ns[1] + D[2] * ns[2]) / 3.0
+            for a in range(3):
+                cP[a] = (Ps[0, a] + Ps[1, a] + Ps[2, a]) / 3.0
+                cQ[a] = (D[0] * ns[0, a] + D[1] * ns[1, a] + D[2] * ns[2, a]) / 3.0
             Hm[:, :] = 0.0
             for k in range(3):
                 for a in range(3):
                     for b in range(3):
                         Hm[a, b] += (Ps[k, a] - cP[a]) * (D[k] * ns[k, b] - cQ[b])
-            R = rotation_from_cross_covariance(Hm)
-            T = cQ - _mv(R, cP)
+            _rotation_into(Hm, R, work, sv)
+            for a in range(3):
+                T[a] = cQ[a] - (R[a, 0] * cP[0] + R[a, 1] * cP[1] + R[a, 2] * cP[2])
             floor = 0.0
             for k in range(3):
-                D[k] = _dot(_mv(R, Ps[k]) + T, ns[k])
+                x, y, z = _apply(R, T, Ps[k])
+                D[k] = x * ns[k, 0] + y * ns[k, 1] + z * ns[k, 2]
                 floor = max(floor, abs(D[k]))
             floor = 1e-9 * (floor + 1e-300)
             for k in range(3):
                 D[k] = max(D[k], floor)
-        Rs[h] = R
-        Ts[h] = T
         c = 0
         for i in range(N):
-            X = _mv(R, P[i]) + T
-            nx = math.sqrt(_dot(X, X))
-            if nx > 0.0 and _dot(X, n[i]) > gate * nx:
+            x, y, z = _apply(R, T, P[i])
+            nx = math.sqrt(x * x + y * y + z * z)
+            if nx > 0.0 and x * n[i, 0] + y * n[i, 1] + z * n[i, 2] > gate * nx:
                 c += 1
         counts[h] = c
     return Rs, Ts, counts
