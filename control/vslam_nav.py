@@ -209,6 +209,8 @@ class VslamStage(VisionStage):
         self._lost_streak = 0
         self._good: Optional[tuple[Pose2, Pose2]] = None   # (robot pose, odometry) at the last good frame
         self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0}
+        if self.monocular:
+            self.stats.update(rescaled=0, last_scale=1.0)
 
     @property
     def reference_index(self) -> int:
@@ -355,7 +357,7 @@ class VslamStage(VisionStage):
         s = float(np.clip(d_odom / d_vslam, 0.7, 1.4)) ** self.cfg.odometry_scale_gain
         self.slam.move_reference(b_vslam + s * (p_vslam - b_vslam))
         self.slam.rescale(s)
-        self.stats["rescaled"] = self.stats.get("rescaled", 0) + 1
+        self.stats["rescaled"] += 1
         self.stats["last_scale"] = round(s, 4)
         self._scale_base = (ref.pose_wc[:3, 3].copy(), p_odom)
         return self.slam.pose_wc
