@@ -40,6 +40,7 @@ from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe, to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y, wrap_angle
 from vbnav.vision.motion import recover_motion_robust
+from vbnav.vision.motion import warm_up as warm_up_motion_kernels
 from vbnav.vision.vslam import Vslam, VslamConfig
 from vbnav.vision.vslam_init import init_two_view
 
@@ -195,6 +196,7 @@ class VslamStage(VisionStage):
         self.mount = mount
         self.baseline = None if self.monocular or not stereo_baseline else float(stereo_baseline)
         self.slam = Vslam(camera, self.cfg, stereo_baseline=self.baseline)
+        warm_up_motion_kernels()  # compile now, not in the vision thread's first frame
         self._mono: Optional[_MonocularStart] = None
         # Monocular scale: (camera position by the VSLAM in chain coordinates, by odometry) where the
         # distance the two are compared over starts.

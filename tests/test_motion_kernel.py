@@ -164,3 +164,22 @@ def test_robust_solve_is_the_same_with_and_without_the_kernel(rng, monkeypatch):
     assert fast.hypotheses == ref.hypotheses and fast.iterations == ref.iterations
     np.testing.assert_allclose(fast.R, ref.R, atol=1e-9)
     np.testing.assert_allclose(fast.T, ref.T, atol=1e-9)
+
+
+@needs_kernel
+def test_warm_up_compiles_every_signature_the_solvers_use(rng):
+    # After warm_up, solving (as the VSLAM does: prior, angular weights, robust) compiles nothing new,
+    # so no first-frame stall in the vision thread.
+    motion.warm_up()
+    kernels = (mk.solve_from, mk.minimal_hypotheses)
+    before = [len(k.signatures) for k in kernels]
+    assert all(before)
+    P, rays, prior = _scene(rng, 80, 1e-3)
+    motion.recover_motion_robust(P, rays, prior=prior, angular=True, weights=rng.uniform(0.5, 1, 80), rng=rng)
+    motion.recover_motion(P[::2], rays[::2], prior=prior, angular=True)   # strided input
+    motion.recover_motion(P, rays, depths=np.linalg.norm(P, axis=1))
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = prior
+    motion.recover_motion(P, rays, prior=(M[:3, :3], M[:3, 3]))              # strided prior (a 4x4's views)
+    motion.recover_motion_robust(P, rays, prior=(M[:3, :3], M[:3, 3]), angular=True, rng=rng)
+    assert [len(k.signatures) for k in kernels] == before

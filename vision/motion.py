@@ -195,9 +195,11 @@ def recover_motion(points: np.ndarray, rays: np.ndarray, depths: np.ndarray | fl
         D = np.broadcast_to(np.asarray(depths, float), (N,)).copy()
     w = None if weights is None else np.asarray(weights, float).reshape(N)
     if motion_kernel.AVAILABLE:
-        R0, T0 = (_EYE, _ZERO) if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
+        R0, T0 = (_EYE, _ZERO) if prior is None else prior
+        # Contiguous float64 in, always: another memory layout would compile another kernel, mid-run.
         R, T, D, it, res, converged = motion_kernel.solve_from(
-            np.ascontiguousarray(P), np.ascontiguousarray(n), np.ascontiguousarray(R0), T0.reshape(3),
+            np.ascontiguousarray(P), np.ascontiguousarray(n), np.ascontiguousarray(R0, dtype=float).reshape(3, 3),
+            np.ascontiguousarray(T0, dtype=float).reshape(3),
             _EMPTY if D is None else D, _EMPTY if w is None else np.ascontiguousarray(w), bool(angular),
             int(max_iter), float(tol), float(overrelax))
         return MotionEstimate(R, T, D, it, res, np.ones(N, bool), converged)
@@ -370,3 +372,19 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
     D = np.einsum("ij,ij->i", P @ est.R.T + est.T, n)
     res = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("nan")
     return MotionEstimate(est.R, est.T, D, total_iters, res, inl, est.converged, hypotheses=tried)
+
+
+def warm_up() -> None:
+    """Compile the numba kernels, or load them from numba's disk cache, before a real-time loop needs
+    them: with a cold cache (a fresh install) the first solve would take seconds. Runs the public
+    solvers on a small synthetic scene, so the compiled signatures are exactly the ones they use."""
+    if not motion_kernel.AVAILABLE:
+        return
+    rng = np.random.default_rng(0)
+    P = np.column_stack((rng.uniform(-1, 1, 12), rng.uniform(-1, 1, 12), rng.uniform(3, 6, 12)))
+    rays = P / np.linalg.norm(P, axis=1, keepdims=True)
+    prior = (np.eye(3), np.zeros(3))
+    recover_motion(P, rays, prior=prior, angular=True)
+    recover_motion(P, rays, depths=4.0)
+    recover_motion_robust(P, rays, prior=prior, angular=True, weights=np.ones(len(P)), rng=rng)
+    recover_motion_robust(P, rays, angular=True, rng=rng)  # no prior: the 3-point hypotheses run
