@@ -21,13 +21,30 @@ def test_goto_reaches_a_near_goal_on_the_simulated_robot():
 
 def test_goto_refuses_mono_config_and_bad_goals():
     r = _run("--config", "sim", "--goal", "0", "1", "0")
-    assert r.returncode == 2 and "stereo_baseline" in r.stdout
+    assert r.returncode == 2 and "stereo_baseline" in r.stdout and "metric_scale: odometry" in r.stdout
     r = _run("--goal", "0", "inf", "0")
     assert r.returncode == 2 and "finite" in r.stderr
     r = _run("--goal", "0", "1")
     assert r.returncode == 2 and "--goal" in r.stderr
     r = _run("--config", "no-such-robot.yaml", "--goal", "0", "1", "0")
     assert r.returncode == 2 and "no-such-robot.yaml" in r.stderr
+
+
+def test_goto_on_a_single_camera_scaled_by_the_wheels(tmp_path):
+    """configs/sim.yaml (no stereo) with vslam.metric_scale odometry: accepted, creeps to initialise, arrives."""
+    import yaml
+
+    from vbnav.control.config import CONFIG_DIR
+
+    d = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
+    assert "stereo_baseline" not in (d["camera"].get("options") or {})
+    d["vslam"] = {"metric_scale": "odometry"}
+    cfg = tmp_path / "mono.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")
+    assert r.returncode == 0, r.stdout + r.stderr
+    err_cm = float(r.stdout.split("position error ")[1].split(" cm")[0])
+    assert err_cm < 5.0
 
 
 def test_goto_times_out_with_exit_code_1():

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 
 
-def add_config_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", "-c", default=None, metavar="FILE",
-                   help="robot configuration YAML (default: configs/sim.yaml; a bare name like 'sim' "
-                        "is looked up in configs/)")
+def add_config_arg(p: argparse.ArgumentParser, default: str | None = None) -> None:
+    p.add_argument("--config", "-c", default=default, metavar="FILE",
+                   help=f"robot configuration YAML (default: configs/{default or 'sim'}.yaml; a bare name like "
+                        "'sim' is looked up in configs/)")

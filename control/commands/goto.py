@@ -22,17 +22,18 @@ def _finite(text: str) -> float:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "goto", help="drive to a goal pose using the stereo VSLAM",
+        "goto", help="drive to a goal pose using the VSLAM",
         description="Drive the robot to a goal pose given in the VSLAM's reference frame: the robot's pose when "
                     "the command starts (x to the right, z forward, metres; theta in degrees, positive turning "
-                    "right). The VSLAM (section 11.3, stereo for metric scale) localises the robot, odometry "
-                    "bridges between frames, and a polar-coordinate control law drives forward to the goal, "
-                    "slowing near it, then turns on the spot to the goal heading. Needs a stereo camera "
-                    "(the default configs/sim_stereo.yaml on the simulated robot, which starts at x=%.1f z=%.1f of the "
-                    "simulated room). Exit code 0 when the goal is reached, 1 when not (duration, lost)."
+                    "right). The VSLAM (section 11.3) localises the robot, odometry bridges between frames, and a "
+                    "polar-coordinate control law drives forward to the goal, slowing near it, then turns on the "
+                    "spot to the goal heading. Metric scale comes from a stereo camera (the default "
+                    "configs/sim_stereo.yaml on the simulated robot, which starts at x=%.1f z=%.1f of the simulated "
+                    "room) or, with 'vslam: {metric_scale: odometry}' in the configuration, from the wheels for a "
+                    "single camera (the robot first creeps ahead up to 0.3 m to initialise). Exit code 0 when the "
+                    "goal is reached, 1 when not (duration, lost)."
                     % SIM_START[:2])
-    add_config_arg(p)
-    p.set_defaults(config="sim_stereo")
+    add_config_arg(p, default="sim_stereo")
     p.add_argument("--goal", required=True, nargs=3, type=_finite, metavar=("X", "Z", "THETA_DEG"),
                    help="goal pose in the reference frame: x (m, right), z (m, forward), heading (degrees)")
     p.add_argument("--duration", type=float, default=120.0, metavar="S",
@@ -49,9 +50,10 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     nav = vslam_nav_config(cfg.vslam, cfg.source or "<config>")
-    if stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
+    if nav.metric_scale == "stereo" and stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "
-              "pair for metric scale (try --config sim_stereo)")
+              "pair for metric scale (try --config sim_stereo, or set vslam.metric_scale: odometry for a single "
+              "camera scaled by the wheels)")
         return 2
     goal = Pose2(args.goal[0], args.goal[1], math.radians(args.goal[2]))
     try:
