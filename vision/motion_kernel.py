@@ -3,7 +3,7 @@
 Why compiled: one alternation step is a 9x9 product, a 3x3 SVD and a few 3x3
 products, about a microsecond of arithmetic. In numpy each of those is a call
 costing a few microseconds of interpreter overhead on arrays this small, so
-the numpy solve spent ~0.3 ms at n = 50, nearly all of it overhead. numba
+the numpy solve spends ~0.35 ms at n = 50, nearly all of it overhead. numba
 compiles the same steps to machine code (cached on disk after the first call)
 and releases the GIL while it runs, so a vision thread solving poses does not
 hold up the control loop.
@@ -12,9 +12,11 @@ numba's own ``np.linalg`` needs SciPy's LAPACK, which we do not ship, so the
 3x3 SVD here is a one-sided Jacobi (Hestenes) SVD: exact to rounding for 3x3,
 with the reflection guard of ``motion._rotation_from_cross_covariance``.
 
-``motion.recover_motion`` calls :func:`solve` when numba imports and
-``VBNAV_NO_JIT`` is unset; the numpy path stays as the readable reference and
-the fallback, and ``tests/test_motion_kernel.py`` checks the two agree.
+``motion.recover_motion`` calls :func:`solve_from` (and ``recover_motion_robust``
+:func:`minimal_hypotheses`) when numba imports and ``VBNAV_NO_JIT`` is unset;
+the numpy path stays as the readable reference and the fallback, and
+``tests/test_motion_kernel.py`` checks the two agree. The loops allocate
+nothing: on arrays this small an allocation costs more than the arithmetic.
 """
 from __future__ import annotations
 
