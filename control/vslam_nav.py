@@ -312,7 +312,8 @@ class VslamStage(VisionStage):
         m.px[idx[ok]] = nxt[ok]
         m.prev, m.frames = image, m.frames + 1
         # Camera motion between the views from the wheels: X_now = R X_first + T.
-        rel = np.linalg.inv(robot_to_camera_matrix(odom, self.mount)) @ robot_to_camera_matrix(m.odom0, self.mount)
+        cam_odom = robot_to_camera_matrix(odom, self.mount)
+        rel = np.linalg.inv(cam_odom) @ robot_to_camera_matrix(m.odom0, self.mount)
         pose_wc = m.pose0_wc @ np.linalg.inv(rel)   # where odometry puts the camera now
         baseline = float(np.linalg.norm(rel[:3, 3]))
         quality = {"initialising": "monocular", "baseline_m": baseline, "tracked": int(m.keep.sum())}
@@ -321,19 +322,17 @@ class VslamStage(VisionStage):
             return self._start_monocular(frame, image, odom, pose_wc)
         if baseline < cfg.odometry_init_baseline_m:
             return self._estimate(frame, odom, False, pose_wc, 0, None, quality)
-        px0, px = m.px0[m.keep], m.px[m.keep]
-        tv = init_two_view(self.camera.rays(px0), self.camera.rays(px), scale=baseline,
-                           translation_hint=rel[:3, 3])
+        px, rays0 = m.px[m.keep], self.camera.rays(m.px0[m.keep])
+        tv = init_two_view(rays0, self.camera.rays(px), scale=baseline, translation_hint=rel[:3, 3])
         v = tv.valid
         if v.sum() < max(8, cfg.min_inliers):
             self._mono = None
             return self._start_monocular(frame, image, odom, pose_wc)
-        X_first = tv.depths1[v, None] * self.camera.rays(px0[v])
+        X_first = tv.depths1[v, None] * rays0[v]
         pose_wc = m.pose0_wc @ np.linalg.inv(to_matrix(tv.R, tv.T))
         n = self.slam.initialise(image, px[v], X_first @ tv.R.T + tv.T, pose_wc)
         self._mono = None
-        self._scale_base = (self.slam.references[-1].pose_wc[:3, 3].copy(),
-                            robot_to_camera_matrix(odom, self.mount)[:3, 3])
+        self._scale_base = (self.slam.references[-1].pose_wc[:3, 3].copy(), cam_odom[:3, 3])
         self._lost_streak = 0
         self._maybe_add_anchor(image)
         est = self._estimate(frame, odom, n >= cfg.min_inliers, self.slam.pose_wc, n, None,
