@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 
 from vbnav.control.config import Config
-from vbnav.control.manual import ScriptedController
-from vbnav.control.runtime import Runtime
+from vbnav.control.controllers.manual import ScriptedController
+from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.clock import MonotonicClock
-from vbnav.drivers.sim_base import BaseParams, SimDiffDrive
+from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
 
 
 def make_runtime(rate_hz: float, rt_sched: bool = False) -> Runtime:

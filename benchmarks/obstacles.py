@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_camera import SimCamera
-from vbnav.drivers.sim_world import KINDS, World
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.world import KINDS, World
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_x
 from vbnav.vision.ground_plane import expected_plane

@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_camera import SimCamera
-from vbnav.drivers.sim_render import NEAR_Z, Renderer
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.render import NEAR_Z, Renderer
+from vbnav.drivers.sim.world import World
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 

@@ -37,7 +37,7 @@ def free_port() -> int:
 # ---- subscriber process ---------------------------------------------------------------------
 
 def subscriber(port: int, seconds: float) -> None:
-    from vbnav.control.network import client_session_config, open_session
+    from vbnav.control.comms.network import client_session_config, open_session
     recv: list[tuple[int, int, int]] = []   # (run, seq, latency ns)
 
     def on(sample):
@@ -58,7 +58,7 @@ def subscriber(port: int, seconds: float) -> None:
 
 # ---- publisher side -------------------------------------------------------------------------
 
-from vbnav.control.telemetry import StateSample  # noqa: E402
+from vbnav.control.comms.telemetry import StateSample  # noqa: E402
 from vbnav.vision.geometry import Pose2  # noqa: E402
 
 
@@ -112,8 +112,10 @@ def main() -> int:
 
     import zenoh
 
-    from vbnav.control.network import TelemetryConfig, open_session, robot_session_config
-    from vbnav.control.telemetry import TelemetryPublisher, state_message
+    from vbnav.control.config.telemetry import TelemetryConfig
+
+    from vbnav.control.comms.network import open_session, robot_session_config
+    from vbnav.control.comms.telemetry import TelemetryPublisher, state_message
 
     session = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "bench"))
     zpub = session.declare_publisher(KEY, express=True, congestion_control=zenoh.CongestionControl.DROP)

@@ -33,7 +33,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from kitti_util import planar_motion, read_calib, read_poses, vbc_frame_pair_errors  # noqa: E402
 from vbnav.control.route import Route  # noqa: E402
-from vbnav.control.teach_repeat import RepeatStage, TeachStage, VBCConfig  # noqa: E402
+from vbnav.control.stages.repeat import RepeatStage
+from vbnav.control.stages.teach import TeachStage
+from vbnav.control.config.vbc import VBCConfig  # noqa: E402
 from vbnav.drivers.camera import Frame  # noqa: E402
 from vbnav.vision.camera_model import PinholeCamera  # noqa: E402
 from vbnav.vision.geometry import CameraMount, Pose2  # noqa: E402

@@ -26,9 +26,9 @@ import cv2
 import numpy as np
 
 from vbnav.control.config import load_config
-from vbnav.control.controller import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.control.vslam_eval import fast_stereo_config, run_vslam_loop
-from vbnav.control.vslam_nav import VslamFix, camera_to_robot, robot_to_camera_matrix
+from vbnav.control.stages.vslam import VslamFix, camera_to_robot, robot_to_camera_matrix
 from vbnav.vision.features import KltTracker, to_grey
 
 
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     ratios = []
     for seed in args.seeds:
         cfg = fast_stereo_config(base=load_config("sim_stereo", overrides={"sim": {"seed": seed}}))
-        from vbnav.control.vslam_nav import make_vslam_stage
+        from vbnav.control.stages.vslam import make_vslam_stage
         probe = make_vslam_stage(cfg)
         r = run_vslam_loop(cfg, extra_stages=(OpenCvChainedStage(probe.camera, probe.mount, probe.baseline),))
         no_reloc = run_vslam_loop(fast_stereo_config(base=load_config(

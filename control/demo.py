@@ -23,11 +23,11 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbnav.control.config import Config, load_config
-from vbnav.control.factory import make_pipeline
-from vbnav.control.path_tools import PathFollower, lateral_errors, path_length, rounded_rectangle
-from vbnav.control.runtime import Runtime
+from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.controllers.path import PathFollower, lateral_errors, path_length, rounded_rectangle
+from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_base import BaseParams, SimDiffDrive
+from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
 from vbnav.vision.geometry import Pose2
 
 
@@ -161,7 +161,7 @@ class SimRobot:
 
 def make_sim_robot(cfg: Config, world, start: Pose2, seed_offset: int = 0) -> SimRobot:
     from vbnav.control.config import validate_driver_options
-    from vbnav.drivers.sim_camera import SimCamera
+    from vbnav.drivers.sim.camera import SimCamera
 
     clock = SimClock()
     drive = SimDiffDrive(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed * 1000 + seed_offset, start=start)
@@ -186,7 +186,8 @@ def teach_route(cfg: Config, robot: SimRobot, controller, route_dir: Path,
                 recorder=None) -> TeachResult:
     """Drive with ``controller`` while a TeachStage records keyframes into ``route_dir``."""
     from vbnav.control.route import RouteWriter
-    from vbnav.control.teach_repeat import TeachStage, teach_repeat_config
+    from vbnav.control.stages.teach import TeachStage
+    from vbnav.control.config.vbc import teach_repeat_config
 
     model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
     stage = TeachStage(model, mount, teach_repeat_config(cfg.vbc))
@@ -232,7 +233,9 @@ def repeat_route(cfg: Config, robot: SimRobot, route, progress: Optional[Callabl
                  duration_s: float = 240.0, events: Optional[Callable] = None,
                  extra_stages: tuple = (), recorder=None, segment: str = "repeat") -> RepeatResult:
     """Patrol ``route`` with the RepeatStage/RepeatController; ``events(rt, ctx)`` injects scenario changes."""
-    from vbnav.control.teach_repeat import RepeatController, RepeatStage, teach_repeat_config
+    from vbnav.control.controllers.repeat import RepeatController
+    from vbnav.control.stages.repeat import RepeatStage
+    from vbnav.control.config.vbc import teach_repeat_config
 
     vcfg = teach_repeat_config(cfg.vbc)
     stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
@@ -260,7 +263,7 @@ def _record(rt: Runtime, cfg: Config, recorder, segment: str):
     """Record this run into a shared MCAP recorder (no network: simulated runs go faster than real time)."""
     if recorder is None:
         return None
-    from vbnav.control.telemetry_link import TelemetryLink
+    from vbnav.control.comms.link import TelemetryLink
     return TelemetryLink.attach(rt, cfg, recorder=recorder, network=False, segment=segment)
 
 
@@ -297,7 +300,7 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
 
     ``record``: one MCAP file holding the teach run and every repeat, one segment each.
     """
-    from vbnav.drivers.sim_world import World
+    from vbnav.drivers.sim.world import World
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -311,7 +314,7 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
     robot = make_sim_robot(cfg, world, start, seed_offset=0)
     recorder = None
     if record:
-        from vbnav.control.recording import McapRecorder
+        from vbnav.control.comms.recording import McapRecorder
         recorder = McapRecorder(record, cfg.robot.name, metadata={"demo_seed": scenario.seed,
                                                                   "repeats": scenario.repeats})
     try:
@@ -323,7 +326,7 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
 
 def _run_demo_phases(out_dir, scenario, cfg, say, progress, path, start, world, robot, recorder, t_wall) -> dict:
     from vbnav.control.route import load_route
-    from vbnav.drivers.sim_world import World
+    from vbnav.drivers.sim.world import World
 
     teach = teach_route(cfg, robot, PathFollower(path, scenario.speed, start=start), out_dir / "route", say,
                         recorder=recorder)

@@ -20,14 +20,14 @@ from typing import Optional
 import numpy as np
 
 from vbnav.control.config import Config, load_config
-from vbnav.control.controller import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.control.demo import make_sim_robot
-from vbnav.control.factory import make_pipeline
-from vbnav.control.path_tools import PathFollower, path_length, rounded_rectangle
-from vbnav.control.runtime import Runtime
-from vbnav.control.vslam_nav import VslamFix, camera_to_robot, make_vslam_stage, robot_to_camera_matrix
+from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.controllers.path import PathFollower, path_length, rounded_rectangle
+from vbnav.control.runtime.runtime import Runtime
+from vbnav.control.stages.vslam import VslamFix, camera_to_robot, make_vslam_stage, robot_to_camera_matrix
 from vbnav.drivers.camera import Frame
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.world import World
 from vbnav.vision.features import to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, wrap_angle
 from vbnav.vision.vslam import Vslam, VslamConfig

@@ -9,14 +9,14 @@ from __future__ import annotations
 import importlib
 
 CAMERAS: dict[str, str] = {
-    "sim": "vbnav.drivers.sim_camera:SimCamera",
+    "sim": "vbnav.drivers.sim.camera:SimCamera",
     "v4l2": "vbnav.drivers.v4l2_camera:V4L2Camera",
     "oak": "vbnav.drivers.oak_camera:OakCamera",
     "replay": "vbnav.drivers.replay_camera:ReplayCamera",
 }
 
 DRIVES: dict[str, str] = {
-    "sim": "vbnav.drivers.sim_base:SimDiffDrive",
+    "sim": "vbnav.drivers.sim.base:SimDiffDrive",
     "dynamixel": "vbnav.drivers.dynamixel:DynamixelDrive",
     "odrive": "vbnav.drivers.odrive:ODriveDrive",
 }

@@ -3,11 +3,11 @@ whose motors drive the simulated base."""
 from __future__ import annotations
 
 from vbnav.control.config import CONFIG_DIR, load_config
-from vbnav.control.manual import ScriptedController
-from vbnav.control.runtime import Runtime
+from vbnav.control.controllers.manual import ScriptedController
+from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.clock import MonotonicClock
-from vbnav.drivers.emulator_coupling import PhysicsCoupling
-from vbnav.drivers.sim_base import BaseParams, DiffDrivePhysics
+from vbnav.drivers.sim.emulator_coupling import PhysicsCoupling
+from vbnav.drivers.sim.base import BaseParams, DiffDrivePhysics
 
 
 def physics_for(cfg) -> DiffDrivePhysics:
@@ -32,7 +32,7 @@ def run_route(config_name: str, make_emulator, drive_options: dict, script, chan
                                      # these tests check odometry against the simulator, not timing: a
                                      # loaded CI machine must not trip the missed-deadline stop
                                      "loop": {"max_missed_streak": 1000}})
-        from vbnav.control.factory import make_drive
+        from vbnav.control.runtime.factory import make_drive
         drive = make_drive(cfg, clock)
         rt = Runtime(cfg, drive, ScriptedController(cfg.controller.script), clock)
         result = rt.run(duration_s=sum(s[2] for s in script) + 2.0)

@@ -6,7 +6,7 @@ import math
 
 from hil_helpers import run_route
 
-from vbnav.drivers.dynamixel_emulator import DynamixelBus
+from vbnav.drivers.sim.dynamixel_emulator import DynamixelBus
 
 SCRIPT = [[0.15, 0.0, 1.5], [0.12, 0.8, 1.5], [0.0, 0.0, 0.4]]
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from vbnav.control.demo import demo_config, make_sim_robot, repeat_route, teach_route
-from vbnav.control.obstacle_monitor import make_obstacle_stage
-from vbnav.control.path_tools import PathFollower
+from vbnav.control.stages.obstacles import make_obstacle_stage
+from vbnav.control.controllers.path import PathFollower
 from vbnav.control.route import load_route
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2
 
 START = Pose2(-3.0, -2.0, math.radians(90.0))          # facing +x along the route's bottom edge
@@ -80,9 +80,9 @@ def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
     """A scripted drive straight at a 15 cm drop (World.corridor_with_step, edge 3 m ahead) is held
     by the negative obstacle in the stop zone; the wheels never carry the robot over the edge."""
     from vbnav.control.config import load_config
-    from vbnav.control.factory import make_robot
-    from vbnav.control.manual import ScriptedController
-    from vbnav.control.runtime import Runtime
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.controllers.manual import ScriptedController
+    from vbnav.control.runtime.runtime import Runtime
 
     cfg = load_config("sim_stereo").model_copy(deep=True)
     cfg.sim.world = "corridor_step"

@@ -5,7 +5,7 @@ import math
 
 from hil_helpers import run_route
 
-from vbnav.drivers.odrive_emulator import ODriveEmulator
+from vbnav.drivers.sim.odrive_emulator import ODriveEmulator
 
 SCRIPT = [[0.3, 0.0, 1.5], [0.25, 0.6, 1.5], [0.0, 0.0, 0.4]]
 

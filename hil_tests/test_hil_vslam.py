@@ -13,11 +13,13 @@ import pytest
 from vbnav.control.commands.goto import SIM_START
 from vbnav.control.config import load_config
 from vbnav.control.demo import make_sim_robot
-from vbnav.control.factory import make_pipeline
-from vbnav.control.runtime import Runtime
+from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.runtime.runtime import Runtime
 from vbnav.control.vslam_eval import run_vslam_loop
-from vbnav.control.vslam_nav import GotoController, make_vslam_stage, vslam_nav_config
-from vbnav.drivers.sim_world import World
+from vbnav.control.controllers.goto import GotoController
+from vbnav.control.stages.vslam import make_vslam_stage
+from vbnav.control.config.vslam import vslam_nav_config
+from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2, wrap_angle
 
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 
 from vbnav.control.config import Config
-from vbnav.control.pipeline import VisionPipeline
-from vbnav.control.runtime import Runtime
+from vbnav.control.runtime.pipeline import VisionPipeline
+from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.camera import Camera, Frame
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_base import BaseParams, SimDiffDrive
+from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
 
 PERIOD_NS = 10_000_000  # 100 Hz
 

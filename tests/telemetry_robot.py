@@ -17,9 +17,9 @@ import sys
 from runtime_helpers import RecordingDrive  # same directory
 
 from vbnav.control.config import Config, ConfigError
-from vbnav.control.manual import IdleController, ScriptedController, TeleopController
-from vbnav.control.runtime import Runtime
-from vbnav.control.telemetry_link import TelemetryLink
+from vbnav.control.controllers.manual import IdleController, ScriptedController, TeleopController
+from vbnav.control.runtime.runtime import Runtime
+from vbnav.control.comms.link import TelemetryLink
 from vbnav.drivers.clock import MonotonicClock, SimClock
 
 

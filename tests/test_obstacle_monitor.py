@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 
 from vbnav.control.config import ConfigError, parse_config
-from vbnav.control.obstacle_monitor import (ObstacleMonitor, ObstaclesConfig, ObstacleStage, ZoneConfig,
-                                            make_obstacle_stage, obstacles_config, points_in_polygon,
-                                            to_robot_frame, zone_counts)
+from vbnav.control.stages.obstacles import ObstacleMonitor, ObstacleStage, make_obstacle_stage, points_in_polygon, to_robot_frame, zone_counts
+from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig, obstacles_config
 from vbnav.drivers.camera import Frame
 from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2

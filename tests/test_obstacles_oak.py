@@ -11,7 +11,7 @@ import pytest
 dai = pytest.importorskip("depthai")
 
 from vbnav.control.config import parse_config  # noqa: E402
-from vbnav.control.obstacle_monitor import make_obstacle_stage  # noqa: E402
+from vbnav.control.stages.obstacles import make_obstacle_stage  # noqa: E402
 from vbnav.drivers.oak_camera import frame_from_imgframes  # noqa: E402
 from vbnav.vision import disparity_scenes as ds  # noqa: E402
 from vbnav.vision.geometry import Pose2  # noqa: E402

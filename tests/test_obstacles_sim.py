@@ -10,10 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vbnav.control.obstacle_monitor import ObstacleStage, ObstaclesConfig
+from vbnav.control.stages.obstacles import ObstacleStage
+
+from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_camera import SimCamera
-from vbnav.drivers.sim_world import KINDS, World
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.world import KINDS, World
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.ground_plane import expected_plane

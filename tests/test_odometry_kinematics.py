@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from vbnav.control.config import Config
-from vbnav.control.controller import Twist
-from vbnav.control.kinematics import DiffDriveKinematics, TwistLimiter
-from vbnav.control.odometry import Odometry
+from vbnav.control.runtime.interfaces import Twist
+from vbnav.control.runtime.kinematics import DiffDriveKinematics, TwistLimiter
+from vbnav.control.runtime.odometry import Odometry
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_base import BaseParams, SimDiffDrive
+from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
 from vbnav.vision.geometry import Pose2, arc_step
 
 

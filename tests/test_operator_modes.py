@@ -1,11 +1,11 @@
 """Operator session: teleop in idle, cmd/mode teach records a route, cmd/mode repeat patrols it."""
 from vbnav.control.config import load_config
 from vbnav.control.demo import make_sim_robot
-from vbnav.control.factory import make_pipeline
-from vbnav.control.modes import OperatorController
+from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.controllers.operator import OperatorController
 from vbnav.control.route import load_route
-from vbnav.control.runtime import OperatorCommand, Runtime
-from vbnav.drivers.sim_world import World
+from vbnav.control.runtime.runtime import OperatorCommand, Runtime
+from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2
 
 

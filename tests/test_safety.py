@@ -4,9 +4,9 @@ import signal
 
 import pytest
 
-from vbnav.control.controller import ControlContext, Controller, Twist, VisionStage
-from vbnav.control.manual import ScriptedController, TeleopController
-from vbnav.control.runtime import OperatorCommand
+from vbnav.control.runtime.interfaces import ControlContext, Controller, Twist, VisionStage
+from vbnav.control.controllers.manual import ScriptedController, TeleopController
+from vbnav.control.runtime.runtime import OperatorCommand
 from runtime_helpers import PERIOD_NS, make_runtime
 
 T0 = 1_000_000_000  # SimClock start
@@ -153,7 +153,7 @@ def test_estop_latches_until_resume():
 
 
 def test_obstacle_speed_scale_slows_and_stops():
-    from vbnav.control.controller import Estimate
+    from vbnav.control.runtime.interfaces import Estimate
 
     class Zone(VisionStage):
         """Reports a slow-down zone between 1 and 2 s and a stop zone between 2 and 3 s."""

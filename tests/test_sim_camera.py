@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_camera import SimCamera, interpolate_pose
-from vbnav.drivers.sim_render import Renderer
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.camera import SimCamera, interpolate_pose
+from vbnav.drivers.sim.render import Renderer
+from vbnav.drivers.sim.world import World
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_x, rot_y
 

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from vbnav.drivers.sim_render import Renderer
-from vbnav.drivers.sim_world import KINDS, World, make_texture
+from vbnav.drivers.sim.render import Renderer
+from vbnav.drivers.sim.world import KINDS, World, make_texture
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 

@@ -6,9 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.control.controller import ControlContext
+from vbnav.control.runtime.interfaces import ControlContext
 from vbnav.control.route import Route
-from vbnav.control.teach_repeat import RepeatController, RepeatStage, TeachStage, VBCConfig
+from vbnav.control.controllers.repeat import RepeatController
+from vbnav.control.stages.repeat import RepeatStage
+from vbnav.control.stages.teach import TeachStage
+from vbnav.control.config.vbc import VBCConfig
 from vbnav.drivers.wheels import WheelState
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
@@ -166,7 +169,7 @@ def test_repeat_slows_stops_and_resumes_through_an_occlusion(scene):
 
 def test_vbc_config_section_is_validated():
     from vbnav.control.config import ConfigError
-    from vbnav.control.teach_repeat import teach_repeat_config
+    from vbnav.control.config.vbc import teach_repeat_config
     assert teach_repeat_config({"cruise_speed": 0.2}).cruise_speed == 0.2
     with pytest.raises(ConfigError, match=r"robot.yaml: vbc.lookahed_m: unknown key"):
         teach_repeat_config({"lookahed_m": 0.3}, "robot.yaml")   # typo: extra keys are errors

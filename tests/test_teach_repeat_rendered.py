@@ -11,11 +11,14 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.control.controller import ControlContext
+from vbnav.control.runtime.interfaces import ControlContext
 from vbnav.control.route import Route
-from vbnav.control.teach_repeat import RepeatController, RepeatStage, TeachStage, VBCConfig
-from vbnav.drivers.sim_camera import SimCamera
-from vbnav.drivers.sim_world import World
+from vbnav.control.controllers.repeat import RepeatController
+from vbnav.control.stages.repeat import RepeatStage
+from vbnav.control.stages.teach import TeachStage
+from vbnav.control.config.vbc import VBCConfig
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.world import World
 from vbnav.drivers.wheels import WheelState
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from vbnav.control.network import client_session_config, open_session
+from vbnav.control.comms.network import client_session_config, open_session
 
 HERE = Path(__file__).resolve().parent
 ROBOT = HERE / "telemetry_robot.py"
@@ -230,7 +230,7 @@ def test_vbnav_run_and_config_check_refuse_a_public_listener(tmp_path):
 
 
 def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path):
-    from vbnav.control.recording import read_recording
+    from vbnav.control.comms.recording import read_recording
     port = free_port()
     path = tmp_path / "crash.mcap"
     proc = start_robot("--port", port, "--controller", "scripted", "--duration", 30, "--record", path)
@@ -327,7 +327,7 @@ def test_mutual_tls_operator_commands_viewer_refused_via_the_cli(tmp_path):
 def test_vbnav_run_record_is_read_back_with_every_channel_at_its_rate(tmp_path):
     from vbnav.control.cli import main
     from vbnav.control.config import load_config
-    from vbnav.control.recording import iter_recording, read_recording
+    from vbnav.control.comms.recording import iter_recording, read_recording
     cfg = tmp_path / "robot.yaml"
     cfg.write_text("telemetry:\n  state_rate_hz: 20\n"    # simulated clock: records, opens no network
                    "controller:\n  kind: scripted\n  script: [[0.3, 0.0, 3.0], [0.3, 0.4, 3.0]]\n")
@@ -349,9 +349,9 @@ def test_vbnav_run_record_is_read_back_with_every_channel_at_its_rate(tmp_path):
 def test_a_second_robot_on_the_same_port_gets_a_clear_error():
     from runtime_helpers import RecordingDrive
     from vbnav.control.config import Config
-    from vbnav.control.manual import IdleController
-    from vbnav.control.runtime import Runtime
-    from vbnav.control.telemetry_link import TelemetryLink
+    from vbnav.control.controllers.manual import IdleController
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.comms.link import TelemetryLink
     from vbnav.drivers.clock import SimClock
     cfg = Config.model_validate({"telemetry": {"listen": [f"tcp/127.0.0.1:{free_port()}"]}})
     clock = SimClock()

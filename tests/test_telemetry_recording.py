@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from vbnav.control.recording import McapRecorder, iter_recording, read_recording
+from vbnav.control.comms.recording import McapRecorder, iter_recording, read_recording
 
 
 def _events(path):
@@ -15,9 +15,9 @@ def _events(path):
 def test_demo_teach_and_repeat_segments_in_one_recording(tmp_path):
     """The demo's own teach_route/repeat_route with a shared recorder, cut short (the full demo is slow)."""
     from vbnav.control.demo import demo_config, demo_route, make_sim_robot, repeat_route, start_pose, teach_route
-    from vbnav.control.path_tools import PathFollower
+    from vbnav.control.controllers.path import PathFollower
     from vbnav.control.route import load_route
-    from vbnav.drivers.sim_world import World
+    from vbnav.drivers.sim.world import World
 
     cfg = demo_config(0)
     path, start = demo_route(), None

@@ -8,14 +8,14 @@ import pytest
 
 from runtime_helpers import RecordingDrive
 from vbnav.control.config import Config, ConfigError
-from vbnav.control.manual import IdleController, TeleopController
-from vbnav.control.net_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected, INBOX_LIMIT
-from vbnav.control.network import (DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint,
-                                   parse_telemetry_config, robot_session_config)
-from vbnav.control.recording import McapRecorder, format_summary, iter_recording, read_recording
-from vbnav.control.runtime import Runtime
-from vbnav.control.telemetry import QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
-from vbnav.control.telemetry_link import TelemetryLink
+from vbnav.control.controllers.manual import IdleController, TeleopController
+from vbnav.control.comms.operator_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected, INBOX_LIMIT
+from vbnav.control.config.telemetry import DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint, parse_telemetry_config
+from vbnav.control.comms.network import robot_session_config
+from vbnav.control.comms.recording import McapRecorder, format_summary, iter_recording, read_recording
+from vbnav.control.runtime.runtime import Runtime
+from vbnav.control.comms.telemetry import QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
+from vbnav.control.comms.link import TelemetryLink
 from vbnav.drivers.clock import SimClock
 
 LIMITS = TeleopLimits(0.5, 1.5)
@@ -242,7 +242,7 @@ def test_teleop_silence_stops_the_robot_after_the_timeout_on_the_sim_clock():
 
 
 def _op(cmd):
-    from vbnav.control.runtime import OperatorCommand
+    from vbnav.control.runtime.runtime import OperatorCommand
     b = cmd.body
     args = {"teleop": lambda: (b.linear, b.angular)}.get(cmd.kind, lambda: ())()
     return OperatorCommand(cmd.kind, args, "test")
@@ -269,7 +269,7 @@ def test_garbage_commands_never_move_an_idle_robot():
 # ---- recording ----------------------------------------------------------------------------
 
 def test_recording_of_a_sim_run_has_every_channel_at_its_rate(tmp_path):
-    from vbnav.control.manual import ScriptedController
+    from vbnav.control.controllers.manual import ScriptedController
     clock = SimClock()
     cfg, drive, rt = _runtime(ScriptedController([[0.3, 0.0, 3.0], [0.3, 0.4, 4.0], [0.0, 0.0, 3.0]]), clock)
     path = tmp_path / "run.mcap"
@@ -315,7 +315,7 @@ def test_images_and_rejected_mode_commands_reach_the_recording(tmp_path):
     import numpy as np
 
     from runtime_helpers import make_runtime
-    from vbnav.control.manual import ScriptedController
+    from vbnav.control.controllers.manual import ScriptedController
     cfg = Config.model_validate({"telemetry": {"enabled": False, "image_rate_hz": 5, "image_width": 32}})
     rt, drive, clock = make_runtime(ScriptedController([[0.2, 0.0, 4.0]]), cfg=cfg, cam_kw={"rate_hz": 15})
     path = tmp_path / "img.mcap"
@@ -359,9 +359,9 @@ def test_record_into_a_missing_directory_fails_before_opening_the_network(tmp_pa
 
 
 def test_vbc_pose_and_keyframe_come_from_the_repeat_estimate():
-    from vbnav.control.controller import Estimate
-    from vbnav.control.teach_repeat import VBCFix
-    from vbnav.control.telemetry_link import _estimate_pose
+    from vbnav.control.runtime.interfaces import Estimate
+    from vbnav.control.stages.vbc_fix import VBCFix
+    from vbnav.control.comms.link import _estimate_pose
     from vbnav.vision.geometry import Pose2
     fix = VBCFix(7, Pose2(0.05, -0.4, 0.02), Pose2(1.0, 2.0, 0.1), 12)
     assert _estimate_pose(Estimate(1, "vbc", True, fix, {"keyframe": 7})) == Pose2(0.05, -0.4, 0.02)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim_camera import SimCamera
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.world import World
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, rotation_angle
 from vbnav.vision.vslam import Vslam, VslamConfig

@@ -4,12 +4,13 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.control.controller import ControlContext, Estimate
-from vbnav.control.vslam_nav import (GotoConfig, GotoController, VslamFix, VslamStage, camera_to_robot,
-                                     polar_coordinates, robot_to_camera_matrix, vslam_nav_config)
+from vbnav.control.runtime.interfaces import ControlContext, Estimate
+from vbnav.control.config.vslam import GotoConfig, vslam_nav_config
+from vbnav.control.controllers.goto import GotoController, polar_coordinates
+from vbnav.control.stages.vslam import VslamFix, VslamStage, camera_to_robot, robot_to_camera_matrix
 from vbnav.drivers.camera import Frame
-from vbnav.drivers.sim_camera import SimCamera
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.world import World
 from vbnav.drivers.wheels import WheelState
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, arc_step, wrap_angle
@@ -246,7 +247,7 @@ def test_stage_restarts_after_the_lens_was_covered_and_still_closes_the_loop_lat
 
 
 def test_guided_matches_pick_the_nearest_descriptor_inside_the_radius_once():
-    from vbnav.control.vslam_nav import guided_matches
+    from vbnav.control.stages.vslam import guided_matches
 
     rng = np.random.default_rng(3)
     desc_a = rng.integers(0, 256, (3, 32), dtype=np.uint8)

@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import os
 
-from vbnav.control.network import DEFAULT_ENDPOINT, client_session_config, open_session
+from vbnav.control.config.telemetry import DEFAULT_ENDPOINT
+
+from vbnav.control.comms.network import client_session_config, open_session
 
 
 def add_net_args(p: argparse.ArgumentParser) -> None:
@@ -61,7 +63,7 @@ def attach_telemetry(rt, cfg, args):
     """
     import sys
 
-    from vbnav.control.telemetry_link import TelemetryLink
+    from vbnav.control.comms.link import TelemetryLink
     network = not getattr(args, "no_telemetry", False) and not getattr(rt.clock, "simulated", False)
     try:
         return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None), network=network)

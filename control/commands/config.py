@@ -25,7 +25,7 @@ def run(args) -> int:
         print(reference_markdown(Config))
         return 0
     cfg = load_config(args.config)
-    from vbnav.control.network import telemetry_config
+    from vbnav.control.config.telemetry import telemetry_config
     telemetry_config(cfg)  # the telemetry section has its own model (network exposure rules)
     if args.action == "show":
         import yaml

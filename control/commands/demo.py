@@ -23,7 +23,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.demo import Scenario, run_demo
-    from vbnav.control.progress import ProgressPrinter
+    from vbnav.control.runtime.progress import ProgressPrinter
 
     cfg = load_config(args.config)
     if cfg.camera.driver != "sim" or cfg.drive.driver != "sim":

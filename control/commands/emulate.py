@@ -55,7 +55,7 @@ def _serve(emulator) -> int:
 
 
 def _run_dynamixel(args) -> int:
-    from vbnav.drivers.dynamixel_emulator import DynamixelBus, model_by_name
+    from vbnav.drivers.sim.dynamixel_emulator import DynamixelBus, model_by_name
     try:
         model = model_by_name(args.model)
     except ValueError as exc:
@@ -65,7 +65,7 @@ def _run_dynamixel(args) -> int:
 
 
 def _run_odrive(args) -> int:
-    from vbnav.drivers.odrive_emulator import ODriveEmulator
+    from vbnav.drivers.sim.odrive_emulator import ODriveEmulator
     emu = ODriveEmulator(link=args.link)
     for axis in emu.axes:
         axis.watchdog_timeout = args.watchdog_s

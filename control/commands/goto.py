@@ -43,9 +43,11 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from vbnav.control.config import load_config
-    from vbnav.control.progress import ProgressPrinter
-    from vbnav.control.runtime import Runtime
-    from vbnav.control.vslam_nav import GotoController, make_vslam_stage, stereo_baseline_of, vslam_nav_config
+    from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.controllers.goto import GotoController
+    from vbnav.control.stages.vslam import make_vslam_stage, stereo_baseline_of
+    from vbnav.control.config.vslam import vslam_nav_config
     from vbnav.vision.geometry import Pose2
 
     cfg = load_config(args.config)
@@ -65,14 +67,14 @@ def run(args) -> int:
     sim = cfg.camera.driver == "sim" and cfg.drive.driver == "sim"
     if sim:
         from vbnav.control.demo import make_sim_robot
-        from vbnav.control.factory import make_pipeline
-        from vbnav.drivers.sim_world import World
+        from vbnav.control.runtime.factory import make_pipeline
+        from vbnav.drivers.sim.world import World
         start = Pose2(*SIM_START)
         robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
         clock, drive = robot.clock, robot.drive
         pipeline = make_pipeline(cfg, clock, robot.camera, [stage])
     else:
-        from vbnav.control.factory import make_robot
+        from vbnav.control.runtime.factory import make_robot
         clock, drive, pipeline = make_robot(cfg, [stage])
     rt = Runtime(cfg, drive, controller, clock, pipeline)
     printer = ProgressPrinter()

@@ -14,7 +14,7 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from vbnav.control.recording import format_summary, read_recording
+    from vbnav.control.comms.recording import format_summary, read_recording
     try:
         summary = read_recording(args.path)
     except ValueError as exc:

@@ -23,10 +23,12 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.commands.teach import _sim_recorder
     from vbnav.control.config import load_config
-    from vbnav.control.progress import ProgressPrinter
+    from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.route import RouteError, load_route
-    from vbnav.control.runtime import Runtime
-    from vbnav.control.teach_repeat import RepeatController, RepeatStage, teach_repeat_config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.controllers.repeat import RepeatController
+    from vbnav.control.stages.repeat import RepeatStage
+    from vbnav.control.config.vbc import teach_repeat_config
 
     cfg = load_config(args.config)
     try:
@@ -43,18 +45,18 @@ def run(args) -> int:
     printer = ProgressPrinter()
     if cfg.camera.driver == "sim" and cfg.drive.driver == "sim":
         from vbnav.control.demo import demo_route, make_sim_robot, start_pose
-        from vbnav.control.factory import make_pipeline
-        from vbnav.drivers.sim_world import World
+        from vbnav.control.runtime.factory import make_pipeline
+        from vbnav.drivers.sim.world import World
         robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start_pose(demo_route()))
         clock, drive = robot.clock, robot.drive
         pipeline = make_pipeline(cfg, clock, robot.camera, [stage])
     else:
-        from vbnav.control.factory import make_robot
+        from vbnav.control.runtime.factory import make_robot
         clock, drive, pipeline = make_robot(cfg, [stage])
     rt = Runtime(cfg, drive, controller, clock, pipeline)
     simulated = cfg.camera.driver == "sim" and cfg.drive.driver == "sim"
     with (_sim_recorder(cfg, args) if simulated else contextlib.nullcontext()) as recorder:
-        from vbnav.control.telemetry_link import TelemetryLink
+        from vbnav.control.comms.link import TelemetryLink
         # The simulated robot records only; a real robot also publishes and takes network commands.
         link = TelemetryLink.attach(rt, cfg, record=None if simulated else args.record, recorder=recorder,
                                     network=not simulated, segment="repeat")

@@ -27,7 +27,7 @@ def register(sub) -> None:
 
 
 def build_controller(cfg, kind: str):
-    from vbnav.control.manual import IdleController, ScriptedController, TeleopController
+    from vbnav.control.controllers.manual import IdleController, ScriptedController, TeleopController
     if kind == "scripted":
         return ScriptedController(cfg.controller.script)
     if kind == "teleop":
@@ -39,18 +39,18 @@ def build_controller(cfg, kind: str):
 
 def run(args) -> int:
     from vbnav.control.config import load_config
-    from vbnav.control.factory import make_robot
-    from vbnav.control.progress import ProgressPrinter
-    from vbnav.control.runtime import Runtime
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.runtime.runtime import Runtime
 
-    from vbnav.control.network import telemetry_config
+    from vbnav.control.config.telemetry import telemetry_config
 
     cfg = load_config(args.config)
     telemetry_config(cfg)  # refuse unsafe network settings before any device opens
     kind = args.controller or cfg.controller.kind
     clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
     if kind == "operator":
-        from vbnav.control.modes import OperatorController
+        from vbnav.control.controllers.operator import OperatorController
         controller = OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)
     else:
         controller = build_controller(cfg, kind)

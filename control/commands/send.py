@@ -38,7 +38,7 @@ def register(sub) -> None:
 
 def build_payload(args) -> tuple[str, dict]:
     """The command name and JSON body; validated locally with the robot's own models."""
-    from vbnav.control.net_commands import CommandRejected, TeleopLimits, parse_command
+    from vbnav.control.comms.operator_commands import CommandRejected, TeleopLimits, parse_command
     body: dict = {"sender": "vbnav-send"}
     if args.what == "estop" and args.reason:
         body["reason"] = args.reason

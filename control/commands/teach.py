@@ -25,8 +25,8 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.demo import demo_route, make_sim_robot, start_pose, teach_route
-    from vbnav.control.path_tools import PathFollower
-    from vbnav.control.progress import ProgressPrinter
+    from vbnav.control.controllers.path import PathFollower
+    from vbnav.control.runtime.progress import ProgressPrinter
 
     cfg = load_config(args.config)
     out = Path(args.out)
@@ -35,7 +35,7 @@ def run(args) -> int:
         return 2
     printer = ProgressPrinter()
     if cfg.camera.driver == "sim" and cfg.drive.driver == "sim":
-        from vbnav.drivers.sim_world import World
+        from vbnav.drivers.sim.world import World
         path = demo_route()
         start = start_pose(path)
         robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
@@ -52,11 +52,12 @@ def run(args) -> int:
 def _teach_on_robot(cfg, out, printer, args):
     """Teleoperated teaching with the configured drivers (real time)."""
     from vbnav.control.demo import TeachResult, RunTrace
-    from vbnav.control.factory import make_robot
-    from vbnav.control.manual import TeleopController
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.controllers.manual import TeleopController
     from vbnav.control.route import RouteWriter
-    from vbnav.control.runtime import Runtime
-    from vbnav.control.teach_repeat import TeachStage, teach_repeat_config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.stages.teach import TeachStage
+    from vbnav.control.config.vbc import teach_repeat_config
     import numpy as np
 
     model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
@@ -81,7 +82,7 @@ def _teach_on_robot(cfg, out, printer, args):
 
 def _attach_telemetry(cfg, rt, args):
     """Telemetry, network commands and --record for a run on the robot; close it with ``link.close(result)``."""
-    from vbnav.control.telemetry_link import TelemetryLink
+    from vbnav.control.comms.link import TelemetryLink
     return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None))
 
 
@@ -96,7 +97,7 @@ class _sim_recorder:
 
     def __enter__(self):
         if self.path:
-            from vbnav.control.recording import McapRecorder
+            from vbnav.control.comms.recording import McapRecorder
             self.rec = McapRecorder(self.path, self.cfg.robot.name, metadata={"config": self.cfg.source or ""})
         return self.rec
 

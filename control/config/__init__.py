@@ -16,7 +16,6 @@ from typing import Any, Literal, Optional
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-
 from vbnav.drivers import registry
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount
@@ -213,10 +212,10 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
 
 def validate_feature_sections(cfg: Config, source: str = "<config>") -> None:
     """Validate the sections owned by feature modules, so bad values stop start-up like any other."""
-    from vbnav.control.network import parse_telemetry_config
-    from vbnav.control.obstacle_monitor import obstacles_config
-    from vbnav.control.teach_repeat import teach_repeat_config
-    from vbnav.control.vslam_nav import vslam_nav_config
+    from vbnav.control.config.obstacles import obstacles_config
+    from vbnav.control.config.telemetry import parse_telemetry_config
+    from vbnav.control.config.vbc import teach_repeat_config
+    from vbnav.control.config.vslam import vslam_nav_config
     parse_telemetry_config(cfg.telemetry, source)
     vslam_nav_config(cfg.vslam, source)
     obstacles_config(cfg.obstacles, source)

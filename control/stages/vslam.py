@@ -30,84 +30,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Optional
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
-
-from vbnav.control.controller import STOP, ControlContext, Controller, Estimate, Twist, VisionStage
+from vbnav.control.config.vslam import VslamNavConfig, vslam_nav_config
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe, to_grey
-from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y, wrap_angle
+from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
 from vbnav.vision.motion import recover_motion_robust
 from vbnav.vision.motion import warm_up as warm_up_motion_kernels
-from vbnav.vision.vslam import Vslam, VslamConfig
+from vbnav.vision.vslam import Vslam
 from vbnav.vision.vslam_init import init_two_view
-
-
-class GotoConfig(BaseModel):
-    """``vslam.goto``: the go-to controller's gains and tolerances."""
-
-    model_config = ConfigDict(extra="forbid")
-    cruise_speed: float = Field(0.3, gt=0, description="m/s")
-    k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
-    k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
-    k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
-    position_tolerance_m: float = Field(0.01, gt=0, description="goal reached within this distance (estimate)")
-    heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
-    approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
-    final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
-    settle_s: float = Field(0.3, ge=0, description="stopped this long within tolerance before finishing")
-    fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
-    max_estimate_age_s: float = Field(0.5, gt=0)
-    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
-    init_creep_speed: float = Field(0.1, ge=0, description="m/s straight ahead while a monocular VSLAM waits for "
-                                                           "the parallax to initialise (at most blind_distance_m)")
-
-
-class VslamNavConfig(VslamConfig):
-    """The ``vslam:`` section: the front end's settings plus the robot-side ones."""
-
-    relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
-                                                              "to where it was set (0: never)")
-    relocalise_heading_deg: float = Field(35.0, gt=0, description="... and heading within this of it")
-    relocalise_min_travel_m: float = Field(3.0, ge=0, description="only anchors set at least this far back "
-                                                                    "along the robot's path (a loop closed)")
-    relocalise_every: int = Field(1, ge=1, description="frames between relocalisation attempts")
-    relocalise_min_inliers: int = Field(20, ge=6, description="landmarks that must agree with an anchor")
-    relocalise_search_px: float = Field(20.0, gt=0, description="guided matching: search radius around the "
-                                                               "landmark's predicted pixel")
-    relocalise_max_correction_m: float = Field(0.5, gt=0, description="larger corrections are rejected as "
-                                                                      "wrong matches")
-    anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
-    restart_after_lost: int = Field(3, ge=1, description="frames lost in a row before the front end restarts "
-                                                         "from the current stereo pair at the odometry pose")
-    max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
-                                                                 "than this: the pose is not trusted")
-    metric_scale: Literal["stereo", "odometry"] = Field(
-        "stereo", description="stereo: from the calibrated pair (or the device's disparity); odometry: a single "
-                              "camera, initialised from two views scaled by the distance the wheels measured")
-    odometry_init_baseline_m: float = Field(0.2, gt=0, description="metric_scale odometry: camera travel between "
-                                                                  "the two initialisation views")
-    odometry_init_max_frames: int = Field(100, ge=2, description="metric_scale odometry: frames to wait for that "
-                                                                 "travel before starting over from a new first view")
-    odometry_scale_gain: float = Field(0.5, ge=0, le=1, description="metric_scale odometry: at each hand-off, the "
-                                       "share (in log scale) of the wheels' correction of the scale applied; 0: "
-                                       "scale from the initialisation only")
-    odometry_scale_min_travel_m: float = Field(0.3, gt=0, description="metric_scale odometry: camera travel the "
-                                               "wheels and the VSLAM are compared over")
-    goto: GotoConfig = Field(default_factory=GotoConfig)
-
-
-def vslam_nav_config(section: dict | None, source: str = "<config>") -> VslamNavConfig:
-    """Validate the free ``vslam:`` configuration section; errors name the file and key path."""
-    from pydantic import ValidationError
-
-    from vbnav.control.config import ConfigError, _format_errors
-    try:
-        return VslamNavConfig.model_validate(section or {})
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc, prefix="vslam")) from None
 
 
 # ------------------------------------------------------------------------------------- poses
@@ -117,9 +51,11 @@ def to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return M
 
 
+
 def robot_to_camera_matrix(pose: Pose2, mount: CameraMount) -> np.ndarray:
     """4x4 world-from-camera of the camera on a robot at ``pose``."""
     return to_matrix(*camera_pose(pose, mount))
+
 
 
 def camera_to_robot(pose_wc: np.ndarray, mount: CameraMount) -> tuple[Pose2, float, float]:
@@ -137,6 +73,7 @@ def camera_to_robot(pose_wc: np.ndarray, mount: CameraMount) -> tuple[Pose2, flo
     return Pose2(float(p[0]), float(p[2]), theta), float(p[1]), tilt
 
 
+
 # ------------------------------------------------------------------------------------- stage
 @dataclass
 class VslamFix:
@@ -151,6 +88,7 @@ class VslamFix:
     quality: dict = field(default_factory=dict)
 
 
+
 @dataclass
 class Anchor:
     """A reference frame kept for relocalisation: its landmarks in world coordinates with descriptors."""
@@ -161,6 +99,7 @@ class Anchor:
     points_w: np.ndarray         # (N, 3)
     descriptors: np.ndarray      # (N, 32) uint8
     travelled: float = 0.0       # odometry path length when it was set, m
+
 
 
 @dataclass
@@ -175,6 +114,7 @@ class _MonocularStart:
     odom0: Pose2                 # odometry at the first view
     pose0_wc: np.ndarray         # world-from-camera of the first view
     frames: int = 0
+
 
 
 class VslamStage(VisionStage):
@@ -455,6 +395,7 @@ class VslamStage(VisionStage):
         return pose_wc @ np.linalg.inv(to_matrix(est.R, est.T))
 
 
+
 def guided_matches(pred: np.ndarray, desc_a: np.ndarray, corners: np.ndarray, desc_c: np.ndarray,
                    radius: float, max_distance: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (landmark index, corner index): for each predicted pixel the corner within ``radius`` px with
@@ -474,6 +415,7 @@ def guided_matches(pred: np.ndarray, desc_a: np.ndarray, corners: np.ndarray, de
     return lm[keep], cn[keep]
 
 
+
 def stereo_baseline_of(cfg) -> Optional[float]:
     """The stereo baseline the configured camera gives, if any (simulated: its option; OAK: from the device)."""
     opts = cfg.camera.options or {}
@@ -481,142 +423,13 @@ def stereo_baseline_of(cfg) -> Optional[float]:
     return float(b) if b else None
 
 
+
 # Camera drivers whose frames carry the stereo baseline (meta['baseline_m']) from the device's calibration.
 BASELINE_FROM_DEVICE = ("oak",)
+
 
 
 def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
     return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
                       vslam_nav_config(cfg.vslam, cfg.source or "<config>"),
                       baseline_from_frames=cfg.camera.driver in BASELINE_FROM_DEVICE)
-
-
-# ---------------------------------------------------------------------------------- controller
-def polar_coordinates(pose: Pose2, goal: Pose2) -> tuple[float, float, float]:
-    """(rho, alpha, beta) of Astolfi's go-to-pose law, in this package's conventions.
-
-    rho: distance to the goal; alpha: bearing of the goal seen from the robot
-    (positive to the robot's right, like theta); beta: the angle the goal heading
-    still needs beyond that bearing, so that theta_goal - theta = alpha + beta.
-    The law v = k_rho rho, w = k_alpha alpha + k_beta beta (k_rho > 0, k_beta < 0,
-    k_alpha > k_rho) is locally exponentially stable (Siegwart & Nourbakhsh,
-    "Introduction to Autonomous Mobile Robots", 3.6.2); with theta growing to the
-    right the signs of alpha, beta and w all flip together, so the gains keep theirs.
-    """
-    dx, dz = goal.x - pose.x, goal.z - pose.z
-    rho = math.hypot(dx, dz)
-    alpha = wrap_angle(math.atan2(dx, dz) - pose.theta)
-    beta = wrap_angle(goal.theta - pose.theta - alpha)
-    return rho, alpha, beta
-
-
-class GotoController(Controller):
-    """Drive to a goal pose in the reference frame, localised by the VSLAM and odometry in between.
-
-    Phases: "drive" (the polar law, forward only: a goal behind turns the robot on
-    the spot first, so the camera looks where the robot goes), "turn" (on the spot
-    to the goal heading once within the position tolerance), "settle" (stopped,
-    within both tolerances, for ``settle_s``), then finished.
-    """
-
-    name = "goto"
-    requires = ("vslam",)
-
-    def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float = 0.5,
-                 max_angular_speed: float = 1.5):
-        self.goal = goal
-        self.cfg = cfg or GotoConfig()
-        self.v_max = min(self.cfg.cruise_speed, max_linear_speed)
-        self.w_max = max_angular_speed
-        self._P: Optional[Pose2] = None          # robot pose in the reference frame
-        self._P_odom: Optional[Pose2] = None     # odometry when _P was set
-        self._last_stamp: Optional[int] = None
-        self._good_odom: Optional[Pose2] = None
-        self._phase = "waiting"
-        self._creep_from: Optional[Pose2] = None  # odometry where a monocular VSLAM started initialising
-        self._settled_ns: Optional[int] = None
-        self._finished = False
-        self._status: dict = {"state": "waiting"}
-
-    @property
-    def finished(self) -> bool:
-        return self._finished
-
-    @property
-    def pose(self) -> Optional[Pose2]:
-        """The fused pose estimate at the last update (None before the first VSLAM pose)."""
-        return self._status.get("_pose")
-
-    def status(self) -> dict:
-        return {k: v for k, v in self._status.items() if not k.startswith("_")}
-
-    def update(self, ctx: ControlContext) -> Twist:
-        self._absorb(ctx.estimate("vslam", self.cfg.max_estimate_age_s), ctx.odom)
-        if self._creep_from is not None and not self._finished:
-            # A monocular VSLAM needs parallax before its first pose (at the start or after it was lost and
-            # restarted): creep straight ahead, not farther than blind_distance_m.
-            crept = math.hypot(ctx.odom.x - self._creep_from.x, ctx.odom.z - self._creep_from.z)
-            self._status = {"state": "initialising", "crept_m": crept}
-            return Twist(self.cfg.init_creep_speed, 0.0) if crept <= self.cfg.blind_distance_m else STOP
-        if self._P is None or self._finished:
-            return STOP
-        P = self._P.compose(self._P_odom.between(ctx.odom))
-        blind = math.hypot(ctx.odom.x - self._good_odom.x, ctx.odom.z - self._good_odom.z)
-        rho, alpha, beta = polar_coordinates(P, self.goal)
-        dth = wrap_angle(self.goal.theta - P.theta)
-        twist = self._law(ctx.now_ns, rho, alpha, beta, dth) if blind <= self.cfg.blind_distance_m else STOP
-        self._status = {"state": self._phase if blind <= self.cfg.blind_distance_m else "blind",
-                        "distance_m": rho, "heading_error_deg": math.degrees(dth), "blind_m": blind,
-                        "x": P.x, "z": P.z, "theta_deg": math.degrees(P.theta), "_pose": P}
-        return twist
-
-    def _law(self, now_ns: int, rho: float, alpha: float, beta: float, dth: float) -> Twist:
-        c = self.cfg
-        tol_th = math.radians(c.heading_tolerance_deg)
-        if self._phase in ("waiting", "drive") and rho <= c.position_tolerance_m:
-            self._phase = "turn"
-        elif self._phase in ("turn", "settle") and rho > 2.0 * c.position_tolerance_m:
-            self._phase, self._settled_ns = "drive", None   # pushed away (or a corrected estimate): drive again
-        elif self._phase == "waiting":
-            self._phase = "drive"
-        if self._phase == "drive":
-            # Speed proportional to the distance (slows near the goal), with a floor so the last
-            # centimetres do not take forever; zero while the goal is off to the side.
-            v = max(min(c.k_rho * rho, self.v_max), 0.04) * max(math.cos(alpha), 0.0)
-            fade = min(1.0, rho / c.approach_radius_m)      # beta is ill-defined at the goal itself
-            w = c.k_alpha * alpha + c.k_beta * beta * fade
-            if abs(w) > self.w_max:                          # keep the curvature, lower the speed
-                v *= self.w_max / abs(w)
-                w = math.copysign(self.w_max, w)
-            return Twist(v, w)
-        if abs(dth) > tol_th:
-            self._phase, self._settled_ns = "turn", None
-            w = math.copysign(min(c.final_turn_speed, max(1.5 * abs(dth), 0.05)), dth)
-            return Twist(0.0, w)
-        if self._phase != "settle":
-            self._phase, self._settled_ns = "settle", now_ns
-        if (now_ns - self._settled_ns) * 1e-9 >= c.settle_s:
-            self._finished = True
-            self._phase = "finished"
-        return STOP
-
-    def _absorb(self, est: Optional[Estimate], odom: Pose2) -> None:
-        if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VslamFix):
-            return
-        self._last_stamp = est.stamp_ns
-        if not est.ok:
-            if self._creep_from is None and est.value.quality.get("initialising"):
-                self._creep_from = odom
-            return
-        self._creep_from = None
-        fix: VslamFix = est.value
-        self._good_odom = fix.odom
-        if self._P is None:
-            self._P, self._P_odom = fix.pose, fix.odom
-            return
-        # Complementary filter: blend the dead-reckoned pose at the frame time toward the VSLAM pose.
-        pred = self._P.compose(self._P_odom.between(fix.odom))
-        d = pred.between(fix.pose)
-        g = self.cfg.fix_gain
-        self._P = pred.compose(Pose2(g * d.x, g * d.z, g * d.theta))
-        self._P_odom = fix.odom

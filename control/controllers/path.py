@@ -4,8 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from vbnav.control.controller import ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import ControlContext, Controller, Twist
 from vbnav.vision.geometry import Pose2, wrap_angle
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from vbnav.control.controller import Twist
+from vbnav.control.runtime.interfaces import Twist
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import Optional
 
 from vbnav.control.config import Config, validate_driver_options
-from vbnav.control.pipeline import VisionPipeline
+from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.drivers import registry
 from vbnav.drivers.clock import MonotonicClock, SimClock
 
@@ -39,7 +39,7 @@ def make_camera(cfg: Config, clock, drive=None, options=None, world=None):
 
 def make_pipeline(cfg: Config, clock, camera, stages) -> VisionPipeline:
     """A pipeline with ``stages`` plus the safety stages the configuration enables (obstacle zones)."""
-    from vbnav.control.obstacle_monitor import make_obstacle_stage
+    from vbnav.control.stages.obstacles import make_obstacle_stage
 
     stages = list(stages)
     if not any(s.kind == "obstacles" for s in stages):

@@ -241,7 +241,7 @@ class World:
         Depth is the camera-frame z of the surface seen at each pixel centre.
         Uses the same rasterisation as the renderer, so masks match images.
         """
-        from vbnav.drivers.sim_render import Renderer
+        from vbnav.drivers.sim.render import Renderer
         out = Renderer(self, camera).render(R_wc, t_wc, image=False, depth=True, ids=True)
         return out.ids, out.depth
 

@@ -22,9 +22,10 @@ from __future__ import annotations
 import time
 from typing import Optional
 
-from vbnav.control.net_commands import CommandInbox, CommandSubscriber, NetCommand, limits_from_config
-from vbnav.control.network import TelemetryConfig, open_session, robot_session_config, telemetry_config
-from vbnav.control.telemetry import StateSample, TelemetryPublisher, ZenohSink
+from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, NetCommand, limits_from_config
+from vbnav.control.config.telemetry import TelemetryConfig, telemetry_config
+from vbnav.control.comms.network import open_session, robot_session_config
+from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
 
 
 class _Borrowed:
@@ -92,7 +93,7 @@ class TelemetryLink:
             sinks.append(_Borrowed(recorder))
             recorder = None
         elif record:  # first: a bad path fails before any network resource is opened
-            from vbnav.control.recording import McapRecorder
+            from vbnav.control.comms.recording import McapRecorder
             recorder = McapRecorder(record, robot, metadata={"config": cfg.source or "",
                                                              "loop_rate_hz": cfg.loop.rate_hz,
                                                              "state_rate_hz": tcfg.state_rate_hz})
@@ -183,7 +184,7 @@ class TelemetryLink:
 
     # ---- network command thread ------------------------------------------------------------
     def _deliver(self, cmd: NetCommand) -> None:
-        from vbnav.control.runtime import OperatorCommand
+        from vbnav.control.runtime.runtime import OperatorCommand
         b = cmd.body
         sender = f"zenoh:{b.sender}" if b.sender else "zenoh"
         if cmd.kind == "estop":

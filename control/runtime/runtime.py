@@ -17,12 +17,12 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
-from vbnav.control.controller import STOP, ControlContext, Controller, Twist
-from vbnav.control.kinematics import TwistLimiter
-from vbnav.control.loop import FixedRateLoop, TimingSummary
-from vbnav.control.odometry import Odometry
-from vbnav.control.pipeline import VisionPipeline
-from vbnav.control.safety import SafetyEvent, SafetyMonitor
+from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
+from vbnav.control.runtime.kinematics import TwistLimiter
+from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
+from vbnav.control.runtime.odometry import Odometry
+from vbnav.control.runtime.pipeline import VisionPipeline
+from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
 from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
 
 

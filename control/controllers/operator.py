@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from vbnav.control.controller import STOP, ControlContext, Controller, Twist
-from vbnav.control.manual import TeleopController
+from vbnav.control.controllers.manual import TeleopController
+from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
 
 MODES = ("idle", "teach", "repeat")
 
@@ -133,15 +133,18 @@ class OperatorController(Controller):
             self._close_teach()
             stages, controller, writer, teach_stage = list(self._base_stages), None, None, None
             if target == "teach":
+                from vbnav.control.config.vbc import teach_repeat_config
                 from vbnav.control.route import RouteWriter
-                from vbnav.control.teach_repeat import TeachStage, teach_repeat_config
+                from vbnav.control.stages.teach import TeachStage
                 model, mount = self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount()
                 teach_stage = TeachStage(model, mount, teach_repeat_config(self.cfg.vbc, self.cfg.source or ""))
                 writer = RouteWriter(Path(route), self.cfg.robot.name, model, mount, overwrite=False)
                 stages = [teach_stage] + stages
             elif target == "repeat":
+                from vbnav.control.config.vbc import teach_repeat_config
+                from vbnav.control.controllers.repeat import RepeatController
                 from vbnav.control.route import load_route
-                from vbnav.control.teach_repeat import RepeatController, RepeatStage, teach_repeat_config
+                from vbnav.control.stages.repeat import RepeatStage
                 r = load_route(route)
                 vcfg = teach_repeat_config(self.cfg.vbc, self.cfg.source or "")
                 stages = [RepeatStage(r, vcfg, self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount())] + stages

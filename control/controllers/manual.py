@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-from vbnav.control.controller import STOP, ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
 
 
 class ScriptedController(Controller):

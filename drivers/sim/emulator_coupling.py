@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 
 from vbnav.drivers.clock import MonotonicClock
-from vbnav.drivers.sim_base import DiffDrivePhysics
+from vbnav.drivers.sim.base import DiffDrivePhysics
 
 
 class PhysicsCoupling:

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Optional, Protocol
 
 from vbnav.drivers import dynamixel_protocol as dp
-from vbnav.drivers.pty_device import PtyDevice
+from vbnav.drivers.sim.pty_device import PtyDevice
 
 # Control table addresses (X-series, Protocol 2.0).
 ADDR_MODEL_NUMBER = 0

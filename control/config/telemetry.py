@@ -21,19 +21,25 @@ The zenoh config keys used here are those of zenoh 1.x (``listen/endpoints``,
 from __future__ import annotations
 
 import ipaddress
-import json
-from pathlib import Path
 from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
+
+
+
 NAME_PATTERN = r"^[A-Za-z0-9_\-.@]+$"
+
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
 
 
 class UsrPwdAuth(_Strict):
@@ -43,6 +49,7 @@ class UsrPwdAuth(_Strict):
                                  description="file of accepted 'user:password' lines (plain or sha256)")
 
 
+
 class TlsAuth(_Strict):
     root_ca_certificate: str = Field(..., description="CA that signed every peer's certificate (PEM)")
     listen_certificate: str = Field(..., description="this robot's certificate (PEM)")
@@ -50,9 +57,11 @@ class TlsAuth(_Strict):
     enable_mtls: Literal[True] = Field(True, description="peers must present a certificate too (required)")
 
 
+
 class AuthConfig(_Strict):
     usrpwd: Optional[UsrPwdAuth] = None
     tls: Optional[TlsAuth] = None
+
 
 
 class TelemetryConfig(_Strict):
@@ -105,6 +114,7 @@ class TelemetryConfig(_Strict):
         return self.scouting or any(not is_loopback_endpoint(e) for e in self.listen + self.connect)
 
 
+
 def _split_endpoint(endpoint: str) -> tuple[str, str]:
     """'tcp/127.0.0.1:7447#iface=lo' -> ('tcp', '127.0.0.1'). Raises ValueError on malformed input."""
     if "/" not in endpoint:
@@ -124,6 +134,7 @@ def _split_endpoint(endpoint: str) -> tuple[str, str]:
     return proto, host
 
 
+
 def is_loopback_endpoint(endpoint: str) -> bool:
     """True if the endpoint can only be reached from this machine."""
     proto, host = _split_endpoint(endpoint)
@@ -137,6 +148,7 @@ def is_loopback_endpoint(endpoint: str) -> bool:
         return False  # a host name: may resolve anywhere
 
 
+
 def parse_telemetry_config(section: dict[str, Any] | None, source: str = "<config>") -> TelemetryConfig:
     """Validate ``cfg.telemetry``; errors name the file and key, like the rest of the config."""
     from vbnav.control.config import ConfigError, _format_errors
@@ -146,101 +158,7 @@ def parse_telemetry_config(section: dict[str, Any] | None, source: str = "<confi
         raise ConfigError(_format_errors(source, exc, prefix="telemetry")) from None
 
 
+
 def telemetry_config(cfg) -> TelemetryConfig:
     """The validated telemetry section of a loaded vbnav Config."""
     return parse_telemetry_config(cfg.telemetry, cfg.source or "<config>")
-
-
-def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
-    """zenoh 1.x ``access_control``: telemetry readable by every authenticated peer, cmd/** only from operators."""
-    prefix = f"vbnav/{robot}"
-    telemetry_keys = [f"{prefix}/state", f"{prefix}/events", f"{prefix}/image"]
-    return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": [
-            {"id": "telemetry-out", "permission": "allow", "flows": ["egress"],
-             "messages": ["put"], "key_exprs": telemetry_keys},
-            {"id": "telemetry-subscribe", "permission": "allow", "flows": ["ingress"],
-             "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
-            {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
-             "messages": ["query", "reply", "declare_queryable"], "key_exprs": [f"{prefix}/events/recent"]},
-            {"id": "commands-in", "permission": "allow", "flows": ["ingress"],
-             "messages": ["put"], "key_exprs": [f"{prefix}/cmd/**"]},
-            {"id": "commands-subscribe", "permission": "allow", "flows": ["egress"],
-             "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/cmd/**"]},
-        ],
-        "subjects": [
-            {"id": "everyone"},
-            {"id": "operators", "usernames": list(operators)},
-            {"id": "operators-tls", "cert_common_names": list(operators)},
-        ],
-        "policies": [
-            {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe", "events-history"],
-             "subjects": ["everyone"]},
-            {"id": "operators-command", "rules": ["commands-in", "commands-subscribe"],
-             "subjects": ["operators", "operators-tls"]},
-        ],
-    }
-
-
-def robot_session_config(tcfg: TelemetryConfig, robot: str) -> dict[str, Any]:
-    """The zenoh configuration (as a dict) of the robot's own session."""
-    conf: dict[str, Any] = {
-        "mode": "peer",
-        "listen": {"endpoints": list(tcfg.listen)},
-        "connect": {"endpoints": list(tcfg.connect)},
-        "scouting": {"multicast": {"enabled": tcfg.scouting}, "gossip": {"enabled": tcfg.scouting}},
-    }
-    transport: dict[str, Any] = {}
-    if tcfg.auth.usrpwd is not None:
-        transport["auth"] = {"usrpwd": _usrpwd_dict(tcfg.auth.usrpwd)}
-    if tcfg.auth.tls is not None:
-        tls = tcfg.auth.tls
-        transport["link"] = {"tls": {
-            "root_ca_certificate": _existing(tls.root_ca_certificate, "auth.tls.root_ca_certificate"),
-            "listen_certificate": _existing(tls.listen_certificate, "auth.tls.listen_certificate"),
-            "listen_private_key": _existing(tls.listen_private_key, "auth.tls.listen_private_key"),
-            "connect_certificate": tls.listen_certificate,
-            "connect_private_key": tls.listen_private_key,
-            "enable_mtls": True,
-        }}
-    if transport:
-        conf["transport"] = transport
-    if tcfg.remote:
-        conf["access_control"] = access_control_rules(robot, tcfg.operators)
-    return conf
-
-
-def client_session_config(connect: list[str], user: Optional[str] = None, password: Optional[str] = None,
-                          tls: Optional[dict[str, str]] = None) -> dict[str, Any]:
-    """A zenoh client (monitor, send, tests) that connects only where told and never scouts."""
-    conf: dict[str, Any] = {
-        "mode": "client",
-        "connect": {"endpoints": list(connect)},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-    }
-    if user is not None:
-        conf.setdefault("transport", {})["auth"] = {"usrpwd": {"user": user, "password": password or ""}}
-    if tls:
-        conf.setdefault("transport", {})["link"] = {"tls": dict(tls)}
-    return conf
-
-
-def open_session(conf: dict[str, Any]):
-    """Open a zenoh session from a config dict (imports zenoh lazily: config checks need no zenoh)."""
-    import zenoh
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
-
-
-def _usrpwd_dict(u: UsrPwdAuth) -> dict[str, str]:
-    return {"user": u.user, "password": u.password,
-            "dictionary_file": _existing(u.dictionary_file, "auth.usrpwd.dictionary_file")}
-
-
-def _existing(path: str, key: str) -> str:
-    p = Path(path).expanduser()
-    if not p.is_file():
-        from vbnav.control.config import ConfigError
-        raise ConfigError(f"telemetry.{key}: file not found: {p}")
-    return str(p.resolve())

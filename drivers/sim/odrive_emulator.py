@@ -23,8 +23,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from vbnav.drivers.dynamixel_emulator import WheelCoupling
-from vbnav.drivers.pty_device import PtyDevice
+from vbnav.drivers.sim.dynamixel_emulator import WheelCoupling
+from vbnav.drivers.sim.pty_device import PtyDevice
 
 AXIS_STATE_IDLE = 1
 AXIS_STATE_CLOSED_LOOP = 8

@@ -29,8 +29,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.drivers.camera import Camera, CameraError, Frame
-from vbnav.drivers.sim_render import Renderer
-from vbnav.drivers.sim_world import World
+from vbnav.drivers.sim.render import Renderer
+from vbnav.drivers.sim.world import World
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, wrap_angle
 

@@ -18,7 +18,7 @@ import traceback
 from collections import deque
 from typing import Callable, Optional
 
-from vbnav.control.controller import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.drivers.camera import Camera, Frame
 from vbnav.vision.geometry import Pose2
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
 
-from vbnav.control.telemetry import Sink
+from vbnav.control.comms.telemetry import Sink
 
 PART_SUFFIX = ".part"
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -1,0 +1,77 @@
+"""The ``obstacles:`` section: ground-plane suppression and the stop/slow zones."""
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from vbnav.control.config import ConfigError, _format_errors
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+
+class ZoneConfig(_Strict):
+    name: str
+    action: Literal["stop", "slow"] = "stop"
+    distance: Optional[float] = Field(None, gt=0, description="band: m ahead of the axle centre")
+    half_width: Optional[float] = Field(None, gt=0, description="band: m either side of the centre line")
+    polygon: Optional[list[tuple[float, float]]] = Field(None, description="(x right, z forward) vertices, m")
+    slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers")
+    min_points: int = Field(8, ge=1, description="obstacle pixels inside that trigger the zone")
+
+    @model_validator(mode="after")
+    def _shape(self):
+        band = self.distance is not None or self.half_width is not None
+        if band and self.polygon is not None:
+            raise ValueError(f"zone {self.name!r}: give either distance/half_width (a band) or polygon, not both")
+        if self.polygon is None and (self.distance is None or self.half_width is None):
+            raise ValueError(f"zone {self.name!r}: a band needs both distance and half_width (or give polygon)")
+        if self.polygon is not None and len(self.polygon) < 3:
+            raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
+        return self
+
+
+
+def _default_zones() -> list[ZoneConfig]:
+    return [ZoneConfig(name="stop", action="stop", distance=0.8, half_width=0.25),
+            ZoneConfig(name="slow", action="slow", distance=1.5, half_width=0.35, slow_scale=0.4)]
+
+
+
+class ObstaclesConfig(_Strict):
+    enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
+    source: Literal["auto", "disparity", "sgbm"] = "auto"
+    baseline: Optional[float] = Field(None, gt=0, description="m; default camera.options.stereo_baseline, "
+                                                              "else the frames' meta['baseline_m'] (OAK)")
+    obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
+    negative_depth: float = Field(0.03, gt=0, description="m below the floor that is a negative obstacle")
+    noise_px: float = Field(0.4, ge=0, description="disparity noise floor, px")
+    max_height: Optional[float] = Field(1.0, gt=0, description="m; higher points are overhangs, ignored")
+    max_range: float = Field(6.0, gt=0, description="m; farther points are ignored")
+    min_blob_pixels: int = Field(12, ge=1)
+    negative_stops: bool = Field(True, description="negative obstacles (steps down) trigger zones too")
+    fit_inlier_height: float = Field(0.02, gt=0, description="m, ground-plane fit inlier band")
+    sgbm_block_size: int = Field(3, ge=1, le=11)
+    persist_k: int = Field(2, ge=1, description="a zone must trigger in k of the last n frames")
+    persist_n: int = Field(3, ge=1)
+    release_s: float = Field(0.5, ge=0, description="clear this long before the speed rises again")
+    zones: list[ZoneConfig] = Field(default_factory=_default_zones)
+
+    @model_validator(mode="after")
+    def _k_le_n(self):
+        if self.persist_k > self.persist_n:
+            raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
+        if self.sgbm_block_size % 2 == 0:
+            raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        return self
+
+
+
+def obstacles_config(section: Optional[dict], source: str = "<config>") -> ObstaclesConfig:
+    """Validate the free ``obstacles:`` section; errors name the file and key path."""
+    try:
+        return ObstaclesConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="obstacles")) from None

@@ -1,0 +1,55 @@
+"""The ``vbc:`` section: teach-and-repeat by Vision-Based Control (tracking, keyframes, repeat)."""
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class VBCConfig(BaseModel):
+    """The ``vbc:`` section of a robot configuration."""
+
+    model_config = ConfigDict(extra="forbid")
+    # tracking
+    max_features: int = Field(200, ge=10, description="tracks kept alive while teaching")
+    min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners")
+    fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward KLT rejection threshold")
+    klt_window_px: int = Field(11, ge=5, le=41, description="KLT window side; 11 halves the cost at 15 Hz")
+    klt_levels: int = Field(3, ge=0, le=6, description="KLT pyramid levels")
+    bearing_sigma_px: float = Field(1.0, gt=0, description="bearing noise, in pixels at the focal length")
+    # keyframes
+    keyframe_distance_m: float = Field(0.4, gt=0)
+    keyframe_rotation_deg: float = Field(12.0, gt=0)
+    keyframe_min_overlap: float = Field(0.6, ge=0, le=1, description="new keyframe when fewer of the last "
+                                        "keyframe's landmarks are still tracked")
+    keyframe_min_spacing_m: float = Field(0.05, ge=0, description="no overlap-triggered keyframe closer than this")
+    min_keyframe_landmarks: int = Field(20, ge=4)
+    denoise_baseline_m: float = Field(0.5, ge=0, description="a keyframe stores the bearings its tracks' fit "
+                                      "predicts only for tracks first seen within this distance (odometry "
+                                      "heading drifts ~1 deg/m), else the observed ones")
+    # repeat
+    min_landmarks: int = Field(12, ge=4, description="fewer agreeing landmarks: the fix is not trusted")
+    slow_landmarks: int = Field(30, ge=4, description="fewer agreeing landmarks: drive slower")
+    reacquire_below: int = Field(40, ge=0, description="re-match descriptors when fewer keyframe landmarks are tracked")
+    reacquire_every: int = Field(3, ge=1, description="frames between re-acquisition attempts while short")
+    guided_fraction: float = Field(0.6, ge=0, le=1, description="pull in keyframe landmarks by predicted KLT "
+                                   "when fewer than this share are tracked")
+    guided_radius_px: float = Field(25.0, gt=0, description="max distance of a guided match from its prediction")
+    pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
+    cruise_speed: float = Field(0.25, gt=0, description="m/s")
+    lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")
+    fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new fix's correction applied at once")
+    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
+    blind_speed_factor: float = Field(0.4, gt=0, le=1)
+    goal_tolerance_m: float = Field(0.03, gt=0)
+    max_estimate_age_s: float = Field(0.5, gt=0)
+    turn_in_place_deg: float = Field(60.0, gt=0, description="larger heading errors turn on the spot")
+
+
+
+def teach_repeat_config(section: dict | None, source: str = "<config>") -> VBCConfig:
+    """Validate the free ``vbc:`` configuration section; errors name the file and key path."""
+    from pydantic import ValidationError
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return VBCConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vbc")) from None

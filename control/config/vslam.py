@@ -1,0 +1,73 @@
+"""The ``vslam:`` section: the VSLAM on the robot and the ``goto`` controller."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+from vbnav.vision.vslam import VslamConfig
+
+
+class GotoConfig(BaseModel):
+    """``vslam.goto``: the go-to controller's gains and tolerances."""
+
+    model_config = ConfigDict(extra="forbid")
+    cruise_speed: float = Field(0.3, gt=0, description="m/s")
+    k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
+    k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
+    k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
+    position_tolerance_m: float = Field(0.01, gt=0, description="goal reached within this distance (estimate)")
+    heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
+    approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
+    final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
+    settle_s: float = Field(0.3, ge=0, description="stopped this long within tolerance before finishing")
+    fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
+    max_estimate_age_s: float = Field(0.5, gt=0)
+    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
+    init_creep_speed: float = Field(0.1, ge=0, description="m/s straight ahead while a monocular VSLAM waits for "
+                                                           "the parallax to initialise (at most blind_distance_m)")
+
+
+
+class VslamNavConfig(VslamConfig):
+    """The ``vslam:`` section: the front end's settings plus the robot-side ones."""
+
+    relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
+                                                              "to where it was set (0: never)")
+    relocalise_heading_deg: float = Field(35.0, gt=0, description="... and heading within this of it")
+    relocalise_min_travel_m: float = Field(3.0, ge=0, description="only anchors set at least this far back "
+                                                                    "along the robot's path (a loop closed)")
+    relocalise_every: int = Field(1, ge=1, description="frames between relocalisation attempts")
+    relocalise_min_inliers: int = Field(20, ge=6, description="landmarks that must agree with an anchor")
+    relocalise_search_px: float = Field(20.0, gt=0, description="guided matching: search radius around the "
+                                                               "landmark's predicted pixel")
+    relocalise_max_correction_m: float = Field(0.5, gt=0, description="larger corrections are rejected as "
+                                                                      "wrong matches")
+    anchor_min_landmarks: int = Field(60, ge=6, description="reference frames with fewer are not kept as anchors")
+    restart_after_lost: int = Field(3, ge=1, description="frames lost in a row before the front end restarts "
+                                                         "from the current stereo pair at the odometry pose")
+    max_planar_residual_m: float = Field(0.15, gt=0, description="camera height off its mount height by more "
+                                                                 "than this: the pose is not trusted")
+    metric_scale: Literal["stereo", "odometry"] = Field(
+        "stereo", description="stereo: from the calibrated pair (or the device's disparity); odometry: a single "
+                              "camera, initialised from two views scaled by the distance the wheels measured")
+    odometry_init_baseline_m: float = Field(0.2, gt=0, description="metric_scale odometry: camera travel between "
+                                                                  "the two initialisation views")
+    odometry_init_max_frames: int = Field(100, ge=2, description="metric_scale odometry: frames to wait for that "
+                                                                 "travel before starting over from a new first view")
+    odometry_scale_gain: float = Field(0.5, ge=0, le=1, description="metric_scale odometry: at each hand-off, the "
+                                       "share (in log scale) of the wheels' correction of the scale applied; 0: "
+                                       "scale from the initialisation only")
+    odometry_scale_min_travel_m: float = Field(0.3, gt=0, description="metric_scale odometry: camera travel the "
+                                               "wheels and the VSLAM are compared over")
+    goto: GotoConfig = Field(default_factory=GotoConfig)
+
+
+
+def vslam_nav_config(section: dict | None, source: str = "<config>") -> VslamNavConfig:
+    """Validate the free ``vslam:`` configuration section; errors name the file and key path."""
+    from pydantic import ValidationError
+    from vbnav.control.config import ConfigError, _format_errors
+    try:
+        return VslamNavConfig.model_validate(section or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc, prefix="vslam")) from None

@@ -1,0 +1,148 @@
+"""The ``goto`` controller: drive to a planar goal in the VSLAM's reference frame (section 11.3)."""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+from vbnav.control.config.vslam import GotoConfig
+from vbnav.control.runtime.interfaces import (
+    STOP,
+    ControlContext,
+    Controller,
+    Estimate,
+    Twist,
+)
+from vbnav.control.stages.vslam import VslamFix
+from vbnav.vision.geometry import Pose2, wrap_angle
+
+
+# ---------------------------------------------------------------------------------- controller
+def polar_coordinates(pose: Pose2, goal: Pose2) -> tuple[float, float, float]:
+    """(rho, alpha, beta) of Astolfi's go-to-pose law, in this package's conventions.
+
+    rho: distance to the goal; alpha: bearing of the goal seen from the robot
+    (positive to the robot's right, like theta); beta: the angle the goal heading
+    still needs beyond that bearing, so that theta_goal - theta = alpha + beta.
+    The law v = k_rho rho, w = k_alpha alpha + k_beta beta (k_rho > 0, k_beta < 0,
+    k_alpha > k_rho) is locally exponentially stable (Siegwart & Nourbakhsh,
+    "Introduction to Autonomous Mobile Robots", 3.6.2); with theta growing to the
+    right the signs of alpha, beta and w all flip together, so the gains keep theirs.
+    """
+    dx, dz = goal.x - pose.x, goal.z - pose.z
+    rho = math.hypot(dx, dz)
+    alpha = wrap_angle(math.atan2(dx, dz) - pose.theta)
+    beta = wrap_angle(goal.theta - pose.theta - alpha)
+    return rho, alpha, beta
+
+
+
+class GotoController(Controller):
+    """Drive to a goal pose in the reference frame, localised by the VSLAM and odometry in between.
+
+    Phases: "drive" (the polar law, forward only: a goal behind turns the robot on
+    the spot first, so the camera looks where the robot goes), "turn" (on the spot
+    to the goal heading once within the position tolerance), "settle" (stopped,
+    within both tolerances, for ``settle_s``), then finished.
+    """
+
+    name = "goto"
+    requires = ("vslam",)
+
+    def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float = 0.5,
+                 max_angular_speed: float = 1.5):
+        self.goal = goal
+        self.cfg = cfg or GotoConfig()
+        self.v_max = min(self.cfg.cruise_speed, max_linear_speed)
+        self.w_max = max_angular_speed
+        self._P: Optional[Pose2] = None          # robot pose in the reference frame
+        self._P_odom: Optional[Pose2] = None     # odometry when _P was set
+        self._last_stamp: Optional[int] = None
+        self._good_odom: Optional[Pose2] = None
+        self._phase = "waiting"
+        self._creep_from: Optional[Pose2] = None  # odometry where a monocular VSLAM started initialising
+        self._settled_ns: Optional[int] = None
+        self._finished = False
+        self._status: dict = {"state": "waiting"}
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    @property
+    def pose(self) -> Optional[Pose2]:
+        """The fused pose estimate at the last update (None before the first VSLAM pose)."""
+        return self._status.get("_pose")
+
+    def status(self) -> dict:
+        return {k: v for k, v in self._status.items() if not k.startswith("_")}
+
+    def update(self, ctx: ControlContext) -> Twist:
+        self._absorb(ctx.estimate("vslam", self.cfg.max_estimate_age_s), ctx.odom)
+        if self._creep_from is not None and not self._finished:
+            # A monocular VSLAM needs parallax before its first pose (at the start or after it was lost and
+            # restarted): creep straight ahead, not farther than blind_distance_m.
+            crept = math.hypot(ctx.odom.x - self._creep_from.x, ctx.odom.z - self._creep_from.z)
+            self._status = {"state": "initialising", "crept_m": crept}
+            return Twist(self.cfg.init_creep_speed, 0.0) if crept <= self.cfg.blind_distance_m else STOP
+        if self._P is None or self._finished:
+            return STOP
+        P = self._P.compose(self._P_odom.between(ctx.odom))
+        blind = math.hypot(ctx.odom.x - self._good_odom.x, ctx.odom.z - self._good_odom.z)
+        rho, alpha, beta = polar_coordinates(P, self.goal)
+        dth = wrap_angle(self.goal.theta - P.theta)
+        twist = self._law(ctx.now_ns, rho, alpha, beta, dth) if blind <= self.cfg.blind_distance_m else STOP
+        self._status = {"state": self._phase if blind <= self.cfg.blind_distance_m else "blind",
+                        "distance_m": rho, "heading_error_deg": math.degrees(dth), "blind_m": blind,
+                        "x": P.x, "z": P.z, "theta_deg": math.degrees(P.theta), "_pose": P}
+        return twist
+
+    def _law(self, now_ns: int, rho: float, alpha: float, beta: float, dth: float) -> Twist:
+        c = self.cfg
+        tol_th = math.radians(c.heading_tolerance_deg)
+        if self._phase in ("waiting", "drive") and rho <= c.position_tolerance_m:
+            self._phase = "turn"
+        elif self._phase in ("turn", "settle") and rho > 2.0 * c.position_tolerance_m:
+            self._phase, self._settled_ns = "drive", None   # pushed away (or a corrected estimate): drive again
+        elif self._phase == "waiting":
+            self._phase = "drive"
+        if self._phase == "drive":
+            # Speed proportional to the distance (slows near the goal), with a floor so the last
+            # centimetres do not take forever; zero while the goal is off to the side.
+            v = max(min(c.k_rho * rho, self.v_max), 0.04) * max(math.cos(alpha), 0.0)
+            fade = min(1.0, rho / c.approach_radius_m)      # beta is ill-defined at the goal itself
+            w = c.k_alpha * alpha + c.k_beta * beta * fade
+            if abs(w) > self.w_max:                          # keep the curvature, lower the speed
+                v *= self.w_max / abs(w)
+                w = math.copysign(self.w_max, w)
+            return Twist(v, w)
+        if abs(dth) > tol_th:
+            self._phase, self._settled_ns = "turn", None
+            w = math.copysign(min(c.final_turn_speed, max(1.5 * abs(dth), 0.05)), dth)
+            return Twist(0.0, w)
+        if self._phase != "settle":
+            self._phase, self._settled_ns = "settle", now_ns
+        if (now_ns - self._settled_ns) * 1e-9 >= c.settle_s:
+            self._finished = True
+            self._phase = "finished"
+        return STOP
+
+    def _absorb(self, est: Optional[Estimate], odom: Pose2) -> None:
+        if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VslamFix):
+            return
+        self._last_stamp = est.stamp_ns
+        if not est.ok:
+            if self._creep_from is None and est.value.quality.get("initialising"):
+                self._creep_from = odom
+            return
+        self._creep_from = None
+        fix: VslamFix = est.value
+        self._good_odom = fix.odom
+        if self._P is None:
+            self._P, self._P_odom = fix.pose, fix.odom
+            return
+        # Complementary filter: blend the dead-reckoned pose at the frame time toward the VSLAM pose.
+        pred = self._P.compose(self._P_odom.between(fix.odom))
+        d = pred.between(fix.pose)
+        g = self.cfg.fix_gain
+        self._P = pred.compose(Pose2(g * d.x, g * d.z, g * d.theta))
+        self._P_odom = fix.odom

@@ -1,0 +1,181 @@
+"""Teach and repeat by Vision-Based Control (chapter section 11.2.2.1): pure logic, no I/O, no threads.
+
+- ``TeachStage`` (vision thread, while the robot is driven along the route): tracks
+  features, estimates each landmark's inverse height from odometry, and emits
+  ``Keyframe`` records chosen by travelled distance, rotation and feature overlap.
+  A keyframe is emitted when the *next* one is started (or at ``finish()``), so its
+  landmarks' heights already pool the motion after it. The runtime drains
+  ``pop_keyframes()`` into a ``RouteWriter``.
+- ``RepeatStage`` (vision thread, while repeating): localises each frame against the
+  keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
+  when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
+  KLT from the keyframe image started at the pixels the current fix predicts, after
+  each keyframe switch), computes the VBC pose relative to that keyframe and
+  advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
+- ``RepeatController`` (loop rate): dead-reckons from the latest fix with odometry,
+  follows the taught keyframe path with pure pursuit (a nonholonomic base corrects
+  lateral error through heading), slows and stops when too few landmarks agree,
+  resumes when they do, and finishes at the last keyframe.
+
+Frames: a fix's pose is the robot relative to keyframe k. The path the
+controller follows is the polyline of the keyframes' taught odometry poses;
+the robot's pose on it is ``kf[k].odom * pose``, so only the *local* taught
+geometry around keyframe k matters, never the accumulated odometry drift.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.route import Route
+from vbnav.control.runtime.interfaces import (
+    STOP,
+    ControlContext,
+    Controller,
+    Estimate,
+    Twist,
+)
+from vbnav.control.stages.vbc_fix import VBCFix
+from vbnav.vision.geometry import Pose2
+
+
+# ---------------------------------------------------------------------------------------- controller
+class RepeatController(Controller):
+    """Pure pursuit along the taught keyframe path, localised by VBC fixes and odometry in between."""
+
+    name = "repeat"
+    requires = ("vbc",)
+
+    def __init__(self, route: Route, cfg: VBCConfig | None = None, max_linear_speed: float = 0.5,
+                 max_angular_speed: float = 1.5):
+        if not route.keyframes:
+            raise ValueError(f"{route.path}: route has no keyframes")
+        self.cfg = cfg or VBCConfig()
+        self.kfs = route.keyframes
+        self.path = np.array([[kf.odom.x, kf.odom.z] for kf in self.kfs])
+        self.v_max = min(self.cfg.cruise_speed, max_linear_speed)
+        self.w_max = max_angular_speed
+        self._k = 0
+        self._P: Optional[Pose2] = None          # robot pose in the taught-odometry frame
+        self._P_odom: Optional[Pose2] = None     # odometry when _P was set
+        self._last_stamp: Optional[int] = None
+        self._n_agree = 0
+        self._good_odom: Optional[Pose2] = None  # odometry at the last trusted fix
+        self._blind = 0.0
+        self._finished = False
+        self._status: dict = {}
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    def status(self) -> dict:
+        return dict(self._status)
+
+    def update(self, ctx: ControlContext) -> Twist:
+        self._absorb(ctx.estimate("vbc", self.cfg.max_estimate_age_s))
+        if self._P is None or self._finished:
+            self._status = {"state": "finished" if self._finished else "waiting", "keyframe": self._k}
+            return STOP
+        P = self._P.compose(self._P_odom.between(ctx.odom))
+        if self._good_odom is not None:
+            self._blind = math.hypot(ctx.odom.x - self._good_odom.x, ctx.odom.z - self._good_odom.z)
+        return self._pursue(P)
+
+    def _absorb(self, est: Optional[Estimate]) -> None:
+        if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VBCFix):
+            return
+        self._last_stamp = est.stamp_ns
+        fix: VBCFix = est.value
+        self._k = fix.keyframe
+        self._n_agree = fix.n_agree if est.ok else 0
+        if fix.finished:
+            self._finished = True
+        if not est.ok:
+            return
+        measured = self.kfs[fix.keyframe].odom.compose(fix.pose)
+        self._good_odom = fix.odom
+        if self._P is None:
+            self._P, self._P_odom = measured, fix.odom
+            return
+        # Complementary filter: blend the dead-reckoned pose at the frame time toward the fix.
+        pred = self._P.compose(self._P_odom.between(fix.odom))
+        d = pred.between(measured)
+        g = self.cfg.fix_gain
+        self._P = pred.compose(Pose2(g * d.x, g * d.z, g * d.theta))
+        self._P_odom = fix.odom
+
+    def _pursue(self, P: Pose2) -> Twist:
+        seg, s, lateral, remaining = self._project(P)
+        target = self._point_ahead(seg, s, self.cfg.lookahead_m)
+        rel = P.between(Pose2(target[0], target[1], 0.0))
+        heading_err = math.atan2(rel.x, rel.z)
+        v = self.v_max * self._confidence()
+        if remaining < self.cfg.goal_tolerance_m and seg == len(self.path) - 2:
+            self._finished = True
+            self._status = {"state": "finished", "keyframe": self._k}
+            return STOP
+        v = min(v, max(0.05, 1.5 * remaining)) if v > 0 else 0.0
+        if abs(heading_err) > math.radians(self.cfg.turn_in_place_deg) and v > 0:
+            w = math.copysign(0.6 * self.w_max, heading_err)
+            v = 0.0
+        else:
+            L2 = rel.x * rel.x + rel.z * rel.z
+            kappa = 2.0 * rel.x / max(L2, 1e-6)
+            w = v * kappa
+            if abs(w) > self.w_max:                     # keep the curvature, lower the speed
+                v *= self.w_max / abs(w)
+                w = math.copysign(self.w_max, w)
+        self._status = {"state": "driving" if v > 0 or w != 0 else "stopped", "keyframe": self._k,
+                        "lateral_m": lateral, "heading_err_deg": math.degrees(heading_err),
+                        "n_agree": self._n_agree, "blind_m": self._blind, "remaining_m": remaining}
+        return Twist(v, w)
+
+    def _confidence(self) -> float:
+        """Speed factor from the number of agreeing landmarks and the distance driven blind."""
+        c = self.cfg
+        if self._n_agree >= c.slow_landmarks:
+            return 1.0
+        if self._n_agree >= c.min_landmarks:
+            return 0.3 + 0.7 * (self._n_agree - c.min_landmarks) / max(c.slow_landmarks - c.min_landmarks, 1)
+        return c.blind_speed_factor if self._blind < c.blind_distance_m else 0.0
+
+    def _project(self, P: Pose2):
+        """Closest segment near the current keyframe: (segment, arclength on it, signed lateral, remaining)."""
+        n = len(self.path)
+        if n == 1:
+            d = float(np.hypot(*(self.path[0] - [P.x, P.z])))
+            return 0, 0.0, 0.0, d
+        lo, hi = max(self._k - 2, 0), min(self._k + 1, n - 2)
+        best = None
+        for i in range(lo, hi + 1):
+            a, b = self.path[i], self.path[i + 1]
+            ab = b - a
+            L = float(np.hypot(*ab)) or 1e-9
+            t = float(np.clip(np.dot([P.x - a[0], P.z - a[1]], ab) / (L * L), 0.0, 1.0))
+            q = a + t * ab
+            d = float(np.hypot(P.x - q[0], P.z - q[1]))
+            if best is None or d < best[0] - 1e-9:
+                # lateral sign: positive when the robot is right of the path direction (toward +x of it)
+                side = (ab[1] * (P.x - a[0]) - ab[0] * (P.z - a[1])) / L
+                best = (d, i, t * L, side)
+        _, seg, s, side = best
+        seg_len = np.hypot(*np.diff(self.path, axis=0).T)
+        remaining = float(seg_len[seg] - s + seg_len[seg + 1:].sum())
+        return seg, s, side, remaining
+
+    def _point_ahead(self, seg: int, s: float, dist: float) -> np.ndarray:
+        n = len(self.path)
+        if n == 1:
+            return self.path[0]
+        while True:
+            a, b = self.path[seg], self.path[seg + 1]
+            L = float(np.hypot(*(b - a)))
+            if s + dist <= L or seg == n - 2:
+                t = min((s + dist) / max(L, 1e-9), 1.0)
+                return a + t * (b - a)
+            dist -= L - s
+            s = 0.0
+            seg += 1

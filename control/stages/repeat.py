@@ -1,0 +1,219 @@
+"""Teach and repeat by Vision-Based Control (chapter section 11.2.2.1): pure logic, no I/O, no threads.
+
+- ``TeachStage`` (vision thread, while the robot is driven along the route): tracks
+  features, estimates each landmark's inverse height from odometry, and emits
+  ``Keyframe`` records chosen by travelled distance, rotation and feature overlap.
+  A keyframe is emitted when the *next* one is started (or at ``finish()``), so its
+  landmarks' heights already pool the motion after it. The runtime drains
+  ``pop_keyframes()`` into a ``RouteWriter``.
+- ``RepeatStage`` (vision thread, while repeating): localises each frame against the
+  keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
+  when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
+  KLT from the keyframe image started at the pixels the current fix predicts, after
+  each keyframe switch), computes the VBC pose relative to that keyframe and
+  advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
+- ``RepeatController`` (loop rate): dead-reckons from the latest fix with odometry,
+  follows the taught keyframe path with pure pursuit (a nonholonomic base corrects
+  lateral error through heading), slows and stops when too few landmarks agree,
+  resumes when they do, and finishes at the last keyframe.
+
+Frames: a fix's pose is the robot relative to keyframe k. The path the
+controller follows is the polyline of the keyframes' taught odometry poses;
+the robot's pose on it is ``kf[k].odom * pose``, so only the *local* taught
+geometry around keyframe k matters, never the accumulated odometry drift.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.route import Route
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.stages.vbc_fix import VBCFix, bearing_sigma
+from vbnav.drivers.camera import Frame
+from vbnav.vision.camera_model import rays_from_angles
+from vbnav.vision.features import (
+    FeatureTracker,
+    detect_and_describe,
+    geometric_inliers,
+    match_descriptors,
+    to_grey,
+)
+from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.vbc import (
+    estimate_pose,
+    inverse_range,
+    levelled_bearings,
+    predict_bearings,
+)
+
+
+# -------------------------------------------------------------------------------------------- repeat
+class RepeatStage(VisionStage):
+    """Localises each frame against the keyframe ahead and advances along the route."""
+
+    kind = "vbc"
+
+    def __init__(self, route: Route, cfg: VBCConfig | None = None, camera=None, mount: CameraMount | None = None):
+        if not route.keyframes:
+            raise ValueError(f"{route.path}: route has no keyframes")
+        self.route = route
+        self.kfs = route.keyframes
+        self.camera = camera or route.camera
+        self.mount = mount or route.mount
+        self.cfg = cfg or VBCConfig()
+        self.sigma = bearing_sigma(self.camera, self.cfg)
+        # Only keyframe landmarks are tracked (no detection): their ids are the taught track ids.
+        self.tracker = FeatureTracker(max_features=10_000, win_size=self.cfg.klt_window_px,
+                                      levels=self.cfg.klt_levels, fb_threshold=self.cfg.fb_threshold_px,
+                                      redetect_fraction=0.0)
+        self.index = 0
+        self.finished = False
+        self._pose: Optional[Pose2] = None      # last pose relative to kf[index]
+        self._odom: Optional[Pose2] = None      # odometry at that pose
+        self._since_reacquire = 10 ** 9
+        self._started = False
+        self._since_guided = 10 ** 9
+        self.stats = {"reacquired": 0, "guided": 0, "switches": 0}
+
+    # -- image path
+    def process(self, frame: Frame, odom: Pose2) -> Estimate:
+        image = to_grey(frame.image)
+        if self._started:
+            self.tracker.track(image)
+        else:
+            self.tracker.track_points(image, np.zeros((0, 2)), np.zeros(0, np.int64))
+            self._started = True
+        self._since_reacquire += 1
+        self._since_guided += 1
+        kf = self.kfs[self.index]
+        tracked = int(np.isin(self.tracker.tracks.ids, kf.track_ids).sum())
+        if tracked < self.cfg.reacquire_below and self._since_reacquire >= self.cfg.reacquire_every:
+            self._reacquire(image)
+        t = self.tracker.tracks
+        index = self.index
+        est = self.localise(t.ids, t.pts, odom, frame.stamp_ns)
+        # With a trusted fix, pull in the keyframe's landmarks not tracked yet: after a keyframe
+        # switch, and whenever fewer than guided_fraction of them are tracked.
+        kf = self.kfs[self.index]
+        tracked = int(np.isin(self.tracker.tracks.ids, kf.track_ids).sum())
+        if est.ok and (self.index != index or (tracked < self.cfg.guided_fraction * len(kf)
+                                               and self._since_guided >= self.cfg.reacquire_every)):
+            self._guided(image, est.value.pose)
+        self._prune()
+        return est
+
+    def _guided(self, image: np.ndarray, pose: Pose2) -> int:
+        """KLT from the keyframe image to this one, started where the fix predicts each landmark.
+
+        Bearings are predicted with the exact model (inverse range from the landmark's height,
+        0 = far when unknown), turned back into camera rays and pixels. The keyframe image is
+        scaled to this image's mean brightness first (KLT matches intensities, lighting changes).
+        """
+        self._since_guided = 0
+        kf = self.kfs[self.index]
+        if kf.image is None or kf.image.size <= 1:
+            return 0
+        missing = np.flatnonzero(~np.isin(kf.track_ids, self.tracker.tracks.ids))
+        if len(missing) < 4:
+            return 0
+        rho = np.nan_to_num(inverse_range(kf.beta[missing], kf.inv_height[missing]), nan=0.0)
+        a, b = predict_bearings(kf.alpha[missing], kf.beta[missing], rho, pose, self.mount.forward, self.mount.lateral)
+        rays = rays_from_angles(a, b) @ self.mount.rotation()     # levelled -> camera frame
+        px, front = self.camera.project(rays)
+        inside = front & self.camera.in_image(px, margin=10)
+        if inside.sum() < 4:
+            return 0
+        missing, px = missing[inside], px[inside].astype(np.float32)
+        kimg = to_grey(kf.image)
+        m_k, m_c = float(kimg.mean()), float(image.mean())
+        if m_k > 1.0 and abs(m_c / m_k - 1.0) > 0.05:
+            kimg = cv2.convertScaleAbs(kimg, alpha=m_c / m_k)
+        p0 = kf.pixels[missing].astype(np.float32).reshape(-1, 1, 2)
+        win = (self.cfg.klt_window_px + 4,) * 2
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(kimg, image, p0, px.reshape(-1, 1, 2).copy(), winSize=win,
+                                              maxLevel=self.cfg.klt_levels, flags=flags)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(image, kimg, p1, p0.copy(), winSize=win,
+                                                maxLevel=self.cfg.klt_levels, flags=flags)
+        p1 = p1.reshape(-1, 2)
+        good = ((st1.ravel() == 1) & (st2.ravel() == 1)
+                & (np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1) < self.cfg.fb_threshold_px)
+                & (np.linalg.norm(p1 - px, axis=1) < self.cfg.guided_radius_px)
+                & self.camera.in_image(p1, margin=8))
+        self.tracker.add_points(p1[good], kf.track_ids[missing[good]])
+        self.stats["guided"] += int(good.sum())
+        return int(good.sum())
+
+    def _prune(self) -> None:
+        """Drop tracks that belong to neither the current nor the next keyframe (bounded cost)."""
+        keep_ids = self.kfs[self.index].track_ids
+        if self.index + 1 < len(self.kfs):
+            keep_ids = np.concatenate([keep_ids, self.kfs[self.index + 1].track_ids])
+        keep = np.isin(self.tracker.tracks.ids, keep_ids)
+        if not keep.all():
+            self.tracker.tracks = self.tracker.tracks.subset(keep)
+
+    def _reacquire(self, image: np.ndarray) -> int:
+        """Match ORB descriptors of fresh corners against the keyframe; seed tracks for the matches."""
+        self._since_reacquire = 0
+        kf = self.kfs[self.index]
+        if len(kf) < 8:
+            return 0
+        pts, desc = detect_and_describe(image, 500)
+        pairs = match_descriptors(desc, kf.descriptors)
+        if len(pairs) < 8:
+            return 0
+        cur = pts[pairs[:, 0]]
+        lm = pairs[:, 1]
+        inl = geometric_inliers(self.camera.rays(kf.pixels[lm]), self.camera.rays(cur),
+                                threshold=2.0 * self.sigma)
+        keep = inl & ~np.isin(kf.track_ids[lm], self.tracker.tracks.ids)
+        self.tracker.add_points(cur[keep], kf.track_ids[lm[keep]])
+        self.stats["reacquired"] += int(keep.sum())
+        return int(keep.sum())
+
+    # -- feature path (tests feed this directly)
+    def localise(self, ids, pixels, odom: Pose2, stamp_ns: int = 0) -> Estimate:
+        ids = np.asarray(ids, np.int64)
+        pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
+        predicted = None
+        if self._pose is not None:
+            predicted = self._pose.compose(self._odom.between(odom))
+        res, n_agree = self._fix(self.index, ids, pixels, predicted)
+        ok = res is not None and res.ok and n_agree >= self.cfg.min_landmarks
+        pose = res.pose if ok else predicted
+        if pose is not None:
+            # Passing keyframe k (its z reached): continue against k+1 in k+1's frame.
+            while self.index < len(self.kfs) - 1 and pose.z >= -self.cfg.pass_margin_m:
+                step = self.kfs[self.index].odom.between(self.kfs[self.index + 1].odom)
+                self.index += 1
+                self.stats["switches"] += 1
+                self._since_reacquire = 10 ** 9
+                pose = step.inverse().compose(pose)
+                res2, n2 = self._fix(self.index, ids, pixels, pose)
+                if res2 is not None and res2.ok and n2 >= self.cfg.min_landmarks:
+                    res, n_agree, pose, ok = res2, n2, res2.pose, True
+                else:
+                    ok = False
+                    n_agree = n2
+            if self.index == len(self.kfs) - 1 and pose.z >= -self.cfg.goal_tolerance_m:
+                self.finished = True
+            self._pose, self._odom = pose, odom
+        quality = res.quality.as_dict() if res is not None else {}
+        fix = VBCFix(self.index, pose if pose is not None else Pose2(), odom, n_agree, quality, self.finished)
+        return Estimate(stamp_ns, self.kind, bool(ok), fix, {"keyframe": self.index, "n_agree": n_agree,
+                                                              "tracked": len(ids)})
+
+    def _fix(self, k: int, ids, pixels, initial: Optional[Pose2]):
+        kf = self.kfs[k]
+        _, i_kf, i_cur = np.intersect1d(kf.track_ids, ids, assume_unique=False, return_indices=True)
+        if len(i_kf) < 4:
+            return None, 0
+        a, b = levelled_bearings(self.camera.rays(pixels[i_cur]), self.mount)
+        res = estimate_pose(kf.alpha[i_kf], kf.beta[i_kf], kf.inv_height[i_kf], a, b, kf.inv_height_var[i_kf],
+                            forward=self.mount.forward, lateral=self.mount.lateral, sigma=self.sigma,
+                            initial=initial)
+        return res, res.quality.n_inliers

@@ -1,0 +1,164 @@
+"""Teach and repeat by Vision-Based Control (chapter section 11.2.2.1): pure logic, no I/O, no threads.
+
+- ``TeachStage`` (vision thread, while the robot is driven along the route): tracks
+  features, estimates each landmark's inverse height from odometry, and emits
+  ``Keyframe`` records chosen by travelled distance, rotation and feature overlap.
+  A keyframe is emitted when the *next* one is started (or at ``finish()``), so its
+  landmarks' heights already pool the motion after it. The runtime drains
+  ``pop_keyframes()`` into a ``RouteWriter``.
+- ``RepeatStage`` (vision thread, while repeating): localises each frame against the
+  keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
+  when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
+  KLT from the keyframe image started at the pixels the current fix predicts, after
+  each keyframe switch), computes the VBC pose relative to that keyframe and
+  advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
+- ``RepeatController`` (loop rate): dead-reckons from the latest fix with odometry,
+  follows the taught keyframe path with pure pursuit (a nonholonomic base corrects
+  lateral error through heading), slows and stops when too few landmarks agree,
+  resumes when they do, and finishes at the last keyframe.
+
+Frames: a fix's pose is the robot relative to keyframe k. The path the
+controller follows is the polyline of the keyframes' taught odometry poses;
+the robot's pose on it is ``kf[k].odom * pose``, so only the *local* taught
+geometry around keyframe k matters, never the accumulated odometry drift.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.route import Keyframe
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.stages.vbc_fix import bearing_sigma
+from vbnav.drivers.camera import Frame
+from vbnav.vision.features import FeatureTracker, describe, to_grey
+from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.vbc import InverseHeightEstimator, levelled_bearings
+
+
+# --------------------------------------------------------------------------------------------- teach
+class TeachStage(VisionStage):
+    """Tracks features and emits keyframes while the robot is driven along the route."""
+
+    kind = "teach"
+
+    def __init__(self, camera, mount: CameraMount, cfg: VBCConfig | None = None):
+        self.camera = camera
+        self.mount = mount
+        self.cfg = cfg or VBCConfig()
+        self.tracker = FeatureTracker(self.cfg.max_features, self.cfg.min_distance_px,
+                                      win_size=self.cfg.klt_window_px, levels=self.cfg.klt_levels,
+                                      fb_threshold=self.cfg.fb_threshold_px)
+        self.heights = InverseHeightEstimator(mount, bearing_sigma(camera, self.cfg))
+        self._pending: Optional[dict] = None
+        self._ready: list[Keyframe] = []
+        self._count = 0
+        self._distance = 0.0
+        self._last_odom: Optional[Pose2] = None
+        self._last_frame: Optional[tuple] = None
+
+    @property
+    def n_keyframes(self) -> int:
+        return self._count
+
+    def process(self, frame: Frame, odom: Pose2) -> Estimate:
+        image = to_grey(frame.image)
+        t = self.tracker.track(image)
+        return self.update(t.ids, t.pts, odom, frame.stamp_ns, image=image)
+
+    def update(self, ids, pixels, odom: Pose2, stamp_ns: int = 0, image: np.ndarray | None = None,
+               descriptors: np.ndarray | None = None) -> Estimate:
+        """Feature-level step (also used directly by tests with synthetic landmarks).
+
+        descriptors: per-point descriptors when no image is given (else ORB on ``image``).
+        """
+        ids = np.asarray(ids, np.int64)
+        pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
+        if self._last_odom is not None:
+            self._distance += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
+        self._last_odom = odom
+        alpha, beta = levelled_bearings(self.camera.rays(pixels), self.mount) if len(ids) else (np.zeros(0),) * 2
+        self.heights.observe(ids, alpha, beta, odom)
+        self._refresh_pending_heights()
+        emitted = None
+        self._last_frame = (ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors)
+        if self._keyframe_due(ids, odom) and len(ids) >= self.cfg.min_keyframe_landmarks:
+            emitted = self._finalise_pending()
+            self._pending = self._candidate(ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors)
+            self._last_frame = None
+            # Its tracks already have heights: a keyframe taken at the last frame must not be left without.
+            self._refresh_pending_heights()
+        info = {"tracks": len(ids), "keyframes": self._count, "distance": self._distance}
+        return Estimate(stamp_ns, self.kind, True, emitted, info)
+
+    def finish(self) -> Optional[Keyframe]:
+        """End of teaching: emit the pending keyframe and one at the last frame, where the route ends.
+
+        Returns the final keyframe (all are queued for ``pop_keyframes``).
+        """
+        last = self._finalise_pending()
+        if self._last_frame is not None and len(self._last_frame[0]) >= 4:
+            self._pending = self._candidate(*self._last_frame)
+            self._last_frame = None
+            self._refresh_pending_heights()
+            last = self._finalise_pending()
+        return last
+
+    def pop_keyframes(self) -> list[Keyframe]:
+        """Keyframes emitted since the last call, in order (for the RouteWriter)."""
+        out, self._ready = self._ready, []
+        return out
+
+    def _keyframe_due(self, ids: np.ndarray, odom: Pose2) -> bool:
+        p = self._pending
+        if p is None:
+            return True
+        rel = p["odom"].between(odom)
+        dist = self._distance - p["distance"]
+        if dist >= self.cfg.keyframe_distance_m or abs(rel.theta) >= math.radians(self.cfg.keyframe_rotation_deg):
+            return True
+        overlap = np.isin(p["track_ids"], ids).mean() if len(p["track_ids"]) else 0.0
+        return overlap < self.cfg.keyframe_min_overlap and dist >= self.cfg.keyframe_min_spacing_m
+
+    def _candidate(self, ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors) -> dict:
+        if image is not None and descriptors is None:
+            desc, idx = describe(image, pixels)
+        else:
+            idx = np.arange(len(ids))
+            desc = (np.asarray(descriptors, np.uint8).reshape(len(ids), -1) if descriptors is not None
+                    else np.zeros((len(ids), 32), np.uint8))
+        n = len(idx)
+        return {"track_ids": ids[idx], "pixels": pixels[idx].astype(np.float32), "alpha": alpha[idx],
+                "beta": beta[idx], "descriptors": desc, "odom": odom, "distance": self._distance,
+                "stamp_ns": int(stamp_ns), "image": image if image is not None else np.zeros((1, 1), np.uint8),
+                "w": np.full(n, np.nan), "var": np.full(n, np.inf)}
+
+    def _refresh_pending_heights(self) -> None:
+        """Keep the latest height estimate of each pending landmark (tracks may die before emission)."""
+        p = self._pending
+        if p is None:
+            return
+        _, w, var = self.heights.estimate(p["track_ids"])
+        known = np.isfinite(w) & np.isfinite(var)
+        p["w"][known] = w[known]
+        p["var"][known] = var[known]
+        # The keyframe's own observation carries one frame's noise, and every later fix against
+        # this keyframe would inherit it as a bias: store the bearings that the whole track
+        # predicts at the keyframe pose instead, once its range is well determined.
+        alpha, beta, valid = self.heights.bearings_at(p["track_ids"], p["odom"], self.cfg.denoise_baseline_m)
+        good = valid & known & (var < (0.3 * w) ** 2)
+        p["alpha"][good] = alpha[good]
+        p["beta"][good] = beta[good]
+
+    def _finalise_pending(self) -> Optional[Keyframe]:
+        p = self._pending
+        if p is None:
+            return None
+        self._pending = None
+        kf = Keyframe(self._count, p["image"], p["pixels"], p["alpha"], p["beta"], p["descriptors"], p["w"],
+                      p["var"], p["track_ids"], p["odom"], p["distance"], p["stamp_ns"])
+        self._count += 1
+        self._ready.append(kf)
+        return kf
