@@ -13,7 +13,7 @@ import pytest
 
 from driver_test_utils import controller_script, drive_for, emulate_cli, kill_controller_while_driving, wait_until
 
-from vbnav.drivers import dynamixel_emulator as de
+from vbnav.drivers.sim import dynamixel_emulator as de
 from vbnav.drivers.dynamixel import VELOCITY_UNIT_RAD_S, DynamixelDrive
 from vbnav.drivers.wheels import DriveError
 

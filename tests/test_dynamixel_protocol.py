@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from vbnav.drivers import dynamixel_emulator as de
+from vbnav.drivers.sim import dynamixel_emulator as de
 from vbnav.drivers import dynamixel_protocol as dp
 
 H = bytes.fromhex
