@@ -13,10 +13,10 @@ import time
 import pytest
 
 from runtime_helpers import PERIOD_NS, RecordingDrive, make_runtime
+from test_safety import Cruise          # drives forward, calls a hook every cycle
 from vbnav.control.comms.operator_commands import MAX_PAYLOAD, CommandInbox, CommandSubscriber, limits_from_config
 from vbnav.control.config import Config
 from vbnav.control.controllers.manual import TeleopController
-from vbnav.control.runtime.interfaces import ControlContext, Controller, Twist
 from vbnav.control.runtime.mailbox import MAX_SENDERS, CommandMailbox, OperatorCommand
 from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.clock import SimClock
@@ -266,16 +266,6 @@ def test_after_a_flood_the_wheels_stop_within_timeout_plus_two_periods_of_the_la
 
 
 # ---- stalls ------------------------------------------------------------------------------------------
-
-class Cruise(Controller):
-    def __init__(self, hook=None):
-        self.hook = hook
-
-    def update(self, ctx: ControlContext) -> Twist:
-        if self.hook:
-            self.hook(ctx)
-        return Twist(0.3, 0.0)
-
 
 def test_a_2s_stall_inside_a_cycle_trips_safety_and_zeroes_the_wheels_in_the_next_cycle():
     def hook(ctx):
