@@ -26,7 +26,7 @@ from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
 
 
 def make_runtime(rate_hz: float, rt_sched: bool = False) -> Runtime:
-    loop = {"rate_hz": rate_hz, "max_missed_streak": 10**9}
+    loop = {"rate_hz": rate_hz, "max_missed_streak": 10**9, "stall_periods": 10**9}
     if rt_sched:
         loop.update(realtime_priority=50)
     cfg = Config.model_validate({"loop": loop})

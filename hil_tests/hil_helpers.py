@@ -31,7 +31,7 @@ def run_route(config_name: str, make_emulator, drive_options: dict, script, chan
                                      "controller": {"kind": "scripted", "script": script},
                                      # these tests check odometry against the simulator, not timing: a
                                      # loaded CI machine must not trip the missed-deadline stop
-                                     "loop": {"max_missed_streak": 1000}})
+                                     "loop": {"max_missed_streak": 1000, "stall_periods": 1000}})
         from vbnav.control.runtime.factory import make_drive
         drive = make_drive(cfg, clock)
         rt = Runtime(cfg, drive, ScriptedController(cfg.controller.script), clock)

@@ -47,7 +47,8 @@ def test_loop_return_against_reference_set_beats_chaining_fivefold():
 
 def _goto(goal: Pose2, cfg=None, covered=None):
     """Run goto on the shipped stereo configuration; ``covered`` = (from s, to s) covers the lens."""
-    cfg = cfg or load_config("sim_stereo", overrides={"loop": {"max_missed_streak": 10 ** 6}})
+    cfg = cfg or load_config("sim_stereo", overrides={"loop": {"max_missed_streak": 10 ** 6,
+                                                                   "stall_periods": 10 ** 6}})
     start = Pose2(*SIM_START)
     robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
     stage = make_vslam_stage(cfg)
@@ -97,7 +98,7 @@ def test_goto_with_a_single_camera_scaled_by_the_wheels(goal):
     wheel-measured baseline, then drives to the goal on the monocular VSLAM, its scale pulled toward the
     wheels' at every hand-off. Same bar as with stereo."""
     g = Pose2(goal[0], goal[1], math.radians(goal[2]))
-    cfg = load_config("sim_stereo", overrides={"loop": {"max_missed_streak": 10 ** 6},
+    cfg = load_config("sim_stereo", overrides={"loop": {"max_missed_streak": 10 ** 6, "stall_periods": 10 ** 6},
                                                "vslam": {"metric_scale": "odometry"}})
     result, true, ctrl, stage = _goto(g, cfg)
     pos_err = math.hypot(true.x - g.x, true.z - g.z)

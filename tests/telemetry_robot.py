@@ -64,7 +64,7 @@ def main() -> int:
 
     def logged_submit(cmd):  # runs on the zenoh thread: note when the command reached the runtime
         received.append({"kind": cmd.kind, "args": list(cmd.args), "t_ns": clock.now_ns(), "cycle": rt.cycle})
-        submit(cmd)
+        return submit(cmd)    # None, or the mailbox's reason for refusing it
 
     rt.submit = logged_submit
     cycle_log = []   # (loop cycle, left, right, powered) of every write, to count periods in cycles

@@ -62,6 +62,7 @@ def test_goto_in_real_time_with_the_threaded_vision_pipeline(tmp_path):
     d = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
     d["sim"]["realtime"] = True
     d["loop"]["max_missed_streak"] = 1000   # a loaded test machine must not trip the deadline stop
+    d["loop"]["stall_periods"] = 1000       # nor the stall stop
     cfg = tmp_path / "rt.yaml"
     cfg.write_text(yaml.safe_dump(d))
     r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")

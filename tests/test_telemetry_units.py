@@ -9,7 +9,7 @@ import pytest
 from runtime_helpers import RecordingDrive
 from vbnav.control.config import Config, ConfigError
 from vbnav.control.controllers.manual import IdleController, TeleopController
-from vbnav.control.comms.operator_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected, INBOX_LIMIT
+from vbnav.control.comms.operator_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected
 from vbnav.control.config.telemetry import DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint, parse_telemetry_config
 from vbnav.control.comms.network import robot_session_config
 from vbnav.control.comms.recording import McapRecorder, format_summary, iter_recording, read_recording
@@ -124,16 +124,24 @@ def test_bad_commands_are_rejected_with_a_reason(kind, payload, why):
         parse_command(kind, payload, LIMITS)
 
 
-def test_inbox_rejects_with_events_and_bounds_its_queue():
+def test_inbox_rejects_with_events_and_the_safety_lane_refuses_loudly_but_never_evicts():
+    from vbnav.control.runtime.mailbox import SAFETY_LANE_LIMIT, CommandMailbox
+    clock = SimClock()
+    mailbox = CommandMailbox(clock.now_ns, 500_000_000)
     rejected = []
-    inbox = CommandInbox(LIMITS, on_reject=lambda k, r, p: rejected.append((k, r)))
+    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p: rejected.append((k, r)))
     assert inbox.submit("teleop", b'{"linear": 5, "angular": 0}') is None
     assert inbox.submit("teleop", b"\xff\xfe") is None
-    assert [k for k, _ in rejected] == ["teleop", "teleop"] and inbox.drain() == []
-    for _ in range(INBOX_LIMIT + 5):
+    assert [k for k, _ in rejected] == ["teleop", "teleop"] and mailbox.drain(clock.now_ns()) == ([], [])
+    assert inbox.submit("estop", b'{"reason": "first"}') is not None
+    for _ in range(SAFETY_LANE_LIMIT + 5):
         inbox.submit("resume", b"{}")
-    assert len(inbox.drain()) == INBOX_LIMIT
-    assert rejected[-1][1].startswith("command queue full")
+    assert inbox.submit("estop", b'{"reason": "last"}') is not None       # a full lane still takes an estop
+    assert len(rejected) == 2 + 6 and rejected[-1][1].startswith("command lane full")
+    applied, refused = mailbox.drain(clock.now_ns())
+    kinds = [c.kind for c in applied]
+    assert not refused and len(kinds) == SAFETY_LANE_LIMIT + 1 and kinds[0] == kinds[-1] == "estop"
+    assert applied[-1].args == ("last",) and applied[0].args == ("first",)    # the oldest was not evicted
 
 
 # ---- the publisher ------------------------------------------------------------------------
@@ -223,7 +231,7 @@ def _runtime(controller, clock):
 def test_teleop_silence_stops_the_robot_after_the_timeout_on_the_sim_clock():
     clock = SimClock()
     cfg, drive, rt = _runtime(TeleopController(0.5), clock)
-    inbox = CommandInbox(LIMITS, deliver=lambda c: rt.submit(_op(c)))
+    inbox = CommandInbox(LIMITS, deliver=rt.submit, now_ns=clock.now_ns)
     sent = []
 
     def operator(r, ctx, twist, wheels):  # teleop at 10 Hz for 2 s of loop time, then silence
@@ -241,18 +249,11 @@ def test_teleop_silence_stops_the_robot_after_the_timeout_on_the_sim_clock():
     assert any(e.cause == "command_timeout" and e.kind == "hold" and e.stamp_ns > last for e in rt.safety.events)
 
 
-def _op(cmd):
-    from vbnav.control.runtime.runtime import OperatorCommand
-    b = cmd.body
-    args = {"teleop": lambda: (b.linear, b.angular)}.get(cmd.kind, lambda: ())()
-    return OperatorCommand(cmd.kind, args, "test")
-
-
 def test_garbage_commands_never_move_an_idle_robot():
     clock = SimClock()
     cfg, drive, rt = _runtime(IdleController(), clock)
     rejected = []
-    inbox = CommandInbox(LIMITS, on_reject=lambda *a: rejected.append(a), deliver=lambda c: rt.submit(_op(c)))
+    inbox = CommandInbox(LIMITS, deliver=rt.submit, on_reject=lambda *a: rejected.append(a), now_ns=clock.now_ns)
     junk = [("teleop", b'{"linear": 99, "angular": 0}'), ("teleop", b"{{{{"), ("teleop", b'{"linear": 1e309}'),
             ("mode", b'{"mode": "repeat"}'), ("rm -rf", b"{}"), ("teleop", bytes(range(256)))]
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+import uuid
 
 from vbnav.control.commands._net import add_net_args, open_client
 
@@ -39,7 +40,8 @@ def register(sub) -> None:
 def build_payload(args) -> tuple[str, dict]:
     """The command name and JSON body; validated locally with the robot's own models."""
     from vbnav.control.comms.operator_commands import CommandRejected, TeleopLimits, parse_command
-    body: dict = {"sender": "vbnav-send"}
+    # One session id per invocation: the robot tracks seq and the clock offset per (sender, session).
+    body: dict = {"sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
         body["reason"] = args.reason
     elif args.what == "teleop":
@@ -79,7 +81,10 @@ def _run(args) -> int:
         matched = pub.matching_status
         n = max(1, int(args.duration * args.rate)) if what == "teleop" and args.duration > 0 else 1
         for i in range(n):
+            # seq and the send time on this machine's monotonic clock: the robot refuses teleop that is
+            # out of order or older than its command timeout (docs/telemetry.md, "Commands").
             body["seq"] = i
+            body["stamp_ns"] = time.monotonic_ns()
             pub.put(json.dumps(body))
             if n > 1:
                 time.sleep(1.0 / args.rate)

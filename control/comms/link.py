@@ -11,7 +11,9 @@ extension points only:
 - ``runtime.safety.listeners``: every safety event (trip, hold, release, reset,
   rejected command) becomes a ``vbnav/<robot>/events`` message;
 - ``runtime.submit``: validated network commands (estop, resume, teleop, mode)
-  are queued for the loop, which applies them at the start of its next cycle;
+  go to the loop's command mailbox, which the loop drains at the start of its
+  next cycle; ``runtime.command_listeners``: the ``command`` event is published
+  once a command took effect, with its cycle and arrival time;
 - ``pipeline.frame_listeners``: decimated camera frames for ``.../image``.
 
 ``close(result)`` publishes the ``run_end`` event, drains the queue, finishes
@@ -22,7 +24,7 @@ from __future__ import annotations
 import time
 from typing import Optional
 
-from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, NetCommand, limits_from_config
+from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, limits_from_config
 from vbnav.control.config.telemetry import TelemetryConfig, telemetry_config
 from vbnav.control.comms.network import open_session, robot_session_config
 from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
@@ -116,10 +118,12 @@ class TelemetryLink:
                                        now_ns=clock.now_ns)
         link = cls(runtime, tcfg, publisher, session, recorder)
         # The inbox also takes commands from local sources (tests, a future local console).
-        link.inbox = CommandInbox(limits_from_config(cfg), on_reject=link._on_reject, deliver=link._deliver)
+        link.inbox = CommandInbox(limits_from_config(cfg), deliver=lambda cmd: link.runtime.submit(cmd),
+                                  on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox)
         runtime.command_handlers.append(link._on_mode_command)
+        runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
         if runtime.pipeline is not None and tcfg.image_rate_hz > 0:
@@ -182,23 +186,14 @@ class TelemetryLink:
     def _on_frame(self, frame, results) -> None:
         self.publisher.offer_image(frame.image, frame.stamp_ns, frame.seq)
 
-    # ---- network command thread ------------------------------------------------------------
-    def _deliver(self, cmd: NetCommand) -> None:
-        from vbnav.control.runtime.runtime import OperatorCommand
-        b = cmd.body
-        sender = f"zenoh:{b.sender}" if b.sender else "zenoh"
-        if cmd.kind == "estop":
-            args = (b.reason,) if b.reason else ()
-        elif cmd.kind == "teleop":
-            args = (b.linear, b.angular)
-        elif cmd.kind == "mode":
-            args = (b.mode, b.route) if b.route else (b.mode,)
-        else:
-            args = ()
-        if cmd.kind != "teleop":  # teleop streams at 10-20 Hz: its acceptance is not news
-            self.publisher.event("command", command=cmd.kind, args=list(args), sender=sender)
-        self.runtime.submit(OperatorCommand(cmd.kind, args, source=sender))
+    def _on_command_applied(self, rt, cmd, now_ns: int) -> None:
+        """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: not news."""
+        if cmd.kind == "teleop":
+            return
+        self.publisher.event("command", stamp_ns=now_ns, command=cmd.kind, args=list(cmd.args), sender=cmd.source,
+                             cycle=rt.cycle, arrival_ns=cmd.arrival_ns)
 
+    # ---- network command thread ------------------------------------------------------------
     def _on_reject(self, kind: str, reason: str, excerpt: str) -> None:
         self.publisher.event("command_rejected", command=kind, reason=reason, payload=excerpt)
 

@@ -42,6 +42,12 @@ def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
 
 
 
+# The robot receives only commands (<= 4 KiB) and small queries: zenoh drops any message larger than
+# this before reassembling it, so an oversized payload never reaches Python. Shared memory is off in the
+# robot's session because a same-host sender could otherwise pass a large buffer around this limit.
+RX_MESSAGE_LIMIT = 65536
+
+
 def robot_session_config(tcfg: TelemetryConfig, robot: str) -> dict[str, Any]:
     """The zenoh configuration (as a dict) of the robot's own session."""
     conf: dict[str, Any] = {
@@ -50,21 +56,21 @@ def robot_session_config(tcfg: TelemetryConfig, robot: str) -> dict[str, Any]:
         "connect": {"endpoints": list(tcfg.connect)},
         "scouting": {"multicast": {"enabled": tcfg.scouting}, "gossip": {"enabled": tcfg.scouting}},
     }
-    transport: dict[str, Any] = {}
+    transport: dict[str, Any] = {"link": {"rx": {"max_message_size": RX_MESSAGE_LIMIT}},
+                                 "shared_memory": {"enabled": False}}
     if tcfg.auth.usrpwd is not None:
         transport["auth"] = {"usrpwd": _usrpwd_dict(tcfg.auth.usrpwd)}
     if tcfg.auth.tls is not None:
         tls = tcfg.auth.tls
-        transport["link"] = {"tls": {
+        transport["link"]["tls"] = {
             "root_ca_certificate": _existing(tls.root_ca_certificate, "auth.tls.root_ca_certificate"),
             "listen_certificate": _existing(tls.listen_certificate, "auth.tls.listen_certificate"),
             "listen_private_key": _existing(tls.listen_private_key, "auth.tls.listen_private_key"),
             "connect_certificate": tls.listen_certificate,
             "connect_private_key": tls.listen_private_key,
             "enable_mtls": True,
-        }}
-    if transport:
-        conf["transport"] = transport
+        }
+    conf["transport"] = transport
     if tcfg.remote:
         conf["access_control"] = access_control_rules(robot, tcfg.operators)
     return conf

@@ -1,4 +1,4 @@
-"""Commands from the network: validated off the loop thread, handed over through a queue.
+"""Commands from the network: validated off the loop thread, handed to the loop's command mailbox.
 
 Keys (``<robot>`` is ``robot.name``), payloads JSON objects:
 
@@ -7,36 +7,48 @@ Keys (``<robot>`` is ``robot.name``), payloads JSON objects:
 - ``vbnav/<robot>/cmd/teleop``  ``{"linear": m/s, "angular": rad/s}``: drive; must keep coming
 - ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "PATH"}``
 
-Every payload may carry ``"seq"`` (int) and ``"sender"`` (str) for the audit trail.
+Every payload may carry ``"sender"`` (str), ``"session"`` (str, one per sender process),
+``"seq"`` (int, increasing per session) and ``"stamp_ns"`` (int, the sender's
+``time.monotonic_ns()`` when sent). For teleop, seq and stamp decide order and freshness
+(control/runtime/mailbox.py: out-of-order and stale teleop is refused; the clock assumption
+is documented there and in docs/telemetry.md).
 
-The zenoh callback thread parses and validates (pydantic) and puts a
-``NetCommand`` into a bounded queue; the loop calls ``CommandInbox.drain()``
-once per cycle, which never blocks. Malformed, unknown, out-of-range commands
-or a full queue are rejected with a ``command_rejected`` event: they never raise
-into zenoh or the loop and never move the robot. Unauthorised peers are stopped
-earlier, by zenoh's access control (see network.py): their messages never
-arrive.
+The zenoh callback thread checks the payload's size before copying it into Python, parses and
+validates it (pydantic), and posts an ``OperatorCommand`` to ``Runtime.submit`` (the
+``CommandMailbox``): estop, resume and mode wait in a lane nothing evicts; teleop keeps only the
+newest message per sender. The loop drains the mailbox once per cycle, never blocking.
+Malformed, unknown, out-of-range, oversized, stale or out-of-order commands are refused with a
+``command_rejected`` event (stale and out-of-order teleop at most once a second per reason, with a count):
+they never raise into zenoh or the loop and never move the robot. Unauthorised peers are
+stopped earlier, by zenoh's access control (see network.py): their messages never arrive.
 
 Teleop silence is a stop condition of the runtime's ``TeleopController``
-(control/manual.py, ``safety.command_timeout_s``), driven by the loop's clock.
+(control/controllers/manual.py, ``safety.command_timeout_s``), counted from the last message's
+send time.
 """
 from __future__ import annotations
 
 import json
-import queue
+import threading
+import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-INBOX_LIMIT = 64
-MAX_PAYLOAD = 4096
+from vbnav.control.runtime.mailbox import OperatorCommand
+
+MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
+REPORT_EVERY_NS = 1_000_000_000    # teleop refusals are reported at most this often per reason
 
 
 class _Cmd(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
-    seq: Optional[int] = None
+    seq: Optional[int] = Field(None, description="increasing per session: teleop at or below the last is refused")
     sender: Optional[str] = Field(None, max_length=64)
+    session: Optional[str] = Field(None, max_length=64, description="one id per sender process; a new one "
+                                   "restarts seq and clock tracking")
+    stamp_ns: Optional[int] = Field(None, ge=0, description="sender's monotonic clock when sent, ns")
 
 
 class EstopCmd(_Cmd):
@@ -117,64 +129,87 @@ def parse_command(kind: str, payload: bytes | str, limits: TeleopLimits) -> NetC
     return NetCommand(kind, body)
 
 
+def operator_command(cmd: NetCommand) -> OperatorCommand:
+    """The runtime's ``OperatorCommand`` for a validated network command."""
+    b = cmd.body
+    if cmd.kind == "estop":
+        args = (b.reason,) if b.reason else ()
+    elif cmd.kind == "teleop":
+        args = (b.linear, b.angular)
+    elif cmd.kind == "mode":
+        args = (b.mode, b.route) if b.route else (b.mode,)
+    else:
+        args = ()
+    return OperatorCommand(cmd.kind, args, source=f"zenoh:{b.sender}" if b.sender else "zenoh", seq=b.seq,
+                           stamp_ns=b.stamp_ns, session=b.session or "")
+
+
 RejectFn = Callable[[str, str, str], None]   # (command kind, reason, payload excerpt)
 
 
 class CommandInbox:
-    """Thread-safe hand-over from network callbacks to the loop.
+    """Validates commands from any thread and delivers them; reports every refusal.
 
-    ``submit`` (any thread) validates, then either passes the command to ``deliver`` (e.g.
-    ``Runtime.submit``, itself a thread-safe queue the loop drains) or, without ``deliver``, queues it
-    for ``drain`` (loop thread, never blocks). Invalid commands go to ``on_reject``.
+    ``submit`` parses a payload, turns it into an ``OperatorCommand`` and passes it to
+    ``deliver`` (``Runtime.submit``: the loop's mailbox), which returns None when it took the
+    command or the reason it refused it. Refusals go to ``on_reject``; teleop the mailbox refused
+    (a flood of stale messages would flood the events) at most once per second and reason,
+    telling how many were refused since the last report.
     """
 
-    def __init__(self, limits: TeleopLimits, on_reject: Optional[RejectFn] = None,
-                 deliver: Optional[Callable[[NetCommand], None]] = None):
+    def __init__(self, limits: TeleopLimits, deliver: Callable[[OperatorCommand], Optional[str]],
+                 on_reject: Optional[RejectFn] = None, now_ns: Callable[[], int] = time.monotonic_ns):
         self.limits = limits
-        self._on_reject = on_reject
         self._deliver = deliver
-        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._on_reject = on_reject
+        self._now = now_ns
+        self._lock = threading.Lock()
+        self._reports: dict[str, tuple[int, int]] = {}   # teleop reason -> (last report ns, refused since)
         self.accepted = 0
         self.rejected = 0
 
     def submit(self, kind: str, payload: bytes | str) -> Optional[NetCommand]:
+        """The command if the loop's mailbox took it, else None (and a refusal report)."""
         try:
             cmd = parse_command(kind, payload, self.limits)
-            if self._q.qsize() >= INBOX_LIMIT:
-                raise CommandRejected(f"command queue full ({INBOX_LIMIT}); the loop is not draining")
+            reason = self._deliver(operator_command(cmd))
         except CommandRejected as exc:
-            self._reject(kind, str(exc), payload)
+            self.refuse(kind, str(exc), payload)
             return None
         except Exception as exc:  # never let a command crash the zenoh callback thread
-            self._reject(kind, f"internal error: {exc!r}", payload)
+            self.refuse(kind, f"internal error: {exc!r}", payload)
             return None
-        if self._deliver is not None:
-            self._deliver(cmd)
-        else:
-            self._q.put(cmd)
+        if reason:
+            self.refuse(kind, reason, payload, stream=kind == "teleop")
+            return None
         self.accepted += 1
         return cmd
 
-    def drain(self, limit: int = INBOX_LIMIT) -> list[NetCommand]:
-        """All queued commands, oldest first (empty list on most cycles)."""
-        if self._q.qsize() == 0:
-            return []
-        out = []
-        for _ in range(limit):
-            try:
-                out.append(self._q.get_nowait())
-            except queue.Empty:
-                break
-        return out
+    def refuse(self, kind: str, reason: str, payload, stream: bool = False) -> None:
+        """Count a refusal and report it (``payload``: the bytes, or b"" when it was not read).
 
-    def _reject(self, kind: str, reason: str, payload) -> None:
+        stream: a teleop the mailbox refused (stale, out of order, too many senders), which a flood
+        repeats thousands of times: reported at most once a second per reason."""
         self.rejected += 1
-        if self._on_reject is not None:
-            excerpt = payload[:200] if isinstance(payload, str) else bytes(payload[:200]).decode("utf-8", "replace")
-            try:
-                self._on_reject(kind, reason, excerpt)
-            except Exception:
-                pass
+        if self._on_reject is None:
+            return
+        if stream:
+            words = reason.split(maxsplit=1)
+            key = words[0].rstrip(":") if words else ""
+            now = self._now()
+            with self._lock:
+                last, since = self._reports.get(key, (None, 0))
+                if last is not None and now - last < REPORT_EVERY_NS:
+                    self._reports[key] = (last, since + 1)
+                    return
+                self._reports[key] = (now, 0)
+            if since:
+                reason += f" (and {since} more teleop refused for this reason in the last second)"
+        excerpt = payload[:200] if isinstance(payload, str) else bytes(payload[:200]).decode("utf-8", "replace")
+        try:
+            self._on_reject(kind, reason, excerpt)
+        except Exception:
+            pass
 
 
 class CommandSubscriber:
@@ -186,12 +221,17 @@ class CommandSubscriber:
         self._sub = session.declare_subscriber(f"vbnav/{robot}/cmd/**", self._on_sample)
 
     def _on_sample(self, sample) -> None:
+        kind = "?"
         try:
             key = str(sample.key_expr)
             kind = key[len(self._prefix):] if key.startswith(self._prefix) else key
+            size = len(sample.payload)       # zenoh's buffer: nothing is copied into Python yet
+            if size > MAX_PAYLOAD:
+                self._inbox.refuse(kind, f"payload of {size} bytes exceeds {MAX_PAYLOAD}; not read", b"")
+                return
             self._inbox.submit(kind, sample.payload.to_bytes())
         except Exception as exc:  # pragma: no cover - submit already never raises
-            self._inbox._reject("?", f"internal error: {exc!r}", b"")
+            self._inbox.refuse(kind, f"internal error: {exc!r}", b"")
 
     def close(self) -> None:
         try:

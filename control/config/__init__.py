@@ -98,6 +98,9 @@ class LoopConfig(Strict):
     gil_switch_interval_us: int = Field(200, ge=50, le=5000, description="Python's thread switch interval "
                                         "while a real-time loop runs: how long a busy vision thread may "
                                         "keep the loop waiting for the GIL (Python's default is 5000)")
+    stall_periods: float = Field(5.0, gt=1, description="a cycle that starts more than this many periods after "
+                                 "the tick it follows is a stall: wheels to zero and a latched 'stall' stop "
+                                 "until resume (the wheels kept their last command during the stall)")
 
 
 class SafetyConfig(Strict):

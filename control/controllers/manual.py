@@ -54,6 +54,8 @@ class TeleopController(Controller):
 
     The command stream's silence for ``timeout_s`` is a stop condition: a lost
     network or a crashed operator console must never leave the robot driving.
+    The timeout runs from when a command was sent (its sender's stamp mapped to
+    the loop's clock by the command mailbox), not from when the loop applied it.
     """
 
     name = "teleop"
@@ -64,9 +66,15 @@ class TeleopController(Controller):
         self._stamp: Optional[int] = None
         self.timed_out = True
 
-    def set_command(self, v: float, w: float, now_ns: int) -> None:
+    def set_command(self, v: float, w: float, sent_ns: int) -> None:
+        """The newest command, sent at ``sent_ns`` on the loop's clock: it holds until sent_ns + timeout."""
         self._cmd = Twist(v, w)
-        self._stamp = now_ns
+        self._stamp = sent_ns
+
+    def forget_command(self) -> None:
+        """Drop the held command (after a loop stall): only a fresh one moves the robot again."""
+        self._cmd = STOP
+        self._stamp = None
 
     def update(self, ctx: ControlContext) -> Twist:
         self.timed_out = self._stamp is None or ctx.now_ns - self._stamp > self.timeout_ns

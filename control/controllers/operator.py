@@ -61,8 +61,11 @@ class OperatorController(Controller):
             return twist
         return self.teleop.update(ctx)   # idle and teach: the operator drives (STOP when silent)
 
-    def set_command(self, v: float, w: float, now_ns: int) -> None:
-        self.teleop.set_command(v, w, now_ns)
+    def set_command(self, v: float, w: float, sent_ns: int) -> None:
+        self.teleop.set_command(v, w, sent_ns)
+
+    def forget_command(self) -> None:
+        self.teleop.forget_command()
 
     def safety_conditions(self) -> dict[str, tuple[bool, str]]:
         # A silent teleop stream only matters while the operator drives (idle, teach).

@@ -10,6 +10,9 @@ Overrun policy (a cycle whose work ends after the next deadline):
 - ``catch_up``: the missed ticks run back to back until the loop is on time.
 Either way each overrun is counted, and the consecutive-overrun streak is
 exposed so the safety monitor can stop the robot when the loop cannot keep up.
+``late_ns`` tells the running step how late it started against the tick that
+follows the previous cycle's, skipped ticks included: the length of a stall,
+whether the process froze in the step or in the sleep.
 
 Statistics are kept in preallocated arrays (no allocation per cycle).
 """
@@ -104,6 +107,7 @@ class FixedRateLoop:
         self.clock = clock
         self.policy = overrun_policy
         self.timing = timing or LoopTiming()
+        self.late_ns = 0             # this cycle's start after the tick following the previous cycle's tick
         self._running = False
 
     def stop(self) -> None:
@@ -114,15 +118,18 @@ class FixedRateLoop:
         self._running = True
         start = clock.now_ns()
         deadline = start
+        due = start                  # the tick after the previous cycle's, before any skipping
         cycle = 0
         while self._running and (max_cycles is None or cycle < max_cycles):
             clock.sleep_until(deadline)
             wake = clock.now_ns()
+            self.late_ns = wake - due
             keep_going = step(cycle, wake)
             done = clock.now_ns()
             timing.record(wake, deadline, done)
             cycle += 1
             deadline += period
+            due = deadline
             if done > deadline:
                 timing.overruns += 1
                 timing.streak += 1

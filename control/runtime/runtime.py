@@ -5,6 +5,18 @@ estimates (inline pipeline: run them), apply operator commands, run the
 controller, apply limits and the safety monitor, write the wheels, notify
 observers (telemetry). Any exception, signal, deadline streak or drive loss
 commands zero, disables the drive in the same cycle, and is reported.
+
+A stall is a fault: a cycle that starts more than ``loop.stall_periods`` periods
+after the tick it follows (a frozen process, a 2 s garbage collection, a blocked
+callback) trips the latched, non-fatal ``stall`` stop in that cycle: the wheels
+go to zero and the drive is disabled until an operator ``resume``; teleop sent
+before the stall is refused and the teleop command is forgotten, so moving again
+needs fresh commands. During the stall itself the drive keeps its last command:
+only the drive's own watchdog can act inside it.
+
+Operator commands reach the loop through a ``CommandMailbox`` (mailbox.py):
+``submit`` from any thread, drained once per cycle; ``command_listeners`` hear
+each command after it took effect.
 """
 from __future__ import annotations
 
@@ -13,29 +25,17 @@ import signal
 import sys
 import threading
 import traceback
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
+from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
 from vbnav.control.runtime.odometry import Odometry
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
 from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
-
-
-@dataclass
-class OperatorCommand:
-    """A command from outside the loop (network, CLI, tests). Applied at the next cycle.
-
-    kind: "estop" | "resume" | "teleop" (args: v, w) | "mode" (args: mode[, route]).
-    """
-
-    kind: str
-    args: tuple = ()
-    source: str = "local"
 
 
 @dataclass
@@ -64,9 +64,11 @@ class Runtime:
         self.kin = self.limiter.kinematics
         self.odometry = Odometry(cfg.robot.wheel_radius, cfg.robot.wheel_separation)
         self.safety = SafetyMonitor(release_s=0.5)
-        self.commands: deque[OperatorCommand] = deque(maxlen=256)
+        self.mailbox = CommandMailbox(clock.now_ns, int(cfg.safety.command_timeout_s * 1e9))
         self.cycle_observers: list[Callable[["Runtime", ControlContext, Twist, tuple], None]] = []
         self.command_handlers: list[Callable[["Runtime", OperatorCommand, int], bool]] = []
+        # called after a command took effect (not for refused ones): (runtime, command, now_ns)
+        self.command_listeners: list[Callable[["Runtime", OperatorCommand, int], None]] = []
         self.wheel_command = (0.0, 0.0)
         self.last_twist = STOP
         self.wheels: Optional[WheelState] = None
@@ -81,9 +83,9 @@ class Runtime:
         self.fault_traceback: Optional[str] = None
 
     # -- thread-safe inputs -------------------------------------------------
-    def submit(self, cmd: OperatorCommand) -> None:
-        """Queue an operator command from any thread (deque.append is atomic)."""
-        self.commands.append(cmd)
+    def submit(self, cmd: OperatorCommand) -> Optional[str]:
+        """Hand an operator command to the loop from any thread: None if accepted, else the refusal reason."""
+        return self.mailbox.post(cmd)
 
     def request_stop(self, signum: int = signal.SIGTERM) -> None:
         self._signal = signum
@@ -152,6 +154,7 @@ class Runtime:
                                     f"{self.loop.timing.streak} consecutive missed deadlines "
                                     f"(period {1e3 / self.loop.rate_hz:.1f} ms, last compute "
                                     f"{self.loop.timing.last_compute_ns() * 1e-6:.1f} ms)")
+            self._check_stall(now)
             wheels = self.drive.read()
             self.wheels = wheels
             if wheels.faults:
@@ -212,6 +215,20 @@ class Runtime:
             self.fault_traceback = traceback.format_exc()
             return self._finish(now, "exception", f"exception in {stage}: {exc!r}")
 
+    def _check_stall(self, now: int) -> None:
+        """A cycle that starts too long after the tick it follows: latched stop, old teleop forgotten."""
+        late, period = self.loop.late_ns, self.loop.period_ns
+        limit = self.cfg.loop.stall_periods
+        if late <= limit * period:
+            return
+        self.safety.trip(now, "stall", f"loop stalled {late * 1e-6:.0f} ms ({late / period:.1f} periods, limit "
+                                       f"{limit:g}, loop.stall_periods); the wheels kept their last command "
+                                       f"meanwhile; resume to drive again")
+        self.mailbox.refuse_teleop_sent_before(now - late)
+        forget = getattr(self.controller, "forget_command", None)
+        if forget is not None:
+            forget()
+
     def _check_camera(self, now: int) -> None:
         cam = self.pipeline.camera
         if cam is None:
@@ -251,8 +268,11 @@ class Runtime:
             self.safety.hold(ctx.now_ns, f"{kind}_stale", stale, f"no {kind} estimate newer than {limit:g} s")
 
     def _apply_commands(self, now: int) -> None:
-        while self.commands:
-            cmd = self.commands.popleft()
+        commands, refused = self.mailbox.drain(now)
+        for cmd, reason in refused:
+            self.safety.reject(now, cmd.kind, reason)
+        for cmd in commands:
+            events_before = len(self.safety.events)
             handled = False
             for fn in self.command_handlers:
                 handled = fn(self, cmd, now) or handled
@@ -261,9 +281,15 @@ class Runtime:
             elif cmd.kind == "resume":
                 self.safety.reset(now, f"resume from {cmd.source}")
             elif cmd.kind == "teleop" and hasattr(self.controller, "set_command"):
-                self.controller.set_command(float(cmd.args[0]), float(cmd.args[1]), now)
+                # Freshness runs from when it was sent (mapped to this clock), not from now.
+                self.controller.set_command(float(cmd.args[0]), float(cmd.args[1]), cmd.sent_ns)
             elif not handled:
                 self.safety.reject(now, cmd.kind, f"command {cmd.kind!r} not supported by this run")
+                continue
+            if any(e.kind == "rejected" for e in self.safety.events[events_before:]):
+                continue      # a handler refused it (e.g. a mode this run cannot switch to)
+            for fn in self.command_listeners:
+                fn(self, cmd, now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):

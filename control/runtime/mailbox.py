@@ -1,0 +1,211 @@
+"""The hand-over of operator commands to the loop: a safety lane, and one teleop slot per sender.
+
+Any thread (the zenoh callback, a test, a console) calls ``post``; the loop calls ``drain``
+once per cycle. Neither blocks for long: both hold one lock for a few dictionary operations.
+
+- **Safety lane** (estop, resume, mode): every accepted command is kept until the loop takes
+  it, in arrival order. Nothing evicts it. ``resume`` and ``mode`` are refused (the sender
+  gets a reason) once ``SAFETY_LANE_LIMIT`` are waiting; ``estop`` is never refused.
+- **Teleop slots**: a teleop replaces the one still waiting from the same sender (coalescing:
+  only the newest value matters), so a flood costs one slot, not a queue. A sender is
+  ``(source, session)``; at most ``MAX_SENDERS`` are tracked at once, and a new sender beyond
+  that is refused. Senders silent for longer than the command timeout are forgotten.
+- **Order**: ``drain`` returns the commands in arrival order across both lanes, so a teleop
+  that arrived before an estop is never applied after it.
+
+Teleop freshness (``stale_after_ns`` = ``safety.command_timeout_s``) is judged by the
+sender's clock, not by when the loop gets to a message:
+
+- ``seq`` (optional): a teleop whose seq is not above the last accepted one from its sender
+  is refused as out of order. A new ``session`` id is a new sender (a restarted process);
+  a sender silent for longer than the timeout starts its seq afresh.
+- ``stamp_ns`` (optional): the sender's ``time.monotonic_ns()`` when it sent the message.
+  The robot estimates, per sender, offset = min over messages of (arrival - stamp): the
+  minimum-delay filter. The message's send time on the robot's clock is stamp + offset, and
+  its age at time t is t - (stamp + offset), i.e. (arrival - stamp - offset), the transport
+  backlog beyond the fastest message seen, plus (t - arrival), the wait for the loop.
+  A teleop older than the timeout when it arrives or when the loop takes it is refused, and
+  the teleop controller times out at send time + timeout, so the wheels stop within
+  timeout + 2 loop periods of the last message *sent*, however long it queued on the way.
+
+  Clock assumption: the sender's and the robot's monotonic clocks need not agree (any
+  offset; another machine), but must run at the same rate, within ``DRIFT`` (100 ppm;
+  crystal clocks are within about 50 ppm): the offset estimate may rise by at most 100 us
+  per second between messages (at most ``DRIFT_CAP_NS`` in all), to follow a sender clock
+  that runs slow. The estimate includes the smallest transport delay seen, so ages are
+  measured relative to the fastest message (sub-millisecond on a LAN). A sender that moves
+  to another machine must use a new ``session``.
+- A teleop without ``stamp_ns`` is accepted, its send time taken as its arrival time: a
+  transport backlog before arrival then goes unseen (``vbnav send`` always stamps).
+
+After a loop stall the runtime calls ``refuse_teleop_sent_before``: teleop sent before the
+stall began is stale, even if younger than the timeout.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, replace
+from typing import Callable, Optional
+
+SAFETY_LANE_LIMIT = 256      # waiting resume/mode commands; estop is never refused
+MAX_SENDERS = 16             # teleop senders tracked at once
+DRIFT = 1e-4                 # clock-rate difference the offset estimate follows (100 ppm)
+DRIFT_CAP_NS = 10_000_000    # ... by at most 10 ms between two messages of a sender
+
+
+@dataclass(frozen=True)
+class OperatorCommand:
+    """A command from outside the loop (network, CLI, tests), applied at the loop's next cycle.
+
+    kind: "estop" | "resume" | "teleop" (args: v, w) | "mode" (args: mode[, route]).
+    seq, stamp_ns, session: the sender's sequence number, send time on its own clock and session id
+    (teleop ordering and freshness, see the module docstring); all optional.
+    arrival_ns, order: set by ``CommandMailbox.post``. sent_ns: the send time on the robot's clock,
+    set by ``drain`` for teleop.
+    """
+
+    kind: str
+    args: tuple = ()
+    source: str = "local"
+    seq: Optional[int] = None
+    stamp_ns: Optional[int] = None
+    session: str = ""
+    arrival_ns: Optional[int] = None
+    order: int = 0
+    sent_ns: Optional[int] = None
+
+
+class _Entry:
+    """A posted command with its arrival order and time (the command itself stays as the sender made it)."""
+
+    __slots__ = ("cmd", "order", "arrival_ns")
+
+    def __init__(self, cmd: OperatorCommand, order: int, arrival_ns: int):
+        self.cmd, self.order, self.arrival_ns = cmd, order, arrival_ns
+
+
+class _Sender:
+    """What the mailbox knows about one teleop sender: ordering, clock offset, the waiting command."""
+
+    __slots__ = ("last_seq", "offset_ns", "offset_at", "last_arrival", "pending")
+
+    def __init__(self):
+        self.last_seq: Optional[int] = None
+        self.offset_ns: Optional[int] = None     # robot clock - sender clock, min-delay estimate
+        self.offset_at = 0
+        self.last_arrival = 0
+        self.pending: Optional[_Entry] = None
+
+    def observe_clock(self, arrival_ns: int, stamp_ns: int) -> None:
+        d = arrival_ns - stamp_ns
+        if self.offset_ns is None:
+            self.offset_ns = d
+        else:
+            rise = min(int((arrival_ns - self.offset_at) * DRIFT), DRIFT_CAP_NS)
+            self.offset_ns = min(self.offset_ns + max(rise, 0), d)
+        self.offset_at = arrival_ns
+
+    def sent_ns(self, e: _Entry) -> int:
+        if e.cmd.stamp_ns is None or self.offset_ns is None:
+            return e.arrival_ns
+        return e.cmd.stamp_ns + self.offset_ns
+
+
+class CommandMailbox:
+    def __init__(self, now_ns: Callable[[], int], stale_after_ns: int):
+        self._now = now_ns
+        self.stale_after_ns = int(stale_after_ns)
+        self._lock = threading.Lock()
+        self._lane: list[_Entry] = []
+        self._senders: dict[tuple[str, str], _Sender] = {}
+        self._order = 0
+        self._fresh_after_ns: Optional[int] = None
+        self.coalesced = 0        # teleops replaced by a newer one from the same sender before the loop took them
+
+    # -- any thread ------------------------------------------------------------
+    def post(self, cmd: OperatorCommand) -> Optional[str]:
+        """Accept ``cmd`` (returns None) or refuse it (returns the reason, for the sender)."""
+        now = self._now()
+        with self._lock:
+            self._order += 1
+            e = _Entry(cmd, self._order, now if cmd.arrival_ns is None else cmd.arrival_ns)
+            if cmd.kind != "teleop":
+                if cmd.kind != "estop" and len(self._lane) >= SAFETY_LANE_LIMIT:
+                    return (f"command lane full ({SAFETY_LANE_LIMIT} waiting): the loop is not taking commands; "
+                            f"estop is still accepted")
+                self._lane.append(e)
+                return None
+            return self._post_teleop(e)
+
+    def _post_teleop(self, e: _Entry) -> Optional[str]:
+        cmd, arrival = e.cmd, e.arrival_ns
+        key = (cmd.source, cmd.session)
+        s = self._senders.get(key)
+        if s is None:
+            self._forget_silent(arrival)
+            if len(self._senders) >= MAX_SENDERS:
+                return f"too many teleop senders ({MAX_SENDERS} active); this one is not tracked"
+            s = self._senders[key] = _Sender()
+        elif arrival - s.last_arrival > self.stale_after_ns:
+            s.last_seq = None          # silent for longer than the timeout: a restarted sender may count anew
+        if cmd.seq is not None and s.last_seq is not None and cmd.seq <= s.last_seq:
+            return f"out of order: seq {cmd.seq} after {s.last_seq} from {cmd.source}"
+        if cmd.stamp_ns is not None:
+            s.observe_clock(arrival, cmd.stamp_ns)
+        reason = self._stale(s, e, arrival)
+        if reason:
+            return reason
+        if cmd.seq is not None:
+            s.last_seq = cmd.seq
+        s.last_arrival = arrival
+        if s.pending is not None:
+            self.coalesced += 1
+        s.pending = e
+        return None
+
+    def _stale(self, s: _Sender, e: _Entry, now: int) -> Optional[str]:
+        sent = s.sent_ns(e)
+        if self._fresh_after_ns is not None and sent < self._fresh_after_ns:
+            return f"stale: sent {(self._fresh_after_ns - sent) * 1e-6:.0f} ms before the loop stalled"
+        age = now - sent
+        if age > self.stale_after_ns:
+            return (f"stale: sent {age * 1e-6:.0f} ms ago by the sender's clock "
+                    f"(limit {self.stale_after_ns * 1e-6:.0f} ms, safety.command_timeout_s)")
+        return None
+
+    def _forget_silent(self, now: int) -> None:
+        for key in [k for k, s in self._senders.items()
+                    if s.pending is None and now - s.last_arrival > self.stale_after_ns]:
+            del self._senders[key]
+
+    # -- loop thread -------------------------------------------------------------
+    def drain(self, now_ns: int) -> tuple[list[OperatorCommand], list[tuple[OperatorCommand, str]]]:
+        """(commands to apply in arrival order, teleops refused as stale now). Never blocks for long."""
+        refused: list[tuple[OperatorCommand, str]] = []
+        with self._lock:
+            if not self._lane and not any(s.pending is not None for s in self._senders.values()):
+                return [], refused
+            taken, self._lane = self._lane, []
+            sent: dict[int, int] = {}
+            for s in self._senders.values():
+                e, s.pending = s.pending, None
+                if e is None:
+                    continue
+                reason = self._stale(s, e, now_ns)
+                if reason:
+                    refused.append((e.cmd, reason + " when the loop took it"))
+                else:
+                    taken.append(e)
+                    sent[e.order] = s.sent_ns(e)
+        taken.sort(key=lambda e: e.order)
+        return [replace(e.cmd, arrival_ns=e.arrival_ns, order=e.order, sent_ns=sent.get(e.order)) for e in taken], refused
+
+    def refuse_teleop_sent_before(self, t_ns: int) -> None:
+        """After a stall: teleop sent before ``t_ns`` (robot clock) is stale from now on."""
+        with self._lock:
+            self._fresh_after_ns = t_ns if self._fresh_after_ns is None else max(self._fresh_after_ns, t_ns)
+
+    @property
+    def waiting(self) -> int:
+        with self._lock:
+            return len(self._lane) + sum(s.pending is not None for s in self._senders.values())

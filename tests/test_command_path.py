@@ -1,0 +1,444 @@
+"""Operator commands under floods, stalls and oversized payloads (issue 12, points 1-3).
+
+Deterministic on the simulated clock, through the real CommandInbox and the runtime's mailbox;
+one set of flood-then-estop trials goes through a zenoh session on loopback (real clock).
+"""
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+
+import pytest
+
+from runtime_helpers import PERIOD_NS, RecordingDrive, make_runtime
+from test_safety import Cruise          # drives forward, calls a hook every cycle
+from vbnav.control.comms.operator_commands import MAX_PAYLOAD, CommandInbox, CommandSubscriber, limits_from_config
+from vbnav.control.config import Config
+from vbnav.control.controllers.manual import TeleopController
+from vbnav.control.runtime.mailbox import MAX_SENDERS, CommandMailbox, OperatorCommand
+from vbnav.control.runtime.runtime import Runtime
+from vbnav.drivers.clock import SimClock
+
+T0 = 1_000_000_000            # SimClock start
+TIMEOUT_NS = 500_000_000      # safety.command_timeout_s
+FLOOD = 10_000
+
+
+def teleop(seq, stamp_ns, v=0.3, session="s1", sender="op"):
+    return json.dumps({"linear": v, "angular": 0.0, "seq": seq, "stamp_ns": stamp_ns, "session": session,
+                       "sender": sender})
+
+
+def sim_teleop_runtime(cfg=None, clock=None):
+    cfg = cfg or Config.model_validate({"safety": {"command_timeout_s": TIMEOUT_NS * 1e-9}})
+    clock = clock or SimClock()
+    drive = RecordingDrive(clock)
+    rt = Runtime(cfg, drive, TeleopController(cfg.safety.command_timeout_s), clock)
+    rejected = []
+    inbox = CommandInbox(limits_from_config(cfg), deliver=rt.submit, now_ns=clock.now_ns,
+                         on_reject=lambda k, r, p: rejected.append((k, r)))
+    return rt, drive, clock, inbox, rejected
+
+
+# ---- the mailbox ------------------------------------------------------------------------------
+
+def _box():
+    clock = SimClock()
+    return CommandMailbox(clock.now_ns, TIMEOUT_NS), clock
+
+
+def test_teleop_coalesces_per_sender_and_arrival_order_is_kept_across_lanes():
+    box, clock = _box()
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1)) is None
+    assert box.post(OperatorCommand("teleop", (0.2, 0), "B", seq=1)) is None
+    assert box.post(OperatorCommand("estop", (), "C")) is None
+    assert box.post(OperatorCommand("teleop", (0.3, 0), "A", seq=2)) is None    # replaces A's first
+    applied, refused = box.drain(clock.now_ns())
+    assert not refused and box.coalesced == 1
+    assert [(c.kind, c.source, c.args[:1]) for c in applied] == [("teleop", "B", (0.2,)), ("estop", "C", ()),
+                                                                 ("teleop", "A", (0.3,))]
+    assert box.drain(clock.now_ns()) == ([], [])
+
+
+def test_a_teleop_that_arrived_before_an_estop_is_applied_before_it():
+    box, clock = _box()
+    box.post(OperatorCommand("teleop", (0.3, 0), "A", seq=1))
+    box.post(OperatorCommand("estop", (), "A"))
+    applied, _ = box.drain(clock.now_ns())
+    assert [c.kind for c in applied] == ["teleop", "estop"]
+
+
+def test_out_of_order_seq_is_refused_and_a_new_session_or_silence_starts_afresh():
+    box, clock = _box()
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=5, session="x")) is None
+    reason = box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=3, session="x"))
+    assert reason.startswith("out of order") and "seq 3 after 5" in reason
+    assert box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=5, session="x")).startswith("out of order")
+    applied, _ = box.drain(clock.now_ns())
+    assert [c.args[0] for c in applied] == [0.1]
+    assert box.post(OperatorCommand("teleop", (0.4, 0), "A", seq=0, session="y")) is None   # restarted sender
+    clock.advance(TIMEOUT_NS + 1)
+    assert box.post(OperatorCommand("teleop", (0.5, 0), "A", seq=1, session="x")) is None   # silent > timeout
+
+
+def test_stale_stamp_is_refused_by_the_senders_clock_whatever_its_offset():
+    box, clock = _box()
+    offset = -123_456_789_000      # the sender's clock reads 123 s less than the robot's
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=clock.now_ns() + offset)) is None
+    clock.advance(50_000_000)
+    # sent 0.6 s ago by the sender's clock, arriving only now (a transport backlog)
+    sent = clock.now_ns() - 600_000_000 + offset
+    reason = box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=2, stamp_ns=sent))
+    assert reason.startswith("stale") and "600 ms" in reason
+    fresh = box.post(OperatorCommand("teleop", (0.3, 0), "A", seq=3, stamp_ns=clock.now_ns() - 20_000_000 + offset))
+    assert fresh is None
+    applied, _ = box.drain(clock.now_ns())
+    assert [c.args[0] for c in applied] == [0.3]
+    # its send time on the robot's clock (the offset estimate may rise by 100 ppm of the 50 ms between messages)
+    assert applied[0].sent_ns == pytest.approx(clock.now_ns() - 20_000_000, abs=5_000)
+
+
+def test_a_teleop_that_waited_too_long_for_the_loop_is_refused_when_taken():
+    box, clock = _box()
+    box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=5))
+    clock.advance(TIMEOUT_NS + PERIOD_NS)
+    applied, refused = box.drain(clock.now_ns())
+    assert applied == [] and refused[0][1].startswith("stale") and "when the loop took it" in refused[0][1]
+
+
+def test_unstamped_teleop_is_aged_from_its_arrival():
+    box, clock = _box()
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A")) is None
+    clock.advance(PERIOD_NS)
+    applied, _ = box.drain(clock.now_ns())
+    assert applied[0].sent_ns == clock.now_ns() - PERIOD_NS
+
+
+def test_senders_are_bounded_and_silent_ones_are_forgotten():
+    box, clock = _box()
+    for i in range(MAX_SENDERS):
+        assert box.post(OperatorCommand("teleop", (0.1, 0), f"s{i}", seq=1)) is None
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "one-too-many", seq=1)).startswith("too many teleop senders")
+    box.drain(clock.now_ns())
+    clock.advance(TIMEOUT_NS + 1)
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "one-too-many", seq=1)) is None
+
+
+# ---- flood then estop ---------------------------------------------------------------------------
+
+def _flood_then_estop_trial(trial: int) -> None:
+    rt, drive, clock, inbox, _ = sim_teleop_runtime()
+    # One sender session: teleop at every cycle (the robot drives once the start-up command_timeout hold has
+    # released, 0.5 s), then at 0.8 s a burst of 10,000 and the estop behind them.
+    estop = json.dumps({"reason": f"trial {trial}", "sender": "op", "session": "s1"})
+    arrival = {}
+
+    def operator(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        if t == 800_000_000:
+            for k in range(FLOOD):
+                inbox.submit("teleop", teleop(100 + k, ctx.now_ns))
+            assert inbox.submit("estop", estop) is not None
+            arrival["t"] = clock.now_ns()
+        elif t < 800_000_000:
+            inbox.submit("teleop", teleop(ctx.cycle, ctx.now_ns))
+
+    rt.cycle_observers.append(operator)
+    rt.run(1.1)
+    t_a = arrival["t"]
+    trips = [e for e in rt.safety.events if e.kind == "trip" and e.cause == "estop"]
+    assert len(trips) == 1 and f"trial {trial}" in trips[0].message
+    assert trips[0].stamp_ns <= t_a + 2 * PERIOD_NS
+    assert drive.last_motion_ns() > t_a - 5 * PERIOD_NS, "the robot was not moving when the estop came"
+    assert drive.stopped_since(t_a + 2 * PERIOD_NS) and drive.log[-1][3] is False
+    assert inbox.accepted >= FLOOD + 1
+
+
+def test_estop_behind_10000_teleops_trips_within_two_periods_in_20_of_20_trials():
+    for trial in range(20):
+        _flood_then_estop_trial(trial)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_estop_behind_10000_teleops_over_zenoh_loopback_trips_in_20_of_20_trials():
+    """The real path: zenoh subscriber -> CommandInbox -> mailbox -> loop, on the real clock."""
+    import zenoh
+
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.comms.network import client_session_config, open_session
+    from vbnav.drivers.clock import MonotonicClock
+    port = _free_port()
+    cfg = Config.model_validate({"telemetry": {"listen": [f"tcp/127.0.0.1:{port}"]},
+                                 "safety": {"command_timeout_s": 0.5},
+                                 # the trip is checked in cycles: a loaded test machine must not stop the run
+                                 "loop": {"max_missed_streak": 10 ** 6, "stall_periods": 1e6}})
+    clock = MonotonicClock()
+    drive = RecordingDrive(clock)
+    rt = Runtime(cfg, drive, TeleopController(0.5), clock)
+    arrivals = {}                       # trial -> (arrival cycle, arrival ns)
+    applied = {}                        # trial -> (applied cycle, ns)
+    submit = rt.submit
+
+    def logged_submit(cmd):             # zenoh thread: when the estop reached the runtime
+        if cmd.kind == "estop":
+            arrivals[cmd.args[0]] = (rt.cycle, clock.now_ns())
+        return submit(cmd)
+
+    rt.submit = logged_submit
+    rt.command_listeners.append(lambda r, cmd, now: applied.__setitem__(cmd.args[0], (r.cycle, now))
+                                if cmd.kind == "estop" else None)
+    link = TelemetryLink.attach(rt, cfg)
+    runner = threading.Thread(target=rt.run, args=(120.0,), daemon=True)
+    runner.start()
+    op = open_session(client_session_config([f"tcp/127.0.0.1:{port}"]))
+    try:
+        pub = {k: op.declare_publisher(f"vbnav/sim/cmd/{k}", congestion_control=zenoh.CongestionControl.BLOCK)
+               for k in ("teleop", "estop", "resume")}
+        deadline = time.monotonic() + 10
+        while not pub["estop"].matching_status and time.monotonic() < deadline:
+            time.sleep(0.02)
+        seq = 0
+        for trial in range(20):
+            for _ in range(FLOOD):
+                seq += 1
+                pub["teleop"].put(teleop(seq, time.monotonic_ns()))
+            pub["estop"].put(json.dumps({"reason": f"trial {trial}", "sender": "op", "session": "s1"}))
+            end = time.monotonic() + 30
+            while f"trial {trial}" not in applied and time.monotonic() < end:
+                time.sleep(0.005)
+            pub["resume"].put(json.dumps({"sender": "op", "session": "s1"}))
+            end = time.monotonic() + 10
+            while "estop" in rt.safety.latched and time.monotonic() < end:
+                time.sleep(0.005)
+    finally:
+        op.close()
+        rt.loop.stop()
+        runner.join(20)
+        link.close()
+    lateness = rt.loop.timing.max_lateness_ns
+    for trial in range(20):
+        key = f"trial {trial}"
+        assert key in applied, f"{key}: estop never applied"
+        (c_a, t_a), (c_e, t_e) = arrivals[key], applied[key]
+        # The cycle running at arrival may still write; the next one applies it: two periods counted in
+        # cycles, and in time unless the loop itself woke late.
+        assert c_e <= c_a + 2, (trial, c_a, c_e)
+        assert t_e - t_a <= 2 * PERIOD_NS + lateness, (trial, (t_e - t_a) * 1e-6)
+    trips = [e for e in rt.safety.events if e.kind == "trip" and e.cause == "estop"]
+    assert len(trips) == 20
+
+
+# ---- flood then silence --------------------------------------------------------------------------
+
+def test_after_a_flood_the_wheels_stop_within_timeout_plus_two_periods_of_the_last_message_sent():
+    """10,000 teleops sent at 10 kHz for 1 s reach the robot at half that rate: the last one arrives 1 s
+    after it was sent. The sender's clock is 50 s ahead of the robot's."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    offset = 50_000_000_000
+    start = T0 + 200_000_000
+    sent = [start + k * 100_000 for k in range(FLOOD)]          # robot-clock send times
+    arrive = [start + k * 200_000 for k in range(FLOOD)]        # the backlog grows by 100 us a message
+    nxt = [0]
+
+    def transport(r, ctx, twist, wheels):
+        while nxt[0] < FLOOD and arrive[nxt[0]] <= ctx.now_ns:
+            k = nxt[0]
+            inbox.submit("teleop", teleop(k + 1, sent[k] + offset))
+            nxt[0] += 1
+
+    rt.cycle_observers.append(transport)
+    rt.run(4.0)
+    last_sent = sent[-1]
+    assert arrive[-1] - last_sent == pytest.approx(1e9, abs=1e5)       # it arrived 1 s after it left
+    assert drive.last_motion_ns() > start                                    # the stream drove it ...
+    assert drive.last_motion_ns() <= last_sent + TIMEOUT_NS + 2 * PERIOD_NS   # ... not a moment longer
+    assert drive.stopped_since(last_sent + TIMEOUT_NS + 2 * PERIOD_NS)
+    stale = [r for k, r in rejected if r.startswith("stale")]
+    assert stale and len(stale) < 10, "stale teleops are refused, their reports rate-limited"
+    assert inbox.rejected >= FLOOD // 2 - 200
+
+
+# ---- stalls ------------------------------------------------------------------------------------------
+
+def test_a_2s_stall_inside_a_cycle_trips_safety_and_zeroes_the_wheels_in_the_next_cycle():
+    def hook(ctx):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            rt.clock.advance(2_000_000_000)            # the process froze for 2 s in this cycle
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 4_000_000_000:
+            r.submit(OperatorCommand("resume", (), "op"))
+
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False)
+    rt.cycle_observers.append(operator)
+    result = rt.run(duration_s=5)
+    assert result.reason == "duration"                  # not fatal
+    trips = [e for e in result.events if e.kind == "trip" and e.cause == "stall"]
+    assert len(trips) == 1
+    t_stall = trips[0].stamp_ns
+    assert t_stall == T0 + 3_010_000_000 and "stalled 2000 ms" in trips[0].message
+    assert drive.stopped_since(t_stall) is False         # it drives again after the resume ...
+    stopped = [(l, p) for t, l, r, p in drive.log if t_stall <= t < T0 + 4_000_000_000]
+    assert stopped and all(p is False or l == 0 for l, p in stopped)   # ... and not before it
+    assert any(e.kind == "reset" and e.cause == "stall" for e in result.events)
+
+
+class FreezingClock(SimClock):
+    """A simulated clock on which the process freezes once, in its sleep, for ``length_ns`` at ``at_ns``."""
+
+    def __init__(self, at_ns, length_ns):
+        super().__init__()
+        self.at_ns, self.length_ns = at_ns, length_ns
+
+    def sleep_until(self, deadline_ns):
+        super().sleep_until(deadline_ns)
+        if self.at_ns is not None and self._now >= self.at_ns:
+            self._now += self.length_ns
+            self.at_ns = None
+
+
+@pytest.mark.parametrize("stall_ns", [2_000_000_000, 100_000_000])
+def test_after_a_stall_teleop_from_before_it_never_moves_the_robot_again(stall_ns):
+    """The operator streams teleop until the stall; after it a resume alone does not move the robot
+    (the 100 ms stall is shorter than the teleop timeout: the held command is forgotten, not aged out);
+    a fresh teleop after the resume does."""
+    clock = FreezingClock(T0 + 1_000_000_000, stall_ns)
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime(clock=clock)
+    t_resume = T0 + 1_000_000_000 + stall_ns + 200_000_000
+    t_fresh = t_resume + 300_000_000
+    seq = [0]
+
+    def operator(r, ctx, twist, wheels):
+        seq[0] += 1
+        if ctx.now_ns < T0 + 1_000_000_000 or ctx.now_ns >= t_fresh:
+            inbox.submit("teleop", teleop(seq[0], ctx.now_ns))
+        if ctx.now_ns == t_resume:
+            inbox.submit("resume", json.dumps({"sender": "op"}))
+
+    rt.cycle_observers.append(operator)
+    rt.run(duration_s=(t_fresh - T0) * 1e-9 + 1.5)     # + the command_timeout hold's 0.5 s release
+    trips = [e for e in rt.safety.events if e.kind == "trip" and e.cause == "stall"]
+    assert len(trips) == 1 and f"stalled {stall_ns * 1e-6:.0f} ms" in trips[0].message
+    t_stall = trips[0].stamp_ns
+    assert t_stall == T0 + 1_000_000_000 + stall_ns
+    moving = [t for t, l, r, p in drive.log if p and l != 0]
+    assert [t for t in moving if t < T0 + 1_000_000_000], "the robot drove before the stall"
+    assert not [t for t in moving if t_stall <= t < t_fresh], "it moved after the stall without a fresh command"
+    assert [t for t in moving if t >= t_fresh + PERIOD_NS], "a fresh teleop after the resume drives it again"
+
+
+def test_stall_bound_is_a_setting():
+    def hook(ctx):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            rt.clock.advance(80_000_000)                # 8 periods late
+
+    cfg = Config.model_validate({"loop": {"stall_periods": 10}})
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False, cfg=cfg)
+    assert rt.run(duration_s=2).reason == "duration"
+    assert not [e for e in rt.safety.events if e.cause == "stall"]
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False)      # default 5 periods
+    rt.run(duration_s=2)
+    assert [e for e in rt.safety.events if e.cause == "stall" and "stalled 80 ms" in e.message]
+
+
+# ---- oversized payloads ---------------------------------------------------------------------------
+
+class _Payload:
+    """A zenoh payload that must not be read: its length is known without copying it."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def __len__(self):
+        return self.n
+
+    def to_bytes(self):
+        raise AssertionError("an oversized payload was copied into Python")
+
+
+class _Sample:
+    def __init__(self, key, payload):
+        self.key_expr, self.payload = key, payload
+
+
+class _Session:
+    def declare_subscriber(self, key, callback):
+        self.callback = callback
+        return self
+
+
+def test_oversized_payload_is_refused_unread_and_never_reaches_the_loop():
+    box, clock = _box()
+    rejected = []
+    inbox = CommandInbox(limits_from_config(Config()), deliver=box.post,
+                         on_reject=lambda k, r, p: rejected.append((k, r, p)))
+    session = _Session()
+    CommandSubscriber(session, "sim", inbox)
+    session.callback(_Sample("vbnav/sim/cmd/teleop", _Payload(100_000_000)))
+    assert rejected == [("teleop", f"payload of 100000000 bytes exceeds {MAX_PAYLOAD}; not read", "")]
+    assert box.waiting == 0
+
+
+def test_zenoh_drops_large_messages_and_the_subscriber_refuses_oversized_ones_on_loopback():
+    import zenoh
+
+    from vbnav.control.comms.network import RX_MESSAGE_LIMIT, client_session_config, open_session, \
+        robot_session_config
+    from vbnav.control.config.telemetry import TelemetryConfig
+    port = _free_port()
+    robot = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "sim"))
+    box, clock = _box()
+    rejected = []
+    inbox = CommandInbox(limits_from_config(Config()), deliver=box.post,
+                         on_reject=lambda k, r, p: rejected.append((k, r)))
+    sub = CommandSubscriber(robot, "sim", inbox)
+    op = open_session(client_session_config([f"tcp/127.0.0.1:{port}"]))
+    try:
+        pub = op.declare_publisher("vbnav/sim/cmd/estop", congestion_control=zenoh.CongestionControl.BLOCK)
+        deadline = time.monotonic() + 10
+        while not pub.matching_status and time.monotonic() < deadline:
+            time.sleep(0.02)
+        for n in (2_000_000, 2 * RX_MESSAGE_LIMIT, 10_000):
+            pub.put(b" " * n)                         # whitespace: would parse as an empty estop if read
+        pub.put(json.dumps({"reason": "after"}))
+        deadline = time.monotonic() + 10
+        while box.waiting == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        op.close()
+        sub.close()
+        robot.close()
+    assert rejected == [("estop", f"payload of 10000 bytes exceeds {MAX_PAYLOAD}; not read")]  # larger: zenoh
+    applied, _ = box.drain(clock.now_ns())
+    assert [c.args for c in applied] == [("after",)]
+
+
+def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
+    import subprocess
+    import sys
+
+    from vbnav.control.comms.network import open_session, robot_session_config
+    from vbnav.control.config.telemetry import TelemetryConfig
+    port = _free_port()
+    robot = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "sim"))
+    got = []
+    sub = robot.declare_subscriber("vbnav/sim/cmd/**", lambda s: got.append(json.loads(s.payload.to_bytes())))
+    try:
+        t0 = time.monotonic_ns()
+        r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "send", "teleop", "0.1", "0", "--duration",
+                            "0.5", "--rate", "10", "--connect", f"tcp/127.0.0.1:{port}"], capture_output=True,
+                           text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+    finally:
+        sub.undeclare()
+        robot.close()
+    assert [m["seq"] for m in got] == list(range(5))
+    stamps = [m["stamp_ns"] for m in got]
+    assert stamps == sorted(stamps) and stamps[0] > t0 and len({m["session"] for m in got}) == 1
