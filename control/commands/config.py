@@ -25,11 +25,9 @@ def run(args) -> int:
         print(reference_markdown(Config))
         return 0
     cfg = load_config(args.config)
-    from vbnav.control.config.telemetry import telemetry_config
-    telemetry_config(cfg)  # the telemetry section has its own model (network exposure rules)
     if args.action == "show":
         import yaml
-        print(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
+        print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
     else:
         print(f"{cfg.source}: valid (robot {cfg.robot.name!r}, camera {cfg.camera.driver}, "
               f"drive {cfg.drive.driver}, loop {cfg.loop.rate_hz:g} Hz)")
