@@ -187,10 +187,9 @@ def teach_route(cfg: Config, robot: SimRobot, controller, route_dir: Path,
     """Drive with ``controller`` while a TeachStage records keyframes into ``route_dir``."""
     from vbnav.control.route import RouteWriter
     from vbnav.control.stages.teach import TeachStage
-    from vbnav.control.config.vbc import teach_repeat_config
 
     model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
-    stage = TeachStage(model, mount, teach_repeat_config(cfg.vbc))
+    stage = TeachStage(model, mount, cfg.vbc)
     pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage])
     trace = RunTrace()
     stamps: dict[int, int] = {}
@@ -235,9 +234,8 @@ def repeat_route(cfg: Config, robot: SimRobot, route, progress: Optional[Callabl
     """Patrol ``route`` with the RepeatStage/RepeatController; ``events(rt, ctx)`` injects scenario changes."""
     from vbnav.control.controllers.repeat import RepeatController
     from vbnav.control.stages.repeat import RepeatStage
-    from vbnav.control.config.vbc import teach_repeat_config
 
-    vcfg = teach_repeat_config(cfg.vbc)
+    vcfg = cfg.vbc
     stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
     controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
     pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, *extra_stages])

@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from vbnav.control.config import Config, load_config
+from vbnav.control.config import Config, deep_merge, load_config, parse_config
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.control.demo import make_sim_robot
 from vbnav.control.runtime.factory import make_pipeline
@@ -88,7 +88,6 @@ def fast_stereo_config(rate_hz: float = 10.0, width: int = 320, base: Optional[C
             # nor about the obstacle stop (hil_tests/test_hil_obstacle_stop.py): the loop passes 1 m from a wall
             "obstacles": {"enabled": False}}
     if base is not None:
-        from vbnav.control.config import deep_merge, parse_config
         return parse_config(deep_merge(base.model_dump(), over), base.source or "<config>")
     return load_config("sim_stereo", overrides=over)
 

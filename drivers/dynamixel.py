@@ -122,8 +122,8 @@ class DynamixelDrive(SerialWheelDrive):
         model_config = ConfigDict(extra="forbid")
         port: str = Field("/dev/ttyUSB0", description="serial device of the U2D2 (prefer /dev/serial/by-id/...)")
         baudrate: int = Field(1_000_000, description="bus rate, bit/s")
-        left_id: int = Field(1, ge=0, le=252)
-        right_id: int = Field(2, ge=0, le=252)
+        left_id: int = Field(1, ge=0, le=252, description="bus ID of the left wheel servo")
+        right_id: int = Field(2, ge=0, le=252, description="bus ID of the right wheel servo")
         model: Optional[Literal["XL430-W250", "XM430-W350", "XM430-W210", "XM540-W270", "XL330-M288"]] = Field(
             None, description="expected servo model; None accepts any known X-series model")
         velocity_limit_rad_s: float = Field(6.0, gt=0, description="written to Velocity Limit (44); commands clamp")

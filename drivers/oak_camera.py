@@ -105,15 +105,16 @@ class OakCamera(GrabbingCamera):
         device_id: Optional[str] = Field(None, description="device id (MxID) or IP; None: the only device attached")
         stream: Literal["mono", "color"] = Field("mono", description="mono: rectified left camera; color: CAM_A")
         disparity: bool = Field(True, description="on-device stereo disparity aligned with the stream")
-        subpixel: bool = False
+        subpixel: bool = Field(False, description="subpixel disparity (finer depth far away)")
         subpixel_bits: int = Field(3, ge=3, le=5, description="fractional bits of subpixel disparity")
-        extended_disparity: bool = False
-        lr_check: bool = True
+        extended_disparity: bool = Field(False, description="twice the disparity search range: nearer "
+                                                            "minimum depth")
+        lr_check: bool = Field(True, description="left-right consistency check of the disparity")
         use_device_calibration: bool = Field(True, description="intrinsics and baseline from the device EEPROM")
         grey: bool = Field(True, description="deliver single-channel images")
         discovery_timeout_s: float = Field(2.0, gt=0, le=30, description="fail start-up after this long")
         replay_file: Optional[str] = Field(None, description="host-only replay of a recorded video (no device)")
-        replay_fps: float = Field(30.0, gt=0)
+        replay_fps: float = Field(30.0, gt=0, description="frame rate of replay_file, Hz")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["OakCamera.Options"] = None,
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):

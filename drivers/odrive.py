@@ -73,8 +73,8 @@ class ODriveDrive(SerialWheelDrive):
         model_config = ConfigDict(extra="forbid")
         port: str = Field("/dev/ttyACM0", description="ODrive USB CDC or UART device")
         baudrate: int = Field(115200, description="UART rate (ignored by USB CDC)")
-        left_axis: int = Field(0, ge=0, le=1)
-        right_axis: int = Field(1, ge=0, le=1)
+        left_axis: int = Field(0, ge=0, le=1, description="axis of the left wheel motor")
+        right_axis: int = Field(1, ge=0, le=1, description="axis of the right wheel motor")
         gear_ratio: float = Field(1.0, gt=0, description="motor turns per wheel turn")
         vel_limit_turns_s: float = Field(2.0, gt=0, description="axisN.controller.config.vel_limit")
         vel_ramp_rate: float = Field(0.0, ge=0, description="turns/s^2 (input_mode VEL_RAMP); 0 = passthrough")
@@ -83,8 +83,9 @@ class ODriveDrive(SerialWheelDrive):
         reply_timeout_s: float = Field(0.005, gt=0, le=0.5, description="wait for one answer line in the loop")
         setup_timeout_s: float = Field(0.1, gt=0, le=2.0, description="wait for an answer during setup")
         error_poll_every: int = Field(10, ge=1, description="read the error words every N cycles")
-        max_missed_reads: int = Field(2, ge=1)
-        reconnect_interval_s: float = Field(0.5, gt=0)
+        max_missed_reads: int = Field(2, ge=1, description="consecutive failed reads that make a fault (the "
+                                                          "state is held meanwhile)")
+        reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["ODriveDrive.Options"] = None,
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):

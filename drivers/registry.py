@@ -7,6 +7,8 @@ pydantic model ``Options`` that validates its ``options:`` block in the YAML.
 from __future__ import annotations
 
 import importlib
+import importlib.util
+from typing import Optional
 
 CAMERAS: dict[str, str] = {
     "sim": "vbnav.drivers.sim.camera:SimCamera",
@@ -22,8 +24,20 @@ DRIVES: dict[str, str] = {
 }
 
 
+# Driver modules that need a vendor SDK, which an installation may lack: module -> the SDK's import name.
+SDKS: dict[str, str] = {
+    "vbnav.drivers.oak_camera": "depthai",
+}
+
+
 class DriverNotAvailable(ImportError):
     pass
+
+
+def missing_sdk(table: dict[str, str], name: str) -> Optional[str]:
+    """The package driver ``name`` needs that is not installed here, or None; nothing is imported."""
+    sdk = SDKS.get(table[name].partition(":")[0])
+    return sdk if sdk is not None and importlib.util.find_spec(sdk) is None else None
 
 
 def load(table: dict[str, str], name: str):

@@ -41,7 +41,8 @@ class V4L2Camera(GrabbingCamera):
         fourcc: str = Field("MJPG", description="pixel format to request, e.g. MJPG, YUYV, GREY")
         grey: bool = Field(True, description="deliver single-channel images (the vision code works in grey)")
         fps_tolerance: float = Field(0.5, ge=0, description="accepted |delivered - requested| frame rate")
-        reconnect_interval_s: float = Field(1.0, gt=0)
+        reconnect_interval_s: float = Field(1.0, gt=0, description="how often an unplugged camera is opened "
+                                                                  "again, s")
         stall_timeout_s: float = Field(1.0, gt=0, description="no frame for this long counts as unplugged")
         replay_rate_hz: Optional[float] = Field(None, ge=0, description="files: frames per second "
                                                 "(None: the file's own rate, 0: as fast as read)")

@@ -18,7 +18,6 @@ from vbnav.control.runtime.runtime import Runtime
 from vbnav.control.vslam_eval import run_vslam_loop
 from vbnav.control.controllers.goto import GotoController
 from vbnav.control.stages.vslam import make_vslam_stage
-from vbnav.control.config.vslam import vslam_nav_config
 from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2, wrap_angle
 
@@ -52,8 +51,7 @@ def _goto(goal: Pose2, cfg=None, covered=None):
     start = Pose2(*SIM_START)
     robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
     stage = make_vslam_stage(cfg)
-    nav = vslam_nav_config(cfg.vslam)
-    ctrl = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
+    ctrl = GotoController(goal, cfg.vslam.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
     rt = Runtime(cfg, robot.drive, ctrl, robot.clock, make_pipeline(cfg, robot.clock, robot.camera, [stage]))
     if covered is not None:
         def cover(r, ctx, twist, wheels):

@@ -16,7 +16,7 @@ import sys
 
 from runtime_helpers import RecordingDrive  # same directory
 
-from vbnav.control.config import Config, ConfigError
+from vbnav.control.config import ConfigError, parse_config
 from vbnav.control.controllers.manual import IdleController, ScriptedController, TeleopController
 from vbnav.control.runtime.runtime import Runtime
 from vbnav.control.comms.link import TelemetryLink
@@ -50,9 +50,12 @@ def main() -> int:
                                   "listen_private_key": f"{a.tls}/robot.key"}})
     if a.listen:
         tele["listen"] = [a.listen]
-    cfg = Config.model_validate({"loop": {"rate_hz": a.rate}, "telemetry": tele,
-                                 "controller": {"kind": a.controller},
-                                 "safety": {"command_timeout_s": 0.5}})
+    try:   # the telemetry section refuses a remote listener without authentication here
+        cfg = parse_config({"loop": {"rate_hz": a.rate}, "telemetry": tele, "controller": {"kind": a.controller},
+                            "safety": {"command_timeout_s": 0.5}}, "telemetry_robot")
+    except ConfigError as exc:
+        print(f"configuration error: {exc}", file=sys.stderr)
+        return 2
     clock = SimClock() if a.sim_clock else MonotonicClock()
     drive = RecordingDrive(clock)
     controller = {"teleop": lambda: TeleopController(cfg.safety.command_timeout_s),

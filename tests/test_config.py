@@ -79,11 +79,45 @@ def test_defaults_match_sim_yaml():
     assert Config().model_dump()["robot"] == Config.model_validate(data).model_dump()["robot"]
 
 
-def test_reference_documents_every_key():
+def field_paths(model, prefix: str = ""):
+    """(key path, field) of every field of a model, nested models included ('obstacles.zones[].name')."""
+    from vbnav.control.commands.config import nested_model
+    for name, field in model.model_fields.items():
+        if field.exclude:
+            continue
+        key = f"{prefix}.{name}" if prefix else name
+        yield key, field
+        sub, how = nested_model(field.annotation)
+        if sub is not None:
+            yield from field_paths(sub, key + ("[]" if how == "list" else ""))
+
+
+def test_reference_documents_every_key_of_every_section_and_driver():
     from vbnav.control.commands.config import reference_markdown
+    from vbnav.drivers import registry
     ref = reference_markdown(Config)
-    for key in ("robot.wheel_radius", "loop.overrun_policy", "camera.mount.pitch_deg", "sim.slip_std"):
-        assert f"`{key}`" in ref
+    paths = dict(field_paths(Config))
+    assert {"vbc.max_features", "vslam.goto.k_beta", "obstacles.zones[].polygon", "telemetry.auth.usrpwd.user",
+            "camera.mount.pitch_deg"} <= set(paths)
+    missing = [k for k in paths if f"`{k}`" not in ref]
+    assert not missing, f"not in the reference: {missing}"
+    undescribed = [k for k, f in paths.items() if not f.description]
+    checked = 0
+    for section, table in (("camera", registry.CAMERAS), ("drive", registry.DRIVES)):
+        for name in table:
+            title = f"### `{section}.driver: {name}`"
+            assert title in ref, title
+            part = ref.split(title, 1)[1].split("\n#", 1)[0]     # up to the next heading
+            if registry.missing_sdk(table, name):
+                assert "not installed here" in part
+                continue
+            for key, field in field_paths(registry.load(table, name).Options, f"{section}.options"):
+                assert f"| `{key}` |" in part, (name, key)
+                checked += 1
+                if not field.description:
+                    undescribed.append(f"{key} ({name})")
+    assert checked >= 40, checked
+    assert not undescribed, f"keys without a description: {undescribed}"
 
 
 @pytest.mark.parametrize("text, key", [
@@ -96,3 +130,17 @@ def test_feature_sections_are_validated_at_load(tmp_path, text, key):
     with pytest.raises(ConfigError) as err:
         load_config(p)
     assert str(p) in str(err.value) and key in str(err.value), str(err.value)
+
+
+def test_reference_names_a_driver_whose_sdk_is_missing_instead_of_importing_it(monkeypatch):
+    from vbnav.control.commands.config import reference_markdown
+    from vbnav.drivers import registry
+    monkeypatch.setitem(registry.SDKS, "vbnav.drivers.oak_camera", "no_such_sdk_here")
+    load = registry.load
+
+    def load_all_but_oak(table, name):
+        assert name != "oak", "the OAK driver was imported although its SDK is missing"
+        return load(table, name)
+    monkeypatch.setattr(registry, "load", load_all_but_oak)
+    part = reference_markdown(Config).split("### `camera.driver: oak`", 1)[1].split("\n#", 1)[0]
+    assert "needs the `no_such_sdk_here` package, which is not installed here" in part

@@ -8,7 +8,7 @@ import pytest
 
 from vbnav.control.config import ConfigError, parse_config
 from vbnav.control.stages.obstacles import ObstacleMonitor, ObstacleStage, make_obstacle_stage, points_in_polygon, to_robot_frame, zone_counts
-from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig, obstacles_config
+from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.drivers.camera import Frame
 from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -69,12 +69,12 @@ def test_monitor_slow_zone_and_negative_points():
 
 def test_config_validation_names_the_key():
     with pytest.raises(ConfigError, match=r"obstacles\.zones\.0: .*band needs both"):
-        obstacles_config({"zones": [{"name": "z", "distance": 1.0}]}, "robot.yaml")
+        parse_config({"obstacles": {"zones": [{"name": "z", "distance": 1.0}]}}, "robot.yaml")
     with pytest.raises(ConfigError, match=r"robot.yaml: obstacles\.stop_distance: unknown key"):
-        obstacles_config({"stop_distance": 1.0}, "robot.yaml")
+        parse_config({"obstacles": {"stop_distance": 1.0}}, "robot.yaml")
     with pytest.raises(ConfigError, match="persist_k"):
-        obstacles_config({"persist_k": 4, "persist_n": 3})
-    assert obstacles_config(None).zones[0].action == "stop"
+        parse_config({"obstacles": {"persist_k": 4, "persist_n": 3}})
+    assert parse_config({}).obstacles.zones[0].action == "stop"
 
 
 def test_to_robot_frame_uses_the_mount():

@@ -168,13 +168,12 @@ def test_repeat_slows_stops_and_resumes_through_an_occlusion(scene):
 
 
 def test_vbc_config_section_is_validated():
-    from vbnav.control.config import ConfigError
-    from vbnav.control.config.vbc import teach_repeat_config
-    assert teach_repeat_config({"cruise_speed": 0.2}).cruise_speed == 0.2
+    from vbnav.control.config import ConfigError, parse_config
+    assert parse_config({"vbc": {"cruise_speed": 0.2}}).vbc.cruise_speed == 0.2
     with pytest.raises(ConfigError, match=r"robot.yaml: vbc.lookahed_m: unknown key"):
-        teach_repeat_config({"lookahed_m": 0.3}, "robot.yaml")   # typo: extra keys are errors
+        parse_config({"vbc": {"lookahed_m": 0.3}}, "robot.yaml")   # typo: extra keys are errors
     with pytest.raises(ConfigError, match="vbc.min_landmarks"):
-        teach_repeat_config({"min_landmarks": 2})
+        parse_config({"vbc": {"min_landmarks": 2}})
 
 
 def test_keyframe_taken_at_the_last_frame_has_heights():

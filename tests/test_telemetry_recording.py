@@ -38,7 +38,7 @@ def test_demo_teach_and_repeat_segments_in_one_recording(tmp_path):
     assert s.complete
     assert set(s.channels) >= {"/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom", "/vbnav/image"}
     assert s.channels["/vbnav/image"].schema == "foxglove.CompressedImage"
-    rate = cfg.telemetry.get("state_rate_hz", 20)
+    rate = cfg.telemetry.state_rate_hz
     n_state = s.channels["/vbnav/state"].count
     assert abs(n_state - (6.0 + 4.0) * rate) <= 2                     # both segments at the state rate
     assert abs(s.channels["/vbnav/image"].count - (6.0 + 4.0) * 2) <= 2  # 2 Hz images

@@ -7,10 +7,10 @@ import math
 import pytest
 
 from runtime_helpers import RecordingDrive
-from vbnav.control.config import Config, ConfigError
+from vbnav.control.config import Config, ConfigError, parse_config
 from vbnav.control.controllers.manual import IdleController, TeleopController
 from vbnav.control.comms.operator_commands import CommandInbox, TeleopLimits, parse_command, CommandRejected
-from vbnav.control.config.telemetry import DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint, parse_telemetry_config
+from vbnav.control.config.telemetry import DEFAULT_ENDPOINT, TelemetryConfig, is_loopback_endpoint
 from vbnav.control.comms.network import robot_session_config
 from vbnav.control.comms.recording import McapRecorder, format_summary, iter_recording, read_recording
 from vbnav.control.runtime.runtime import Runtime
@@ -50,7 +50,7 @@ def test_loopback_classification(ep, loop):
 ])
 def test_remote_access_without_auth_is_refused_with_a_clear_message(section, tmp_path):
     with pytest.raises(ConfigError) as e:
-        parse_telemetry_config(section, "robot.yaml")
+        parse_config({"telemetry": section}, "robot.yaml")
     msg = str(e.value)
     assert msg.startswith("robot.yaml: telemetry")
     assert "authentication" in msg and "127.0.0.1:7447" in msg
@@ -60,15 +60,17 @@ def test_remote_access_without_operators_is_refused(tmp_path):
     d = tmp_path / "users.txt"
     d.write_text("op:secretpass\n")
     with pytest.raises(ConfigError, match="telemetry.operators"):
-        parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"],
-                                "auth": {"usrpwd": {"user": "r", "password": "robotpass", "dictionary_file": str(d)}}})
+        parse_config({"telemetry": {"listen": ["tcp/0.0.0.0:7447"],
+                                    "auth": {"usrpwd": {"user": "r", "password": "robotpass",
+                                                        "dictionary_file": str(d)}}}})
 
 
 def test_remote_config_builds_auth_and_acl_limiting_commands_to_operators(tmp_path):
     d = tmp_path / "users.txt"
     d.write_text("op:secretpass\n")
-    t = parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"],
-                                "auth": {"usrpwd": {"user": "r", "password": "robotpass", "dictionary_file": str(d)}}})
+    t = parse_config({"telemetry": {"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"],
+                                    "auth": {"usrpwd": {"user": "r", "password": "robotpass",
+                                                        "dictionary_file": str(d)}}}}).telemetry
     conf = robot_session_config(t, "bot1")
     assert conf["transport"]["auth"]["usrpwd"]["dictionary_file"] == str(d.resolve())
     acl = conf["access_control"]
@@ -83,16 +85,16 @@ def test_remote_config_builds_auth_and_acl_limiting_commands_to_operators(tmp_pa
 
 
 def test_missing_dictionary_file_is_named(tmp_path):
-    t = parse_telemetry_config({"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"],
-                                "auth": {"usrpwd": {"user": "r", "password": "robotpass",
-                                                    "dictionary_file": str(tmp_path / "nope.txt")}}})
+    t = parse_config({"telemetry": {"listen": ["tcp/0.0.0.0:7447"], "operators": ["op"],
+                                    "auth": {"usrpwd": {"user": "r", "password": "robotpass",
+                                                        "dictionary_file": str(tmp_path / "nope.txt")}}}}).telemetry
     with pytest.raises(ConfigError, match="dictionary_file: file not found"):
         robot_session_config(t, "sim")
 
 
 def test_unknown_telemetry_key_names_the_file_and_key(tmp_path):
     with pytest.raises(ConfigError, match=r"robot.yaml: telemetry.state_rate: unknown key"):
-        parse_telemetry_config({"state_rate": 5}, "robot.yaml")
+        parse_config({"telemetry": {"state_rate": 5}}, "robot.yaml")
 
 
 # ---- command validation -------------------------------------------------------------------

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from vbnav.control.runtime.interfaces import ControlContext, Estimate
-from vbnav.control.config.vslam import GotoConfig, vslam_nav_config
+from vbnav.control.config.vslam import GotoConfig, VslamNavConfig
 from vbnav.control.controllers.goto import GotoController, polar_coordinates
 from vbnav.control.stages.vslam import VslamFix, VslamStage, camera_to_robot, robot_to_camera_matrix
 from vbnav.drivers.camera import Frame
@@ -126,8 +126,8 @@ def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
     for _ in range(50):
         poses.append(arc_step(poses[-1], 0.03, math.radians(0.6)))
     # OAK-like: disparity only, and the baseline comes with the frames (the device's calibration)
-    stage = (VslamStage(model, mount, None, vslam_nav_config({}), baseline_from_frames=True) if disparity_only
-             else VslamStage(model, mount, 0.12, vslam_nav_config({})))
+    stage = (VslamStage(model, mount, None, VslamNavConfig(), baseline_from_frames=True) if disparity_only
+             else VslamStage(model, mount, 0.12, VslamNavConfig()))
     for f, p in zip(_render(cam, poses, disparity_only), poses):
         est = stage.process(f, start.between(p))     # odometry = truth here; only the first one is used
         assert est.ok and est.kind == "vslam"
@@ -160,7 +160,7 @@ def test_monocular_stage_takes_its_scale_from_the_wheels():
     poses = [start]
     for _ in range(60):                                 # 1.8 m forward while turning 36 degrees right
         poses.append(arc_step(poses[-1], 0.03, math.radians(0.6)))
-    stage = VslamStage(model, mount, None, vslam_nav_config({"metric_scale": "odometry"}))
+    stage = VslamStage(model, mount, None, VslamNavConfig(metric_scale="odometry"))
     results = []
     for i, p in enumerate(poses):
         odom = start.between(p)
@@ -206,13 +206,13 @@ def test_goto_creeps_ahead_while_a_monocular_vslam_initialises():
 
 
 def test_vslam_section_is_validated_at_load_with_file_and_key_path(tmp_path):
-    from vbnav.control.config import ConfigError, load_config
+    from vbnav.control.config import ConfigError, load_config, parse_config
 
     with pytest.raises(ConfigError, match=r"robot.yaml: vslam.goto.k_beta"):
-        vslam_nav_config({"goto": {"k_beta": 0.5}}, "robot.yaml")
+        parse_config({"vslam": {"goto": {"k_beta": 0.5}}}, "robot.yaml")
     with pytest.raises(ConfigError, match=r"vslam.relocalise_radus_m: unknown key"):
-        vslam_nav_config({"relocalise_radus_m": 1.0})
-    assert vslam_nav_config({"max_landmarks": 300, "goto": {"cruise_speed": 0.2}}).goto.cruise_speed == 0.2
+        parse_config({"vslam": {"relocalise_radus_m": 1.0}})
+    assert parse_config({"vslam": {"max_landmarks": 300, "goto": {"cruise_speed": 0.2}}}).vslam.goto.cruise_speed == 0.2
     bad = tmp_path / "bad.yaml"
     bad.write_text("vslam:\n  goto: {position_tolerance_m: -1}\n")
     with pytest.raises(ConfigError, match=r"bad.yaml: vslam.goto.position_tolerance_m"):
@@ -228,7 +228,7 @@ def test_stage_restarts_after_the_lens_was_covered_and_still_closes_the_loop_lat
     poses = [start]
     for _ in range(30):
         poses.append(arc_step(poses[-1], 0.03, 0.0))
-    stage = VslamStage(model, mount, 0.12, vslam_nav_config({}))
+    stage = VslamStage(model, mount, 0.12, VslamNavConfig())
     results = []
     for i, p in enumerate(poses):
         cam.occluded = 10 <= i < 15                    # half a second of a covered lens

@@ -64,9 +64,9 @@ class VslamConfig(BaseModel):
     min_landmark_weight: float = Field(0.01, ge=0, le=1,
                                        description="floor of that weight: with only poorly known landmarks "
                                                    "(forward motion) the pose must not rest on a handful")
-    klt_window: int = Field(21, ge=5)
-    klt_levels: int = Field(3, ge=0)
-    min_distance_px: float = Field(12.0, gt=0)
+    klt_window: int = Field(21, ge=5, description="KLT window side, px")
+    klt_levels: int = Field(3, ge=0, description="KLT pyramid levels")
+    min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners, px")
 
 
 @dataclass

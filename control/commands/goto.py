@@ -47,11 +47,10 @@ def run(args) -> int:
     from vbnav.control.runtime.runtime import Runtime
     from vbnav.control.controllers.goto import GotoController
     from vbnav.control.stages.vslam import make_vslam_stage, stereo_baseline_of
-    from vbnav.control.config.vslam import vslam_nav_config
     from vbnav.vision.geometry import Pose2
 
     cfg = load_config(args.config)
-    nav = vslam_nav_config(cfg.vslam, cfg.source or "<config>")
+    nav = cfg.vslam
     if nav.metric_scale == "stereo" and stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "
               "pair for metric scale (try --config sim_stereo, or set vslam.metric_scale: odometry for a single "

@@ -28,7 +28,6 @@ def run(args) -> int:
     from vbnav.control.runtime.runtime import Runtime
     from vbnav.control.controllers.repeat import RepeatController
     from vbnav.control.stages.repeat import RepeatStage
-    from vbnav.control.config.vbc import teach_repeat_config
 
     cfg = load_config(args.config)
     try:
@@ -39,7 +38,7 @@ def run(args) -> int:
     if not route.keyframes:
         print(f"vbnav repeat: {args.path}: the route has no keyframes")
         return 2
-    vcfg = teach_repeat_config(cfg.vbc)
+    vcfg = cfg.vbc
     stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
     controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
     printer = ProgressPrinter()

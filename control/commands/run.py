@@ -43,10 +43,7 @@ def run(args) -> int:
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.runtime.runtime import Runtime
 
-    from vbnav.control.config.telemetry import telemetry_config
-
-    cfg = load_config(args.config)
-    telemetry_config(cfg)  # refuse unsafe network settings before any device opens
+    cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
     kind = args.controller or cfg.controller.kind
     clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
     if kind == "operator":

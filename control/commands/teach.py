@@ -57,11 +57,10 @@ def _teach_on_robot(cfg, out, printer, args):
     from vbnav.control.route import RouteWriter
     from vbnav.control.runtime.runtime import Runtime
     from vbnav.control.stages.teach import TeachStage
-    from vbnav.control.config.vbc import teach_repeat_config
     import numpy as np
 
     model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
-    stage = TeachStage(model, mount, teach_repeat_config(cfg.vbc))
+    stage = TeachStage(model, mount, cfg.vbc)
     clock, drive, pipeline = make_robot(cfg, [stage])
     with RouteWriter(out, cfg.robot.name, model, mount, overwrite=True) as writer:
         pipeline.frame_listeners.append(lambda f, r: [writer.append(kf) for kf in stage.pop_keyframes()])

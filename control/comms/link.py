@@ -25,7 +25,7 @@ import time
 from typing import Optional
 
 from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, limits_from_config
-from vbnav.control.config.telemetry import TelemetryConfig, telemetry_config
+from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.comms.network import open_session, robot_session_config
 from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
 
@@ -87,7 +87,7 @@ class TelemetryLink:
         record: MCAP path for this run. recorder: an open McapRecorder shared by several runs (it gets a
         new segment and is not closed by this link). network: False skips zenoh even when enabled.
         """
-        tcfg = telemetry_config(cfg)
+        tcfg = cfg.telemetry
         robot = cfg.robot.name
         sinks, session = [], None
         if recorder is not None:

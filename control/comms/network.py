@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 from typing import Any, Optional
 
+from vbnav.control.config.base import ConfigError
 from vbnav.control.config.telemetry import TelemetryConfig, UsrPwdAuth
 
 
@@ -109,6 +110,5 @@ def _usrpwd_dict(u: UsrPwdAuth) -> dict[str, str]:
 def _existing(path: str, key: str) -> str:
     p = Path(path).expanduser()
     if not p.is_file():
-        from vbnav.control.config import ConfigError
         raise ConfigError(f"telemetry.{key}: file not found: {p}")
     return str(p.resolve())

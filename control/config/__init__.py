@@ -1,12 +1,15 @@
-"""Robot configuration: YAML files validated on load.
+"""Robot configuration: YAML files validated on load into one typed model, :class:`Config`.
 
 Every error names the file, the key path and what was expected, e.g.
 ``configs/sim.yaml: robot.wheel_radius: Input should be greater than 0 (got -0.05)``.
 Unknown keys are errors (typos must not silently fall back to defaults).
 
-Driver-specific ``options`` blocks are validated by the chosen driver's own
-``Options`` model (see vbnav.drivers.registry), so adding a driver never edits
-this file beyond the registry line.
+The sections of the features have their own modules next to this one
+(``vbc.py``, ``vslam.py``, ``obstacles.py``, ``telemetry.py``); the strict base
+and the error formatting are in ``base.py``. Driver-specific ``options`` blocks
+are validated by the chosen driver's own ``Options`` model (see
+vbnav.drivers.registry), so adding a driver never edits this file beyond the
+registry line.
 """
 from __future__ import annotations
 
@@ -15,39 +18,37 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
+from vbnav.control.config.base import ConfigError, Strict, format_errors
+from vbnav.control.config.obstacles import ObstaclesConfig
+from vbnav.control.config.telemetry import TelemetryConfig
+from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.drivers import registry
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
-
-
-class ConfigError(ValueError):
-    """A configuration file is missing, malformed or invalid. The message says where."""
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"   # control/config/__init__.py -> repo/configs
 
 
 class RobotConfig(Strict):
     name: str = Field("sim", pattern=r"^[A-Za-z0-9_\-]+$", description="robot name, used in telemetry keys")
-    wheel_radius: float = Field(0.05, gt=0, le=1.0, description="m")
+    wheel_radius: float = Field(0.05, gt=0, le=1.0, description="wheel radius, m")
     wheel_separation: float = Field(0.30, gt=0, le=5.0, description="distance between wheel contact points, m")
-    max_wheel_speed: float = Field(20.0, gt=0, description="rad/s, per wheel")
-    max_linear_speed: float = Field(0.5, gt=0, description="m/s")
-    max_angular_speed: float = Field(1.5, gt=0, description="rad/s")
-    max_linear_accel: float = Field(1.0, gt=0, description="m/s^2")
-    max_angular_accel: float = Field(4.0, gt=0, description="rad/s^2")
+    max_wheel_speed: float = Field(20.0, gt=0, description="wheel speed limit, rad/s, per wheel")
+    max_linear_speed: float = Field(0.5, gt=0, description="forward speed limit, m/s; at most "
+                                    "max_wheel_speed * wheel_radius")
+    max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s")
+    max_linear_accel: float = Field(1.0, gt=0, description="forward acceleration limit, m/s^2")
+    max_angular_accel: float = Field(4.0, gt=0, description="angular acceleration limit, rad/s^2")
 
 
 class MountConfig(Strict):
     height: float = Field(0.25, gt=0, description="optical centre above the floor, m")
     forward: float = Field(0.10, description="ahead of the axle centre, m")
     lateral: float = Field(0.0, description="to the right of the axle centre, m")
-    pitch_deg: float = Field(0.0, ge=-90, le=90, description="positive looking down")
-    yaw_deg: float = Field(0.0, ge=-180, le=180, description="positive looking right")
+    pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, deg, positive looking down")
+    yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw, deg, positive looking right")
 
     def to_mount(self) -> CameraMount:
         return CameraMount(self.height, self.forward, self.lateral, math.radians(self.pitch_deg),
@@ -55,19 +56,21 @@ class MountConfig(Strict):
 
 
 class CameraConfig(Strict):
-    driver: str = "sim"
-    model: Literal["pinhole", "fisheye"] = "pinhole"
-    width: int = Field(640, gt=0)
-    height: int = Field(480, gt=0)
-    fx: float = Field(400.0, gt=0)
-    fy: float = Field(400.0, gt=0)
-    cx: float = 319.5
-    cy: float = 239.5
-    distortion: list[float] = Field(default_factory=list, max_length=14)
+    driver: str = Field("sim", description="camera driver: a name from drivers/registry.py (see Driver options)")
+    model: Literal["pinhole", "fisheye"] = Field("pinhole", description="lens model of the intrinsics below")
+    width: int = Field(640, gt=0, description="image width, px")
+    height: int = Field(480, gt=0, description="image height, px")
+    fx: float = Field(400.0, gt=0, description="focal length along x, px")
+    fy: float = Field(400.0, gt=0, description="focal length along y, px")
+    cx: float = Field(319.5, description="principal point x, px")
+    cy: float = Field(239.5, description="principal point y, px")
+    distortion: list[float] = Field(default_factory=list, max_length=14,
+                                    description="OpenCV distortion coefficients: pinhole k1 k2 p1 p2 [k3 ...], "
+                                                "fisheye k1 k2 k3 k4; empty: none")
     calibration_file: Optional[str] = Field(None, description="OpenCV or ROS calibration file; overrides intrinsics")
-    rate_hz: float = Field(15.0, gt=0, le=1000)
-    stale_after_s: float = Field(0.5, gt=0, description="older frames are a safety stop")
-    mount: MountConfig = Field(default_factory=MountConfig)
+    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz")
+    stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop")
+    mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
 
     def to_model(self):
@@ -79,19 +82,19 @@ class CameraConfig(Strict):
 
 
 class DriveConfig(Strict):
-    driver: str = "sim"
+    driver: str = Field("sim", description="wheel drive driver: a name from drivers/registry.py (see Driver options)")
     invert_left: bool = Field(False, description="flip the sign of the left wheel")
     invert_right: bool = Field(False, description="flip the sign of the right wheel")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
 
 
 class LoopConfig(Strict):
-    rate_hz: float = Field(100.0, gt=0, le=5000)
+    rate_hz: float = Field(100.0, gt=0, le=5000, description="control loop rate, Hz")
     overrun_policy: Literal["skip", "catch_up"] = Field(
         "skip", description="skip: a late cycle drops the missed ticks and re-aligns to the grid; "
                             "catch_up: run missed ticks back to back")
     max_missed_streak: int = Field(5, ge=1, description="consecutive overruns that trigger a safety stop")
-    spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, us")
+    spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, microseconds")
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the loop thread "
                                    "(0: normal scheduling); needs root or CAP_SYS_NICE, else a warning event")
     cpu_affinity: list[int] = Field(default_factory=list, description="CPUs the loop thread may run on (empty: any)")
@@ -109,12 +112,12 @@ class SafetyConfig(Strict):
 
 
 class SimConfig(Strict):
-    seed: int = 0
+    seed: int = Field(0, description="random seed of the world's textures, the image noise and the wheel slip")
     realtime: bool = Field(False, description="run on the wall clock instead of the simulated clock")
-    world: str = "room"
-    motor_time_constant_s: float = Field(0.05, ge=0)
+    world: str = Field("room", description="simulated world: room, empty_room, corridor or corridor_step")
+    motor_time_constant_s: float = Field(0.05, ge=0, description="first-order lag of the wheel speed, s")
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
-    encoder_ticks_per_rev: int = Field(4096, gt=0)
+    encoder_ticks_per_rev: int = Field(4096, gt=0, description="encoder resolution, ticks per wheel turn")
     slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
     vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
@@ -130,19 +133,21 @@ class ControllerConfig(Strict):
 
 
 class Config(Strict):
-    robot: RobotConfig = Field(default_factory=RobotConfig)
-    camera: CameraConfig = Field(default_factory=CameraConfig)
-    drive: DriveConfig = Field(default_factory=DriveConfig)
-    loop: LoopConfig = Field(default_factory=LoopConfig)
-    safety: SafetyConfig = Field(default_factory=SafetyConfig)
-    sim: SimConfig = Field(default_factory=SimConfig)
-    controller: ControllerConfig = Field(default_factory=ControllerConfig)
-    # Sections of later features are plain dicts validated by their own modules
-    # (telemetry, obstacles, vbc, vslam); they live here so that unknown keys are still errors.
-    telemetry: dict[str, Any] = Field(default_factory=dict, description="zenoh telemetry and commands, see docs/telemetry.md")
-    obstacles: dict[str, Any] = Field(default_factory=dict, description="obstacle detection and stop zones (control/obstacle_monitor.py)")
-    vbc: dict[str, Any] = Field(default_factory=dict, description="teach-and-repeat settings (control/teach_repeat.py)")
-    vslam: dict[str, Any] = Field(default_factory=dict, description="VSLAM and goto settings (control/vslam_nav.py)")
+    robot: RobotConfig = Field(default_factory=RobotConfig, description="the base: wheels and motion limits")
+    camera: CameraConfig = Field(default_factory=CameraConfig, description="the camera: driver, intrinsics, mount")
+    drive: DriveConfig = Field(default_factory=DriveConfig, description="the wheel motors: driver and wiring")
+    loop: LoopConfig = Field(default_factory=LoopConfig, description="the fixed-rate control loop")
+    safety: SafetyConfig = Field(default_factory=SafetyConfig, description="timeouts that stop the robot")
+    sim: SimConfig = Field(default_factory=SimConfig, description="the simulated robot and world (drivers sim)")
+    controller: ControllerConfig = Field(default_factory=ControllerConfig, description="the controller of 'vbnav run'")
+    telemetry: TelemetryConfig = Field(default_factory=TelemetryConfig,
+                                       description="zenoh telemetry and commands, see docs/telemetry.md")
+    obstacles: ObstaclesConfig = Field(default_factory=ObstaclesConfig, description="stereo obstacle detection and "
+                                       "stop zones (control/stages/obstacles.py)")
+    vbc: VBCConfig = Field(default_factory=VBCConfig,
+                           description="teach-and-repeat by vision-based control (control/stages/teach.py, repeat.py)")
+    vslam: VslamNavConfig = Field(default_factory=VslamNavConfig,
+                                  description="VSLAM on the robot and the goto controller (control/stages/vslam.py)")
 
     source: Optional[str] = Field(None, exclude=True, description="file this was loaded from")
 
@@ -153,23 +158,6 @@ class Config(Strict):
             raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
                              f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
         return self
-
-
-def _format_loc(loc) -> str:
-    return ".".join(str(p) for p in loc) or "<top level>"
-
-
-def _format_errors(source: str, exc: ValidationError, prefix: str = "") -> str:
-    lines = []
-    for err in exc.errors():
-        loc = _format_loc(((prefix,) if prefix else ()) + tuple(err["loc"]))
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key (check the spelling; see README 'Configuration reference')"
-        got = err.get("input")
-        got_s = "" if err["type"] in ("missing", "extra_forbidden") or isinstance(got, dict) else f" (got {got!r})"
-        lines.append(f"{source}: {loc}: {msg}{got_s}")
-    return "\n".join(lines)
 
 
 def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, Any]:
@@ -194,7 +182,7 @@ def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, 
         try:
             out[section] = options_model.model_validate(sec.options)
         except ValidationError as exc:
-            raise ConfigError(_format_errors(source, exc, prefix=f"{section}.options")) from None
+            raise ConfigError(format_errors(source, exc, prefix=f"{section}.options")) from None
     return out
 
 
@@ -206,23 +194,10 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     try:
         cfg = Config.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc)) from None
+        raise ConfigError(format_errors(source, exc)) from None
     cfg.source = source
     validate_driver_options(cfg, source)
-    validate_feature_sections(cfg, source)
     return cfg
-
-
-def validate_feature_sections(cfg: Config, source: str = "<config>") -> None:
-    """Validate the sections owned by feature modules, so bad values stop start-up like any other."""
-    from vbnav.control.config.obstacles import obstacles_config
-    from vbnav.control.config.telemetry import parse_telemetry_config
-    from vbnav.control.config.vbc import teach_repeat_config
-    from vbnav.control.config.vslam import vslam_nav_config
-    parse_telemetry_config(cfg.telemetry, source)
-    vslam_nav_config(cfg.vslam, source)
-    obstacles_config(cfg.obstacles, source)
-    teach_repeat_config(cfg.vbc, source)
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

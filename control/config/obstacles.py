@@ -3,21 +3,19 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from vbnav.control.config import ConfigError, _format_errors
+from pydantic import Field, model_validator
+from vbnav.control.config.base import Strict
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-
-class ZoneConfig(_Strict):
-    name: str
-    action: Literal["stop", "slow"] = "stop"
-    distance: Optional[float] = Field(None, gt=0, description="band: m ahead of the axle centre")
-    half_width: Optional[float] = Field(None, gt=0, description="band: m either side of the centre line")
-    polygon: Optional[list[tuple[float, float]]] = Field(None, description="(x right, z forward) vertices, m")
+class ZoneConfig(Strict):
+    name: str = Field(..., description="zone name, reported in the stage's estimates")
+    action: Literal["stop", "slow"] = Field("stop", description="stop: the robot stops while the zone triggers; "
+                                                                "slow: speeds are scaled by slow_scale")
+    distance: Optional[float] = Field(None, gt=0, description="band: length ahead of the axle centre, m "
+                                                               "(give distance and half_width, or polygon)")
+    half_width: Optional[float] = Field(None, gt=0, description="band: width either side of the centre line, m")
+    polygon: Optional[list[tuple[float, float]]] = Field(None, description="instead of a band: at least 3 "
+                                                                           "(x right, z forward) vertices, m")
     slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers")
     min_points: int = Field(8, ge=1, description="obstacle pixels inside that trigger the zone")
 
@@ -40,9 +38,11 @@ def _default_zones() -> list[ZoneConfig]:
 
 
 
-class ObstaclesConfig(_Strict):
+class ObstaclesConfig(Strict):
     enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
-    source: Literal["auto", "disparity", "sgbm"] = "auto"
+    source: Literal["auto", "disparity", "sgbm"] = Field(
+        "auto", description="disparity: the frames' own (OAK); sgbm: computed from the stereo pair; auto: the "
+                            "frames' own if present, else sgbm")
     baseline: Optional[float] = Field(None, gt=0, description="m; default camera.options.stereo_baseline, "
                                                               "else the frames' meta['baseline_m'] (OAK)")
     obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
@@ -50,14 +50,16 @@ class ObstaclesConfig(_Strict):
     noise_px: float = Field(0.4, ge=0, description="disparity noise floor, px")
     max_height: Optional[float] = Field(1.0, gt=0, description="m; higher points are overhangs, ignored")
     max_range: float = Field(6.0, gt=0, description="m; farther points are ignored")
-    min_blob_pixels: int = Field(12, ge=1)
+    min_blob_pixels: int = Field(12, ge=1, description="smaller connected obstacle regions are matching "
+                                                     "noise, px")
     negative_stops: bool = Field(True, description="negative obstacles (steps down) trigger zones too")
     fit_inlier_height: float = Field(0.02, gt=0, description="m, ground-plane fit inlier band")
-    sgbm_block_size: int = Field(3, ge=1, le=11)
+    sgbm_block_size: int = Field(3, ge=1, le=11, description="SGBM matching block side, px, odd")
     persist_k: int = Field(2, ge=1, description="a zone must trigger in k of the last n frames")
-    persist_n: int = Field(3, ge=1)
+    persist_n: int = Field(3, ge=1, description="n of k-of-n (n >= persist_k)")
     release_s: float = Field(0.5, ge=0, description="clear this long before the speed rises again")
-    zones: list[ZoneConfig] = Field(default_factory=_default_zones)
+    zones: list[ZoneConfig] = Field(default_factory=_default_zones, description="stop and slow zones on the "
+                                    "floor, in the robot frame")
 
     @model_validator(mode="after")
     def _k_le_n(self):
@@ -66,12 +68,3 @@ class ObstaclesConfig(_Strict):
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
         return self
-
-
-
-def obstacles_config(section: Optional[dict], source: str = "<config>") -> ObstaclesConfig:
-    """Validate the free ``obstacles:`` section; errors name the file and key path."""
-    try:
-        return ObstaclesConfig.model_validate(section or {})
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc, prefix="obstacles")) from None

@@ -21,9 +21,10 @@ The zenoh config keys used here are those of zenoh 1.x (``listen/endpoints``,
 from __future__ import annotations
 
 import ipaddress
-from typing import Any, Literal, Optional
+from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
+from vbnav.control.config.base import Strict
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -37,12 +38,7 @@ NAME_PATTERN = r"^[A-Za-z0-9_\-.@]+$"
 
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-
-class UsrPwdAuth(_Strict):
+class UsrPwdAuth(Strict):
     user: str = Field(..., min_length=1, pattern=NAME_PATTERN, description="this robot's own user name")
     password: str = Field(..., min_length=8, description="this robot's own password")
     dictionary_file: str = Field(..., min_length=1,
@@ -50,7 +46,7 @@ class UsrPwdAuth(_Strict):
 
 
 
-class TlsAuth(_Strict):
+class TlsAuth(Strict):
     root_ca_certificate: str = Field(..., description="CA that signed every peer's certificate (PEM)")
     listen_certificate: str = Field(..., description="this robot's certificate (PEM)")
     listen_private_key: str = Field(..., description="this robot's private key (PEM)")
@@ -58,13 +54,13 @@ class TlsAuth(_Strict):
 
 
 
-class AuthConfig(_Strict):
-    usrpwd: Optional[UsrPwdAuth] = None
-    tls: Optional[TlsAuth] = None
+class AuthConfig(Strict):
+    usrpwd: Optional[UsrPwdAuth] = Field(None, description="zenoh user/password authentication")
+    tls: Optional[TlsAuth] = Field(None, description="mutual TLS authentication (listeners use tls/ or quic/)")
 
 
 
-class TelemetryConfig(_Strict):
+class TelemetryConfig(Strict):
     """The ``telemetry:`` section of a robot configuration."""
 
     enabled: bool = Field(True, description="open a zenoh session, publish telemetry, accept commands")
@@ -72,13 +68,14 @@ class TelemetryConfig(_Strict):
     image_rate_hz: float = Field(2.0, ge=0, le=60, description="rate of vbnav/<robot>/image JPEGs (and in "
                                                                 "recordings); 0 = off")
     image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled to this width, px")
-    jpeg_quality: int = Field(70, ge=10, le=100)
+    jpeg_quality: int = Field(70, ge=10, le=100, description="JPEG quality of those images")
     listen: list[str] = Field(default_factory=lambda: [DEFAULT_ENDPOINT], max_length=8,
                               description="zenoh endpoints the robot listens on")
     connect: list[str] = Field(default_factory=list, max_length=8,
                                description="zenoh endpoints the robot connects to (e.g. a base-station router)")
     scouting: bool = Field(False, description="multicast scouting and gossip (discovery); off by default")
-    auth: AuthConfig = Field(default_factory=AuthConfig)
+    auth: AuthConfig = Field(default_factory=AuthConfig, description="authentication of peers; needed (with "
+                             "operators) as soon as listen, connect or scouting reach beyond this machine")
     operators: list[str] = Field(default_factory=list,
                                  description="user names / certificate common names allowed on cmd/**")
 
@@ -146,19 +143,3 @@ def is_loopback_endpoint(endpoint: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False  # a host name: may resolve anywhere
-
-
-
-def parse_telemetry_config(section: dict[str, Any] | None, source: str = "<config>") -> TelemetryConfig:
-    """Validate ``cfg.telemetry``; errors name the file and key, like the rest of the config."""
-    from vbnav.control.config import ConfigError, _format_errors
-    try:
-        return TelemetryConfig.model_validate(section or {})
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc, prefix="telemetry")) from None
-
-
-
-def telemetry_config(cfg) -> TelemetryConfig:
-    """The validated telemetry section of a loaded vbnav Config."""
-    return parse_telemetry_config(cfg.telemetry, cfg.source or "<config>")

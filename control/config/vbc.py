@@ -1,27 +1,27 @@
 """The ``vbc:`` section: teach-and-repeat by Vision-Based Control (tracking, keyframes, repeat)."""
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+from vbnav.control.config.base import Strict
 
 
-class VBCConfig(BaseModel):
+class VBCConfig(Strict):
     """The ``vbc:`` section of a robot configuration."""
 
-    model_config = ConfigDict(extra="forbid")
     # tracking
     max_features: int = Field(200, ge=10, description="tracks kept alive while teaching")
-    min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners")
-    fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward KLT rejection threshold")
-    klt_window_px: int = Field(11, ge=5, le=41, description="KLT window side; 11 halves the cost at 15 Hz")
+    min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners, px")
+    fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward KLT rejection threshold, px")
+    klt_window_px: int = Field(11, ge=5, le=41, description="KLT window side, px; 11 halves the cost at 15 Hz")
     klt_levels: int = Field(3, ge=0, le=6, description="KLT pyramid levels")
     bearing_sigma_px: float = Field(1.0, gt=0, description="bearing noise, in pixels at the focal length")
     # keyframes
-    keyframe_distance_m: float = Field(0.4, gt=0)
-    keyframe_rotation_deg: float = Field(12.0, gt=0)
+    keyframe_distance_m: float = Field(0.4, gt=0, description="a new keyframe after driving this far")
+    keyframe_rotation_deg: float = Field(12.0, gt=0, description="... or after turning this much")
     keyframe_min_overlap: float = Field(0.6, ge=0, le=1, description="new keyframe when fewer of the last "
                                         "keyframe's landmarks are still tracked")
     keyframe_min_spacing_m: float = Field(0.05, ge=0, description="no overlap-triggered keyframe closer than this")
-    min_keyframe_landmarks: int = Field(20, ge=4)
+    min_keyframe_landmarks: int = Field(20, ge=4, description="no keyframe from a frame with fewer tracks")
     denoise_baseline_m: float = Field(0.5, ge=0, description="a keyframe stores the bearings its tracks' fit "
                                       "predicts only for tracks first seen within this distance (odometry "
                                       "heading drifts ~1 deg/m), else the observed ones")
@@ -34,22 +34,12 @@ class VBCConfig(BaseModel):
                                    "when fewer than this share are tracked")
     guided_radius_px: float = Field(25.0, gt=0, description="max distance of a guided match from its prediction")
     pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
-    cruise_speed: float = Field(0.25, gt=0, description="m/s")
+    cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s (at most robot.max_linear_speed)")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new fix's correction applied at once")
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
-    blind_speed_factor: float = Field(0.4, gt=0, le=1)
-    goal_tolerance_m: float = Field(0.03, gt=0)
-    max_estimate_age_s: float = Field(0.5, gt=0)
+    blind_speed_factor: float = Field(0.4, gt=0, le=1, description="speed factor while driving on odometry "
+                                                                  "alone")
+    goal_tolerance_m: float = Field(0.03, gt=0, description="finished within this of the last keyframe")
+    max_estimate_age_s: float = Field(0.5, gt=0, description="older fixes are not used by the controller")
     turn_in_place_deg: float = Field(60.0, gt=0, description="larger heading errors turn on the spot")
-
-
-
-def teach_repeat_config(section: dict | None, source: str = "<config>") -> VBCConfig:
-    """Validate the free ``vbc:`` configuration section; errors name the file and key path."""
-    from pydantic import ValidationError
-    from vbnav.control.config import ConfigError, _format_errors
-    try:
-        return VBCConfig.model_validate(section or {})
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc, prefix="vbc")) from None

@@ -3,15 +3,15 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+from vbnav.control.config.base import Strict
 from vbnav.vision.vslam import VslamConfig
 
 
-class GotoConfig(BaseModel):
+class GotoConfig(Strict):
     """``vslam.goto``: the go-to controller's gains and tolerances."""
 
-    model_config = ConfigDict(extra="forbid")
-    cruise_speed: float = Field(0.3, gt=0, description="m/s")
+    cruise_speed: float = Field(0.3, gt=0, description="top speed, m/s (at most robot.max_linear_speed)")
     k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
     k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
     k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
@@ -21,15 +21,16 @@ class GotoConfig(BaseModel):
     final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
     settle_s: float = Field(0.3, ge=0, description="stopped this long within tolerance before finishing")
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
-    max_estimate_age_s: float = Field(0.5, gt=0)
+    max_estimate_age_s: float = Field(0.5, gt=0, description="older VSLAM poses are not used by the controller")
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
     init_creep_speed: float = Field(0.1, ge=0, description="m/s straight ahead while a monocular VSLAM waits for "
                                                            "the parallax to initialise (at most blind_distance_m)")
 
 
 
-class VslamNavConfig(VslamConfig):
-    """The ``vslam:`` section: the front end's settings plus the robot-side ones."""
+class VslamNavConfig(VslamConfig, Strict):
+    """The ``vslam:`` section: the front end's settings (vision's ``VslamConfig``, which stays free of
+    control/) plus the robot-side ones, as strict as every other section."""
 
     relocalise_radius_m: float = Field(1.0, ge=0, description="try an older anchor when the robot is this close "
                                                               "to where it was set (0: never)")
@@ -59,15 +60,4 @@ class VslamNavConfig(VslamConfig):
                                        "scale from the initialisation only")
     odometry_scale_min_travel_m: float = Field(0.3, gt=0, description="metric_scale odometry: camera travel the "
                                                "wheels and the VSLAM are compared over")
-    goto: GotoConfig = Field(default_factory=GotoConfig)
-
-
-
-def vslam_nav_config(section: dict | None, source: str = "<config>") -> VslamNavConfig:
-    """Validate the free ``vslam:`` configuration section; errors name the file and key path."""
-    from pydantic import ValidationError
-    from vbnav.control.config import ConfigError, _format_errors
-    try:
-        return VslamNavConfig.model_validate(section or {})
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc, prefix="vslam")) from None
+    goto: GotoConfig = Field(default_factory=GotoConfig, description="the goto controller (vbnav goto)")

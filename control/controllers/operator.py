@@ -136,20 +136,18 @@ class OperatorController(Controller):
             self._close_teach()
             stages, controller, writer, teach_stage = list(self._base_stages), None, None, None
             if target == "teach":
-                from vbnav.control.config.vbc import teach_repeat_config
                 from vbnav.control.route import RouteWriter
                 from vbnav.control.stages.teach import TeachStage
                 model, mount = self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount()
-                teach_stage = TeachStage(model, mount, teach_repeat_config(self.cfg.vbc, self.cfg.source or ""))
+                teach_stage = TeachStage(model, mount, self.cfg.vbc)
                 writer = RouteWriter(Path(route), self.cfg.robot.name, model, mount, overwrite=False)
                 stages = [teach_stage] + stages
             elif target == "repeat":
-                from vbnav.control.config.vbc import teach_repeat_config
                 from vbnav.control.controllers.repeat import RepeatController
                 from vbnav.control.route import load_route
                 from vbnav.control.stages.repeat import RepeatStage
                 r = load_route(route)
-                vcfg = teach_repeat_config(self.cfg.vbc, self.cfg.source or "")
+                vcfg = self.cfg.vbc
                 stages = [RepeatStage(r, vcfg, self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount())] + stages
                 controller = RepeatController(r, vcfg, self.cfg.robot.max_linear_speed,
                                               self.cfg.robot.max_angular_speed)

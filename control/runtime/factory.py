@@ -56,7 +56,7 @@ def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, world
     clock = make_clock(cfg)
     opts = validate_driver_options(cfg, cfg.source or "<config>")
     drive = make_drive(cfg, clock, opts["drive"])
-    want_camera = (bool(stages) or bool(cfg.obstacles.get("enabled"))) if with_camera is None else with_camera
+    want_camera = (bool(stages) or cfg.obstacles.enabled) if with_camera is None else with_camera
     camera = make_camera(cfg, clock, drive, opts["camera"], world=world) if want_camera else None
     pipeline = make_pipeline(cfg, clock, camera, list(stages)) if camera is not None else None
     return clock, drive, pipeline

@@ -19,7 +19,7 @@ held in ``persist_k`` of the last ``persist_n`` frames (one noisy frame does not
 stop the robot); the scale drops at once and rises again only after the
 condition has been clear for ``release_s`` (debounce on release, frame stamps).
 
-Config section ``obstacles:`` (validated here by ``ObstaclesConfig``)::
+Config section ``obstacles:`` (``cfg.obstacles``, an ``ObstaclesConfig`` validated with the rest at load)::
 
     obstacles:
       enabled: true           # off by default: a mono camera has no disparity (the stage would stop the robot)
@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig, obstacles_config
+from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -54,8 +54,7 @@ from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
 
 def make_obstacle_stage(cfg) -> Optional["ObstacleStage"]:
     """The obstacle stage for a vbnav Config, or None when ``obstacles.enabled`` is false."""
-    ocfg = obstacles_config(cfg.obstacles, cfg.source or "<config>")
-    return ObstacleStage.from_config(cfg) if ocfg.enabled else None
+    return ObstacleStage.from_config(cfg) if cfg.obstacles.enabled else None
 
 
 
@@ -210,7 +209,7 @@ class ObstacleStage(VisionStage):
     def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
         """From a vbnav Config: camera intrinsics and mount, ``obstacles:`` section, baseline from
         ``obstacles.baseline``, ``camera.options.stereo_baseline`` or, failing both, the frames' meta."""
-        ocfg = obstacles_config(cfg.obstacles, cfg.source or "<config>")
+        ocfg = cfg.obstacles
         baseline = ocfg.baseline or (cfg.camera.options or {}).get("stereo_baseline")
         c = cfg.camera
         if not baseline:

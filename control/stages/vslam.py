@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from vbnav.control.config.vslam import VslamNavConfig, vslam_nav_config
+from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe, to_grey
@@ -431,5 +431,4 @@ BASELINE_FROM_DEVICE = ("oak",)
 
 def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
     return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
-                      vslam_nav_config(cfg.vslam, cfg.source or "<config>"),
-                      baseline_from_frames=cfg.camera.driver in BASELINE_FROM_DEVICE)
+                      cfg.vslam, baseline_from_frames=cfg.camera.driver in BASELINE_FROM_DEVICE)
