@@ -7,7 +7,7 @@ import pytest
 
 from driver_test_utils import controller_script, drive_for, emulate_cli, kill_controller_while_driving, wait_until
 
-from vbnav.drivers import odrive_emulator as oe
+from vbnav.drivers.sim import odrive_emulator as oe
 from vbnav.drivers.odrive import ODriveDrive, decode_bits, MOTOR_ERRORS
 from vbnav.drivers.wheels import DriveError
 
