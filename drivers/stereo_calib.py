@@ -102,8 +102,7 @@ class StereoCalibration:
         """The StereoRig for images of the given size."""
         if self.baseline is None:
             raise CalibrationError(f"{self.source}: no right camera (P1) in the file")
-        cam = self.camera(width, height)
-        return StereoRig(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, self.baseline)
+        return StereoRig(self.camera(width, height), self.baseline)
 
 
 def load_stereo_calibration(path: str | Path) -> StereoCalibration:
