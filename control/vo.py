@@ -17,7 +17,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbnav.drivers.datasets import Dataset
-from vbnav.vision.geometry import quat_from_matrix
+from vbnav.vision.geometry import absolute_orientation, quat_from_matrix
 from vbnav.vision.vslam import FrameResult, Vslam, VslamConfig
 from vbnav.vision.vslam_init import TagGrid, init_from_tags, init_two_view
 
@@ -144,22 +144,9 @@ def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
         raise
 
 
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R, t, s) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (a ** 2).sum(1).mean()) if with_scale else 1.0
-    return R, mu_d - s * R @ mu_s, s
-
-
 def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple[float, np.ndarray]:
     """Absolute trajectory error (translation RMSE, m) after aligning est to gt; also the aligned est."""
-    R, t, s = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale)
+    R, t, s = absolute_orientation(est[:, :3, 3], gt[:, :3, 3], with_scale=with_scale)
     aligned = s * est[:, :3, 3] @ R.T + t
     return float(np.sqrt(np.mean(np.sum((aligned - gt[:, :3, 3]) ** 2, axis=1)))), aligned
 
