@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vbnav.control.cli import main
-from vbnav.control.vo import ate_rmse, rpe, write_tum
+from vbnav.control.trajectory_metrics import ate_rmse, rpe, write_tum
 from vbnav.drivers.datasets import DatasetError, open_dataset
 from vbnav.vision.geometry import absolute_orientation
 
