@@ -21,7 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from desk_view import build_desk_view  # noqa: E402
 
-from vbnav.control.vo import ate_rmse, run_vo  # noqa: E402
+from vbnav.control.trajectory_metrics import ate_rmse  # noqa: E402
+from vbnav.control.vo import run_vo  # noqa: E402
 from vbnav.drivers.datasets import open_dataset  # noqa: E402
 from vbnav.vision.vslam_init import TagGrid  # noqa: E402
 

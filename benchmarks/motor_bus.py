@@ -22,8 +22,8 @@ import time
 import numpy as np
 import dynamixel_sdk as sdk
 
-from vbnav.drivers.dynamixel import (ADDR_GOAL_VELOCITY, ADDR_PRESENT_POSITION, ADDR_PRESENT_VELOCITY,
-                                     BudgetedPort, DynamixelDrive)
+from vbnav.drivers.dynamixel import BudgetedPort, DynamixelDrive
+from vbnav.drivers.dynamixel_table import GOAL_VELOCITY, PRESENT_POSITION, PRESENT_VELOCITY, RETURN_DELAY_TIME, TORQUE_ENABLE
 
 
 def start_emulator(ids: str):
@@ -57,12 +57,12 @@ def bench_cycles(path: str, cycles: int) -> tuple[list[int], list[int]]:
         u = int(80 * np.sin(k * 0.05)) & 0xFFFFFFFF
         t0 = time.perf_counter_ns()
         for i in (1, 2):
-            ph.write4ByteTxRx(port, i, ADDR_GOAL_VELOCITY, u)
-            ph.read4ByteTxRx(port, i, ADDR_PRESENT_VELOCITY)
-            ph.read4ByteTxRx(port, i, ADDR_PRESENT_POSITION)
+            ph.write4ByteTxRx(port, i, GOAL_VELOCITY.address, u)
+            ph.read4ByteTxRx(port, i, PRESENT_VELOCITY.address)
+            ph.read4ByteTxRx(port, i, PRESENT_POSITION.address)
         naive.append(time.perf_counter_ns() - t0)
     for i in (1, 2):
-        ph.write1ByteTxRx(port, i, 64, 0)
+        ph.write1ByteTxRx(port, i, TORQUE_ENABLE.address, 0)
     port.closePort()
     return ours, naive
 
@@ -71,9 +71,9 @@ def loop_with_missing_servo(port, seconds: float, rate_hz: float = 100.0) -> dic
     """Sync write + sync read of ids 1 and 2 at ``rate_hz`` where id 2 never answers."""
     ph = sdk.PacketHandler(2.0)
     port.openPort()
-    ph.write1ByteTxRx(port, 1, 9, 0)  # Return Delay 0
-    sw = sdk.GroupSyncWrite(port, ph, ADDR_GOAL_VELOCITY, 4)
-    sr = sdk.GroupSyncRead(port, ph, ADDR_PRESENT_VELOCITY, 8)
+    ph.write1ByteTxRx(port, 1, RETURN_DELAY_TIME.address, 0)
+    sw = sdk.GroupSyncWrite(port, ph, GOAL_VELOCITY.address, GOAL_VELOCITY.size)
+    sr = sdk.GroupSyncRead(port, ph, PRESENT_VELOCITY.address, PRESENT_VELOCITY.size + PRESENT_POSITION.size)
     for i in (1, 2):
         sw.addParam(i, [0, 0, 0, 0])
         sr.addParam(i)

@@ -39,7 +39,7 @@ from vbnav.vision.stereo import SGBM_640x480, SGBM_KITTI, StereoRig, sgbm_dispar
 
 CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 MOUNT = CameraMount(0.25, 0.10, 0.0, 0.0)
-RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+RIG = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
 SGBM = SGBM_640x480
 
 

@@ -19,7 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vbnav.control.vo import ate_rmse, rpe, run_vo
+from vbnav.control.trajectory_metrics import ate_rmse, rpe
+from vbnav.control.vo import run_vo
 from vbnav.drivers.datasets import open_dataset
 from vbnav.vision.features import KltTracker
 

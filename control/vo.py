@@ -1,23 +1,15 @@
-"""Visual odometry over a recorded dataset: run the VSLAM front end, write and evaluate the trajectory.
+"""Visual odometry over a recorded dataset: run the VSLAM front end from the chosen initialisation.
 
-Evaluation is implemented here rather than through ``evo``: ATE with an
-SE(3) (or Sim(3)) Umeyama alignment and RPE over a frame delta are a few lines
-of numpy, and evo would pull a large dependency tree into the robot's
-install for two numbers. The definitions follow evo's ``evo_ape tum -a`` and
-``evo_rpe tum`` (translation part, RMSE).
+``vbnav vo`` writes and evaluates the trajectory with ``control/trajectory_metrics.py``.
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 
 from vbnav.drivers.datasets import Dataset
-from vbnav.vision.geometry import quat_from_matrix
 from vbnav.vision.vslam import FrameResult, Vslam, VslamConfig
 from vbnav.vision.vslam_init import TagGrid, init_from_tags, init_two_view
 
@@ -124,77 +116,3 @@ def _init_essential(ds: Dataset, slam: Vslam, max_frames: int, say) -> tuple[int
     slam.prev = None
     slam.initialise(img, px[keep][v], X2, pose_wc)
     return k + 1, False
-
-
-def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
-    """``timestamp tx ty tz qx qy qz qw`` per line (camera-to-world), written atomically."""
-    path = Path(path)
-    lines = []
-    for t, M in zip(stamps, poses):
-        q = quat_from_matrix(M[:3, :3])
-        lines.append(f"{t:.6f} {M[0, 3]:.6f} {M[1, 3]:.6f} {M[2, 3]:.6f} {q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R, t, s) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (a ** 2).sum(1).mean()) if with_scale else 1.0
-    return R, mu_d - s * R @ mu_s, s
-
-
-def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple[float, np.ndarray]:
-    """Absolute trajectory error (translation RMSE, m) after aligning est to gt; also the aligned est."""
-    R, t, s = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale)
-    aligned = s * est[:, :3, 3] @ R.T + t
-    return float(np.sqrt(np.mean(np.sum((aligned - gt[:, :3, 3]) ** 2, axis=1)))), aligned
-
-
-def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> tuple[float, float]:
-    """Relative pose error over ``delta`` frames: (translation RMSE m, rotation RMSE deg)."""
-    te, re = [], []
-    for i in range(len(est) - delta):
-        E = np.linalg.inv(est[i]) @ est[i + delta]
-        G = np.linalg.inv(gt[i]) @ gt[i + delta]
-        D = np.linalg.inv(G) @ E
-        te.append(np.linalg.norm(D[:3, 3]))
-        re.append(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
-    if not te:
-        return float("nan"), float("nan")
-    return float(np.sqrt(np.mean(np.square(te)))), float(np.sqrt(np.mean(np.square(re))))
-
-
-def plot_trajectory(path: str | Path, aligned: np.ndarray, gt: np.ndarray, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 6))
-    ax.plot(gt[:, 0], gt[:, 2], "k-", label="ground truth")
-    ax.plot(aligned[:, 0], aligned[:, 2], "r-", label="vbnav vo (aligned)")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("z [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.legend()
-    ax.set_title(title)
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".png", dir=path.parent if str(path.parent) else ".")
-    os.close(fd)
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)

@@ -4,7 +4,8 @@ KITTI odometry layout (a folder):
     image_l/*.png            left images (``image_0/`` is accepted too), sorted by name
     image_r/*.png            optional right images (``image_1/``), same count
     calib.txt                P0 and P1 3x4 projection matrices, one per line
-                             (with or without the ``P0:`` labels)
+                             (with or without the ``P0:`` labels; read by
+                             ``stereo_calib.read_kitti_calib``)
     poses.txt                optional: one 3x4 row-major camera-to-world matrix per frame
     times.txt                optional: one time in seconds per frame; 10 Hz otherwise
 
@@ -26,6 +27,7 @@ import cv2
 import numpy as np
 import yaml
 
+from vbnav.drivers.stereo_calib import CalibrationError, read_kitti_calib
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import matrix_from_quat
 
@@ -99,7 +101,7 @@ def _read_image(path: Path, grey: bool) -> np.ndarray:
     return img
 
 
-def _numbers(path: Path, per_line: int, what: str, labelled: bool = False) -> np.ndarray:
+def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
     rows = []
     try:
         text = path.read_text()
@@ -109,8 +111,6 @@ def _numbers(path: Path, per_line: int, what: str, labelled: bool = False) -> np
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        if labelled and ":" in line:
-            line = line.split(":", 1)[1]
         try:
             vals = [float(v) for v in line.split()]
         except ValueError:
@@ -176,13 +176,11 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     else:
         if not calib_path.is_file():
             raise DatasetError(f"{calib_path}: missing (KITTI layout needs P0 and P1 projection matrices)")
-        P = _numbers(calib_path, 12, "a 3x4 projection matrix per line", labelled=True).reshape(-1, 3, 4)
-        P0 = P[0]
-        camera = PinholeCamera(w, h, float(P0[0, 0]), float(P0[1, 1]), float(P0[0, 2]), float(P0[1, 2]))
-        extras = {}
-        if len(P) > 1:
-            # P1 = K [I | -b e_x]: P1[0, 3] = -fx b (rectified pair, right camera at +b along x)
-            baseline = float(-(P[1][0, 3] - P0[0, 3]) / P0[0, 0])
+        try:
+            calib = read_kitti_calib(calib_path, need_right=False)
+        except CalibrationError as exc:
+            raise DatasetError(str(exc)) from None
+        camera, baseline, extras = calib.camera(w, h), calib.baseline, {}
     if right is not None and baseline is None:
         baseline = extras.get("baseline")
         if baseline is None:

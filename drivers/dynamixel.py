@@ -23,7 +23,10 @@ from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
+from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, HW_ERROR_BITS, MODE_VELOCITY, MODEL_NUMBERS,
+                                           TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
 from vbnav.drivers.serial_drive import SerialWheelDrive
 from vbnav.drivers.wheels import DriveError, WheelState
 
@@ -33,31 +36,10 @@ except ImportError as _exc:  # pragma: no cover - dependency is in pyproject
     sdk = None
     _SDK_ERROR = _exc
 
-ADDR_MODEL_NUMBER = 0
-ADDR_RETURN_DELAY = 9
-ADDR_OPERATING_MODE = 11
-ADDR_VELOCITY_LIMIT = 44
-ADDR_TORQUE_ENABLE = 64
-ADDR_HW_ERROR = 70
-ADDR_BUS_WATCHDOG = 98
-ADDR_GOAL_VELOCITY = 104
-ADDR_PROFILE_ACCEL = 108
-ADDR_PRESENT_VELOCITY = 128
-ADDR_PRESENT_POSITION = 132
-
-MODE_VELOCITY = 1
-VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0  # one Goal/Present Velocity unit
-ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0  # one Profile Acceleration unit (rev/min^2)
-TICKS_PER_REV = 4096
-WATCHDOG_UNIT_S = 0.020
 BRING_UP_EXTRA_MS = 30.0  # answer window added during bring-up: not time-critical, and must not flake
 BRING_UP_ATTEMPTS = 3
-
-MODEL_NUMBERS = {"XL430-W250": 1060, "XM430-W350": 1020, "XM430-W210": 1030, "XM540-W270": 1120,
-                 "XL330-M288": 1200}
-
-HW_ERROR_BITS = {0: "input voltage error", 2: "overheating", 3: "motor encoder error",
-                 4: "electrical shock", 5: "overload"}
+# Present Velocity and Present Position are adjacent (tests check it): one sync read of (address, length)
+_STATE_BLOCK = (reg.PRESENT_VELOCITY.address, reg.PRESENT_VELOCITY.size + reg.PRESENT_POSITION.size)
 
 
 def decode_hardware_error(bits: int) -> str:
@@ -124,7 +106,7 @@ class DynamixelDrive(SerialWheelDrive):
         baudrate: int = Field(1_000_000, description="bus rate, bit/s")
         left_id: int = Field(1, ge=0, le=252, description="bus ID of the left wheel servo")
         right_id: int = Field(2, ge=0, le=252, description="bus ID of the right wheel servo")
-        model: Optional[Literal["XL430-W250", "XM430-W350", "XM430-W210", "XM540-W270", "XL330-M288"]] = Field(
+        model: Optional[Literal[tuple(MODEL_NUMBERS)]] = Field(  # type: ignore[valid-type]
             None, description="expected servo model; None accepts any known X-series model")
         velocity_limit_rad_s: float = Field(6.0, gt=0, description="written to Velocity Limit (44); commands clamp")
         profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
@@ -179,11 +161,11 @@ class DynamixelDrive(SerialWheelDrive):
         """Zero goals, re-arm the watchdog, torque on."""
         for i in self.ids:
             # a watchdog that expired while we were away reads 0xFF and locks the goals: clear, re-arm
-            self._write(i, ADDR_BUS_WATCHDOG, 1, 0, "Bus Watchdog")
-            self._write(i, ADDR_GOAL_VELOCITY, 4, 0, "Goal Velocity")
-            self._write(i, ADDR_BUS_WATCHDOG, 1, self._watchdog_units, "Bus Watchdog")
+            self._write(i, reg.BUS_WATCHDOG, 0)
+            self._write(i, reg.GOAL_VELOCITY, 0)
+            self._write(i, reg.BUS_WATCHDOG, self._watchdog_units)
         for i in self.ids:
-            self._write(i, ADDR_TORQUE_ENABLE, 1, 1, "Torque Enable")
+            self._write(i, reg.TORQUE_ENABLE, 1)
 
     def write(self, left: float, right: float) -> None:
         with self._lock:
@@ -215,7 +197,7 @@ class DynamixelDrive(SerialWheelDrive):
             try:
                 with self.port.relaxed(BRING_UP_EXTRA_MS):
                     for i in self.ids:
-                        bits, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR))
+                        bits, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address))
                         if res == sdk.COMM_SUCCESS and bits == 0:
                             continue
                         res, _ = self._guard_io(lambda: self.ph.reboot(self.port, i))
@@ -245,8 +227,8 @@ class DynamixelDrive(SerialWheelDrive):
             raise DriveError(f"cannot open dynamixel adapter {self.opt.port}: {exc}") from exc
         if not ok:
             raise DriveError(f"cannot open dynamixel adapter {self.opt.port} at {self.opt.baudrate} bit/s")
-        self._sync_write = sdk.GroupSyncWrite(self.port, self.ph, ADDR_GOAL_VELOCITY, 4)
-        self._sync_read = sdk.GroupSyncRead(self.port, self.ph, ADDR_PRESENT_VELOCITY, 8)
+        self._sync_write = sdk.GroupSyncWrite(self.port, self.ph, reg.GOAL_VELOCITY.address, reg.GOAL_VELOCITY.size)
+        self._sync_read = sdk.GroupSyncRead(self.port, self.ph, *_STATE_BLOCK)
         for i in self.ids:
             self._sync_read.addParam(i)
 
@@ -275,30 +257,31 @@ class DynamixelDrive(SerialWheelDrive):
                                  f"({', '.join(str(a) for a in sorted(accepted))})")
             self.models[i] = model
         for i in self.ids:
-            bits, res, err = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR))
+            bits, res, err = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address))
             if res == sdk.COMM_SUCCESS and bits:
                 msg = f"servo {i} ({self.sides[i]}) hardware error: {decode_hardware_error(bits)}"
                 self.faults.append(msg)
                 raise DriveError(msg + "; only a REBOOT clears it (clear_faults)")
         accel_units = int(round(self.opt.profile_acceleration_rad_s2 / ACCEL_UNIT_RAD_S2))
-        steps = [(ADDR_TORQUE_ENABLE, 1, 0, "Torque Enable"),
-                 (ADDR_OPERATING_MODE, 1, MODE_VELOCITY, "Operating Mode"),
-                 (ADDR_VELOCITY_LIMIT, 4, self._limit_units, "Velocity Limit"),
-                 (ADDR_PROFILE_ACCEL, 4, accel_units, "Profile Acceleration"),
-                 (ADDR_RETURN_DELAY, 1, 0, "Return Delay Time"),
-                 (ADDR_BUS_WATCHDOG, 1, 0, "Bus Watchdog"),  # clears a latched watchdog error (0xFF)
-                 (ADDR_BUS_WATCHDOG, 1, self._watchdog_units, "Bus Watchdog")]
-        for addr, size, value, what in steps:
+        steps = [(reg.TORQUE_ENABLE, 0),
+                 (reg.OPERATING_MODE, MODE_VELOCITY),
+                 (reg.VELOCITY_LIMIT, self._limit_units),
+                 (reg.PROFILE_ACCELERATION, accel_units),
+                 (reg.RETURN_DELAY_TIME, 0),
+                 (reg.BUS_WATCHDOG, 0),  # clears a latched watchdog error (0xFF)
+                 (reg.BUS_WATCHDOG, self._watchdog_units)]
+        for register, value in steps:
             for i in self.ids:
-                self._write(i, addr, size, value, what)
+                self._write(i, register, value)
         self._last_raw = {i: None for i in self.ids}
         self._state = WheelState(self.clock.now_ns(), self._positions(), (0.0, 0.0))
 
-    def _write(self, i: int, addr: int, size: int, value: int, what: str) -> None:
+    def _write(self, i: int, register: Register, value: int) -> None:
         """A confirmed register write (bring-up, enable): retried, since none of them is time-critical."""
-        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
+        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[register.size]
+        addr, what = register.address, register.name
         for _attempt in range(BRING_UP_ATTEMPTS):
-            res, err = self._guard_io(lambda: fn(self.port, i, addr, value & ((1 << (8 * size)) - 1)))
+            res, err = self._guard_io(lambda: fn(self.port, i, addr, value & ((1 << (8 * register.size)) - 1)))
             if res == sdk.COMM_SUCCESS:
                 break
         if res != sdk.COMM_SUCCESS:
@@ -315,7 +298,7 @@ class DynamixelDrive(SerialWheelDrive):
     def _sync_write_velocity(self, units: list[int]) -> tuple[bool, str]:
         self._sync_write.clearParam()
         for i, u in zip(self.ids, units):
-            self._sync_write.addParam(i, list((u & 0xFFFFFFFF).to_bytes(4, "little")))
+            self._sync_write.addParam(i, list(reg.GOAL_VELOCITY.encode(u)))
         res = self._sync_write.txPacket()
         if res != sdk.COMM_SUCCESS:
             return False, f"sync write failed: {self.ph.getTxRxResult(res)}"
@@ -330,7 +313,7 @@ class DynamixelDrive(SerialWheelDrive):
         values = {}
         alerts = []
         for i in self.ids:
-            data, res, err = self.ph.readRx(self.port, i, 8)
+            data, res, err = self.ph.readRx(self.port, i, _STATE_BLOCK[1])
             if res != sdk.COMM_SUCCESS:
                 why = "no status packet (servo not answering)" if res == sdk.COMM_RX_TIMEOUT else \
                     "corrupted status packet (bad CRC or truncated)" if res == sdk.COMM_RX_CORRUPT else \
@@ -338,8 +321,8 @@ class DynamixelDrive(SerialWheelDrive):
                 return False, f"servo {i} ({self.sides[i]}): {why}"
             if err & 0x80:
                 alerts.append(i)
-            values[i] = (to_signed(int.from_bytes(bytes(data[0:4]), "little"), 4),
-                         int.from_bytes(bytes(data[4:8]), "little"))
+            # velocity signed; the position kept unsigned, as the unwrapping below expects
+            values[i] = (reg.PRESENT_VELOCITY.decode(data[0:4]), reg.PRESENT_POSITION.decode(data[4:8], signed=False))
         now = self.clock.now_ns()
         for i, (vel, raw_pos) in values.items():
             last = self._last_raw[i]
@@ -352,7 +335,7 @@ class DynamixelDrive(SerialWheelDrive):
         if alerts:
             msgs = []
             for i in alerts:
-                bits, res, _ = self.ph.read1ByteTxRx(self.port, i, ADDR_HW_ERROR)
+                bits, res, _ = self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address)
                 detail = decode_hardware_error(bits) if res == sdk.COMM_SUCCESS else "unreadable"
                 msgs.append(f"servo {i} ({self.sides[i]}) hardware error: {detail}")
             self._fault("; ".join(msgs) + "; only a REBOOT clears it (clear_faults)")
@@ -363,7 +346,7 @@ class DynamixelDrive(SerialWheelDrive):
 
     def _check_watchdog(self, now: int) -> None:
         for i in self.ids:
-            v, res, _ = self.ph.read1ByteTxRx(self.port, i, ADDR_BUS_WATCHDOG)
+            v, res, _ = self.ph.read1ByteTxRx(self.port, i, reg.BUS_WATCHDOG.address)
             if res == sdk.COMM_SUCCESS and v == 0xFF:
                 gap = (now - self._last_write_ns) * 1e-9
                 self._fault(f"servo {i} ({self.sides[i]}): bus watchdog expired after {gap * 1000:.0f} ms "
@@ -397,8 +380,8 @@ class DynamixelDrive(SerialWheelDrive):
         for i in self.ids:
             try:
                 self.port.is_using = False  # an exception mid-transfer leaves the SDK's flag set
-                self.ph.write4ByteTxRx(self.port, i, ADDR_GOAL_VELOCITY, 0)
-                self.ph.write1ByteTxRx(self.port, i, ADDR_TORQUE_ENABLE, 0)
+                self.ph.write4ByteTxRx(self.port, i, reg.GOAL_VELOCITY.address, 0)
+                self.ph.write1ByteTxRx(self.port, i, reg.TORQUE_ENABLE.address, 0)
             except Exception:
                 pass
 

@@ -3,9 +3,12 @@
 KITTI (odometry benchmark): lines ``P0: <12 numbers>`` and ``P1: <12 numbers>``, the
 3x4 projection matrices of the rectified left and right grey cameras, row-major.
 Files without the ``Pn:`` labels (two bare lines of 12 numbers, as in some
-published subsets) are accepted too. fx = P0[0,0], fy = P0[1,1], cx = P0[0,2],
-cy = P0[1,2]; the baseline is B = -P1[0,3] / P1[0,0] (P1 = K [I | -B e_x]).
-The image size is not in the file; it comes from the images.
+published subsets) are accepted too; ``#`` lines are comments. The left camera's
+K = P0[:, :3]. Each rectified camera is Pi = K [I | t_i] with Pi[0,3] = fx t_i,x, so
+the baseline (right camera centre at +B along the left camera's x) is
+B = -(P1[0,3] - P0[0,3]) / P1[0,0]. The image size is not in the file; it comes
+from the images. ``read_kitti_calib`` is the one reader of this format (the
+dataset reader and the tests use it too).
 
 vbnav stereo YAML (``*.yaml`` / ``*.yml``), documented in docs/obstacles.md::
 
@@ -33,6 +36,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 
 
@@ -60,31 +64,45 @@ class _StereoYaml(BaseModel):
     disparity_scale: Optional[float] = Field(None, gt=0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StereoCalibration:
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    baseline: float
-    width: Optional[int] = None          # None: take it from the images (KITTI)
-    height: Optional[int] = None
+    """A rectified stereo pair as a calibration file gives it.
+
+    ``K`` is the rectified left camera's 3x3 intrinsic matrix. A KITTI file has no
+    image size (``size`` None: it comes from the images) and may lack the right
+    camera (``baseline`` None: a monocular sequence).
+    """
+
+    K: np.ndarray
+    baseline: Optional[float]  # m, right camera centre at +baseline along the left camera's x
+    size: Optional[tuple[int, int]] = None  # (width, height) of the rectified images
     mount_height: Optional[float] = None
     mount_pitch_deg: float = 0.0
     mount_roll_deg: float = 0.0
     disparity_scale: Optional[float] = None
     source: str = "<calibration>"
 
-    def rig(self, width: Optional[int] = None, height: Optional[int] = None) -> StereoRig:
-        """The StereoRig for images of the given size (checked against the file's size if it has one)."""
-        w = width if width is not None else self.width
-        h = height if height is not None else self.height
-        if w is None or h is None:
+    # the left camera's intrinsics by name
+    fx = property(lambda self: float(self.K[0, 0]))
+    fy = property(lambda self: float(self.K[1, 1]))
+    cx = property(lambda self: float(self.K[0, 2]))
+    cy = property(lambda self: float(self.K[1, 2]))
+
+    def camera(self, width: Optional[int] = None, height: Optional[int] = None) -> PinholeCamera:
+        """The left camera for images of the given size (checked against the file's size if it has one)."""
+        size = (width, height) if width is not None and height is not None else self.size
+        if size is None:
             raise CalibrationError(f"{self.source}: the image size is not in the file; give the images")
-        if self.width is not None and (w, h) != (self.width, self.height):
-            raise CalibrationError(f"{self.source}: width/height: calibration is for {self.width}x{self.height} "
-                                   f"images, got {w}x{h}")
-        return StereoRig(w, h, self.fx, self.fy, self.cx, self.cy, self.baseline)
+        if self.size is not None and tuple(size) != tuple(self.size):
+            raise CalibrationError(f"{self.source}: width/height: calibration is for {self.size[0]}x{self.size[1]} "
+                                   f"images, got {size[0]}x{size[1]}")
+        return PinholeCamera(int(size[0]), int(size[1]), self.fx, self.fy, self.cx, self.cy)
+
+    def rig(self, width: Optional[int] = None, height: Optional[int] = None) -> StereoRig:
+        """The StereoRig for images of the given size."""
+        if self.baseline is None:
+            raise CalibrationError(f"{self.source}: no right camera (P1) in the file")
+        return StereoRig(self.camera(width, height), self.baseline)
 
 
 def load_stereo_calibration(path: str | Path) -> StereoCalibration:
@@ -94,7 +112,7 @@ def load_stereo_calibration(path: str | Path) -> StereoCalibration:
         raise CalibrationError(f"{p}: calibration file not found")
     if p.suffix.lower() in (".yaml", ".yml"):
         return _load_yaml(p)
-    return _load_kitti(p)
+    return read_kitti_calib(p)
 
 
 def _load_yaml(p: Path) -> StereoCalibration:
@@ -114,7 +132,8 @@ def _load_yaml(p: Path) -> StereoCalibration:
             lines.append(f"{p}: {loc}: {msg}")
         raise CalibrationError("\n".join(lines)) from None
     mount = m.mount
-    return StereoCalibration(m.fx, m.fy, m.cx, m.cy, m.baseline, m.width, m.height,
+    K = np.array([[m.fx, 0.0, m.cx], [0.0, m.fy, m.cy], [0.0, 0.0, 1.0]])
+    return StereoCalibration(K, m.baseline, (m.width, m.height),
                              mount.height if mount else None, mount.pitch_deg if mount else 0.0,
                              mount.roll_deg if mount else 0.0, m.disparity_scale, str(p))
 
@@ -122,11 +141,20 @@ def _load_yaml(p: Path) -> StereoCalibration:
 _LABEL = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*:(.*)$")
 
 
-def _load_kitti(p: Path) -> StereoCalibration:
-    mats: dict[str, np.ndarray] = {}
-    bare: list[np.ndarray] = []
-    for n, line in enumerate(p.read_text().splitlines(), 1):
-        if not line.strip():
+def read_kitti_calib(path: str | Path, need_right: bool = True) -> StereoCalibration:
+    """The left intrinsics and the baseline from a KITTI ``calib.txt`` (P0 and P1, labelled or bare).
+
+    With ``need_right=False`` a file with P0 alone is a monocular calibration (baseline None).
+    """
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise CalibrationError(f"{p}: cannot read: {exc}") from None
+    mats: dict[str, tuple[int, np.ndarray]] = {}
+    bare: list[tuple[int, np.ndarray]] = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
             continue
         m = _LABEL.match(line)
         label, rest = (m.group(1), m.group(2)) if m else (None, line)
@@ -138,23 +166,27 @@ def _load_kitti(p: Path) -> StereoCalibration:
             bare.append((n, vals))
         else:
             mats[label] = (n, vals)
-    if "P0" not in mats and len(bare) >= 2:
-        mats["P0"], mats["P1"] = bare[0], bare[1]
+    if "P0" not in mats:
+        mats.update(zip(("P0", "P1"), bare))
     for key in ("P0", "P1"):
         if key not in mats:
+            if key == "P1" and not need_right:
+                continue
             raise CalibrationError(f"{p}: {key}: missing (expected lines 'P0: <12 numbers>' and 'P1: <12 numbers>')")
         n, vals = mats[key]
         if vals.size != 12:
             raise CalibrationError(f"{p}: {key} (line {n}): expected 12 numbers (3x4 matrix), got {vals.size}")
     P0 = mats["P0"][1].reshape(3, 4)
+    K = P0[:, :3]
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError(f"{p}: P0: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+    if "P1" not in mats:
+        return StereoCalibration(K, None, source=str(p))
     P1 = mats["P1"][1].reshape(3, 4)
-    fx, fy, cx, cy = P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]
-    if fx <= 0 or fy <= 0:
-        raise CalibrationError(f"{p}: P0: focal lengths must be positive, got fx={fx}, fy={fy}")
-    if not np.allclose(P0[:, :3], P1[:, :3], rtol=1e-6, atol=1e-6):
+    if not np.allclose(K, P1[:, :3], rtol=1e-6, atol=1e-6):
         raise CalibrationError(f"{p}: P1: left part differs from P0's; the pair is not rectified to one K")
-    baseline = -P1[0, 3] / P1[0, 0]
+    baseline = float(-(P1[0, 3] - P0[0, 3]) / P1[0, 0])
     if baseline <= 0:
-        raise CalibrationError(f"{p}: P1: baseline -P1[0,3]/P1[0,0] = {baseline:.4f} m, expected > 0 "
+        raise CalibrationError(f"{p}: P1: baseline -(P1[0,3] - P0[0,3]) / P1[0,0] = {baseline:.4f} m, expected > 0 "
                                f"(is P1 the right camera?)")
-    return StereoCalibration(float(fx), float(fy), float(cx), float(cy), float(baseline), source=str(p))
+    return StereoCalibration(K, baseline, source=str(p))

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from vbnav.vision.geometry import quat_from_matrix
+from vbnav.control.trajectory_metrics import write_tum
 
 RATE_HZ = 30.0
 GRID_ROWS, GRID_COLS = 4, 3
@@ -46,17 +46,14 @@ def build_desk_view(src: Path, dst: Path) -> Path:
         c = np.array([ax[0] + ax[1] * (tid // GRID_ROWS), ay[0] + ay[1] * (tid % GRID_ROWS), 0.0])
         layout[tid] = (local @ R_tag.T + c).round(5).tolist()
     dst.mkdir(parents=True, exist_ok=True)
-    rgb, gt = ["# timestamp filename"], ["# timestamp tx ty tz qx qy qz qw"]
-    for i, G in enumerate(grids):
+    rgb = ["# timestamp filename"]
+    stamps = np.arange(len(grids)) / RATE_HZ
+    for i, t in enumerate(stamps):
         name = f"color_image_{i:04d}.png"
         link = dst / name
         if not link.exists():
             link.symlink_to(src / name)
-        t = i / RATE_HZ
         rgb.append(f"{t:.6f} {name}")
-        W = np.linalg.inv(G)  # camera-to-world with the grid as the world
-        q = quat_from_matrix(W[:3, :3])
-        gt.append(f"{t:.6f} " + " ".join(f"{v:.7f}" for v in (*W[:3, 3], *q)))
     depth = ["# timestamp filename"]
     for p in sorted(src.glob("depth_image_*.npz")):  # depth (mm, registered to colour) for the first frames
         i = int(p.stem.rsplit("_", 1)[1])
@@ -65,7 +62,7 @@ def build_desk_view(src: Path, dst: Path) -> Path:
         depth.append(f"{i / RATE_HZ:.6f} {p.name}")
     (dst / "depth.txt").write_text("\n".join(depth) + "\n")
     (dst / "rgb.txt").write_text("\n".join(rgb) + "\n")
-    (dst / "groundtruth.txt").write_text("\n".join(gt) + "\n")
+    write_tum(dst / "groundtruth.txt", stamps, np.linalg.inv(np.asarray(grids)))  # camera-to-world, grid = world
     camera = {"width": cam["w"], "height": cam["h"], "fx": cam["px"], "fy": cam["py"], "cx": cam["u0"],
               "cy": cam["v0"], "depth_scale": float(cam.get("depthScale", 0.001)), "tag_grid": {"family": "36h11", "corners": layout}}
     (dst / "camera.yaml").write_text(yaml.safe_dump(camera))

@@ -1,38 +1,22 @@
 """KITTI odometry (sequence 06 subset) for the VBC real-data check: calib, poses, stereo heights.
 
-Kept in tests/ (drivers/datasets.py belongs to the VSLAM helper); the benchmark imports it too.
+The calibration comes from the one KITTI reader, ``drivers/stereo_calib.read_kitti_calib``.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from vbnav.vision.camera_model import PinholeCamera
+from vbnav.drivers.stereo_calib import StereoCalibration, read_kitti_calib
 from vbnav.vision.features import FeatureTracker
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.vbc import estimate_pose, levelled_bearings
 
 
-@dataclass(frozen=True)
-class KittiCalib:
-    fx: float
-    cx: float
-    cy: float
-    baseline: float
-
-    def camera(self, width: int, height: int) -> PinholeCamera:
-        return PinholeCamera(width, height, self.fx, self.fx, self.cx, self.cy)
-
-
-def read_calib(path: Path) -> KittiCalib:
-    rows = [np.array(line.split()[-12:], float).reshape(3, 4) for line in Path(path).read_text().splitlines()
-            if line.strip()]
-    P0, P1 = rows[0], rows[1]
-    return KittiCalib(P0[0, 0], P0[0, 2], P0[1, 2], -P1[0, 3] / P1[0, 0])
+read_calib = read_kitti_calib  # the name benchmarks/vbc_frame.py imports
 
 
 def read_poses(path: Path) -> np.ndarray:
@@ -49,7 +33,7 @@ def planar_motion(T_a: np.ndarray, T_b: np.ndarray) -> Pose2:
     return Pose2(T[0, 3], T[2, 3], math.atan2(T[0, 2], T[2, 2]))
 
 
-def stereo_points(left: np.ndarray, right: np.ndarray, pts: np.ndarray, calib: KittiCalib,
+def stereo_points(left: np.ndarray, right: np.ndarray, pts: np.ndarray, calib: StereoCalibration,
                   sigma_d: float = 0.5):
     """Inverse height w = 1/Y and its variance of left-image points, from the rectified right image.
 
@@ -74,7 +58,7 @@ def stereo_points(left: np.ndarray, right: np.ndarray, pts: np.ndarray, calib: K
 def vbc_frame_pair_errors(root: Path, n_pairs: int | None = None):
     """Run VBC between consecutive KITTI frames; per pair (translation error / distance, heading error deg, n)."""
     root = Path(root)
-    calib = read_calib(root / "calib.txt")
+    calib = read_kitti_calib(root / "calib.txt")
     poses = read_poses(root / "poses.txt")
     files = sorted((root / "image_l").iterdir())
     n = len(files) - 1 if n_pairs is None else min(n_pairs, len(files) - 1)

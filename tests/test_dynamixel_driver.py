@@ -13,6 +13,7 @@ import pytest
 
 from driver_test_utils import controller_script, drive_for, emulate_cli, kill_controller_while_driving, wait_until
 
+from vbnav.drivers import dynamixel_table as dt
 from vbnav.drivers.sim import dynamixel_emulator as de
 from vbnav.drivers.dynamixel import VELOCITY_UNIT_RAD_S, DynamixelDrive
 from vbnav.drivers.wheels import DriveError
@@ -67,6 +68,28 @@ def test_bring_up_in_safe_order(bus):
     assert not any(bus.servo(i).torque_on for i in (1, 2))
 
 
+def test_driver_writes_what_the_emulator_reads_by_name(bus):
+    """Driver and emulator share one control table: every register the driver sets arrives, by name,
+    with the value the driver meant."""
+    d = make_drive(bus, profile_acceleration_rad_s2=20.0, velocity_limit_rad_s=5.0)
+    d.connect()
+    d.enable()
+    d.write(1.0, -0.5)
+    d.read()
+    by_address = {r.address: r.name for r in dt.REGISTERS.values()}
+    assert {by_address[e.addr] for e in bus.writes(1)} == {
+        "Torque Enable", "Operating Mode", "Velocity Limit", "Profile Acceleration", "Return Delay Time",
+        "Bus Watchdog", "Goal Velocity"}
+    expected = {"Torque Enable": 1, "Operating Mode": dt.MODE_VELOCITY,
+                "Velocity Limit": round(5.0 / dt.VELOCITY_UNIT_RAD_S),
+                "Profile Acceleration": round(20.0 / dt.ACCEL_UNIT_RAD_S2), "Return Delay Time": 0,
+                "Bus Watchdog": round(WATCHDOG_S / dt.WATCHDOG_UNIT_S)}
+    for i, rate in ((1, 1.0), (2, 0.5)):  # the right wheel is mounted mirrored
+        got = {name: bus.servo(i).get(dt.REGISTERS[name]) for name in [*expected, "Goal Velocity"]}
+        assert got == {**expected, "Goal Velocity": round(rate / dt.VELOCITY_UNIT_RAD_S)}
+    d.close()
+
+
 def test_wrong_model_is_refused(tmp_path):
     with de.DynamixelBus([1, 2], "XM430-W350", link=tmp_path / "tty") as b:
         d = DynamixelDrive(options=DynamixelDrive.Options(port=b.path, model="XL430-W250"))
@@ -85,10 +108,10 @@ def test_velocity_commands_reach_servos_and_read_back_signed(bus, drive):
     drive.write(1.0, -0.5)
     drive.read()
     assert bus.packets_seen - before == 2  # one sync write + one sync read per cycle
-    assert bus.servo(1).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == round(1.0 / VELOCITY_UNIT_RAD_S)
+    assert bus.servo(1).get(dt.GOAL_VELOCITY) == round(1.0 / VELOCITY_UNIT_RAD_S)
     # right wheel is mounted mirrored (invert_right): -0.5 rad/s is +21 units on the servo
-    assert bus.servo(2).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == round(0.5 / VELOCITY_UNIT_RAD_S)
-    assert wait_until(lambda: bus.servo(1).get(de.ADDR_PRESENT_VELOCITY, 4) != 0)
+    assert bus.servo(2).get(dt.GOAL_VELOCITY) == round(0.5 / VELOCITY_UNIT_RAD_S)
+    assert wait_until(lambda: bus.servo(1).get(dt.PRESENT_VELOCITY) != 0)
     state = drive_for(drive, -1.0, 0.5, cycles=5)
     assert state.velocity[0] == pytest.approx(-1.0, abs=VELOCITY_UNIT_RAD_S)
     assert state.velocity[1] == pytest.approx(0.5, abs=VELOCITY_UNIT_RAD_S)
@@ -99,8 +122,8 @@ def test_commands_clamp_to_velocity_limit(bus, drive):
     drive.write(100.0, -100.0)
     drive.read()  # the answer comes after the servos processed the write
     limit = round(6.0 / VELOCITY_UNIT_RAD_S)
-    assert bus.servo(1).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == limit
-    assert bus.servo(2).get(de.ADDR_GOAL_VELOCITY, 4, signed=True) == limit
+    assert bus.servo(1).get(dt.GOAL_VELOCITY) == limit
+    assert bus.servo(2).get(dt.GOAL_VELOCITY) == limit
 
 
 def test_position_unwraps_across_int32_overflow(bus, drive):
@@ -109,7 +132,7 @@ def test_position_unwraps_across_int32_overflow(bus, drive):
         bus.servo(1)._sync_present()
     start = drive.read().position[0]
     end = drive_for(drive, 6.0, 0.0, cycles=40).position[0]
-    assert bus.servo(1).get(de.ADDR_PRESENT_POSITION, 4, signed=True) < 0  # the register wrapped
+    assert bus.servo(1).get(dt.PRESENT_POSITION) < 0  # the register wrapped
     assert 0 < end - start < 3.0  # ~0.2-0.5 s at 6 rad/s, continuous
 
 
@@ -129,7 +152,7 @@ def test_servo_that_stops_answering(bus, drive):
     with pytest.raises(DriveError, match=r"servo 2 \(right\).*not answering"):
         drive_for(drive, 2.0, 2.0)
     assert wait_until(lambda: wheels_stopped(bus))
-    assert bus.servo(2).get(de.ADDR_BUS_WATCHDOG, 1) == 0xFF  # the silent one was stopped by its watchdog
+    assert bus.servo(2).get(dt.BUS_WATCHDOG, signed=False) == 0xFF  # the silent one was stopped by its watchdog
     assert not bus.servo(1).torque_on
     with pytest.raises(DriveError, match="faulted"):
         drive.write(1.0, 1.0)
@@ -199,7 +222,7 @@ def test_controlling_process_killed_with_sigkill(bus):
     # the wheel stops within the configured watchdog time (plus the emulator's 1 ms step)
     for e in expired:
         assert WATCHDOG_S <= e.t - last_packet <= WATCHDOG_S + 0.5, e.t - last_packet  # upper: emulator scheduling slack
-    assert math.isclose(bus.servo(1).get(de.ADDR_BUS_WATCHDOG, 1, signed=True), -1)
+    assert math.isclose(bus.servo(1).get(dt.BUS_WATCHDOG), -1)
 
 
 def test_vbnav_emulate_dynamixel_prints_device_path_first(tmp_path):

@@ -10,9 +10,10 @@ from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.ground_plane import (DisparityPlane, expected_plane, fit_ground_plane,
                                        plane_from_floor)
+from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 
-RIG = StereoRig(640, 480, 400.0, 410.0, 322.0, 236.0, 0.075)
+RIG = StereoRig(PinholeCamera(640, 480, 400.0, 410.0, 322.0, 236.0), 0.075)
 
 
 @pytest.mark.parametrize("height,pitch_deg", [(0.25, 0.0), (0.25, 12.0), (0.6, -3.0), (1.65, 1.0)])

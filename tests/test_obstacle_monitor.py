@@ -12,6 +12,7 @@ from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.drivers.camera import Frame
 from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 
 FRAME_NS = 66_666_667          # 15 Hz
@@ -127,7 +128,7 @@ def test_make_obstacle_stage_only_when_enabled():
 def test_stage_takes_the_baseline_from_the_frames_when_the_config_has_none():
     stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
     assert stage.rig is None
-    rig = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+    rig = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
     disp = ds.render(ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.1, 0.1, 0.55, 0.7, 0.05),)), rig).disparity
     img = np.zeros((480, 640), np.uint8)
     e = stage.process(Frame(img, 0, 1, disparity=disp), Pose2())

@@ -14,9 +14,10 @@ from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.ground_plane import expected_plane
 from vbnav.vision.obstacles import (KOfN, ObstacleParams, PixelClass, classify, detect_obstacles,
                                     nearest_in_corridor)
+from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import SgbmParams, StereoRig, sgbm_disparity
 
-RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+RIG = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
 H = 0.25
 PRIOR = expected_plane(RIG, H, 0.0)
 
@@ -33,6 +34,17 @@ def _noisy(r, rng, sigma):
 
 def _flagged(labels, mask, cls=PixelClass.OBSTACLE):
     return float(np.mean(labels[mask] == cls))
+
+
+def test_stereo_rig_is_a_rectified_camera_and_a_baseline():
+    half = RIG.scaled(0.5)
+    assert half.camera == RIG.camera.scaled(0.5) and half.baseline == RIG.baseline
+    assert (half.width, half.height, half.fx, half.cy) == (320, 240, 200.0, 119.5)
+    assert half.fb == pytest.approx(200.0 * 0.075)
+    with pytest.raises(ValueError, match="distortion"):
+        StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5, (0.1, 0.0, 0.0, 0.0)), 0.075)
+    with pytest.raises(ValueError, match="baseline"):
+        StereoRig(RIG.camera, 0.0)
 
 
 def test_2cm_box_at_3m_found_and_floor_clean(rng):

@@ -9,9 +9,10 @@ import pytest
 
 from vbnav.control.cli import main
 from vbnav.vision import disparity_scenes as ds
+from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 
-RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+RIG = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
 SCENE = ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.15, 0.15, 1.5, 1.7, 0.08),
                                    ds.Box(-30, 30, 12.0, 12.5, 8.0, texel=0.05)))
 YAML = ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 319.5\ncy: 239.5\nbaseline: 0.075\n"

@@ -16,9 +16,10 @@ from vbnav.drivers.oak_camera import frame_from_imgframes  # noqa: E402
 from vbnav.vision import disparity_scenes as ds  # noqa: E402
 from vbnav.vision.geometry import Pose2  # noqa: E402
 from vbnav.vision.obstacles import PixelClass  # noqa: E402
+from vbnav.vision.camera_model import PinholeCamera  # noqa: E402
 from vbnav.vision.stereo import StereoRig  # noqa: E402
 
-RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+RIG = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
 K = [[400.0, 0.0, 319.5], [0.0, 400.0, 239.5], [0.0, 0.0, 1.0]]
 
 

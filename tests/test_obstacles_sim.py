@@ -25,7 +25,7 @@ from vbnav.vision.stereo import SgbmParams, StereoRig, sgbm_disparity
 CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 MOUNT = CameraMount(0.25, 0.10, 0.0, 0.0)
 B = 0.075
-RIG = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, B)
+RIG = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), B)
 PRIOR = expected_plane(RIG, MOUNT.height, 0.0)
 FLOOR = KINDS.index("floor")
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
+from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration, read_kitti_calib
 
 P0 = "7.07e+02 0 6.0e+02 0 0 7.07e+02 1.83e+02 0 0 0 1 0"
 P1 = "7.07e+02 0 6.0e+02 -3.798e+02 0 7.07e+02 1.83e+02 0 0 0 1 0"
@@ -68,3 +68,39 @@ def test_yaml_errors_name_file_and_field(tmp_path, text, match):
 def test_missing_file(tmp_path):
     with pytest.raises(CalibrationError, match="not found"):
         load_stereo_calibration(tmp_path / "nope.yaml")
+
+
+def test_kitti_baseline_is_relative_to_p0(tmp_path):
+    # both projection matrices shifted by the same translation: the baseline is their difference
+    f = tmp_path / "calib.txt"
+    shifted = P0.split()
+    shifted[3] = "100.0"
+    right = P1.split()
+    right[3] = str(100.0 - 379.8)
+    f.write_text(f"P0: {' '.join(shifted)}\nP1: {' '.join(right)}\n")
+    assert read_kitti_calib(f).baseline == pytest.approx(379.8 / 707.0)
+
+
+def test_kitti_left_camera_only(tmp_path):
+    f = tmp_path / "calib.txt"
+    f.write_text(f"# left camera only\nP0: {P0}\n")
+    c = read_kitti_calib(f, need_right=False)
+    assert c.baseline is None and c.camera(1226, 370).fx == 707.0
+    with pytest.raises(CalibrationError, match="P1: missing"):
+        read_kitti_calib(f)
+    with pytest.raises(CalibrationError, match="no right camera"):
+        c.rig(1226, 370)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("folder,fx,cx,cy,tx", [
+    ("kitti06_stereo", 707.0912, 601.8873, 183.1104, 379.8145),      # bare lines
+    ("vo_turns_kitti03", 721.5377, 609.5593, 172.854, 387.5744),     # labelled P0..P3
+])
+def test_kitti_reader_on_the_real_files(shared_data, folder, fx, cx, cy, tx):
+    c = read_kitti_calib(shared_data / folder / "calib.txt")
+    assert (c.fx, c.fy, c.cx, c.cy) == (fx, fx, cx, cy)
+    assert c.baseline == tx / fx  # 0.5372 m for sequence 06 (data README), 0.5372 m for 03
+    cam = c.camera(1226, 370)
+    assert (cam.width, cam.height, cam.fx, cam.cy) == (1226, 370, fx, cy)
+    assert c.rig(1226, 370).fb == pytest.approx(tx)

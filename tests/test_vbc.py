@@ -7,12 +7,18 @@ import numpy as np
 import pytest
 
 from vbnav.vision.geometry import CameraMount, Pose2
-from vbnav.vision.vbc import (InverseHeightEstimator, estimate_pose, inverse_range, jacobian,
+from vbnav.vision.vbc import (InverseHeightEstimator, _Linearisation, estimate_pose, inverse_range, jacobian,
                               predict_bearings)
 
 from vbc_scenes import bearings, levelled_points, room_points
 
 MOUNT = CameraMount(height=0.25, forward=0.12, lateral=0.03)
+
+
+def _jacobian_at(alpha, beta, inv_height, forward=0.0, lateral=0.0):
+    """vbc.jacobian from observed bearings and inverse heights, as (N, 2, 3)."""
+    rho, w_s2 = inv_height * np.tan(beta), inv_height * np.sin(beta) ** 2
+    return jacobian(np.sin(alpha), np.cos(alpha), rho, w_s2, forward=forward, lateral=lateral).transpose(1, 0, 2)
 
 
 def test_jacobian_matches_central_differences(rng):
@@ -22,7 +28,7 @@ def test_jacobian_matches_central_differences(rng):
         pts = pts @ robot.rotation3().T + robot.translation3()    # in front of this robot
         a, b = bearings(robot, MOUNT, pts)
         y = levelled_points(robot, MOUNT, pts)[:, 1]
-        J = jacobian(a, b, 1.0 / y, MOUNT.forward, MOUNT.lateral)
+        J = _jacobian_at(a, b, 1.0 / y, MOUNT.forward, MOUNT.lateral)
         h = 1e-6
         for k in range(3):
             d = np.zeros(3)
@@ -34,7 +40,7 @@ def test_jacobian_matches_central_differences(rng):
 
 
 def test_horizon_landmarks_inform_heading_only():
-    J = jacobian(np.array([0.3, -0.2]), np.array([1e-4, -1e-4]), np.array([4.0, -4.0]))
+    J = _jacobian_at(np.array([0.3, -0.2]), np.array([1e-4, -1e-4]), np.array([4.0, -4.0]))
     assert np.all(np.abs(J[:, :, :2]) < 1e-3)
     assert np.allclose(J[:, 0, 2], -1.0, atol=1e-3)
 
@@ -138,8 +144,8 @@ def test_mismatched_lengths_raise():
 
 
 def test_fused_linearisation_matches_finite_differences(rng):
-    """The estimator's trig-free Jacobian at a non-zero pose equals d(exact model)/d(right increment)."""
-    from vbnav.vision.vbc import _Linearisation
+    """The estimator's trig-free Jacobian at a non-zero pose equals d(exact model)/d(right increment),
+    and is vbc.jacobian (the function checked above) at the predicted bearings."""
     pts = room_points(rng, 40, MOUNT, heights=(-0.5, 2.0))
     a0, b0 = bearings(Pose2(), MOUNT, pts)
     w = 1.0 / levelled_points(Pose2(), MOUNT, pts)[:, 1]
@@ -147,6 +153,9 @@ def test_fused_linearisation_matches_finite_differences(rng):
     pose = Pose2(0.2, -0.3, 0.15)
     lin = _Linearisation(np.sin(a0), np.cos(a0), np.tan(b0), rho, np.zeros(40), np.zeros(40), pose,
                          MOUNT.forward, MOUNT.lateral, True)
+    pa, pb = predict_bearings(a0, b0, rho, pose, MOUNT.forward, MOUNT.lateral)
+    J = _jacobian_at(pa, pb, w, MOUNT.forward, MOUNT.lateral)  # the height 1/w does not change on the floor
+    np.testing.assert_allclose(lin.J, J.transpose(1, 0, 2).reshape(-1, 3), rtol=1e-9, atol=1e-12)
     h = 1e-6
     for k in range(3):
         d = np.zeros(3)

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from vbnav.vision.geometry import rot_x, rot_y, rot_z, rotation_angle
-from vbnav.vision.motion import absolute_orientation, recover_motion, recover_motion_robust
+from vbnav.vision.geometry import absolute_orientation, rot_x, rot_y, rot_z, rotation_angle
+from vbnav.vision.motion import recover_motion, recover_motion_robust
 from vbnav.vision.spherical import depth_update, depth_update_3, spherical_disparity
 
 
@@ -78,12 +78,56 @@ def test_depth_update_needs_rotation_only(rng, scale):
 def test_absolute_orientation_never_returns_a_reflection(rng):
     P = rng.normal(size=(10, 3))
     Q = P * np.array([1, 1, -1])  # mirror image: the best orthogonal map is a reflection
-    R, _ = absolute_orientation(P, Q)
-    assert np.linalg.det(R) == pytest.approx(1.0)
+    R, _, s = absolute_orientation(P, Q)
+    assert np.linalg.det(R) == pytest.approx(1.0) and s == 1.0
+    # the best rotation keeps the two large axes and turns the mirrored one: the fitted scale shrinks
+    Pflat = P * np.array([3.0, 2.0, 0.1])
+    R, _, s = absolute_orientation(Pflat, Pflat * np.array([1, 1, -1]), with_scale=True)
+    assert np.linalg.det(R) == pytest.approx(1.0) and 0 < s < 1
     R_true = random_rotation(rng, 2.0)
-    R, T = absolute_orientation(P, P @ R_true.T + [1, 2, 3])
+    R, T, _ = absolute_orientation(P, P @ R_true.T + [1, 2, 3])
     np.testing.assert_allclose(R, R_true, atol=1e-12)
     np.testing.assert_allclose(T, [1, 2, 3], atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [3, 4, 50])
+def test_absolute_orientation_recovers_rotation_translation_and_scale(rng, n):
+    P = rng.normal(size=(n, 3)) * [4.0, 1.0, 2.0]
+    R_true, t_true, s_true = random_rotation(rng, 3.0), rng.normal(size=3) * 5, 0.37
+    Q = s_true * P @ R_true.T + t_true
+    R, t, s = absolute_orientation(P, Q, with_scale=True)
+    np.testing.assert_allclose(R, R_true, atol=1e-12)
+    np.testing.assert_allclose(t, t_true, atol=1e-12)
+    assert s == pytest.approx(s_true, rel=1e-12)
+    # SE(3) only: the scale stays 1, the centroids still meet
+    R, t, s = absolute_orientation(P, Q)
+    assert s == 1.0
+    np.testing.assert_allclose(R, R_true, atol=1e-9)
+    np.testing.assert_allclose(R @ P.mean(0) + t, Q.mean(0), atol=1e-12)
+    # weights: outliers with zero weight change nothing
+    Qo = Q.copy()
+    Qo[0] += 100.0
+    w = np.ones(n)
+    w[0] = 0.0
+    if n > 3:
+        R, t, s = absolute_orientation(P, Qo, weights=w, with_scale=True)
+        np.testing.assert_allclose(R, R_true, atol=1e-12)
+        np.testing.assert_allclose(t, t_true, atol=1e-12)
+        assert s == pytest.approx(s_true, rel=1e-12)
+
+
+def test_absolute_orientation_solves_a_batch_like_one_problem_at_a_time(rng):
+    P = rng.normal(size=(6, 5, 3))
+    Q = rng.normal(size=(6, 5, 3))
+    w = rng.uniform(0.5, 2.0, size=(6, 5))
+    R, t, s = absolute_orientation(P, Q, weights=w, with_scale=True)
+    assert R.shape == (6, 3, 3) and t.shape == (6, 3) and s.shape == (6,)
+    for k in range(6):
+        Rk, tk, sk = absolute_orientation(P[k], Q[k], weights=w[k], with_scale=True)
+        np.testing.assert_allclose(R[k], Rk, atol=1e-12)
+        np.testing.assert_allclose(t[k], tk, atol=1e-12)
+        assert s[k] == pytest.approx(sk, rel=1e-12)
+        assert np.linalg.det(R[k]) == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("overrelax", [1.0, 2.0])

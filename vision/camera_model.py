@@ -12,8 +12,8 @@ import numpy as np
 
 
 @dataclass(frozen=True)
-class PinholeCamera:
-    """Pinhole with OpenCV's distortion (k1, k2, p1, p2[, k3[, k4, k5, k6]])."""
+class CameraIntrinsics:
+    """Image size (px) and the linear intrinsics every camera model here shares."""
 
     width: int
     height: int
@@ -21,11 +21,21 @@ class PinholeCamera:
     fy: float
     cx: float
     cy: float
-    dist: tuple = field(default_factory=tuple)
 
     @property
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def in_image(self, px: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        return ((px[:, 0] >= margin) & (px[:, 0] < self.width - margin)
+                & (px[:, 1] >= margin) & (px[:, 1] < self.height - margin))
+
+
+@dataclass(frozen=True)
+class PinholeCamera(CameraIntrinsics):
+    """Pinhole with OpenCV's distortion (k1, k2, p1, p2[, k3[, k4, k5, k6]])."""
+
+    dist: tuple = field(default_factory=tuple)
 
     @property
     def dist_array(self) -> np.ndarray:
@@ -62,10 +72,6 @@ class PinholeCamera:
             px = px.reshape(-1, 2)
         return px, front
 
-    def in_image(self, px: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        return ((px[:, 0] >= margin) & (px[:, 0] < self.width - margin)
-                & (px[:, 1] >= margin) & (px[:, 1] < self.height - margin))
-
     def scaled(self, factor: float) -> "PinholeCamera":
         """Same camera at another resolution (intrinsics scale, distortion does not)."""
         return replace(self, width=int(round(self.width * factor)), height=int(round(self.height * factor)),
@@ -74,24 +80,14 @@ class PinholeCamera:
 
 
 @dataclass(frozen=True)
-class FisheyeCamera:
+class FisheyeCamera(CameraIntrinsics):
     """OpenCV fisheye (equidistant with k1..k4): theta_d = theta (1 + k1 t^2 + k2 t^4 + k3 t^6 + k4 t^8).
 
     Rays are computed by inverting theta_d directly, so fields of view beyond
     180 degrees give rays with z <= 0 (cv2.fisheye.undistortPoints cannot).
     """
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
     dist: tuple = (0.0, 0.0, 0.0, 0.0)
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
     def _theta_d(self, theta: np.ndarray) -> np.ndarray:
         k1, k2, k3, k4 = (list(self.dist) + [0.0] * 4)[:4]
@@ -121,10 +117,6 @@ class FisheyeCamera:
         scale = np.where(r > 1e-12, td / np.maximum(r, 1e-12), 0.0)
         px = np.column_stack((self.fx * P[:, 0] * scale + self.cx, self.fy * P[:, 1] * scale + self.cy))
         return px, np.ones(len(P), dtype=bool)
-
-    def in_image(self, px: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        return ((px[:, 0] >= margin) & (px[:, 0] < self.width - margin)
-                & (px[:, 1] >= margin) & (px[:, 1] < self.height - margin))
 
 
 def azimuth_elevation(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -116,6 +116,48 @@ def arc_step(pose: Pose2, ds: float, dth: float) -> Pose2:
                  wrap_angle(th1))
 
 
+def absolute_orientation(P: np.ndarray, Q: np.ndarray, weights: np.ndarray | None = None,
+                         with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float | np.ndarray]:
+    """(R, t, s) minimising sum_i w_i |s R P_i + t - Q_i|^2, R in SO(3) (Umeyama 1991).
+
+    ``P``, ``Q``: (N, 3) corresponding points, or (..., N, 3) for independent problems solved at
+    once (the motion solver's 3-point hypotheses). ``weights`` (..., N), uniform if None. The
+    scale s > 0 is fitted only ``with_scale`` (Sim(3), e.g. aligning a monocular trajectory),
+    else s = 1 (SE(3)); it is a float for one problem, an array for a batch.
+
+    With Sigma = sum_i w_i (Q_i - mu_Q)(P_i - mu_P)^T / sum_i w_i = U S V^T:
+    R = U D V^T, D = diag(1, 1, det(U) det(V)) (the reflection guard: when the best orthogonal
+    map is a mirror image, the axis of the smallest singular value is flipped instead),
+    s = trace(S D) / var(P), t = mu_Q - s R mu_P.
+
+    The motion alternation (vision/motion.py) runs only the rotation step of this on a
+    cross-covariance it updates linearly (``motion._rotation_from_cross_covariance``), and
+    vision/motion_kernel.py compiles that step (its own 3x3 SVD, no allocation) for the
+    real-time solver; tests/test_motion_kernel.py checks the compiled twin against the numpy one.
+    """
+    P = np.asarray(P, float)
+    Q = np.asarray(Q, float)
+    if weights is None:
+        mu_p, mu_q = P.mean(-2), Q.mean(-2)
+        a, b = P - mu_p[..., None, :], Q - mu_q[..., None, :]
+        sigma = np.swapaxes(b, -1, -2) @ a / P.shape[-2]
+        var_p = (a ** 2).sum(-1).mean(-1)
+    else:
+        w = np.asarray(weights, float)
+        w = w / w.sum(-1, keepdims=True)
+        mu_p, mu_q = (w[..., None] * P).sum(-2), (w[..., None] * Q).sum(-2)
+        a, b = P - mu_p[..., None, :], Q - mu_q[..., None, :]
+        sigma = np.swapaxes(b, -1, -2) @ (w[..., None] * a)
+        var_p = (w * (a ** 2).sum(-1)).sum(-1)
+    U, S, Vt = np.linalg.svd(sigma)
+    D = np.ones(S.shape)
+    D[..., 2] = np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0, -1.0, 1.0)
+    R = (U * D[..., None, :]) @ Vt
+    s = (S * D).sum(-1) / var_p if with_scale else np.ones(S.shape[:-1])
+    t = mu_q - ((s[..., None, None] * R) @ mu_p[..., None])[..., 0]
+    return R, t, (float(s) if s.ndim == 0 else s)
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """Angle of a rotation matrix, rad (robust near 0 and pi)."""
     c = (np.trace(R) - 1.0) / 2.0

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from vbnav.vision import motion_kernel
+from vbnav.vision.geometry import absolute_orientation
 
 
 @dataclass
@@ -45,40 +46,6 @@ class MotionEstimate:
     converged: bool
     hypotheses: int = 0  # minimal-set hypotheses tried (robust solve only)
     info: dict = field(default_factory=dict)
-
-
-def absolute_orientation(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """argmin_{R in SO(3), T} sum w_i |R P_i + T - Q_i|^2 (Arun/Umeyama SVD, reflection-safe)."""
-    if w is None:
-        cP, cQ = P.mean(axis=0), Q.mean(axis=0)
-        H = (P - cP).T @ (Q - cQ)
-    else:
-        ws = w / w.sum()
-        cP, cQ = ws @ P, ws @ Q
-        H = ((P - cP) * ws[:, None]).T @ (Q - cQ)
-    U, _, Vt = np.linalg.svd(H)
-    R = Vt.T @ U.T
-    if np.linalg.det(R) < 0:  # reflection: flip the axis of the smallest singular value
-        Vt = Vt.copy()
-        Vt[2] = -Vt[2]
-        R = Vt.T @ U.T
-    return R, cQ - R @ cP
-
-
-def _batched_absolute_orientation(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """absolute_orientation for H problems at once: P, Q (H, k, 3)."""
-    cP, cQ = P.mean(axis=1, keepdims=True), Q.mean(axis=1, keepdims=True)
-    Hm = np.einsum("hki,hkj->hij", P - cP, Q - cQ)
-    U, _, Vt = np.linalg.svd(Hm)
-    R = np.einsum("hji,hkj->hik", Vt, U)  # V U^T
-    flip = np.linalg.det(R) < 0
-    if flip.any():
-        Vt = Vt.copy()
-        Vt[flip, 2] *= -1
-        R = np.einsum("hji,hkj->hik", Vt, U)
-    T = cQ[:, 0] - np.einsum("hij,hj->hi", R, cP[:, 0])
-    return R, T
 
 
 def angular_residuals(P: np.ndarray, rays: np.ndarray, R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -108,7 +75,10 @@ except Exception:  # pragma: no cover - other numpy versions
 
 
 def _rotation_from_cross_covariance(H: np.ndarray) -> np.ndarray:
-    """R = V U^T for H = U S V^T, with det R = +1 (reflection guard)."""
+    """R = V U^T for H = U S V^T, with det R = +1 (reflection guard): the rotation step of
+    ``geometry.absolute_orientation`` for an H the alternation updates linearly, in the form
+    motion_kernel.rotation_from_cross_covariance compiles (3x3 SVD without numpy's overhead, the
+    sign from det H unless H is singular)."""
     U, _, Vt = _svd3(H)
     dH = _det3(H)
     scale = float(np.abs(H).max()) ** 3
@@ -271,7 +241,7 @@ def _minimal_hypotheses(P: np.ndarray, n: np.ndarray, D0: np.ndarray, samples: n
     D = D0[samples]
     R = T = None
     for _ in range(iters):
-        R, T = _batched_absolute_orientation(Ps, D[..., None] * ns)
+        R, T, _ = absolute_orientation(Ps, D[..., None] * ns)
         D = np.einsum("hkj,hkj->hk", np.einsum("hij,hkj->hki", R, Ps) + T[:, None], ns)
         D = np.maximum(D, 1e-9 * (np.abs(D).max(axis=1, keepdims=True) + 1e-300))
     return R, T

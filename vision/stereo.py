@@ -14,26 +14,35 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from vbnav.vision.camera_model import PinholeCamera
+
 
 @dataclass(frozen=True)
 class StereoRig:
-    """Intrinsics of the rectified left camera and the baseline (m) to the right one."""
+    """The rectified left camera and the baseline (m) to the right one (right centre at +baseline along x)."""
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    camera: PinholeCamera
     baseline: float
 
     def __post_init__(self):
-        if not (self.width > 0 and self.height > 0):
-            raise ValueError(f"StereoRig: image size must be positive, got {self.width}x{self.height}")
-        if not (self.fx > 0 and self.fy > 0):
-            raise ValueError(f"StereoRig: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        c = self.camera
+        if not (c.width > 0 and c.height > 0):
+            raise ValueError(f"StereoRig: image size must be positive, got {c.width}x{c.height}")
+        if not (c.fx > 0 and c.fy > 0):
+            raise ValueError(f"StereoRig: focal lengths must be positive, got fx={c.fx}, fy={c.fy}")
+        if c.has_distortion:
+            raise ValueError("StereoRig: the camera of a rectified pair has no distortion")
         if not self.baseline > 0:
             raise ValueError(f"StereoRig: baseline must be positive (metres), got {self.baseline}")
+
+    # The left camera's numbers, read by the disparity formulas throughout vision/ground_plane.py,
+    # vision/obstacles.py and their callers.
+    width = property(lambda self: self.camera.width)
+    height = property(lambda self: self.camera.height)
+    fx = property(lambda self: self.camera.fx)
+    fy = property(lambda self: self.camera.fy)
+    cx = property(lambda self: self.camera.cx)
+    cy = property(lambda self: self.camera.cy)
 
     @property
     def fb(self) -> float:
@@ -47,9 +56,7 @@ class StereoRig:
         return self.fb / depth
 
     def scaled(self, factor: float) -> "StereoRig":
-        return StereoRig(int(round(self.width * factor)), int(round(self.height * factor)),
-                         self.fx * factor, self.fy * factor,
-                         (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5, self.baseline)
+        return StereoRig(self.camera.scaled(factor), self.baseline)
 
 
 @dataclass(frozen=True)

@@ -98,30 +98,26 @@ def inverse_height_from_range(beta: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return np.asarray(rho, dtype=np.float64) / _safe_tan(np.asarray(beta, dtype=np.float64))
 
 
-def jacobian(alpha, beta, inv_height, forward: float = 0.0, lateral: float = 0.0) -> np.ndarray:
-    """Image Jacobian d(alpha, beta)/d(x, z, theta) of each landmark, shape (N, 2, 3).
+def jacobian(sin_alpha: np.ndarray, cos_alpha: np.ndarray, rho: np.ndarray, w_sin2_beta: np.ndarray, *,
+             forward: float = 0.0, lateral: float = 0.0) -> np.ndarray:
+    """Image Jacobian d(alpha, beta)/d(x, z, theta) of each landmark, shape (2, N, 3):
+    ``[0]`` the azimuth rows, ``[1]`` the elevation rows (``reshape(2 * N, 3)`` stacks them).
 
-    alpha, beta: observed levelled bearings (rad); inv_height: w = 1/y (1/m);
-    forward/lateral: camera offset from the robot's rotation centre (m). The
-    derivative is with respect to a small robot motion in the robot's own
-    frame (see the module docstring).
+    The landmarks are given by sin and cos of their levelled azimuth, their in-plane
+    inverse range rho = w tan(beta) and w sin^2(beta) = rho sin(beta) cos(beta)
+    (w = 1/y, 1/m): the forms the estimator has at hand at each predicted bearing,
+    so it evaluates no trigonometry. forward/lateral: camera offset from the robot's
+    rotation centre (m). The derivative is with respect to a small robot motion in
+    the robot's own frame (see the module docstring).
     """
-    a = np.atleast_1d(np.asarray(alpha, dtype=np.float64))
-    b = np.atleast_1d(np.asarray(beta, dtype=np.float64))
-    w = np.broadcast_to(np.asarray(inv_height, dtype=np.float64), a.shape)
-    return _jacobian_rho(a, b, w * np.tan(b), w * np.sin(b) ** 2, forward, lateral)
-
-
-def _jacobian_rho(a, b, rho, w_s2, forward: float = 0.0, lateral: float = 0.0) -> np.ndarray:
-    """Jacobian with rho = w tan(beta) and w_s2 = w sin^2(beta) = rho sin(beta) cos(beta)."""
-    sa, ca = np.sin(a), np.cos(a)
-    J = np.empty((len(a), 2, 3))
-    J[:, 0, 0] = -rho * ca
-    J[:, 0, 1] = rho * sa
-    J[:, 0, 2] = -1.0 - rho * (forward * ca + lateral * sa)
-    J[:, 1, 0] = w_s2 * sa
-    J[:, 1, 1] = w_s2 * ca
-    J[:, 1, 2] = w_s2 * (forward * sa - lateral * ca)
+    sa, ca = sin_alpha, cos_alpha
+    J = np.empty((2, len(sa), 3))
+    J[0, :, 0] = -rho * ca
+    J[0, :, 1] = rho * sa
+    J[0, :, 2] = -1.0 - rho * (forward * ca + lateral * sa)
+    J[1, :, 0] = w_sin2_beta * sa
+    J[1, :, 1] = w_sin2_beta * ca
+    J[1, :, 2] = w_sin2_beta * (forward * sa - lateral * ca)
     return J
 
 
@@ -196,7 +192,8 @@ class _Linearisation:
 
     At the predicted direction v (module docstring): sin(alpha) = v_x/|v|, cos(alpha) = v_z/|v|,
     the current inverse range is rho0/|v|, and w sin^2(beta) = rho sin(beta) cos(beta) with
-    tan(beta) = tan(beta0)/|v|, so the Jacobian needs no further trigonometry.
+    tan(beta) = tan(beta0)/|v|, so ``jacobian`` needs no further trigonometry. ``J`` stacks
+    the azimuth rows over the elevation rows, as the residuals are stacked.
     """
 
     __slots__ = ("ra", "rb", "J", "da", "db")
@@ -215,15 +212,7 @@ class _Linearisation:
         sa, ca = vx / n, vz / n
         rc = rho / n
         ws2 = rc * t0 * n / (n2 + t0 * t0)
-        m = len(a1)
-        J = np.empty((2 * m, 3))
-        J[:m, 0] = -rc * ca
-        J[:m, 1] = rc * sa
-        J[:m, 2] = -1.0 - rc * (forward * ca + lateral * sa)
-        J[m:, 0] = ws2 * sa
-        J[m:, 1] = ws2 * ca
-        J[m:, 2] = ws2 * (forward * sa - lateral * ca)
-        self.J = J
+        self.J = jacobian(sa, ca, rc, ws2, forward=forward, lateral=lateral).reshape(2 * len(a1), 3)
         if with_sensitivity:
             hx, hz = c * d[0] - s * d[1], s * d[0] + c * d[1]
             self.da = (vz * hx - vx * hz) / n2

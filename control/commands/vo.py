@@ -2,8 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 
 def register(subparsers) -> None:
@@ -29,7 +32,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from vbnav.control.vo import VoError, ate_rmse, plot_trajectory, rpe, run_vo, write_tum
+    from vbnav.control.trajectory_metrics import ate_rmse, rpe, write_tum
+    from vbnav.control.vo import VoError, run_vo
     from vbnav.drivers.datasets import DatasetError, open_dataset
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
@@ -56,7 +60,30 @@ def run(args) -> int:
             print(f"ATE RMSE {ate:.4f} m ({kind} alignment, {int(ok.sum())} poses); "
                   f"RPE (1 frame) {t_rpe:.4f} m, {r_rpe:.3f} deg")
             if args.plot:
-                plot_trajectory(args.plot, aligned, gt[:, :3, 3], f"{ds.root.name}: ATE {ate:.3f} m")
+                _plot_trajectory(args.plot, aligned, gt[:, :3, 3], f"{ds.root.name}: ATE {ate:.3f} m")
         else:
             print("ground truth present but fewer than 3 poses match the tracked frames' times")
     return 0 if len(res.stamps) >= 2 else 1
+
+
+def _plot_trajectory(path: str, aligned, gt, title: str) -> None:
+    """The aligned trajectory over the ground truth, seen from above (x, z), written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.plot(gt[:, 0], gt[:, 2], "k-", label="ground truth")
+    ax.plot(aligned[:, 0], aligned[:, 2], "r-", label="vbnav vo (aligned)")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("z [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend()
+    ax.set_title(title)
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".png", dir=path.parent if str(path.parent) else ".")
+    os.close(fd)
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)

@@ -34,13 +34,14 @@ Config section ``obstacles:`` (``cfg.obstacles``, an ``ObstaclesConfig`` validat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
 from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.drivers.camera import Frame
+from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import (
@@ -167,10 +168,10 @@ class ObstacleStage(VisionStage):
     safety_critical = True
 
     def __init__(self, rig: Optional[StereoRig], mount: CameraMount, cfg: Optional[ObstaclesConfig] = None,
-                 keep_labels: bool = False, intrinsics: Optional[tuple] = None):
-        """``rig``: the stereo pair; or None with ``intrinsics`` = (width, height, fx, fy, cx, cy), and the
-        baseline (and K, if given) is taken from the first frame's meta["baseline_m"] / meta["K"]
-        (the OAK driver reports its device calibration there)."""
+                 keep_labels: bool = False, camera: Optional[PinholeCamera] = None):
+        """``rig``: the stereo pair; or None with the left ``camera``, and the baseline (and K, if
+        given) is taken from the first frame's meta["baseline_m"] / meta["K"] (the OAK driver
+        reports its device calibration there)."""
         self.cfg = cfg or ObstaclesConfig()
         self.mount = mount
         self.params = ObstacleParams(obstacle_height=self.cfg.obstacle_height,
@@ -181,11 +182,11 @@ class ObstacleStage(VisionStage):
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
         self._stop_half_width = min((z.half_width for z in self.cfg.zones if z.half_width), default=0.25)
-        self._intrinsics = intrinsics
+        self._camera = camera
         self.rig: Optional[StereoRig] = None
         if rig is not None:
             self._set_rig(rig)
-        elif intrinsics is None:
+        elif camera is None:
             raise ValueError("ObstacleStage needs a StereoRig, or the camera intrinsics and frames that carry "
                              "meta['baseline_m']")
 
@@ -198,11 +199,11 @@ class ObstacleStage(VisionStage):
 
     def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
         if self.rig is None and frame.meta.get("baseline_m"):
-            w, h, fx, fy, cx, cy = self._intrinsics
+            camera = self._camera
             K = frame.meta.get("K")
             if K is not None:
-                fx, fy, cx, cy = float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2])
-            self._set_rig(StereoRig(w, h, fx, fy, cx, cy, float(frame.meta["baseline_m"])))
+                camera = replace(camera, fx=float(K[0][0]), fy=float(K[1][1]), cx=float(K[0][2]), cy=float(K[1][2]))
+            self._set_rig(StereoRig(camera, float(frame.meta["baseline_m"])))
         return self.rig
 
     @classmethod
@@ -212,11 +213,10 @@ class ObstacleStage(VisionStage):
         ocfg = cfg.obstacles
         baseline = ocfg.baseline or (cfg.camera.options or {}).get("stereo_baseline")
         c = cfg.camera
+        camera = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)  # rectified: no distortion
         if not baseline:
-            return cls(None, c.mount.to_mount(), ocfg, keep_labels, intrinsics=(c.width, c.height, c.fx, c.fy,
-                                                                                c.cx, c.cy))
-        rig = StereoRig(c.width, c.height, c.fx, c.fy, c.cx, c.cy, float(baseline))
-        return cls(rig, c.mount.to_mount(), ocfg, keep_labels)
+            return cls(None, c.mount.to_mount(), ocfg, keep_labels, camera=camera)
+        return cls(StereoRig(camera, float(baseline)), c.mount.to_mount(), ocfg, keep_labels)
 
     def disparity(self, frame: Frame) -> Optional[np.ndarray]:
         src = self.cfg.source

@@ -31,48 +31,20 @@ simulated base) and the present values come back from it.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Protocol
 
 from vbnav.drivers import dynamixel_protocol as dp
+from vbnav.drivers.dynamixel_table import (
+    ACCEL_UNIT_RPM2, BAUD_RATE, BUS_WATCHDOG, EEPROM_END, FIRMWARE_VERSION, GOAL_VELOCITY, HARDWARE_ERROR_STATUS, ID,
+    MODE_VELOCITY, MODEL_NUMBER, MODEL_NUMBERS, MOVING, OPERATING_MODE, OPERATING_MODES, PRESENT_INPUT_VOLTAGE,
+    PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY, PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS,
+    RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S, STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE,
+    VELOCITY_LIMIT, VELOCITY_UNIT_RPM, WATCHDOG_UNIT_S, Register)
 from vbnav.drivers.sim.pty_device import PtyDevice
-
-# Control table addresses (X-series, Protocol 2.0).
-ADDR_MODEL_NUMBER = 0
-ADDR_FIRMWARE = 6
-ADDR_ID = 7
-ADDR_BAUD = 8
-ADDR_RETURN_DELAY = 9
-ADDR_OPERATING_MODE = 11
-ADDR_VELOCITY_LIMIT = 44
-ADDR_TORQUE_ENABLE = 64
-ADDR_LED = 65
-ADDR_STATUS_RETURN_LEVEL = 68
-ADDR_REGISTERED = 69
-ADDR_HW_ERROR = 70
-ADDR_BUS_WATCHDOG = 98
-ADDR_GOAL_PWM = 100
-ADDR_GOAL_VELOCITY = 104
-ADDR_PROFILE_ACCEL = 108
-ADDR_PROFILE_VELOCITY = 112
-ADDR_GOAL_POSITION = 116
-ADDR_MOVING = 122
-ADDR_PRESENT_VELOCITY = 128
-ADDR_PRESENT_POSITION = 132
-ADDR_PRESENT_VOLTAGE = 144
-ADDR_PRESENT_TEMPERATURE = 146
-TABLE_SIZE = 147
-EEPROM_END = 64
-
-# Read-only ranges (start, end exclusive): model info, hardware error, present values.
-READ_ONLY = [(0, 7), (ADDR_REGISTERED, ADDR_HW_ERROR + 1), (120, TABLE_SIZE)]
-
-VELOCITY_UNIT_RPM = 0.229
-PROFILE_ACCEL_UNIT_RPM2 = 214.577
-TICKS_PER_REV = 4096
-WATCHDOG_UNIT_S = 0.020
 
 
 @dataclass(frozen=True)
@@ -83,10 +55,8 @@ class ServoModel:
     voltage_dV: int  # reported input voltage, 0.1 V
 
 
-MODELS = {
-    "XL430-W250": ServoModel("XL430-W250", 1060, 265, 120),
-    "XM430-W350": ServoModel("XM430-W350", 1020, 200, 120),
-}
+MODELS = {name: ServoModel(name, MODEL_NUMBERS[name], velocity_limit, 120)
+          for name, velocity_limit in (("XL430-W250", 265), ("XM430-W350", 200))}
 
 
 def model_by_name(name: str) -> ServoModel:
@@ -133,26 +103,28 @@ class EmulatedServo:
         self.power_on()
 
     # -- control table -----------------------------------------------------------
-    def get(self, addr: int, size: int, signed: bool = False) -> int:
-        return int.from_bytes(self.table[addr:addr + size], "little", signed=signed)
+    def get(self, register: Register, signed: bool | None = None) -> int:
+        """The register's value (signed as the control table says unless ``signed`` is given)."""
+        return register.decode(self.table[register.address:register.end], signed)
 
-    def put(self, addr: int, size: int, value: int) -> None:
-        self.table[addr:addr + size] = (value & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
+    def put(self, register: Register, value: int) -> None:
+        """Set a register directly (no access check: the servo's own doing, or a test's)."""
+        self.table[register.address:register.end] = register.encode(value)
 
     def power_on(self) -> None:
         """Factory defaults of the RAM area (EEPROM is kept across reboots)."""
-        if self.get(ADDR_MODEL_NUMBER, 2) == 0:
-            self.put(ADDR_MODEL_NUMBER, 2, self.model.number)
-            self.put(ADDR_FIRMWARE, 1, 46)
-            self.put(ADDR_ID, 1, self.dxl_id)
-            self.put(ADDR_BAUD, 1, 3)  # 1 Mbps
-            self.put(ADDR_RETURN_DELAY, 1, 250)  # 500 us
-            self.put(ADDR_OPERATING_MODE, 1, 3)  # position control
-            self.put(ADDR_VELOCITY_LIMIT, 4, self.model.velocity_limit)
+        if self.get(MODEL_NUMBER) == 0:
+            self.put(MODEL_NUMBER, self.model.number)
+            self.put(FIRMWARE_VERSION, 46)
+            self.put(ID, self.dxl_id)
+            self.put(BAUD_RATE, 3)  # 1 Mbps
+            self.put(RETURN_DELAY_TIME, 250)  # 500 us
+            self.put(OPERATING_MODE, 3)  # position control
+            self.put(VELOCITY_LIMIT, self.model.velocity_limit)
         self.table[EEPROM_END:] = bytes(TABLE_SIZE - EEPROM_END)
-        self.put(ADDR_STATUS_RETURN_LEVEL, 1, 2)
-        self.put(ADDR_PRESENT_VOLTAGE, 2, self.model.voltage_dV)
-        self.put(ADDR_PRESENT_TEMPERATURE, 1, 36)
+        self.put(STATUS_RETURN_LEVEL, 2)
+        self.put(PRESENT_INPUT_VOLTAGE, self.model.voltage_dV)
+        self.put(PRESENT_TEMPERATURE, 36)
         # after power-on the position is reported within one turn
         self._position = float(int(self._position) % TICKS_PER_REV)
         self._velocity = 0.0
@@ -161,19 +133,19 @@ class EmulatedServo:
 
     @property
     def torque_on(self) -> bool:
-        return self.table[ADDR_TORQUE_ENABLE] == 1
+        return self.get(TORQUE_ENABLE) == 1
 
     @property
     def hardware_error(self) -> int:
-        return self.table[ADDR_HW_ERROR]
+        return self.get(HARDWARE_ERROR_STATUS)
 
     def alert(self) -> int:
         return dp.ERR_ALERT if self.hardware_error else 0
 
     def set_hardware_error(self, bits: int) -> None:
         """Latch hardware error bits: torque goes off, only REBOOT clears them."""
-        self.table[ADDR_HW_ERROR] |= bits & 0xFF
-        self.table[ADDR_TORQUE_ENABLE] = 0
+        self.put(HARDWARE_ERROR_STATUS, self.hardware_error | bits)
+        self.put(TORQUE_ENABLE, 0)
 
     def read(self, addr: int, size: int) -> tuple[int, bytes]:
         if size <= 0 or addr < 0 or addr + size > TABLE_SIZE:
@@ -185,29 +157,29 @@ class EmulatedServo:
         end = addr + len(data)
         if not data or addr < 0 or end > TABLE_SIZE:
             return dp.ERR_ACCESS
-        if any(addr < hi and end > lo for lo, hi in READ_ONLY):
+        touches = lambda r: addr < r.end and end > r.address  # noqa: E731
+        if any(touches(r) and not r.writable for r in REGISTERS.values()):
             return dp.ERR_ACCESS
         if addr < EEPROM_END and self.torque_on:
             return dp.ERR_ACCESS
-        touches = lambda a, n: addr < a + n and end > a  # noqa: E731
         new = bytearray(self.table)
         new[addr:end] = data
-        val = lambda a, n, s=False: int.from_bytes(new[a:a + n], "little", signed=s)  # noqa: E731
-        if touches(ADDR_OPERATING_MODE, 1) and val(ADDR_OPERATING_MODE, 1) not in (0, 1, 3, 4, 5, 16):
+        val = lambda r: r.decode(new[r.address:r.end])  # noqa: E731
+        if touches(OPERATING_MODE) and val(OPERATING_MODE) not in OPERATING_MODES:
             return dp.ERR_DATA_RANGE
-        if touches(ADDR_TORQUE_ENABLE, 1):
-            if val(ADDR_TORQUE_ENABLE, 1) > 1:
+        if touches(TORQUE_ENABLE):
+            if val(TORQUE_ENABLE) > 1:
                 return dp.ERR_DATA_RANGE
-            if val(ADDR_TORQUE_ENABLE, 1) == 1 and self.hardware_error:
+            if val(TORQUE_ENABLE) == 1 and self.hardware_error:
                 return dp.ERR_RESULT_FAIL
-        if touches(ADDR_BUS_WATCHDOG, 1) and val(ADDR_BUS_WATCHDOG, 1) > 127:
+        if touches(BUS_WATCHDOG) and not 0 <= val(BUS_WATCHDOG) <= 127:
             return dp.ERR_DATA_RANGE
-        if touches(ADDR_GOAL_VELOCITY, 4):
-            if self.table[ADDR_BUS_WATCHDOG] == 0xFF:
+        if touches(GOAL_VELOCITY):
+            if self.get(BUS_WATCHDOG) == -1:
                 return dp.ERR_RESULT_FAIL  # bus watchdog error: goals locked until it is cleared
-            if abs(val(ADDR_GOAL_VELOCITY, 4, True)) > self.get(ADDR_VELOCITY_LIMIT, 4):
+            if abs(val(GOAL_VELOCITY)) > self.get(VELOCITY_LIMIT):
                 return dp.ERR_DATA_LIMIT
-        if touches(ADDR_VELOCITY_LIMIT, 4) and not 0 <= val(ADDR_VELOCITY_LIMIT, 4, True) <= 1023:
+        if touches(VELOCITY_LIMIT) and not 0 <= val(VELOCITY_LIMIT) <= 1023:
             return dp.ERR_DATA_RANGE
         self.table[:] = new
         return 0
@@ -215,16 +187,16 @@ class EmulatedServo:
     # -- motion --------------------------------------------------------------------
     def target_velocity(self) -> float:
         """Velocity the servo drives toward, 0.229 rpm units."""
-        if not self.torque_on or self.table[ADDR_OPERATING_MODE] != 1:
+        if not self.torque_on or self.get(OPERATING_MODE) != MODE_VELOCITY:
             return 0.0
-        return float(self.get(ADDR_GOAL_VELOCITY, 4, signed=True))
+        return float(self.get(GOAL_VELOCITY))
 
     def check_watchdog(self, now: float) -> bool:
         """True when the bus watchdog has just expired."""
-        wd = self.table[ADDR_BUS_WATCHDOG]
+        wd = self.get(BUS_WATCHDOG)
         if 1 <= wd <= 127 and self.torque_on and now - self.last_comm > wd * WATCHDOG_UNIT_S:
-            self.put(ADDR_GOAL_VELOCITY, 4, 0)
-            self.table[ADDR_BUS_WATCHDOG] = 0xFF
+            self.put(GOAL_VELOCITY, 0)
+            self.put(BUS_WATCHDOG, -1)
             return True
         return False
 
@@ -233,10 +205,10 @@ class EmulatedServo:
         if coupling is not None:
             coupling.command(self.dxl_id, units_to_rad_s(target))
             angle, rate = coupling.measure(self.dxl_id)
-            self._position = angle / (2 * 3.141592653589793) * TICKS_PER_REV
-            self._velocity = rate / (2 * 3.141592653589793) * 60.0 / VELOCITY_UNIT_RPM
+            self._position = angle / (2 * math.pi) * TICKS_PER_REV
+            self._velocity = rate / (2 * math.pi) * 60.0 / VELOCITY_UNIT_RPM
         else:
-            accel = self.get(ADDR_PROFILE_ACCEL, 4) * PROFILE_ACCEL_UNIT_RPM2 / 60.0 / VELOCITY_UNIT_RPM
+            accel = self.get(PROFILE_ACCELERATION) * ACCEL_UNIT_RPM2 / 60.0 / VELOCITY_UNIT_RPM
             dv = target - self._velocity
             if accel > 0:
                 dv = max(-accel * dt, min(accel * dt, dv))
@@ -245,15 +217,13 @@ class EmulatedServo:
         self._sync_present()
 
     def _sync_present(self) -> None:
-        self.put(ADDR_PRESENT_VELOCITY, 4, int(round(self._velocity)))
-        self.put(ADDR_PRESENT_POSITION, 4, int(round(self._position)))
-        self.table[ADDR_MOVING] = 1 if abs(self._velocity) >= 0.5 else 0
+        self.put(PRESENT_VELOCITY, int(round(self._velocity)))
+        self.put(PRESENT_POSITION, int(round(self._position)))
+        self.put(MOVING, 1 if abs(self._velocity) >= 0.5 else 0)
 
 
 def units_to_rad_s(units: float) -> float:
-    return units * VELOCITY_UNIT_RPM * 2 * 3.141592653589793 / 60.0
-
-
+    return units * VELOCITY_UNIT_RPM * 2 * math.pi / 60.0
 
 
 class DynamixelBus(PtyDevice):
@@ -326,7 +296,7 @@ class DynamixelBus(PtyDevice):
         """A status packet after the servo's Return Delay Time; empty if it is silent."""
         if servo.no_answer:
             return b""
-        delay = servo.table[ADDR_RETURN_DELAY] * 2e-6
+        delay = servo.get(RETURN_DELAY_TIME) * RETURN_DELAY_UNIT_S
         if delay > 0 and self._master >= 0:
             time.sleep(delay)
         raw = dp.encode_status(servo.dxl_id, error | servo.alert(), data)
@@ -352,7 +322,8 @@ class DynamixelBus(PtyDevice):
             out = []
             for s in live:
                 self._log(s.dxl_id, "ping")
-                out.append(self._status(s, 0, s.table[0:2] + s.table[ADDR_FIRMWARE:ADDR_FIRMWARE + 1]))
+                model = s.table[MODEL_NUMBER.address:MODEL_NUMBER.end]
+                out.append(self._status(s, 0, model + s.table[FIRMWARE_VERSION.address:FIRMWARE_VERSION.end]))
             return out
         if inst in (dp.INST_READ, dp.INST_WRITE, dp.INST_REG_WRITE, dp.INST_REBOOT, dp.INST_ACTION):
             out = []
@@ -424,7 +395,7 @@ class DynamixelBus(PtyDevice):
             addr, value = p[0] | p[1] << 8, bytes(p[2:])
             if inst == dp.INST_REG_WRITE:
                 s._pending = (addr, value)
-                s.table[ADDR_REGISTERED] = 1
+                s.put(REGISTERED_INSTRUCTION, 1)
                 self._log(s.dxl_id, "reg_write", addr, int.from_bytes(value, "little", signed=True))
                 return 0, b""
             err = s.write(addr, value)
@@ -436,7 +407,7 @@ class DynamixelBus(PtyDevice):
                 return dp.ERR_RESULT_FAIL, b""
             addr, value = s._pending
             s._pending = None
-            s.table[ADDR_REGISTERED] = 0
+            s.put(REGISTERED_INSTRUCTION, 0)
             err = s.write(addr, value)
             self._log(s.dxl_id, "action", addr, int.from_bytes(value, "little", signed=True))
             return err, b""
