@@ -12,6 +12,9 @@ extension points only:
   rejected command) becomes a ``vbnav/<robot>/events`` message;
 - ``runtime.submit``: validated network commands (estop, resume, teleop, mode)
   are queued for the loop, which applies them at the start of its next cycle;
+  ``runtime.command_handlers`` (first in the list): the ``command`` event is
+  published once a command took effect and ``command_rejected`` when the loop
+  refused it, both with the sender's ``ack`` id;
 - ``pipeline.frame_listeners``: decimated camera frames for ``.../image``.
 
 ``close(result)`` publishes the ``run_end`` event, drains the queue, finishes
@@ -19,13 +22,20 @@ the recording and closes the session.
 """
 from __future__ import annotations
 
+import re
 import time
 from typing import Optional
 
-from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, NetCommand, limits_from_config
+from vbnav.control.comms.operator_commands import (ACK_PATTERN, CommandInbox, CommandSubscriber, NetCommand,
+                                                   limits_from_config)
 from vbnav.control.config.telemetry import TelemetryConfig, telemetry_config
 from vbnav.control.comms.network import open_session, robot_session_config
 from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
+
+
+# The ack id of a payload the robot refused before parsing it (vbnav send puts "ack" first, so it is in the
+# excerpt even when the payload is long).
+_ACK_IN_PAYLOAD = re.compile(r'"ack"\s*:\s*"(' + ACK_PATTERN.strip("^$") + ')"')
 
 
 class _Borrowed:
@@ -63,6 +73,18 @@ def _estimate_pose(est):
     return pose if hasattr(pose, "theta") else None
 
 
+def _verifier(tcfg: TelemetryConfig):
+    """The signature check of incoming commands when ``telemetry.shared_secret_file`` is set, else None."""
+    if tcfg.shared_secret_file is None:
+        return None
+    from vbnav.control.comms.command_auth import CommandVerifier, read_secret
+    try:
+        return CommandVerifier(read_secret(tcfg.shared_secret_file)).verify
+    except ValueError as exc:  # checked at load; the file changed since
+        from vbnav.control.config import ConfigError
+        raise ConfigError(f"telemetry.shared_secret_file: {exc}") from None
+
+
 class TelemetryLink:
     def __init__(self, runtime, tcfg: TelemetryConfig, publisher: TelemetryPublisher, session=None,
                  recorder=None):
@@ -74,6 +96,8 @@ class TelemetryLink:
         self.commands: Optional[CommandSubscriber] = None
         self.inbox: CommandInbox
         self._mode: Optional[str] = None
+        self._applying = None            # the command the loop is applying (loop thread)
+        self._applying_refused = False
         self._closed = False
 
     # ---- construction ----------------------------------------------------------------------
@@ -88,6 +112,7 @@ class TelemetryLink:
         tcfg = telemetry_config(cfg)
         robot = cfg.robot.name
         sinks, session = [], None
+        verify = _verifier(tcfg) if tcfg.enabled and network else None   # before anything is opened
         if recorder is not None:
             recorder.new_segment(segment)
             sinks.append(_Borrowed(recorder))
@@ -118,7 +143,8 @@ class TelemetryLink:
         # The inbox also takes commands from local sources (tests, a future local console).
         link.inbox = CommandInbox(limits_from_config(cfg), on_reject=link._on_reject, deliver=link._deliver)
         if session is not None:
-            link.commands = CommandSubscriber(session, robot, link.inbox)
+            link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
+        runtime.command_handlers.insert(0, link._on_command_start)
         runtime.command_handlers.append(link._on_mode_command)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
@@ -132,6 +158,7 @@ class TelemetryLink:
 
     # ---- runtime hooks (loop thread) -------------------------------------------------------
     def _on_cycle(self, rt, ctx, twist, wheel_command) -> None:
+        self._settle(rt)
         mode = getattr(rt.controller, "name", "?")
         if mode != self._mode:
             self.publisher.event("mode_change", stamp_ns=ctx.now_ns, mode=mode, previous=self._mode)
@@ -160,6 +187,23 @@ class TelemetryLink:
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
             twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns))
 
+    def _on_command_start(self, rt, cmd, now_ns: int) -> bool:
+        """First handler of every command: the one before it in this cycle has taken effect."""
+        self._settle(rt)
+        self._applying, self._applying_refused = cmd, False
+        return False
+
+    def _settle(self, rt) -> None:
+        """``command`` for the command just applied, unless the loop refused it. Teleop streams at 10-20 Hz:
+        only a teleop that asks for an answer (``ack``) is news."""
+        cmd, self._applying = self._applying, None
+        if cmd is None or self._applying_refused or (cmd.kind == "teleop" and not cmd.ack):
+            return
+        fields = dict(command=cmd.kind, args=list(cmd.args), sender=cmd.source, cycle=rt.cycle)
+        if cmd.ack:
+            fields["ack"] = cmd.ack
+        self.publisher.event("command", **fields)
+
     def _on_mode_command(self, rt, cmd, now_ns: int) -> bool:
         """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
         if cmd.kind != "mode" or getattr(rt.controller, "switches_modes", False):
@@ -175,7 +219,13 @@ class TelemetryLink:
 
     def _on_safety(self, ev) -> None:
         if ev.kind == "rejected":
-            self.publisher.event("command_rejected", stamp_ns=ev.stamp_ns, command=ev.cause, reason=ev.message)
+            fields = dict(command=ev.cause, reason=ev.message)
+            cmd = self._applying
+            if cmd is not None and cmd.kind == ev.cause:   # refused while being applied
+                self._applying_refused = True
+                if cmd.ack:
+                    fields["ack"] = cmd.ack
+            self.publisher.event("command_rejected", stamp_ns=ev.stamp_ns, **fields)
         else:
             self.publisher.event(f"safety_{ev.kind}", stamp_ns=ev.stamp_ns, cause=ev.cause, message=ev.message)
 
@@ -195,12 +245,14 @@ class TelemetryLink:
             args = (b.mode, b.route) if b.route else (b.mode,)
         else:
             args = ()
-        if cmd.kind != "teleop":  # teleop streams at 10-20 Hz: its acceptance is not news
-            self.publisher.event("command", command=cmd.kind, args=list(args), sender=sender)
-        self.runtime.submit(OperatorCommand(cmd.kind, args, source=sender))
+        self.runtime.submit(OperatorCommand(cmd.kind, args, source=sender, ack=b.ack or ""))
 
     def _on_reject(self, kind: str, reason: str, excerpt: str) -> None:
-        self.publisher.event("command_rejected", command=kind, reason=reason, payload=excerpt)
+        fields = dict(command=kind, reason=reason, payload=excerpt)
+        m = _ACK_IN_PAYLOAD.search(excerpt)
+        if m:
+            fields["ack"] = m.group(1)
+        self.publisher.event("command_rejected", **fields)
 
     # ---- end -------------------------------------------------------------------------------
     def close(self, result=None) -> None:
@@ -210,6 +262,7 @@ class TelemetryLink:
         self._closed = True
         if self.commands is not None:
             self.commands.close()
+        self._settle(self.runtime)   # a command applied in the last cycle
         if result is not None:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)

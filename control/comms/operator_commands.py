@@ -7,7 +7,9 @@ Keys (``<robot>`` is ``robot.name``), payloads JSON objects:
 - ``vbnav/<robot>/cmd/teleop``  ``{"linear": m/s, "angular": rad/s}``: drive; must keep coming
 - ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "PATH"}``
 
-Every payload may carry ``"seq"`` (int) and ``"sender"`` (str) for the audit trail.
+Every payload may carry ``"seq"`` (int) and ``"sender"`` (str) for the audit trail, and
+``"ack"`` (str): an id the robot repeats in the ``command`` event once the command took effect,
+or in the ``command_rejected`` event, so a sender can wait for its own answer (``vbnav send``).
 
 The zenoh callback thread parses and validates (pydantic) and puts a
 ``NetCommand`` into a bounded queue; the loop calls ``CommandInbox.drain()``
@@ -31,12 +33,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 INBOX_LIMIT = 64
 MAX_PAYLOAD = 4096
+ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 
 
 class _Cmd(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     seq: Optional[int] = None
     sender: Optional[str] = Field(None, max_length=64)
+    ack: Optional[str] = Field(None, pattern=ACK_PATTERN, description="echoed in the command / command_rejected "
+                               "event of this command")
 
 
 class EstopCmd(_Cmd):
@@ -177,19 +182,34 @@ class CommandInbox:
                 pass
 
 
-class CommandSubscriber:
-    """Subscribes ``vbnav/<robot>/cmd/**`` on a zenoh session and feeds an inbox (reliable delivery)."""
+VerifyFn = Callable[[str, bytes, Optional[bytes]], Optional[str]]   # (key, payload, attachment) -> refusal
 
-    def __init__(self, session, robot: str, inbox: CommandInbox):
+
+class CommandSubscriber:
+    """Subscribes ``vbnav/<robot>/cmd/**`` on a zenoh session and feeds an inbox (reliable delivery).
+
+    verify: checks each sample before it is parsed (the shared-secret signature, comms/command_auth.py);
+    a refused sample becomes a ``command_rejected`` report and never reaches the inbox.
+    """
+
+    def __init__(self, session, robot: str, inbox: CommandInbox, verify: Optional[VerifyFn] = None):
         self._prefix = f"vbnav/{robot}/cmd/"
         self._inbox = inbox
+        self._verify = verify
         self._sub = session.declare_subscriber(f"vbnav/{robot}/cmd/**", self._on_sample)
 
     def _on_sample(self, sample) -> None:
         try:
             key = str(sample.key_expr)
             kind = key[len(self._prefix):] if key.startswith(self._prefix) else key
-            self._inbox.submit(kind, sample.payload.to_bytes())
+            payload = sample.payload.to_bytes()
+            if self._verify is not None:
+                attachment = sample.attachment
+                refused = self._verify(key, payload, None if attachment is None else attachment.to_bytes())
+                if refused:
+                    self._inbox._reject(kind, refused, payload)
+                    return
+            self._inbox.submit(kind, payload)
         except Exception as exc:  # pragma: no cover - submit already never raises
             self._inbox._reject("?", f"internal error: {exc!r}", b"")
 

@@ -31,11 +31,13 @@ class OperatorCommand:
     """A command from outside the loop (network, CLI, tests). Applied at the next cycle.
 
     kind: "estop" | "resume" | "teleop" (args: v, w) | "mode" (args: mode[, route]).
+    ack: the sender's id for this command, repeated in the events that answer it ("" for none).
     """
 
     kind: str
     args: tuple = ()
     source: str = "local"
+    ack: str = ""
 
 
 @dataclass
