@@ -2,7 +2,8 @@
 
 Run as a script (the tests start it as a separate process):
     python tests/telemetry_robot.py --port P [--controller teleop|scripted|idle] [--duration S]
-        [--sim-clock] [--record PATH] [--remote DICTFILE --operators NAME,..] [--report PATH]
+        [--sim-clock] [--record PATH] [--remote DICTFILE --operators NAME,.. [--loopback]] [--report PATH]
+        [--name ROBOT] [--secret-file PATH]
 
 Prints "READY" once the zenoh session is up and the loop is about to start. At the end writes a JSON
 report: every command the runtime received (loop time, cycle) and the drive's write log, so a test can
@@ -38,6 +39,9 @@ def main() -> int:
     ap.add_argument("--operators", default="operator")
     ap.add_argument("--report", default=None)
     ap.add_argument("--listen", default=None, help="override telemetry.listen (no auth added)")
+    ap.add_argument("--loopback", action="store_true", help="with --remote: listen on 127.0.0.1 (auth + ACL there)")
+    ap.add_argument("--name", default="sim", help="robot.name")
+    ap.add_argument("--secret-file", default=None, help="telemetry.shared_secret_file")
     a = ap.parse_args()
 
     tele = {"listen": [f"tcp/127.0.0.1:{a.port}"], "state_rate_hz": a.state_rate}
@@ -50,8 +54,13 @@ def main() -> int:
                                   "listen_private_key": f"{a.tls}/robot.key"}})
     if a.listen:
         tele["listen"] = [a.listen]
+    if a.loopback:
+        tele["listen"] = [f"tcp/127.0.0.1:{a.port}"]
+    if a.secret_file:
+        tele["shared_secret_file"] = a.secret_file
     try:   # the telemetry section refuses a remote listener without authentication here
-        cfg = parse_config({"loop": {"rate_hz": a.rate}, "telemetry": tele, "controller": {"kind": a.controller},
+        cfg = parse_config({"loop": {"rate_hz": a.rate}, "telemetry": tele, "robot": {"name": a.name},
+                            "controller": {"kind": a.controller},
                             "safety": {"command_timeout_s": 0.5}}, "telemetry_robot")
     except ConfigError as exc:
         print(f"configuration error: {exc}", file=sys.stderr)

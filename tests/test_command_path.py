@@ -83,6 +83,19 @@ def test_out_of_order_seq_is_refused_and_a_new_session_or_silence_starts_afresh(
     assert box.post(OperatorCommand("teleop", (0.5, 0), "A", seq=1, session="x")) is None   # silent > timeout
 
 
+def test_refused_teleop_is_answered_each_time_it_carries_an_ack_and_summarised_otherwise():
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    excerpts = []
+    inbox._on_reject = lambda k, r, p: (rejected.append((k, r)), excerpts.append(p))
+    assert inbox.submit("teleop", teleop(5, clock.now_ns())) is not None
+    for seq in (3, 4):                                      # out of order, no ack: one report a second
+        assert inbox.submit("teleop", teleop(seq, clock.now_ns())) is None
+    for n, seq in enumerate((1, 2)):                        # out of order, with vbnav send's ack: every one
+        assert inbox.submit("teleop", json.dumps({"ack": f"id{n}", **json.loads(teleop(seq, clock.now_ns()))})) is None
+    assert [r.split()[0] for _, r in rejected] == ["out", "out", "out"]
+    assert '"ack": "id0"' in excerpts[1] and '"ack": "id1"' in excerpts[2]
+
+
 def test_stale_stamp_is_refused_by_the_senders_clock_whatever_its_offset():
     box, clock = _box()
     offset = -123_456_789_000      # the sender's clock reads 123 s less than the robot's
@@ -429,7 +442,17 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
     port = _free_port()
     robot = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "sim"))
     got = []
-    sub = robot.declare_subscriber("vbnav/sim/cmd/**", lambda s: got.append(json.loads(s.payload.to_bytes())))
+
+    def on_command(sample):   # a robot's answers, so that vbnav send finds a robot and its acknowledgement
+        msg = json.loads(sample.payload.to_bytes())
+        got.append(msg)
+        if msg.get("ack"):
+            robot.put("vbnav/sim/events", json.dumps({"kind": "command", "command": "teleop", "ack": msg["ack"],
+                                                      "cycle": len(got)}))
+
+    sub = robot.declare_subscriber("vbnav/sim/cmd/**", on_command)
+    recent = robot.declare_queryable("vbnav/sim/events/recent",
+                                     lambda q: q.reply("vbnav/sim/events/recent", json.dumps({"events": []})))
     try:
         t0 = time.monotonic_ns()
         r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "send", "teleop", "0.1", "0", "--duration",
@@ -437,6 +460,7 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
                            text=True, timeout=60)
         assert r.returncode == 0, r.stderr
     finally:
+        recent.undeclare()
         sub.undeclare()
         robot.close()
     assert [m["seq"] for m in got] == list(range(5))

@@ -30,7 +30,14 @@ def test_default_session_is_loopback_only_without_scouting():
     assert conf["scouting"]["multicast"]["enabled"] is False
     assert conf["scouting"]["gossip"]["enabled"] is False
     assert conf["connect"]["endpoints"] == []
-    assert "access_control" not in conf and not t.remote
+    assert not t.remote
+    # Loopback without authentication: anyone local may command (docs/telemetry.md), but nobody may publish
+    # on the robot's telemetry keys through its session.
+    acl = conf["access_control"]
+    assert acl["default_permission"] == "deny"
+    assert [p["subjects"] for p in acl["policies"] if "commands-in" in p["rules"]] == [["everyone"]]
+    assert not any(r["flows"] == ["ingress"] and "put" in r["messages"] and "vbnav/sim/state" in r["key_exprs"]
+                   for r in acl["rules"])
 
 
 @pytest.mark.parametrize("ep,loop", [("tcp/127.0.0.1:7447", True), ("tcp/127.3.0.1:1", True),

@@ -1,7 +1,8 @@
-"""``vbnav send estop|resume|teleop V W|mode MODE``: command a robot over zenoh, for scripts."""
+"""``vbnav send estop|resume|teleop V W|mode MODE``: command a robot over zenoh and wait for its answer."""
 from __future__ import annotations
 
 import json
+import queue
 import sys
 import time
 import uuid
@@ -11,18 +12,40 @@ from vbnav.control.commands._net import add_net_args, open_client
 # Generous local bounds: the robot checks against its own configured limits and rejects with an event.
 _LOCAL_LIMIT = 1e3
 
+OK, REFUSED, BAD_INPUT, UNREACHABLE = 0, 1, 2, 3
+
+_EPILOG = """\
+The command carries an id ("ack"); vbnav send subscribes to the robot's events before
+sending and waits for the robot's answer to that id:
+
+exit 0  the robot applied the command: prints the loop cycle it took effect in
+exit 1  the robot refused it: prints its reason (command_rejected event), or no answer came
+        within --wait: the robot's access control drops commands from peers that are not
+        in telemetry.operators without a word
+exit 2  bad arguments, refused locally (nothing sent), or an unusable --secret-file
+exit 3  cannot connect to the endpoint, or no robot with that name is listening there
+
+A robot with telemetry.shared_secret_file accepts only signed commands: pass the same
+file with --secret-file (or --config with the robot's configuration).
+See docs/telemetry.md ("Who can command the robot").
+"""
+
 
 def register(sub) -> None:
-    p = sub.add_parser("send", help="send a command to a robot (estop, resume, teleop, mode)",
-                       description="Send one command on vbnav/<robot>/cmd/<command> (reliable delivery). "
-                                   "The robot validates it and publishes a command_rejected event if it refuses.")
+    import argparse
+    p = sub.add_parser("send", help="send a command to a robot (estop, resume, teleop, mode) and wait for its answer",
+                       description="Send one command on vbnav/<robot>/cmd/<command> (reliable delivery) and wait "
+                                   "for the robot to apply or refuse it.",
+                       epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     cmds = p.add_subparsers(dest="what", metavar="COMMAND", required=True)
     e = cmds.add_parser("estop", help="latching stop: wheels to zero until `resume`")
     e.add_argument("--reason", default="", help="free text recorded in the event")
     r = cmds.add_parser("resume", help="clear an estop latch")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
-                                    "safety.command_timeout_s (and only a run with controller teleop follows it). Without --duration one message is sent.")
+                                    "safety.command_timeout_s (and only a run with controller teleop follows it). "
+                                    "Without --duration one message is sent. The exit code is the robot's answer "
+                                    "to the first message it applies or refuses; a refusal stops the stream.")
     t.add_argument("v", type=float, metavar="V", help="linear velocity, m/s")
     t.add_argument("w", type=float, metavar="W", help="angular velocity, rad/s")
     t.add_argument("--duration", type=float, default=0.0, metavar="S", help="keep sending for S seconds")
@@ -31,17 +54,25 @@ def register(sub) -> None:
     m.add_argument("mode", choices=["idle", "teach", "repeat"])
     m.add_argument("--route", default=None, metavar="PATH", help="route file to repeat (or to teach into)")
     for sp in (e, r, t, m):
+        sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
         add_net_args(sp)
         sp.add_argument("--wait", type=float, default=3.0, metavar="S",
-                        help="wait up to S seconds for the robot's command subscriber (default 3)")
+                        help="wait up to S seconds for the robot, then for its answer (default 3)")
+        sp.add_argument("--secret-file", default=None, metavar="FILE",
+                        help="sign the command with the robot's shared secret (telemetry.shared_secret_file)")
+        sp.add_argument("--config", "-c", default=None, metavar="FILE",
+                        help="take --secret-file from this robot configuration's telemetry.shared_secret_file")
     p.set_defaults(func=_run)
 
 
 def build_payload(args) -> tuple[str, dict]:
-    """The command name and JSON body; validated locally with the robot's own models."""
+    """The command name and JSON body; validated locally with the robot's own models.
+
+    ``ack`` comes first, so the robot can echo it even for a payload it refuses unparsed.
+    """
     from vbnav.control.comms.operator_commands import CommandRejected, TeleopLimits, parse_command
     # One session id per invocation: the robot tracks seq and the clock offset per (sender, session).
-    body: dict = {"sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
+    body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
         body["reason"] = args.reason
     elif args.what == "teleop":
@@ -57,43 +88,133 @@ def build_payload(args) -> tuple[str, dict]:
     return args.what, body
 
 
+def _secret(args) -> bytes | None:
+    """The shared secret to sign with, or None; raises ValueError naming the file."""
+    from vbnav.control.comms.command_auth import read_secret
+    path = args.secret_file
+    if path is None and args.config:
+        from vbnav.control.config import ConfigError, load_config
+        try:
+            path = load_config(args.config).telemetry.shared_secret_file
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+    return None if path is None else read_secret(path, check_owner=False)
+
+
+def _who(args) -> str:
+    if args.user:
+        return f"user {args.user}"
+    if args.tls_cert:
+        return f"the holder of certificate {args.tls_cert}"
+    return "unauthenticated clients"
+
+
 def _run(args) -> int:
-    import zenoh
     try:
         what, body = build_payload(args)
+        secret = _secret(args)
     except ValueError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
-        return 2
+        return BAD_INPUT
     try:
         session = open_client(args)
     except ConnectionError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
-        return 3
-    key = f"vbnav/{args.robot}/cmd/{what}"
-    opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+        return UNREACHABLE
     try:
-        pub = session.declare_publisher(key, **opts)
-        # Wait for the robot's subscriber declaration to reach this fresh session (it never comes when the
-        # robot is not running; it may or may not come when the robot's access control refuses this user).
-        deadline = time.monotonic() + args.wait
-        while not pub.matching_status and time.monotonic() < deadline:
-            time.sleep(0.02)
-        matched = pub.matching_status
-        n = max(1, int(args.duration * args.rate)) if what == "teleop" and args.duration > 0 else 1
-        for i in range(n):
-            # seq and the send time on this machine's monotonic clock: the robot refuses teleop that is
-            # out of order or older than its command timeout (docs/telemetry.md, "Commands").
-            body["seq"] = i
-            body["stamp_ns"] = time.monotonic_ns()
-            pub.put(json.dumps(body))
-            if n > 1:
-                time.sleep(1.0 / args.rate)
-        time.sleep(0.1)  # flush before closing
+        return _exchange(session, args, what, body, secret)
     finally:
         session.close()
-    if not matched:
-        print(f"vbnav send: sent {what} to {key}, but no robot subscribed to it within {args.wait:g} s: is the robot "
-              f"running under that name, and is this user one of its operators?", file=sys.stderr)
-        return 1
-    print(f"sent {what} to {key}" + (f" ({n} messages)" if n > 1 else ""))
-    return 0
+
+
+def _robot_answers(session, robot: str, timeout_s: float) -> bool:
+    """Whether a robot of that name is there: its event-history queryable answers (every robot has one,
+    readable by everyone); with no such robot the query ends at once."""
+    try:
+        return any(r.ok is not None for r in session.get(f"vbnav/{robot}/events/recent", timeout=timeout_s))
+    except Exception:
+        return False
+
+
+def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int:
+    import zenoh
+    robot, ack = args.robot, body["ack"]
+    key = f"vbnav/{robot}/cmd/{what}"
+    answers: queue.SimpleQueue = queue.SimpleQueue()
+
+    def on_event(sample) -> None:   # zenoh thread
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if isinstance(msg, dict) and msg.get("ack") == ack and msg.get("kind") in ("command", "command_rejected"):
+            answers.put(msg)
+
+    # Subscribe first: the answer may come before put() returns.
+    session.declare_subscriber(f"vbnav/{robot}/events", on_event)
+    pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
+                                    reliability=zenoh.Reliability.RELIABLE)
+    deadline = time.monotonic() + args.wait
+    if not _robot_answers(session, robot, max(0.1, args.wait)):
+        print(f"vbnav send: no robot named {robot} is listening on {key} at {args.connect} (is `vbnav run` going "
+              f"with robot.name {robot}?)", file=sys.stderr)
+        return UNREACHABLE
+    while not pub.matching_status.matching and time.monotonic() < deadline:
+        time.sleep(0.01)
+    if not pub.matching_status.matching:
+        print(f"vbnav send: robot {robot} is running but does not offer {key} to {_who(args)}: the robot may refuse "
+              f"commands from {_who(args)} (telemetry.operators)", file=sys.stderr)
+        return REFUSED
+
+    def put(seq: int, with_ack: bool) -> None:
+        # seq and the send time on this machine's monotonic clock: the robot refuses teleop that is
+        # out of order or older than its command timeout (docs/telemetry.md, "Commands").
+        stamp_ns = time.monotonic_ns()
+        msg = dict(body, seq=seq, stamp_ns=stamp_ns)
+        if not with_ack:
+            del msg["ack"]
+        payload = json.dumps(msg).encode()
+        if secret is None:
+            pub.put(payload)
+        else:   # the signature covers the payload bytes: seq, stamp_ns, session and ack cannot be altered
+            from vbnav.control.comms.command_auth import sign
+            pub.put(payload, attachment=sign(secret, key, payload, stamp_ns=stamp_ns))
+
+    stream = what == "teleop" and args.duration > 0
+    n = max(1, int(args.duration * args.rate)) if stream else 1
+    answer, sent = None, 0
+    first = time.monotonic()
+    for i in range(n):
+        put(i, with_ack=answer is None)   # ack until answered: a coalesced or lost one cannot hide the answer
+        sent += 1
+        if answer is None:
+            answer = _poll(answers)
+        if answer is not None and answer["kind"] == "command_rejected":
+            break
+        if answer is None and time.monotonic() - first > args.wait:
+            break
+        if i + 1 < n:
+            time.sleep(1.0 / args.rate)
+    if answer is None:
+        answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
+    return _report(args, robot, what, answer, sent)
+
+
+def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
+    try:
+        return answers.get(timeout=timeout_s) if timeout_s > 0 else answers.get_nowait()
+    except queue.Empty:
+        return None
+
+
+def _report(args, robot: str, what: str, answer, sent: int) -> int:
+    if answer is None:
+        print(f"vbnav send: no acknowledgement within {args.wait:g} s: the robot may refuse commands from "
+              f"{_who(args)} (telemetry.operators)", file=sys.stderr)
+        return REFUSED
+    if answer["kind"] == "command_rejected":
+        print(f"vbnav send: robot {robot} refused {what}: {answer.get('reason', '?')}", file=sys.stderr)
+        return REFUSED
+    stream = f" ({sent} messages sent)" if sent > 1 else ""
+    print(f"{what} applied by robot {robot} at cycle {answer.get('cycle', '?')}{stream}")
+    return OK

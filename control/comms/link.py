@@ -13,7 +13,9 @@ extension points only:
 - ``runtime.submit``: validated network commands (estop, resume, teleop, mode)
   go to the loop's command mailbox, which the loop drains at the start of its
   next cycle; ``runtime.command_listeners``: the ``command`` event is published
-  once a command took effect, with its cycle and arrival time;
+  once a command took effect, with its cycle, arrival time and the sender's
+  ``ack`` id; ``runtime.command_handlers`` (first in the list) notes the command
+  being applied, so a ``command_rejected`` the loop raises for it carries the ack too;
 - ``pipeline.frame_listeners``: decimated camera frames for ``.../image``.
 
 ``close(result)`` publishes the ``run_end`` event, drains the queue, finishes
@@ -21,13 +23,19 @@ the recording and closes the session.
 """
 from __future__ import annotations
 
+import re
 import time
 from typing import Optional
 
-from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, limits_from_config
+from vbnav.control.comms.operator_commands import ACK_PATTERN, CommandInbox, CommandSubscriber, limits_from_config
 from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.comms.network import open_session, robot_session_config
 from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
+
+
+# The ack id of a payload the robot refused before parsing it (vbnav send puts "ack" first, so it is in the
+# excerpt even when the payload is long).
+_ACK_IN_PAYLOAD = re.compile(r'"ack"\s*:\s*"(' + ACK_PATTERN.strip("^$") + ')"')
 
 
 class _Borrowed:
@@ -65,6 +73,18 @@ def _estimate_pose(est):
     return pose if hasattr(pose, "theta") else None
 
 
+def _verifier(tcfg: TelemetryConfig):
+    """The signature check of incoming commands when ``telemetry.shared_secret_file`` is set, else None."""
+    if tcfg.shared_secret_file is None:
+        return None
+    from vbnav.control.comms.command_auth import CommandVerifier, read_secret
+    try:
+        return CommandVerifier(read_secret(tcfg.shared_secret_file)).verify
+    except ValueError as exc:  # checked at load; the file changed since
+        from vbnav.control.config import ConfigError
+        raise ConfigError(f"telemetry.shared_secret_file: {exc}") from None
+
+
 class TelemetryLink:
     def __init__(self, runtime, tcfg: TelemetryConfig, publisher: TelemetryPublisher, session=None,
                  recorder=None):
@@ -76,6 +96,7 @@ class TelemetryLink:
         self.commands: Optional[CommandSubscriber] = None
         self.inbox: CommandInbox
         self._mode: Optional[str] = None
+        self._applying = None            # the command the loop is applying (loop thread)
         self._closed = False
 
     # ---- construction ----------------------------------------------------------------------
@@ -90,6 +111,7 @@ class TelemetryLink:
         tcfg = cfg.telemetry
         robot = cfg.robot.name
         sinks, session = [], None
+        verify = _verifier(tcfg) if tcfg.enabled and network else None   # before anything is opened
         if recorder is not None:
             recorder.new_segment(segment)
             sinks.append(_Borrowed(recorder))
@@ -121,7 +143,8 @@ class TelemetryLink:
         link.inbox = CommandInbox(limits_from_config(cfg), deliver=lambda cmd: link.runtime.submit(cmd),
                                   on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
-            link.commands = CommandSubscriber(session, robot, link.inbox)
+            link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
+        runtime.command_handlers.insert(0, link._on_command_start)
         runtime.command_handlers.append(link._on_mode_command)
         runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)
@@ -136,6 +159,7 @@ class TelemetryLink:
 
     # ---- runtime hooks (loop thread) -------------------------------------------------------
     def _on_cycle(self, rt, ctx, twist, wheel_command) -> None:
+        self._applying = None   # a command refused in this cycle: later refusals are not its answer
         mode = getattr(rt.controller, "name", "?")
         if mode != self._mode:
             self.publisher.event("mode_change", stamp_ns=ctx.now_ns, mode=mode, previous=self._mode)
@@ -164,6 +188,11 @@ class TelemetryLink:
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
             twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns))
 
+    def _on_command_start(self, rt, cmd, now_ns: int) -> bool:
+        """First handler of every command: a refusal raised while it is applied answers its ``ack``."""
+        self._applying = cmd
+        return False
+
     def _on_mode_command(self, rt, cmd, now_ns: int) -> bool:
         """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
         if cmd.kind != "mode" or getattr(rt.controller, "switches_modes", False):
@@ -179,7 +208,11 @@ class TelemetryLink:
 
     def _on_safety(self, ev) -> None:
         if ev.kind == "rejected":
-            self.publisher.event("command_rejected", stamp_ns=ev.stamp_ns, command=ev.cause, reason=ev.message)
+            fields = dict(command=ev.cause, reason=ev.message)
+            cmd = self._applying
+            if cmd is not None and cmd.kind == ev.cause and cmd.ack:   # refused while being applied
+                fields["ack"] = cmd.ack
+            self.publisher.event("command_rejected", stamp_ns=ev.stamp_ns, **fields)
         else:
             self.publisher.event(f"safety_{ev.kind}", stamp_ns=ev.stamp_ns, cause=ev.cause, message=ev.message)
 
@@ -187,15 +220,24 @@ class TelemetryLink:
         self.publisher.offer_image(frame.image, frame.stamp_ns, frame.seq)
 
     def _on_command_applied(self, rt, cmd, now_ns: int) -> None:
-        """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: not news."""
-        if cmd.kind == "teleop":
+        """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: only a teleop that
+        asks for an answer (``ack``) is news."""
+        self._applying = None
+        if cmd.kind == "teleop" and not cmd.ack:
             return
-        self.publisher.event("command", stamp_ns=now_ns, command=cmd.kind, args=list(cmd.args), sender=cmd.source,
-                             cycle=rt.cycle, arrival_ns=cmd.arrival_ns)
+        fields = dict(command=cmd.kind, args=list(cmd.args), sender=cmd.source, cycle=rt.cycle,
+                      arrival_ns=cmd.arrival_ns)
+        if cmd.ack:
+            fields["ack"] = cmd.ack
+        self.publisher.event("command", stamp_ns=now_ns, **fields)
 
     # ---- network command thread ------------------------------------------------------------
     def _on_reject(self, kind: str, reason: str, excerpt: str) -> None:
-        self.publisher.event("command_rejected", command=kind, reason=reason, payload=excerpt)
+        fields = dict(command=kind, reason=reason, payload=excerpt)
+        m = _ACK_IN_PAYLOAD.search(excerpt)
+        if m:
+            fields["ack"] = m.group(1)
+        self.publisher.event("command_rejected", **fields)
 
     # ---- end -------------------------------------------------------------------------------
     def close(self, result=None) -> None:

@@ -9,10 +9,18 @@ from vbnav.control.config.base import ConfigError
 from vbnav.control.config.telemetry import TelemetryConfig, UsrPwdAuth
 
 
-def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
-    """zenoh 1.x ``access_control``: telemetry readable by every authenticated peer, cmd/** only from operators."""
+def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str, Any]:
+    """zenoh 1.x ``access_control`` of the robot's session (default deny).
+
+    Everyone may subscribe to and receive ``state``, ``events`` and ``image`` and query the event
+    history, and sees that the robot subscribes to ``cmd/**`` (so ``vbnav send`` can tell a robot that
+    is not there from one that refuses it). Only ``operators`` may put on ``cmd/**``; ``None`` (no
+    authentication: nobody is identified) lets everyone. Nobody may put on the robot's telemetry keys:
+    another process cannot publish a fake ``state`` through the robot's session.
+    """
     prefix = f"vbnav/{robot}"
     telemetry_keys = [f"{prefix}/state", f"{prefix}/events", f"{prefix}/image"]
+    commanders = ["everyone"] if operators is None else ["operators", "operators-tls"]
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -23,21 +31,20 @@ def access_control_rules(robot: str, operators: list[str]) -> dict[str, Any]:
              "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
             {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
              "messages": ["query", "reply", "declare_queryable"], "key_exprs": [f"{prefix}/events/recent"]},
-            {"id": "commands-in", "permission": "allow", "flows": ["ingress"],
-             "messages": ["put"], "key_exprs": [f"{prefix}/cmd/**"]},
             {"id": "commands-subscribe", "permission": "allow", "flows": ["egress"],
              "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/cmd/**"]},
+            {"id": "commands-in", "permission": "allow", "flows": ["ingress"],
+             "messages": ["put"], "key_exprs": [f"{prefix}/cmd/**"]},
         ],
-        "subjects": [
-            {"id": "everyone"},
+        "subjects": [{"id": "everyone"}] + ([] if operators is None else [
             {"id": "operators", "usernames": list(operators)},
             {"id": "operators-tls", "cert_common_names": list(operators)},
-        ],
+        ]),
         "policies": [
-            {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe", "events-history"],
+            {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe", "events-history",
+                                               "commands-subscribe"],
              "subjects": ["everyone"]},
-            {"id": "operators-command", "rules": ["commands-in", "commands-subscribe"],
-             "subjects": ["operators", "operators-tls"]},
+            {"id": "operators-command", "rules": ["commands-in"], "subjects": commanders},
         ],
     }
 
@@ -72,8 +79,11 @@ def robot_session_config(tcfg: TelemetryConfig, robot: str) -> dict[str, Any]:
             "enable_mtls": True,
         }
     conf["transport"] = transport
-    if tcfg.remote:
-        conf["access_control"] = access_control_rules(robot, tcfg.operators)
+    # Always: the policy also keeps other processes from publishing on the robot's telemetry keys. With
+    # authentication, on any listener, commands are limited to operators (config/telemetry.py requires them,
+    # except behind a trusted router, which cannot be told apart from its clients).
+    limited = tcfg.authenticated and not tcfg.trust_router
+    conf["access_control"] = access_control_rules(robot, list(tcfg.operators) if limited else None)
     return conf
 
 

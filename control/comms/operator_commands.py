@@ -11,16 +11,19 @@ Every payload may carry ``"sender"`` (str), ``"session"`` (str, one per sender p
 ``"seq"`` (int, increasing per session) and ``"stamp_ns"`` (int, the sender's
 ``time.monotonic_ns()`` when sent). For teleop, seq and stamp decide order and freshness
 (control/runtime/mailbox.py: out-of-order and stale teleop is refused; the clock assumption
-is documented there and in docs/telemetry.md).
+is documented there and in docs/telemetry.md). ``"ack"`` (str) is an id the robot repeats in
+the ``command`` event once the command took effect, or in the ``command_rejected`` event, so a
+sender can wait for its own answer (``vbnav send``).
 
 The zenoh callback thread checks the payload's size before copying it into Python, parses and
 validates it (pydantic), and posts an ``OperatorCommand`` to ``Runtime.submit`` (the
 ``CommandMailbox``): estop, resume and mode wait in a lane nothing evicts; teleop keeps only the
 newest message per sender. The loop drains the mailbox once per cycle, never blocking.
-Malformed, unknown, out-of-range, oversized, stale or out-of-order commands are refused with a
-``command_rejected`` event (stale and out-of-order teleop at most once a second per reason, with a count):
-they never raise into zenoh or the loop and never move the robot. Unauthorised peers are
-stopped earlier, by zenoh's access control (see network.py): their messages never arrive.
+Malformed, unknown, out-of-range, oversized, unsigned (with ``telemetry.shared_secret_file``),
+stale or out-of-order commands are refused with a ``command_rejected`` event (stale and
+out-of-order teleop without an ``ack`` at most once a second per reason, with a count): they
+never raise into zenoh or the loop and never move the robot. Unauthorised peers are stopped
+earlier, by zenoh's access control (see network.py): their messages never arrive.
 
 Teleop silence is a stop condition of the runtime's ``TeleopController``
 (control/controllers/manual.py, ``safety.command_timeout_s``), counted from the last message's
@@ -40,6 +43,7 @@ from vbnav.control.runtime.mailbox import OperatorCommand
 
 MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
 REPORT_EVERY_NS = 1_000_000_000    # teleop refusals are reported at most this often per reason
+ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 
 
 class _Cmd(BaseModel):
@@ -49,6 +53,8 @@ class _Cmd(BaseModel):
     session: Optional[str] = Field(None, max_length=64, description="one id per sender process; a new one "
                                    "restarts seq and clock tracking")
     stamp_ns: Optional[int] = Field(None, ge=0, description="sender's monotonic clock when sent, ns")
+    ack: Optional[str] = Field(None, pattern=ACK_PATTERN, description="echoed in the command / command_rejected "
+                               "event of this command")
 
 
 class EstopCmd(_Cmd):
@@ -141,7 +147,7 @@ def operator_command(cmd: NetCommand) -> OperatorCommand:
     else:
         args = ()
     return OperatorCommand(cmd.kind, args, source=f"zenoh:{b.sender}" if b.sender else "zenoh", seq=b.seq,
-                           stamp_ns=b.stamp_ns, session=b.session or "")
+                           stamp_ns=b.stamp_ns, session=b.session or "", ack=b.ack or "")
 
 
 RejectFn = Callable[[str, str, str], None]   # (command kind, reason, payload excerpt)
@@ -152,9 +158,9 @@ class CommandInbox:
 
     ``submit`` parses a payload, turns it into an ``OperatorCommand`` and passes it to
     ``deliver`` (``Runtime.submit``: the loop's mailbox), which returns None when it took the
-    command or the reason it refused it. Refusals go to ``on_reject``; teleop the mailbox refused
-    (a flood of stale messages would flood the events) at most once per second and reason,
-    telling how many were refused since the last report.
+    command or the reason it refused it. Refusals go to ``on_reject``; teleop without an ``ack``
+    that the mailbox refused (a flood of stale messages would flood the events) at most once per
+    second and reason, telling how many were refused since the last report.
     """
 
     def __init__(self, limits: TeleopLimits, deliver: Callable[[OperatorCommand], Optional[str]],
@@ -180,7 +186,8 @@ class CommandInbox:
             self.refuse(kind, f"internal error: {exc!r}", payload)
             return None
         if reason:
-            self.refuse(kind, reason, payload, stream=kind == "teleop")
+            # A teleop that asks for an answer (ack: vbnav send) gets one; a stream without acks is summarised.
+            self.refuse(kind, reason, payload, stream=kind == "teleop" and not cmd.body.ack)
             return None
         self.accepted += 1
         return cmd
@@ -212,12 +219,20 @@ class CommandInbox:
             pass
 
 
-class CommandSubscriber:
-    """Subscribes ``vbnav/<robot>/cmd/**`` on a zenoh session and feeds an inbox (reliable delivery)."""
+VerifyFn = Callable[[str, bytes, Optional[bytes]], Optional[str]]   # (key, payload, attachment) -> refusal
 
-    def __init__(self, session, robot: str, inbox: CommandInbox):
+
+class CommandSubscriber:
+    """Subscribes ``vbnav/<robot>/cmd/**`` on a zenoh session and feeds an inbox (reliable delivery).
+
+    verify: checks each sample before it is parsed (the shared-secret signature, comms/command_auth.py);
+    a refused sample becomes a ``command_rejected`` report and never reaches the inbox.
+    """
+
+    def __init__(self, session, robot: str, inbox: CommandInbox, verify: Optional[VerifyFn] = None):
         self._prefix = f"vbnav/{robot}/cmd/"
         self._inbox = inbox
+        self._verify = verify
         self._sub = session.declare_subscriber(f"vbnav/{robot}/cmd/**", self._on_sample)
 
     def _on_sample(self, sample) -> None:
@@ -229,7 +244,14 @@ class CommandSubscriber:
             if size > MAX_PAYLOAD:
                 self._inbox.refuse(kind, f"payload of {size} bytes exceeds {MAX_PAYLOAD}; not read", b"")
                 return
-            self._inbox.submit(kind, sample.payload.to_bytes())
+            payload = sample.payload.to_bytes()
+            if self._verify is not None:
+                attachment = sample.attachment
+                refused = self._verify(key, payload, None if attachment is None else attachment.to_bytes())
+                if refused:
+                    self._inbox.refuse(kind, refused, payload)
+                    return
+            self._inbox.submit(kind, payload)
         except Exception as exc:  # pragma: no cover - submit already never raises
             self._inbox.refuse(kind, f"internal error: {exc!r}", b"")
 

@@ -4,15 +4,22 @@ Safe by default: the robot's zenoh session listens only on
 ``tcp/127.0.0.1:7447``, with multicast scouting and gossip off, so nothing is
 reachable from another machine and nothing is discovered by accident.
 
-Remote access is explicit. A listener on any non-loopback address is refused
-unless the section also configures
+Remote access is explicit. A listener on any non-loopback address, any
+``connect`` endpoint (a router may expose the robot on any of its interfaces)
+or scouting is refused unless the section also configures
 
 - authentication: zenoh user/password (``auth.usrpwd`` with a dictionary file of
   accepted peers) or mutual TLS (``auth.tls`` with CA, certificate and key), and
 - ``operators``: the user names (or certificate common names) allowed to publish
-  on ``vbnav/<robot>/cmd/**``. An access-control policy is generated from it:
-  everyone authenticated may read ``state``, ``events`` and ``image``; only
-  operators may command. Everything else is denied.
+  on ``vbnav/<robot>/cmd/**``.
+
+or, for ``connect``, ``trust_router: true`` (the router decides who may command).
+Whenever authentication is configured, on any listener, ``operators`` is
+required and enforced (network.py builds the access-control policy). On a
+loopback-only robot without authentication any local user can command it;
+``shared_secret_file`` closes that (commands must be signed, see
+comms/command_auth.py). docs/telemetry.md has the table of who can command the
+robot in each configuration.
 
 The zenoh config keys used here are those of zenoh 1.x (``listen/endpoints``,
 ``scouting/multicast/enabled``, ``scouting/gossip/enabled``,
@@ -78,27 +85,21 @@ class TelemetryConfig(Strict):
                              "operators) as soon as listen, connect or scouting reach beyond this machine")
     operators: list[str] = Field(default_factory=list,
                                  description="user names / certificate common names allowed on cmd/**")
+    trust_router: bool = Field(False, description="accept the commands that the routers in `connect` forward "
+                               "without checking who sent them. Risk: anyone the router admits, on any interface "
+                               "it listens on, can command this robot; the router's own access control must "
+                               "limit cmd/** to operators")
+    shared_secret_file: Optional[str] = Field(None, description="loopback-only robots: a file (mode 600, owned by "
+                                              "the robot's user) with a secret of >= 16 bytes; commands must carry "
+                                              "its HMAC (vbnav send --secret-file), so other local users cannot "
+                                              "command the robot")
 
     @model_validator(mode="after")
     def _remote_access_needs_auth(self):
-        remote = [e for e in self.listen + self.connect if not is_loopback_endpoint(e)]
-        if self.scouting:
-            remote.append("multicast scouting")
-        if remote and self.enabled:
-            missing = []
-            if self.auth.usrpwd is None and self.auth.tls is None:
-                missing.append("authentication (telemetry.auth.usrpwd with a dictionary_file, or telemetry.auth.tls "
-                               "with certificates)")
-            if not self.operators:
-                missing.append("telemetry.operators (the user names or certificate common names allowed to send "
-                               "commands; an access-control rule limits cmd/** to them)")
-            if missing:
-                raise ValueError(
-                    f"remote access ({', '.join(remote)}) makes the robot reachable from other machines and needs "
-                    + " and ".join(missing)
-                    + f"; for local use only, listen on {DEFAULT_ENDPOINT}")
         for ep in self.listen + self.connect:
             _split_endpoint(ep)  # raises on malformed endpoints
+        if self.enabled:
+            _check_access(self)
         if self.auth.tls is not None:
             for ep in self.listen:
                 if not ep.startswith(("tls/", "quic/")) and not is_loopback_endpoint(ep):
@@ -107,8 +108,76 @@ class TelemetryConfig(Strict):
         return self
 
     @property
+    def authenticated(self) -> bool:
+        """Peers must authenticate: ``operators`` is enforced on every listener."""
+        return self.auth.usrpwd is not None or self.auth.tls is not None
+
+    @property
     def remote(self) -> bool:
-        return self.scouting or any(not is_loopback_endpoint(e) for e in self.listen + self.connect)
+        return bool(_remote_reasons(self))
+
+
+
+def _remote_reasons(t: TelemetryConfig) -> list[str]:
+    """What makes the robot reachable from beyond this machine (empty: loopback only)."""
+    reasons = [e for e in t.listen if not is_loopback_endpoint(e)]
+    if not t.trust_router:
+        reasons += [f"connect {e}" for e in t.connect]
+    if t.scouting:
+        reasons.append("multicast scouting")
+    return reasons
+
+
+
+def _check_access(t: TelemetryConfig) -> None:
+    """Who may command the robot must follow from the section (docs/telemetry.md); raises ValueError."""
+    if t.trust_router:
+        if not t.connect:
+            raise ValueError("telemetry.trust_router: true trusts the routers in telemetry.connect, which is empty")
+        exposed = [e for e in t.listen if not is_loopback_endpoint(e)] + (["multicast scouting"] if t.scouting else [])
+        if exposed:
+            raise ValueError(f"telemetry.trust_router: a robot that accepts whatever its router forwards must not be "
+                             f"reachable otherwise; found {', '.join(exposed)}: listen on loopback only, "
+                             f"scouting off")
+        if t.operators:
+            raise ValueError("telemetry.operators cannot be enforced with telemetry.trust_router: the robot opens the "
+                             "link to the router, so its access control cannot tell who sent a command through it; "
+                             "limit cmd/** to operators in the router's access_control and remove "
+                             "telemetry.operators")
+    remote = _remote_reasons(t)
+    if remote:
+        missing = []
+        if not t.authenticated:
+            missing.append("authentication (telemetry.auth.usrpwd with a dictionary_file, or telemetry.auth.tls "
+                           "with certificates)")
+        if not t.operators:
+            missing.append("telemetry.operators (the user names or certificate common names allowed to send "
+                           "commands; an access-control rule limits cmd/** to them)")
+        if missing:
+            hint = " (a router may expose the robot on any interface; telemetry.trust_router: true hands the " \
+                   "decision to the router)" if any(r.startswith("connect ") for r in remote) else ""
+            raise ValueError(
+                f"remote access ({', '.join(remote)}) makes the robot reachable from other machines and needs "
+                + " and ".join(missing)
+                + f"; for local use only, listen on {DEFAULT_ENDPOINT}{hint}")
+    if t.authenticated and not t.operators and not t.trust_router:
+        raise ValueError("telemetry.operators: authentication is configured, so only operators may command the "
+                         "robot (on every listener), and the list is empty: nobody could")
+    if t.operators and not t.authenticated:
+        raise ValueError("telemetry.operators: without telemetry.auth no peer is identified, so the list cannot be "
+                         "enforced and anyone who connects could command the robot; configure telemetry.auth.usrpwd "
+                         "or telemetry.auth.tls, or remove telemetry.operators")
+    if t.shared_secret_file is not None:
+        beyond = remote + [f"connect {e}" for e in t.connect if t.trust_router]
+        if beyond:
+            raise ValueError(f"telemetry.shared_secret_file: signed commands are for a robot reachable from this "
+                             f"machine only (sender and robot must share its monotonic clock for the replay "
+                             f"check); found {', '.join(beyond)}: use telemetry.auth and telemetry.operators instead")
+        from vbnav.control.comms.command_auth import read_secret
+        try:
+            read_secret(t.shared_secret_file, check_owner=False)   # the owner: when the robot starts
+        except ValueError as exc:
+            raise ValueError(f"telemetry.shared_secret_file: {exc}") from None
 
 
 

@@ -60,6 +60,7 @@ class OperatorCommand:
     kind: "estop" | "resume" | "teleop" (args: v, w) | "mode" (args: mode[, route]).
     seq, stamp_ns, session: the sender's sequence number, send time on its own clock and session id
     (teleop ordering and freshness, see the module docstring); all optional.
+    ack: the sender's id for this command, repeated in the events that answer it ("" for none).
     arrival_ns, order: set by ``CommandMailbox.post``. sent_ns: the send time on the robot's clock,
     set by ``drain`` for teleop.
     """
@@ -70,6 +71,7 @@ class OperatorCommand:
     seq: Optional[int] = None
     stamp_ns: Optional[int] = None
     session: str = ""
+    ack: str = ""
     arrival_ns: Optional[int] = None
     order: int = 0
     sent_ns: Optional[int] = None
