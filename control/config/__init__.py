@@ -20,7 +20,7 @@ from vbnav.drivers import registry
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"   # control/config/__init__.py -> repo/configs
 
 
 class ConfigError(ValueError):
