@@ -84,9 +84,9 @@ def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
     from vbnav.control.controllers.manual import ScriptedController
     from vbnav.control.runtime.runtime import Runtime
 
-    cfg = load_config("sim_stereo").model_copy(deep=True)
-    cfg.sim.world = "corridor_step"
-    clock, drive, pipeline = make_robot(cfg, [make_obstacle_stage(cfg)])
+    cfg = load_config("sim_stereo", overrides={"sim": {"world": "corridor_step", "start_pose": [0.0, 0.0, 0.0]}})
+    robot = make_robot(cfg, [make_obstacle_stage(cfg)])
+    clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
     rt = Runtime(cfg, drive, ScriptedController([[0.3, 0.0, 14.0]]), clock, pipeline)
     front = []
     rt.cycle_observers.append(lambda r, ctx, twist, wheels: front.append(drive.true_pose.z + ROBOT_HALF_LENGTH))

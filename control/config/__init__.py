@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from vbnav.drivers import registry
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
-from vbnav.vision.geometry import CameraMount
+from vbnav.vision.geometry import CameraMount, Pose2
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"   # control/config/__init__.py -> repo/configs
 
@@ -115,6 +115,24 @@ class SimConfig(Strict):
     slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
     vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
+    start_pose: list[float] = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
+        description="where the simulated robot starts in the world: [x m (right), z m (forward), heading deg "
+                    "(positive turning right)]")
+
+    @field_validator("start_pose")
+    @classmethod
+    def _finite_pose(cls, v: list[float]) -> list[float]:
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError("expected finite numbers [x, z, heading_deg]")
+        return v
+
+    def start(self) -> Pose2:
+        x, z, theta_deg = self.start_pose
+        return Pose2(x, z, math.radians(theta_deg))
+
+    def set_start(self, pose: Pose2) -> None:
+        self.start_pose = [pose.x, pose.z, math.degrees(pose.theta)]
 
 
 class ControllerConfig(Strict):
