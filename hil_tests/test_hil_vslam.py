@@ -10,10 +10,11 @@ import math
 
 import pytest
 
+from vslam_eval import run_vslam_loop  # tests/vslam_eval.py
+
 from vbnav.control.config import load_config
 from vbnav.control.runtime.factory import make_robot
 from vbnav.control.runtime.runtime import Runtime
-from vbnav.control.vslam_eval import run_vslam_loop
 from vbnav.control.controllers.goto import GotoController
 from vbnav.control.stages.vslam import make_vslam_stage
 from vbnav.control.config.vslam import vslam_nav_config

@@ -142,6 +142,10 @@ class ControllerConfig(Strict):
     script: list[list[float]] = Field(
         default_factory=lambda: [[0.3, 0.0, 3.0], [0.3, 0.4, 4.0], [0.0, 0.0, 1.0]],
         description="[linear m/s, angular rad/s, duration s] segments for the scripted drive")
+    teach: Literal["teleop", "room_loop"] = Field(
+        "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
+                              "room_loop (simulated drive only: a scripted teacher once around the simulated "
+                              "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
 
 
 class Config(Strict):
@@ -167,6 +171,14 @@ class Config(Strict):
         if r.max_linear_speed > r.max_wheel_speed * r.wheel_radius + 1e-9:
             raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
                              f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
+        return self
+
+    @model_validator(mode="after")
+    def _scripted_teacher_only_in_simulation(self):
+        # A scripted loop through a room the robot cannot see is never what real motors should drive.
+        if self.controller.teach == "room_loop" and self.drive.driver != "sim":
+            raise ValueError(f"controller.teach 'room_loop' drives the simulated room's loop; drive.driver "
+                             f"{self.drive.driver!r} is a real drive (use teach: teleop)")
         return self
 
 
