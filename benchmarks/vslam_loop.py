@@ -1,7 +1,7 @@
 """Loop closure on the simulated robot: the VSLAM's pose at the return against chained frame-to-frame motions.
 
 The real runtime drives the simulated robot once around a 10.3 m loop
-(``control/vslam_eval.py``; stereo camera at 10 Hz, 320 x 240) while, on the
+(``tests/vslam_eval.py``; stereo camera at 10 Hz, 320 x 240) while, on the
 same frames:
   - ours: ``VslamStage`` (pose against the reference set; back at the start,
     against the first reference set),
@@ -21,15 +21,19 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from vbnav.control.config import load_config
-from vbnav.control.runtime.interfaces import Estimate, VisionStage
-from vbnav.control.vslam_eval import fast_stereo_config, run_vslam_loop
-from vbnav.control.stages.vslam import VslamFix, camera_to_robot, robot_to_camera_matrix
-from vbnav.vision.features import KltTracker, to_grey
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from vslam_eval import fast_stereo_config, run_vslam_loop  # noqa: E402
+
+from vbnav.control.config import load_config  # noqa: E402
+from vbnav.control.runtime.interfaces import Estimate, VisionStage  # noqa: E402
+from vbnav.control.stages.vslam import VslamFix, camera_to_robot, robot_to_camera_matrix  # noqa: E402
+from vbnav.vision.features import KltTracker, to_grey  # noqa: E402
 
 
 class OpenCvChainedStage(VisionStage):

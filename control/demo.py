@@ -23,11 +23,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbnav.control.config import Config, load_config
-from vbnav.control.runtime.factory import make_pipeline
-from vbnav.control.controllers.path import PathFollower, lateral_errors, path_length, rounded_rectangle
-from vbnav.control.runtime.runtime import Runtime
-from vbnav.drivers.clock import SimClock
-from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
+from vbnav.control.controllers.path import PathFollower, lateral_errors, path_length, room_loop
+from vbnav.control.runtime.factory import Robot, make_robot
+from vbnav.control.session import Session
 from vbnav.vision.geometry import Pose2
 
 
@@ -55,7 +53,8 @@ class RunTrace:
     theta: list = field(default_factory=list)
     v: list = field(default_factory=list)
 
-    def observer(self, drive: SimDiffDrive, every: int = 5):
+    def observer(self, drive, every: int = 5):
+        """A cycle observer sampling the simulated ``drive``'s true pose every ``every`` cycles."""
         def fn(rt, ctx, twist, wheels):
             if ctx.cycle % every == 0:
                 p = drive.physics.pose
@@ -70,15 +69,17 @@ class RunTrace:
 
 
 def demo_config(seed: int, base: Optional[Config] = None) -> Config:
+    """The simulated robot of ``base`` (default configs/sim.yaml) on ``seed``, at the start of the demo route."""
     cfg = base or load_config(None)
     cfg = cfg.model_copy(deep=True)
     cfg.sim.seed = seed
+    cfg.sim.set_start(start_pose(demo_route()))
     return cfg
 
 
 def demo_route() -> np.ndarray:
-    """A 20.6 m closed loop with four right turns, 1 m from the boxes and walls of World.room()."""
-    return rounded_rectangle((0.0, 0.0), (7.0, 4.0), 0.8)
+    """The simulated room's 20.6 m loop (controllers/path.py ``room_loop``)."""
+    return room_loop()
 
 
 def start_pose(path: np.ndarray) -> Pose2:
@@ -148,147 +149,27 @@ def plot_paths(png: Path, taught: np.ndarray, repeats: list[np.ndarray], keyfram
     os.replace(tmp, png)
 
 
-# ----------------------------------------------------------------------------- runs
-@dataclass
-class SimRobot:
-    """One simulated robot on its own clock: base, camera, pipeline pieces."""
+# ----------------------------------------------------------------------------- ground truth
+class KeyframeTruth:
+    """True positions at keyframe stamps: a cycle observer logs the true pose at every stamp."""
 
-    clock: SimClock
-    drive: SimDiffDrive
-    camera: object
-    world: object
+    def __init__(self, drive):
+        self.drive = drive
+        self.by_stamp: dict[int, tuple[float, float]] = {}
 
+    def __call__(self, rt, ctx, twist, wheels) -> None:
+        p = self.drive.physics.pose
+        self.by_stamp[ctx.now_ns] = (p.x, p.z)
 
-def make_sim_robot(cfg: Config, world, start: Pose2, seed_offset: int = 0) -> SimRobot:
-    from vbnav.control.config import validate_driver_options
-    from vbnav.drivers.sim.camera import SimCamera
+    def at(self, stamps: list[int]) -> np.ndarray:
+        """(N, 2) true x, z at the cycle nearest each stamp."""
+        return np.array([self._nearest(s) for s in stamps]).reshape(-1, 2)
 
-    clock = SimClock()
-    drive = SimDiffDrive(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed * 1000 + seed_offset, start=start)
-    opts = validate_driver_options(cfg, cfg.source or "<config>")["camera"]
-    camera = SimCamera.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose, world=world)
-    camera.seed = cfg.sim.seed * 1000 + seed_offset
-    return SimRobot(clock, drive, camera, world)
-
-
-@dataclass
-class TeachResult:
-    trace: RunTrace
-    keyframes: int
-    keyframe_xz: np.ndarray
-    reason: str
-    message: str
-    timing: object
-
-
-def teach_route(cfg: Config, robot: SimRobot, controller, route_dir: Path,
-                progress: Optional[Callable[[str], None]] = None, duration_s: Optional[float] = None,
-                recorder=None) -> TeachResult:
-    """Drive with ``controller`` while a TeachStage records keyframes into ``route_dir``."""
-    from vbnav.control.route import RouteWriter
-    from vbnav.control.stages.teach import TeachStage
-
-    model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
-    stage = TeachStage(model, mount, cfg.vbc)
-    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage])
-    trace = RunTrace()
-    stamps: dict[int, int] = {}
-    with RouteWriter(route_dir, cfg.robot.name, model, mount, overwrite=True) as writer:
-        def save(frame, results):
-            for kf in stage.pop_keyframes():
-                writer.append(kf)
-                stamps[kf.index] = kf.stamp_ns
-
-        pipeline.frame_listeners.append(save)
-        rt = Runtime(cfg, robot.drive, controller, robot.clock, pipeline)
-        rt.cycle_observers.append(trace.observer(robot.drive))
-        rt.cycle_observers.append(_stamp_pose_recorder(robot.drive, stamps_pose := {}))
-        link = _record(rt, cfg, recorder, "teach")
-        result = None
-        try:
-            result = rt.run(duration_s, _progress_fn(progress, "teach", lambda: f"{stage.n_keyframes} keyframes"))
-        finally:
-            if link is not None:
-                link.close(result)
-        stage.finish()
-        save(None, None)
-    kf_xz = np.array([_nearest_pose(stamps_pose, s) for _, s in sorted(stamps.items())]).reshape(-1, 2)
-    return TeachResult(trace, len(stamps), kf_xz, result.reason, result.message, result.timing)
-
-
-@dataclass
-class RepeatResult:
-    trace: RunTrace
-    completed: bool
-    reason: str
-    message: str
-    keyframe_reached: int
-    events: list
-    timing: object
-    stops: int
-
-
-def repeat_route(cfg: Config, robot: SimRobot, route, progress: Optional[Callable[[str], None]] = None,
-                 duration_s: float = 240.0, events: Optional[Callable] = None,
-                 extra_stages: tuple = (), recorder=None, segment: str = "repeat") -> RepeatResult:
-    """Patrol ``route`` with the RepeatStage/RepeatController; ``events(rt, ctx)`` injects scenario changes."""
-    from vbnav.control.controllers.repeat import RepeatController
-    from vbnav.control.stages.repeat import RepeatStage
-
-    vcfg = cfg.vbc
-    stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
-    controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
-    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, *extra_stages])
-    rt = Runtime(cfg, robot.drive, controller, robot.clock, pipeline)
-    trace = RunTrace()
-    rt.cycle_observers.append(trace.observer(robot.drive))
-    if events is not None:
-        rt.cycle_observers.append(lambda r, ctx, twist, wheels: events(r, ctx))
-    link = _record(rt, cfg, recorder, segment)
-    result = None
-    try:
-        result = rt.run(duration_s, _progress_fn(progress, "repeat",
-                                                 lambda: f"keyframe {stage.index + 1}/{len(route.keyframes)}"))
-    finally:
-        if link is not None:
-            link.close(result)
-    stops = sum(1 for e in result.events if e.kind == "hold")
-    return RepeatResult(trace, result.reason == "finished", result.reason, result.message, stage.index,
-                        [e.as_dict() for e in result.events], result.timing, stops)
-
-
-def _record(rt: Runtime, cfg: Config, recorder, segment: str):
-    """Record this run into a shared MCAP recorder (no network: simulated runs go faster than real time)."""
-    if recorder is None:
-        return None
-    from vbnav.control.comms.link import TelemetryLink
-    return TelemetryLink.attach(rt, cfg, recorder=recorder, network=False, segment=segment)
-
-
-def _stamp_pose_recorder(drive, store: dict):
-    def fn(rt, ctx, twist, wheels):
-        p = drive.physics.pose
-        store[ctx.now_ns] = (p.x, p.z)
-    return fn
-
-
-def _nearest_pose(store: dict, stamp: int):
-    if not store:
-        return (np.nan, np.nan)
-    keys = np.fromiter(store.keys(), dtype=np.int64)
-    return store[int(keys[np.argmin(np.abs(keys - stamp))])]
-
-
-def _progress_fn(progress, label: str, extra: Callable[[], str]):
-    if progress is None:
-        return None
-
-    def fn(rt: Runtime) -> None:
-        t = (rt.clock.now_ns() - rt._start_ns) * 1e-9
-        safety = "ok" if rt.safety.may_move else "STOP " + ",".join(rt.safety.latched | rt.safety.holds)
-        progress(f"{label}: t={t:5.1f}s  travelled {rt.odometry.distance:5.1f} m  {extra()}  "
-                 f"v={rt.last_twist.v:+.2f} w={rt.last_twist.w:+.2f}  {safety}")
-    return fn
+    def _nearest(self, stamp: int):
+        if not self.by_stamp:
+            return (np.nan, np.nan)
+        keys = np.fromiter(self.by_stamp.keys(), dtype=np.int64)
+        return self.by_stamp[int(keys[np.argmin(np.abs(keys - stamp))])]
 
 
 # ----------------------------------------------------------------------------- the scenario
@@ -298,64 +179,66 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
 
     ``record``: one MCAP file holding the teach run and every repeat, one segment each.
     """
-    from vbnav.drivers.sim.world import World
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = demo_config(scenario.seed, cfg)
-    say = progress or (lambda s: None)
-    path = demo_route()
-    start = start_pose(path)
     t_wall = time.perf_counter()
-
-    world = World.by_name(cfg.sim.world, cfg.sim.seed)
-    robot = make_sim_robot(cfg, world, start, seed_offset=0)
     recorder = None
     if record:
         from vbnav.control.comms.recording import McapRecorder
         recorder = McapRecorder(record, cfg.robot.name, metadata={"demo_seed": scenario.seed,
                                                                   "repeats": scenario.repeats})
     try:
-        return _run_demo_phases(out_dir, scenario, cfg, say, progress, path, start, world, robot, recorder, t_wall)
+        return _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall)
     finally:
         if recorder is not None:
             recorder.close()
 
 
-def _run_demo_phases(out_dir, scenario, cfg, say, progress, path, start, world, robot, recorder, t_wall) -> dict:
+def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict:
     from vbnav.control.route import load_route
-    from vbnav.drivers.sim.world import World
 
-    teach = teach_route(cfg, robot, PathFollower(path, scenario.speed, start=start), out_dir / "route", say,
-                        recorder=recorder)
+    say = progress or (lambda s: None)
+    path = demo_route()
+    start = cfg.sim.start()
+    robot = make_robot(cfg, with_camera=True, run=0)
+    trace, truth = RunTrace(), KeyframeTruth(robot.drive)
+    teach = Session(cfg, robot, recorder=recorder, progress=say).teach(
+        PathFollower(path, scenario.speed, start=start), out_dir / "route", overwrite=True,
+        observers=[trace.observer(robot.drive), truth])
+    taught_xz = trace.array()
     if progress:
-        say(f"taught {teach.keyframes} keyframes over {path_length(teach.trace.array()):.1f} m")
+        say(f"taught {teach.keyframes} keyframes over {path_length(taught_xz):.1f} m")
     route = load_route(out_dir / "route")
-    taught_xz = teach.trace.array()
 
     repeats = []
     for i in range(scenario.repeats):
-        world_i = World.by_name(cfg.sim.world, cfg.sim.seed)
-        for name, xz in scenario.moved_boxes.get(i, {}).items():
-            world_i.move_box(name, xz)
         offset = Pose2(scenario.offset_lateral_m * (1 if i % 2 == 0 else -1), 0.0,
                        math.radians(scenario.offset_heading_deg) * (1 if i % 2 == 0 else -1))
-        robot_i = make_sim_robot(cfg, world_i, start.compose(offset), seed_offset=i + 1)
+        cfg_i = cfg.model_copy(deep=True)
+        cfg_i.sim.set_start(start.compose(offset))
+        robot_i = make_robot(cfg_i, with_camera=True, run=i + 1)
+        for name, xz in scenario.moved_boxes.get(i, {}).items():
+            robot_i.world.move_box(name, xz)
         robot_i.camera.gain = scenario.lighting.get(i, 1.0)
+        trace_i = RunTrace()
+        observers = [trace_i.observer(robot_i.drive)]
         events = _scenario_events(scenario, i, robot_i)
-        rep = repeat_route(cfg, robot_i, route, say, scenario.max_repeat_s, events, recorder=recorder,
-                           segment=f"repeat {i + 1}")
-        errs = summarise_errors(rep.trace, taught_xz, scenario.settle_m)
+        if events is not None:
+            observers.append(events)
+        rep = Session(cfg_i, robot_i, recorder=recorder, progress=say).repeat(
+            route, scenario.max_repeat_s, observers, segment=f"repeat {i + 1}")
+        errs = summarise_errors(trace_i, taught_xz, scenario.settle_m)
         repeats.append({"index": i + 1, "completed": rep.completed, "end": rep.reason, "message": rep.message,
                         "keyframe_reached": rep.keyframe_reached + 1, "start_offset": offset.as_array().tolist(),
                         "lighting_gain": robot_i.camera.gain, "safety_stops": rep.stops,
-                        "duration_s": rep.trace.t[-1] - rep.trace.t[0] if rep.trace.t else 0.0,
+                        "duration_s": trace_i.t[-1] - trace_i.t[0] if trace_i.t else 0.0,
                         "loop_timing": rep.timing.as_dict(), **errs})
         if progress:
             say(f"repeat {i + 1}: {'completed' if rep.completed else 'NOT completed (' + rep.message + ')'}, "
                 f"RMS lateral error {errs['rms_lateral_error_m'] * 100:.1f} cm, "
                 f"max {errs['max_lateral_error_m'] * 100:.1f} cm")
-        repeats[-1]["_trace"] = rep.trace.array()
+        repeats[-1]["_trace"] = trace_i.array()
 
     all_err = []
     for r in repeats:
@@ -371,19 +254,21 @@ def _run_demo_phases(out_dir, scenario, cfg, say, progress, path, start, world, 
         "wall_time_s": time.perf_counter() - t_wall,
     }
     write_json_atomic(out_dir / "metrics.json", metrics)
-    plot_paths(out_dir / "paths.png", taught_xz, [r["_trace"] for r in repeats], teach.keyframe_xz, world,
+    plot_paths(out_dir / "paths.png", taught_xz, [r["_trace"] for r in repeats],
+               truth.at(teach.keyframe_stamps), robot.world,
                f"seed {scenario.seed}: {teach.keyframes} keyframes, RMS lateral "
                f"{metrics['rms_lateral_error_m'] * 100:.1f} cm, max {metrics['max_lateral_error_m'] * 100:.1f} cm")
     return metrics
 
 
-def _scenario_events(scenario: Scenario, i: int, robot: SimRobot):
+def _scenario_events(scenario: Scenario, i: int, robot: Robot):
+    """The occlusion of repeat ``i`` (the camera covered for a while), as a cycle observer; None if none."""
     occ = scenario.occlusion if scenario.occlusion and scenario.occlusion[0] == i else None
     if occ is None:
         return None
     t0 = robot.clock.now_ns()
 
-    def events(rt, ctx):
+    def events(rt, ctx, twist, wheels):
         t = (ctx.now_ns - t0) * 1e-9
         robot.camera.occluded = occ[1] <= t < occ[1] + occ[2]
     return events

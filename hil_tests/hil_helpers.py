@@ -2,11 +2,12 @@
 whose motors drive the simulated base."""
 from __future__ import annotations
 
+from emulator_coupling import PhysicsCoupling  # same directory
+
 from vbnav.control.config import CONFIG_DIR, load_config
 from vbnav.control.controllers.manual import ScriptedController
 from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.clock import MonotonicClock
-from vbnav.drivers.sim.emulator_coupling import PhysicsCoupling
 from vbnav.drivers.sim.base import BaseParams, DiffDrivePhysics
 
 

@@ -14,14 +14,16 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.control.demo import demo_config, make_sim_robot, repeat_route, teach_route
+from vbnav.control.config import load_config
 from vbnav.control.stages.obstacles import make_obstacle_stage
 from vbnav.control.controllers.path import PathFollower
 from vbnav.control.route import load_route
-from vbnav.drivers.sim.world import World
+from vbnav.control.runtime.factory import make_robot
+from vbnav.control.session import Session
 from vbnav.vision.geometry import Pose2
 
-START = Pose2(-3.0, -2.0, math.radians(90.0))          # facing +x along the route's bottom edge
+START_POSE = [-3.0, -2.0, 90.0]                          # sim.start_pose: facing +x along the route's bottom edge
+START = Pose2(START_POSE[0], START_POSE[1], math.radians(START_POSE[2]))
 PATH = np.column_stack([np.linspace(-3.0, 2.0, 26), np.full(26, -2.0)])
 BOX_AT = (0.0, -2.0)
 BOX_SIZE = (0.3, 0.08, 0.3)
@@ -31,22 +33,23 @@ ROBOT_HALF_LENGTH = 0.2                                  # axle centre to the fr
 
 @pytest.mark.slow
 def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(tmp_path):
-    cfg = demo_config(seed=SEED)
+    cfg = load_config(None, overrides={"sim": {"seed": SEED, "start_pose": START_POSE}})
     teach_cfg = cfg.model_copy(deep=True)
-    robot = make_sim_robot(teach_cfg, World.room(seed=SEED), START)
-    taught = teach_route(teach_cfg, robot, PathFollower(PATH, 0.4, closed=False, start=START), tmp_path / "route")
+    robot = make_robot(teach_cfg, with_camera=True)
+    taught = Session(teach_cfg, robot).teach(PathFollower(PATH, 0.4, closed=False, start=START), tmp_path / "route",
+                                             overwrite=True)
     assert taught.reason == "finished", taught.message
     route = load_route(tmp_path / "route")
 
     cfg.camera.options = {**cfg.camera.options, "stereo_baseline": 0.075}
     cfg.obstacles = {"enabled": True, "persist_k": 2, "persist_n": 3, "release_s": 0.5}
-    world = World.room(seed=SEED)
-    world.add_box("intruder", BOX_AT, BOX_SIZE)
-    robot = make_sim_robot(cfg, world, START, seed_offset=1)
     stage = make_obstacle_stage(cfg)
+    robot = make_robot(cfg, [stage], run=1)
+    world = robot.world
+    world.add_box("intruder", BOX_AT, BOX_SIZE)
     state = {"held_since": None, "removed_at": None, "min_clearance": math.inf, "speed_scales": []}
 
-    def events(rt, ctx):
+    def events(rt, ctx, twist, wheels):
         held = "obstacle" in rt.safety.holds
         if state["removed_at"] is None:
             p = robot.drive.true_pose
@@ -60,7 +63,7 @@ def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(
         if e is not None:
             state["speed_scales"].append(e.info["speed_scale"])
 
-    rep = repeat_route(cfg, robot, route, duration_s=90.0, events=events, extra_stages=(stage,))
+    rep = Session(cfg, robot).repeat(route, duration_s=90.0, observers=[events])
     print(f"obstacle stop: held after {(state['held_since'] or 0) * 1e-9:.1f} s, min clearance to the box "
           f"{state['min_clearance']:.2f} m, route completed: {rep.completed} ({rep.reason})")
     assert state["held_since"] is not None, "the robot never stopped for the box"
@@ -79,14 +82,12 @@ def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(
 def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
     """A scripted drive straight at a 15 cm drop (World.corridor_with_step, edge 3 m ahead) is held
     by the negative obstacle in the stop zone; the wheels never carry the robot over the edge."""
-    from vbnav.control.config import load_config
-    from vbnav.control.runtime.factory import make_robot
     from vbnav.control.controllers.manual import ScriptedController
     from vbnav.control.runtime.runtime import Runtime
 
-    cfg = load_config("sim_stereo").model_copy(deep=True)
-    cfg.sim.world = "corridor_step"
-    clock, drive, pipeline = make_robot(cfg, [make_obstacle_stage(cfg)])
+    cfg = load_config("sim_stereo", overrides={"sim": {"world": "corridor_step", "start_pose": [0.0, 0.0, 0.0]}})
+    robot = make_robot(cfg, [make_obstacle_stage(cfg)])
+    clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
     rt = Runtime(cfg, drive, ScriptedController([[0.3, 0.0, 14.0]]), clock, pipeline)
     front = []
     rt.cycle_observers.append(lambda r, ctx, twist, wheels: front.append(drive.true_pose.z + ROBOT_HALF_LENGTH))

@@ -10,15 +10,13 @@ import math
 
 import pytest
 
-from vbnav.control.commands.goto import SIM_START
+from vslam_eval import run_vslam_loop  # tests/vslam_eval.py
+
 from vbnav.control.config import load_config
-from vbnav.control.demo import make_sim_robot
-from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.runtime.factory import make_robot
 from vbnav.control.runtime.runtime import Runtime
-from vbnav.control.vslam_eval import run_vslam_loop
 from vbnav.control.controllers.goto import GotoController
 from vbnav.control.stages.vslam import make_vslam_stage
-from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2, wrap_angle
 
 
@@ -48,17 +46,16 @@ def _goto(goal: Pose2, cfg=None, covered=None):
     """Run goto on the shipped stereo configuration; ``covered`` = (from s, to s) covers the lens."""
     cfg = cfg or load_config("sim_stereo", overrides={"loop": {"max_missed_streak": 10 ** 6,
                                                                    "stall_periods": 10 ** 6}})
-    start = Pose2(*SIM_START)
-    robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
     stage = make_vslam_stage(cfg)
+    robot = make_robot(cfg, [stage])        # at the configuration's sim.start_pose
     ctrl = GotoController(goal, cfg.vslam.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
-    rt = Runtime(cfg, robot.drive, ctrl, robot.clock, make_pipeline(cfg, robot.clock, robot.camera, [stage]))
+    rt = Runtime(cfg, robot.drive, ctrl, robot.clock, robot.pipeline)
     if covered is not None:
         def cover(r, ctx, twist, wheels):
             robot.camera.occluded = covered[0] <= ctx.now_ns * 1e-9 < covered[1]
         rt.cycle_observers.append(cover)
     result = rt.run(60.0)
-    true = start.between(robot.drive.physics.pose)
+    true = robot.true_pose()
     return result, true, ctrl, stage
 
 

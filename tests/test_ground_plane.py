@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.vision import disparity_scenes as ds
+import disparity_scenes as ds  # same directory
+
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.ground_plane import (DisparityPlane, expected_plane, fit_ground_plane,
                                        plane_from_floor)

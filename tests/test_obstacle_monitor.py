@@ -6,11 +6,12 @@ import math
 import numpy as np
 import pytest
 
+import disparity_scenes as ds  # same directory
+
 from vbnav.control.config import ConfigError, parse_config
 from vbnav.control.stages.obstacles import ObstacleMonitor, ObstacleStage, make_obstacle_stage, points_in_polygon, to_robot_frame, zone_counts
 from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.drivers.camera import Frame
-from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig

@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from vbnav.vision import disparity_scenes as ds
+import disparity_scenes as ds  # same directory
+
 from vbnav.vision.ground_plane import expected_plane
 from vbnav.vision.obstacles import (KOfN, ObstacleParams, PixelClass, classify, detect_obstacles,
                                     nearest_in_corridor)

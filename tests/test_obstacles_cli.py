@@ -7,8 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
+import disparity_scenes as ds  # same directory
+
 from vbnav.control.cli import main
-from vbnav.vision import disparity_scenes as ds
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 

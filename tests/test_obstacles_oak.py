@@ -10,10 +10,11 @@ import pytest
 
 dai = pytest.importorskip("depthai")
 
+import disparity_scenes as ds  # noqa: E402
+
 from vbnav.control.config import parse_config  # noqa: E402
 from vbnav.control.stages.obstacles import make_obstacle_stage  # noqa: E402
 from vbnav.drivers.oak_camera import frame_from_imgframes  # noqa: E402
-from vbnav.vision import disparity_scenes as ds  # noqa: E402
 from vbnav.vision.geometry import Pose2  # noqa: E402
 from vbnav.vision.obstacles import PixelClass  # noqa: E402
 from vbnav.vision.camera_model import PinholeCamera  # noqa: E402

@@ -1,19 +1,16 @@
 """Operator session: teleop in idle, cmd/mode teach records a route, cmd/mode repeat patrols it."""
 from vbnav.control.config import load_config
-from vbnav.control.demo import make_sim_robot
-from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.runtime.factory import make_robot
 from vbnav.control.controllers.operator import OperatorController
 from vbnav.control.route import load_route
 from vbnav.control.runtime.runtime import OperatorCommand, Runtime
-from vbnav.drivers.sim.world import World
-from vbnav.vision.geometry import Pose2
 
 
 def test_idle_teach_idle_repeat(tmp_path):
-    cfg = load_config(None)
-    start = Pose2(-3.5, -1.0, 0.0)
-    robot = make_sim_robot(cfg, World.room(seed=0), start)
-    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [])
+    cfg = load_config(None, overrides={"sim": {"start_pose": [-3.5, -1.0, 0.0]}})
+    start = cfg.sim.start()
+    robot = make_robot(cfg, with_camera=True)
+    pipeline = robot.pipeline
     ctl = OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)
     rt = Runtime(cfg, robot.drive, ctl, robot.clock, pipeline)
     ctl.attach(rt)

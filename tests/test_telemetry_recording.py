@@ -13,24 +13,24 @@ def _events(path):
 
 
 def test_demo_teach_and_repeat_segments_in_one_recording(tmp_path):
-    """The demo's own teach_route/repeat_route with a shared recorder, cut short (the full demo is slow)."""
-    from vbnav.control.demo import demo_config, demo_route, make_sim_robot, repeat_route, start_pose, teach_route
+    """The demo's teach and repeat runs (session.Session) with a shared recorder, cut short (the full demo is
+    slow)."""
+    from vbnav.control.demo import demo_config, demo_route
     from vbnav.control.controllers.path import PathFollower
     from vbnav.control.route import load_route
-    from vbnav.drivers.sim.world import World
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.session import Session
 
     cfg = demo_config(0)
-    path, start = demo_route(), None
-    start = start_pose(path)
-    world = World.by_name(cfg.sim.world, cfg.sim.seed)
+    path, start = demo_route(), cfg.sim.start()
     rec_path = tmp_path / "demo.mcap"
     rec = McapRecorder(rec_path, cfg.robot.name)
     try:
-        teach = teach_route(cfg, make_sim_robot(cfg, world, start), PathFollower(path, 0.4, start=start),
-                            tmp_path / "route", duration_s=6.0, recorder=rec)
+        teach = Session(cfg, make_robot(cfg, with_camera=True), recorder=rec).teach(
+            PathFollower(path, 0.4, start=start), tmp_path / "route", overwrite=True, duration_s=6.0)
         assert teach.keyframes >= 2
-        rep = repeat_route(cfg, make_sim_robot(cfg, world, start, seed_offset=1), load_route(tmp_path / "route"),
-                           duration_s=4.0, recorder=rec, segment="repeat 1")
+        rep = Session(cfg, make_robot(cfg, with_camera=True, run=1), recorder=rec).repeat(
+            load_route(tmp_path / "route"), duration_s=4.0, segment="repeat 1")
         assert rep.reason in ("duration", "finished")
     finally:
         rec.close()

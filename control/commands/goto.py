@@ -6,9 +6,6 @@ import math
 
 from vbnav.control.commands._common import add_config_arg
 
-# Where the simulated robot starts in World.room(): clear floor for >= 3 m in every direction but south.
-SIM_START = (-1.5, -2.5, 0.0)
-
 
 def _finite(text: str) -> float:
     try:
@@ -28,11 +25,10 @@ def register(sub) -> None:
                     "right). The VSLAM (section 11.3) localises the robot, odometry bridges between frames, and a "
                     "polar-coordinate control law drives forward to the goal, slowing near it, then turns on the "
                     "spot to the goal heading. Metric scale comes from a stereo camera (the default "
-                    "configs/sim_stereo.yaml on the simulated robot, which starts at x=%.1f z=%.1f of the simulated "
-                    "room) or, with 'vslam: {metric_scale: odometry}' in the configuration, from the wheels for a "
-                    "single camera (the robot first creeps ahead up to 0.3 m to initialise). Exit code 0 when the "
-                    "goal is reached, 1 when not (duration, lost)."
-                    % SIM_START[:2])
+                    "configs/sim_stereo.yaml on the simulated robot, which starts at its sim.start_pose in the "
+                    "simulated room) or, with 'vslam: {metric_scale: odometry}' in the configuration, from the "
+                    "wheels for a single camera (the robot first creeps ahead up to 0.3 m to initialise). Exit code 0 when the "
+                    "goal is reached, 1 when not (duration, lost).")
     add_config_arg(p, default="sim_stereo")
     p.add_argument("--goal", required=True, nargs=3, type=_finite, metavar=("X", "Z", "THETA_DEG"),
                    help="goal pose in the reference frame: x (m, right), z (m, forward), heading (degrees)")
@@ -43,6 +39,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.runtime.runtime import Runtime
     from vbnav.control.controllers.goto import GotoController
@@ -63,19 +60,8 @@ def run(args) -> int:
         print(f"vbnav goto: {cfg.source}: {exc}")
         return 2
     controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
-    sim = cfg.camera.driver == "sim" and cfg.drive.driver == "sim"
-    if sim:
-        from vbnav.control.demo import make_sim_robot
-        from vbnav.control.runtime.factory import make_pipeline
-        from vbnav.drivers.sim.world import World
-        start = Pose2(*SIM_START)
-        robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
-        clock, drive = robot.clock, robot.drive
-        pipeline = make_pipeline(cfg, clock, robot.camera, [stage])
-    else:
-        from vbnav.control.runtime.factory import make_robot
-        clock, drive, pipeline = make_robot(cfg, [stage])
-    rt = Runtime(cfg, drive, controller, clock, pipeline)
+    robot = make_robot(cfg, [stage])
+    rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     printer = ProgressPrinter()
 
     def progress(r: Runtime) -> None:
@@ -92,8 +78,8 @@ def run(args) -> int:
     if "x" in s:
         print(f"estimated pose: x={s['x']:+.3f} m z={s['z']:+.3f} m theta={s['theta_deg']:+.2f} deg; "
               f"goal x={goal.x:+.3f} z={goal.z:+.3f} theta={math.degrees(goal.theta):+.2f}")
-    if sim:
-        true = Pose2(*SIM_START).between(drive.true_pose)
+    true = robot.true_pose()           # the simulator's ground truth, on the simulated robot only
+    if true is not None:
         err = math.hypot(true.x - goal.x, true.z - goal.z)
         print(f"simulator ground truth: x={true.x:+.3f} z={true.z:+.3f} theta={math.degrees(true.theta):+.2f} deg "
               f"(position error {err * 100:.1f} cm, heading error "

@@ -1,8 +1,6 @@
 """vbnav repeat: patrol a taught route."""
 from __future__ import annotations
 
-import contextlib
-
 from vbnav.control.commands._common import add_config_arg
 
 
@@ -21,13 +19,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from vbnav.control.commands.teach import _sim_recorder
     from vbnav.control.config import load_config
-    from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.route import RouteError, load_route
-    from vbnav.control.runtime.runtime import Runtime
-    from vbnav.control.controllers.repeat import RepeatController
-    from vbnav.control.stages.repeat import RepeatStage
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.session import Session
 
     cfg = load_config(args.config)
     try:
@@ -38,37 +34,12 @@ def run(args) -> int:
     if not route.keyframes:
         print(f"vbnav repeat: {args.path}: the route has no keyframes")
         return 2
-    vcfg = cfg.vbc
-    stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
-    controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
     printer = ProgressPrinter()
-    if cfg.camera.driver == "sim" and cfg.drive.driver == "sim":
-        from vbnav.control.demo import demo_route, make_sim_robot, start_pose
-        from vbnav.control.runtime.factory import make_pipeline
-        from vbnav.drivers.sim.world import World
-        robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start_pose(demo_route()))
-        clock, drive = robot.clock, robot.drive
-        pipeline = make_pipeline(cfg, clock, robot.camera, [stage])
-    else:
-        from vbnav.control.runtime.factory import make_robot
-        clock, drive, pipeline = make_robot(cfg, [stage])
-    rt = Runtime(cfg, drive, controller, clock, pipeline)
-    simulated = cfg.camera.driver == "sim" and cfg.drive.driver == "sim"
-    with (_sim_recorder(cfg, args) if simulated else contextlib.nullcontext()) as recorder:
-        from vbnav.control.comms.link import TelemetryLink
-        # The simulated robot records only; a real robot also publishes and takes network commands.
-        link = TelemetryLink.attach(rt, cfg, record=None if simulated else args.record, recorder=recorder,
-                                    network=not simulated, segment="repeat")
-        result = None
-        try:
-            result = rt.run(args.duration, lambda r: printer(
-                f"repeat: keyframe {stage.index + 1}/{len(route.keyframes)}  {r.odometry.distance:.1f} m  "
-                f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}"))
-        finally:
-            link.close(result)
+    result = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer).repeat(
+        route, args.duration)
     printer.done()
-    print(f"repeat ended: {result.reason} ({result.message}); reached keyframe {stage.index + 1} of "
-          f"{len(route.keyframes)}")
+    print(f"repeat ended: {result.reason} ({result.message}); reached keyframe {result.keyframe_reached + 1} of "
+          f"{result.keyframes}")
     print("timing: " + result.timing.line())
     if result.reason == "signal":
         return 130

@@ -45,7 +45,8 @@ def run(args) -> int:
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
     kind = args.controller or cfg.controller.kind
-    clock, drive, pipeline = make_robot(cfg, with_camera=not args.no_camera)
+    robot = make_robot(cfg, with_camera=not args.no_camera)
+    clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
     if kind == "operator":
         from vbnav.control.controllers.operator import OperatorController
         controller = OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from vbnav.control.config.base import ConfigError, Strict, format_errors
 from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.control.config.telemetry import TelemetryConfig
@@ -26,7 +26,7 @@ from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.drivers import registry
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
-from vbnav.vision.geometry import CameraMount
+from vbnav.vision.geometry import CameraMount, Pose2
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"   # control/config/__init__.py -> repo/configs
 
@@ -121,6 +121,24 @@ class SimConfig(Strict):
     slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
     vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
+    start_pose: list[float] = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
+        description="where the simulated robot starts in the world: [x m (right), z m (forward), heading deg "
+                    "(positive turning right)]")
+
+    @field_validator("start_pose")
+    @classmethod
+    def _finite_pose(cls, v: list[float]) -> list[float]:
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError("expected finite numbers [x, z, heading_deg]")
+        return v
+
+    def start(self) -> Pose2:
+        x, z, theta_deg = self.start_pose
+        return Pose2(x, z, math.radians(theta_deg))
+
+    def set_start(self, pose: Pose2) -> None:
+        self.start_pose = [pose.x, pose.z, math.degrees(pose.theta)]
 
 
 class ControllerConfig(Strict):
@@ -130,6 +148,10 @@ class ControllerConfig(Strict):
     script: list[list[float]] = Field(
         default_factory=lambda: [[0.3, 0.0, 3.0], [0.3, 0.4, 4.0], [0.0, 0.0, 1.0]],
         description="[linear m/s, angular rad/s, duration s] segments for the scripted drive")
+    teach: Literal["teleop", "room_loop"] = Field(
+        "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
+                              "room_loop (simulated drive only: a scripted teacher once around the simulated "
+                              "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
 
 
 class Config(Strict):
@@ -157,6 +179,14 @@ class Config(Strict):
         if r.max_linear_speed > r.max_wheel_speed * r.wheel_radius + 1e-9:
             raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
                              f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
+        return self
+
+    @model_validator(mode="after")
+    def _scripted_teacher_only_in_simulation(self):
+        # A scripted loop through a room the robot cannot see is never what real motors should drive.
+        if self.controller.teach == "room_loop" and self.drive.driver != "sim":
+            raise ValueError(f"controller.teach 'room_loop' drives the simulated room's loop; drive.driver "
+                             f"{self.drive.driver!r} is a real drive (use teach: teleop)")
         return self
 
 

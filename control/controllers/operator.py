@@ -12,16 +12,21 @@ mode is ``switching`` and the robot holds still. (Under the simulated clock the
 switch is done in place: simulated time does not pass, and runs stay
 deterministic.) A route that fails to load is
 a rejected command; the robot stays in its mode.
+
+The teach and repeat parts (stage, route writer, controller) are the ones
+``vbnav teach`` and ``vbnav repeat`` run with: ``session.Teaching`` and
+``session.Repeating``.
 """
 from __future__ import annotations
 
 import threading
 import time
-from pathlib import Path
 from typing import Optional
 
 from vbnav.control.controllers.manual import TeleopController
+from vbnav.control.route import load_route
 from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
+from vbnav.control.session import Repeating, Teaching
 
 MODES = ("idle", "teach", "repeat")
 
@@ -38,9 +43,8 @@ class OperatorController(Controller):
         self.active: Optional[Controller] = None        # the repeat controller in repeat mode
         self.route_path: Optional[str] = None
         self._base_stages = list(pipeline.stages) if pipeline is not None else []
-        self._writer = None
-        self._teach_stage = None
-        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, writer) ready to apply
+        self._teaching = None                          # session.Teaching: the route being taught
+        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error)
         self._worker: Optional[threading.Thread] = None
         self.errors: list[str] = []
 
@@ -77,8 +81,8 @@ class OperatorController(Controller):
         s = {"mode": self.name, "route": self.route_path}
         if self.active is not None:
             s.update(self.active.status())
-        if self._teach_stage is not None:
-            s["keyframes"] = self._teach_stage.n_keyframes
+        if self._teaching is not None:
+            s["keyframes"] = self._teaching.stage.n_keyframes
         return s
 
     # -- commands ------------------------------------------------------------
@@ -128,43 +132,31 @@ class OperatorController(Controller):
     def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0) -> None:
         """Close what the current mode opened, then build what the target needs (off the loop thread)."""
         try:
-            if self._teach_stage is not None and self.pipeline is not None and not self.pipeline.inline:
+            if self._teaching is not None and self.pipeline is not None and not self.pipeline.inline:
                 # The vision thread may still be inside the teach stage with the last frame before the swap.
                 deadline = time.monotonic() + 1.0
                 while self.pipeline.frames <= frames_at_swap + 1 and time.monotonic() < deadline:
                     time.sleep(0.01)
             self._close_teach()
-            stages, controller, writer, teach_stage = list(self._base_stages), None, None, None
+            stages, controller, teaching = list(self._base_stages), None, None
             if target == "teach":
-                from vbnav.control.route import RouteWriter
-                from vbnav.control.stages.teach import TeachStage
-                model, mount = self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount()
-                teach_stage = TeachStage(model, mount, self.cfg.vbc)
-                writer = RouteWriter(Path(route), self.cfg.robot.name, model, mount, overwrite=False)
-                stages = [teach_stage] + stages
+                teaching = Teaching(self.cfg, route, overwrite=False)
+                stages = [teaching.stage] + stages
             elif target == "repeat":
-                from vbnav.control.controllers.repeat import RepeatController
-                from vbnav.control.route import load_route
-                from vbnav.control.stages.repeat import RepeatStage
-                r = load_route(route)
-                vcfg = self.cfg.vbc
-                stages = [RepeatStage(r, vcfg, self.cfg.camera.to_model(), self.cfg.camera.mount.to_mount())] + stages
-                controller = RepeatController(r, vcfg, self.cfg.robot.max_linear_speed,
-                                              self.cfg.robot.max_angular_speed)
-            self._pending = (target, route, stages, controller, writer, teach_stage, None)
+                repeating = Repeating(self.cfg, load_route(route))
+                stages = [repeating.stage] + stages
+                controller = repeating.controller
+            self._pending = (target, route, stages, controller, teaching, None)
         except Exception as exc:  # the mode stays as it was; the operator sees why
-            self._pending = (self.mode, self.route_path, None, None, None, None, f"mode {target}: {exc}")
+            self._pending = (self.mode, self.route_path, None, None, None, f"mode {target}: {exc}")
 
     def _close_teach(self) -> None:
-        if self._teach_stage is not None and self._writer is not None:
-            self._teach_stage.finish()
-            for kf in self._teach_stage.pop_keyframes():
-                self._writer.append(kf)
-            self._writer.close()
-        self._teach_stage = self._writer = None
+        if self._teaching is not None:
+            self._teaching.close()
+        self._teaching = None
 
     def _apply_pending(self) -> None:
-        mode, route, stages, controller, writer, teach_stage, error = self._pending
+        mode, route, stages, controller, teaching, error = self._pending
         self._pending = None
         self._worker = None
         if error:
@@ -175,19 +167,17 @@ class OperatorController(Controller):
             return
         self.mode, self.route_path, self.active = mode, route, controller
         self.requires = ("vbc",) if mode == "repeat" else ()
-        self._writer, self._teach_stage = writer, teach_stage
+        self._teaching = teaching
         if self.pipeline is not None:
-            if teach_stage is not None:
+            if teaching is not None:
                 self.pipeline.frame_listeners.append(self._drain_keyframes)
             self.pipeline.latest.pop("vbc", None)
             self.pipeline.stages = stages    # one reference swap: the vision thread sees old or new list
 
     def _drain_keyframes(self, frame, results) -> None:
-        stage, writer = self._teach_stage, self._writer
-        if stage is None or writer is None:
-            return
-        for kf in stage.pop_keyframes():
-            writer.append(kf)
+        teaching = self._teaching
+        if teaching is not None:
+            teaching.save()
 
     def close(self) -> None:
         """End of the run: a route being taught is closed with every keyframe so far."""

@@ -42,6 +42,13 @@ def rounded_rectangle(center_xz: tuple[float, float], size_xz: tuple[float, floa
     return np.array(pts)
 
 
+def room_loop() -> np.ndarray:
+    """A 20.6 m closed loop with four right turns, 1 m from the boxes and walls of the simulated room
+    (World.room()): what the scripted teacher drives (controller.teach: room_loop) and the demo's route.
+    It starts at (-3.5, 0) heading +z, the sim.start_pose of configs/sim.yaml."""
+    return rounded_rectangle((0.0, 0.0), (7.0, 4.0), 0.8)
+
+
 def path_length(path: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
 

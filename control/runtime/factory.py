@@ -1,17 +1,49 @@
-"""Builds clocks, drivers and pipelines from a validated configuration."""
+"""The robot a configuration describes, built in one place: clock, drive, camera, vision pipeline.
+
+Simulation and hardware differ only in the drivers the configuration names. With
+the simulated drivers the factory also builds the simulated world (what the
+camera renders) and places the robot at ``sim.start_pose``; the simulator's true
+pose is then available to measure with (never to steer).
+"""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
 from vbnav.control.config import Config, validate_driver_options
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.drivers import registry
 from vbnav.drivers.clock import MonotonicClock, SimClock
+from vbnav.vision.geometry import Pose2
+
+
+@dataclass
+class Robot:
+    """What ``make_robot`` builds. ``world`` and ``start`` are set for the simulated drive only."""
+
+    clock: object
+    drive: object
+    camera: Optional[object] = None
+    pipeline: Optional[VisionPipeline] = None
+    world: Optional[object] = None        # drivers.sim.world.World the simulated camera renders
+    start: Optional[Pose2] = None         # the simulated robot's true start pose in the world
+
+    def true_pose(self) -> Optional[Pose2]:
+        """The simulator's pose relative to the start (the odometry's frame); None on hardware."""
+        if self.start is None:
+            return None
+        return self.start.between(self.drive.true_pose)
 
 
 def uses_sim_clock(cfg: Config) -> bool:
     """The simulated clock runs when everything is simulated and real time is not asked for."""
     return cfg.drive.driver == "sim" and cfg.camera.driver == "sim" and not cfg.sim.realtime
+
+
+def noise_seed(cfg: Config, run: int = 0) -> int:
+    """Seed of the simulated motor and image noise of run ``run`` on seed ``sim.seed``: every run of a
+    scenario (the demo's teach and each repeat) draws its own noise, and each is reproducible."""
+    return cfg.sim.seed * 1000 + run
 
 
 def make_clock(cfg: Config):
@@ -20,20 +52,29 @@ def make_clock(cfg: Config):
     return MonotonicClock(spin_ns=cfg.loop.spin_us * 1000)
 
 
-def make_drive(cfg: Config, clock, options=None):
+def make_drive(cfg: Config, clock, options=None, run: int = 0):
     opts = options or validate_driver_options(cfg, cfg.source or "<config>")["drive"]
     cls = registry.load(registry.DRIVES, cfg.drive.driver)
+    if cfg.drive.driver == "sim":
+        return cls.from_config(cfg, clock, opts, seed=noise_seed(cfg, run), start=cfg.sim.start())
     return cls.from_config(cfg, clock, opts)
 
 
-def make_camera(cfg: Config, clock, drive=None, options=None, world=None):
-    """The configured camera. The simulated camera needs the simulated base (its true pose)."""
+def make_world(cfg: Config):
+    """The simulated world named by ``sim.world`` (its textures seeded by ``sim.seed``)."""
+    from vbnav.drivers.sim.world import World
+    return World.by_name(cfg.sim.world, cfg.sim.seed)
+
+
+def make_camera(cfg: Config, clock, drive=None, options=None, world=None, run: int = 0):
+    """The configured camera. The simulated camera renders ``world`` from the simulated drive's true pose."""
     opts = options or validate_driver_options(cfg, cfg.source or "<config>")["camera"]
     cls = registry.load(registry.CAMERAS, cfg.camera.driver)
     if cfg.camera.driver == "sim":
-        if drive is None or not hasattr(drive, "true_pose"):
+        if cfg.drive.driver != "sim" or drive is None:
             raise ValueError("camera.driver 'sim' needs drive.driver 'sim' (it renders from the simulated pose)")
-        return cls.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose, world=world)
+        return cls.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose,
+                               world=world if world is not None else make_world(cfg), seed=noise_seed(cfg, run))
     return cls.from_config(cfg, clock, opts)
 
 
@@ -51,12 +92,18 @@ def make_pipeline(cfg: Config, clock, camera, stages) -> VisionPipeline:
                           latency_s=cfg.sim.vision_latency_s if inline else 0.0)
 
 
-def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, world=None):
-    """(clock, drive, pipeline) for a configuration. ``with_camera`` defaults to: if stages need it."""
+def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, run: int = 0) -> Robot:
+    """The robot of a configuration, with a pipeline running ``stages`` (plus the enabled safety stages).
+
+    with_camera: default, if stages or the obstacle stop need it. run: the index of this run in a scenario
+    of several runs (simulated drivers only, see ``noise_seed``).
+    """
     clock = make_clock(cfg)
     opts = validate_driver_options(cfg, cfg.source or "<config>")
-    drive = make_drive(cfg, clock, opts["drive"])
+    drive = make_drive(cfg, clock, opts["drive"], run)
+    simulated = cfg.drive.driver == "sim"
     want_camera = (bool(stages) or cfg.obstacles.enabled) if with_camera is None else with_camera
-    camera = make_camera(cfg, clock, drive, opts["camera"], world=world) if want_camera else None
+    world = make_world(cfg) if want_camera and cfg.camera.driver == "sim" else None
+    camera = make_camera(cfg, clock, drive, opts["camera"], world, run) if want_camera else None
     pipeline = make_pipeline(cfg, clock, camera, list(stages)) if camera is not None else None
-    return clock, drive, pipeline
+    return Robot(clock, drive, camera, pipeline, world, cfg.sim.start() if simulated else None)

@@ -124,8 +124,11 @@ class SimDiffDrive(WheelDrive):
         self.writes = 0
 
     @classmethod
-    def from_config(cls, cfg, clock, options=None) -> "SimDiffDrive":
-        return cls(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed, options=options)
+    def from_config(cls, cfg, clock, options=None, seed: Optional[int] = None,
+                    start: Optional[Pose2] = None) -> "SimDiffDrive":
+        """seed: of the slip noise (default ``cfg.sim.seed``); start: the true start pose (default the origin)."""
+        return cls(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed if seed is None else seed,
+                   start=start or Pose2(), options=options)
 
     # -- lifecycle ---------------------------------------------------------
     def connect(self) -> None:

@@ -131,12 +131,12 @@ class SimCamera(Camera):
 
     @classmethod
     def from_config(cls, cfg, clock, options=None, pose_fn: Optional[Callable[[], Pose2]] = None,
-                    world: Optional[World] = None) -> "SimCamera":
+                    world: Optional[World] = None, seed: Optional[int] = None) -> "SimCamera":
         """Build from a validated vbnav Config (duck-typed: drivers do not import control).
 
         options: a ``SimCamera.Options`` (or its dict; default ``cfg.camera.options``).
         pose_fn: the simulated base's true pose (required). world: default
-        ``World.by_name(cfg.sim.world, cfg.sim.seed)``.
+        ``World.by_name(cfg.sim.world, cfg.sim.seed)``. seed: of the image noise (default ``cfg.sim.seed``).
         """
         if pose_fn is None:
             raise ValueError("camera.driver 'sim' needs pose_fn: the simulated base's true pose")
@@ -146,7 +146,8 @@ class SimCamera(Camera):
         if world is None:
             world = World.by_name(cfg.sim.world, cfg.sim.seed)
         return cls(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn, clock,
-                   cfg.camera.rate_hz, noise_std=cfg.sim.image_noise_std, seed=cfg.sim.seed,
+                   cfg.camera.rate_hz, noise_std=cfg.sim.image_noise_std,
+                   seed=cfg.sim.seed if seed is None else seed,
                    stereo_baseline=opts.stereo_baseline, gain=opts.gain, color=opts.color)
 
     # ------------------------------------------------------------ lifecycle

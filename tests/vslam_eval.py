@@ -1,4 +1,4 @@
-"""Closed-loop evaluation of the VSLAM on the simulated robot (used by hil_tests and benchmarks).
+"""Closed-loop evaluation of the VSLAM on the simulated robot (used by hil_tests and benchmarks/vslam_loop.py).
 
 ``ChainedVoStage`` is the baseline: frame-to-frame motions with the VSLAM's own
 tracker, stereo reconstruction and motion solver, chained.
@@ -21,13 +21,11 @@ import numpy as np
 
 from vbnav.control.config import Config, deep_merge, load_config, parse_config
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
-from vbnav.control.demo import make_sim_robot
-from vbnav.control.runtime.factory import make_pipeline
+from vbnav.control.runtime.factory import make_robot
 from vbnav.control.controllers.path import PathFollower, path_length, rounded_rectangle
 from vbnav.control.runtime.runtime import Runtime
 from vbnav.control.stages.vslam import VslamFix, camera_to_robot, make_vslam_stage, robot_to_camera_matrix
 from vbnav.drivers.camera import Frame
-from vbnav.drivers.sim.world import World
 from vbnav.vision.features import to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, wrap_angle
 from vbnav.vision.vslam import Vslam, VslamConfig
@@ -136,10 +134,12 @@ def run_vslam_loop(cfg: Optional[Config] = None, speed: float = 0.4, extra_stage
     path = loop_route()
     d = path[1] - path[0]
     start = Pose2(float(path[0][0]), float(path[0][1]), math.atan2(d[0], d[1]))
-    robot = make_sim_robot(cfg, World.by_name(cfg.sim.world, cfg.sim.seed), start)
+    cfg = cfg.model_copy(deep=True)
+    cfg.sim.set_start(start)
     stage = make_vslam_stage(cfg)
     chained = ChainedVoStage(stage.camera, stage.mount, stage.baseline, stage.cfg)
-    pipeline = make_pipeline(cfg, robot.clock, robot.camera, [stage, chained, *extra_stages])
+    robot = make_robot(cfg, [stage, chained, *extra_stages])
+    pipeline = robot.pipeline
     rows: list = []
 
     def record(frame, results):

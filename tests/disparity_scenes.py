@@ -5,7 +5,7 @@ the floor (y = 0, world frame of vision/geometry.py, y down), the lower floor
 beyond a step (y = depth), and axis-aligned boxes. The result is the true
 disparity, which surface each pixel sees and its height above the floor; with
 ``textured_pair`` also a procedurally textured left/right image pair for SGBM.
-Used by the tests and benchmarks/obstacles.py.
+Used by the tests (it lives with them: no product code needs it).
 """
 from __future__ import annotations
 

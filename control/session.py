@@ -1,0 +1,187 @@
+"""Teach and repeat, wired once: stages, controller, route files, runtime and telemetry of a run.
+
+``Session(cfg, robot).teach(...)`` records a route while a controller drives;
+``Session(cfg, robot).repeat(route)`` patrols it. ``vbnav teach``, ``vbnav repeat``
+and the demo run through it; the operator's in-run mode switching
+(controllers/operator.py) uses the same parts, ``Teaching`` and ``Repeating``,
+inside one long run. The robot comes from ``runtime.factory.make_robot``, so a
+simulated and a real robot run the same code.
+
+This sits above the runtime (it composes runtime, stages, controllers, route
+files and comms), so it lives beside ``route.py`` rather than in ``runtime/``,
+which the plug-ins import.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+from vbnav.control.comms.link import TelemetryLink
+from vbnav.control.config import Config
+from vbnav.control.controllers.manual import TeleopController
+from vbnav.control.controllers.path import PathFollower, room_loop
+from vbnav.control.controllers.repeat import RepeatController
+from vbnav.control.route import Route, RouteWriter
+from vbnav.control.runtime.factory import Robot
+from vbnav.control.runtime.interfaces import Controller
+from vbnav.control.runtime.runtime import RunResult, Runtime
+from vbnav.control.stages.repeat import RepeatStage
+from vbnav.control.stages.teach import TeachStage
+
+TEACH_LOOP_SPEED = 0.4   # m/s of the scripted teacher (controller.teach: room_loop)
+
+
+class Teaching:
+    """A route being taught: the TeachStage, and the RouteWriter that stores each keyframe as it comes."""
+
+    def __init__(self, cfg: Config, route_dir, overwrite: bool = False):
+        model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
+        self.stage = TeachStage(model, mount, cfg.vbc)
+        self.writer = RouteWriter(Path(route_dir), cfg.robot.name, model, mount, overwrite=overwrite)
+        self.stamps: list[int] = []      # stamp_ns of each keyframe written, in order
+
+    def save(self, frame=None, results=None) -> None:
+        """Write the keyframes the stage has emitted (a pipeline frame listener)."""
+        for kf in self.stage.pop_keyframes():
+            self.writer.append(kf)
+            self.stamps.append(kf.stamp_ns)
+
+    def close(self, complete: bool = True) -> None:
+        """End of teaching: the stage's last keyframes, then the route marked complete (or not)."""
+        if complete:
+            self.stage.finish()
+            self.save()
+        self.writer.close(complete=complete)
+
+
+class Repeating:
+    """The parts of a repeat of ``route``: the RepeatStage that localises, the RepeatController that steers."""
+
+    def __init__(self, cfg: Config, route: Route):
+        vcfg = cfg.vbc
+        self.route = route
+        self.stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
+        self.controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
+
+
+def teach_driver(cfg: Config) -> Controller:
+    """Who drives while a route is taught (``controller.teach``): the operator by teleop, or on the
+    simulated robot the scripted teacher once around the room's loop from ``sim.start_pose``."""
+    if cfg.controller.teach == "room_loop":
+        return PathFollower(room_loop(), TEACH_LOOP_SPEED, start=cfg.sim.start())
+    return TeleopController(cfg.safety.command_timeout_s)
+
+
+@dataclass
+class TeachResult:
+    keyframes: int
+    keyframe_stamps: list        # stamp_ns of each keyframe, in order
+    reason: str
+    message: str
+    timing: object
+
+
+@dataclass
+class RepeatResult:
+    completed: bool
+    reason: str
+    message: str
+    keyframe_reached: int        # index of the keyframe the robot was heading for at the end
+    keyframes: int
+    events: list                 # safety events as dicts
+    timing: object
+    stops: int                   # safety holds on the way
+
+
+Observer = Callable[..., None]       # (runtime, ctx, twist, wheel_command), every cycle
+
+
+class Session:
+    """A teach or a repeat run on one robot from ``make_robot`` (one run: it closes the robot's drive).
+
+    Telemetry: a run on the simulated clock (faster than real time) only records, into ``record`` (a
+    path) or ``recorder`` (an McapRecorder shared by several runs, one segment each); a run in real
+    time also publishes and takes network commands. ``progress`` gets a status line about once a second.
+    """
+
+    def __init__(self, cfg: Config, robot: Robot, record: Optional[str] = None, recorder=None,
+                 progress: Optional[Callable[[str], None]] = None):
+        if robot.pipeline is None:
+            raise ValueError("teach and repeat need the camera: build the robot with_camera=True")
+        self.cfg = cfg
+        self.robot = robot
+        self.record = record
+        self.recorder = recorder
+        self.progress = progress
+        self._spent = False
+
+    def teach(self, controller: Controller, route_dir, overwrite: bool = False, duration_s: Optional[float] = None,
+              observers: Sequence[Observer] = ()) -> TeachResult:
+        """Drive with ``controller`` while a TeachStage records keyframes into ``route_dir``."""
+        self._claim()
+        teaching = Teaching(self.cfg, route_dir, overwrite)
+        try:
+            result = self._run(controller, teaching.stage, teaching.save, "teach", duration_s, observers,
+                               lambda: f"{teaching.stage.n_keyframes} keyframes")
+        except BaseException:
+            teaching.close(complete=False)
+            raise
+        teaching.close()
+        return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
+                           result.timing)
+
+    def repeat(self, route: Route, duration_s: Optional[float] = None, observers: Sequence[Observer] = (),
+               segment: str = "repeat") -> RepeatResult:
+        """Patrol ``route``; ``observers`` run every cycle (a scenario's events, a ground-truth trace)."""
+        self._claim()
+        rep = Repeating(self.cfg, route)
+        n = len(route.keyframes)
+        result = self._run(rep.controller, rep.stage, None, segment, duration_s, observers,
+                           lambda: f"keyframe {rep.stage.index + 1}/{n}")
+        stops = sum(1 for e in result.events if e.kind == "hold")
+        return RepeatResult(result.reason == "finished", result.reason, result.message, rep.stage.index, n,
+                            [e.as_dict() for e in result.events], result.timing, stops)
+
+    # -- one run -------------------------------------------------------------
+    def _run(self, controller, stage, frame_listener, segment: str, duration_s, observers,
+             status: Callable[[], str]) -> RunResult:
+        robot, pipeline = self.robot, self.robot.pipeline
+        pipeline.stages = [stage, *pipeline.stages]     # the run's stage first, then the safety stages
+        if frame_listener is not None:
+            pipeline.frame_listeners.append(frame_listener)
+        rt = Runtime(self.cfg, robot.drive, controller, robot.clock, pipeline)
+        rt.cycle_observers.extend(observers)
+        link = self._attach_telemetry(rt, segment)
+        result = None
+        try:
+            result = rt.run(duration_s, self._progress_fn(segment.split()[0], status))
+        finally:
+            if link is not None:
+                link.close(result)
+        return result
+
+    def _claim(self) -> None:
+        if self._spent:
+            raise RuntimeError("a robot serves one run (the run closes its drive): build another with make_robot")
+        self._spent = True
+
+    def _attach_telemetry(self, rt: Runtime, segment: str):
+        """Record (and in real time publish); None when there is nothing to record or publish."""
+        network = not self.robot.clock.simulated
+        if self.recorder is None and not self.record and not network:
+            return None
+        return TelemetryLink.attach(rt, self.cfg, record=self.record, recorder=self.recorder, network=network,
+                                    segment=segment)
+
+    def _progress_fn(self, label: str, status: Callable[[], str]):
+        say = self.progress
+        if say is None:
+            return None
+
+        def fn(rt: Runtime) -> None:
+            t = (rt.clock.now_ns() - rt._start_ns) * 1e-9
+            safety = "ok" if rt.safety.may_move else "STOP " + ",".join(rt.safety.reasons())
+            say(f"{label}: t={t:5.1f}s  travelled {rt.odometry.distance:5.1f} m  {status()}  "
+                f"v={rt.last_twist.v:+.2f} w={rt.last_twist.w:+.2f}  {safety}")
+        return fn

@@ -1,0 +1,58 @@
+"""The robot factory and the teach/repeat session: start pose from the configuration, one run per robot."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from vbnav.control.config import ConfigError, load_config
+from vbnav.control.controllers.manual import IdleController
+from vbnav.control.runtime.factory import make_robot, noise_seed
+from vbnav.control.session import Session, teach_driver
+from vbnav.drivers.clock import SimClock
+from vbnav.vision.geometry import Pose2
+
+
+def test_the_simulated_robot_starts_at_sim_start_pose():
+    cfg = load_config(None, overrides={"sim": {"start_pose": [1.5, -2.0, 90.0], "seed": 3}})
+    robot = make_robot(cfg, with_camera=False, run=2)
+    assert isinstance(robot.clock, SimClock) and robot.camera is None and robot.world is None
+    assert robot.start == Pose2(1.5, -2.0, math.radians(90.0))
+    assert robot.drive.true_pose == robot.start
+    assert robot.true_pose().as_array() == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)   # in the odometry frame
+    assert noise_seed(cfg, 2) == 3002
+
+
+@pytest.mark.parametrize("bad", [[0.0, 0.0], [0.0, float("nan"), 0.0]])
+def test_sim_start_pose_is_validated(bad):
+    with pytest.raises(ConfigError, match="sim.start_pose"):
+        load_config(None, overrides={"sim": {"start_pose": bad}})
+
+
+def test_the_scripted_teacher_never_drives_a_real_drive():
+    with pytest.raises(ConfigError, match="controller.teach"):
+        load_config("sentry-dynamixel", overrides={"controller": {"teach": "room_loop"}})
+    assert type(teach_driver(load_config("sentry-dynamixel"))).__name__ == "TeleopController"
+    assert type(teach_driver(load_config(None))).__name__ == "PathFollower"
+
+
+def test_teleop_teaching_on_the_simulated_clock_is_refused(tmp_path, capsys):
+    from vbnav.control.cli import main
+    cfg = tmp_path / "teleop.yaml"
+    cfg.write_text("controller:\n  teach: teleop\n")
+    assert main(["teach", "-c", str(cfg), "--out", str(tmp_path / "route")]) == 2
+    assert "simulated clock" in capsys.readouterr().out
+    assert not (tmp_path / "route").exists()
+
+
+def test_a_session_runs_once_and_needs_the_camera(tmp_path):
+    cfg = load_config(None)
+    with pytest.raises(ValueError, match="camera"):
+        Session(cfg, make_robot(cfg, with_camera=False))
+    session = Session(cfg, make_robot(cfg, with_camera=True))
+    result = session.teach(IdleController(), tmp_path / "route", duration_s=0.5)
+    assert result.reason == "duration" and result.keyframes == len(result.keyframe_stamps)
+    assert (tmp_path / "route" / "manifest.json").exists()
+    with pytest.raises(RuntimeError, match="one run"):
+        session.teach(IdleController(), tmp_path / "again")
+    assert not (tmp_path / "again").exists()
