@@ -20,7 +20,7 @@ from vbnav.drivers import registry
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parent.parent.parent / "configs"
 
 
 class ConfigError(ValueError):
