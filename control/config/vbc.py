@@ -53,6 +53,16 @@ class VBCConfig(BaseModel):
     min_landmarks_speed_factor: float = Field(0.3, gt=0, le=1, description="speed factor with min_landmarks "
                                               "agreeing, rising linearly to 1 at slow_landmarks: a weak fix "
                                               "slows the robot instead of stopping it")
+    denoise_max_rel_std: float = Field(0.3, gt=0, description="a keyframe stores a track's fitted bearings only "
+                                       "when its inverse height's standard deviation is below this share of "
+                                       "it (its range known to about 30 %)")
+    guided_exposure_tolerance: float = Field(0.05, ge=0, description="guided association rescales the keyframe "
+                                             "image to this image's mean brightness when they differ by more "
+                                             "than this share (KLT matches intensities)")
+    reacquire_features: int = Field(500, ge=8, description="ORB corners detected for re-acquisition: 2.5 times "
+                                    "the tracks kept while teaching (max_features), so most have a candidate")
+    reacquire_inlier_sigmas: float = Field(2.0, gt=0, description="a re-acquired match must fit the epipolar "
+                                           "geometry of the others within this many bearing_sigma_px")
 
 
 
