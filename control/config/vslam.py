@@ -70,8 +70,8 @@ class VslamNavConfig(VslamConfig):
     odometry_scale_min_travel_m: float = Field(0.3, gt=0, description="metric_scale odometry: camera travel the "
                                                "wheels and the VSLAM are compared over")
     goto: GotoConfig = Field(default_factory=GotoConfig)
-    odometry_scale_min_ratio: float = Field(0.7, gt=0, le=1, description="metric_scale odometry: the wheels' "
-                                            "over the VSLAM's travel is clipped to at least this before a "
+    odometry_scale_min_ratio: float = Field(0.7, gt=0, le=1, description="metric_scale odometry: the ratio of the "
+                                            "wheels' travel to the VSLAM's is clipped to at least this before a "
                                             "rescale, so one slipping or stalled comparison cannot wreck the map")
     odometry_scale_max_ratio: float = Field(1.4, ge=1, description="metric_scale odometry: ... and to at most "
                                             "this (a monocular scale drifts by a few % between hand-offs)")
