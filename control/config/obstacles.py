@@ -60,6 +60,9 @@ class ObstaclesConfig(Strict):
     release_s: float = Field(0.5, ge=0, description="clear this long before the speed rises again")
     zones: list[ZoneConfig] = Field(default_factory=_default_zones, description="stop and slow zones on the "
                                     "floor, in the robot frame")
+    sgbm_near_margin: float = Field(0.85, gt=0, le=1, description="stereo matching covers depths down to this "
+                                    "share of the distance to the nearest floor point in view: a 15 % margin, "
+                                    "so an obstacle standing there is still matched")
 
     @model_validator(mode="after")
     def _k_le_n(self):

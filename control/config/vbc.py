@@ -43,3 +43,24 @@ class VBCConfig(Strict):
     goal_tolerance_m: float = Field(0.03, gt=0, description="finished within this of the last keyframe")
     max_estimate_age_s: float = Field(0.5, gt=0, description="older fixes are not used by the controller")
     turn_in_place_deg: float = Field(60.0, gt=0, description="larger heading errors turn on the spot")
+    turn_in_place_rate: float = Field(0.6, gt=0, le=1, description="turn on the spot at this share of "
+                                      "robot.max_angular_speed: brisk, with headroom below the limit")
+    approach_gain: float = Field(1.5, gt=0, description="1/s: on the last segment the speed is at most this "
+                                 "times the distance left, so the robot slows into the end (from 0.25 m/s "
+                                 "cruise, over the last 0.17 m)")
+    approach_min_speed: float = Field(0.05, gt=0, description="m/s: floor of that approach speed, so the last "
+                                      "centimetres do not take forever (1.5/s reaches it at 3.3 cm, about "
+                                      "goal_tolerance_m)")
+    min_landmarks_speed_factor: float = Field(0.3, gt=0, le=1, description="speed factor with min_landmarks "
+                                              "agreeing, rising linearly to 1 at slow_landmarks: a weak fix "
+                                              "slows the robot instead of stopping it")
+    denoise_max_rel_std: float = Field(0.3, gt=0, description="a keyframe stores a track's fitted bearings only "
+                                       "when its inverse height's standard deviation is below this share of "
+                                       "it (its range known to about 30 %)")
+    guided_exposure_tolerance: float = Field(0.05, ge=0, description="guided association rescales the keyframe "
+                                             "image to this image's mean brightness when they differ by more "
+                                             "than this share (KLT matches intensities)")
+    reacquire_features: int = Field(500, ge=8, description="ORB corners detected for re-acquisition: 2.5 times "
+                                    "the tracks kept while teaching (max_features), so most have a candidate")
+    reacquire_inlier_sigmas: float = Field(2.0, gt=0, description="a re-acquired match must fit the epipolar "
+                                           "geometry of the others within this many bearing_sigma_px")

@@ -25,6 +25,16 @@ class GotoConfig(Strict):
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
     init_creep_speed: float = Field(0.1, ge=0, description="m/s straight ahead while a monocular VSLAM waits for "
                                                            "the parallax to initialise (at most blind_distance_m)")
+    min_drive_speed: float = Field(0.04, gt=0, description="m/s: floor of the drive speed k_rho * distance, so "
+                                   "the last centimetres do not take forever (0.6/s reaches it at 6.7 cm)")
+    redrive_factor: float = Field(2.0, ge=1, description="turning or settling, the robot drives again when "
+                                  "farther than this times position_tolerance_m from the goal: hysteresis, so "
+                                  "estimate jitter at the tolerance does not flip between drive and turn")
+    final_turn_gain: float = Field(1.5, gt=0, description="1/s: final turn rate per rad of heading error, up to "
+                                   "final_turn_speed (with 0.4 rad/s: proportional within 15 deg of the goal "
+                                   "heading)")
+    final_turn_min_speed: float = Field(0.05, gt=0, description="rad/s: floor of the final turn rate, so the last "
+                                        "degree does not take forever (1.5/s reaches it at 1.9 deg)")
 
 
 
@@ -61,3 +71,11 @@ class VslamNavConfig(VslamConfig, Strict):
     odometry_scale_min_travel_m: float = Field(0.3, gt=0, description="metric_scale odometry: camera travel the "
                                                "wheels and the VSLAM are compared over")
     goto: GotoConfig = Field(default_factory=GotoConfig, description="the goto controller (vbnav goto)")
+    odometry_scale_min_ratio: float = Field(0.7, gt=0, le=1, description="metric_scale odometry: the ratio of the "
+                                            "wheels' travel to the VSLAM's is clipped to at least this before a "
+                                            "rescale, so one slipping or stalled comparison cannot wreck the map")
+    odometry_scale_max_ratio: float = Field(1.4, ge=1, description="metric_scale odometry: ... and to at most "
+                                            "this (a monocular scale drifts by a few % between hand-offs)")
+    relocalise_max_hamming: int = Field(64, ge=0, le=256, description="relocalisation: a guided ORB match "
+                                        "differs in at most this many of the 256 descriptor bits (a quarter, "
+                                        "as for re-acquisition matches)")

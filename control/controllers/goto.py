@@ -4,7 +4,9 @@ from __future__ import annotations
 import math
 from typing import Optional
 
+from vbnav.control.config import RobotConfig
 from vbnav.control.config.vslam import GotoConfig
+from vbnav.control.controllers.fusion import PoseFusion
 from vbnav.control.runtime.interfaces import (
     STOP,
     ControlContext,
@@ -12,6 +14,7 @@ from vbnav.control.runtime.interfaces import (
     Estimate,
     Twist,
 )
+from vbnav.control.runtime.kinematics import keep_curvature, saturate
 from vbnav.control.stages.vslam import VslamFix
 from vbnav.vision.geometry import Pose2, wrap_angle
 
@@ -48,16 +51,17 @@ class GotoController(Controller):
     name = "goto"
     requires = ("vslam",)
 
-    def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float = 0.5,
-                 max_angular_speed: float = 1.5):
+    def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float | None = None,
+                 max_angular_speed: float | None = None):
+        """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's)."""
         self.goal = goal
         self.cfg = cfg or GotoConfig()
-        self.v_max = min(self.cfg.cruise_speed, max_linear_speed)
-        self.w_max = max_angular_speed
-        self._P: Optional[Pose2] = None          # robot pose in the reference frame
-        self._P_odom: Optional[Pose2] = None     # odometry when _P was set
+        limits = RobotConfig()
+        self.v_max = min(self.cfg.cruise_speed,
+                         limits.max_linear_speed if max_linear_speed is None else max_linear_speed)
+        self.w_max = limits.max_angular_speed if max_angular_speed is None else max_angular_speed
+        self._fusion = PoseFusion(self.cfg.fix_gain)   # robot pose in the reference frame
         self._last_stamp: Optional[int] = None
-        self._good_odom: Optional[Pose2] = None
         self._phase = "waiting"
         self._creep_from: Optional[Pose2] = None  # odometry where a monocular VSLAM started initialising
         self._settled_ns: Optional[int] = None
@@ -84,10 +88,10 @@ class GotoController(Controller):
             crept = math.hypot(ctx.odom.x - self._creep_from.x, ctx.odom.z - self._creep_from.z)
             self._status = {"state": "initialising", "crept_m": crept}
             return Twist(self.cfg.init_creep_speed, 0.0) if crept <= self.cfg.blind_distance_m else STOP
-        if self._P is None or self._finished:
+        if not self._fusion.initialised or self._finished:
             return STOP
-        P = self._P.compose(self._P_odom.between(ctx.odom))
-        blind = math.hypot(ctx.odom.x - self._good_odom.x, ctx.odom.z - self._good_odom.z)
+        P = self._fusion.predict(ctx.odom)
+        blind = self._fusion.blind_distance(ctx.odom)
         rho, alpha, beta = polar_coordinates(P, self.goal)
         dth = wrap_angle(self.goal.theta - P.theta)
         twist = self._law(ctx.now_ns, rho, alpha, beta, dth) if blind <= self.cfg.blind_distance_m else STOP
@@ -101,24 +105,20 @@ class GotoController(Controller):
         tol_th = math.radians(c.heading_tolerance_deg)
         if self._phase in ("waiting", "drive") and rho <= c.position_tolerance_m:
             self._phase = "turn"
-        elif self._phase in ("turn", "settle") and rho > 2.0 * c.position_tolerance_m:
+        elif self._phase in ("turn", "settle") and rho > c.redrive_factor * c.position_tolerance_m:
             self._phase, self._settled_ns = "drive", None   # pushed away (or a corrected estimate): drive again
         elif self._phase == "waiting":
             self._phase = "drive"
         if self._phase == "drive":
             # Speed proportional to the distance (slows near the goal), with a floor so the last
             # centimetres do not take forever; zero while the goal is off to the side.
-            v = max(min(c.k_rho * rho, self.v_max), 0.04) * max(math.cos(alpha), 0.0)
+            v = saturate(c.k_rho * rho, c.min_drive_speed, self.v_max) * max(math.cos(alpha), 0.0)
             fade = min(1.0, rho / c.approach_radius_m)      # beta is ill-defined at the goal itself
             w = c.k_alpha * alpha + c.k_beta * beta * fade
-            if abs(w) > self.w_max:                          # keep the curvature, lower the speed
-                v *= self.w_max / abs(w)
-                w = math.copysign(self.w_max, w)
-            return Twist(v, w)
+            return keep_curvature(Twist(v, w), self.w_max)
         if abs(dth) > tol_th:
             self._phase, self._settled_ns = "turn", None
-            w = math.copysign(min(c.final_turn_speed, max(1.5 * abs(dth), 0.05)), dth)
-            return Twist(0.0, w)
+            return Twist(0.0, saturate(c.final_turn_gain * dth, c.final_turn_min_speed, c.final_turn_speed))
         if self._phase != "settle":
             self._phase, self._settled_ns = "settle", now_ns
         if (now_ns - self._settled_ns) * 1e-9 >= c.settle_s:
@@ -136,13 +136,4 @@ class GotoController(Controller):
             return
         self._creep_from = None
         fix: VslamFix = est.value
-        self._good_odom = fix.odom
-        if self._P is None:
-            self._P, self._P_odom = fix.pose, fix.odom
-            return
-        # Complementary filter: blend the dead-reckoned pose at the frame time toward the VSLAM pose.
-        pred = self._P.compose(self._P_odom.between(fix.odom))
-        d = pred.between(fix.pose)
-        g = self.cfg.fix_gain
-        self._P = pred.compose(Pose2(g * d.x, g * d.z, g * d.theta))
-        self._P_odom = fix.odom
+        self._fusion.correct(fix.pose, fix.odom)

@@ -60,7 +60,8 @@ class TeleopController(Controller):
 
     name = "teleop"
 
-    def __init__(self, timeout_s: float = 0.5):
+    def __init__(self, timeout_s: float):
+        """``timeout_s``: command silence that stops the robot (safety.command_timeout_s)."""
         self.timeout_ns = int(timeout_s * 1e9)
         self._cmd = STOP
         self._stamp: Optional[int] = None

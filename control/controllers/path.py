@@ -73,15 +73,32 @@ class PathFollower(Controller):
     """Pure pursuit on a polyline with the odometry pose: the scripted 'driver' when teaching in simulation.
 
     On a robot the teacher drives by teleoperation instead; this stands in for that person.
+
+    Settings (keyword arguments, checked here; a test scenario's, not a robot configuration's):
+    speed: m/s on a straight path; lookahead: m to the point the robot steers to;
+    min_speed_factor: the speed shrinks with the cosine of the bearing to that point, but not below
+    this share, so a sharp corner is driven slowly rather than turned on the spot;
+    finish_margin_m: done this far before the end of the path, so a closed loop does not
+    chase its own start; search_points: how many path points from the current one the nearest is
+    searched among.
     """
 
     name = "path_follower"
 
     def __init__(self, path: np.ndarray, speed: float = 0.4, lookahead: float = 0.5, closed: bool = True,
-                 start: Pose2 = Pose2()):
+                 start: Pose2 = Pose2(), min_speed_factor: float = 0.3, finish_margin_m: float = 0.1,
+                 search_points: int = 60):
+        if not (speed > 0 and lookahead > 0 and 0 < min_speed_factor <= 1 and finish_margin_m >= 0
+                and search_points >= 1):
+            raise ValueError(f"path follower: need speed > 0, lookahead > 0, 0 < min_speed_factor <= 1, "
+                             f"finish_margin_m >= 0, search_points >= 1 (got {speed}, {lookahead}, "
+                             f"{min_speed_factor}, {finish_margin_m}, {search_points})")
         self.path = np.asarray(path, dtype=float)
         self.speed = speed
         self.lookahead = lookahead
+        self.min_speed_factor = min_speed_factor
+        self.finish_margin_m = finish_margin_m
+        self.search_points = search_points
         self.closed = closed
         self.start_pose = start   # where the path's frame sits in the odometry frame
         self._index = 0
@@ -98,10 +115,10 @@ class PathFollower(Controller):
         self._last_xz = xz
         n = len(self.path)
         # Advance the index along the path (monotone, so a closed loop's end does not snap back to its start).
-        window = [(self._index + k) % n for k in range(min(60, n))]
+        window = [(self._index + k) % n for k in range(min(self.search_points, n))]
         d = np.linalg.norm(self.path[window] - xz, axis=1)
         self._index = window[int(np.argmin(d))]
-        if self._travel > self.total - 0.1:
+        if self._travel > self.total - self.finish_margin_m:
             self._done = True
             return Twist()
         target = self._index
@@ -114,7 +131,7 @@ class PathFollower(Controller):
         # Bearing of the target in the robot frame (alpha convention: atan2(x, z) turned by -theta).
         alpha = wrap_angle(math.atan2(dx, dz) - pose.theta)
         curvature = 2.0 * math.sin(alpha) / max(self.lookahead, 1e-6)
-        v = self.speed * max(0.3, math.cos(alpha))
+        v = self.speed * max(self.min_speed_factor, math.cos(alpha))
         return Twist(v, v * curvature)
 
     @property

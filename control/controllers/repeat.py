@@ -28,7 +28,9 @@ import math
 from typing import Optional
 
 import numpy as np
+from vbnav.control.config import RobotConfig
 from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.controllers.fusion import PoseFusion
 from vbnav.control.route import Route
 from vbnav.control.runtime.interfaces import (
     STOP,
@@ -37,6 +39,7 @@ from vbnav.control.runtime.interfaces import (
     Estimate,
     Twist,
 )
+from vbnav.control.runtime.kinematics import keep_curvature, saturate
 from vbnav.control.stages.vbc_fix import VBCFix
 from vbnav.vision.geometry import Pose2
 
@@ -48,21 +51,22 @@ class RepeatController(Controller):
     name = "repeat"
     requires = ("vbc",)
 
-    def __init__(self, route: Route, cfg: VBCConfig | None = None, max_linear_speed: float = 0.5,
-                 max_angular_speed: float = 1.5):
+    def __init__(self, route: Route, cfg: VBCConfig | None = None, max_linear_speed: float | None = None,
+                 max_angular_speed: float | None = None):
+        """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's)."""
         if not route.keyframes:
             raise ValueError(f"{route.path}: route has no keyframes")
         self.cfg = cfg or VBCConfig()
+        limits = RobotConfig()
         self.kfs = route.keyframes
         self.path = np.array([[kf.odom.x, kf.odom.z] for kf in self.kfs])
-        self.v_max = min(self.cfg.cruise_speed, max_linear_speed)
-        self.w_max = max_angular_speed
+        self.v_max = min(self.cfg.cruise_speed,
+                         limits.max_linear_speed if max_linear_speed is None else max_linear_speed)
+        self.w_max = limits.max_angular_speed if max_angular_speed is None else max_angular_speed
         self._k = 0
-        self._P: Optional[Pose2] = None          # robot pose in the taught-odometry frame
-        self._P_odom: Optional[Pose2] = None     # odometry when _P was set
+        self._fusion = PoseFusion(self.cfg.fix_gain)   # robot pose in the taught-odometry frame
         self._last_stamp: Optional[int] = None
         self._n_agree = 0
-        self._good_odom: Optional[Pose2] = None  # odometry at the last trusted fix
         self._blind = 0.0
         self._finished = False
         self._status: dict = {}
@@ -76,13 +80,11 @@ class RepeatController(Controller):
 
     def update(self, ctx: ControlContext) -> Twist:
         self._absorb(ctx.estimate("vbc", self.cfg.max_estimate_age_s))
-        if self._P is None or self._finished:
+        if not self._fusion.initialised or self._finished:
             self._status = {"state": "finished" if self._finished else "waiting", "keyframe": self._k}
             return STOP
-        P = self._P.compose(self._P_odom.between(ctx.odom))
-        if self._good_odom is not None:
-            self._blind = math.hypot(ctx.odom.x - self._good_odom.x, ctx.odom.z - self._good_odom.z)
-        return self._pursue(P)
+        self._blind = self._fusion.blind_distance(ctx.odom)
+        return self._pursue(self._fusion.predict(ctx.odom))
 
     def _absorb(self, est: Optional[Estimate]) -> None:
         if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VBCFix):
@@ -95,39 +97,27 @@ class RepeatController(Controller):
             self._finished = True
         if not est.ok:
             return
-        measured = self.kfs[fix.keyframe].odom.compose(fix.pose)
-        self._good_odom = fix.odom
-        if self._P is None:
-            self._P, self._P_odom = measured, fix.odom
-            return
-        # Complementary filter: blend the dead-reckoned pose at the frame time toward the fix.
-        pred = self._P.compose(self._P_odom.between(fix.odom))
-        d = pred.between(measured)
-        g = self.cfg.fix_gain
-        self._P = pred.compose(Pose2(g * d.x, g * d.z, g * d.theta))
-        self._P_odom = fix.odom
+        self._fusion.correct(self.kfs[fix.keyframe].odom.compose(fix.pose), fix.odom)
 
     def _pursue(self, P: Pose2) -> Twist:
         seg, s, lateral, remaining = self._project(P)
         target = self._point_ahead(seg, s, self.cfg.lookahead_m)
         rel = P.between(Pose2(target[0], target[1], 0.0))
         heading_err = math.atan2(rel.x, rel.z)
+        c = self.cfg
         v = self.v_max * self._confidence()
-        if remaining < self.cfg.goal_tolerance_m and seg == len(self.path) - 2:
+        if remaining < c.goal_tolerance_m and seg == len(self.path) - 2:
             self._finished = True
             self._status = {"state": "finished", "keyframe": self._k}
             return STOP
-        v = min(v, max(0.05, 1.5 * remaining)) if v > 0 else 0.0
-        if abs(heading_err) > math.radians(self.cfg.turn_in_place_deg) and v > 0:
-            w = math.copysign(0.6 * self.w_max, heading_err)
-            v = 0.0
+        v = saturate(c.approach_gain * remaining, c.approach_min_speed, v) if v > 0 else 0.0
+        if abs(heading_err) > math.radians(c.turn_in_place_deg) and v > 0:
+            v, w = 0.0, math.copysign(c.turn_in_place_rate * self.w_max, heading_err)
         else:
             L2 = rel.x * rel.x + rel.z * rel.z
-            kappa = 2.0 * rel.x / max(L2, 1e-6)
-            w = v * kappa
-            if abs(w) > self.w_max:                     # keep the curvature, lower the speed
-                v *= self.w_max / abs(w)
-                w = math.copysign(self.w_max, w)
+            kappa = 2.0 * rel.x / max(L2, 1e-6)        # pure pursuit: the arc through the target point
+            arc = keep_curvature(Twist(v, v * kappa), self.w_max)
+            v, w = arc.v, arc.w
         self._status = {"state": "driving" if v > 0 or w != 0 else "stopped", "keyframe": self._k,
                         "lateral_m": lateral, "heading_err_deg": math.degrees(heading_err),
                         "n_agree": self._n_agree, "blind_m": self._blind, "remaining_m": remaining}
@@ -139,7 +129,8 @@ class RepeatController(Controller):
         if self._n_agree >= c.slow_landmarks:
             return 1.0
         if self._n_agree >= c.min_landmarks:
-            return 0.3 + 0.7 * (self._n_agree - c.min_landmarks) / max(c.slow_landmarks - c.min_landmarks, 1)
+            f = c.min_landmarks_speed_factor
+            return f + (1.0 - f) * (self._n_agree - c.min_landmarks) / max(c.slow_landmarks - c.min_landmarks, 1)
         return c.blind_speed_factor if self._blind < c.blind_distance_m else 0.0
 
     def _project(self, P: Pose2):

@@ -2,6 +2,13 @@
 
 v = r (w_l + w_r) / 2,   w = r (w_l - w_r) / L
 (w > 0 turns right, toward +x; see vision/geometry.py). Wheel rates in rad/s.
+
+Two places limit commands. ``TwistLimiter`` (the runtime, every cycle, any
+controller) clips v and w to the robot's limits, bounds their change, and scales
+both when a wheel would saturate. The controllers shape their own commands
+first with ``keep_curvature`` (an angular-rate limit that keeps the arc) and
+``saturate`` (a proportional command held between a floor and a ceiling), so
+that the limiter's independent clipping of v and w never bends their path.
 """
 from __future__ import annotations
 
@@ -68,6 +75,23 @@ class TwistLimiter:
     def stop(self) -> Twist:
         self.last = Twist(0.0, 0.0)
         return self.last
+
+
+def keep_curvature(twist: Twist, max_w: float) -> Twist:
+    """Limit |w| to ``max_w`` by scaling v and w together: the same arc (v / w), driven slower."""
+    if abs(twist.w) <= max_w:
+        return twist
+    return Twist(twist.v * (max_w / abs(twist.w)), math.copysign(max_w, twist.w))
+
+
+def saturate(value: float, floor: float, ceiling: float) -> float:
+    """``value`` with its magnitude held in [floor, ceiling] and its sign kept.
+
+    For proportional commands (speed from a distance, turn rate from an angle): the
+    floor keeps the last bit of the error from taking forever, the ceiling is the
+    speed limit and wins when the two cross.
+    """
+    return math.copysign(min(ceiling, max(abs(value), floor)), value)
 
 
 def _clip(x: float, limit: float) -> float:

@@ -63,7 +63,7 @@ class Runtime:
         self.limiter = TwistLimiter.from_config(cfg.robot)
         self.kin = self.limiter.kinematics
         self.odometry = Odometry(cfg.robot.wheel_radius, cfg.robot.wheel_separation)
-        self.safety = SafetyMonitor(release_s=0.5)
+        self.safety = SafetyMonitor(release_s=cfg.safety.release_s)
         self.mailbox = CommandMailbox(clock.now_ns, int(cfg.safety.command_timeout_s * 1e9))
         self.cycle_observers: list[Callable[["Runtime", ControlContext, Twist, tuple], None]] = []
         self.command_handlers: list[Callable[["Runtime", OperatorCommand, int], bool]] = []

@@ -32,7 +32,7 @@ class SafetyEvent:
 
 @dataclass
 class SafetyMonitor:
-    release_s: float = 0.5
+    release_s: float                                   # s a held cause must stay clear (safety.release_s)
     latched: dict = field(default_factory=dict)        # cause -> message
     holds: dict = field(default_factory=dict)          # cause -> message (active)
     _clear_since: dict = field(default_factory=dict)   # cause -> ns when it went clear

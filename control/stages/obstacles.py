@@ -195,7 +195,7 @@ class ObstacleStage(VisionStage):
         self.prior = expected_plane(rig, self.mount.height, self.mount.pitch)
         bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + self.mount.pitch   # lowest ray below level
         nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
-        self.sgbm = sgbm_params_for(rig, 0.85 * nearest_floor, self.cfg.sgbm_block_size)
+        self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
 
     def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
         if self.rig is None and frame.meta.get("baseline_m"):

@@ -129,7 +129,7 @@ class RepeatStage(VisionStage):
         missing, px = missing[inside], px[inside].astype(np.float32)
         kimg = to_grey(kf.image)
         m_k, m_c = float(kimg.mean()), float(image.mean())
-        if m_k > 1.0 and abs(m_c / m_k - 1.0) > 0.05:
+        if m_k > 1.0 and abs(m_c / m_k - 1.0) > self.cfg.guided_exposure_tolerance:
             kimg = cv2.convertScaleAbs(kimg, alpha=m_c / m_k)
         p0 = kf.pixels[missing].astype(np.float32).reshape(-1, 1, 2)
         win = (self.cfg.klt_window_px + 4,) * 2
@@ -162,14 +162,14 @@ class RepeatStage(VisionStage):
         kf = self.kfs[self.index]
         if len(kf) < 8:
             return 0
-        pts, desc = detect_and_describe(image, 500)
+        pts, desc = detect_and_describe(image, self.cfg.reacquire_features)
         pairs = match_descriptors(desc, kf.descriptors)
         if len(pairs) < 8:
             return 0
         cur = pts[pairs[:, 0]]
         lm = pairs[:, 1]
         inl = geometric_inliers(self.camera.rays(kf.pixels[lm]), self.camera.rays(cur),
-                                threshold=2.0 * self.sigma)
+                                threshold=self.cfg.reacquire_inlier_sigmas * self.sigma)
         keep = inl & ~np.isin(kf.track_ids[lm], self.tracker.tracks.ids)
         self.tracker.add_points(cur[keep], kf.track_ids[lm[keep]])
         self.stats["reacquired"] += int(keep.sum())

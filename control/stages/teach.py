@@ -148,7 +148,7 @@ class TeachStage(VisionStage):
         # this keyframe would inherit it as a bias: store the bearings that the whole track
         # predicts at the keyframe pose instead, once its range is well determined.
         alpha, beta, valid = self.heights.bearings_at(p["track_ids"], p["odom"], self.cfg.denoise_baseline_m)
-        good = valid & known & (var < (0.3 * w) ** 2)
+        good = valid & known & (var < (self.cfg.denoise_max_rel_std * w) ** 2)
         p["alpha"][good] = alpha[good]
         p["beta"][good] = beta[good]
 

@@ -295,7 +295,8 @@ class VslamStage(VisionStage):
         d_vslam, d_odom = np.linalg.norm(p_vslam - b_vslam), np.linalg.norm(p_odom - b_odom)
         if d_odom < self.cfg.odometry_scale_min_travel_m or d_vslam <= 1e-9:
             return self.slam.pose_wc
-        s = float(np.clip(d_odom / d_vslam, 0.7, 1.4)) ** self.cfg.odometry_scale_gain
+        ratio = np.clip(d_odom / d_vslam, self.cfg.odometry_scale_min_ratio, self.cfg.odometry_scale_max_ratio)
+        s = float(ratio) ** self.cfg.odometry_scale_gain
         self.slam.move_reference(b_vslam + s * (p_vslam - b_vslam))
         self.slam.rescale(s)
         self.stats["rescaled"] += 1
@@ -377,7 +378,8 @@ class VslamStage(VisionStage):
         if len(idx) < cfg.relocalise_min_inliers:
             return None
         corners = corners[idx]
-        lm, cn = guided_matches(pred[vis], a.descriptors[vis], corners, desc, cfg.relocalise_search_px)
+        lm, cn = guided_matches(pred[vis], a.descriptors[vis], corners, desc, cfg.relocalise_search_px,
+                                cfg.relocalise_max_hamming)
         if len(lm) < cfg.relocalise_min_inliers:
             return None
         rays = self.camera.rays(corners[cn])

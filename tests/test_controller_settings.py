@@ -1,0 +1,157 @@
+"""Each gain the controllers read from their configuration changes what they command (one cycle, no vision).
+
+Repeat: a straight taught path of three keyframes along +z, the robot placed by one VBC fix.
+Goto: one VSLAM fix near the goal. Safety: the held-stop release delay. Path follower: its keyword settings.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbnav.control.config import Config, ConfigError, parse_config
+from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.config.vslam import GotoConfig
+from vbnav.control.controllers.goto import GotoController
+from vbnav.control.controllers.manual import ScriptedController
+from vbnav.control.controllers.path import PathFollower
+from vbnav.control.controllers.repeat import RepeatController
+from vbnav.control.route import Keyframe, Route
+from vbnav.control.runtime.interfaces import ControlContext, Estimate
+from vbnav.control.stages.vbc_fix import VBCFix
+from vbnav.control.stages.vslam import VslamFix
+from vbnav.drivers.wheels import WheelState
+from vbnav.vision.geometry import CameraMount, Pose2
+from runtime_helpers import make_runtime
+
+
+def _ctx(odom: Pose2, kind: str, est, k: int = 0) -> ControlContext:
+    return ControlContext(k * 10_000_000, 0.01, odom, WheelState(0, (0.0, 0.0), (0.0, 0.0)), {kind: est}, k)
+
+
+# -------------------------------------------------------------------------------------------- repeat
+def _straight_route() -> Route:
+    empty = np.zeros(0)
+    kfs = [Keyframe(i, np.zeros((1, 1), np.uint8), np.zeros((0, 2), np.float32), empty, empty,
+                    np.zeros((0, 32), np.uint8), empty, empty, np.zeros(0, np.int64), Pose2(0.0, 0.5 * i, 0.0),
+                    0.5 * i) for i in range(3)]
+    return Route(None, "test", "now", None, CameraMount(), True, kfs)
+
+
+def repeat_command(pose: Pose2, n_agree: int = 100, **settings):
+    """The repeat controller's first command with the robot at ``pose`` (taught-odometry frame)."""
+    ctl = RepeatController(_straight_route(), VBCConfig(**settings), max_linear_speed=0.5, max_angular_speed=1.5)
+    est = Estimate(0, "vbc", True, VBCFix(0, pose, Pose2(), n_agree))
+    return ctl.update(_ctx(Pose2(), "vbc", est))
+
+
+def test_repeat_approach_gain_and_floor():
+    near = Pose2(0.0, 0.9, 0.0)                                   # 0.1 m before the last keyframe
+    assert repeat_command(near).v == pytest.approx(1.5 * 0.1)
+    assert repeat_command(near, approach_gain=1.0).v == pytest.approx(0.1)
+    nearer = Pose2(0.0, 0.969, 0.0)                               # 3.1 cm left: 1.5/s asks for 4.65 cm/s
+    assert repeat_command(nearer).v == pytest.approx(0.05)
+    assert repeat_command(nearer, approach_min_speed=0.02).v == pytest.approx(1.5 * 0.031)
+
+
+def test_repeat_turn_in_place_rate():
+    sideways = Pose2(0.0, 0.2, math.radians(-90))                 # looking left, the path runs ahead (+z)
+    tw = repeat_command(sideways)
+    assert tw.v == 0.0 and tw.w == pytest.approx(0.6 * 1.5)       # turns right, on the spot
+    assert repeat_command(sideways, turn_in_place_rate=0.8).w == pytest.approx(0.8 * 1.5)
+
+
+def test_repeat_speed_factor_at_min_landmarks():
+    start = Pose2(0.0, 0.1, 0.0)
+    cfg = VBCConfig()
+    assert repeat_command(start, n_agree=cfg.min_landmarks).v == pytest.approx(0.3 * cfg.cruise_speed)
+    assert repeat_command(start, n_agree=cfg.min_landmarks,
+                          min_landmarks_speed_factor=0.5).v == pytest.approx(0.5 * cfg.cruise_speed)
+    mid = (cfg.min_landmarks + cfg.slow_landmarks) // 2               # linear up to 1 at slow_landmarks
+    share = (mid - cfg.min_landmarks) / (cfg.slow_landmarks - cfg.min_landmarks)
+    assert repeat_command(start, n_agree=mid).v == pytest.approx((0.3 + 0.7 * share) * cfg.cruise_speed)
+
+
+# ---------------------------------------------------------------------------------------------- goto
+def goto_commands(fixes: list[Pose2], goal=Pose2(0.0, 3.0, 0.0), **settings):
+    """One command per VSLAM fix (fix_gain 1: each fix is the pose), odometry standing still."""
+    ctl = GotoController(goal, GotoConfig(**{"fix_gain": 1.0, **settings}), 0.5, 1.5)
+    out = []
+    for k, pose in enumerate(fixes):
+        est = Estimate(k + 1, "vslam", True, VslamFix(pose, Pose2(), np.eye(4), 100, 0))
+        out.append(ctl.update(_ctx(Pose2(), "vslam", est, k)))
+    return out, ctl
+
+
+def test_goto_min_drive_speed():
+    near = Pose2(0.0, 2.95, 0.0)                                   # 5 cm short: k_rho asks for 3 cm/s
+    assert goto_commands([near])[0][0].v == pytest.approx(0.04)
+    assert goto_commands([near], min_drive_speed=0.02)[0][0].v == pytest.approx(0.6 * 0.05)
+
+
+def test_goto_final_turn_gain_and_floor():
+    off = Pose2(0.0, 3.0, math.radians(-10))                        # at the goal, 10 deg left of its heading
+    tw = goto_commands([off])[0][0]
+    assert tw.v == 0.0 and tw.w == pytest.approx(1.5 * math.radians(10))
+    assert goto_commands([off], final_turn_gain=1.0)[0][0].w == pytest.approx(math.radians(10))
+    slight = Pose2(0.0, 3.0, math.radians(1.5))                     # 1.5 deg right: turn left at the floor
+    assert goto_commands([slight])[0][0].w == pytest.approx(-0.05)
+    assert goto_commands([slight], final_turn_min_speed=0.01)[0][0].w == pytest.approx(-1.5 * math.radians(1.5))
+
+
+def test_goto_redrive_factor():
+    # Reached (turn/settle), then the estimate moves 1.5 tolerances away: within the default hysteresis
+    # it stays put; with a factor of 1.2 it drives again.
+    fixes = [Pose2(0.0, 2.995, 0.0), Pose2(0.0, 2.985, 0.0)]
+    cmds, ctl = goto_commands(fixes)
+    assert cmds[1].v == 0.0 and ctl.status()["state"] == "settle"
+    cmds, ctl = goto_commands(fixes, redrive_factor=1.2)
+    assert cmds[1].v > 0.0 and ctl.status()["state"] == "drive"
+
+
+# -------------------------------------------------------------------------------------------- safety
+def _release_after_resume(release_s: float) -> float:
+    resume_at = 1_000_000_000 + 3_000_000_000
+    cfg = Config(safety={"release_s": release_s})
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 6.0]]), cfg=cfg,
+                                    cam_kw={"stop_at_ns": 1_000_000_000 + 1_000_000_000, "resume_at_ns": resume_at})
+    result = rt.run()
+    release = [e for e in result.events if e.kind == "release" and e.cause == "camera_stale"]
+    assert len(release) == 1 and f"{release_s:g} s" in release[0].message
+    return (release[0].stamp_ns - resume_at) * 1e-9
+
+
+def test_safety_release_s_is_the_held_stop_debounce():
+    assert _release_after_resume(1.0) - _release_after_resume(0.2) == pytest.approx(0.8, abs=0.011)
+
+
+# --------------------------------------------------------------------------------------- path follower
+def test_path_follower_settings():
+    corner = np.array([[0.0, 0.0], [0.0, 0.05], [0.5, 0.05], [1.0, 0.05]])   # target well to the right
+
+    def first_v(**kw):
+        pf = PathFollower(corner, speed=0.4, lookahead=0.3, closed=False, **kw)
+        return pf.update(_ctx(Pose2(), "none", None)).v
+
+    assert first_v() == pytest.approx(0.4 * 0.3)
+    assert first_v(min_speed_factor=0.5) == pytest.approx(0.4 * 0.5)
+    line = np.array([[0.0, 0.0], [0.0, 0.5], [0.0, 1.0]])
+    pf = PathFollower(line, speed=0.4, closed=False, finish_margin_m=0.6)
+    pf.update(_ctx(Pose2(), "none", None))
+    pf.update(_ctx(Pose2(0.0, 0.45, 0.0), "none", None))
+    assert pf.finished                                              # 0.45 m of 1 m, less the 0.6 m margin
+    with pytest.raises(ValueError, match="min_speed_factor"):
+        PathFollower(line, min_speed_factor=0.0)
+
+
+# ------------------------------------------------------------------------------------------ validation
+@pytest.mark.parametrize("section,key,bad", [
+    ("vbc", "turn_in_place_rate", 1.5), ("vbc", "approach_gain", 0.0), ("vbc", "approach_min_speed", -0.1),
+    ("vbc", "min_landmarks_speed_factor", 0.0), ("vslam", "min_drive_speed", 0.0),
+    ("vslam", "redrive_factor", 0.5), ("vslam", "final_turn_gain", 0.0), ("vslam", "final_turn_min_speed", 0.0),
+    ("safety", "release_s", -1.0)])
+def test_out_of_range_gains_are_configuration_errors(section, key, bad):
+    data = {section: {"goto": {key: bad}} if section == "vslam" else {key: bad}}
+    with pytest.raises(ConfigError, match=key):
+        parse_config(data, "test.yaml")
