@@ -148,7 +148,7 @@ def test_relocalisation_matches_with_its_hamming_limit(monkeypatch):
 
 # ---------------------------------------------------------------------------------------- obstacles
 def test_disparity_search_reaches_the_near_margin():
-    rig = StereoRig(640, 480, 400.0, 400.0, 319.5, 239.5, 0.075)
+    rig = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
     mount = CameraMount(0.25, 0.1, 0.0, math.radians(10.0))
     wide = ObstacleStage(rig, mount, ObstaclesConfig()).sgbm.num_disparities
     narrow = ObstacleStage(rig, mount, ObstaclesConfig(sgbm_near_margin=1.0)).sgbm.num_disparities
