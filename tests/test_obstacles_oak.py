@@ -8,7 +8,8 @@ from datetime import timedelta
 import numpy as np
 import pytest
 
-dai = pytest.importorskip("depthai")
+from conftest import import_extra
+dai = import_extra("depthai", "oak")  # CI installs the extra: there a missing depthai fails
 
 from vbnav.control.config import parse_config  # noqa: E402
 from vbnav.control.stages.obstacles import make_obstacle_stage  # noqa: E402
