@@ -48,10 +48,11 @@ PEER_NAME = "OpenCV KLT tracker (fb-checked LK, GFTT(200) only below 170 tracks)
 class KltPeer:
     """A plain OpenCV KLT tracker, the peer: what our repeat frame costs beyond tracking.
 
-    Tracks from the previous frame with pyramidal LK (15 px window, 3 levels, as ours), keeps a
-    track when the backward pass lands within ``fb_px`` of its start, and detects new corners only
-    when fewer than ``redetect_below`` tracks live, in a mask that keeps ``min_distance`` px away
-    from them. It matches nothing to keyframes and computes no pose.
+    Tracks from the previous frame with pyramidal LK (15 px window, 3 levels, as ours; OpenCV's
+    default stopping rule, 30 iterations or 0.01 px, where ours stops at 10 or 0.03 px and starts
+    the backward pass at the origin), keeps a track when the backward pass lands within ``fb_px`` of
+    its start, and detects new corners only when fewer than ``redetect_below`` tracks live, in a mask
+    that keeps ``min_distance`` px away from them. It matches nothing to keyframes and computes no pose.
     """
 
     LK = dict(winSize=(15, 15), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
