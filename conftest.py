@@ -1,6 +1,7 @@
 """Shared test fixtures: the real-data folder and seeded generators."""
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
 
@@ -15,15 +16,27 @@ def data_dir() -> Path:
     return Path(os.environ.get("VBNAV_DATA", REPO.parent / "shared" / "data")).resolve()
 
 
+def unavailable(msg: str) -> None:
+    """A test's prerequisite is missing: a failure under CI (which installs everything), a skip elsewhere."""
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        pytest.fail(msg, pytrace=False)
+    pytest.skip(msg, allow_module_level=True)
+
+
+def import_extra(module: str, extra: str):
+    """The module of an optional extra (``vbnav[extra]``), or ``unavailable`` naming the install command."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        unavailable(f"{module} is not importable ({exc}): pip install -e '.[{extra}]'")
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """Real camera sequences. Missing in CI is a failure; elsewhere a skip."""
     d = data_dir()
     if not d.is_dir():
-        msg = f"real-data folder {d} is missing (set VBNAV_DATA or put shared/data beside the repository)"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-            pytest.fail(msg)
-        pytest.skip(msg)
+        unavailable(f"real-data folder {d} is missing (set VBNAV_DATA or put shared/data beside the repository)")
     return d
 
 

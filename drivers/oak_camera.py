@@ -27,11 +27,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
 
+# depthai (~370 MB) is the optional extra vbnav[oak]: a robot with a USB camera does not carry it.
+DEPTHAI_MISSING = "the OAK camera driver needs depthai: pip install 'vbnav[oak]'"
 try:
     import depthai as dai
-except ImportError as _exc:  # pragma: no cover - depthai is a dependency
-    dai = None
-    _DAI_ERROR = _exc
+except ImportError as _exc:
+    raise ImportError(f"{DEPTHAI_MISSING} ({_exc})") from _exc
 
 
 def timedelta_ns(td: timedelta) -> int:
@@ -118,8 +119,6 @@ class OakCamera(GrabbingCamera):
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["OakCamera.Options"] = None,
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
-        if dai is None:  # pragma: no cover
-            raise CameraError(f"depthai is not installed: {_DAI_ERROR}")
         super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
         self.intrinsics: Optional[np.ndarray] = None
         self.distortion: Optional[np.ndarray] = None

@@ -1,8 +1,10 @@
 """Driver registry: configuration picks a class by name.
 
 Each entry is "module:Class", imported only when chosen, so a robot without
-depthai or a serial port never imports them. Every driver class carries a
-pydantic model ``Options`` that validates its ``options:`` block in the YAML.
+depthai or a serial port never imports them. A driver module whose SDK is an
+optional extra raises ImportError naming the extra (``pip install 'vbnav[oak]'``)
+and ``load`` passes that message on. Every driver class carries a pydantic model
+``Options`` that validates its ``options:`` block in the YAML.
 """
 from __future__ import annotations
 

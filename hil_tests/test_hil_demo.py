@@ -10,8 +10,11 @@ import pytest
 
 from vbnav.control.demo import Scenario, run_demo
 
-RMS_BAR_M = 0.03
-MAX_BAR_M = 0.10
+# Measured on 2026-11-30 over the 10 repeats: RMS 0.38-0.86 cm, max 0.96-2.95 cm, recovered within
+# 0.60-1.25 m of the start; the bars are twice the worst.
+RMS_BAR_M = 0.018
+MAX_BAR_M = 0.06
+RECOVERY_BAR_M = 2.5
 
 SCENARIOS = {
     0: dict(lighting={0: 0.6}, moved_boxes={0: {"box_a": (-1.0, 0.0), "box_b": (1.0, 0.3)}}),
@@ -30,12 +33,15 @@ def test_demo_seed(seed, tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["completed"] == m["completed"]
     assert (tmp_path / "paths.png").stat().st_size > 10_000
-    assert m["keyframes"] >= 20
+    assert m["keyframes"] >= 31          # measured 62 on 2026-11-30, bar 1/2
     assert m["route_length_m"] >= 20.0
     for r in m["repeats"]:
         where = f"seed {seed} repeat {r['index']}"
         assert r["completed"], f"{where}: {r['message']}"
+        recovered = "never" if r["recovery_m"] is None else f"after {r['recovery_m']:.2f} m"
+        print(f"{where}: lateral RMS {100 * r['rms_lateral_error_m']:.2f} cm, max "
+              f"{100 * r['max_lateral_error_m']:.2f} cm, recovered {recovered}")   # the README row's figures
         # Recovered from the start offset: the error fell under 5 cm and stayed there.
-        assert r["recovery_m"] is not None and r["recovery_m"] < 5.0, where
+        assert r["recovery_m"] is not None and r["recovery_m"] < RECOVERY_BAR_M, where
         assert r["rms_lateral_error_m"] <= RMS_BAR_M, (where, r["rms_lateral_error_m"])
         assert r["max_lateral_error_m"] <= MAX_BAR_M, (where, r["max_lateral_error_m"])

@@ -22,7 +22,9 @@ def test_scripted_route_odometry_matches_simulator():
     travelled = 0.15 * 1.5 + 0.12 * 1.5
     assert 0.85 * travelled < rt.odometry.distance < 1.1 * travelled
     assert odom.z > 0.25 and odom.x > 0.02  # forward, then curving right (theta grows to the right)
-    assert math.hypot(truth.x - odom.x, truth.z - odom.z) < 0.005
-    assert abs(math.remainder(truth.theta - odom.theta, 2 * math.pi)) < 0.005
+    # measured 0.015 mm / 2e-4 rad on 2026-11-30; the run is on the real clock, so the bars keep room
+    # for sampling jitter on a loaded machine
+    assert math.hypot(truth.x - odom.x, truth.z - odom.z) < 0.001
+    assert abs(math.remainder(truth.theta - odom.theta, 2 * math.pi)) < 0.001
     assert 0.8 * 0.8 * 1.5 < truth.theta < 1.1 * 0.8 * 1.5
     assert result.timing.cycles > 300

@@ -68,7 +68,8 @@ def test_box_on_the_route_stops_the_robot_and_the_route_completes_after_removal(
           f"{state['min_clearance']:.2f} m, route completed: {rep.completed} ({rep.reason})")
     assert state["held_since"] is not None, "the robot never stopped for the box"
     assert state["removed_at"] is not None
-    assert state["min_clearance"] > 0.2, f"came within {state['min_clearance']:.2f} m of the box"
+    # measured 0.58 m on 2026-11-30, bar 1/2
+    assert state["min_clearance"] > 0.3, f"came within {state['min_clearance']:.2f} m of the box"
     assert rep.completed, rep.message
     end = robot.drive.true_pose
     assert math.hypot(end.x - PATH[-1, 0], end.z - PATH[-1, 1]) < 0.15

@@ -19,5 +19,7 @@ def test_scripted_route_odometry_matches_simulator():
     travelled = 0.3 * 1.5 + 0.25 * 1.5
     assert 0.85 * travelled < rt.odometry.distance < 1.1 * travelled
     assert odom.z > 0.4 and odom.x > 0.05
-    assert math.hypot(truth.x - odom.x, truth.z - odom.z) < 0.005
-    assert abs(math.remainder(truth.theta - odom.theta, 2 * math.pi)) < 0.005
+    # measured 0.066 mm / 6e-6 rad on 2026-11-30; the run is on the real clock, so the bars keep room
+    # for sampling jitter on a loaded machine
+    assert math.hypot(truth.x - odom.x, truth.z - odom.z) < 0.001
+    assert abs(math.remainder(truth.theta - odom.theta, 2 * math.pi)) < 0.001

@@ -32,14 +32,17 @@ def test_loop_return_against_reference_set_beats_chaining_fivefold():
           f"{r.max_vslam_error_m() * 100:.1f} cm; {r.stats}")
     assert r.reason == "finished"
     assert r.distance_m >= 9.5
-    assert math.hypot(*r.truth[-1, :2]) < 0.3, "the robot did not come back to its start"
+    # measured 8.8 cm on 2026-11-30, bar 2x
+    assert math.hypot(*r.truth[-1, :2]) < 0.18, "the robot did not come back to its start"
     assert r.vslam_ok.all() and r.stats["lost"] == 0 and r.chained_lost == 0
     assert r.stats["handoffs"] >= 4, "a loop that turns 360 degrees must hand off the reference frame"
     # Back at the start the pose is computed against the first reference set, not through the chain,
     # up to the end of the run.
     assert i >= len(r.stamps) - 3, (i, len(r.stamps))
-    assert e["vslam_m"] <= 0.2 * e["chained_m"], e
-    assert e["vslam_deg"] <= 0.5
+    # measured 0.077 cm against chained 6.97 cm (ratio 0.011; the issue asked for 0.2) and 0.031 deg
+    # on 2026-11-30, bars 2x
+    assert e["vslam_m"] <= 0.025 * e["chained_m"], e
+    assert e["vslam_deg"] <= 0.07
 
 
 def _goto(goal: Pose2, cfg=None, covered=None):
@@ -69,8 +72,8 @@ def test_goto_reaches_a_goal_3m_away(goal):
     print(f"\ngoto {goal}: {result.reason} after {result.cycles / 100:.1f} s; true error {pos_err * 100:.2f} cm, "
           f"{head_err:.2f} deg; {stage.stats}")
     assert result.reason == "finished", result.message
-    assert pos_err <= 0.05
-    assert head_err <= 2.0
+    assert pos_err <= 0.021     # measured 0.37-1.03 cm on 2026-11-30, bar 2x
+    assert head_err <= 1.25     # measured 0.61-0.62 deg on 2026-11-30, bar 2x
 
 
 def test_goto_rides_out_a_covered_lens():
@@ -84,14 +87,14 @@ def test_goto_rides_out_a_covered_lens():
           f"{stage.stats}")
     assert stage.stats["lost"] >= 10 and stage.stats["restarts"] >= 1
     assert result.reason == "finished", result.message
-    assert pos_err <= 0.05 and head_err <= 2.0
+    assert pos_err <= 0.0065 and head_err <= 1.0  # measured 0.32 cm / 0.47 deg on 2026-11-30, bars 2x
 
 
 @pytest.mark.parametrize("goal", [(1.8, 2.4, 30.0), (-2.4, 1.8, -120.0)], ids=["ahead-right", "left-back"])
 def test_goto_with_a_single_camera_scaled_by_the_wheels(goal):
     """vslam.metric_scale odometry: the robot creeps ahead until the two-view initialisation has 0.2 m of
     wheel-measured baseline, then drives to the goal on the monocular VSLAM, its scale pulled toward the
-    wheels' at every hand-off. Same bar as with stereo."""
+    wheels' at every hand-off. The position bar stays 5 cm: the wheel-scaled run ends 3.2-3.5 cm off."""
     g = Pose2(goal[0], goal[1], math.radians(goal[2]))
     cfg = load_config("sim_stereo", overrides={"loop": {"max_missed_streak": 10 ** 6, "stall_periods": 10 ** 6},
                                                "vslam": {"metric_scale": "odometry"}})
@@ -103,4 +106,4 @@ def test_goto_with_a_single_camera_scaled_by_the_wheels(goal):
     assert result.reason == "finished", result.message
     assert stage.baseline is None and stage.slam.baseline is None, "the stereo pair must not have been used"
     assert stage.stats["rescaled"] >= 2
-    assert pos_err <= 0.05 and head_err <= 2.0
+    assert pos_err <= 0.05 and head_err <= 1.25  # measured 3.2-3.5 cm / 0.22-0.62 deg on 2026-11-30

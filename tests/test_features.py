@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.features import FeatureTracker, describe, geometric_inliers, match_descriptors
@@ -35,7 +34,8 @@ def test_tracks_follow_a_known_shift_and_keep_their_ids(rng):
     assert len(common) > 0.9 * len(t0)
     moved = np.array([t1.pts[t1.ids.tolist().index(i)] - pts0[i] for i in common])
     np.testing.assert_allclose(np.median(moved, axis=0), [3.5, -2.25], atol=0.05)
-    assert np.percentile(np.linalg.norm(moved - [3.5, -2.25], axis=1), 90) < 0.2
+    # measured 0.024 px on 2026-11-30, bar 2x
+    assert np.percentile(np.linalg.norm(moved - [3.5, -2.25], axis=1), 90) < 0.05
 
 
 def test_occluded_tracks_are_dropped_and_replaced(rng):
@@ -51,7 +51,7 @@ def test_occluded_tracks_are_dropped_and_replaced(rng):
     assert survivors.sum() > 0.8 * (t0.pts[:, 0] > 340).sum()
     # lost tracks are replaced by new ids, mostly in the emptied half
     new = ~survivors
-    assert new.sum() > 40 and np.mean(t1.pts[new, 0] < 320) > 0.8
+    assert new.sum() > 50 and np.mean(t1.pts[new, 0] < 320) > 0.8  # measured 100 new tracks on 2026-11-30, bar 1/2
     assert len(t1) > 0.85 * 200
 
 
@@ -67,20 +67,20 @@ def test_descriptor_matching_reacquires_after_a_jump(rng):
     pts = cv2.goodFeaturesToTrack(cur, 500, 0.01, 8).reshape(-1, 2)
     d_cur, idx_cur = describe(cur, pts)
     pairs = match_descriptors(d_cur, d_kf)
-    assert len(pairs) > 60
+    assert len(pairs) > 80  # measured 162 on 2026-11-30, bar 1/2
     p_cur = pts[idx_cur[pairs[:, 0]]]
     p_kf = kf.pts[idx_kf[pairs[:, 1]]]
     expected = p_kf @ M[:, :2].T + M[:, 2]
     correct = np.linalg.norm(p_cur - expected, axis=1) < 2.0
     inl = geometric_inliers(cam.rays(p_kf), cam.rays(p_cur), threshold=2.0 / 400)
-    assert np.mean(correct) > 0.8
-    assert np.mean(correct[inl]) > 0.97 and inl.sum() > 0.8 * correct.sum()
+    assert np.mean(correct) > 0.86  # measured 0.932 correct on 2026-11-30: bar at twice the 6.8 % wrong
+    # measured 1.0 and 150 of 151 on 2026-11-30
+    assert np.mean(correct[inl]) > 0.97 and inl.sum() > 0.95 * correct.sum()
 
 
 def test_tracks_survive_a_real_hand_held_sequence(shared_data):
     files = sorted((shared_data / "target_sequence").glob("*.p*"))[:60]
-    if not files:
-        pytest.skip("target_sequence images not found")
+    assert len(files) == 60, f"{shared_data / 'target_sequence'}: expected 60 images, found {len(files)}"
     tr = FeatureTracker(max_features=200, min_distance=8)
     first = None
     counts = []
@@ -89,7 +89,8 @@ def test_tracks_survive_a_real_hand_held_sequence(shared_data):
         first = set(t.ids.tolist()) if first is None else first
         counts.append(len(t))
     assert min(counts[1:]) > 150                        # re-detection keeps the count up
-    assert len(first & set(t.ids.tolist())) > 40        # many tracks persist over 60 frames
+    # many tracks persist over 60 frames (measured 172 on 2026-11-30)
+    assert len(first & set(t.ids.tolist())) > 85
 
 
 def test_fresh_orb_corners_match_upright_keyframe_descriptors(rng):
@@ -101,6 +102,6 @@ def test_fresh_orb_corners_match_upright_keyframe_descriptors(rng):
     cur = shift(img, 25.0, -10.0)
     pts, d_cur = detect_and_describe(cur, 500)
     pairs = match_descriptors(d_cur, d_kf)
-    assert len(pairs) > 50
+    assert len(pairs) > 100  # measured 207 on 2026-11-30, bar 1/2
     err = np.linalg.norm(pts[pairs[:, 0]] - (kf.pts[idx_kf[pairs[:, 1]]] + [25.0, -10.0]), axis=1)
-    assert np.mean(err < 2.0) > 0.85
+    assert np.mean(err < 2.0) > 0.91  # measured 0.957 on 2026-11-30: bar at twice the 4.3 % off

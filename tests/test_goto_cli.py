@@ -16,7 +16,7 @@ def test_goto_reaches_a_near_goal_on_the_simulated_robot():
     truth = [line for line in r.stdout.splitlines() if line.startswith("simulator ground truth")]
     assert truth and "position error" in truth[0]
     err_cm = float(truth[0].split("position error ")[1].split(" cm")[0])
-    assert err_cm < 5.0
+    assert err_cm < 0.6  # measured 0.3 cm on 2026-11-30, bar 2x
 
 
 def test_goto_refuses_mono_config_and_bad_goals():
@@ -44,7 +44,7 @@ def test_goto_on_a_single_camera_scaled_by_the_wheels(tmp_path):
     r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")
     assert r.returncode == 0, r.stdout + r.stderr
     err_cm = float(r.stdout.split("position error ")[1].split(" cm")[0])
-    assert err_cm < 5.0
+    assert err_cm < 2.5  # measured 1.2 cm on 2026-11-30, bar 2x
 
 
 def test_goto_times_out_with_exit_code_1():
@@ -68,4 +68,4 @@ def test_goto_in_real_time_with_the_threaded_vision_pipeline(tmp_path):
     r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")
     assert r.returncode == 0, r.stdout + r.stderr
     err_cm = float(r.stdout.split("position error ")[1].split(" cm")[0])
-    assert err_cm < 5.0
+    assert err_cm < 2.5  # measured 0.5 cm on 2026-11-30; the wall clock varies the run, so the bar is the mono one

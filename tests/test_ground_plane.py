@@ -88,7 +88,7 @@ def test_fit_recovers_floor_despite_clutter_and_a_wrong_prior(rng, prior_error):
     assert fit.ok and not fit.used_prior
     assert fit.floor.height == pytest.approx(0.25, abs=0.003)
     assert math.degrees(fit.floor.pitch) == pytest.approx(7.0, abs=0.1)
-    assert abs(math.degrees(fit.floor.roll)) < 0.1
+    assert abs(math.degrees(fit.floor.roll)) < 0.025  # measured 0.009-0.012 deg on 2026-11-30, bar 2x
     non_floor = np.isin(r.surface[2::4, 2::4], [ds.BOX0, ds.BOX0 + 1, ds.BOX0 + 2])
     assert non_floor.mean() > 0.2                              # the clutter is substantial
 

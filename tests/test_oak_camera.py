@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-dai = pytest.importorskip("depthai")
+from conftest import import_extra
+dai = import_extra("depthai", "oak")  # CI installs the extra: there a missing depthai fails
 
 from vbnav.drivers.camera import CameraError  # noqa: E402
 from vbnav.drivers.oak_camera import OakCamera, frame_from_imgframes, timedelta_ns  # noqa: E402

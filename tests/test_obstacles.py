@@ -55,7 +55,7 @@ def test_2cm_box_at_3m_found_and_floor_clean(rng):
     box = r.surface == ds.BOX0
     assert box.sum() > 60                           # ~3 rows x 27 columns are visible
     assert _flagged(s.labels, box) >= 0.95
-    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 0.005
+    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 0.001  # measured 4e-5 (4 px) on 2026-11-30; bar 0.1 %
     assert _flagged(s.labels, r.surface == ds.BOX0 + 1) <= 0.01          # the flat sheet is ground
     assert _flagged(s.labels, r.surface == ds.BOX0 + 1, PixelClass.GROUND) >= 0.99
 
@@ -67,7 +67,7 @@ def test_1cm_box_with_a_5mm_threshold(rng):
     s = detect_obstacles(D, RIG, PRIOR, params=ObstacleParams(obstacle_height=0.005, noise_px=0.1))
     assert _flagged(s.labels, r.surface == ds.BOX0 + 2) >= 0.95
     assert _flagged(s.labels, r.surface == ds.BOX0) >= 0.95
-    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 0.005
+    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 0.001  # measured 5e-5 on 2026-11-30; bar 0.1 %
 
 
 def test_step_down_is_a_negative_obstacle(rng):
@@ -77,7 +77,7 @@ def test_step_down_is_a_negative_obstacle(rng):
     near = RIG.fb / r.disparity > 0                 # all
     lower = (r.surface == ds.LOWER_FLOOR) & (r.disparity > RIG.fb / 15.0)   # lower floor within 15 m
     assert _flagged(s.labels, lower, PixelClass.NEGATIVE) >= 0.95
-    assert _flagged(s.labels, (r.surface == ds.FLOOR) & near, PixelClass.NEGATIVE) <= 0.005
+    assert _flagged(s.labels, (r.surface == ds.FLOOR) & near, PixelClass.NEGATIVE) <= 0.001  # measured 0 on 2026-11-30
     edge = nearest_in_corridor(s.negative_points, half_width=0.2)
     assert edge is not None and edge.distance == pytest.approx(2.5, abs=0.05)
     assert nearest_in_corridor(s.obstacle_points, half_width=0.2) is None
@@ -111,7 +111,7 @@ def test_nearest_obstacle_distance_and_bearing(rng):
     assert 0.25 <= n.lateral <= 0.5 and n.bearing > 0          # to the right: positive bearing
     assert n.bearing == pytest.approx(math.atan2(n.lateral, n.distance))
     wide = nearest_in_corridor(s.obstacle_points, half_width=2.0)
-    assert wide.distance == pytest.approx(1.0, abs=0.03) and wide.bearing < 0
+    assert wide.distance == pytest.approx(1.0, abs=0.02) and wide.bearing < 0  # measured 0.990 m on 2026-11-30
     assert nearest_in_corridor(s.obstacle_points, half_width=0.5, max_range=1.5) is None
 
 
@@ -174,10 +174,11 @@ def test_sgbm_boxes_sheet_and_step(sgbm_scene):
     assert s.fit.ok and s.fit.floor.height == pytest.approx(H, abs=0.005)
     assert _flagged(s.labels, truth.surface == ds.BOX0) >= 0.9       # 5 cm at 2 m
     assert _flagged(s.labels, truth.surface == ds.BOX0 + 1) >= 0.9   # 5 cm at 3 m
-    assert _flagged(s.labels, truth.surface == ds.BOX0 + 2) >= 0.8   # 3 cm at 3 m
-    assert _flagged(s.labels, truth.surface == ds.BOX0 + 3) <= 0.02  # the sheet
+    assert _flagged(s.labels, truth.surface == ds.BOX0 + 2) >= 0.95  # 3 cm at 3 m (measured 0.977 on 2026-11-30)
+    assert _flagged(s.labels, truth.surface == ds.BOX0 + 3) <= 0.005  # the sheet (measured 0 on 2026-11-30)
     assert _flagged(s.labels, truth.surface == ds.FLOOR) <= 0.005
     lower = (truth.surface == ds.LOWER_FLOOR) & (truth.disparity > RIG.fb / 15.0)
-    assert _flagged(s.labels, lower, PixelClass.NEGATIVE) >= 0.6
+    # measured 0.86 on 2026-11-30: bar at twice the 14 % missed
+    assert _flagged(s.labels, lower, PixelClass.NEGATIVE) >= 0.72
     n = nearest_in_corridor(s.obstacle_points, half_width=0.3)
     assert n is not None and n.distance == pytest.approx(2.0, abs=0.1)

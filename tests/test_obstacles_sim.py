@@ -58,7 +58,8 @@ def test_true_disparity_2cm_box_at_3m(corridor):
     box = _mask(w, ids, "box2cm")
     assert box.sum() > 100
     assert np.mean(s.labels[box] == PixelClass.OBSTACLE) >= 0.95
-    assert np.mean(s.labels[(w.kind_image(ids) == FLOOR)] == PixelClass.OBSTACLE) <= 0.005
+    # measured 0.00099 on 2026-11-30
+    assert np.mean(s.labels[(w.kind_image(ids) == FLOOR)] == PixelClass.OBSTACLE) <= 0.002
     assert np.mean(s.labels[_mask(w, ids, "sheet")] == PixelClass.OBSTACLE) == 0.0     # flat sheet: ground
     n = nearest_in_corridor(s.obstacle_points, half_width=0.2)
     assert n is not None and n.distance == pytest.approx(3.0, abs=0.03)
@@ -68,14 +69,15 @@ def test_true_disparity_1cm_box_with_5mm_threshold(corridor):
     w, frame, ids = corridor
     s = detect_obstacles(frame.disparity, RIG, PRIOR, params=ObstacleParams(obstacle_height=0.005))
     assert np.mean(s.labels[_mask(w, ids, "box1cm")] == PixelClass.OBSTACLE) >= 0.95
-    assert np.mean(s.labels[(w.kind_image(ids) == FLOOR)] == PixelClass.OBSTACLE) <= 0.005
-    assert np.mean(s.labels[_mask(w, ids, "sheet")] == PixelClass.OBSTACLE) <= 0.01
+    # measured 0.0011 on 2026-11-30
+    assert np.mean(s.labels[(w.kind_image(ids) == FLOOR)] == PixelClass.OBSTACLE) <= 0.0025
+    assert np.mean(s.labels[_mask(w, ids, "sheet")] == PixelClass.OBSTACLE) <= 0.001  # measured 0 on 2026-11-30
 
 
 def test_sgbm_on_the_rendered_pair(corridor):
     """SGBM on these textures has ~0.4 px median floor error (p90 1.4 px), so it needs a 2 cm
-    threshold and a 0.6 px noise floor. Measured here: 5 cm box at 2 m 99.8 %, 2 cm box at
-    3 m 53 %, floor 0.73 %, sheet 0 %: the 2 cm / 0.5 % targets hold for true disparity only."""
+    threshold and a 0.6 px noise floor. Measured here (2026-11-30): 5 cm box at 2 m 100 %, 2 cm box
+    at 3 m 50 %, floor 0.96 %, sheet 0 %: the 2 cm / 0.5 % targets hold for true disparity only."""
     w, frame, ids = corridor
     D = sgbm_disparity(frame.image, frame.right, SgbmParams(num_disparities=80, block_size=5))
     s = detect_obstacles(D, RIG, PRIOR, params=ObstacleParams(obstacle_height=0.02, noise_px=0.6,
@@ -95,7 +97,7 @@ def test_step_down_is_negative_and_stops_the_robot():
     lower = (kinds == KINDS.index("step")) & (frame.disparity > RIG.fb / 10.0)   # lower floor within 10 m
     assert lower.sum() > 1000
     assert np.mean(s.labels[lower] == PixelClass.NEGATIVE) >= 0.95
-    assert np.mean(s.labels[kinds == FLOOR] == PixelClass.NEGATIVE) <= 0.005
+    assert np.mean(s.labels[kinds == FLOOR] == PixelClass.NEGATIVE) <= 0.001  # measured 0 on 2026-11-30
     edge = nearest_in_corridor(s.negative_points, half_width=0.25)
     assert edge.distance == pytest.approx(1.5 - MOUNT.forward, abs=0.05)    # the edge, from the camera
     cfg = ObstaclesConfig(persist_k=1, persist_n=1,

@@ -88,7 +88,7 @@ def test_right_image_is_the_left_shifted_by_the_true_disparity():
     mapy = v[ok].astype(np.float32).reshape(-1, 1)
     warped = cv2.remap(right, mapx, mapy, cv2.INTER_LINEAR).ravel()
     diff = np.abs(warped - left[v, u][ok])
-    assert np.median(diff) < 3.0
+    assert np.median(diff) < 0.6  # measured 0.31 grey levels on 2026-11-30, bar 2x
     # The same samples without the disparity shift differ much more.
     assert np.median(np.abs(right[v, u][ok] - left[v, u][ok])) > 4 * max(np.median(diff), 1.0)
 
@@ -152,8 +152,8 @@ def test_enough_corners_everywhere_along_a_route(room):
         for turn in (0.0, 0.8, -2.0):
             ids = renderer.render(*camera_pose(pose.compose(Pose2(0, 0, turn)), MOUNT), image=False, ids=True).ids
             assert (ids > 0).all()
-    assert min(counts) >= 200, counts
-    assert min(orb_counts) >= 200, orb_counts
+    assert min(counts) >= 350, counts            # measured 704 on 2026-11-30, bar 1/2
+    assert min(orb_counts) >= 500, orb_counts    # measured 1000 (all asked for) on 2026-11-30, bar 1/2
 
 
 def test_frames_come_at_the_configured_rate_with_the_pose_at_their_stamp(room):
@@ -219,7 +219,7 @@ def test_occlusion_gives_a_frame_with_no_trackable_features(room):
     cam.connect()
     f0 = cam.read()
     p0 = cv2.goodFeaturesToTrack(f0.image, 500, 0.01, 7)
-    assert len(p0) >= 200
+    assert len(p0) >= 250  # measured 500 on 2026-11-30, bar 1/2
     cam.occluded = True
     clock.advance(100_000_000)
     f1 = cam.read()
@@ -243,7 +243,7 @@ def test_color_option_and_options_model(room):
     assert img.shape == (480, 640, 3) and img.dtype == np.uint8
     grey = SimCamera(room, CAM, MOUNT, lambda: Pose2(), SimClock(), 15, noise_std=0.0)
     g = grey.render_frame(Pose2(-3.5, -2.0, 0.3)).image.astype(np.float32)
-    assert np.median(np.abs(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) - g)) < 6
+    assert np.median(np.abs(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) - g)) < 2  # measured 1 grey level on 2026-11-30
     assert SimCamera.Options.model_validate({"stereo_baseline": 0.075}).stereo_baseline == 0.075
     with pytest.raises(ValidationError):
         SimCamera.Options.model_validate({"baseline": 0.1})
@@ -283,8 +283,9 @@ def test_noise_has_the_configured_std_and_changes_every_frame(room):
     n1 = cam.render_frame(pose, seq=1).image.astype(np.float64) - clean
     n2 = cam.render_frame(pose, seq=2).image.astype(np.float64) - clean
     mid = (clean > 20) & (clean < 235)                  # away from saturation
-    assert n1[mid].std() == pytest.approx(3.0, rel=0.05) and abs(n1[mid].mean()) < 0.1
-    assert abs(np.corrcoef(n1[mid], n2[mid])[0, 1]) < 0.05
+    # measured std 3.013 on 2026-11-30
+    assert n1[mid].std() == pytest.approx(3.0, rel=0.01) and abs(n1[mid].mean()) < 0.1
+    assert abs(np.corrcoef(n1[mid], n2[mid])[0, 1]) < 0.015  # measured 0.0067 on 2026-11-30, bar 2x
     assert np.array_equal(cam.render_frame(pose, seq=1).image, clean + n1)   # same seq, same noise
 
 
@@ -338,4 +339,4 @@ def test_descriptors_match_nearby_views_but_not_other_places(room):
     near = [base.compose(Pose2(0.05, 0.1, 0.05)), base.compose(Pose2(0.3, 0.0, 0.17))]
     elsewhere = [Pose2(3.5, 2.0, math.pi), Pose2(-3.5, 2.0, math.pi / 2), Pose2(0.0, -2.0, -1.5)]
     assert min(ratio_matches(ref, features(p, 1)) for p in near) >= 300
-    assert max(ratio_matches(ref, features(p, 1)) for p in elsewhere) <= 60
+    assert max(ratio_matches(ref, features(p, 1)) for p in elsewhere) <= 50  # measured 25 on 2026-11-30, bar 2x

@@ -127,7 +127,7 @@ def test_teaching_emits_keyframes_with_heights(scene):
     errs = []
     for kf in kfs[:-1]:
         good = np.isfinite(kf.inv_height) & (kf.inv_height_var < (0.2 * kf.inv_height) ** 2)
-        assert good.mean() > 0.5
+        assert good.mean() > 0.7  # measured >= 0.863 on 2026-11-30: bar near twice the 14 % bad
         y_true = -pts[kf.track_ids[good], 1] - MOUNT.height
         y_true = -y_true        # camera y is down: height below the camera = cam_height - point height
         errs.append(np.abs(1 / kf.inv_height[good] - (MOUNT.height - (-pts[kf.track_ids[good], 1]))))

@@ -103,8 +103,8 @@ def test_rendered_teach_makes_a_usable_route(taught):
     kfs = route.keyframes
     assert len(kfs) >= 10
     for kf in kfs:
-        assert len(kf) >= 40
-        assert np.mean(np.isfinite(kf.inv_height)) > 0.8
+        assert len(kf) >= 80                                     # measured >= 158 on 2026-11-30, bar 1/2
+        assert np.mean(np.isfinite(kf.inv_height)) > 0.95        # measured >= 0.979 on 2026-11-30
         assert kf.descriptors.any()                       # real ORB descriptors from the rendered image
 
 
@@ -119,15 +119,16 @@ def test_rendered_repeat_from_offset(world, taught):
     rms = float(np.sqrt(np.mean(lat[settled] ** 2)))
     print(f"rendered repeat: settled lateral RMS {100 * rms:.2f} cm, max {100 * lat[settled].max():.2f} cm, "
           f"{len(route.keyframes)} keyframes, re-acquired {stage.stats['reacquired']}")
-    assert rms < 0.03 and lat[settled].max() < 0.06
+    assert rms < 0.012 and lat[settled].max() < 0.03  # measured 0.62 / 1.43 cm on 2026-11-30, bars 2x
     # smooth through all keyframe switches: no jumps in the commands after the start
     w = np.array([c.w for _, _, c in trace])
     v = np.array([c.v for _, _, c in trace])
     after = t[1:] > 0.5
     assert stage.stats["switches"] == len(route.keyframes) - 1
-    assert np.abs(np.diff(w))[after].max() < 0.08 and np.abs(np.diff(v))[after].max() < 0.02
+    # measured 0.022 / 0.0038 on 2026-11-30
+    assert np.abs(np.diff(w))[after].max() < 0.045 and np.abs(np.diff(v))[after].max() < 0.008
     end = trace[-1][1]
-    assert math.hypot(end.x - path[-1, 0], end.z - path[-1, 1]) < 0.1
+    assert math.hypot(end.x - path[-1, 0], end.z - path[-1, 1]) < 0.08  # measured 3.8 cm on 2026-11-30, bar 2x
 
 
 @pytest.mark.parametrize("gain", [0.6, 1.4])
@@ -144,7 +145,7 @@ def test_rendered_repeat_through_occlusion_lighting_and_moved_boxes(taught, gain
     t = np.array([x[0] for x in trace])
     print(f"gain {gain}, boxes moved, occluded 2 s: max lateral {100 * lat.max():.2f} cm, {stage.stats}")
     assert np.all(v[(t > 5.5) & (t < 6.0)] < VBCConfig().cruise_speed)     # slowed or stopped while blind
-    assert lat.max() < 0.05
+    assert lat.max() < 0.03  # measured 1.39 cm on 2026-11-30, bar 2x
 
 
 def test_route_round_trip_through_disk_localises(world, taught, tmp_path):
@@ -164,6 +165,6 @@ def test_route_round_trip_through_disk_localises(world, taught, tmp_path):
         for i in range(4):
             est = stage.process(cam.render_frame(pose, i, i), Pose2(0.0, 0.02 * i, 0.0))
             pose = drive(pose, 0.2, 0.0, 0.1)
-        assert est.ok and est.value.n_agree > 50
+        assert est.ok and est.value.n_agree > 85  # measured 168 on 2026-11-30, bar 1/2
         fixes.append(est.value.pose.as_array())
     np.testing.assert_allclose(fixes[0], fixes[1], atol=1e-9)

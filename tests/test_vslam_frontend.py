@@ -48,7 +48,7 @@ def test_stereo_tracking_with_handoffs_follows_the_truth(sequence):
     poses = np.array([np.eye(4)] + [r.pose_wc for r in results])
     err_t = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
     err_r = [rotation_angle(p[:3, :3].T @ t[:3, :3]) for p, t in zip(poses, truth)]
-    assert err_t.max() < 0.02 and np.degrees(max(err_r)) < 0.5
+    assert err_t.max() < 0.01 and np.degrees(max(err_r)) < 0.12  # measured 4.6 mm / 0.060 deg on 2026-11-30, bars 2x
     # turning 75 degrees leaves few of the first reference frame's landmarks: hand-offs happened and the
     # chain of reference frames is kept, each pose expressed against the newest
     assert len(slam.references) >= 2
@@ -58,7 +58,7 @@ def test_stereo_tracking_with_handoffs_follows_the_truth(sequence):
         k = ref.index
         np.testing.assert_allclose(ref.pose_wc[:3, 3], poses[k][:3, 3], atol=1e-9)
     # the frame-to-frame solves converge in a few iterations (robust rounds summed)
-    assert np.median([r.iterations for r in results]) <= 30
+    assert np.median([r.iterations for r in results]) <= 20  # measured 10 on 2026-11-30, bar 2x
 
 
 def test_lost_reference_landmarks_are_found_again_on_return(sequence):
@@ -67,11 +67,11 @@ def test_lost_reference_landmarks_are_found_again_on_return(sequence):
     assert all(r.ok for r in results)
     # Landmarks lost while turning away kept their reference coordinates and came back on return.
     assert len(slam.dormant.P) > 0
-    assert slam.reacquired >= 20
+    assert slam.reacquired >= 175  # measured 352 on 2026-11-30, bar 1/2
     _, plain = run(frames, VslamConfig(reacquire_every=0))
     assert _.reacquired == 0
     end_err = np.linalg.norm(results[-1].pose_wc[:3, 3] - truth[-1][:3, 3])
-    assert end_err < 0.02
+    assert end_err < 0.005  # measured 2.3 mm on 2026-11-30, bar 2x
 
 
 def test_landmark_normal_equations_survive_a_reference_change(rng):

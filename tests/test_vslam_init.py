@@ -39,7 +39,7 @@ def test_general_scene_takes_the_essential_path(rng, scale):
     _, R_cv, _, _ = cv2.recoverPose(E, u1, u2, np.eye(3))
     assert rotation_angle(out.R.T @ R) <= 1.1 * rotation_angle(R_cv.T @ R) + 1e-4
     assert rotation_angle(out.R.T @ R) < np.deg2rad(0.5)
-    assert np.degrees(np.arccos(out.T @ T / np.linalg.norm(T) ** 2)) < 1.0
+    assert np.degrees(np.arccos(out.T @ T / np.linalg.norm(T) ** 2)) < 0.8  # measured 0.39 deg on 2026-11-30, bar 2x
     err = np.abs(out.depths1[out.valid] - np.linalg.norm(P, axis=1)[out.valid]) / np.linalg.norm(P, axis=1)[out.valid]
     assert out.valid.sum() > 60 and np.median(err) < 0.05
 
@@ -52,9 +52,9 @@ def test_planar_scene_takes_the_homography_path(rng, scale):
     r1, r2, R, T = views(rng, P, scale)
     out = init_two_view(r1, r2, scale=np.linalg.norm(T))
     assert out.model == "homography", out.singular_values
-    assert rotation_angle(out.R.T @ R) < np.deg2rad(1.0)
+    assert rotation_angle(out.R.T @ R) < np.deg2rad(0.5)  # measured 0.23 deg on 2026-11-30, bar 2x
     err = np.abs(out.depths1[out.valid] - np.linalg.norm(P, axis=1)[out.valid]) / np.linalg.norm(P, axis=1)[out.valid]
-    assert out.valid.sum() > 60 and np.median(err) < 0.08
+    assert out.valid.sum() > 60 and np.median(err) < 0.02  # measured 0.0105 on 2026-11-30, bar 2x
     # noise-free: exact, through the homography path too
     r1, r2, R, T = views(rng, P, scale, noise_px=0.0)
     out = init_two_view(r1, r2, scale=np.linalg.norm(T))
@@ -99,8 +99,8 @@ def test_tag_grid_gives_the_camera_pose(rng):
     out = init_from_tags(img, CAM, grid, extra_pixels=extra)
     assert out.info["tags"] == [0, 1, 2, 3, 4, 5]
     R_cw = out.pose_wc[:3, :3].T
-    assert rotation_angle(R_cw.T @ R) < np.deg2rad(0.5)
-    assert np.linalg.norm(-R_cw @ out.pose_wc[:3, 3] - T) < 0.005
+    assert rotation_angle(R_cw.T @ R) < np.deg2rad(0.13)  # measured 0.063 deg on 2026-11-30, bar 2x
+    assert np.linalg.norm(-R_cw @ out.pose_wc[:3, 3] - T) < 0.0013  # measured 0.62 mm on 2026-11-30, bar 2x
     # the two extra pixels got their depth from the grid plane
     np.testing.assert_allclose(out.points_cam[-2:], np.array([[0.05, 0.05, 0.0], [0.15, 0.02, 0.0]]) @ R.T + T,
                                atol=0.005)

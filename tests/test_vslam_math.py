@@ -183,8 +183,8 @@ def test_robust_motion_rejects_outliers(rng, scale):
     out = rng.choice(60, 12, replace=False)  # 20 % gross mismatches
     rays[out] = unit(rng.normal(size=(12, 3)) * [0.3, 0.3, 0] + [0, 0, 1])
     est = recover_motion_robust(P, rays, depths=6.0 * scale, rng=np.random.default_rng(3))
-    assert rotation_angle(est.R.T @ R) < 2e-3
-    assert np.linalg.norm(est.T - T) < 0.02 * scale
+    assert rotation_angle(est.R.T @ R) < 1e-3  # measured 5.1e-4 rad on 2026-11-30, bar 2x
+    assert np.linalg.norm(est.T - T) < 0.008 * scale  # measured 0.0038 * scale on 2026-11-30, bar 2x
     assert not est.inliers[out].any() and est.inliers.sum() >= 45
     plain = recover_motion(P, rays, depths=6.0 * scale)
     assert rotation_angle(plain.R.T @ R) > 5 * rotation_angle(est.R.T @ R)
@@ -202,5 +202,6 @@ def test_landmark_weights_let_well_known_points_dominate(rng):
     kw = dict(depths=6.0, threshold=0.01, rng=np.random.default_rng(1))
     plain = recover_motion_robust(P_used, rays, **kw)
     weighted = recover_motion_robust(P_used, rays, weights=w, **kw)
-    assert np.linalg.norm(weighted.T - T) < 0.25 * np.linalg.norm(plain.T - T)
-    assert rotation_angle(weighted.R.T @ R) < 1e-3
+    # measured 0.011 x on 2026-11-30, bar 2x
+    assert np.linalg.norm(weighted.T - T) < 0.025 * np.linalg.norm(plain.T - T)
+    assert rotation_angle(weighted.R.T @ R) < 2e-5  # measured 9e-6 rad on 2026-11-30, bar 2x

@@ -134,8 +134,8 @@ def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
     truth = start.between(poses[-1])
     got = est.value.pose
     assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
-    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.5
-    assert abs(est.value.quality["height_error_m"]) < 0.02
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.15  # measured 0.068 deg on 2026-11-30, bar 2x
+    assert abs(est.value.quality["height_error_m"]) < 0.0015  # measured 0.71 mm on 2026-11-30, bar 2x
 
 
 def test_stage_needs_stereo():
@@ -175,7 +175,7 @@ def test_monocular_stage_takes_its_scale_from_the_wheels():
         dist = math.hypot(truth.x, truth.z)
         # at the start the scale is the wheels' (2 % off); later the monocular scale drifts a little
         assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.05 * dist, (i, got, truth)
-        assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 1.0
+        assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.1  # measured 0.044 deg on 2026-11-30
     assert stage.stats["rescaled"] >= 1
     # Vslam.rescale: the same rays from the current camera, every distance times s, normal equations kept.
     slam = stage.slam
