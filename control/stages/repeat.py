@@ -1,21 +1,11 @@
-"""Teach and repeat by Vision-Based Control (chapter section 11.2.2.1): pure logic, no I/O, no threads.
+"""The repeat stage of teach-and-repeat by Vision-Based Control (chapter section 11.2.2.1).
 
-- ``TeachStage`` (vision thread, while the robot is driven along the route): tracks
-  features, estimates each landmark's inverse height from odometry, and emits
-  ``Keyframe`` records chosen by travelled distance, rotation and feature overlap.
-  A keyframe is emitted when the *next* one is started (or at ``finish()``), so its
-  landmarks' heights already pool the motion after it. The runtime drains
-  ``pop_keyframes()`` into a ``RouteWriter``.
-- ``RepeatStage`` (vision thread, while repeating): localises each frame against the
-  keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
-  when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
-  KLT from the keyframe image started at the pixels the current fix predicts, after
-  each keyframe switch), computes the VBC pose relative to that keyframe and
-  advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
-- ``RepeatController`` (loop rate): dead-reckons from the latest fix with odometry,
-  follows the taught keyframe path with pure pursuit (a nonholonomic base corrects
-  lateral error through heading), slows and stops when too few landmarks agree,
-  resumes when they do, and finishes at the last keyframe.
+``RepeatStage`` (vision thread, while repeating): localises each frame against the
+keyframe ahead (KLT tracks labelled with the taught track ids; ORB re-acquisition
+when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
+KLT from the keyframe image started at the pixels the current fix predicts, after
+each keyframe switch), computes the VBC pose relative to that keyframe and
+advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
 
 Frames: a fix's pose is the robot relative to keyframe k. The path the
 controller follows is the polyline of the keyframes' taught odometry poses;

@@ -1,30 +1,25 @@
-"""The VSLAM on the robot (chapter section 11.3) and the ``goto`` controller built on it.
+"""The VSLAM on the robot (chapter section 11.3), as a vision stage; ``controllers/goto.py`` drives on it.
 
-- ``VslamStage`` (vision thread, kind "vslam"): runs ``vision.vslam.Vslam`` on the
-  robot's frames. Metric scale comes from the calibrated stereo pair (the right
-  image of the frame, section 11.3.1.1), on cameras that deliver only a
-  disparity image (OAK) from the depth that disparity gives, or, with a single
-  camera (``metric_scale: odometry``), from the wheels: a two-view initialisation
-  (essential matrix or homography) between the first frame and the first one the
-  wheels put ``odometry_init_baseline_m`` away, scaled by that distance; new
-  landmarks then come from motion (11.11) in that scale. The world frame is
-  the robot's odometry frame at the first frame (the robot's start pose), so a
-  goal "in the reference frame" is a pose relative to where the robot started.
-  Each reference frame of the VSLAM's chain is kept as an *anchor*: its
-  landmarks (world coordinates) with ORB descriptors. When the robot comes back
-  near an older anchor, the frame is matched against that anchor's landmarks and
-  the pose is computed against them (11.15-11.17), not through the chain of
-  hand-offs: returning to the start gives the pose against the first reference
-  set. Anchors cost ~7 kB each (about 3 per metre driven). After a few lost
-  frames in a row (a covered lens) the front end restarts from the current
-  stereo pair at the pose odometry carried since the last good frame; the
-  anchors survive, so a later loop still closes. The stage reports the robot's
-  planar pose (camera pose through the mount).
-- ``GotoController`` (loop rate): dead-reckons from the latest VSLAM pose with
-  odometry (a complementary filter, as ``RepeatController`` does with VBC fixes)
-  and drives to a goal pose (x, z, theta) with the polar-coordinate law of
-  Astolfi (rho, alpha, beta), slowing near the goal, then turns on the spot to
-  the goal heading and finishes when both are within tolerance.
+``VslamStage`` (vision thread, kind "vslam"): runs ``vision.vslam.Vslam`` on the
+robot's frames. Metric scale comes from the calibrated stereo pair (the right
+image of the frame, section 11.3.1.1), on cameras that deliver only a
+disparity image (OAK) from the depth that disparity gives, or, with a single
+camera (``metric_scale: odometry``), from the wheels: a two-view initialisation
+(essential matrix or homography) between the first frame and the first one the
+wheels put ``odometry_init_baseline_m`` away, scaled by that distance; new
+landmarks then come from motion (11.11) in that scale. The world frame is
+the robot's odometry frame at the first frame (the robot's start pose), so a
+goal "in the reference frame" is a pose relative to where the robot started.
+Each reference frame of the VSLAM's chain is kept as an *anchor*: its
+landmarks (world coordinates) with ORB descriptors. When the robot comes back
+near an older anchor, the frame is matched against that anchor's landmarks and
+the pose is computed against them (11.15-11.17), not through the chain of
+hand-offs: returning to the start gives the pose against the first reference
+set. Anchors cost ~7 kB each (about 3 per metre driven). After a few lost
+frames in a row (a covered lens) the front end restarts from the current
+stereo pair at the pose odometry carried since the last good frame; the
+anchors survive, so a later loop still closes. The stage reports the robot's
+planar pose (camera pose through the mount).
 """
 from __future__ import annotations
 
