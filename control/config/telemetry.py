@@ -1,4 +1,4 @@
-"""The ``telemetry:`` configuration section and the zenoh session built from it.
+"""The ``telemetry:`` configuration section (control/comms/network.py builds the zenoh sessions from it).
 
 Safe by default: the robot's zenoh session listens only on
 ``tcp/127.0.0.1:7447``, with multicast scouting and gossip off, so nothing is
