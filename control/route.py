@@ -22,6 +22,7 @@ import io
 import json
 import math
 import os
+import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,53 @@ _LANDMARK_FIELDS = {
 
 class RouteError(ValueError):
     """A route directory is missing, corrupt, foreign or from a newer version. The message says which file."""
+
+
+# -- routes by name (cmd/mode: network input) -------------------------------------------------
+#: A route name: one path component of letters, digits, ``_ . -``, not starting with a dot
+#: (so never ``.``, ``..`` or a hidden or temporary directory of a writer).
+ROUTE_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}$")
+NAME_RULE = "a plain name of letters, digits, '_', '.' and '-' (at most 128, not starting with '.')"
+
+
+def check_route_name(name) -> str:
+    """``name`` if it is a plain route name, else RouteError. The message does not repeat the name:
+    a name with slashes is a path, and errors about network input never echo paths."""
+    if not isinstance(name, str) or not ROUTE_NAME.match(name):
+        raise RouteError(f"route must be {NAME_RULE}, not a path")
+    return name
+
+
+def routes_root(routes_dir, config_source=None) -> Path:
+    """The routes directory of a configuration: ``~`` expanded, a relative path taken from the config
+    file's folder (or the working directory for a configuration not read from a file)."""
+    p = Path(routes_dir).expanduser()
+    if not p.is_absolute():
+        p = (Path(config_source).parent if config_source else Path.cwd()) / p
+    return p
+
+
+def resolve_route(root, name: str, must_exist: bool) -> Path:
+    """The directory of route ``name`` inside the routes directory ``root``; RouteError otherwise.
+
+    The name must pass ``check_route_name``; the path is resolved (symlinks followed) and must still
+    be a direct child of ``root``, so a symlink planted in ``root`` cannot lead outside it. Errors
+    name only the route, never ``root`` or where a link points.
+    """
+    check_route_name(name)
+    base = Path(root).resolve()
+    path = (base / name).resolve()
+    if path.parent != base or path.name != name:
+        raise RouteError(f"route {name!r}: is a symbolic link; routes are directories inside the routes directory")
+    if must_exist and not path.is_dir():
+        raise RouteError(f"route {name!r}: no such route in the routes directory")
+    return path
+
+
+def describe_route_error(exc: Exception, route_path: Path, name: str) -> str:
+    """An error of loading or writing route ``name`` with its directory shown as ``route 'name'``."""
+    text = str(exc) if isinstance(exc, RouteError) else f"{type(exc).__name__}: {getattr(exc, 'strerror', exc)}"
+    return text.replace(f"{route_path}{os.sep}", f"route {name!r}: ").replace(str(route_path), f"route {name!r}")
 
 
 @dataclass
