@@ -134,6 +134,13 @@ class Route:
     def length(self) -> float:
         return self.keyframes[-1].distance if self.keyframes else 0.0
 
+    def incomplete_note(self) -> str:
+        """'' for a complete route; else what exists of it (teaching was interrupted before the end)."""
+        if self.complete:
+            return ""
+        return (f"the route is incomplete (complete: false, teaching was interrupted): {len(self)} keyframes "
+                f"over {self.length:.2f} m exist; a repeat ends at the last of them")
+
 
 def camera_to_dict(cam) -> dict:
     model = "fisheye" if isinstance(cam, FisheyeCamera) else "pinhole"
@@ -267,6 +274,8 @@ def load_route(path, load_images: bool = True) -> Route:
         raise RouteError(f"{mpath}: version must be an integer, got {ver!r}")
     if ver > VERSION:
         raise RouteError(f"{mpath}: version {ver} is newer than this vbnav reads (<= {VERSION}); upgrade vbnav")
+    if ver < 1:
+        raise RouteError(f"{mpath}: version {ver} is not a route version (versions start at 1)")
     for key in ("robot", "created", "camera", "mount", "keyframes"):
         if key not in m:
             raise RouteError(f"{mpath}: missing key {key!r}")
@@ -277,17 +286,18 @@ def load_route(path, load_images: bool = True) -> Route:
         raise RouteError(f"{mpath}: mount: expected height, forward, lateral, pitch, yaw numbers ({e})") from None
     if not isinstance(m["keyframes"], list):
         raise RouteError(f"{mpath}: keyframes must be a list")
-    kfs = [_load_keyframe(root, mpath, i, entry, load_images) for i, entry in enumerate(m["keyframes"])]
+    kfs = [_load_keyframe(root, mpath, i, entry, camera, load_images) for i, entry in enumerate(m["keyframes"])]
+    _check_progress(mpath, kfs)
     return Route(root, str(m["robot"]), str(m["created"]), camera, mount, bool(m.get("complete", False)), kfs)
 
 
-def _load_keyframe(root: Path, mpath: Path, i: int, entry, load_images: bool) -> Keyframe:
+def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: bool) -> Keyframe:
     where = f"{mpath}: keyframes[{i}]"
     if not isinstance(entry, dict) or not {"image", "landmarks"} <= set(entry):
         raise RouteError(f"{where}: expected an object with 'image' and 'landmarks' file names")
     img_path, lm_path = root / str(entry["image"]), root / str(entry["landmarks"])
     for p in (img_path, lm_path):
-        if p.parent.resolve() != root.resolve():
+        if p.resolve().parent != root.resolve():     # resolved: a symlinked keyframe file must not lead out
             raise RouteError(f"{where}: file {p.name!r} must be inside the route directory")
         if not p.is_file():
             raise RouteError(f"{p}: missing keyframe file (listed in {mpath.name} keyframes[{i}])")
@@ -296,12 +306,18 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, load_images: bool) ->
         image = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise RouteError(f"{img_path}: not a readable PNG image")
+        size = (image.shape[1], image.shape[0])
+    else:
+        size = _png_size(img_path)
+    if size != (camera.width, camera.height):
+        raise RouteError(f"{img_path}: keyframes[{i}] image is {size[0]}x{size[1]}, the route's camera is "
+                         f"{camera.width}x{camera.height}")
     try:
         with np.load(lm_path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RouteError(f"{lm_path}: corrupt or truncated landmark file, expected a numpy .npz ({e})") from None
-    n = _check_landmarks(lm_path, data)
+    n = _check_landmarks(lm_path, data, f"keyframes[{i}]")
     if "n_landmarks" in entry and int(entry["n_landmarks"]) != n:
         raise RouteError(f"{lm_path}: has {n} landmarks, manifest says {entry['n_landmarks']}")
     odom = np.asarray(data["odom"], float).ravel()
@@ -310,7 +326,16 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, load_images: bool) ->
                     int(data["stamp_ns"]))
 
 
-def _check_landmarks(path: Path, data: dict) -> int:
+def _png_size(path: Path) -> tuple[int, int]:
+    """(width, height) from a PNG's header, without decoding the image."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise RouteError(f"{path}: not a readable PNG image")
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _check_landmarks(path: Path, data: dict, which: str) -> int:
     for k in list(_LANDMARK_FIELDS) + ["odom", "distance", "stamp_ns"]:
         if k not in data:
             raise RouteError(f"{path}: missing array {k!r}")
@@ -324,7 +349,30 @@ def _check_landmarks(path: Path, data: dict) -> int:
         raise RouteError(f"{path}: 'odom' must be 3 finite numbers (x, z, theta)")
     if not math.isfinite(float(data["distance"])):
         raise RouteError(f"{path}: 'distance' must be finite")
+    for k in ("pixels", "alpha", "beta"):
+        bad = ~np.isfinite(data[k]).reshape(n, -1).all(axis=1)
+        if bad.any():
+            raise RouteError(f"{path}: {which}: landmark {int(np.argmax(bad))} has a non-finite {k!r} "
+                             f"({int(bad.sum())} of {n} landmarks)")
+    # An unknown inverse height is NaN with an infinite variance; anything else must be a number.
+    if np.isinf(data["inv_height"]).any() or np.isnan(data["inv_height_var"]).any() or \
+            (data["inv_height_var"] < 0).any():
+        raise RouteError(f"{path}: {which}: inverse heights must be finite or NaN (unknown), their variances "
+                         f">= 0 or inf")
     return n
+
+
+def _check_progress(mpath: Path, kfs: list) -> None:
+    """Keyframes follow the route: along-route distance increases; at the same distance only a turn on
+    the spot (another heading) makes a new keyframe. A copy of the keyframe before is an error."""
+    for a, b in zip(kfs, kfs[1:]):
+        if b.distance > a.distance:
+            continue
+        if b.distance == a.distance and b.odom.theta != a.odom.theta:
+            continue
+        what = "repeats" if b.distance == a.distance else "is less than"
+        raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
+                         f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
 
 
 def stray_temp_files(path) -> list[Path]:

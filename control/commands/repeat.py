@@ -1,6 +1,8 @@
 """vbnav repeat: patrol a taught route."""
 from __future__ import annotations
 
+import sys
+
 from vbnav.control.commands._common import add_config_arg
 
 
@@ -34,6 +36,8 @@ def run(args) -> int:
     if not route.keyframes:
         print(f"vbnav repeat: {args.path}: the route has no keyframes")
         return 2
+    if not route.complete:
+        print(f"vbnav repeat: warning: {args.path}: {route.incomplete_note()}", file=sys.stderr)
     printer = ProgressPrinter()
     result = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer).repeat(
         route, args.duration)
