@@ -13,16 +13,20 @@ Crash safety: every file is written to a temporary name in the same directory,
 fsynced, then renamed over its final name (atomic on POSIX), and the manifest
 is rewritten the same way after each keyframe's files are in place. The
 manifest therefore only ever lists complete keyframes; an interruption leaves
-at worst a stray ``.tmp`` file, which loading ignores.
+at worst a stray ``.tmp`` file, which loading ignores. A route that replaces
+another (``overwrite``) is written beside it and swapped in only when complete.
 """
 from __future__ import annotations
 
+import ctypes
 import datetime as _dt
+import errno
 import io
 import json
 import math
 import os
 import re
+import shutil
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -188,26 +192,92 @@ def _fsync_dir(d: Path) -> None:
         os.close(fd)
 
 
+# -- replacing a route ---------------------------------------------------------------------------
+_PARTIAL, _OLD = ".partial-", ".old-"
+_ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$")
+_RENAME_EXCHANGE = 2        # renameat2(2) flag: swap two paths atomically (Linux >= 3.15)
+
+
+def _sibling(route: Path, kind: str) -> Path:
+    return route.with_name(f".{route.name}{kind}{os.getpid()}")
+
+
+def _swap_in(new: Path, route: Path) -> None:
+    """Put the complete directory ``new`` at ``route`` and delete the route it replaces.
+
+    One atomic exchange where the OS has it, so ``route`` is a complete route at every instant;
+    else two renames with the old route at ``.NAME.old-<pid>`` in between (a crash in that gap
+    leaves both beside the path; ``stray_route_dirs`` and ``load_route`` point at them).
+    """
+    old = _sibling(route, _OLD)
+    if _exchange(new, route):
+        os.rename(new, old)          # ``new`` now holds the old route
+    else:
+        os.rename(route, old)
+        os.rename(new, route)
+    _fsync_dir(route.parent)
+    shutil.rmtree(old)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step (renameat2 RENAME_EXCHANGE); False where the OS cannot."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_cwd = -100
+    if fn(at_cwd, os.fsencode(a), at_cwd, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):
+        return False                 # this kernel or file system cannot exchange
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def stray_route_dirs(route) -> list[Path]:
+    """Directories an interrupted replacement of ``route`` left beside it: ``.NAME.partial-<pid>`` (a new
+    route that was never completed: the old one is intact) or ``.NAME.old-<pid>`` (the old route, when a
+    crash hit between the two renames of a swap). Nothing deletes them: they hold recorded keyframes."""
+    route = Path(route)
+    if not route.parent.is_dir():
+        return []
+    return sorted(p for p in route.parent.iterdir()
+                  if p.name.startswith(f".{route.name}{_PARTIAL}") or p.name.startswith(f".{route.name}{_OLD}"))
+
+
 class RouteWriter:
     """Appends keyframes to a new route directory, keeping it loadable after every keyframe.
 
     ``RouteWriter(path, robot, camera, mount)`` creates ``path`` (it must not exist or be
     empty unless ``overwrite``); ``append(kf)`` writes one keyframe; ``close()`` marks the
     route complete. Usable as a context manager (an exception leaves ``complete: false``).
+
+    Replacing a route (``overwrite`` of a non-empty ``path``) never touches the old one before the
+    new one is complete: keyframes go to the sibling ``.NAME.partial-<pid>``, and only
+    ``close(complete=True)`` swaps it into place (``_swap_in``). Killed before that, the old route
+    is intact and the partial one stays beside it (``stray_route_dirs``). Only a directory holding
+    nothing but route files is replaced: ``--overwrite`` of a wrong directory must not delete it.
     """
 
     def __init__(self, path, robot: str, camera, mount: CameraMount, overwrite: bool = False):
-        self.path = Path(path)
+        self.path = Path(path)          # where the route is (once complete)
+        self._dir = self.path           # where its files are written now
         if self.path.exists():
             if not self.path.is_dir():
                 raise RouteError(f"{self.path}: exists and is not a directory")
-            if any(self.path.iterdir()) and not overwrite:
+            names = [p.name for p in self.path.iterdir()]
+            if names and not overwrite:
                 raise RouteError(f"{self.path}: directory is not empty (choose a new route path)")
-            if overwrite:
-                for p in self.path.iterdir():
-                    if p.is_file() and (p.name == MANIFEST or p.name.startswith("kf_")):
-                        p.unlink()
-        self.path.mkdir(parents=True, exist_ok=True)
+            foreign = sorted(n for n in names if not _ROUTE_FILE.match(n))
+            if foreign:
+                raise RouteError(f"{self.path}: holds {foreign[0]!r}, which is not a route file; not replacing "
+                                 f"a directory that is not a vbnav route")
+            if names:
+                self._dir = _sibling(self.path, _PARTIAL)
+                if self._dir.exists():      # left by an earlier process that had our pid
+                    shutil.rmtree(self._dir)
+        self._dir.mkdir(parents=True, exist_ok=True)
         self._manifest = {
             "format": FORMAT, "version": VERSION, "robot": robot,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -224,8 +294,8 @@ class RouteWriter:
         stem = f"kf_{i:05d}"
         ok, png = cv2.imencode(".png", kf.image)
         if not ok:
-            raise RouteError(f"{self.path / (stem + '.png')}: could not encode the keyframe image")
-        _write_atomic(self.path / f"{stem}.png", png.tobytes())
+            raise RouteError(f"{self._dir / (stem + '.png')}: could not encode the keyframe image")
+        _write_atomic(self._dir / f"{stem}.png", png.tobytes())
         buf = io.BytesIO()
         np.savez(buf, pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
                  beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
@@ -233,7 +303,7 @@ class RouteWriter:
                  inv_height_var=np.asarray(kf.inv_height_var, np.float64),
                  track_ids=np.asarray(kf.track_ids, np.int64), odom=kf.odom.as_array(),
                  distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
-        _write_atomic(self.path / f"{stem}.npz", buf.getvalue())
+        _write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
         self._manifest["keyframes"].append({
             "index": i, "image": f"{stem}.png", "landmarks": f"{stem}.npz", "n_landmarks": len(kf.alpha),
             "distance": float(kf.distance), "odom": [float(v) for v in kf.odom.as_array()],
@@ -241,11 +311,15 @@ class RouteWriter:
         self._write_manifest()
 
     def close(self, complete: bool = True) -> None:
+        """Mark the route complete (or not); a complete replacement takes the old route's place."""
         self._manifest["complete"] = bool(complete)
         self._write_manifest()
+        if complete and self._dir != self.path:
+            _swap_in(self._dir, self.path)
+            self._dir = self.path
 
     def _write_manifest(self) -> None:
-        _write_atomic(self.path / MANIFEST, json.dumps(self._manifest, indent=1).encode())
+        _write_atomic(self._dir / MANIFEST, json.dumps(self._manifest, indent=1).encode())
 
     def __enter__(self) -> "RouteWriter":
         return self
@@ -258,7 +332,9 @@ def load_route(path, load_images: bool = True) -> Route:
     """Load and validate a route directory; raises RouteError naming the file and what was expected."""
     root = Path(path)
     if not root.is_dir():
-        raise RouteError(f"{root}: route directory does not exist")
+        left = stray_route_dirs(root)
+        hint = f" (an interrupted replacement left {', '.join(p.name for p in left)} beside it)" if left else ""
+        raise RouteError(f"{root}: route directory does not exist{hint}")
     mpath = root / MANIFEST
     if not mpath.is_file():
         raise RouteError(f"{mpath}: missing (not a vbnav route directory?)")
