@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._common import add_config_arg, record_target_error
 
 
 def register(sub) -> None:
@@ -38,6 +38,10 @@ def run(args) -> int:
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         print(f"vbnav teach: {out} exists and is not empty (use --overwrite to replace it)")
         return 2
+    why = record_target_error(args)
+    if why:
+        print(f"vbnav teach: {why}", file=sys.stderr)
+        return 2
     if cfg.controller.teach == "teleop" and uses_sim_clock(cfg):
         print(f"vbnav teach: {cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
               "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
@@ -47,7 +51,7 @@ def run(args) -> int:
               f"recorded keyframes; delete it when it is not needed)", file=sys.stderr)
     robot = make_robot(cfg, with_camera=True)
     printer = ProgressPrinter()
-    result = Session(cfg, robot, record=args.record, progress=printer).teach(
+    result = Session(cfg, robot, record=args.record, progress=printer, record_overwrite=args.overwrite).teach(
         teach_driver(cfg), out, overwrite=args.overwrite, duration_s=args.duration)
     printer.done()
     print(f"teach ended: {result.reason} ({result.message}); {result.keyframes} keyframes in {out}")
