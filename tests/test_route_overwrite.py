@@ -108,3 +108,14 @@ def test_teach_overwrite_completes_the_swap(tmp_path, rng):
     assert r.returncode == 0, r.stdout + r.stderr
     new = load_route(tmp_path / "r")
     assert new.complete and new.camera.width == 640 and stray_route_dirs(tmp_path / "r") == []
+
+
+def test_killed_demo_keeps_the_route_of_the_last_demo(tmp_path, rng):
+    write_route(tmp_path / "out" / "route", rng, n=3)
+    proc = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "demo", "--out", str(tmp_path / "out")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(4.0)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    r = load_route(tmp_path / "out" / "route")
+    assert r.complete and len(r) == 3 and r.camera == CAM
