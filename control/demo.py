@@ -174,10 +174,13 @@ class KeyframeTruth:
 
 # ----------------------------------------------------------------------------- the scenario
 def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Config] = None,
-             progress: Optional[Callable[[str], None]] = None, record: Optional[str] = None) -> dict:
+             progress: Optional[Callable[[str], None]] = None, record: Optional[str] = None,
+             record_overwrite: bool = False) -> dict:
     """Teach the demo route, repeat it ``scenario.repeats`` times; write metrics.json, paths.png, route/.
 
-    ``record``: one MCAP file holding the teach run and every repeat, one segment each.
+    ``record``: one MCAP file holding the teach run and every repeat, one segment each (an existing one
+    only with ``record_overwrite``). A route already in ``out_dir`` is replaced only once the new one
+    is complete (RouteWriter's overwrite).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -187,7 +190,8 @@ def run_demo(out_dir: Path, scenario: Scenario = Scenario(), cfg: Optional[Confi
     if record:
         from vbnav.control.comms.recording import McapRecorder
         recorder = McapRecorder(record, cfg.robot.name, metadata={"demo_seed": scenario.seed,
-                                                                  "repeats": scenario.repeats})
+                                                                  "repeats": scenario.repeats},
+                                overwrite=record_overwrite)
     try:
         return _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall)
     finally:

@@ -13,15 +13,20 @@ Crash safety: every file is written to a temporary name in the same directory,
 fsynced, then renamed over its final name (atomic on POSIX), and the manifest
 is rewritten the same way after each keyframe's files are in place. The
 manifest therefore only ever lists complete keyframes; an interruption leaves
-at worst a stray ``.tmp`` file, which loading ignores.
+at worst a stray ``.tmp`` file, which loading ignores. A route that replaces
+another (``overwrite``) is written beside it and swapped in only when complete.
 """
 from __future__ import annotations
 
+import ctypes
 import datetime as _dt
+import errno
 import io
 import json
 import math
 import os
+import re
+import shutil
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +51,53 @@ _LANDMARK_FIELDS = {
 
 class RouteError(ValueError):
     """A route directory is missing, corrupt, foreign or from a newer version. The message says which file."""
+
+
+# -- routes by name (cmd/mode: network input) -------------------------------------------------
+#: A route name: one path component of letters, digits, ``_ . -``, not starting with a dot
+#: (so never ``.``, ``..`` or a hidden or temporary directory of a writer).
+ROUTE_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}$")
+NAME_RULE = "a plain name of letters, digits, '_', '.' and '-' (at most 128, not starting with '.')"
+
+
+def check_route_name(name) -> str:
+    """``name`` if it is a plain route name, else RouteError. The message does not repeat the name:
+    a name with slashes is a path, and errors about network input never echo paths."""
+    if not isinstance(name, str) or not ROUTE_NAME.match(name):
+        raise RouteError(f"route must be {NAME_RULE}, not a path")
+    return name
+
+
+def routes_root(routes_dir, config_source=None) -> Path:
+    """The routes directory of a configuration: ``~`` expanded, a relative path taken from the config
+    file's folder (or the working directory for a configuration not read from a file)."""
+    p = Path(routes_dir).expanduser()
+    if not p.is_absolute():
+        p = (Path(config_source).parent if config_source else Path.cwd()) / p
+    return p
+
+
+def resolve_route(root, name: str, must_exist: bool) -> Path:
+    """The directory of route ``name`` inside the routes directory ``root``; RouteError otherwise.
+
+    The name must pass ``check_route_name``; the path is resolved (symlinks followed) and must still
+    be a direct child of ``root``, so a symlink planted in ``root`` cannot lead outside it. Errors
+    name only the route, never ``root`` or where a link points.
+    """
+    check_route_name(name)
+    base = Path(root).resolve()
+    path = (base / name).resolve()
+    if path.parent != base or path.name != name:
+        raise RouteError(f"route {name!r}: is a symbolic link; routes are directories inside the routes directory")
+    if must_exist and not path.is_dir():
+        raise RouteError(f"route {name!r}: no such route in the routes directory")
+    return path
+
+
+def describe_route_error(exc: Exception, route_path: Path, name: str) -> str:
+    """An error of loading or writing route ``name`` with its directory shown as ``route 'name'``."""
+    text = str(exc) if isinstance(exc, RouteError) else f"{type(exc).__name__}: {getattr(exc, 'strerror', exc)}"
+    return text.replace(f"{route_path}{os.sep}", f"route {name!r}: ").replace(str(route_path), f"route {name!r}")
 
 
 @dataclass
@@ -85,6 +137,13 @@ class Route:
     @property
     def length(self) -> float:
         return self.keyframes[-1].distance if self.keyframes else 0.0
+
+    def incomplete_note(self) -> str:
+        """'' for a complete route; else what exists of it (teaching was interrupted before the end)."""
+        if self.complete:
+            return ""
+        return (f"the route is incomplete (complete: false, teaching was interrupted): {len(self)} keyframes "
+                f"over {self.length:.2f} m exist; a repeat ends at the last of them")
 
 
 def camera_to_dict(cam) -> dict:
@@ -133,26 +192,92 @@ def _fsync_dir(d: Path) -> None:
         os.close(fd)
 
 
+# -- replacing a route ---------------------------------------------------------------------------
+_PARTIAL, _OLD = ".partial-", ".old-"
+_ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$")
+_RENAME_EXCHANGE = 2        # renameat2(2) flag: swap two paths atomically (Linux >= 3.15)
+
+
+def _sibling(route: Path, kind: str) -> Path:
+    return route.with_name(f".{route.name}{kind}{os.getpid()}")
+
+
+def _swap_in(new: Path, route: Path) -> None:
+    """Put the complete directory ``new`` at ``route`` and delete the route it replaces.
+
+    One atomic exchange where the OS has it, so ``route`` is a complete route at every instant;
+    else two renames with the old route at ``.NAME.old-<pid>`` in between (a crash in that gap
+    leaves both beside the path; ``stray_route_dirs`` and ``load_route`` point at them).
+    """
+    old = _sibling(route, _OLD)
+    if _exchange(new, route):
+        os.rename(new, old)          # ``new`` now holds the old route
+    else:
+        os.rename(route, old)
+        os.rename(new, route)
+    _fsync_dir(route.parent)
+    shutil.rmtree(old)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step (renameat2 RENAME_EXCHANGE); False where the OS cannot."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_cwd = -100
+    if fn(at_cwd, os.fsencode(a), at_cwd, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):
+        return False                 # this kernel or file system cannot exchange
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def stray_route_dirs(route) -> list[Path]:
+    """Directories an interrupted replacement of ``route`` left beside it: ``.NAME.partial-<pid>`` (a new
+    route that was never completed: the old one is intact) or ``.NAME.old-<pid>`` (the old route, when a
+    crash hit between the two renames of a swap). Nothing deletes them: they hold recorded keyframes."""
+    route = Path(route)
+    if not route.parent.is_dir():
+        return []
+    return sorted(p for p in route.parent.iterdir()
+                  if p.name.startswith(f".{route.name}{_PARTIAL}") or p.name.startswith(f".{route.name}{_OLD}"))
+
+
 class RouteWriter:
     """Appends keyframes to a new route directory, keeping it loadable after every keyframe.
 
     ``RouteWriter(path, robot, camera, mount)`` creates ``path`` (it must not exist or be
     empty unless ``overwrite``); ``append(kf)`` writes one keyframe; ``close()`` marks the
     route complete. Usable as a context manager (an exception leaves ``complete: false``).
+
+    Replacing a route (``overwrite`` of a non-empty ``path``) never touches the old one before the
+    new one is complete: keyframes go to the sibling ``.NAME.partial-<pid>``, and only
+    ``close(complete=True)`` swaps it into place (``_swap_in``). Killed before that, the old route
+    is intact and the partial one stays beside it (``stray_route_dirs``). Only a directory holding
+    nothing but route files is replaced: ``--overwrite`` of a wrong directory must not delete it.
     """
 
     def __init__(self, path, robot: str, camera, mount: CameraMount, overwrite: bool = False):
-        self.path = Path(path)
+        self.path = Path(path)          # where the route is (once complete)
+        self._dir = self.path           # where its files are written now
         if self.path.exists():
             if not self.path.is_dir():
                 raise RouteError(f"{self.path}: exists and is not a directory")
-            if any(self.path.iterdir()) and not overwrite:
+            names = [p.name for p in self.path.iterdir()]
+            if names and not overwrite:
                 raise RouteError(f"{self.path}: directory is not empty (choose a new route path)")
-            if overwrite:
-                for p in self.path.iterdir():
-                    if p.is_file() and (p.name == MANIFEST or p.name.startswith("kf_")):
-                        p.unlink()
-        self.path.mkdir(parents=True, exist_ok=True)
+            foreign = sorted(n for n in names if not _ROUTE_FILE.match(n))
+            if foreign:
+                raise RouteError(f"{self.path}: holds {foreign[0]!r}, which is not a route file; not replacing "
+                                 f"a directory that is not a vbnav route")
+            if names:
+                self._dir = _sibling(self.path, _PARTIAL)
+                if self._dir.exists():      # left by an earlier process that had our pid
+                    shutil.rmtree(self._dir)
+        self._dir.mkdir(parents=True, exist_ok=True)
         self._manifest = {
             "format": FORMAT, "version": VERSION, "robot": robot,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -169,8 +294,8 @@ class RouteWriter:
         stem = f"kf_{i:05d}"
         ok, png = cv2.imencode(".png", kf.image)
         if not ok:
-            raise RouteError(f"{self.path / (stem + '.png')}: could not encode the keyframe image")
-        _write_atomic(self.path / f"{stem}.png", png.tobytes())
+            raise RouteError(f"{self._dir / (stem + '.png')}: could not encode the keyframe image")
+        _write_atomic(self._dir / f"{stem}.png", png.tobytes())
         buf = io.BytesIO()
         np.savez(buf, pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
                  beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
@@ -178,7 +303,7 @@ class RouteWriter:
                  inv_height_var=np.asarray(kf.inv_height_var, np.float64),
                  track_ids=np.asarray(kf.track_ids, np.int64), odom=kf.odom.as_array(),
                  distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
-        _write_atomic(self.path / f"{stem}.npz", buf.getvalue())
+        _write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
         self._manifest["keyframes"].append({
             "index": i, "image": f"{stem}.png", "landmarks": f"{stem}.npz", "n_landmarks": len(kf.alpha),
             "distance": float(kf.distance), "odom": [float(v) for v in kf.odom.as_array()],
@@ -186,11 +311,15 @@ class RouteWriter:
         self._write_manifest()
 
     def close(self, complete: bool = True) -> None:
+        """Mark the route complete (or not); a complete replacement takes the old route's place."""
         self._manifest["complete"] = bool(complete)
         self._write_manifest()
+        if complete and self._dir != self.path:
+            _swap_in(self._dir, self.path)
+            self._dir = self.path
 
     def _write_manifest(self) -> None:
-        _write_atomic(self.path / MANIFEST, json.dumps(self._manifest, indent=1).encode())
+        _write_atomic(self._dir / MANIFEST, json.dumps(self._manifest, indent=1).encode())
 
     def __enter__(self) -> "RouteWriter":
         return self
@@ -203,7 +332,9 @@ def load_route(path, load_images: bool = True) -> Route:
     """Load and validate a route directory; raises RouteError naming the file and what was expected."""
     root = Path(path)
     if not root.is_dir():
-        raise RouteError(f"{root}: route directory does not exist")
+        left = stray_route_dirs(root)
+        hint = f" (an interrupted replacement left {', '.join(p.name for p in left)} beside it)" if left else ""
+        raise RouteError(f"{root}: route directory does not exist{hint}")
     mpath = root / MANIFEST
     if not mpath.is_file():
         raise RouteError(f"{mpath}: missing (not a vbnav route directory?)")
@@ -219,6 +350,8 @@ def load_route(path, load_images: bool = True) -> Route:
         raise RouteError(f"{mpath}: version must be an integer, got {ver!r}")
     if ver > VERSION:
         raise RouteError(f"{mpath}: version {ver} is newer than this vbnav reads (<= {VERSION}); upgrade vbnav")
+    if ver < 1:
+        raise RouteError(f"{mpath}: version {ver} is not a route version (versions start at 1)")
     for key in ("robot", "created", "camera", "mount", "keyframes"):
         if key not in m:
             raise RouteError(f"{mpath}: missing key {key!r}")
@@ -229,17 +362,18 @@ def load_route(path, load_images: bool = True) -> Route:
         raise RouteError(f"{mpath}: mount: expected height, forward, lateral, pitch, yaw numbers ({e})") from None
     if not isinstance(m["keyframes"], list):
         raise RouteError(f"{mpath}: keyframes must be a list")
-    kfs = [_load_keyframe(root, mpath, i, entry, load_images) for i, entry in enumerate(m["keyframes"])]
+    kfs = [_load_keyframe(root, mpath, i, entry, camera, load_images) for i, entry in enumerate(m["keyframes"])]
+    _check_progress(mpath, kfs)
     return Route(root, str(m["robot"]), str(m["created"]), camera, mount, bool(m.get("complete", False)), kfs)
 
 
-def _load_keyframe(root: Path, mpath: Path, i: int, entry, load_images: bool) -> Keyframe:
+def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: bool) -> Keyframe:
     where = f"{mpath}: keyframes[{i}]"
     if not isinstance(entry, dict) or not {"image", "landmarks"} <= set(entry):
         raise RouteError(f"{where}: expected an object with 'image' and 'landmarks' file names")
     img_path, lm_path = root / str(entry["image"]), root / str(entry["landmarks"])
     for p in (img_path, lm_path):
-        if p.parent.resolve() != root.resolve():
+        if p.resolve().parent != root.resolve():     # resolved: a symlinked keyframe file must not lead out
             raise RouteError(f"{where}: file {p.name!r} must be inside the route directory")
         if not p.is_file():
             raise RouteError(f"{p}: missing keyframe file (listed in {mpath.name} keyframes[{i}])")
@@ -248,12 +382,18 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, load_images: bool) ->
         image = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise RouteError(f"{img_path}: not a readable PNG image")
+        size = (image.shape[1], image.shape[0])
+    else:
+        size = _png_size(img_path)
+    if size != (camera.width, camera.height):
+        raise RouteError(f"{img_path}: keyframes[{i}] image is {size[0]}x{size[1]}, the route's camera is "
+                         f"{camera.width}x{camera.height}")
     try:
         with np.load(lm_path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RouteError(f"{lm_path}: corrupt or truncated landmark file, expected a numpy .npz ({e})") from None
-    n = _check_landmarks(lm_path, data)
+    n = _check_landmarks(lm_path, data, f"keyframes[{i}]")
     if "n_landmarks" in entry and int(entry["n_landmarks"]) != n:
         raise RouteError(f"{lm_path}: has {n} landmarks, manifest says {entry['n_landmarks']}")
     odom = np.asarray(data["odom"], float).ravel()
@@ -262,7 +402,16 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, load_images: bool) ->
                     int(data["stamp_ns"]))
 
 
-def _check_landmarks(path: Path, data: dict) -> int:
+def _png_size(path: Path) -> tuple[int, int]:
+    """(width, height) from a PNG's header, without decoding the image."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise RouteError(f"{path}: not a readable PNG image")
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _check_landmarks(path: Path, data: dict, which: str) -> int:
     for k in list(_LANDMARK_FIELDS) + ["odom", "distance", "stamp_ns"]:
         if k not in data:
             raise RouteError(f"{path}: missing array {k!r}")
@@ -276,7 +425,30 @@ def _check_landmarks(path: Path, data: dict) -> int:
         raise RouteError(f"{path}: 'odom' must be 3 finite numbers (x, z, theta)")
     if not math.isfinite(float(data["distance"])):
         raise RouteError(f"{path}: 'distance' must be finite")
+    for k in ("pixels", "alpha", "beta"):
+        bad = ~np.isfinite(data[k]).reshape(n, -1).all(axis=1)
+        if bad.any():
+            raise RouteError(f"{path}: {which}: landmark {int(np.argmax(bad))} has a non-finite {k!r} "
+                             f"({int(bad.sum())} of {n} landmarks)")
+    # An unknown inverse height is NaN with an infinite variance; anything else must be a number.
+    if np.isinf(data["inv_height"]).any() or np.isnan(data["inv_height_var"]).any() or \
+            (data["inv_height_var"] < 0).any():
+        raise RouteError(f"{path}: {which}: inverse heights must be finite or NaN (unknown), their variances "
+                         f">= 0 or inf")
     return n
+
+
+def _check_progress(mpath: Path, kfs: list) -> None:
+    """Keyframes follow the route: along-route distance increases; at the same distance only a turn on
+    the spot (another heading) makes a new keyframe. A copy of the keyframe before is an error."""
+    for a, b in zip(kfs, kfs[1:]):
+        if b.distance > a.distance:
+            continue
+        if b.distance == a.distance and b.odom.theta != a.odom.theta:
+            continue
+        what = "repeats" if b.distance == a.distance else "is less than"
+        raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
+                         f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
 
 
 def stray_temp_files(path) -> list[Path]:

@@ -102,16 +102,18 @@ class Session:
 
     Telemetry: a run on the simulated clock (faster than real time) only records, into ``record`` (a
     path) or ``recorder`` (an McapRecorder shared by several runs, one segment each); a run in real
-    time also publishes and takes network commands. ``progress`` gets a status line about once a second.
+    time also publishes and takes network commands. An existing recording is refused unless
+    ``record_overwrite``. ``progress`` gets a status line about once a second.
     """
 
     def __init__(self, cfg: Config, robot: Robot, record: Optional[str] = None, recorder=None,
-                 progress: Optional[Callable[[str], None]] = None):
+                 progress: Optional[Callable[[str], None]] = None, record_overwrite: bool = False):
         if robot.pipeline is None:
             raise ValueError("teach and repeat need the camera: build the robot with_camera=True")
         self.cfg = cfg
         self.robot = robot
         self.record = record
+        self.record_overwrite = record_overwrite     # replace an existing recording at ``record``
         self.recorder = recorder
         self.progress = progress
         self._spent = False
@@ -172,7 +174,7 @@ class Session:
         if self.recorder is None and not self.record and not network:
             return None
         return TelemetryLink.attach(rt, self.cfg, record=self.record, recorder=self.recorder, network=network,
-                                    segment=segment)
+                                    segment=segment, record_overwrite=self.record_overwrite)
 
     def _progress_fn(self, label: str, status: Callable[[], str]):
         say = self.progress

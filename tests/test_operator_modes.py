@@ -7,7 +7,8 @@ from vbnav.control.runtime.runtime import OperatorCommand, Runtime
 
 
 def test_idle_teach_idle_repeat(tmp_path):
-    cfg = load_config(None, overrides={"sim": {"start_pose": [-3.5, -1.0, 0.0]}})
+    cfg = load_config(None, overrides={"sim": {"start_pose": [-3.5, -1.0, 0.0]},
+                                       "controller": {"routes_dir": str(tmp_path)}})
     start = cfg.sim.start()
     robot = make_robot(cfg, with_camera=True)
     pipeline = robot.pipeline
@@ -19,9 +20,9 @@ def test_idle_teach_idle_repeat(tmp_path):
     script = []   # (time s, command)
     for k in range(0, 60):                       # 0-6 s: teleop at 10 Hz, straight ahead
         script.append((0.1 * k, OperatorCommand("teleop", (0.3, 0.0), "op")))
-    script.insert(5, (0.45, OperatorCommand("mode", ("teach", str(route)), "op")))
+    script.insert(5, (0.45, OperatorCommand("mode", ("teach", route.name), "op")))
     script.append((6.5, OperatorCommand("mode", ("idle",), "op")))
-    script.append((7.0, OperatorCommand("mode", ("repeat", str(tmp_path / "missing")), "op")))
+    script.append((7.0, OperatorCommand("mode", ("repeat", "missing"), "op")))
     script.sort(key=lambda x: x[0])
     modes, taught_end = [], {}
 
@@ -33,7 +34,7 @@ def test_idle_teach_idle_repeat(tmp_path):
         if t >= 7.5 and "repeat_sent" not in taught_end:
             # The operator carries the robot back to where teaching started, then asks for a repeat.
             robot.drive.physics.pose = start
-            r.submit(OperatorCommand("mode", ("repeat", str(route)), "op"))
+            r.submit(OperatorCommand("mode", ("repeat", route.name), "op"))
             taught_end["repeat_sent"] = t
         if ctl.mode == "repeat":
             taught_end["repeating"] = True

@@ -108,7 +108,7 @@ def test_unknown_telemetry_key_names_the_file_and_key(tmp_path):
 
 @pytest.mark.parametrize("kind,payload", [
     ("teleop", '{"linear": 0.2, "angular": -0.5}'), ("estop", ""), ("estop", '{"reason": "door"}'),
-    ("resume", "{}"), ("mode", '{"mode": "repeat", "route": "routes/a.json"}'), ("mode", '{"mode": "idle"}'),
+    ("resume", "{}"), ("mode", '{"mode": "repeat", "route": "hall_2.v1"}'), ("mode", '{"mode": "idle"}'),
 ])
 def test_valid_commands_parse(kind, payload):
     assert parse_command(kind, payload, LIMITS).kind == kind
@@ -125,6 +125,11 @@ def test_valid_commands_parse(kind, payload):
     ("teleop", '{"linear": 0.1,', "not JSON"),
     ("mode", '{"mode": "repeat"}', "needs a route"),
     ("mode", '{"mode": "dance"}', "mode"),
+    ("mode", '{"mode": "teach", "route": "../../etc/x"}', "plain name"),      # routes are names, never paths
+    ("mode", '{"mode": "teach", "route": "/etc/x"}', "plain name"),
+    ("mode", '{"mode": "repeat", "route": "a/b"}', "plain name"),
+    ("mode", '{"mode": "repeat", "route": ".."}', "plain name"),
+    ("mode", '{"mode": "repeat", "route": ".hidden"}', "plain name"),
     ("launch", '{}', "unknown command"),
     ("estop", '{"reason": "' + "x" * 5000 + '"}', "exceeds"),
 ])

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from vbnav.control.commands._common import add_record_overwrite_arg
 from vbnav.control.config.telemetry import DEFAULT_ENDPOINT
 
 from vbnav.control.comms.network import client_session_config, open_session
@@ -49,6 +50,7 @@ def add_telemetry_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", default=None, metavar="PATH",
                    help="record state, events and images to an MCAP file (opens in Foxglove; see "
                         "docs/telemetry.md); written as PATH.part and renamed when the run ends")
+    add_record_overwrite_arg(p)
     p.add_argument("--no-telemetry", action="store_true",
                    help="do not open the zenoh session (no telemetry, no network commands); runs on the "
                         "simulated clock never open it")
@@ -66,7 +68,8 @@ def attach_telemetry(rt, cfg, args):
     from vbnav.control.comms.link import TelemetryLink
     network = not getattr(args, "no_telemetry", False) and not getattr(rt.clock, "simulated", False)
     try:
-        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None), network=network)
+        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None), network=network,
+                                    record_overwrite=getattr(args, "overwrite", False))
     except ConnectionError as exc:
         print(f"vbnav: {exc}", file=sys.stderr)
         return None

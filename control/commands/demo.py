@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
+
+from vbnav.control.commands._common import add_record_overwrite_arg, record_target_error
 
 
 def register(sub) -> None:
@@ -17,6 +20,7 @@ def register(sub) -> None:
     p.add_argument("--config", "-c", default=None, metavar="FILE", help="simulated robot configuration "
                    "(default configs/sim.yaml)")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="also record the runs (MCAP)")
+    add_record_overwrite_arg(p)
     p.set_defaults(func=run)
 
 
@@ -30,13 +34,17 @@ def run(args) -> int:
         print(f"vbnav demo: {cfg.source} uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the demo "
               "needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
         return 2
+    why = record_target_error(args)
+    if why:
+        print(f"vbnav demo: {why}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     printer = ProgressPrinter()
     printer(f"vbnav demo: seed {args.seed}, output in {out}/", force=True)
     metrics = run_demo(out, Scenario(seed=args.seed, repeats=args.repeats), cfg,
                        progress=lambda s: printer(s, force=s.startswith(("taught", "repeat 1:", "repeat 2:",
                                                                          "repeat 3:"))),
-                       record=args.record)
+                       record=args.record, record_overwrite=args.overwrite)
     printer.done()
     print(json.dumps({k: v for k, v in metrics.items() if k != "repeats"}, indent=2))
     print(f"wrote {out / 'metrics.json'}, {out / 'paths.png'} and the route in {out / 'route'}")

@@ -8,7 +8,9 @@ def register(sub) -> None:
     p = sub.add_parser("record-info", help="summarise an MCAP recording (channels, counts, duration)",
                        description="Summarise a recording made with --record: every channel with its schema, "
                                    "message count and rate, the duration and the run's metadata. Works on "
-                                   "interrupted recordings (PATH.part) up to their last complete chunk.")
+                                   "interrupted recordings (PATH.part) up to their last complete chunk. Every "
+                                   "chunk's CRC is checked: damaged chunks and the messages lost with them are "
+                                   "listed. Exit 0: readable; 1: damaged (messages lost); 2: not a recording.")
     p.add_argument("path", metavar="PATH", help="the .mcap file")
     p.set_defaults(func=_run)
 
@@ -21,4 +23,4 @@ def _run(args) -> int:
         print(f"vbnav record-info: {exc}", file=sys.stderr)
         return 2
     print(format_summary(summary))
-    return 0
+    return 1 if summary.damaged else 0

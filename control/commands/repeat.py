@@ -1,7 +1,9 @@
 """vbnav repeat: patrol a taught route."""
 from __future__ import annotations
 
-from vbnav.control.commands._common import add_config_arg
+import sys
+
+from vbnav.control.commands._common import add_config_arg, add_record_overwrite_arg, record_target_error
 
 
 def register(sub) -> None:
@@ -15,6 +17,7 @@ def register(sub) -> None:
     p.add_argument("--path", required=True, metavar="PATH", help="route directory from 'vbnav teach'")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="record telemetry and images (MCAP)")
+    add_record_overwrite_arg(p)
     p.set_defaults(func=run)
 
 
@@ -26,6 +29,10 @@ def run(args) -> int:
     from vbnav.control.session import Session
 
     cfg = load_config(args.config)
+    why = record_target_error(args)
+    if why:
+        print(f"vbnav repeat: {why}", file=sys.stderr)
+        return 2
     try:
         route = load_route(args.path)          # before any device is opened
     except (RouteError, FileNotFoundError) as exc:
@@ -34,8 +41,11 @@ def run(args) -> int:
     if not route.keyframes:
         print(f"vbnav repeat: {args.path}: the route has no keyframes")
         return 2
+    if not route.complete:
+        print(f"vbnav repeat: warning: {args.path}: {route.incomplete_note()}", file=sys.stderr)
     printer = ProgressPrinter()
-    result = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer).repeat(
+    result = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer,
+                     record_overwrite=args.overwrite).repeat(
         route, args.duration)
     printer.done()
     print(f"repeat ended: {result.reason} ({result.message}); reached keyframe {result.keyframe_reached + 1} of "

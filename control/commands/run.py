@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import json
+import sys
 
-from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._common import add_config_arg, record_target_error
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
 
@@ -44,6 +45,10 @@ def run(args) -> int:
     from vbnav.control.runtime.runtime import Runtime
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
+    why = record_target_error(args)
+    if why:
+        print(f"vbnav run: {why}", file=sys.stderr)
+        return 2
     kind = args.controller or cfg.controller.kind
     robot = make_robot(cfg, with_camera=not args.no_camera)
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline

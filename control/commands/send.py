@@ -50,9 +50,10 @@ def register(sub) -> None:
     t.add_argument("w", type=float, metavar="W", help="angular velocity, rad/s")
     t.add_argument("--duration", type=float, default=0.0, metavar="S", help="keep sending for S seconds")
     t.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="send rate with --duration (10)")
-    m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route PATH")
+    m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route NAME")
     m.add_argument("mode", choices=["idle", "teach", "repeat"])
-    m.add_argument("--route", default=None, metavar="PATH", help="route file to repeat (or to teach into)")
+    m.add_argument("--route", default=None, metavar="NAME",
+                   help="route to repeat (or to teach into): a name in the robot's controller.routes_dir")
     for sp in (e, r, t, m):
         sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
         add_net_args(sp)

@@ -1,9 +1,10 @@
 """vbnav teach: record a route while the robot is driven."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._common import add_config_arg, record_target_error
 
 
 def register(sub) -> None:
@@ -17,7 +18,9 @@ def register(sub) -> None:
                     "on disk (atomically) as soon as it is taken, so an interruption loses nothing recorded.")
     add_config_arg(p)
     p.add_argument("--out", required=True, metavar="PATH", help="route directory to create")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing route directory")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing route directory (and --record file): the new one is written "
+                        "beside it and takes its place only when complete")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="record telemetry and images (MCAP)")
     p.set_defaults(func=run)
@@ -25,6 +28,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from vbnav.control.config import load_config
+    from vbnav.control.route import stray_route_dirs
     from vbnav.control.runtime.factory import make_robot, uses_sim_clock
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.session import Session, teach_driver
@@ -34,14 +38,21 @@ def run(args) -> int:
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         print(f"vbnav teach: {out} exists and is not empty (use --overwrite to replace it)")
         return 2
+    why = record_target_error(args)
+    if why:
+        print(f"vbnav teach: {why}", file=sys.stderr)
+        return 2
     if cfg.controller.teach == "teleop" and uses_sim_clock(cfg):
         print(f"vbnav teach: {cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
               "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
         return 2
+    for left in stray_route_dirs(out):
+        print(f"vbnav teach: note: {left} was left by an interrupted replacement of {out.name} (kept: it holds "
+              f"recorded keyframes; delete it when it is not needed)", file=sys.stderr)
     robot = make_robot(cfg, with_camera=True)
     printer = ProgressPrinter()
-    result = Session(cfg, robot, record=args.record, progress=printer).teach(
-        teach_driver(cfg), out, overwrite=True, duration_s=args.duration)
+    result = Session(cfg, robot, record=args.record, progress=printer, record_overwrite=args.overwrite).teach(
+        teach_driver(cfg), out, overwrite=args.overwrite, duration_s=args.duration)
     printer.done()
     print(f"teach ended: {result.reason} ({result.message}); {result.keyframes} keyframes in {out}")
     return 0 if result.keyframes >= 2 and result.reason in ("finished", "duration", "signal", "stopped") else 1

@@ -102,11 +102,12 @@ class TelemetryLink:
     # ---- construction ----------------------------------------------------------------------
     @classmethod
     def attach(cls, runtime, cfg, record: Optional[str] = None, recorder=None, network: bool = True,
-               segment: str = "run") -> "TelemetryLink":
+               segment: str = "run", record_overwrite: bool = False) -> "TelemetryLink":
         """Validate, open and hook everything into ``runtime``; raises ConfigError / ConnectionError.
 
         record: MCAP path for this run. recorder: an open McapRecorder shared by several runs (it gets a
         new segment and is not closed by this link). network: False skips zenoh even when enabled.
+        record_overwrite: replace an existing recording at ``record`` (refused otherwise).
         """
         tcfg = cfg.telemetry
         robot = cfg.robot.name
@@ -120,7 +121,8 @@ class TelemetryLink:
             from vbnav.control.comms.recording import McapRecorder
             recorder = McapRecorder(record, robot, metadata={"config": cfg.source or "",
                                                              "loop_rate_hz": cfg.loop.rate_hz,
-                                                             "state_rate_hz": tcfg.state_rate_hz})
+                                                             "state_rate_hz": tcfg.state_rate_hz},
+                                    overwrite=record_overwrite)
             sinks.append(recorder)
         if tcfg.enabled and network:
             conf = robot_session_config(tcfg, robot)

@@ -5,7 +5,8 @@ Keys (``<robot>`` is ``robot.name``), payloads JSON objects:
 - ``vbnav/<robot>/cmd/estop``   ``{"reason": "..."}`` (optional): latching stop
 - ``vbnav/<robot>/cmd/resume``  ``{}``: clears an estop latch
 - ``vbnav/<robot>/cmd/teleop``  ``{"linear": m/s, "angular": rad/s}``: drive; must keep coming
-- ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "PATH"}``
+- ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "NAME"}`` (a route
+  name inside the robot's ``controller.routes_dir``, never a path: control/route.py ``resolve_route``)
 
 Every payload may carry ``"sender"`` (str), ``"session"`` (str, one per sender process),
 ``"seq"`` (int, increasing per session) and ``"stamp_ns"`` (int, the sender's
@@ -39,6 +40,7 @@ from typing import Callable, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from vbnav.control.route import check_route_name
 from vbnav.control.runtime.mailbox import OperatorCommand
 
 MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
@@ -72,19 +74,20 @@ class TeleopCmd(_Cmd):
 
 class ModeCmd(_Cmd):
     mode: Literal["idle", "teach", "repeat"]
-    route: Optional[str] = Field(None, min_length=1, max_length=1024)
+    route: Optional[str] = Field(None, min_length=1, max_length=128,
+                                 description="a route name in the robot's controller.routes_dir, never a path")
 
     @field_validator("route")
     @classmethod
-    def _plain_path(cls, v):
-        if v is not None and any(ord(c) < 32 for c in v):
-            raise ValueError("route path contains control characters")
+    def _plain_name(cls, v):
+        if v is not None:
+            check_route_name(v)      # RouteError is a ValueError: pydantic reports it
         return v
 
     @model_validator(mode="after")
     def _repeat_needs_route(self):
         if self.mode == "repeat" and not self.route:
-            raise ValueError("mode 'repeat' needs a route (\"route\": \"PATH\")")
+            raise ValueError("mode 'repeat' needs a route (\"route\": \"NAME\")")
         return self
 
 

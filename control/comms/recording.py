@@ -98,15 +98,34 @@ def _pose_msg(stamp_ns: int, pose: dict) -> dict:
                      "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}}}
 
 
+def check_record_target(path: str | os.PathLike, overwrite: bool = False) -> None:
+    """Refuse to record over a recording (PATH, or PATH.part of an interrupted one) unless ``overwrite``;
+    FileExistsError / FileNotFoundError name the file. With ``overwrite`` the old file stays until the
+    new one is complete (it is written as PATH.part and renamed over PATH when it closes)."""
+    p = Path(path)
+    if p.parent and not p.parent.exists():
+        raise FileNotFoundError(f"--record {p}: directory {p.parent} does not exist")
+    if overwrite:
+        return
+    if p.exists():
+        raise FileExistsError(f"--record {p}: exists (use --overwrite to replace it)")
+    part = p.with_name(p.name + PART_SUFFIX)
+    if part.exists():
+        raise FileExistsError(f"--record {p}: {part.name} of an interrupted recording exists (read it with "
+                              f"'vbnav record-info {p}'; use --overwrite to replace it)")
+
+
 class McapRecorder(Sink):
-    """Writes telemetry to an MCAP file (call only from one thread: the telemetry publisher's)."""
+    """Writes telemetry to an MCAP file (call only from one thread: the telemetry publisher's).
+
+    An existing PATH (or PATH.part) is refused unless ``overwrite``: see ``check_record_target``.
+    """
 
     def __init__(self, path: str | os.PathLike, robot: str, chunk_size: int = 256 * 1024,
-                 flush_interval_s: float = 1.0, metadata: Optional[dict] = None):
+                 flush_interval_s: float = 1.0, metadata: Optional[dict] = None, overwrite: bool = False):
         from mcap.writer import CompressionType, Writer
         self.path = Path(path)
-        if self.path.parent and not self.path.parent.exists():
-            raise FileNotFoundError(f"--record {self.path}: directory {self.path.parent} does not exist")
+        check_record_target(self.path, overwrite)
         self.part_path = self.path.with_name(self.path.name + PART_SUFFIX)
         self._file = open(self.part_path, "wb")
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -223,16 +242,48 @@ class ChannelSummary:
 
 
 @dataclass
+class DamagedChunk:
+    """A chunk whose bytes fail their CRC (or do not decompress): its messages are lost."""
+
+    number: int                  # 1-based, in file order
+    start_ns: int                # log time span the chunk's header claims
+    end_ns: int
+    reason: str
+    lost: dict[str, int] = field(default_factory=dict)    # topic -> messages, from the chunk's message index
+
+
+@dataclass
 class RecordingSummary:
     path: Path
     channels: dict[str, ChannelSummary] = field(default_factory=dict)
     metadata: dict[str, dict] = field(default_factory=dict)
     complete: bool = False           # summary/footer present (closed cleanly)
     truncated_reason: str = ""
+    damaged_chunks: list[DamagedChunk] = field(default_factory=list)
+    expected: dict[str, int] = field(default_factory=dict)   # topic -> count from the file's statistics
 
     @property
     def messages(self) -> int:
         return sum(c.count for c in self.channels.values())
+
+    @property
+    def lost(self) -> dict[str, int]:
+        """Messages per topic the file says it holds but that could not be read (empty if none)."""
+        if self.expected:
+            got = {t: c.count for t, c in self.channels.items()}
+            out = {t: n - got.get(t, 0) for t, n in self.expected.items() if n > got.get(t, 0)}
+        else:
+            out = {}
+            for d in self.damaged_chunks:
+                for t, n in d.lost.items():
+                    out[t] = out.get(t, 0) + n
+        return out
+
+    @property
+    def damaged(self) -> bool:
+        """Messages are lost, or the file was closed (renamed from PATH.part) but its end is unreadable."""
+        closed = not self.path.name.endswith(PART_SUFFIX)
+        return bool(self.damaged_chunks or self.lost or (self.truncated_reason and (self.complete or closed)))
 
     @property
     def duration_s(self) -> float:
@@ -252,38 +303,92 @@ def resolve_recording(path: str | os.PathLike) -> Path:
     raise FileNotFoundError(f"{p}: no such recording (nor {part.name} from an interrupted run)")
 
 
+def _file_summary(f):
+    """The summary section of a cleanly closed file (read from its end), or None (interrupted, damaged)."""
+    from mcap.reader import make_reader
+    try:
+        return make_reader(f).get_summary()
+    except Exception:  # the library raises many kinds on a damaged footer; then there is no summary to use
+        return None
+    finally:
+        f.seek(0)
+
+
 def iter_recording(path: str | os.PathLike, summary: Optional[RecordingSummary] = None
                    ) -> Iterator[tuple[str, str, int, bytes]]:
-    """(topic, schema name, log_time ns, data) for every message, streaming; stops quietly at a truncation."""
+    """(topic, schema name, log_time ns, data) for every message, streaming; stops quietly at a truncation.
+
+    Every chunk's CRC is checked: a damaged chunk is skipped and, with ``summary``, reported in
+    ``summary.damaged_chunks`` with the messages per topic it held (from its message index). A
+    cleanly closed file's statistics give ``summary.expected``, so messages lost anywhere show.
+    """
     from mcap.exceptions import McapError
-    from mcap.records import Channel, Footer, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
+    from mcap.records import Channel, Chunk, Footer, Message, MessageIndex, Metadata, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
 
     p = resolve_recording(path)
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, str]] = {}
     with open(p, "rb") as f:
+        file_summary = _file_summary(f)
+        if file_summary is not None:   # channels first registered inside a damaged chunk keep their names
+            schemas.update({i: s.name for i, s in file_summary.schemas.items()})
+            channels.update({i: (c.topic, schemas.get(c.schema_id, "")) for i, c in file_summary.channels.items()})
+            if summary is not None and file_summary.statistics is not None:
+                for cid, n in file_summary.statistics.channel_message_counts.items():
+                    topic = channels.get(cid, (f"channel {cid}", ""))[0]
+                    summary.expected[topic] = summary.expected.get(topic, 0) + n
+        bad: Optional[DamagedChunk] = None      # the damaged chunk whose message indexes follow
+        n_chunks = 0
         try:
-            for rec in StreamReader(f, record_size_limit=1 << 30).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec.name
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
-                elif isinstance(rec, Message):
-                    topic, schema = channels[rec.channel_id]
-                    yield topic, schema, rec.log_time, rec.data
-                elif isinstance(rec, Metadata) and summary is not None:
-                    summary.metadata[rec.name] = dict(rec.metadata)
-                elif isinstance(rec, Footer) and summary is not None:
-                    summary.complete = True
+            for rec in StreamReader(f, record_size_limit=1 << 30, emit_chunks=True).records:
+                if isinstance(rec, Chunk):
+                    n_chunks += 1
+                    try:
+                        inner = breakup_chunk(rec, validate_crc=True)
+                        bad = None
+                    except Exception as exc:  # a chunk that fails its CRC or its decompression is damaged
+                        bad = DamagedChunk(n_chunks, rec.message_start_time, rec.message_end_time,
+                                           _crc_reason(exc))
+                        if summary is not None:
+                            summary.damaged_chunks.append(bad)
+                        continue
+                elif isinstance(rec, MessageIndex):
+                    if bad is not None:
+                        topic = channels.get(rec.channel_id, (f"channel {rec.channel_id}", ""))[0]
+                        bad.lost[topic] = bad.lost.get(topic, 0) + len(rec.records)
+                    continue
+                else:
+                    inner = [rec]
+                for r in inner:
+                    if isinstance(r, Schema):
+                        schemas[r.id] = r.name
+                    elif isinstance(r, Channel):
+                        channels[r.id] = (r.topic, schemas.get(r.schema_id, ""))
+                    elif isinstance(r, Message):
+                        topic, schema = channels.get(r.channel_id, (f"channel {r.channel_id}", ""))
+                        yield topic, schema, r.log_time, r.data
+                    elif isinstance(r, Metadata) and summary is not None:
+                        summary.metadata[r.name] = dict(r.metadata)
+                    elif isinstance(r, Footer) and summary is not None:
+                        summary.complete = True
         except (McapError, struct.error, EOFError, ValueError, KeyError) as exc:
             # An interrupted file ends inside a record: everything before it is intact.
             if summary is not None:
                 summary.truncated_reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        if summary is not None and file_summary is not None:
+            summary.complete = True    # closed cleanly, even if damage stopped the stream before the footer
+
+
+def _crc_reason(exc: Exception) -> str:
+    from mcap.stream_reader import CRCValidationError
+    if isinstance(exc, CRCValidationError):
+        return f"CRC mismatch (stored {exc.expected:#010x}, computed {exc.actual:#010x})"
+    return f"cannot decompress ({type(exc).__name__}: {exc})"
 
 
 def read_recording(path: str | os.PathLike) -> RecordingSummary:
-    """Channels, message counts and time span of a recording (complete or interrupted)."""
+    """Channels, message counts and time span of a recording (complete or interrupted), and its damage."""
     p = resolve_recording(path)
     with open(p, "rb") as f:
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
@@ -300,8 +405,19 @@ def read_recording(path: str | os.PathLike) -> RecordingSummary:
 
 
 def format_summary(s: RecordingSummary) -> str:
-    lines = [f"{s.path}: {'complete' if s.complete else 'INTERRUPTED (read up to the last complete chunk)'}",
+    state = "complete" if s.complete else "INTERRUPTED (read up to the last complete chunk)"
+    lost = s.lost
+    if s.damaged:
+        state = (f"DAMAGED ({len(s.damaged_chunks)} chunk(s) fail their CRC, {sum(lost.values())} messages lost; "
+                 f"{'closed cleanly' if s.complete else 'interrupted'})")
+    lines = [f"{s.path}: {state}",
              f"  duration {s.duration_s:.2f} s, {s.messages} messages, {len(s.channels)} channels"]
+    for d in s.damaged_chunks:
+        held = ", ".join(f"{t} {n}" for t, n in sorted(d.lost.items())) or "unknown (no message index)"
+        lines.append(f"  damaged chunk {d.number} (log time {d.start_ns * 1e-9:.3f}-{d.end_ns * 1e-9:.3f} s): "
+                     f"{d.reason}; lost {held}")
+    if lost:
+        lines.append("  lost messages: " + ", ".join(f"{t} {n}" for t, n in sorted(lost.items())))
     for name, meta in s.metadata.items():
         lines.append(f"  metadata {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(meta.items())))
     w = max((len(t) for t in s.channels), default=5)
@@ -309,6 +425,6 @@ def format_summary(s: RecordingSummary) -> str:
     for topic in sorted(s.channels):
         c = s.channels[topic]
         lines.append(f"  {topic:<{w}}  {c.schema:<26} {c.count:>7} {c.rate_hz:>8.2f}")
-    if s.truncated_reason and not s.complete:
+    if s.truncated_reason:
         lines.append(f"  stopped at: {s.truncated_reason}")
     return "\n".join(lines)

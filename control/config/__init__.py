@@ -155,6 +155,18 @@ class ControllerConfig(Strict):
         "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
                               "room_loop (simulated drive only: a scripted teacher once around the simulated "
                               "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
+    routes_dir: str = Field(
+        "~/.local/share/vbnav/routes", min_length=1, max_length=1024,
+        description="where the operator controller's cmd/mode teach and repeat find routes: a route there is "
+                    "named by a plain name (letters, digits, _ . -), never a path; ~ is the home directory, a "
+                    "relative path is taken from the config file's folder")
+
+    @field_validator("routes_dir")
+    @classmethod
+    def _plain_dir(cls, v: str) -> str:
+        if any(ord(c) < 32 for c in v):
+            raise ValueError("contains control characters")
+        return v
 
 
 class Config(Strict):

@@ -4,7 +4,8 @@ The robot's everyday session on hardware: ``vbnav run --controller operator``
 starts idle (teleop commands drive it); ``mode teach ROUTE`` starts recording a
 route while the operator drives; ``mode idle`` closes the route (every keyframe
 is already on disk); ``mode repeat ROUTE`` patrols it and returns to idle at
-its end.
+its end. ROUTE is a name inside ``controller.routes_dir`` (route.resolve_route),
+never a path: the command comes from the network.
 
 Everything that touches files (opening a route writer, loading and checking a
 route) runs on a worker thread, never on the loop's thread: while it works the
@@ -24,7 +25,7 @@ import time
 from typing import Optional
 
 from vbnav.control.controllers.manual import TeleopController
-from vbnav.control.route import load_route
+from vbnav.control.route import describe_route_error, load_route, resolve_route, routes_root
 from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
 from vbnav.control.session import Repeating, Teaching
 
@@ -131,6 +132,7 @@ class OperatorController(Controller):
 
     def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0) -> None:
         """Close what the current mode opened, then build what the target needs (off the loop thread)."""
+        where = None     # the route's directory, once resolved
         try:
             if self._teaching is not None and self.pipeline is not None and not self.pipeline.inline:
                 # The vision thread may still be inside the teach stage with the last frame before the swap.
@@ -139,16 +141,20 @@ class OperatorController(Controller):
                     time.sleep(0.01)
             self._close_teach()
             stages, controller, teaching = list(self._base_stages), None, None
+            if target in ("teach", "repeat"):   # a name inside controller.routes_dir, never a path
+                where = resolve_route(routes_root(self.cfg.controller.routes_dir, self.cfg.source), route,
+                                      must_exist=target == "repeat")
             if target == "teach":
-                teaching = Teaching(self.cfg, route, overwrite=False)
+                teaching = Teaching(self.cfg, where, overwrite=False)
                 stages = [teaching.stage] + stages
             elif target == "repeat":
-                repeating = Repeating(self.cfg, load_route(route))
+                repeating = Repeating(self.cfg, load_route(where))
                 stages = [repeating.stage] + stages
                 controller = repeating.controller
             self._pending = (target, route, stages, controller, teaching, None)
-        except Exception as exc:  # the mode stays as it was; the operator sees why
-            self._pending = (self.mode, self.route_path, None, None, None, f"mode {target}: {exc}")
+        except Exception as exc:  # the mode stays as it was; the operator sees why (never a path outside)
+            why = describe_route_error(exc, where, route) if where is not None else str(exc)
+            self._pending = (self.mode, self.route_path, None, None, None, f"mode {target}: {why}")
 
     def _close_teach(self) -> None:
         if self._teaching is not None:

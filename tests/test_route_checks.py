@@ -1,0 +1,112 @@
+"""The route loader refuses what would mislead a repeat, naming the keyframe; an incomplete route is announced."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.control.route import RouteError, RouteWriter, load_route
+from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.geometry import CameraMount
+
+from test_route import CAM, MOUNT, make_kf, write_route
+
+
+def _edit_manifest(path, **changes):
+    m = json.loads((path / "manifest.json").read_text())
+    m.update(changes)
+    (path / "manifest.json").write_text(json.dumps(m))
+
+
+def _edit_npz(path, **changes):
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    data.update(changes)
+    np.savez(path, **data)
+
+
+@pytest.mark.parametrize("version,why", [(0, "not a route version"), (-7, "not a route version"),
+                                         (999, "newer than this vbnav reads")])
+def test_version_out_of_range(tmp_path, rng, version, why):
+    write_route(tmp_path / "r", rng)
+    _edit_manifest(tmp_path / "r", version=version)
+    with pytest.raises(RouteError, match=f"version {version} is {why}"):
+        load_route(tmp_path / "r")
+
+
+@pytest.mark.parametrize("load_images", [True, False])
+def test_image_size_must_match_the_camera(tmp_path, rng, load_images):
+    write_route(tmp_path / "r", rng)
+    cv2.imwrite(str(tmp_path / "r" / "kf_00001.png"), np.zeros((47, 64), np.uint8))
+    with pytest.raises(RouteError, match=r"kf_00001.png: keyframes\[1\] image is 64x47, the route's camera is 64x48"):
+        load_route(tmp_path / "r", load_images=load_images)
+    other = PinholeCamera(32, 24, 20.0, 20.0, 15.5, 11.5)
+    with RouteWriter(tmp_path / "o", "sim", other, MOUNT) as w:      # images of CAM, manifest of another camera
+        w.append(make_kf(rng, 0))
+    with pytest.raises(RouteError, match=r"keyframes\[0\] image is 64x48, the route's camera is 32x24"):
+        load_route(tmp_path / "o", load_images=load_images)
+
+
+@pytest.mark.parametrize("field,value", [("alpha", np.nan), ("beta", np.inf), ("pixels", np.nan),
+                                         ("inv_height", np.inf), ("inv_height_var", np.nan),
+                                         ("inv_height_var", -1.0)])
+def test_non_finite_landmarks_name_the_keyframe(tmp_path, rng, field, value):
+    write_route(tmp_path / "r", rng)
+    npz = tmp_path / "r" / "kf_00002.npz"
+    with np.load(npz) as z:
+        a = z[field].copy()
+    a[3] = value
+    _edit_npz(npz, **{field: a})
+    with pytest.raises(RouteError, match=r"kf_00002.npz: keyframes\[2\]"):
+        load_route(tmp_path / "r")
+
+
+def test_unknown_inverse_heights_are_allowed(tmp_path, rng):
+    write_route(tmp_path / "r", rng)
+    npz = tmp_path / "r" / "kf_00001.npz"
+    _edit_npz(npz, inv_height=np.full(20, np.nan), inv_height_var=np.full(20, np.inf))
+    assert len(load_route(tmp_path / "r")) == 3
+
+
+def test_copies_of_one_keyframe_and_going_back_are_refused(tmp_path, rng):
+    kf = make_kf(rng, 0)
+    with RouteWriter(tmp_path / "copies", "sim", CAM, MOUNT) as w:
+        for _ in range(62):
+            w.append(kf)
+    with pytest.raises(RouteError, match=r"keyframes\[1\]: along-route distance 0.000 m repeats keyframes\[0\]"):
+        load_route(tmp_path / "copies")
+    kfs = [make_kf(rng, i) for i in range(4)]
+    kfs[3].distance = 0.7
+    with RouteWriter(tmp_path / "back", "sim", CAM, MOUNT) as w:
+        for k in kfs:
+            w.append(k)
+    with pytest.raises(RouteError, match=r"keyframes\[3\]: along-route distance 0.700 m is less than keyframes\[2\]"):
+        load_route(tmp_path / "back")
+
+
+def test_a_turn_on_the_spot_keeps_its_distance(tmp_path, rng):
+    a, b = make_kf(rng, 0), make_kf(rng, 1)
+    b.distance, b.odom = a.distance, type(a.odom)(a.odom.x, a.odom.z, a.odom.theta + 0.5)
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT) as w:
+        w.append(a)
+        w.append(b)
+    assert len(load_route(tmp_path / "r")) == 2
+
+
+def test_repeat_of_an_incomplete_route_warns_how_much_exists(tmp_path):
+    cam = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
+    rng = np.random.default_rng(1)
+    w = RouteWriter(tmp_path / "r", "sim", cam, CameraMount(0.25, 0.1, 0.0, 0.0, 0.0))
+    for i in range(3):
+        kf = make_kf(rng, i)
+        kf.image = rng.integers(0, 255, (480, 640), dtype=np.uint8)
+        w.append(kf)
+    w.close(complete=False)
+    assert load_route(tmp_path / "r").incomplete_note().startswith("the route is incomplete")
+    r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "repeat", "--path", str(tmp_path / "r"),
+                        "--duration", "0.1"], capture_output=True, text=True, timeout=120)
+    assert "warning" in r.stderr and "incomplete" in r.stderr and "3 keyframes over 1.00 m exist" in r.stderr, r.stderr
