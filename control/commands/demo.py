@@ -4,6 +4,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from vbnav.control.commands._common import output_file
+from vbnav.drivers.errors import InputError
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -27,10 +30,14 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     if cfg.camera.driver != "sim" or cfg.drive.driver != "sim":
-        print(f"vbnav demo: {cfg.source} uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the demo "
-              "needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
-        return 2
+        raise InputError(f"{cfg.source}: uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the "
+                         "demo needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, expected an output directory")
+    if args.repeats < 1:
+        raise InputError(f"--repeats {args.repeats}: expected at least 1")
+    output_file(args.record, "--record")
     printer = ProgressPrinter()
     printer(f"vbnav demo: seed {args.seed}, output in {out}/", force=True)
     metrics = run_demo(out, Scenario(seed=args.seed, repeats=args.repeats), cfg,

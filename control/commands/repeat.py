@@ -1,7 +1,8 @@
 """vbnav repeat: patrol a taught route."""
 from __future__ import annotations
 
-from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._common import add_config_arg, output_file, positive
+from vbnav.drivers.errors import InputError
 
 
 def register(sub) -> None:
@@ -13,27 +14,23 @@ def register(sub) -> None:
                     "the end of the route.")
     add_config_arg(p)
     p.add_argument("--path", required=True, metavar="PATH", help="route directory from 'vbnav teach'")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="record telemetry and images (MCAP)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from vbnav.control.config import load_config
-    from vbnav.control.route import RouteError, load_route
+    from vbnav.control.route import load_route
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.session import Session
 
     cfg = load_config(args.config)
-    try:
-        route = load_route(args.path)          # before any device is opened
-    except (RouteError, FileNotFoundError) as exc:
-        print(f"vbnav repeat: {exc}")
-        return 2
+    output_file(args.record, "--record")
+    route = load_route(args.path)          # before any device is opened; a RouteError is exit 2
     if not route.keyframes:
-        print(f"vbnav repeat: {args.path}: the route has no keyframes")
-        return 2
+        raise InputError(f"{args.path}: the route has no keyframes")
     printer = ProgressPrinter()
     result = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer).repeat(
         route, args.duration)

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg
+from vbnav.control.commands._common import add_config_arg, output_file, positive
+from vbnav.drivers.errors import InputError
 
 
 def register(sub) -> None:
@@ -18,7 +19,7 @@ def register(sub) -> None:
     add_config_arg(p)
     p.add_argument("--out", required=True, metavar="PATH", help="route directory to create")
     p.add_argument("--overwrite", action="store_true", help="replace an existing route directory")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="record telemetry and images (MCAP)")
     p.set_defaults(func=run)
 
@@ -31,13 +32,18 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, expected a route directory (to create, or to replace with "
+                         "--overwrite)")
+    if not out.parent.is_dir():
+        raise InputError(f"--out {out}: the folder {out.parent} "
+                         f"{'is not a directory' if out.parent.exists() else 'does not exist'}")
+    output_file(args.record, "--record")
     if out.exists() and any(out.iterdir()) and not args.overwrite:
-        print(f"vbnav teach: {out} exists and is not empty (use --overwrite to replace it)")
-        return 2
+        raise InputError(f"--out {out}: exists and is not empty (use --overwrite to replace it)")
     if cfg.controller.teach == "teleop" and uses_sim_clock(cfg):
-        print(f"vbnav teach: {cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
-              "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
-        return 2
+        raise InputError(f"{cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
+                         "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
     robot = make_robot(cfg, with_camera=True)
     printer = ProgressPrinter()
     result = Session(cfg, robot, record=args.record, progress=printer).teach(
