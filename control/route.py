@@ -34,6 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vbnav.drivers.errors import InputError
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
 
@@ -49,7 +50,7 @@ _LANDMARK_FIELDS = {
 }
 
 
-class RouteError(ValueError):
+class RouteError(InputError):
     """A route directory is missing, corrupt, foreign or from a newer version. The message says which file."""
 
 

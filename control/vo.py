@@ -10,13 +10,14 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbnav.drivers.datasets import Dataset
+from vbnav.drivers.errors import InputError
 from vbnav.vision.vslam import FrameResult, Vslam, VslamConfig
 from vbnav.vision.vslam_init import TagGrid, init_from_tags, init_two_view
 
 INIT_MODES = ("stereo", "depth", "tags", "essential")
 
 
-class VoError(RuntimeError):
+class VoError(InputError):
     """The dataset cannot be processed with the chosen initialisation."""
 
 

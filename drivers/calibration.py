@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import yaml
 
+from vbnav.drivers.errors import InputError, yaml_problem
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 
 _K_NAMES = ("camera_matrix", "K", "cameraMatrix")
@@ -29,8 +30,36 @@ _PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "pinhole", "radtan", "")
 _FISHEYE_MODELS = ("equidistant", "fisheye", "kannala_brandt")
 
 
-class CalibrationError(ValueError):
+class CalibrationError(InputError):
     """A calibration file is missing, unreadable or lacks a field. The message names file and field."""
+
+
+def check_intrinsics(source: str, fx: float, fy: float, cx: float, cy: float, width=None, height=None,
+                     prefix: str = "") -> None:
+    """Raise CalibrationError unless the intrinsics can be those of a camera: finite numbers, positive
+    focal lengths, and (when the image size is known) the principal point inside the image.
+
+    A NaN or zero focal length does not fail anywhere else: every frame is simply lost. ``prefix`` is
+    the field's parent as the file names it (``"P0 "`` for a KITTI calib.txt).
+    """
+    for name, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
+        if not np.isfinite(v):
+            raise CalibrationError(f"{source}: {prefix}{name}: expected a finite number, got {v}")
+    for name, v in (("fx", fx), ("fy", fy)):
+        if v <= 0:
+            raise CalibrationError(f"{source}: {prefix}{name}: the focal length must be > 0 px, got {v}")
+    for name, v, size, side in (("cx", cx, width, "width"), ("cy", cy, height, "height")):
+        if size is not None and not 0 <= v <= size:
+            raise CalibrationError(f"{source}: {prefix}{name}: the principal point {v} is outside the image "
+                                   f"(0..{size}, the image {side})")
+
+
+def check_baseline(source: str, baseline, field: str = "baseline") -> None:
+    """Raise CalibrationError unless the stereo baseline is a finite distance > 0 m (right camera at
+    +baseline along the left camera's x): a zero baseline gives no depth at all."""
+    if not np.isfinite(baseline) or baseline <= 0:
+        raise CalibrationError(f"{source}: {field}: expected a finite stereo baseline > 0 m (the right camera "
+                               f"at +baseline along the left camera's x), got {baseline}")
 
 
 def load_calibration(path) -> PinholeCamera | FisheyeCamera:
@@ -44,7 +73,7 @@ def load_calibration(path) -> PinholeCamera | FisheyeCamera:
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise CalibrationError(f"{p}: not valid YAML ({e})") from None
+        raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
     if not isinstance(doc, dict):
         raise CalibrationError(f"{p}: expected a mapping with camera_matrix and distortion_coefficients")
     km = doc.get("camera_matrix")
@@ -67,6 +96,7 @@ def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, heigh
             from None
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{path}: image_width/image_height: must be positive, got {w}x{h}")
+    check_intrinsics(str(path), K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, prefix="camera_matrix ")
     d = tuple(float(x) for x in np.asarray(dist, dtype=float).ravel())
     model = (model or "").strip().lower()
     if model in _FISHEYE_MODELS:

@@ -27,14 +27,16 @@ import cv2
 import numpy as np
 import yaml
 
-from vbnav.drivers.stereo_calib import CalibrationError, read_kitti_calib
+from vbnav.drivers.calibration import CalibrationError, check_baseline, check_intrinsics
+from vbnav.drivers.errors import InputError, yaml_problem
+from vbnav.drivers.stereo_calib import read_kitti_calib
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import matrix_from_quat
 
 KITTI_RATE_HZ = 10.0
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset folder or file is missing or malformed."""
 
 
@@ -59,10 +61,18 @@ class Dataset:
         return len(self.left)
 
     def image(self, i: int, grey: bool = True) -> np.ndarray:
-        return _read_image(self.left[i], grey)
+        return self._sized(_read_image(self.left[i], grey), self.left[i])
 
     def right_image(self, i: int) -> Optional[np.ndarray]:
-        return None if self.right is None else _read_image(self.right[i], True)
+        return None if self.right is None else self._sized(_read_image(self.right[i], True), self.right[i])
+
+    def _sized(self, img: np.ndarray, path: Path) -> np.ndarray:
+        """The image, if it has the camera's size: the calibration holds for that size only."""
+        h, w = img.shape[:2]
+        if (w, h) != (self.camera.width, self.camera.height):
+            raise DatasetError(f"{path}: the image is {w}x{h}, the camera (and the sequence's first image) is "
+                               f"{self.camera.width}x{self.camera.height}")
+        return img
 
     def depth_image(self, i: int) -> Optional[np.ndarray]:
         """Depth in metres (float32, 0 where unknown), or None."""
@@ -126,7 +136,7 @@ def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
 def detect_layout(root: Path) -> str:
     root = Path(root)
     if not root.is_dir():
-        raise DatasetError(f"{root}: dataset folder does not exist")
+        raise DatasetError(f"{root}: {'is a file, expected' if root.exists() else 'no such'} dataset folder")
     if (root / "rgb.txt").is_file():
         return "tum"
     if (root / "calib.txt").is_file() or (root / "image_l").is_dir() or (root / "image_0").is_dir():
@@ -185,6 +195,9 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
         baseline = extras.get("baseline")
         if baseline is None:
             raise DatasetError(f"{calib_path}: image_r/ present but no P1 line (or 'baseline' in the camera YAML)")
+    if (camera.width, camera.height) != (w, h):
+        raise DatasetError(f"{left[0]}: the image is {w}x{h}, the camera YAML {camera_yaml} says "
+                           f"{camera.width}x{camera.height}")
     times_path = root / "times.txt"
     if times_path.is_file():
         stamps = _numbers(times_path, 1, "one time in seconds per line").ravel()
@@ -261,6 +274,14 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
                    float(extras.get("depth_scale", 1.0 / 5000.0)), gt_stamps, gt_poses, extras)
 
 
+def _number(v) -> float:
+    """A YAML value as a float, NaN if it is not a number (so the range checks refuse it)."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, dict]:
     """Intrinsics YAML: fx, fy, cx, cy, width, height, optional model (pinhole|fisheye), dist,
     depth_scale (metres per depth unit), baseline (stereo, m), tag_grid (see vision/vslam_init.py).
@@ -268,8 +289,10 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise DatasetError(f"{path}: cannot read camera YAML: {exc}") from exc
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read camera YAML: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"{path}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: expected a mapping with fx, fy, cx, cy, width, height")
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
@@ -281,6 +304,18 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
                     dist=tuple(float(v) for v in data.get("dist", []) or []))
     except (TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: intrinsics must be numbers: {exc}") from exc
+    try:
+        check_intrinsics(str(path), args["fx"], args["fy"], args["cx"], args["cy"], args["width"], args["height"])
+        if args["width"] <= 0 or args["height"] <= 0:
+            raise CalibrationError(f"{path}: width/height: expected positive sizes, got "
+                                   f"{args['width']}x{args['height']}")
+        if data.get("baseline") is not None:
+            check_baseline(str(path), _number(data["baseline"]))
+        if data.get("depth_scale") is not None and not _number(data["depth_scale"]) > 0:
+            raise CalibrationError(f"{path}: depth_scale: expected metres per depth unit > 0, "
+                                   f"got {data['depth_scale']!r}")
+    except CalibrationError as exc:
+        raise DatasetError(str(exc)) from None
     model = data.get("model", "pinhole")
     if model == "pinhole":
         cam = PinholeCamera(**args)

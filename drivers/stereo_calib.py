@@ -36,23 +36,21 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from vbnav.drivers.calibration import CalibrationError, check_intrinsics
+from vbnav.drivers.errors import yaml_problem
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 
 
-class CalibrationError(ValueError):
-    """A calibration file is missing or malformed. The message names the file and field."""
-
-
 class _Mount(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     height: float = Field(gt=0, description="m")
     pitch_deg: float = Field(0.0, ge=-90, le=90)
     roll_deg: float = Field(0.0, ge=-45, le=45)
 
 
 class _StereoYaml(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     fx: float = Field(gt=0)
@@ -96,6 +94,8 @@ class StereoCalibration:
         if self.size is not None and tuple(size) != tuple(self.size):
             raise CalibrationError(f"{self.source}: width/height: calibration is for {self.size[0]}x{self.size[1]} "
                                    f"images, got {size[0]}x{size[1]}")
+        check_intrinsics(self.source, self.fx, self.fy, self.cx, self.cy, size[0], size[1],
+                         prefix="" if self.size is not None else "P0 ")
         return PinholeCamera(int(size[0]), int(size[1]), self.fx, self.fy, self.cx, self.cy)
 
     def rig(self, width: Optional[int] = None, height: Optional[int] = None) -> StereoRig:
@@ -119,7 +119,7 @@ def _load_yaml(p: Path) -> StereoCalibration:
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as exc:
-        raise CalibrationError(f"{p}: not valid YAML: {exc}") from None
+        raise CalibrationError(f"{p}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise CalibrationError(f"{p}: expected a mapping with width, height, fx, fy, cx, cy, baseline")
     try:
@@ -131,6 +131,7 @@ def _load_yaml(p: Path) -> StereoCalibration:
             msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
             lines.append(f"{p}: {loc}: {msg}")
         raise CalibrationError("\n".join(lines)) from None
+    check_intrinsics(str(p), m.fx, m.fy, m.cx, m.cy, m.width, m.height)
     mount = m.mount
     K = np.array([[m.fx, 0.0, m.cx], [0.0, m.fy, m.cy], [0.0, 0.0, 1.0]])
     return StereoCalibration(K, m.baseline, (m.width, m.height),
@@ -176,10 +177,13 @@ def read_kitti_calib(path: str | Path, need_right: bool = True) -> StereoCalibra
         n, vals = mats[key]
         if vals.size != 12:
             raise CalibrationError(f"{p}: {key} (line {n}): expected 12 numbers (3x4 matrix), got {vals.size}")
+        if not np.isfinite(vals).all():
+            raise CalibrationError(f"{p}: {key} (line {n}): expected finite numbers, got {vals[~np.isfinite(vals)][0]}")
     P0 = mats["P0"][1].reshape(3, 4)
     K = P0[:, :3]
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise CalibrationError(f"{p}: P0: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+    check_intrinsics(str(p), K[0, 0], K[1, 1], K[0, 2], K[1, 2], prefix="P0 ")
     if "P1" not in mats:
         return StereoCalibration(K, None, source=str(p))
     P1 = mats["P1"][1].reshape(3, 4)

@@ -1,8 +1,17 @@
-"""Arguments shared by several subcommands."""
+"""Arguments shared by several subcommands, and the checks of what they name.
+
+The ``argparse`` types (``finite``, ``positive``, ``non_negative``) refuse NaN, infinities and
+out-of-range numbers with one line naming the argument; ``output_file`` checks a path a
+command will write before any work starts.
+"""
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
 from typing import Optional
+
+from vbnav.drivers.errors import InputError
 
 
 def add_config_arg(p: argparse.ArgumentParser, default: str | None = None) -> None:
@@ -27,3 +36,44 @@ def record_target_error(args) -> Optional[str]:
     except (FileExistsError, FileNotFoundError) as exc:
         return str(exc)
     return None
+
+
+def finite(text: str) -> float:
+    """argparse type: a finite number."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def positive(text: str) -> float:
+    """argparse type: a finite number > 0 (durations, rates, timeouts)."""
+    v = finite(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return v
+
+
+def non_negative(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    v = finite(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
+def output_file(path: str | Path | None, option: str) -> None:
+    """Raise InputError unless ``path`` (if given) can be written as a file: not a directory, and in a
+    folder that exists. Existing files are the caller's business (some replace them, some refuse)."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{option} {p}: is a directory, expected a file name")
+    parent = p.parent
+    if not parent.is_dir():
+        what = "is not a directory" if parent.exists() else "does not exist"
+        raise InputError(f"{option} {p}: the folder {parent} {what}")

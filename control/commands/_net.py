@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 
 from vbnav.control.commands._common import add_record_overwrite_arg
 from vbnav.control.config.telemetry import DEFAULT_ENDPOINT
@@ -15,9 +16,17 @@ from vbnav.control.config.telemetry import DEFAULT_ENDPOINT
 from vbnav.control.comms.network import client_session_config, open_session
 
 
+def endpoint(text: str) -> str:
+    """argparse type: a zenoh endpoint, <protocol>/<address> (tcp/127.0.0.1:7447, tls/robot.local:7447)."""
+    if not re.fullmatch(r"[a-z0-9-]+/\S+", text):
+        raise argparse.ArgumentTypeError(f"expected a zenoh endpoint <protocol>/<address> like {DEFAULT_ENDPOINT}, "
+                                         f"got {text!r}")
+    return text
+
+
 def add_net_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default="sim", metavar="NAME", help="robot name (robot.name in its config; default sim)")
-    p.add_argument("--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT",
+    p.add_argument("--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", type=endpoint,
                    help=f"zenoh endpoint of the robot or a router (default {DEFAULT_ENDPOINT})")
     p.add_argument("--user", default=None, help="zenoh user name, when the robot requires authentication")
     p.add_argument("--password-env", default="VBNAV_ZENOH_PASSWORD", metavar="VAR",

@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_record_overwrite_arg, record_target_error
+from vbnav.control.commands._common import add_record_overwrite_arg, output_file, record_target_error
+from vbnav.drivers.errors import InputError
 
 
 def register(sub) -> None:
@@ -31,14 +31,17 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     if cfg.camera.driver != "sim" or cfg.drive.driver != "sim":
-        print(f"vbnav demo: {cfg.source} uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the demo "
-              "needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
-        return 2
+        raise InputError(f"{cfg.source}: uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the "
+                         "demo needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
     why = record_target_error(args)
     if why:
-        print(f"vbnav demo: {why}", file=sys.stderr)
-        return 2
+        raise InputError(why)
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, expected an output directory")
+    if args.repeats < 1:
+        raise InputError(f"--repeats {args.repeats}: expected at least 1")
+    output_file(args.record, "--record")
     printer = ProgressPrinter()
     printer(f"vbnav demo: seed {args.seed}, output in {out}/", force=True)
     metrics = run_demo(out, Scenario(seed=args.seed, repeats=args.repeats), cfg,

@@ -10,6 +10,10 @@ import argparse
 import signal
 import sys
 import threading
+from pathlib import Path
+
+from vbnav.control.commands._common import non_negative
+from vbnav.drivers.errors import InputError
 
 
 def _ids(text: str) -> list[int]:
@@ -34,9 +38,20 @@ def register(sub) -> None:
     d.set_defaults(func=_run_dynamixel)
     o = dev.add_parser("odrive", help="ODrive with two axes, ASCII protocol")
     o.add_argument("--link", default=None, metavar="PATH", help="also create this symlink to the pty")
-    o.add_argument("--watchdog-s", type=float, default=0.0,
+    o.add_argument("--watchdog-s", type=non_negative, default=0.0,
                    help="axis watchdog timeout preset, s (0 = off until the driver sets it)")
     o.set_defaults(func=_run_odrive)
+
+
+def _check_link(link: str | None) -> None:
+    """The --link path must be free (or an old symlink to replace) in a folder that exists."""
+    if link is None:
+        return
+    p = Path(link)
+    if not p.parent.is_dir():
+        raise InputError(f"--link {p}: the folder {p.parent} does not exist")
+    if p.exists() and not p.is_symlink():
+        raise InputError(f"--link {p}: exists and is not a symlink (it would be replaced by the device link)")
 
 
 def _serve(emulator) -> int:
@@ -61,11 +76,13 @@ def _run_dynamixel(args) -> int:
     except ValueError as exc:
         print(f"vbnav emulate dynamixel: {exc}", file=sys.stderr)
         return 2
+    _check_link(args.link)
     return _serve(DynamixelBus(args.ids, model, link=args.link))
 
 
 def _run_odrive(args) -> int:
     from vbnav.drivers.sim.odrive_emulator import ODriveEmulator
+    _check_link(args.link)
     emu = ODriveEmulator(link=args.link)
     for axis in emu.axes:
         axis.watchdog_timeout = args.watchdog_s

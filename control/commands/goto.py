@@ -1,20 +1,9 @@
 """vbnav goto: drive to a pose in the VSLAM's reference frame."""
 from __future__ import annotations
 
-import argparse
 import math
 
-from vbnav.control.commands._common import add_config_arg
-
-
-def _finite(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return v
+from vbnav.control.commands._common import add_config_arg, finite, positive
 
 
 def register(sub) -> None:
@@ -30,9 +19,9 @@ def register(sub) -> None:
                     "wheels for a single camera (the robot first creeps ahead up to 0.3 m to initialise). Exit code 0 when the "
                     "goal is reached, 1 when not (duration, lost).")
     add_config_arg(p, default="sim_stereo")
-    p.add_argument("--goal", required=True, nargs=3, type=_finite, metavar=("X", "Z", "THETA_DEG"),
+    p.add_argument("--goal", required=True, nargs=3, type=finite, metavar=("X", "Z", "THETA_DEG"),
                    help="goal pose in the reference frame: x (m, right), z (m, forward), heading (degrees)")
-    p.add_argument("--duration", type=float, default=120.0, metavar="S",
+    p.add_argument("--duration", type=positive, default=120.0, metavar="S",
                    help="give up after S seconds (default 120; simulated seconds on the simulated clock)")
     p.set_defaults(func=run)
 
@@ -89,6 +78,6 @@ def run(args) -> int:
             print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130
-    if result.reason == "drive":
+    if result.reason in ("drive", "camera"):     # a device failed or is not there
         return 3
     return 0 if result.reason == "finished" else 1

@@ -7,6 +7,7 @@ import sys
 import threading
 import time
 
+from vbnav.control.commands._common import positive
 from vbnav.control.commands._net import add_net_args, open_client
 
 
@@ -17,9 +18,9 @@ def register(sub) -> None:
     add_net_args(p)
     p.add_argument("--once", action="store_true", help="print the first state received and exit (for scripts)")
     p.add_argument("--json", action="store_true", help="with --once: print the raw JSON state message")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+    p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                    help="with --once: give up after S seconds without state (exit 1); default 5")
-    p.add_argument("--refresh", type=float, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
+    p.add_argument("--refresh", type=positive, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
     p.set_defaults(func=_run)
 
 

@@ -17,6 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vbnav.control.commands._common import finite, non_negative, output_file, positive
+from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles, nearest_in_corridor
@@ -26,6 +28,17 @@ EXIT_OK, EXIT_BAD_INPUT = 0, 2
 
 COLOURS_BGR = {PixelClass.GROUND: (60, 200, 60), PixelClass.OBSTACLE: (40, 40, 230),
                PixelClass.NEGATIVE: (230, 120, 30)}
+
+
+def _block_size(text: str) -> int:
+    """argparse type: SGBM's block size, an odd number of pixels."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an odd integer, got {text!r}") from None
+    if v < 1 or v > 51 or v % 2 == 0:
+        raise argparse.ArgumentTypeError(f"expected an odd integer in 1..51, got {text!r}")
+    return v
 
 
 def register(subparsers) -> None:
@@ -45,23 +58,23 @@ def register(subparsers) -> None:
     src.add_argument("--image", metavar="IMG", help="image for the overlay when --disparity is given")
     src.add_argument("--calib", required=True, metavar="FILE",
                      help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (docs/obstacles.md)")
-    src.add_argument("--disparity-scale", type=float, default=None,
+    src.add_argument("--disparity-scale", type=positive, default=None,
                      help="px per unit of an integer disparity image (default: the YAML's disparity_scale, "
                           "else 1/256 for 16-bit as in KITTI's devkit, 1 for 8-bit)")
     geo = p.add_argument_group("camera above the floor (seeds the plane fit)")
-    geo.add_argument("--camera-height", type=float, default=None,
+    geo.add_argument("--camera-height", type=positive, default=None,
                      help="m; default: the YAML's mount.height; without it the fit is unseeded")
-    geo.add_argument("--pitch-deg", type=float, default=None, help="positive looking down (default: YAML or 0)")
+    geo.add_argument("--pitch-deg", type=finite, default=None, help="positive looking down (default: YAML or 0)")
     det = p.add_argument_group("detection")
-    det.add_argument("--obstacle-height", type=float, default=0.05, help="m above the floor")
-    det.add_argument("--negative-depth", type=float, default=0.05, help="m below the floor")
-    det.add_argument("--noise-px", type=float, default=0.4, help="disparity noise floor, px")
-    det.add_argument("--max-height", type=float, default=None, help="m; higher points are unknown (overhangs)")
-    det.add_argument("--max-range", type=float, default=None, help="m; farther points are unknown")
-    det.add_argument("--corridor-half-width", type=float, default=0.3, help="m, for the nearest obstacle")
-    det.add_argument("--corridor-range", type=float, default=10.0, help="m, for the nearest obstacle")
-    det.add_argument("--block-size", type=int, default=5, help="SGBM block size (odd)")
-    det.add_argument("--min-depth", type=float, default=None,
+    det.add_argument("--obstacle-height", type=positive, default=0.05, help="m above the floor")
+    det.add_argument("--negative-depth", type=positive, default=0.05, help="m below the floor")
+    det.add_argument("--noise-px", type=non_negative, default=0.4, help="disparity noise floor, px")
+    det.add_argument("--max-height", type=positive, default=None, help="m; higher points are unknown (overhangs)")
+    det.add_argument("--max-range", type=positive, default=None, help="m; farther points are unknown")
+    det.add_argument("--corridor-half-width", type=positive, default=0.3, help="m, for the nearest obstacle")
+    det.add_argument("--corridor-range", type=positive, default=10.0, help="m, for the nearest obstacle")
+    det.add_argument("--block-size", type=_block_size, default=5, help="SGBM block size (odd)")
+    det.add_argument("--min-depth", type=positive, default=None,
                      help="m, nearest depth SGBM must cover (sets numDisparities); default: 8 baselines, or 0.85 x "
                           "the nearest floor depth in view if that is nearer")
     out = p.add_argument_group("output")
@@ -150,6 +163,8 @@ def _min_depth(args, rig, prior) -> float:
 
 def run(args) -> int:
     t0 = time.perf_counter()
+    output_file(args.mask_out, "--mask-out")
+    output_file(args.overlay_out, "--overlay-out")
     if args.disparity is None and not (args.left and args.right):
         return _bad("give --left and --right, or --disparity")
     if args.disparity is not None and (args.left or args.right):
@@ -181,7 +196,12 @@ def run(args) -> int:
 
     t1 = time.perf_counter()
     if disp is None:
-        disp = sgbm_disparity(image, right, sgbm_params_for(rig, _min_depth(args, rig, prior), args.block_size))
+        sgbm = sgbm_params_for(rig, _min_depth(args, rig, prior), args.block_size)
+        if w < sgbm.num_disparities + sgbm.block_size:
+            raise InputError(f"--left {args.left}: the pair is {w}x{h}, too narrow for a search over "
+                             f"{sgbm.num_disparities} disparities (needs at least "
+                             f"{sgbm.num_disparities + sgbm.block_size} px across; raise --min-depth)")
+        disp = sgbm_disparity(image, right, sgbm)
     t2 = time.perf_counter()
     params = ObstacleParams(obstacle_height=args.obstacle_height, negative_depth=args.negative_depth,
                             noise_px=args.noise_px, max_height=args.max_height, max_range=args.max_range,

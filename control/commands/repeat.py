@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import sys
 
-from vbnav.control.commands._common import add_config_arg, add_record_overwrite_arg, record_target_error
+from vbnav.control.commands._common import add_config_arg, add_record_overwrite_arg, output_file, positive, record_target_error
+from vbnav.drivers.errors import InputError
 
 
 def register(sub) -> None:
@@ -15,7 +16,7 @@ def register(sub) -> None:
                     "the end of the route.")
     add_config_arg(p)
     p.add_argument("--path", required=True, metavar="PATH", help="route directory from 'vbnav teach'")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="record telemetry and images (MCAP)")
     add_record_overwrite_arg(p)
     p.set_defaults(func=run)
@@ -23,24 +24,19 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from vbnav.control.config import load_config
-    from vbnav.control.route import RouteError, load_route
+    from vbnav.control.route import load_route
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.session import Session
 
     cfg = load_config(args.config)
+    output_file(args.record, "--record")
     why = record_target_error(args)
     if why:
-        print(f"vbnav repeat: {why}", file=sys.stderr)
-        return 2
-    try:
-        route = load_route(args.path)          # before any device is opened
-    except (RouteError, FileNotFoundError) as exc:
-        print(f"vbnav repeat: {exc}")
-        return 2
+        raise InputError(why)
+    route = load_route(args.path)          # before any device is opened; a RouteError is exit 2
     if not route.keyframes:
-        print(f"vbnav repeat: {args.path}: the route has no keyframes")
-        return 2
+        raise InputError(f"{args.path}: the route has no keyframes")
     if not route.complete:
         print(f"vbnav repeat: warning: {args.path}: {route.incomplete_note()}", file=sys.stderr)
     printer = ProgressPrinter()

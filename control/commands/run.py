@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import json
-import sys
 
-from vbnav.control.commands._common import add_config_arg, record_target_error
+from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
+from vbnav.drivers.errors import InputError
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
 
@@ -16,7 +16,7 @@ def register(sub) -> None:
                                    "repeat ROUTE from the network (vbnav send mode ...). Prints progress and a "
                                    "timing summary. Stops on SIGINT/SIGTERM with the wheels at zero.")
     add_config_arg(p)
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=positive, default=None, metavar="S",
                    help="stop after S seconds (simulated seconds on the simulated clock)")
     p.add_argument("--controller", choices=["scripted", "teleop", "operator", "idle"], default=None,
                    help="override controller.kind from the configuration")
@@ -45,10 +45,10 @@ def run(args) -> int:
     from vbnav.control.runtime.runtime import Runtime
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
+    output_file(args.record, "--record")
     why = record_target_error(args)
     if why:
-        print(f"vbnav run: {why}", file=sys.stderr)
-        return 2
+        raise InputError(why)
     kind = args.controller or cfg.controller.kind
     robot = make_robot(cfg, with_camera=not args.no_camera)
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
@@ -95,6 +95,6 @@ def run(args) -> int:
             print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130
-    if result.reason == "drive":
+    if result.reason in ("drive", "camera"):     # a device failed or is not there
         return 3
     return 0 if result.ok else 1

@@ -7,6 +7,7 @@ import sys
 import time
 import uuid
 
+from vbnav.control.commands._common import finite, non_negative, positive
 from vbnav.control.commands._net import add_net_args, open_client
 
 # Generous local bounds: the robot checks against its own configured limits and rejects with an event.
@@ -46,10 +47,10 @@ def register(sub) -> None:
                                     "safety.command_timeout_s (and only a run with controller teleop follows it). "
                                     "Without --duration one message is sent. The exit code is the robot's answer "
                                     "to the first message it applies or refuses; a refusal stops the stream.")
-    t.add_argument("v", type=float, metavar="V", help="linear velocity, m/s")
-    t.add_argument("w", type=float, metavar="W", help="angular velocity, rad/s")
-    t.add_argument("--duration", type=float, default=0.0, metavar="S", help="keep sending for S seconds")
-    t.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="send rate with --duration (10)")
+    t.add_argument("v", type=finite, metavar="V", help="linear velocity, m/s")
+    t.add_argument("w", type=finite, metavar="W", help="angular velocity, rad/s")
+    t.add_argument("--duration", type=non_negative, default=0.0, metavar="S", help="keep sending for S seconds")
+    t.add_argument("--rate", type=positive, default=10.0, metavar="HZ", help="send rate with --duration (10)")
     m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route NAME")
     m.add_argument("mode", choices=["idle", "teach", "repeat"])
     m.add_argument("--route", default=None, metavar="NAME",
@@ -57,7 +58,7 @@ def register(sub) -> None:
     for sp in (e, r, t, m):
         sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
         add_net_args(sp)
-        sp.add_argument("--wait", type=float, default=3.0, metavar="S",
+        sp.add_argument("--wait", type=non_negative, default=3.0, metavar="S",
                         help="wait up to S seconds for the robot, then for its answer (default 3)")
         sp.add_argument("--secret-file", default=None, metavar="FILE",
                         help="sign the command with the robot's shared secret (telemetry.shared_secret_file)")

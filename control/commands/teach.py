@@ -4,7 +4,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg, record_target_error
+from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
+from vbnav.drivers.errors import InputError
 
 
 def register(sub) -> None:
@@ -21,7 +22,7 @@ def register(sub) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing route directory (and --record file): the new one is written "
                         "beside it and takes its place only when complete")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", default=None, metavar="FILE.mcap", help="record telemetry and images (MCAP)")
     p.set_defaults(func=run)
 
@@ -35,17 +36,21 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, expected a route directory (to create, or to replace with "
+                         "--overwrite)")
+    if not out.parent.is_dir():
+        raise InputError(f"--out {out}: the folder {out.parent} "
+                         f"{'is not a directory' if out.parent.exists() else 'does not exist'}")
+    output_file(args.record, "--record")
     if out.exists() and any(out.iterdir()) and not args.overwrite:
-        print(f"vbnav teach: {out} exists and is not empty (use --overwrite to replace it)")
-        return 2
+        raise InputError(f"--out {out}: exists and is not empty (use --overwrite to replace it)")
     why = record_target_error(args)
     if why:
-        print(f"vbnav teach: {why}", file=sys.stderr)
-        return 2
+        raise InputError(why)
     if cfg.controller.teach == "teleop" and uses_sim_clock(cfg):
-        print(f"vbnav teach: {cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
-              "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
-        return 2
+        raise InputError(f"{cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
+                         "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
     for left in stray_route_dirs(out):
         print(f"vbnav teach: note: {left} was left by an interrupted replacement of {out.name} (kept: it holds "
               f"recorded keyframes; delete it when it is not needed)", file=sys.stderr)

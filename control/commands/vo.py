@@ -36,6 +36,9 @@ def run(args) -> int:
     from vbnav.control.vo import VoError, run_vo
     from vbnav.drivers.datasets import DatasetError, open_dataset
 
+    from vbnav.control.commands._common import output_file
+    output_file(args.out, "--out")          # before minutes of tracking, not after
+    output_file(args.plot, "--plot")
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     try:
         ds = open_dataset(args.dataset, args.camera)

@@ -19,6 +19,8 @@ from typing import Any, Literal, Optional
 
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
+
+from vbnav.drivers.errors import yaml_problem
 from vbnav.control.config.base import ConfigError, Strict, format_errors
 from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.control.config.telemetry import TelemetryConfig
@@ -60,10 +62,10 @@ class CameraConfig(Strict):
     model: Literal["pinhole", "fisheye"] = Field("pinhole", description="lens model of the intrinsics below")
     width: int = Field(640, gt=0, description="image width, px")
     height: int = Field(480, gt=0, description="image height, px")
-    fx: float = Field(400.0, gt=0, description="focal length along x, px")
-    fy: float = Field(400.0, gt=0, description="focal length along y, px")
-    cx: float = Field(319.5, description="principal point x, px")
-    cy: float = Field(239.5, description="principal point y, px")
+    fx: float = Field(400.0, gt=0, allow_inf_nan=False, description="focal length along x, px")
+    fy: float = Field(400.0, gt=0, allow_inf_nan=False, description="focal length along y, px")
+    cx: float = Field(319.5, allow_inf_nan=False, description="principal point x, px")
+    cy: float = Field(239.5, allow_inf_nan=False, description="principal point y, px")
     distortion: list[float] = Field(default_factory=list, max_length=14,
                                     description="OpenCV distortion coefficients: pinhole k1 k2 p1 p2 [k3 ...], "
                                                 "fisheye k1 k2 k3 k4; empty: none")
@@ -72,6 +74,14 @@ class CameraConfig(Strict):
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop")
     mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
+
+    @model_validator(mode="after")
+    def _principal_point_in_image(self):
+        # A principal point outside the image is a calibration for another image size (or a typo).
+        for name, v, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
+            if not 0 <= v <= size:
+                raise ValueError(f"{name} {v} px is outside the {self.width}x{self.height} image")
+        return self
 
     def to_model(self):
         cls = FisheyeCamera if self.model == "fisheye" else PinholeCamera
@@ -265,9 +275,7 @@ def load_config(path: str | Path | None = None, overrides: Optional[dict] = None
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{p}:{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+        raise ConfigError(f"{p}: {yaml_problem(exc)}") from None
     if overrides:
         data = deep_merge(data or {}, overrides)
     return parse_config(data, str(p))

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from vbnav.drivers.errors import InputError
 
-class ConfigError(ValueError):
+
+class ConfigError(InputError):
     """A configuration file is missing, malformed or invalid. The message says where."""
 
 

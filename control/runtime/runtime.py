@@ -35,6 +35,7 @@ from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
 from vbnav.control.runtime.odometry import Odometry
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
+from vbnav.drivers.camera import CameraError
 from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
 
 
@@ -122,7 +123,8 @@ class Runtime:
             # Failure before or outside a cycle (connect, enable): still leave the wheels safe.
             self.fault_traceback = traceback.format_exc()
             self._make_safe()
-            reason = "drive" if isinstance(exc, DriveError) else "exception"
+            # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
+            reason = "drive" if isinstance(exc, DriveError) else "camera" if isinstance(exc, CameraError) else "exception"
             self.safety.trip(self.clock.now_ns(), reason, f"start-up: {exc}")
             self._end = (reason, f"start-up: {exc}")
             timing = self.loop.timing.summary(self.loop.rate_hz)

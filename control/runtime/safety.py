@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-FATAL = ("exception", "signal", "deadline", "drive")
+FATAL = ("exception", "signal", "deadline", "drive", "camera")
 
 
 @dataclass

@@ -1,0 +1,270 @@
+"""Every ``vbnav`` command on bad input, as a process: exit 2, one line on stderr naming the file, field,
+argument or device, and never a traceback (issue 12, point 9).
+
+A missing device is the one exception: the documented exit code for it is 3 (hardware/device error),
+with the cause named in the run's summary. The cases run concurrently (each is a Python start-up and a
+check that fails before any real work), then each is asserted on its own.
+"""
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+import pytest
+
+VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
+
+W, H = 64, 48     # the tiny test sequence's images
+K_ROW = f"50 0 {W / 2} 0 0 50 {H / 2} 0 0 0 1 0"          # P0 of the tiny sequence
+P1_ROW = f"50 0 {W / 2} -5 0 50 {H / 2} 0 0 0 1 0"        # baseline 0.1 m
+STEREO = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\nbaseline: 0.1\n"
+CAMERA = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\n"
+
+# id, arguments ({d}: the fixture folder), expected exit code, text the error must contain
+CASES = [
+    # top level
+    ("unknown-command", "fly", 2, "fly"),
+    # config
+    ("config-missing", "config check -c {d}/nope.yaml", 2, "nope.yaml"),
+    ("config-dir", "config check -c {d}/empty", 2, "empty"),
+    ("config-garbage-yaml", "config check -c {d}/garbage.yaml", 2, "garbage.yaml"),
+    ("config-unknown-key", "config show -c {d}/unknown.yaml", 2, "robot.bogus"),
+    ("config-bad-number", "config check -c {d}/badnum.yaml", 2, "robot.wheel_radius"),
+    ("config-nan-focal", "config check -c {d}/cfg_nanfx.yaml", 2, "camera.fx"),
+    ("config-inf-focal", "config check -c {d}/cfg_inffx.yaml", 2, "camera.fx"),
+    ("config-cx-outside", "config check -c {d}/cfg_cx.yaml", 2, "cx"),
+    ("config-bad-action", "config frob", 2, "frob"),
+    # demo
+    ("demo-out-file", "demo --out {d}/afile.txt", 2, "afile.txt"),
+    ("demo-seed", "demo --seed x", 2, "--seed"),
+    ("demo-repeats", "demo --repeats 0 --out {d}/demo_out", 2, "--repeats"),
+    ("demo-garbage-config", "demo -c {d}/garbage.yaml", 2, "garbage.yaml"),
+    ("demo-hardware-config", "demo -c {d}/dxl.yaml", 2, "dxl.yaml"),
+    ("demo-record-dir", "demo --out {d}/demo_out --record {d}/empty", 2, "--record"),
+    # emulate
+    ("emulate-no-device", "emulate", 2, "DEVICE"),
+    ("emulate-ids", "emulate dynamixel --ids 1,1", 2, "--ids"),
+    ("emulate-model", "emulate dynamixel --model XX-1", 2, "XX-1"),
+    ("emulate-link-no-folder", "emulate dynamixel --link {d}/nope/ttyX", 2, "nope"),
+    ("emulate-link-file", "emulate odrive --link {d}/afile.txt", 2, "afile.txt"),
+    ("emulate-watchdog", "emulate odrive --watchdog-s nan", 2, "--watchdog-s"),
+    # goto
+    ("goto-goal-nan", "goto --goal 1 nan 0", 2, "--goal"),
+    ("goto-goal-word", "goto --goal 1 x 0", 2, "--goal"),
+    ("goto-duration", "goto --goal 1 1 0 --duration -1", 2, "--duration"),
+    ("goto-config-missing", "goto --goal 1 1 0 -c {d}/nope.yaml", 2, "nope.yaml"),
+    # monitor
+    ("monitor-timeout", "monitor --once --timeout -1", 2, "--timeout"),
+    ("monitor-refresh", "monitor --refresh 0", 2, "--refresh"),
+    ("monitor-endpoint", "monitor --once --connect garbage", 2, "garbage"),
+    # obstacles
+    ("obstacles-1x1-kitti-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/good/calib.txt",
+     2, "calib.txt: P0 cx"),
+    ("obstacles-1x1-yaml-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/stereo_1x1.yaml",
+     2, "one.png"),
+    ("obstacles-sizes", "obstacles --left {d}/left.png --right {d}/right_big.png --calib {d}/stereo.yaml",
+     2, "right_big.png"),
+    ("obstacles-calib-missing", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/nope.txt",
+     2, "nope.txt"),
+    ("obstacles-calib-dir", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/empty", 2, "empty"),
+    ("obstacles-calib-garbage", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/garbage.yaml",
+     2, "garbage.yaml"),
+    ("obstacles-calib-nan-focal", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo_nan.yaml",
+     2, "fx"),
+    ("obstacles-calib-zero-baseline",
+     "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo_base0.yaml", 2, "baseline"),
+    ("obstacles-calib-cx-outside", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo_cx.yaml",
+     2, "cx"),
+    ("obstacles-kitti-p1-is-p0", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/zerobase/calib.txt",
+     2, "P1"),
+    ("obstacles-left-missing", "obstacles --left {d}/nope.png --right {d}/left.png --calib {d}/stereo.yaml",
+     2, "nope.png"),
+    ("obstacles-left-dir", "obstacles --left {d}/empty --right {d}/left.png --calib {d}/stereo.yaml", 2, "empty"),
+    ("obstacles-left-not-image", "obstacles --left {d}/afile.txt --right {d}/left.png --calib {d}/stereo.yaml",
+     2, "afile.txt"),
+    ("obstacles-block-size", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--block-size 4", 2, "--block-size"),
+    ("obstacles-bad-number", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--obstacle-height nan", 2, "--obstacle-height"),
+    ("obstacles-mask-out-dir", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--mask-out {d}/empty", 2, "--mask-out"),
+    ("obstacles-no-input", "obstacles --calib {d}/stereo.yaml", 2, "--left"),
+    ("obstacles-disparity-missing", "obstacles --disparity {d}/nope.npy --calib {d}/stereo.yaml", 2, "nope.npy"),
+    # record-info
+    ("record-info-dir", "record-info {d}/empty", 2, "empty"),
+    ("record-info-missing", "record-info {d}/nope.mcap", 2, "nope.mcap"),
+    ("record-info-not-mcap", "record-info {d}/afile.txt", 2, "afile.txt"),
+    # repeat
+    ("repeat-missing", "repeat --path {d}/nope", 2, "nope"),
+    ("repeat-file", "repeat --path {d}/afile.txt", 2, "afile.txt"),
+    ("repeat-empty-dir", "repeat --path {d}/empty", 2, "manifest.json"),
+    ("repeat-duration", "repeat --path {d}/empty --duration nan", 2, "--duration"),
+    ("repeat-garbage-config", "repeat --path {d}/empty -c {d}/garbage.yaml", 2, "garbage.yaml"),
+    ("repeat-record-dir", "repeat --path {d}/empty --record {d}/empty", 2, "--record"),
+    # run
+    ("run-config-missing", "run -c {d}/nope.yaml", 2, "nope.yaml"),
+    ("run-config-dir", "run -c {d}/empty", 2, "empty"),
+    ("run-unknown-key", "run -c {d}/unknown.yaml", 2, "robot.bogus"),
+    ("run-duration-negative", "run --duration -1", 2, "--duration"),
+    ("run-duration-nan", "run --duration nan", 2, "--duration"),
+    ("run-controller", "run --controller fly", 2, "--controller"),
+    ("run-record-dir", "run --no-camera --duration 0.1 --record {d}/empty", 2, "--record"),
+    ("run-record-no-folder", "run --no-camera --duration 0.1 --record {d}/nope/x.mcap", 2, "nope"),
+    ("run-serial-port-missing", "run -c {d}/dxl.yaml --no-camera --no-telemetry --duration 0.2", 3, "/dev/ttyNOPE9"),
+    ("run-camera-missing", "run -c {d}/v4l2.yaml --no-telemetry --duration 0.2", 3, "/dev/video99"),
+    # send
+    ("send-teleop-nan", "send teleop nan 0", 2, "V"),
+    ("send-rate", "send teleop 0.1 0 --duration 1 --rate 0", 2, "--rate"),
+    ("send-wait", "send estop --wait -1", 2, "--wait"),
+    ("send-secret-missing", "send estop --secret-file {d}/nope.key --wait 0", 2, "nope.key"),
+    ("send-endpoint", "send estop --connect garbage", 2, "garbage"),
+    ("send-mode", "send mode fly", 2, "fly"),
+    # teach
+    ("teach-no-out", "teach", 2, "--out"),
+    ("teach-out-file", "teach --out {d}/afile.txt --duration 0.1", 2, "afile.txt"),
+    ("teach-out-under-file", "teach --out {d}/afile.txt/route --duration 0.1", 2, "afile.txt"),
+    ("teach-out-not-empty", "teach --out {d}/full --duration 0.1", 2, "--overwrite"),
+    ("teach-duration", "teach --out {d}/route --duration nan", 2, "--duration"),
+    ("teach-record-dir", "teach --out {d}/route --duration 0.1 --record {d}/empty", 2, "--record"),
+    ("teach-garbage-config", "teach --out {d}/route -c {d}/garbage.yaml", 2, "garbage.yaml"),
+    # vo
+    ("vo-missing", "vo {d}/nope --out {d}/t.txt", 2, "nope"),
+    ("vo-file", "vo {d}/afile.txt --out {d}/t.txt", 2, "afile.txt"),
+    ("vo-not-a-dataset", "vo {d}/empty --out {d}/t.txt", 2, "empty"),
+    ("vo-image-sizes", "vo {d}/sizes --out {d}/t.txt --quiet", 2, "000001.png"),
+    ("vo-out-dir", "vo {d}/good --out {d}/empty", 2, "--out"),
+    ("vo-out-no-folder", "vo {d}/good --out {d}/nope/t.txt", 2, "nope"),
+    ("vo-plot-dir", "vo {d}/good --out {d}/t.txt --plot {d}/empty", 2, "--plot"),
+    ("vo-nan-focal", "vo {d}/nanfx --out {d}/t.txt", 2, "calib.txt: P0"),
+    ("vo-zero-focal", "vo {d}/zerofx --out {d}/t.txt", 2, "calib.txt: P0"),
+    ("vo-zero-baseline", "vo {d}/zerobase --out {d}/t.txt", 2, "calib.txt: P1"),
+    ("vo-camera-missing", "vo {d}/good --camera {d}/nope.yaml --out {d}/t.txt", 2, "nope.yaml"),
+    ("vo-camera-garbage", "vo {d}/good --camera {d}/garbage.yaml --out {d}/t.txt", 2, "garbage.yaml"),
+    ("vo-camera-nan-focal", "vo {d}/good --camera {d}/cam_nanfx.yaml --out {d}/t.txt", 2, "cam_nanfx.yaml: fx"),
+    ("vo-camera-zero-focal", "vo {d}/good --camera {d}/cam_zerofx.yaml --out {d}/t.txt", 2, "cam_zerofx.yaml: fx"),
+    ("vo-camera-cx-outside", "vo {d}/good --camera {d}/cam_cx.yaml --out {d}/t.txt", 2, "cam_cx.yaml: cx"),
+    ("vo-camera-zero-baseline", "vo {d}/good --camera {d}/cam_base0.yaml --out {d}/t.txt", 2,
+     "cam_base0.yaml: baseline"),
+    ("vo-camera-wrong-size", "vo {d}/good --camera {d}/cam_size.yaml --out {d}/t.txt", 2, "000000.png"),
+    ("vo-init-stereo-mono", "vo {d}/mono --init stereo --out {d}/t.txt", 2, "image_r"),
+    ("vo-init-bogus", "vo {d}/good --init fly --out {d}/t.txt", 2, "--init"),
+]
+
+
+def _texture(seed: int, w: int = W, h: int = H) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 255, (h, w), dtype=np.uint8)
+
+
+def _sequence(d, name: str, p0: str = K_ROW, p1: str | None = P1_ROW, small: int | None = None) -> None:
+    """A 3-frame KITTI-layout sequence; frame ``small`` of the left images is half size."""
+    root = d / name
+    for side in ("image_l", "image_r") if p1 is not None else ("image_l",):
+        (root / side).mkdir(parents=True)
+        for i in range(3):
+            img = _texture(i)
+            if i == small and side == "image_l":
+                img = cv2.resize(img, (W // 2, H // 2))
+            cv2.imwrite(str(root / side / f"{i:06d}.png"), img)
+    (root / "calib.txt").write_text(f"P0: {p0}\n" + (f"P1: {p1}\n" if p1 is not None else ""))
+
+
+def make_fixtures(d) -> None:
+    (d / "empty").mkdir()
+    (d / "full").mkdir()
+    (d / "full" / "x").write_text("x")
+    (d / "afile.txt").write_text("not what was asked for\n")
+    (d / "garbage.yaml").write_text("robot: [\n")
+    (d / "unknown.yaml").write_text("robot: {bogus: 1}\n")
+    (d / "badnum.yaml").write_text("robot: {wheel_radius: abc}\n")
+    (d / "cfg_nanfx.yaml").write_text("camera: {fx: .nan}\n")
+    (d / "cfg_inffx.yaml").write_text("camera: {fx: .inf}\n")
+    (d / "cfg_cx.yaml").write_text("camera: {cx: 5000}\n")
+    (d / "dxl.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
+                                "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
+    (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
+                                 "controller: {kind: idle}\n")
+    _sequence(d, "good")
+    _sequence(d, "mono", p1=None)
+    _sequence(d, "sizes", small=1)
+    _sequence(d, "nanfx", p0=K_ROW.replace("50", "nan", 1), p1=P1_ROW.replace("50", "nan", 1))
+    _sequence(d, "zerofx", p0=K_ROW.replace("50", "0", 1), p1=P1_ROW.replace("50", "0", 1))
+    _sequence(d, "zerobase", p1=K_ROW)
+    (d / "cam_nanfx.yaml").write_text(CAMERA.replace("fx: 50", "fx: .nan") + "baseline: 0.1\n")
+    (d / "cam_zerofx.yaml").write_text(CAMERA.replace("fx: 50", "fx: 0") + "baseline: 0.1\n")
+    (d / "cam_cx.yaml").write_text(CAMERA.replace(f"cx: {W / 2}", "cx: 900") + "baseline: 0.1\n")
+    (d / "cam_base0.yaml").write_text(CAMERA + "baseline: 0\n")
+    (d / "cam_size.yaml").write_text(CAMERA.replace(f"width: {W}", "width: 640") + "baseline: 0.1\n")
+    (d / "stereo.yaml").write_text(STEREO)
+    (d / "stereo_nan.yaml").write_text(STEREO.replace("fx: 50", "fx: .nan"))
+    (d / "stereo_base0.yaml").write_text(STEREO.replace("baseline: 0.1", "baseline: 0"))
+    (d / "stereo_cx.yaml").write_text(STEREO.replace(f"cx: {W / 2}", "cx: -3"))
+    (d / "stereo_1x1.yaml").write_text("width: 1\nheight: 1\nfx: 1\nfy: 1\ncx: 0.5\ncy: 0.5\nbaseline: 0.1\n")
+    cv2.imwrite(str(d / "one.png"), np.zeros((1, 1), np.uint8))
+    cv2.imwrite(str(d / "left.png"), _texture(0))
+    cv2.imwrite(str(d / "right_big.png"), _texture(1, W + 16, H + 12))
+
+
+def _run(argv: list[str]) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.run(VBNAV + argv, capture_output=True, text=True, timeout=120, env=env)
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bad")
+    make_fixtures(d)
+    argvs = {case[0]: case[1].format(d=d).split() for case in CASES}
+    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2)) as pool:
+        done = dict(zip(argvs, pool.map(_run, argvs.values())))
+    assert not (d / "demo_out").exists() and not (d / "route").exists(), "a refused command wrote its output"
+    return done
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_bad_input_is_one_line_and_an_exit_code(results, case):
+    name, _, code, needle = case
+    r = results[name]
+    both = r.stdout + r.stderr
+    assert "Traceback" not in both, both
+    assert r.returncode == code, both
+    if code == 2:
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1, r.stderr
+        assert lines[0].startswith("vbnav"), r.stderr
+        assert needle in lines[0], r.stderr
+    else:   # a device that is not there: the run's summary names it
+        assert needle in both, both
+
+
+def test_closed_stdout_is_no_traceback():
+    """`vbnav ... | head -1` when the reader has gone before we write: no BrokenPipeError traceback,
+    and the exit code of a process ended by SIGPIPE."""
+    for argv in (["config", "reference"], ["run", "--no-camera", "--duration", "1", "--json"]):
+        r_fd, w_fd = os.pipe()
+        os.close(r_fd)                      # the reader is gone: every write to stdout fails
+        p = subprocess.run(VBNAV + argv, stdout=w_fd, stderr=subprocess.PIPE, text=True, timeout=120)
+        os.close(w_fd)
+        assert "Traceback" not in p.stderr and "BrokenPipeError" not in p.stderr, p.stderr
+        assert p.returncode == 141, p.stderr
+
+
+def test_run_into_head_is_no_traceback():
+    cmd = " ".join(VBNAV + ["run", "--no-camera", "--duration", "1"]) + " 2>&1 | head -1"
+    r = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and len(r.stdout.splitlines()) == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stdout + r.stderr
+
+
+def test_unexpected_exception_is_a_bug_with_its_traceback(monkeypatch, capsys):
+    """Anything that is not bad input keeps its traceback and says it is a bug (exit 1)."""
+    from vbnav.control import cli
+    from vbnav.control.commands import config
+
+    def broken(args):
+        raise ZeroDivisionError("boom")
+    monkeypatch.setattr(config, "run", broken)
+    assert cli.main(["config", "reference"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "ZeroDivisionError: boom" in err and "this is a bug" in err
