@@ -197,7 +197,7 @@ def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, 
     """
     out = {}
     for section, table in (("camera", registry.CAMERAS), ("drive", registry.DRIVES)):
-        sec = getattr(cfg, section)
+        sec = getattr(cfg, section)     # the section named in the loop above (a field access by name)
         if sec.driver not in table:
             raise ConfigError(f"{source}: {section}.driver: unknown driver {sec.driver!r}; "
                               f"expected one of {', '.join(sorted(table))}")
@@ -205,6 +205,7 @@ def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, 
             cls = registry.load(table, sec.driver)
         except registry.DriverNotAvailable as exc:
             raise ConfigError(f"{source}: {section}.driver: {exc}") from exc
+        # A driver class states its settings as a pydantic ``Options`` model, or takes none (no model).
         options_model = getattr(cls, "Options", None)
         if options_model is None:
             out[section] = sec.options
@@ -250,6 +251,7 @@ def load_config(path: str | Path | None = None, overrides: Optional[dict] = None
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as exc:
+        # Only yaml's MarkedYAMLError subclasses carry a position and a problem; other YAMLErrors do not.
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         raise ConfigError(f"{p}:{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None

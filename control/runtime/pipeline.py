@@ -115,4 +115,6 @@ class VisionPipeline:
             try:
                 fn(frame, results)
             except Exception as exc:
+                # Naming the listener, not probing it: any callable may listen (a functools.partial has no
+                # __qualname__, its repr then names it).
                 self.fault = f"frame listener {getattr(fn, '__qualname__', fn)}: {exc!r}"
