@@ -127,7 +127,7 @@ def robot(port: int, seconds: float) -> dict:
     applied = {}                                   # estop name -> (arrival ns, wheels zero ns)
     just_applied = []
 
-    def on_command(r, cmd, now):
+    def on_command(r, cmd, outcome, now):
         if cmd.kind == "estop":
             just_applied.append((cmd.args[0] if cmd.args else "?", cmd.arrival_ns))
 

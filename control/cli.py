@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     except Exception:  # pragma: no cover
         ver = "unknown"
     parser.add_argument("--version", action="version", version=f"vbnav {ver}")
+    parser.set_defaults(func=None)      # no command given: main prints the help
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -65,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
+    if args.func is None:
         parser.print_help()
         return EXIT_BAD_INPUT
     name = f"vbnav {args.command}"

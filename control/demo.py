@@ -122,7 +122,7 @@ def plot_paths(png: Path, taught: np.ndarray, repeats: list[np.ndarray], keyfram
 
     fig, ax = plt.subplots(figsize=(9, 7.5), dpi=110)
     if world is not None:
-        for q in getattr(world, "quads", []):
+        for q in world.quads:
             if q.kind in ("wall", "box"):
                 pts = np.array([q.origin, q.origin + q.width * q.u, q.origin + q.width * q.u + q.height * q.v,
                                 q.origin + q.height * q.v])

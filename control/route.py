@@ -97,7 +97,7 @@ def resolve_route(root, name: str, must_exist: bool) -> Path:
 
 def describe_route_error(exc: Exception, route_path: Path, name: str) -> str:
     """An error of loading or writing route ``name`` with its directory shown as ``route 'name'``."""
-    text = str(exc) if isinstance(exc, RouteError) else f"{type(exc).__name__}: {getattr(exc, 'strerror', exc)}"
+    text = str(exc) if isinstance(exc, RouteError) else f"{type(exc).__name__}: {exc.strerror if isinstance(exc, OSError) and exc.strerror else exc}"
     return text.replace(f"{route_path}{os.sep}", f"route {name!r}: ").replace(str(route_path), f"route {name!r}")
 
 

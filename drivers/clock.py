@@ -7,6 +7,22 @@ nanoseconds (``time.monotonic_ns`` semantics).
 from __future__ import annotations
 
 import time
+from typing import Protocol
+
+
+class Clock(Protocol):
+    """What the loop, the mailbox and the drivers need of a clock.
+
+    simulated: True when time advances only as the loop sleeps (SimClock). Runs on a
+    simulated clock are deterministic offline computations: vision runs inline, the
+    network stays closed, and no real-time scheduling is applied.
+    """
+
+    simulated: bool
+
+    def now_ns(self) -> int: ...
+
+    def sleep_until(self, deadline_ns: int) -> None: ...
 
 
 class MonotonicClock:

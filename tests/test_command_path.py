@@ -205,7 +205,7 @@ def test_estop_behind_10000_teleops_over_zenoh_loopback_trips_in_20_of_20_trials
         return submit(cmd)
 
     rt.submit = logged_submit
-    rt.command_listeners.append(lambda r, cmd, now: applied.__setitem__(cmd.args[0], (r.cycle, now))
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.__setitem__(cmd.args[0], (r.cycle, now))
                                 if cmd.kind == "estop" else None)
     link = TelemetryLink.attach(rt, cfg)
     runner = threading.Thread(target=rt.run, args=(120.0,), daemon=True)

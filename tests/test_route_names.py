@@ -67,8 +67,11 @@ def _operator(tmp_path):
 
 
 def _switch(ctl, rt, mode, name):
-    ctl._on_command(rt, OperatorCommand("mode", (mode, name), "op"), 0)
-    ctl._apply_pending() if ctl._pending is not None else None
+    ctl.handle_command(OperatorCommand("mode", (mode, name), "op"), 0)
+    if ctl._worker is not None:
+        ctl._worker.join(timeout=10.0)
+    if ctl._pending is not None:
+        ctl._apply_pending()
 
 
 def test_operator_teach_and_repeat_only_inside_routes_dir(tmp_path):

@@ -29,10 +29,10 @@ def record_target_error(args) -> Optional[str]:
     """Why ``--record`` cannot be written (a recording is there and no ``--overwrite``, or its folder is
     missing), or None; checked before any device opens."""
     from vbnav.control.comms.recording import check_record_target
-    if not getattr(args, "record", None):
+    if not args.record:
         return None
     try:
-        check_record_target(args.record, getattr(args, "overwrite", False))
+        check_record_target(args.record, args.overwrite)
     except (FileExistsError, FileNotFoundError) as exc:
         return str(exc)
     return None

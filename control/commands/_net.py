@@ -75,10 +75,9 @@ def attach_telemetry(rt, cfg, args):
     import sys
 
     from vbnav.control.comms.link import TelemetryLink
-    network = not getattr(args, "no_telemetry", False) and not getattr(rt.clock, "simulated", False)
+    network = not args.no_telemetry and not rt.clock.simulated
     try:
-        return TelemetryLink.attach(rt, cfg, record=getattr(args, "record", None), network=network,
-                                    record_overwrite=getattr(args, "overwrite", False))
+        return TelemetryLink.attach(rt, cfg, record=args.record, network=network, record_overwrite=args.overwrite)
     except ConnectionError as exc:
         print(f"vbnav: {exc}", file=sys.stderr)
         return None

@@ -78,7 +78,7 @@ def type_name(annotation) -> str:
         return " or ".join(json.dumps(a) for a in args)
     if origin in (typing.Union, types.UnionType):
         return " or ".join(type_name(a) for a in args)
-    if origin is not None:
+    if origin is not None:      # typing constructs have no __name__ in every Python version: str() then
         return f"{getattr(origin, '__name__', str(origin))}[{', '.join(type_name(a) for a in args)}]"
     return getattr(annotation, "__name__", str(annotation))
 
@@ -92,7 +92,7 @@ def constraints(field: FieldInfo) -> str:
     """The field's bounds in words: '> 0, <= 1.0', 'at most 8 long', 'pattern ^[a-z]+$'."""
     out = []
     for m in field.metadata:
-        for attr, words in BOUND_WORDS:
+        for attr, words in BOUND_WORDS:    # each metadata object carries one of these bounds
             if getattr(m, attr, None) is not None:
                 out.append(words.format(getattr(m, attr)))
     return ", ".join(out)
@@ -185,7 +185,7 @@ def driver_options_markdown(depth: int = 2) -> list[str]:
             if note is None:
                 try:
                     with _stdout_to_stderr():
-                        options = getattr(registry.load(table, name), "Options", None)
+                        options = getattr(registry.load(table, name), "Options", None)  # none: no settings
                 except registry.DriverNotAvailable as exc:
                     options, note = None, str(exc)
             if note is not None:

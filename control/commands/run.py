@@ -79,8 +79,7 @@ def run(args) -> int:
     try:
         result = rt.run(duration, progress)
     finally:
-        if hasattr(controller, "close"):
-            controller.close()      # a route being taught keeps every keyframe so far
+        controller.close()      # a route being taught keeps every keyframe so far
         link.close(result)
     printer.done()
     summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,

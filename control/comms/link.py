@@ -12,9 +12,11 @@ extension points only:
   rejected command) becomes a ``vbnav/<robot>/events`` message;
 - ``runtime.submit``: validated network commands (estop, resume, teleop, mode)
   go to the loop's command mailbox, which the loop drains at the start of its
-  next cycle; ``runtime.command_listeners``: the ``command`` event is published
+  next cycle and hands to the controller (the link never decides what a command
+  does); ``runtime.command_listeners``: the ``command`` event is published
   once a command took effect, with its cycle, arrival time and the sender's
-  ``ack`` id; ``runtime.command_handlers`` (first in the list) notes the command
+  ``ack`` id (preceded by ``mode_unchanged`` when a mode command asked for the
+  current mode); ``runtime.command_observers`` (first in the list) notes the command
   being applied, so a ``command_rejected`` the loop raises for it carries the ack too;
 - ``pipeline.frame_listeners``: decimated camera frames for ``.../image``.
 
@@ -31,6 +33,8 @@ from vbnav.control.comms.operator_commands import ACK_PATTERN, CommandInbox, Com
 from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.comms.network import open_session, robot_session_config
 from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
+from vbnav.control.runtime.interfaces import Estimate, PoseFix
+from vbnav.vision.geometry import Pose2
 
 
 # The ack id of a payload the robot refused before parsing it (vbnav send puts "ack" first, so it is in the
@@ -62,15 +66,15 @@ def attach(cfg, runtime, record: Optional[str] = None, **kw) -> TelemetryLink:
     return TelemetryLink.attach(runtime, cfg, record=record, **kw)
 
 
-def _estimate_pose(est):
-    """The planar pose in a trusted Estimate: its value if Pose2-like, or ``value.pose`` (VBCFix), else None."""
-    if est is None or not getattr(est, "ok", False):
+def _estimate_pose(est: Optional[Estimate]) -> Optional[Pose2]:
+    """The planar pose in a trusted Estimate: its value if a Pose2, ``value.pose`` if a PoseFix (VBCFix,
+    VslamFix), else None (a teach keyframe, an obstacle report)."""
+    if est is None or not est.ok:
         return None
     v = est.value
-    if hasattr(v, "theta"):
+    if isinstance(v, Pose2):
         return v
-    pose = getattr(v, "pose", None)
-    return pose if hasattr(pose, "theta") else None
+    return v.pose if isinstance(v, PoseFix) else None
 
 
 def _verifier(tcfg: TelemetryConfig):
@@ -146,15 +150,14 @@ class TelemetryLink:
                                   on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
-        runtime.command_handlers.insert(0, link._on_command_start)
-        runtime.command_handlers.append(link._on_mode_command)
+        runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
         if runtime.pipeline is not None and tcfg.image_rate_hz > 0:
             runtime.pipeline.frame_listeners.append(link._on_frame)
         publisher.start()
-        publisher.event("run_start", controller=getattr(runtime.controller, "name", "?"),
+        publisher.event("run_start", controller=runtime.controller.name,
                         loop_rate_hz=cfg.loop.rate_hz, listen=list(tcfg.listen) if session is not None else [],
                         recording=str(record) if record else None, segment=segment)
         return link
@@ -162,7 +165,7 @@ class TelemetryLink:
     # ---- runtime hooks (loop thread) -------------------------------------------------------
     def _on_cycle(self, rt, ctx, twist, wheel_command) -> None:
         self._applying = None   # a command refused in this cycle: later refusals are not its answer
-        mode = getattr(rt.controller, "name", "?")
+        mode = rt.controller.name
         if mode != self._mode:
             self.publisher.event("mode_change", stamp_ns=ctx.now_ns, mode=mode, previous=self._mode)
             self._mode = mode
@@ -190,23 +193,9 @@ class TelemetryLink:
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
             twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns))
 
-    def _on_command_start(self, rt, cmd, now_ns: int) -> bool:
-        """First handler of every command: a refusal raised while it is applied answers its ``ack``."""
+    def _on_command_start(self, rt, cmd, now_ns: int) -> None:
+        """First observer of every command: a refusal raised while it is applied answers its ``ack``."""
         self._applying = cmd
-        return False
-
-    def _on_mode_command(self, rt, cmd, now_ns: int) -> bool:
-        """``mode``: the runtime runs one controller per run, so only the current mode is accepted."""
-        if cmd.kind != "mode" or getattr(rt.controller, "switches_modes", False):
-            return False   # the operator controller switches modes itself
-        target, current = cmd.args[0], getattr(rt.controller, "name", "?")
-        if target == current:
-            self.publisher.event("mode_unchanged", stamp_ns=now_ns, mode=current)
-        else:
-            how = {"idle": "stop this run", "teach": "vbnav teach --out ROUTE",
-                   "repeat": "vbnav repeat --path ROUTE"}.get(target, "a new run")
-            rt.safety.reject(now_ns, "mode", f"this run is '{current}'; switching to '{target}' needs a new run ({how})")
-        return True
 
     def _on_safety(self, ev) -> None:
         if ev.kind == "rejected":
@@ -221,10 +210,12 @@ class TelemetryLink:
     def _on_frame(self, frame, results) -> None:
         self.publisher.offer_image(frame.image, frame.stamp_ns, frame.seq)
 
-    def _on_command_applied(self, rt, cmd, now_ns: int) -> None:
+    def _on_command_applied(self, rt, cmd, outcome, now_ns: int) -> None:
         """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: only a teleop that
         asks for an answer (``ack``) is news."""
         self._applying = None
+        if cmd.kind == "mode" and outcome.unchanged:
+            self.publisher.event("mode_unchanged", stamp_ns=now_ns, mode=rt.controller.name)
         if cmd.kind == "teleop" and not cmd.ack:
             return
         fields = dict(command=cmd.kind, args=list(cmd.args), sender=cmd.source, cycle=rt.cycle,

@@ -29,6 +29,8 @@ import threading
 import time
 from typing import Any, Callable, NamedTuple, Optional, Sequence
 
+from vbnav.vision.geometry import Pose2
+
 STATE_SCHEMA, EVENT_SCHEMA, IMAGE_SCHEMA = "vbnav.state", "vbnav.event", "vbnav.image"
 SCHEMA_VERSION = 1
 QUEUE_LIMIT = 256
@@ -79,9 +81,9 @@ def _num(x) -> Optional[float]:
 def _pose(p) -> Optional[dict]:
     if p is None:
         return None
-    if hasattr(p, "theta"):
+    if isinstance(p, Pose2):
         x, z, th = p.x, p.z, p.theta
-    else:
+    else:                       # (x, z, theta), as tests and replays give it
         x, z, th = p
     x, z, th = _num(x), _num(z), _num(th)
     if x is None or z is None or th is None:

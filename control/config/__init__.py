@@ -222,7 +222,7 @@ def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, 
     """
     out = {}
     for section, table in (("camera", registry.CAMERAS), ("drive", registry.DRIVES)):
-        sec = getattr(cfg, section)
+        sec = getattr(cfg, section)     # the section named in the loop above (a field access by name)
         if sec.driver not in table:
             raise ConfigError(f"{source}: {section}.driver: unknown driver {sec.driver!r}; "
                               f"expected one of {', '.join(sorted(table))}")
@@ -230,6 +230,7 @@ def validate_driver_options(cfg: Config, source: str = "<config>") -> dict[str, 
             cls = registry.load(table, sec.driver)
         except registry.DriverNotAvailable as exc:
             raise ConfigError(f"{source}: {section}.driver: {exc}") from exc
+        # A driver class states its settings as a pydantic ``Options`` model, or takes none (no model).
         options_model = getattr(cls, "Options", None)
         if options_model is None:
             out[section] = sec.options

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from typing import Optional
 
-from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
+from vbnav.control.runtime.mailbox import OperatorCommand
 
 
 class ScriptedController(Controller):
@@ -76,6 +77,14 @@ class TeleopController(Controller):
         """Drop the held command (after a loop stall): only a fresh one moves the robot again."""
         self._cmd = STOP
         self._stamp = None
+
+    def handle_command(self, cmd: OperatorCommand, now_ns: int) -> CommandOutcome:
+        """``teleop`` (v, w) sets the command; freshness runs from when it was sent (mapped to the
+        loop's clock by the mailbox), not from now. Other commands: as every controller."""
+        if cmd.kind == "teleop":
+            self.set_command(float(cmd.args[0]), float(cmd.args[1]), cmd.sent_ns)
+            return APPLIED
+        return super().handle_command(cmd, now_ns)
 
     def update(self, ctx: ControlContext) -> Twist:
         self.timed_out = self._stamp is None or ctx.now_ns - self._stamp > self.timeout_ns

@@ -1,5 +1,10 @@
 """Operator mode switching inside one run: idle, teach and repeat, as `cmd/mode` asks.
 
+This is the one place where a run switches modes. The runtime and the telemetry
+link only forward `mode` commands to the controller's ``handle_command``
+(runtime/interfaces.py); a controller that runs a single mode answers them with
+the base class's default (the current mode is unchanged, any other needs a new run).
+
 The robot's everyday session on hardware: ``vbnav run --controller operator``
 starts idle (teleop commands drive it); ``mode teach ROUTE`` starts recording a
 route while the operator drives; ``mode idle`` closes the route (every keyframe
@@ -22,19 +27,22 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 from vbnav.control.controllers.manual import TeleopController
 from vbnav.control.route import describe_route_error, load_route, resolve_route, routes_root
-from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
+from vbnav.control.runtime.mailbox import OperatorCommand
 from vbnav.control.session import Repeating, Teaching
+
+if TYPE_CHECKING:
+    from vbnav.control.runtime.runtime import Runtime
 
 MODES = ("idle", "teach", "repeat")
 
 
 class OperatorController(Controller):
     requires: tuple[str, ...] = ()
-    switches_modes = True      # telemetry leaves `cmd/mode` to this controller
 
     def __init__(self, cfg, pipeline, teleop_timeout_s: float):
         self.cfg = cfg
@@ -48,6 +56,7 @@ class OperatorController(Controller):
         self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error)
         self._worker: Optional[threading.Thread] = None
         self.errors: list[str] = []
+        self._runtime: Optional["Runtime"] = None       # hears a switch that fails after it was accepted
 
     # -- Controller ----------------------------------------------------------
     @property
@@ -65,9 +74,6 @@ class OperatorController(Controller):
                 self._start_switch("idle", None, ctx.now_ns)
             return twist
         return self.teleop.update(ctx)   # idle and teach: the operator drives (STOP when silent)
-
-    def set_command(self, v: float, w: float, sent_ns: int) -> None:
-        self.teleop.set_command(v, w, sent_ns)
 
     def forget_command(self) -> None:
         self.teleop.forget_command()
@@ -87,30 +93,30 @@ class OperatorController(Controller):
         return s
 
     # -- commands ------------------------------------------------------------
-    def attach(self, runtime) -> "OperatorController":
-        runtime.command_handlers.append(self._on_command)
+    def attach(self, runtime: "Runtime") -> "OperatorController":
+        """Let a switch that fails on the worker (a route that does not load) be refused in the runtime's
+        events; without it the failure is only kept in ``errors``."""
         self._runtime = runtime
         return self
 
-    def _on_command(self, rt, cmd, now_ns: int) -> bool:
+    def handle_command(self, cmd: OperatorCommand, now_ns: int) -> CommandOutcome:
+        """``teleop`` drives (in every mode; it only moves the robot in idle and teach); ``mode`` switches."""
+        if cmd.kind == "teleop":
+            return self.teleop.handle_command(cmd, now_ns)
         if cmd.kind != "mode":
-            return False
+            return super().handle_command(cmd, now_ns)
         target = cmd.args[0] if cmd.args else None
         route = cmd.args[1] if len(cmd.args) > 1 else None
         if target not in MODES:
-            self._reject(rt, now_ns, f"unknown mode {target!r}; expected one of {', '.join(MODES)}")
-        elif self._worker is not None:
-            self._reject(rt, now_ns, f"a switch to {self._worker.name} is still in progress")
-        elif target in ("teach", "repeat") and not route:
-            self._reject(rt, now_ns, f"mode {target!r} needs a route path")
-        elif target == "teach" and self.pipeline is None:
-            self._reject(rt, now_ns, "mode 'teach' needs a camera (this run has none)")
-        else:
-            self._start_switch(target, route, now_ns)
-        return True
-
-    def _reject(self, rt, now_ns: int, message: str) -> None:
-        rt.safety.reject(now_ns, "mode", message)
+            return CommandOutcome.refused(f"unknown mode {target!r}; expected one of {', '.join(MODES)}")
+        if self._worker is not None:
+            return CommandOutcome.refused(f"a switch to {self._worker.name} is still in progress")
+        if target in ("teach", "repeat") and not route:
+            return CommandOutcome.refused(f"mode {target!r} needs a route path")
+        if target == "teach" and self.pipeline is None:
+            return CommandOutcome.refused("mode 'teach' needs a camera (this run has none)")
+        self._start_switch(target, route, now_ns)
+        return APPLIED
 
     # -- switching (worker thread) --------------------------------------------
     def _start_switch(self, target: str, route: Optional[str], now_ns: int) -> None:
@@ -167,9 +173,9 @@ class OperatorController(Controller):
         self._worker = None
         if error:
             self.errors.append(error)
-            rt = getattr(self, "_runtime", None)
+            rt = self._runtime
             if rt is not None:
-                self._reject(rt, rt.clock.now_ns(), error)
+                rt.safety.reject(rt.clock.now_ns(), "mode", error)
             return
         self.mode, self.route_path, self.active = mode, route, controller
         self.requires = ("vbc",) if mode == "repeat" else ()

@@ -13,7 +13,7 @@ from typing import Optional
 from vbnav.control.config import Config, validate_driver_options
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.drivers import registry
-from vbnav.drivers.clock import MonotonicClock, SimClock
+from vbnav.drivers.clock import Clock, MonotonicClock, SimClock
 from vbnav.vision.geometry import Pose2
 
 
@@ -21,7 +21,7 @@ from vbnav.vision.geometry import Pose2
 class Robot:
     """What ``make_robot`` builds. ``world`` and ``start`` are set for the simulated drive only."""
 
-    clock: object
+    clock: Clock
     drive: object
     camera: Optional[object] = None
     pipeline: Optional[VisionPipeline] = None
@@ -46,7 +46,7 @@ def noise_seed(cfg: Config, run: int = 0) -> int:
     return cfg.sim.seed * 1000 + run
 
 
-def make_clock(cfg: Config):
+def make_clock(cfg: Config) -> Clock:
     if uses_sim_clock(cfg):
         return SimClock()
     return MonotonicClock(spin_ns=cfg.loop.spin_us * 1000)
@@ -87,7 +87,7 @@ def make_pipeline(cfg: Config, clock, camera, stages) -> VisionPipeline:
         obstacle_stage = make_obstacle_stage(cfg)
         if obstacle_stage is not None:
             stages.append(obstacle_stage)
-    inline = getattr(clock, "simulated", False)
+    inline = clock.simulated
     return VisionPipeline(camera, stages, clock, inline=inline,
                           latency_s=cfg.sim.vision_latency_s if inline else 0.0)
 

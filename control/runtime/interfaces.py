@@ -1,4 +1,10 @@
-"""What the runtime plugs together: vision stages, estimates and controllers.
+"""What the runtime plugs together: vision stages, estimates, controllers and operator commands.
+
+This module is the one place that states what a plug-in offers. Every optional
+capability is an explicit member with a default here (a stage's
+``safety_critical``, a controller's ``handle_command`` and ``forget_command``),
+so the runtime and telemetry call them directly and never probe with
+``getattr``/``hasattr``.
 
 Data flow (DESIGN.md): a camera frame goes through the configured vision stages
 (VBC, VSLAM, obstacles), each of which returns an Estimate; the fixed-rate loop
@@ -15,6 +21,7 @@ import abc
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from vbnav.control.runtime.mailbox import OperatorCommand
 from vbnav.drivers.camera import Frame
 from vbnav.drivers.wheels import WheelState
 from vbnav.vision.geometry import Pose2
@@ -50,6 +57,16 @@ class Estimate:
         return (now_ns - self.stamp_ns) * 1e-9
 
 
+class PoseFix:
+    """Base of stage results that place the robot (``Estimate.value`` of vbc and vslam).
+
+    pose: the robot's planar pose in the stage's frame (relative to a keyframe for VBC, the
+    world for VSLAM); telemetry shows it. Subclasses are dataclasses that declare the field.
+    """
+
+    pose: Pose2
+
+
 @dataclass
 class ControlContext:
     now_ns: int
@@ -71,10 +88,37 @@ class VisionStage(abc.ABC):
     """One vision computation run on every frame (on the vision thread)."""
 
     kind: str = "vision"
+    #: True for stages the robot must not move without (obstacle zones): the safety monitor stops the
+    #: robot when this stage's estimate is older than safety.estimate_timeout_s, whatever the controller.
+    safety_critical: bool = False
 
     @abc.abstractmethod
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         """Estimate from one frame; ``odom`` is the wheel odometry at (about) the frame time."""
+
+
+@dataclass(frozen=True)
+class CommandOutcome:
+    """A controller's answer to an operator command.
+
+    applied: the command took effect (the runtime tells its ``command_listeners``); otherwise it is
+    refused and ``reason`` becomes the ``rejected`` safety event the operator sees. unchanged: applied,
+    but the state already was what the command asked for (a ``mode`` equal to the current one).
+    """
+
+    applied: bool
+    reason: str = ""
+    unchanged: bool = False
+
+    @classmethod
+    def refused(cls, reason: str) -> "CommandOutcome":
+        return cls(False, reason)
+
+
+APPLIED = CommandOutcome(True)
+
+#: what starts each mode when a run has a single controller (the refusal names it)
+_NEW_RUN_FOR = {"idle": "stop this run", "teach": "vbnav teach --out ROUTE", "repeat": "vbnav repeat --path ROUTE"}
 
 
 class Controller(abc.ABC):
@@ -107,3 +151,28 @@ class Controller(abc.ABC):
         (not through the acceleration limiter) while one is active.
         """
         return {}
+
+    # -- operator commands (loop thread) ---------------------------------------
+    def handle_command(self, cmd: OperatorCommand, now_ns: int) -> CommandOutcome:
+        """Apply an operator command; the runtime itself handles ``estop`` and ``resume``.
+
+        The default is a controller that runs one mode and takes no teleop: a ``mode`` command
+        naming the current mode is acknowledged as unchanged, any other mode is refused with the
+        command that starts it (switching lives in controllers/operator.py), and anything else
+        (``teleop``) is refused as not supported. Controllers that take teleop or switch modes
+        override this.
+        """
+        if cmd.kind == "mode":
+            target = cmd.args[0] if cmd.args else None
+            if target == self.name:
+                return CommandOutcome(True, unchanged=True)
+            how = _NEW_RUN_FOR.get(target, "a new run")
+            return CommandOutcome.refused(f"this run is '{self.name}'; switching to '{target}' needs a new run "
+                                          f"({how})")
+        return CommandOutcome.refused(f"command {cmd.kind!r} not supported by this run")
+
+    def forget_command(self) -> None:
+        """Drop any held operator command (after a loop stall), so only a fresh one moves the robot."""
+
+    def close(self) -> None:
+        """End of the run, after the loop stopped: release what the controller opened (a route being taught)."""

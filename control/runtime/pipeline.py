@@ -35,6 +35,7 @@ class VisionPipeline:
         self.last_frame: Optional[Frame] = None
         self.frames = 0
         self.fault: Optional[str] = None
+        self.fault_traceback: Optional[str] = None   # of a stage exception (None for a camera fault)
         self.frame_listeners: list[Callable[[Frame, dict], None]] = []
         self.odom: Pose2 = Pose2()          # written by the loop every cycle
         self._pending: deque = deque()      # inline mode: (release_ns, frame, estimates)
@@ -83,7 +84,7 @@ class VisionPipeline:
             try:
                 frame = self.camera.read(0.05)
             except Exception as exc:
-                self.fault = f"camera {getattr(self.camera, 'name', '')}: {exc!r}"
+                self.fault = f"camera {self.camera.name}: {exc!r}"
                 return
             if frame is None:
                 time.sleep(0.001)
@@ -114,4 +115,6 @@ class VisionPipeline:
             try:
                 fn(frame, results)
             except Exception as exc:
+                # Naming the listener, not probing it: any callable may listen (a functools.partial has no
+                # __qualname__, its repr then names it).
                 self.fault = f"frame listener {getattr(fn, '__qualname__', fn)}: {exc!r}"

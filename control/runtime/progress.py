@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Optional, TextIO
 
 
 class ProgressPrinter:
-    def __init__(self, stream=None, min_interval_s: float = 0.5):
+    def __init__(self, stream: Optional[TextIO] = None, min_interval_s: float = 0.5):
         self.stream = stream or sys.stderr
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.tty = self.stream.isatty()
         self.min_interval_s = min_interval_s if self.tty else 5.0
         self._last = 0.0
         self._width = 0

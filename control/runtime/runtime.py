@@ -15,8 +15,12 @@ needs fresh commands. During the stall itself the drive keeps its last command:
 only the drive's own watchdog can act inside it.
 
 Operator commands reach the loop through a ``CommandMailbox`` (mailbox.py):
-``submit`` from any thread, drained once per cycle; ``command_listeners`` hear
-each command after it took effect.
+``submit`` from any thread, drained once per cycle. The runtime applies
+``estop`` and ``resume`` itself and forwards every other command to the
+controller's ``handle_command`` (interfaces.py), which applies it or refuses it
+with a reason; a refusal is a ``rejected`` safety event. ``command_observers``
+hear each command before it is applied, ``command_listeners`` after it took
+effect.
 """
 from __future__ import annotations
 
@@ -28,7 +32,7 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
-from vbnav.control.runtime.interfaces import STOP, ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
 from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
@@ -36,6 +40,7 @@ from vbnav.control.runtime.odometry import Odometry
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
 from vbnav.drivers.camera import CameraError
+from vbnav.drivers.clock import Clock
 from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
 
 
@@ -53,7 +58,7 @@ class RunResult:
 
 
 class Runtime:
-    def __init__(self, cfg, drive: WheelDrive, controller: Controller, clock,
+    def __init__(self, cfg, drive: WheelDrive, controller: Controller, clock: Clock,
                  pipeline: Optional[VisionPipeline] = None):
         self.cfg = cfg
         self.drive = drive
@@ -67,9 +72,10 @@ class Runtime:
         self.safety = SafetyMonitor(release_s=cfg.safety.release_s)
         self.mailbox = CommandMailbox(clock.now_ns, int(cfg.safety.command_timeout_s * 1e9))
         self.cycle_observers: list[Callable[["Runtime", ControlContext, Twist, tuple], None]] = []
-        self.command_handlers: list[Callable[["Runtime", OperatorCommand, int], bool]] = []
-        # called after a command took effect (not for refused ones): (runtime, command, now_ns)
-        self.command_listeners: list[Callable[["Runtime", OperatorCommand, int], None]] = []
+        # called before each drained command is applied: (runtime, command, now_ns)
+        self.command_observers: list[Callable[["Runtime", OperatorCommand, int], None]] = []
+        # called after a command took effect (not for refused ones): (runtime, command, outcome, now_ns)
+        self.command_listeners: list[Callable[["Runtime", OperatorCommand, CommandOutcome, int], None]] = []
         self.wheel_command = (0.0, 0.0)
         self.last_twist = STOP
         self.wheels: Optional[WheelState] = None
@@ -168,7 +174,7 @@ class Runtime:
             if self.pipeline is not None:
                 self.pipeline.poll(now, odom)
                 if self.pipeline.fault:
-                    self.fault_traceback = getattr(self.pipeline, "fault_traceback", None)
+                    self.fault_traceback = self.pipeline.fault_traceback
                     return self._finish(now, "exception", self.pipeline.fault)
                 estimates = dict(self.pipeline.latest)
                 self._check_camera(now)
@@ -227,9 +233,7 @@ class Runtime:
                                        f"{limit:g}, loop.stall_periods); the wheels kept their last command "
                                        f"meanwhile; resume to drive again")
         self.mailbox.refuse_teleop_sent_before(now - late)
-        forget = getattr(self.controller, "forget_command", None)
-        if forget is not None:
-            forget()
+        self.controller.forget_command()
 
     def _check_camera(self, now: int) -> None:
         cam = self.pipeline.camera
@@ -262,7 +266,7 @@ class Runtime:
         limit = self.cfg.safety.estimate_timeout_s
         kinds = list(self.controller.requires)
         if self.pipeline is not None:
-            kinds += [s.kind for s in self.pipeline.stages if getattr(s, "safety_critical", False)]
+            kinds += [s.kind for s in self.pipeline.stages if s.safety_critical]
         for kind in kinds:
             e = ctx.estimates.get(kind)
             stale = e is None and ctx.now_ns - self._start_ns > (limit + 2.0) * 1e9 \
@@ -274,24 +278,24 @@ class Runtime:
         for cmd, reason in refused:
             self.safety.reject(now, cmd.kind, reason)
         for cmd in commands:
-            events_before = len(self.safety.events)
-            handled = False
-            for fn in self.command_handlers:
-                handled = fn(self, cmd, now) or handled
-            if cmd.kind == "estop":
-                self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
-            elif cmd.kind == "resume":
-                self.safety.reset(now, f"resume from {cmd.source}")
-            elif cmd.kind == "teleop" and hasattr(self.controller, "set_command"):
-                # Freshness runs from when it was sent (mapped to this clock), not from now.
-                self.controller.set_command(float(cmd.args[0]), float(cmd.args[1]), cmd.sent_ns)
-            elif not handled:
-                self.safety.reject(now, cmd.kind, f"command {cmd.kind!r} not supported by this run")
-                continue
-            if any(e.kind == "rejected" for e in self.safety.events[events_before:]):
-                continue      # a handler refused it (e.g. a mode this run cannot switch to)
-            for fn in self.command_listeners:
+            for fn in self.command_observers:
                 fn(self, cmd, now)
+            outcome = self._apply_command(cmd, now)
+            if not outcome.applied:
+                self.safety.reject(now, cmd.kind, outcome.reason)
+                continue
+            for fn in self.command_listeners:
+                fn(self, cmd, outcome, now)
+
+    def _apply_command(self, cmd: OperatorCommand, now: int) -> CommandOutcome:
+        """estop and resume are the runtime's; the controller answers every other command."""
+        if cmd.kind == "estop":
+            self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
+            return APPLIED
+        if cmd.kind == "resume":
+            self.safety.reset(now, f"resume from {cmd.source}")
+            return APPLIED
+        return self.controller.handle_command(cmd, now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):
@@ -316,7 +320,7 @@ class Runtime:
     # -- scheduling ----------------------------------------------------------
     def _apply_scheduling(self):
         """Real-time settings for the loop's thread (real clock only). Returns an undo function."""
-        if getattr(self.clock, "simulated", False):
+        if self.clock.simulated:
             return lambda: None
         lc = self.cfg.loop
         old_interval = sys.getswitchinterval()

@@ -4,11 +4,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from vbnav.control.config.vbc import VBCConfig
+from vbnav.control.runtime.interfaces import PoseFix
 from vbnav.vision.geometry import Pose2
 
 
 @dataclass
-class VBCFix:
+class VBCFix(PoseFix):
     """A repeat-stage result: the robot relative to keyframe ``keyframe`` at the frame's time."""
 
     keyframe: int

@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
-from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, PoseFix, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe, to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
@@ -71,7 +71,7 @@ def camera_to_robot(pose_wc: np.ndarray, mount: CameraMount) -> tuple[Pose2, flo
 
 # ------------------------------------------------------------------------------------- stage
 @dataclass
-class VslamFix:
+class VslamFix(PoseFix):
     """A VSLAM result: the robot pose in the reference (world) frame at the frame's time."""
 
     pose: Pose2
