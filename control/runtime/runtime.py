@@ -35,7 +35,7 @@ from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
 from vbnav.control.runtime.odometry import Odometry
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
-from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+from vbnav.drivers.wheels import DriveError, DriveState, WheelDrive, WheelState
 
 
 @dataclass
@@ -157,8 +157,8 @@ class Runtime:
             self._check_stall(now)
             wheels = self.drive.read()
             self.wheels = wheels
-            if wheels.faults:
-                return self._finish(now, "drive", "drive fault: " + "; ".join(wheels.faults))
+            if wheels.drive_state is DriveState.ERROR:
+                return self._finish(now, "drive", "drive fault: " + "; ".join(map(str, wheels.faults)))
             stage = "odometry"
             odom = self.odometry.update(wheels)
             stage = "vision"
