@@ -290,3 +290,29 @@ def test_back_within_the_window_but_faulted_ends_the_run_with_the_fault(device):
     assert (end.stamp_ns - rt._start_ns) * 1e-9 < 1.0 + 1.0    # at the first attempts after the replug
     with device.dev.lock:
         assert device.stopped() and not device.powered()
+
+
+def test_telemetry_says_the_drive_state_its_typed_faults_and_the_reconnect(tmp_path):
+    import json
+
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.comms.recording import iter_recording
+
+    cfg = Config.model_validate({"drive": {"reconnect_window_s": 3.0}, "telemetry": {"enabled": False}})
+    rt, drive, _clock = make_runtime(Cruise(), camera=False, cfg=cfg)
+    drive.options = drive.Options(fail_after_s=1.0, lost_for_s=1.0)
+    link = TelemetryLink.attach(rt, cfg, record=str(tmp_path / "run.mcap"))
+    result = rt.run(duration_s=3.0)
+    link.close(result)
+    msgs = [(t, json.loads(d)) for t, _, _, d in iter_recording(tmp_path / "run.mcap")]
+    states = [m for t, m in msgs if t == "/vbnav/state"]
+    events = {m["kind"]: m for t, m in msgs if t == "/vbnav/events"}
+    assert {s["drive"]["state"] for s in states} == {"active", "error", "inactive"}
+    lost = [s for s in states if s["drive"]["state"] == "error"]
+    assert all(s["drive"]["faults"] == [{"kind": "bus_lost", "device": "sim bus", "message": (
+        "sim drive: bus lost (injected by options.fail_after_s); the motors lost power")}] for s in lost)
+    assert all(s["wheels"]["meas"] == {"left": None, "right": None} and s["safety"]["state"] == "stopped"
+               for s in lost)
+    assert events["safety_trip"]["cause"] == "drive_lost"
+    back = events["drive_reconnected"]
+    assert back["cause"] == "drive_lost" and "until resume" in back["message"]
