@@ -31,7 +31,8 @@ def make_camera(cfg: Config, clock, drive=None, options=None, world=None):
     opts = options or validate_driver_options(cfg, cfg.source or "<config>")["camera"]
     cls = registry.load(registry.CAMERAS, cfg.camera.driver)
     if cfg.camera.driver == "sim":
-        if drive is None or not hasattr(drive, "true_pose"):
+        from vbnav.drivers.sim.base import SimDiffDrive
+        if not isinstance(drive, SimDiffDrive):
             raise ValueError("camera.driver 'sim' needs drive.driver 'sim' (it renders from the simulated pose)")
         return cls.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose, world=world)
     return cls.from_config(cfg, clock, opts)

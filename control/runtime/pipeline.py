@@ -83,7 +83,7 @@ class VisionPipeline:
             try:
                 frame = self.camera.read(0.05)
             except Exception as exc:
-                self.fault = f"camera {getattr(self.camera, 'name', '')}: {exc!r}"
+                self.fault = f"camera {self.camera.name}: {exc!r}"
                 return
             if frame is None:
                 time.sleep(0.001)
