@@ -273,7 +273,8 @@ def test_unplugged_beyond_the_window_ends_the_run_with_the_cause(device):
     assert "lost" in result.message and "watchdog" in result.message
     assert "not back within 0.8 s (drive.reconnect_window_s)" in result.message
     lost, end = _events(result, "trip", "drive_lost")[0], _events(result, "trip", "drive")[0]
-    assert 0.8 <= (end.stamp_ns - lost.stamp_ns) * 1e-9 < 0.8 + 0.2
+    # the window, plus one cycle and the real clock's scheduling slack on a loaded machine
+    assert 0.8 <= (end.stamp_ns - lost.stamp_ns) * 1e-9 < 0.8 + 0.5
     assert all(cmd == (0.0, 0.0) for ts, _, cmd, *_ in samples if ts >= (lost.stamp_ns - rt._start_ns) * 1e-9)
     with device.dev.lock:
         assert device.stopped()      # the device's watchdog stopped the wheels
