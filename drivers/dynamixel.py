@@ -28,7 +28,7 @@ from vbnav.drivers.dynamixel_protocol import to_signed
 from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, HW_ERROR_BITS, MODE_VELOCITY, MODEL_NUMBERS,
                                            TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
 from vbnav.drivers.serial_drive import SerialWheelDrive
-from vbnav.drivers.wheels import DriveError, WheelState
+from vbnav.drivers.wheels import DriveError, DriveFault, FaultKind, WheelState
 
 try:  # imported lazily by the registry; a clear error if the SDK is missing
     import dynamixel_sdk as sdk
@@ -135,84 +135,71 @@ class DynamixelDrive(SerialWheelDrive):
         self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
 
-    # -- lifecycle ------------------------------------------------------------------------
-    def connect(self) -> None:
+    # -- lifecycle hooks (WheelDrive owns the states) ---------------------------------------
+    def _configure(self) -> None:
         """Open the adapter and bring the servos up in the safe order; torque stays off."""
-        with self._lock:
-            self._open_port()
-            try:
-                with self.port.relaxed(BRING_UP_EXTRA_MS):
-                    self._bring_up()
-            except DriveError:
-                self._stop_wheels()
-                self._close_device()
-                raise
-            self._connected = True
+        self._open_port()
+        with self.port.relaxed(BRING_UP_EXTRA_MS):
+            self._bring_up()
 
-    def enable(self) -> None:
-        with self._lock:
-            self._check_can_enable()
-            with self.port.relaxed(BRING_UP_EXTRA_MS):
-                self._arm()
-            self._enabled = True
-            self._last_write_ns = self.clock.now_ns()
+    def _activate(self) -> None:
+        with self.port.relaxed(BRING_UP_EXTRA_MS):
+            self._arm()
+        self._last_write_ns = self.clock.now_ns()
 
     def _arm(self) -> None:
         """Zero goals, re-arm the watchdog, torque on."""
         for i in self.ids:
             # a watchdog that expired while we were away reads 0xFF and locks the goals: clear, re-arm
-            self._write(i, reg.BUS_WATCHDOG, 0)
-            self._write(i, reg.GOAL_VELOCITY, 0)
-            self._write(i, reg.BUS_WATCHDOG, self._watchdog_units)
+            self._write_register(i, reg.BUS_WATCHDOG, 0)
+            self._write_register(i, reg.GOAL_VELOCITY, 0)
+            self._write_register(i, reg.BUS_WATCHDOG, self._watchdog_units)
         for i in self.ids:
-            self._write(i, reg.TORQUE_ENABLE, 1)
+            self._write_register(i, reg.TORQUE_ENABLE, 1)
 
-    def write(self, left: float, right: float) -> None:
-        with self._lock:
-            self._check_can_write()
-            now = self.clock.now_ns()
-            if self._last_write_ns is not None and (now - self._last_write_ns) * 1e-9 > self._watchdog_units * WATCHDOG_UNIT_S:
-                self._check_watchdog(now)
-            units = [self._to_units(self.signs[k] * v) for k, v in enumerate((left, right))]
-            self._guard(lambda: self._sync_write_velocity(units), "sync write of Goal Velocity")
-            self._last_write_ns = now
+    def _write(self, left: float, right: float) -> None:
+        now = self.clock.now_ns()
+        if self._last_write_ns is not None and (now - self._last_write_ns) * 1e-9 > self._watchdog_units * WATCHDOG_UNIT_S:
+            self._check_watchdog(now)
+        units = [self._to_units(self.signs[k] * v) for k, v in enumerate((left, right))]
+        ok, why = self._guard_io(lambda: self._sync_write_velocity(units))
+        if not ok:
+            if not self._port_present():
+                self._lost(OSError(why))
+            self._fault(DriveFault(FaultKind.SEND_FAILED, f"dynamixel adapter {self.opt.port}",
+                                   f"sync write of Goal Velocity: {why}"))
+        self._last_write_ns = now
 
-    def read(self) -> WheelState:
-        with self._lock:
-            self._ensure_connected()
-            ok, err = self._guard(self._sync_read_state, "sync read of Present Velocity/Position")
-            if ok:
-                self._missed_reads = 0
-            else:
-                self._missed_read(err)
-            return self._state
+    def _read(self) -> WheelState:
+        self._check_device()
+        fault = self._guard_io(self._sync_read_state)
+        if fault is None:
+            self._missed_reads = 0
+        else:
+            if not self._port_present():
+                self._lost(OSError(fault.message))
+            self._missed_read(fault)
+        return self._measured
 
-    def clear_faults(self) -> None:
+    def _clear_faults(self) -> None:
         """REBOOT servos that report a hardware error (only a reboot clears it), then bring them up again.
 
         Works also when connect() itself failed on a hardware error."""
-        with self._lock:
-            if self.port is None:
-                self._open_port()
-            try:
-                with self.port.relaxed(BRING_UP_EXTRA_MS):
-                    for i in self.ids:
-                        bits, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address))
-                        if res == sdk.COMM_SUCCESS and bits == 0:
-                            continue
-                        res, _ = self._guard_io(lambda: self.ph.reboot(self.port, i))
-                        if res != sdk.COMM_SUCCESS:
-                            raise DriveError(f"servo {i} ({self.sides[i]}): REBOOT failed: "
-                                             f"{self.ph.getTxRxResult(res)}")
-                        time.sleep(0.05)  # the servo restarts before it answers again
-                        self._last_raw[i] = None  # position restarts within one turn; keep accumulating
-                    self.faults.clear()
-                    self._missed_reads = 0
-                    self._bring_up()
-            except DriveError:
-                self._stop_wheels()
-                raise
-            self._connected = True
+        if self.port is None:
+            self._open_port()
+        with self.port.relaxed(BRING_UP_EXTRA_MS):
+            for i in self.ids:
+                bits, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address))
+                if res == sdk.COMM_SUCCESS and bits == 0:
+                    continue
+                res, _ = self._guard_io(lambda: self.ph.reboot(self.port, i))
+                if res != sdk.COMM_SUCCESS:
+                    raise DriveError(f"servo {i} ({self.sides[i]}): REBOOT failed: "
+                                     f"{self.ph.getTxRxResult(res)}")
+                time.sleep(0.05)  # the servo restarts before it answers again
+                self._last_raw[i] = None  # position restarts within one turn; keep accumulating
+            self._missed_reads = 0
+            self._bring_up()
 
     # -- bring-up -----------------------------------------------------------------------------
     def _open_port(self) -> None:
@@ -232,7 +219,10 @@ class DynamixelDrive(SerialWheelDrive):
         for i in self.ids:
             self._sync_read.addParam(i)
 
-    def _close_device(self) -> None:
+    def _device_open(self) -> bool:
+        return self.port is not None
+
+    def _release(self) -> None:
         if self.port is not None:
             try:
                 self.port.closePort()
@@ -259,9 +249,9 @@ class DynamixelDrive(SerialWheelDrive):
         for i in self.ids:
             bits, res, err = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address))
             if res == sdk.COMM_SUCCESS and bits:
-                msg = f"servo {i} ({self.sides[i]}) hardware error: {decode_hardware_error(bits)}"
-                self.faults.append(msg)
-                raise DriveError(msg + "; only a REBOOT clears it (clear_faults)")
+                fault = self._hardware_fault(i, decode_hardware_error(bits))
+                self._record_fault(fault)
+                raise DriveError(fault.message)
         accel_units = int(round(self.opt.profile_acceleration_rad_s2 / ACCEL_UNIT_RAD_S2))
         steps = [(reg.TORQUE_ENABLE, 0),
                  (reg.OPERATING_MODE, MODE_VELOCITY),
@@ -272,11 +262,16 @@ class DynamixelDrive(SerialWheelDrive):
                  (reg.BUS_WATCHDOG, self._watchdog_units)]
         for register, value in steps:
             for i in self.ids:
-                self._write(i, register, value)
+                self._write_register(i, register, value)
         self._last_raw = {i: None for i in self.ids}
-        self._state = WheelState(self.clock.now_ns(), self._positions(), (0.0, 0.0))
+        self._measured = WheelState(self.clock.now_ns(), self._positions(), (0.0, 0.0))
 
-    def _write(self, i: int, register: Register, value: int) -> None:
+    def _hardware_fault(self, i: int, detail: str) -> DriveFault:
+        return DriveFault(FaultKind.HARDWARE_ERROR, f"servo {i} ({self.sides[i]})",
+                          f"servo {i} ({self.sides[i]}) hardware error: {detail}; only a REBOOT clears it "
+                          f"(clear_faults)")
+
+    def _write_register(self, i: int, register: Register, value: int) -> None:
         """A confirmed register write (bring-up, enable): retried, since none of them is time-critical."""
         fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[register.size]
         addr, what = register.address, register.name
@@ -288,8 +283,11 @@ class DynamixelDrive(SerialWheelDrive):
             raise DriveError(f"servo {i} ({self.sides[i]}): writing {what} ({addr}) = {value} got no answer: "
                              f"{self.ph.getTxRxResult(res)}")
         if err & 0x7F:
-            raise DriveError(f"servo {i} ({self.sides[i]}): writing {what} ({addr}) = {value} refused: "
-                             f"{self.ph.getRxPacketError(err)}")
+            fault = DriveFault(FaultKind.SETUP, f"servo {i} ({self.sides[i]})",
+                               f"servo {i} ({self.sides[i]}): writing {what} ({addr}) = {value} refused: "
+                               f"{self.ph.getRxPacketError(err)}")
+            self._record_fault(fault)
+            raise DriveError(fault.message)
 
     # -- per-cycle I/O ---------------------------------------------------------------------------
     def _to_units(self, rate: float) -> int:
@@ -304,21 +302,24 @@ class DynamixelDrive(SerialWheelDrive):
             return False, f"sync write failed: {self.ph.getTxRxResult(res)}"
         return True, ""
 
-    def _sync_read_state(self) -> tuple[bool, str]:
+    def _sync_read_state(self) -> Optional[DriveFault]:
         """One sync read; each servo's status is received with its error byte (GroupSyncRead's own
-        rxPacket drops it, and with it the hardware-alert bit)."""
+        rxPacket drops it, and with it the hardware-alert bit). None when it worked, else what went wrong."""
         res = self._sync_read.txPacket()
         if res != sdk.COMM_SUCCESS:
-            return False, f"sync read could not be sent: {self.ph.getTxRxResult(res)}"
+            return DriveFault(FaultKind.SEND_FAILED, f"dynamixel adapter {self.opt.port}",
+                              f"sync read could not be sent: {self.ph.getTxRxResult(res)}")
         values = {}
         alerts = []
         for i in self.ids:
             data, res, err = self.ph.readRx(self.port, i, _STATE_BLOCK[1])
             if res != sdk.COMM_SUCCESS:
-                why = "no status packet (servo not answering)" if res == sdk.COMM_RX_TIMEOUT else \
-                    "corrupted status packet (bad CRC or truncated)" if res == sdk.COMM_RX_CORRUPT else \
-                    self.ph.getTxRxResult(res)
-                return False, f"servo {i} ({self.sides[i]}): {why}"
+                kind, why = (FaultKind.NO_REPLY, "no status packet (servo not answering)") \
+                    if res == sdk.COMM_RX_TIMEOUT else \
+                    (FaultKind.CORRUPT_REPLY, "corrupted status packet (bad CRC or truncated)") \
+                    if res == sdk.COMM_RX_CORRUPT else (FaultKind.NO_REPLY, self.ph.getTxRxResult(res))
+                device = f"servo {i} ({self.sides[i]})"
+                return DriveFault(kind, device, f"{device}: {why}")
             if err & 0x80:
                 alerts.append(i)
             # velocity signed; the position kept unsigned, as the unwrapping below expects
@@ -330,16 +331,16 @@ class DynamixelDrive(SerialWheelDrive):
             self._ticks[i] += 0 if last is None else to_signed(raw_pos - last, 4)
             self._last_raw[i] = raw_pos
         vel = tuple(self.signs[k] * units_to_rad_s(values[i][0]) for k, i in enumerate(self.ids))
-        self._state = WheelState(now, self._positions(), vel, tuple(self.faults), self._enabled,
-                                 {"raw_velocity": [values[i][0] for i in self.ids]})
+        self._measured = WheelState(now, self._positions(), vel, self.faults, self.state,
+                                    {"raw_velocity": [values[i][0] for i in self.ids]})
         if alerts:
-            msgs = []
+            faults = []
             for i in alerts:
                 bits, res, _ = self.ph.read1ByteTxRx(self.port, i, reg.HARDWARE_ERROR_STATUS.address)
-                detail = decode_hardware_error(bits) if res == sdk.COMM_SUCCESS else "unreadable"
-                msgs.append(f"servo {i} ({self.sides[i]}) hardware error: {detail}")
-            self._fault("; ".join(msgs) + "; only a REBOOT clears it (clear_faults)")
-        return True, ""
+                faults.append(self._hardware_fault(
+                    i, decode_hardware_error(bits) if res == sdk.COMM_SUCCESS else "unreadable"))
+            self._fault(*faults)
+        return None
 
     def _positions(self) -> tuple[float, float]:
         return tuple(self.signs[k] * self._ticks[i] * 2 * math.pi / TICKS_PER_REV for k, i in enumerate(self.ids))
@@ -349,26 +350,21 @@ class DynamixelDrive(SerialWheelDrive):
             v, res, _ = self.ph.read1ByteTxRx(self.port, i, reg.BUS_WATCHDOG.address)
             if res == sdk.COMM_SUCCESS and v == 0xFF:
                 gap = (now - self._last_write_ns) * 1e-9
-                self._fault(f"servo {i} ({self.sides[i]}): bus watchdog expired after {gap * 1000:.0f} ms "
-                            f"without commands (limit {self._watchdog_units * 20} ms); wheels stopped, enable() again")
+                self._fault(DriveFault(
+                    FaultKind.WATCHDOG, f"servo {i} ({self.sides[i]})",
+                    f"servo {i} ({self.sides[i]}): bus watchdog expired after {gap * 1000:.0f} ms without "
+                    f"commands (limit {self._watchdog_units * 20} ms); wheels stopped, clear_faults() and "
+                    f"enable() again"))
 
     # -- failure handling ---------------------------------------------------------------------------
     def _guard_io(self, fn):
-        """Run one SDK call; a vanished adapter becomes DriveError (after marking us disconnected)."""
+        """Run one SDK call; a vanished adapter becomes DriveError (a BUS_LOST fault, the port closed)."""
         try:
             return fn()
         except DriveError:
             raise
         except Exception as exc:  # serial.SerialException, OSError, TypeError from a closed port
             self._lost(exc)
-
-    def _guard(self, fn, what: str) -> tuple[bool, str]:
-        ok, err = self._guard_io(fn)
-        if not ok and not self._port_present():
-            self._lost(OSError(err))
-        if not ok and what.startswith("sync write"):
-            self._fault(f"{what}: {err}")
-        return ok, err
 
     def _watchdog_note(self) -> str:
         return f"the servos' bus watchdog ({self._watchdog_units * 20} ms) stops the wheels"
@@ -385,7 +381,3 @@ class DynamixelDrive(SerialWheelDrive):
             except Exception:
                 pass
 
-    def _reconnect_failed(self, exc: DriveError) -> None:
-        # the adapter is back but the servos are not usable: read() says why
-        if not any(f in str(exc) for f in self.faults):
-            self.faults.append(str(exc))

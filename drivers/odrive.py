@@ -20,7 +20,7 @@ from typing import Any, Optional
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.drivers.serial_drive import SerialWheelDrive
-from vbnav.drivers.wheels import DriveError, WheelState
+from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelState
 
 try:
     import serial
@@ -44,9 +44,13 @@ MOTOR_ERRORS = {0x1: "PHASE_RESISTANCE_OUT_OF_RANGE", 0x2: "PHASE_INDUCTANCE_OUT
 ENCODER_ERRORS = {0x1: "UNSTABLE_GAIN", 0x2: "CPR_POLEPAIRS_MISMATCH", 0x4: "NO_RESPONSE",
                   0x8: "UNSUPPORTED_ENCODER_MODE", 0x10: "ILLEGAL_HALL_STATE", 0x20: "INDEX_NOT_FOUND_YET",
                   0x40: "ABS_SPI_TIMEOUT", 0x80: "ABS_SPI_COM_FAIL", 0x100: "ABS_SPI_NOT_READY"}
+AXIS_ERROR_WATCHDOG_EXPIRED = 0x800
 CONTROLLER_ERRORS = {0x1: "OVERSPEED", 0x2: "INVALID_INPUT_MODE", 0x4: "UNSTABLE_GAIN", 0x8: "INVALID_MIRROR_AXIS",
                      0x10: "INVALID_LOAD_ENCODER", 0x20: "INVALID_ESTIMATE", 0x40: "INVALID_CIRCULAR_RANGE",
                      0x80: "SPINOUT_DETECTED"}
+
+ERROR_WORDS = (("error", AXIS_ERRORS), ("motor.error", MOTOR_ERRORS), ("encoder.error", ENCODER_ERRORS),
+               ("controller.error", CONTROLLER_ERRORS))
 
 
 def decode_bits(value: int, table: dict[int, str]) -> list[str]:
@@ -96,58 +100,62 @@ class ODriveDrive(SerialWheelDrive):
         self._cycle = 0
         self._rx = b""
 
-    # -- lifecycle ---------------------------------------------------------------------
-    def connect(self) -> None:
+    # -- lifecycle hooks (WheelDrive owns the states) ------------------------------------
+    def _configure(self) -> None:
         self._connect(clear_errors=False)
 
     def _connect(self, clear_errors: bool) -> None:
-        with self._lock:
-            if not os.path.exists(self.opt.port):
-                raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
-            try:
-                self.ser = serial.Serial(self.opt.port, self.opt.baudrate, timeout=0)
-            except (serial.SerialException, OSError) as exc:
-                raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
-            try:
-                t = self.opt.setup_timeout_s
-                vbus = self._query("r vbus_voltage", t)
-                if vbus is None:
-                    raise DriveError(f"ODrive on {self.opt.port} does not answer 'r vbus_voltage'")
-                self.vbus_voltage = float(vbus)
-                if clear_errors:
-                    self._send("sc")
-                for ax in self.axes:
-                    self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
-                errors = self._read_errors(t)
-                if errors:
-                    self.faults = errors
-                    raise DriveError("ODrive reports errors: " + "; ".join(errors) + " (clear with clear_faults)")
-                mode = INPUT_MODE_VEL_RAMP if self.opt.vel_ramp_rate > 0 else INPUT_MODE_PASSTHROUGH
-                for ax in self.axes:
-                    self._send(f"w axis{ax}.controller.config.control_mode {CONTROL_MODE_VELOCITY}")
-                    self._send(f"w axis{ax}.controller.config.input_mode {mode}")
-                    self._send(f"w axis{ax}.controller.config.vel_limit {self.opt.vel_limit_turns_s:.4f}")
-                    if self.opt.vel_ramp_rate > 0:
-                        self._send(f"w axis{ax}.controller.config.vel_ramp_rate {self.opt.vel_ramp_rate:.4f}")
-                    self._send(f"w axis{ax}.controller.input_vel 0")
-                    self._send(f"w axis{ax}.config.watchdog_timeout {self.opt.watchdog_s:.4f}")
-                    self._send(f"w axis{ax}.config.enable_watchdog 1")
-                    got = self._query(f"r axis{ax}.controller.config.control_mode", t)
-                    if got is None or int(float(got)) != CONTROL_MODE_VELOCITY:
-                        raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
-            except DriveError:
-                self._close_device()
-                raise
-            except (serial.SerialException, OSError) as exc:
-                self._close_device()
-                raise DriveError(f"ODrive {self.opt.port} failed during setup: {exc}") from exc
-            self._connected = True
+        if not os.path.exists(self.opt.port):
+            raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
+        try:
+            self.ser = serial.Serial(self.opt.port, self.opt.baudrate, timeout=0)
+        except (serial.SerialException, OSError) as exc:
+            raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
+        try:
+            t = self.opt.setup_timeout_s
+            vbus = self._query("r vbus_voltage", t)
+            if vbus is None:
+                raise DriveError(f"ODrive on {self.opt.port} does not answer 'r vbus_voltage'")
+            self.vbus_voltage = float(vbus)
+            if clear_errors:
+                self._send("sc")
+            for ax in self.axes:
+                self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
+            words = self._error_words(t)
+            if self._only_expired_watchdogs(words):
+                # The axes stopped because the host went silent (a lost bus, a killed controller), not for
+                # a fault of their own: the bring-up clears that, as the Dynamixel bring-up clears a
+                # latched Bus Watchdog. Any other error stays for clear_faults.
+                self._send("sc")
+                words = self._error_words(t)
+            faults = self._faults_in(words)
+            if faults:
+                for f in faults:
+                    self._record_fault(f)
+                raise DriveError("ODrive reports errors: " + "; ".join(map(str, faults)) +
+                                 " (clear with clear_faults)")
+            mode = INPUT_MODE_VEL_RAMP if self.opt.vel_ramp_rate > 0 else INPUT_MODE_PASSTHROUGH
+            for ax in self.axes:
+                self._send(f"w axis{ax}.controller.config.control_mode {CONTROL_MODE_VELOCITY}")
+                self._send(f"w axis{ax}.controller.config.input_mode {mode}")
+                self._send(f"w axis{ax}.controller.config.vel_limit {self.opt.vel_limit_turns_s:.4f}")
+                if self.opt.vel_ramp_rate > 0:
+                    self._send(f"w axis{ax}.controller.config.vel_ramp_rate {self.opt.vel_ramp_rate:.4f}")
+                self._send(f"w axis{ax}.controller.input_vel 0")
+                self._send(f"w axis{ax}.config.watchdog_timeout {self.opt.watchdog_s:.4f}")
+                self._send(f"w axis{ax}.config.enable_watchdog 1")
+                got = self._query(f"r axis{ax}.controller.config.control_mode", t)
+                if got is None or int(float(got)) != CONTROL_MODE_VELOCITY:
+                    self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
+                                                  f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
+                    raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
+        except (serial.SerialException, OSError) as exc:
+            raise DriveError(f"ODrive {self.opt.port} failed during setup: {exc}") from exc
+        except _Corrupt as exc:
+            raise DriveError(f"ODrive {self.opt.port} during setup: {exc}") from exc
 
-    def enable(self) -> None:
-        with self._lock:
-            self._check_can_enable()
-            self._io(self._arm)
-            self._enabled = True
+    def _activate(self) -> None:
+        self._io(self._arm)
 
     def _arm(self) -> None:
         for ax in self.axes:
@@ -157,49 +165,45 @@ class ODriveDrive(SerialWheelDrive):
         for ax in self.axes:
             state = self._query(f"r axis{ax}.current_state", self.opt.setup_timeout_s)
             if state is None or int(float(state)) != AXIS_STATE_CLOSED_LOOP:
-                errors = self._read_errors(self.opt.setup_timeout_s)
-                self._stop_wheels()
-                raise DriveError(f"ODrive axis{ax} ({self.sides[ax]}) did not enter closed loop "
-                                 f"(state {state}); errors: {'; '.join(errors) or 'none'}")
+                faults = self._read_errors(self.opt.setup_timeout_s)
+                for f in faults or [DriveFault(FaultKind.SETUP, self._axis(ax),
+                                               f"ODrive {self._axis(ax)} did not enter closed loop (state {state})")]:
+                    self._record_fault(f)
+                raise DriveError(f"ODrive {self._axis(ax)} did not enter closed loop "
+                                 f"(state {state}); errors: {'; '.join(map(str, faults)) or 'none'}")
 
-    def write(self, left: float, right: float) -> None:
-        with self._lock:
-            self._check_can_write()
-            rates = (left, right)
-            for k, ax in enumerate(self.axes):
-                turns = self.signs[k] * rates[k] / (2 * math.pi) * self.opt.gear_ratio
-                turns = max(-self.opt.vel_limit_turns_s, min(self.opt.vel_limit_turns_s, turns))
-                self._io(lambda: self._send(f"v {ax} {turns:.4f}"))
+    def _write(self, left: float, right: float) -> None:
+        rates = (left, right)
+        for k, ax in enumerate(self.axes):
+            turns = self.signs[k] * rates[k] / (2 * math.pi) * self.opt.gear_ratio
+            turns = max(-self.opt.vel_limit_turns_s, min(self.opt.vel_limit_turns_s, turns))
+            self._io(lambda: self._send(f"v {ax} {turns:.4f}"))
 
-    def read(self) -> WheelState:
-        with self._lock:
-            self._ensure_connected()
-            self._cycle += 1
-            values, why = self._io(self._feedback)
-            if values is None:
-                self._missed_read(why)
-                return self._state
-            self._missed_reads = 0
-            pos = tuple(self.signs[k] * values[k][0] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
-            vel = tuple(self.signs[k] * values[k][1] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
-            self._state = WheelState(self.clock.now_ns(), pos, vel, tuple(self.faults), self._enabled)
-            if self._enabled and self._cycle % self.opt.error_poll_every == 0:
-                errors = self._io(lambda: self._read_errors(self.opt.reply_timeout_s * 4))
-                if errors:
-                    self._fault("; ".join(errors))
-            return self._state
+    def _read(self) -> WheelState:
+        self._check_device()
+        self._cycle += 1
+        values, fault = self._io(self._feedback)
+        if values is None:
+            self._missed_read(fault)
+            return self._measured
+        self._missed_reads = 0
+        pos = tuple(self.signs[k] * values[k][0] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
+        vel = tuple(self.signs[k] * values[k][1] * 2 * math.pi / self.opt.gear_ratio for k in range(2))
+        self._measured = WheelState(self.clock.now_ns(), pos, vel, self.faults, self.state)
+        if self.state is DriveState.ACTIVE and self._cycle % self.opt.error_poll_every == 0:
+            faults = self._io(lambda: self._read_errors(self.opt.reply_timeout_s * 4))
+            if faults:
+                self._fault(*faults)
+        return self._measured
 
-    def clear_faults(self) -> None:
-        """``sc`` clears the error words of both axes; enable() re-arms."""
-        with self._lock:
-            if not self._connected:
-                self._connect(clear_errors=True)
-            self._io(lambda: self._send("sc"))
-            errors = self._io(lambda: self._read_errors(self.opt.setup_timeout_s))
-            if errors:
-                raise DriveError("ODrive errors remain after clearing: " + "; ".join(errors))
-            self.faults = []
-            self._missed_reads = 0
+    def _clear_faults(self) -> None:
+        """``sc`` clears the error words of both axes, within the full setup again; enable() re-arms."""
+        self._release()
+        self._connect(clear_errors=True)
+        self._missed_reads = 0
+
+    def _axis(self, ax: int) -> str:
+        return f"axis{ax} ({self.sides[ax]})"
 
     # -- protocol --------------------------------------------------------------------------
     def _frame(self, text: str) -> bytes:
@@ -241,7 +245,7 @@ class ODriveDrive(SerialWheelDrive):
             line = body
         return line
 
-    def _feedback(self) -> tuple[Optional[list], str]:
+    def _feedback(self) -> tuple[Optional[list], Optional[DriveFault]]:
         """``f`` for both axes in one write, then both answer lines: one round trip per cycle, not two."""
         self._rx = b""
         self.ser.reset_input_buffer()
@@ -250,42 +254,61 @@ class ODriveDrive(SerialWheelDrive):
         out = []
         for ax in self.axes:
             line = self._readline(max(0.0, end - time.monotonic()))
+            dev = self._axis(ax)
             if line is None:
-                return None, f"axis{ax} ({self.sides[ax]}): no answer to 'f {ax}' within " \
-                             f"{self.opt.reply_timeout_s * 1000:.0f} ms"
+                return None, DriveFault(FaultKind.NO_REPLY, dev, f"{dev}: no answer to 'f {ax}' within "
+                                                                 f"{self.opt.reply_timeout_s * 1000:.0f} ms")
             if self.opt.checksum:
                 body, star, given = line.rpartition("*")
                 if not star or not given.isdigit() or int(given) != xor_checksum(body):
-                    return None, f"axis{ax} ({self.sides[ax]}): corrupted answer (bad checksum): {line!r}"
+                    return None, DriveFault(FaultKind.CORRUPT_REPLY, dev,
+                                            f"{dev}: corrupted answer (bad checksum): {line!r}")
                 line = body
             try:
                 pos, vel = (float(x) for x in line.split())
             except ValueError:
-                return None, f"axis{ax} ({self.sides[ax]}): corrupted answer to 'f {ax}': {line!r}"
+                return None, DriveFault(FaultKind.CORRUPT_REPLY, dev, f"{dev}: corrupted answer to 'f {ax}': {line!r}")
             out.append((pos, vel))
-        return out, ""
+        return out, None
 
-    def _read_errors(self, timeout_s: float) -> list[str]:
-        found = []
+    def _error_words(self, timeout_s: float) -> dict[int, dict[str, Optional[int]]]:
+        """axis -> its four error words (None where unreadable)."""
+        found = {}
         for ax in self.axes:
-            words = {}
-            for name in ("error", "motor.error", "encoder.error", "controller.error"):
+            words = found[ax] = {}
+            for name, _table in ERROR_WORDS:
                 try:
                     got = self._query(f"r axis{ax}.{name}", timeout_s)
                     words[name] = int(float(got)) if got is not None else None
                 except (_Corrupt, ValueError):
                     words[name] = None
-            if words["error"] is None:
-                found.append(f"axis{ax} ({self.sides[ax]}): error word unreadable")
-                continue
-            parts = []
-            for name, table in (("error", AXIS_ERRORS), ("motor.error", MOTOR_ERRORS),
-                                ("encoder.error", ENCODER_ERRORS), ("controller.error", CONTROLLER_ERRORS)):
-                if words[name]:
-                    parts.append(f"{name}={'|'.join(decode_bits(words[name], table))}")
-            if parts:
-                found.append(f"axis{ax} ({self.sides[ax]}): " + ", ".join(parts))
         return found
+
+    @staticmethod
+    def _only_expired_watchdogs(words: dict[int, dict[str, Optional[int]]]) -> bool:
+        """Some axis reports an expired watchdog and nothing else is set on any axis."""
+        expired = [w["error"] == AXIS_ERROR_WATCHDOG_EXPIRED and not any(w[n] for n, _ in ERROR_WORDS[1:])
+                   for w in words.values()]
+        clean = [not any(w.values()) and w["error"] is not None for w in words.values()]
+        return any(expired) and all(e or c for e, c in zip(expired, clean))
+
+    def _faults_in(self, words: dict[int, dict[str, Optional[int]]]) -> list[DriveFault]:
+        """The error words as faults: an expired watchdog alone is WATCHDOG, any other bit HARDWARE_ERROR."""
+        found = []
+        for ax, w in words.items():
+            dev = self._axis(ax)
+            if w["error"] is None:
+                found.append(DriveFault(FaultKind.NO_REPLY, dev, f"{dev}: error word unreadable"))
+                continue
+            parts = [f"{name}={'|'.join(decode_bits(w[name], table))}" for name, table in ERROR_WORDS if w[name]]
+            if parts:
+                watchdog_only = w["error"] == AXIS_ERROR_WATCHDOG_EXPIRED and len(parts) == 1
+                kind = FaultKind.WATCHDOG if watchdog_only else FaultKind.HARDWARE_ERROR
+                found.append(DriveFault(kind, dev, f"{dev}: " + ", ".join(parts)))
+        return found
+
+    def _read_errors(self, timeout_s: float) -> list[DriveFault]:
+        return self._faults_in(self._error_words(timeout_s))
 
     # -- failure handling -----------------------------------------------------------------------
     def _io(self, fn):
@@ -310,7 +333,10 @@ class ODriveDrive(SerialWheelDrive):
             except Exception:
                 pass
 
-    def _close_device(self) -> None:
+    def _device_open(self) -> bool:
+        return self.ser is not None
+
+    def _release(self) -> None:
         if self.ser is not None:
             try:
                 self.ser.close()

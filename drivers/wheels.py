@@ -1,10 +1,24 @@
-"""Differential wheel drive interface.
+"""Differential wheel drive interface: lifecycle states, fault kinds, the measured state.
 
-Lifecycle after ros2_control: ``connect()`` configures (device open and
-readable, torque off), ``enable()`` activates (commands flow), ``disable()``
-deactivates (wheels stopped, torque off), ``close()`` releases. Every failure
-path ends in ``disable()``; implementations make it idempotent and best-effort
-(it must not raise while the device is already gone).
+Lifecycle after ros2_control's hardware components, enforced here and only here
+(``WheelDrive``'s public methods; a driver implements the ``_``-hooks)::
+
+    UNCONFIGURED --connect()--> INACTIVE --enable()--> ACTIVE
+                                INACTIVE <--disable()-- ACTIVE
+    any fault ------------------------------------------> ERROR
+    ERROR --reconnect() (after a lost bus)---------------> INACTIVE
+    ERROR --clear_faults() (operator action)-------------> INACTIVE
+    any --close()----------------------------------------> FINALIZED (terminal)
+
+- UNCONFIGURED: built, device not opened.
+- INACTIVE: device open and configured (the safe bring-up ran), wheels unpowered.
+- ACTIVE: wheels powered; ``write()`` is accepted only here.
+- ERROR: a fault (``faults`` says which): the drive stopped every wheel it could
+  still reach; where it cannot (bus gone), the device's own watchdog does.
+- FINALIZED: released.
+
+``disable()`` and ``close()`` never raise (every failure path ends in them,
+also when the device is already gone).
 
 Units are SI at this boundary: wheel angles in rad, wheel rates in rad/s.
 Conversions to motor units happen inside each driver.
@@ -12,7 +26,54 @@ Conversions to motor units happen inside each driver.
 from __future__ import annotations
 
 import abc
+import enum
+import math
+import threading
 from dataclasses import dataclass, field
+
+
+class DriveState(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FINALIZED = "finalized"
+    ERROR = "error"
+
+
+class FaultKind(enum.Enum):
+    """What a driver detected. The device and the details are in the ``DriveFault``."""
+
+    BUS_LOST = "bus_lost"              # the adapter / device path went away (USB unplugged, device reset)
+    NO_REPLY = "no_reply"              # the device is there but a motor does not answer
+    CORRUPT_REPLY = "corrupt_reply"    # answers with a bad CRC / checksum, truncated or unparsable
+    SEND_FAILED = "send_failed"        # a command packet could not be sent on the bus
+    HARDWARE_ERROR = "hardware_error"  # the device reports an error: Dynamixel Hardware Error Status bits
+    #                                    (input voltage, overheating, encoder, electrical shock, overload),
+    #                                    ODrive axis/motor/encoder/controller error words
+    WATCHDOG = "watchdog"              # the device's command watchdog expired: the host was silent too long
+    SETUP = "setup"                    # the device refused the bring-up (a register write, closed loop)
+
+    @property
+    def reconnectable(self) -> bool:
+        """A reconnect (the safe bring-up again) is the remedy: nothing is wrong with the device itself."""
+        return self is FaultKind.BUS_LOST
+
+
+@dataclass(frozen=True)
+class DriveFault:
+    """One fault: its kind, the part that has it ("servo 2 (right)", "axis1 (right)", "adapter
+    /dev/ttyUSB0"), and the full sentence for people (it names the device too, and what stops the wheels
+    or what clears the fault)."""
+
+    kind: FaultKind
+    device: str
+    message: str
+
+    def __str__(self) -> str:
+        return self.message
+
+    def as_dict(self) -> dict:
+        return {"kind": self.kind.value, "device": self.device, "message": self.message}
 
 
 @dataclass
@@ -20,51 +81,149 @@ class WheelState:
     """Measured state of both wheels at ``stamp_ns``.
 
     position: (left, right) accumulated wheel angle, rad (unwrapped).
-    velocity: (left, right) wheel rate, rad/s.
-    faults: human-readable fault descriptions; empty when healthy.
+    velocity: (left, right) wheel rate, rad/s; NaN when not measured (the drive is unreachable).
+    faults: the drive's active faults; empty when healthy.
+    drive_state: the drive's lifecycle state when this was measured.
     """
 
     stamp_ns: int
     position: tuple[float, float]
     velocity: tuple[float, float]
-    faults: tuple[str, ...] = ()
-    enabled: bool = False
+    faults: tuple[DriveFault, ...] = ()
+    drive_state: DriveState = DriveState.INACTIVE
     extra: dict = field(default_factory=dict)
+
+    @property
+    def enabled(self) -> bool:
+        return self.drive_state is DriveState.ACTIVE
 
 
 class DriveError(RuntimeError):
-    """The wheel drive failed: bus lost, device missing, hardware fault."""
+    """The wheel drive failed or refused: bus lost, device missing, hardware fault, a call its state forbids.
+    When it is a fault, the drive is in ERROR and ``drive.faults`` says which."""
 
 
 class WheelDrive(abc.ABC):
-    name: str = "drive"
+    """A differential wheel drive. The lifecycle is this class's; a driver implements the hooks."""
 
-    @abc.abstractmethod
+    name: str = "drive"              # the registry name
+    drive_name: str = "wheel drive"  # the drive in messages: "<drive_name> faulted: ..."
+    # Whether ``reconnect`` can ever succeed: a serial drive looks for its device again; a drive that
+    # cannot come back leaves a lost bus to end the run at once.
+    can_reconnect: bool = False
+
+    def __init__(self) -> None:
+        self._state = DriveState.UNCONFIGURED
+        self._faults: list[DriveFault] = []
+        self._lock = threading.RLock()   # lifecycle and I/O; a reconnect may run on another thread
+        self.reconnect_note = ""         # why the last reconnect attempt failed ("" when none failed)
+
+    # -- what a drive is in --------------------------------------------------------------
+    @property
+    def state(self) -> DriveState:
+        return self._state
+
+    @property
+    def faults(self) -> tuple[DriveFault, ...]:
+        return tuple(self._faults)
+
+    # -- the lifecycle (the only place that changes ``state``) -----------------------------
     def connect(self) -> None:
-        """Open and configure the device; wheels stay unpowered."""
+        """UNCONFIGURED -> INACTIVE: open the device and run the safe bring-up; wheels stay unpowered.
+        A device that reports a fault at bring-up leaves the drive in ERROR (``clear_faults`` may help)."""
+        with self._lock:
+            self._require("connect", DriveState.UNCONFIGURED)
+            self._bring_up_or_fail(self._configure)
 
-    @abc.abstractmethod
     def enable(self) -> None:
-        """Power the wheels; commands are accepted from now on."""
+        """INACTIVE -> ACTIVE: power the wheels at zero; commands are accepted from now on."""
+        with self._lock:
+            if self._state is DriveState.ACTIVE:
+                return
+            if self._state is DriveState.ERROR:
+                raise DriveError(f"{self.drive_name} has faults, clear them first (clear_faults): {self._fault_text()}")
+            self._require("enable", DriveState.INACTIVE)
+            try:
+                self._activate()
+            except DriveError:
+                self._stop_wheels()
+                raise
+            self._state = DriveState.ACTIVE
 
-    @abc.abstractmethod
-    def write(self, left: float, right: float) -> None:
-        """Command wheel rates (rad/s). Raises DriveError if the bus is lost."""
-
-    @abc.abstractmethod
-    def read(self) -> WheelState:
-        """Latest measured wheel state. Raises DriveError if the bus is lost."""
-
-    @abc.abstractmethod
     def disable(self) -> None:
-        """Command zero and remove power. Idempotent, never raises."""
+        """ACTIVE -> INACTIVE: command zero and remove power. In any other state it only stops what it can
+        reach. Idempotent, never raises."""
+        with self._lock:
+            if self._state in (DriveState.UNCONFIGURED, DriveState.FINALIZED):
+                return
+            self._stop_wheels()
+            if self._state is DriveState.ACTIVE:
+                self._state = DriveState.INACTIVE
 
-    @abc.abstractmethod
     def close(self) -> None:
-        """Disable and release the device. Idempotent, never raises."""
+        """Any state -> FINALIZED: stop, then release the device. Idempotent, never raises."""
+        with self._lock:
+            if self._state is DriveState.FINALIZED:
+                return
+            if self._state is not DriveState.UNCONFIGURED:
+                self._stop_wheels()
+            self._release()
+            self._state = DriveState.FINALIZED
+
+    def write(self, left: float, right: float) -> None:
+        """Command wheel rates (rad/s); only while ACTIVE. A fault raises DriveError (state ERROR)."""
+        with self._lock:
+            if self._state is DriveState.ERROR:
+                raise DriveError(f"{self.drive_name} faulted: {self._fault_text()}")
+            if self._state is not DriveState.ACTIVE:
+                raise DriveError(f"{self.drive_name} is not enabled (state {self._state.value})")
+            if not (math.isfinite(left) and math.isfinite(right)):
+                raise DriveError(f"{self.drive_name}: non-finite wheel command ({left}, {right})")
+            self._write(left, right)
+
+    def read(self) -> WheelState:
+        """Latest measured wheel state (INACTIVE, ACTIVE, and ERROR where the device still answers).
+        A fault raises DriveError once (state ERROR); later reads list it in ``faults``."""
+        with self._lock:
+            if self._state in (DriveState.UNCONFIGURED, DriveState.FINALIZED):
+                raise DriveError(f"{self.drive_name} is not connected (state {self._state.value})")
+            return self._read()
+
+    def reconnect(self) -> bool:
+        """ERROR -> INACTIVE after a lost bus (every fault ``reconnectable``): one attempt, when the driver
+        deems it due, at the same safe bring-up as ``connect``. True once INACTIVE; False while the device
+        is not back. Raises DriveError when the device is back but faulted (the faults say why: waiting
+        longer will not help) or when the faults are not a lost bus."""
+        with self._lock:
+            if self._state is DriveState.INACTIVE:
+                return True
+            if self._state is not DriveState.ERROR:
+                raise DriveError(f"{self.drive_name}: nothing to reconnect (state {self._state.value})")
+            if not all(f.kind.reconnectable for f in self._faults):
+                raise DriveError(f"{self.drive_name}: not a lost bus, needs clear_faults: {self._fault_text()}")
+            try:
+                back = self._reconnect()
+            except DriveError as exc:
+                self.reconnect_note = str(exc)
+                device_faults = [f for f in self._faults if not f.kind.reconnectable]
+                if device_faults:        # the bus is back, the device is not well: that is the fault now
+                    self._faults = device_faults
+                    raise
+                return False             # not back yet (or lost again during the attempt)
+            if back:
+                self.reconnect_note = ""
+                self._faults.clear()
+                self._state = DriveState.INACTIVE
+            return back
 
     def clear_faults(self) -> None:
-        """Explicit operator action (e.g. Dynamixel REBOOT). Default: nothing to clear."""
+        """Explicit operator action (Dynamixel REBOOT, ODrive ``sc``), then the bring-up again: ERROR (or a
+        drive whose connect failed on a device fault) -> INACTIVE. Nothing to do while ACTIVE."""
+        with self._lock:
+            if self._state is DriveState.ACTIVE:
+                return
+            self._require("clear_faults", DriveState.ERROR, DriveState.INACTIVE, DriveState.UNCONFIGURED)
+            self._bring_up_or_fail(self._clear_faults)
 
     def __enter__(self) -> "WheelDrive":
         self.connect()
@@ -72,3 +231,83 @@ class WheelDrive(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    # -- what a driver implements -----------------------------------------------------------
+    @abc.abstractmethod
+    def _configure(self) -> None:
+        """Open the device and run the safe bring-up (torque off, mode, limits, watchdog). Raises DriveError;
+        a fault the device reports is recorded with ``_record_fault`` before raising."""
+
+    @abc.abstractmethod
+    def _activate(self) -> None:
+        """Zero the goals, arm the watchdog, power the wheels. Raises DriveError."""
+
+    @abc.abstractmethod
+    def _write(self, left: float, right: float) -> None:
+        """Send finite wheel rates (rad/s). A fault goes through ``_fault``."""
+
+    @abc.abstractmethod
+    def _read(self) -> WheelState:
+        """Measure the wheels. A fault goes through ``_fault``."""
+
+    @abc.abstractmethod
+    def _stop_wheels(self) -> None:
+        """Command zero and remove power on whatever is still reachable; never raises."""
+
+    @abc.abstractmethod
+    def _release(self) -> None:
+        """Release the device; never raises."""
+
+    def _reconnect(self) -> bool:
+        """One reconnect attempt when due (see ``reconnect``). Default: this drive cannot come back."""
+        return False
+
+    def _clear_faults(self) -> None:
+        """The operator's clearing action plus the bring-up. Default: the bring-up again."""
+        if self._state is DriveState.ERROR:
+            self._release()
+        self._configure()
+
+    # -- for drivers: recording faults ----------------------------------------------------------
+    def _record_fault(self, fault: DriveFault) -> bool:
+        """Note a fault (state ERROR). False if it was already noted."""
+        if fault in self._faults:
+            return False
+        self._faults.append(fault)
+        self._state = DriveState.ERROR
+        return True
+
+    def _fault(self, *faults: DriveFault, text: str = "") -> None:
+        """Record, stop everything reachable, raise DriveError naming them. Faults already reported are not
+        raised again: ``read()`` then keeps returning states that list them, so the operator sees them until
+        cleared."""
+        new = [f for f in faults if self._record_fault(f)]
+        if not new:
+            return
+        self._stop_wheels()
+        raise DriveError(text or f"{self.drive_name} fault: {'; '.join(str(f) for f in new)}")
+
+    def _fault_text(self) -> str:
+        return "; ".join(str(f) for f in self._faults) or "none recorded"
+
+    # -- the transitions' plumbing ----------------------------------------------------------------
+    def _require(self, action: str, *allowed: DriveState) -> None:
+        if self._state not in allowed:
+            raise DriveError(f"{self.drive_name}: cannot {action} in state {self._state.value} "
+                             f"(allowed: {', '.join(s.value for s in allowed)})")
+
+    def _bring_up_or_fail(self, bring_up) -> None:
+        """Run a bring-up: INACTIVE with no faults when it completes; on DriveError ERROR if the device
+        reported a fault, else back to UNCONFIGURED (the device is released)."""
+        self._faults.clear()
+        try:
+            bring_up()
+        except DriveError:
+            self._stop_wheels()
+            if not self._faults:
+                self._release()
+                self._state = DriveState.UNCONFIGURED
+            else:
+                self._state = DriveState.ERROR
+            raise
+        self._state = DriveState.INACTIVE

@@ -79,14 +79,20 @@ def main() -> int:
         return submit(cmd)    # None, or the mailbox's reason for refusing it
 
     rt.submit = logged_submit
-    cycle_log = []   # (loop cycle, left, right, powered) of every write, to count periods in cycles
-    write = drive.write
+    # (loop cycle, left, right, powered) of every write and disable, to count periods in cycles (a drive
+    # accepts writes only while enabled: after a stop, the disables are what the loop tells it)
+    cycle_log = []
+    write, disable = drive.write, drive.disable
 
     def logged_write(left, right):
         write(left, right)
         cycle_log.append((rt.cycle, left, right, drive.physics.powered))
 
-    drive.write = logged_write
+    def logged_disable():
+        disable()
+        cycle_log.append((rt.cycle, 0.0, 0.0, drive.physics.powered))
+
+    drive.write, drive.disable = logged_write, logged_disable
     try:
         link = TelemetryLink.attach(rt, cfg, record=a.record)
     except ConfigError as exc:

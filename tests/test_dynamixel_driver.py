@@ -16,7 +16,7 @@ from driver_test_utils import controller_script, drive_for, emulate_cli, kill_co
 from vbnav.drivers import dynamixel_table as dt
 from vbnav.drivers.sim import dynamixel_emulator as de
 from vbnav.drivers.dynamixel import VELOCITY_UNIT_RAD_S, DynamixelDrive
-from vbnav.drivers.wheels import DriveError
+from vbnav.drivers.wheels import DriveError, DriveState, FaultKind
 
 WATCHDOG_S = 0.2  # generous: a loaded CI machine may pause a test thread for 100+ ms
 
@@ -174,7 +174,9 @@ def test_hardware_error_bit_then_reboot(bus, drive):
     with pytest.raises(DriveError, match=r"servo 2 \(right\) hardware error: overload \(bit 5\)"):
         drive_for(drive, 2.0, 2.0)
     assert wait_until(lambda: wheels_stopped(bus))
-    assert any("overload" in f for f in drive.read().faults)
+    assert drive.state is DriveState.ERROR
+    assert [(f.kind, f.device) for f in drive.read().faults] == [(FaultKind.HARDWARE_ERROR, "servo 2 (right)")]
+    assert "overload" in drive.faults[0].message
     with pytest.raises(DriveError):
         drive.enable()
     drive.clear_faults()

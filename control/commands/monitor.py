@@ -80,6 +80,11 @@ def _event_line(e: dict) -> str:
     return f"#{e.get('seq', '?'):<5} {e.get('kind', '?'):<18} {extra}"[:160]
 
 
+def _rate(x) -> str:
+    """A wheel rate, or n/a when not measured (null: the drive was unreachable)."""
+    return "  n/a" if x is None else f"{x:+.2f}"
+
+
 def render(robot: str, state: dict | None, events, rx_age_s: float | None = None) -> str:
     lines = [f"vbnav monitor  robot {robot}"]
     if state is None:
@@ -88,6 +93,8 @@ def render(robot: str, state: dict | None, events, rx_age_s: float | None = None
         s = state
         safety = s.get("safety", {})
         faults = ", ".join(safety.get("faults", [])) or "none"
+        drive = s.get("drive", {})
+        drive_faults = ", ".join(f"{f.get('kind')} ({f.get('device')})" for f in drive.get("faults", [])) or "none"
         loop = s.get("loop", {})
         wh = s.get("wheels", {})
         cmd, meas = wh.get("cmd", {}), wh.get("meas", {})
@@ -98,8 +105,9 @@ def render(robot: str, state: dict | None, events, rx_age_s: float | None = None
             f"  odom    {_pose(s.get('pose', {}).get('odom'))}",
             f"  vbc     {_pose(s.get('pose', {}).get('vbc'))}",
             f"  vslam   {_pose(s.get('pose', {}).get('vslam'))}",
-            f"  wheels  cmd L {cmd.get('left', 0):+.2f} R {cmd.get('right', 0):+.2f} rad/s   "
-            f"meas L {meas.get('left', 0):+.2f} R {meas.get('right', 0):+.2f} rad/s",
+            f"  wheels  cmd L {_rate(cmd.get('left'))} R {_rate(cmd.get('right'))} rad/s   "
+            f"meas L {_rate(meas.get('left'))} R {_rate(meas.get('right'))} rad/s",
+            f"  drive   {drive.get('state')}   faults: {drive_faults}",
             f"  twist   v {s.get('twist', {}).get('linear', 0):+.3f} m/s  w {s.get('twist', {}).get('angular', 0):+.3f} rad/s",
             f"  loop    {loop.get('rate_hz', 0):.0f} Hz  cycle {s.get('cycle')}  compute {loop.get('compute_ms', 0):.2f} ms"
             f"  lateness {loop.get('lateness_ms', 0):.2f} ms  overruns {loop.get('overruns', 0)}",

@@ -9,7 +9,7 @@ extension points only:
   a ``StateSample`` is built *only when a state message is due* and dropped into
   the publisher's queue (no JSON, no network on the loop thread);
 - ``runtime.safety.listeners``: every safety event (trip, hold, release, reset,
-  rejected command) becomes a ``vbnav/<robot>/events`` message;
+  rejected command, drive reconnected) becomes a ``vbnav/<robot>/events`` message;
 - ``runtime.submit``: validated network commands (estop, resume, teleop, mode)
   go to the loop's command mailbox, which the loop drains at the start of its
   next cycle and hands to the controller (the link never decides what a command
@@ -191,14 +191,17 @@ class TelemetryLink:
             ctx.now_ns, ctx.cycle, mode, state, tuple(safety.reasons()) if not safety.may_move else (),
             ctx.odom, _estimate_pose(vbc), _estimate_pose(vslam), keyframe,
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
-            twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns))
+            twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns,
+            drive_state=wheels.drive_state, drive_faults=wheels.faults))
 
     def _on_command_start(self, rt, cmd, now_ns: int) -> None:
         """First observer of every command: a refusal raised while it is applied answers its ``ack``."""
         self._applying = cmd
 
     def _on_safety(self, ev) -> None:
-        if ev.kind == "rejected":
+        if ev.kind == "drive_reconnected":   # news, not a stop: its own event kind
+            self.publisher.event("drive_reconnected", stamp_ns=ev.stamp_ns, cause=ev.cause, message=ev.message)
+        elif ev.kind == "rejected":
             fields = dict(command=ev.cause, reason=ev.message)
             cmd = self._applying
             if cmd is not None and cmd.kind == ev.cause and cmd.ack:   # refused while being applied

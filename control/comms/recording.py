@@ -73,6 +73,7 @@ VBNAV_SCHEMAS = {
                                    "robot": {"type": "string"}, "seq": {"type": "integer"},
                                    "stamp_ns": {"type": "integer"}, "cycle": {"type": "integer"},
                                    "mode": {"type": "string"}, "safety": {"type": "object"},
+                                   "drive": {"type": "object"},
                                    "pose": {"type": "object"}, "keyframe": {"type": ["integer", "null"]},
                                    "wheels": {"type": "object"}, "twist": {"type": "object"},
                                    "loop": {"type": "object"}}},

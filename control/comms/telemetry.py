@@ -70,6 +70,8 @@ class StateSample(NamedTuple):
     lateness_ns: int = 0            # wake-up lateness against the tick
     overruns: int = 0               # cycles missed since start
     route: Optional[str] = None
+    drive_state: Any = None         # the drive's DriveState
+    drive_faults: tuple = ()        # its DriveFaults
 
 
 def _num(x) -> Optional[float]:
@@ -98,6 +100,8 @@ def state_message(robot: str, seq: int, s: StateSample, rate_hz: float) -> dict:
         "stamp_ns": int(s.stamp_ns), "cycle": int(s.cycle),
         "mode": s.mode, "route": s.route,
         "safety": {"state": s.safety, "faults": list(s.faults)},
+        "drive": {"state": s.drive_state.value if s.drive_state is not None else None,
+                  "faults": [f.as_dict() for f in s.drive_faults]},
         "pose": {"odom": _pose(s.odom), "vbc": _pose(s.vbc), "vslam": _pose(s.vslam)},
         "keyframe": s.keyframe,
         "wheels": {"cmd": {"left": _num(s.cmd_left), "right": _num(s.cmd_right)},

@@ -96,6 +96,14 @@ class DriveConfig(Strict):
     invert_left: bool = Field(False, description="flip the sign of the left wheel")
     invert_right: bool = Field(False, description="flip the sign of the right wheel")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
+    reconnect_window_s: float = Field(
+        5.0, ge=0, le=600,
+        description="after the drive's bus is lost (USB adapter gone), how long the run waits for it to come back "
+                    "before it ends with reason 'drive'. Meanwhile the device's own watchdog keeps the wheels "
+                    "stopped; back within the window, the drive repeats its safe bring-up and the robot stays "
+                    "stopped until resume. 0 ends the run at once. A few seconds covers an adapter that "
+                    "re-enumerates after a loose plug or a brown-out, and is short enough that an operator "
+                    "learns soon when it does not")
 
 
 class LoopConfig(Strict):

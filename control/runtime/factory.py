@@ -71,7 +71,8 @@ def make_camera(cfg: Config, clock, drive=None, options=None, world=None, run: i
     opts = options or validate_driver_options(cfg, cfg.source or "<config>")["camera"]
     cls = registry.load(registry.CAMERAS, cfg.camera.driver)
     if cfg.camera.driver == "sim":
-        if cfg.drive.driver != "sim" or drive is None:
+        from vbnav.drivers.sim.base import SimDiffDrive
+        if not isinstance(drive, SimDiffDrive):
             raise ValueError("camera.driver 'sim' needs drive.driver 'sim' (it renders from the simulated pose)")
         return cls.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose,
                                world=world if world is not None else make_world(cfg), seed=noise_seed(cfg, run))

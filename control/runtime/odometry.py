@@ -24,6 +24,11 @@ class Odometry:
         self.distance = 0.0
         self._last = None
 
+    def rebase(self) -> None:
+        """Take the next reading as the new reference, keeping the pose: the encoders may count from
+        elsewhere after a drive came back (a device that restarted). Motion in between is not counted."""
+        self._last = None
+
     def update(self, state: WheelState) -> Pose2:
         left, right = state.position
         if self._last is None:

@@ -14,6 +14,16 @@ before the stall is refused and the teleop command is forgotten, so moving again
 needs fresh commands. During the stall itself the drive keeps its last command:
 only the drive's own watchdog can act inside it.
 
+A lost drive bus is not the end at once: the drive goes to ERROR (its own
+watchdog stops the wheels), the loop zeroes its command and trips the latched,
+non-fatal ``drive_lost`` stop, and keeps cycling without touching the drive
+while ``DriveRecovery`` (drive_recovery.py) lets it reconnect, for up to
+``drive.reconnect_window_s``. Back in time: it re-ran its safe bring-up, a
+``drive_reconnected`` event says so, and the robot stays stopped until an
+operator ``resume`` (refused while the drive is still away). Not back in time,
+or back with a fault of its own: the run ends with reason ``drive`` and the
+cause. Any other drive fault ends the run at once.
+
 Operator commands reach the loop through a ``CommandMailbox`` (mailbox.py):
 ``submit`` from any thread, drained once per cycle. The runtime applies
 ``estop`` and ``resume`` itself and forwards every other command to the
@@ -24,6 +34,7 @@ effect.
 """
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
@@ -32,6 +43,7 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
+from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
@@ -41,7 +53,7 @@ from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.clock import Clock
-from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+from vbnav.drivers.wheels import DriveError, DriveState, WheelDrive, WheelState
 
 
 @dataclass
@@ -87,6 +99,7 @@ class Runtime:
         self._last_now = 0
         self._start_ns = 0
         self._deadline_ns: Optional[int] = None
+        self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
         self.fault_traceback: Optional[str] = None
 
     # -- thread-safe inputs -------------------------------------------------
@@ -135,6 +148,7 @@ class Runtime:
             self._end = (reason, f"start-up: {exc}")
             timing = self.loop.timing.summary(self.loop.rate_hz)
         finally:
+            self._end_recovery()
             self._make_safe()
             try:
                 self.drive.close()
@@ -163,10 +177,12 @@ class Runtime:
                                     f"(period {1e3 / self.loop.rate_hz:.1f} ms, last compute "
                                     f"{self.loop.timing.last_compute_ns() * 1e-6:.1f} ms)")
             self._check_stall(now)
-            wheels = self.drive.read()
+            wheels = self._read_wheels(now)
+            if wheels is None:
+                return False
             self.wheels = wheels
-            if wheels.faults:
-                return self._finish(now, "drive", "drive fault: " + "; ".join(wheels.faults))
+            if wheels.drive_state is DriveState.ERROR and self._recovery is None:
+                return self._finish(now, "drive", "drive fault: " + "; ".join(map(str, wheels.faults)))
             stage = "odometry"
             odom = self.odometry.update(wheels)
             stage = "vision"
@@ -218,10 +234,63 @@ class Runtime:
                 return self._finish(now, "duration", "duration reached")
             return True
         except DriveError as exc:
-            return self._finish(now, "drive", f"{stage}: {exc}")
+            return self._drive_failed(now, stage, exc)
         except Exception as exc:
             self.fault_traceback = traceback.format_exc()
             return self._finish(now, "exception", f"exception in {stage}: {exc!r}")
+
+    # -- a lost drive ---------------------------------------------------------
+    def _read_wheels(self, now: int) -> Optional[WheelState]:
+        """The drive's reading; while its bus is lost, the last position held (velocity unknown) and the
+        reconnect polled. None when the run ended."""
+        if self._recovery is None:
+            return self.drive.read()
+        outcome = self._recovery.poll(now)
+        if outcome is None:
+            last = self.wheels
+            position = last.position if last is not None else (0.0, 0.0)
+            return WheelState(now, position, (math.nan, math.nan), self.drive.faults, self.drive.state)
+        recovery, self._recovery = self._recovery, None
+        lost_s = (now - recovery.since_ns) * 1e-9
+        if outcome is Outcome.BACK:
+            self.odometry.rebase()   # a device that restarted counts from elsewhere: no jump in the pose
+            self.safety.note(now, "drive_reconnected", "drive_lost",
+                             f"{self.drive.drive_name} is back after {lost_s:.2f} s and ran its safe bring-up "
+                             f"(wheels unpowered); stopped until resume")
+            return self.drive.read()
+        cause = recovery.cause
+        if outcome is Outcome.FAILED:
+            self._finish(now, "drive", f"{cause}; it came back after {lost_s:.2f} s but is not usable: "
+                                       f"{recovery.error}")
+        else:
+            note = self.drive.reconnect_note
+            self._finish(now, "drive", f"{cause}; not back within {recovery.window_s:g} s "
+                                       f"(drive.reconnect_window_s)" + (f"; last attempt: {note}" if note else ""))
+        return None
+
+    def _drive_failed(self, now: int, stage: str, exc: DriveError) -> bool:
+        """A DriveError in this cycle: a lost bus starts the wait for the drive; anything else ends the run."""
+        faults = self.drive.faults
+        window = self.cfg.drive.reconnect_window_s
+        lost = (self.drive.state is DriveState.ERROR and faults and all(f.kind.reconnectable for f in faults))
+        if not lost or window <= 0 or not self.drive.can_reconnect or self._recovery is not None:
+            return self._finish(now, "drive", f"{stage}: {exc}")
+        self._make_safe()
+        cause = f"{stage}: {exc}"
+        message = (f"{cause}; waiting up to {window:g} s (drive.reconnect_window_s) for it to come back, then "
+                   f"stopped until resume")
+        if "drive_lost" in self.safety.latched:   # lost again before a resume: the stop holds, say so anyway
+            self.safety.note(now, "warning", "drive_lost", message)
+        else:
+            self.safety.trip(now, "drive_lost", message)
+        self._recovery = DriveRecovery(self.drive, cause, now, window,
+                                       threaded=not self.clock.simulated)
+        return True
+
+    def _end_recovery(self) -> None:
+        if self._recovery is not None:
+            self._recovery.stop()
+            self._recovery = None
 
     def _check_stall(self, now: int) -> None:
         """A cycle that starts too long after the tick it follows: latched stop, old teleop forgotten."""
@@ -292,6 +361,9 @@ class Runtime:
         if cmd.kind == "estop":
             self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
             return APPLIED
+        if cmd.kind == "resume" and self._recovery is not None:
+            return CommandOutcome.refused(f"the drive is still lost: {self.drive.drive_name} has not come back yet; "
+                                          f"resume once a drive_reconnected event says so")
         if cmd.kind == "resume":
             self.safety.reset(now, f"resume from {cmd.source}")
             return APPLIED
@@ -300,6 +372,7 @@ class Runtime:
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):
             self.safety.trip(now, reason, message)
+        self._end_recovery()
         self._make_safe()
         self._end = (reason, message)
         return False

@@ -2,7 +2,8 @@
 
 Two kinds of stop:
 - latched (``trip``): an exception in any stage, SIGINT/SIGTERM, a streak of
-  missed deadlines, a lost or faulted drive, an operator estop. The robot stays
+  missed deadlines, a faulted drive, a drive whose bus was lost (``drive_lost``,
+  while it may still come back), a stall, an operator estop. The robot stays
   stopped until ``reset`` (operator resume); fatal causes also end the run.
 - held (``hold``): a condition that stops the robot while it lasts and releases
   by itself once it has been clear for ``release_s`` (debounce): a stale camera
@@ -22,7 +23,7 @@ FATAL = ("exception", "signal", "deadline", "drive", "camera")
 @dataclass
 class SafetyEvent:
     stamp_ns: int
-    kind: str        # "trip", "hold", "release", "reset"
+    kind: str        # "trip", "hold", "release", "reset", "rejected", "warning", "drive_reconnected"
     cause: str
     message: str
 
@@ -75,6 +76,10 @@ class SafetyMonitor:
     def reject(self, now_ns: int, command: str, message: str) -> None:
         """A refused operator command: an event for the log and listeners, no change to the stop state."""
         self._emit(SafetyEvent(now_ns, "rejected", command, message))
+
+    def note(self, now_ns: int, kind: str, cause: str, message: str) -> None:
+        """News that changes no stop (``drive_reconnected``): an event for the log and listeners."""
+        self._emit(SafetyEvent(now_ns, kind, cause, message))
 
     # -- outputs -----------------------------------------------------------
     @property

@@ -14,14 +14,13 @@ couple to the same ``DiffDrivePhysics``.
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from vbnav.drivers.wheels import DriveError, WheelDrive, WheelState
+from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelDrive, WheelState
 from vbnav.vision.geometry import Pose2, arc_step
 
 SUBSTEP_NS = 1_000_000  # 1 ms physics step
@@ -104,23 +103,31 @@ class DiffDrivePhysics:
 
 
 class SimDiffDrive(WheelDrive):
-    """WheelDrive on DiffDrivePhysics and a clock."""
+    """WheelDrive on DiffDrivePhysics and a clock.
+
+    Power follows the lifecycle: the motors are powered only while ACTIVE. A bus loss can be injected
+    for tests (``options.fail_after_s``, and ``lost_for_s`` for it to come back): the motors lose power
+    at once, as a device watchdog would stop them.
+    """
 
     name = "sim"
+    drive_name = "sim drive"
 
     class Options(BaseModel):
         model_config = ConfigDict(extra="forbid")
         fail_after_s: Optional[float] = Field(None, gt=0, description="testing: lose the bus after this time")
+        lost_for_s: Optional[float] = Field(None, gt=0, description="testing: with fail_after_s, the bus comes "
+                                            "back after this long (None: never)")
 
     def __init__(self, params: BaseParams, clock, seed: int = 0, start: Pose2 = Pose2(),
                  options: Optional["SimDiffDrive.Options"] = None):
+        super().__init__()
         self.physics = DiffDrivePhysics(params, seed, start)
         self.physics.time_ns = clock.now_ns()
         self.clock = clock
         self.options = options or SimDiffDrive.Options()
-        self._lock = threading.Lock()
-        self._connected = False
         self._t0: Optional[int] = None
+        self._lost_at: Optional[int] = None   # when the injected bus loss happened
         self.writes = 0
 
     @classmethod
@@ -130,48 +137,52 @@ class SimDiffDrive(WheelDrive):
         return cls(BaseParams.from_config(cfg), clock, seed=cfg.sim.seed if seed is None else seed,
                    start=start or Pose2(), options=options)
 
-    # -- lifecycle ---------------------------------------------------------
-    def connect(self) -> None:
-        with self._lock:
-            self._t0 = self.clock.now_ns()
-            self.physics.time_ns = self._t0
-            self._connected = True
+    @property
+    def can_reconnect(self) -> bool:
+        return self.options.lost_for_s is not None
 
-    def enable(self) -> None:
-        self._check()
-        with self._lock:
+    # -- lifecycle hooks (WheelDrive owns the states) ------------------------
+    def _configure(self) -> None:
+        self._t0 = self.clock.now_ns()
+        self.physics.time_ns = self._t0
+
+    def _activate(self) -> None:
+        self._check_bus()
+        self._advance()
+        self.physics.command = [0.0, 0.0]
+        self.physics.powered = True
+
+    def _write(self, left: float, right: float) -> None:
+        self._check_bus()
+        self._advance()
+        if self.physics.powered:
+            self.physics.command = [float(left), float(right)]
+        self.writes += 1
+
+    def _read(self) -> WheelState:
+        self._check_bus()
+        self._advance()
+        ph = self.physics
+        return WheelState(ph.time_ns, ph.encoder_angles(), (float(ph.rate[0]), float(ph.rate[1])),
+                          self.faults, self.state)
+
+    def _stop_wheels(self) -> None:
+        if self._t0 is not None:
             self._advance()
-            self.physics.command = [0.0, 0.0]
-            self.physics.powered = True
+        self.physics.command = [0.0, 0.0]
+        self.physics.powered = False
 
-    def write(self, left: float, right: float) -> None:
-        self._check()
-        if not (math.isfinite(left) and math.isfinite(right)):
-            raise DriveError(f"sim drive: non-finite wheel command ({left}, {right})")
-        with self._lock:
-            self._advance()
-            if self.physics.powered:
-                self.physics.command = [float(left), float(right)]
-            self.writes += 1
+    def _release(self) -> None:
+        pass
 
-    def read(self) -> WheelState:
-        self._check()
-        with self._lock:
-            self._advance()
-            ph = self.physics
-            return WheelState(ph.time_ns, ph.encoder_angles(), (float(ph.rate[0]), float(ph.rate[1])),
-                              (), ph.powered)
-
-    def disable(self) -> None:
-        with self._lock:
-            if self._connected:
-                self._advance()
-            self.physics.command = [0.0, 0.0]
-            self.physics.powered = False
-
-    def close(self) -> None:
-        self.disable()
-        self._connected = False
+    def _reconnect(self) -> bool:
+        """The injected loss is over after ``lost_for_s``: the base is configured again (unpowered); the
+        physics kept running meanwhile."""
+        back_at = self._lost_at + int(self.options.lost_for_s * 1e9) if self.can_reconnect else None
+        if back_at is None or self.clock.now_ns() < back_at:
+            return False
+        self._advance()
+        return True
 
     # -- simulation access -------------------------------------------------
     @property
@@ -190,10 +201,20 @@ class SimDiffDrive(WheelDrive):
     def _advance(self) -> None:
         self.physics.advance_to(self.clock.now_ns())
 
-    def _check(self) -> None:
-        if not self._connected:
-            raise DriveError("sim drive: not connected")
-        if self.options.fail_after_s is not None and self._t0 is not None:
-            if self.clock.now_ns() - self._t0 > self.options.fail_after_s * 1e9:
-                self.physics.powered = False
-                raise DriveError("sim drive: bus lost (injected by options.fail_after_s)")
+    def _check_bus(self) -> None:
+        """The injected bus loss (once): unpowered at once, state ERROR, DriveError."""
+        if self._lost_at is not None:
+            if self.state is DriveState.ERROR:
+                raise DriveError("sim drive: the bus is lost (injected); not back yet")
+            return
+        fail_after = self.options.fail_after_s
+        if fail_after is None or self._t0 is None:
+            return
+        now = self.clock.now_ns()
+        if now - self._t0 > fail_after * 1e9:
+            self._lost_at = now
+            self._advance()
+            self.physics.powered = False
+            fault = DriveFault(FaultKind.BUS_LOST, "sim bus", "sim drive: bus lost (injected by "
+                               "options.fail_after_s); the motors lost power")
+            self._fault(fault, text=fault.message)
