@@ -136,7 +136,8 @@ def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
 def detect_layout(root: Path) -> str:
     root = Path(root)
     if not root.is_dir():
-        raise DatasetError(f"{root}: {'is a file, expected' if root.exists() else 'no such'} dataset folder")
+        raise DatasetError(f"{root}: is a file, expected a dataset folder" if root.exists()
+                           else f"{root}: dataset folder does not exist")
     if (root / "rgb.txt").is_file():
         return "tum"
     if (root / "calib.txt").is_file() or (root / "image_l").is_dir() or (root / "image_0").is_dir():
