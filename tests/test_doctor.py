@@ -15,8 +15,16 @@ from vbnav.control.config import load_config
 from vbnav.drivers.sim.dynamixel_emulator import DynamixelBus
 
 
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def write_config(tmp_path, name="robot.yaml", **sections) -> str:
-    data = {"controller": {"routes_dir": str(tmp_path / "routes")}, **sections}
+    # not the default 7447: another vbnav may be running on this machine
+    data = {"controller": {"routes_dir": str(tmp_path / "routes")},
+            "telemetry": {"listen": [f"tcp/127.0.0.1:{free_tcp_port()}"]}, **sections}
     path = tmp_path / name
     path.write_text(yaml.safe_dump(data))
     return str(path)
@@ -33,12 +41,6 @@ def dxl_config(tmp_path, port, **options) -> str:
 def bus():
     with DynamixelBus([1, 2]) as b:
         yield b
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_the_simulated_robot_is_ready(tmp_path, capsys):
