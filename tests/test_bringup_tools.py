@@ -115,6 +115,12 @@ def test_discovery_names_by_id_links_latency_timer_and_v4l2_nodes(tmp_path, mixe
     assert discovery.v4l2_devices(sysfs=str(tmp_path / "nothing")) == []
 
 
+def test_v4l2_ioctl_numbers_are_the_kernels():
+    # linux/videodev2.h on x86-64 and arm64: a wrong struct size would make every enumeration fail silently
+    assert (discovery.VIDIOC_QUERYCAP, discovery.VIDIOC_ENUM_FMT, discovery.VIDIOC_ENUM_FRAMESIZES,
+            discovery.VIDIOC_ENUM_FRAMEINTERVALS) == (0x80685600, 0xC0405602, 0xC02C564A, 0xC034564B)
+
+
 # -- vbnav servo -----------------------------------------------------------------------------------
 def test_servo_set_id_then_set_baud_on_a_new_servo(caplog, capsys):
     caplog.set_level(logging.INFO, logger=EMULATOR_LOG)
