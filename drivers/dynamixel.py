@@ -27,7 +27,7 @@ from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
 from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, HW_ERROR_BITS, MODE_VELOCITY, MODEL_NUMBERS,
                                            TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
-from vbnav.drivers.serial_drive import SerialWheelDrive
+from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, FaultKind, WheelState
 
 try:  # imported lazily by the registry; a clear error if the SDK is missing
@@ -120,11 +120,8 @@ class DynamixelDrive(SerialWheelDrive):
 
         @model_validator(mode="after")
         def _distinct_ids(self):
-            # Two servos cannot share an id on one bus: the first sign would be "servo 2 not answering".
-            if self.left_id == self.right_id:
-                raise ValueError(f"left_id and right_id are both {self.left_id}: each servo needs its own bus id "
-                                 f"('vbnav servo set-id' changes one)")
-            return self
+            return require_two_wheels(self, "left_id", "right_id", "each servo needs its own bus id "
+                                                                   "('vbnav servo set-id' changes one)")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["DynamixelDrive.Options"] = None,
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):

@@ -19,7 +19,7 @@ from typing import Any, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from vbnav.drivers.serial_drive import SerialWheelDrive
+from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelState
 
 try:
@@ -98,10 +98,7 @@ class ODriveDrive(SerialWheelDrive):
 
         @model_validator(mode="after")
         def _two_axes(self):
-            if self.left_axis == self.right_axis:
-                raise ValueError(f"left_axis and right_axis are both {self.left_axis}: each wheel needs its own "
-                                 f"axis (0 and 1)")
-            return self
+            return require_two_wheels(self, "left_axis", "right_axis", "each wheel needs its own axis (0 and 1)")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["ODriveDrive.Options"] = None,
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):

@@ -56,7 +56,7 @@ from vbnav.drivers.dynamixel_table import (
     PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY, PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS,
     RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S, STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE,
     VELOCITY_LIMIT, VELOCITY_UNIT_RPM, WATCHDOG_UNIT_S, Register, REGISTERS as _REGISTERS)
-from vbnav.drivers.sim.pty_device import PtyDevice
+from vbnav.drivers.sim.pty_device import LoggedFlag, PtyDevice
 
 log = logging.getLogger("vbnav.emulator.dynamixel")
 INSTRUCTION_NAMES = {dp.INST_PING: "PING", dp.INST_READ: "READ", dp.INST_WRITE: "WRITE",
@@ -118,7 +118,6 @@ class EmulatedServo:
         self.dxl_id = dxl_id
         self.model = model
         self._factory_baud = baud
-        self._no_answer = self._corrupt = False
         self.table = bytearray(TABLE_SIZE)
         self._position = 0.0  # ticks, float
         self._velocity = 0.0  # 0.229 rpm units, float
@@ -127,26 +126,11 @@ class EmulatedServo:
         self.power_on()
 
     # -- injected faults (logged: what a test or an operator did to the bus) ---------------
-    @property
-    def no_answer(self) -> bool:
-        return self._no_answer
+    no_answer = LoggedFlag("silent (fault injected)", "answers again")
+    corrupt = LoggedFlag("answers with a broken CRC (fault injected)", "answers intact again")
 
-    @no_answer.setter
-    def no_answer(self, value: bool) -> None:
-        if bool(value) != self._no_answer:
-            log.info("servo %d: %s", self.dxl_id, "silent (fault injected)" if value else "answers again")
-        self._no_answer = bool(value)
-
-    @property
-    def corrupt(self) -> bool:
-        return self._corrupt
-
-    @corrupt.setter
-    def corrupt(self, value: bool) -> None:
-        if bool(value) != self._corrupt:
-            log.info("servo %d: %s", self.dxl_id, "answers with a broken CRC (fault injected)" if value
-                     else "answers intact again")
-        self._corrupt = bool(value)
+    def _log_event(self, text: str) -> None:
+        log.info("servo %d: %s", self.dxl_id, text)
 
     # -- control table -----------------------------------------------------------
     def get(self, register: Register, signed: bool | None = None) -> int:

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Optional
 
 from vbnav.drivers.sim.dynamixel_emulator import WheelCoupling
-from vbnav.drivers.sim.pty_device import PtyDevice
+from vbnav.drivers.sim.pty_device import LoggedFlag, PtyDevice
 
 log = logging.getLogger("vbnav.emulator.odrive")
 
@@ -168,7 +168,6 @@ class ODriveEmulator(PtyDevice):
         super().__init__(link, step_s)
         self.coupling = coupling
         self.vbus_voltage = 24.0
-        self._no_answer = self._corrupt = False
         self.log: list[tuple[float, str]] = []
         self._buf = b""
         self._t0 = time.monotonic()
@@ -177,25 +176,11 @@ class ODriveEmulator(PtyDevice):
         return self.axes[n]
 
     # -- injected faults (logged) --------------------------------------------------------
-    @property
-    def no_answer(self) -> bool:
-        return self._no_answer
+    no_answer = LoggedFlag("silent (fault injected)", "answers again")
+    corrupt = LoggedFlag("garbles its answers (fault injected)", "answers intact again")
 
-    @no_answer.setter
-    def no_answer(self, value: bool) -> None:
-        if bool(value) != self._no_answer:
-            log.info("%s", "silent (fault injected)" if value else "answers again")
-        self._no_answer = bool(value)
-
-    @property
-    def corrupt(self) -> bool:
-        return self._corrupt
-
-    @corrupt.setter
-    def corrupt(self, value: bool) -> None:
-        if bool(value) != self._corrupt:
-            log.info("%s", "garbles its answers (fault injected)" if value else "answers intact again")
-        self._corrupt = bool(value)
+    def _log_event(self, text: str) -> None:
+        log.info("%s", text)
 
     # -- serving (the pty lifecycle is PtyDevice's, shared with the Dynamixel bus) ------------
     def _reset_input(self) -> None:

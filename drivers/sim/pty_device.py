@@ -51,6 +51,26 @@ def tty_speed(fd: int) -> int | None:
         return None
 
 
+class LoggedFlag:
+    """A fault-injection switch (``no_answer``, ``corrupt``) that logs when it changes, through the owner's
+    ``_log_event(text)``: what a test or an operator did to the device shows in the emulator's log."""
+
+    def __init__(self, on: str, off: str):
+        self.on, self.off = on, off
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.attr = "_" + name
+
+    def __get__(self, obj, objtype=None):
+        return self if obj is None else getattr(obj, self.attr, False)
+
+    def __set__(self, obj, value) -> None:
+        value = bool(value)
+        if value != getattr(obj, self.attr, False):
+            obj._log_event(self.on if value else self.off)
+        setattr(obj, self.attr, value)
+
+
 class PtyDevice(abc.ABC):
     """Pty lifecycle plus the serving thread; ``start()`` returns the device path."""
 
