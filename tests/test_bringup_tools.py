@@ -78,6 +78,7 @@ def test_find_servos_scans_rates_and_prints_model_id_firmware(mixed_bus, capsys)
     out = capsys.readouterr().out
     assert "57600 bit/s: id 1   XL430-W250 (model number 1060), firmware 46" in out
     assert "1000000 bit/s: id 2   XL430-W250" in out
+    assert "2 servo(s) at 2 different rates: one bus runs at one rate" in out
 
 
 def test_find_servos_on_a_silent_bus_exits_1_with_advice(capsys):

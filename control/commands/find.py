@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 
-from vbnav.drivers.errors import InputError
 
 COMMAND = "vbnav find"
 
@@ -110,8 +109,15 @@ def run_servos(args) -> int:
               f"connect new ones one at a time")
         return 1
     ids = [s.dxl_id for s in found]
-    print(f"{len(found)} servo(s). In the configuration: drive.options.port {args.bus_port}, baudrate "
-          f"{found[0].baud}" + (f", left_id/right_id from ids {', '.join(map(str, ids))}" if len(found) > 1 else ""))
+    rates = sorted({s.baud for s in found})
+    if len(rates) > 1:
+        print(f"{len(found)} servo(s) at {len(rates)} different rates: one bus runs at one rate; set each to the "
+              f"configured drive.options.baudrate with 'vbnav servo set-baud --port {args.bus_port} --id N "
+              f"--new-baud RATE'")
     if len(set(ids)) != len(ids):
-        raise InputError("the same id answers at two rates: give each servo its own id (vbnav servo set-id)")
+        print("the same id answers at two rates: give each servo its own id ('vbnav servo set-id') before "
+              "bringing them to one rate")
+    if len(rates) == 1:
+        print(f"{len(found)} servo(s). In the configuration: drive.options.port {args.bus_port}, baudrate "
+              f"{rates[0]}" + (f", left_id and right_id two of {', '.join(map(str, ids))}" if len(found) > 1 else ""))
     return 0
