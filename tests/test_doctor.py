@@ -131,6 +131,10 @@ def test_calibration_present_and_for_the_configured_size(tmp_path):
     assert check.status == doctor.FAIL and "calibrated at 320x240, the camera is set to 640x480" in check.detail
     cfg.camera.width, cfg.camera.height = 320, 240
     assert doctor.check_calibration(cfg).status == doctor.OK
+    ros["camera_matrix"]["data"][0] = ros["camera_matrix"]["data"][4] = 30.0     # 158 deg: not a pinhole lens
+    calib.write_text(yaml.safe_dump(ros))
+    check = doctor.check_calibration(cfg)
+    assert check.status == doctor.WARN and "field of view of 159 deg" in check.detail
     cfg.camera.calibration_file = str(tmp_path / "gone.yaml")
     check = doctor.check_calibration(cfg)
     assert check.status == doctor.FAIL and "gone.yaml: calibration file does not exist" in check.detail

@@ -56,6 +56,13 @@ def test_list_shows_each_route_with_keyframes_length_and_completeness(routes, ca
     assert "NO" in out.splitlines()[2] and "pinhole 64x48 fx 50" in out
 
 
+def test_list_defaults_to_the_configurations_routes_dir(routes, tmp_path, capsys):
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text(f"controller: {{routes_dir: {routes}}}\n")
+    assert main(["route", "list", "-c", str(cfg)]) == 0
+    assert f"{routes}: 2 route(s)" in capsys.readouterr().out
+
+
 def test_list_reports_an_unreadable_manifest_and_a_missing_folder(routes, tmp_path, capsys):
     shutil.copytree(routes / "patrol", tmp_path / "broken")
     (tmp_path / "broken" / "manifest.json").write_text("{not json")
