@@ -51,11 +51,12 @@ from typing import Optional, Protocol
 
 from vbnav.drivers import dynamixel_protocol as dp
 from vbnav.drivers.dynamixel_table import (
-    ACCEL_UNIT_RPM2, BAUD_RATE, BAUD_RATES, BAUD_VALUES, BUS_WATCHDOG, EEPROM_END, FIRMWARE_VERSION, GOAL_VELOCITY, HARDWARE_ERROR_STATUS, ID,
-    MAX_ID, MODE_VELOCITY, MODEL_NUMBER, MODEL_NUMBERS, MOVING, OPERATING_MODE, OPERATING_MODES, PRESENT_INPUT_VOLTAGE,
-    PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY, PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS,
-    RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S, STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE,
-    VELOCITY_LIMIT, VELOCITY_UNIT_RPM, WATCHDOG_UNIT_S, Register, REGISTERS as _REGISTERS)
+    ACCEL_UNIT_RPM2, BAUD_RATE, BAUD_RATES, BAUD_VALUES, BUS_WATCHDOG, EEPROM_END, FIRMWARE_VERSION, GOAL_VELOCITY,
+    HARDWARE_ERROR_STATUS, ID, MAX_ID, MODE_VELOCITY, MODEL_NUMBER, MODEL_NUMBERS, MOVING, OPERATING_MODE,
+    OPERATING_MODES, PRESENT_INPUT_VOLTAGE, PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY,
+    PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS, RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S,
+    STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE, VELOCITY_LIMIT, VELOCITY_UNIT_RPM,
+    WATCHDOG_UNIT_S, Register)
 from vbnav.drivers.sim.pty_device import LoggedFlag, PtyDevice
 
 log = logging.getLogger("vbnav.emulator.dynamixel")
@@ -283,7 +284,7 @@ class DynamixelBus(PtyDevice):
         self.model = model if isinstance(model, ServoModel) else model_by_name(model)
         self.servos = {i: EmulatedServo(i, self.model, baud) for i in ids}
         super().__init__(link, step_s)
-        self._heard = self.servos       # the servos that hear the packet being served (see _serve_bytes)
+        self._host_baud: Optional[int] = None     # the host's rate while a chunk is served (None: any)
         self._mismatch_baud: Optional[int] = None
         self.coupling = coupling
         self.log: list[LogEntry] = []
@@ -309,9 +310,8 @@ class DynamixelBus(PtyDevice):
 
     # -- serving ---------------------------------------------------------------------------
     def _serve_bytes(self, data: bytes) -> None:
-        host = self.host_baud()
-        self._heard = {i: s for i, s in self.servos.items() if host is None or s.baud == host}
-        if not self._heard:
+        host = self._host_baud = self.host_baud()
+        if not any(self._hears(s) for s in self.servos.values()):
             # Nobody on the bus runs at the host's rate: to every servo this is noise. Nothing is parsed,
             # nothing answers (the parser starts afresh, as a servo's UART resynchronises).
             if host != self._mismatch_baud:
@@ -327,7 +327,16 @@ class DynamixelBus(PtyDevice):
             for pkt in self._parser.feed(data):
                 self._handle(pkt)
         finally:
-            self._heard = self.servos
+            self._host_baud = None
+
+    def _hears(self, s: EmulatedServo) -> bool:
+        """The servo runs at the host's rate (checked per packet: a servo switched mid-chunk stops hearing)."""
+        return self._host_baud is None or s.baud == self._host_baud
+
+    def _listener(self, dxl_id: int) -> Optional[EmulatedServo]:
+        """Servo ``dxl_id`` if it is on the bus and hears the host's rate."""
+        s = self.servos.get(dxl_id)
+        return s if s is not None and self._hears(s) else None
 
     def _step(self, now: float, dt: float) -> None:
         for s in self.servos.values():
@@ -377,15 +386,15 @@ class DynamixelBus(PtyDevice):
         number = int.from_bytes(value, "little", signed=True)
         self._log(s.dxl_id, op if not err else f"write_error_{err}", addr, number)
         if err:
-            name = next((r.name for r in _REGISTERS.values() if r.address == addr), f"address {addr}")
+            name = next((r.name for r in REGISTERS.values() if r.address == addr), f"address {addr}")
             log.info("servo %d: write of %s = %d refused: %s", s.dxl_id, name, number, ERROR_NAMES.get(err, err))
         elif addr == BAUD_RATE.address:
             log.info("servo %d: Baud Rate is now %d bit/s (from the next packet)", s.dxl_id, s.baud)
 
     def _targets(self, pkt: dp.Packet) -> list[EmulatedServo]:
         if pkt.dxl_id == dp.BROADCAST_ID:
-            return list(self._heard.values())
-        s = self._heard.get(pkt.dxl_id)
+            return [s for s in self.servos.values() if self._hears(s)]
+        s = self._listener(pkt.dxl_id)
         return [s] if s else []
 
     def _status(self, servo: EmulatedServo, error: int, data: bytes = b"") -> bytes:
@@ -437,7 +446,7 @@ class DynamixelBus(PtyDevice):
             if inst == dp.INST_SYNC_READ:
                 out = []
                 for dxl_id in body:
-                    s = self._heard.get(dxl_id)
+                    s = self._listener(dxl_id)
                     if s is None or s.no_answer:
                         continue
                     s.last_comm = now
@@ -445,7 +454,7 @@ class DynamixelBus(PtyDevice):
                     out.append(self._status(s, err, data))
                 return out
             for k in range(0, len(body) - size, size + 1):
-                s = self._heard.get(body[k])
+                s = self._listener(body[k])
                 if s is None or s.no_answer:
                     continue
                 s.last_comm = now
@@ -457,7 +466,7 @@ class DynamixelBus(PtyDevice):
             k = 0
             while k + 5 <= len(p):
                 dxl_id, addr, size = p[k], p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8
-                s = self._heard.get(dxl_id)
+                s = self._listener(dxl_id)
                 if inst == dp.INST_BULK_READ:
                     k += 5
                     if s is not None and not s.no_answer:
