@@ -155,3 +155,17 @@ def test_oak_udev_rule(tmp_path):
     assert check.status in (doctor.FAIL, doctor.WARN) and "80-movidius.rules" in check.fix
     (tmp_path / "80-movidius.rules").write_text('SUBSYSTEM=="usb", ATTRS{idVendor}=="03e7", MODE="0666"\n')
     assert doctor.check_oak_udev_rule((str(tmp_path),)).status == doctor.OK
+
+
+def test_devices_without_permission_name_the_group_to_join(tmp_path, bus, monkeypatch, capsys):
+    video = tmp_path / "video0"
+    video.symlink_to(os.devnull)                         # a character device, not a file to replay
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if str(p) in (bus.path, str(video))
+                        else real_access(p, mode, **kw))
+    assert main(["doctor", "-c", dxl_config(tmp_path, bus.path)]) == 1
+    out = capsys.readouterr().out
+    assert f"[FAIL] drive permission: no permission to open {bus.path}" in out
+    assert "fix: sudo usermod -aG dialout $USER" in out
+    assert f"[FAIL] camera permission: no permission to open {video}" in out
+    assert "fix: sudo usermod -aG video $USER" in out
