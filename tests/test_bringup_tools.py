@@ -235,19 +235,21 @@ def test_emulators_log_traffic_watchdog_expiry_and_faults(caplog):
     assert "'w axis0.requested_state 8' -> None" in caplog.text
 
 
-def test_emulate_verbose_prints_the_log_to_stderr(tmp_path):
-    import subprocess
-    import sys
-    proc = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "emulate", "dynamixel", "--ids", "1",
-                             "--baud", "57600", "-v"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def test_emulate_verbose_prints_the_log_to_stderr(capsys):
+    from vbnav.control.cli import build_parser
+    from vbnav.control.commands import emulate
+    args = build_parser().parse_args(["emulate", "dynamixel", "--ids", "1", "--baud", "57600", "-v"])
+    logger = logging.getLogger(EMULATOR_LOG)
+    before = list(logger.handlers), logger.level
     try:
-        path = proc.stdout.readline().strip()
-        with DynamixelBusTool(path) as bus:
-            assert bus.at(1_000_000).ping(1) is None
+        emulate._log_to_stderr(args.verbose)          # what `vbnav emulate ... -v` sets up before serving
+        with DynamixelBus(args.ids, baud=args.baud) as bus, DynamixelBusTool(bus.path) as tool:
+            assert tool.at(1_000_000).ping(1) is None
     finally:
-        proc.terminate()
-        _, err = proc.communicate(timeout=10)
-    assert proc.returncode == 0 and "the servos listen at 57600 bit/s" in err
+        logger.handlers[:] = before[0]
+        logger.setLevel(before[1])
+    assert "vbnav.emulator.dynamixel: host sends at 1000000 bit/s, the servos listen at 57600 bit/s" in \
+        capsys.readouterr().err
 
 
 # -- config check ------------------------------------------------------------------------------------
