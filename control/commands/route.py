@@ -93,8 +93,8 @@ def run_check(args) -> int:
     for n in report.notes:
         print(f"  note: {n}")
     if not report.intact:
-        print(f"{report.path}: DAMAGED ({len(report.problems)} problem(s)); re-teach the route, or repeat it only "
-              f"up to the keyframe before the first damaged one")
+        print(f"{report.path}: DAMAGED ({len(report.problems)} problem(s)); a repeat would refuse or misread it: "
+              f"teach it again (vbnav teach -c CONFIG --out {report.path} --overwrite)")
         return 1
     print(f"{report.path}: intact, {report.keyframes} keyframes, "
           f"{'complete' if report.complete else 'incomplete (teaching was interrupted)'}")
