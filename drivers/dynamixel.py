@@ -21,13 +21,13 @@ import select
 import time
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
 from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, HW_ERROR_BITS, MODE_VELOCITY, MODEL_NUMBERS,
                                            TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
-from vbnav.drivers.serial_drive import SerialWheelDrive
+from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, FaultKind, WheelState
 
 try:  # imported lazily by the registry; a clear error if the SDK is missing
@@ -117,6 +117,11 @@ class DynamixelDrive(SerialWheelDrive):
         max_missed_reads: int = Field(5, ge=1, description="consecutive failed reads that make a fault "
                                       "(the state is held meanwhile)")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
+
+        @model_validator(mode="after")
+        def _distinct_ids(self):
+            return require_two_wheels(self, "left_id", "right_id", "each servo needs its own bus id "
+                                                                   "('vbnav servo set-id' changes one)")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["DynamixelDrive.Options"] = None,
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
@@ -238,8 +243,9 @@ class DynamixelDrive(SerialWheelDrive):
                 if res == sdk.COMM_SUCCESS:
                     break
             if res != sdk.COMM_SUCCESS:
-                raise DriveError(f"servo {i} ({self.sides[i]}) on {self.opt.port} did not answer ping: "
-                                 f"{self.ph.getTxRxResult(res)}")
+                raise DriveError(f"servo {i} ({self.sides[i]}) on {self.opt.port} did not answer ping at "
+                                 f"{self.opt.baudrate} bit/s: {self.ph.getTxRxResult(res)} (a wrong id or baud "
+                                 f"rate? 'vbnav find servos --port {self.opt.port}' shows what answers)")
             if model not in accepted:
                 names = {v: k for k, v in MODEL_NUMBERS.items()}
                 raise DriveError(f"servo {i} ({self.sides[i]}) is model number {model} "

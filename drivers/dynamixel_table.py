@@ -92,6 +92,13 @@ OPERATING_MODES = {0: "current", 1: "velocity", 3: "position", 4: "extended posi
                    5: "current-based position", 16: "PWM"}
 MODE_VELOCITY = 1
 
+# Baud Rate (8) values -> bit/s (X-series e-Manual). An XL430/XM430 leaves the factory at 57600 (value 1).
+BAUD_RATES = {0: 9600, 1: 57_600, 2: 115_200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000, 6: 4_000_000,
+              7: 4_500_000}
+BAUD_VALUES = {bps: value for value, bps in BAUD_RATES.items()}
+FACTORY_BAUD = 57_600
+MAX_ID = 252  # 253 and 254 (broadcast) are reserved
+
 # Hardware Error Status bits (only a REBOOT clears them).
 HW_ERROR_BITS = {0: "input voltage error", 2: "overheating", 3: "motor encoder error",
                  4: "electrical shock", 5: "overload"}

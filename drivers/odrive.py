@@ -17,9 +17,9 @@ import select
 import time
 from typing import Any, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from vbnav.drivers.serial_drive import SerialWheelDrive
+from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelState
 
 try:
@@ -90,6 +90,15 @@ class ODriveDrive(SerialWheelDrive):
         max_missed_reads: int = Field(2, ge=1, description="consecutive failed reads that make a fault (the "
                                                           "state is held meanwhile)")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
+        clear_watchdog_error_at_start: bool = Field(
+            False, description="an axis found at start-up with only WATCHDOG_TIMER_EXPIRED set (the host went "
+                               "silent: a crash or a killed process) is cleared and brought up. Off: the run "
+                               "refuses to start and names 'vbnav odrive clear-errors -c CONFIG'. A lost bus that "
+                               "comes back during a run is always cleared: this process went silent itself")
+
+        @model_validator(mode="after")
+        def _two_axes(self):
+            return require_two_wheels(self, "left_axis", "right_axis", "each wheel needs its own axis (0 and 1)")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["ODriveDrive.Options"] = None,
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
@@ -99,6 +108,7 @@ class ODriveDrive(SerialWheelDrive):
         self.ser = None
         self._cycle = 0
         self._rx = b""
+        self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
 
     # -- lifecycle hooks (WheelDrive owns the states) ------------------------------------
     def _configure(self) -> None:
@@ -122,18 +132,22 @@ class ODriveDrive(SerialWheelDrive):
             for ax in self.axes:
                 self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
             words = self._error_words(t)
-            if self._only_expired_watchdogs(words):
+            if self._only_expired_watchdogs(words) and (self._was_up or self.opt.clear_watchdog_error_at_start):
                 # The axes stopped because the host went silent (a lost bus, a killed controller), not for
-                # a fault of their own: the bring-up clears that, as the Dynamixel bring-up clears a
-                # latched Bus Watchdog. Any other error stays for clear_faults.
+                # a fault of their own. During a run this process went silent itself: the bring-up clears
+                # it, as the Dynamixel bring-up clears a latched Bus Watchdog. At start-up only when the
+                # configuration says so; any other error stays for clear_faults.
                 self._send("sc")
                 words = self._error_words(t)
             faults = self._faults_in(words)
             if faults:
                 for f in faults:
                     self._record_fault(f)
-                raise DriveError("ODrive reports errors: " + "; ".join(map(str, faults)) +
-                                 " (clear with clear_faults)")
+                watchdog_only = all(f.kind is FaultKind.WATCHDOG for f in faults)
+                hint = ("the host went silent before (a crash?): clear with 'vbnav odrive clear-errors -c CONFIG', "
+                        "or set drive.options.clear_watchdog_error_at_start: true" if watchdog_only else
+                        "find the cause, then clear with 'vbnav odrive clear-errors -c CONFIG'")
+                raise DriveError("ODrive reports errors: " + "; ".join(map(str, faults)) + f" ({hint})")
             mode = INPUT_MODE_VEL_RAMP if self.opt.vel_ramp_rate > 0 else INPUT_MODE_PASSTHROUGH
             for ax in self.axes:
                 self._send(f"w axis{ax}.controller.config.control_mode {CONTROL_MODE_VELOCITY}")
@@ -149,6 +163,7 @@ class ODriveDrive(SerialWheelDrive):
                     self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
                                                   f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
                     raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
+            self._was_up = True
         except (serial.SerialException, OSError) as exc:
             raise DriveError(f"ODrive {self.opt.port} failed during setup: {exc}") from exc
         except _Corrupt as exc:

@@ -20,6 +20,14 @@ from vbnav.drivers.clock import MonotonicClock
 from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelDrive, WheelState
 
 
+def require_two_wheels(options: BaseModel, left: str, right: str, advice: str) -> BaseModel:
+    """An ``Options`` validator's check that the two wheels are two devices: the same servo id (or ODrive
+    axis) for both would fail only later, as one of them "not answering". Names both fields."""
+    if getattr(options, left) == getattr(options, right):
+        raise ValueError(f"{left} and {right} are both {getattr(options, left)}: {advice}")
+    return options
+
+
 class SerialWheelDrive(WheelDrive):
     """Base of the serial wheel drives. ``Options`` must have ``port``, ``max_missed_reads`` and
     ``reconnect_interval_s``."""

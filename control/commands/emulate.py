@@ -3,10 +3,16 @@
 Prints the device path as the first line of standard output, then serves until
 interrupted (Ctrl-C or SIGTERM). Point a robot configuration's ``drive.options.port``
 at that path to run the real driver without hardware.
+
+``-v`` prints what the emulator does to standard error (plug events, watchdog
+expiry, faults, refused writes, id and baud changes); ``-vv`` also every packet.
+The Dynamixel servos listen at ``--baud`` (default 1000000; a new XL430 is at
+57600): a host at another rate gets no answer, as on a real bus.
 """
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
 import sys
 import threading
@@ -35,12 +41,17 @@ def register(sub) -> None:
     d.add_argument("--model", default="XL430-W250", help="servo model: XL430-W250 (default) or XM430-W350")
     d.add_argument("--link", default=None, metavar="PATH", help="also create this symlink to the pty "
                    "(a stable path, like /dev/serial/by-id/...); the symlink is what gets printed")
+    d.add_argument("--baud", type=int, default=1_000_000, help="the servos' baud rate, bit/s (default 1000000; "
+                   "a new XL430 is at 57600); a host at another rate gets no answer")
     d.set_defaults(func=_run_dynamixel)
     o = dev.add_parser("odrive", help="ODrive with two axes, ASCII protocol")
     o.add_argument("--link", default=None, metavar="PATH", help="also create this symlink to the pty")
     o.add_argument("--watchdog-s", type=non_negative, default=0.0,
                    help="axis watchdog timeout preset, s (0 = off until the driver sets it)")
     o.set_defaults(func=_run_odrive)
+    for q in (d, o):
+        q.add_argument("-v", "--verbose", action="count", default=0,
+                       help="print events to stderr (-v: watchdog, faults, plug events; -vv: every packet too)")
 
 
 def _check_link(link: str | None) -> None:
@@ -54,7 +65,18 @@ def _check_link(link: str | None) -> None:
         raise InputError(f"--link {p}: exists and is not a symlink (it would be replaced by the device link)")
 
 
-def _serve(emulator) -> int:
+def _log_to_stderr(verbosity: int) -> None:
+    if verbosity <= 0:
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d %(name)s: %(message)s", "%H:%M:%S"))
+    logger = logging.getLogger("vbnav.emulator")
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG if verbosity > 1 else logging.INFO)
+
+
+def _serve(emulator, verbosity: int = 0) -> int:
+    _log_to_stderr(verbosity)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
     path = emulator.start()
@@ -77,7 +99,11 @@ def _run_dynamixel(args) -> int:
         print(f"vbnav emulate dynamixel: {exc}", file=sys.stderr)
         return 2
     _check_link(args.link)
-    return _serve(DynamixelBus(args.ids, model, link=args.link))
+    try:
+        bus = DynamixelBus(args.ids, model, link=args.link, baud=args.baud)
+    except ValueError as exc:
+        raise InputError(f"--baud: {exc}") from None
+    return _serve(bus, args.verbose)
 
 
 def _run_odrive(args) -> int:
@@ -86,4 +112,4 @@ def _run_odrive(args) -> int:
     emu = ODriveEmulator(link=args.link)
     for axis in emu.axes:
         axis.watchdog_timeout = args.watchdog_s
-    return _serve(emu)
+    return _serve(emu, args.verbose)

@@ -36,6 +36,8 @@ def format_errors(source: str, exc: ValidationError, prefix: str = "") -> str:
     for err in exc.errors():
         loc = format_loc(((prefix,) if prefix else ()) + tuple(err["loc"]))
         msg = err["msg"]
+        if err["type"] == "value_error":    # our own validators' messages are whole sentences
+            msg = msg.removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key (check the spelling; see docs/configuration.md or 'vbnav config reference')"
         got = err.get("input")

@@ -18,6 +18,17 @@ Behaviour follows the e-Manual of the XL430-W250 / XM430-W350:
 - Return Delay Time (9, units of 2 us) delays every answer.
 - Reg Write stores a write until ACTION; Sync/Bulk Read answers come in the
   order of the requested ids.
+- ID (7) and Baud Rate (8) are EEPROM: written with torque off, the status
+  packet still goes out under the old id and at the old rate, then the servo
+  answers to the new ones (what ``vbnav servo set-id/set-baud`` relies on).
+
+Baud rate: each servo listens at the rate of its Baud Rate register (the bus's
+``baud`` at power-on, default 1 Mbps; a new XL430 ships at 57600). A pty
+carries bytes whatever the rate, so the bus reads the rate the host set on its
+side (``PtyDevice.host_baud``) for every chunk it receives: a servo set to
+another rate hears only noise, so it neither acts on the packet nor answers,
+exactly what a host at the wrong rate sees on a real bus (silence, then a
+timeout). ``handle_bytes`` (no pty) has no rate: every servo hears it.
 
 Faults are injected per servo: ``no_answer`` (silent, as if unplugged from the
 bus), ``corrupt`` (answers with a broken CRC), ``set_hardware_error(bits)``.
@@ -31,6 +42,7 @@ simulated base) and the present values come back from it.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -39,12 +51,22 @@ from typing import Optional, Protocol
 
 from vbnav.drivers import dynamixel_protocol as dp
 from vbnav.drivers.dynamixel_table import (
-    ACCEL_UNIT_RPM2, BAUD_RATE, BUS_WATCHDOG, EEPROM_END, FIRMWARE_VERSION, GOAL_VELOCITY, HARDWARE_ERROR_STATUS, ID,
-    MODE_VELOCITY, MODEL_NUMBER, MODEL_NUMBERS, MOVING, OPERATING_MODE, OPERATING_MODES, PRESENT_INPUT_VOLTAGE,
-    PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY, PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS,
-    RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S, STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE,
-    VELOCITY_LIMIT, VELOCITY_UNIT_RPM, WATCHDOG_UNIT_S, Register)
-from vbnav.drivers.sim.pty_device import PtyDevice
+    ACCEL_UNIT_RPM2, BAUD_RATE, BAUD_RATES, BAUD_VALUES, BUS_WATCHDOG, EEPROM_END, FIRMWARE_VERSION, GOAL_VELOCITY,
+    HARDWARE_ERROR_STATUS, ID, MAX_ID, MODE_VELOCITY, MODEL_NUMBER, MODEL_NUMBERS, MOVING, OPERATING_MODE,
+    OPERATING_MODES, PRESENT_INPUT_VOLTAGE, PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY,
+    PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS, RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S,
+    STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE, VELOCITY_LIMIT, VELOCITY_UNIT_RPM,
+    WATCHDOG_UNIT_S, Register)
+from vbnav.drivers.sim.pty_device import LoggedFlag, PtyDevice
+
+log = logging.getLogger("vbnav.emulator.dynamixel")
+INSTRUCTION_NAMES = {dp.INST_PING: "PING", dp.INST_READ: "READ", dp.INST_WRITE: "WRITE",
+                     dp.INST_REG_WRITE: "REG_WRITE", dp.INST_ACTION: "ACTION", dp.INST_REBOOT: "REBOOT",
+                     dp.INST_SYNC_READ: "SYNC_READ", dp.INST_SYNC_WRITE: "SYNC_WRITE",
+                     dp.INST_BULK_READ: "BULK_READ", dp.INST_BULK_WRITE: "BULK_WRITE"}
+ERROR_NAMES = {dp.ERR_RESULT_FAIL: "result fail", dp.ERR_INSTRUCTION: "instruction error", dp.ERR_CRC: "CRC error",
+               dp.ERR_DATA_RANGE: "data range error", dp.ERR_DATA_LENGTH: "data length error",
+               dp.ERR_DATA_LIMIT: "data limit error", dp.ERR_ACCESS: "access error"}
 
 
 @dataclass(frozen=True)
@@ -90,17 +112,26 @@ class LogEntry:
 class EmulatedServo:
     """One servo: control table, motion and faults."""
 
-    def __init__(self, dxl_id: int, model: ServoModel):
+    def __init__(self, dxl_id: int, model: ServoModel, baud: int = 1_000_000):
+        if baud not in BAUD_VALUES:
+            raise ValueError(f"{baud} bit/s is not a Dynamixel X baud rate; one of "
+                             f"{', '.join(str(b) for b in BAUD_VALUES)}")
         self.dxl_id = dxl_id
         self.model = model
-        self.no_answer = False
-        self.corrupt = False
+        self._factory_baud = baud
         self.table = bytearray(TABLE_SIZE)
         self._position = 0.0  # ticks, float
         self._velocity = 0.0  # 0.229 rpm units, float
         self._pending: Optional[tuple[int, bytes]] = None
         self.last_comm = time.monotonic()
         self.power_on()
+
+    # -- injected faults (logged: what a test or an operator did to the bus) ---------------
+    no_answer = LoggedFlag("silent (fault injected)", "answers again")
+    corrupt = LoggedFlag("answers with a broken CRC (fault injected)", "answers intact again")
+
+    def _log_event(self, text: str) -> None:
+        log.info("servo %d: %s", self.dxl_id, text)
 
     # -- control table -----------------------------------------------------------
     def get(self, register: Register, signed: bool | None = None) -> int:
@@ -117,7 +148,7 @@ class EmulatedServo:
             self.put(MODEL_NUMBER, self.model.number)
             self.put(FIRMWARE_VERSION, 46)
             self.put(ID, self.dxl_id)
-            self.put(BAUD_RATE, 3)  # 1 Mbps
+            self.put(BAUD_RATE, BAUD_VALUES[self._factory_baud])
             self.put(RETURN_DELAY_TIME, 250)  # 500 us
             self.put(OPERATING_MODE, 3)  # position control
             self.put(VELOCITY_LIMIT, self.model.velocity_limit)
@@ -130,6 +161,11 @@ class EmulatedServo:
         self._velocity = 0.0
         self._pending = None
         self._sync_present()
+
+    @property
+    def baud(self) -> int:
+        """The rate this servo listens and answers at, bit/s (its Baud Rate register)."""
+        return BAUD_RATES.get(self.get(BAUD_RATE), 0)
 
     @property
     def torque_on(self) -> bool:
@@ -146,6 +182,7 @@ class EmulatedServo:
         """Latch hardware error bits: torque goes off, only REBOOT clears them."""
         self.put(HARDWARE_ERROR_STATUS, self.hardware_error | bits)
         self.put(TORQUE_ENABLE, 0)
+        log.info("servo %d: hardware error 0x%02x, torque off until REBOOT", self.dxl_id, self.hardware_error)
 
     def read(self, addr: int, size: int) -> tuple[int, bytes]:
         if size <= 0 or addr < 0 or addr + size > TABLE_SIZE:
@@ -180,6 +217,10 @@ class EmulatedServo:
             if abs(val(GOAL_VELOCITY)) > self.get(VELOCITY_LIMIT):
                 return dp.ERR_DATA_LIMIT
         if touches(VELOCITY_LIMIT) and not 0 <= val(VELOCITY_LIMIT) <= 1023:
+            return dp.ERR_DATA_RANGE
+        if touches(ID) and not 0 <= val(ID) <= MAX_ID:
+            return dp.ERR_DATA_RANGE
+        if touches(BAUD_RATE) and val(BAUD_RATE) not in BAUD_RATES:
             return dp.ERR_DATA_RANGE
         self.table[:] = new
         return 0
@@ -236,11 +277,15 @@ class DynamixelBus(PtyDevice):
 
     thread_name = "dxl-emulator"
 
+    logger_name = log.name
+
     def __init__(self, ids=(1, 2), model: str | ServoModel = "XL430-W250", link: str | Path | None = None,
-                 coupling: Optional[WheelCoupling] = None, step_s: float = 0.001):
+                 coupling: Optional[WheelCoupling] = None, step_s: float = 0.001, baud: int = 1_000_000):
         self.model = model if isinstance(model, ServoModel) else model_by_name(model)
-        self.servos = {i: EmulatedServo(i, self.model) for i in ids}
+        self.servos = {i: EmulatedServo(i, self.model, baud) for i in ids}
         super().__init__(link, step_s)
+        self._host_baud: Optional[int] = None     # the host's rate while a chunk is served (None: any)
+        self._mismatch_baud: Optional[int] = None
         self.coupling = coupling
         self.log: list[LogEntry] = []
         self.packets_seen = 0
@@ -265,13 +310,41 @@ class DynamixelBus(PtyDevice):
 
     # -- serving ---------------------------------------------------------------------------
     def _serve_bytes(self, data: bytes) -> None:
-        for pkt in self._parser.feed(data):
-            self._handle(pkt)
+        host = self._host_baud = self.host_baud()
+        if not any(self._hears(s) for s in self.servos.values()):
+            # Nobody on the bus runs at the host's rate: to every servo this is noise. Nothing is parsed,
+            # nothing answers (the parser starts afresh, as a servo's UART resynchronises).
+            if host != self._mismatch_baud:
+                rates = sorted({s.baud for s in self.servos.values()})
+                log.info("host sends at %s bit/s, the servos listen at %s bit/s: they hear noise and stay silent",
+                         host, ", ".join(map(str, rates)))
+            self._mismatch_baud = host
+            log.debug("%d bytes at %s bit/s dropped (no servo at that rate)", len(data), host)
+            self._parser = dp.PacketParser()
+            return
+        self._mismatch_baud = None
+        try:
+            for pkt in self._parser.feed(data):
+                self._handle(pkt)
+        finally:
+            self._host_baud = None
+
+    def _hears(self, s: EmulatedServo) -> bool:
+        """The servo runs at the host's rate (checked per packet: a servo switched mid-chunk stops hearing)."""
+        return self._host_baud is None or s.baud == self._host_baud
+
+    def _listener(self, dxl_id: int) -> Optional[EmulatedServo]:
+        """Servo ``dxl_id`` if it is on the bus and hears the host's rate."""
+        s = self.servos.get(dxl_id)
+        return s if s is not None and self._hears(s) else None
 
     def _step(self, now: float, dt: float) -> None:
         for s in self.servos.values():
+            limit_ms = s.get(BUS_WATCHDOG) * WATCHDOG_UNIT_S * 1000
             if s.check_watchdog(now):
                 self._log(s.dxl_id, "watchdog_expired")
+                log.info("servo %d: bus watchdog expired (no packet for %.0f ms): Goal Velocity 0, goals locked "
+                         "until 0 is written to Bus Watchdog", s.dxl_id, limit_ms)
             s.step(dt, self.coupling)
 
     def handle_bytes(self, data: bytes) -> bytes:
@@ -283,13 +356,45 @@ class DynamixelBus(PtyDevice):
         return bytes(out)
 
     def _handle(self, pkt: dp.Packet) -> None:
-        for reply in self._answers(pkt):
+        replies = self._answers(pkt)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s to id %s (%d parameter bytes%s) -> %d status packet(s)",
+                      INSTRUCTION_NAMES.get(pkt.inst, f"instruction 0x{pkt.inst:02x}"),
+                      "broadcast" if pkt.dxl_id == dp.BROADCAST_ID else pkt.dxl_id, len(pkt.params),
+                      "" if pkt.crc_ok else ", bad CRC", sum(1 for r in replies if r))
+        for reply in replies:
             self._write(reply)
+        self._apply_identity_changes()
+
+    def _apply_identity_changes(self) -> None:
+        """A servo whose ID register was written answers to its new id from now on (its status packet
+        went out under the old one)."""
+        for old, s in list(self.servos.items()):
+            new = s.get(ID)
+            if new == old:
+                continue
+            del self.servos[old]
+            if new in self.servos:
+                log.warning("servo %d took id %d, which servo %d already has: the two collide on the bus; "
+                            "the emulator keeps only the newer one", old, new, new)
+            s.dxl_id = new
+            self.servos[new] = s
+            log.info("servo %d: ID is now %d", old, new)
+
+    def _servo_event(self, s: EmulatedServo, op: str, addr: int, value: bytes, err: int) -> None:
+        """Log a write (list and logger): refused writes, ID and baud changes at INFO."""
+        number = int.from_bytes(value, "little", signed=True)
+        self._log(s.dxl_id, op if not err else f"write_error_{err}", addr, number)
+        if err:
+            name = next((r.name for r in REGISTERS.values() if r.address == addr), f"address {addr}")
+            log.info("servo %d: write of %s = %d refused: %s", s.dxl_id, name, number, ERROR_NAMES.get(err, err))
+        elif addr == BAUD_RATE.address:
+            log.info("servo %d: Baud Rate is now %d bit/s (from the next packet)", s.dxl_id, s.baud)
 
     def _targets(self, pkt: dp.Packet) -> list[EmulatedServo]:
         if pkt.dxl_id == dp.BROADCAST_ID:
-            return list(self.servos.values())
-        s = self.servos.get(pkt.dxl_id)
+            return [s for s in self.servos.values() if self._hears(s)]
+        s = self._listener(pkt.dxl_id)
         return [s] if s else []
 
     def _status(self, servo: EmulatedServo, error: int, data: bytes = b"") -> bytes:
@@ -341,7 +446,7 @@ class DynamixelBus(PtyDevice):
             if inst == dp.INST_SYNC_READ:
                 out = []
                 for dxl_id in body:
-                    s = self.servos.get(dxl_id)
+                    s = self._listener(dxl_id)
                     if s is None or s.no_answer:
                         continue
                     s.last_comm = now
@@ -349,21 +454,19 @@ class DynamixelBus(PtyDevice):
                     out.append(self._status(s, err, data))
                 return out
             for k in range(0, len(body) - size, size + 1):
-                s = self.servos.get(body[k])
+                s = self._listener(body[k])
                 if s is None or s.no_answer:
                     continue
                 s.last_comm = now
                 value = bytes(body[k + 1:k + 1 + size])
-                err = s.write(addr, value)
-                self._log(s.dxl_id, "write" if not err else f"write_error_{err}", addr,
-                          int.from_bytes(value, "little", signed=True))
+                self._servo_event(s, "write", addr, value, s.write(addr, value))
             return []
         if inst in (dp.INST_BULK_READ, dp.INST_BULK_WRITE):
             out = []
             k = 0
             while k + 5 <= len(p):
                 dxl_id, addr, size = p[k], p[k + 1] | p[k + 2] << 8, p[k + 3] | p[k + 4] << 8
-                s = self.servos.get(dxl_id)
+                s = self._listener(dxl_id)
                 if inst == dp.INST_BULK_READ:
                     k += 5
                     if s is not None and not s.no_answer:
@@ -375,9 +478,7 @@ class DynamixelBus(PtyDevice):
                     k += 5 + size
                     if s is not None and not s.no_answer:
                         s.last_comm = now
-                        err = s.write(addr, value)
-                        self._log(s.dxl_id, "write" if not err else f"write_error_{err}", addr,
-                                  int.from_bytes(value, "little", signed=True))
+                        self._servo_event(s, "write", addr, value, s.write(addr, value))
             return out
         # unknown instruction
         return [self._status(s, dp.ERR_INSTRUCTION) for s in live] if unicast else []
@@ -399,8 +500,7 @@ class DynamixelBus(PtyDevice):
                 self._log(s.dxl_id, "reg_write", addr, int.from_bytes(value, "little", signed=True))
                 return 0, b""
             err = s.write(addr, value)
-            self._log(s.dxl_id, "write" if not err else f"write_error_{err}", addr,
-                      int.from_bytes(value, "little", signed=True))
+            self._servo_event(s, "write", addr, value, err)
             return err, b""
         if inst == dp.INST_ACTION:
             if s._pending is None:
@@ -413,6 +513,7 @@ class DynamixelBus(PtyDevice):
             return err, b""
         if inst == dp.INST_REBOOT:
             self._log(s.dxl_id, "reboot")
+            log.info("servo %d: REBOOT (hardware errors cleared, RAM area to defaults)", s.dxl_id)
             s.power_on()  # the answer goes out before the reboot, with the error state cleared after
             return 0, b""
         return dp.ERR_INSTRUCTION, b""

@@ -15,16 +15,26 @@ watchdog (``axisN.config.enable_watchdog``, ``axisN.config.watchdog_timeout``)
 expires without feeds in closed loop: AXIS_ERROR_WATCHDOG_TIMER_EXPIRED (0x800).
 Faults: ``no_answer`` (the whole device silent), ``corrupt`` (answers with a
 wrong checksum or garbled text), ``axis(n).inject(motor=..., encoder=...)``.
+
+Baud rate: the emulated port is the ODrive's USB CDC port, which ignores the
+rate (as the real one does); the host may set any.
+
+Logging (``vbnav.emulator.odrive``; ``vbnav emulate odrive -v``/``-vv``): INFO
+for watchdog expiry, errors cleared, injected faults, plug events; DEBUG for
+every line received.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from pathlib import Path
 from typing import Optional
 
 from vbnav.drivers.sim.dynamixel_emulator import WheelCoupling
-from vbnav.drivers.sim.pty_device import PtyDevice
+from vbnav.drivers.sim.pty_device import LoggedFlag, PtyDevice
+
+log = logging.getLogger("vbnav.emulator.odrive")
 
 AXIS_STATE_IDLE = 1
 AXIS_STATE_CLOSED_LOOP = 8
@@ -110,6 +120,8 @@ class EmulatedAxis:
         if encoder:
             self.error |= AXIS_ERROR_ENCODER_FAILED
         self.current_state = AXIS_STATE_IDLE
+        log.info("axis%d: fault injected (motor 0x%x, encoder 0x%x, controller 0x%x): disarmed", self.index,
+                 motor, encoder, controller)
 
     def clear_errors(self) -> None:
         self.error = self.motor_error = self.encoder_error = self.controller_error = 0
@@ -122,6 +134,8 @@ class EmulatedAxis:
                 and now - self.last_feed > self.watchdog_timeout):
             self.error |= AXIS_ERROR_WATCHDOG_EXPIRED
             self.current_state = AXIS_STATE_IDLE
+            log.info("axis%d: watchdog expired (no feed for %.0f ms): WATCHDOG_TIMER_EXPIRED, disarmed",
+                     self.index, self.watchdog_timeout * 1000)
             return True
         return False
 
@@ -146,6 +160,7 @@ class ODriveEmulator(PtyDevice):
     """A two-axis ODrive on a pty. ``start()`` returns the device path."""
 
     thread_name = "odrive-emulator"
+    logger_name = log.name
 
     def __init__(self, link: str | Path | None = None, coupling: Optional[WheelCoupling] = None,
                  step_s: float = 0.001):
@@ -153,14 +168,19 @@ class ODriveEmulator(PtyDevice):
         super().__init__(link, step_s)
         self.coupling = coupling
         self.vbus_voltage = 24.0
-        self.no_answer = False
-        self.corrupt = False
         self.log: list[tuple[float, str]] = []
         self._buf = b""
         self._t0 = time.monotonic()
 
     def axis(self, n: int) -> EmulatedAxis:
         return self.axes[n]
+
+    # -- injected faults (logged) --------------------------------------------------------
+    no_answer = LoggedFlag("silent (fault injected)", "answers again")
+    corrupt = LoggedFlag("garbles its answers (fault injected)", "answers intact again")
+
+    def _log_event(self, text: str) -> None:
+        log.info("%s", text)
 
     # -- serving (the pty lifecycle is PtyDevice's, shared with the Dynamixel bus) ------------
     def _reset_input(self) -> None:
@@ -207,10 +227,12 @@ class ODriveEmulator(PtyDevice):
             except ValueError:
                 ok = False
             if not ok:
+                log.info("line with a bad checksum dropped: %r", text)
                 return None  # the firmware silently drops a line with a bad checksum
             text, use_checksum = body.strip(), True
         self._log(text)
         reply = self._command(text.split())
+        log.debug("%r -> %r", text, reply)
         if reply is None:
             return None
         if use_checksum:
@@ -234,6 +256,9 @@ class ODriveEmulator(PtyDevice):
                 self.axes[int(tok[1])].feed()
                 return None
             if cmd == "sc":
+                if any(ax.any_error() for ax in self.axes):
+                    log.info("sc: errors cleared (%s)", ", ".join(
+                        f"axis{ax.index} error 0x{ax.error:x}" for ax in self.axes if ax.any_error()))
                 for ax in self.axes:
                     ax.clear_errors()
                 return None

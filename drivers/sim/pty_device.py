@@ -9,12 +9,27 @@ make the adapter vanish and come back under the same name.
 Subclasses implement ``_serve_bytes`` (answer what the host sent), ``_step``
 (advance the device's own state) and, if they buffer input,
 ``_reset_input`` (a new pty starts with an empty buffer).
+
+Baud rate: a pty carries bytes, not bits, so nothing on it is garbled by a
+wrong rate. The rate the host asked for is still there: pyserial sets it in the
+tty's termios (``c_ispeed``/``c_ospeed``, also for rates without a ``Bnnn``
+constant), and ``host_baud()`` reads it back from the slave side with the Linux
+``TCGETS2`` ioctl. An emulator compares it with the rate its device is set to
+and treats a mismatch as a real device would (see the Dynamixel bus).
+
+Logging: each emulator logs to ``vbnav.emulator.<device>`` (INFO: plug events,
+watchdog expiry, faults; DEBUG: every exchange); ``vbnav emulate -v``/``-vv``
+prints them.
 """
 from __future__ import annotations
 
 import abc
+import fcntl
+import logging
 import os
 import select
+import struct
+import termios
 import threading
 import time
 import tty
@@ -22,10 +37,45 @@ from pathlib import Path
 from typing import Optional
 
 
+# Linux: struct termios2 (c_iflag c_oflag c_cflag c_lflag, c_line, c_cc[19], c_ispeed c_ospeed) by TCGETS2
+_TCGETS2 = getattr(termios, "TCGETS2", 0x802C542A)
+_TERMIOS2_SIZE = 44
+
+
+def tty_speed(fd: int) -> int | None:
+    """The output speed (bit/s) set on the tty ``fd``; None where it cannot be read."""
+    try:
+        raw = fcntl.ioctl(fd, _TCGETS2, bytes(_TERMIOS2_SIZE))
+        return struct.unpack_from("I", raw, 40)[0]
+    except OSError:
+        return None
+
+
+class LoggedFlag:
+    """A fault-injection switch (``no_answer``, ``corrupt``) that logs when it changes, through the owner's
+    ``_log_event(text)``: what a test or an operator did to the device shows in the emulator's log."""
+
+    def __init__(self, on: str, off: str):
+        self.on, self.off = on, off
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.attr = "_" + name
+
+    def __get__(self, obj, objtype=None):
+        return self if obj is None else getattr(obj, self.attr, False)
+
+    def __set__(self, obj, value) -> None:
+        value = bool(value)
+        if value != getattr(obj, self.attr, False):
+            obj._log_event(self.on if value else self.off)
+        setattr(obj, self.attr, value)
+
+
 class PtyDevice(abc.ABC):
     """Pty lifecycle plus the serving thread; ``start()`` returns the device path."""
 
     thread_name = "pty-device"
+    logger_name = "vbnav.emulator"
 
     def __init__(self, link: str | Path | None = None, step_s: float = 0.001):
         self.link = Path(link) if link else None
@@ -35,6 +85,7 @@ class PtyDevice(abc.ABC):
         self.slave_path = ""
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
+        self.logger = logging.getLogger(self.logger_name)
 
     # -- hooks ---------------------------------------------------------------------------
     @abc.abstractmethod
@@ -78,11 +129,17 @@ class PtyDevice(abc.ABC):
         """The USB adapter disappears: the pty closes and the device path is gone."""
         with self.lock:
             self._close_pty()
+        self.logger.info("unplugged: %s is gone", self.path)
 
     def replug(self) -> None:
         """The adapter is back (new pty, same stable path); the device state is kept."""
         with self.lock:
             self._open_pty()
+        self.logger.info("plugged in again at %s", self.path)
+
+    def host_baud(self) -> int | None:
+        """The baud rate the host set on its side of the pty (bit/s); None without a pty."""
+        return tty_speed(self._slave) if self._slave >= 0 else None
 
     def _open_pty(self) -> None:
         master, slave = os.openpty()

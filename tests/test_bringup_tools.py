@@ -1,0 +1,264 @@
+"""Bring-up tools against the emulators on pseudo-terminals, through the real dynamixel-sdk and pyserial:
+``vbnav find`` / ``find servos``, ``vbnav servo set-id/set-baud``, ``vbnav odrive clear-errors``, the
+Dynamixel bus's baud rate, the emulators' log, and the duplicate-id check of ``config check``."""
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+import pytest
+import yaml
+
+from vbnav.control.cli import main
+from vbnav.drivers import discovery
+from vbnav.drivers import dynamixel_protocol as dp
+from vbnav.drivers.dynamixel import DynamixelDrive
+from vbnav.drivers.dynamixel_setup import DynamixelBusTool
+from vbnav.drivers.dynamixel_table import BAUD_RATE, BAUD_VALUES, ID, TORQUE_ENABLE
+from vbnav.drivers.odrive import ODriveDrive
+from vbnav.drivers.sim import odrive_emulator as oe
+from vbnav.drivers.sim.dynamixel_emulator import DynamixelBus
+from vbnav.drivers.wheels import DriveError
+
+EMULATOR_LOG = "vbnav.emulator"
+
+
+def dxl_drive(path: str, baud: int) -> DynamixelDrive:
+    return DynamixelDrive(options=DynamixelDrive.Options(port=path, baudrate=baud, margin_ms=8.0))
+
+
+# -- the emulated bus honours the baud rate ------------------------------------------------------
+def test_a_host_at_the_wrong_rate_gets_no_answer_and_the_log_says_why(caplog):
+    caplog.set_level(logging.INFO, logger=EMULATOR_LOG)
+    with DynamixelBus([1, 2], baud=57_600) as bus:
+        drive = dxl_drive(bus.path, 1_000_000)
+        with pytest.raises(DriveError, match=r"did not answer ping at 1000000 bit/s.*vbnav find servos"):
+            drive.connect()
+        drive.close()
+        assert "host sends at 1000000 bit/s, the servos listen at 57600 bit/s" in caplog.text
+        assert not any(e.op == "ping" for e in bus.log)          # the servos heard noise, not a ping
+        drive = dxl_drive(bus.path, 57_600)                        # the factory rate of an XL430
+        drive.connect()
+        drive.close()
+        assert any(e.op == "ping" for e in bus.log)
+
+
+def test_id_and_baud_writes_answer_under_the_old_identity_then_take_effect():
+    bus = DynamixelBus([1])
+    s = bus.servo(1)
+    s.put(TORQUE_ENABLE, 1)
+    # EEPROM: refused with torque on
+    assert dp.decode(bus.handle_bytes(dp.encode(1, dp.INST_WRITE, bytes([ID.address, 0, 7])))).error == dp.ERR_ACCESS
+    bus.handle_bytes(dp.encode(1, dp.INST_WRITE, bytes([TORQUE_ENABLE.address, 0, 0])))
+    status = dp.decode(bus.handle_bytes(dp.encode(1, dp.INST_WRITE, bytes([ID.address, 0, 7]))))
+    assert (status.dxl_id, status.error) == (1, 0)
+    bus._apply_identity_changes()                 # what serving the packet does after the answer is sent
+    assert set(bus.servos) == {7} and bus.servo(7).dxl_id == 7
+    assert dp.decode(bus.handle_bytes(dp.encode(7, dp.INST_PING))).dxl_id == 7
+    bad = dp.decode(bus.handle_bytes(dp.encode(7, dp.INST_WRITE, bytes([BAUD_RATE.address, 0, 9]))))
+    assert bad.error == dp.ERR_DATA_RANGE          # no such rate
+    bus.handle_bytes(dp.encode(7, dp.INST_WRITE, bytes([BAUD_RATE.address, 0, BAUD_VALUES[2_000_000]])))
+    assert bus.servo(7).baud == 2_000_000
+
+
+# -- vbnav find ------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def mixed_bus():
+    """Servo 1 at the factory 57600 bit/s, servo 2 already at 1 Mbps."""
+    bus = DynamixelBus([1, 2], baud=57_600)
+    bus.servo(2).put(BAUD_RATE, BAUD_VALUES[1_000_000])
+    bus.start()
+    yield bus
+    bus.stop()
+
+
+def test_find_servos_scans_rates_and_prints_model_id_firmware(mixed_bus, capsys):
+    assert main(["find", "servos", "--port", mixed_bus.path, "--baud", "57600,1000000"]) == 0
+    out = capsys.readouterr().out
+    assert "57600 bit/s: id 1   XL430-W250 (model number 1060), firmware 46" in out
+    assert "1000000 bit/s: id 2   XL430-W250" in out
+    assert "2 servo(s) at 2 different rates: one bus runs at one rate" in out
+
+
+def test_find_servos_on_a_silent_bus_exits_1_with_advice(capsys):
+    with DynamixelBus([1], baud=57_600) as bus:
+        bus.servo(1).no_answer = True
+        assert main(["find", "servos", "--port", bus.path, "--baud", "57600"]) == 1
+    out = capsys.readouterr().out
+    assert "57600 bit/s: nothing" in out and "no servo answered at 57600 bit/s" in out
+
+
+def test_find_lists_a_given_port_and_reports_no_cameras_as_a_normal_result(mixed_bus, capsys):
+    assert main(["find", "--port", mixed_bus.path, "--oak-timeout", "0.5"]) == 0
+    out = capsys.readouterr().out
+    assert f"  {mixed_bus.path}  -  not USB" in out
+    assert "Cameras (V4L2):" in out and "OAK devices:" in out
+
+
+def test_discovery_names_by_id_links_latency_timer_and_v4l2_nodes(tmp_path, mixed_bus):
+    by_id = tmp_path / "by-id"
+    by_id.mkdir()
+    (by_id / "usb-FTDI_USB__-__Serial_Converter_FT1234-if00-port0").symlink_to(mixed_bus.path)
+    [port] = discovery.serial_ports(extra=(mixed_bus.path,), by_id_dir=str(by_id))[-1:]
+    assert port.by_id == [str(by_id / "usb-FTDI_USB__-__Serial_Converter_FT1234-if00-port0")]
+    timer = discovery.latency_timer_path("/dev/ttyUSB0", str(tmp_path))
+    timer.parent.mkdir(parents=True)
+    timer.write_text("16\n")
+    assert discovery.read_latency_timer("/dev/ttyUSB0", str(tmp_path)) == 16
+    assert discovery.usb_kind(0x0403, 0x6014).startswith("ROBOTIS U2D2")
+    assert discovery.usb_kind(0x1209, 0x0D32).startswith("ODrive")
+    node = tmp_path / "class/video4linux/video0"
+    node.mkdir(parents=True)
+    (node / "name").write_text("HD USB Camera\n")
+    [cam] = discovery.v4l2_devices(sysfs=str(tmp_path), dev=str(tmp_path / "dev"))
+    assert cam.name == "HD USB Camera" and cam.error.startswith("cannot open")
+    assert discovery.v4l2_devices(sysfs=str(tmp_path / "nothing")) == []
+
+
+def test_v4l2_ioctl_numbers_are_the_kernels():
+    # linux/videodev2.h on x86-64 and arm64: a wrong struct size would make every enumeration fail silently
+    assert (discovery.VIDIOC_QUERYCAP, discovery.VIDIOC_ENUM_FMT, discovery.VIDIOC_ENUM_FRAMESIZES,
+            discovery.VIDIOC_ENUM_FRAMEINTERVALS) == (0x80685600, 0xC0405602, 0xC02C564A, 0xC034564B)
+
+
+# -- vbnav servo -----------------------------------------------------------------------------------
+def test_servo_set_id_then_set_baud_on_a_new_servo(caplog, capsys):
+    caplog.set_level(logging.INFO, logger=EMULATOR_LOG)
+    with DynamixelBus([1], baud=57_600) as bus:
+        bus.servo(1).put(TORQUE_ENABLE, 1)        # torque on: the tool must switch it off first
+        assert main(["servo", "set-id", "--port", bus.path, "--id", "1", "--new-id", "2"]) == 0
+        assert "servo 1 (XL430-W250) at 57600 bit/s is now id 2" in capsys.readouterr().out
+        assert main(["servo", "set-baud", "--port", bus.path, "--id", "2", "--baud", "57600",
+                     "--new-baud", "1000000"]) == 0
+        assert "now talks at 1000000 bit/s (was 57600)" in capsys.readouterr().out
+        assert set(bus.servos) == {2} and bus.servo(2).baud == 1_000_000
+        assert bus.servo(2).torque_on is False
+    assert "servo 1: ID is now 2" in caplog.text and "Baud Rate is now 1000000" in caplog.text
+
+
+def test_servo_set_id_refuses_an_id_in_use_and_a_missing_servo(capsys):
+    with DynamixelBus([1, 2]) as bus:
+        assert main(["servo", "set-id", "--port", bus.path, "--id", "1", "--new-id", "2", "--baud", "1000000"]) == 3
+        assert "id 2 is taken" in capsys.readouterr().out
+        assert set(bus.servos) == {1, 2}
+        assert main(["servo", "set-id", "--port", bus.path, "--id", "9", "--new-id", "3", "--baud", "1000000"]) == 3
+        assert "no servo with id 9 answers" in capsys.readouterr().out
+    assert main(["servo", "set-id", "--port", "/nonexistent/tty", "--id", "1", "--new-id", "3"]) == 2
+
+
+# -- ODrive after a crash ----------------------------------------------------------------------------
+@pytest.fixture
+def crashed_odrive(tmp_path):
+    """An ODrive whose axis watchdog expired while a killed controller was driving it."""
+    emu = oe.ODriveEmulator(link=tmp_path / "ttyODRV")
+    emu.start()
+    for ax in emu.axes:
+        ax.error |= oe.AXIS_ERROR_WATCHDOG_EXPIRED
+    yield emu
+    emu.stop()
+
+
+def odrive_config(tmp_path, port, **options) -> str:
+    path = tmp_path / "odrive.yaml"
+    path.write_text(yaml.safe_dump({"robot": {"name": "od"}, "drive": {"driver": "odrive", "options": {
+        "port": str(port), "reply_timeout_s": 0.02, **options}}}))
+    return str(path)
+
+
+def test_a_latched_watchdog_error_names_the_command_that_clears_it(crashed_odrive, tmp_path, capsys):
+    cfg = odrive_config(tmp_path, crashed_odrive.path)
+    drive = ODriveDrive(options=ODriveDrive.Options(port=crashed_odrive.path, reply_timeout_s=0.02))
+    with pytest.raises(DriveError, match=r"WATCHDOG_TIMER_EXPIRED.*vbnav odrive clear-errors -c CONFIG.*"
+                                         r"clear_watchdog_error_at_start"):
+        drive.connect()
+    drive.close()
+    assert main(["odrive", "clear-errors", "-c", cfg]) == 0
+    out = capsys.readouterr().out
+    assert "axis0 (left): error=WATCHDOG_TIMER_EXPIRED" in out and "errors cleared" in out
+    assert not any(ax.any_error() for ax in crashed_odrive.axes)
+    assert main(["odrive", "clear-errors", "-c", cfg]) == 0
+    assert "no errors" in capsys.readouterr().out
+
+
+def test_the_config_may_allow_clearing_a_watchdog_error_at_start(crashed_odrive):
+    drive = ODriveDrive(options=ODriveDrive.Options(port=crashed_odrive.path, reply_timeout_s=0.02,
+                                                    clear_watchdog_error_at_start=True))
+    drive.connect()
+    drive.close()
+    assert not any(ax.any_error() for ax in crashed_odrive.axes)
+
+
+def test_a_hardware_fault_is_never_cleared_at_start_and_clear_errors_reports_it(crashed_odrive, tmp_path, capsys):
+    crashed_odrive.axis(1).inject(motor=0x1000)
+    drive = ODriveDrive(options=ODriveDrive.Options(port=crashed_odrive.path, reply_timeout_s=0.02,
+                                                    clear_watchdog_error_at_start=True))
+    with pytest.raises(DriveError, match=r"CURRENT_LIMIT_VIOLATION.*find the cause.*vbnav odrive clear-errors"):
+        drive.connect()
+    drive.close()
+    assert main(["odrive", "clear-errors", "-c", odrive_config(tmp_path, crashed_odrive.path)]) == 0
+    assert "motor.error=CURRENT_LIMIT_VIOLATION" in capsys.readouterr().out
+
+
+def test_clear_errors_refuses_another_drive_and_a_missing_port(tmp_path, capsys):
+    assert main(["odrive", "clear-errors", "-c", "sim"]) == 2
+    assert "drive.driver is 'sim'" in capsys.readouterr().err
+    assert main(["odrive", "clear-errors", "-c", odrive_config(tmp_path, tmp_path / "gone")]) == 3
+    assert "not found" in capsys.readouterr().out
+
+
+# -- the emulators' log ------------------------------------------------------------------------------
+def test_emulators_log_traffic_watchdog_expiry_and_faults(caplog):
+    caplog.set_level(logging.DEBUG, logger=EMULATOR_LOG)
+    with DynamixelBus([1, 2]) as bus:
+        drive = DynamixelDrive(options=DynamixelDrive.Options(port=bus.path, margin_ms=8.0, bus_watchdog_s=0.04))
+        drive.connect()
+        drive.enable()
+        drive.write(1.0, 1.0)
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end and "bus watchdog expired" not in caplog.text:
+            time.sleep(0.01)
+        bus.servo(2).set_hardware_error(0x20)
+        drive.close()
+    text = caplog.text
+    assert "PING to id 1" in text and "SYNC_WRITE to id broadcast" in text          # DEBUG: traffic
+    assert "servo 1: bus watchdog expired (no packet for 40 ms)" in text             # INFO: expiry
+    assert "servo 2: hardware error 0x20" in text                                   # INFO: fault
+    emu = oe.ODriveEmulator()
+    emu.handle_bytes(b"w axis0.config.watchdog_timeout 0.1\nw axis0.config.enable_watchdog 1\n"
+                     b"w axis0.controller.config.control_mode 2\nw axis0.requested_state 8\n")
+    emu.axis(0).check_watchdog(emu.axis(0).last_feed + 1.0)
+    emu.corrupt = True
+    emu.handle_bytes(b"sc\n")
+    assert "axis0: watchdog expired (no feed for 100 ms)" in caplog.text
+    assert "garbles its answers (fault injected)" in caplog.text and "sc: errors cleared" in caplog.text
+    assert "'w axis0.requested_state 8' -> None" in caplog.text
+
+
+def test_emulate_verbose_prints_the_log_to_stderr(capsys):
+    from vbnav.control.cli import build_parser
+    from vbnav.control.commands import emulate
+    args = build_parser().parse_args(["emulate", "dynamixel", "--ids", "1", "--baud", "57600", "-v"])
+    logger = logging.getLogger(EMULATOR_LOG)
+    before = list(logger.handlers), logger.level
+    try:
+        emulate._log_to_stderr(args.verbose)          # what `vbnav emulate ... -v` sets up before serving
+        with DynamixelBus(args.ids, baud=args.baud) as bus, DynamixelBusTool(bus.path) as tool:
+            assert tool.at(1_000_000).ping(1) is None
+    finally:
+        logger.handlers[:] = before[0]
+        logger.setLevel(before[1])
+    assert "vbnav.emulator.dynamixel: host sends at 1000000 bit/s, the servos listen at 57600 bit/s" in \
+        capsys.readouterr().err
+
+
+# -- config check ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("driver, options, fields", [
+    ("dynamixel", {"left_id": 2, "right_id": 2}, "left_id and right_id are both 2"),
+    ("odrive", {"left_axis": 1, "right_axis": 1}, "left_axis and right_axis are both 1"),
+])
+def test_config_check_rejects_a_duplicate_servo_id_or_axis(tmp_path, capsys, driver, options, fields):
+    path = tmp_path / "dup.yaml"
+    path.write_text(yaml.safe_dump({"drive": {"driver": driver, "options": {"port": os.devnull, **options}}}))
+    assert main(["config", "check", "-c", str(path)]) == 2
+    assert f"{path}: drive.options: {fields}" in capsys.readouterr().err

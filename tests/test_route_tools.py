@@ -1,0 +1,153 @@
+"""``vbnav route list|info|plot|check`` on small routes written by the real RouteWriter, intact and damaged."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import zipfile
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.control.cli import main
+from vbnav.control.route import Keyframe, RouteWriter
+from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.geometry import CameraMount, Pose2
+
+W, H, N = 64, 48, 6
+
+
+def keyframe(i: int, rng) -> Keyframe:
+    theta = 0.2 * i                                     # a gentle right turn
+    image = rng.integers(0, 255, (H, W), dtype=np.uint8)
+    return Keyframe(i, image, rng.uniform(0, W, (N, 2)).astype(np.float32), rng.normal(size=N),
+                    rng.normal(size=N), rng.integers(0, 255, (N, 32), dtype=np.uint8), np.full(N, 0.5),
+                    np.full(N, 0.01), np.arange(N, dtype=np.int64) + i, Pose2(math.sin(theta), math.cos(theta),
+                                                                                 theta), 0.5 * i, 1000 * i)
+
+
+def write_route(path, n=5, complete=True):
+    rng = np.random.default_rng(len(str(path)))
+    writer = RouteWriter(path, "testbot", PinholeCamera(W, H, 50.0, 50.0, 31.5, 23.5), CameraMount(0.2, 0.1, 0.0,
+                                                                                                  0.05, 0.0))
+    for i in range(n):
+        writer.append(keyframe(i, rng))
+    writer.close(complete=complete)
+    return path
+
+
+@pytest.fixture(scope="module")
+def routes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("routes")
+    write_route(root / "patrol")
+    write_route(root / "half", n=3, complete=False)
+    (root / "notes").mkdir()                             # not a route: not listed
+    (root / ".patrol.partial-1").mkdir()                # a writer's scratch space: not listed
+    return root
+
+
+def test_list_shows_each_route_with_keyframes_length_and_completeness(routes, capsys):
+    assert main(["route", "list", str(routes)]) == 0
+    out = capsys.readouterr().out
+    assert f"{routes}: 2 route(s)" in out
+    assert [line.split()[:4] for line in out.splitlines()[2:]] == [["half", "3", "1.00", "m"],
+                                                                  ["patrol", "5", "2.00", "m"]]
+    assert "NO" in out.splitlines()[2] and "pinhole 64x48 fx 50" in out
+
+
+def test_list_defaults_to_the_configurations_routes_dir(routes, tmp_path, capsys):
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text(f"controller: {{routes_dir: {routes}}}\n")
+    assert main(["route", "list", "-c", str(cfg)]) == 0
+    assert f"{routes}: 2 route(s)" in capsys.readouterr().out
+
+
+def test_list_reports_an_unreadable_manifest_and_a_missing_folder(routes, tmp_path, capsys):
+    shutil.copytree(routes / "patrol", tmp_path / "broken")
+    (tmp_path / "broken" / "manifest.json").write_text("{not json")
+    assert main(["route", "list", str(tmp_path)]) == 0
+    assert "broken                   manifest.json unreadable (JSONDecodeError" in capsys.readouterr().out
+    assert main(["route", "list", str(tmp_path / "nowhere")]) == 2
+    assert main(["route", "list"]) == 2
+    assert "give a folder of routes, or --config FILE" in capsys.readouterr().err
+
+
+def test_info(routes, capsys):
+    assert main(["route", "info", str(routes / "half")]) == 0
+    out = capsys.readouterr().out
+    assert "robot:       testbot" in out and "keyframes:   3" in out and "length_m:    1.00" in out
+    assert "complete:    no" in out and "camera:      pinhole 64x48, fx 50.0" in out
+    assert f"landmarks:   {N} / {N} / {N} per keyframe" in out and "pitch 2.9 deg" in out
+    assert "note:        the route is incomplete" in out
+
+
+def test_plot_writes_a_png_beside_the_route_or_where_asked(routes, tmp_path, capsys):
+    route = shutil.copytree(routes / "patrol", tmp_path / "patrol")
+    assert main(["route", "plot", str(route)]) == 0
+    image = cv2.imread(str(tmp_path / "patrol.png"))
+    assert image is not None and image.shape[0] > 300 and image.std() > 10
+    assert main(["route", "plot", str(route), "--out", str(tmp_path / "no" / "p.png")]) == 2
+    assert "--out" in capsys.readouterr().err
+
+
+def test_check_an_intact_route(routes, capsys):
+    assert main(["route", "check", str(routes / "patrol")]) == 0
+    assert capsys.readouterr().out.strip().endswith("intact, 5 keyframes, complete")
+    assert main(["route", "check", str(routes / "half")]) == 0
+    out = capsys.readouterr().out
+    assert "incomplete (teaching was interrupted)" in out and "note: the route is incomplete" in out
+
+
+def damaged_copy(routes, tmp_path):
+    return shutil.copytree(routes / "patrol", tmp_path / "patrol")
+
+
+def flip(path, offset):
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_check_finds_a_png_chunk_that_fails_its_crc(routes, tmp_path, capsys):
+    route = damaged_copy(routes, tmp_path)
+    png = route / "kf_00002.png"
+    flip(png, png.read_bytes().index(b"IDAT") + 10)
+    assert main(["route", "check", str(route)]) == 1
+    out = capsys.readouterr().out
+    assert "damaged: keyframes[2]: kf_00002.png: CRC-32 mismatch in chunk 'IDAT'" in out and "DAMAGED" in out
+
+
+def test_check_finds_landmark_data_that_fails_its_crc(routes, tmp_path, capsys):
+    route = damaged_copy(routes, tmp_path)
+    npz = route / "kf_00001.npz"
+    with zipfile.ZipFile(npz) as z:
+        info = z.getinfo("alpha.npy")
+    flip(npz, info.header_offset + 30 + len(info.filename) + len(info.extra) + 130)   # inside the array data
+    assert main(["route", "check", str(route)]) == 1
+    assert "kf_00001.npz: CRC-32 mismatch in member 'alpha.npy'" in capsys.readouterr().out
+
+
+def test_check_finds_a_manifest_that_disagrees_with_the_files(routes, tmp_path, capsys):
+    route = damaged_copy(routes, tmp_path)
+    m = json.loads((route / "manifest.json").read_text())
+    m["keyframes"][3]["odom"][0] += 0.5
+    (route / "manifest.json").write_text(json.dumps(m))
+    assert main(["route", "check", str(route)]) == 1
+    assert "keyframes[3]: the manifest's odom" in capsys.readouterr().out
+    (route / "kf_00004.npz").unlink()
+    assert main(["route", "check", str(route)]) == 1
+    assert "kf_00004.npz: missing keyframe file" in capsys.readouterr().out
+
+
+def test_check_notes_leftovers_and_refuses_what_is_not_a_route(routes, tmp_path, capsys):
+    route = damaged_copy(routes, tmp_path)
+    shutil.copy(route / "kf_00004.png", route / "kf_00005.png")        # written when teaching stopped
+    (route / "manifest.json.tmp").write_text("")
+    assert main(["route", "check", str(route)]) == 0
+    out = capsys.readouterr().out
+    assert "files not in the manifest (a keyframe being written when teaching stopped): kf_00005.png" in out
+    assert "temporary files an interrupted writer left: manifest.json.tmp" in out
+    assert main(["route", "check", str(tmp_path / "nothing")]) == 2
+    assert main(["route", "check", str(routes / "notes")]) == 2
+    assert "manifest.json: missing" in capsys.readouterr().err
