@@ -209,9 +209,10 @@ class ObstacleStage(VisionStage):
     @classmethod
     def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
         """From a vbnav Config: camera intrinsics and mount, ``obstacles:`` section, baseline from
-        ``obstacles.baseline``, ``camera.options.stereo_baseline`` or, failing both, the frames' meta."""
+        ``obstacles.baseline``, the camera's calibration file, ``camera.options.stereo_baseline`` or, failing
+        all, the frames' meta (a calibration file that disagrees with the others is refused at config load)."""
         ocfg = cfg.obstacles
-        baseline = ocfg.baseline or (cfg.camera.options or {}).get("stereo_baseline")
+        baseline = ocfg.baseline or cfg.camera.stereo_baseline()
         c = cfg.camera
         camera = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)  # rectified: no distortion
         if not baseline:
