@@ -339,7 +339,7 @@ def run_mount(args) -> int:
 def _mount_from_stereo(args, cfg):
     from vbnav.vision.board_calibration import floor_pose_from_down
     from vbnav.vision.camera_model import PinholeCamera
-    from vbnav.vision.ground_plane import expected_plane, fit_ground_plane
+    from vbnav.vision.ground_plane import fit_ground_plane
     from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
     baseline = cfg.camera.stereo_baseline() or cfg.obstacles.baseline
     if not baseline:
@@ -352,11 +352,13 @@ def _mount_from_stereo(args, cfg):
         if (img.shape[1], img.shape[0]) != (c.width, c.height):
             raise InputError(f"{f}: is {img.shape[1]}x{img.shape[0]}, the camera of {cfg.source} is "
                              f"{c.width}x{c.height}")
-    m = c.mount
-    prior = expected_plane(rig, m.height, math.radians(m.pitch_deg), math.radians(m.roll_deg))
-    disp = sgbm_disparity(left, right, sgbm_params_for(rig, 0.5 * m.height))
-    fit = fit_ground_plane(disp, rig, prior)
-    if not fit.ok or fit.used_prior:
-        raise InputError(f"{args.stereo[0]}: no floor plane found ({fit.reason or 'too little floor in view'}); "
-                         f"point the camera at an empty stretch of floor")
+    # No prior from the configured mount: it is what is being measured (and may be far off). The fit then
+    # takes the lower image half as the floor's candidates; the matching covers depths down to half the
+    # configured height, nearer than any floor point of a camera not looking straight down.
+    disp = sgbm_disparity(left, right, sgbm_params_for(rig, 0.5 * c.mount.height))
+    try:
+        fit = fit_ground_plane(disp, rig, None)
+    except ValueError as exc:
+        raise InputError(f"{args.stereo[0]}: no floor plane found ({exc}); point the camera at an empty stretch "
+                         f"of floor") from None
     return floor_pose_from_down(np.asarray(fit.floor.down), fit.floor.height)
