@@ -88,7 +88,7 @@ def test_stereo_matches_opencv_on_its_sample_images(stereo_dirs, stereo_run):
         not_worse(fs.getNode("avg_reprojection_error").real(), rms, f"{side} RMS")
         assert fs.getNode("per_view_reprojection_errors").mat().size == 13
         fs.release()
-    (rl, Kl, Dl), (rr, Kr, Dr) = peer["left"], peer["right"]
+    (_, Kl, Dl), (_, Kr, Dr) = peer["left"], peer["right"]
     rms, *_, T, _, _ = cv2.stereoCalibrate(obj, pl, pr, Kl, Dl, Kr, Dr, size, flags=cv2.CALIB_FIX_INTRINSIC)
     fs = cv2.FileStorage(str(stereo_run / "stereo_opencv.yaml"), cv2.FILE_STORAGE_READ)
     not_worse(fs.getNode("rms_reprojection_error").real(), rms, "stereo RMS")

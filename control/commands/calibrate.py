@@ -9,7 +9,6 @@ drivers/calibration.py.
 """
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time

@@ -10,13 +10,13 @@ refused with the values to set by hand; nothing is written then.
 """
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import yaml
 
 from vbnav.control.config.base import ConfigError
+from vbnav.drivers.calibration import write_atomic
 
 _TOP_KEY = re.compile(r"^([A-Za-z_][\w-]*)\s*:(.*)$")
 _KEY = re.compile(r"^(\s+)([A-Za-z_][\w-]*)\s*:(\s*)(.*?)(\s+#.*)?$")
@@ -54,13 +54,7 @@ def set_camera_mount(path, values: dict) -> str:
         raise ConfigError(f"{p}: editing camera.mount in place would change other keys; set it by hand: "
                           f"camera: mount: {_flow(new_mount)}")
     parse_config(got, str(p))      # the result must be a valid configuration (the file is not written else)
-    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(new_text)
-        os.replace(tmp, p)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    write_atomic(p, new_text)
     return new_text
 
 

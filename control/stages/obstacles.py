@@ -192,7 +192,7 @@ class ObstacleStage(VisionStage):
 
     def _set_rig(self, rig: StereoRig) -> None:
         self.rig = rig
-        self.prior = expected_plane(rig, self.mount.height, self.mount.pitch)
+        self.prior = expected_plane(rig, self.mount.height, self.mount.pitch, self.mount.roll)
         bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + self.mount.pitch   # lowest ray below level
         nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
         self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
