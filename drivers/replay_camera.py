@@ -61,7 +61,17 @@ class ReplayCamera(Camera):
         if options is None:
             options = cls.Options.model_validate(getattr(getattr(cfg, "camera", None), "options", {}) or {})
         cam = getattr(cfg, "camera", None)
-        return cls(options, clock, (cam.width, cam.height) if cam is not None else None)
+        replay = cls(options, clock, (cam.width, cam.height) if cam is not None else None)
+        # Recordings of another size are bad input: refused now, before a run starts (and a teach creates
+        # its route). Any other problem (a missing folder) is reported when the run connects, as before.
+        try:
+            replay.connect()
+        except CameraSizeError:
+            raise
+        except CameraError:
+            pass
+        replay.disconnect()
+        return replay
 
     @property
     def is_connected(self) -> bool:

@@ -132,11 +132,26 @@ def test_replay_of_images_of_another_size_is_refused(tmp_path):
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"{i:03d}.png"), np.full((288, 384), 100, np.uint8))
     cfg = load_config("sim", overrides={"camera": {"driver": "replay", "options": {"path": str(tmp_path)}}})
-    cam = ReplayCamera.from_config(cfg, SimClock())
     with pytest.raises(CameraSizeError, match=r"000.png is 384x288, the configuration expects 640x480"):
-        cam.connect()
+        ReplayCamera.from_config(cfg, SimClock())          # before any run starts
+    with pytest.raises(CameraSizeError):
+        ReplayCamera({"path": str(tmp_path)}, SimClock(), (640, 480)).connect()
     ok = load_config("sim", overrides={"camera": {"driver": "replay", "width": 384, "height": 288, "cx": 191.5,
                                                   "cy": 143.5, "options": {"path": str(tmp_path)}}})
     cam = ReplayCamera.from_config(ok, SimClock())
     cam.connect()
     assert cam.read(1.0).image.shape == (288, 384)
+
+
+def test_teach_from_a_replay_of_another_size_is_refused_before_a_route_exists(tmp_path, capsys):
+    img = tmp_path / "images"
+    img.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(img / f"{i:03d}.png"), np.full((288, 384), 100, np.uint8))
+    data = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
+    data["camera"].update(driver="replay", options={"path": str(img)})
+    (tmp_path / "replay.yaml").write_text(yaml.safe_dump(data))
+    code = cli.main(["teach", "-c", str(tmp_path / "replay.yaml"), "--out", str(tmp_path / "route"),
+                     "--duration", "1"])
+    assert code == 2 and "is 384x288, the configuration expects 640x480" in capsys.readouterr().err
+    assert not (tmp_path / "route").exists()
