@@ -10,6 +10,12 @@ Reads
   (plumb_bob, rational_polynomial -> pinhole; equidistant -> fisheye) and
   ``distortion_coefficients.data``.
 Errors name the file and the field and say what was expected.
+
+``load_camera_calibration`` is the one entry of a configuration's ``camera.calibration_file``: it
+also takes the stereo formats of stereo_calib.py (vbnav stereo YAML, KITTI calib.txt) and returns a
+:class:`CameraCalibration` (camera, baseline, file, SHA-256). ``calibration_problems`` lists legal but
+implausible values (for ``vbnav doctor``); ``opencv_yaml_text``/``ros_camera_info_text`` and
+``write_atomic`` write what ``vbnav calibrate`` computes.
 """
 from __future__ import annotations
 
@@ -221,16 +227,7 @@ class CameraCalibration:
     baseline: Optional[float]
     file: str
     sha256: str
-    format: str          # opencv, ros, kitti, vbnav-stereo
-
-    def to_dict(self) -> dict:
-        """The calibration as a route manifest records it."""
-        c = self.camera
-        return {"file": self.file, "sha256": self.sha256, "format": self.format,
-                "model": "fisheye" if isinstance(c, FisheyeCamera) else "pinhole",
-                "width": int(c.width), "height": int(c.height), "fx": float(c.fx), "fy": float(c.fy),
-                "cx": float(c.cx), "cy": float(c.cy), "distortion": [float(d) for d in c.dist],
-                "baseline": self.baseline}
+    format: str          # opencv, ros, yaml, kitti, vbnav-stereo
 
 
 def file_sha256(path) -> str:

@@ -98,10 +98,11 @@ class CameraConfig(Strict):
         return float(b) if b else None
 
     def calibration_record(self) -> dict:
-        """The calibration in use as a route manifest records it: the file and its hash when there is one."""
-        if self._calibration is not None:
-            return self._calibration.to_dict()
-        return {"file": None, "sha256": None, "format": "inline", "model": self.model, "width": self.width,
+        """The calibration in use as a route manifest records it: the intrinsics every stage uses, and the
+        file they came from with its hash (file None, format 'inline': the values in the config)."""
+        cal = self._calibration
+        return {"file": cal.file if cal else None, "sha256": cal.sha256 if cal else None,
+                "format": cal.format if cal else "inline", "model": self.model, "width": self.width,
                 "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
                 "distortion": list(self.distortion), "baseline": self.stereo_baseline()}
 
