@@ -103,12 +103,14 @@ def test_stereo_yaml_gives_the_rig_and_a_conflicting_baseline_is_refused(tmp_pat
         load_config(config_with(tmp_path, "rig.yaml", options={"stereo_baseline": 0.06}))
 
 
-def test_sanity_checks_for_doctor(tmp_path):
+def test_sanity_checks_for_doctor(tmp_path, capsys):
     (tmp_path / "front.yaml").write_text(ROS_FX300)
     assert calibration_problems(load_camera_calibration(tmp_path / "front.yaml")) == []
     (tmp_path / "mm.yaml").write_text(ROS_FX300.replace("300.0, 0", "3.6, 0").replace("301.0", "3.6"))
     problems = calibration_problems(load_camera_calibration(tmp_path / "mm.yaml"))
     assert len(problems) == 1 and "field of view" in problems[0]
+    code, text = check(capsys, config_with(tmp_path, "mm.yaml"))       # legal, so valid, with the warning
+    assert code == 0 and "warning: " + problems[0] in text
 
 
 def test_repeat_refuses_a_route_taught_with_another_camera(tmp_path):
@@ -155,3 +157,13 @@ def test_teach_from_a_replay_of_another_size_is_refused_before_a_route_exists(tm
                      "--duration", "1"])
     assert code == 2 and "is 384x288, the configuration expects 640x480" in capsys.readouterr().err
     assert not (tmp_path / "route").exists()
+
+
+def test_kitti_calib_txt_gives_the_rig_at_the_configured_size(tmp_path, shared_data, capsys):
+    calib = shared_data / "kitti06_stereo" / "calib.txt"
+    config = config_with(tmp_path, str(calib), width=1226, height=370, cx=600.0, cy=180.0)
+    code, text = check(capsys, config)
+    assert code == 0, text
+    cfg = load_config(config)
+    assert cfg.camera.calibration.format == "kitti" and abs(cfg.camera.stereo_baseline() - 0.537) < 0.002
+    assert abs(cfg.camera.fx - 707.09) < 0.01 and "stereo baseline 0.53" in text

@@ -42,6 +42,10 @@ def run(args) -> int:
         print(f"{cfg.source}: valid (robot {cfg.robot.name!r}, camera {cfg.camera.driver}, "
               f"drive {cfg.drive.driver}, loop {cfg.loop.rate_hz:g} Hz)")
         print(intrinsics_line(cfg.camera))
+        if cfg.camera.calibration is not None:
+            from vbnav.drivers.calibration import calibration_problems
+            for problem in calibration_problems(cfg.camera.calibration):
+                print(f"warning: {problem}")
     return 0
 
 
