@@ -9,7 +9,6 @@ axes idle) and closed again: nothing moves.
 """
 from __future__ import annotations
 
-import math
 import os
 import resource
 import socket
@@ -26,9 +25,6 @@ UDEV_DIRS = ("/etc/udev/rules.d", "/lib/udev/rules.d", "/usr/lib/udev/rules.d")
 OAK_VENDOR = "03e7"
 OAK_RULE_FIX = ("echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | sudo tee "
                 "/etc/udev/rules.d/80-movidius.rules && sudo udevadm control --reload-rules && sudo udevadm trigger")
-#: horizontal field of view a pinhole calibration of a robot camera plausibly has, deg (tele to wide angle;
-#: beyond ~150 deg the pinhole model itself no longer fits)
-PINHOLE_FOV_DEG = (15.0, 150.0)
 FIRST_FRAME_S = 5.0        # a USB camera's first frame after opening: exposure settles, MJPG starts
 
 
@@ -167,28 +163,17 @@ def check_calibration(cfg) -> Check:
         return Check("calibration", WARN, f"no camera.calibration_file: the inline fx {cam.fx:g} fy {cam.fy:g} "
                                           f"cx {cam.cx:g} cy {cam.cy:g} are used",
                      "calibrate the camera (vbnav calibrate intrinsics) and set camera.calibration_file")
-    from vbnav.drivers.calibration import CalibrationError, load_calibration
-    path = Path(cam.calibration_file).expanduser()
-    if not path.is_absolute() and cfg.source:
-        path = Path(cfg.source).parent / path
-    try:
-        model = load_calibration(path)
-    except CalibrationError as exc:
-        return Check("calibration", FAIL, str(exc), "give camera.calibration_file an OpenCV YAML/XML or ROS "
-                                                    "camera_info file (vbnav calibrate intrinsics writes both)")
-    if (model.width, model.height) != (cam.width, cam.height):
-        return Check("calibration", FAIL, f"{path}: calibrated at {model.width}x{model.height}, the camera is set "
-                                          f"to {cam.width}x{cam.height}",
-                     "calibrate at the configured size, or set camera.width/height to the calibrated size")
-    summary = (f"{path}: {model.width}x{model.height}, fx {model.fx:.1f} fy {model.fy:.1f} cx {model.cx:.1f} "
-               f"cy {model.cy:.1f}")
-    if cam.model == "pinhole":
-        fov = math.degrees(2 * math.atan(model.width / (2 * model.fx)))
-        if not PINHOLE_FOV_DEG[0] <= fov <= PINHOLE_FOV_DEG[1] or not 0.8 <= model.fx / model.fy <= 1.25:
-            return Check("calibration", WARN, f"{summary}: a horizontal field of view of {fov:.0f} deg and fx/fy "
-                                              f"{model.fx / model.fy:.2f} are unusual for a robot camera",
-                         "check the calibration (was it made at this image size? a fisheye lens needs "
-                         "camera.model: fisheye)")
+    # The config loader has already read the file (a missing or invalid one fails the load, naming it) and
+    # put its intrinsics in force; what is left to check is whether the values are plausible.
+    from vbnav.drivers.calibration import calibration_problems
+    cal = cam.calibration
+    c = cal.camera
+    summary = (f"{cal.file}: {c.width}x{c.height}, fx {c.fx:.1f} fy {c.fy:.1f} cx {c.cx:.1f} cy {c.cy:.1f}")
+    problems = calibration_problems(cal)
+    if problems:
+        return Check("calibration", WARN, f"{summary}: " + "; ".join(problems),
+                     "check the calibration (was it made at this image size? a fisheye lens needs "
+                     "camera.model: fisheye)")
     return Check("calibration", OK, summary)
 
 

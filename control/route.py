@@ -28,6 +28,7 @@ import os
 import re
 import shutil
 import zipfile
+from typing import Optional
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -131,6 +132,7 @@ class Route:
     mount: CameraMount
     complete: bool
     keyframes: list[Keyframe] = field(default_factory=list)
+    calibration: Optional[dict] = None   # the calibration it was taught with (file, sha256, intrinsics)
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -166,7 +168,40 @@ def camera_from_dict(d: dict, where: str):
 
 
 def mount_to_dict(m: CameraMount) -> dict:
-    return {"height": m.height, "forward": m.forward, "lateral": m.lateral, "pitch": m.pitch, "yaw": m.yaw}
+    return {"height": m.height, "forward": m.forward, "lateral": m.lateral, "pitch": m.pitch, "yaw": m.yaw,
+            "roll": m.roll}
+
+
+# Intrinsics of the camera a route was taught with and of the camera repeating it that differ by more than
+# this share of the focal length (px) are two different calibrations: recalibrating one camera moves fx, cx
+# by well under 1 %, a different lens or resolution by far more. Keyframe pixels are turned into bearings
+# with the repeating camera's model, so a different calibration bends every bearing.
+INTRINSICS_AGREEMENT = 0.02
+
+
+def check_route_camera(route: "Route", camera, config_source: str = "the configuration",
+                       calibration_file: Optional[str] = None) -> None:
+    """Raise RouteError unless ``camera`` (the configured camera model) is the one ``route`` was taught
+    with: the same lens model, the same image size and intrinsics within INTRINSICS_AGREEMENT."""
+    taught = camera_to_dict(route.camera)
+    now = camera_to_dict(camera)
+    tf = (route.calibration or {}).get("file")
+    cf = calibration_file
+
+    def describe(d, f):
+        return (f"{d['model']} {d['width']}x{d['height']} fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} "
+                f"cy {d['cy']:.1f}" + (f" from {f}" if f else ""))
+    problem = None
+    if taught["model"] != now["model"]:
+        problem = "another lens model"
+    elif (taught["width"], taught["height"]) != (now["width"], now["height"]):
+        problem = "another image size"
+    elif any(abs(taught[k] - now[k]) > INTRINSICS_AGREEMENT * taught["fx"] for k in ("fx", "fy", "cx", "cy")):
+        problem = f"other intrinsics (beyond {INTRINSICS_AGREEMENT:.0%} of fx)"
+    if problem:
+        raise RouteError(f"{route.path}: taught with camera {describe(taught, tf)}; {config_source} has "
+                         f"{problem}: {describe(now, cf)}. Repeat with the configuration the route was taught "
+                         f"with, or teach the route again")
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -261,7 +296,8 @@ class RouteWriter:
     nothing but route files is replaced: ``--overwrite`` of a wrong directory must not delete it.
     """
 
-    def __init__(self, path, robot: str, camera, mount: CameraMount, overwrite: bool = False):
+    def __init__(self, path, robot: str, camera, mount: CameraMount, overwrite: bool = False,
+                 calibration: Optional[dict] = None):
         self.path = Path(path)          # where the route is (once complete)
         self._dir = self.path           # where its files are written now
         if self.path.exists():
@@ -283,7 +319,7 @@ class RouteWriter:
             "format": FORMAT, "version": VERSION, "robot": robot,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "camera": camera_to_dict(camera), "mount": mount_to_dict(mount),
-            "complete": False, "keyframes": [],
+            "calibration": calibration, "complete": False, "keyframes": [],
         }
         self._write_manifest()
 
@@ -358,14 +394,19 @@ def load_route(path, load_images: bool = True) -> Route:
             raise RouteError(f"{mpath}: missing key {key!r}")
     camera = camera_from_dict(m["camera"], str(mpath))
     try:
-        mount = CameraMount(**{k: float(m["mount"][k]) for k in ("height", "forward", "lateral", "pitch", "yaw")})
-    except (KeyError, TypeError, ValueError) as e:
+        mount = CameraMount(**{k: float(m["mount"][k]) for k in ("height", "forward", "lateral", "pitch", "yaw")},
+                            roll=float(m["mount"].get("roll", 0.0)))
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise RouteError(f"{mpath}: mount: expected height, forward, lateral, pitch, yaw numbers ({e})") from None
+    calibration = m.get("calibration")
+    if calibration is not None and not isinstance(calibration, dict):
+        raise RouteError(f"{mpath}: calibration: expected an object (file, sha256, fx, ...) or null")
     if not isinstance(m["keyframes"], list):
         raise RouteError(f"{mpath}: keyframes must be a list")
     kfs = [_load_keyframe(root, mpath, i, entry, camera, load_images) for i, entry in enumerate(m["keyframes"])]
     _check_progress(mpath, kfs)
-    return Route(root, str(m["robot"]), str(m["created"]), camera, mount, bool(m.get("complete", False)), kfs)
+    return Route(root, str(m["robot"]), str(m["created"]), camera, mount, bool(m.get("complete", False)), kfs,
+                 calibration)
 
 
 def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: bool) -> Keyframe:

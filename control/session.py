@@ -22,7 +22,7 @@ from vbnav.control.config import Config
 from vbnav.control.controllers.manual import TeleopController
 from vbnav.control.controllers.path import PathFollower, room_loop
 from vbnav.control.controllers.repeat import RepeatController
-from vbnav.control.route import Route, RouteWriter
+from vbnav.control.route import Route, RouteWriter, check_route_camera
 from vbnav.control.runtime.factory import Robot
 from vbnav.control.runtime.interfaces import Controller
 from vbnav.control.runtime.runtime import RunResult, Runtime
@@ -38,7 +38,8 @@ class Teaching:
     def __init__(self, cfg: Config, route_dir, overwrite: bool = False):
         model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
         self.stage = TeachStage(model, mount, cfg.vbc)
-        self.writer = RouteWriter(Path(route_dir), cfg.robot.name, model, mount, overwrite=overwrite)
+        self.writer = RouteWriter(Path(route_dir), cfg.robot.name, model, mount, overwrite=overwrite,
+                                  calibration=cfg.camera.calibration_record())
         self.stamps: list[int] = []      # stamp_ns of each keyframe written, in order
 
     def save(self, frame=None, results=None) -> None:
@@ -61,7 +62,10 @@ class Repeating:
     def __init__(self, cfg: Config, route: Route):
         vcfg = cfg.vbc
         self.route = route
-        self.stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
+        camera = cfg.camera.to_model()
+        cal = cfg.camera.calibration
+        check_route_camera(route, camera, cfg.source or "the configuration", cal.file if cal else None)
+        self.stage = RepeatStage(route, vcfg, camera, cfg.camera.mount.to_mount())
         self.controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
 
 

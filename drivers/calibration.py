@@ -10,10 +10,22 @@ Reads
   (plumb_bob, rational_polynomial -> pinhole; equidistant -> fisheye) and
   ``distortion_coefficients.data``.
 Errors name the file and the field and say what was expected.
+
+``load_camera_calibration`` is the one entry of a configuration's ``camera.calibration_file``: it
+also takes the stereo formats of stereo_calib.py (vbnav stereo YAML, KITTI calib.txt) and returns a
+:class:`CameraCalibration` (camera, baseline, file, SHA-256). ``calibration_problems`` lists legal but
+implausible values (for ``vbnav doctor``); ``opencv_yaml_text``/``ros_camera_info_text`` and
+``write_atomic`` write what ``vbnav calibrate`` computes.
 """
 from __future__ import annotations
 
+import hashlib
+import math
+import os
+import re
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -202,3 +214,122 @@ def _fs_int(fs, names):
         if not node.empty():
             return int(node.real())
     return None
+
+
+# -- the calibration a configuration uses ---------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class CameraCalibration:
+    """What ``camera.calibration_file`` gives: the camera model, the stereo baseline (m, None for a
+    single camera), the file and its SHA-256 (recorded in a taught route's manifest), its format."""
+
+    camera: PinholeCamera | FisheyeCamera
+    baseline: Optional[float]
+    file: str
+    sha256: str
+    format: str          # opencv, ros, yaml, kitti, vbnav-stereo
+
+
+def file_sha256(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def load_camera_calibration(path, width: Optional[int] = None, height: Optional[int] = None) -> CameraCalibration:
+    """Any calibration file vbnav reads, by its content: OpenCV YAML/XML, ROS camera_info, the vbnav
+    stereo YAML (a ``baseline`` key) or a KITTI ``calib.txt`` (``P0:`` lines; it has no image size, so
+    ``width``/``height`` give it). Errors name the file."""
+    from vbnav.drivers.stereo_calib import load_stereo_calibration, read_kitti_calib
+    p = Path(path)
+    if not p.is_file():
+        raise CalibrationError(f"{p}: calibration file does not exist" + (" (it is a directory)" if p.is_dir() else ""))
+    text = p.read_text(errors="replace")
+    head = text.lstrip()
+    if p.suffix.lower() == ".txt" or re.match(r"(#.*\n\s*)*P0\s*:", head):
+        st = read_kitti_calib(p, need_right=False)
+        if width is None or height is None:
+            raise CalibrationError(f"{p}: a KITTI calib.txt has no image size; set camera.width/height")
+        return CameraCalibration(st.camera(width, height), st.baseline, str(p), file_sha256(p), "kitti")
+    if not head.startswith(("%YAML", "<?xml", "<opencv_storage")) and p.suffix.lower() != ".xml":
+        try:
+            doc = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
+        if isinstance(doc, dict) and "baseline" in doc:
+            st = load_stereo_calibration(p)
+            return CameraCalibration(st.camera(), st.baseline, str(p), file_sha256(p), "vbnav-stereo")
+        fmt = "ros" if isinstance(doc, dict) and isinstance(doc.get("camera_matrix"), dict) else "yaml"
+    else:
+        fmt = "opencv"
+    return CameraCalibration(load_calibration(p), None, str(p), file_sha256(p), fmt)
+
+
+# Plausible lens: a horizontal field of view between these (deg). Narrower is a telephoto lens or fx in
+# the wrong unit (mm, or for a larger image); wider than 170 deg is a fisheye that needs the fisheye model.
+PLAUSIBLE_HFOV_DEG = (15.0, 170.0)
+# fx/fy outside this band: pixels far from square, usually a calibration for another resolution in one axis.
+PLAUSIBLE_ASPECT = (0.8, 1.25)
+# principal point farther from the image centre than this share of the size: a calibration for a crop.
+PLAUSIBLE_CENTRE_OFFSET = 0.2
+
+
+def calibration_problems(cal: CameraCalibration) -> list[str]:
+    """Sanity checks of a loaded calibration (for 'vbnav doctor'): one line per implausible value, empty if
+    all is plausible. A loaded file is already valid; this catches values that are legal but unlikely."""
+    c, out = cal.camera, []
+    if isinstance(c, PinholeCamera):
+        hfov = 2 * math.degrees(math.atan2(c.width / 2, c.fx))
+        if not PLAUSIBLE_HFOV_DEG[0] <= hfov <= PLAUSIBLE_HFOV_DEG[1]:
+            out.append(f"{cal.file}: fx {c.fx:.1f} px gives a {hfov:.0f} deg horizontal field of view on "
+                       f"{c.width} px (plausible {PLAUSIBLE_HFOV_DEG[0]:g}-{PLAUSIBLE_HFOV_DEG[1]:g})")
+    if not PLAUSIBLE_ASPECT[0] <= c.fx / c.fy <= PLAUSIBLE_ASPECT[1]:
+        out.append(f"{cal.file}: fx/fy = {c.fx / c.fy:.2f}, expected near 1 (square pixels)")
+    for name, v, size in (("cx", c.cx, c.width), ("cy", c.cy, c.height)):
+        if abs(v - (size - 1) / 2) > PLAUSIBLE_CENTRE_OFFSET * size:
+            out.append(f"{cal.file}: {name} {v:.1f} px is more than {PLAUSIBLE_CENTRE_OFFSET:.0%} of the image "
+                       f"from its centre {(size - 1) / 2:.1f}")
+    return out
+
+
+# -- writing calibration files ----------------------------------------------------------------------
+
+def write_atomic(path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file renamed over it (never a half-written file)."""
+    p = Path(path)
+    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, p)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def opencv_yaml_text(K, dist, size: tuple[int, int], model: str = "plumb_bob", extra: Optional[dict] = None) -> str:
+    """An OpenCV FileStorage YAML (``%YAML:1.0``) with camera_matrix, distortion_coefficients, the image
+    size and ``extra`` (numbers or matrices: the reprojection errors), as cv2.FileStorage writes it."""
+    fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("image_width", int(size[0]))
+    fs.write("image_height", int(size[1]))
+    fs.write("distortion_model", model)
+    fs.write("camera_matrix", np.asarray(K, float).reshape(3, 3))
+    fs.write("distortion_coefficients", np.asarray(dist, float).reshape(1, -1))
+    for k, v in (extra or {}).items():
+        fs.write(k, np.asarray(v, float) if isinstance(v, (list, tuple, np.ndarray)) else v)
+    return fs.releaseAndGetString()
+
+
+def ros_camera_info_text(K, dist, size: tuple[int, int], name: str = "camera", model: str = "plumb_bob",
+                         comments: tuple[str, ...] = ()) -> str:
+    """A ROS camera_info YAML (camera_calibration's format); ``comments`` go on top as ``#`` lines (ROS
+    readers do not know extra keys, so the reprojection errors are comments there)."""
+    K = np.asarray(K, float).reshape(3, 3)
+    P = np.hstack([K, np.zeros((3, 1))])
+    doc = {"image_width": int(size[0]), "image_height": int(size[1]), "camera_name": name,
+           "camera_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in K.ravel()]},
+           "distortion_model": model,
+           "distortion_coefficients": {"rows": 1, "cols": int(np.size(dist)),
+                                       "data": [float(x) for x in np.ravel(dist)]},
+           "rectification_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in np.eye(3).ravel()]},
+           "projection_matrix": {"rows": 3, "cols": 4, "data": [float(x) for x in P.ravel()]}}
+    head = "".join(f"# {c}\n" for c in comments)
+    return head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)

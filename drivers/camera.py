@@ -15,6 +15,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from vbnav.drivers.clock import MonotonicClock
+from vbnav.drivers.errors import InputError
 
 
 @dataclass
@@ -81,6 +82,10 @@ class LatestFrame:
 
 class CameraError(RuntimeError):
     """A camera could not be opened, gave the wrong format or went away."""
+
+
+class CameraSizeError(CameraError, InputError):
+    """Recorded images are not of the configured size: bad input (exit 2), not a device fault."""
 
 
 class Camera(abc.ABC):

@@ -17,7 +17,7 @@ from typing import Any, Literal, Optional
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.camera import Camera, CameraError, CameraSizeError, Frame
 from vbnav.drivers.clock import MonotonicClock
 from vbnav.drivers.datasets import DatasetError, _images_in, _read_image, open_dataset
 
@@ -38,8 +38,11 @@ class ReplayCamera(Camera):
         camera_yaml: Optional[str] = Field(None, description="TUM intrinsics if not camera.yaml in the folder")
         grey: bool = Field(True, description="single-channel images (the vision code works in grey)")
 
-    def __init__(self, options: "ReplayCamera.Options | dict", clock=None):
+    def __init__(self, options: "ReplayCamera.Options | dict", clock=None, size: Optional[tuple[int, int]] = None):
+        """``size``: the (width, height) the configuration expects; images of another size are refused
+        (the intrinsics are for one size, and a route records it)."""
         self.opt = options if isinstance(options, self.Options) else self.Options.model_validate(options)
+        self.size = tuple(size) if size is not None else None
         self.clock = clock or MonotonicClock()
         self._connected = False
         self._files: list[Path] = []
@@ -57,7 +60,18 @@ class ReplayCamera(Camera):
     def from_config(cls, cfg: Any, clock, options=None) -> "ReplayCamera":
         if options is None:
             options = cls.Options.model_validate(getattr(getattr(cfg, "camera", None), "options", {}) or {})
-        return cls(options, clock)
+        cam = getattr(cfg, "camera", None)
+        replay = cls(options, clock, (cam.width, cam.height) if cam is not None else None)
+        # Recordings of another size are bad input: refused now, before a run starts (and a teach creates
+        # its route). Any other problem (a missing folder) is reported when the run connects, as before.
+        try:
+            replay.connect()
+        except CameraSizeError:
+            raise
+        except CameraError:
+            pass
+        replay.disconnect()
+        return replay
 
     @property
     def is_connected(self) -> bool:
@@ -86,7 +100,7 @@ class ReplayCamera(Camera):
                 ds = open_dataset(root, self.opt.camera_yaml, layout)
                 self._dataset = ds
                 self._files, self._right, self._depth, self._stamps = ds.left, ds.right, ds.depth, ds.stamps
-            _read_image(self._files[0], self.opt.grey)  # fail now, not in the loop
+            self._check_size(_read_image(self._files[0], self.opt.grey), self._files[0])  # fail now, not in the loop
         except DatasetError as exc:
             raise CameraError(f"replay camera: {exc}") from exc
         if self.opt.rate_hz is not None:
@@ -100,6 +114,13 @@ class ReplayCamera(Camera):
 
     def disconnect(self) -> None:
         self._connected = False
+
+    def _check_size(self, image: np.ndarray, path: Path) -> np.ndarray:
+        if self.size is not None and (image.shape[1], image.shape[0]) != self.size:
+            raise CameraSizeError(f"replay camera: {path} is {image.shape[1]}x{image.shape[0]}, the configuration "
+                                  f"expects {self.size[0]}x{self.size[1]} (camera.width/height and the calibration "
+                                  f"must be those of the recorded images)")
+        return image
 
     @property
     def dataset(self):
@@ -149,7 +170,7 @@ class ReplayCamera(Camera):
         self._next, self._lap = k + 1, lap
         self._seq += 1
         try:
-            image = _read_image(self._files[k], self.opt.grey)
+            image = self._check_size(_read_image(self._files[k], self.opt.grey), self._files[k])
             right = _read_image(self._right[k], True) if self._right is not None else None
             meta = {"index": k, "lap": lap, "path": str(self._files[k]), "dropped": int(skipped),
                     "dataset_stamp_s": float(self._stamps[k])}

@@ -11,7 +11,7 @@ import yaml
 
 from vbnav.control import doctor
 from vbnav.control.cli import main
-from vbnav.control.config import load_config
+from vbnav.control.config import ConfigError, load_config
 from vbnav.drivers.sim.dynamixel_emulator import DynamixelBus
 
 
@@ -118,7 +118,7 @@ def test_routes_directory_problems(tmp_path):
     assert doctor.check_routes_dir(cfg).status == doctor.OK
 
 
-def test_calibration_present_and_for_the_configured_size(tmp_path):
+def test_calibration_present_and_plausible(tmp_path):
     cfg = load_config(write_config(tmp_path, camera={"driver": "v4l2"}))
     assert doctor.check_calibration(cfg).status == doctor.WARN            # none: the inline placeholders
     calib = tmp_path / "cam.yaml"
@@ -126,18 +126,18 @@ def test_calibration_present_and_for_the_configured_size(tmp_path):
            "camera_matrix": {"rows": 3, "cols": 3, "data": [300, 0, 160, 0, 300, 120, 0, 0, 1]},
            "distortion_coefficients": {"rows": 1, "cols": 5, "data": [0, 0, 0, 0, 0]}}
     calib.write_text(yaml.safe_dump(ros))
-    cfg.camera.calibration_file = "cam.yaml"                               # relative: to the config's folder
+    # relative: to the config's folder; the file's size replaces the inline 640x480
+    cfg = load_config(write_config(tmp_path, camera={"driver": "v4l2", "calibration_file": "cam.yaml"}))
     check = doctor.check_calibration(cfg)
-    assert check.status == doctor.FAIL and "calibrated at 320x240, the camera is set to 640x480" in check.detail
-    cfg.camera.width, cfg.camera.height = 320, 240
-    assert doctor.check_calibration(cfg).status == doctor.OK
-    ros["camera_matrix"]["data"][0] = ros["camera_matrix"]["data"][4] = 30.0     # 158 deg: not a pinhole lens
+    assert check.status == doctor.OK and "320x240, fx 300.0" in check.detail
+    ros["camera_matrix"]["data"][0] = ros["camera_matrix"]["data"][4] = 10.0     # 173 deg: not a pinhole lens
     calib.write_text(yaml.safe_dump(ros))
+    cfg = load_config(write_config(tmp_path, camera={"driver": "v4l2", "calibration_file": "cam.yaml"}))
     check = doctor.check_calibration(cfg)
-    assert check.status == doctor.WARN and "field of view of 159 deg" in check.detail
-    cfg.camera.calibration_file = str(tmp_path / "gone.yaml")
-    check = doctor.check_calibration(cfg)
-    assert check.status == doctor.FAIL and "gone.yaml: calibration file does not exist" in check.detail
+    assert check.status == doctor.WARN and "173 deg horizontal field of view" in check.detail
+    # a missing file fails at config load already, naming it (doctor reports config errors first)
+    with pytest.raises(ConfigError, match="gone.yaml"):
+        load_config(write_config(tmp_path, camera={"driver": "v4l2", "calibration_file": "gone.yaml"}))
 
 
 def test_real_time_rights(monkeypatch):

@@ -74,7 +74,9 @@ class CameraMount:
 
     height: optical centre above the floor, m. forward/lateral: offset from the
     wheel-axle centre along the robot's z (forward) and x (right), m.
-    pitch: rad, positive looking down. yaw: rad, positive looking right.
+    pitch: rad, positive looking down. yaw: rad, positive looking right. roll: rad about the
+    optical axis, positive turned clockwise seen from behind (the camera's x axis, image right,
+    tilts down).
     """
 
     height: float = 0.25
@@ -82,10 +84,11 @@ class CameraMount:
     lateral: float = 0.0
     pitch: float = 0.0
     yaw: float = 0.0
+    roll: float = 0.0
 
     def rotation(self) -> np.ndarray:
         """R_robot_camera: camera axes expressed in the robot frame."""
-        return rot_y(self.yaw) @ rot_x(-self.pitch)
+        return rot_y(self.yaw) @ rot_x(-self.pitch) @ rot_z(self.roll)
 
     def translation(self) -> np.ndarray:
         return np.array([self.lateral, -self.height, self.forward])

@@ -41,7 +41,22 @@ def run(args) -> int:
     else:
         print(f"{cfg.source}: valid (robot {cfg.robot.name!r}, camera {cfg.camera.driver}, "
               f"drive {cfg.drive.driver}, loop {cfg.loop.rate_hz:g} Hz)")
+        print(intrinsics_line(cfg.camera))
+        if cfg.camera.calibration is not None:
+            from vbnav.drivers.calibration import calibration_problems
+            for problem in calibration_problems(cfg.camera.calibration):
+                print(f"warning: {problem}")
     return 0
+
+
+def intrinsics_line(camera) -> str:
+    """The intrinsics every stage will use, and where they come from."""
+    c, cal = camera, camera.calibration
+    where = f"from {cal.file} ({cal.format})" if cal else "inline (no camera.calibration_file)"
+    dist = "none" if not any(c.distortion) else " ".join(f"{d:.5g}" for d in c.distortion)
+    b = c.stereo_baseline()
+    return (f"camera intrinsics {where}: {c.model} {c.width}x{c.height}, fx {c.fx:.3f} fy {c.fy:.3f} "
+            f"cx {c.cx:.3f} cy {c.cy:.3f}, distortion {dist}" + (f", stereo baseline {b:.4f} m" if b else ""))
 
 
 # ---- the reference ----------------------------------------------------------------------------------

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import yaml
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, PrivateAttr, ValidationError, field_validator, model_validator
 
+from vbnav.drivers.calibration import CalibrationError, CameraCalibration, load_camera_calibration
 from vbnav.drivers.errors import yaml_problem
 from vbnav.control.config.base import ConfigError, Strict, format_errors
 from vbnav.control.config.obstacles import ObstaclesConfig
@@ -51,14 +52,17 @@ class MountConfig(Strict):
     lateral: float = Field(0.0, description="to the right of the axle centre, m")
     pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, deg, positive looking down")
     yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw, deg, positive looking right")
+    roll_deg: float = Field(0.0, ge=-45, le=45, description="camera roll about its optical axis, deg, positive "
+                            "turned clockwise seen from behind (the image's right side lower)")
 
     def to_mount(self) -> CameraMount:
         return CameraMount(self.height, self.forward, self.lateral, math.radians(self.pitch_deg),
-                           math.radians(self.yaw_deg))
+                           math.radians(self.yaw_deg), math.radians(self.roll_deg))
 
 
 class CameraConfig(Strict):
-    driver: str = Field("sim", description="camera driver: a name from drivers/registry.py (see Driver options)")
+    driver: str = Field("sim", description=f"camera driver: {', '.join(registry.CAMERAS)} (drivers/registry.py; "
+                                           f"each driver's options are under Driver options)")
     model: Literal["pinhole", "fisheye"] = Field("pinhole", description="lens model of the intrinsics below")
     width: int = Field(640, gt=0, description="image width, px")
     height: int = Field(480, gt=0, description="image height, px")
@@ -69,11 +73,38 @@ class CameraConfig(Strict):
     distortion: list[float] = Field(default_factory=list, max_length=14,
                                     description="OpenCV distortion coefficients: pinhole k1 k2 p1 p2 [k3 ...], "
                                                 "fisheye k1 k2 k3 k4; empty: none")
-    calibration_file: Optional[str] = Field(None, description="OpenCV or ROS calibration file; overrides intrinsics")
+    calibration_file: Optional[str] = Field(
+        None, description="camera calibration: OpenCV YAML/XML, ROS camera_info YAML, vbnav stereo YAML or KITTI "
+                          "calib.txt (docs/hardware.md); loaded with the config, its model, size, intrinsics, "
+                          "distortion and stereo baseline replace the inline values (a different inline width/"
+                          "height is an error). A relative path is taken from the config file's folder")
     rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop")
     mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
+
+    _calibration: Optional[CameraCalibration] = PrivateAttr(None)
+
+    @property
+    def calibration(self) -> Optional[CameraCalibration]:
+        """The loaded ``calibration_file`` (None: the inline intrinsics are the calibration)."""
+        return self._calibration
+
+    def stereo_baseline(self) -> Optional[float]:
+        """The stereo baseline, m: the calibration file's, else ``options.stereo_baseline``, else None."""
+        if self._calibration is not None and self._calibration.baseline is not None:
+            return self._calibration.baseline
+        b = (self.options or {}).get("stereo_baseline")
+        return float(b) if b else None
+
+    def calibration_record(self) -> dict:
+        """The calibration in use as a route manifest records it: the intrinsics every stage uses, and the
+        file they came from with its hash (file None, format 'inline': the values in the config)."""
+        cal = self._calibration
+        return {"file": cal.file if cal else None, "sha256": cal.sha256 if cal else None,
+                "format": cal.format if cal else "inline", "model": self.model, "width": self.width,
+                "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                "distortion": list(self.distortion), "baseline": self.stereo_baseline()}
 
     @model_validator(mode="after")
     def _principal_point_in_image(self):
@@ -261,7 +292,57 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(format_errors(source, exc)) from None
     cfg.source = source
     validate_driver_options(cfg, source)
+    apply_calibration_file(cfg, source)
     return cfg
+
+
+def calibration_path(cfg: Config, source: str) -> Optional[Path]:
+    """``camera.calibration_file`` as a path: ~ expanded, relative to the config file's folder."""
+    f = cfg.camera.calibration_file
+    if not f:
+        return None
+    p = Path(f).expanduser()
+    if not p.is_absolute() and source and not source.startswith("<"):
+        p = Path(source).resolve().parent / p
+    return p
+
+
+# Two stereo baselines for one rig that differ by more than this share: two different rigs in one config.
+BASELINE_AGREEMENT = 0.01
+
+
+def apply_calibration_file(cfg: Config, source: str) -> None:
+    """Load ``camera.calibration_file`` and let it replace the inline model, size, intrinsics and distortion
+    (every later reader of ``cfg.camera`` sees the calibrated camera). Errors name the config and the file."""
+    p = calibration_path(cfg, source)
+    if p is None:
+        return
+    c = cfg.camera
+    where = f"{source}: camera.calibration_file"
+    try:
+        cal = load_camera_calibration(p, c.width, c.height)
+    except CalibrationError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    cam = cal.camera
+    size, inline = (int(cam.width), int(cam.height)), (c.width, c.height)
+    if size != inline and {"width", "height"} & c.model_fields_set:
+        raise ConfigError(f"{where}: {p} is a calibration of {size[0]}x{size[1]} images, camera.width/height say "
+                          f"{inline[0]}x{inline[1]} (remove them or calibrate at that size)")
+    for name, other in (("camera.options.stereo_baseline", (c.options or {}).get("stereo_baseline")),
+                        ("obstacles.baseline", cfg.obstacles.baseline)):
+        if cal.baseline and other and abs(float(other) - cal.baseline) > BASELINE_AGREEMENT * cal.baseline:
+            raise ConfigError(f"{where}: {p} gives a stereo baseline of {cal.baseline:.4f} m, {name} says "
+                              f"{float(other):.4f} m (remove {name}: the calibration is the rig)")
+    data = c.model_dump()
+    data.update(model="fisheye" if isinstance(cam, FisheyeCamera) else "pinhole", width=size[0], height=size[1],
+                fx=float(cam.fx), fy=float(cam.fy), cx=float(cam.cx), cy=float(cam.cy),
+                distortion=[float(d) for d in cam.dist])
+    try:
+        calibrated = CameraConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_errors(f"{where} {p}", exc, prefix="camera")) from None
+    calibrated._calibration = cal
+    cfg.camera = calibrated
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

@@ -192,7 +192,7 @@ class ObstacleStage(VisionStage):
 
     def _set_rig(self, rig: StereoRig) -> None:
         self.rig = rig
-        self.prior = expected_plane(rig, self.mount.height, self.mount.pitch)
+        self.prior = expected_plane(rig, self.mount.height, self.mount.pitch, self.mount.roll)
         bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + self.mount.pitch   # lowest ray below level
         nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
         self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
@@ -209,9 +209,10 @@ class ObstacleStage(VisionStage):
     @classmethod
     def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
         """From a vbnav Config: camera intrinsics and mount, ``obstacles:`` section, baseline from
-        ``obstacles.baseline``, ``camera.options.stereo_baseline`` or, failing both, the frames' meta."""
+        ``obstacles.baseline``, the camera's calibration file, ``camera.options.stereo_baseline`` or, failing
+        all, the frames' meta (a calibration file that disagrees with the others is refused at config load)."""
         ocfg = cfg.obstacles
-        baseline = ocfg.baseline or (cfg.camera.options or {}).get("stereo_baseline")
+        baseline = ocfg.baseline or cfg.camera.stereo_baseline()
         c = cfg.camera
         camera = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)  # rectified: no distortion
         if not baseline:

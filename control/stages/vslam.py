@@ -414,10 +414,9 @@ def guided_matches(pred: np.ndarray, desc_a: np.ndarray, corners: np.ndarray, de
 
 
 def stereo_baseline_of(cfg) -> Optional[float]:
-    """The stereo baseline the configured camera gives, if any (simulated: its option; OAK: from the device)."""
-    opts = cfg.camera.options or {}
-    b = opts.get("stereo_baseline")
-    return float(b) if b else None
+    """The stereo baseline the configured camera gives, if any (its calibration file, else its
+    ``options.stereo_baseline``; OAK: from the device, in the frames)."""
+    return cfg.camera.stereo_baseline()
 
 
 

@@ -1,0 +1,363 @@
+"""vbnav calibrate: camera intrinsics, a stereo pair, and the camera's mounting over the floor.
+
+``intrinsics`` (a folder of images, or the configured camera live) and ``stereo`` (two folders) write
+OpenCV YAML and ROS camera_info files with the RMS and per-view reprojection errors; ``mount`` measures
+the camera's height, pitch and roll over the floor (a board lying on the floor, or the stereo ground
+plane) and writes them into the config's ``camera.mount``. The views are chosen by
+vision/board_calibration.py (blurred and duplicate views rejected); the files are written by
+drivers/calibration.py.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vbnav.control.commands._common import add_config_arg, positive
+from vbnav.drivers.errors import InputError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("calibrate", help="calibrate the camera (intrinsics, stereo pair) and its mounting",
+                       description="Camera calibration from views of a chessboard or ChArUco board. See "
+                                   "docs/hardware.md, 'Calibration'.")
+    what = p.add_subparsers(dest="what", metavar="WHAT", required=True)
+
+    i = what.add_parser("intrinsics", help="one camera's intrinsics and distortion from board views",
+                        description="Detects the board in each view, rejects blurred and duplicate views, "
+                                    "runs OpenCV's calibrateCamera and writes OUT/camera_opencv.yaml (OpenCV "
+                                    "FileStorage, with the RMS and per-view errors) and OUT/camera_info.yaml "
+                                    "(ROS camera_info). Either of them is a camera.calibration_file.")
+    src = i.add_mutually_exclusive_group(required=True)
+    src.add_argument("--images", metavar="DIR", help="folder of board images (png, jpg, pgm, bmp)")
+    src.add_argument("--live", action="store_true", help="take views from the camera of --config (move the "
+                                                         "board between views)")
+    add_config_arg(i)
+    _board_args(i)
+    i.add_argument("--views", type=int, default=20, help="--live: stop after this many accepted views")
+    i.add_argument("--timeout", type=positive, default=120.0, help="--live: give up after this long, s")
+    i.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
+    i.add_argument("--fisheye", action="store_true", help="not supported yet: say so rather than fit pinhole")
+    i.add_argument("--quiet", action="store_true", help="no per-view lines on stderr")
+    i.set_defaults(func=run_intrinsics)
+
+    s = what.add_parser("stereo", help="a stereo pair: each camera, their relative pose and the rectified rig",
+                        description="Pairs LEFT and RIGHT images by sorted name, calibrates each camera, then "
+                                    "stereoCalibrate (intrinsics fixed) and stereoRectify. Writes OUT/left_*.yaml, "
+                                    "OUT/right_*.yaml, OUT/stereo_opencv.yaml (K1 D1 K2 D2 R T) and OUT/stereo.yaml "
+                                    "(the rectified rig in vbnav's stereo format: a camera.calibration_file for "
+                                    "rectified images). The baseline is in the unit of --square.")
+    s.add_argument("left", metavar="LEFT_DIR")
+    s.add_argument("right", metavar="RIGHT_DIR")
+    _board_args(s)
+    s.add_argument("--out", required=True, metavar="DIR")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=run_stereo)
+
+    m = what.add_parser("mount", help="camera height, pitch and roll over the floor, into the config",
+                        description="From a board lying flat on the floor (--image, or --live: one view of the "
+                                    "configured camera), or from the stereo ground plane (--stereo LEFT RIGHT: a "
+                                    "rectified pair of an empty stretch of floor, with the config's stereo "
+                                    "calibration). The intrinsics are the config's (camera.calibration_file). "
+                                    "Writes camera.mount.height, pitch_deg and roll_deg into the config file in "
+                                    "place, keeping its comments (unless --dry-run).")
+    add_config_arg(m)
+    msrc = m.add_mutually_exclusive_group(required=True)
+    msrc.add_argument("--image", metavar="FILE", help="an image of the board lying on the floor")
+    msrc.add_argument("--live", action="store_true", help="one view of the board from the configured camera")
+    msrc.add_argument("--stereo", nargs=2, metavar=("LEFT", "RIGHT"), help="a rectified stereo pair of the floor")
+    _board_args(m)
+    m.add_argument("--board-thickness", type=float, default=0.0, metavar="M",
+                   help="the board's top surface above the floor, m (added to the height)")
+    m.add_argument("--dry-run", action="store_true", help="print the mounting, do not write the config")
+    m.set_defaults(func=run_mount)
+
+
+def _board_args(p) -> None:
+    p.add_argument("--board", choices=["chessboard", "charuco"], default="chessboard")
+    p.add_argument("--cols", type=int, default=9, help="chessboard: inner corners across; ChArUco: squares across")
+    p.add_argument("--rows", type=int, default=6, help="chessboard: inner corners down; ChArUco: squares down")
+    p.add_argument("--square", type=positive, default=0.025, help="square side, m (the unit of baseline and "
+                                                                  "mount height)")
+    p.add_argument("--marker", type=positive, default=None, help="ChArUco: marker side, m")
+    p.add_argument("--dictionary", default="DICT_6X6_250", help="ChArUco: ArUco dictionary name")
+    p.add_argument("--min-sharpness", type=float, default=None,
+                   help="reject views less sharp than this (default: vision/board_calibration.py SHARPNESS_MIN)")
+
+
+def _board(args):
+    from vbnav.vision.board_calibration import Board
+    try:
+        return Board(args.board, args.cols, args.rows, args.square, args.marker or 0.0, args.dictionary)
+    except ValueError as exc:
+        raise InputError(f"--board: {exc}") from None
+
+
+def _say(args, text: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(text, file=sys.stderr, flush=True)
+
+
+def _images(folder: str, what: str) -> list[Path]:
+    d = Path(folder)
+    if not d.is_dir():
+        raise InputError(f"{what} {d}: not a folder of images")
+    files = sorted(p for p in d.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".pgm", ".bmp"))
+    if not files:
+        raise InputError(f"{what} {d}: no images (.png .jpg .pgm .bmp)")
+    return files
+
+
+def _grey(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError(f"{path}: not a readable image")
+    return img
+
+
+class ViewCollector:
+    """Board views one by one: detected, sharp enough, not a repeat of an accepted one (each decision said)."""
+
+    def __init__(self, args, board):
+        from vbnav.vision.board_calibration import SHARPNESS_MIN, BoardDetector
+        self.args, self.detector = args, BoardDetector(board)
+        self.min_sharpness = SHARPNESS_MIN if args.min_sharpness is None else args.min_sharpness
+        self.views, self.size, self.rejected = [], None, 0
+
+    def offer(self, grey: np.ndarray, name: str, tag: str = "", keep_duplicates: bool = False):
+        from vbnav.vision.board_calibration import duplicate_of
+        size = (grey.shape[1], grey.shape[0])
+        if self.size is None:
+            self.size = size
+        elif size != self.size:
+            raise InputError(f"{name}: is {size[0]}x{size[1]}, the first view was {self.size[0]}x{self.size[1]}")
+        view = self.detector.detect(grey, name)
+        why = None
+        if view is None:
+            why = "board not found"
+        elif view.sharpness < self.min_sharpness:
+            why = f"blurred (sharpness {view.sharpness:.1f} < {self.min_sharpness:g})"
+        elif not keep_duplicates and (dup := duplicate_of(view, self.views, size)) is not None:
+            why = f"duplicate of {dup.name} (the board did not move)"
+        if why:
+            self.rejected += 1
+            _say(self.args, f"{tag}{name}: rejected: {why}")
+            return None
+        self.views.append(view)
+        _say(self.args, f"{tag}{name}: {len(view.ids)} corners, sharpness {view.sharpness:.0f}")
+        return view
+
+
+def _write_intrinsics(out: Path, prefix: str, result, views, args, name: str) -> list[Path]:
+    from vbnav.drivers.calibration import opencv_yaml_text, ros_camera_info_text, write_atomic
+    per = {v.name: e for v, e in zip(views, result.per_view)}
+    extra = {"avg_reprojection_error": result.rms, "per_view_reprojection_errors": result.per_view,
+             "board": f"{args.board} {args.cols}x{args.rows} square {args.square}"}
+    notes = (f"calibrated by vbnav calibrate from {len(views)} views of a {args.board} {args.cols}x{args.rows}",
+             f"rms_reprojection_error_px: {result.rms:.4f}",
+             *(f"view {n}: {e:.4f} px" for n, e in per.items()))
+    a, b = out / f"{prefix}opencv.yaml", out / f"{prefix}info.yaml"
+    write_atomic(a, opencv_yaml_text(result.K, result.dist, result.size, extra=extra))
+    write_atomic(b, ros_camera_info_text(result.K, result.dist, result.size, name=name, comments=notes))
+    return [a, b]
+
+
+def _report(label: str, result) -> None:
+    K = result.K
+    print(f"{label}: RMS reprojection error {result.rms:.4f} px over {len(result.per_view)} views (worst "
+          f"{max(result.per_view):.3f} px); fx {K[0, 0]:.3f} fy {K[1, 1]:.3f} cx {K[0, 2]:.3f} cy {K[1, 2]:.3f}; "
+          f"distortion {' '.join(f'{d:.5f}' for d in result.dist)}")
+
+
+def _calibrate(views, size):
+    from vbnav.vision.board_calibration import calibrate_intrinsics
+    try:
+        return calibrate_intrinsics(views, size)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def run_intrinsics(args) -> int:
+    if args.fisheye:
+        raise InputError("--fisheye: fisheye calibration is not implemented; calibrate a pinhole model or use "
+                         "OpenCV's cv2.fisheye.calibrate and load its file")
+    board = _board(args)
+    out = Path(args.out)
+    collector = ViewCollector(args, board)
+    t0 = time.monotonic()
+    if args.images:
+        files = _images(args.images, "--images")
+        for k, f in enumerate(files, 1):
+            collector.offer(_grey(f), f.name, f"[{k}/{len(files)}] ")
+    else:
+        _collect_live(args, collector, args.views)
+    if collector.size is None:
+        raise InputError("no views")
+    _say(args, f"{len(collector.views)} views accepted, {collector.rejected} rejected; calibrating ...")
+    result = _calibrate(collector.views, collector.size)
+    out.mkdir(parents=True, exist_ok=True)
+    files = _write_intrinsics(out, "camera_", result, collector.views, args, "camera")
+    _report("intrinsics", result)
+    print(f"wrote {', '.join(map(str, files))} ({time.monotonic() - t0:.1f} s); use one as camera.calibration_file")
+    return 0
+
+
+def _open_live_camera(args):
+    from vbnav.control.config import load_config, validate_driver_options
+    from vbnav.control.runtime.factory import make_camera
+    from vbnav.drivers.clock import MonotonicClock
+    cfg = load_config(args.config)
+    if cfg.camera.driver == "sim":
+        raise InputError(f"{cfg.source}: camera.driver sim renders a world without a calibration board; "
+                         f"--live needs a real camera (or a replay of board images)")
+    cam = make_camera(cfg, MonotonicClock(), options=validate_driver_options(cfg, cfg.source)["camera"])
+    cam.connect()
+    return cfg, cam
+
+
+def _collect_live(args, collector, want: int) -> None:
+    cfg, cam = _open_live_camera(args)
+    deadline = time.monotonic() + args.timeout
+    n = 0
+    try:
+        while len(collector.views) < want and time.monotonic() < deadline:
+            frame = cam.read(0.5)
+            if frame is None:
+                if getattr(cam, "finished", False):
+                    break
+                continue
+            n += 1
+            img = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+            collector.offer(img, f"frame {frame.seq}", f"[{len(collector.views)}/{want}] ")
+    finally:
+        cam.disconnect()
+    if len(collector.views) < want:
+        _say(args, f"{cfg.camera.driver} camera: {len(collector.views)} of {want} views after {n} frames")
+
+
+def run_stereo(args) -> int:
+    from vbnav.drivers.calibration import write_atomic
+    from vbnav.vision.board_calibration import calibrate_stereo
+    board = _board(args)
+    left, right = _images(args.left, "LEFT_DIR"), _images(args.right, "RIGHT_DIR")
+    if len(left) != len(right):
+        raise InputError(f"{args.left} has {len(left)} images, {args.right} has {len(right)}: expected pairs "
+                         f"(matched by sorted name)")
+    lc, rc = ViewCollector(args, board), ViewCollector(args, board)
+    pairs = []
+    for k, (a, b) in enumerate(zip(left, right), 1):
+        tag = f"[{k}/{len(left)}] "
+        va = lc.offer(_grey(a), a.name, tag)
+        vb = rc.offer(_grey(b), b.name, tag)
+        if va is not None and vb is not None:
+            pairs.append((va, vb))
+    if lc.size != rc.size:
+        raise InputError(f"left images are {lc.size}, right images {rc.size}: a stereo pair has one size")
+    _say(args, f"calibrating: {len(lc.views)} left, {len(rc.views)} right views, {len(pairs)} pairs ...")
+    lres, rres = _calibrate(lc.views, lc.size), _calibrate(rc.views, rc.size)
+    try:
+        st = calibrate_stereo(pairs, lres, rres)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = _write_intrinsics(out, "left_", lres, lc.views, args, "left")
+    files += _write_intrinsics(out, "right_", rres, rc.views, args, "right")
+    fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    fs.write("image_width", lc.size[0])
+    fs.write("image_height", lc.size[1])
+    for key, val in (("K1", lres.K), ("D1", lres.dist.reshape(1, -1)), ("K2", rres.K),
+                     ("D2", rres.dist.reshape(1, -1)), ("R", st.R), ("T", st.T.reshape(3, 1))):
+        fs.write(key, np.asarray(val, float))
+    fs.write("rms_reprojection_error", st.rms)
+    fs.write("baseline", st.baseline)
+    write_atomic(out / "stereo_opencv.yaml", fs.releaseAndGetString())
+    r = st.rectified
+    write_atomic(out / "stereo.yaml",
+                 f"# the rectified pair of {out / 'stereo_opencv.yaml'} (vbnav stereo format, docs/obstacles.md)\n"
+                 f"# stereoCalibrate RMS {st.rms:.4f} px over {len(pairs)} pairs; baseline in --square units\n"
+                 f"width: {lc.size[0]}\nheight: {lc.size[1]}\nfx: {r['fx']:.6f}\nfy: {r['fy']:.6f}\n"
+                 f"cx: {r['cx']:.6f}\ncy: {r['cy']:.6f}\nbaseline: {r['baseline']:.6f}\n")
+    files += [out / "stereo_opencv.yaml", out / "stereo.yaml"]
+    _report("left", lres)
+    _report("right", rres)
+    print(f"stereo: RMS {st.rms:.4f} px over {len(pairs)} pairs; baseline {st.baseline:.5f} (T "
+          f"{' '.join(f'{t:.4f}' for t in st.T)}), rotation {math.degrees(np.linalg.norm(cv2.Rodrigues(st.R)[0])):.3f}"
+          f" deg; rectified fx {r['fx']:.3f}, baseline {r['baseline']:.5f}")
+    print(f"wrote {', '.join(map(str, files))}")
+    return 0
+
+
+def run_mount(args) -> int:
+    from vbnav.control.config import load_config, resolve_config_path
+    from vbnav.control.config.mount_edit import set_camera_mount
+    cfg = load_config(args.config)
+    camera = cfg.camera.to_model()
+    if args.stereo:
+        pose = _mount_from_stereo(args, cfg)
+        how = "stereo ground plane"
+    else:
+        if args.image:
+            grey = _grey(Path(args.image))
+            name = args.image
+        else:
+            _, cam = _open_live_camera(args)
+            try:
+                frame = cam.read(2.0)
+            finally:
+                cam.disconnect()
+            if frame is None:
+                raise InputError(f"{cfg.source}: the camera gave no frame in 2 s")
+            grey = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+            name = f"{cfg.camera.driver} camera frame"
+        if (grey.shape[1], grey.shape[0]) != (camera.width, camera.height):
+            raise InputError(f"{name}: is {grey.shape[1]}x{grey.shape[0]}, the camera of {cfg.source} is "
+                             f"{camera.width}x{camera.height}")
+        from vbnav.vision.board_calibration import BoardDetector, floor_pose_from_board
+        view = BoardDetector(_board(args)).detect(grey, name)
+        if view is None:
+            raise InputError(f"{name}: the board ({args.board} {args.cols}x{args.rows}) is not in view")
+        pose = floor_pose_from_board(view, camera.K, np.asarray(camera.dist, float))
+        how = f"board on the floor ({len(view.ids)} corners, RMS {pose.rms:.3f} px)"
+    height = pose.height + args.board_thickness
+    values = {"height": height, "pitch_deg": math.degrees(pose.pitch), "roll_deg": math.degrees(pose.roll)}
+    print(f"camera mount from the {how}: height {height:.4f} m, pitch {values['pitch_deg']:.3f} deg (down), "
+          f"roll {values['roll_deg']:.3f} deg")
+    if args.dry_run:
+        return 0
+    path = resolve_config_path(args.config)
+    set_camera_mount(path, values)
+    print(f"{path}: camera.mount height, pitch_deg, roll_deg written (the rest of the file unchanged)")
+    return 0
+
+
+def _mount_from_stereo(args, cfg):
+    from vbnav.vision.board_calibration import floor_pose_from_down
+    from vbnav.vision.camera_model import PinholeCamera
+    from vbnav.vision.ground_plane import fit_ground_plane
+    from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
+    baseline = cfg.camera.stereo_baseline() or cfg.obstacles.baseline
+    if not baseline:
+        raise InputError(f"{cfg.source}: --stereo needs a stereo baseline (a stereo camera.calibration_file, or "
+                         f"camera.options.stereo_baseline)")
+    c = cfg.camera
+    rig = StereoRig(PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy), float(baseline))
+    left, right = (_grey(Path(f)) for f in args.stereo)
+    for f, img in zip(args.stereo, (left, right)):
+        if (img.shape[1], img.shape[0]) != (c.width, c.height):
+            raise InputError(f"{f}: is {img.shape[1]}x{img.shape[0]}, the camera of {cfg.source} is "
+                             f"{c.width}x{c.height}")
+    # No prior from the configured mount: it is what is being measured (and may be far off). The fit then
+    # takes the lower image half as the floor's candidates; the matching covers depths down to half the
+    # configured height, nearer than any floor point of a camera not looking straight down.
+    disp = sgbm_disparity(left, right, sgbm_params_for(rig, 0.5 * c.mount.height))
+    try:
+        fit = fit_ground_plane(disp, rig, None)
+    except ValueError as exc:
+        raise InputError(f"{args.stereo[0]}: no floor plane found ({exc}); point the camera at an empty stretch "
+                         f"of floor") from None
+    return floor_pose_from_down(np.asarray(fit.floor.down), fit.floor.height)

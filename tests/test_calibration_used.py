@@ -1,0 +1,169 @@
+"""camera.calibration_file is loaded with the config and used everywhere (issue 14, point 1).
+
+A missing or garbage file fails 'vbnav config check' naming the file; a ROS camera_info with fx 300 is the
+camera the teach stage uses and the one the route manifest records (with the file and its hash); a repeat
+refuses a route taught with another camera; a replay of images of another size is refused.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from vbnav.control import cli
+from vbnav.control.config import CONFIG_DIR, ConfigError, load_config
+from vbnav.control.route import RouteError, check_route_camera, load_route
+from vbnav.control.session import Repeating, Teaching
+from vbnav.drivers.calibration import calibration_problems, load_camera_calibration
+from vbnav.drivers.camera import CameraSizeError
+from vbnav.drivers.clock import SimClock
+from vbnav.drivers.replay_camera import ReplayCamera
+
+ROS_FX300 = """image_width: 640
+image_height: 480
+camera_name: front
+camera_matrix: {rows: 3, cols: 3, data: [300.0, 0, 322.5, 0, 301.0, 241.0, 0, 0, 1]}
+distortion_model: plumb_bob
+distortion_coefficients: {rows: 1, cols: 5, data: [-0.1, 0.02, 0.0, 0.0, 0.0]}
+"""
+
+
+def config_with(tmp_path, calibration_file, **camera) -> str:
+    data = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
+    data["camera"]["calibration_file"] = calibration_file
+    data["camera"].update(camera)
+    p = tmp_path / "robot.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return str(p)
+
+
+def check(capsys, config: str) -> tuple[int, str]:
+    code = cli.main(["config", "check", "-c", config])
+    out = capsys.readouterr()
+    return code, out.out + out.err
+
+
+def test_missing_file_fails_config_check_naming_it(tmp_path, capsys):
+    code, text = check(capsys, config_with(tmp_path, "nowhere.yaml"))
+    assert code == 2
+    assert "camera.calibration_file" in text and str(tmp_path / "nowhere.yaml") in text and "does not exist" in text
+
+
+@pytest.mark.parametrize("garbage", ["camera_matrix: [1, 2\n", "just words\n", "image_width: 640\nimage_height: 480\n"
+                                     "camera_matrix: {data: [0, 0, 0, 0, 0, 0, 0, 0, 1]}\n"])
+def test_garbage_file_fails_config_check_naming_it(tmp_path, capsys, garbage):
+    (tmp_path / "bad.yaml").write_text(garbage)
+    code, text = check(capsys, config_with(tmp_path, "bad.yaml"))
+    assert code == 2 and str(tmp_path / "bad.yaml") in text, text
+
+
+def test_ros_camera_info_is_the_camera_of_the_teach_stage_and_the_manifest(tmp_path, capsys):
+    (tmp_path / "front.yaml").write_text(ROS_FX300)
+    config = config_with(tmp_path, "front.yaml")       # relative: from the config file's folder
+    code, text = check(capsys, config)
+    assert code == 0, text
+    assert "from " + str(tmp_path / "front.yaml") in text and "fx 300.000 fy 301.000 cx 322.500" in text
+
+    cfg = load_config(config)
+    assert (cfg.camera.fx, cfg.camera.fy, cfg.camera.cx, cfg.camera.cy) == (300.0, 301.0, 322.5, 241.0)
+    assert cfg.camera.distortion == [-0.1, 0.02, 0.0, 0.0, 0.0]
+    teaching = Teaching(cfg, tmp_path / "route")
+    assert teaching.stage.camera.fx == 300.0 and teaching.stage.camera.dist[0] == -0.1
+    teaching.close(complete=False)
+    manifest = json.loads((tmp_path / "route" / "manifest.json").read_text())
+    assert manifest["camera"]["fx"] == 300.0
+    rec = manifest["calibration"]
+    assert rec["file"] == str(tmp_path / "front.yaml") and rec["format"] == "ros"
+    assert rec["sha256"] == hashlib.sha256(ROS_FX300.encode()).hexdigest()
+    assert (rec["fx"], rec["fy"], rec["cx"], rec["cy"], rec["width"], rec["height"]) == (300, 301, 322.5, 241, 640,
+                                                                                          480)
+    assert rec["distortion"][:2] == [-0.1, 0.02]
+
+
+def test_a_calibration_for_another_size_is_an_error_naming_both(tmp_path):
+    (tmp_path / "front.yaml").write_text(ROS_FX300)
+    with pytest.raises(ConfigError, match=r"front.yaml is a calibration of 640x480 images, camera.width/height "
+                                          r"say 320x240"):
+        load_config(config_with(tmp_path, "front.yaml", width=320, height=240, cx=159.5, cy=119.5))
+
+
+def test_stereo_yaml_gives_the_rig_and_a_conflicting_baseline_is_refused(tmp_path):
+    (tmp_path / "rig.yaml").write_text("width: 640\nheight: 480\nfx: 410\nfy: 410\ncx: 320\ncy: 240\n"
+                                       "baseline: 0.09\n")
+    cfg = load_config(config_with(tmp_path, "rig.yaml"))
+    assert cfg.camera.fx == 410 and cfg.camera.stereo_baseline() == 0.09
+    from vbnav.control.stages.vslam import stereo_baseline_of
+    assert stereo_baseline_of(cfg) == 0.09
+    with pytest.raises(ConfigError, match="stereo baseline of 0.0900 m, camera.options.stereo_baseline says "
+                                          "0.0600 m"):
+        load_config(config_with(tmp_path, "rig.yaml", options={"stereo_baseline": 0.06}))
+
+
+def test_sanity_checks_for_doctor(tmp_path, capsys):
+    (tmp_path / "front.yaml").write_text(ROS_FX300)
+    assert calibration_problems(load_camera_calibration(tmp_path / "front.yaml")) == []
+    (tmp_path / "mm.yaml").write_text(ROS_FX300.replace("300.0, 0", "3.6, 0").replace("301.0", "3.6"))
+    problems = calibration_problems(load_camera_calibration(tmp_path / "mm.yaml"))
+    assert len(problems) == 1 and "field of view" in problems[0]
+    code, text = check(capsys, config_with(tmp_path, "mm.yaml"))       # legal, so valid, with the warning
+    assert code == 0 and "warning: " + problems[0] in text
+
+
+def test_repeat_refuses_a_route_taught_with_another_camera(tmp_path):
+    (tmp_path / "front.yaml").write_text(ROS_FX300)
+    taught_cfg = load_config(config_with(tmp_path, "front.yaml"))
+    Teaching(taught_cfg, tmp_path / "route").close(complete=False)
+    route = load_route(tmp_path / "route")
+    check_route_camera(route, taught_cfg.camera.to_model())        # the same camera: accepted
+    other = load_config("sim")          # fx 400 inline
+    with pytest.raises(RouteError) as e:
+        Repeating(other, route)
+    msg = str(e.value)
+    assert "fx 300.0" in msg and "front.yaml" in msg and "fx 400.0" in msg and "other intrinsics" in msg
+    small = load_config("sim", overrides={"camera": {"width": 320, "height": 240, "cx": 159.5, "cy": 119.5,
+                                                     "fx": 300, "fy": 301}})
+    with pytest.raises(RouteError, match="another image size: pinhole 320x240"):
+        Repeating(small, route)
+
+
+def test_replay_of_images_of_another_size_is_refused(tmp_path):
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"{i:03d}.png"), np.full((288, 384), 100, np.uint8))
+    cfg = load_config("sim", overrides={"camera": {"driver": "replay", "options": {"path": str(tmp_path)}}})
+    with pytest.raises(CameraSizeError, match=r"000.png is 384x288, the configuration expects 640x480"):
+        ReplayCamera.from_config(cfg, SimClock())          # before any run starts
+    with pytest.raises(CameraSizeError):
+        ReplayCamera({"path": str(tmp_path)}, SimClock(), (640, 480)).connect()
+    ok = load_config("sim", overrides={"camera": {"driver": "replay", "width": 384, "height": 288, "cx": 191.5,
+                                                  "cy": 143.5, "options": {"path": str(tmp_path)}}})
+    cam = ReplayCamera.from_config(ok, SimClock())
+    cam.connect()
+    assert cam.read(1.0).image.shape == (288, 384)
+
+
+def test_teach_from_a_replay_of_another_size_is_refused_before_a_route_exists(tmp_path, capsys):
+    img = tmp_path / "images"
+    img.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(img / f"{i:03d}.png"), np.full((288, 384), 100, np.uint8))
+    data = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
+    data["camera"].update(driver="replay", options={"path": str(img)})
+    (tmp_path / "replay.yaml").write_text(yaml.safe_dump(data))
+    code = cli.main(["teach", "-c", str(tmp_path / "replay.yaml"), "--out", str(tmp_path / "route"),
+                     "--duration", "1"])
+    assert code == 2 and "is 384x288, the configuration expects 640x480" in capsys.readouterr().err
+    assert not (tmp_path / "route").exists()
+
+
+def test_kitti_calib_txt_gives_the_rig_at_the_configured_size(tmp_path, shared_data, capsys):
+    calib = shared_data / "kitti06_stereo" / "calib.txt"
+    config = config_with(tmp_path, str(calib), width=1226, height=370, cx=600.0, cy=180.0)
+    code, text = check(capsys, config)
+    assert code == 0, text
+    cfg = load_config(config)
+    assert cfg.camera.calibration.format == "kitti" and abs(cfg.camera.stereo_baseline() - 0.537) < 0.002
+    assert abs(cfg.camera.fx - 707.09) < 0.01 and "stereo baseline 0.53" in text
