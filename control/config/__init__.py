@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import yaml
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, NonNegativeInt, ValidationError, field_validator, model_validator
 
 from vbnav.drivers.errors import yaml_problem
 from vbnav.control.config.base import ConfigError, Strict, format_errors
@@ -115,7 +115,12 @@ class LoopConfig(Strict):
     spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, microseconds")
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the loop thread "
                                    "(0: normal scheduling); needs root or CAP_SYS_NICE, else a warning event")
-    cpu_affinity: list[int] = Field(default_factory=list, description="CPUs the loop thread may run on (empty: any)")
+    cpu_affinity: list[NonNegativeInt] = Field(default_factory=list,
+                                               description="CPUs the loop thread may run on (empty: any)")
+    process_cpu_affinity: list[NonNegativeInt] = Field(
+        default_factory=list, description="CPUs every thread of the process may run on (vision, telemetry; empty: "
+                                          "any); the loop thread then narrows to loop.cpu_affinity. 'vbnav service "
+                                          "install' writes it as the unit's CPUAffinity=; a run applies it itself")
     gil_switch_interval_us: int = Field(200, ge=50, le=5000, description="Python's thread switch interval "
                                         "while a real-time loop runs: how long a busy vision thread may "
                                         "keep the loop waiting for the GIL (Python's default is 5000)")
