@@ -137,7 +137,8 @@ def identify(devices: list[Device], serials: dict[str, str], sysfs: str = "/sys"
         elif found is None:
             notes.append(f"no stable name for the {d.role} ({d.key} {d.path}): it is not plugged in, or not on "
                          f"USB; plug it in and install again with --overwrite, or give --serial {d.role}=SERIAL "
-                         f"('vbnav find' shows serial numbers)")
+                         f"('udevadm info --query=property --name=DEVICE' shows it as ID_SERIAL_SHORT where the "
+                         f"device is plugged in)")
         elif not found.serial or not _SERIAL.match(found.serial):
             notes.append(f"no stable name for the {d.role} ({d.key} {d.path}, USB {found.vendor}:{found.product}):"
                          f" the device reports no usable serial number; keep a /dev/serial/by-path or "
@@ -182,9 +183,11 @@ def unit_text(cfg, config_path: str, executable: str, user: str, pythonpath: str
         f"Description=vbnav robot controller ({cfg.robot.name})",
         "Wants=network-online.target",
         "After=network-online.target",
+        f"# retried every {RESTART_S} s for as long as it fails (an unplugged device): no start limit",
+        "StartLimitIntervalSec=0",
         "",
         "[Service]",
-        "# the control loop says READY=1 after its first cycle, pings WATCHDOG=1 from its cycles, STOPPING=1 at the end",
+        "# the control loop: READY=1 after its first cycle, WATCHDOG=1 from its cycles, STOPPING=1 at the end",
         "Type=notify",
         "NotifyAccess=main",
         f"ExecStart={_unit_arg(executable, 'vbnav executable')} run -c {_unit_arg(config_path, 'config')}",

@@ -39,6 +39,7 @@ effect.
 """
 from __future__ import annotations
 
+import faulthandler
 import math
 import os
 import signal
@@ -155,6 +156,8 @@ class Runtime:
         handlers = self._install_signal_handlers()
         restore_scheduling = _nothing_to_undo
         notifier = self.notifier
+        if notifier is not None and notifier.watchdog_period_ns and not faulthandler.is_enabled():
+            faulthandler.enable()    # systemd's watchdog kills with SIGABRT: the journal then shows where it hung
         next_progress = [0]
         try:
             self.drive.connect()
