@@ -293,6 +293,11 @@ def test_bad_install_input_is_named(tmp_path, capsys):
     assert cli.main(["service", "install", "-c", str(config), "--user", "no-such-user-here"]) == 2
     assert "--user no-such-user-here: no such user on this machine" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+    many = _robot_config(tmp_path, process_cpu_affinity=[0, 4096])     # checked on the machine it runs on
+    assert cli.main(["service", "install", "-c", str(many), "--user", _user()]) == 2
+    assert "loop.process_cpu_affinity: CPU 4096 does not exist here" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="CPU numbers are >= 0"):
+        Config.model_validate({"loop": {"process_cpu_affinity": [-1]}})
 
 
 # ---- install: the udev rules ---------------------------------------------------------------------------
