@@ -394,7 +394,7 @@ def test_status_and_logs_say_when_systemd_is_not_there(tmp_path, monkeypatch, ca
         assert cli.main(["service"] + op) == 3
         err = capsys.readouterr().err
         assert f"vbnav service {op[0]}: systemd is not running on this machine" in err
-        assert "vbnav.service service cannot run here" in err
+        assert "missing: another init runs as PID 1): vbnav.service cannot run here" in err
 
 
 def test_status_logs_and_uninstall_wrap_systemctl_and_journalctl(tmp_path, monkeypatch, capsys):

@@ -13,7 +13,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg
 from vbnav.drivers.errors import InputError
 
 #: present when systemd is the running init (sd_booted(3))
@@ -32,7 +31,8 @@ def register(sub) -> None:
                        description="Write /etc/systemd/system/vbnav.service and /etc/udev/rules.d/99-vbnav.rules "
                                    "(under --root). Needs root for /etc: sudo $(command -v vbnav) service install "
                                    "-c CONFIG.")
-    add_config_arg(i)
+    i.add_argument("--config", "-c", required=True, metavar="FILE",
+                   help="the robot's configuration YAML (a bare name like 'sentry-dynamixel' is looked up in configs/)")
     i.add_argument("--root", default="/", metavar="DIR",
                    help="install under DIR instead of / (an image of the robot's disk, a test); nothing is reloaded")
     i.add_argument("--overwrite", action="store_true", help="replace an installed unit and rules")
@@ -142,7 +142,7 @@ def _systemctl_or_say(name: str, cmd: list[str]) -> int:
     from vbnav.control.service import UNIT_NAME
     problem = _systemd_problem()
     if problem is not None:
-        print(f"vbnav service {name}: {problem}; the {UNIT_NAME} service cannot run here", file=sys.stderr)
+        print(f"vbnav service {name}: {problem}: {UNIT_NAME} cannot run here", file=sys.stderr)
         return EXIT_NO_SYSTEMD
     if shutil.which(cmd[0]) is None:
         print(f"vbnav service {name}: {cmd[0]} is not installed", file=sys.stderr)
