@@ -23,7 +23,9 @@ OK, WARN, FAIL, SKIP = "ok", "warn", "fail", "skip"
 #: udev rule files that give users access to OAK (Movidius, USB vendor 03e7) devices
 UDEV_DIRS = ("/etc/udev/rules.d", "/lib/udev/rules.d", "/usr/lib/udev/rules.d")
 OAK_VENDOR = "03e7"
-OAK_RULE_FIX = ("echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | sudo tee "
+OAK_RULE_FIX = ("sudo $(command -v vbnav) service install -c CONFIG writes it (/etc/udev/rules.d/99-vbnav.rules, "
+                "docs/service.md); or the rule alone: "
+                "echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | sudo tee "
                 "/etc/udev/rules.d/80-movidius.rules && sudo udevadm control --reload-rules && sudo udevadm trigger")
 FIRST_FRAME_S = 5.0        # a USB camera's first frame after opening: exposure settles, MJPG starts
 

@@ -216,6 +216,36 @@ def v4l2_devices(sysfs: str = "/sys", dev: str = "/dev", by_id_dir: str = "/dev/
     return out
 
 
+# -- USB identity of a device node --------------------------------------------------------------------
+@dataclass(frozen=True)
+class UsbIdentity:
+    vendor: str                     # "0403", as udev's ATTRS{idVendor}
+    product: str                    # "6014"
+    serial: str                     # the USB iSerialNumber, "" when the device has none
+
+
+def usb_identity(device: str, sysfs: str = "/sys") -> Optional[UsbIdentity]:
+    """The USB device behind a serial or V4L2 node (``/dev/ttyUSB0``, a by-id link, ``/dev/video0``): its
+    vendor, product and serial number from sysfs, or None when it is not there or not on USB."""
+    name = os.path.basename(os.path.realpath(device))
+    for subsystem in ("tty", "video4linux"):
+        node = Path(sysfs, "class", subsystem, name, "device")
+        if not node.exists():
+            continue
+        d = node.resolve()
+        while d != d.parent:        # up from the interface to the USB device, which has idVendor
+            if (d / "idVendor").is_file():
+                def attr(a: str) -> str:
+                    try:
+                        return (d / a).read_text().strip()
+                    except OSError:
+                        return ""
+                return UsbIdentity(attr("idVendor"), attr("idProduct"), attr("serial"))
+            d = d.parent
+        return None
+    return None
+
+
 # -- OAK ---------------------------------------------------------------------------------------------
 def oak_devices(timeout_s: float = 3.0) -> tuple[Optional[list[str]], str]:
     """(descriptions of the OAK devices found, note). None when depthai is not installed or the search

@@ -185,7 +185,9 @@ class OakCamera(GrabbingCamera):
         found = ", ".join(describe(d) for d in devices) or "none"
         if not devices:
             raise CameraError(f"no OAK device found (searched {took:.1f} s over USB and network; found: {found}). "
-                              f"Check the cable/power and the udev rule for Movidius (03e7) devices.")
+                              f"Check the cable/power, and that a udev rule lets this user open Movidius (03e7) devices: "
+                              f"'sudo $(command -v vbnav) service install -c CONFIG' writes one to "
+                              f"/etc/udev/rules.d/99-vbnav.rules (docs/service.md).")
         if self.opt.device_id is None:
             if len(devices) > 1:
                 raise CameraError(f"{len(devices)} OAK devices found ({found}); set camera.options.device_id")

@@ -153,6 +153,7 @@ def test_real_time_rights(monkeypatch):
 def test_oak_udev_rule(tmp_path):
     check = doctor.check_oak_udev_rule((str(tmp_path),))
     assert check.status in (doctor.FAIL, doctor.WARN) and "80-movidius.rules" in check.fix
+    assert "service install -c CONFIG writes it (/etc/udev/rules.d/99-vbnav.rules" in check.fix
     (tmp_path / "80-movidius.rules").write_text('SUBSYSTEM=="usb", ATTRS{idVendor}=="03e7", MODE="0666"\n')
     assert doctor.check_oak_udev_rule((str(tmp_path),)).status == doctor.OK
 

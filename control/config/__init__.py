@@ -145,14 +145,26 @@ class LoopConfig(Strict):
     max_missed_streak: int = Field(5, ge=1, description="consecutive overruns that trigger a safety stop")
     spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, microseconds")
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the loop thread "
-                                   "(0: normal scheduling); needs root or CAP_SYS_NICE, else a warning event")
+                                   "(0: normal scheduling); needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO as high (the "
+                                   "unit of 'vbnav service install' sets LimitRTPRIO), else a warning event")
     cpu_affinity: list[int] = Field(default_factory=list, description="CPUs the loop thread may run on (empty: any)")
+    process_cpu_affinity: list[int] = Field(
+        default_factory=list, description="CPUs every thread of the process may run on (vision, telemetry; empty: "
+                                          "any); the loop thread then narrows to loop.cpu_affinity. 'vbnav service "
+                                          "install' writes it as the unit's CPUAffinity=; a run applies it itself")
     gil_switch_interval_us: int = Field(200, ge=50, le=5000, description="Python's thread switch interval "
                                         "while a real-time loop runs: how long a busy vision thread may "
                                         "keep the loop waiting for the GIL (Python's default is 5000)")
     stall_periods: float = Field(5.0, gt=1, description="a cycle that starts more than this many periods after "
                                  "the tick it follows is a stall: wheels to zero and a latched 'stall' stop "
                                  "until resume (the wheels kept their last command during the stall)")
+
+    @field_validator("cpu_affinity", "process_cpu_affinity")
+    @classmethod
+    def _cpu_numbers(cls, v: list[int]) -> list[int]:
+        if any(c < 0 for c in v):
+            raise ValueError("CPU numbers are >= 0")
+        return v
 
 
 class SafetyConfig(Strict):

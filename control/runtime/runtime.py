@@ -24,6 +24,11 @@ operator ``resume`` (refused while the drive is still away). Not back in time,
 or back with a fault of its own: the run ends with reason ``drive`` and the
 cause. Any other drive fault ends the run at once.
 
+Started by systemd (``vbnav service install``), the loop is the service's
+heartbeat (systemd_notify.py): READY=1 after its first cycle, a WATCHDOG=1 ping
+from completed cycles (throttled, non-blocking), STOPPING=1 when it ends; a
+stalled loop stops the pings and systemd restarts the process.
+
 Operator commands reach the loop through a ``CommandMailbox`` (mailbox.py):
 ``submit`` from any thread, drained once per cycle. The runtime applies
 ``estop`` and ``resume`` itself and forwards every other command to the
@@ -34,6 +39,7 @@ effect.
 """
 from __future__ import annotations
 
+import faulthandler
 import math
 import os
 import signal
@@ -51,9 +57,41 @@ from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
 from vbnav.control.runtime.odometry import Odometry
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
+from vbnav.control.runtime.systemd_notify import SystemdNotifier
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.clock import Clock
 from vbnav.drivers.wheels import DriveError, DriveState, WheelDrive, WheelState
+
+
+def _nothing_to_undo() -> None:
+    pass
+
+
+def _set_process_affinity(cpus: set[int]) -> Callable[[], None]:
+    """Every thread of this process (sched_setaffinity takes a thread id) onto ``cpus``; returns the undo.
+    Under systemd the unit's CPUAffinity= did this at start; a run started by hand does it here."""
+    old = {}
+    try:
+        for tid in map(int, os.listdir("/proc/self/task")):
+            try:
+                before = os.sched_getaffinity(tid)
+                os.sched_setaffinity(tid, cpus)
+                old[tid] = before
+            except ProcessLookupError:    # a thread that ended meanwhile
+                continue
+    except OSError:
+        _restore_affinity(old)
+        raise
+
+    return lambda: _restore_affinity(old)
+
+
+def _restore_affinity(old: dict) -> None:
+    for tid, cpus in old.items():
+        try:
+            os.sched_setaffinity(tid, cpus)
+        except OSError:
+            pass
 
 
 @dataclass
@@ -101,6 +139,8 @@ class Runtime:
         self._deadline_ns: Optional[int] = None
         self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
         self.fault_traceback: Optional[str] = None
+        # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
+        self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
 
     # -- thread-safe inputs -------------------------------------------------
     def submit(self, cmd: OperatorCommand) -> Optional[str]:
@@ -114,12 +154,18 @@ class Runtime:
     def run(self, duration_s: Optional[float] = None,
             progress: Optional[Callable[["Runtime"], None]] = None, progress_every_s: float = 1.0) -> RunResult:
         handlers = self._install_signal_handlers()
-        restore_scheduling = self._apply_scheduling()
+        restore_scheduling = _nothing_to_undo
+        notifier = self.notifier
+        if notifier is not None and notifier.watchdog_period_ns and not faulthandler.is_enabled():
+            faulthandler.enable()    # systemd's watchdog kills with SIGABRT: the journal then shows where it hung
         next_progress = [0]
         try:
             self.drive.connect()
             if self.pipeline is not None:
                 self.pipeline.start()
+            # after the pipeline's threads started: threads inherit their creator's CPU set and policy, and
+            # the vision threads must not run SCHED_FIFO on the loop's CPUs
+            restore_scheduling = self._apply_scheduling()
             self.drive.enable()
             self._enabled = True
             self._start_ns = self.clock.now_ns()
@@ -128,6 +174,10 @@ class Runtime:
 
             def step(cycle: int, now_ns: int) -> bool:
                 keep = self._cycle(cycle, now_ns)
+                if notifier is not None:     # the loop's heartbeat: a stalled loop stops systemd's pings
+                    if cycle == 0:
+                        notifier.ready(f"loop running at {self.loop.rate_hz:g} Hz")
+                    notifier.beat()
                 if progress is not None and now_ns >= next_progress[0]:
                     next_progress[0] = now_ns + int(progress_every_s * 1e9)
                     progress(self)
@@ -148,6 +198,10 @@ class Runtime:
             self._end = (reason, f"start-up: {exc}")
             timing = self.loop.timing.summary(self.loop.rate_hz)
         finally:
+            if notifier is not None:
+                end = self._end or ("stopped", "loop stopped")
+                notifier.stopping(f"{end[0]}: {end[1]}")
+                notifier.close()
             self._end_recovery()
             self._make_safe()
             try:
@@ -392,14 +446,21 @@ class Runtime:
 
     # -- scheduling ----------------------------------------------------------
     def _apply_scheduling(self):
-        """Real-time settings for the loop's thread (real clock only). Returns an undo function."""
+        """Real-time settings (real clock only): the process's CPU set (loop.process_cpu_affinity), then the
+        loop thread's own CPU set and SCHED_FIFO priority. Called once the pipeline's threads run, so they
+        do not inherit the loop's settings. Returns an undo function."""
         if self.clock.simulated:
-            return lambda: None
+            return _nothing_to_undo
         lc = self.cfg.loop
         old_interval = sys.getswitchinterval()
         sys.setswitchinterval(lc.gil_switch_interval_us * 1e-6)
         undo = [lambda: sys.setswitchinterval(old_interval)]
         now = self.clock.now_ns()
+        if lc.process_cpu_affinity:
+            try:
+                undo.append(_set_process_affinity(set(lc.process_cpu_affinity)))
+            except OSError as exc:
+                self.safety.events.append(SafetyEvent(now, "warning", "scheduling", f"process_cpu_affinity: {exc}"))
         if lc.cpu_affinity:
             try:
                 old_aff = os.sched_getaffinity(0)
