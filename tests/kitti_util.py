@@ -5,6 +5,7 @@ The calibration comes from the one KITTI reader, ``drivers/stereo_calib.read_kit
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -143,6 +144,7 @@ class RepeatRun:
     keyframe_right: np.ndarray
     lateral_err: np.ndarray      # m, |x - x_true| relative to the chosen keyframe (ok fixes)
     heading_err: np.ndarray      # deg, |theta - theta_true| (ok fixes)
+    seconds: np.ndarray          # RepeatStage.process time per frame
 
 
 def teach_kitti(root: Path, cfg=None) -> KittiTeach:
@@ -197,9 +199,11 @@ def repeat_right(taught: KittiTeach, shift: int = 0) -> RepeatRun:
     from vbnav.drivers.camera import Frame
 
     stage = RepeatStage(taught.route, taught.cfg)
-    rows = []
+    rows, seconds = [], []
     for f, p in list(zip(taught.frames, taught.odom))[shift:]:
+        t0 = time.perf_counter()
         est = stage.process(Frame(f.right, f.stamp_ns, f.seq), p)
+        seconds.append(time.perf_counter() - t0)
         k = est.value.keyframe
         true_pose = p.compose(Pose2(taught.baseline, 0.0, 0.0))     # the right camera: baseline along x
         truth = taught.route.keyframes[k].odom.between(true_pose)
@@ -208,4 +212,4 @@ def repeat_right(taught: KittiTeach, shift: int = 0) -> RepeatRun:
                      abs(e.x - truth.x), abs(math.degrees(math.remainder(e.theta - truth.theta, 2 * math.pi)))))
     idx, ok, kf, right, lat, head = (np.array(c) for c in zip(*rows))
     ok = ok.astype(bool)
-    return RepeatRun(shift, idx, ok, kf, right.astype(bool), lat[ok], head[ok])
+    return RepeatRun(shift, idx, ok, kf, right.astype(bool), lat[ok], head[ok], np.array(seconds))
