@@ -101,15 +101,17 @@ class RepeatStage(VisionStage):
 
         The first fix after a switch rests on the landmarks the two keyframes share: few, and mostly
         the long-lived far ones, which fix heading but hardly the lateral offset (KITTI 06, a jump
-        over two keyframes at the start: 34 shared landmarks). So the new keyframe's landmarks are
-        pulled in at once, on this frame: by descriptors when it is short of tracks (no prediction
-        involved), then by guided KLT from the fix, each followed by a new fix of this frame. Without
-        it the frame keeps the shared-landmark fix and the new landmarks count from the next frame.
+        over two keyframes at the start: 34 shared landmarks). The new keyframe's landmarks are
+        pulled in by guided KLT from that fix; when fewer than ``reacquire_below`` of them were
+        tracked, also by descriptors first (no prediction involved), and the frame is fixed again
+        after each, so the weak shared-landmark fix is not the frame's answer. With enough shared
+        tracks (close keyframes) the fix stands and the new landmarks count from the next frame.
         """
         kf = self.kfs[self.index]
-        if np.isin(self.tracker.tracks.ids, kf.track_ids).sum() < self.cfg.reacquire_below and self._reacquire(image):
+        short = np.isin(self.tracker.tracks.ids, kf.track_ids).sum() < self.cfg.reacquire_below
+        if short and self._reacquire(image):
             est = self._relocalise(est, odom, stamp_ns)
-        if self._guided(image, est.value.pose):
+        if self._guided(image, est.value.pose) and short:
             est = self._relocalise(est, odom, stamp_ns)
         return est
 
