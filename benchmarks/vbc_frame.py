@@ -10,10 +10,15 @@ the live tracks fall below 85 % of 200, masked away from the live tracks):
    turn, straight), repeated in closed loop from a 0.3 m / 10 degree offset: the robot's case.
 2. Real: KITTI odometry 06 (../shared/data/kitti06_stereo), 1226x370 resized to 640x480
 (anisotropic; the intrinsics are scaled to match). A route is taught on the LEFT images
-with the ground-truth poses as odometry (max 200 tracks); it is then repeated on the
-RIGHT images, i.e. from a 0.537 m lateral offset, through RepeatStage.process (KLT
+with the ground-truth poses as odometry (max 200 tracks; the mount pitched 1.22 deg, the
+camera's tilt against its travel, kitti_util.mount_pitch_from_travel); it is then repeated
+on the RIGHT images, i.e. from a 0.537 m lateral offset, through RepeatStage.process (KLT
 tracking with forward-backward check, ORB re-acquisition when short, VBC pose,
 keyframe switching). The peer is ``KltPeer`` on the same frames.
+3. Real, native resolution, as tests/test_repeat_real.py holds it: the same teach and repeat
+on the replay camera's 1226x370 frames, repeated from the first frame and from 1-3 frames
+further along; per start: median / p95 lateral and heading error relative to the chosen
+keyframe, keyframe right, and ms per frame beside ``KltPeer`` on the same right images.
 Single-threaded: cv2.setNumThreads(1). Also prints the KITTI frame-to-frame accuracy.
 
     .venv/bin/python benchmarks/vbc_frame.py [--passes 4]
@@ -32,7 +37,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-from kitti_util import planar_motion, read_calib, read_poses, vbc_frame_pair_errors  # noqa: E402
+from kitti_util import (levelled_odometry, mount_pitch_from_travel, read_calib, read_poses,  # noqa: E402
+                        repeat_right, teach_kitti, vbc_frame_pair_errors)
 from vbnav.control.route import Route  # noqa: E402
 from vbnav.control.stages.repeat import RepeatStage
 from vbnav.control.stages.teach import TeachStage
@@ -90,7 +96,7 @@ def data_dir() -> Path:
     return shared() / "kitti06_stereo"
 
 
-def load(root: Path):
+def load(root: Path, mount: CameraMount):
     calib = read_calib(root / "calib.txt")
     poses = read_poses(root / "poses.txt")
     names = sorted(p.name for p in (root / "image_l").iterdir())
@@ -100,8 +106,7 @@ def load(root: Path):
                                     interpolation=cv2.INTER_AREA)
     left = [rd("image_l", n) for n in names]
     right = [rd("image_r", n) for n in names]
-    odom = [planar_motion(poses[0], T) for T in poses]
-    return cam, left, right, odom, calib.baseline
+    return cam, left, right, levelled_odometry(poses, mount), calib.baseline
 
 
 def teach(cam, images, odom, cfg, mount):
@@ -188,6 +193,28 @@ def components_at_200(passes: int):
     return t_track, t_match, t_pose
 
 
+def native_repeat(root: Path) -> None:
+    """Section 3: the test's teach-left / repeat-right at native resolution, with the peer on the same frames."""
+    taught = teach_kitti(root)
+    right = [f.right for f in taught.frames]
+    print(f"[KITTI native] {right[0].shape[1]}x{right[0].shape[0]}, mount pitch "
+          f"{math.degrees(taught.route.mount.pitch):.2f} deg, {len(taught.route.keyframes)} keyframes; repeat on the "
+          f"right images (true offset {taught.baseline:.3f} m, heading 0) starting s frames along the route")
+    for shift in (0, 1, 2, 3):
+        r = repeat_right(taught, shift)
+        klt, t_peer = KltPeer(), []
+        for img in right[shift:]:
+            t0 = time.perf_counter()
+            klt.track(img)
+            t_peer.append(time.perf_counter() - t0)
+        print(f"  s={shift}: fixes ok {r.ok.sum()}/{len(r.ok)}, |lateral error| median "
+              f"{1e3 * np.median(r.lateral_err):.1f} mm p95 {1e3 * np.percentile(r.lateral_err, 95):.1f} mm, "
+              f"|heading error| median {np.median(r.heading_err):.3f} deg p95 {np.percentile(r.heading_err, 95):.3f} "
+              f"deg, keyframe right {r.keyframe_right.sum()}/{len(r.ok)}; VBC repeat frame median "
+              f"{pct(r.seconds, 50):.1f} ms, {PEER_NAME} {pct(t_peer, 50):.1f} ms, ratio "
+              f"{pct(r.seconds, 50) / pct(t_peer, 50):.2f}")
+
+
 def pct(a, q):
     return float(np.percentile(np.asarray(a) * 1e3, q))
 
@@ -214,12 +241,12 @@ def main() -> int:
           f"median {pct(tp, 50):.2f} ms p99 {pct(tp, 99):.2f}; re-acquisition (500 ORB vs 200) median "
           f"{pct(tm, 50):.2f} ms")
     print()
-    cam, left, right, odom, baseline = load(root)
-    mount = CameraMount(height=1.65)
+    mount = CameraMount(height=1.65, pitch=mount_pitch_from_travel(read_poses(root / "poses.txt")))
+    cam, left, right, odom, baseline = load(root, mount)
     cfg = VBCConfig(max_features=200, keyframe_distance_m=2.5, min_distance_px=10, reacquire_below=60)
     route = teach(cam, left, odom, cfg, mount)
 
-    t_ours, t_peer, lat_err, n_agree, t_match, peer_tracks = [], [], [], [], [], []
+    t_ours, t_peer, lat_err, head_err, n_agree, t_match, peer_tracks = [], [], [], [], [], [], []
     for _ in range(args.passes):
         stage = RepeatStage(route, cfg)
         for i, (img, p) in enumerate(zip(right, odom)):
@@ -237,6 +264,7 @@ def main() -> int:
                 kf = route.keyframes[est.value.keyframe]
                 truth = kf.odom.between(p.compose(Pose2(baseline, 0.0, 0.0)))
                 lat_err.append(abs(est.value.pose.x - truth.x))
+                head_err.append(abs(math.degrees(math.remainder(est.value.pose.theta - truth.theta, 2 * math.pi))))
         # peer: a plain OpenCV KLT tracker on the same frames
         klt = KltPeer()
         for img in right:
@@ -258,8 +286,11 @@ def main() -> int:
           f"{np.median(peer_tracks):.0f} tracks, corners detected in {klt.detections} of {len(right)} frames "
           f"(last pass)")
     print(f"ratio VBC / OpenCV KLT tracker (median): {med_o / med_p:.2f}")
-    print(f"repeat from the right camera: median |lateral error| {1e3 * np.median(lat_err):.1f} mm "
-          f"(true offset {baseline:.3f} m), fixes ok {len(lat_err)}/{len(t_ours)}")
+    print(f"repeat from the right camera: |lateral error| median {1e3 * np.median(lat_err):.1f} mm, p95 "
+          f"{1e3 * np.percentile(lat_err, 95):.1f} mm (true offset {baseline:.3f} m), |heading error| median "
+          f"{np.median(head_err):.3f} deg p95 {np.percentile(head_err, 95):.3f} deg, fixes ok "
+          f"{len(lat_err)}/{len(t_ours)}")
+    native_repeat(root)
     e = vbc_frame_pair_errors(root)
     print(f"KITTI 06 frame-to-frame VBC with stereo heights (50 pairs, full resolution): median translation "
           f"error {100 * np.median(e[:, 0]):.2f} % of distance, median heading error {np.median(e[:, 1]):.4f} deg")

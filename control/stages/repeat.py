@@ -85,15 +85,42 @@ class RepeatStage(VisionStage):
         t = self.tracker.tracks
         index = self.index
         est = self.localise(t.ids, t.pts, odom, frame.stamp_ns)
-        # With a trusted fix, pull in the keyframe's landmarks not tracked yet: after a keyframe
-        # switch, and whenever fewer than guided_fraction of them are tracked.
+        if est.ok and self.index != index:
+            est = self._after_switch(image, est, odom, frame.stamp_ns)
+        # With a trusted fix, pull in the keyframe's landmarks not tracked yet: whenever fewer
+        # than guided_fraction of them are tracked.
         kf = self.kfs[self.index]
         tracked = int(np.isin(self.tracker.tracks.ids, kf.track_ids).sum())
-        if est.ok and (self.index != index or (tracked < self.cfg.guided_fraction * len(kf)
-                                               and self._since_guided >= self.cfg.reacquire_every)):
+        if est.ok and tracked < self.cfg.guided_fraction * len(kf) and self._since_guided >= self.cfg.reacquire_every:
             self._guided(image, est.value.pose)
         self._prune()
         return est
+
+    def _after_switch(self, image: np.ndarray, est: Estimate, odom: Pose2, stamp_ns: int) -> Estimate:
+        """This frame's fix against the keyframe just switched to, from that keyframe's own landmarks.
+
+        The first fix after a switch rests on the landmarks the two keyframes share: few, and mostly
+        the long-lived far ones, which fix heading but hardly the lateral offset (KITTI 06, a jump
+        over two keyframes at the start: 34 shared landmarks). The new keyframe's landmarks are
+        pulled in by guided KLT from that fix; when fewer than ``reacquire_below`` of them were
+        tracked, also by descriptors first (no prediction involved), and the frame is fixed again
+        after each, so the weak shared-landmark fix is not the frame's answer. With enough shared
+        tracks (close keyframes) the fix stands and the new landmarks count from the next frame.
+        """
+        kf = self.kfs[self.index]
+        short = np.isin(self.tracker.tracks.ids, kf.track_ids).sum() < self.cfg.reacquire_below
+        if short and self._reacquire(image):
+            est = self._relocalise(est, odom, stamp_ns)
+        if self._guided(image, est.value.pose) and short:
+            est = self._relocalise(est, odom, stamp_ns)
+        return est
+
+    def _relocalise(self, est: Estimate, odom: Pose2, stamp_ns: int) -> Estimate:
+        """Localise the current frame again after adding matches, starting from its fix ``est``;
+        ``est`` if that fails (the state then holds ``est``'s pose again: localise fell back to it)."""
+        t = self.tracker.tracks
+        again = self.localise(t.ids, t.pts, odom, stamp_ns)
+        return again if again.ok else est
 
     def _guided(self, image: np.ndarray, pose: Pose2) -> int:
         """KLT from the keyframe image to this one, started where the fix predicts each landmark.
