@@ -1,0 +1,229 @@
+"""A piecewise ground for real streets and floors: near/far bands hinged at their edges.
+
+One plane (vision/ground_plane.py) is the whole floor only when the floor is flat. A street
+has kerbs and raised pavements beside the lane, a crowned cross-section (camber) and grade
+changes (ramps); a single RANSAC plane then tilts to catch pavement and road together, and
+everything it does not fit turns into obstacles or negative obstacles. This model:
+
+1. **Near band, mounting prior.** The band nearest the camera (prior-plane disparity from
+   its largest value in view down to 1/``band_ratio`` of it) is fitted with three degrees of
+   freedom, only on samples inside the corridor ahead (|lateral| <= ``corridor_half_width``
+   on the prior's floor), and the fit must agree with the mounting within the bounds of
+   PlaneFitParams (camera height in metres, pitch and roll in degrees). A fit beyond them
+   is rejected (best hypothesis inside them, else the prior itself).
+2. **Farther bands, hinged.** Band k covers disparities [b_k / band_ratio, b_k) of the band
+   before it, b_k = b_{k-1} / band_ratio (equal depth ratios: each band is the same share of
+   its distance). Its plane contains the line where the previous band's plane reaches
+   disparity b_k (the ground is continuous: a kerb is a step, not ground), so it has one
+   degree of freedom: the grade change theta about that line, bounded by
+   atan(``max_grade_change``). In (u, v, D) the pencil of planes through that line is
+   D = (1 + t) P_prev(u, v) - t b_k; theta is scored on a grid and refined in t by least
+   squares on the inliers. A band with too little ground, or whose inliers do not span
+   ``min_coverage`` of its depth (a step's lower floor meets a tilted plane along a line
+   only), continues the previous band's plane (t = 0).
+3. **Camber beyond the corridor.** Outside the fitted corridor the ground may bend away
+   laterally by ``cross_slope_allowance`` (rise over run) per metre: the obstacle and negative
+   thresholds grow by allowance * (|lateral| - corridor_half_width) there
+   (``GroundModel.tolerance``).
+
+docs/obstacles.md derives the defaults (bounds, band ratio, grade and cross-slope allowances).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from vbnav.vision.ground_plane import (DisparityPlane, FloorGeometry, PlaneFit, PlaneFitParams,
+                                       fit_ground_plane, pixel_grid)
+from vbnav.vision.stereo import StereoRig
+
+
+@dataclass(frozen=True)
+class GroundModelParams:
+    band_ratio: float = math.sqrt(2.0)     # far / near depth of a band
+    max_bands: int = 10
+    min_band_disparity: float = 1.0        # px; no band starts beyond this disparity
+    corridor_half_width: float = 1.0       # m either side of the camera's line ahead
+    max_grade_change: float = 0.08         # rise over run, between adjacent bands (1:12 ramps)
+    cross_slope_allowance: float = 0.06    # rise over run per metre beyond the corridor (camber)
+    grade_steps: int = 17                  # grade-change candidates scored per band
+    min_band_inliers: int = 30
+    min_coverage: float = 0.4              # inliers must span this share of the band's disparities
+    score_points: int = 1500
+    min_height_fraction: float = 0.25      # camera height above a band's plane vs the band before
+
+
+@dataclass(frozen=True)
+class GroundBand:
+    plane: DisparityPlane
+    floor: FloorGeometry
+    near_disparity: float       # the band holds pixels where the previous band's plane is below this
+    grade_change: float         # rad about the hinge, positive uphill (0 for the near band)
+    inliers: int
+    pool: int
+    fitted: bool
+    reason: str = ""
+
+
+@dataclass
+class GroundModel:
+    bands: list[GroundBand]
+    near: PlaneFit                          # the near band's fit (camera height, pitch, roll)
+    params: GroundModelParams = field(default_factory=GroundModelParams)
+
+    def images(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per pixel: the ground's disparity D_g and the camera height above that band's plane
+        (float32 HxW both)."""
+        Dg = self.bands[0].plane.image(height, width)
+        H = np.full((height, width), np.float32(self.bands[0].floor.height))
+        for b in self.bands[1:]:
+            # Dg still holds the previous band's plane here: pixels of nearer bands are >= b
+            m = Dg < np.float32(b.near_disparity)
+            Dg = np.where(m, b.plane.image(height, width), Dg)
+            H[m] = b.floor.height
+        return Dg, H
+
+    def tolerance(self, Dg: np.ndarray, rig: StereoRig) -> np.ndarray:
+        """Extra height allowance per pixel, m: cross_slope_allowance per metre beyond the corridor."""
+        lat = lateral_on_floor(Dg, rig, self.near.floor)
+        excess = np.maximum(np.abs(lat) - np.float32(self.params.corridor_half_width), 0)
+        return np.where(Dg > 0, excess * np.float32(self.params.cross_slope_allowance), 0).astype(np.float32)
+
+
+def lateral_on_floor(Dg: np.ndarray, rig: StereoRig, floor: FloorGeometry, u=None, v=None) -> np.ndarray:
+    """Lateral offset (m, right positive) of where each pixel's ray meets a floor of disparity Dg
+    (pixels (u, v); default the whole image)."""
+    if u is None:
+        u, v = pixel_grid(*Dg.shape)
+    _, _, l = floor.axes()
+    lr = (u - np.float32(rig.cx)) * np.float32(l[0] / rig.fx) + (v - np.float32(rig.cy)) * np.float32(l[1] / rig.fy) \
+        + np.float32(l[2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(Dg > 0, np.float32(rig.fb) / Dg * lr, np.float32(np.inf)).astype(np.float32)
+
+
+def _w(rho, rig: StereoRig) -> np.ndarray:
+    r1, r2, r3 = rho
+    return np.array([r1 * rig.fx, r2 * rig.fy, r3 + r1 * rig.cx + r2 * rig.cy])
+
+
+def _pencil_t(rho, b: float, theta: float, rig: StereoRig) -> float:
+    """t of the plane D = (1 + t) P - t b through the hinge line whose floor normal is the
+    previous one turned by theta (rad, positive uphill). In w = (fx B / H) g terms the pencil is
+    w_t = (1 + t) w - t b e_z, and turning g about the hinge axis (g x e_z) keeps it in span(w, e_z)."""
+    w = _w(rho, rig)
+    g = w / np.linalg.norm(w)
+    f = np.array([0.0, 0.0, 1.0]) - g[2] * g
+    f /= np.linalg.norm(f)
+    n = math.cos(theta) * g - math.sin(theta) * f       # uphill: the normal tips backwards
+    ez = np.array([0.0, 0.0, 1.0])
+    M = np.column_stack([w - b * ez, -n])
+    (t, _), *_ = np.linalg.lstsq(M, -w, rcond=None)
+    return float(t)
+
+
+def _grade_of(rho_prev, rho, rig: StereoRig) -> float:
+    """Signed angle between two floor normals, positive when the second rises ahead."""
+    w0, w1 = _w(rho_prev, rig), _w(rho, rig)
+    g0, g1 = w0 / np.linalg.norm(w0), w1 / np.linalg.norm(w1)
+    f = np.array([0.0, 0.0, 1.0]) - g0[2] * g0
+    ang = math.acos(float(np.clip(g0 @ g1, -1.0, 1.0)))
+    return ang if g1 @ f < 0 else -ang
+
+
+def _samples(disparity: np.ndarray, step: int):
+    s = step
+    h, w = disparity.shape
+    vs = np.arange(s // 2, h, s, dtype=np.float32)
+    us = np.arange(s // 2, w, s, dtype=np.float32)
+    V, U = np.meshgrid(vs, us, indexing="ij")
+    return U, V, disparity[s // 2::s, s // 2::s]
+
+
+def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig, fit: PlaneFitParams,
+               p: GroundModelParams, rng) -> GroundBand:
+    P = prev.plane.predict(U, V)
+    with np.errstate(invalid="ignore"):
+        lat = lateral_on_floor(P, rig, prev.floor, U, V)
+        pool = (d > 0) & (P < b) & (P >= b_far) & (np.abs(lat) <= p.corridor_half_width)
+    Pp, dp = P[pool].astype(np.float64), d[pool].astype(np.float64)
+    n = len(dp)
+
+    def same(reason: str, inl: int = 0) -> GroundBand:
+        return GroundBand(prev.plane, prev.floor, b, 0.0, inl, n, False, reason)
+
+    if n < p.min_band_inliers:
+        return same(f"{n} samples in the corridor (need {p.min_band_inliers}): continues the band before")
+    if n > p.score_points:
+        idx = rng.choice(n, p.score_points, replace=False)
+        Pp, dp = Pp[idx], dp[idx]
+    theta_max = math.atan(p.max_grade_change)
+    thetas = np.linspace(-theta_max, theta_max, p.grade_steps)
+    r = np.asarray(prev.plane.rho)
+    ts = np.array([_pencil_t(r, b, float(th), rig) for th in thetas])
+    ez = np.array([0.0, 0.0, 1.0])
+    rhos = (1 + ts)[:, None] * r[None] - (ts * b)[:, None] * ez[None]
+    # the thresholds need the camera above the band's plane (a far uphill can pass above it)
+    wn = np.linalg.norm(np.array([_w(x, rig) for x in rhos]), axis=1)
+    keep = (rig.fb / wn >= p.min_height_fraction * prev.floor.height) & (1 + ts > 0)
+    thetas, ts, rhos = thetas[keep], ts[keep], rhos[keep]
+    Us, Vs = U[pool], V[pool]
+    if n > p.score_points:
+        Us, Vs = Us[idx], Vs[idx]
+    pred = rhos[:, 0:1] * Us[None] + rhos[:, 1:2] * Vs[None] + rhos[:, 2:3]
+    H = prev.floor.height
+    band = np.maximum(fit.inlier_min_px, pred * (fit.inlier_height / H))
+    scores = (np.abs(dp[None] - pred) < band).sum(axis=1)
+    # ties go to the smallest grade change (the ground continues unless the data says otherwise)
+    best = max(range(len(thetas)), key=lambda i: (scores[i], -abs(thetas[i])))
+    t = float(ts[best])
+    for _ in range(2):                     # refine t in D = P + t (P - b) on the inliers
+        pr = Pp + t * (Pp - b)
+        inl = np.abs(dp - pr) < np.maximum(fit.inlier_min_px, pr * (fit.inlier_height / H))
+        if inl.sum() < p.min_band_inliers:
+            return same(f"{int(inl.sum())} ground samples (need {p.min_band_inliers}): continues the band before")
+        x = Pp[inl] - b
+        t = float(((dp[inl] - Pp[inl]) * x).sum() / (x * x).sum())
+    pos = (b - Pp[inl]) / max(b - b_far, 1e-9)                  # 0 at the hinge, 1 at the far edge
+    span = float(np.quantile(pos, 0.9) - np.quantile(pos, 0.1))
+    if span < p.min_coverage:
+        return same(f"ground inliers span {span:.2f} of the band (need {p.min_coverage}): continues the band before",
+                    int(inl.sum()))
+    plane = DisparityPlane(tuple(float(x) for x in (1 + t) * r - t * b * np.array([0.0, 0.0, 1.0])))
+    grade = _grade_of(r, plane.rho, rig)
+    if abs(grade) > theta_max + 1e-9 or plane.floor(rig).height < p.min_height_fraction * prev.floor.height:
+        return same(f"grade change {math.degrees(grade):.1f} deg beyond the bound "
+                    f"{math.degrees(theta_max):.1f} deg: continues the band before", int(inl.sum()))
+    return GroundBand(plane, plane.floor(rig), b, grade, int(inl.sum()), n, True)
+
+
+def fit_ground_model(disparity: np.ndarray, rig: StereoRig, prior: DisparityPlane,
+                     fit: PlaneFitParams = PlaneFitParams(),
+                     params: GroundModelParams = GroundModelParams()) -> GroundModel:
+    """The near band fitted under the mounting prior, then hinged bands out to the horizon."""
+    p = params
+    h, w = disparity.shape
+    if (h, w) != (rig.height, rig.width):
+        raise ValueError(f"disparity is {w}x{h} but the stereo rig is {rig.width}x{rig.height}")
+    Dp = prior.image(h, w)
+    d_max = float(Dp[-1].max())                       # the nearest floor in view (bottom row)
+    if not d_max > 0:
+        raise ValueError("the mounting prior puts no floor in view (the bottom row is above its horizon)")
+    b1 = d_max / p.band_ratio
+    with np.errstate(invalid="ignore"):
+        near_region = (Dp >= b1) & (np.abs(lateral_on_floor(Dp, rig, prior.floor(rig))) <= p.corridor_half_width)
+    near = fit_ground_plane(disparity, rig, prior, fit, region=near_region)
+    bands = [GroundBand(near.plane, near.floor, math.inf, 0.0, near.inliers, near.pool, near.ok, near.reason)]
+    U, V, d = _samples(disparity, fit.step)
+    rng = np.random.default_rng(fit.seed)
+    b = float(near.plane.image(h, w)[-1].max()) / p.band_ratio
+    while len(bands) < p.max_bands and b > p.min_band_disparity:
+        b_far = b / p.band_ratio if len(bands) < p.max_bands - 1 and b / p.band_ratio > p.min_band_disparity else 0.0
+        bands.append(_fit_hinge(U, V, d, bands[-1], b, b_far, rig, fit, p, rng))
+        b = b_far
+        if b_far == 0.0:
+            break
+    return GroundModel(bands, near, p)
