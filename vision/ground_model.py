@@ -18,9 +18,10 @@ everything it does not fit turns into obstacles or negative obstacles. This mode
    degree of freedom: the grade change theta about that line, bounded by
    atan(``max_grade_change``). In (u, v, D) the pencil of planes through that line is
    D = (1 + t) P_prev(u, v) - t b_k; theta is scored on a grid and refined in t by least
-   squares on the inliers. A band with too little ground, or whose inliers do not span
-   ``min_coverage`` of its depth (a step's lower floor meets a tilted plane along a line
-   only), continues the previous band's plane (t = 0).
+   squares on the inliers. A band with too little ground, or with a stretch (one of
+   ``continuity_parts``) where under ``min_continuity`` of the samples lie on the plane (a
+   plane folded onto the lower floor beyond a step meets it along a line only), continues the
+   previous band's plane (t = 0).
 3. **Camber beyond the corridor.** Outside the fitted corridor the ground may bend away
    laterally by ``cross_slope_allowance`` (rise over run) per metre: the obstacle and negative
    thresholds grow by allowance * (|lateral| - corridor_half_width) there
@@ -51,7 +52,8 @@ class GroundModelParams:
     cross_slope_allowance: float = 0.06    # rise over run per metre beyond the corridor (camber)
     grade_steps: int = 17                  # grade-change candidates scored per band
     min_band_inliers: int = 30
-    min_coverage: float = 0.4              # inliers must span this share of the band's disparities
+    continuity_parts: int = 4              # the band is checked in this many stretches...
+    min_continuity: float = 0.5            # ...each with at least this share of its samples on the plane
     score_points: int = 1500
     min_height_fraction: float = 0.25      # camera height above a band's plane vs the band before
 
@@ -73,17 +75,36 @@ class GroundModel:
     bands: list[GroundBand]
     near: PlaneFit                          # the near band's fit (camera height, pitch, roll)
     params: GroundModelParams = field(default_factory=GroundModelParams)
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def images(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         """Per pixel: the ground's disparity D_g and the camera height above that band's plane
-        (float32 HxW both)."""
-        Dg = self.bands[0].plane.image(height, width)
+        (float32 HxW both, cached: read-only)."""
+        key = (height, width)
+        if key not in self._cache:
+            self._cache[key] = self._images(height, width)
+        return self._cache[key]
+
+    def _images(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        Dg = self.bands[0].plane.image(height, width).copy()
         H = np.full((height, width), np.float32(self.bands[0].floor.height))
+        prev = self.bands[0].plane
         for b in self.bands[1:]:
+            # Rows below where the previous plane reaches b (at either image edge) are nearer bands:
+            # D grows downward on a floor (rho_2 > 0), so only the rows above can change.
+            r1, r2, r3 = prev.rho
+            v_end = height if r2 <= 0 else int(min(height, max(0.0, math.ceil(max(
+                (b.near_disparity - r3 - r1 * u) / r2 for u in (0.0, width - 1.0))) + 1)))
+            sub = Dg[:v_end]
             # Dg still holds the previous band's plane here: pixels of nearer bands are >= b
-            m = Dg < np.float32(b.near_disparity)
-            Dg = np.where(m, b.plane.image(height, width), Dg)
-            H[m] = b.floor.height
+            m = sub < np.float32(b.near_disparity)
+            u, v = pixel_grid(height, width)
+            q1, q2, q3 = (np.float32(x) for x in b.plane.rho)
+            sub[m] = (u[:v_end] * q1 + v[:v_end] * q2 + q3)[m]
+            H[:v_end][m] = b.floor.height
+            prev = b.plane
+        Dg.flags.writeable = False
+        H.flags.writeable = False
         return Dg, H
 
     def tolerance(self, Dg: np.ndarray, rig: StereoRig) -> np.ndarray:
@@ -187,11 +208,20 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
             return same(f"{int(inl.sum())} ground samples (need {p.min_band_inliers}): continues the band before")
         x = Pp[inl] - b
         t = float(((dp[inl] - Pp[inl]) * x).sum() / (x * x).sum())
-    pos = (b - Pp[inl]) / max(b - b_far, 1e-9)                  # 0 at the hinge, 1 at the far edge
-    span = float(np.quantile(pos, 0.9) - np.quantile(pos, 0.1))
-    if span < p.min_coverage:
-        return same(f"ground inliers span {span:.2f} of the band (need {p.min_coverage}): continues the band before",
-                    int(inl.sum()))
+    # Continuity along the band: a ramp fits every part of it, a plane folded onto the lower floor
+    # beyond a step (or over an obstacle ahead) misses a stretch. Each quarter of the band that
+    # holds samples must have most of them within twice the inlier band.
+    pos = np.clip((b - Pp) / max(b - b_far, 1e-9), 0.0, 0.999)     # 0 at the hinge, 1 at the far edge
+    pr = Pp + t * (Pp - b)
+    near = np.abs(dp - pr) < 2.0 * np.maximum(fit.inlier_min_px, pr * (fit.inlier_height / H))
+    quarter = (pos * p.continuity_parts).astype(int)
+    counts = np.bincount(quarter, minlength=p.continuity_parts)
+    hits = np.bincount(quarter, weights=near, minlength=p.continuity_parts)
+    filled = counts >= 5
+    worst = float((hits[filled] / counts[filled]).min()) if filled.any() else 0.0
+    if worst < p.min_continuity:
+        return same(f"a stretch of the band fits only {worst:.0%} (need {p.min_continuity:.0%}): "
+                    "continues the band before", int(inl.sum()))
     plane = DisparityPlane(tuple(float(x) for x in (1 + t) * r - t * b * np.array([0.0, 0.0, 1.0])))
     grade = _grade_of(r, plane.rho, rig)
     if abs(grade) > theta_max + 1e-9 or plane.floor(rig).height < p.min_height_fraction * prev.floor.height:
