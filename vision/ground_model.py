@@ -6,7 +6,7 @@ changes (ramps); a single RANSAC plane then tilts to catch pavement and road tog
 everything it does not fit turns into obstacles or negative obstacles. This model:
 
 1. **Near band, mounting prior.** The band nearest the camera (prior-plane disparity from
-   its largest value in view down to 1/``band_ratio`` of it) is fitted with three degrees of
+   its largest value in view down to 1/``near_ratio`` of it) is fitted with three degrees of
    freedom, only on samples inside the corridor ahead (|lateral| <= ``corridor_half_width``
    on the prior's floor), and the fit must agree with the mounting within the bounds of
    PlaneFitParams (camera height in metres, pitch and roll in degrees). A fit beyond them
@@ -45,6 +45,7 @@ from vbnav.vision.stereo import StereoRig
 @dataclass(frozen=True)
 class GroundModelParams:
     band_ratio: float = math.sqrt(2.0)     # far / near depth of a band
+    near_ratio: float = math.sqrt(2.0)     # far / near depth of the near band
     max_bands: int = 10
     min_band_disparity: float = 1.0        # px; no band starts beyond this disparity
     corridor_half_width: float = 1.0       # m either side of the camera's line ahead
@@ -54,6 +55,7 @@ class GroundModelParams:
     min_band_inliers: int = 30
     continuity_parts: int = 4              # the band is checked in this many stretches...
     min_continuity: float = 0.5            # ...each with at least this share of its samples on the plane
+    min_bend_gain: float = 1.1             # a bend must hold this many times the inliers of no bend
     score_points: int = 1500
     min_height_fraction: float = 0.25      # camera height above a band's plane vs the band before
 
@@ -181,6 +183,20 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     if n > p.score_points:
         idx = rng.choice(n, p.score_points, replace=False)
         Pp, dp = Pp[idx], dp[idx]
+    H = prev.floor.height
+    # Continuity along the band: a ramp fits every part of it, a plane folded onto the lower floor
+    # beyond a step (or over an obstacle ahead) misses a stretch. Each of continuity_parts
+    # stretches that holds samples must have most of them within twice the inlier band.
+    stretch = (np.clip((b - Pp) / max(b - b_far, 1e-9), 0.0, 0.999) * p.continuity_parts).astype(int)
+    counts = np.bincount(stretch, minlength=p.continuity_parts)
+    filled = counts >= 5
+
+    def worst_stretch(t: float) -> float:
+        pr = Pp + t * (Pp - b)
+        near = np.abs(dp - pr) < 2.0 * np.maximum(fit.inlier_min_px, pr * (fit.inlier_height / H))
+        hits = np.bincount(stretch, weights=near, minlength=p.continuity_parts)
+        return float((hits[filled] / counts[filled]).min()) if filled.any() else 0.0
+
     theta_max = math.atan(p.max_grade_change)
     thetas = np.linspace(-theta_max, theta_max, p.grade_steps)
     r = np.asarray(prev.plane.rho)
@@ -195,11 +211,15 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     if n > p.score_points:
         Us, Vs = Us[idx], Vs[idx]
     pred = rhos[:, 0:1] * Us[None] + rhos[:, 1:2] * Vs[None] + rhos[:, 2:3]
-    H = prev.floor.height
     band = np.maximum(fit.inlier_min_px, pred * (fit.inlier_height / H))
     scores = (np.abs(dp[None] - pred) < band).sum(axis=1)
     # ties go to the smallest grade change (the ground continues unless the data says otherwise)
     best = max(range(len(thetas)), key=lambda i: (scores[i], -abs(thetas[i])))
+    # The data must ask for a bend: on a flat floor the noise moves the best grade about while
+    # its inlier count stays within a few per cent of the band before, continued.
+    on = int((np.abs(dp - Pp) < np.maximum(fit.inlier_min_px, Pp * (fit.inlier_height / H))).sum())
+    if scores[best] < p.min_bend_gain * on and worst_stretch(0.0) >= p.min_continuity:
+        return GroundBand(prev.plane, prev.floor, b, 0.0, on, len(dp), True, "the band before, continued, fits")
     t = float(ts[best])
     for _ in range(2):                     # refine t in D = P + t (P - b) on the inliers
         pr = Pp + t * (Pp - b)
@@ -208,17 +228,7 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
             return same(f"{int(inl.sum())} ground samples (need {p.min_band_inliers}): continues the band before")
         x = Pp[inl] - b
         t = float(((dp[inl] - Pp[inl]) * x).sum() / (x * x).sum())
-    # Continuity along the band: a ramp fits every part of it, a plane folded onto the lower floor
-    # beyond a step (or over an obstacle ahead) misses a stretch. Each quarter of the band that
-    # holds samples must have most of them within twice the inlier band.
-    pos = np.clip((b - Pp) / max(b - b_far, 1e-9), 0.0, 0.999)     # 0 at the hinge, 1 at the far edge
-    pr = Pp + t * (Pp - b)
-    near = np.abs(dp - pr) < 2.0 * np.maximum(fit.inlier_min_px, pr * (fit.inlier_height / H))
-    quarter = (pos * p.continuity_parts).astype(int)
-    counts = np.bincount(quarter, minlength=p.continuity_parts)
-    hits = np.bincount(quarter, weights=near, minlength=p.continuity_parts)
-    filled = counts >= 5
-    worst = float((hits[filled] / counts[filled]).min()) if filled.any() else 0.0
+    worst = worst_stretch(t)
     if worst < p.min_continuity:
         return same(f"a stretch of the band fits only {worst:.0%} (need {p.min_continuity:.0%}): "
                     "continues the band before", int(inl.sum()))
@@ -242,14 +252,14 @@ def fit_ground_model(disparity: np.ndarray, rig: StereoRig, prior: DisparityPlan
     d_max = float(Dp[-1].max())                       # the nearest floor in view (bottom row)
     if not d_max > 0:
         raise ValueError("the mounting prior puts no floor in view (the bottom row is above its horizon)")
-    b1 = d_max / p.band_ratio
+    b1 = d_max / p.near_ratio
     with np.errstate(invalid="ignore"):
         near_region = (Dp >= b1) & (np.abs(lateral_on_floor(Dp, rig, prior.floor(rig))) <= p.corridor_half_width)
     near = fit_ground_plane(disparity, rig, prior, fit, region=near_region)
     bands = [GroundBand(near.plane, near.floor, math.inf, 0.0, near.inliers, near.pool, near.ok, near.reason)]
     U, V, d = _samples(disparity, fit.step)
     rng = np.random.default_rng(fit.seed)
-    b = float(near.plane.image(h, w)[-1].max()) / p.band_ratio
+    b = float(near.plane.image(h, w)[-1].max()) / p.near_ratio
     while len(bands) < p.max_bands and b > p.min_band_disparity:
         b_far = b / p.band_ratio if len(bands) < p.max_bands - 1 and b / p.band_ratio > p.min_band_disparity else 0.0
         bands.append(_fit_hinge(U, V, d, bands[-1], b, b_far, rig, fit, p, rng))
