@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from vbnav.drivers.stereo_calib import load_stereo_calibration
-from vbnav.vision.ground_model import GroundModelParams
+from vbnav.vision.ground_model import GroundModelParams, corridor_mask
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles
 from vbnav.vision.stereo import SgbmParams, sgbm_disparity
@@ -39,17 +39,9 @@ SGBM_HALF = SgbmParams(num_disparities=64, block_size=5)     # 64 px: down to 3 
 CARS = {0: (725, 180, 835, 240), 25: (820, 195, 1110, 330)}  # full-resolution boxes, x0 y0 x1 y1
 
 
-def road_region(rig, half_width=1.25, near=7.0, far=30.0) -> np.ndarray:
+def road_region(rig) -> np.ndarray:
     """The corridor on the prior's road plane, as a pixel mask (module docstring)."""
-    centre = rig.baseline / 2.0
-    pts = []
-    for z, sides in ((near, (-1, 1)), (far, (1, -1))):
-        for side in sides:
-            x = centre + side * half_width
-            pts.append((rig.cx + rig.fx * x / z, rig.cy + rig.fy * H / z))
-    mask = np.zeros((rig.height, rig.width), np.uint8)
-    cv2.fillPoly(mask, [np.round(np.array(pts)).astype(np.int32)], 1)
-    return mask.astype(bool)
+    return corridor_mask(rig, H, rig.baseline / 2.0, 1.25, 7.0, 30.0)
 
 
 @pytest.fixture(scope="module")

@@ -35,6 +35,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
+import cv2
 import numpy as np
 
 from vbnav.vision.ground_plane import (DisparityPlane, FloorGeometry, PlaneFit, PlaneFitParams,
@@ -267,3 +268,18 @@ def fit_ground_model(disparity: np.ndarray, rig: StereoRig, prior: DisparityPlan
         if b_far == 0.0:
             break
     return GroundModel(bands, near, p)
+
+
+def corridor_mask(rig: StereoRig, height: float, centre: float, half_width: float, near: float,
+                  far: float) -> np.ndarray:
+    """Pixels of a level floor ``height`` m below a level camera that lie within ``half_width`` m of
+    the line ``centre`` m to its right, from ``near`` to ``far`` m ahead (bool HxW): a region fixed
+    by the geometry alone, for judging the ground ahead the same way on every frame."""
+    pts = []
+    for z, sides in ((near, (-1, 1)), (far, (1, -1))):
+        for side in sides:
+            x = centre + side * half_width
+            pts.append((rig.cx + rig.fx * x / z, rig.cy + rig.fy * height / z))
+    mask = np.zeros((rig.height, rig.width), np.uint8)
+    cv2.fillPoly(mask, [np.round(np.array(pts)).astype(np.int32)], 1)
+    return mask.astype(bool)
