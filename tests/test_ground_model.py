@@ -91,6 +91,8 @@ def test_ramp_is_ground(rng, start, grade):
     assert _share(s.labels, road, PixelClass.GROUND) >= 0.97
     assert _share(s.labels, road, PixelClass.NEGATIVE) <= 0.01
     assert _share(s.labels, road, PixelClass.OBSTACLE) <= 0.01
+    bends = [b.grade_change for b in s.ground.bands[1:] if b.grade_change != 0.0]
+    assert bends and math.copysign(1.0, bends[0]) == math.copysign(1.0, grade)    # the first bend's sense
 
 
 def test_box_on_the_road_is_still_an_obstacle(rng):
@@ -118,3 +120,20 @@ def test_fit_outside_the_mounting_bounds_is_rejected(rng):
     fl = m.near.floor
     assert abs(math.degrees(fl.roll) - 4.0) <= 2.0 + 1e-6      # never beyond the bound
     assert not m.near.ok or abs(math.degrees(fl.roll) - 4.0) <= 2.0
+
+
+def test_hinge_grades_round_trip():
+    """The pencil D = (1 + t) P - t b holds the planes through the hinge line; t for a grade change
+    theta gives back theta (positive: the ground rises ahead), and the line stays put."""
+    from vbnav.vision.ground_model import _grade_of, _pencil_t
+    plane = expected_plane(RIG, H, math.radians(0.6), math.radians(0.3))
+    r, b = np.asarray(plane.rho), 12.0
+    thetas = np.radians([-4.5, -1.0, 0.0, 2.0, 4.5])
+    for t, th in zip(_pencil_t(r, b, thetas, RIG), thetas):
+        rho = (1 + t) * r - t * b * np.array([0.0, 0.0, 1.0])
+        assert math.degrees(_grade_of(r, rho, RIG)) == pytest.approx(math.degrees(th), abs=1e-6)
+        u = np.array([0.0, 300.0, 612.0])
+        v = (b - r[0] * u - r[2]) / r[1]              # on the hinge line: the old plane reads b
+        np.testing.assert_allclose(rho[0] * u + rho[1] * v + rho[2], b, rtol=1e-9)
+        if th > 0:                                     # uphill: farther ground has more disparity
+            assert rho[1] * 10.0 + rho[2] > r[1] * 10.0 + r[2]

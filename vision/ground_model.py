@@ -134,19 +134,21 @@ def _w(rho, rig: StereoRig) -> np.ndarray:
     return np.array([r1 * rig.fx, r2 * rig.fy, r3 + r1 * rig.cx + r2 * rig.cy])
 
 
-def _pencil_t(rho, b: float, theta: float, rig: StereoRig) -> float:
-    """t of the plane D = (1 + t) P - t b through the hinge line whose floor normal is the
-    previous one turned by theta (rad, positive uphill). In w = (fx B / H) g terms the pencil is
-    w_t = (1 + t) w - t b e_z, and turning g about the hinge axis (g x e_z) keeps it in span(w, e_z)."""
+def _pencil_t(rho, b: float, thetas: np.ndarray, rig: StereoRig) -> np.ndarray:
+    """t of the planes D = (1 + t) P - t b through the hinge line whose floor normals are the
+    previous one turned by thetas (rad, positive uphill). In w = (fx B / H) g terms the pencil is
+    w_t = (1 + t) w - t b e_z, and turning g about the hinge axis (g x e_z) keeps it in span(w, e_z):
+    solve (w - b e_z) t - lambda n = -w for (t, lambda), per theta (normal equations, 2x2)."""
     w = _w(rho, rig)
     g = w / np.linalg.norm(w)
     f = np.array([0.0, 0.0, 1.0]) - g[2] * g
     f /= np.linalg.norm(f)
-    n = math.cos(theta) * g - math.sin(theta) * f       # uphill: the normal tips backwards
-    ez = np.array([0.0, 0.0, 1.0])
-    M = np.column_stack([w - b * ez, -n])
-    (t, _), *_ = np.linalg.lstsq(M, -w, rcond=None)
-    return float(t)
+    # uphill: the floor's up normal tips backwards, so its down vector g tips forwards
+    n = np.cos(thetas)[:, None] * g[None] + np.sin(thetas)[:, None] * f[None]
+    a = w - b * np.array([0.0, 0.0, 1.0])
+    an, nn, aw, nw = n @ a, (n * n).sum(axis=1), a @ w, n @ w
+    det = (a @ a) * nn - an * an
+    return (-aw * nn + an * nw) / det
 
 
 def _grade_of(rho_prev, rho, rig: StereoRig) -> float:
@@ -155,7 +157,7 @@ def _grade_of(rho_prev, rho, rig: StereoRig) -> float:
     g0, g1 = w0 / np.linalg.norm(w0), w1 / np.linalg.norm(w1)
     f = np.array([0.0, 0.0, 1.0]) - g0[2] * g0
     ang = math.acos(float(np.clip(g0 @ g1, -1.0, 1.0)))
-    return ang if g1 @ f < 0 else -ang
+    return ang if g1 @ f > 0 else -ang      # the down vector tips forwards on an uphill
 
 
 def _samples(disparity: np.ndarray, step: int):
@@ -201,7 +203,7 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     theta_max = math.atan(p.max_grade_change)
     thetas = np.linspace(-theta_max, theta_max, p.grade_steps)
     r = np.asarray(prev.plane.rho)
-    ts = np.array([_pencil_t(r, b, float(th), rig) for th in thetas])
+    ts = _pencil_t(r, b, thetas, rig)
     ez = np.array([0.0, 0.0, 1.0])
     rhos = (1 + ts)[:, None] * r[None] - (ts * b)[:, None] * ez[None]
     # the thresholds need the camera above the band's plane (a far uphill can pass above it)
@@ -249,18 +251,21 @@ def fit_ground_model(disparity: np.ndarray, rig: StereoRig, prior: DisparityPlan
     h, w = disparity.shape
     if (h, w) != (rig.height, rig.width):
         raise ValueError(f"disparity is {w}x{h} but the stereo rig is {rig.width}x{rig.height}")
-    Dp = prior.image(h, w)
-    d_max = float(Dp[-1].max())                       # the nearest floor in view (bottom row)
+    d_max = float(max(prior.predict(0.0, h - 1.0), prior.predict(w - 1.0, h - 1.0)))   # nearest floor in view
     if not d_max > 0:
         raise ValueError("the mounting prior puts no floor in view (the bottom row is above its horizon)")
     b1 = d_max / p.near_ratio
-    with np.errstate(invalid="ignore"):
-        near_region = (Dp >= b1) & (np.abs(lateral_on_floor(Dp, rig, prior.floor(rig))) <= p.corridor_half_width)
+    U, V, d = _samples(disparity, fit.step)
+    Dps = prior.predict(U, V)
+    with np.errstate(invalid="ignore"):      # only the samples the fit reads
+        near_samples = (Dps >= b1) & (np.abs(lateral_on_floor(Dps, rig, prior.floor(rig), U, V))
+                                      <= p.corridor_half_width)
+    near_region = np.zeros((h, w), bool)
+    near_region[fit.step // 2::fit.step, fit.step // 2::fit.step] = near_samples
     near = fit_ground_plane(disparity, rig, prior, fit, region=near_region)
     bands = [GroundBand(near.plane, near.floor, math.inf, 0.0, near.inliers, near.pool, near.ok, near.reason)]
-    U, V, d = _samples(disparity, fit.step)
     rng = np.random.default_rng(fit.seed)
-    b = float(near.plane.image(h, w)[-1].max()) / p.near_ratio
+    b = float(max(near.plane.predict(0.0, h - 1.0), near.plane.predict(w - 1.0, h - 1.0))) / p.near_ratio
     while len(bands) < p.max_bands and b > p.min_band_disparity:
         b_far = b / p.band_ratio if len(bands) < p.max_bands - 1 and b / p.band_ratio > p.min_band_disparity else 0.0
         bands.append(_fit_hinge(U, V, d, bands[-1], b, b_far, rig, fit, p, rng))
