@@ -21,7 +21,10 @@ everything it does not fit turns into obstacles or negative obstacles. This mode
    squares on the inliers. A band with too little ground, or with a stretch (one of
    ``continuity_parts``) where under ``min_continuity`` of the samples lie on the plane (a
    plane folded onto the lower floor beyond a step meets it along a line only), continues the
-   previous band's plane (t = 0).
+   previous band's plane (t = 0); so does a band whose best bend gains under ``min_bend_gain``
+   times the inliers of no bend. When a band cannot reach the ground within the bound (a ramp
+   began late in the band before, which stayed flat), the band before is refitted at each grade
+   and the pair with the most inliers kept (``_bend_the_band_before``).
 3. **Camber beyond the corridor.** Outside the fitted corridor the ground may bend away
    laterally by ``cross_slope_allowance`` (rise over run) per metre: the obstacle and negative
    thresholds grow by allowance * (|lateral| - corridor_half_width) there
@@ -129,6 +132,10 @@ def lateral_on_floor(Dg: np.ndarray, rig: StereoRig, floor: FloorGeometry, u=Non
         return np.where(Dg > 0, np.float32(rig.fb) / Dg * lr, np.float32(np.inf)).astype(np.float32)
 
 
+BEYOND = "grade change"
+CONTINUED = "the band before, continued, fits"
+
+
 def _w(rho, rig: StereoRig) -> np.ndarray:
     r1, r2, r3 = rho
     return np.array([r1 * rig.fx, r2 * rig.fy, r3 + r1 * rig.cx + r2 * rig.cy])
@@ -170,7 +177,8 @@ def _samples(disparity: np.ndarray, step: int):
 
 
 def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig, fit: PlaneFitParams,
-               p: GroundModelParams, rng) -> GroundBand:
+               p: GroundModelParams, rng, fixed_grade: Optional[float] = None) -> GroundBand:
+    """Band k's hinge (module docstring, 2). ``fixed_grade`` (rad): take that bend as it is."""
     P = prev.plane.predict(U, V)
     with np.errstate(invalid="ignore"):
         lat = lateral_on_floor(P, rig, prev.floor, U, V)
@@ -201,7 +209,7 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
         return float((hits[filled] / counts[filled]).min()) if filled.any() else 0.0
 
     theta_max = math.atan(p.max_grade_change)
-    thetas = np.linspace(-theta_max, theta_max, p.grade_steps)
+    thetas = np.linspace(-theta_max, theta_max, p.grade_steps) if fixed_grade is None else np.array([fixed_grade])
     r = np.asarray(prev.plane.rho)
     ts = _pencil_t(r, b, thetas, rig)
     ez = np.array([0.0, 0.0, 1.0])
@@ -221,16 +229,18 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     # The data must ask for a bend: on a flat floor the noise moves the best grade about while
     # its inlier count stays within a few per cent of the band before, continued.
     on = int((np.abs(dp - Pp) < np.maximum(fit.inlier_min_px, Pp * (fit.inlier_height / H))).sum())
-    if scores[best] < p.min_bend_gain * on and worst_stretch(0.0) >= p.min_continuity:
-        return GroundBand(prev.plane, prev.floor, b, 0.0, on, len(dp), True, "the band before, continued, fits")
+    if fixed_grade is None and scores[best] < p.min_bend_gain * on and worst_stretch(0.0) >= p.min_continuity:
+        return GroundBand(prev.plane, prev.floor, b, 0.0, on, len(dp), True, CONTINUED)
     t = float(ts[best])
-    for _ in range(2):                     # refine t in D = P + t (P - b) on the inliers
+    for _ in range(2 if fixed_grade is None else 0):     # refine t in D = P + t (P - b) on the inliers
         pr = Pp + t * (Pp - b)
         inl = np.abs(dp - pr) < np.maximum(fit.inlier_min_px, pr * (fit.inlier_height / H))
         if inl.sum() < p.min_band_inliers:
             return same(f"{int(inl.sum())} ground samples (need {p.min_band_inliers}): continues the band before")
         x = Pp[inl] - b
         t = float(((dp[inl] - Pp[inl]) * x).sum() / (x * x).sum())
+    pr = Pp + t * (Pp - b)
+    inl = np.abs(dp - pr) < np.maximum(fit.inlier_min_px, pr * (fit.inlier_height / H))
     worst = worst_stretch(t)
     if worst < p.min_continuity:
         return same(f"a stretch of the band fits only {worst:.0%} (need {p.min_continuity:.0%}): "
@@ -238,9 +248,30 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     plane = DisparityPlane(tuple(float(x) for x in (1 + t) * r - t * b * np.array([0.0, 0.0, 1.0])))
     grade = _grade_of(r, plane.rho, rig)
     if abs(grade) > theta_max + 1e-9 or plane.floor(rig).height < p.min_height_fraction * prev.floor.height:
-        return same(f"grade change {math.degrees(grade):.1f} deg beyond the bound "
+        return same(f"{BEYOND} {math.degrees(grade):.1f} deg beyond the bound "
                     f"{math.degrees(theta_max):.1f} deg: continues the band before", int(inl.sum()))
     return GroundBand(plane, plane.floor(rig), b, grade, int(inl.sum()), n, True)
+
+
+def _bend_the_band_before(U, V, d, bands: list, b: float, b_far: float, rig: StereoRig, fit: PlaneFitParams,
+                          p: GroundModelParams, rng) -> Optional[GroundBand]:
+    """A ramp that starts late in the band before left it flat or bent too little (the bend
+    gained too few inliers there) and this band cannot catch up within the bound: try each bend
+    of the band before and keep the pair of bands with the most inliers. Replaces bands[-1];
+    None when no pair fits."""
+    theta_max = math.atan(p.max_grade_change)
+    best = None
+    for th in np.linspace(-theta_max, theta_max, p.grade_steps):
+        redo = _fit_hinge(U, V, d, bands[-2], bands[-1].near_disparity, b, rig, fit, p, rng, float(th))
+        if not redo.fitted:
+            continue
+        again = _fit_hinge(U, V, d, redo, b, b_far, rig, fit, p, rng)
+        if again.fitted and (best is None or redo.inliers + again.inliers > best[0]):
+            best = (redo.inliers + again.inliers, redo, again)
+    if best is None:
+        return None
+    bands[-1] = best[1]
+    return best[2]
 
 
 def fit_ground_model(disparity: np.ndarray, rig: StereoRig, prior: DisparityPlane,
@@ -268,7 +299,10 @@ def fit_ground_model(disparity: np.ndarray, rig: StereoRig, prior: DisparityPlan
     b = float(max(near.plane.predict(0.0, h - 1.0), near.plane.predict(w - 1.0, h - 1.0))) / p.near_ratio
     while len(bands) < p.max_bands and b > p.min_band_disparity:
         b_far = b / p.band_ratio if len(bands) < p.max_bands - 1 and b / p.band_ratio > p.min_band_disparity else 0.0
-        bands.append(_fit_hinge(U, V, d, bands[-1], b, b_far, rig, fit, p, rng))
+        band = _fit_hinge(U, V, d, bands[-1], b, b_far, rig, fit, p, rng)
+        if band.reason.startswith(BEYOND) and len(bands) >= 2 and bands[-1].fitted:
+            band = _bend_the_band_before(U, V, d, bands, b, b_far, rig, fit, p, rng) or band
+        bands.append(band)
         b = b_far
         if b_far == 0.0:
             break
