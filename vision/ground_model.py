@@ -218,6 +218,8 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     wn = np.linalg.norm(np.array([_w(x, rig) for x in rhos]), axis=1)
     keep = (rig.fb / wn >= p.min_height_fraction * prev.floor.height) & (1 + ts > 0)
     thetas, ts, rhos = thetas[keep], ts[keep], rhos[keep]
+    if len(thetas) == 0:
+        return same("no grade within the bound keeps the camera above this band's plane: continues the band before")
     Us, Vs = U[pool], V[pool]
     if n > p.score_points:
         Us, Vs = Us[idx], Vs[idx]
