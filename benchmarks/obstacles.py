@@ -131,8 +131,12 @@ def main(argv=None) -> None:
     _, ours_med, ours_min = timed(lambda: detect_obstacles(noisy, RIG, prior, params=ours_p), args.repeats)
     _, naive_med, naive_min = timed(lambda: naive_detect(noisy, RIG, MOUNT.height, MOUNT.pitch, h_obs, 0.03),
                                     args.repeats)
+    from vbnav.vision.ground_model import GroundModelParams
+    _, pw_med, pw_min = timed(lambda: detect_obstacles(noisy, RIG, prior, params=ours_p, ground=GroundModelParams()),
+                              args.repeats)
     _, sgbm_med, sgbm_min = timed(lambda: sgbm_disparity(frame.image, frame.right, SGBM), max(3, args.repeats // 5))
     print(f"{'ours (fit + labels + floor points)':40s} {ours_med:7.2f} / {ours_min:6.2f}")
+    print(f"{'ours, piecewise ground (the stage default)':40s} {pw_med:7.2f} / {pw_min:6.2f}")
     print(f"{'naive (3D points + height threshold)':40s} {naive_med:7.2f} / {naive_min:6.2f}")
     print(f"{'ratio naive / ours (min)':40s} {naive_min / ours_min:7.2f}x")
     print(f"{'SGBM (80 disparities, block 5)':40s} {sgbm_med:7.2f} / {sgbm_min:6.2f}")
