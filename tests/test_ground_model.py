@@ -137,3 +137,22 @@ def test_hinge_grades_round_trip():
         np.testing.assert_allclose(rho[0] * u + rho[1] * v + rho[2], b, rtol=1e-9)
         if th > 0:                                     # uphill: farther ground has more disparity
             assert rho[1] * 10.0 + rho[2] > r[1] * 10.0 + r[2]
+
+
+def test_ground_images_follow_the_band_cascade(rng):
+    """GroundModel.images (row-limited per band) equals the plain cascade: band k's plane wherever
+    band k-1's plane reads below b_k, on a ramp where the bands bend."""
+    r = ds.render(ds.Scene(H, 0.0, ramp=(15.0, 0.05)), RIG)
+    D = r.disparity + rng.normal(0.0, SIGMA, r.disparity.shape).astype(np.float32)
+    m = fit_ground_model(D, RIG, PRIOR, STREET_FIT, STREET)
+    assert any(b.grade_change != 0.0 for b in m.bands)
+    h, w = D.shape
+    ref = m.bands[0].plane.image(h, w).copy()
+    ref_h = np.full_like(ref, m.bands[0].floor.height)
+    for k in range(1, len(m.bands)):
+        inside = m.bands[k - 1].plane.image(h, w) < m.bands[k].near_disparity
+        ref[inside] = m.bands[k].plane.image(h, w)[inside]
+        ref_h[inside] = m.bands[k].floor.height
+    Dg, Hk = m.images(h, w)
+    np.testing.assert_array_equal(Dg, ref)
+    np.testing.assert_array_equal(Hk, ref_h)

@@ -94,21 +94,32 @@ class GroundModel:
     def _images(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         Dg = self.bands[0].plane.image(height, width).copy()
         H = np.full((height, width), np.float32(self.bands[0].floor.height))
-        prev = self.bands[0].plane
-        for b in self.bands[1:]:
-            # Rows below where the previous plane reaches b (at either image edge) are nearer bands:
-            # D grows downward on a floor (rho_2 > 0), so only the rows above can change.
-            r1, r2, r3 = prev.rho
-            v_end = height if r2 <= 0 else int(min(height, max(0.0, math.ceil(max(
-                (b.near_disparity - r3 - r1 * u) / r2 for u in (0.0, width - 1.0))) + 1)))
-            sub = Dg[:v_end]
-            # Dg still holds the previous band's plane here: pixels of nearer bands are >= b
-            m = sub < np.float32(b.near_disparity)
-            u, v = pixel_grid(height, width)
+        u, v = pixel_grid(height, width)
+
+        def row_where(plane: DisparityPlane, d: float) -> float:
+            """The lowest row at which the plane still reads d at either image edge (D grows downward)."""
+            r1, r2, r3 = plane.rho
+            return max((d - r3 - r1 * x) / r2 for x in (0.0, width - 1.0)) if r2 > 0 else float(height)
+
+        bands = self.bands
+        for k in range(1, len(bands)):
+            b, prev = bands[k], bands[k - 1].plane
+            # Rows below where the previous plane reaches b are nearer bands; rows above where this
+            # band's plane reaches the next band's edge are farther bands (they overwrite them next).
+            v_end = int(min(height, max(0.0, math.ceil(row_where(prev, b.near_disparity)) + 1)))
+            v_top = 0
+            if k + 1 < len(bands) and b.plane.rho[1] > 0:
+                v_top = int(min(v_end, max(0.0, math.floor(min(
+                    (bands[k + 1].near_disparity - b.plane.rho[2] - b.plane.rho[0] * x) / b.plane.rho[1]
+                    for x in (0.0, width - 1.0))) - 1)))
+            rows = slice(v_top, v_end)
+            # band k holds the pixels where the previous band's plane is below b_k (the pencil keeps
+            # that nested: such pixels are in every nearer band's far part too)
+            p1, p2, p3 = (np.float32(x) for x in prev.rho)
+            m = (u[rows] * p1 + v[rows] * p2 + p3) < np.float32(b.near_disparity)
             q1, q2, q3 = (np.float32(x) for x in b.plane.rho)
-            sub[m] = (u[:v_end] * q1 + v[:v_end] * q2 + q3)[m]
-            H[:v_end][m] = b.floor.height
-            prev = b.plane
+            Dg[rows][m] = (u[rows] * q1 + v[rows] * q2 + q3)[m]
+            H[rows][m] = b.floor.height
         Dg.flags.writeable = False
         H.flags.writeable = False
         return Dg, H
