@@ -192,9 +192,11 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     """Band k's hinge (module docstring, 2). ``fixed_grade`` (rad): take that bend as it is."""
     P = prev.plane.predict(U, V)
     with np.errstate(invalid="ignore"):
-        lat = lateral_on_floor(P, rig, prev.floor, U, V)
-        pool = (d > 0) & (P < b) & (P >= b_far) & (np.abs(lat) <= p.corridor_half_width)
-    Pp, dp = P[pool].astype(np.float64), d[pool].astype(np.float64)
+        pool = (d > 0) & (P < b) & (P >= b_far)
+        Ub, Vb, Pb = U[pool], V[pool], P[pool]
+        inside = np.abs(lateral_on_floor(Pb, rig, prev.floor, Ub, Vb)) <= p.corridor_half_width
+    Us, Vs = Ub[inside], Vb[inside]
+    Pp, dp = Pb[inside].astype(np.float64), d[pool][inside].astype(np.float64)
     n = len(dp)
 
     def same(reason: str, inl: int = 0) -> GroundBand:
@@ -204,7 +206,7 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
         return same(f"{n} samples in the corridor (need {p.min_band_inliers}): continues the band before")
     if n > p.score_points:
         idx = rng.choice(n, p.score_points, replace=False)
-        Pp, dp = Pp[idx], dp[idx]
+        Pp, dp, Us, Vs = Pp[idx], dp[idx], Us[idx], Vs[idx]
     H = prev.floor.height
     # Continuity along the band: a ramp fits every part of it, a plane folded onto the lower floor
     # beyond a step (or over an obstacle ahead) misses a stretch. Each of continuity_parts
@@ -231,9 +233,6 @@ def _fit_hinge(U, V, d, prev: GroundBand, b: float, b_far: float, rig: StereoRig
     thetas, ts, rhos = thetas[keep], ts[keep], rhos[keep]
     if len(thetas) == 0:
         return same("no grade within the bound keeps the camera above this band's plane: continues the band before")
-    Us, Vs = U[pool], V[pool]
-    if n > p.score_points:
-        Us, Vs = Us[idx], Vs[idx]
     pred = rhos[:, 0:1] * Us[None] + rhos[:, 1:2] * Vs[None] + rhos[:, 2:3]
     band = np.maximum(fit.inlier_min_px, pred * (fit.inlier_height / H))
     scores = (np.abs(dp[None] - pred) < band).sum(axis=1)
