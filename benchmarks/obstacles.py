@@ -13,9 +13,10 @@ Rates: fraction of each object's visible pixels labelled obstacle (negative for 
 lower floor), fraction of floor pixels labelled obstacle. Rows "pitch+1deg" give both
 methods a mounting that is 1 degree off (ours fits the plane; naive trusts the mounting).
 
-With --kitti DIR (default: ../shared/data/kitti06_stereo when present) it also prints, for
-every frame of KITTI 06 (SGBM, 10 cm thresholds), the fitted camera height / pitch / roll and
-the fraction of the road region ahead (tests/test_obstacles_kitti.py's trapezoid) that is ground.
+With --kitti DIR (default: ../shared/data/kitti06_stereo when present) it also labels every
+pair of KITTI 06 (SGBM, full resolution, 10 cm thresholds) with the piecewise ground and with
+one plane (the peer) in the same run, and prints the road corridor's ground / negative /
+obstacle shares (and 15-30 m ahead), the fitted camera height / pitch / roll and ms per pair.
 
 Run: .venv/bin/python benchmarks/obstacles.py [--repeats N] [--kitti DIR | --no-kitti]
 """
@@ -130,8 +131,12 @@ def main(argv=None) -> None:
     _, ours_med, ours_min = timed(lambda: detect_obstacles(noisy, RIG, prior, params=ours_p), args.repeats)
     _, naive_med, naive_min = timed(lambda: naive_detect(noisy, RIG, MOUNT.height, MOUNT.pitch, h_obs, 0.03),
                                     args.repeats)
+    from vbnav.vision.ground_model import GroundModelParams
+    _, pw_med, pw_min = timed(lambda: detect_obstacles(noisy, RIG, prior, params=ours_p, ground=GroundModelParams()),
+                              args.repeats)
     _, sgbm_med, sgbm_min = timed(lambda: sgbm_disparity(frame.image, frame.right, SGBM), max(3, args.repeats // 5))
     print(f"{'ours (fit + labels + floor points)':40s} {ours_med:7.2f} / {ours_min:6.2f}")
+    print(f"{'ours, piecewise ground (the stage default)':40s} {pw_med:7.2f} / {pw_min:6.2f}")
     print(f"{'naive (3D points + height threshold)':40s} {naive_med:7.2f} / {naive_min:6.2f}")
     print(f"{'ratio naive / ours (min)':40s} {naive_min / ours_min:7.2f}x")
     print(f"{'SGBM (80 disparities, block 5)':40s} {sgbm_med:7.2f} / {sgbm_min:6.2f}")
@@ -175,31 +180,53 @@ def main(argv=None) -> None:
 
 
 def kitti_report(root: Path) -> None:
+    """Every pair of KITTI 06 at full resolution: the road corridor ahead (the one
+    tests/test_obstacles_kitti_ground.py judges at half resolution) labelled by the piecewise
+    ground (ours) and by one plane fitted to the whole image (the peer, as before), same run."""
     import cv2
 
     from vbnav.drivers.stereo_calib import load_stereo_calibration
-    road_poly = np.array([[470, 365], [790, 365], [660, 215], [575, 215]], np.int32)
+    from vbnav.vision.ground_model import GroundModelParams, corridor_mask
+    from vbnav.vision.ground_plane import PlaneFitParams
+    H = 1.65
     calib = load_stereo_calibration(root / "calib.txt")
     rig = calib.rig(1226, 370)
-    prior = expected_plane(rig, 1.65, 0.0)
-    road = np.zeros((370, 1226), np.uint8)
-    cv2.fillPoly(road, [road_poly], 1)
-    road = road.astype(bool)
-    params = ObstacleParams(obstacle_height=0.10, negative_depth=0.10, noise_px=0.4, max_height=2.0)
-    fr, hs = [], []
-    print("\n== KITTI 06 (Geiger et al., CC BY-NC-SA 3.0): road region ahead labelled ground ==")
-    for f in range(len(list((root / "image_l").glob("*.png")))):
-        left = cv2.imread(str(root / "image_l" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        right = cv2.imread(str(root / "image_r" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        s = detect_obstacles(sgbm_disparity(left, right, SGBM_KITTI), rig, prior, params=params)
-        fl = s.fit.floor
-        fr.append(float(np.mean(s.labels[road] == PixelClass.GROUND)))
-        hs.append((fl.height, math.degrees(fl.pitch), math.degrees(fl.roll)))
-    hs = np.array(hs)
-    print(f"frames {len(fr)}: road ground min {100 * min(fr):.1f}%  mean {100 * np.mean(fr):.1f}%  "
-          f"frames >= 95%: {sum(x >= 0.95 for x in fr)}/{len(fr)}")
-    print(f"fitted camera height {hs[:, 0].min():.3f}..{hs[:, 0].max():.3f} m (nominal 1.65), "
-          f"pitch {hs[:, 1].min():.2f}..{hs[:, 1].max():.2f} deg, roll {hs[:, 2].min():.2f}..{hs[:, 2].max():.2f} deg")
+    prior = expected_plane(rig, H, 0.0)
+    road = corridor_mask(rig, H, rig.baseline / 2.0, 1.25, 7.0, 30.0)
+    far = road & corridor_mask(rig, H, rig.baseline / 2.0, 1.25, 15.0, 30.0)
+    # 3 sigma of SGBM's disparity noise on this road (0.22-0.30 px, docs/obstacles.md)
+    params = ObstacleParams(obstacle_height=0.10, negative_depth=0.10, noise_px=0.75, max_height=2.0)
+    fit = PlaneFitParams(inlier_height=0.05, max_height_change=0.15, max_pitch_change_deg=2.0, max_roll_change_deg=2.0)
+    methods = {"piecewise": (fit, GroundModelParams(corridor_half_width=1.75)), "one plane": (PlaneFitParams(), None)}
+    figs = {m: [] for m in methods}
+    ms = {m: 0.0 for m in methods}
+    files = sorted((root / "image_l").glob("*.png"))
+    print(f"\n== KITTI 06 (Geiger et al., CC BY-NC-SA 3.0), {len(files)} pairs, full resolution, 10 cm thresholds ==")
+    print("road: within 1.25 m of the car's centre line, 7-30 m ahead on the mounting's road plane")
+    for f in files:
+        left = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        right = cv2.imread(str(root / "image_r" / f.name), cv2.IMREAD_GRAYSCALE)
+        disp = sgbm_disparity(left, right, SGBM_KITTI)
+        for m, (fp, gp) in methods.items():
+            t = time.perf_counter()
+            s = detect_obstacles(disp, rig, prior, fp, params, gp)
+            ms[m] += time.perf_counter() - t
+            lab, lab_far = s.labels[road], s.labels[far]
+            fl = s.fit.floor
+            figs[m].append((np.mean(lab == PixelClass.GROUND), np.mean(lab == PixelClass.NEGATIVE),
+                            np.mean(lab == PixelClass.OBSTACLE), np.mean(lab_far == PixelClass.GROUND),
+                            fl.height, math.degrees(fl.pitch), math.degrees(fl.roll), s.fit.inlier_fraction))
+    print(f"{'method':10s} {'ground min/mean':>16s} {'negative max':>13s} {'obstacle max':>13s} "
+          f"{'15-30 m ground min':>19s} {'pairs >=97% & <=1% neg':>23s} {'ms/pair':>8s}")
+    for m, rows in figs.items():
+        a = np.array(rows)
+        ok = int(np.sum((a[:, 0] >= 0.97) & (a[:, 1] <= 0.01)))
+        print(f"{m:10s} {100 * a[:, 0].min():7.1f}/{100 * a[:, 0].mean():5.1f} % {100 * a[:, 1].max():11.2f} % "
+              f"{100 * a[:, 2].max():11.2f} % {100 * a[:, 3].min():17.1f} % {ok:>17d}/{len(a)} "
+              f"{1e3 * ms[m] / len(a):8.1f}")
+        print(f"{'':10s} fitted camera height {a[:, 4].min():.3f}..{a[:, 4].max():.3f} m (nominal 1.65), pitch "
+              f"{a[:, 5].min():.2f}..{a[:, 5].max():.2f} deg, roll {a[:, 6].min():.2f}..{a[:, 6].max():.2f} deg, "
+              f"inliers {100 * a[:, 7].min():.0f}-{100 * a[:, 7].max():.0f} %")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Analytic stereo scenes with known truth: a floor, boxes, flat sheets and a step down.
+"""Analytic stereo scenes with known truth: a floor, boxes, flat sheets, a step down, camber and a ramp.
 
 Ray casting in closed form (no rendering library): each pixel's ray is met with
 the floor (y = 0, world frame of vision/geometry.py, y down), the lower floor
@@ -40,6 +40,11 @@ class Scene:
     boxes: tuple[Box, ...] = ()
     step_z: Optional[float] = None          # the floor drops at this forward distance...
     step_depth: float = 0.0                 # ...by this much (m)
+    # Street shapes (both FLOOR, i.e. ground): camber = (x_crown, s): left of x_crown the
+    # road falls away at s (rise over run) from the camera's lane; ramp = (z_start, grade):
+    # beyond z_start the floor rises at grade (negative: falls).
+    camber: Optional[tuple[float, float]] = None
+    ramp: Optional[tuple[float, float]] = None
     texture_seed: int = 7
     extra: dict = field(default_factory=dict)
 
@@ -73,6 +78,9 @@ def _cast(scene: Scene, rig: StereoRig, cam_x: float) -> Rendered:
             t_floor = np.where(beyond, t_low, t_floor)
         else:
             surf_floor = np.full((h, w), FLOOR)
+        for bent in _bent_floor(scene, C, rw):        # camber / ramp pieces replace the flat floor there
+            beyond, t_b = bent
+            t_floor = np.where(beyond, t_b, np.where(_off_piece(scene, C, rw, t_floor), np.inf, t_floor))
         take = t_floor < t
         t[take], surf[take] = t_floor[take], surf_floor[take]
         for i, b in enumerate(scene.boxes):
@@ -92,6 +100,35 @@ def _cast(scene: Scene, rig: StereoRig, cam_x: float) -> Rendered:
     disp = np.where(np.isfinite(t), rig.fb / z_cam, np.nan).astype(np.float32)
     elev = np.where(np.isfinite(t), -P[..., 1], np.nan).astype(np.float32)
     return Rendered(disp, surf, elev, P.astype(np.float32), axis)
+
+
+def _bent_floor(scene: Scene, C, rw):
+    """(hit mask, t) of the sloped pieces: a plane n . P = c met by the ray, valid on its side."""
+    out = []
+    if scene.camber is not None:            # x < xc: y = s (xc - x), i.e. (s, 1, 0) . P = s xc
+        xc, s = scene.camber
+        n, c = np.array([s, 1.0, 0.0]), s * xc
+        t_b = (c - n @ C) / (rw @ n)
+        x = C[0] + t_b * rw[..., 0]
+        out.append(((t_b > 0) & (x < xc), t_b))
+    if scene.ramp is not None:              # z > z0: y = -g (z - z0), i.e. (0, 1, g) . P = g z0
+        z0, g = scene.ramp
+        n, c = np.array([0.0, 1.0, g]), g * z0
+        t_b = (c - n @ C) / (rw @ n)
+        z = C[2] + t_b * rw[..., 2]
+        out.append(((t_b > 0) & (z > z0), t_b))
+    return out
+
+
+def _off_piece(scene: Scene, C, rw, t_floor):
+    """Flat-floor hits that lie where a sloped piece is the floor instead."""
+    P = C + t_floor[..., None] * rw
+    off = np.zeros(t_floor.shape, bool)
+    if scene.camber is not None:
+        off |= P[..., 0] < scene.camber[0]
+    if scene.ramp is not None:
+        off |= P[..., 2] > scene.ramp[0]
+    return off
 
 
 def render(scene: Scene, rig: StereoRig) -> Rendered:

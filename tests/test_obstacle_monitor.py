@@ -14,6 +14,7 @@ from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.obstacles import detect_obstacles
 from vbnav.vision.stereo import StereoRig
 
 FRAME_NS = 66_666_667          # 15 Hz
@@ -85,8 +86,11 @@ def test_to_robot_frame_uses_the_mount():
     assert out[0] == pytest.approx([1.05, 0.1], abs=1e-6)
 
 
-def _stage_cfg(**kw):
-    cfg = parse_config({"camera": {"options": {"stereo_baseline": 0.075}},
+def _stage_cfg(mount=None, **kw):
+    camera = {"options": {"stereo_baseline": 0.075}}
+    if mount:
+        camera["mount"] = mount
+    cfg = parse_config({"camera": camera,
                         "obstacles": {"persist_k": 1, "persist_n": 1, "release_s": 0.2, **kw}})
     return cfg
 
@@ -145,3 +149,24 @@ def test_shipped_stereo_config_builds_the_stage():
     stage = make_obstacle_stage(load_config("sim_stereo"))
     assert stage is not None and stage.rig.baseline == 0.075
     assert [z.action for z in stage.cfg.zones] == ["stop", "slow"]
+
+
+def test_stage_ground_settings_reach_the_ground_model():
+    """camera.mount.roll_deg and obstacles.ground_model / mount_* / ground settings are used: the prior carries the roll,
+    the fit the bounds, the piecewise ground its corridor, grade and camber; 'plane' turns it off."""
+    stage = ObstacleStage.from_config(_stage_cfg(mount={"roll_deg": 1.5}, mount_height_tol=0.03, mount_tilt_tol_deg=1.0,
+                                                 ground_corridor_half_width=0.8, max_grade_change=0.05,
+                                                 cross_slope_allowance=0.04, ground_band_ratio=1.3))
+    assert math.degrees(stage.prior.floor(stage.rig).roll) == pytest.approx(1.5, abs=1e-9)
+    fp = stage.fit_params
+    assert (fp.max_height_change, fp.max_pitch_change_deg, fp.max_roll_change_deg) == (0.03, 1.0, 1.0)
+    g = stage.ground
+    assert (g.corridor_half_width, g.max_grade_change, g.cross_slope_allowance, g.band_ratio) == (0.8, 0.05, 0.04, 1.3)
+    # The camera is in fact level, the config says 1.5 degrees of roll and allows 1: the fit stays
+    # inside the bound (at least 0.5 degrees of roll), and the floor inside the zones is still clear.
+    level = ds.render(ds.Scene(0.25, 0.0), stage.rig).disparity
+    e = stage.process(Frame(np.zeros((480, 640), np.uint8), 0, 1, disparity=level), Pose2())
+    assert e.ok and e.info["speed_scale"] == 1.0
+    s = detect_obstacles(level, stage.rig, stage.prior, stage.fit_params, stage.params, stage.ground)
+    assert 0.5 - 1e-6 <= math.degrees(s.fit.floor.roll) <= 2.5 + 1e-6
+    assert ObstacleStage.from_config(_stage_cfg(ground_model="plane")).ground is None

@@ -147,6 +147,11 @@ class PlaneFitParams:
     min_inliers: int = 60
     max_tilt_change_deg: float = 8.0    # fitted floor normal vs prior
     max_height_ratio: float = 1.5       # fitted height within [1/r, r] of the prior
+    # Tighter bounds from a known mounting (None: only the two above). A fit outside them is
+    # rejected: the camera cannot be that far off its mount (docs/obstacles.md derives them).
+    max_height_change: Optional[float] = None      # m, |fitted camera height - prior|
+    max_pitch_change_deg: Optional[float] = None   # |fitted pitch - prior pitch|
+    max_roll_change_deg: Optional[float] = None    # |fitted roll - prior roll|
     seed: int = 0
 
 
@@ -187,8 +192,17 @@ def _plausible(rho: np.ndarray, rig: StereoRig, prior: Optional[FloorGeometry], 
     cos_tilt = g[..., 0] * pd[0] + g[..., 1] * pd[1] + g[..., 2] * pd[2]
     height = rig.fb / np.where(ok, n, 1.0)
     ratio = height / prior.height
-    return (ok & (cos_tilt > math.cos(math.radians(p.max_tilt_change_deg)))
-            & (ratio < p.max_height_ratio) & (ratio > 1.0 / p.max_height_ratio))
+    ok = (ok & (cos_tilt > math.cos(math.radians(p.max_tilt_change_deg)))
+          & (ratio < p.max_height_ratio) & (ratio > 1.0 / p.max_height_ratio))
+    if p.max_height_change is not None:
+        ok &= np.abs(height - prior.height) <= p.max_height_change
+    if p.max_pitch_change_deg is not None:        # pitch and roll as FloorGeometry defines them
+        pitch = np.arctan2(g[..., 2], np.hypot(g[..., 0], g[..., 1]))
+        ok &= np.abs(np.degrees(pitch - prior.pitch)) <= p.max_pitch_change_deg
+    if p.max_roll_change_deg is not None:
+        roll = np.arctan2(g[..., 0], g[..., 1])
+        ok &= np.abs(np.degrees(roll - prior.roll)) <= p.max_roll_change_deg
+    return ok
 
 
 def _least_squares(A: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -211,14 +225,16 @@ def _predict(rho: np.ndarray, A: np.ndarray) -> np.ndarray:
 
 
 def fit_ground_plane(disparity: np.ndarray, rig: StereoRig, prior: Optional[DisparityPlane] = None,
-                     params: PlaneFitParams = PlaneFitParams()) -> PlaneFit:
+                     params: PlaneFitParams = PlaneFitParams(), region: Optional[np.ndarray] = None) -> PlaneFit:
     """Robust fit of (11.7) to a disparity image (float32, NaN unknown).
 
     RANSAC on a subsampled grid: the pool is the points near the prior plane (the
     mounting's prediction; without a prior, the lower image half), 3-point hypotheses
     plus the prior itself are scored by inliers in a band of +-inlier_height metres,
     hypotheses whose floor tilts or lies far from the prior are rejected, and the best
-    is refined by least squares on its inliers. Deterministic (seeded).
+    is refined by least squares on its inliers. Deterministic (seeded). ``region`` (bool HxW)
+    restricts the samples further (vision/ground_model.py: the near band ahead). When the
+    refined plane leaves the bounds, the best hypothesis inside them is kept unrefined.
     """
     p = params
     h, w = disparity.shape
@@ -231,6 +247,8 @@ def fit_ground_plane(disparity: np.ndarray, rig: StereoRig, prior: Optional[Disp
     d = disparity[s // 2::s, s // 2::s]
     V, U = np.meshgrid(vs, us, indexing="ij")
     valid = d > 0
+    if region is not None:
+        valid = valid & region[s // 2::s, s // 2::s]
     if prior is not None:
         dp = prior.predict(U, V)
         pool = valid & (dp > p.min_disparity) & (np.abs(d - dp) < p.prior_tolerance_rel * dp + p.prior_tolerance_px)
@@ -265,16 +283,22 @@ def fit_ground_plane(disparity: np.ndarray, rig: StereoRig, prior: Optional[Disp
     pred = _predict(rhos, As)                                # (hyp, pts)
     wn = np.linalg.norm(_w(rhos, rig), axis=1).astype(np.float32)[:, None]
     scores = (np.abs(ds[None, :] - pred) < _band(pred, wn, rig, p)).sum(axis=1)
-    rho = rhos[int(np.argmax(scores))]
+    rho = best = rhos[int(np.argmax(scores))]
+
+    def inliers_of(r):
+        pr = _predict(r, A)
+        return np.abs(dd - pr) < _band(pr, np.float32(np.linalg.norm(_w(r, rig))), rig, p)
 
     inl = np.zeros(n, bool)
     for _ in range(p.refine_iterations):
-        pr = _predict(rho, A)
-        inl = np.abs(dd - pr) < _band(pr, np.float32(np.linalg.norm(_w(rho, rig))), rig, p)
+        inl = inliers_of(rho)
         if inl.sum() < p.min_inliers:
             return fallback(f"only {int(inl.sum())} inliers after refinement")
         rho = _least_squares(A[inl], dd[inl])
     if not _plausible(rho[None, :], rig, prior_floor, p)[0]:
-        return fallback("refined plane is implausible for the camera mounting")
+        # the least-squares step left the mounting's bounds: keep the best hypothesis inside them
+        rho, inl = best, inliers_of(best)
+        if inl.sum() < p.min_inliers:
+            return fallback("refined plane is implausible for the camera mounting")
     plane = DisparityPlane(tuple(float(x) for x in rho))
     return PlaneFit(plane, plane.floor(rig), True, False, int(inl.sum()), n)

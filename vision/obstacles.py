@@ -32,6 +32,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from vbnav.vision.ground_model import GroundModel, GroundModelParams, fit_ground_model
 from vbnav.vision.ground_plane import (DisparityPlane, FloorGeometry, PlaneFit, PlaneFitParams,
                                        fit_ground_plane)
 from vbnav.vision.stereo import StereoRig
@@ -73,6 +74,7 @@ class ObstacleScene:
     obstacle_points: np.ndarray        # (N, 2) float32 (lateral, forward) of obstacle pixels
     negative_points: np.ndarray        # (M, 2) float32, where the ray meets the ground plane
     fractions: dict = field(default_factory=dict)
+    ground: Optional[GroundModel] = None   # the piecewise ground, when it was used (fit: its near band)
 
     @property
     def plane(self) -> DisparityPlane:
@@ -80,12 +82,24 @@ class ObstacleScene:
 
 
 def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry, rig: StereoRig,
-             params: ObstacleParams = ObstacleParams()) -> np.ndarray:
-    """Per-pixel PixelClass labels (uint8) of a float32 disparity image (NaN unknown)."""
+             params: ObstacleParams = ObstacleParams(), ground: Optional[GroundModel] = None) -> np.ndarray:
+    """Per-pixel PixelClass labels (uint8) of a float32 disparity image (NaN unknown).
+
+    With ``ground`` (vision/ground_model.py) the floor is its bands (each with its own camera
+    height) instead of ``plane``, and the heights grow by its camber allowance beyond its corridor.
+    """
     p = params
     h, w = disparity.shape
-    Dg = plane.image(h, w)
-    H = floor.height
+    if ground is None:
+        Dg = plane.image(h, w)
+        H = np.float32(floor.height)
+        h_obs, h_neg = np.float32(p.obstacle_height), np.float32(p.negative_depth)
+    else:
+        Dg, H = ground.images(h, w)
+        extra = ground.tolerance(Dg, rig)
+        # capped below the camera height: a threshold at the camera's own height is no threshold
+        h_obs = np.minimum(np.float32(p.obstacle_height) + extra, np.float32(0.9) * H)
+        h_neg = np.float32(p.negative_depth) + extra
     with np.errstate(invalid="ignore"):
         valid = disparity > 0
         # A short horizontal mean cuts the matcher's noise while keeping every row (a low
@@ -95,10 +109,8 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
             D = cv2.blur(np.where(valid, disparity, Dg), (p.smooth_columns, 1))
         resid = D - Dg
         ground_expected = Dg > p.min_ground_disparity
-        obs = valid & (resid > np.maximum(Dg * np.float32(p.obstacle_height / (H - p.obstacle_height)),
-                                          np.float32(p.noise_px)))
-        neg = valid & ground_expected & (-resid > np.maximum(
-            Dg * np.float32(p.negative_depth / (H + p.negative_depth)), np.float32(p.noise_px)))
+        obs = valid & (resid > np.maximum(Dg * (h_obs / (H - h_obs)), np.float32(p.noise_px)))
+        neg = valid & ground_expected & (-resid > np.maximum(Dg * (h_neg / (H + h_neg)), np.float32(p.noise_px)))
         out_of_scope = np.zeros_like(valid)
         if p.max_height is not None:           # e = H (D - D_g) / D > max_height
             out_of_scope |= valid & (H * resid > np.float32(p.max_height) * D)
@@ -108,8 +120,9 @@ def classify(disparity: np.ndarray, plane: DisparityPlane, floor: FloorGeometry,
     box = _bbox(obs) if p.grow_rows > 0 else None
     if box is not None:            # only the obstacles' rows and the few below them can change
         rs = slice(box[0].start, min(h, box[0].stop + p.grow_rows))
-        h_weak = p.weak_fraction * p.obstacle_height
-        weak = resid[rs] > np.maximum(Dg[rs] * np.float32(h_weak / (H - h_weak)), np.float32(p.noise_px))
+        h_weak = np.float32(p.weak_fraction) * h_obs
+        Hr, hw = (H[rs] if np.ndim(H) else H), (h_weak[rs] if np.ndim(h_weak) else h_weak)
+        weak = resid[rs] > np.maximum(Dg[rs] * (hw / (Hr - hw)), np.float32(p.noise_px))
         obs[rs] = _grow_down(D[rs], resid[rs], (valid & ~neg & ~out_of_scope)[rs], obs[rs], p.grow_rows, weak)
     if p.min_blob_pixels > 1:
         # one labelling pass for both kinds (a blob touching both counts all its pixels)
@@ -213,16 +226,26 @@ def class_fractions(labels: np.ndarray) -> dict:
 
 def detect_obstacles(disparity: np.ndarray, rig: StereoRig, prior: Optional[DisparityPlane] = None,
                      fit_params: PlaneFitParams = PlaneFitParams(),
-                     params: ObstacleParams = ObstacleParams()) -> ObstacleScene:
-    """Fit the ground plane, label every pixel and list obstacle points on the floor."""
-    fit = fit_ground_plane(disparity, rig, prior, fit_params)
-    labels = classify(disparity, fit.plane, fit.floor, rig, params)
+                     params: ObstacleParams = ObstacleParams(),
+                     ground: Optional[GroundModelParams] = None) -> ObstacleScene:
+    """Fit the ground, label every pixel and list obstacle points on the floor.
+
+    The ground is one plane, or with ``ground`` (and a mounting ``prior``) the piecewise model
+    of vision/ground_model.py; ``scene.fit`` is then its near band's fit."""
+    model = None
+    if ground is not None and prior is not None:
+        model = fit_ground_model(disparity, rig, prior, fit_params, ground)
+        fit = model.near
+        Dg = model.images(*disparity.shape)[0]
+    else:
+        fit = fit_ground_plane(disparity, rig, prior, fit_params)
+        Dg = fit.plane.image(*disparity.shape)
+    labels = classify(disparity, fit.plane, fit.floor, rig, params, model)
     min_disp = rig.fb / params.report_range
     obstacle_pts = _points(labels == PixelClass.OBSTACLE, disparity, rig, fit.floor, min_disp)
-    # A negative obstacle's edge is no nearer than where its ray meets the ground plane.
-    Dg = fit.plane.image(*disparity.shape)
+    # A negative obstacle's edge is no nearer than where its ray meets the ground.
     negative_pts = _points(labels == PixelClass.NEGATIVE, Dg, rig, fit.floor, min_disp)
-    return ObstacleScene(labels, fit, obstacle_pts, negative_pts, class_fractions(labels))
+    return ObstacleScene(labels, fit, obstacle_pts, negative_pts, class_fractions(labels), model)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import numpy as np
 from vbnav.control.commands._common import finite, non_negative, output_file, positive
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
+from vbnav.vision.ground_model import GroundModelParams
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles, nearest_in_corridor
 from vbnav.vision.stereo import as_disparity, sgbm_disparity, sgbm_params_for
@@ -65,6 +66,22 @@ def register(subparsers) -> None:
     geo.add_argument("--camera-height", type=positive, default=None,
                      help="m; default: the YAML's mount.height; without it the fit is unseeded")
     geo.add_argument("--pitch-deg", type=finite, default=None, help="positive looking down (default: YAML or 0)")
+    geo.add_argument("--roll-deg", type=finite, default=None, help="camera roll over the floor (default: YAML or 0)")
+    gm = p.add_argument_group("ground model (docs/obstacles.md)")
+    gm.add_argument("--ground", choices=("auto", "piecewise", "plane"), default="auto",
+                    help="piecewise: near band under the mounting's bounds, farther bands hinged (needs a camera "
+                         "height); plane: one plane; auto: piecewise when the camera height is known")
+    gm.add_argument("--height-tol", type=positive, default=0.05,
+                    help="m: reject a near-band fit whose camera height is further from the mounting's")
+    gm.add_argument("--tilt-tol-deg", type=positive, default=2.0,
+                    help="deg: reject a near-band fit whose pitch or roll is further from the mounting's")
+    gm.add_argument("--ground-half-width", type=positive, default=1.0,
+                    help="m: the ground is fitted within this of the camera's line ahead")
+    gm.add_argument("--max-grade-change", type=non_negative, default=0.08,
+                    help="rise over run a band may bend by from the one before")
+    gm.add_argument("--cross-slope-allowance", type=non_negative, default=0.06,
+                    help="m per m: thresholds grow by this beyond the ground corridor (camber)")
+    gm.add_argument("--fit-inlier-height", type=positive, default=0.02, help="m, ground fit inlier band")
     det = p.add_argument_group("detection")
     det.add_argument("--obstacle-height", type=positive, default=0.05, help="m above the floor")
     det.add_argument("--negative-depth", type=positive, default=0.05, help="m below the floor")
@@ -191,8 +208,12 @@ def run(args) -> int:
 
     height = args.camera_height if args.camera_height is not None else calib.mount_height
     pitch = args.pitch_deg if args.pitch_deg is not None else calib.mount_pitch_deg
-    prior = expected_plane(rig, height, math.radians(pitch), math.radians(calib.mount_roll_deg)) \
-        if height is not None else None
+    roll = args.roll_deg if args.roll_deg is not None else calib.mount_roll_deg
+    prior = expected_plane(rig, height, math.radians(pitch), math.radians(roll)) if height is not None else None
+    if args.ground == "piecewise" and prior is None:
+        return _bad("--ground piecewise needs the camera height (--camera-height, or mount.height in the YAML); "
+                    "give it, or --ground plane")
+    model = args.ground if args.ground != "auto" else ("piecewise" if prior is not None else "plane")
 
     t1 = time.perf_counter()
     if disp is None:
@@ -207,7 +228,12 @@ def run(args) -> int:
                             noise_px=args.noise_px, max_height=args.max_height, max_range=args.max_range,
                             report_range=args.corridor_range)
     try:
-        scene = detect_obstacles(disp, rig, prior, PlaneFitParams(), params)
+        fit = PlaneFitParams(inlier_height=args.fit_inlier_height, max_height_change=args.height_tol,
+                             max_pitch_change_deg=args.tilt_tol_deg, max_roll_change_deg=args.tilt_tol_deg)
+        ground = None if model == "plane" else GroundModelParams(
+            corridor_half_width=args.ground_half_width, max_grade_change=args.max_grade_change,
+            cross_slope_allowance=args.cross_slope_allowance)
+        scene = detect_obstacles(disp, rig, prior, fit, params, ground)
     except ValueError as exc:
         print(f"vbnav obstacles: {exc}", file=sys.stderr)
         return 1
@@ -230,6 +256,11 @@ def run(args) -> int:
                   "pitch_deg": round(math.degrees(fl.pitch), 3), "roll_deg": round(math.degrees(fl.roll), 3),
                   "fit_ok": scene.fit.ok, "used_prior": scene.fit.used_prior,
                   "inlier_fraction": round(scene.fit.inlier_fraction, 4), "note": scene.fit.reason},
+        "ground_model": model,
+        "ground_bands": None if scene.ground is None else [
+            {"from_m": round(rig.fb / b.near_disparity, 2) if math.isfinite(b.near_disparity) else 0.0,
+             "grade_change_deg": round(math.degrees(b.grade_change), 3), "fitted": b.fitted,
+             "inliers": b.inliers, "note": b.reason} for b in scene.ground.bands],
         "fractions": {k: round(v, 5) for k, v in scene.fractions.items()},
         "nearest_obstacle": _nearest_json(near),
         "nearest_negative": _nearest_json(near_neg),

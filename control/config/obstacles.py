@@ -54,6 +54,20 @@ class ObstaclesConfig(Strict):
                                                      "noise, px")
     negative_stops: bool = Field(True, description="negative obstacles (steps down) trigger zones too")
     fit_inlier_height: float = Field(0.02, gt=0, description="m, ground-plane fit inlier band")
+    ground_model: Literal["piecewise", "plane"] = Field(
+        "piecewise", description="piecewise: near band fitted under the mounting's bounds, farther bands hinged "
+                                 "(kerbs, camber, ramps; docs/obstacles.md); plane: one plane for the whole floor")
+    mount_height_tol: float = Field(0.05, gt=0, description="m: a near-band fit whose camera height is further "
+                                    "than this from camera.mount.height is rejected")
+    mount_tilt_tol_deg: float = Field(2.0, gt=0, le=30, description="deg: a near-band fit whose pitch or roll is "
+                                      "further than this from the mounting's is rejected")
+    ground_corridor_half_width: float = Field(1.0, gt=0, description="m either side of the camera's line ahead "
+                                              "where the ground is fitted")
+    ground_band_ratio: float = Field(1.414, gt=1.05, le=4, description="far / near distance of one ground band")
+    max_grade_change: float = Field(0.08, ge=0, le=0.5, description="rise over run a band may bend by from the "
+                                    "one before (a ramp)")
+    cross_slope_allowance: float = Field(0.06, ge=0, le=0.5, description="beyond the corridor the thresholds grow "
+                                         "by this much per metre (camber)")
     sgbm_block_size: int = Field(3, ge=1, le=11, description="SGBM matching block side, px, odd")
     persist_k: int = Field(2, ge=1, description="a zone must trigger in k of the last n frames")
     persist_n: int = Field(3, ge=1, description="n of k-of-n (n >= persist_k)")

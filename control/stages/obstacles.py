@@ -43,6 +43,7 @@ from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.ground_model import GroundModelParams
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import (
     KOfN,
@@ -57,6 +58,15 @@ def make_obstacle_stage(cfg) -> Optional["ObstacleStage"]:
     """The obstacle stage for a vbnav Config, or None when ``obstacles.enabled`` is false."""
     return ObstacleStage.from_config(cfg) if cfg.obstacles.enabled else None
 
+
+
+def ground_model_params(cfg: ObstaclesConfig) -> Optional[GroundModelParams]:
+    """The piecewise ground's settings from the ``obstacles:`` section, or None for one plane."""
+    if cfg.ground_model == "plane":
+        return None
+    return GroundModelParams(band_ratio=cfg.ground_band_ratio, corridor_half_width=cfg.ground_corridor_half_width,
+                             max_grade_change=cfg.max_grade_change,
+                             cross_slope_allowance=cfg.cross_slope_allowance)
 
 
 def points_in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -178,7 +188,11 @@ class ObstacleStage(VisionStage):
                                      negative_depth=self.cfg.negative_depth, noise_px=self.cfg.noise_px,
                                      min_blob_pixels=self.cfg.min_blob_pixels, max_height=self.cfg.max_height,
                                      max_range=self.cfg.max_range, report_range=self.cfg.max_range)
-        self.fit_params = PlaneFitParams(inlier_height=self.cfg.fit_inlier_height)
+        c = self.cfg
+        self.fit_params = PlaneFitParams(inlier_height=c.fit_inlier_height, max_height_change=c.mount_height_tol,
+                                         max_pitch_change_deg=c.mount_tilt_tol_deg,
+                                         max_roll_change_deg=c.mount_tilt_tol_deg)
+        self.ground = ground_model_params(c)
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
         self._stop_half_width = min((z.half_width for z in self.cfg.zones if z.half_width), default=0.25)
@@ -241,7 +255,7 @@ class ObstacleStage(VisionStage):
         if disp.shape != (self.rig.height, self.rig.width):
             raise ValueError(f"obstacle stage: disparity is {disp.shape[1]}x{disp.shape[0]}, "
                              f"camera config says {self.rig.width}x{self.rig.height}")
-        scene = detect_obstacles(disp, self.rig, self.prior, self.fit_params, self.params)
+        scene = detect_obstacles(disp, self.rig, self.prior, self.fit_params, self.params, self.ground)
         pts = to_robot_frame(scene.obstacle_points, self.mount)
         neg = to_robot_frame(scene.negative_points, self.mount)
         verdict = self.monitor.update(frame.stamp_ns, pts, neg)
