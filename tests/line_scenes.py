@@ -203,7 +203,7 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
                 counts[key][1] += total
         pred_all = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
                                 which=np.ones(len(lmap), bool))
-        lmap.update(res.segments, R, c, pred_all)
+        lmap.update(res.segments, R, c, pred_all, res.left)
     return lmap, counts
 
 

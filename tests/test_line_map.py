@@ -130,7 +130,7 @@ def striped_run():
                        false_matches(res.left, unguided, f.disparity)))
         everything = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
                                   which=np.ones(len(lmap), bool))
-        lmap.update(res.segments, R, c, everything)
+        lmap.update(res.segments, R, c, everything, res.left)
     return world, lmap, rates
 
 

@@ -54,7 +54,7 @@ class MapParams:
     min_length_m: float = 0.05
     assoc_angle_deg: float = 6.0
     assoc_extra_m: float = 0.004       # added to both covariances (calibration/pose error), per axis sigma
-    overlap_margin_m: float = 0.05     # along-line gap still counted as overlapping
+    overlap_margin_m: float = 0.3      # collinear pieces this far apart along the line are one edge (LSD breaks edges)
     verify_views: int = 3
     view_baseline_m: float = 0.15
     view_angle_deg: float = 10.0
@@ -184,17 +184,7 @@ class LineMap:
         out = np.full((len(segs), 2), np.nan)
         if len(segs) == 0 or len(pred) == 0:
             return out
-        mid = 0.5 * (segs.xy[:, 0:2] + segs.xy[:, 2:4])
-        a, b = pred.xy[:, 0:2], pred.xy[:, 2:4]
-        ab = b - a
-        L2 = np.maximum((ab ** 2).sum(axis=1), 1e-9)
-        s = ((mid[:, None, :] - a[None]) * ab[None]).sum(axis=2) / L2[None]          # (N, K)
-        foot = a[None] + s[..., None] * ab[None]
-        dist = np.linalg.norm(mid[:, None, :] - foot, axis=2)
-        pdir = ab / np.sqrt(L2)[:, None]
-        cosang = np.abs(segs.direction @ pdir.T)
-        ok = ((dist <= self.params.predict_dist_px) & (s >= -0.1) & (s <= 1.1)
-              & (cosang >= math.cos(math.radians(self.params.predict_angle_deg))))
+        ok, dist, s = self._support_matrix(segs, pred)
         cost = np.where(ok, dist, np.inf)
         k = cost.argmin(axis=1)
         has = np.isfinite(cost[np.arange(len(segs)), k])
@@ -204,13 +194,37 @@ class LineMap:
         out[has, 1] = pred.sigma[k][has]
         return out
 
+    def supported(self, pred: Prediction, segs: Segments2D) -> np.ndarray:
+        """(K,) bool: some detected segment lies along each predicted one (direction and distance gates)."""
+        if len(segs) == 0 or len(pred) == 0:
+            return np.zeros(len(pred), bool)
+        # Anywhere along the predicted line's extension counts: LSD finds other pieces of a textured edge.
+        return self._support_matrix(segs, pred, -1.0, 2.0)[0].any(axis=0)
+
+    def _support_matrix(self, segs: Segments2D, pred: Prediction, s_lo: float = -0.1,
+                        s_hi: float = 1.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, K) bool: detected segment n lies along predicted segment k; with the distances (px) and the
+        position of n's midpoint along k (0..1)."""
+        mid = 0.5 * (segs.xy[:, 0:2] + segs.xy[:, 2:4])
+        a, b = pred.xy[:, 0:2], pred.xy[:, 2:4]
+        ab = b - a
+        L2 = np.maximum((ab ** 2).sum(axis=1), 1e-9)
+        s = ((mid[:, None, :] - a[None]) * ab[None]).sum(axis=2) / L2[None]
+        dist = np.linalg.norm(mid[:, None, :] - (a[None] + s[..., None] * ab[None]), axis=2)
+        cosang = np.abs(segs.direction @ (ab / np.sqrt(L2)[:, None]).T)
+        ok = ((dist <= self.params.predict_dist_px) & (s >= s_lo) & (s <= s_hi)
+              & (cosang >= math.cos(math.radians(self.params.predict_angle_deg))))
+        return ok, dist, s
+
     # -------------------------------------------------------------------- update
     def update(self, obs: Segments3D, R_wc: np.ndarray, t_wc: np.ndarray, pred: Optional[Prediction] = None,
-               fx: float = 0.0, baseline: float = 0.0) -> UpdateStats:
+               left: Optional[Segments2D] = None) -> UpdateStats:
         """Fuse one frame's 3D segments (left camera frame) seen from camera pose (R_wc, t_wc).
 
         pred: this frame's prediction of ALL map segments (``predict(..., which=all)``), used to count
-        misses; None skips the miss bookkeeping.
+        misses; None skips the miss bookkeeping. left: the frame's left-image segments; a predicted segment
+        that some detected segment lies along is not missed even if stereo did not reconstruct it this time
+        (LSD breaks textured edges into different pieces from frame to frame).
         """
         st = UpdateStats()
         self.frames += 1
@@ -243,6 +257,8 @@ class LineMap:
                 new_C.append(Cw[k])
                 new_group.append(groups.get(int(obs.group[k]), -1))
         if pred is not None:
+            if left is not None and len(pred):
+                seen[pred.index[self.supported(pred, left)]] = True
             self._count_misses(pred, seen)
         if new_P:
             self._insert(np.array(new_P), np.array(new_C), np.array(new_group), view)
