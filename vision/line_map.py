@@ -138,9 +138,9 @@ class LineMap:
     # ---------------------------------------------------------------- prediction
     def predict(self, R_wc: np.ndarray, t_wc: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                 baseline: float, width: int, height: int, which: Optional[np.ndarray] = None) -> Prediction:
-        """The map segments (``which``: a bool mask, default the verified ones) seen from camera pose
-        (R_wc, t_wc), clipped to the image and to ``max_range_m``."""
-        sel = self.verified if which is None else which
+        """The map segments (``which``: a bool mask; default the verified ones and the abstraction's hypotheses)
+        seen from camera pose (R_wc, t_wc), clipped to the image and to ``max_range_m``."""
+        sel = (self.verified | self.hypothesis) if which is None else which
         idx = np.nonzero(sel)[0]
         empty = Prediction(np.zeros(0, int), np.zeros((0, 4)), np.zeros((0, 2)), np.zeros(0))
         if len(idx) == 0:
