@@ -3,8 +3,10 @@ wall polygons, and hypotheses of the lines that are missing.
 
 Pure functions of the map's verified segments (world frame, y down, floor y = 0):
 
-- ``vertical_edges``: segments within ``vertical_deg`` of the vertical whose lower end reaches the floor
-  band: the corners of boxes and walls, as (x, z, height);
+- ``vertical_edges``: segments within ``vertical_deg`` of the vertical whose lower end is within
+  ``floor_band_m`` of the floor: the corners of boxes and walls, as (x, z, height). A vertical edge is
+  assumed to stand on the floor (man-made objects do): LSD rarely follows a textured edge all the way
+  down, so the band is wide;
 - ``box_polygons``: vertical edges of similar height within ``box_max_m`` of each other are the corners of
   one object: its footprint is their convex hull on the floor (two corners give the face between them);
 - ``missing_lines``: for an object with three corners seen, the fourth corner of the parallelogram is a
@@ -25,10 +27,10 @@ import numpy as np
 @dataclass(frozen=True)
 class AbstractionParams:
     vertical_deg: float = 8.0
-    floor_band_m: float = 0.1
+    floor_band_m: float = 0.5
     min_height_m: float = 0.15
     box_max_m: float = 1.3          # corners of one object are at most this far apart
-    height_tol_m: float = 0.1       # and their tops within this of each other
+    height_tol_m: float = 0.3       # and their tops within this of each other (LSD pieces end early)
     merge_m: float = 0.06           # vertical edges this close are one corner
 
 

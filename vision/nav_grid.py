@@ -3,12 +3,12 @@
 Marvin's map lets the robot plan through places it has only seen. The grid is
 the floor plan (x right, z forward, metres) at ``resolution_m`` per cell:
 
-- a verified segment that reaches the floor (its lower end within
-  ``floor_band_m`` of y = 0) is part of a wall or an object standing there:
-  its floor trace (the segment projected onto the floor) is an obstacle; a
-  vertical one marks the point where it stands;
+- a verified segment rising above the floor is part of a wall or an object
+  standing there: its floor trace (the segment projected onto the floor) is
+  an obstacle; a vertical one marks the point where it stands;
 - segments entirely above ``robot_height_m`` are overhangs the robot passes
-  under; other segments below it block their floor trace too;
+  under, segments lying within ``floor_band_m`` of the floor are markings it
+  drives over; any other segment blocks its floor trace too;
 - obstacles are grown by the robot radius plus ``clearance_m`` (distance
   transform), so the planner treats the robot as a point;
 - cells the map never saw are free (the obstacle stop watches what the map
@@ -68,8 +68,9 @@ def obstacle_traces(P: np.ndarray, params: GridParams = GridParams()) -> np.ndar
     if len(P) == 0:
         return np.zeros((0, 2, 2))
     height = -P[..., 1]                                  # m above the floor
-    low = height.min(axis=1)
-    blocks = low <= params.robot_height_m
+    low, high = height.min(axis=1), height.max(axis=1)
+    # Lines lying on the floor (texture, tape, shadows) are not obstacles; lines wholly above the robot neither.
+    blocks = (low <= params.robot_height_m) & (high >= params.floor_band_m)
     return P[blocks][..., [0, 2]]
 
 

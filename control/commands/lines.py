@@ -9,17 +9,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import sys
-import tempfile
 import time
 
 import cv2
 import numpy as np
 
 from vbnav.control.commands._common import output_file, positive
-from vbnav.control.commands.obstacles import _read_image, atomic_write_png
+from vbnav.control.image_files import read_image, write_json, write_png
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
 
@@ -57,19 +54,6 @@ def _bad(msg: str) -> int:
     return EXIT_BAD_INPUT
 
 
-def atomic_write_json(path: str, data) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=d)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def depth_colour(z: float, z_max: float) -> tuple:
     """BGR from red (near) to blue (far)."""
     a = float(np.clip(z / z_max, 0.0, 1.0))
@@ -91,8 +75,8 @@ def run(args) -> int:
     output_file(args.overlay_out, "--overlay-out")
     try:
         calib = load_stereo_calibration(args.calib)
-        left = _read_image(args.left, "left image")
-        right = _read_image(args.right, "right image")
+        left = read_image(args.left, "left image")
+        right = read_image(args.right, "right image")
         if left.shape[:2] != right.shape[:2]:
             return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
                         f"{right.shape[1]}x{right.shape[0]}")
@@ -117,9 +101,9 @@ def run(args) -> int:
     data = {"format": FORMAT, "version": VERSION, "frame": "left camera: x right, y down, z forward (m)",
             "image": {"width": w, "height": h}, "baseline_m": rig.baseline,
             "detected": {"left": len(res.left), "right": len(res.right)}, "segments": items}
-    atomic_write_json(args.out, data)
+    write_json(args.out, data)
     if args.overlay_out:
-        atomic_write_png(args.overlay_out, draw_segments(left, seg.left_xy, seg.P[..., 2].mean(axis=1)))
+        write_png(args.overlay_out, draw_segments(left, seg.left_xy, seg.P[..., 2].mean(axis=1)))
     ambiguous = len(set(res.segments.group[~res.segments.best].tolist()))
     print(f"vbnav lines: {len(res.left)} left / {len(res.right)} right segments, {len(seg)} reconstructed "
           f"({ambiguous} ambiguous), {(time.perf_counter() - t0) * 1e3:.0f} ms -> {args.out}")

@@ -36,7 +36,7 @@ def register(sub) -> None:
 
 
 def run_build(args) -> int:
-    from vbnav.control.commands.run import build_controller
+    from vbnav.control.controllers.manual import ScriptedController
     from vbnav.control.config import load_config
     from vbnav.control.line_map_file import save_map
     from vbnav.control.runtime.factory import make_robot
@@ -50,7 +50,7 @@ def run_build(args) -> int:
         stage = LineMapStage.from_config(cfg)
     except ValueError as exc:
         raise InputError(f"{cfg.source}: {exc}") from None
-    controller = build_controller(cfg, "scripted")
+    controller = ScriptedController(cfg.controller.script)
     robot = make_robot(cfg, [stage])
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     printer = ProgressPrinter()
@@ -115,7 +115,7 @@ def _panel(P: np.ndarray, colours: list, project, size=(600, 600), title="") -> 
 
 
 def run_plot(args) -> int:
-    from vbnav.control.commands.obstacles import atomic_write_png
+    from vbnav.control.image_files import write_png
     from vbnav.control.line_map_file import load_map
     output_file(args.out, "--out")
     lmap, meta = load_map(args.map)
@@ -135,6 +135,6 @@ def run_plot(args) -> int:
         return np.column_stack((xr, math.cos(el) * y + math.sin(el) * zr))
 
     view3d = _panel(P, colours, oblique, title="3D view")
-    atomic_write_png(args.out, np.hstack((top, view3d)))
+    write_png(args.out, np.hstack((top, view3d)))
     print(f"vbnav map plot: {len(P)} segments -> {args.out}", file=sys.stdout)
     return 0
