@@ -112,20 +112,15 @@ def test_map_file_round_trip_and_errors(room_map, tmp_path):
         load_map(p)
 
 
-def test_map_build_info_plot_commands(tmp_path):
-    import subprocess
-    import sys
+def test_map_build_info_plot_commands(tmp_path, capsys):
+    from vbnav.control.cli import main
     out, png = tmp_path / "m.json", tmp_path / "m.png"
-    cli = [sys.executable, "-m", "vbnav.control.cli", "map"]
-    r = subprocess.run(cli + ["build", "-c", "sim_stereo", "--out", str(out), "--duration", "0.6"],
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert "verified segments" in r.stdout
-    r = subprocess.run(cli + ["info", str(out)], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    info = json.loads(r.stdout)
-    assert info["frames"] >= 5 and info["segments"] > 0
-    r = subprocess.run(cli + ["plot", str(out), "--out", str(png), "--all"], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0 and png.stat().st_size > 1000, r.stderr
-    r = subprocess.run(cli + ["info", str(tmp_path / "missing.json")], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "map file not found" in r.stderr
+    assert main(["map", "build", "-c", "sim_stereo", "--out", str(out), "--duration", "0.4"]) == 0
+    assert "verified segments" in capsys.readouterr().out
+    assert main(["map", "info", str(out)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] >= 4 and info["segments"] > 0
+    assert main(["map", "plot", str(out), "--out", str(png), "--all"]) == 0
+    assert png.stat().st_size > 1000
+    assert main(["map", "info", str(tmp_path / "missing.json")]) == 2
+    assert "map file not found" in capsys.readouterr().err
