@@ -185,11 +185,12 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
 
 
 def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapParams = MapParams(),
-              guided: bool = True, compare: bool = False):
+              guided: bool = True, compare: bool = False, motion: bool = False):
     """Run the DLM's fast loop over the drive (true poses). With ``compare`` every frame is also matched
     without prediction and both best-match false rates are returned (true disparity decides)."""
     lmap = LineMap(map_params)
     counts = {"guided": [0, 0], "unguided": [0, 0]}
+    key = None                       # (left segments, R, c) of the last keyframe, for motion triangulation
     for f, (R, c) in zip(drive.frames, drive.cams):
         pred_v = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         prior_fn = (lambda segs: lmap.prior_for(segs, pred_v)) if guided else None
@@ -201,9 +202,17 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
                 wrong, total = false_matches(res.left, m, f.disparity)
                 counts[key][0] += wrong
                 counts[key][1] += total
+        segs3d = res.segments
+        if motion:
+            from vbnav.vision.line_motion import motion_segments
+            from vbnav.vision.line_segments import Segments3D
+            if key is not None:
+                segs3d = Segments3D.concat([segs3d, motion_segments(res.left, R, c, key[0], key[1], key[2], CAM.K)])
+            if key is None or np.linalg.norm(c - key[2]) >= 0.15:
+                key = (res.left, R, c)
         pred_all = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
                                 which=np.ones(len(lmap), bool))
-        lmap.update(res.segments, R, c, pred_all, res.left)
+        lmap.update(segs3d, R, c, pred_all, res.left)
     return lmap, counts
 
 

@@ -198,3 +198,33 @@ def test_kitti_verified_segments_reproject_within_1_5_px(shared_data):
             errs.append(np.abs((segs.xy[n].reshape(2, 2) - a) @ np.array([-d[1], d[0]])).max())
     assert len(errs) >= 50                               # measured 137
     assert np.median(errs) <= 1.5                        # measured 1.0 px
+
+
+# ------------------------------------------------------------------- motion triangulation
+def test_horizontal_line_triangulated_from_forward_motion():
+    """A frontal horizontal edge (no stereo disparity of its own) from two poses 0.3 m apart along the view."""
+    from vbnav.vision.line_motion import motion_segments, triangulate_two_views
+    from vbnav.vision.line_segments import Segments2D
+    K = CAM.K
+    edge = np.array([[-0.4, -0.5, 2.5], [0.4, -0.5, 2.5]])          # 0.5 m above the camera, 2.5 m ahead
+
+    def seen_from(z):
+        Pc = edge - [0.0, 0.0, z]
+        uv = (Pc @ K.T)[:, :2] / Pc[:, 2:3]
+        return uv.ravel()
+    s_now, s_key = seen_from(0.3), seen_from(0.0)
+    r = triangulate_two_views(s_now, I3, np.array([0, 0, 0.3]), s_key, I3, np.zeros(3), K)
+    assert r is not None
+    P, C = r
+    assert np.abs(P - edge).max() < 1e-6
+    sig = np.sqrt(np.linalg.eigvalsh(C[0]).max())
+    assert 1e-3 < sig < 0.1                                          # a few cm at 2.5 m with a 0.3 m baseline
+    # Sideways motion along the edge gives no baseline across it: refused.
+    s_side = (np.array([[-0.5, -0.5, 2.5], [0.3, -0.5, 2.5]]) @ K.T)
+    s_side = (s_side[:, :2] / s_side[:, 2:3]).ravel()
+    assert triangulate_two_views(s_side, I3, np.array([0.1, 0, 0]), s_key, I3, np.zeros(3), K) is None
+    # Through the matcher: same sides, same direction.
+    cur = Segments2D(s_now[None], np.array([[80.0, 160.0]]))
+    key = Segments2D(np.vstack((s_key, s_key + [0, 40, 0, 40])), np.array([[80.0, 160.0], [30.0, 200.0]]))
+    out = motion_segments(cur, I3, np.array([0, 0, 0.3]), key, I3, np.zeros(3), K)
+    assert len(out) == 1 and np.abs(out.P[0] - (edge - [0, 0, 0.3])).max() < 1e-6

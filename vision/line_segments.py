@@ -125,6 +125,19 @@ class Segments3D:
                           {k: v[keep] for k, v in self.extra.items()})
 
     @staticmethod
+    def concat(parts: list) -> "Segments3D":
+        """One Segments3D of several (``extra`` keeps the keys all parts have)."""
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return Segments3D.empty()
+        keys = set.intersection(*(set(p.extra) for p in parts))
+        cat = np.concatenate
+        return Segments3D(cat([p.P for p in parts]), cat([p.cov for p in parts]), cat([p.left_xy for p in parts]),
+                          cat([p.right_xy for p in parts]), cat([p.score for p in parts]),
+                          cat([p.group for p in parts]), cat([p.best for p in parts]),
+                          {k: cat([p.extra[k] for p in parts]) for k in keys})
+
+    @staticmethod
     def empty() -> "Segments3D":
         z = np.zeros
         return Segments3D(z((0, 2, 3)), z((0, 2, 3, 3)), z((0, 4)), z((0, 4)), z(0), z(0, int), z(0, bool))

@@ -27,7 +27,10 @@ from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_abstraction import AbstractionParams, box_polygons, missing_lines, vertical_edges
 from vbnav.vision.line_map import LineMap, MapParams
-from vbnav.vision.line_segments import LineParams, reconstruct_pair
+from vbnav.vision.line_motion import motion_segments
+from vbnav.vision.line_segments import LineParams, Segments3D, reconstruct_pair
+
+KEYFRAME_BASELINE_M = 0.15     # motion triangulation pairs the frame with a keyframe at least this far back
 
 
 class AbstractionThread:
@@ -84,7 +87,7 @@ class LineMapStage(VisionStage):
     def __init__(self, fx: float, fy: float, cx: float, cy: float, width: int, height: int, baseline: float,
                  mount: CameraMount, line_params: LineParams = LineParams(), map_params: MapParams = MapParams(),
                  lmap: Optional[LineMap] = None, pose_fn: Optional[Callable[[Pose2], Pose2]] = None,
-                 abstraction_period_s: Optional[float] = 1.0, guided: bool = True):
+                 abstraction_period_s: Optional[float] = 1.0, guided: bool = True, motion: bool = False):
         self.cam = (fx, fy, cx, cy)
         self.size = (width, height)
         self.baseline = baseline
@@ -93,6 +96,8 @@ class LineMapStage(VisionStage):
         self.map = lmap if lmap is not None else LineMap(map_params)
         self.pose_fn = pose_fn or (lambda odom: odom)
         self.guided = guided
+        self.motion = motion
+        self._key = None              # (left segments, R_wc, t_wc) of the last keyframe
         self.lock = threading.Lock()
         self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0}
         self.abstraction = None
@@ -134,18 +139,26 @@ class LineMapStage(VisionStage):
             pred = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H)
         prior_fn = (lambda segs: self.map.prior_for(segs, pred)) if self.guided else None
         res = reconstruct_pair(frame.image, frame.right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
+        segs = res.segments
+        if self.motion:
+            # Near-horizontal segments (no disparity of their own) from the robot's motion since the keyframe.
+            if self._key is not None:
+                K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+                segs = Segments3D.concat([segs, motion_segments(res.left, R, t, *self._key, K)])
+            if self._key is None or np.linalg.norm(t - self._key[2]) >= KEYFRAME_BASELINE_M:
+                self._key = (res.left, R, t)
         t1 = time.perf_counter()
         with self.lock:
             everything = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H,
                                           which=np.ones(len(self.map), bool))
-            st = self.map.update(res.segments, R, t, everything, res.left)
+            st = self.map.update(segs, R, t, everything, res.left)
             summary = self.map.summary()
         t2 = time.perf_counter()
         self.stats["frames"] += 1
         self.stats["detect_ms"] = (t1 - t0) * 1e3
         self.stats["update_ms"] = (t2 - t1) * 1e3
         return Estimate(frame.stamp_ns, self.kind, True, summary,
-                        {"segments": len(res.left), "reconstructed": len(res.segments), "fused": st.fused,
+                        {"segments": len(res.left), "reconstructed": len(segs), "fused": st.fused,
                          "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
                          "predicted": len(pred)})
 
