@@ -124,3 +124,32 @@ def test_map_build_info_plot_commands(tmp_path, capsys):
     assert png.stat().st_size > 1000
     assert main(["map", "info", str(tmp_path / "missing.json")]) == 2
     assert "map file not found" in capsys.readouterr().err
+
+
+def test_abstraction_thread_posts_hypotheses_the_sensor_loop_inserts():
+    import time
+
+    from vbnav.control.stages.line_map import LineMapStage
+    lmap = LineMap()
+    corners = np.array([[0.0, 2.0], [0.8, 2.0], [0.8, 2.6]])
+    P = np.array([[[x, 0.0, z], [x, -0.9, z]] for x, z in corners])
+    lmap._insert(P, np.broadcast_to(1e-4 * np.eye(3), (3, 2, 3, 3)).copy(), np.full(3, -1), np.zeros(4))
+    lmap.verified[:] = True
+    stage = LineMapStage(CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.width, CAM.height, BASELINE, MOUNT, lmap=lmap,
+                         abstraction_period_s=0.01)
+    stage.start()                                     # the slow loop in its own thread
+    try:
+        deadline = time.monotonic() + 5.0
+        while stage.abstraction.runs < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        stage.stop()
+    assert stage.abstraction.runs >= 2 and len(stage.abstraction.polygons) == 1
+    assert stage.abstraction.hypotheses.qsize() == 1           # one object's hypotheses, posted once
+    stage._drain_hypotheses()                                  # what process() does before each frame
+    assert stage.stats["hypotheses_in"] == 5 and lmap.hypothesis.sum() == 5
+    # Hypotheses are predicted (to be verified in view) and pruned by misses like any candidate.
+    from vbnav.vision.geometry import camera_pose
+    R, t = camera_pose(Pose2(0.4, 0.0, -math.radians(70.0)), MOUNT)     # the head (yaw 70 deg) looks along +z
+    pred = lmap.predict(R, t, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
+    assert np.isin(np.nonzero(lmap.hypothesis)[0], pred.index).any()
