@@ -153,3 +153,19 @@ def test_abstraction_thread_posts_hypotheses_the_sensor_loop_inserts():
     R, t = camera_pose(Pose2(0.4, 0.0, -math.radians(70.0)), MOUNT)     # the head (yaw 70 deg) looks along +z
     pred = lmap.predict(R, t, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
     assert np.isin(np.nonzero(lmap.hypothesis)[0], pred.index).any()
+
+
+def test_goto_map_refuses_unreachable_goal_and_start_without_map(tmp_path, capsys):
+    from vbnav.control.cli import main
+    # A closed square of 1 m high walls around (0, 3): a goal inside cannot be reached.
+    sq = [(-0.5, 2.5), (0.5, 2.5), (0.5, 3.5), (-0.5, 3.5)]
+    P = np.array([[[a[0], -0.5, a[1]], [b[0], -0.5, b[1]]] for a, b in zip(sq, sq[1:] + sq[:1])])
+    lmap = LineMap()
+    lmap._insert(P, np.broadcast_to(1e-4 * np.eye(3), (4, 2, 3, 3)).copy(), np.full(4, -1), np.zeros(4))
+    lmap.verified[:] = True
+    path = tmp_path / "box.json"
+    save_map(lmap, path)
+    assert main(["goto", "--map", str(path), "--goal", "0", "3", "0"]) == 1
+    assert "no path" in capsys.readouterr().err
+    assert main(["goto", "--start", "0", "0", "0", "--goal", "0", "3", "0"]) == 2
+    assert "--start needs --map" in capsys.readouterr().err
