@@ -2,8 +2,28 @@
 from __future__ import annotations
 
 import math
+import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
+
+
+def plan_on_map(path: str, start, goal, robot_radius: float):
+    """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the map's walls and objects."""
+    import dataclasses
+
+    import numpy as np
+
+    from vbnav.control.line_map_file import load_map
+    from vbnav.vision.line_abstraction import box_polygons, vertical_edges
+    from vbnav.vision.nav_grid import GridParams, build_grid, plan
+
+    lmap, meta = load_map(path)
+    V = lmap.P[lmap.verified]
+    polys = [p.footprint for p in box_polygons(vertical_edges(V))]
+    polys += [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
+    params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
+    grid = build_grid(V, params, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]), polygons=polys)
+    return plan(grid, (start.x, start.z), (goal.x, goal.z))
 
 
 def register(sub) -> None:
@@ -21,6 +41,15 @@ def register(sub) -> None:
     add_config_arg(p, default="sim_stereo")
     p.add_argument("--goal", required=True, nargs=3, type=finite, metavar=("X", "Z", "THETA_DEG"),
                    help="goal pose in the reference frame: x (m, right), z (m, forward), heading (degrees)")
+    p.add_argument("--map", metavar="MAP",
+                   help="a line map (vbnav map build): the goal is then in the map's frame, and the robot plans a "
+                        "path around the mapped walls and objects (A* on a grid grown by the robot radius) to a goal "
+                        "it may have only seen; the obstacle stop stays in force")
+    p.add_argument("--start", nargs=3, type=finite, default=None, metavar=("X", "Z", "THETA_DEG"),
+                   help="with --map: the robot's pose in the map's frame at the start (default 0 0 0: where the "
+                        "mapping drive started)")
+    p.add_argument("--robot-radius", type=positive, default=0.2, metavar="M",
+                   help="with --map: the robot's radius for planning, m")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
                    help="give up after S seconds (default 120; simulated seconds on the simulated clock)")
     p.set_defaults(func=run)
@@ -43,24 +72,52 @@ def run(args) -> int:
               "camera scaled by the wheels)")
         return 2
     goal = Pose2(args.goal[0], args.goal[1], math.radians(args.goal[2]))
+    waypoints = None
+    if args.start is not None and not args.map:
+        print("vbnav goto: --start needs --map (it places the robot in the map's frame)", file=sys.stderr)
+        return 2
+    if args.map:
+        start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
+        planned = plan_on_map(args.map, start, goal, args.robot_radius)
+        if planned is None:
+            print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
+                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
+            return 1
+        print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
+        # The controller works in the reference frame: the robot's pose at the start.
+        ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
+        waypoints = [(p.x, p.z) for p in ref]
+        goal = start.between(goal)
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:
         print(f"vbnav goto: {cfg.source}: {exc}")
         return 2
-    controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
+    controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
+                                waypoints=waypoints)
     robot = make_robot(cfg, [stage])
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     printer = ProgressPrinter()
+    # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
+    world = getattr(robot, "world", None) if args.map else None
+    every_s = 0.05 if world is not None else 1.0
+    closest = [math.inf]
+    ticks = [0]
 
     def progress(r: Runtime) -> None:
+        if world is not None:
+            p = robot.drive.true_pose
+            closest[0] = min(closest[0], world.clearance(p.x, p.z))
+        ticks[0] += 1
+        if ticks[0] % round(1.0 / every_s):
+            return
         s = controller.status()
         where = (f"at x={s['x']:+.2f} z={s['z']:+.2f} th={s['theta_deg']:+.1f}  {s['distance_m']:.2f} m to go"
                  if "x" in s else "waiting for the first VSLAM pose")
         printer(f"goto: {s.get('state')}  {where}  references {stage.stats['handoffs'] + 1}  "
                 f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}")
 
-    result = rt.run(args.duration, progress)
+    result = rt.run(args.duration, progress, progress_every_s=every_s)
     printer.done()
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
@@ -73,6 +130,8 @@ def run(args) -> int:
         print(f"simulator ground truth: x={true.x:+.3f} z={true.z:+.3f} theta={math.degrees(true.theta):+.2f} deg "
               f"(position error {err * 100:.1f} cm, heading error "
               f"{math.degrees(abs(math.remainder(true.theta - goal.theta, math.tau))):.2f} deg)")
+        if math.isfinite(closest[0]):
+            print(f"simulator ground truth: closest approach of the robot centre to a wall or box {closest[0]:.3f} m")
     for e in result.events:
         if e.kind != "hold" or result.reason != "finished":
             print(f"safety {e.kind}: {e.cause}: {e.message}")

@@ -52,9 +52,17 @@ class GotoController(Controller):
     requires = ("vslam",)
 
     def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float | None = None,
-                 max_angular_speed: float | None = None):
-        """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's)."""
-        self.goal = goal
+                 max_angular_speed: float | None = None, waypoints: Optional[list] = None,
+                 waypoint_tolerance_m: float = 0.15):
+        """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's).
+
+        waypoints: (x, z) points in the reference frame to pass on the way to ``goal`` (a path planned on the
+        line map's grid, vision/nav_grid.py); each counts as passed within ``waypoint_tolerance_m``.
+        """
+        self.final_goal = goal
+        self.waypoints = [tuple(w) for w in (waypoints or [])]
+        self.waypoint_tolerance_m = float(waypoint_tolerance_m)
+        self.goal = self._next_target(goal)
         self.cfg = cfg or GotoConfig()
         limits = RobotConfig()
         self.v_max = min(self.cfg.cruise_speed,
@@ -92,6 +100,9 @@ class GotoController(Controller):
             return STOP
         P = self._fusion.predict(ctx.odom)
         blind = self._fusion.blind_distance(ctx.odom)
+        if self.waypoints and math.hypot(P.x - self.goal.x, P.z - self.goal.z) <= self.waypoint_tolerance_m:
+            self.waypoints.pop(0)                   # passed: head for the next one (or the goal)
+            self.goal = self._next_target(self.final_goal)
         rho, alpha, beta = polar_coordinates(P, self.goal)
         dth = wrap_angle(self.goal.theta - P.theta)
         twist = self._law(ctx.now_ns, rho, alpha, beta, dth) if blind <= self.cfg.blind_distance_m else STOP
@@ -100,10 +111,20 @@ class GotoController(Controller):
                         "x": P.x, "z": P.z, "theta_deg": math.degrees(P.theta), "_pose": P}
         return twist
 
+    def _next_target(self, goal: Pose2) -> Pose2:
+        """The next waypoint (heading: toward the one after it) or the goal itself."""
+        if not self.waypoints:
+            return goal
+        x, z = self.waypoints[0]
+        nx, nz = self.waypoints[1] if len(self.waypoints) > 1 else (goal.x, goal.z)
+        return Pose2(x, z, math.atan2(nx - x, nz - z))
+
     def _law(self, now_ns: int, rho: float, alpha: float, beta: float, dth: float) -> Twist:
         c = self.cfg
         tol_th = math.radians(c.heading_tolerance_deg)
-        if self._phase in ("waiting", "drive") and rho <= c.position_tolerance_m:
+        if self.waypoints:                           # on the way: drive only, no final turn
+            self._phase = "drive"
+        elif self._phase in ("waiting", "drive") and rho <= c.position_tolerance_m:
             self._phase = "turn"
         elif self._phase in ("turn", "settle") and rho > c.redrive_factor * c.position_tolerance_m:
             self._phase, self._settled_ns = "drive", None   # pushed away (or a corrected estimate): drive again

@@ -1,0 +1,110 @@
+"""``vbnav lines``: 3D line segments from one rectified stereo pair (Marvin, section 11.2.1.1).
+
+Writes a JSON file with every reconstructed segment: its endpoints in the left
+camera frame (metres, x right, y down, z forward) with their covariances, its
+endpoints in both images and its match score; optionally an overlay of the
+segments on the left image coloured by depth.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+
+import cv2
+import numpy as np
+
+from vbnav.control.commands._common import output_file, positive
+from vbnav.control.image_files import read_image, write_json, write_png
+from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
+from vbnav.vision.line_segments import LineParams, reconstruct_pair
+
+EXIT_OK, EXIT_BAD_INPUT = 0, 2
+FORMAT, VERSION = "vbnav-line-segments", 1
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "lines", help="3D line segments from one rectified stereo pair",
+        description="Detect line segments (OpenCV LSD) in both rectified images, match them under the epipolar "
+                    "constraint (row overlap, direction and contrast polarity, side grey levels) and reconstruct "
+                    "each match as a 3D segment with the covariance of its endpoints (docs/line_map.md). Segments "
+                    "within --min-epipolar-angle of horizontal are not reconstructed: their disparity is "
+                    "undetermined. Writes JSON; prints a one-line summary.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--left", required=True, metavar="L", help="rectified left image")
+    p.add_argument("--right", required=True, metavar="R", help="rectified right image")
+    p.add_argument("--calib", required=True, metavar="FILE",
+                   help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (as for vbnav obstacles)")
+    p.add_argument("--out", required=True, metavar="SEGMENTS.json", help="the segments (JSON)")
+    p.add_argument("--overlay-out", metavar="PNG", help="segments drawn on the left image, colour = depth")
+    p.add_argument("--min-length", type=positive, default=LineParams.min_length_px, help="px")
+    p.add_argument("--min-depth", type=positive, default=None,
+                   help="m, nearest depth searched (sets the largest disparity); default 8 baselines")
+    p.add_argument("--min-epipolar-angle", type=positive, default=LineParams.min_epipolar_angle_deg,
+                   help="degrees to the image rows below which a segment is not reconstructed")
+    p.add_argument("--all-hypotheses", action="store_true",
+                   help="also write the rival matches of ambiguous segments (default: the best match only)")
+    p.set_defaults(func=run)
+
+
+def _bad(msg: str) -> int:
+    print(f"vbnav lines: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def depth_colour(z: float, z_max: float) -> tuple:
+    """BGR from red (near) to blue (far)."""
+    a = float(np.clip(z / z_max, 0.0, 1.0))
+    return (int(255 * a), 60, int(255 * (1 - a)))
+
+
+def draw_segments(image: np.ndarray, xy: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+    z_max = float(np.percentile(depth, 95)) if len(depth) else 1.0
+    for s, z in zip(xy, depth):
+        cv2.line(base, (int(round(s[0])), int(round(s[1]))), (int(round(s[2])), int(round(s[3]))),
+                 depth_colour(z, z_max), 2, cv2.LINE_AA)
+    return base
+
+
+def run(args) -> int:
+    t0 = time.perf_counter()
+    output_file(args.out, "--out")
+    output_file(args.overlay_out, "--overlay-out")
+    try:
+        calib = load_stereo_calibration(args.calib)
+        left = read_image(args.left, "left image")
+        right = read_image(args.right, "right image")
+        if left.shape[:2] != right.shape[:2]:
+            return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
+                        f"{right.shape[1]}x{right.shape[0]}")
+        h, w = left.shape[:2]
+        rig = calib.rig(w, h)
+    except (CalibrationError, ValueError, FileNotFoundError) as exc:
+        return _bad(str(exc))
+    min_depth = args.min_depth if args.min_depth is not None else 8.0 * rig.baseline
+    params = dataclasses.replace(LineParams(), min_length_px=args.min_length,
+                                 min_epipolar_angle_deg=args.min_epipolar_angle,
+                                 max_disparity_px=min(rig.fb / min_depth, w / 2.0))
+    res = reconstruct_pair(left, right, rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline, params)
+    seg = res.segments if args.all_hypotheses else res.segments.subset(res.segments.best)
+    items = []
+    for k in range(len(seg)):
+        items.append({
+            "p0_m": [round(float(v), 5) for v in seg.P[k, 0]], "p1_m": [round(float(v), 5) for v in seg.P[k, 1]],
+            "cov0_m2": np.round(seg.cov[k, 0], 8).tolist(), "cov1_m2": np.round(seg.cov[k, 1], 8).tolist(),
+            "left_px": [round(float(v), 3) for v in seg.left_xy[k]],
+            "right_px": [round(float(v), 3) for v in seg.right_xy[k]],
+            "score": round(float(seg.score[k]), 4), "best": bool(seg.best[k]), "group": int(seg.group[k])})
+    data = {"format": FORMAT, "version": VERSION, "frame": "left camera: x right, y down, z forward (m)",
+            "image": {"width": w, "height": h}, "baseline_m": rig.baseline,
+            "detected": {"left": len(res.left), "right": len(res.right)}, "segments": items}
+    write_json(args.out, data)
+    if args.overlay_out:
+        write_png(args.overlay_out, draw_segments(left, seg.left_xy, seg.P[..., 2].mean(axis=1)))
+    ambiguous = len(set(res.segments.group[~res.segments.best].tolist()))
+    print(f"vbnav lines: {len(res.left)} left / {len(res.right)} right segments, {len(seg)} reconstructed "
+          f"({ambiguous} ambiguous), {(time.perf_counter() - t0) * 1e3:.0f} ms -> {args.out}")
+    return EXIT_OK

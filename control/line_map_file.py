@@ -1,0 +1,95 @@
+"""The DLM on disk: one versioned JSON file, written to a temporary file and renamed (like routes).
+
+    {"format": "vbnav-line-map", "version": 1, "created": ..., "frames": N, "params": {...},
+     "segments": [{"id", "p0", "p1", "cov0", "cov1", "support", "misses", "verified", "group",
+                   "hypothesis", "views": [[x, y, z, heading], ...]}, ...]}
+
+Endpoints are world metres (x right, y down, z forward, floor y = 0). The information form is rebuilt
+from the covariances on load, so a loaded map keeps fusing.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vbnav.drivers.errors import InputError
+from vbnav.vision.line_map import LineMap, MapParams
+
+FORMAT, VERSION = "vbnav-line-map", 1
+
+
+class MapFileError(InputError):
+    """A map file is missing, corrupt, foreign or from a newer version; the message names the file."""
+
+
+def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
+    segs = []
+    for k in range(len(lmap)):
+        segs.append({"id": int(lmap.ids[k]), "p0": lmap.P[k, 0].round(6).tolist(), "p1": lmap.P[k, 1].round(6).tolist(),
+                     "cov0": lmap.cov[k, 0].round(10).tolist(), "cov1": lmap.cov[k, 1].round(10).tolist(),
+                     "support": int(lmap.support[k]), "misses": int(lmap.misses[k]),
+                     "verified": bool(lmap.verified[k]), "group": int(lmap.group[k]),
+                     "hypothesis": bool(lmap.hypothesis[k]),
+                     "views": [np.round(v, 5).tolist() for v in lmap.views[k]]})
+    data = {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "frames": int(lmap.frames), "params": dataclasses.asdict(lmap.params), "meta": meta or {},
+            "segments": segs}
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=path.parent if str(path.parent) else ".")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_map(path: str | Path) -> tuple[LineMap, dict]:
+    """(map, meta) from a map file; MapFileError names the file and what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapFileError(f"{path}: map file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise MapFileError(f"{path}: not a JSON map file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise MapFileError(f"{path}: not a vbnav line map (format {data.get('format') if isinstance(data, dict) else None!r},"
+                           f" expected {FORMAT!r})")
+    ver = data.get("version")
+    if not isinstance(ver, int) or ver < 1:
+        raise MapFileError(f"{path}: version must be an integer >= 1, got {ver!r}")
+    if ver > VERSION:
+        raise MapFileError(f"{path}: version {ver} is newer than this vbnav reads (<= {VERSION}); upgrade vbnav")
+    try:
+        known = {f.name for f in dataclasses.fields(MapParams)}
+        params = MapParams(**{k: v for k, v in data.get("params", {}).items() if k in known})
+        lmap = LineMap(params)
+        segs = data["segments"]
+        n = len(segs)
+        P = np.array([[s["p0"], s["p1"]] for s in segs], float).reshape(n, 2, 3)
+        C = np.array([[s["cov0"], s["cov1"]] for s in segs], float).reshape(n, 2, 3, 3)
+        if n:
+            lmap._insert(P, C, np.array([s["group"] for s in segs]), None)
+            lmap.ids = np.array([s["id"] for s in segs], int)
+            lmap.support = np.array([s["support"] for s in segs], int)
+            lmap.misses = np.array([s["misses"] for s in segs], int)
+            lmap.verified = np.array([s["verified"] for s in segs], bool)
+            lmap.hypothesis = np.array([s["hypothesis"] for s in segs], bool)
+            lmap.views = [[np.array(v, float) for v in s["views"]] for s in segs]
+            lmap.next_id = int(lmap.ids.max()) + 1
+            lmap.next_group = int(max(lmap.group.max(), -1)) + 1
+        lmap.frames = int(data.get("frames", 0))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise MapFileError(f"{path}: segments: malformed entry ({type(exc).__name__}: {exc})") from None
+    if not np.isfinite(lmap.P).all():
+        raise MapFileError(f"{path}: segments: endpoints must be finite numbers")
+    return lmap, data.get("meta", {})

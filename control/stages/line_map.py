@@ -1,0 +1,174 @@
+"""Marvin's three loops on the robot (section 11.2.1.1, Fig. 11.3).
+
+- ``LineMapStage`` (a VisionStage, kind "line_map"): the fast sensor loop, on the vision thread at frame
+  rate. Per stereo frame: predict the verified map segments from the pose, detect and match the pair with
+  the prediction as a prior (guided matching), fuse the 3D segments into the DLM (vision/line_map.py),
+  count misses, verify and prune. First it inserts the hypotheses the slow loop posted since the last frame.
+- ``AbstractionThread``: the slow loop, in its own thread every ``period_s``: takes a snapshot of the
+  verified segments, abstracts them to vertical edges and object polygons (vision/line_abstraction.py) and
+  posts missing-line hypotheses back through a queue; it never touches the map itself.
+- The mission loop (map-based goto, control/controllers/goto.py) reads the stage's object polygons and
+  verified segments to plan on a traversability grid (vision/nav_grid.py).
+
+The pose comes from ``pose_fn(odom)`` (default: the wheel odometry, in the frame the robot started in,
+which is the map's frame).
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.drivers.camera import Frame
+from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
+from vbnav.vision.line_abstraction import AbstractionParams, box_polygons, missing_lines, vertical_edges
+from vbnav.vision.line_map import LineMap, MapParams
+from vbnav.vision.line_motion import motion_segments
+from vbnav.vision.line_segments import LineParams, Segments3D, reconstruct_pair
+
+KEYFRAME_BASELINE_M = 0.15     # motion triangulation pairs the frame with a keyframe at least this far back
+
+
+class AbstractionThread:
+    """The slow loop: polygons and missing-line hypotheses from snapshots of the map, posted to a queue."""
+
+    def __init__(self, snapshot: Callable[[], np.ndarray], period_s: float = 1.0,
+                 params: AbstractionParams = AbstractionParams()):
+        self.snapshot = snapshot
+        self.period_s = float(period_s)
+        self.params = params
+        self.hypotheses: queue.Queue = queue.Queue()
+        self.polygons: list = []
+        self.runs = 0
+        self._posted: set = set()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    def step(self) -> int:
+        """One abstraction pass (also callable inline, e.g. on a simulated clock). Returns hypotheses posted."""
+        P = self.snapshot()
+        polys = box_polygons(vertical_edges(P, self.params), self.params)
+        self.polygons = polys
+        posted = 0
+        for poly in polys:
+            hyp = missing_lines(poly)
+            if len(hyp) == 0:
+                continue
+            key = tuple(np.round(poly.footprint.ravel(), 1))     # post each object's hypotheses once
+            if key in self._posted:
+                continue
+            self._posted.add(key)
+            self.hypotheses.put(hyp)
+            posted += len(hyp)
+        self.runs += 1
+        return posted
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="vbnav-line-abstraction", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.step()
+
+
+class LineMapStage(VisionStage):
+    kind = "line_map"
+
+    def __init__(self, fx: float, fy: float, cx: float, cy: float, width: int, height: int, baseline: float,
+                 mount: CameraMount, line_params: LineParams = LineParams(), map_params: MapParams = MapParams(),
+                 lmap: Optional[LineMap] = None, pose_fn: Optional[Callable[[Pose2], Pose2]] = None,
+                 abstraction_period_s: Optional[float] = 1.0, guided: bool = True, motion: bool = False):
+        self.cam = (fx, fy, cx, cy)
+        self.size = (width, height)
+        self.baseline = baseline
+        self.mount = mount
+        self.line_params = line_params
+        self.map = lmap if lmap is not None else LineMap(map_params)
+        self.pose_fn = pose_fn or (lambda odom: odom)
+        self.guided = guided
+        self.motion = motion
+        self._key = None              # (left segments, R_wc, t_wc) of the last keyframe
+        self.lock = threading.Lock()
+        self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0}
+        self.abstraction = None
+        if abstraction_period_s is not None:
+            self.abstraction = AbstractionThread(self.verified_snapshot, abstraction_period_s)
+
+    @classmethod
+    def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
+        cam = cfg.camera.to_model()
+        baseline = (cfg.camera.options or {}).get("stereo_baseline") if isinstance(cfg.camera.options, dict) \
+            else getattr(cfg.camera.options, "stereo_baseline", None)
+        if not baseline:
+            raise ValueError("the line map needs a stereo pair: camera.options.stereo_baseline is not set")
+        return cls(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, float(baseline),
+                   cfg.camera.mount.to_mount(), lmap=lmap, **kw)
+
+    def verified_snapshot(self) -> np.ndarray:
+        with self.lock:
+            return self.map.P[self.map.verified].copy()
+
+    def start(self) -> None:
+        if self.abstraction is not None:
+            self.abstraction.start()
+
+    def stop(self) -> None:
+        if self.abstraction is not None:
+            self.abstraction.stop()
+
+    def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
+        if frame.right is None:
+            raise ValueError("the line map needs a stereo pair: the camera delivers no right image")
+        fx, fy, cx, cy = self.cam
+        W, H = self.size
+        pose = self.pose_fn(odom)
+        R, t = camera_pose(pose, self.mount)
+        t0 = time.perf_counter()
+        with self.lock:
+            self._drain_hypotheses()
+            pred = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H)
+        prior_fn = (lambda segs: self.map.prior_for(segs, pred)) if self.guided else None
+        res = reconstruct_pair(frame.image, frame.right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
+        segs = res.segments
+        if self.motion:
+            # Near-horizontal segments (no disparity of their own) from the robot's motion since the keyframe.
+            if self._key is not None:
+                K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+                segs = Segments3D.concat([segs, motion_segments(res.left, R, t, *self._key, K)])
+            if self._key is None or np.linalg.norm(t - self._key[2]) >= KEYFRAME_BASELINE_M:
+                self._key = (res.left, R, t)
+        t1 = time.perf_counter()
+        with self.lock:
+            everything = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H,
+                                          which=np.ones(len(self.map), bool))
+            st = self.map.update(segs, R, t, everything, res.left)
+            summary = self.map.summary()
+        t2 = time.perf_counter()
+        self.stats["frames"] += 1
+        self.stats["detect_ms"] = (t1 - t0) * 1e3
+        self.stats["update_ms"] = (t2 - t1) * 1e3
+        return Estimate(frame.stamp_ns, self.kind, True, summary,
+                        {"segments": len(res.left), "reconstructed": len(segs), "fused": st.fused,
+                         "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
+                         "predicted": len(pred)})
+
+    def _drain_hypotheses(self) -> None:
+        if self.abstraction is None:
+            return
+        while True:
+            try:
+                hyp = self.abstraction.hypotheses.get_nowait()
+            except queue.Empty:
+                return
+            self.map.add_hypotheses(hyp)
+            self.stats["hypotheses_in"] += len(hyp)

@@ -1,0 +1,235 @@
+"""Shared scenes for the line-segment map tests: the simulated room's true edges, a 6 m loop of stereo
+frames, building the DLM along it and scoring a map against the world.
+
+Scoring (docs/line_map.md):
+- true edges: the 12 edges of every box and the edges of the walls (floor line, ceiling line, corners);
+- an edge is *in view* when at least 0.3 m of it was seen unoccluded within the map's range
+  (``MapParams.max_range_m``) in some frame of the drive (checked against the true disparity);
+- a verified map segment *belongs* to an edge when it is parallel (6 deg) and both endpoints are within
+  5 cm of the edge's line; an edge is *mapped* when segments belonging to it cover at least half of its
+  seen length (or 0.3 m);
+- endpoint error: distance of each endpoint of a belonging segment to the true edge (a segment, so an
+  endpoint running past the corner counts);
+- a verified segment is *false* when an endpoint is more than 5 cm from every surface of the world.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vbnav.drivers.sim.camera import SimCamera
+from vbnav.drivers.sim.world import World
+from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
+from vbnav.vision.line_map import LineMap, MapParams
+from vbnav.vision.line_segments import LineParams, reconstruct_pair
+
+CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
+# The mapping head looks out of the loop (yaw 70 deg to the right of travel on a counter-clockwise loop), so
+# one 6 m circle sweeps the camera across both boxes and the south wall, like Marvin's panning head.
+MOUNT = CameraMount(height=0.25, forward=0.10, yaw=math.radians(70.0))
+BASELINE = 0.075
+LOOP_CENTER = (0.0, -1.3)
+LOOP_RADIUS = 6.0 / (2 * math.pi)      # a 6 m loop between box_a and box_b
+
+
+def loop_poses(n: int, center=LOOP_CENTER, radius=LOOP_RADIUS, start_angle=-math.pi / 2) -> list[Pose2]:
+    """n poses around a circle, counter-clockwise seen from above, heading along the tangent."""
+    out = []
+    for k in range(n):
+        a = start_angle + 2 * math.pi * k / n
+        x, z = center[0] + radius * math.cos(a), center[1] + radius * math.sin(a)
+        # Tangent of increasing a: (-sin a, cos a); heading theta has forward (sin th, cos th).
+        out.append(Pose2(x, z, math.atan2(-math.sin(a), math.cos(a))))
+    return out
+
+
+def stereo_camera(world: World, noise: float = 2.0, seed: int = 0) -> SimCamera:
+    return SimCamera(world, CAM, MOUNT, lambda: Pose2(), None, 15.0, noise_std=noise, seed=seed,
+                     stereo_baseline=BASELINE)
+
+
+def true_edges(world: World) -> tuple[np.ndarray, list[str]]:
+    """(E, 2, 3) world edges of boxes and walls, and their owners' names."""
+    edges, names = [], []
+    seen = set()
+    for q in world.polygons:
+        if q.kind not in ("box", "wall"):
+            continue
+        c = q.corners
+        for i in range(4):
+            a, b = c[i], c[(i + 1) % 4]
+            key = tuple(sorted((tuple(np.round(a, 3)), tuple(np.round(b, 3)))))
+            if key in seen:
+                continue
+            seen.add(key)
+            edges.append((a, b))
+            names.append(q.name)
+    return np.array(edges, float), names
+
+
+def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances of points p (N, 3) to segments a->b (broadcast (M, 3)): (N, M)."""
+    ab = b - a
+    t = np.clip(((p[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab ** 2).sum(-1), 1e-12)[None], 0, 1)
+    return np.linalg.norm(p[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)
+
+
+def point_quad_distance(p: np.ndarray, world: World) -> np.ndarray:
+    """(N,) distance of points to the nearest world surface."""
+    best = np.full(len(p), np.inf)
+    for q in world.polygons:
+        d = p - q.origin
+        a = np.clip(d @ q.u, 0, q.width)
+        b = np.clip(d @ q.v, 0, q.height)
+        foot = q.origin + a[:, None] * q.u + b[:, None] * q.v
+        best = np.minimum(best, np.linalg.norm(p - foot, axis=1))
+    return best
+
+
+@dataclass
+class Drive:
+    poses: list
+    frames: list          # sim Frames (left, right, true disparity)
+    cams: list            # (R_wc, t_wc) per frame
+
+
+def render_drive(world: World, poses: list[Pose2], noise: float = 2.0) -> Drive:
+    sc = stereo_camera(world, noise)
+    frames = [sc.render_frame(p, seq=k) for k, p in enumerate(poses)]
+    return Drive(poses, frames, [camera_pose(p, MOUNT) for p in poses])
+
+
+def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30) -> np.ndarray:
+    """(E, n) bool: edge sample points seen unoccluded within max_range in some frame."""
+    t = (np.arange(n) + 0.5) / n
+    pts = edges[:, None, 0] + (edges[:, None, 1] - edges[:, None, 0]) * t[None, :, None]   # (E, n, 3)
+    flat = pts.reshape(-1, 3)
+    seen = np.zeros(len(flat), bool)
+    fb = CAM.fx * BASELINE
+    for f, (R, c) in zip(drive.frames, drive.cams):
+        pc = (flat - c) @ R
+        z = pc[:, 2]
+        ok = (z > 0.1) & (z <= max_range)
+        u = CAM.fx * pc[:, 0] / np.where(ok, z, 1) + CAM.cx
+        v = CAM.fy * pc[:, 1] / np.where(ok, z, 1) + CAM.cy
+        ok &= (u >= 2) & (u < CAM.width - 2) & (v >= 2) & (v < CAM.height - 2)
+        ui, vi = np.round(u[ok]).astype(int), np.round(v[ok]).astype(int)
+        # Unoccluded: some pixel within 1 px has the point's disparity (edges sit on depth boundaries).
+        d_pt = fb / z[ok]
+        best = np.full(ok.sum(), np.inf)
+        for dv in (-1, 0, 1):
+            for du in (-1, 0, 1):
+                dd = f.disparity[np.clip(vi + dv, 0, CAM.height - 1), np.clip(ui + du, 0, CAM.width - 1)]
+                best = np.minimum(best, np.abs(np.nan_to_num(dd, nan=-1e9) - d_pt) / d_pt)
+        idx = np.nonzero(ok)[0]
+        seen[idx[best < 0.03]] = True
+    return seen.reshape(len(edges), n)
+
+
+@dataclass
+class MapScore:
+    in_view: int
+    mapped: int
+    endpoint_err: np.ndarray
+    false_fraction: float
+    verified: int
+    missing: list
+
+    @property
+    def coverage(self) -> float:
+        return self.mapped / max(self.in_view, 1)
+
+
+def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, tol: float = 0.05,
+              angle_deg: float = 6.0) -> MapScore:
+    edges, names = true_edges(world)
+    n = 30
+    seen = seen_samples(edges, drive, lmap.params.max_range_m, n)
+    seg_len = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
+    seen_len = seen.mean(axis=1) * seg_len
+    in_view = np.nonzero(seen_len >= min_len)[0]
+    V = lmap.P[lmap.verified]
+    t = (np.arange(n) + 0.5) / n
+    mapped, errs, missing = 0, [], []
+    for e in in_view:
+        a, b = edges[e]
+        d = (b - a) / seg_len[e]
+        if len(V) == 0:
+            missing.append(names[e])
+            continue
+        sd = V[:, 1] - V[:, 0]
+        sd = sd / np.linalg.norm(sd, axis=1, keepdims=True)
+        par = np.abs(sd @ d) >= math.cos(math.radians(angle_deg))
+        s = ((V - a) @ d)                                       # (K, 2) along the edge
+        perp = np.linalg.norm(V - a - s[..., None] * d, axis=2).max(axis=1)
+        own = par & (perp <= tol) & (s.max(axis=1) >= 0) & (s.min(axis=1) <= seg_len[e])
+        cover = np.zeros(n, bool)
+        for k in np.nonzero(own)[0]:
+            lo, hi = s[k].min() / seg_len[e], s[k].max() / seg_len[e]
+            cover |= (t >= lo) & (t <= hi)
+            errs.extend(point_segment_distance(V[k], a[None], b[None])[:, 0])
+        covered = (cover & seen[e]).mean() * seg_len[e]
+        if covered >= min(min_len, 0.5 * seen_len[e]):
+            mapped += 1
+        else:
+            missing.append(names[e])
+    if len(V):
+        far = point_quad_distance(V.reshape(-1, 3), world).reshape(-1, 2).max(axis=1) > tol
+        false_fraction = float(far.mean())
+    else:
+        false_fraction = 0.0
+    return MapScore(len(in_view), mapped, np.array(errs), false_fraction, len(V), missing)
+
+
+def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapParams = MapParams(),
+              guided: bool = True, compare: bool = False, motion: bool = False):
+    """Run the DLM's fast loop over the drive (true poses). With ``compare`` every frame is also matched
+    without prediction and both best-match false rates are returned (true disparity decides)."""
+    lmap = LineMap(map_params)
+    counts = {"guided": [0, 0], "unguided": [0, 0]}
+    key = None                       # (left segments, R, c) of the last keyframe, for motion triangulation
+    for f, (R, c) in zip(drive.frames, drive.cams):
+        pred_v = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
+        prior_fn = (lambda segs: lmap.prior_for(segs, pred_v)) if guided else None
+        res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, params, prior_fn)
+        if compare:
+            from vbnav.vision.line_segments import match_stereo
+            un = match_stereo(res.left, res.right, params, None)
+            for key, m in (("guided", res.matches), ("unguided", un)):
+                wrong, total = false_matches(res.left, m, f.disparity)
+                counts[key][0] += wrong
+                counts[key][1] += total
+        segs3d = res.segments
+        if motion:
+            from vbnav.vision.line_motion import motion_segments
+            from vbnav.vision.line_segments import Segments3D
+            if key is not None:
+                segs3d = Segments3D.concat([segs3d, motion_segments(res.left, R, c, key[0], key[1], key[2], CAM.K)])
+            if key is None or np.linalg.norm(c - key[2]) >= 0.15:
+                key = (res.left, R, c)
+        pred_all = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
+                                which=np.ones(len(lmap), bool))
+        lmap.update(segs3d, R, c, pred_all, res.left)
+    return lmap, counts
+
+
+def false_matches(left, matches, true_disp: np.ndarray, tol_px: float = 1.0) -> tuple[int, int]:
+    """(wrong, total) among the best matches: disparity at the left midpoint off the truth by > tol_px
+    (the truth: the nearest disparity within 2 px, since segments sit on depth edges)."""
+    b = matches.best
+    if not b.any():
+        return 0, 0
+    xy = left.xy[matches.left[b]]
+    d = matches.disparity[b].mean(axis=1)
+    mx, my = (xy[:, 0] + xy[:, 2]) / 2, (xy[:, 1] + xy[:, 3]) / 2
+    H, W = true_disp.shape
+    wrong = 0
+    for x, y, dd in zip(mx, my, d):
+        xi, yi = int(round(x)), int(round(y))
+        win = true_disp[max(0, yi - 2):min(H, yi + 3), max(0, xi - 2):min(W, xi + 3)]
+        if not np.isfinite(win).any() or np.nanmin(np.abs(win - dd)) > tol_px:
+            wrong += 1
+    return wrong, int(b.sum())

@@ -1,0 +1,441 @@
+"""Marvin's local map of 3D line segments, the DLM (section 11.2.1.1, Figs. 11.3 and 11.4).
+
+The map is the centre of the fast sensor loop. Per stereo frame, given the
+camera pose (VSLAM, odometry or the map's own localisation):
+
+1. ``predict``: every map segment seen from the current pose, projected into
+   the left image with its expected disparity (inverse depth is affine along
+   the image of a 3D line, so the disparity at any point of the predicted
+   segment is a linear interpolation of the endpoints').
+2. ``prior_for``: guided matching. Each detected left segment that lies on a
+   predicted one (direction within ``predict_angle_deg``, distance within
+   ``predict_dist_px``) gets that prediction's disparity; the stereo matcher
+   raises the score of the candidates agreeing with it (vision/line_segments.py).
+3. ``update``: the reconstructed segments, moved into the world frame, are
+   associated with map segments (direction, and the Mahalanobis distance of
+   both endpoints across the line under both covariances), fused
+   (information-weighted: the covariance-weighted mean of the line, the union
+   of the extents along it), or inserted as new candidates. Rival stereo
+   hypotheses of one left segment are inserted together under one ``group``
+   and wait for another viewpoint to decide (Fig. 11.4).
+
+Verification rule (the chapter: correct matches stay close to their true
+position from every viewpoint, false matches move with the viewpoint): a
+segment is *verified* once it has been re-observed from ``verify_views``
+distinct viewpoints (camera centres at least ``view_baseline_m`` apart, or
+headings ``view_angle_deg`` apart). Verifying one hypothesis deletes its rivals.
+A candidate that the prediction says should be visible (in range, long enough
+in the image, steep enough to the epipolar lines to be reconstructed) but is
+not re-observed collects a miss; ``miss_limit`` misses before verification
+delete it. A verified segment is deleted once its misses exceed
+``verified_miss_factor`` x its support (the object moved).
+
+Everything here is pure: numbers in, numbers out, no I/O (vision/line_map_io.py
+reads and writes map files).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from vbnav.vision.line_segments import Segments2D, Segments3D
+
+CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
+ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no information about the line
+
+
+@dataclass(frozen=True)
+class MapParams:
+    max_range_m: float = 3.0           # insert/predict only nearer segments (depth sigma grows as z^2)
+    min_range_m: float = 0.5           # nearer "segments" are mostly high-order false matches (largest disparities)
+    min_length_m: float = 0.05
+    assoc_angle_deg: float = 6.0
+    assoc_extra_m: float = 0.004       # added to both covariances (calibration/pose error), per axis sigma
+    overlap_margin_m: float = 0.3      # collinear pieces this far apart along the line are one edge (LSD breaks edges)
+    verify_views: int = 3
+    view_baseline_m: float = 0.15
+    view_angle_deg: float = 10.0
+    miss_limit: int = 4
+    verified_miss_factor: float = 3.0
+    predict_angle_deg: float = 5.0
+    predict_dist_px: float = 3.0
+    predict_min_length_px: float = 25.0
+    min_epipolar_angle_deg: float = 20.0
+    prior_sigma_floor_px: float = 0.3
+
+
+@dataclass
+class Prediction:
+    """Map segments expected in the current view: ``index`` into the map's arrays, the clipped left-image
+    segments ``xy`` (K, 4), the disparity at their endpoints ``disparity`` (K, 2) and its sigma (K,)."""
+
+    index: np.ndarray
+    xy: np.ndarray
+    disparity: np.ndarray
+    sigma: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+@dataclass
+class UpdateStats:
+    observed: int = 0
+    fused: int = 0
+    inserted: int = 0
+    verified: int = 0
+    pruned: int = 0
+    rivals_dropped: int = 0
+
+
+@dataclass
+class LineMap:
+    """The DLM: M segments as parallel arrays (world frame: x right, y down, z forward, floor y = 0)."""
+
+    params: MapParams = field(default_factory=MapParams)
+    P: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))        # endpoints
+    info: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3, 3)))  # summed information per endpoint
+    info_vec: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3, 3)))   # inverse of info, kept in step
+    # Where a candidate was first seen: until verified it is re-observed only there, so a false match that
+    # drifts with the viewpoint cannot drag a fused estimate along with it frame by frame.
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
+    anchor_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3, 3)))
+    support: np.ndarray = field(default_factory=lambda: np.zeros(0, int))     # observations fused
+    misses: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    verified: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))       # rival hypotheses share one
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    hypothesis: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # inserted from an abstraction
+    views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
+    next_id: int = 0
+    next_group: int = 0
+    frames: int = 0
+
+    def __len__(self) -> int:
+        return len(self.P)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def direction(self) -> np.ndarray:
+        d = self.P[:, 1] - self.P[:, 0]
+        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+    @property
+    def length(self) -> np.ndarray:
+        return np.linalg.norm(self.P[:, 1] - self.P[:, 0], axis=1)
+
+    def covariance(self) -> np.ndarray:
+        """(M, 2, 3, 3) endpoint covariances across the line (the along-line part is the extent, not fused)."""
+        return self.cov
+
+    def verified_segments(self) -> np.ndarray:
+        return self.P[self.verified]
+
+    # ---------------------------------------------------------------- prediction
+    def predict(self, R_wc: np.ndarray, t_wc: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                baseline: float, width: int, height: int, which: Optional[np.ndarray] = None) -> Prediction:
+        """The map segments (``which``: a bool mask; default the verified ones and the abstraction's hypotheses)
+        seen from camera pose (R_wc, t_wc), clipped to the image and to ``max_range_m``."""
+        sel = (self.verified | self.hypothesis) if which is None else which
+        idx = np.nonzero(sel)[0]
+        empty = Prediction(np.zeros(0, int), np.zeros((0, 4)), np.zeros((0, 2)), np.zeros(0))
+        if len(idx) == 0:
+            return empty
+        Pc = (self.P[idx] - t_wc) @ R_wc                     # camera frame (K, 2, 3)
+        z = Pc[..., 2]
+        near = 0.1
+        # Clip in 3D to z >= near (parametric), then project and clip to the image.
+        t0, t1 = np.zeros(len(idx)), np.ones(len(idx))
+        dz = z[:, 1] - z[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tz = (near - z[:, 0]) / dz
+        t0 = np.where((z[:, 0] < near) & (dz > 0), np.maximum(t0, tz), t0)
+        t1 = np.where((z[:, 1] < near) & (dz < 0), np.minimum(t1, tz), t1)
+        alive = (t1 > t0) & ((z[:, 0] >= near) | (z[:, 1] >= near))
+        A = Pc[:, 0] + (Pc[:, 1] - Pc[:, 0]) * t0[:, None]
+        B = Pc[:, 0] + (Pc[:, 1] - Pc[:, 0]) * t1[:, None]
+        ua = np.column_stack((fx * A[:, 0] / A[:, 2] + cx, fy * A[:, 1] / A[:, 2] + cy))
+        ub = np.column_stack((fx * B[:, 0] / B[:, 2] + cx, fy * B[:, 1] / B[:, 2] + cy))
+        wa, wb = 1.0 / A[:, 2], 1.0 / B[:, 2]                 # inverse depth: affine along the image segment
+        s0, s1 = _clip_to_rect(ua, ub, width, height)
+        alive &= s1 > s0
+        pa = ua + (ub - ua) * s0[:, None]
+        pb = ua + (ub - ua) * s1[:, None]
+        w0 = wa + (wb - wa) * s0
+        w1 = wa + (wb - wa) * s1
+        in_range = (np.minimum(w0, w1) >= 1.0 / self.params.max_range_m)
+        long_enough = np.hypot(*(pb - pa).T) >= self.params.predict_min_length_px
+        keep = alive & in_range & long_enough
+        fb = fx * baseline
+        disp = np.column_stack((w0, w1))[keep] * fb
+        # Sigma of the predicted disparity from the map's covariance along the viewing direction.
+        cov = self.covariance()[idx[keep]]                         # (K, 2, 3, 3) world
+        ray = np.einsum("ij,kj->ki", R_wc, np.column_stack((np.zeros((keep.sum(), 2)), np.ones(keep.sum()))))
+        var_ray = np.einsum("ki,keij,kj->ke", ray, cov, ray).max(axis=1)
+        sig = np.maximum(disp.max(axis=1) ** 2 / fb * np.sqrt(var_ray), self.params.prior_sigma_floor_px)
+        return Prediction(idx[keep], np.column_stack((pa, pb))[keep], disp, sig)
+
+    def prior_for(self, segs: Segments2D, pred: Prediction) -> np.ndarray:
+        """(N, 2): predicted disparity at each detected left segment's midpoint and its sigma (NaN: none)."""
+        out = np.full((len(segs), 2), np.nan)
+        if len(segs) == 0 or len(pred) == 0:
+            return out
+        ok, dist, s = self._support_matrix(segs, pred)
+        cost = np.where(ok, dist, np.inf)
+        k = cost.argmin(axis=1)
+        has = np.isfinite(cost[np.arange(len(segs)), k])
+        sk = np.clip(s[np.arange(len(segs)), k], 0.0, 1.0)
+        d = pred.disparity[k, 0] + (pred.disparity[k, 1] - pred.disparity[k, 0]) * sk
+        out[has, 0] = d[has]
+        out[has, 1] = pred.sigma[k][has]
+        return out
+
+    def supported(self, pred: Prediction, segs: Segments2D) -> np.ndarray:
+        """(K,) bool: some detected segment lies along each predicted one (direction and distance gates)."""
+        if len(segs) == 0 or len(pred) == 0:
+            return np.zeros(len(pred), bool)
+        # Anywhere along the predicted line's extension counts: LSD finds other pieces of a textured edge.
+        return self._support_matrix(segs, pred, -1.0, 2.0)[0].any(axis=0)
+
+    def _support_matrix(self, segs: Segments2D, pred: Prediction, s_lo: float = -0.1,
+                        s_hi: float = 1.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, K) bool: detected segment n lies along predicted segment k; with the distances (px) and the
+        position of n's midpoint along k (0..1)."""
+        mid = 0.5 * (segs.xy[:, 0:2] + segs.xy[:, 2:4])
+        a, b = pred.xy[:, 0:2], pred.xy[:, 2:4]
+        ab = b - a
+        L2 = np.maximum((ab ** 2).sum(axis=1), 1e-9)
+        s = ((mid[:, None, :] - a[None]) * ab[None]).sum(axis=2) / L2[None]
+        dist = np.linalg.norm(mid[:, None, :] - (a[None] + s[..., None] * ab[None]), axis=2)
+        cosang = np.abs(segs.direction @ (ab / np.sqrt(L2)[:, None]).T)
+        ok = ((dist <= self.params.predict_dist_px) & (s >= s_lo) & (s <= s_hi)
+              & (cosang >= math.cos(math.radians(self.params.predict_angle_deg))))
+        return ok, dist, s
+
+    # -------------------------------------------------------------------- update
+    def update(self, obs: Segments3D, R_wc: np.ndarray, t_wc: np.ndarray, pred: Optional[Prediction] = None,
+               left: Optional[Segments2D] = None) -> UpdateStats:
+        """Fuse one frame's 3D segments (left camera frame) seen from camera pose (R_wc, t_wc).
+
+        pred: this frame's prediction of ALL map segments (``predict(..., which=all)``), used to count
+        misses; None skips the miss bookkeeping. left: the frame's left-image segments; a predicted segment
+        that some detected segment lies along is not missed even if stereo did not reconstruct it this time
+        (LSD breaks textured edges into different pieces from frame to frame).
+        """
+        st = UpdateStats()
+        self.frames += 1
+        p = self.params
+        if len(obs):
+            zc = obs.P[..., 2]
+            keep = (zc.max(axis=1) <= p.max_range_m) & (zc.min(axis=1) >= p.min_range_m) & (np.linalg.norm(obs.P[:, 1] - obs.P[:, 0], axis=1) >= p.min_length_m)
+            obs = obs.subset(keep)
+        Pw = obs.P @ R_wc.T + t_wc
+        Cw = np.einsum("ij,kejl,ml->keim", R_wc, obs.cov, R_wc)
+        heading = math.atan2(R_wc[0, 2], R_wc[2, 2])
+        view = np.array([t_wc[0], t_wc[1], t_wc[2], heading])
+        st.observed = len(obs)
+        seen = np.zeros(len(self), bool)
+        # Rival hypotheses of one left segment: one group id per left segment with > 1 candidate.
+        groups = {}
+        for g in np.unique(obs.group):
+            if (obs.group == g).sum() > 1:
+                groups[int(g)] = self.next_group
+                self.next_group += 1
+        new_P, new_C, new_group = [], [], []
+        for k in range(len(obs)):
+            j = self._associate(Pw[k], Cw[k])
+            if j is not None:
+                self._fuse(j, Pw[k], Cw[k], view)
+                seen[j] = True
+                st.fused += 1
+            else:
+                new_P.append(Pw[k])
+                new_C.append(Cw[k])
+                new_group.append(groups.get(int(obs.group[k]), -1))
+        if pred is not None:
+            if left is not None and len(pred):
+                seen[pred.index[self.supported(pred, left)]] = True
+            self._count_misses(pred, seen)
+        if new_P:
+            self._insert(np.array(new_P), np.array(new_C), np.array(new_group), view)
+            st.inserted = len(new_P)
+        st.verified, st.rivals_dropped = self._verify()
+        st.pruned = self._prune()
+        return st
+
+    def _perp_cov(self, C: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return C + ALONG_VAR * np.outer(t, t)
+
+    def _associate(self, Pw: np.ndarray, Cw: np.ndarray) -> Optional[int]:
+        """The map segment this observation re-observes, or None."""
+        if len(self) == 0:
+            return None
+        p = self.params
+        t_obs = Pw[1] - Pw[0]
+        t_obs = t_obs / max(np.linalg.norm(t_obs), 1e-12)
+        ref = np.where(self.verified[:, None, None], self.P, self.anchor)
+        dirs = ref[:, 1] - ref[:, 0]
+        lengths = np.linalg.norm(dirs, axis=1)
+        dirs = dirs / np.maximum(lengths, 1e-12)[:, None]
+        cosang = dirs @ t_obs
+        cand = np.nonzero(np.abs(cosang) >= math.cos(math.radians(p.assoc_angle_deg)))[0]
+        if len(cand) == 0:
+            return None
+        # Coarse gate: obs midpoint within 0.5 m of the map line, then overlap along the line.
+        a = ref[cand, 0]
+        d = dirs[cand]
+        ext = lengths[cand]
+        s_obs = np.stack([((Pw[e] - a) * d).sum(axis=1) for e in range(2)], axis=1)   # (K, 2) along the line
+        lo, hi = s_obs.min(axis=1), s_obs.max(axis=1)
+        overlap = (hi >= -p.overlap_margin_m) & (lo <= ext + p.overlap_margin_m)
+        foot = [a + s_obs[:, e:e + 1] * d for e in range(2)]
+        r = np.stack([Pw[e] - foot[e] for e in range(2)], axis=1)                    # (K, 2, 3)
+        coarse = overlap & (np.linalg.norm(r, axis=2).max(axis=1) < 0.5)
+        cand, r, d = cand[coarse], r[coarse], d[coarse]
+        if len(cand) == 0:
+            return None
+        Cm = np.where(self.verified[cand, None, None, None], self.cov[cand], self.anchor_cov[cand])
+        extra = p.assoc_extra_m ** 2 * np.eye(3)
+        # Match the observation's endpoints to the map's perpendicular covariances by the nearer map end.
+        S = Cm.mean(axis=1)[:, None] + Cw[None] + extra + ALONG_VAR * np.einsum("ki,kj->kij", d, d)[:, None]
+        m2 = np.einsum("kei,keij,kej->ke", r, np.linalg.inv(S), r)
+        ok = (m2 <= CHI2_3_99).all(axis=1)
+        if not ok.any():
+            return None
+        score = np.where(ok, m2.sum(axis=1), np.inf)
+        # Prefer verified segments over candidates when both gate.
+        score = score - 1e3 * self.verified[cand]
+        return int(cand[int(np.argmin(score))])
+
+    def _fuse(self, j: int, Pw: np.ndarray, Cw: np.ndarray, view: np.ndarray) -> None:
+        t = self.direction[j]
+        if (Pw[1] - Pw[0]) @ t < 0:
+            Pw, Cw = Pw[::-1], Cw[::-1]
+        for e in range(2):
+            W = np.linalg.inv(self._perp_cov(Cw[e], t))
+            self.info[j, e] += W
+            self.info_vec[j, e] += W @ Pw[e]
+        # Fused line (information-weighted), extent = union of what was seen along it.
+        self.cov[j] = np.linalg.inv(self.info[j])
+        q = np.einsum("eij,ej->ei", self.cov[j], self.info_vec[j])                    # (2, 3)
+        tq = q[1] - q[0]
+        tq = tq / max(np.linalg.norm(tq), 1e-12)
+        s = [float((x - q[0]) @ tq) for x in (self.P[j, 0], self.P[j, 1], Pw[0], Pw[1])]
+        self.P[j, 0] = q[0] + min(s) * tq
+        self.P[j, 1] = q[0] + max(s) * tq
+        self.support[j] += 1
+        self.misses[j] = max(0, self.misses[j] - 1)
+        self._add_view(j, view)
+
+    def _add_view(self, j: int, view: np.ndarray) -> None:
+        p = self.params
+        for v in self.views[j]:
+            if (np.linalg.norm(v[:3] - view[:3]) < p.view_baseline_m
+                    and abs(math.remainder(v[3] - view[3], math.tau)) < math.radians(p.view_angle_deg)):
+                return
+        self.views[j].append(view.copy())
+
+    def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
+                hypothesis: bool = False) -> np.ndarray:
+        n = len(Pw)
+        info = np.zeros((n, 2, 3, 3))
+        vec = np.zeros((n, 2, 3))
+        for k in range(n):
+            t = Pw[k, 1] - Pw[k, 0]
+            t = t / max(np.linalg.norm(t), 1e-12)
+            for e in range(2):
+                info[k, e] = np.linalg.inv(self._perp_cov(Cw[k, e], t))
+                vec[k, e] = info[k, e] @ Pw[k, e]
+        self.P = np.concatenate((self.P, Pw))
+        self.info = np.concatenate((self.info, info))
+        self.info_vec = np.concatenate((self.info_vec, vec))
+        self.cov = np.concatenate((self.cov, np.linalg.inv(info)))
+        self.anchor = np.concatenate((self.anchor, Pw))
+        self.anchor_cov = np.concatenate((self.anchor_cov, self.cov[len(self.cov) - n:]))
+        self.support = np.concatenate((self.support, np.ones(n, int)))
+        self.misses = np.concatenate((self.misses, np.zeros(n, int)))
+        self.verified = np.concatenate((self.verified, np.zeros(n, bool)))
+        self.group = np.concatenate((self.group, group.astype(int)))
+        new_ids = np.arange(self.next_id, self.next_id + n)
+        self.ids = np.concatenate((self.ids, new_ids))
+        self.hypothesis = np.concatenate((self.hypothesis, np.full(n, hypothesis)))
+        self.next_id += n
+        self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
+        return new_ids
+
+    def _count_misses(self, pred: Prediction, seen: np.ndarray) -> None:
+        if len(pred) == 0:
+            return
+        d = pred.xy[:, 2:4] - pred.xy[:, 0:2]
+        steep = np.abs(d[:, 1]) / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9) >= \
+            math.sin(math.radians(self.params.min_epipolar_angle_deg))
+        idx = pred.index[steep]
+        idx = idx[idx < len(seen)]
+        missed = idx[~seen[idx]]
+        self.misses[missed] += 1
+
+    def _verify(self) -> tuple[int, int]:
+        nviews = np.array([len(v) for v in self.views], int)
+        newly = (~self.verified) & (nviews >= self.params.verify_views)
+        self.verified |= newly
+        # A verified hypothesis decides its group: its rivals go.
+        drop = np.zeros(len(self), bool)
+        for g in np.unique(self.group[newly]):
+            if g >= 0:
+                drop |= (self.group == g) & ~self.verified
+        self._remove(drop)
+        return int(newly.sum()), int(drop.sum())
+
+    def _prune(self) -> int:
+        p = self.params
+        drop = (~self.verified & (self.misses >= p.miss_limit)) | \
+            (self.verified & (self.misses > p.verified_miss_factor * self.support))
+        self._remove(drop)
+        return int(drop.sum())
+
+    def _remove(self, drop: np.ndarray) -> None:
+        if not drop.any():
+            return
+        keep = ~drop
+        for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis"):
+            setattr(self, name, getattr(self, name)[keep])
+        self.views = [v for v, k in zip(self.views, keep) if k]
+
+    # --------------------------------------------------------- abstraction input
+    def add_hypotheses(self, P: np.ndarray, sigma_m: float = 0.05) -> np.ndarray:
+        """Insert missing-line hypotheses from the abstraction module (world frame, (K, 2, 3)): candidates
+        with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. Returns ids."""
+        P = np.asarray(P, float).reshape(-1, 2, 3)
+        if len(P) == 0:
+            return np.zeros(0, int)
+        C = np.broadcast_to(sigma_m ** 2 * np.eye(3), (len(P), 2, 3, 3)).copy()
+        ids = self._insert(P, C, np.full(len(P), -1), None, hypothesis=True)
+        for k in range(len(self) - len(P), len(self)):
+            self.views[k] = []
+            self.support[k] = 0
+        return ids
+
+    def summary(self) -> dict:
+        return {"segments": int(len(self)), "verified": int(self.verified.sum()),
+                "candidates": int((~self.verified).sum()), "hypotheses": int(self.hypothesis.sum()),
+                "frames": int(self.frames),
+                "total_length_m": round(float(self.length[self.verified].sum()), 3) if len(self) else 0.0}
+
+
+def _clip_to_rect(a: np.ndarray, b: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Liang-Barsky: parameter range [s0, s1] of segments a->b inside [0, W-1] x [0, H-1] (s1 < s0: outside)."""
+    d = b - a
+    s0, s1 = np.zeros(len(a)), np.ones(len(a))
+    for axis, lim in ((0, width - 1.0), (1, height - 1.0)):
+        for p, q in ((-d[:, axis], a[:, axis]), (d[:, axis], lim - a[:, axis])):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = q / p
+            par = np.abs(p) < 1e-12
+            s0 = np.where(~par & (p < 0), np.maximum(s0, r), s0)
+            s1 = np.where(~par & (p > 0), np.minimum(s1, r), s1)
+            s1 = np.where(par & (q < 0), -1.0, s1)
+    return s0, s1

@@ -1,0 +1,356 @@
+"""Line segments in a rectified stereo pair and their 3D reconstruction (Marvin, section 11.2.1.1).
+
+Marvin reconstructs the boundaries of man-made objects as 3D line segments.
+Here that is three steps, all pure (arrays in, arrays out):
+
+1. ``detect_segments``: OpenCV's LSD (``createLineSegmentDetector``: sub-pixel,
+   parameter-free apart from a length floor, no edge thresholds to tune per
+   scene) in each image, plus an appearance descriptor per segment: the mean grey
+   level on either side of it, sampled a few pixels off the line.
+2. ``match_stereo``: in a rectified pair a 3D line seen by both cameras lies on
+   the same rows, so a left segment's partner is a right segment overlapping
+   it in y (the epipolar constraint), with the same direction and contrast
+   polarity (LSD orients segments by the gradient), a disparity in range and a
+   similar grey level on at least one side (at an occluding boundary only the
+   near side looks the same from both cameras). Score = row overlap x
+   appearance. Every candidate within ``ambiguity_ratio`` of the best is kept as
+   a hypothesis (Fig. 11.4), and an optional prediction (expected disparity per
+   left segment, from the map) raises the score of the candidates it agrees with.
+3. ``triangulate``: each endpoint's disparity is where the right segment's line
+   crosses the endpoint's row; depth z = fx B / d (11.1). The covariance of each
+   3D endpoint is propagated from the image: sigma_perp across the line,
+   sigma_along along it (LSD endpoints are weak along the line), and the
+   disparity's sigma sqrt(2) sigma_perp / |sin(angle to the rows)|, which grows
+   without bound as a segment turns parallel to the epipolar lines; segments
+   closer than ``min_epipolar_angle_deg`` to horizontal are not reconstructed
+   (their disparity is undetermined by the line itself).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LineParams:
+    """Detection, matching and uncertainty settings (pixels unless stated)."""
+
+    min_length_px: float = 25.0         # shorter LSD segments are texture detail, not object boundaries
+    side_offset_px: float = 3.0         # where the side grey levels are sampled (beyond LSD's ~2 px support)
+    side_samples: int = 9               # points along the segment for the side grey levels
+    max_angle_diff_deg: float = 12.0    # left/right direction difference allowed (perspective changes it a little)
+    min_epipolar_angle_deg: float = 20.0  # angle to the rows below which disparity is ill-conditioned
+    min_overlap: float = 0.5            # shared rows / rows of the shorter segment
+    min_disparity_px: float = 0.5
+    max_disparity_px: float = 120.0
+    appearance_sigma: float = 12.0      # grey levels: side means differing by this score exp(-1/2)
+    ambiguity_ratio: float = 0.8        # candidates scoring >= this x the best are kept as hypotheses
+    min_score: float = 0.25
+    sigma_perp_px: float = 0.3          # LSD's line position accuracy across the line (measured in tests)
+    sigma_along_px: float = 2.0         # endpoint accuracy along the line
+    prior_bonus: float = 1.0            # score x (1 + bonus) for a candidate the prediction agrees with
+    prior_gate_px: float = 1.5          # |d - d_predicted| allowed on top of 3 sigma of the prediction
+
+
+@dataclass
+class Segments2D:
+    """N image segments: ``xy`` (N, 4) = x0, y0, x1, y1 (px, LSD orientation), ``sides`` (N, 2) grey levels
+    left / right of the direction of travel."""
+
+    xy: np.ndarray
+    sides: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    @property
+    def length(self) -> np.ndarray:
+        return np.hypot(self.xy[:, 2] - self.xy[:, 0], self.xy[:, 3] - self.xy[:, 1])
+
+    @property
+    def direction(self) -> np.ndarray:
+        """(N, 2) unit directions from endpoint 0 to endpoint 1."""
+        d = self.xy[:, 2:4] - self.xy[:, 0:2]
+        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+@dataclass
+class StereoMatches:
+    """Candidate pairs (left index, right index), their scores and disparities at the left endpoints.
+
+    ``group`` is the left index: several rows with the same group are rival
+    hypotheses for one left segment; ``best`` marks the top-scoring one of each.
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    score: np.ndarray
+    disparity: np.ndarray      # (K, 2) px at the left segment's endpoints
+    best: np.ndarray           # bool (K,)
+    predicted: np.ndarray      # bool (K,): the prediction agreed with this candidate
+
+    def __len__(self) -> int:
+        return len(self.left)
+
+    def subset(self, keep: np.ndarray) -> "StereoMatches":
+        return StereoMatches(self.left[keep], self.right[keep], self.score[keep], self.disparity[keep],
+                             self.best[keep], self.predicted[keep])
+
+
+@dataclass
+class Segments3D:
+    """K 3D segments in the left camera frame: ``P`` (K, 2, 3) m, ``cov`` (K, 2, 3, 3) m^2,
+    with the image segments they came from (``left_xy``, ``right_xy`` (K, 4)), the match ``score`` and
+    ``group`` / ``best`` from the matcher (rival hypotheses share a group)."""
+
+    P: np.ndarray
+    cov: np.ndarray
+    left_xy: np.ndarray
+    right_xy: np.ndarray
+    score: np.ndarray
+    group: np.ndarray
+    best: np.ndarray
+    extra: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.P)
+
+    def subset(self, keep) -> "Segments3D":
+        return Segments3D(self.P[keep], self.cov[keep], self.left_xy[keep], self.right_xy[keep],
+                          self.score[keep], self.group[keep], self.best[keep],
+                          {k: v[keep] for k, v in self.extra.items()})
+
+    @staticmethod
+    def concat(parts: list) -> "Segments3D":
+        """One Segments3D of several (``extra`` keeps the keys all parts have)."""
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return Segments3D.empty()
+        keys = set.intersection(*(set(p.extra) for p in parts))
+        cat = np.concatenate
+        return Segments3D(cat([p.P for p in parts]), cat([p.cov for p in parts]), cat([p.left_xy for p in parts]),
+                          cat([p.right_xy for p in parts]), cat([p.score for p in parts]),
+                          cat([p.group for p in parts]), cat([p.best for p in parts]),
+                          {k: cat([p.extra[k] for p in parts]) for k in keys})
+
+    @staticmethod
+    def empty() -> "Segments3D":
+        z = np.zeros
+        return Segments3D(z((0, 2, 3)), z((0, 2, 3, 3)), z((0, 4)), z((0, 4)), z(0), z(0, int), z(0, bool))
+
+
+# ------------------------------------------------------------------------------------- detection
+_LSD = None
+
+
+def _detector():
+    global _LSD
+    if _LSD is None:    # one detector per process: creating it allocates its tables
+        _LSD = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+    return _LSD
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.dtype != np.uint8:
+        return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return image
+
+
+def detect_segments(image: np.ndarray, params: LineParams = LineParams()) -> Segments2D:
+    """LSD segments at least ``min_length_px`` long, with their side grey levels."""
+    g = grey(image)
+    found = _detector().detect(g)[0]
+    xy = np.zeros((0, 4)) if found is None else found.reshape(-1, 4).astype(np.float64)
+    length = np.hypot(xy[:, 2] - xy[:, 0], xy[:, 3] - xy[:, 1])
+    xy = xy[length >= params.min_length_px]
+    return Segments2D(xy, side_means(g, xy, params))
+
+
+def side_means(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams()) -> np.ndarray:
+    """(N, 2) mean grey level ``side_offset_px`` to the left / right of each segment (bilinear samples)."""
+    if len(xy) == 0:
+        return np.zeros((0, 2))
+    k = params.side_samples
+    t = (np.arange(k) + 0.5) / k
+    p0, p1 = xy[:, None, 0:2], xy[:, None, 2:4]
+    pts = p0 + (p1 - p0) * t[None, :, None]                        # (N, k, 2)
+    d = (xy[:, 2:4] - xy[:, 0:2])
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    nrm = np.column_stack((d[:, 1], -d[:, 0]))[:, None, :]        # left of travel in image coords (y down)
+    out = []
+    for sign in (1.0, -1.0):
+        q = (pts + sign * params.side_offset_px * nrm).astype(np.float32)
+        vals = cv2.remap(image.astype(np.float32), q[..., 0], q[..., 1], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+        out.append(vals.mean(axis=1))
+    return np.column_stack(out).astype(np.float64)
+
+
+# -------------------------------------------------------------------------------------- matching
+def _x_at(xy: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x where each segment's line crosses row y (broadcasting; segments must not be horizontal)."""
+    x0, y0, x1, y1 = (xy[..., i] for i in range(4))
+    return x0 + (y - y0) * (x1 - x0) / np.where(np.abs(y1 - y0) < 1e-9, 1e-9, y1 - y0)
+
+
+def epipolar_angle(seg: Segments2D) -> np.ndarray:
+    """Angle (rad, 0..pi/2) of each segment to the image rows."""
+    d = seg.direction
+    return np.arcsin(np.clip(np.abs(d[:, 1]), 0.0, 1.0))
+
+
+def match_stereo(left: Segments2D, right: Segments2D, params: LineParams = LineParams(),
+                 prior: Optional[np.ndarray] = None) -> StereoMatches:
+    """Candidate matches of left to right segments under the epipolar constraint.
+
+    prior: optional (N_left, 2) of (predicted disparity px at the segment's midpoint, its sigma px),
+    NaN where nothing is predicted (guided matching: candidates within the gate get the bonus).
+    """
+    nl, nr = len(left), len(right)
+    empty = StereoMatches(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros((0, 2)),
+                          np.zeros(0, bool), np.zeros(0, bool))
+    if nl == 0 or nr == 0:
+        return empty
+    sin_min = math.sin(math.radians(params.min_epipolar_angle_deg))
+    okl = np.abs(left.direction[:, 1]) >= sin_min
+    okr = np.abs(right.direction[:, 1]) >= sin_min
+    L, R = left.xy[okl], right.xy[okr]
+    il, ir = np.nonzero(okl)[0], np.nonzero(okr)[0]
+    if len(L) == 0 or len(R) == 0:
+        return empty
+    # Row overlap (epipolar constraint).
+    lo_l, hi_l = np.minimum(L[:, 1], L[:, 3]), np.maximum(L[:, 1], L[:, 3])
+    lo_r, hi_r = np.minimum(R[:, 1], R[:, 3]), np.maximum(R[:, 1], R[:, 3])
+    lo = np.maximum(lo_l[:, None], lo_r[None, :])
+    hi = np.minimum(hi_l[:, None], hi_r[None, :])
+    shorter = np.minimum((hi_l - lo_l)[:, None], (hi_r - lo_r)[None, :])
+    overlap = np.clip(hi - lo, 0.0, None) / np.maximum(shorter, 1e-9)
+    # Same direction and polarity.
+    dl, dr = left.direction[il], right.direction[ir]
+    cos_ang = dl @ dr.T
+    # Disparity at the left segment's middle row (the right line extended there), where a prediction is given.
+    ym = (0.5 * (L[:, 1] + L[:, 3]))[:, None]
+    disp = 0.5 * (L[:, 0] + L[:, 2])[:, None] - _x_at(R[None, :, :], ym)
+    # Appearance: the better-matching side (an occluding edge keeps only its near side).
+    sl, sr = left.sides[il], right.sides[ir]
+    dside = np.abs(sl[:, None, :] - sr[None, :, :])                    # (nl, nr, 2)
+    app = np.exp(-0.5 * (dside.min(axis=2) / params.appearance_sigma) ** 2)
+    score = overlap * app
+    valid = ((overlap >= params.min_overlap) & (cos_ang >= math.cos(math.radians(params.max_angle_diff_deg)))
+             & (disp >= params.min_disparity_px) & (disp <= params.max_disparity_px))
+    predicted = np.zeros_like(valid)
+    if prior is not None:
+        pd, ps = prior[il, 0], prior[il, 1]
+        has = np.isfinite(pd)
+        gate = 3.0 * np.where(has, ps, 0.0) + params.prior_gate_px
+        predicted = has[:, None] & (np.abs(disp - np.where(has, pd, 0.0)[:, None]) <= gate[:, None]) & valid
+        score = np.where(predicted, score * (1.0 + params.prior_bonus), score)
+    score = np.where(valid & (score >= params.min_score), score, 0.0)
+    best = score.max(axis=1)
+    keep = (score > 0) & (score >= params.ambiguity_ratio * best[:, None])
+    a, b = np.nonzero(keep)
+    if len(a) == 0:
+        return empty
+    is_best = score[a, b] >= best[a]
+    # Endpoint disparities: the right line's x at each left endpoint's row.
+    Lk, Rk = L[a], R[b]
+    d0 = Lk[:, 0] - _x_at(Rk, Lk[:, 1])
+    d1 = Lk[:, 2] - _x_at(Rk, Lk[:, 3])
+    # Best: the top candidate of its left segment that is also the top candidate of its right segment
+    # (mutual best; one per left segment, ties to the first).
+    best_r = score.max(axis=0)
+    mutual = is_best & (score[a, b] >= best_r[b])
+    first = np.zeros(len(a), bool)
+    seen = set()
+    for k in np.nonzero(mutual)[0]:
+        if a[k] not in seen:
+            seen.add(a[k])
+            first[k] = True
+    return StereoMatches(il[a], ir[b], score[a, b], np.column_stack((d0, d1)), first, predicted[a, b])
+
+
+# ---------------------------------------------------------------------------------- triangulation
+def triangulate(left: Segments2D, right: Segments2D, matches: StereoMatches, fx: float, fy: float,
+                cx: float, cy: float, baseline: float, params: LineParams = LineParams(),
+                doffs: float = 0.0) -> Segments3D:
+    """3D segments (left camera frame) with endpoint covariances for the given matches.
+
+    The left segment is clipped to the rows it shares with the right one, so
+    neither image's over-long endpoint extends the 3D segment. ``doffs``: the
+    right principal point minus the left one (px; 0 for pairs rectified to a
+    common principal point, Middlebury gives it).
+    """
+    if len(matches) == 0:
+        return Segments3D.empty()
+    L, R = left.xy[matches.left], right.xy[matches.right]
+    lo = np.maximum(np.minimum(L[:, 1], L[:, 3]), np.minimum(R[:, 1], R[:, 3]))
+    hi = np.minimum(np.maximum(L[:, 1], L[:, 3]), np.maximum(R[:, 1], R[:, 3]))
+    y0 = np.clip(L[:, 1], lo, hi)
+    y1 = np.clip(L[:, 3], lo, hi)
+    x0, x1 = _x_at(L, y0), _x_at(L, y1)
+    d0 = x0 - _x_at(R, y0) + doffs
+    d1 = x1 - _x_at(R, y1) + doffs
+    uv = np.stack((np.column_stack((x0, y0)), np.column_stack((x1, y1))), axis=1)   # (K, 2, 2)
+    d = np.column_stack((d0, d1))
+    ok = (d > 0).all(axis=1)
+    uv, d, L, R = uv[ok], d[ok], L[ok], R[ok]
+    Z = fx * baseline / d
+    X = (uv[..., 0] - cx) * Z / fx
+    Y = (uv[..., 1] - cy) * Z / fy
+    P = np.stack((X, Y, Z), axis=-1)
+    # Image covariance of an endpoint: anisotropic (across / along the line), plus the disparity's.
+    t = uv[:, 1] - uv[:, 0]
+    t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    n = np.column_stack((-t[:, 1], t[:, 0]))
+    S_uv = (params.sigma_perp_px ** 2 * n[:, :, None] * n[:, None, :]
+            + params.sigma_along_px ** 2 * t[:, :, None] * t[:, None, :])          # (K, 2, 2)
+    sin_a = np.maximum(np.abs(t[:, 1]), 1e-3)
+    var_d = 2.0 * (params.sigma_perp_px / sin_a) ** 2                               # (K,)
+    cov = np.zeros(P.shape[:2] + (3, 3))
+    for e in range(2):
+        J = np.zeros((len(P), 3, 3))         # d(X, Y, Z) / d(u, v, d)
+        z, dd = Z[:, e], d[:, e]
+        J[:, 0, 0] = z / fx
+        J[:, 1, 1] = z / fy
+        J[:, 0, 2] = -X[:, e] / dd
+        J[:, 1, 2] = -Y[:, e] / dd
+        J[:, 2, 2] = -z / dd
+        S = np.zeros((len(P), 3, 3))
+        S[:, :2, :2] = S_uv
+        S[:, 2, 2] = var_d
+        cov[:, e] = J @ S @ J.transpose(0, 2, 1)
+    left_xy = np.column_stack((uv[:, 0], uv[:, 1]))
+    right_xy = np.column_stack((uv[:, 0, 0] - d[:, 0] + doffs, uv[:, 0, 1], uv[:, 1, 0] - d[:, 1] + doffs,
+                                uv[:, 1, 1]))
+    return Segments3D(P, cov, left_xy, right_xy, matches.score[ok], matches.left[ok], matches.best[ok],
+                      {"right_index": matches.right[ok], "predicted": matches.predicted[ok],
+                       "disparity": d})
+
+
+@dataclass
+class StereoLines:
+    """Everything one stereo pair gave: both images' segments, the candidate matches and the 3D segments."""
+
+    left: Segments2D
+    right: Segments2D
+    matches: StereoMatches
+    segments: Segments3D
+
+
+def reconstruct_pair(left_image: np.ndarray, right_image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                     baseline: float, params: LineParams = LineParams(), prior_fn=None,
+                     doffs: float = 0.0) -> StereoLines:
+    """Detect, match and triangulate one rectified pair.
+
+    prior_fn(left_segments) -> (N, 2) prediction for guided matching (see ``match_stereo``), or None.
+    """
+    ls, rs = detect_segments(left_image, params), detect_segments(right_image, params)
+    prior = prior_fn(ls) if prior_fn is not None else None
+    m = match_stereo(ls, rs, params, prior)
+    return StereoLines(ls, rs, m, triangulate(ls, rs, m, fx, fy, cx, cy, baseline, params, doffs))

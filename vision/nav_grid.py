@@ -1,0 +1,184 @@
+"""A 2D traversability grid from the line map, and an A* planner on it (map-based goto).
+
+Marvin's map lets the robot plan through places it has only seen. The grid is
+the floor plan (x right, z forward, metres) at ``resolution_m`` per cell:
+
+- a verified segment rising above the floor is part of a wall or an object
+  standing there: its floor trace (the segment projected onto the floor) is
+  an obstacle; a vertical one marks the point where it stands;
+- segments entirely above ``robot_height_m`` are overhangs the robot passes
+  under, segments lying within ``floor_band_m`` of the floor are markings it
+  drives over; any other segment blocks its floor trace too;
+- obstacles are grown by the robot radius plus ``clearance_m`` (distance
+  transform), so the planner treats the robot as a point;
+- cells the map never saw are free (the obstacle stop watches what the map
+  missed); optionally a bounding polygon limits planning to the mapped area.
+
+``plan`` is 8-connected A* with the Euclidean heuristic; the path is
+thinned to waypoints where it turns (line of sight on the grown grid).
+"""
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GridParams:
+    resolution_m: float = 0.05
+    robot_radius_m: float = 0.2
+    clearance_m: float = 0.08        # covers the grid discretisation (half a cell diagonal, 3.5 cm)
+    floor_band_m: float = 0.1
+    robot_height_m: float = 0.5
+    margin_m: float = 1.0          # grid extends this far beyond the mapped segments and the query points
+
+
+@dataclass
+class NavGrid:
+    """occupied: (H, W) bool raw obstacles; blocked: grown by the robot radius. Cell (r, c) centre is at
+    x = x0 + (c + 0.5) res, z = z0 + (r + 0.5) res."""
+
+    x0: float
+    z0: float
+    res: float
+    occupied: np.ndarray
+    blocked: np.ndarray
+
+    def cell(self, x: float, z: float) -> tuple[int, int]:
+        return int(math.floor((z - self.z0) / self.res)), int(math.floor((x - self.x0) / self.res))
+
+    def centre(self, r: int, c: int) -> tuple[float, float]:
+        return self.x0 + (c + 0.5) * self.res, self.z0 + (r + 0.5) * self.res
+
+    def inside(self, r: int, c: int) -> bool:
+        return 0 <= r < self.blocked.shape[0] and 0 <= c < self.blocked.shape[1]
+
+    def is_free(self, x: float, z: float) -> bool:
+        r, c = self.cell(x, z)
+        return self.inside(r, c) and not self.blocked[r, c]
+
+
+def obstacle_traces(P: np.ndarray, params: GridParams = GridParams()) -> np.ndarray:
+    """(K, 2, 2) floor traces (x, z) of the segments that block the robot."""
+    if len(P) == 0:
+        return np.zeros((0, 2, 2))
+    height = -P[..., 1]                                  # m above the floor
+    low, high = height.min(axis=1), height.max(axis=1)
+    # Lines lying on the floor (texture, tape, shadows) are not obstacles; lines wholly above the robot neither.
+    blocks = (low <= params.robot_height_m) & (high >= params.floor_band_m)
+    return P[blocks][..., [0, 2]]
+
+
+def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: Optional[np.ndarray] = None,
+               polygons: Optional[list] = None) -> NavGrid:
+    """The grid of the given world segments (K, 2, 3); ``extra_points`` (N, 2) x, z must lie inside it;
+    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles."""
+    traces = obstacle_traces(P, params)
+    polygons = [np.asarray(q, float).reshape(-1, 2) for q in (polygons or [])]
+    pts = np.vstack([traces.reshape(-1, 2)] + polygons) if polygons else traces.reshape(-1, 2)
+    if extra_points is not None:
+        pts = np.vstack((pts, np.asarray(extra_points, float).reshape(-1, 2)))
+    if len(pts) == 0:
+        pts = np.zeros((1, 2))
+    lo = pts.min(axis=0) - params.margin_m
+    hi = pts.max(axis=0) + params.margin_m
+    res = params.resolution_m
+    W, H = int(math.ceil((hi[0] - lo[0]) / res)), int(math.ceil((hi[1] - lo[1]) / res))
+    occ = np.zeros((H, W), np.uint8)
+    for (xa, za), (xb, zb) in traces:
+        a = (int((xa - lo[0]) / res), int((za - lo[1]) / res))
+        b = (int((xb - lo[0]) / res), int((zb - lo[1]) / res))
+        cv2.line(occ, a, b, 1, 1)
+    for q in polygons:
+        cells = np.round((q - lo) / res).astype(np.int32)
+        if len(cells) >= 3:
+            cv2.fillConvexPoly(occ, cells, 1)
+        else:
+            cv2.line(occ, tuple(map(int, cells[0])), tuple(map(int, cells[-1])), 1, 1)
+    free = (occ == 0).astype(np.uint8)
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, 5) * res
+    blocked = dist <= params.robot_radius_m + params.clearance_m
+    return NavGrid(float(lo[0]), float(lo[1]), res, occ.astype(bool), blocked)
+
+
+_STEPS = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
+          (-1, -1, math.sqrt(2)), (-1, 1, math.sqrt(2)), (1, -1, math.sqrt(2)), (1, 1, math.sqrt(2))]
+
+
+def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]]:
+    """Waypoints (x, z) from start to goal avoiding blocked cells, or None when there is no path.
+
+    The start cell may be blocked (the robot already stands close to something): the search leaves it.
+    """
+    s, g = grid.cell(*start_xz), grid.cell(*goal_xz)
+    if not grid.inside(*s) or not grid.inside(*g):
+        return None
+    if grid.blocked[g]:
+        return None
+    blocked = grid.blocked
+    H, W = blocked.shape
+    best = {s: 0.0}
+    came: dict = {}
+    heap = [(math.hypot(s[0] - g[0], s[1] - g[1]), 0.0, s)]
+    while heap:
+        _, cost, cur = heapq.heappop(heap)
+        if cur == g:
+            break
+        if cost > best.get(cur, math.inf):
+            continue
+        for dr, dc, step in _STEPS:
+            nr, nc = cur[0] + dr, cur[1] + dc
+            if not (0 <= nr < H and 0 <= nc < W) or blocked[nr, nc]:
+                continue
+            if dr and dc and (blocked[cur[0] + dr, cur[1]] or blocked[cur[0], cur[1] + dc]):
+                continue                                  # no corner cutting
+            nxt = (nr, nc)
+            c2 = cost + step
+            if c2 < best.get(nxt, math.inf):
+                best[nxt] = c2
+                came[nxt] = cur
+                heapq.heappush(heap, (c2 + math.hypot(nr - g[0], nc - g[1]), c2, nxt))
+    if g not in came and g != s:
+        return None
+    cells = [g]
+    while cells[-1] != s:
+        cells.append(came[cells[-1]])
+    cells.reverse()
+    keep = _thin(grid, cells)
+    path = [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [tuple(goal_xz)]
+    return path
+
+
+def _line_free(grid: NavGrid, a, b) -> bool:
+    n = int(max(abs(b[0] - a[0]), abs(b[1] - a[1]))) * 2 + 1
+    for t in np.linspace(0.0, 1.0, n):
+        r, c = int(round(a[0] + t * (b[0] - a[0]))), int(round(a[1] + t * (b[1] - a[1])))
+        if grid.blocked[r, c]:
+            return False
+    return True
+
+
+def _thin(grid: NavGrid, cells: list) -> list:
+    """Keep the cells where the straight line from the last kept one would cross a blocked cell."""
+    if len(cells) <= 2:
+        return cells
+    out = [cells[0]]
+    i = 0
+    while i < len(cells) - 1:
+        j = len(cells) - 1
+        if grid.blocked[cells[i]]:      # leaving a blocked start: follow the search's cells
+            j = i + 1
+        while j > i + 1 and not _line_free(grid, cells[i], cells[j]):
+            j -= 1
+        out.append(cells[j])
+        i = j
+    return out
+
+
+def path_length(path: list) -> float:
+    return float(sum(math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in zip(path, path[1:])))
