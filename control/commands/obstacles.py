@@ -8,9 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -18,6 +16,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import finite, non_negative, output_file, positive
+from vbnav.control.image_files import read_image, write_png
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.ground_model import GroundModelParams
@@ -105,15 +104,6 @@ def _bad(msg: str) -> int:
     return EXIT_BAD_INPUT
 
 
-def _read_image(path: str, what: str) -> np.ndarray:
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{what} {path}: file not found")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{what} {path}: not an image OpenCV can read")
-    return img
-
-
 def _read_disparity(path: str, scale_arg, calib) -> np.ndarray:
     if path.endswith(".npy"):
         if not Path(path).is_file():
@@ -121,7 +111,7 @@ def _read_disparity(path: str, scale_arg, calib) -> np.ndarray:
         d = np.load(path)
         scale = scale_arg if scale_arg is not None else (calib.disparity_scale or 1.0)
     else:
-        d = _read_image(path, "disparity")
+        d = read_image(path, "disparity")
         if d.ndim != 2:
             raise ValueError(f"disparity {path}: expected a single-channel image, got shape {d.shape}")
         default = 1.0 / 256.0 if d.dtype == np.uint16 else 1.0
@@ -129,23 +119,6 @@ def _read_disparity(path: str, scale_arg, calib) -> np.ndarray:
     if d.ndim != 2:
         raise ValueError(f"disparity {path}: expected an HxW array, got shape {d.shape}")
     return as_disparity(d.astype(np.float32) * np.float32(scale))
-
-
-def atomic_write_png(path: str, img: np.ndarray) -> None:
-    """Write to a temporary file in the same directory, then rename (no half-written PNG)."""
-    ok, buf = cv2.imencode(".png", img)
-    if not ok:
-        raise ValueError(f"{path}: could not encode PNG")
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.45) -> np.ndarray:
@@ -190,11 +163,11 @@ def run(args) -> int:
         calib = load_stereo_calibration(args.calib)
         if args.disparity is not None:
             disp = _read_disparity(args.disparity, args.disparity_scale, calib)
-            image = _read_image(args.image, "image") if args.image else None
+            image = read_image(args.image, "image") if args.image else None
             source = "file"
         else:
-            left = _read_image(args.left, "left image")
-            right = _read_image(args.right, "right image")
+            left = read_image(args.left, "left image")
+            right = read_image(args.right, "right image")
             if left.shape[:2] != right.shape[:2]:
                 return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
                             f"{right.shape[1]}x{right.shape[0]}")
@@ -242,13 +215,13 @@ def run(args) -> int:
     near_neg = nearest_in_corridor(scene.negative_points, args.corridor_half_width, args.corridor_range)
     fl = scene.fit.floor
     if args.mask_out:
-        atomic_write_png(args.mask_out, scene.labels)
+        write_png(args.mask_out, scene.labels)
     if args.overlay_out:
         if image is None:
             base = cv2.normalize(np.nan_to_num(disp), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
         else:
             base = image
-        atomic_write_png(args.overlay_out, overlay(base, scene.labels))
+        write_png(args.overlay_out, overlay(base, scene.labels))
     summary = {
         "image": {"width": w, "height": h},
         "disparity_source": source,
