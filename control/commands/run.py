@@ -27,6 +27,9 @@ def register(sub) -> None:
                    help="simulated robot: run on the wall clock (sim.realtime: true) so telemetry opens and "
                         "'vbnav monitor', 'vbnav send' and the Foxglove live view work; without it the "
                         "simulated robot runs faster than real time and only records")
+    p.add_argument("--live-view", action="store_true",
+                   help="serve the live view to the Foxglove app (telemetry.live_view.enabled: true; "
+                        "ws://127.0.0.1:8765 by default, docs/telemetry.md)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
     add_telemetry_args(p)
     p.set_defaults(func=run)
@@ -43,6 +46,17 @@ def build_controller(cfg, kind: str):
     raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run'")
 
 
+def enable_live_view(cfg) -> None:
+    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more)."""
+    from pydantic import ValidationError
+    t = cfg.telemetry.model_dump()
+    t["live_view"]["enabled"] = True
+    try:
+        cfg.telemetry = type(cfg.telemetry).model_validate(t)
+    except ValidationError as exc:
+        raise InputError(f"--live-view: {exc.errors()[0]['msg']}") from None
+
+
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.runtime.factory import make_robot
@@ -56,6 +70,8 @@ def run(args) -> int:
         raise InputError(why)
     if args.realtime:
         cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
+    if args.live_view:
+        enable_live_view(cfg)
     kind = args.controller or cfg.controller.kind
     robot = make_robot(cfg, with_camera=not args.no_camera)
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
