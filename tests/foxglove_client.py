@@ -39,17 +39,24 @@ class FoxgloveClient:
         self.parameters: list = []
 
     # ---- frames ---------------------------------------------------------------------------
-    def _recv_exact(self, n: int) -> bytes:
+    def _recv_exact(self, n: int, may_time_out: bool = False) -> bytes:
+        """n bytes. Only before the first byte of a frame may the socket's timeout end the wait (poll's
+        deadline); inside a frame it waits on, or the rest of the frame would be read as a new one."""
         buf = b""
         while len(buf) < n:
-            chunk = self.sock.recv(n - len(buf))
+            try:
+                chunk = self.sock.recv(n - len(buf))
+            except socket.timeout:
+                if may_time_out and not buf:
+                    raise
+                continue
             if not chunk:
                 raise ConnectionError("connection closed")
             buf += chunk
         return buf
 
     def recv_frame(self) -> tuple[int, bytes]:
-        b0, b1 = self._recv_exact(2)
+        b0, b1 = self._recv_exact(2, may_time_out=True)
         n = b1 & 0x7F
         if n == 126:
             n = struct.unpack(">H", self._recv_exact(2))[0]
@@ -100,7 +107,8 @@ class FoxgloveClient:
                 sub, t = struct.unpack_from("<IQ", data, 1)
                 return sub, t, data[13:]
             elif op == 0x8:
-                raise ConnectionError("server closed the connection")
+                code = struct.unpack(">H", data[:2])[0] if len(data) >= 2 else None
+                raise ConnectionError(f"server closed the connection (code {code}: {data[2:].decode(errors='replace')})")
         return None
 
     def wait_for_channels(self, topics, deadline_s: float = 10.0) -> dict[str, dict]:

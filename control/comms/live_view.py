@@ -35,7 +35,7 @@ import uuid
 from typing import Callable, Optional
 
 import foxglove
-from foxglove.websocket import Capability
+from foxglove.websocket import Capability, ServerListener
 
 from vbnav.control.comms import foxglove_channels as fc
 from vbnav.control.comms.telemetry import Sink
@@ -56,7 +56,7 @@ def operator_rule(tcfg) -> tuple[Optional[bytes], bool, str]:
     return None, True, ""
 
 
-class LiveView(Sink):
+class LiveView(Sink, ServerListener):
     """The WebSocket server and its channels. ``teleop(sender, session, payload)`` submits a command."""
 
     def __init__(self, tcfg, robot: str, submit_teleop: Callable[[str, bytes], None],
