@@ -185,7 +185,9 @@ class OakCamera(GrabbingCamera):
         found = ", ".join(describe(d) for d in devices) or "none"
         if not devices:
             raise CameraError(f"no OAK device found (searched {took:.1f} s over USB and network; found: {found}). "
-                              f"Check the cable/power and the udev rule for Movidius (03e7) devices.")
+                              f"Check the cable/power, and that vbnav's udev rule for Movidius (03e7) devices is installed: "
+                              f"'sudo vbnav service install -c CONFIG' writes it to /etc/udev/rules.d/70-vbnav.rules "
+                              f"(docs/service.md); then replug the camera.")
         if self.opt.device_id is None:
             if len(devices) > 1:
                 raise CameraError(f"{len(devices)} OAK devices found ({found}); set camera.options.device_id")

@@ -101,10 +101,13 @@ def run(args) -> int:
     duration = args.duration
     if duration is None and kind != "scripted" and clock.simulated:
         duration = 10.0  # a simulated teleop/idle run has nobody to stop it
+    from vbnav.control.runtime import sd_notify
+    notifier = sd_notify.attach(rt)      # under systemd (vbnav service): READY=1 and the loop's watchdog pings
     result = None
     try:
         result = rt.run(duration, progress)
     finally:
+        sd_notify.stopping(notifier)
         controller.close()      # a route being taught keeps every keyframe so far
         link.close(result)
     printer.done()
