@@ -109,6 +109,7 @@ class TelemetryLink:
         self.recorder = recorder
         self.commands: Optional[CommandSubscriber] = None
         self.live_view = None            # comms/live_view.LiveView when telemetry.live_view.enabled
+        self.routes = None               # comms/route_transfer.RouteServer: the taught routes, over zenoh
         self._taught: list = []          # odometry poses of the keyframes taught in this run
         self._next_scene_ns: Optional[int] = None
         self.inbox: CommandInbox
@@ -180,6 +181,10 @@ class TelemetryLink:
                                   on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
+            from vbnav.control.comms.route_transfer import RouteServer
+            from vbnav.control.route import routes_root
+            link.routes = RouteServer(session, robot, routes_root(cfg.controller.routes_dir, cfg.source),
+                                      verify=verify, on_event=publisher.event)
         runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)
@@ -291,6 +296,8 @@ class TelemetryLink:
         self._closed = True
         if self.commands is not None:
             self.commands.close()
+        if self.routes is not None:
+            self.routes.close()
         if result is not None:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)

@@ -1,0 +1,118 @@
+"""A fleet of three simulated robots through one zenoh router (a router-mode session, as zenohd would be):
+`vbnav monitor --all` sees all three; a route on one robot is pulled (checksummed, swapped in), pushed to
+another, and loads there keyframe for keyframe; a damaged push is refused and leaves the old route."""
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from test_route import write_route
+from test_telemetry_net import free_port
+
+VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
+ROBOTS = ("r1", "r2", "r3")
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    import zenoh
+    d = tmp_path_factory.mktemp("fleet")
+    rport = free_port()
+    router = zenoh.open(zenoh.Config.from_json5(json.dumps({
+        "mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{rport}"]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}})))
+    rng = np.random.default_rng(5)
+    original = write_route(d / "routes_r1" / "tour", rng, n=6)
+    procs = []
+    for name in ROBOTS:
+        cfg = d / f"{name}.yaml"
+        cfg.write_text(f"""robot: {{name: {name}}}
+loop: {{max_missed_streak: 1000000, stall_periods: 1000000}}
+controller: {{routes_dir: routes_{name}}}
+telemetry:
+  listen: ['tcp/127.0.0.1:{free_port()}']
+  connect: ['tcp/127.0.0.1:{rport}']
+  trust_router: true
+""")
+        procs.append(subprocess.Popen(VBNAV + ["run", "--realtime", "--no-camera", "--controller", "idle", "-c",
+                                               str(cfg), "--duration", "300"],
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    yield d, ["--connect", f"tcp/127.0.0.1:{rport}"], original
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        p.communicate(timeout=60)
+    router.close()
+
+
+def test_monitor_all_shows_every_robot_one_line_each(fleet):
+    _, ep, _ = fleet
+    seen = {}
+    for _ in range(15):             # robots connect to the router at their own pace
+        r = subprocess.run(VBNAV + ["monitor", "--all", "--once", "--json", "--timeout", "2", *ep],
+                           capture_output=True, text=True, timeout=60)
+        seen = json.loads(r.stdout) if r.returncode == 0 else {}
+        if set(seen) == set(ROBOTS):
+            break
+    assert set(seen) == set(ROBOTS), seen
+    assert all(s["mode"] == "idle" for s in seen.values())
+    text = subprocess.run(VBNAV + ["monitor", "--all", "--once", "--timeout", "2", *ep], capture_output=True,
+                          text=True, timeout=60).stdout.splitlines()
+    assert text[0].endswith("3 robot(s)") and [ln.split()[0] for ln in text[1:]] == list(ROBOTS)
+
+
+def test_a_route_is_pulled_from_one_robot_and_pushed_to_another(fleet):
+    from vbnav.control.comms.route_transfer import pack_route
+    from vbnav.control.route import load_route
+    d, ep, original = fleet
+    local = d / "laptop"
+    r = None
+    for _ in range(30):
+        r = subprocess.run(VBNAV + ["route", "pull", "r1", "tour", "--dir", str(local), *ep], capture_output=True,
+                           text=True, timeout=60)
+        if r.returncode != 3:
+            break
+        time.sleep(1)
+    assert r.returncode == 0, r.stderr
+    import hashlib
+    sha = hashlib.sha256(pack_route(d / "routes_r1" / "tour")).hexdigest()
+    assert f"sha256 {sha}" in r.stdout
+    push = subprocess.run(VBNAV + ["route", "push", "r3", "tour", "--dir", str(local), *ep], capture_output=True,
+                          text=True, timeout=60)
+    assert push.returncode == 0, push.stderr
+    copied = load_route(d / "routes_r3" / "tour")
+    assert copied.complete and len(copied) == len(original)
+    for a, b in zip(original, copied.keyframes):
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.track_ids, b.track_ids)
+    listed = subprocess.run(VBNAV + ["route", "list", "r3", *ep], capture_output=True, text=True, timeout=60)
+    assert listed.returncode == 0 and "tour  6 keyframes  complete" in listed.stdout
+    missing = subprocess.run(VBNAV + ["route", "pull", "r2", "tour", "--dir", str(local / "x"), *ep],
+                             capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 1 and "no such route" in missing.stderr
+
+
+def test_a_push_whose_checksum_does_not_match_is_refused_and_the_old_route_stays(fleet):
+    import base64
+    import zenoh
+    from vbnav.control.comms.network import client_session_config
+    from vbnav.control.comms.route_transfer import pack_route
+    from vbnav.control.route import load_route
+    d, ep, original = fleet
+    data = pack_route(d / "routes_r1" / "tour")
+    body = {"transfer": "abc123", "chunk": 0, "chunks": 1, "sha256": "0" * 64, "size": len(data),
+            "sender": "test", "data": base64.b64encode(data[:30000]).decode()}
+    body["size"] = 30000
+    s = zenoh.open(zenoh.Config.from_json5(json.dumps(client_session_config([ep[1]]))))
+    try:
+        answers = [json.loads(r.ok.payload.to_bytes()) for r in
+                   s.get("vbnav/r1/cmd/route/tour", payload=json.dumps(body).encode(), timeout=10) if r.ok]
+    finally:
+        s.close()
+    assert answers and not answers[0]["ok"]
+    assert "checksum mismatch" in answers[0]["reason"] or "not a usable route" in answers[0]["reason"]
+    assert len(load_route(d / "routes_r1" / "tour")) == len(original)
+    assert not [p for p in (d / "routes_r1").iterdir() if p.name.startswith(".")]    # nothing left beside
