@@ -48,51 +48,54 @@ telemetry:
     router.close()
 
 
-def test_monitor_all_shows_every_robot_one_line_each(fleet):
+def _vbnav(capsys, *argv):
+    """The command line in this process (the robots are processes; the clients need not be)."""
+    from vbnav.control.cli import main
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_monitor_all_shows_every_robot_one_line_each(fleet, capsys):
     _, ep, _ = fleet
     seen = {}
-    for _ in range(15):             # robots connect to the router at their own pace
-        r = subprocess.run(VBNAV + ["monitor", "--all", "--once", "--json", "--timeout", "2", *ep],
-                           capture_output=True, text=True, timeout=60)
-        seen = json.loads(r.stdout) if r.returncode == 0 else {}
+    for _ in range(30):             # robots connect to the router at their own pace
+        code, out, _ = _vbnav(capsys, "monitor", "--all", "--once", "--json", "--timeout", "1", *ep)
+        seen = json.loads(out) if code == 0 else {}
         if set(seen) == set(ROBOTS):
             break
     assert set(seen) == set(ROBOTS), seen
     assert all(s["mode"] == "idle" for s in seen.values())
-    text = subprocess.run(VBNAV + ["monitor", "--all", "--once", "--timeout", "2", *ep], capture_output=True,
-                          text=True, timeout=60).stdout.splitlines()
+    code, out, _ = _vbnav(capsys, "monitor", "--all", "--once", "--timeout", "1", *ep)
+    text = out.splitlines()
     assert text[0].endswith("3 robot(s)") and [ln.split()[0] for ln in text[1:]] == list(ROBOTS)
 
 
-def test_a_route_is_pulled_from_one_robot_and_pushed_to_another(fleet):
+def test_a_route_is_pulled_from_one_robot_and_pushed_to_another(fleet, capsys):
     from vbnav.control.comms.route_transfer import pack_route
     from vbnav.control.route import load_route
     d, ep, original = fleet
     local = d / "laptop"
-    r = None
     for _ in range(30):
-        r = subprocess.run(VBNAV + ["route", "pull", "r1", "tour", "--dir", str(local), *ep], capture_output=True,
-                           text=True, timeout=60)
-        if r.returncode != 3:
+        code, out, err = _vbnav(capsys, "route", "pull", "r1", "tour", "--dir", str(local), *ep)
+        if code != 3:
             break
         time.sleep(1)
-    assert r.returncode == 0, r.stderr
+    assert code == 0, err
     import hashlib
     sha = hashlib.sha256(pack_route(d / "routes_r1" / "tour")).hexdigest()
-    assert f"sha256 {sha}" in r.stdout
-    push = subprocess.run(VBNAV + ["route", "push", "r3", "tour", "--dir", str(local), *ep], capture_output=True,
-                          text=True, timeout=60)
-    assert push.returncode == 0, push.stderr
+    assert f"sha256 {sha}" in out
+    code, out, err = _vbnav(capsys, "route", "push", "r3", "tour", "--dir", str(local), *ep)
+    assert code == 0, err
     copied = load_route(d / "routes_r3" / "tour")
     assert copied.complete and len(copied) == len(original)
     for a, b in zip(original, copied.keyframes):
         np.testing.assert_array_equal(a.image, b.image)
         np.testing.assert_array_equal(a.track_ids, b.track_ids)
-    listed = subprocess.run(VBNAV + ["route", "list", "r3", *ep], capture_output=True, text=True, timeout=60)
-    assert listed.returncode == 0 and "tour  6 keyframes  complete" in listed.stdout
-    missing = subprocess.run(VBNAV + ["route", "pull", "r2", "tour", "--dir", str(local / "x"), *ep],
-                             capture_output=True, text=True, timeout=60)
-    assert missing.returncode == 1 and "no such route" in missing.stderr
+    code, out, _ = _vbnav(capsys, "route", "list", "r3", *ep)
+    assert code == 0 and "tour  6 keyframes  complete" in out
+    code, _, err = _vbnav(capsys, "route", "pull", "r2", "tour", "--dir", str(local / "x"), *ep)
+    assert code == 1 and "no such route" in err
 
 
 def test_a_push_whose_checksum_does_not_match_is_refused_and_the_old_route_stays(fleet):
