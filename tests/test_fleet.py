@@ -119,3 +119,38 @@ def test_a_push_whose_checksum_does_not_match_is_refused_and_the_old_route_stays
     assert "checksum mismatch" in answers[0]["reason"] or "not a usable route" in answers[0]["reason"]
     assert len(load_route(d / "routes_r1" / "tour")) == len(original)
     assert not [p for p in (d / "routes_r1").iterdir() if p.name.startswith(".")]    # nothing left beside
+
+
+def test_pushing_a_route_is_a_command_only_operators_may_give(tmp_path):
+    """An authenticated robot: a viewer may list (read) but its push never reaches the robot (zenoh's access
+    control drops the query); an operator's push is taken."""
+    from test_telemetry_net import finish, start_robot
+    from vbnav.control.comms.network import client_session_config, open_session
+    from vbnav.control.comms.route_transfer import fetch_route_list, push_route
+    from vbnav.control.route import load_route
+    users = tmp_path / "users.txt"
+    users.write_text("robot:robot-secret\noperator:operator-pw\nviewer:viewer-pw1\n")
+    routes, src = tmp_path / "routes", tmp_path / "src" / "tour"
+    write_route(src, np.random.default_rng(1), n=3)
+    port = free_port()
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--remote", users,
+                       "--operators", "operator", "--routes-dir", routes)
+    ep = [f"tcp/127.0.0.1:{port}"]
+    try:
+        viewer = open_session(client_session_config(ep, "viewer", "viewer-pw1"))
+        try:
+            assert fetch_route_list(viewer, "sim") == []
+            with pytest.raises(ConnectionError, match="no answer"):
+                push_route(viewer, "sim", "tour", src, timeout_s=2.0)
+        finally:
+            viewer.close()
+        assert not (routes / "tour").exists()
+        operator = open_session(client_session_config(ep, "operator", "operator-pw"))
+        try:
+            push_route(operator, "sim", "tour", src)
+            assert [r["name"] for r in fetch_route_list(operator, "sim")] == ["tour"]
+        finally:
+            operator.close()
+    finally:
+        finish(proc, stop=True)
+    assert len(load_route(routes / "tour")) == 3
