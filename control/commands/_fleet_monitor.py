@@ -20,24 +20,27 @@ class FleetView:
     def _entry(self, robot: str) -> dict:
         return self.robots.setdefault(robot, {"state": None, "rx": 0.0, "event": None, "n": 0})
 
-    def on_state(self, sample) -> None:
+    @staticmethod
+    def _parse(sample):
+        """(robot, message) of a telemetry sample, or None for anything that is not one."""
         try:
             msg = json.loads(sample.payload.to_bytes())
-            robot = str(msg["robot"])
+            return str(msg["robot"]), msg
         except (ValueError, KeyError, TypeError):
-            return
-        with self.lock:
-            e = self._entry(robot)
-            e["state"], e["rx"], e["n"] = msg, time.monotonic(), e["n"] + 1
+            return None
+
+    def on_state(self, sample) -> None:
+        got = self._parse(sample)
+        if got is not None:
+            with self.lock:
+                e = self._entry(got[0])
+                e["state"], e["rx"], e["n"] = got[1], time.monotonic(), e["n"] + 1
 
     def on_event(self, sample) -> None:
-        try:
-            msg = json.loads(sample.payload.to_bytes())
-            robot = str(msg["robot"])
-        except (ValueError, KeyError, TypeError):
-            return
-        with self.lock:
-            self._entry(robot)["event"] = msg
+        got = self._parse(sample)
+        if got is not None:
+            with self.lock:
+                self._entry(got[0])["event"] = got[1]
 
     def snapshot(self) -> dict[str, dict]:
         with self.lock:

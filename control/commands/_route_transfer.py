@@ -80,12 +80,9 @@ def _run(args) -> int:
             secret = read_secret(args.secret_file, check_owner=False)
         except ValueError as exc:
             raise InputError(str(exc)) from None
+    session = None
     try:
-        session = open_client(args)
-    except ConnectionError as exc:
-        print(f"vbnav route {args.route_action}: {exc}", file=sys.stderr)
-        return 3
-    try:
+        session = open_client(args)      # ConnectionError: exit 3, as when the robot does not answer
         if args.route_action == "list":
             for r in rt.fetch_route_list(session, robot, args.timeout):
                 state = "complete" if r["complete"] else "INCOMPLETE"
@@ -107,4 +104,5 @@ def _run(args) -> int:
         print(f"vbnav route {args.route_action}: {exc}", file=sys.stderr)
         return 1
     finally:
-        session.close()
+        if session is not None:
+            session.close()
