@@ -246,7 +246,16 @@ class TelemetryLink:
             self.publisher.event(f"safety_{ev.kind}", stamp_ns=ev.stamp_ns, cause=ev.cause, message=ev.message)
 
     def _on_frame(self, frame, results) -> None:
-        """Vision thread (loop thread on the simulated clock), right after the stages ran on ``frame``."""
+        """Vision thread (loop thread on the simulated clock), right after the stages ran on ``frame``.
+
+        A failure here must not become a pipeline fault (which stops the robot): what to show is telemetry,
+        so an error costs the overlay or the scene of this frame and is counted in ``publisher.sink_errors``."""
+        try:
+            self._offer_frame(frame, results)
+        except Exception:
+            self.publisher.sink_errors += 1
+
+    def _offer_frame(self, frame, results) -> None:
         from vbnav.control.comms import foxglove_channels as fc
         from vbnav.control.comms.overlays import frame_overlay, landmarks, route_keyframes
         pub, stages, stamp = self.publisher, self.runtime.pipeline.stages, frame.stamp_ns
