@@ -11,6 +11,11 @@ Every cycle publishes (state rate = loop rate, the worst case), at 100 Hz and 1 
 a separate process (a zenoh client on loopback); latency is its receive time minus the sample's stamp,
 both ``time.monotonic_ns`` (one clock for all processes on a machine).
 
+The live view (comms/live_view.py) at the default rates: a 100 Hz loop with 20 Hz state and 2 Hz camera
+images (640x480, JPEG at 320 px), published to zenoh only, then to zenoh and the Foxglove WebSocket server
+with a Foxglove client (another process) subscribed to every channel: the loop-thread cost of each, and the
+bytes per second the client receives per channel and the zenoh payload bytes per second.
+
 Usage: python benchmarks/telemetry.py [--seconds 3] [--port 0]
 """
 from __future__ import annotations
@@ -99,15 +104,130 @@ class RunTaggingSink:
     def close(self): ...
 
 
+# ---- live view (Foxglove WebSocket) -----------------------------------------------------------
+
+def foxglove_client(port: int, seconds: float) -> None:
+    """Another process: subscribe to every channel and count the bytes received per topic."""
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+    from foxglove_client import FoxgloveClient
+    c = FoxgloveClient("127.0.0.1", port)
+    chans = c.wait_for_channels(["/vbnav/state", "/vbnav/image"])
+    subs = {i: ch for i, ch in enumerate(chans.values(), start=1)}
+    c.subscribe({i: ch["id"] for i, ch in subs.items()})
+    print("READY", flush=True)
+    got: dict[str, int] = {}
+    for line in sys.stdin:
+        if line.strip() == "GO":
+            break
+    t0, end = time.monotonic(), time.monotonic() + seconds
+    while time.monotonic() < end:
+        m = c.poll(0.2)
+        if m is not None:
+            topic = subs[m[0]]["topic"]
+            got[topic] = got.get(topic, 0) + len(m[2])
+    c.close()
+    json.dump({"seconds": time.monotonic() - t0, "bytes": got}, sys.stdout)
+
+
+class ZenohBytes:
+    """A sink that counts the zenoh payload bytes (what ZenohSink would put), per key."""
+
+    def __init__(self):
+        self.bytes = {"state": 0, "events": 0, "image": 0}
+
+    def state(self, stamp_ns, payload, msg):
+        self.bytes["state"] += len(payload)
+
+    def event(self, stamp_ns, payload, msg):
+        self.bytes["events"] += len(payload)
+
+    def image(self, stamp_ns, payload, msg, jpeg):
+        self.bytes["image"] += len(payload)
+
+    def annotations(self, *a): ...
+    def foxglove(self, *a): ...
+    def close(self): ...
+
+
+def live_view_runs(seconds: float) -> None:
+    from vbnav.control.comms.live_view import LiveView
+    from vbnav.control.comms.telemetry import TelemetryPublisher
+    from vbnav.control.config.telemetry import TelemetryConfig
+    from vbnav.control.comms.foxglove_channels import Overlay
+    from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_world
+    from vbnav.drivers.sim.render import Renderer
+    from vbnav.vision.camera_model import PinholeCamera
+    from vbnav.vision.geometry import camera_pose
+    cfg = load_config(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "sim.yaml"))
+    c = cfg.camera        # the simulated room's view from the start pose: a camera image of realistic texture
+    R, t = camera_pose(cfg.sim.start(), c.mount.to_mount())
+    image = Renderer(make_world(cfg), PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)).render(R, t).image
+    rng = np.random.default_rng(0)
+    overlay = Overlay(tracked=rng.uniform(0, 480, (200, 2)))   # 200 tracked features (vbc.max_features)
+
+    def loop(pub):
+        def one(k, now):
+            if pub.state_due(now):
+                pub.offer_state(sample_for(now, k))
+            if pub.image_due(now):           # on a robot the vision thread offers it; a queue put either way
+                pub.offer_image(image, now, k, overlay)
+        return run_loop(100.0, seconds, one)
+
+    results = []
+    zb = ZenohBytes()
+    pub = TelemetryPublisher("bench", [zb], state_rate_hz=20.0, loop_rate_hz=100.0, image_rate_hz=2.0).start()
+    cost = loop(pub)
+    pub.close()
+    results.append(("zenoh payloads only", cost))
+    tcfg = TelemetryConfig(live_view={"enabled": True, "port": 0})
+    lv = LiveView(tcfg, "bench", lambda k, p: None, lambda k, r, p: None, lambda t: t)
+    cl = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--foxglove-client", str(lv.port),
+                           "--seconds", str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert cl.stdout.readline().strip() == "READY", "Foxglove client did not start"
+    time.sleep(0.5)
+    cl.stdin.write("GO\n")
+    cl.stdin.flush()
+    pub = TelemetryPublisher("bench", [ZenohBytes(), lv], state_rate_hz=20.0, loop_rate_hz=100.0,
+                             image_rate_hz=2.0).start()
+    cost = loop(pub)
+    rx = json.loads(cl.stdout.read())      # the client counts for as long as the loop ran, then reports
+    cl.wait(10)
+    pub.close()
+    results.append(("zenoh + live view, 1 client", cost))
+    print()
+    print(f"live view at the default rates: 100 Hz loop, 20 Hz state, 2 Hz 640x480 simulated camera images "
+          f"(JPEG at 320 px), "
+          f"{seconds:g} s per run")
+    print(f"  {'publishing to':<30} {'loop cost us p50':>16} {'p99':>7}")
+    for name, c in results:
+        c50, c99 = np.percentile(c, [50, 99]) * 1e-3
+        print(f"  {name:<30} {c50:>16.1f} {c99:>7.1f}")
+    base, with_lv = (np.percentile(c, 50) for _, c in results)
+    print(f"  loop-thread cost with the live view / without (median): {with_lv / base:.2f}x")
+    per_s = {k: v / seconds for k, v in zb.bytes.items()}
+    print(f"  zenoh payload bytes/s per robot: state {per_s['state']:.0f}, image {per_s['image']:.0f}, "
+          f"total {sum(per_s.values()):.0f}")
+    total = sum(rx["bytes"].values()) / rx["seconds"]
+    print(f"  Foxglove client receives {total:.0f} B/s (message payloads):")
+    for topic, n in sorted(rx["bytes"].items()):
+        print(f"    {topic:<28} {n / rx['seconds']:>9.0f} B/s")
+    lv.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=3.0, help="per run (default 3)")
     ap.add_argument("--port", type=int, default=0, help="loopback port (default: a free one)")
     ap.add_argument("--subscriber", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--foxglove-client", type=int, default=0, help=argparse.SUPPRESS)
     a = ap.parse_args()
     port = a.port or free_port()
     if a.subscriber:
         subscriber(port, a.seconds)
+        return 0
+    if a.foxglove_client:
+        foxglove_client(a.foxglove_client, a.seconds)
         return 0
 
     import zenoh
@@ -193,6 +313,7 @@ def main() -> int:
     for rate in (100.0, 1000.0):
         print(f"loop-thread cost at {rate:.0f} Hz, bare put / ours (median): "
               f"{table[(rate, 'bare')] / table[(rate, 'ours')]:.1f}x")
+    live_view_runs(a.seconds)
     return 0
 
 

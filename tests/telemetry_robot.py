@@ -42,6 +42,7 @@ def main() -> int:
     ap.add_argument("--loopback", action="store_true", help="with --remote: listen on 127.0.0.1 (auth + ACL there)")
     ap.add_argument("--name", default="sim", help="robot.name")
     ap.add_argument("--secret-file", default=None, help="telemetry.shared_secret_file")
+    ap.add_argument("--routes-dir", default=None, help="controller.routes_dir (the routes it serves and takes)")
     a = ap.parse_args()
 
     tele = {"listen": [f"tcp/127.0.0.1:{a.port}"], "state_rate_hz": a.state_rate}
@@ -64,7 +65,8 @@ def main() -> int:
     loop = {"rate_hz": a.rate, "stall_periods": 10 ** 6}
     try:   # the telemetry section refuses a remote listener without authentication here
         cfg = parse_config({"loop": loop, "telemetry": tele, "robot": {"name": a.name},
-                            "controller": {"kind": a.controller},
+                            "controller": {"kind": a.controller,
+                                           **({"routes_dir": a.routes_dir} if a.routes_dir else {})},
                             "safety": {"command_timeout_s": 0.5}}, "telemetry_robot")
     except ConfigError as exc:
         print(f"configuration error: {exc}", file=sys.stderr)

@@ -25,6 +25,19 @@ def _chunks(path):
         return make_reader(f).get_summary().chunk_indexes
 
 
+def _chunk_spans_of_a_file_without_summary(path):
+    """(offset, length) of each chunk record, walking the records (opcode, u64 length, body) after the magic."""
+    import struct
+    data = open(path, "rb").read()
+    i, spans = 8, []
+    while i + 9 <= len(data):
+        op, n = data[i], struct.unpack_from("<Q", data, i + 1)[0]
+        if op == 0x06:
+            spans.append((i, 9 + n))
+        i += 9 + n
+    return spans
+
+
 def _flip(path, offset, n=8):
     with open(path, "r+b") as f:
         f.seek(offset)
@@ -49,11 +62,12 @@ def test_a_flipped_chunk_is_named_with_its_lost_messages(tmp_path):
     s = read_recording(path)
     assert [d.number for d in s.damaged_chunks] == [3] and s.damaged and s.complete
     lost = s.damaged_chunks[0].lost["/vbnav/state"]
-    assert lost > 0 and s.lost == {"/vbnav/state": lost, "/vbnav/pose/odom": lost}   # a state carries a pose
-    assert s.messages == total - 2 * lost and sum(1 for _ in iter_recording(path)) == s.messages
+    # a state carries a pose and an odometry message
+    assert lost > 0 and s.lost == {"/vbnav/state": lost, "/vbnav/pose/odom": lost, "/vbnav/odometry": lost}
+    assert s.messages == total - 3 * lost and sum(1 for _ in iter_recording(path)) == s.messages
     r = _record_info(path)
     assert r.returncode == 1 and "DAMAGED" in r.stdout and "damaged chunk 3" in r.stdout, r.stdout
-    assert f"lost /vbnav/pose/odom {lost}, /vbnav/state {lost}" in r.stdout and "cannot decompress" in r.stdout
+    assert f"lost /vbnav/odometry {lost}, /vbnav/pose/odom {lost}, /vbnav/state {lost}" in r.stdout and "cannot decompress" in r.stdout
 
 
 def test_a_chunk_whose_crc_does_not_match_is_damaged(tmp_path):
@@ -71,8 +85,9 @@ def test_damage_in_an_interrupted_recording_is_counted_from_the_message_index(tm
     rec._writer.flush()          # what a SIGKILL leaves: PATH.part without summary (the recorder never closes)
     rec._file.flush()
     part = tmp_path / "r.mcap.part"
-    size = os.path.getsize(part)
-    _flip(part, size // 2)
+    chunks = _chunk_spans_of_a_file_without_summary(part)
+    start, length = chunks[len(chunks) // 2]
+    _flip(part, start + length - 40)       # inside the compressed data of a chunk in the middle
     s = read_recording(path)
     assert not s.complete and s.damaged and len(s.damaged_chunks) == 1, format_summary(s)
     assert sum(s.lost.values()) > 0

@@ -294,16 +294,19 @@ def test_recording_of_a_sim_run_has_every_channel_at_its_rate(tmp_path):
     assert not (tmp_path / "run.mcap.part").exists()
     s = read_recording(path)
     assert s.complete and s.truncated_reason == ""
-    assert set(s.channels) == {"/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"}
+    assert set(s.channels) == {"/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom", "/vbnav/odometry"}
     state = s.channels["/vbnav/state"]
     assert state.schema == "vbnav.state" and s.channels["/vbnav/pose/odom"].schema == "foxglove.PoseInFrame"
     assert abs(state.count - 10.0 * 20) <= 1 and state.rate_hz == pytest.approx(20.0, rel=1e-6)
     assert s.channels["/vbnav/pose/odom"].count == state.count
     kinds = [json.loads(d)["kind"] for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
     assert kinds[0] == "run_start" and "mode_change" in kinds and kinds[-1] == "run_end"
-    poses = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/pose/odom"]
-    final = poses[-1]["pose"]["position"]
-    assert math.hypot(final["x"], final["y"]) > 1.0               # the scripted drive went somewhere
+    from foxglove_client import double, protobuf_fields
+    poses = [protobuf_fields(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/pose/odom"]
+    assert poses[-1][2] == [b"odom"]                              # foxglove.PoseInFrame: frame_id, pose
+    position = protobuf_fields(protobuf_fields(poses[-1][3][0])[1][0])
+    x, y = (double(position[k][0]) if k in position else 0.0 for k in (1, 2))
+    assert math.hypot(x, y) > 1.0                                 # the scripted drive went somewhere
     assert "vbnav.state" in format_summary(s)
 
 
@@ -324,8 +327,6 @@ def test_record_info_cli(tmp_path, capsys):
 
 
 def test_images_and_rejected_mode_commands_reach_the_recording(tmp_path):
-    import base64
-
     import cv2
     import numpy as np
 
@@ -346,15 +347,17 @@ def test_images_and_rejected_mode_commands_reach_the_recording(tmp_path):
     s = read_recording(path)
     assert abs(s.channels["/vbnav/image"].count - 4 * 5) <= 1
     assert s.channels["/vbnav/image"].schema == "foxglove.CompressedImage"
-    img = next(json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/image")
-    assert img["format"] == "jpeg" and set(img["timestamp"]) == {"sec", "nsec"}
-    decoded = cv2.imdecode(np.frombuffer(base64.b64decode(img["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+    from foxglove_client import protobuf_fields
+    img = next(protobuf_fields(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/image")
+    assert img[3] == [b"jpeg"] and img[4] == [b"camera"] and 1 in img     # foxglove.CompressedImage, protobuf
+    decoded = cv2.imdecode(np.frombuffer(img[2][0], np.uint8), cv2.IMREAD_UNCHANGED)
     assert decoded.shape == (24, 32)                           # 48x64 test frames scaled to width 32
     events = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/events"]
     rejected = {e["command"]: e["reason"] for e in events if e["kind"] == "command_rejected"}
     assert "switching to 'teach' needs a new run" in rejected["mode"] and "outside" in rejected["teleop"]
-    logs = [json.loads(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/log"]
-    assert any(entry["level"] == 3 and "command_rejected" in entry["message"] for entry in logs)
+    logs = [protobuf_fields(d) for t, _, _, d in iter_recording(path) if t == "/vbnav/log"]
+    # foxglove.Log: level (2) WARNING = 3, message (3)
+    assert any(entry.get(2) == [3] and b"command_rejected" in entry[3][0] for entry in logs)
 
 
 def test_non_finite_numbers_are_sent_as_null():

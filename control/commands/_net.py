@@ -77,7 +77,13 @@ def attach_telemetry(rt, cfg, args):
     from vbnav.control.comms.link import TelemetryLink
     network = not args.no_telemetry and not rt.clock.simulated
     try:
-        return TelemetryLink.attach(rt, cfg, record=args.record, network=network, record_overwrite=args.overwrite)
+        link = TelemetryLink.attach(rt, cfg, record=args.record, network=network, record_overwrite=args.overwrite)
     except ConnectionError as exc:
         print(f"vbnav: {exc}", file=sys.stderr)
         return None
+    if link.live_view is not None:
+        lv = cfg.telemetry.live_view
+        scheme = "wss" if lv.tls_certificate else "ws"
+        print(f"vbnav: live view on {scheme}://{lv.host}:{link.live_view.port} (Foxglove: Open connection, "
+              f"Foxglove WebSocket; layout docs/foxglove-layout.json)", file=sys.stderr, flush=True)
+    return link

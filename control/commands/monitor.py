@@ -21,6 +21,9 @@ def register(sub) -> None:
     p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                    help="with --once: give up after S seconds without state (exit 1); default 5")
     p.add_argument("--refresh", type=positive, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
+    p.add_argument("--all", action="store_true",
+                   help="every robot seen on the endpoint (a router: the fleet), one line each; with --once, "
+                        "listen --timeout seconds and print them (--json: their last states by name)")
     p.set_defaults(func=_run)
 
 
@@ -127,6 +130,9 @@ def _run(args) -> int:
         print(f"vbnav monitor: {exc}", file=sys.stderr)
         return 3
     try:
+        if args.all:
+            from vbnav.control.commands._monitor_fleet import run_fleet
+            return run_fleet(args, session)
         session.declare_subscriber(f"vbnav/{args.robot}/state", view.on_state)
         session.declare_subscriber(f"vbnav/{args.robot}/events", view.on_event)
         view.load_history(session, f"vbnav/{args.robot}/events/recent")

@@ -10,6 +10,8 @@
 - ``check PATH``: every PNG chunk and ``.npz`` member against its CRC-32, every
   file decoded, the manifest compared with the files. Exit 0 intact (complete or
   not: the verdict says which), 1 damaged, 2 not a route.
+- ``pull ROBOT NAME``, ``push ROBOT NAME``, ``remote ROBOT``: copy routes from and to
+  robots over zenoh, list what a robot serves (``_route_transfer.py``, docs/fleet.md).
 """
 from __future__ import annotations
 
@@ -36,6 +38,8 @@ def register(sub) -> None:
         if name == "plot":
             a.add_argument("--out", default=None, metavar="FILE", help="PNG to write (default PATH.png)")
         a.set_defaults(func=fn)
+    from vbnav.control.commands._route_transfer import register_route
+    register_route(act)
 
 
 def run_list(args) -> int:

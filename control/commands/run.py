@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
 from vbnav.drivers.errors import InputError
@@ -22,6 +23,13 @@ def register(sub) -> None:
                    help="override controller.kind from the configuration")
     p.add_argument("--no-camera", action="store_true",
                    help="do not open the camera (by default it runs, so a stale camera stops the robot)")
+    p.add_argument("--realtime", action="store_true",
+                   help="simulated robot: run on the wall clock (sim.realtime: true) so telemetry opens and "
+                        "'vbnav monitor', 'vbnav send' and the Foxglove live view work; without it the "
+                        "simulated robot runs faster than real time and only records")
+    p.add_argument("--live-view", action="store_true",
+                   help="serve the live view to the Foxglove app (telemetry.live_view.enabled: true; "
+                        "ws://127.0.0.1:8765 by default, docs/telemetry.md)")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
     add_telemetry_args(p)
     p.set_defaults(func=run)
@@ -38,6 +46,17 @@ def build_controller(cfg, kind: str):
     raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run'")
 
 
+def enable_live_view(cfg) -> None:
+    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more)."""
+    from pydantic import ValidationError
+    t = cfg.telemetry.model_dump()
+    t["live_view"]["enabled"] = True
+    try:
+        cfg.telemetry = type(cfg.telemetry).model_validate(t)
+    except ValidationError as exc:
+        raise InputError(f"--live-view: {exc.errors()[0]['msg']}") from None
+
+
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.runtime.factory import make_robot
@@ -49,6 +68,10 @@ def run(args) -> int:
     why = record_target_error(args)
     if why:
         raise InputError(why)
+    if args.realtime:
+        cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
+    if args.live_view:
+        enable_live_view(cfg)
     kind = args.controller or cfg.controller.kind
     robot = make_robot(cfg, with_camera=not args.no_camera)
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
@@ -63,6 +86,9 @@ def run(args) -> int:
     link = attach_telemetry(rt, cfg, args)
     if link is None:
         return 3
+    if clock.simulated and cfg.telemetry.enabled and not args.no_telemetry:
+        print("vbnav run: simulated clock (faster than real time): telemetry, network commands and the live "
+              "view are not opened; add --realtime to watch and command the simulated robot", file=sys.stderr)
     printer = ProgressPrinter()
 
     def progress(r: Runtime) -> None:
@@ -77,7 +103,7 @@ def run(args) -> int:
         duration = 10.0  # a simulated teleop/idle run has nobody to stop it
     result = None
     try:
-        result = rt.run(duration, progress)
+        result = rt.run(duration, progress)      # under systemd the runtime itself notifies (systemd_notify.py)
     finally:
         controller.close()      # a route being taught keeps every keyframe so far
         link.close(result)

@@ -18,7 +18,11 @@ extension points only:
   ``ack`` id (preceded by ``mode_unchanged`` when a mode command asked for the
   current mode); ``runtime.command_observers`` (first in the list) notes the command
   being applied, so a ``command_rejected`` the loop raises for it carries the ack too;
-- ``pipeline.frame_listeners``: decimated camera frames for ``.../image``.
+- ``pipeline.frame_listeners``: decimated camera frames for ``.../image``, with what the vision
+  stages saw in them (comms/overlays.py), and the 3D scene (taught route, VSLAM landmarks) at
+  ``telemetry.live_view.scene_rate_hz``;
+- ``telemetry.live_view.enabled``: the Foxglove WebSocket server (comms/live_view.py), a sink like
+  the recording, whose Teleop panel submits to the same ``CommandInbox`` as zenoh commands.
 
 ``close(result)`` publishes the ``run_end`` event, drains the queue, finishes
 the recording and closes the session.
@@ -56,6 +60,12 @@ class _Borrowed:
 
     def image(self, *a):
         self._sink.image(*a)
+
+    def annotations(self, *a):
+        self._sink.annotations(*a)
+
+    def foxglove(self, *a):
+        self._sink.foxglove(*a)
 
     def close(self):
         pass
@@ -98,6 +108,10 @@ class TelemetryLink:
         self.session = session
         self.recorder = recorder
         self.commands: Optional[CommandSubscriber] = None
+        self.live_view = None            # comms/live_view.LiveView when telemetry.live_view.enabled
+        self.routes = None               # comms/route_transfer.RouteServer: the taught routes, over zenoh
+        self._taught: list = []          # odometry poses of the keyframes taught in this run
+        self._next_scene_ns: Optional[int] = None
         self.inbox: CommandInbox
         self._mode: Optional[str] = None
         self._applying = None            # the command the loop is applying (loop thread)
@@ -140,21 +154,42 @@ class TelemetryLink:
                                       f"same port? set telemetry.listen)") from None
             sinks.append(ZenohSink(session, robot))
         clock = runtime.clock
+        live_view, holder = None, {}
+        if session is not None and tcfg.live_view.enabled:
+            from vbnav.control.comms.live_view import LiveView
+            wall_offset = time.time_ns() - clock.now_ns()
+            try:
+                live_view = LiveView(tcfg, robot, submit_teleop=lambda k, p: holder["link"].inbox.submit(k, p),
+                                     refuse=lambda k, r, p: holder["link"].inbox.refuse(k, r, p, stream=True),
+                                     to_wall_ns=lambda t: t + wall_offset)
+            except Exception as exc:
+                for s in sinks:
+                    s.close()
+                session.close()
+                raise ConnectionError(f"telemetry.live_view: cannot start the Foxglove server on "
+                                      f"{tcfg.live_view.host}:{tcfg.live_view.port}: {exc}") from None
+            sinks.append(live_view)
         publisher = TelemetryPublisher(robot, sinks, state_rate_hz=tcfg.state_rate_hz,
                                        loop_rate_hz=cfg.loop.rate_hz, image_rate_hz=tcfg.image_rate_hz,
                                        image_width=tcfg.image_width, jpeg_quality=tcfg.jpeg_quality,
                                        now_ns=clock.now_ns)
         link = cls(runtime, tcfg, publisher, session, recorder)
+        link.live_view = live_view
+        holder["link"] = link
         # The inbox also takes commands from local sources (tests, a future local console).
         link.inbox = CommandInbox(limits_from_config(cfg), deliver=lambda cmd: link.runtime.submit(cmd),
                                   on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
+            from vbnav.control.comms.route_transfer import RouteServer
+            from vbnav.control.route import routes_root
+            link.routes = RouteServer(session, robot, routes_root(cfg.controller.routes_dir, cfg.source),
+                                      verify=verify, on_event=publisher.event)
         runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
-        if runtime.pipeline is not None and tcfg.image_rate_hz > 0:
+        if runtime.pipeline is not None:
             runtime.pipeline.frame_listeners.append(link._on_frame)
         publisher.start()
         publisher.event("run_start", controller=runtime.controller.name,
@@ -211,7 +246,34 @@ class TelemetryLink:
             self.publisher.event(f"safety_{ev.kind}", stamp_ns=ev.stamp_ns, cause=ev.cause, message=ev.message)
 
     def _on_frame(self, frame, results) -> None:
-        self.publisher.offer_image(frame.image, frame.stamp_ns, frame.seq)
+        """Vision thread (loop thread on the simulated clock), right after the stages ran on ``frame``.
+
+        A failure here must not become a pipeline fault (which stops the robot): what to show is telemetry,
+        so an error costs the overlay or the scene of this frame and is counted in ``publisher.sink_errors``."""
+        try:
+            self._offer_frame(frame, results)
+        except Exception:
+            self.publisher.sink_errors += 1
+
+    def _offer_frame(self, frame, results) -> None:
+        from vbnav.control.comms import foxglove_channels as fc
+        from vbnav.control.comms.overlays import frame_overlay, landmarks, route_keyframes
+        pub, stages, stamp = self.publisher, self.runtime.pipeline.stages, frame.stamp_ns
+        teach = results.get("teach")
+        if teach is not None and getattr(teach.value, "odom", None) is not None:
+            self._taught.append(teach.value.odom)
+        if pub.image_due(stamp):
+            pub.offer_image(frame.image, stamp, frame.seq, overlay=frame_overlay(stages, results))
+        if self._next_scene_ns is not None and stamp < self._next_scene_ns:
+            return
+        self._next_scene_ns = stamp + int(1e9 / self.tcfg.live_view.scene_rate_hz)
+        route = route_keyframes(stages) or (("teaching", list(self._taught)) if self._taught else None)
+        if route is not None:
+            name, poses = route
+            pub.offer_foxglove(stamp, "/vbnav/route", lambda t: fc.route_message(t, name, poses))
+        points = landmarks(stages)
+        if points is not None:
+            pub.offer_foxglove(stamp, "/vbnav/landmarks", lambda t: fc.landmarks_message(t, points))
 
     def _on_command_applied(self, rt, cmd, outcome, now_ns: int) -> None:
         """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: only a teleop that
@@ -243,6 +305,8 @@ class TelemetryLink:
         self._closed = True
         if self.commands is not None:
             self.commands.close()
+        if self.routes is not None:
+            self.routes.close()
         if result is not None:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)

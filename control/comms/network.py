@@ -27,14 +27,25 @@ def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str
         "rules": [
             {"id": "telemetry-out", "permission": "allow", "flows": ["egress"],
              "messages": ["put"], "key_exprs": telemetry_keys},
+            # vbnav/*/state and vbnav/*/events: `vbnav monitor --all` watches every robot behind a router.
             {"id": "telemetry-subscribe", "permission": "allow", "flows": ["ingress"],
-             "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
+             "messages": ["declare_subscriber"],
+             "key_exprs": telemetry_keys + [f"{prefix}/**", "vbnav/*/state", "vbnav/*/events"]},
             {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
              "messages": ["query", "reply", "declare_queryable"], "key_exprs": [f"{prefix}/events/recent"]},
             {"id": "commands-subscribe", "permission": "allow", "flows": ["egress"],
              "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/cmd/**"]},
             {"id": "commands-in", "permission": "allow", "flows": ["ingress"],
              "messages": ["put"], "key_exprs": [f"{prefix}/cmd/**"]},
+            # Taught routes (comms/route_transfer.py): reading them is like reading telemetry; pushing one is
+            # a command (a query with a payload on cmd/route/*), for the same peers as cmd/**.
+            {"id": "routes-read", "permission": "allow", "flows": ["ingress", "egress"],
+             "messages": ["query", "reply", "declare_queryable"],
+             "key_exprs": [f"{prefix}/routes", f"{prefix}/routes/*"]},
+            {"id": "routes-push-serve", "permission": "allow", "flows": ["egress"],
+             "messages": ["reply", "declare_queryable"], "key_exprs": [f"{prefix}/cmd/route/*"]},
+            {"id": "routes-push", "permission": "allow", "flows": ["ingress"],
+             "messages": ["query"], "key_exprs": [f"{prefix}/cmd/route/*"]},
         ],
         "subjects": [{"id": "everyone"}] + ([] if operators is None else [
             {"id": "operators", "usernames": list(operators)},
@@ -42,9 +53,9 @@ def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str
         ]),
         "policies": [
             {"id": "read-telemetry", "rules": ["telemetry-out", "telemetry-subscribe", "events-history",
-                                               "commands-subscribe"],
+                                               "commands-subscribe", "routes-read", "routes-push-serve"],
              "subjects": ["everyone"]},
-            {"id": "operators-command", "rules": ["commands-in"], "subjects": commanders},
+            {"id": "operators-command", "rules": ["commands-in", "routes-push"], "subjects": commanders},
         ],
     }
 

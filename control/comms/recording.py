@@ -2,18 +2,20 @@
 
 ``McapRecorder`` is a telemetry ``Sink``: it runs on the telemetry publisher's
 background thread and writes what is published, so the loop pays nothing
-extra for recording. Channels (message encoding ``json``, schema encoding
-``jsonschema``):
+extra for recording. Its channels, schemas and message bytes are those of the
+live Foxglove view, built in one place (control/comms/foxglove_channels.py):
 
-- ``/vbnav/state``       ``vbnav.state``          every state message (docs/telemetry.md)
-- ``/vbnav/events``      ``vbnav.event``          every event
-- ``/vbnav/log``         ``foxglove.Log``         the events again, for Foxglove's log panel
-- ``/vbnav/pose/odom``   ``foxglove.PoseInFrame`` odometry pose (and ``/vbnav/pose/vbc``,
-  ``/vbnav/pose/vslam`` once those estimates appear)
-- ``/vbnav/image``       ``foxglove.CompressedImage`` decimated JPEG frames
+- ``/vbnav/state``       ``vbnav.state`` (JSON)     every state message (docs/telemetry.md)
+- ``/vbnav/events``      ``vbnav.event`` (JSON)     every event
+- ``/vbnav/log``         ``foxglove.Log``           the events again, for Foxglove's log panel
+- ``/vbnav/pose/odom``   ``foxglove.PoseInFrame``   odometry pose (and ``/vbnav/pose/vbc``,
+  ``/vbnav/pose/vslam`` once those estimates appear); ``/vbnav/odometry`` ``foxglove.Odometry``
+- ``/vbnav/image``       ``foxglove.CompressedImage`` decimated JPEG frames, and
+  ``/vbnav/image/annotations`` ``foxglove.ImageAnnotations`` what the vision stages saw in them
+- ``/vbnav/route``       ``foxglove.SceneUpdate``   the taught route; ``/vbnav/landmarks``
+  ``foxglove.PointCloud`` VSLAM landmarks
 
-Poses are given in frame ``odom`` in Foxglove's convention (x forward, y left,
-z up): (x_fg, y_fg, yaw_fg) = (z, -x, -theta) of vbnav's planar pose.
+Foxglove messages are protobuf with the foxglove-sdk's schemas.
 Log times are the loop clock's stamps (monotonic or simulated ns); the wall
 clock at the start is in the ``vbnav`` metadata record. A file may hold several
 runs (``vbnav demo``: teach, then each repeat, each on a fresh simulated clock):
@@ -29,10 +31,7 @@ when the recording closes cleanly.
 """
 from __future__ import annotations
 
-import base64
 import datetime
-import json
-import math
 import os
 import struct
 import time
@@ -40,64 +39,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
 
+from vbnav.control.comms import foxglove_channels as fc
 from vbnav.control.comms.telemetry import Sink
 
 PART_SUFFIX = ".part"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-_TIME = {"type": "object", "title": "time",
-         "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0}}}
-_VEC3 = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
-_QUAT = {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}
-
-FOXGLOVE_SCHEMAS = {
-    "foxglove.CompressedImage": {
-        "title": "foxglove.CompressedImage", "description": "A compressed image", "type": "object",
-        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
-                       "data": {"type": "string", "contentEncoding": "base64"},
-                       "format": {"type": "string"}}},
-    "foxglove.PoseInFrame": {
-        "title": "foxglove.PoseInFrame", "description": "A timestamped pose in a named frame", "type": "object",
-        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
-                       "pose": {"type": "object", "properties": {"position": _VEC3, "orientation": _QUAT}}}},
-    "foxglove.Log": {
-        "title": "foxglove.Log", "description": "A log message", "type": "object",
-        "properties": {"timestamp": _TIME, "level": {"type": "integer", "enum": [0, 1, 2, 3, 4, 5]},
-                       "message": {"type": "string"}, "name": {"type": "string"},
-                       "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}}},
-}
-
-VBNAV_SCHEMAS = {
-    "vbnav.state": {"title": "vbnav.state", "type": "object", "description": "robot state, see docs/telemetry.md",
-                    "properties": {"schema": {"type": "string"}, "version": {"type": "integer"},
-                                   "robot": {"type": "string"}, "seq": {"type": "integer"},
-                                   "stamp_ns": {"type": "integer"}, "cycle": {"type": "integer"},
-                                   "mode": {"type": "string"}, "safety": {"type": "object"},
-                                   "drive": {"type": "object"},
-                                   "pose": {"type": "object"}, "keyframe": {"type": ["integer", "null"]},
-                                   "wheels": {"type": "object"}, "twist": {"type": "object"},
-                                   "loop": {"type": "object"}}},
-    "vbnav.event": {"title": "vbnav.event", "type": "object", "description": "event, see docs/telemetry.md",
-                    "properties": {"schema": {"type": "string"}, "version": {"type": "integer"},
-                                   "robot": {"type": "string"}, "seq": {"type": "integer"},
-                                   "stamp_ns": {"type": "integer"}, "kind": {"type": "string"}}},
-}
-
-# Event kinds that Foxglove's log panel should show as warnings / errors.
-_LOG_LEVEL = {"safety_trip": 4, "safety_hold": 3, "command_rejected": 3}
-
-
-def _ts(stamp_ns: int) -> dict:
-    stamp_ns = max(0, int(stamp_ns))
-    return {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000}
-
-
-def _pose_msg(stamp_ns: int, pose: dict) -> dict:
-    yaw = -float(pose["theta"])
-    return {"timestamp": _ts(stamp_ns), "frame_id": "odom",
-            "pose": {"position": {"x": pose["z"], "y": -pose["x"], "z": 0.0},
-                     "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}}}
-
 
 def check_record_target(path: str | os.PathLike, overwrite: bool = False) -> None:
     """Refuse to record over a recording (PATH, or PATH.part of an interrupted one) unless ``overwrite``;
@@ -147,20 +93,17 @@ class McapRecorder(Sink):
         self._last_log_ns = 0
         self._rebase_gap_ns: Optional[int] = None
         self.segments: list[str] = []
-        for topic, schema in (("/vbnav/state", "vbnav.state"), ("/vbnav/events", "vbnav.event"),
-                              ("/vbnav/log", "foxglove.Log"), ("/vbnav/pose/odom", "foxglove.PoseInFrame")):
-            self._channel(topic, schema)
+        for topic in ("/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"):
+            self._channel(topic)
         self._writer.flush()  # header, metadata and channels reach the disk first
 
-    def _schema(self, name: str) -> int:
-        if name not in self._schemas:
-            body = FOXGLOVE_SCHEMAS.get(name) or VBNAV_SCHEMAS[name]
-            self._schemas[name] = self._writer.register_schema(name, "jsonschema", json.dumps(body).encode())
-        return self._schemas[name]
-
-    def _channel(self, topic: str, schema: str) -> int:
+    def _channel(self, topic: str) -> int:
         if topic not in self._channels:
-            self._channels[topic] = self._writer.register_channel(topic, "json", self._schema(schema))
+            sch = fc.schema_of(topic)
+            if sch.name not in self._schemas:
+                self._schemas[sch.name] = self._writer.register_schema(sch.name, sch.encoding, sch.data)
+            self._channels[topic] = self._writer.register_channel(topic, sch.message_encoding,
+                                                                  self._schemas[sch.name])
         return self._channels[topic]
 
     def new_segment(self, name: str, gap_s: float = 1.0) -> None:
@@ -176,10 +119,10 @@ class McapRecorder(Sink):
             self._rebase_gap_ns = None
         return int(stamp_ns) + self._offset_ns
 
-    def _write(self, topic: str, schema: str, log_ns: int, data: bytes) -> None:
+    def _write(self, topic: str, log_ns: int, data: bytes) -> None:
         if self._closed:
             return
-        cid = self._channel(topic, schema)
+        cid = self._channel(topic)
         seq = self.counts.get(topic, 0)
         self._writer.add_message(cid, log_time=log_ns, publish_time=log_ns, data=data, sequence=seq)
         self._last_log_ns = max(self._last_log_ns, log_ns)
@@ -192,26 +135,26 @@ class McapRecorder(Sink):
     # ---- Sink ----------------------------------------------------------------------------
     def state(self, stamp_ns, payload, msg):
         t = self.log_time(stamp_ns)
-        self._write("/vbnav/state", "vbnav.state", t, payload)
-        for name, pose in msg["pose"].items():
-            if pose is not None:
-                self._write(f"/vbnav/pose/{name}", "foxglove.PoseInFrame", t, json.dumps(_pose_msg(t, pose)).encode())
+        self._write("/vbnav/state", t, payload)
+        for topic, m in fc.state_messages(t, msg):
+            self._write(topic, t, fc.encode(m))
 
     def event(self, stamp_ns, payload, msg):
-        stamp_ns = self.log_time(stamp_ns)
-        self._write("/vbnav/events", "vbnav.event", stamp_ns, payload)
-        text = " ".join(f"{k}={v}" for k, v in msg.items()
-                        if k not in ("schema", "version", "robot", "seq", "stamp_ns", "kind"))
-        log = {"timestamp": _ts(stamp_ns), "level": _LOG_LEVEL.get(msg.get("kind"), 2),
-               "message": f"{msg.get('kind')}: {text}".strip(), "name": f"vbnav/{msg.get('robot')}",
-               "file": "", "line": 0}
-        self._write("/vbnav/log", "foxglove.Log", stamp_ns, json.dumps(log).encode())
+        t = self.log_time(stamp_ns)
+        self._write("/vbnav/events", t, payload)
+        self._write("/vbnav/log", t, fc.encode(fc.log_message(t, msg)))
 
     def image(self, stamp_ns, payload, msg, jpeg):
-        stamp_ns = self.log_time(stamp_ns)
-        img = {"timestamp": _ts(stamp_ns), "frame_id": "camera", "format": "jpeg",
-               "data": base64.b64encode(jpeg).decode("ascii")}
-        self._write("/vbnav/image", "foxglove.CompressedImage", stamp_ns, json.dumps(img).encode())
+        t = self.log_time(stamp_ns)
+        self._write("/vbnav/image", t, fc.encode(fc.image_message(t, jpeg)))
+
+    def annotations(self, stamp_ns, overlay):
+        t = self.log_time(stamp_ns)
+        self._write("/vbnav/image/annotations", t, fc.encode(fc.annotations_message(t, overlay)))
+
+    def foxglove(self, stamp_ns, topic, build):
+        t = self.log_time(stamp_ns)
+        self._write(topic, t, fc.encode(build(t)))
 
     def close(self) -> None:
         """Write the summary and index, then rename PATH.part -> PATH (idempotent)."""

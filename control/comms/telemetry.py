@@ -137,6 +137,13 @@ class Sink:
     def state(self, stamp_ns: int, payload: bytes, msg: dict) -> None: ...
     def event(self, stamp_ns: int, payload: bytes, msg: dict) -> None: ...
     def image(self, stamp_ns: int, payload: bytes, msg: dict, jpeg: bytes) -> None: ...
+
+    def annotations(self, stamp_ns: int, overlay) -> None:
+        """What the vision stages saw in the image just sent (foxglove_channels.Overlay); Foxglove sinks only."""
+
+    def foxglove(self, stamp_ns: int, topic: str, build: Callable[[int], Any]) -> None:
+        """A message only Foxglove sinks carry (taught route, landmarks): ``build(stamp_ns)`` makes it."""
+
     def close(self) -> None: ...
 
 
@@ -247,13 +254,19 @@ class TelemetryPublisher:
             return False
         return self._next_image_ns is None or stamp_ns >= self._next_image_ns
 
-    def offer_image(self, image, stamp_ns: int, seq: int = 0) -> bool:
-        """Queue a frame for JPEG encoding if one is due (the array must not be modified afterwards)."""
+    def offer_image(self, image, stamp_ns: int, seq: int = 0, overlay=None) -> bool:
+        """Queue a frame for JPEG encoding if one is due (the array must not be modified afterwards).
+
+        overlay: what the vision stages saw in it (foxglove_channels.Overlay, in the frame's pixels)."""
         if not self.image_due(stamp_ns):
             return False
         nxt, period = self._next_image_ns, self._image_period_ns
         self._next_image_ns = stamp_ns + period if nxt is None else nxt + period * ((stamp_ns - nxt) // period + 1)
-        return self._put(("image", stamp_ns, seq, image))
+        return self._put(("image", stamp_ns, seq, image, overlay))
+
+    def offer_foxglove(self, stamp_ns: int, topic: str, build: Callable[[int], Any]) -> bool:
+        """Queue a Foxglove-only message (``build(stamp_ns)`` runs on the publisher thread). Never blocks."""
+        return self._put(("foxglove", stamp_ns, topic, build))
 
     def _put(self, item) -> bool:
         if self._closed or self._q.qsize() >= QUEUE_LIMIT:
@@ -321,14 +334,28 @@ class TelemetryPublisher:
                 _, stamp, ekind, fields = item
                 msg = event_message(self.robot, self._next_seq("event"), stamp, ekind, fields)
                 self._emit("event", stamp, msg)
+            elif kind == "foxglove":
+                _, stamp, topic, build = item
+                for s in self.sinks:
+                    try:
+                        s.foxglove(stamp, topic, build)
+                    except Exception:
+                        self.sink_errors += 1
             elif kind == "image":
-                _, stamp, seq, image = item
+                _, stamp, seq, image, overlay = item
                 jpeg, w, h = encode_jpeg(image, self._image_width, self._jpeg_quality)
                 msg = {"schema": IMAGE_SCHEMA, "version": SCHEMA_VERSION, "robot": self.robot,
                        "seq": self._next_seq("image"), "frame_seq": int(seq), "stamp_ns": int(stamp),
                        "format": "jpeg", "width": w, "height": h,
                        "data": base64.b64encode(jpeg).decode("ascii")}
                 self._emit("image", stamp, msg, jpeg)
+                if overlay is not None:
+                    scaled = overlay.scaled(w / image.shape[1])
+                    for s in self.sinks:
+                        try:
+                            s.annotations(stamp, scaled)
+                        except Exception:
+                            self.sink_errors += 1
         except Exception:  # a bad sample must never kill telemetry
             self.sink_errors += 1
 

@@ -67,6 +67,25 @@ class AuthConfig(Strict):
 
 
 
+class LiveViewConfig(Strict):
+    """``telemetry.live_view``: the Foxglove WebSocket server (control/comms/live_view.py)."""
+
+    enabled: bool = Field(False, description="serve the live view to the Foxglove app (ws://HOST:PORT); off by "
+                          "default. Opens with the zenoh session (real-time runs, not --no-telemetry)")
+    host: str = Field("127.0.0.1", description="address the WebSocket server binds to; beyond loopback only "
+                      "when the telemetry section allows remote access (auth and operators) and with tls_* set")
+    port: int = Field(8765, ge=0, le=65535, description="WebSocket port (0: any free port, printed at start)")
+    operator_token_file: Optional[str] = Field(
+        None, description="file (mode 600) whose content a Foxglove client sets as the parameter "
+                          "'vbnav.operator_token' to become an operator (teleop from the Teleop panel). Without "
+                          "it, Foxglove teleop is accepted only where any local user may command the robot "
+                          "(loopback-only, no shared_secret_file)")
+    tls_certificate: Optional[str] = Field(None, description="PEM certificate: serve wss:// (required off loopback)")
+    tls_private_key: Optional[str] = Field(None, description="PEM PKCS#8 key of tls_certificate")
+    scene_rate_hz: float = Field(1.0, gt=0, le=10, description="rate of the taught route and VSLAM landmarks "
+                                 "(3D scene), re-sent so a client that connects late sees them")
+
+
 class TelemetryConfig(Strict):
     """The ``telemetry:`` section of a robot configuration."""
 
@@ -93,6 +112,8 @@ class TelemetryConfig(Strict):
                                               "the robot's user) with a secret of >= 16 bytes; commands must carry "
                                               "its HMAC (vbnav send --secret-file), so other local users cannot "
                                               "command the robot")
+    live_view: LiveViewConfig = Field(default_factory=LiveViewConfig,
+                                      description="live view in Foxglove (WebSocket server), off by default")
 
     @model_validator(mode="after")
     def _remote_access_needs_auth(self):
@@ -100,6 +121,7 @@ class TelemetryConfig(Strict):
             _split_endpoint(ep)  # raises on malformed endpoints
         if self.enabled:
             _check_access(self)
+            _check_live_view(self)
         if self.auth.tls is not None:
             for ep in self.listen:
                 if not ep.startswith(("tls/", "quic/")) and not is_loopback_endpoint(ep):
@@ -179,6 +201,37 @@ def _check_access(t: TelemetryConfig) -> None:
         except ValueError as exc:
             raise ValueError(f"telemetry.shared_secret_file: {exc}") from None
 
+
+
+def _check_live_view(t: TelemetryConfig) -> None:
+    """The live view leaves this machine only where the zenoh side may (authenticated, with operators), over
+    TLS, and with a way to tell operators apart (the WebSocket protocol carries no identity)."""
+    lv = t.live_view
+    if not lv.enabled:
+        return
+    if (lv.tls_certificate is None) != (lv.tls_private_key is None):
+        raise ValueError("telemetry.live_view: tls_certificate and tls_private_key go together")
+    if _is_loopback_host(lv.host):
+        return
+    missing = []
+    if not (t.authenticated and t.operators):
+        missing.append("remote access allowed by the telemetry section (telemetry.auth and telemetry.operators)")
+    if lv.tls_certificate is None:
+        missing.append("telemetry.live_view.tls_certificate and tls_private_key (wss://)")
+    if lv.operator_token_file is None:
+        missing.append("telemetry.live_view.operator_token_file (who may teleoperate)")
+    if missing:
+        raise ValueError(f"telemetry.live_view.host {lv.host!r} makes the live view reachable from other machines "
+                         f"and needs " + " and ".join(missing) + "; for local use, keep host 127.0.0.1")
+
+
+def _is_loopback_host(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _split_endpoint(endpoint: str) -> tuple[str, str]:
