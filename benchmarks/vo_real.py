@@ -231,7 +231,6 @@ def sequences(data: Path, tmp: Path):
 
 
 def _ape(ds, frames, poses, sim3: bool) -> float:
-    gt = ds.gt_poses
     ok, g = ds.ground_truth_at(ds.stamps[frames])
     if ok.sum() < 3:
         return float("nan")
