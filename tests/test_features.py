@@ -105,3 +105,35 @@ def test_fresh_orb_corners_match_upright_keyframe_descriptors(rng):
     assert len(pairs) > 100  # measured 207 on 2026-11-30, bar 1/2
     err = np.linalg.norm(pts[pairs[:, 0]] - (kf.pts[idx_kf[pairs[:, 1]]] + [25.0, -10.0]), axis=1)
     assert np.mean(err < 2.0) > 0.91  # measured 0.957 on 2026-11-30: bar at twice the 4.3 % off
+
+
+def test_fb_threshold_grows_with_the_pyramid_level_the_residual_motion_needs():
+    from vbnav.vision.features import fb_threshold_px
+    # window 21: half-width 10.5 px; residuals within it need level 0, 21 px level 1, 42 px level 2, ...
+    got = fb_threshold_px(np.array([0.0, 10.0, 10.5, 15.0, 21.0, 30.0, 50.0, 500.0]), 1.0, 21, 3)
+    np.testing.assert_allclose(got, [1, 1, 1, 2, 2, 4, 8, 8])  # level 3 at most: the pyramid has no more
+    assert fb_threshold_px(np.array([50.0]), 0.5, 21, 2)[0] == 2.0
+
+
+def test_motion_predicted_klt_follows_a_50_px_shift(rng):
+    """50 px between frames is beyond a 2-level pyramid with a 15 px window (it reaches ~ 7.5 * 4 = 30 px);
+    started at the predicted position KLT only has to find the few px the prediction missed by."""
+    from vbnav.vision.features import klt_forward_backward
+    img = texture(rng)
+    cur = shift(img, 50.0, -12.0)
+    pts = cv2.goodFeaturesToTrack(img, 200, 0.01, 10).reshape(-1, 2)
+    pts = pts[(pts[:, 0] > 20) & (pts[:, 0] < 560) & (pts[:, 1] > 30)]
+    kw = dict(win=15, levels=2, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+              fb_threshold=1.0)
+    plain, ok_plain = klt_forward_backward(img, cur, pts, **kw)
+    right_plain = ok_plain & (np.linalg.norm(plain - pts - [50, -12], axis=1) < 0.5)
+    guess = pts + [47.0, -10.0]  # a motion model 3.6 px off
+    p1, ok = klt_forward_backward(img, cur, pts, guess=guess, **kw)
+    err = np.linalg.norm(p1[ok] - pts[ok] - [50, -12], axis=1)
+    assert ok.mean() > 0.9 and np.percentile(err, 90) < 0.1, (ok.mean(), np.percentile(err, 90))
+    assert right_plain.mean() < 0.5  # without the prediction most of these are lost
+    # a wrong prediction costs time, not tracks: the points are tracked again from no motion
+    small = shift(img, 2.0, 1.0)
+    p2, ok2 = klt_forward_backward(img, small, pts, guess=pts + [40.0, 0.0], **kw)
+    assert ok2.mean() > 0.9
+    np.testing.assert_allclose(np.median(p2[ok2] - pts[ok2], axis=0), [2.0, 1.0], atol=0.05)
