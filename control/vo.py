@@ -19,9 +19,13 @@ from vbnav.vision.vslam_init import TagGrid, init_from_tags, init_two_view
 INIT_MODES = ("stereo", "depth", "tags", "essential")
 
 
-# A two-view start waits for this median image motion beyond rotation (px): at 1 px of tracking noise,
-# depths from 20 px of parallax are good to ~5 %.
-TWO_VIEW_PARALLAX_PX = 20.0
+# A two-view start waits for this median image motion (px): at 1 px of tracking noise, depths from 20 px
+# of parallax are good to ~5 %; and for this much of it beyond the rotation between the views, so that a
+# turn (every point moving alike, no depth in it) does not start it with no baseline: 5 px is 5 times the
+# tracking noise, which makes the translation direction of the essential matrix (a few hundred rays)
+# good to a few degrees. Far points dominate the median, so the first bound alone is not a parallax.
+TWO_VIEW_FLOW_PX = 20.0
+TWO_VIEW_PARALLAX_PX = 5.0
 
 
 class VoError(InputError):
@@ -216,6 +220,22 @@ def _restart(ds: Dataset, slam: Vslam, init: str, i: int, traj: _Trajectory, ess
     return i + 1
 
 
+def _parallax_px(camera, rays0: np.ndarray, px: np.ndarray, R_model: np.ndarray) -> float:
+    """Median image motion of ``rays0`` -> ``px`` beyond the rotation between the views: the rotation
+    from the essential matrix of these correspondences (the motion model's ``R_model`` if that fails)."""
+    R = R_model
+    rays1 = camera.rays(px)
+    u0, u1 = rays0[:, :2] / rays0[:, 2:], rays1[:, :2] / rays1[:, 2:]
+    f = float(getattr(camera, "fx", 500.0))
+    E, inl = cv2.findEssentialMat(u0, u1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f)
+    if E is not None and E.shape == (3, 3):
+        n, R_e, _, _ = cv2.recoverPose(E, u0, u1, np.eye(3), mask=inl)
+        if n >= 8:
+            R = R_e
+    rotated, _ = camera.project(rays0 @ R.T)
+    return float(np.median(np.linalg.norm(px - rotated, axis=1)))
+
+
 def _two_view_start(ds: Dataset, slam: Vslam, first: int, max_frames: int, traj: _Trajectory, state: str,
                     pose_wc0: np.ndarray, speed: float, say) -> Optional[int]:
     """Track corners from frame ``first`` until the parallax is enough, then a two-view start whose
@@ -237,11 +257,15 @@ def _two_view_start(ds: Dataset, slam: Vslam, first: int, max_frames: int, traj:
         px[idx[ok]] = nxt[ok]
         seen[k] = px.copy()
         prev = img
-        # Parallax, not flow, makes a two-view start: take out the rotation the motion model expects
-        # (a turn moves every point alike and tells nothing of depth).
-        rotated, _ = ds.camera.project(rays0[keep] @ traj.rotation(first, k - first).T)
-        flow = np.median(np.linalg.norm(px[keep] - rotated, axis=1)) if keep.any() else 0.0
-        if flow > TWO_VIEW_PARALLAX_PX or keep.sum() < 8:
+        if keep.sum() < 8:
+            break
+        # Parallax, not flow, makes a two-view start: take out the rotation between the two views (a
+        # turn moves every point alike and tells nothing of depth).
+        # Start anyway once half of the corners are gone (a turn takes them out of view): waiting longer
+        # for parallax would leave too few to start with.
+        flow = np.median(np.linalg.norm(px[keep] - px0[keep], axis=1))
+        if keep.sum() < 0.5 * len(px0) or (flow > TWO_VIEW_FLOW_PX and _parallax_px(
+                ds.camera, rays0[keep], px[keep], traj.rotation(first, k - first)) > TWO_VIEW_PARALLAX_PX):
             break
     if keep.sum() < 8:
         return None

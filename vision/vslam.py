@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
-from vbnav.vision.features import KltTracker, describe, match_descriptors
+from vbnav.vision.features import KltTracker, describe, detect_and_describe, match_descriptors
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
 
@@ -183,6 +183,7 @@ class Vslam:
         self.lm = _Landmarks()
         self.dormant = _Landmarks()  # reference landmarks whose tracks were lost
         self.reacquired = 0  # landmarks found again, in total
+        self.descriptor_poses = 0  # frames posed by the ORB fallback
         self.cand = _Candidates()
         self.R = np.eye(3)  # reference -> current camera
         self.T = np.zeros(3)
@@ -241,6 +242,7 @@ class Vslam:
             raise RuntimeError("Vslam.process before initialise")
         cfg = self.cfg
         n_lm = len(self.lm.P)
+        before = _Landmarks(**{k: getattr(self.lm, k) for k in _Landmarks._ROWS})  # for the ORB fallback
         pts = np.vstack((self.lm.px, self.cand.px))
         new_px, ok = self.tracker.track(self.prev, image, pts, guess=self._predicted_pixels())
         self.lm.px, self.cand.px = new_px[:n_lm], new_px[n_lm:]
@@ -253,18 +255,21 @@ class Vslam:
         self._anchors[self._img_id] = image
         if cfg.anchor_tracks:
             self._refine_from_anchors(image)
-        if tracked < max(cfg.min_inliers, 3):
-            return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"), reference=len(self.references) - 1)
-        rays = self.camera.rays(self.lm.px)
         f = float(getattr(self.camera, "fx", 500.0))
-        est = recover_motion_robust(self.lm.P, rays, prior=self._predicted_motion(),
-                                    threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
-                                    weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
+        est = None
+        if tracked >= max(cfg.min_inliers, 3):
+            est = recover_motion_robust(self.lm.P, self.camera.rays(self.lm.px), prior=self._predicted_motion(),
+                                        threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
+                                        weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
+        if est is None or (est.inliers & (est.depths > 0)).sum() < cfg.min_inliers:
+            # KLT kept too few (a jump, blur, an exposure change): match ORB descriptors of the landmarks
+            # against fresh corners of this image, pose from those.
+            est = self._descriptor_pose(image, before, f)
+            if est is None:
+                return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"),
+                                   reference=len(self.references) - 1)
         self.stats.append(est)
         inl = est.inliers & (est.depths > 0)
-        if inl.sum() < cfg.min_inliers:
-            return FrameResult(False, self.pose_wc, tracked, int(inl.sum()), est.iterations, float("nan"),
-                               reference=len(self.references) - 1)
         self.R, self.T = est.R, est.T
         self._history = [self._history[-1], self.pose_wc] if self._history else [self.pose_wc]
         self.lm.keep(inl)
@@ -279,6 +284,33 @@ class Vslam:
         self._forget_anchors()
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
+
+    def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float) -> Optional[MotionEstimate]:
+        """Pose from ORB matches of the landmarks held before this frame's KLT (their descriptors from
+        creation) to fresh corners; on success the matched landmarks become the tracked set."""
+        d = before.keep(before.described) if len(before.P) else before
+        if len(d.P) < self.cfg.min_inliers:
+            return None
+        pts, desc = detect_and_describe(image, 2 * self.cfg.max_landmarks)
+        pairs = match_descriptors(d.desc, desc)
+        if len(pairs) < self.cfg.min_inliers:
+            return None
+        li, ci = pairs[:, 0], pairs[:, 1]
+        est = recover_motion_robust(d.P[li], self.camera.rays(pts[ci].astype(float)),
+                                    prior=self._predicted_motion(), threshold=2 * self.cfg.inlier_threshold_px / f,
+                                    angular=True, rng=self.rng)
+        if (est.inliers & (est.depths > 0)).sum() < self.cfg.min_inliers:
+            return None
+        m = np.zeros(len(d.P), bool)
+        m[li] = True
+        d.keep(m)
+        order = np.argsort(li)
+        d.px = pts[ci[order]].astype(float)
+        d.anchor[:], d.apx = self._img_id, d.px.copy()
+        self.lm = d
+        self.descriptor_poses += 1
+        est.inliers, est.depths = est.inliers[order], est.depths[order]
+        return est
 
     # ------------------------------------------------------------------ tracks and landmark positions
     def _refine_from_anchors(self, image: np.ndarray) -> None:
