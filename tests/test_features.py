@@ -137,3 +137,23 @@ def test_motion_predicted_klt_follows_a_50_px_shift(rng):
     p2, ok2 = klt_forward_backward(img, small, pts, guess=pts + [40.0, 0.0], **kw)
     assert ok2.mean() > 0.9
     np.testing.assert_allclose(np.median(p2[ok2] - pts[ok2], axis=0), [2.0, 1.0], atol=0.05)
+
+
+def test_vslam_poses_a_jump_beyond_klt_by_orb_matching(rng):
+    """A sideways jump of 150 px (beyond a 3-level, 21 px KLT pyramid's ~84 px, and with no motion
+    history to predict it): the front end poses the frame from ORB matches of its landmarks."""
+    from vbnav.vision.vslam import Vslam, VslamConfig
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    img = texture(rng)
+    wide = np.hstack((img, texture(rng)[:, :320]))  # a plane 2 m away, wider than one view
+    depth = np.full((480, 640), 2.0, np.float32)
+    slam = Vslam(cam, VslamConfig(max_landmarks=300, min_landmarks=250))
+    slam.initialise_depth(wide[:, :640], depth)
+    r = slam.process(wide[:, 150:790], depth=depth)  # camera 150 px / 500 px * 2 m = 0.6 m to the right
+    assert r.ok and slam.descriptor_poses == 1, r
+    np.testing.assert_allclose(r.pose_wc[:3, 3], [0.6, 0.0, 0.0], atol=0.01)
+    assert rotation_angle_deg(r.pose_wc[:3, :3]) < 0.2
+
+
+def rotation_angle_deg(R):
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
-from vbnav.vision.features import KltTracker, describe, detect_and_describe, match_descriptors
+from vbnav.vision.features import KltTracker, describe, match_descriptors
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
 
@@ -288,10 +288,15 @@ class Vslam:
     def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float) -> Optional[MotionEstimate]:
         """Pose from ORB matches of the landmarks held before this frame's KLT (their descriptors from
         creation) to fresh corners; on success the matched landmarks become the tracked set."""
-        d = before.keep(before.described) if len(before.P) else before
+        d = before
+        d.keep(d.described)  # keeps those rows in place (and returns the others)
         if len(d.P) < self.cfg.min_inliers:
             return None
-        pts, desc = detect_and_describe(image, 2 * self.cfg.max_landmarks)
+        # The same corners (GFTT) and descriptors as the landmarks were given at creation (``describe``):
+        # ORB's own FAST corners sit a pixel or two off and their descriptors then disagree.
+        pts = self.tracker.detect(image, 2 * self.cfg.max_landmarks)
+        desc, idx = describe(image, pts)
+        pts = pts[idx]
         pairs = match_descriptors(d.desc, desc)
         if len(pairs) < self.cfg.min_inliers:
             return None
