@@ -28,6 +28,12 @@ TWO_VIEW_FLOW_PX = 20.0
 TWO_VIEW_PARALLAX_PX = 5.0
 
 
+# Relocalisation after a restart: landmarks of earlier runs kept (newest first), and the matches that must
+# agree on one pose (20 inliers of a 3-point RANSAC: a chance consensus that large is negligible).
+MAX_KEPT = 5000
+RELOCALISE_MIN_INLIERS = 20
+
+
 class VoError(InputError):
     """The dataset cannot be processed with the chosen initialisation."""
 
@@ -177,6 +183,9 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
         scale_known = False
     results: list[FrameResult] = []
     earlier_refs = 0  # reference frames of the runs before the last start
+    kept_w, kept_desc = np.zeros((0, 3)), np.zeros((0, 32), np.uint8)  # landmarks of earlier runs (world)
+    restarted_at = None  # first frame of the current run while it is not yet relocalised
+    last_seen = slam.world_landmarks()
     i = start
     while i < len(ds):
         r = slam.process(ds.image(i), ds.right_image(i) if init == "stereo" else None,
@@ -184,6 +193,9 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
         results.append(r)
         if r.ok:
             traj.put(i, "tracked", r.pose_wc, r.tracked, r.inliers)
+            last_seen = slam.world_landmarks()  # what to relocalise against should this run be lost
+            if restarted_at is not None and _relocalise(ds, slam, i, restarted_at, kept_w, kept_desc, traj, say):
+                restarted_at = None
         if i % 10 == 0 or i == len(ds) - 1 or not r.ok:
             say(f"frame {i}/{len(ds) - 1}: {'ok' if r.ok else 'LOST'} landmarks {r.tracked} inliers {r.inliers} "
                 f"iterations {r.iterations} residual {r.residual_px:.2f} px references "
@@ -192,13 +204,33 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
         if r.ok:
             continue
         refs = len(slam.references)
+        w, d = last_seen
+        kept_w, kept_desc = np.vstack((kept_w, w))[-MAX_KEPT:], np.vstack((kept_desc, d))[-MAX_KEPT:]
         nxt = _restart(ds, slam, init, i - 1, traj, essential_frames, say)
         if nxt is None:
             traj.put(i - 1, "lost", None, r.tracked, r.inliers)
         else:
             earlier_refs += refs
+            restarted_at = i - 1
             i = nxt
     return traj.result(init, scale_known, earlier_refs + len(slam.references), results)
+
+
+def _relocalise(ds: Dataset, slam: Vslam, i: int, since: int, kept_w: np.ndarray, kept_desc: np.ndarray,
+                traj: _Trajectory, say) -> bool:
+    """Look for landmarks of the earlier runs in frame ``i``; when found, move the current run (and its
+    poses since the restart at ``since``) rigidly onto them. True when relocalised."""
+    pose = slam.relocalise(ds.image(i), kept_w, kept_desc, RELOCALISE_MIN_INLIERS)
+    if pose is None:
+        return False
+    C = pose @ np.linalg.inv(slam.pose_wc)
+    slam.correct_world(C)
+    for k in range(since, i + 1):
+        if k in traj.poses:
+            traj.poses[k] = C @ traj.poses[k]
+    say(f"frame {i}: relocalised against the landmarks kept from before the restart at frame {since} "
+        f"(moved {np.linalg.norm(C[:3, 3]):.3f} m)")
+    return True
 
 
 def _restart(ds: Dataset, slam: Vslam, init: str, i: int, traj: _Trajectory, essential_frames: int, say

@@ -157,3 +157,24 @@ def test_vslam_poses_a_jump_beyond_klt_by_orb_matching(rng):
 
 def rotation_angle_deg(R):
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def test_a_restarted_vslam_relocalises_against_kept_landmarks(rng):
+    """A front end restarted at a wrong pose (the motion model's guess) finds the landmarks kept from
+    before the restart and the world correction puts it where it is."""
+    from vbnav.vision.vslam import Vslam, VslamConfig
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    wide = np.hstack((texture(rng), texture(rng)[:, :320]))
+    depth = np.full((480, 640), 2.0, np.float32)
+    before = Vslam(cam, VslamConfig(max_landmarks=300))
+    before.initialise_depth(wide[:, :640], depth)
+    kept_w, kept_desc = before.world_landmarks()
+    after = Vslam(cam, VslamConfig(max_landmarks=300))
+    image = wide[:, 100:740]  # truly 100 px / 500 px * 2 m = 0.4 m to the right
+    after.initialise_depth(image, depth, pose_wc=np.eye(4))  # restarted at the guess: no motion
+    pose = after.relocalise(image, kept_w, kept_desc, min_inliers=20)
+    assert pose is not None
+    np.testing.assert_allclose(pose[:3, 3], [0.4, 0.0, 0.0], atol=0.01)
+    after.correct_world(pose @ np.linalg.inv(after.pose_wc))
+    np.testing.assert_allclose(after.pose_wc, pose, atol=1e-9)
+    assert after.relocalise(texture(rng), kept_w, kept_desc, min_inliers=20) is None  # another place

@@ -317,6 +317,42 @@ class Vslam:
         est.inliers, est.depths = est.inliers[order], est.depths[order]
         return est
 
+    # ------------------------------------------------------------------ relocalisation after a restart
+    def world_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The described landmarks (tracked and dormant) in world coordinates and their ORB
+        descriptors: what a restarted front end can relocalise against."""
+        W = self.references[-1].pose_wc
+        P = np.vstack((self.lm.P[self.lm.described], self.dormant.P[self.dormant.described]))
+        desc = np.vstack((self.lm.desc[self.lm.described], self.dormant.desc[self.dormant.described]))
+        return P @ W[:3, :3].T + W[:3, 3], desc
+
+    def relocalise(self, image: np.ndarray, points_w: np.ndarray, desc: np.ndarray,
+                   min_inliers: int) -> Optional[np.ndarray]:
+        """World-from-camera pose of ``image`` from ORB matches to kept world landmarks, or None when
+        fewer than ``min_inliers`` agree (within the pose inlier threshold)."""
+        if len(points_w) < min_inliers:
+            return None
+        pts = self.tracker.detect(image, 2 * self.cfg.max_landmarks)
+        d, idx = describe(image, pts)
+        pairs = match_descriptors(desc, d)
+        if len(pairs) < min_inliers:
+            return None
+        W = self.pose_wc  # the current estimate: landmarks centred on it keep the solve well conditioned
+        X = (points_w[pairs[:, 0]] - W[:3, 3]) @ W[:3, :3]  # in the current camera's axes
+        f = float(getattr(self.camera, "fx", 500.0))
+        est = recover_motion_robust(X, self.camera.rays(pts[idx][pairs[:, 1]]), prior=(np.eye(3), np.zeros(3)),
+                                    threshold=self.cfg.inlier_threshold_px / f, angular=True, rng=self.rng)
+        if (est.inliers & (est.depths > 0)).sum() < min_inliers:
+            return None
+        return W @ np.linalg.inv(_to_h(est.R, est.T))
+
+    def correct_world(self, C: np.ndarray) -> None:
+        """Apply a rigid world correction ``C`` (new world-from-old world) to the reference frames and
+        the recent poses: what a relocalisation found wrong in the restart's placement."""
+        for ref in self.references:
+            ref.pose_wc = C @ ref.pose_wc
+        self._history = [C @ W for W in self._history]
+
     # ------------------------------------------------------------------ tracks and landmark positions
     def _refine_from_anchors(self, image: np.ndarray) -> None:
         """Frame-to-frame KLT drifts by a random walk; the feature's own patch in the image where it was
