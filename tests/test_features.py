@@ -178,3 +178,16 @@ def test_a_restarted_vslam_relocalises_against_kept_landmarks(rng):
     after.correct_world(pose @ np.linalg.inv(after.pose_wc))
     np.testing.assert_allclose(after.pose_wc, pose, atol=1e-9)
     assert after.relocalise(texture(rng), kept_w, kept_desc, min_inliers=20) is None  # another place
+
+
+def test_grid_detection_keeps_corners_in_a_dim_low_texture_half(rng):
+    """GFTT ranks corners against the image's strongest: next to a bright textured half, a dim half (a
+    shadow, an exposure change) gets nothing. Spread over cells, each ranked on its own, it keeps its share."""
+    from vbnav.vision.features import KltTracker
+    img = texture(rng)
+    img[:, 320:] = (img[:, 320:].astype(np.float32) * 0.03 + 100).astype(np.uint8)  # ~8 grey levels of texture
+    tr = KltTracker()
+    plain = tr.detect(img, 200)
+    grid = tr.detect(img, 200, cells=12)
+    assert (plain[:, 0] > 330).sum() < 10
+    assert (grid[:, 0] > 330).sum() > 25 and len(grid) == 200  # measured 51 (plain: 0)

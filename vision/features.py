@@ -156,18 +156,44 @@ class KltTracker:
         return new.astype(np.float64), ok
 
     def detect(self, image: np.ndarray, count: int, existing: np.ndarray | None = None,
-               mask: np.ndarray | None = None) -> np.ndarray:
-        """Up to ``count`` new sub-pixel corners (M, 2) at least ``min_distance`` from ``existing``."""
+               mask: np.ndarray | None = None, cells: int = 0) -> np.ndarray:
+        """Up to ``count`` new sub-pixel corners (M, 2) at least ``min_distance`` from ``existing``.
+
+        ``cells`` > 0: spread them over about that many square cells (each gets its share, ranked
+        by its own strongest corner, so a dim or low-texture part of the image still gets corners
+        next to a bright textured one), then fill what the cells left from the whole image."""
         if count <= 0:
             return np.zeros((0, 2))
         m = np.full(image.shape[:2], 255, np.uint8) if mask is None else mask.copy()
         if existing is not None and len(existing):
             for x, y in np.asarray(existing).reshape(-1, 2):
                 cv2.circle(m, (int(round(x)), int(round(y))), int(self.min_distance), 0, -1)
-        pts = cv2.goodFeaturesToTrack(image, maxCorners=int(count), qualityLevel=self.quality,
-                                      minDistance=self.min_distance, mask=m, blockSize=self.block_size)
-        if pts is None:
+        found = []
+        if cells > 0:
+            h, w = image.shape[:2]
+            side = np.sqrt(h * w / cells)
+            gy, gx = max(int(round(h / side)), 1), max(int(round(w / side)), 1)
+            share = int(np.ceil(count / (gx * gy)))
+            for r in range(gy):
+                for c in range(gx):
+                    cm = np.zeros_like(m)
+                    ys, xs = slice(r * h // gy, (r + 1) * h // gy), slice(c * w // gx, (c + 1) * w // gx)
+                    cm[ys, xs] = m[ys, xs]
+                    p = cv2.goodFeaturesToTrack(image, maxCorners=share, qualityLevel=self.quality,
+                                                minDistance=self.min_distance, mask=cm, blockSize=self.block_size)
+                    if p is not None:
+                        found.append(p.reshape(-1, 2))
+                        for x, y in p.reshape(-1, 2):
+                            cv2.circle(m, (int(round(x)), int(round(y))), int(self.min_distance), 0, -1)
+        left = count - sum(len(p) for p in found)
+        if left > 0:
+            p = cv2.goodFeaturesToTrack(image, maxCorners=int(left), qualityLevel=self.quality,
+                                        minDistance=self.min_distance, mask=m, blockSize=self.block_size)
+            if p is not None:
+                found.append(p.reshape(-1, 2))
+        if not found:
             return np.zeros((0, 2))
+        pts = np.vstack(found)[:count].reshape(-1, 1, 2)
         pts = cv2.cornerSubPix(image, pts.astype(np.float32), (5, 5), (-1, -1),
                                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
         return pts.reshape(-1, 2).astype(np.float64)

@@ -67,6 +67,8 @@ class VslamConfig(BaseModel):
     klt_window: int = Field(21, ge=5, description="KLT window side, px")
     klt_levels: int = Field(3, ge=0, description="KLT pyramid levels")
     min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners, px")
+    detect_cells: int = Field(0, ge=0, description="new corners spread over about this many square image "
+                                                   "cells, each ranked on its own (0: the whole image at once)")
 
 
 @dataclass
@@ -567,7 +569,7 @@ class Vslam:
 
     def _new_corners(self, image, budget: int) -> np.ndarray:
         existing = np.vstack((self.lm.px, self.cand.px))
-        return self.tracker.detect(image, budget, existing)
+        return self.tracker.detect(image, budget, existing, cells=self.cfg.detect_cells)
 
     def _add_from_stereo(self, left, right, own: bool) -> int:
         """Spherical disparity (11.11) with the known stereo motion: X_right = X_left - (b, 0, 0)."""
