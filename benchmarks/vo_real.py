@@ -14,7 +14,10 @@ against a growing map of 3D points. The map starts and grows by
 Printed per sequence: frames with a pose, APE (translation RMSE after SE(3) alignment, or
 Sim(3) for monocular runs whose scale is unknown), ms per frame, and the ratio vbnav / peer.
 
-    VBNAV_DATA=../shared/data .venv/bin/python benchmarks/vo_real.py [--data DIR] [--only NAME ...]
+    VBNAV_DATA=../shared/data .venv/bin/python benchmarks/vo_real.py [--data DIR] [--only NAME ...] [--seeds N]
+
+``--seeds N`` runs vbnav again with RANSAC seeds 1..N-1 and prints the spread of its APE: a monocular
+run's figure is one draw (on vo_turns_kitti03 the seeds move it by more than most code changes do).
 
 Sequences (those of the data folder that have ground truth): kitti06_stereo (stereo, and its
 left images alone, monocular), vo_turns_kitti03 (monocular), desk_rgbd (tag grid, and depth of
@@ -244,6 +247,9 @@ def main(argv=None) -> int:
     default = Path(os.environ.get("VBNAV_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
     ap.add_argument("--data", type=Path, default=default, help="the shared data folder (default $VBNAV_DATA)")
     ap.add_argument("--only", nargs="*", default=None, help="run only sequences whose name contains one of these")
+    ap.add_argument("--seeds", type=int, default=1, metavar="N",
+                    help="also run vbnav with RANSAC seeds 1..N-1 and print the spread of its APE (monocular "
+                         "runs depend on the draws: one figure is one draw)")
     args = ap.parse_args(argv)
     if not args.data.is_dir():
         ap.error(f"--data {args.data}: not a folder")
@@ -266,6 +272,13 @@ def main(argv=None) -> int:
             print(f"{name:<20} {len(ds):>6} | {len(res.frames):>5} {100 * len(res.frames) / len(ds):>4.0f}% "
                   f"{ape_ours:>7.4f}m {t_ours:>6.0f} | {len(pf):>4} {100 * len(pf) / len(ds):>4.0f}% "
                   f"{ape_peer:>7.4f}m {t_peer:>6.0f} | {ape_ours / ape_peer:>8.2f}x  ({kind})", flush=True)
+            if args.seeds > 1:
+                apes = [ape_ours]
+                for seed in range(1, args.seeds):
+                    r = run_vo(ds, init, seed=seed)
+                    apes.append(_ape(ds, r.frames, r.poses, not r.scale_known))
+                print(f"{'':<20} vbnav APE over RANSAC seeds 0-{args.seeds - 1}: median {np.median(apes):.4f} m, "
+                      f"range {min(apes):.4f}-{max(apes):.4f} m", flush=True)
     return 0
 
 

@@ -138,7 +138,7 @@ def _power(M: np.ndarray, n: float) -> np.ndarray:
 
 
 def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig] = None,
-           progress: Optional[Callable[[str], None]] = None, essential_frames: int = 10) -> VoResult:
+           progress: Optional[Callable[[str], None]] = None, essential_frames: int = 10, seed: int = 0) -> VoResult:
     """Track the whole dataset. When a frame is lost, the front end starts again at once (stereo,
     depth: new landmarks from that frame; monocular: a two-view start over the next frames whose
     unit baseline takes the speed of the last good frames), at the pose the motion model predicts,
@@ -147,7 +147,7 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
     if init not in INIT_MODES:
         raise VoError(f"unknown --init {init!r} (expected one of {', '.join(INIT_MODES)})")
     say = progress or (lambda s: None)
-    slam = Vslam(ds.camera, config, stereo_baseline=ds.stereo_baseline if init == "stereo" else None)
+    slam = Vslam(ds.camera, config, stereo_baseline=ds.stereo_baseline if init == "stereo" else None, seed=seed)
     traj = _Trajectory(ds)
     scale_known = True
     if init == "stereo":

@@ -176,7 +176,7 @@ class Vslam:
     """The front end. ``initialise`` once with metric landmarks, then ``process`` every image."""
 
     def __init__(self, camera: PinholeCamera | FisheyeCamera, config: VslamConfig | None = None,
-                 stereo_baseline: Optional[float] = None):
+                 stereo_baseline: Optional[float] = None, seed: int = 0):
         self.camera = camera
         self.cfg = config or VslamConfig()
         self.baseline = stereo_baseline
@@ -192,7 +192,7 @@ class Vslam:
         self.references: list[ReferenceFrame] = []
         self.prev: Optional[np.ndarray] = None
         self.frame = 0
-        self.rng = np.random.default_rng(0)
+        self.rng = np.random.default_rng(seed)  # RANSAC draws
         self.stats: list[MotionEstimate] = []
         self._history: list[np.ndarray] = []  # last two good world-from-camera poses
         self._img_id = 0  # frame counter of the image being processed
