@@ -206,6 +206,7 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
         refs = len(slam.references)
         w, d = last_seen
         kept_w, kept_desc = np.vstack((kept_w, w))[-MAX_KEPT:], np.vstack((kept_desc, d))[-MAX_KEPT:]
+        last_seen = (np.zeros((0, 3)), np.zeros((0, 32), np.uint8))  # kept once, not once per lost frame
         nxt = _restart(ds, slam, init, i - 1, traj, essential_frames, say)
         if nxt is None:
             traj.put(i - 1, "lost", None, r.tracked, r.inliers)
