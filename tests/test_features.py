@@ -191,3 +191,24 @@ def test_grid_detection_keeps_corners_in_a_dim_low_texture_half(rng):
     grid = tr.detect(img, 200, cells=12)
     assert (plain[:, 0] > 330).sum() < 10
     assert (grid[:, 0] > 330).sum() > 25 and len(grid) == 200  # measured 51 (plain: 0)
+
+
+def test_blur_exposure_and_44_px_keep_tracks_by_the_per_level_bound():
+    """Issue 13's hand-held case: 44 px of motion, blur (sigma 3 px) and an exposure change. The strict
+    1 px forward-backward bound keeps almost nothing; the per-level bound keeps most, a few px good."""
+    from vbnav.vision.features import klt_forward_backward
+    img = texture(np.random.default_rng(0))
+    cur = cv2.GaussianBlur(shift(img, 44.0, 6.0), (0, 0), 3)
+    cur = np.clip(cur.astype(np.float32) * 0.7 + 30, 0, 255).astype(np.uint8)
+    pts = cv2.goodFeaturesToTrack(img, 110, 0.01, 10).reshape(-1, 2)
+    pts = pts[(pts[:, 0] < 580) & (pts[:, 1] < 460)]
+    p, ok = klt_forward_backward(img, cur, pts, win=21, levels=3, fb_threshold=1.0,
+                                 criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    lk = dict(winSize=(21, 21), maxLevel=3)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(img, cur, pts.reshape(-1, 1, 2), None, **lk)
+    back, _, _ = cv2.calcOpticalFlowPyrLK(cur, img, p1, pts.reshape(-1, 1, 2).copy(),
+                                          flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+    strict = (st.ravel() == 1) & (np.linalg.norm(back.reshape(-1, 2) - pts, axis=1) < 1.0)
+    err = np.linalg.norm(p[ok] - pts[ok] - [44.0, 6.0], axis=1)
+    assert strict.sum() < 15  # measured 6 of 100
+    assert ok.sum() > 40 and np.median(err) < 2.1, (ok.sum(), np.median(err))  # measured 79, 1.04 px
