@@ -54,3 +54,12 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> tuple[float, float]:
     if not te:
         return float("nan"), float("nan")
     return float(np.sqrt(np.mean(np.square(te)))), float(np.sqrt(np.mean(np.square(re))))
+
+
+def scale_to(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``est`` with its translations multiplied by the Sim(3) scale that aligns it to ``gt`` (for the
+    RPE of a monocular run, whose scale is arbitrary)."""
+    _, _, s = absolute_orientation(est[:, :3, 3], gt[:, :3, 3], with_scale=True)
+    out = np.array(est, float, copy=True)
+    out[:, :3, 3] *= s
+    return out

@@ -67,6 +67,8 @@ class VslamConfig(BaseModel):
     klt_window: int = Field(21, ge=5, description="KLT window side, px")
     klt_levels: int = Field(3, ge=0, description="KLT pyramid levels")
     min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners, px")
+    detect_cells: int = Field(0, ge=0, description="new corners spread over about this many square image "
+                                                   "cells, each ranked on its own (0: the whole image at once)")
 
 
 @dataclass
@@ -174,7 +176,7 @@ class Vslam:
     """The front end. ``initialise`` once with metric landmarks, then ``process`` every image."""
 
     def __init__(self, camera: PinholeCamera | FisheyeCamera, config: VslamConfig | None = None,
-                 stereo_baseline: Optional[float] = None):
+                 stereo_baseline: Optional[float] = None, seed: int = 0):
         self.camera = camera
         self.cfg = config or VslamConfig()
         self.baseline = stereo_baseline
@@ -183,13 +185,14 @@ class Vslam:
         self.lm = _Landmarks()
         self.dormant = _Landmarks()  # reference landmarks whose tracks were lost
         self.reacquired = 0  # landmarks found again, in total
+        self.descriptor_poses = 0  # frames posed by the ORB fallback
         self.cand = _Candidates()
         self.R = np.eye(3)  # reference -> current camera
         self.T = np.zeros(3)
         self.references: list[ReferenceFrame] = []
         self.prev: Optional[np.ndarray] = None
         self.frame = 0
-        self.rng = np.random.default_rng(0)
+        self.rng = np.random.default_rng(seed)  # RANSAC draws
         self.stats: list[MotionEstimate] = []
         self._history: list[np.ndarray] = []  # last two good world-from-camera poses
         self._img_id = 0  # frame counter of the image being processed
@@ -215,6 +218,7 @@ class Vslam:
         self.lm.add(np.asarray(points_cam, float).reshape(-1, 3), np.asarray(pixels, float).reshape(-1, 2), True,
                     image=image, anchor=self._img_id)
         self.dormant = _Landmarks()
+        self.cand = _Candidates()  # a restart: candidates' first poses belong to the old reference
         self.R, self.T = np.eye(3), np.zeros(3)
         self.references = [ReferenceFrame(self.frame, np.eye(4) if pose_wc is None else np.asarray(pose_wc, float),
                                           len(self.lm.P))]
@@ -240,8 +244,9 @@ class Vslam:
             raise RuntimeError("Vslam.process before initialise")
         cfg = self.cfg
         n_lm = len(self.lm.P)
+        before = _Landmarks(**{k: getattr(self.lm, k) for k in _Landmarks._ROWS})  # for the ORB fallback
         pts = np.vstack((self.lm.px, self.cand.px))
-        new_px, ok = self.tracker.track(self.prev, image, pts)
+        new_px, ok = self.tracker.track(self.prev, image, pts, guess=self._predicted_pixels())
         self.lm.px, self.cand.px = new_px[:n_lm], new_px[n_lm:]
         self.cand.keep(ok[n_lm:])
         self._make_dormant(self.lm.keep(ok[:n_lm]))
@@ -252,18 +257,21 @@ class Vslam:
         self._anchors[self._img_id] = image
         if cfg.anchor_tracks:
             self._refine_from_anchors(image)
-        if tracked < max(cfg.min_inliers, 3):
-            return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"), reference=len(self.references) - 1)
-        rays = self.camera.rays(self.lm.px)
         f = float(getattr(self.camera, "fx", 500.0))
-        est = recover_motion_robust(self.lm.P, rays, prior=self._predicted_motion(),
-                                    threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
-                                    weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
+        est = None
+        if tracked >= max(cfg.min_inliers, 3):
+            est = recover_motion_robust(self.lm.P, self.camera.rays(self.lm.px), prior=self._predicted_motion(),
+                                        threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
+                                        weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
+        if est is None or (est.inliers & (est.depths > 0)).sum() < cfg.min_inliers:
+            # KLT kept too few (a jump, blur, an exposure change): match ORB descriptors of the landmarks
+            # against fresh corners of this image, pose from those.
+            est = self._descriptor_pose(image, before, f)
+            if est is None:
+                return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"),
+                                   reference=len(self.references) - 1)
         self.stats.append(est)
         inl = est.inliers & (est.depths > 0)
-        if inl.sum() < cfg.min_inliers:
-            return FrameResult(False, self.pose_wc, tracked, int(inl.sum()), est.iterations, float("nan"),
-                               reference=len(self.references) - 1)
         self.R, self.T = est.R, est.T
         self._history = [self._history[-1], self.pose_wc] if self._history else [self.pose_wc]
         self.lm.keep(inl)
@@ -278,6 +286,74 @@ class Vslam:
         self._forget_anchors()
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
+
+    def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float) -> Optional[MotionEstimate]:
+        """Pose from ORB matches of the landmarks held before this frame's KLT (their descriptors from
+        creation) to fresh corners; on success the matched landmarks become the tracked set."""
+        d = before
+        d.keep(d.described)  # keeps those rows in place (and returns the others)
+        if len(d.P) < self.cfg.min_inliers:
+            return None
+        # The same corners (GFTT) and descriptors as the landmarks were given at creation (``describe``):
+        # ORB's own FAST corners sit a pixel or two off and their descriptors then disagree.
+        pts = self.tracker.detect(image, 2 * self.cfg.max_landmarks)
+        desc, idx = describe(image, pts)
+        pts = pts[idx]
+        pairs = match_descriptors(d.desc, desc)
+        if len(pairs) < self.cfg.min_inliers:
+            return None
+        li, ci = pairs[:, 0], pairs[:, 1]
+        est = recover_motion_robust(d.P[li], self.camera.rays(pts[ci].astype(float)),
+                                    prior=self._predicted_motion(), threshold=2 * self.cfg.inlier_threshold_px / f,
+                                    angular=True, rng=self.rng)
+        if (est.inliers & (est.depths > 0)).sum() < self.cfg.min_inliers:
+            return None
+        m = np.zeros(len(d.P), bool)
+        m[li] = True
+        d.keep(m)
+        order = np.argsort(li)
+        d.px = pts[ci[order]].astype(float)
+        d.anchor[:], d.apx = self._img_id, d.px.copy()
+        self.lm = d
+        self.descriptor_poses += 1
+        est.inliers, est.depths = est.inliers[order], est.depths[order]
+        return est
+
+    # ------------------------------------------------------------------ relocalisation after a restart
+    def world_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The described landmarks (tracked and dormant) in world coordinates and their ORB
+        descriptors: what a restarted front end can relocalise against."""
+        W = self.references[-1].pose_wc
+        P = np.vstack((self.lm.P[self.lm.described], self.dormant.P[self.dormant.described]))
+        desc = np.vstack((self.lm.desc[self.lm.described], self.dormant.desc[self.dormant.described]))
+        return P @ W[:3, :3].T + W[:3, 3], desc
+
+    def relocalise(self, image: np.ndarray, points_w: np.ndarray, desc: np.ndarray,
+                   min_inliers: int) -> Optional[np.ndarray]:
+        """World-from-camera pose of ``image`` from ORB matches to kept world landmarks, or None when
+        fewer than ``min_inliers`` agree (within the pose inlier threshold)."""
+        if len(points_w) < min_inliers:
+            return None
+        pts = self.tracker.detect(image, 2 * self.cfg.max_landmarks)
+        d, idx = describe(image, pts)
+        pairs = match_descriptors(desc, d)
+        if len(pairs) < min_inliers:
+            return None
+        W = self.pose_wc  # the current estimate: landmarks centred on it keep the solve well conditioned
+        X = (points_w[pairs[:, 0]] - W[:3, 3]) @ W[:3, :3]  # in the current camera's axes
+        f = float(getattr(self.camera, "fx", 500.0))
+        est = recover_motion_robust(X, self.camera.rays(pts[idx][pairs[:, 1]]), prior=(np.eye(3), np.zeros(3)),
+                                    threshold=self.cfg.inlier_threshold_px / f, angular=True, rng=self.rng)
+        if (est.inliers & (est.depths > 0)).sum() < min_inliers:
+            return None
+        return W @ np.linalg.inv(_to_h(est.R, est.T))
+
+    def correct_world(self, C: np.ndarray) -> None:
+        """Apply a rigid world correction ``C`` (new world-from-old world) to the reference frames and
+        the recent poses: what a relocalisation found wrong in the restart's placement."""
+        for ref in self.references:
+            ref.pose_wc = C @ ref.pose_wc
+        self._history = [C @ W for W in self._history]
 
     # ------------------------------------------------------------------ tracks and landmark positions
     def _refine_from_anchors(self, image: np.ndarray) -> None:
@@ -346,6 +422,23 @@ class Vslam:
     def _min_conditioning(self) -> float:
         # two views at the parallax gate theta: eigenvalues ~ (2, 2 - theta^2/2, theta^2/2) / (D^2): ratio theta^2/8
         return np.deg2rad(self.cfg.min_parallax_deg) ** 2 / 8.0
+
+    def _predicted_pixels(self) -> np.ndarray:
+        """Where the landmarks and candidates should appear in the next image at constant velocity: the
+        KLT starts there, so it only has to find the deviation from the motion model (a turn of
+        3 degrees per frame is 40 px of flow at f = 720 px, a few px of deviation). Landmarks are
+        projected with the predicted motion; candidates (no depth yet) are rotated only, as if far.
+        Points the prediction puts behind the camera or outside the image start where they are."""
+        Rp, Tp = self._predicted_motion()
+        cur = np.vstack((self.lm.px, self.cand.px))
+        if len(cur) == 0 or len(self._history) < 2:
+            return cur
+        pred_lm, front_lm = self.camera.project(self.lm.P @ Rp.T + Tp)
+        rays = self.camera.rays(self.cand.px) @ (Rp @ self.R.T).T  # current camera -> predicted camera
+        pred_c, front_c = self.camera.project(rays)
+        pred = np.vstack((np.asarray(pred_lm).reshape(-1, 2), np.asarray(pred_c).reshape(-1, 2)))
+        ok = np.concatenate((front_lm, front_c)) & self.camera.in_image(pred, margin=0) & np.isfinite(pred).all(1)
+        return np.where(ok[:, None], pred, cur)
 
     def _predicted_motion(self) -> tuple[np.ndarray, np.ndarray]:
         """Reference -> camera motion predicted at constant velocity from the last two poses."""
@@ -476,7 +569,7 @@ class Vslam:
 
     def _new_corners(self, image, budget: int) -> np.ndarray:
         existing = np.vstack((self.lm.px, self.cand.px))
-        return self.tracker.detect(image, budget, existing)
+        return self.tracker.detect(image, budget, existing, cells=self.cfg.detect_cells)
 
     def _add_from_stereo(self, left, right, own: bool) -> int:
         """Spherical disparity (11.11) with the known stereo motion: X_right = X_left - (b, 0, 0)."""

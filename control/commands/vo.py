@@ -27,18 +27,27 @@ def register(subparsers) -> None:
                    help="intrinsics (fx, fy, cx, cy, width, height[, dist, model, depth_scale, tag_grid]); "
                         "default camera.yaml in the dataset (TUM) or calib.txt (KITTI)")
     p.add_argument("--plot", metavar="PNG", default=None, help="plot of the trajectory against ground truth")
+    p.add_argument("--status-out", metavar="FILE", default=None,
+                   help="one line per frame: index, state (init, tracked, reinit: started again after a loss, "
+                        "lost: no pose), landmarks, inliers")
+    p.add_argument("--max-lost", type=float, default=0.10, metavar="FRACTION",
+                   help="exit 1 when more than this fraction of the frames has no pose")
     p.add_argument("--quiet", action="store_true", help="no per-frame progress")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from vbnav.control.trajectory_metrics import ate_rmse, rpe, write_tum
+    from vbnav.control.trajectory_metrics import ate_rmse, rpe, scale_to, write_tum
     from vbnav.control.vo import VoError, run_vo
     from vbnav.drivers.datasets import DatasetError, open_dataset
 
     from vbnav.control.commands._common import output_file
     output_file(args.out, "--out")          # before minutes of tracking, not after
     output_file(args.plot, "--plot")
+    output_file(args.status_out, "--status-out")
+    if not 0.0 <= args.max_lost <= 1.0:
+        print(f"vbnav vo: --max-lost {args.max_lost}: expected a fraction of the frames in [0, 1]", file=sys.stderr)
+        return 2
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     try:
         ds = open_dataset(args.dataset, args.camera)
@@ -51,22 +60,42 @@ def run(args) -> int:
         print(f"vbnav vo: {exc}", file=sys.stderr)
         return 2
     write_tum(args.out, res.stamps, res.poses)
-    print(f"tracked {len(res.stamps)}/{len(ds)} frames in {dt:.1f} s ({len(ds) / max(dt, 1e-9):.1f} fps), "
-          f"{res.references} reference frame(s); trajectory written to {args.out}")
+    if args.status_out:
+        _write_status(args.status_out, res.status)
+    lost = res.count("lost")
+    print(f"pose for {len(res.stamps)}/{len(ds)} frames in {dt:.1f} s ({len(ds) / max(dt, 1e-9):.1f} fps): "
+          f"{res.count('init')} initialisation, {res.count('tracked')} tracked, {res.count('reinit')} "
+          f"re-initialised, {lost} lost; {res.references} reference frame(s); trajectory written to {args.out}")
     if ds.gt_poses is not None:
         ok, gt = ds.ground_truth_at(res.stamps)
         if ok.sum() >= 3:
             est, gt = res.poses[ok], gt[ok]
             ate, aligned = ate_rmse(est, gt, with_scale=not res.scale_known)
-            t_rpe, r_rpe = rpe(est, gt)
+            t_rpe, r_rpe = rpe(est if res.scale_known else scale_to(est, gt), gt)
             kind = "SE(3)" if res.scale_known else "Sim(3) (monocular, scale unknown)"
             print(f"ATE RMSE {ate:.4f} m ({kind} alignment, {int(ok.sum())} poses); "
-                  f"RPE (1 frame) {t_rpe:.4f} m, {r_rpe:.3f} deg")
+                  f"RPE (1 frame{'' if res.scale_known else ', after the Sim(3) scale'}) {t_rpe:.4f} m, "
+                  f"{r_rpe:.3f} deg")
             if args.plot:
                 _plot_trajectory(args.plot, aligned, gt[:, :3, 3], f"{ds.root.name}: ATE {ate:.3f} m")
         else:
             print("ground truth present but fewer than 3 poses match the tracked frames' times")
-    return 0 if len(res.stamps) >= 2 else 1
+    if lost > args.max_lost * len(ds) or len(res.stamps) < 2:
+        print(f"vbnav vo: {lost} of {len(ds)} frames ({100 * lost / len(ds):.0f} %) have no pose, more than "
+              f"--max-lost {args.max_lost:g}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _write_status(path: str, status) -> None:
+    """``frame state landmarks inliers`` per dataset frame, written atomically."""
+    path = Path(path)
+    lines = ["# frame state landmarks inliers (state: init, tracked, reinit, lost)"]
+    lines += [f"{s.frame} {s.state} {s.landmarks} {s.inliers}" for s in status]
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
+    with os.fdopen(fd, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    os.replace(tmp, path)
 
 
 def _plot_trajectory(path: str, aligned, gt, title: str) -> None:
