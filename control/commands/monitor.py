@@ -21,6 +21,9 @@ def register(sub) -> None:
     p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                    help="with --once: give up after S seconds without state (exit 1); default 5")
     p.add_argument("--refresh", type=positive, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
+    p.add_argument("--all", action="store_true", help="every robot seen (a fleet behind a router), one line each")
+    p.add_argument("--count", type=int, default=0, metavar="N",
+                   help="with --all --once: print as soon as N robots sent state (exit 1 if fewer within --timeout)")
     p.set_defaults(func=_run)
 
 
@@ -126,6 +129,14 @@ def _run(args) -> int:
     except ConnectionError as exc:
         print(f"vbnav monitor: {exc}", file=sys.stderr)
         return 3
+    if args.all:
+        from vbnav.control.commands._fleet_monitor import run_all
+        try:
+            return run_all(args, session)
+        except KeyboardInterrupt:
+            return 0
+        finally:
+            session.close()
     try:
         session.declare_subscriber(f"vbnav/{args.robot}/state", view.on_state)
         session.declare_subscriber(f"vbnav/{args.robot}/events", view.on_event)

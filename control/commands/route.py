@@ -1,4 +1,4 @@
-"""``vbnav route list|info|plot|check``: look after taught routes.
+"""``vbnav route list|info|plot|check|pull|push``: look after taught routes.
 
 - ``list [DIR]``: the routes in a folder (default: the configuration's
   ``controller.routes_dir`` with ``-c``), one line each: keyframes, length,
@@ -10,6 +10,8 @@
 - ``check PATH``: every PNG chunk and ``.npz`` member against its CRC-32, every
   file decoded, the manifest compared with the files. Exit 0 intact (complete or
   not: the verdict says which), 1 damaged, 2 not a route.
+- ``pull ROBOT NAME``, ``push ROBOT PATH``: copy a route from or to a robot over
+  zenoh, checksummed (commands/_route_transfer.py, docs/fleet.md).
 """
 from __future__ import annotations
 
@@ -36,6 +38,8 @@ def register(sub) -> None:
         if name == "plot":
             a.add_argument("--out", default=None, metavar="FILE", help="PNG to write (default PATH.png)")
         a.set_defaults(func=fn)
+    from vbnav.control.commands._route_transfer import add_transfer_actions
+    add_transfer_actions(act)       # pull, push: over zenoh
 
 
 def run_list(args) -> int:

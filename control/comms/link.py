@@ -89,6 +89,13 @@ def _verifier(tcfg: TelemetryConfig):
         raise ConfigError(f"telemetry.shared_secret_file: {exc}") from None
 
 
+def _route_server(session, cfg, verify):
+    """Serve ``controller.routes_dir`` to the network (pull by anyone admitted, push by operators only)."""
+    from vbnav.control.comms.route_transfer import RouteServer
+    from vbnav.control.route import routes_root
+    return RouteServer(session, cfg.robot.name, routes_root(cfg.controller.routes_dir, cfg.source), verify=verify)
+
+
 class TelemetryLink:
     def __init__(self, runtime, tcfg: TelemetryConfig, publisher: TelemetryPublisher, session=None,
                  recorder=None):
@@ -98,6 +105,7 @@ class TelemetryLink:
         self.session = session
         self.recorder = recorder
         self.commands: Optional[CommandSubscriber] = None
+        self.routes = None                 # the RouteServer of controller.routes_dir (comms/route_transfer.py)
         self.inbox: CommandInbox
         self._mode: Optional[str] = None
         self._applying = None            # the command the loop is applying (loop thread)
@@ -150,6 +158,7 @@ class TelemetryLink:
                                   on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
+            link.routes = _route_server(session, cfg, verify)
         runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)
@@ -243,6 +252,8 @@ class TelemetryLink:
         self._closed = True
         if self.commands is not None:
             self.commands.close()
+        if self.routes is not None:
+            self.routes.close()
         if result is not None:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)
