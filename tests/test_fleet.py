@@ -1,0 +1,144 @@
+"""A simulated fleet through one zenoh router: three robot processes, monitor --all, route pull/push.
+
+The router is a router-mode zenoh session in this process with the configuration docs/fleet.md gives
+zenohd (user/password authentication and network.router_access_control). The robots are the real Runtime
+on the wall clock (tests/telemetry_robot.py) connecting to it with telemetry.trust_router, each serving its
+own routes folder. A route is taught on the simulated robot into robot r1's folder, pulled from r1,
+checked, pushed to r2 by an operator and repeated from r2's folder on the simulated clock.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from test_telemetry_net import finish, free_port, start_robot
+from vbnav.control.comms import route_transfer as rt
+from vbnav.control.comms.network import client_session_config, open_session, router_session_config
+from vbnav.control.route import load_route, stray_route_dirs
+
+ROBOTS = ("r1", "r2", "r3")
+USERS = {"router": "router-password", "op": "op-password", "viewer": "viewer-password",
+         **{r: f"{r}-password" for r in ROBOTS}}
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("fleet")
+    users = tmp / "users.txt"
+    users.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
+    users.chmod(0o600)
+    # The route is taught first (simulated robot, simulated clock) into r1's routes folder.
+    from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.session import Session, teach_driver
+    cfg = load_config(None)
+    taught = Session(cfg, make_robot(cfg, with_camera=True)).teach(teach_driver(cfg), tmp / "r1" / "loop",
+                                                                  duration_s=3.0)
+    assert taught.keyframes >= 3
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = open_session(router_session_config([endpoint], "router", USERS["router"], str(users), list(ROBOTS),
+                                                ["op"]))
+    procs, sessions = [], []
+    try:
+        for r in ROBOTS:
+            procs.append(start_robot("--port", free_port(), "--controller", "idle", "--duration", 60, "--name", r,
+                                     "--connect", endpoint, "--router-auth", f"{r}:{USERS[r]}:{users}",
+                                     "--routes-dir", tmp / r, "--rate", 50, timeout_s=60))
+        op = open_session(client_session_config([endpoint], "op", USERS["op"]))
+        viewer = open_session(client_session_config([endpoint], "viewer", USERS["viewer"]))
+        sessions += [op, viewer]
+        yield {"tmp": tmp, "endpoint": endpoint, "op": op, "viewer": viewer}
+    finally:
+        for s in sessions:
+            s.close()
+        for p in procs:
+            finish(p, stop=True)
+        router.close()
+
+
+def _cli(*args, user: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    env = dict(os.environ, VBNAV_ZENOH_PASSWORD=USERS[user])
+    return subprocess.run([sys.executable, "-m", "vbnav.control.cli", *map(str, args), "--user", user],
+                          capture_output=True, text=True, env=env, timeout=timeout)
+
+
+def test_monitor_all_sees_every_robot_through_the_router(fleet):
+    mon = _cli("monitor", "--all", "--once", "--count", 3, "--timeout", 30, "--connect", fleet["endpoint"],
+               user="viewer")
+    assert mon.returncode == 0, mon.stderr
+    lines = mon.stdout.splitlines()
+    assert "3 robot(s)" in lines[0]
+    rows = [ln for ln in lines[2:] if ln.split() and ln.split()[0] in ROBOTS]
+    assert [ln.split()[0] for ln in rows] == list(ROBOTS) and all(" idle " in ln for ln in rows), mon.stdout
+
+
+def test_a_route_taught_on_one_robot_is_pulled_checked_pushed_and_repeated_on_another(fleet, capsys):
+    from vbnav.control.cli import main
+    tmp = fleet["tmp"]
+    assert [r["name"] for r in rt.list_remote(fleet["viewer"], "r1", timeout_s=20)] == ["loop"]
+    assert rt.list_remote(fleet["viewer"], "r2", timeout_s=20) == []
+    pulled = _cli("route", "pull", "r1", "loop", "--to", tmp / "laptop", "--connect", fleet["endpoint"],
+                  "--timeout", 20, user="viewer")          # reading: anyone the router admits
+    assert pulled.returncode == 0, pulled.stderr
+    assert main(["route", "check", str(tmp / "laptop" / "loop")]) == 0
+    assert "intact" in capsys.readouterr().out
+    # Writing to a robot: refused to a viewer (the router drops the query), done for an operator.
+    with pytest.raises(rt.NoAnswer, match="refuses writes"):
+        rt.push(fleet["viewer"], "r2", tmp / "laptop" / "loop", timeout_s=3)
+    assert not (tmp / "r2" / "loop").exists()
+    pushed = _cli("route", "push", "r2", tmp / "laptop" / "loop", "--connect", fleet["endpoint"], "--timeout", 20,
+                  user="op")
+    assert pushed.returncode == 0, pushed.stderr
+    assert sorted(p.name for p in (tmp / "r2" / "loop").iterdir()) == \
+        sorted(p.name for p in (tmp / "r1" / "loop").iterdir())
+    assert not stray_route_dirs(tmp / "r2" / "loop")
+    with pytest.raises(rt.TransferError, match="exists on this robot"):
+        rt.push(fleet["op"], "r2", tmp / "laptop" / "loop", timeout_s=20)
+    # Repeated from r2's folder on the simulated robot.
+    from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.session import Session
+    cfg = load_config(None)
+    route = load_route(tmp / "r2" / "loop")
+    result = Session(cfg, make_robot(cfg, with_camera=True, run=1)).repeat(route, duration_s=15.0)
+    assert result.keyframe_reached >= len(route) - 2, result
+
+
+def test_a_damaged_push_is_refused_and_leaves_the_robot_untouched(fleet):
+    op, tmp = fleet["op"], fleet["tmp"]
+    src = tmp / "r1" / "loop"
+    files = rt.route_files(src)
+    base = "vbnav/r3/routes/push/broken/0123456789abcdef"
+
+    def ask(key, payload):
+        return json.loads(rt._ask(op, key, 20.0, payload=payload))
+    assert ask(f"{base}/begin", json.dumps({"bytes": sum(f["size"] for f in files)}).encode())["ok"]
+    manifest = (src / "manifest.json").read_bytes()
+    ask(f"{base}/chunk/manifest.json/0", manifest[:-1] + b" ")       # one byte changed on the way
+    with pytest.raises(rt.TransferError, match="arrived damaged"):
+        ask(f"{base}/file/manifest.json", json.dumps({"size": files[0]["size"], "sha256": files[0]["sha256"]}).encode())
+    with pytest.raises(rt.TransferError, match="no transfer"):      # the push is dropped with its files
+        ask(f"{base}/commit", b"{}")
+    assert not (tmp / "r3" / "broken").exists() and not stray_route_dirs(tmp / "r3" / "broken")
+
+
+def test_commands_through_the_router_obey_the_operator_rule(fleet):
+    import zenoh
+    events = []
+    sub = fleet["viewer"].declare_subscriber("vbnav/r3/events", lambda s: events.append(json.loads(s.payload.to_bytes())))
+    time.sleep(0.5)
+    opts = dict(congestion_control=zenoh.CongestionControl.BLOCK)
+    fleet["viewer"].put("vbnav/r3/cmd/estop", json.dumps({"reason": "viewer", "ack": "fromviewer"}), **opts)
+    fleet["op"].put("vbnav/r3/cmd/estop", json.dumps({"reason": "operator", "ack": "fromop"}), **opts)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and not any(e.get("ack") == "fromop" for e in events):
+        time.sleep(0.1)
+    sub.undeclare()
+    acks = {e.get("ack") for e in events if e.get("kind") in ("command", "command_rejected")}
+    assert "fromop" in acks and "fromviewer" not in acks
