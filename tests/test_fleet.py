@@ -142,3 +142,15 @@ def test_commands_through_the_router_obey_the_operator_rule(fleet):
     sub.undeclare()
     acks = {e.get("ack") for e in events if e.get("kind") in ("command", "command_rejected")}
     assert "fromop" in acks and "fromviewer" not in acks
+
+
+def test_the_router_configuration_in_docs_fleet_is_the_one_tested():
+    import zenoh
+
+    from vbnav.control.comms.network import router_access_control
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[1] / "docs" / "fleet.md").read_text()
+    acl = json.loads(zenoh.Config.from_json5(text.split("```json5\n")[1].split("```")[0]).get_json("access_control"))
+    ref = router_access_control(["r1", "r2"], ["alice"])
+    assert acl["rules"] == ref["rules"] and acl["policies"] == ref["policies"]
+    assert [{k: v for k, v in s.items() if v is not None} for s in acl["subjects"]] == ref["subjects"]

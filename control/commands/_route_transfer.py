@@ -67,21 +67,18 @@ def _dest_root(args) -> Path:
 
 
 def _secret(args) -> bytes | None:
-    """The shared secret to sign with (--secret-file, else --config's telemetry.shared_secret_file), or None."""
-    from vbnav.control.comms.command_auth import read_secret
-    path = args.secret_file
-    if path is None and args.config:
-        from vbnav.control.config import load_config
-        path = load_config(args.config).telemetry.shared_secret_file
+    """The shared secret to sign with (--secret-file, else --config's telemetry.shared_secret_file), or None:
+    the same rule as ``vbnav send``."""
+    from vbnav.control.commands.send import _secret as send_secret
+    from vbnav.drivers.errors import InputError
     try:
-        return None if path is None else read_secret(path, check_owner=False)
+        return send_secret(args)
     except ValueError as exc:
-        from vbnav.drivers.errors import InputError
         raise InputError(str(exc)) from None
 
 
 def _transfer(args, what: str, fn) -> int:
-    from vbnav.control.comms.route_transfer import NoAnswer, TransferError
+    from vbnav.control.comms.route_transfer import NoAnswer, NoRobot, TransferError
     try:
         session = open_client(args)
     except ConnectionError as exc:
@@ -91,7 +88,7 @@ def _transfer(args, what: str, fn) -> int:
         return fn(session)
     except NoAnswer as exc:
         print(f"vbnav route {what}: {exc}", file=sys.stderr)
-        return UNREACHABLE if "no robot named" in str(exc) else REFUSED
+        return UNREACHABLE if isinstance(exc, NoRobot) else REFUSED
     except TransferError as exc:
         print(f"vbnav route {what}: robot {args.target}: {exc}", file=sys.stderr)
         return REFUSED

@@ -67,6 +67,10 @@ class NoAnswer(TransferError):
     """Nobody answered the query: no such robot there, or its access control dropped the query unread."""
 
 
+class NoRobot(NoAnswer):
+    """No robot of that name answers for its route list (every robot serving routes does, to everyone)."""
+
+
 def keys(robot: str) -> dict[str, str]:
     p = f"vbnav/{robot}/routes"
     return {"all": f"{p}/**", "list": f"{p}/list", "files": f"{p}/files", "chunk": f"{p}/chunk", "push": f"{p}/push"}
@@ -354,7 +358,7 @@ def list_remote(session, robot: str, timeout_s: float = 5.0) -> list[dict]:
     try:
         return json.loads(_ask(session, keys(robot)["list"], timeout_s))["routes"]
     except NoAnswer:
-        raise NoAnswer(f"no robot named {robot} answers on {keys(robot)['list']} (is it running, with telemetry "
+        raise NoRobot(f"no robot named {robot} answers on {keys(robot)['list']} (is it running, with telemetry "
                        f"on, connected to this router?)") from None
 
 
