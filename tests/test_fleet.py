@@ -154,3 +154,30 @@ def test_the_router_configuration_in_docs_fleet_is_the_one_tested():
     ref = router_access_control(["r1", "r2"], ["alice"])
     assert acl["rules"] == ref["rules"] and acl["policies"] == ref["policies"]
     assert [{k: v for k, v in s.items() if v is not None} for s in acl["subjects"]] == ref["subjects"]
+
+
+def test_a_robot_with_a_shared_secret_takes_only_signed_pushes(tmp_path):
+    from test_route import write_route
+    import numpy as np
+
+    from vbnav.control.comms.command_auth import read_secret
+    secret_path = tmp_path / "secret"
+    secret_path.write_text("0123456789abcdef0123456789abcdef\n")
+    secret_path.chmod(0o600)
+    write_route(tmp_path / "local" / "loop", np.random.default_rng(0), 3)
+    port = free_port()
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--name", "solo",
+                       "--secret-file", secret_path, "--routes-dir", tmp_path / "robot", timeout_s=60)
+    session = open_session(client_session_config([f"tcp/127.0.0.1:{port}"]))
+    try:
+        with pytest.raises(rt.TransferError, match="push refused: unsigned"):
+            rt.push(session, "solo", tmp_path / "local" / "loop", timeout_s=20)
+        assert not (tmp_path / "robot" / "loop").exists()
+        answer = rt.push(session, "solo", tmp_path / "local" / "loop", secret=read_secret(str(secret_path)),
+                         timeout_s=20)
+        assert answer["keyframes"] == 3 and load_route(tmp_path / "robot" / "loop").complete
+        pulled = rt.pull(session, "solo", "loop", tmp_path / "back")        # reading needs no signature
+        assert load_route(pulled).complete
+    finally:
+        session.close()
+        finish(proc, stop=True)

@@ -130,7 +130,7 @@ def _run(args) -> int:
         print(f"vbnav monitor: {exc}", file=sys.stderr)
         return 3
     if args.all:
-        from vbnav.control.commands._fleet_monitor import run_all
+        from vbnav.control.comms.fleet_view import run_all
         try:
             return run_all(args, session)
         except KeyboardInterrupt:

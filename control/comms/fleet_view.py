@@ -1,4 +1,4 @@
-"""``vbnav monitor --all``: every robot seen on the network (a fleet behind a router), one line each.
+"""The fleet view of ``vbnav monitor --all``: every robot seen on the network (a fleet behind a router).
 
 Subscribes to ``vbnav/*/state`` and ``vbnav/*/events`` and asks every robot's event history
 (``vbnav/*/events/recent``), so a robot shows up as soon as it publishes or answers, and keeps a line
