@@ -13,6 +13,7 @@ import os
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -37,19 +38,24 @@ def fleet(tmp_path_factory):
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.session import Session, teach_driver
     cfg = load_config(None)
-    taught = Session(cfg, make_robot(cfg, with_camera=True)).teach(teach_driver(cfg), tmp / "r1" / "loop",
-                                                                  duration_s=3.0)
-    assert taught.keyframes >= 3
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     router = open_session(router_session_config([endpoint], "router", USERS["router"], str(users), list(ROBOTS),
                                                 ["op"]))
+
+    def start(r):
+        return start_robot("--port", free_port(), "--controller", "idle", "--duration", 60, "--name", r,
+                           "--connect", endpoint, "--router-auth", f"{r}:{USERS[r]}:{users}",
+                           "--routes-dir", tmp / r, "--rate", 50, timeout_s=60)
     procs, sessions = [], []
+    pool = ThreadPoolExecutor(len(ROBOTS))       # the robots start while the route is taught
+    starting = [pool.submit(start, r) for r in ROBOTS]
     try:
-        for r in ROBOTS:
-            procs.append(start_robot("--port", free_port(), "--controller", "idle", "--duration", 60, "--name", r,
-                                     "--connect", endpoint, "--router-auth", f"{r}:{USERS[r]}:{users}",
-                                     "--routes-dir", tmp / r, "--rate", 50, timeout_s=60))
+        taught = Session(cfg, make_robot(cfg, with_camera=True)).teach(teach_driver(cfg), tmp / "r1" / "loop",
+                                                                      duration_s=3.0)
+        assert taught.keyframes >= 3
+        for f in starting:
+            procs.append(f.result())
         op = open_session(client_session_config([endpoint], "op", USERS["op"]))
         viewer = open_session(client_session_config([endpoint], "viewer", USERS["viewer"]))
         sessions += [op, viewer]
@@ -57,6 +63,10 @@ def fleet(tmp_path_factory):
     finally:
         for s in sessions:
             s.close()
+        for f in starting:
+            if f.exception() is None and f.result() not in procs:
+                procs.append(f.result())
+        pool.shutdown()
         for p in procs:
             finish(p, stop=True)
         router.close()

@@ -129,6 +129,10 @@ def _run(args) -> int:
     except ConnectionError as exc:
         print(f"vbnav monitor: {exc}", file=sys.stderr)
         return 3
+    if (args.count and not (args.all and args.once)) or (args.all and args.json):
+        session.close()
+        print("vbnav monitor: --count goes with --all --once; --json with a single robot's --once", file=sys.stderr)
+        return 2
     if args.all:
         from vbnav.control.comms.fleet_view import run_all
         try:
