@@ -191,3 +191,43 @@ def test_a_robot_with_a_shared_secret_takes_only_signed_pushes(tmp_path):
     finally:
         session.close()
         finish(proc, stop=True)
+
+
+class _Query:
+    """What the robot's route thread sees of a zenoh query, and what it answered."""
+
+    def __init__(self, key: str):
+        self.key_expr, self.payload, self.attachment, self.answer = key, None, None, None
+
+    def reply(self, key, payload):
+        self.answer = ("ok", payload)
+
+    def reply_err(self, payload):
+        self.answer = ("err", json.loads(payload)["error"])
+
+
+class _Session:
+    def declare_queryable(self, key, callback):
+        return type("Queryable", (), {"undeclare": lambda self: None})()
+
+
+@pytest.mark.parametrize("key, reason", [
+    ("files/nope", "route 'nope': no such route"),
+    ("files/..", "plain name"),
+    ("chunk/loop/..manifest.json/0", "route file name"),
+    ("chunk/loop/manifest.json/x", "byte offset"),
+    ("files/bad", "route 'bad': manifest.json: not a route manifest"),
+    ("push/loop/short/begin", "transfer id"),
+    ("bogus", "unknown route query"),
+])
+def test_the_route_server_refuses_bad_queries_without_naming_its_folders(tmp_path, key, reason):
+    root = tmp_path / "routes"
+    (root / "bad").mkdir(parents=True)
+    (root / "bad" / "manifest.json").write_text("{")
+    server = rt.RouteServer(_Session(), "r", root)
+    try:
+        q = _Query(f"vbnav/r/routes/{key}")
+        server._handle(q)
+    finally:
+        server.close()
+    assert q.answer[0] == "err" and reason in q.answer[1] and str(tmp_path) not in q.answer[1], q.answer

@@ -186,7 +186,8 @@ class RouteServer:
                                     "or push/NAME/ID/...")
         except (RouteError, TransferError, OSError, ValueError) as exc:
             # Errors about network input name the route, never the robot's directories.
-            text = describe_route_error(exc, self.root / name, name) if name else str(exc)
+            routed = name and isinstance(exc, (RouteError, OSError))
+            text = describe_route_error(exc, self.root / name, name) if routed else str(exc)
             _reply_error(query, text.replace(str(self.root), "routes_dir"))
 
     def _list(self) -> list[dict]:
