@@ -88,23 +88,25 @@ def test_monitor_all_sees_every_robot_through_the_router(fleet):
     assert [ln.split()[0] for ln in rows] == list(ROBOTS) and all(" idle " in ln for ln in rows), mon.stdout
 
 
-def test_a_route_taught_on_one_robot_is_pulled_checked_pushed_and_repeated_on_another(fleet, capsys):
+def test_a_route_taught_on_one_robot_is_pulled_checked_pushed_and_repeated_on_another(fleet, capsys, monkeypatch):
     from vbnav.control.cli import main
-    tmp = fleet["tmp"]
+    tmp, endpoint = fleet["tmp"], fleet["endpoint"]
     assert [r["name"] for r in rt.list_remote(fleet["viewer"], "r1", timeout_s=20)] == ["loop"]
     assert rt.list_remote(fleet["viewer"], "r2", timeout_s=20) == []
-    pulled = _cli("route", "pull", "r1", "loop", "--to", tmp / "laptop", "--connect", fleet["endpoint"],
-                  "--timeout", 20, user="viewer")          # reading: anyone the router admits
-    assert pulled.returncode == 0, pulled.stderr
+    # The command line in this process (a client session of its own): reading is for anyone the router admits.
+    monkeypatch.setenv("VBNAV_ZENOH_PASSWORD", USERS["viewer"])
+    assert main(["route", "pull", "r1", "loop", "--to", str(tmp / "laptop"), "--connect", endpoint, "--timeout", "20",
+                 "--user", "viewer"]) == 0, capsys.readouterr().err
     assert main(["route", "check", str(tmp / "laptop" / "loop")]) == 0
     assert "intact" in capsys.readouterr().out
     # Writing to a robot: refused to a viewer (the router drops the query), done for an operator.
     with pytest.raises(rt.NoAnswer, match="refuses writes"):
         rt.push(fleet["viewer"], "r2", tmp / "laptop" / "loop", timeout_s=3)
     assert not (tmp / "r2" / "loop").exists()
-    pushed = _cli("route", "push", "r2", tmp / "laptop" / "loop", "--connect", fleet["endpoint"], "--timeout", 20,
-                  user="op")
-    assert pushed.returncode == 0, pushed.stderr
+    monkeypatch.setenv("VBNAV_ZENOH_PASSWORD", USERS["op"])
+    assert main(["route", "push", "r2", str(tmp / "laptop" / "loop"), "--connect", endpoint, "--timeout", "20",
+                 "--user", "op"]) == 0, capsys.readouterr().err
+    assert "pushed route loop to robot r2" in capsys.readouterr().out
     assert sorted(p.name for p in (tmp / "r2" / "loop").iterdir()) == \
         sorted(p.name for p in (tmp / "r1" / "loop").iterdir())
     assert not stray_route_dirs(tmp / "r2" / "loop")
