@@ -198,8 +198,9 @@ def test_a_robot_with_a_shared_secret_takes_only_signed_pushes(tmp_path):
 class _Query:
     """What the robot's route thread sees of a zenoh query, and what it answered."""
 
-    def __init__(self, key: str):
-        self.key_expr, self.payload, self.attachment, self.answer = key, None, None, None
+    def __init__(self, key: str, payload: bytes | None = None):
+        self.key_expr, self.attachment, self.answer = key, None, None
+        self.payload = None if payload is None else type("Payload", (), {"to_bytes": lambda self: payload})()
 
     def reply(self, key, payload):
         self.answer = ("ok", payload)
@@ -233,3 +234,16 @@ def test_the_route_server_refuses_bad_queries_without_naming_its_folders(tmp_pat
     finally:
         server.close()
     assert q.answer[0] == "err" and reason in q.answer[1] and str(tmp_path) not in q.answer[1], q.answer
+
+
+def test_a_push_never_replaces_the_route_being_taught(tmp_path):
+    server = rt.RouteServer(_Session(), "r", tmp_path, busy=lambda name: f"route {name!r} is being taught"
+                            if name == "loop" else None)
+    try:
+        q = _Query("vbnav/r/routes/push/loop/0123456789abcdef/begin", b'{"bytes": 10, "overwrite": true}')
+        server._handle(q)
+        other = _Query("vbnav/r/routes/push/other/0123456789abcdef/begin", b'{"bytes": 10}')
+        server._handle(other)
+    finally:
+        server.close()
+    assert q.answer == ("err", "route 'loop' is being taught") and other.answer[0] == "ok"

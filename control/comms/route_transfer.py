@@ -129,11 +129,14 @@ class RouteServer:
     """Serves the routes under ``root`` on ``vbnav/<robot>/routes/**`` and takes pushes into it.
 
     verify: the shared-secret check of command samples (link.py ``_verifier``), applied to push queries.
+    busy: the reason route NAME may not be replaced now (it is being taught), or None.
     """
 
     def __init__(self, session, robot: str, root, verify: Optional[VerifyFn] = None,
+                 busy: Callable[[str], Optional[str]] = lambda name: None,
                  now_s: Callable[[], float] = time.monotonic):
         self.root = Path(root)
+        self._busy = busy
         self._prefix = f"vbnav/{robot}/routes/"
         self._verify = verify
         self._now = now_s
@@ -240,6 +243,9 @@ class RouteServer:
         dest = resolve_route(self.root, name, must_exist=False)
         if dest.exists() and not overwrite:
             raise TransferError(f"route {name!r} exists on this robot (push --overwrite replaces it)")
+        reason = self._busy(name)
+        if reason:
+            raise TransferError(reason)
         if any(p.name == name for p in self._pushes.values()):
             raise TransferError(f"route {name!r}: another push of it is in progress")
         if len(self._pushes) >= MAX_PUSHES:
@@ -289,6 +295,9 @@ class RouteServer:
             raise TransferError(f"push commit: {'missing ' + ', '.join(missing[:3]) if missing else ''}"
                                 f"{'; not in the manifest: ' + ', '.join(extra[:3]) if extra else ''}")
         route = load_route(inc.staging, load_images=False)
+        reason = self._busy(inc.name)      # teaching may have begun since the push did
+        if reason:
+            raise TransferError(reason)
         install_route_dir(inc.staging, inc.dest, inc.overwrite)
         del self._pushes[tid]
         return {"ok": True, "keyframes": len(route), "complete": route.complete}
