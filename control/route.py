@@ -271,6 +271,35 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
+def staging_dir(route, tag: str = "") -> Path:
+    """Where a copy of ``route`` is written before it is put in place: the hidden sibling
+    ``.NAME.partial-<pid>-<tag>`` (``stray_route_dirs`` points at it if the writer dies; the tag keeps it
+    apart from a RouteWriter's and from other copies in the same process)."""
+    return Path(route).with_name(f".{Path(route).name}{_PARTIAL}{os.getpid()}-{tag}")
+
+
+def install_route_dir(new, route, overwrite: bool) -> None:
+    """Put the complete route directory ``new`` (a sibling, same file system) at ``route``.
+
+    A missing ``route`` is a rename; an existing one is replaced only with ``overwrite`` and only if it
+    holds nothing but route files, in one atomic swap (``_swap_in``). RouteError otherwise.
+    """
+    new, route = Path(new), Path(route)
+    if not route.exists():
+        os.rename(new, route)
+        _fsync_dir(route.parent)
+        return
+    if not overwrite:
+        raise RouteError(f"{route}: exists (replace it with --overwrite)")
+    if not route.is_dir():
+        raise RouteError(f"{route}: exists and is not a directory")
+    foreign = sorted(p.name for p in route.iterdir() if not _ROUTE_FILE.match(p.name))
+    if foreign:
+        raise RouteError(f"{route}: holds {foreign[0]!r}, which is not a route file; not replacing a directory "
+                         f"that is not a vbnav route")
+    _swap_in(new, route)
+
+
 def stray_route_dirs(route) -> list[Path]:
     """Directories an interrupted replacement of ``route`` left beside it: ``.NAME.partial-<pid>`` (a new
     route that was never completed: the old one is intact) or ``.NAME.old-<pid>`` (the old route, when a

@@ -3,7 +3,8 @@
 Run as a script (the tests start it as a separate process):
     python tests/telemetry_robot.py --port P [--controller teleop|scripted|idle] [--duration S]
         [--sim-clock] [--record PATH] [--remote DICTFILE --operators NAME,.. [--loopback]] [--report PATH]
-        [--name ROBOT] [--secret-file PATH]
+        [--name ROBOT] [--secret-file PATH] [--connect ROUTER [--router-auth USER:PASSWORD:DICT]]
+        [--routes-dir DIR]
 
 Prints "READY" once the zenoh session is up and the loop is about to start. At the end writes a JSON
 report: every command the runtime received (loop time, cycle) and the drive's write log, so a test can
@@ -42,7 +43,11 @@ def main() -> int:
     ap.add_argument("--loopback", action="store_true", help="with --remote: listen on 127.0.0.1 (auth + ACL there)")
     ap.add_argument("--name", default="sim", help="robot.name")
     ap.add_argument("--secret-file", default=None, help="telemetry.shared_secret_file")
-    ap.add_argument("--routes-dir", default=None, help="controller.routes_dir (the routes it serves and takes)")
+    ap.add_argument("--connect", default=None, help="connect to this router (trust_router: the router's access "
+                    "control decides who may command)")
+    ap.add_argument("--router-auth", default=None, metavar="USER:PASSWORD:DICTFILE",
+                    help="with --connect: authenticate to the router with zenoh user/password")
+    ap.add_argument("--routes-dir", default=None, help="controller.routes_dir (served to the network)")
     a = ap.parse_args()
 
     tele = {"listen": [f"tcp/127.0.0.1:{a.port}"], "state_rate_hz": a.state_rate}
@@ -59,14 +64,21 @@ def main() -> int:
         tele["listen"] = [f"tcp/127.0.0.1:{a.port}"]
     if a.secret_file:
         tele["shared_secret_file"] = a.secret_file
+    if a.connect:
+        tele.update(connect=[a.connect], trust_router=True)
+    if a.router_auth:
+        user, password, dictionary = a.router_auth.split(":", 2)
+        tele["auth"] = {"usrpwd": {"user": user, "password": password, "dictionary_file": dictionary}}
+    controller = {"kind": a.controller}
+    if a.routes_dir:
+        controller["routes_dir"] = a.routes_dir
     # This robot tests the network path on the real clock beside other processes on a 2-core machine: a
     # scheduling hiccup there must not latch a stall (stalls are tested on the simulated clock in
     # tests/test_command_path.py), as other real-clock test runs already ignore missed deadlines.
     loop = {"rate_hz": a.rate, "stall_periods": 10 ** 6}
     try:   # the telemetry section refuses a remote listener without authentication here
         cfg = parse_config({"loop": loop, "telemetry": tele, "robot": {"name": a.name},
-                            "controller": {"kind": a.controller,
-                                           **({"routes_dir": a.routes_dir} if a.routes_dir else {})},
+                            "controller": controller,
                             "safety": {"command_timeout_s": 0.5}}, "telemetry_robot")
     except ConfigError as exc:
         print(f"configuration error: {exc}", file=sys.stderr)

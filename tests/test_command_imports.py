@@ -46,9 +46,8 @@ def test_the_commands_are_found():
 @pytest.mark.parametrize("path", command_files(), ids=lambda p: p.stem)
 def test_a_command_imports_no_other_command_and_not_the_demo(path):
     modules = imported_modules(path)
-    # a command's own private parts (_route_transfer.py for route, _monitor_fleet.py for monitor) are its own
     others = {m for m in modules if m.startswith(PACKAGE + ".")
-              and m.split(".")[3] not in SHARED | {path.stem} and not m.split(".")[3].startswith(f"_{path.stem}_")}
+              and m.split(".")[3] not in SHARED | {path.stem}}
     assert not others, f"{path.name} imports other commands: {sorted(others)}"
     if path.stem != "demo":
         demo = {m for m in modules if m == DEMO or m.startswith(DEMO + ".")}

@@ -1,156 +1,249 @@
-"""A fleet of three simulated robots through one zenoh router (a router-mode session, as zenohd would be):
-`vbnav monitor --all` sees all three; a route on one robot is pulled (checksummed, swapped in), pushed to
-another, and loads there keyframe for keyframe; a damaged push is refused and leaves the old route."""
+"""A simulated fleet through one zenoh router: three robot processes, monitor --all, route pull/push.
+
+The router is a router-mode zenoh session in this process with the configuration docs/fleet.md gives
+zenohd (user/password authentication and network.router_access_control). The robots are the real Runtime
+on the wall clock (tests/telemetry_robot.py) connecting to it with telemetry.trust_router, each serving its
+own routes folder. A route is taught on the simulated robot into robot r1's folder, pulled from r1,
+checked, pushed to r2 by an operator and repeated from r2's folder on the simulated clock.
+"""
+from __future__ import annotations
+
 import json
+import os
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
-import numpy as np
 import pytest
 
-from test_route import write_route
-from test_telemetry_net import free_port
+from test_telemetry_net import finish, free_port, start_robot
+from vbnav.control.comms import route_transfer as rt
+from vbnav.control.comms.network import client_session_config, open_session, router_session_config
+from vbnav.control.route import load_route, stray_route_dirs
 
-VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
 ROBOTS = ("r1", "r2", "r3")
+USERS = {"router": "router-password", "op": "op-password", "viewer": "viewer-password",
+         **{r: f"{r}-password" for r in ROBOTS}}
 
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    import zenoh
-    d = tmp_path_factory.mktemp("fleet")
-    rport = free_port()
-    router = zenoh.open(zenoh.Config.from_json5(json.dumps({
-        "mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{rport}"]},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}})))
-    rng = np.random.default_rng(5)
-    original = write_route(d / "routes_r1" / "tour", rng, n=6)
-    procs = []
-    for name in ROBOTS:
-        cfg = d / f"{name}.yaml"
-        cfg.write_text(f"""robot: {{name: {name}}}
-loop: {{max_missed_streak: 1000000, stall_periods: 1000000}}
-controller: {{routes_dir: routes_{name}}}
-telemetry:
-  listen: ['tcp/127.0.0.1:{free_port()}']
-  connect: ['tcp/127.0.0.1:{rport}']
-  trust_router: true
-""")
-        procs.append(subprocess.Popen(VBNAV + ["run", "--realtime", "--no-camera", "--controller", "idle", "-c",
-                                               str(cfg), "--duration", "300"],
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-    yield d, ["--connect", f"tcp/127.0.0.1:{rport}"], original
-    for p in procs:
-        p.terminate()
-    for p in procs:
-        p.communicate(timeout=60)
-    router.close()
-
-
-def _vbnav(capsys, *argv):
-    """The command line in this process (the robots are processes; the clients need not be)."""
-    from vbnav.control.cli import main
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def test_monitor_all_shows_every_robot_one_line_each(fleet, capsys):
-    _, ep, _ = fleet
-    seen = {}
-    for _ in range(30):             # robots connect to the router at their own pace
-        code, out, _ = _vbnav(capsys, "monitor", "--all", "--once", "--json", "--timeout", "1", *ep)
-        seen = json.loads(out) if code == 0 else {}
-        if set(seen) == set(ROBOTS):
-            break
-    assert set(seen) == set(ROBOTS), seen
-    assert all(s["mode"] == "idle" for s in seen.values())
-    code, out, _ = _vbnav(capsys, "monitor", "--all", "--once", "--timeout", "1", *ep)
-    text = out.splitlines()
-    assert text[0].endswith("3 robot(s)") and [ln.split()[0] for ln in text[1:]] == list(ROBOTS)
-
-
-def test_a_route_is_pulled_from_one_robot_and_pushed_to_another(fleet, capsys):
-    from vbnav.control.comms.route_transfer import pack_route
-    from vbnav.control.route import load_route
-    d, ep, original = fleet
-    local = d / "laptop"
-    for _ in range(30):
-        code, out, err = _vbnav(capsys, "route", "pull", "r1", "tour", "--dir", str(local), *ep)
-        if code != 3:
-            break
-        time.sleep(1)
-    assert code == 0, err
-    import hashlib
-    sha = hashlib.sha256(pack_route(d / "routes_r1" / "tour")).hexdigest()
-    assert f"sha256 {sha}" in out
-    code, out, err = _vbnav(capsys, "route", "push", "r3", "tour", "--dir", str(local), *ep)
-    assert code == 0, err
-    copied = load_route(d / "routes_r3" / "tour")
-    assert copied.complete and len(copied) == len(original)
-    for a, b in zip(original, copied.keyframes):
-        np.testing.assert_array_equal(a.image, b.image)
-        np.testing.assert_array_equal(a.track_ids, b.track_ids)
-    code, out, _ = _vbnav(capsys, "route", "remote", "r3", *ep)
-    assert code == 0 and "tour  6 keyframes  complete" in out
-    code, _, err = _vbnav(capsys, "route", "pull", "r2", "tour", "--dir", str(local / "x"), *ep)
-    assert code == 1 and "no such route" in err
-
-
-def test_a_push_whose_checksum_does_not_match_is_refused_and_the_old_route_stays(fleet):
-    import base64
-    import zenoh
-    from vbnav.control.comms.network import client_session_config
-    from vbnav.control.comms.route_transfer import pack_route
-    from vbnav.control.route import load_route
-    d, ep, original = fleet
-    data = pack_route(d / "routes_r1" / "tour")
-    body = {"transfer": "abc123", "chunk": 0, "chunks": 1, "sha256": "0" * 64, "size": len(data),
-            "sender": "test", "data": base64.b64encode(data[:30000]).decode()}
-    body["size"] = 30000
-    s = zenoh.open(zenoh.Config.from_json5(json.dumps(client_session_config([ep[1]]))))
-    try:
-        answers = [json.loads(r.ok.payload.to_bytes()) for r in
-                   s.get("vbnav/r1/cmd/route/tour", payload=json.dumps(body).encode(), timeout=10) if r.ok]
-    finally:
-        s.close()
-    assert answers and not answers[0]["ok"]
-    assert "checksum mismatch" in answers[0]["reason"] or "not a usable route" in answers[0]["reason"]
-    assert len(load_route(d / "routes_r1" / "tour")) == len(original)
-    assert not [p for p in (d / "routes_r1").iterdir() if p.name.startswith(".")]    # nothing left beside
-
-
-def test_pushing_a_route_is_a_command_only_operators_may_give(tmp_path):
-    """An authenticated robot: a viewer may list (read) but its push never reaches the robot (zenoh's access
-    control drops the query); an operator's push is taken."""
-    from test_telemetry_net import finish, start_robot
-    from vbnav.control.comms.network import client_session_config, open_session
-    from vbnav.control.comms.route_transfer import fetch_route_list, push_route
-    from vbnav.control.route import load_route
-    users = tmp_path / "users.txt"
-    users.write_text("robot:robot-secret\noperator:operator-pw\nviewer:viewer-pw1\n")
-    routes, src = tmp_path / "routes", tmp_path / "src" / "tour"
-    write_route(src, np.random.default_rng(1), n=3)
+    tmp = tmp_path_factory.mktemp("fleet")
+    users = tmp / "users.txt"
+    users.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
+    users.chmod(0o600)
+    # The route is taught first (simulated robot, simulated clock) into r1's routes folder.
+    from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.session import Session, teach_driver
+    cfg = load_config(None)
     port = free_port()
-    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--remote", users,
-                       "--operators", "operator", "--routes-dir", routes)
-    ep = [f"tcp/127.0.0.1:{port}"]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = open_session(router_session_config([endpoint], "router", USERS["router"], str(users), list(ROBOTS),
+                                                ["op"]))
+
+    def start(r):
+        return start_robot("--port", free_port(), "--controller", "idle", "--duration", 60, "--name", r,
+                           "--connect", endpoint, "--router-auth", f"{r}:{USERS[r]}:{users}",
+                           "--routes-dir", tmp / r, "--rate", 50, timeout_s=60)
+    procs, sessions = [], []
+    pool = ThreadPoolExecutor(len(ROBOTS))       # the robots start while the route is taught
+    starting = [pool.submit(start, r) for r in ROBOTS]
     try:
-        viewer = open_session(client_session_config(ep, "viewer", "viewer-pw1"))
-        try:
-            assert fetch_route_list(viewer, "sim") == []
-            with pytest.raises(ConnectionError, match="no answer"):
-                push_route(viewer, "sim", "tour", src, timeout_s=2.0)
-        finally:
-            viewer.close()
-        assert not (routes / "tour").exists()
-        operator = open_session(client_session_config(ep, "operator", "operator-pw"))
-        try:
-            push_route(operator, "sim", "tour", src)
-            assert [r["name"] for r in fetch_route_list(operator, "sim")] == ["tour"]
-        finally:
-            operator.close()
+        taught = Session(cfg, make_robot(cfg, with_camera=True)).teach(teach_driver(cfg), tmp / "r1" / "loop",
+                                                                      duration_s=3.0)
+        assert taught.keyframes >= 3
+        for f in starting:
+            procs.append(f.result())
+        op = open_session(client_session_config([endpoint], "op", USERS["op"]))
+        viewer = open_session(client_session_config([endpoint], "viewer", USERS["viewer"]))
+        sessions += [op, viewer]
+        yield {"tmp": tmp, "endpoint": endpoint, "op": op, "viewer": viewer}
     finally:
+        for s in sessions:
+            s.close()
+        for f in starting:
+            if f.exception() is None and f.result() not in procs:
+                procs.append(f.result())
+        pool.shutdown()
+        for p in procs:
+            finish(p, stop=True)
+        router.close()
+
+
+def _cli(*args, user: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    env = dict(os.environ, VBNAV_ZENOH_PASSWORD=USERS[user])
+    return subprocess.run([sys.executable, "-m", "vbnav.control.cli", *map(str, args), "--user", user],
+                          capture_output=True, text=True, env=env, timeout=timeout)
+
+
+def test_monitor_all_sees_every_robot_through_the_router(fleet):
+    mon = _cli("monitor", "--all", "--once", "--count", 3, "--timeout", 30, "--connect", fleet["endpoint"],
+               user="viewer")
+    assert mon.returncode == 0, mon.stderr
+    lines = mon.stdout.splitlines()
+    assert "3 robot(s)" in lines[0]
+    rows = [ln for ln in lines[2:] if ln.split() and ln.split()[0] in ROBOTS]
+    assert [ln.split()[0] for ln in rows] == list(ROBOTS) and all(" idle " in ln for ln in rows), mon.stdout
+
+
+def test_a_route_taught_on_one_robot_is_pulled_checked_pushed_and_repeated_on_another(fleet, capsys, monkeypatch):
+    from vbnav.control.cli import main
+    tmp, endpoint = fleet["tmp"], fleet["endpoint"]
+    assert [r["name"] for r in rt.list_remote(fleet["viewer"], "r1", timeout_s=20)] == ["loop"]
+    assert rt.list_remote(fleet["viewer"], "r2", timeout_s=20) == []
+    # The command line in this process (a client session of its own): reading is for anyone the router admits.
+    monkeypatch.setenv("VBNAV_ZENOH_PASSWORD", USERS["viewer"])
+    assert main(["route", "pull", "r1", "loop", "--to", str(tmp / "laptop"), "--connect", endpoint, "--timeout", "20",
+                 "--user", "viewer"]) == 0, capsys.readouterr().err
+    assert main(["route", "check", str(tmp / "laptop" / "loop")]) == 0
+    assert "intact" in capsys.readouterr().out
+    # Writing to a robot: refused to a viewer (the router drops the query), done for an operator.
+    with pytest.raises(rt.NoAnswer, match="refuses writes"):
+        rt.push(fleet["viewer"], "r2", tmp / "laptop" / "loop", timeout_s=3)
+    assert not (tmp / "r2" / "loop").exists()
+    monkeypatch.setenv("VBNAV_ZENOH_PASSWORD", USERS["op"])
+    assert main(["route", "push", "r2", str(tmp / "laptop" / "loop"), "--connect", endpoint, "--timeout", "20",
+                 "--user", "op"]) == 0, capsys.readouterr().err
+    assert "pushed route loop to robot r2" in capsys.readouterr().out
+    assert sorted(p.name for p in (tmp / "r2" / "loop").iterdir()) == \
+        sorted(p.name for p in (tmp / "r1" / "loop").iterdir())
+    assert not stray_route_dirs(tmp / "r2" / "loop")
+    with pytest.raises(rt.TransferError, match="exists on this robot"):
+        rt.push(fleet["op"], "r2", tmp / "laptop" / "loop", timeout_s=20)
+    # Repeated from r2's folder on the simulated robot.
+    from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.session import Session
+    cfg = load_config(None)
+    route = load_route(tmp / "r2" / "loop")
+    result = Session(cfg, make_robot(cfg, with_camera=True, run=1)).repeat(route, duration_s=15.0)
+    assert result.keyframe_reached >= len(route) - 2, result
+
+
+def test_a_damaged_push_is_refused_and_leaves_the_robot_untouched(fleet):
+    op, tmp = fleet["op"], fleet["tmp"]
+    src = tmp / "r1" / "loop"
+    files = rt.route_files(src)
+    base = "vbnav/r3/routes/push/broken/0123456789abcdef"
+
+    def ask(key, payload):
+        return json.loads(rt._ask(op, key, 20.0, payload=payload))
+    assert ask(f"{base}/begin", json.dumps({"bytes": sum(f["size"] for f in files)}).encode())["ok"]
+    manifest = (src / "manifest.json").read_bytes()
+    ask(f"{base}/chunk/manifest.json/0", manifest[:-1] + b" ")       # one byte changed on the way
+    with pytest.raises(rt.TransferError, match="arrived damaged"):
+        ask(f"{base}/file/manifest.json", json.dumps({"size": files[0]["size"], "sha256": files[0]["sha256"]}).encode())
+    with pytest.raises(rt.TransferError, match="no transfer"):      # the push is dropped with its files
+        ask(f"{base}/commit", b"{}")
+    assert not (tmp / "r3" / "broken").exists() and not stray_route_dirs(tmp / "r3" / "broken")
+
+
+def test_commands_through_the_router_obey_the_operator_rule(fleet):
+    import zenoh
+    events = []
+    sub = fleet["viewer"].declare_subscriber("vbnav/r3/events", lambda s: events.append(json.loads(s.payload.to_bytes())))
+    time.sleep(0.5)
+    opts = dict(congestion_control=zenoh.CongestionControl.BLOCK)
+    fleet["viewer"].put("vbnav/r3/cmd/estop", json.dumps({"reason": "viewer", "ack": "fromviewer"}), **opts)
+    fleet["op"].put("vbnav/r3/cmd/estop", json.dumps({"reason": "operator", "ack": "fromop"}), **opts)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and not any(e.get("ack") == "fromop" for e in events):
+        time.sleep(0.1)
+    sub.undeclare()
+    acks = {e.get("ack") for e in events if e.get("kind") in ("command", "command_rejected")}
+    assert "fromop" in acks and "fromviewer" not in acks
+
+
+def test_the_router_configuration_in_docs_fleet_is_the_one_tested():
+    import zenoh
+
+    from vbnav.control.comms.network import router_access_control
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[1] / "docs" / "fleet.md").read_text()
+    acl = json.loads(zenoh.Config.from_json5(text.split("```json5\n")[1].split("```")[0]).get_json("access_control"))
+    ref = router_access_control(["r1", "r2"], ["alice"])
+    assert acl["rules"] == ref["rules"] and acl["policies"] == ref["policies"]
+    assert [{k: v for k, v in s.items() if v is not None} for s in acl["subjects"]] == ref["subjects"]
+
+
+def test_a_robot_with_a_shared_secret_takes_only_signed_pushes(tmp_path):
+    from test_route import write_route
+    import numpy as np
+
+    from vbnav.control.comms.command_auth import read_secret
+    secret_path = tmp_path / "secret"
+    secret_path.write_text("0123456789abcdef0123456789abcdef\n")
+    secret_path.chmod(0o600)
+    write_route(tmp_path / "local" / "loop", np.random.default_rng(0), 3)
+    port = free_port()
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--name", "solo",
+                       "--secret-file", secret_path, "--routes-dir", tmp_path / "robot", timeout_s=60)
+    session = open_session(client_session_config([f"tcp/127.0.0.1:{port}"]))
+    try:
+        with pytest.raises(rt.TransferError, match="push refused: unsigned"):
+            rt.push(session, "solo", tmp_path / "local" / "loop", timeout_s=20)
+        assert not (tmp_path / "robot" / "loop").exists()
+        answer = rt.push(session, "solo", tmp_path / "local" / "loop", secret=read_secret(str(secret_path)),
+                         timeout_s=20)
+        assert answer["keyframes"] == 3 and load_route(tmp_path / "robot" / "loop").complete
+        pulled = rt.pull(session, "solo", "loop", tmp_path / "back")        # reading needs no signature
+        assert load_route(pulled).complete
+    finally:
+        session.close()
         finish(proc, stop=True)
-    assert len(load_route(routes / "tour")) == 3
+
+
+class _Query:
+    """What the robot's route thread sees of a zenoh query, and what it answered."""
+
+    def __init__(self, key: str, payload: bytes | None = None):
+        self.key_expr, self.attachment, self.answer = key, None, None
+        self.payload = None if payload is None else type("Payload", (), {"to_bytes": lambda self: payload})()
+
+    def reply(self, key, payload):
+        self.answer = ("ok", payload)
+
+    def reply_err(self, payload):
+        self.answer = ("err", json.loads(payload)["error"])
+
+
+class _Session:
+    def declare_queryable(self, key, callback):
+        return type("Queryable", (), {"undeclare": lambda self: None})()
+
+
+@pytest.mark.parametrize("key, reason", [
+    ("files/nope", "route 'nope': no such route"),
+    ("files/..", "plain name"),
+    ("chunk/loop/..manifest.json/0", "route file name"),
+    ("chunk/loop/manifest.json/x", "byte offset"),
+    ("files/bad", "route 'bad': manifest.json: not a route manifest"),
+    ("push/loop/short/begin", "transfer id"),
+    ("bogus", "unknown route query"),
+])
+def test_the_route_server_refuses_bad_queries_without_naming_its_folders(tmp_path, key, reason):
+    root = tmp_path / "routes"
+    (root / "bad").mkdir(parents=True)
+    (root / "bad" / "manifest.json").write_text("{")
+    server = rt.RouteServer(_Session(), "r", root)
+    try:
+        q = _Query(f"vbnav/r/routes/{key}")
+        server._handle(q)
+    finally:
+        server.close()
+    assert q.answer[0] == "err" and reason in q.answer[1] and str(tmp_path) not in q.answer[1], q.answer
+
+
+def test_a_push_never_replaces_the_route_being_taught(tmp_path):
+    server = rt.RouteServer(_Session(), "r", tmp_path, busy=lambda name: f"route {name!r} is being taught"
+                            if name == "loop" else None)
+    try:
+        q = _Query("vbnav/r/routes/push/loop/0123456789abcdef/begin", b'{"bytes": 10, "overwrite": true}')
+        server._handle(q)
+        other = _Query("vbnav/r/routes/push/other/0123456789abcdef/begin", b'{"bytes": 10}')
+        server._handle(other)
+    finally:
+        server.close()
+    assert q.answer == ("err", "route 'loop' is being taught") and other.answer[0] == "ok"

@@ -229,13 +229,28 @@ def test_vbnav_run_and_config_check_refuse_a_public_listener(tmp_path):
     assert main(["config", "check", "--config", str(cfg)]) == 2
 
 
+def _wait_for_recorded_states(part, n: int, timeout_s: float) -> None:
+    """Until the recording being written has flushed ``n`` state messages (it flushes a chunk every second)."""
+    from vbnav.control.comms.recording import read_recording
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        try:
+            ch = read_recording(part).channels.get("/vbnav/state") if part.exists() else None
+        except Exception:      # a chunk being written: read again on the next poll
+            ch = None
+        if ch is not None and ch.count >= n:
+            return
+    pytest.fail(f"{part}: fewer than {n} state messages recorded within {timeout_s} s")
+
+
 def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path):
     from vbnav.control.comms.recording import read_recording
     port = free_port()
     path = tmp_path / "crash.mcap"
-    proc = start_robot("--port", port, "--controller", "scripted", "--duration", 30, "--record", path)
-    time.sleep(3.0)
-    proc.kill()
+    proc = start_robot("--port", port, "--controller", "scripted", "--duration", 60, "--record", path)
+    _wait_for_recorded_states(tmp_path / "crash.mcap.part", 40, timeout_s=45)   # not a fixed sleep: start-up
+    proc.kill()                                                                # is slower on a loaded machine
     proc.wait(10)
     assert not path.exists() and (tmp_path / "crash.mcap.part").exists()
     s = read_recording(path)

@@ -21,9 +21,9 @@ def register(sub) -> None:
     p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                    help="with --once: give up after S seconds without state (exit 1); default 5")
     p.add_argument("--refresh", type=positive, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
-    p.add_argument("--all", action="store_true",
-                   help="every robot seen on the endpoint (a router: the fleet), one line each; with --once, "
-                        "listen --timeout seconds and print them (--json: their last states by name)")
+    p.add_argument("--all", action="store_true", help="every robot seen (a fleet behind a router), one line each")
+    p.add_argument("--count", type=int, default=0, metavar="N",
+                   help="with --all --once: print as soon as N robots sent state (exit 1 if fewer within --timeout)")
     p.set_defaults(func=_run)
 
 
@@ -129,10 +129,19 @@ def _run(args) -> int:
     except ConnectionError as exc:
         print(f"vbnav monitor: {exc}", file=sys.stderr)
         return 3
+    if (args.count and not (args.all and args.once)) or (args.all and args.json):
+        session.close()
+        print("vbnav monitor: --count goes with --all --once; --json with a single robot's --once", file=sys.stderr)
+        return 2
+    if args.all:
+        from vbnav.control.comms.fleet_view import run_all
+        try:
+            return run_all(args, session)
+        except KeyboardInterrupt:
+            return 0
+        finally:
+            session.close()
     try:
-        if args.all:
-            from vbnav.control.commands._monitor_fleet import run_fleet
-            return run_fleet(args, session)
         session.declare_subscriber(f"vbnav/{args.robot}/state", view.on_state)
         session.declare_subscriber(f"vbnav/{args.robot}/events", view.on_event)
         view.load_history(session, f"vbnav/{args.robot}/events/recent")

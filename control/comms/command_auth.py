@@ -129,3 +129,16 @@ class CommandVerifier:
                         f"refused until older ones expire")
             seen[tag] = now
         return None
+
+
+def signing_secret(secret_file: Optional[str], config: Optional[str]) -> Optional[bytes]:
+    """A sender's secret: ``secret_file``, else the ``telemetry.shared_secret_file`` of the robot
+    configuration ``config``, else None (unsigned). Raises ValueError naming the file."""
+    path = secret_file
+    if path is None and config:
+        from vbnav.control.config import ConfigError, load_config
+        try:
+            path = load_config(config).telemetry.shared_secret_file
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+    return None if path is None else read_secret(path, check_owner=False)

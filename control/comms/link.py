@@ -99,6 +99,22 @@ def _verifier(tcfg: TelemetryConfig):
         raise ConfigError(f"telemetry.shared_secret_file: {exc}") from None
 
 
+def _route_server(session, cfg, verify, runtime):
+    """Serve ``controller.routes_dir`` to the network (pull by anyone admitted, push by operators only).
+
+    A push never replaces the route the operator controller is teaching (``send mode teach --route NAME``)."""
+    from vbnav.control.comms.route_transfer import RouteServer
+    from vbnav.control.route import routes_root
+
+    def busy(name: str) -> Optional[str]:     # the route thread reads two strings the loop sets
+        c = runtime.controller
+        if getattr(c, "mode", None) == "teach" and getattr(c, "route_path", None) == name:
+            return f"route {name!r} is being taught on this robot; push it after `mode idle`"
+        return None
+    return RouteServer(session, cfg.robot.name, routes_root(cfg.controller.routes_dir, cfg.source), verify=verify,
+                       busy=busy)
+
+
 class TelemetryLink:
     def __init__(self, runtime, tcfg: TelemetryConfig, publisher: TelemetryPublisher, session=None,
                  recorder=None):
@@ -109,7 +125,7 @@ class TelemetryLink:
         self.recorder = recorder
         self.commands: Optional[CommandSubscriber] = None
         self.live_view = None            # comms/live_view.LiveView when telemetry.live_view.enabled
-        self.routes = None               # comms/route_transfer.RouteServer: the taught routes, over zenoh
+        self.routes = None               # the RouteServer of controller.routes_dir (comms/route_transfer.py)
         self._taught: list = []          # odometry poses of the keyframes taught in this run
         self._next_scene_ns: Optional[int] = None
         self.inbox: CommandInbox
@@ -181,10 +197,7 @@ class TelemetryLink:
                                   on_reject=link._on_reject, now_ns=clock.now_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
-            from vbnav.control.comms.route_transfer import RouteServer
-            from vbnav.control.route import routes_root
-            link.routes = RouteServer(session, robot, routes_root(cfg.controller.routes_dir, cfg.source),
-                                      verify=verify, on_event=publisher.event)
+            link.routes = _route_server(session, cfg, verify, runtime)
         runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
         runtime.cycle_observers.append(link._on_cycle)

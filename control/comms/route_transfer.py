@@ -1,305 +1,461 @@
-"""Taught routes over zenoh: each robot serves its routes as queryables; ``vbnav route pull/push`` copy them.
+"""Taught routes over zenoh: every robot serves its ``controller.routes_dir``; ``vbnav route pull|push`` copy.
 
-Keys (``<robot>`` is ``robot.name``), all answered by the robot's own session:
+Keys (``<robot>`` is ``robot.name``; the robot declares one queryable on ``vbnav/<robot>/routes/**``):
 
-- ``vbnav/<robot>/routes`` (query): ``{"schema": "vbnav.routes", "routes": [{"name", "keyframes",
-  "complete"}...]}``, the routes in its ``controller.routes_dir``;
-- ``vbnav/<robot>/routes/<name>?chunk=K`` (query, anyone who may read telemetry): chunk K of the
-  route packed as a tar archive (its manifest and keyframe files, nothing else):
-  ``{"schema": "vbnav.route_chunk", "name", "sha256", "size", "chunk", "chunks", "data": base64}``;
-- ``vbnav/<robot>/cmd/route/<name>`` (query with a payload, commands: operators only, as ``cmd/**``):
-  one chunk of a pushed route, ``{"transfer", "chunk", "chunks", "sha256", "size", "data", "sender"}``,
-  answered ``{"ok": true}`` or ``{"ok": false, "reason": "..."}``. With
-  ``telemetry.shared_secret_file`` every chunk must carry the command signature as its attachment
-  (comms/command_auth.py), exactly like a ``vbnav send`` command.
+- ``.../routes/list``                               -> ``{"schema": "vbnav.routes", "routes": [...]}``
+- ``.../routes/files/<name>``                       -> ``{"schema": "vbnav.route.files", "name", "files":
+  [{"name", "size", "sha256"}]}``: the manifest and every file its keyframes list
+- ``.../routes/chunk/<name>/<file>/<offset>``       -> the raw bytes of that file from ``offset``, at most
+  PULL_CHUNK of them
+- ``.../routes/push/<name>/<id>/begin``             payload ``{"bytes": total, "overwrite": bool}``
+- ``.../routes/push/<name>/<id>/chunk/<file>/<offset>`` payload raw bytes (at most PUSH_CHUNK)
+- ``.../routes/push/<name>/<id>/file/<file>``       payload ``{"size", "sha256"}``: that file is complete
+- ``.../routes/push/<name>/<id>/commit``            -> ``{"ok": true, "keyframes": n}``
 
-Chunks of a push stay under the robot's receive limit (network.py ``RX_MESSAGE_LIMIT``). A route is
-written beside its destination and swapped in only when complete: the archive is gathered in
-``.NAME.push-<transfer>``, its SHA-256 checked against the sender's, unpacked into
-``.NAME.partial-<pid>`` (only plain route file names are accepted, no paths), loaded as a route
-(``load_route`` must accept it) and then exchanged with the old route (route.py ``_swap_in``). The
-same holds for ``pull`` on the receiving machine.
+Reads (list, files, chunk) follow the rule of telemetry reads: whoever the robot admits. A push is a write
+to the robot and follows the rule of commands: network.py's access control lets only ``telemetry.operators``
+query ``routes/push/**`` (exactly as it limits ``cmd/**``; behind a trusted router, the router's access
+control does, docs/fleet.md), and a robot with ``telemetry.shared_secret_file`` accepts only push queries
+signed with it (comms/command_auth.py: the signature covers the full key and the payload, so the file,
+the offset and the bytes can be neither altered nor replayed).
+
+Integrity: each file's size and SHA-256 travel beside it; the receiver writes into a hidden sibling of the
+destination (``route.staging_dir``), checks every file's size and digest, loads the route
+(``route.load_route`` validates the manifest and every keyframe file) and only then puts it in place
+(``route.install_route_dir``: a rename, or with overwrite an atomic swap). Any failure leaves the
+destination as it was and deletes the staging directory.
+
+Pushed chunks are small because the robot's session refuses messages above ``network.RX_MESSAGE_LIMIT``;
+the robot handles route queries on its own thread, one at a time, never on zenoh's threads.
 """
 from __future__ import annotations
 
-import base64
 import hashlib
-import io
 import json
-import os
+import queue
+import re
 import shutil
-import tarfile
 import threading
 import time
 import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
-from vbnav.control.route import (_PARTIAL, _ROUTE_FILE, RouteError, _sibling, _swap_in, check_route_name,
-                                 load_route, resolve_route)
+from vbnav.control.route import (MANIFEST, RouteError, check_route_name, describe_route_error, install_route_dir,
+                                 load_route, resolve_route, staging_dir)
 
-PUSH_CHUNK = 36 * 1024          # raw bytes per pushed chunk: ~49 KiB of base64 JSON, under the 64 KiB limit
-PULL_CHUNK = 512 * 1024         # raw bytes per pulled chunk (the robot sends; clients take large messages)
-PUSH_STALE_S = 120.0            # an unfinished push untouched this long is dropped
+PUSH_CHUNK = 32 * 1024          # bytes per pushed chunk: well under the robot's 64 KiB receive limit
+PULL_CHUNK = 256 * 1024         # bytes per pulled chunk (the reply leaves the robot: no such limit)
+MAX_PUSH_BYTES = 2 << 30        # a pushed route larger than this is refused at begin
+PUSH_IDLE_S = 60.0              # a push that sent nothing for this long is abandoned (staging deleted)
+MAX_PUSHES = 4                  # pushes in progress at once on one robot
+QUEUE_LIMIT = 64                # route queries waiting for the robot's route thread; beyond: "busy"
+SCHEMA_VERSION = 1
+_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))$")
+_ID = re.compile(r"^[A-Za-z0-9]{8,64}$")
+_SHA = re.compile(r"^[0-9a-f]{64}$")
+
+VerifyFn = Callable[[str, bytes, Optional[bytes]], Optional[str]]
+
+
+class TransferError(Exception):
+    """A route transfer was refused or failed; the message says why (the robot's words when it refused)."""
+
+
+class NoAnswer(TransferError):
+    """Nobody answered the query: no such robot there, or its access control dropped the query unread."""
+
+
+class NoRobot(NoAnswer):
+    """No robot of that name answers for its route list (every robot serving routes does, to everyone)."""
 
 
 def keys(robot: str) -> dict[str, str]:
-    p = f"vbnav/{robot}"
-    return {"list": f"{p}/routes", "route": f"{p}/routes/*", "push": f"{p}/cmd/route/*"}
+    p = f"vbnav/{robot}/routes"
+    return {"all": f"{p}/**", "list": f"{p}/list", "files": f"{p}/files", "chunk": f"{p}/chunk", "push": f"{p}/push"}
 
 
-# ---- packing -------------------------------------------------------------------------------
-
-def pack_route(path: Path) -> bytes:
-    """The route directory as an uncompressed tar (PNGs are compressed already), deterministic."""
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w", format=tarfile.PAX_FORMAT) as tar:
-        for f in sorted(Path(path).iterdir()):
-            if not (f.is_file() and _ROUTE_FILE.match(f.name)) or f.name.endswith(".tmp"):
-                continue
-            info = tarfile.TarInfo(f.name)
-            info.size, info.mode, info.mtime = f.stat().st_size, 0o644, 0
-            with open(f, "rb") as fh:
-                tar.addfile(info, fh)
-    return buf.getvalue()
+def _sha256_file(path: Path) -> tuple[int, str]:
+    h, size = hashlib.sha256(), 0
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            h.update(block)
+            size += len(block)
+    return size, h.hexdigest()
 
 
-def unpack_route(data: bytes, dest: Path) -> None:
-    """Unpack a ``pack_route`` archive into the new directory ``dest``; refuses anything but route files."""
-    dest.mkdir()
-    with tarfile.open(fileobj=io.BytesIO(data), mode="r:") as tar:
-        for m in tar.getmembers():
-            if not m.isfile() or "/" in m.name or not _ROUTE_FILE.match(m.name) or m.name.endswith(".tmp"):
-                raise RouteError(f"route archive: unexpected member {m.name[:60]!r}")
-            src = tar.extractfile(m)
-            with open(dest / m.name, "wb") as out:
-                shutil.copyfileobj(src, out)
-                out.flush()
-                os.fsync(out.fileno())
-
-
-def install_archive(data: bytes, sha256: str, routes_dir: Path, name: str) -> Path:
-    """Check, unpack beside and swap in route ``name``; RouteError says what is wrong (the old route stays)."""
-    got = hashlib.sha256(data).hexdigest()
-    if got != sha256:
-        raise RouteError(f"route {name!r}: checksum mismatch (sha256 {got[:12]}... received, {sha256[:12]}... sent)")
-    routes_dir.mkdir(parents=True, exist_ok=True)
-    route = resolve_route(routes_dir, name, must_exist=False)
-    partial = _sibling(route, _PARTIAL)
-    if partial.exists():
-        shutil.rmtree(partial)
+def route_files(path) -> list[dict]:
+    """The files that make route ``path``: the manifest and every file its keyframes list, each with its
+    size and SHA-256. RouteError if the manifest is not a route's or lists a name that is no route file."""
+    path = Path(path)
+    mpath = path / MANIFEST
     try:
-        unpack_route(data, partial)
-        load_route(partial, load_images=False)        # a complete, loadable route, or nothing changes
-    except Exception as exc:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise RouteError(f"route {name!r}: not a usable route: {exc}") from None
-    if route.exists():
-        _swap_in(partial, route)
-    else:
-        os.rename(partial, route)
-    return route
-
-
-def list_routes(routes_dir: Path) -> list[dict]:
+        m = json.loads(mpath.read_bytes())
+        names = [MANIFEST] + [str(kf[k]) for kf in m["keyframes"] for k in ("image", "landmarks")]
+    except FileNotFoundError:
+        raise RouteError(f"{mpath}: missing (not a vbnav route directory?)") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise RouteError(f"{mpath}: not a route manifest ({type(exc).__name__}: {exc})") from None
     out = []
-    if not routes_dir.is_dir():
-        return out
-    for d in sorted(routes_dir.iterdir()):
-        if d.name.startswith(".") or not (d / "manifest.json").is_file():
-            continue
+    for n in names:
+        if not _FILE.match(n):
+            raise RouteError(f"{mpath}: lists {n!r}, which is not a route file name")
         try:
-            m = json.loads((d / "manifest.json").read_text())
-            out.append({"name": d.name, "keyframes": len(m.get("keyframes", [])), "complete": bool(m.get("complete"))})
-        except (OSError, ValueError):
-            out.append({"name": d.name, "keyframes": None, "complete": False})
+            size, digest = _sha256_file(path / n)
+        except OSError as exc:
+            raise RouteError(f"{path / n}: {exc.strerror or exc}") from None
+        out.append({"name": n, "size": size, "sha256": digest})
     return out
 
 
-# ---- the robot's side ----------------------------------------------------------------------
+# ---- the robot's side ----------------------------------------------------------------------------------
+@dataclass
+class _Incoming:
+    """A push in progress: where it is staged and which files are complete and verified."""
+
+    name: str
+    dest: Path
+    staging: Path
+    overwrite: bool
+    limit: int                                        # bytes announced at begin
+    written: int = 0
+    sizes: dict = field(default_factory=dict)        # file -> bytes written so far
+    verified: set = field(default_factory=set)
+    last_s: float = 0.0
+
 
 class RouteServer:
-    """Queryables of one robot's routes (zenoh threads). ``on_event(kind, **fields)`` reports pushes."""
+    """Serves the routes under ``root`` on ``vbnav/<robot>/routes/**`` and takes pushes into it.
 
-    def __init__(self, session, robot: str, routes_dir: Path, verify=None,
-                 on_event: Optional[Callable[..., None]] = None):
-        self.robot, self.routes_dir = robot, Path(routes_dir)
-        self._verify, self._event = verify, on_event or (lambda kind, **f: None)
-        self._lock = threading.Lock()
-        self._packed: dict[str, tuple[float, bytes, str]] = {}    # name -> (manifest mtime, archive, sha256)
-        self._pushes: dict[str, dict] = {}                         # transfer -> state
-        k = keys(robot)
-        self._prefix_route, self._prefix_push = k["route"][:-1], k["push"][:-1]
-        self._q = [session.declare_queryable(k["list"], self._on_list),
-                   session.declare_queryable(k["route"], self._on_pull),
-                   session.declare_queryable(k["push"], self._on_push)]
+    verify: the shared-secret check of command samples (link.py ``_verifier``), applied to push queries.
+    busy: the reason route NAME may not be replaced now (it is being taught), or None.
+    """
+
+    def __init__(self, session, robot: str, root, verify: Optional[VerifyFn] = None,
+                 busy: Callable[[str], Optional[str]] = lambda name: None,
+                 now_s: Callable[[], float] = time.monotonic):
+        self.root = Path(root)
+        self._busy = busy
+        self._prefix = f"vbnav/{robot}/routes/"
+        self._verify = verify
+        self._now = now_s
+        self._pushes: dict[str, _Incoming] = {}
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._serve, name="vbnav-routes", daemon=True)
+        self._thread.start()
+        self._queryable = session.declare_queryable(keys(robot)["all"], self._on_query)
+
+    def _on_query(self, query) -> None:   # zenoh thread: hand over, never do file work here
+        if self._q.qsize() >= QUEUE_LIMIT:
+            _reply_error(query, "busy: too many route queries waiting; try again")
+            return
+        self._q.put(query)
+
+    def _serve(self) -> None:
+        while True:
+            query = self._q.get()
+            if query is None:
+                return
+            try:
+                self._handle(query)
+            except Exception as exc:   # never let one query end the route thread
+                _reply_error(query, f"internal error: {type(exc).__name__}: {exc}")
+            del query                  # the query is answered (finalised) once dropped
+
+    def _handle(self, query) -> None:
+        key = str(query.key_expr)
+        parts = key[len(self._prefix):].split("/")
+        name = parts[1] if len(parts) > 1 else ""
+        try:
+            if parts == ["list"]:
+                _reply_json(query, key, {"schema": "vbnav.routes", "version": SCHEMA_VERSION, "routes": self._list()})
+            elif parts[0] == "files" and len(parts) == 2:
+                files = route_files(resolve_route(self.root, name, must_exist=True))
+                _reply_json(query, key, {"schema": "vbnav.route.files", "version": SCHEMA_VERSION, "name": name,
+                                         "files": files})
+            elif parts[0] == "chunk" and len(parts) == 4:
+                query.reply(key, self._chunk(name, parts[2], parts[3]))
+            elif parts[0] == "push" and len(parts) >= 4:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                if self._verify is not None:
+                    att = query.attachment
+                    refused = self._verify(key, payload, None if att is None else att.to_bytes())
+                    if refused:
+                        raise TransferError(f"push refused: {refused}")
+                _reply_json(query, key, self._push(name, parts[2], parts[3], parts[4:], payload))
+            else:
+                raise TransferError("unknown route query; expected list, files/NAME, chunk/NAME/FILE/OFFSET "
+                                    "or push/NAME/ID/...")
+        except (RouteError, TransferError, OSError, ValueError) as exc:
+            # Errors about network input name the route, never the robot's directories.
+            routed = name and isinstance(exc, (RouteError, OSError))
+            text = describe_route_error(exc, self.root / name, name) if routed else str(exc)
+            _reply_error(query, text.replace(str(self.root), "routes_dir"))
+
+    def _list(self) -> list[dict]:
+        from vbnav.control.route_tools import list_routes
+        if not self.root.is_dir():
+            return []
+        return [{"name": r.name, "keyframes": r.keyframes, "length_m": round(r.length_m, 3), "complete": r.complete,
+                 "created": r.created, "robot": r.robot, "error": r.error} for r in list_routes(self.root)]
+
+    def _chunk(self, name: str, file: str, offset: str) -> bytes:
+        if not _FILE.match(file) or not offset.isdigit():
+            raise TransferError("chunk: expected a route file name and a byte offset")
+        path = resolve_route(self.root, name, must_exist=True) / file
+        with open(path, "rb") as f:
+            f.seek(int(offset))
+            return f.read(PULL_CHUNK)
+
+    # -- pushes --------------------------------------------------------------------------------------
+    def _push(self, name: str, tid: str, op: str, rest: list[str], payload: bytes) -> dict:
+        check_route_name(name)
+        if not _ID.match(tid):
+            raise TransferError("push: the transfer id must be 8-64 letters or digits")
+        self._abandon_idle()
+        if op == "begin" and not rest:
+            return self._begin(name, tid, payload)
+        inc = self._pushes.get(tid)
+        if inc is None or inc.name != name:
+            raise TransferError(f"push of route {name!r}: no transfer {tid} in progress (abandoned after "
+                                f"{PUSH_IDLE_S:g} s idle, or never begun)")
+        inc.last_s = self._now()
+        try:
+            if op == "chunk" and len(rest) == 2:
+                return self._write_chunk(inc, rest[0], rest[1], payload)
+            if op == "file" and len(rest) == 1:
+                return self._file_done(inc, rest[0], payload)
+            if op == "commit" and not rest:
+                return self._commit(tid, inc)
+            raise TransferError("push: expected begin, chunk/FILE/OFFSET, file/FILE or commit")
+        except Exception:
+            self._drop(tid)
+            raise
+
+    def _begin(self, name: str, tid: str, payload: bytes) -> dict:
+        spec = _json_object(payload, "push begin")
+        total, overwrite = spec.get("bytes"), spec.get("overwrite", False)
+        if not isinstance(total, int) or isinstance(total, bool) or not 0 < total <= MAX_PUSH_BYTES:
+            raise TransferError(f"push begin: 'bytes' must be an integer in 1..{MAX_PUSH_BYTES}")
+        if not isinstance(overwrite, bool):
+            raise TransferError("push begin: 'overwrite' must be true or false")
+        dest = resolve_route(self.root, name, must_exist=False)
+        if dest.exists() and not overwrite:
+            raise TransferError(f"route {name!r} exists on this robot (push --overwrite replaces it)")
+        reason = self._busy(name)
+        if reason:
+            raise TransferError(reason)
+        if any(p.name == name for p in self._pushes.values()):
+            raise TransferError(f"route {name!r}: another push of it is in progress")
+        if len(self._pushes) >= MAX_PUSHES:
+            raise TransferError(f"{MAX_PUSHES} pushes are in progress; try again later")
+        self.root.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(self.root).free
+        if total > free:
+            raise TransferError(f"push of {total} bytes: only {free} bytes free on the robot")
+        staging = staging_dir(dest, tid)
+        staging.mkdir()
+        self._pushes[tid] = _Incoming(name, dest, staging, overwrite, total, last_s=self._now())
+        return {"ok": True, "chunk": PUSH_CHUNK}
+
+    def _write_chunk(self, inc: _Incoming, file: str, offset: str, data: bytes) -> dict:
+        if not _FILE.match(file) or not offset.isdigit():
+            raise TransferError("push chunk: expected a route file name and a byte offset")
+        have, at = inc.sizes.get(file, 0), int(offset)
+        if file in inc.verified or at != have:
+            raise TransferError(f"push chunk {file}@{at}: expected offset {have} (chunks come in order)")
+        if inc.written + len(data) > inc.limit:
+            raise TransferError(f"push: more than the {inc.limit} bytes announced at begin")
+        with open(inc.staging / file, "ab") as f:
+            f.write(data)
+        inc.sizes[file] = have + len(data)
+        inc.written += len(data)
+        return {"ok": True, "size": inc.sizes[file]}
+
+    def _file_done(self, inc: _Incoming, file: str, payload: bytes) -> dict:
+        spec = _json_object(payload, "push file")
+        if not _FILE.match(file) or not _SHA.match(str(spec.get("sha256", ""))):
+            raise TransferError("push file: expected a route file name and its 'sha256' (64 hex digits)")
+        path = inc.staging / file
+        if not path.exists():
+            path.touch()      # an empty file has no chunk
+        size, digest = _sha256_file(path)
+        if size != spec.get("size") or digest != spec["sha256"]:
+            raise TransferError(f"push: {file} arrived damaged ({size} bytes, sha256 {digest[:12]}..., sender "
+                                f"says {spec.get('size')} bytes, {spec['sha256'][:12]}...)")
+        inc.verified.add(file)
+        return {"ok": True}
+
+    def _commit(self, tid: str, inc: _Incoming) -> dict:
+        listed = {f["name"] for f in route_files(inc.staging)} if (inc.staging / MANIFEST).exists() else {MANIFEST}
+        missing = sorted(listed - inc.verified)
+        extra = sorted(set(inc.sizes) - listed)
+        if missing or extra:
+            raise TransferError(f"push commit: {'missing ' + ', '.join(missing[:3]) if missing else ''}"
+                                f"{'; not in the manifest: ' + ', '.join(extra[:3]) if extra else ''}")
+        route = load_route(inc.staging, load_images=False)
+        reason = self._busy(inc.name)      # teaching may have begun since the push did
+        if reason:
+            raise TransferError(reason)
+        install_route_dir(inc.staging, inc.dest, inc.overwrite)
+        del self._pushes[tid]
+        return {"ok": True, "keyframes": len(route), "complete": route.complete}
+
+    def _drop(self, tid: str) -> None:
+        inc = self._pushes.pop(tid, None)
+        if inc is not None:
+            shutil.rmtree(inc.staging, ignore_errors=True)
+
+    def _abandon_idle(self) -> None:
+        now = self._now()
+        for tid in [t for t, p in self._pushes.items() if now - p.last_s > PUSH_IDLE_S]:
+            self._drop(tid)
 
     def close(self) -> None:
-        for q in self._q:
-            try:
-                q.undeclare()
-            except Exception:
-                pass
-
-    @staticmethod
-    def _reply(query, body: dict) -> None:
+        """Stop serving; pushes in progress are abandoned (their staging directories deleted)."""
         try:
-            query.reply(query.key_expr, json.dumps(body, separators=(",", ":")))
+            self._queryable.undeclare()
         except Exception:
             pass
-
-    def _on_list(self, query) -> None:
-        self._reply(query, {"schema": "vbnav.routes", "robot": self.robot, "routes": list_routes(self.routes_dir)})
-
-    def _archive(self, name: str) -> tuple[bytes, str]:
-        route = resolve_route(self.routes_dir, name, must_exist=True)
-        mtime = (route / "manifest.json").stat().st_mtime
-        with self._lock:
-            cached = self._packed.get(name)
-            if cached is None or cached[0] != mtime:
-                data = pack_route(route)
-                cached = self._packed[name] = (mtime, data, hashlib.sha256(data).hexdigest())
-        return cached[1], cached[2]
-
-    def _on_pull(self, query) -> None:
-        name = str(query.key_expr)[len(self._prefix_route):]
-        try:
-            params = dict(p.split("=", 1) for p in str(query.parameters).split(";") if "=" in p)
-            chunk = int(params.get("chunk", "0"))
-            data, sha = self._archive(name)
-        except (RouteError, ValueError, OSError) as exc:
-            self._reply(query, {"schema": "vbnav.route_chunk", "error": str(exc)})
-            return
-        chunks = max(1, -(-len(data) // PULL_CHUNK))
-        if not 0 <= chunk < chunks:
-            self._reply(query, {"schema": "vbnav.route_chunk", "error": f"chunk {chunk} outside 0..{chunks - 1}"})
-            return
-        part = data[chunk * PULL_CHUNK:(chunk + 1) * PULL_CHUNK]
-        self._reply(query, {"schema": "vbnav.route_chunk", "name": name, "sha256": sha, "size": len(data),
-                            "chunk": chunk, "chunks": chunks, "data": base64.b64encode(part).decode()})
-
-    def _on_push(self, query) -> None:
-        key = str(query.key_expr)
-        name = key[len(self._prefix_push):]
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            check_route_name(name)
-            if self._verify is not None:
-                att = query.attachment
-                refused = self._verify(key, payload, None if att is None else att.to_bytes())
-                if refused:
-                    raise RouteError(refused)
-            body = json.loads(payload)
-            done = self._take_chunk(name, body)
-        except (RouteError, ValueError, KeyError, TypeError, OSError) as exc:
-            self._event("command_rejected", command="route_push", reason=f"route {name[:130]!r}: {exc}")
-            self._reply(query, {"ok": False, "reason": str(exc)})
-            return
-        if done is not None:
-            self._event("route_received", route=name, sender=str(body.get("sender", ""))[:64],
-                        sha256=body["sha256"], bytes=body["size"])
-        self._reply(query, {"ok": True, "complete": done is not None})
-
-    def _take_chunk(self, name: str, body: dict) -> Optional[Path]:
-        transfer, chunk, chunks = str(body["transfer"]), int(body["chunk"]), int(body["chunks"])
-        sha, size = str(body["sha256"]), int(body["size"])
-        if not (0 < len(transfer) <= 64 and transfer.isalnum()) or not 0 <= chunk < chunks <= 100_000:
-            raise ValueError("bad transfer id or chunk numbers")
-        data = base64.b64decode(body["data"], validate=True)
-        now = time.monotonic()
-        with self._lock:
-            for t in [t for t, s in self._pushes.items() if now - s["touched"] > PUSH_STALE_S]:
-                self._drop(t)
-            st = self._pushes.get(transfer)
-            if st is None:
-                if chunk != 0:
-                    raise ValueError(f"transfer {transfer}: chunk {chunk} before chunk 0")
-                self.routes_dir.mkdir(parents=True, exist_ok=True)
-                part = resolve_route(self.routes_dir, name, must_exist=False).with_name(f".{name}.push-{transfer}")
-                st = self._pushes[transfer] = {"name": name, "next": 0, "chunks": chunks, "sha256": sha,
-                                               "size": size, "path": part, "file": open(part, "wb"), "touched": now}
-            if (st["name"], st["chunks"], st["sha256"], st["size"]) != (name, chunks, sha, size):
-                raise ValueError(f"transfer {transfer}: chunk {chunk} does not belong to it")
-            if chunk != st["next"]:
-                raise ValueError(f"transfer {transfer}: chunk {chunk} arrived, expected {st['next']}")
-            st["file"].write(data)
-            st["next"], st["touched"] = chunk + 1, now
-            if st["next"] < chunks:
-                return None
-            st["file"].close()
-            archive = st["path"].read_bytes()
-            self._drop(transfer)
-        if len(archive) != size:
-            raise RouteError(f"route {name!r}: {len(archive)} bytes received, {size} sent")
-        return install_archive(archive, sha, self.routes_dir, name)
-
-    def _drop(self, transfer: str) -> None:
-        st = self._pushes.pop(transfer, None)
-        if st is not None:
-            st["file"].close()
-            try:
-                os.unlink(st["path"])
-            except OSError:
-                pass
+        self._q.put(None)
+        self._thread.join(10.0)
+        for tid in list(self._pushes):
+            self._drop(tid)
 
 
-# ---- the client's side (vbnav route pull/push) -----------------------------------------------
+def _json_object(payload: bytes, what: str) -> dict:
+    try:
+        obj = json.loads(payload or b"{}")
+    except ValueError as exc:
+        raise TransferError(f"{what}: payload is not JSON ({exc})") from None
+    if not isinstance(obj, dict):
+        raise TransferError(f"{what}: expected a JSON object")
+    return obj
 
-def _get_one(session, selector: str, timeout_s: float, payload: Optional[bytes] = None,
-             attachment: Optional[bytes] = None) -> dict:
-    kw = {"timeout": timeout_s}
-    if payload is not None:
-        kw["payload"] = payload
+
+def _reply_json(query, key: str, obj: dict) -> None:
+    query.reply(key, json.dumps(obj, separators=(",", ":")))
+
+
+def _reply_error(query, text: str) -> None:
+    try:
+        query.reply_err(json.dumps({"error": text}))
+    except Exception:
+        pass
+
+
+# ---- the client's side -------------------------------------------------------------------------------
+def _ask(session, key: str, timeout_s: float, payload: Optional[bytes] = None,
+         attachment: Optional[bytes] = None) -> bytes:
+    """The single answer to a query; TransferError with the robot's reason, NoAnswer when nobody replied."""
+    kw = {} if payload is None else {"payload": payload}
     if attachment is not None:
         kw["attachment"] = attachment
-    for reply in session.get(selector, **kw):
+    for reply in session.get(key, timeout=timeout_s, **kw):
         if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_bytes())
-    raise ConnectionError(f"no answer on {selector.split('?')[0]} within {timeout_s:g} s (is the robot there, "
-                          f"and are you allowed to ask it?)")
+            return reply.ok.payload.to_bytes()
+        try:
+            text = json.loads(reply.err.payload.to_bytes()).get("error", "?")
+        except (ValueError, AttributeError):
+            text = reply.err.payload.to_string()
+        raise TransferError(text)
+    raise NoAnswer(f"no answer on {key} within {timeout_s:g} s")
 
 
-def fetch_route_list(session, robot: str, timeout_s: float = 5.0) -> list[dict]:
-    return _get_one(session, keys(robot)["list"], timeout_s)["routes"]
+def list_remote(session, robot: str, timeout_s: float = 5.0) -> list[dict]:
+    """The routes robot ``robot`` serves; NoAnswer when no robot of that name answers."""
+    try:
+        return json.loads(_ask(session, keys(robot)["list"], timeout_s))["routes"]
+    except NoAnswer:
+        raise NoRobot(f"no robot named {robot} answers on {keys(robot)['list']} (is it running, with telemetry "
+                       f"on, connected to this router?)") from None
 
 
-def pull_route(session, robot: str, name: str, routes_dir: Path, timeout_s: float = 10.0) -> tuple[Path, str]:
-    """Copy route ``name`` from ``robot`` into ``routes_dir`` (checked, written beside, swapped in)."""
+def pull(session, robot: str, name: str, dest_root, overwrite: bool = False, timeout_s: float = 5.0,
+         progress: Optional[Callable[[int, int], None]] = None) -> Path:
+    """Copy route ``name`` of robot ``robot`` to ``dest_root/name``; returns that path.
+
+    Staged beside the destination, every file checked against its size and SHA-256, the route loaded,
+    then put in place (replacing an existing route only with ``overwrite``).
+    """
     check_route_name(name)
-    parts, sha, chunks, k = [], None, 1, 0
-    while k < chunks:
-        msg = _get_one(session, f"vbnav/{robot}/routes/{name}?chunk={k}", timeout_s)
-        if "error" in msg:
-            raise RouteError(f"robot {robot}: {msg['error']}")
-        if sha is not None and (msg["sha256"] != sha or msg["chunks"] != chunks):
-            raise RouteError(f"route {name!r} changed on robot {robot} during the copy; pull it again")
-        sha, chunks = msg["sha256"], msg["chunks"]
-        parts.append(base64.b64decode(msg["data"]))
-        k += 1
-    return install_archive(b"".join(parts), sha, Path(routes_dir), name), sha
+    dest = resolve_route(Path(dest_root), name, must_exist=False)
+    if dest.exists() and not overwrite:
+        raise RouteError(f"{dest}: exists (replace it with --overwrite)")
+    listing = json.loads(_ask(session, f"{keys(robot)['files']}/{name}", timeout_s))
+    files = listing["files"]
+    total, done = sum(f["size"] for f in files), 0
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    staging = staging_dir(dest, uuid.uuid4().hex[:12])
+    staging.mkdir()
+    try:
+        for f in files:
+            if not _FILE.match(str(f["name"])):
+                raise TransferError(f"robot {robot} lists {f['name']!r} in route {name!r}: not a route file name")
+            h = hashlib.sha256()
+            with open(staging / f["name"], "wb") as out:
+                while out.tell() < f["size"]:
+                    data = _ask(session, f"{keys(robot)['chunk']}/{name}/{f['name']}/{out.tell()}", timeout_s)
+                    if not data:
+                        break
+                    out.write(data)
+                    h.update(data)
+                    done += len(data)
+                    if progress is not None:
+                        progress(done, total)
+                size = out.tell()
+            if size != f["size"] or h.hexdigest() != f["sha256"]:
+                raise TransferError(f"{f['name']}: received {size} bytes with sha256 {h.hexdigest()[:12]}..., robot "
+                                    f"{robot} listed {f['size']} bytes, {f['sha256'][:12]}... (did the route change "
+                                    f"on the robot meanwhile? pull again)")
+        load_route(staging, load_images=False)
+        install_route_dir(staging, dest, overwrite)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return dest
 
 
-def push_route(session, robot: str, name: str, source: Path, secret: Optional[bytes] = None,
-               sender: str = "vbnav-route", timeout_s: float = 10.0) -> str:
-    """Copy the local route directory ``source`` to ``robot`` as ``name``; returns the archive's sha256.
-    Raises RouteError with the robot's reason when it refuses."""
-    check_route_name(name)
-    load_route(source, load_images=False)        # only a usable route leaves this machine
-    data = pack_route(source)
-    sha = hashlib.sha256(data).hexdigest()
-    chunks = max(1, -(-len(data) // PUSH_CHUNK))
-    transfer = uuid.uuid4().hex
-    key = f"vbnav/{robot}/cmd/route/{name}"
-    for k in range(chunks):
-        payload = json.dumps({"transfer": transfer, "chunk": k, "chunks": chunks, "sha256": sha, "size": len(data),
-                              "sender": sender,
-                              "data": base64.b64encode(data[k * PUSH_CHUNK:(k + 1) * PUSH_CHUNK]).decode()},
-                             separators=(",", ":")).encode()
-        attachment = None
+def push(session, robot: str, path, name: Optional[str] = None, overwrite: bool = False,
+         secret: Optional[bytes] = None, timeout_s: float = 5.0,
+         progress: Optional[Callable[[int, int], None]] = None) -> dict:
+    """Copy the local route ``path`` into robot ``robot``'s routes as ``name`` (default: the folder's name).
+
+    The route is loaded and checked here first; the robot stages, verifies and swaps it in (commit).
+    secret: sign every query with the robot's shared secret (``telemetry.shared_secret_file``).
+    Returns the robot's commit answer (``keyframes``, ``complete``).
+    """
+    from vbnav.control.route_tools import check
+    path = Path(path)
+    name = check_route_name(name or path.name)
+    report = check(path)
+    if not report.intact:
+        raise RouteError(f"{path}: damaged ({'; '.join(report.problems[:2])}); not pushing it")
+    files = route_files(path)
+    base = f"{keys(robot)['push']}/{name}/{uuid.uuid4().hex}"
+
+    def ask(key: str, payload: bytes) -> dict:
+        att = None
         if secret is not None:
             from vbnav.control.comms.command_auth import sign
-            attachment = sign(secret, key, payload)
-        answer = _get_one(session, key, timeout_s, payload=payload, attachment=attachment)
-        if not answer.get("ok"):
-            raise RouteError(f"robot {robot} refused the route: {answer.get('reason')}")
-    return sha
+            att = sign(secret, key, payload)
+        try:
+            return json.loads(_ask(session, key, timeout_s, payload=payload, attachment=att))
+        except NoAnswer:
+            raise NoAnswer(f"robot {robot} did not answer the push: it refuses writes from this client (only "
+                           f"telemetry.operators may push), or it went away") from None
+
+    total, done = sum(f["size"] for f in files), 0
+    list_remote(session, robot, timeout_s)          # a robot that is not there is told apart from a refusal
+    ask(f"{base}/begin", json.dumps({"bytes": max(1, total), "overwrite": overwrite}).encode())
+    for f in files:
+        with open(path / f["name"], "rb") as src:
+            offset = 0
+            while block := src.read(PUSH_CHUNK):
+                ask(f"{base}/chunk/{f['name']}/{offset}", block)
+                offset += len(block)
+                done += len(block)
+                if progress is not None:
+                    progress(done, total)
+        ask(f"{base}/file/{f['name']}", json.dumps({"size": f["size"], "sha256": f["sha256"]}).encode())
+    return ask(f"{base}/commit", b"{}")
