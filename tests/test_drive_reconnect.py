@@ -305,7 +305,8 @@ def test_telemetry_says_the_drive_state_its_typed_faults_and_the_reconnect(tmp_p
     link = TelemetryLink.attach(rt, cfg, record=str(tmp_path / "run.mcap"))
     result = rt.run(duration_s=3.0)
     link.close(result)
-    msgs = [(t, json.loads(d)) for t, _, _, d in iter_recording(tmp_path / "run.mcap")]
+    msgs = [(t, json.loads(d)) for t, _, _, d in iter_recording(tmp_path / "run.mcap")   # state and events are
+            if t in ("/vbnav/state", "/vbnav/events")]                                    # JSON, the rest protobuf
     states = [m for t, m in msgs if t == "/vbnav/state"]
     events = {m["kind"]: m for t, m in msgs if t == "/vbnav/events"}
     assert {s["drive"]["state"] for s in states} == {"active", "error", "inactive"}
