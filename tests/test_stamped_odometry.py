@@ -227,8 +227,8 @@ def test_teach_heights_are_unchanged_by_camera_latency_with_stamped_odometry(lat
     print(f"inverse height median relative error: stamped {100 * stamped:.2f} %, newest pose "
           f"{100 * latest:.2f} % ({len(probes[0].inv_height)} landmarks)")
     # exact pixels: with the pose of the frame only the 100 Hz interpolation and the encoder ticks remain
-    # (measured 0.3-0.5 %); the newest pose is 40-80 ms ahead while the turn rate swings (measured 5-10 %)
-    assert stamped < 0.02
+    # (measured 0.75-1.2 %); the newest pose is 40-80 ms ahead while the turn rate swings (measured 130-200 %)
+    assert stamped < 0.025
     assert latest > 3 * stamped
 
 
@@ -240,6 +240,6 @@ def test_fused_pose_is_unchanged_by_camera_latency_with_stamped_odometry(late_ru
     print(f"fused pose error p95: stamped {1e3 * s95[0]:.2f} mm {math.degrees(s95[1]):.3f} deg, newest pose "
           f"{1e3 * l95[0]:.2f} mm {math.degrees(l95[1]):.3f} deg")
     # 0.25 m/s and up to 0.8 rad/s over 40-80 ms: the newest pose is 10-20 mm and 2-4 deg off;
-    # the frame's pose leaves only the interpolation between 10 ms readings (measured < 1 mm, < 0.1 deg)
-    assert s95[0] < 0.003 and s95[1] < math.radians(0.3)
+    # the frame's pose leaves only the interpolation between 10 ms readings (measured 0.16-0.44 mm, 0.07-0.14 deg)
+    assert s95[0] < 0.002 and s95[1] < math.radians(0.3)
     assert l95[0] > 3 * s95[0] and l95[1] > 3 * s95[1]

@@ -13,7 +13,7 @@ def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str
     """zenoh 1.x ``access_control`` of the robot's session (default deny).
 
     Everyone may subscribe to and receive ``state``, ``events`` and ``image`` and query the event
-    history, and sees that the robot subscribes to ``cmd/**`` (so ``vbnav send`` can tell a robot that
+    history (of every robot at once: how clients find a robot's name), and sees that the robot subscribes to ``cmd/**`` (so ``vbnav send`` can tell a robot that
     is not there from one that refuses it). Only ``operators`` may put on ``cmd/**``; ``None`` (no
     authentication: nobody is identified) lets everyone. Nobody may put on the robot's telemetry keys:
     another process cannot publish a fake ``state`` through the robot's session.
@@ -29,8 +29,10 @@ def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str
              "messages": ["put"], "key_exprs": telemetry_keys},
             {"id": "telemetry-subscribe", "permission": "allow", "flows": ["ingress"],
              "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
+            # the history of every robot at once: `vbnav send/monitor/teleop` without --robot learn its name
             {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
-             "messages": ["query", "reply", "declare_queryable"], "key_exprs": [f"{prefix}/events/recent"]},
+             "messages": ["query", "reply", "declare_queryable"],
+             "key_exprs": [f"{prefix}/events/recent", "vbnav/*/events/recent"]},
             {"id": "commands-subscribe", "permission": "allow", "flows": ["egress"],
              "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/cmd/**"]},
             {"id": "commands-in", "permission": "allow", "flows": ["ingress"],

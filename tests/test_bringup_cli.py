@@ -1,0 +1,129 @@
+"""The README's bring-up from the operator's side, against a robot process on loopback (the real Runtime,
+simulated base, teleop controller; tests/telemetry_robot.py): `vbnav teleop` on a pseudo-terminal,
+`vbnav send teleop V W --for S` and `vbnav monitor` finding the robot without --robot, and the teleop
+contradiction (one message must move the robot). One robot process serves the module; each client is
+a real `vbnav` process.
+"""
+from __future__ import annotations
+
+import json
+import os
+import pty
+import select
+import subprocess
+import sys
+import termios
+import time
+
+import pytest
+
+from test_telemetry_net import finish, free_port, start_robot
+
+VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
+PERIOD_NS = 10_000_000
+
+
+def moving_spans(drive_log, t0_ns, t1_ns):
+    """(first, last) stamps, ns, of powered commands with both wheels forward in [t0, t1)."""
+    moving = [t for t, left, right, powered in drive_log if powered and left > 1e-6 and right > 1e-6
+              and t0_ns <= t < t1_ns]
+    return (moving[0], moving[-1]) if moving else None
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bringup")
+    port = free_port()
+    report = tmp / "report.json"
+    proc = start_robot("--port", port, "--controller", "teleop", "--duration", 30, "--report", report)
+    net = ["--connect", f"tcp/127.0.0.1:{port}"]
+    out = {}
+    try:
+        # keyboard teleop on a pty: 'w' repeated every 30 ms for 1 s (a held key), silence, then 'q'
+        master, slave = pty.openpty()
+        before = termios.tcgetattr(slave)
+        p = subprocess.Popen(VBNAV + ["teleop", *net, "--hold", "0.3"], stdin=slave, stdout=slave,
+                             stderr=subprocess.PIPE, text=True)
+        buf = b""
+        deadline = time.monotonic() + 20
+        while b"hold w/s" not in buf and time.monotonic() < deadline and p.poll() is None:
+            if select.select([master], [], [], 0.2)[0]:     # its help line: it is ready
+                buf += os.read(master, 4096)
+        assert p.poll() is None, p.stderr.read()
+        t_press = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+        while time.clock_gettime_ns(time.CLOCK_MONOTONIC) - t_press < 1_000_000_000:
+            os.write(master, b"w")
+            time.sleep(0.03)
+        t_release = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+        # meanwhile: the monitors, one naming no robot, one naming a robot that is not there
+        monitors = [subprocess.Popen(VBNAV + ["monitor", "--once", "--json", *net], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True),
+                    subprocess.Popen(VBNAV + ["monitor", "--once", "--robot", "nosuch", "--timeout", "1", *net],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)]
+        time.sleep(0.8)
+        os.write(master, b"q")
+        out["teleop_rc"] = p.wait(20)
+        out["teleop_err"] = p.stderr.read()
+        out["term_restored"] = termios.tcgetattr(slave) == before
+        out["keys"] = (t_press, t_release)
+        os.close(master)
+        os.close(slave)
+        # one message: moves the robot (for up to the command timeout); then a 1 s stream, both without --robot
+        t = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+        out["one"] = subprocess.run(VBNAV + ["send", "teleop", "0.2", "0", *net], capture_output=True, text=True,
+                                    timeout=30)
+        out["one_t"] = (t, time.clock_gettime_ns(time.CLOCK_MONOTONIC))
+        time.sleep(0.6)
+        t = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+        out["stream"] = subprocess.run(VBNAV + ["send", "teleop", "0.2", "0", "--for", "1.5", *net],
+                                       capture_output=True, text=True, timeout=30)
+        out["stream_t"] = (t, time.clock_gettime_ns(time.CLOCK_MONOTONIC))
+        for name, m in zip(("monitor", "monitor_other"), monitors):
+            stdout, stderr = m.communicate(timeout=30)
+            out[name] = subprocess.CompletedProcess(m.args, m.returncode, stdout, stderr)
+    finally:
+        finish(proc, stop=True)
+    out["report"] = json.loads(report.read_text())
+    return out
+
+
+def test_keyboard_teleop_drives_while_the_key_is_held_and_restores_the_terminal(session):
+    assert session["teleop_rc"] == 0, session["teleop_err"]
+    assert session["term_restored"]
+    t_press, t_release = session["keys"]
+    span = moving_spans(session["report"]["drive_log"], t_press, t_release + 2_000_000_000)
+    assert span is not None, "the held key did not move the robot"
+    # it drove within 0.2 s of the press and stopped by --hold 0.3 s + one 20 Hz send period after the last
+    # repeat, plus delivery (a zero command when the key went quiet; the robot's own command timeout would
+    # stop it 0.5 s after that last message, 0.8 s after the last repeat)
+    assert span[0] - t_press < 200_000_000
+    assert span[1] - t_release < 300_000_000 + 50_000_000 + 100_000_000
+
+
+def test_one_teleop_message_moves_the_robot_for_at_most_the_command_timeout(session):
+    r = session["one"]
+    assert r.returncode == 0, r.stderr
+    assert "applied by robot sim" in r.stdout          # found without --robot: the only robot answering
+    t0, t1 = session["one_t"]
+    span = moving_spans(session["report"]["drive_log"], t0, t1 + 1_000_000_000)
+    assert span is not None, "a single teleop message did not move the robot"
+    assert span[1] - span[0] <= 500_000_000 + 2 * PERIOD_NS
+
+
+def test_send_teleop_for_streams_so_the_robot_drives_that_long(session):
+    r = session["stream"]
+    assert r.returncode == 0, r.stderr
+    assert "30 messages sent" in r.stdout              # 1.5 s at 20 Hz
+    t0, t1 = session["stream_t"]
+    first, last = moving_spans(session["report"]["drive_log"], t0, t1 + 1_000_000_000)
+    assert last - first > 1.2e9                        # it drove about the 1.5 s asked for
+
+
+def test_monitor_finds_the_robot_or_says_which_robots_answer(session):
+    r = session["monitor"]
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["robot"] == "sim"
+    other = session["monitor_other"]
+    assert other.returncode == 1
+    assert "no state on vbnav/nosuch/state" in other.stderr and "robots seen at" in other.stderr
+    assert ": sim" in other.stderr
