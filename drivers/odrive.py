@@ -87,8 +87,9 @@ class ODriveDrive(SerialWheelDrive):
         reply_timeout_s: float = Field(0.005, gt=0, le=0.5, description="wait for one answer line in the loop")
         setup_timeout_s: float = Field(0.1, gt=0, le=2.0, description="wait for an answer during setup")
         error_poll_every: int = Field(10, ge=1, description="read the error words every N cycles")
-        max_missed_reads: int = Field(2, ge=1, description="consecutive failed reads that make a fault (the "
-                                                          "state is held meanwhile)")
+        max_missed_reads: int = Field(8, ge=1, description="consecutive failed reads that make a fault (the "
+                                      "state is held meanwhile; the writes still feed the axis watchdog): 8 at "
+                                      "100 Hz tolerates 80 ms of misses, within the 100 ms axis watchdog")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["ODriveDrive.Options"] = None,
@@ -109,6 +110,9 @@ class ODriveDrive(SerialWheelDrive):
             raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
         try:
             self.ser = serial.Serial(self.opt.port, self.opt.baudrate, timeout=0)
+            # answers still queued from before (late replies that made a reconnect necessary) would be
+            # taken for the answers to the bring-up's questions
+            self.ser.reset_input_buffer()
         except (serial.SerialException, OSError) as exc:
             raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
         try:
@@ -116,7 +120,10 @@ class ODriveDrive(SerialWheelDrive):
             vbus = self._query("r vbus_voltage", t)
             if vbus is None:
                 raise DriveError(f"ODrive on {self.opt.port} does not answer 'r vbus_voltage'")
-            self.vbus_voltage = float(vbus)
+            try:
+                self.vbus_voltage = float(vbus)
+            except ValueError:
+                raise DriveError(f"ODrive on {self.opt.port} answers 'r vbus_voltage' with {vbus!r}") from None
             if clear_errors:
                 self._send("sc")
             for ax in self.axes:
