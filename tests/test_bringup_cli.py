@@ -127,3 +127,41 @@ def test_monitor_finds_the_robot_or_says_which_robots_answer(session):
     assert other.returncode == 1
     assert "no state on vbnav/nosuch/state" in other.stderr and "robots seen at" in other.stderr
     assert ": sim" in other.stderr
+
+
+def test_readme_bring_up_teleop_on_the_shipped_dynamixel_config_without_a_camera(tmp_path):
+    """README "On a real robot", step 3, as typed, with the emulated bus for the U2D2 and no camera."""
+    from driver_test_utils import emulate_cli
+
+    from vbnav.control.config import CONFIG_DIR
+    port = free_port()
+    with emulate_cli("dynamixel", "--ids", "1,2") as dev:
+        text = (CONFIG_DIR / "sentry-dynamixel.yaml").read_text()
+        text = text.replace("port: /dev/ttyUSB0", f"port: {dev}")
+        # a test beside others: normal scheduling, and a port of its own instead of the default 7447
+        text = text.replace("realtime_priority: 50", "realtime_priority: 0")
+        cfg = tmp_path / "myrobot.yaml"
+        cfg.write_text(text + f"\ntelemetry:\n  listen: [tcp/127.0.0.1:{port}]\n")
+        robot = subprocess.Popen(VBNAV + ["run", "-c", str(cfg), "--controller", "teleop", "--duration", "8",
+                                          "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30
+            while True:                    # until the robot answers (its start-up on a loaded machine)
+                send = subprocess.run(VBNAV + ["send", "teleop", "0.1", "0", "--for", "1.5", "-c", str(cfg),
+                                               "--connect", f"tcp/127.0.0.1:{port}"],
+                                      capture_output=True, text=True, timeout=30)
+                if send.returncode != 3 or time.monotonic() > deadline or robot.poll() is not None:
+                    break
+                time.sleep(0.5)
+            out, err = robot.communicate(timeout=30)
+        finally:
+            if robot.poll() is None:
+                robot.kill()
+    assert send.returncode == 0, send.stderr
+    assert "applied by robot sentry-dxl" in send.stdout        # the name came from -c
+    assert robot.returncode == 0, err
+    assert "camera: not opened" in err
+    summary = json.loads(out)
+    assert summary["reason"] == "duration"
+    assert summary["final_odometry"][1] > 0.05                 # it drove forward (0.1 m/s for ~1.5 s)
+    assert "safety hold: command_timeout" in err               # the live echo, while the run was going
