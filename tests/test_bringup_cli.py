@@ -35,7 +35,7 @@ def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("bringup")
     port = free_port()
     report = tmp / "report.json"
-    proc = start_robot("--port", port, "--controller", "teleop", "--duration", 30, "--report", report)
+    proc = start_robot("--port", port, "--controller", "teleop", "--duration", 120, "--report", report)
     net = ["--connect", f"tcp/127.0.0.1:{port}"]
     out = {}
     try:
@@ -140,6 +140,8 @@ def test_readme_bring_up_teleop_on_the_shipped_dynamixel_config_without_a_camera
         text = text.replace("port: /dev/ttyUSB0", f"port: {dev}")
         # a test beside others: normal scheduling, and a port of its own instead of the default 7447
         text = text.replace("realtime_priority: 50", "realtime_priority: 0")
+        # a loaded CI machine: no end on missed deadlines, no latched stall (tests/test_command_path.py has them)
+        text = text.replace("max_missed_streak: 5", "max_missed_streak: 1000000\n  stall_periods: 1000000")
         cfg = tmp_path / "myrobot.yaml"
         cfg.write_text(text + f"\ntelemetry:\n  listen: [tcp/127.0.0.1:{port}]\n")
         robot = subprocess.Popen(VBNAV + ["run", "-c", str(cfg), "--controller", "teleop", "--duration", "8",
@@ -163,5 +165,5 @@ def test_readme_bring_up_teleop_on_the_shipped_dynamixel_config_without_a_camera
     assert "camera: not opened" in err
     summary = json.loads(out)
     assert summary["reason"] == "duration"
-    assert summary["final_odometry"][1] > 0.05                 # it drove forward (0.1 m/s for ~1.5 s)
+    assert summary["final_odometry"][1] > 0.05, summary["events"]   # it drove forward (0.1 m/s for ~1.5 s)
     assert "safety hold: command_timeout" in err               # the live echo, while the run was going

@@ -67,7 +67,7 @@ def run(args) -> int:
         raise InputError(why)
     kind = args.controller or cfg.controller.kind
     robot = make_robot(cfg, with_camera=camera_wanted(cfg, kind, args))
-    if robot.camera is None and not args.no_camera and not args.json:
+    if robot.camera is None and not args.no_camera:
         print(f"camera: not opened (controller {kind} does not use it" +
               (")" if cfg.obstacles.enabled else ", obstacles are off); --camera opens it anyway"), file=sys.stderr)
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
