@@ -31,9 +31,8 @@ def silence(device, on: bool) -> None:
 @pytest.fixture(params=[Dxl, ODrv], ids=["dynamixel", "odrive"])
 def device(request, tmp_path):
     d = request.param(tmp_path)
-    d.dev.start()
-    yield d
-    d.dev.stop()
+    with d.dev:              # the emulator serves its pty for the test
+        yield d
 
 
 def _run(device, script, duration_s: float, window_s: float = 3.0):
@@ -109,7 +108,7 @@ def test_an_expired_device_watchdog_after_a_frozen_loop_is_rearmed_and_waits_for
             frozen.append(t)
             time.sleep(0.45)          # the host silent beyond the 0.2 s device watchdog of these tests
 
-    result, samples, rt = _run(device, script, duration_s=2.0)
+    result, samples, rt = _run(device, script, duration_s=3.0)
     assert result.reason == "duration", result.message
     lost = _events(result, "trip", "drive_lost")
     assert lost and "watchdog" in lost[0].message.lower()

@@ -108,6 +108,17 @@ def robot_name(args, session, who: str) -> str:
                       f"or -c CONFIG ({who})")
 
 
+def open_robot(args, who: str):
+    """A client session and the name of the robot to talk to (``robot_name``). Raises ConnectionError
+    when the endpoint cannot be reached, LookupError when no robot can be named (the session closed)."""
+    session = open_client(args)
+    try:
+        return session, robot_name(args, session, who)
+    except BaseException:
+        session.close()
+        raise
+
+
 def add_telemetry_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", default=None, metavar="PATH",
                    help="record state, events and images to an MCAP file (opens in Foxglove; see "

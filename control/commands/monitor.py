@@ -8,7 +8,7 @@ import threading
 import time
 
 from vbnav.control.commands._common import positive
-from vbnav.control.commands._net import add_net_args, open_client, robot_name, robots_seen
+from vbnav.control.commands._net import add_net_args, open_robot, robots_seen
 
 
 def register(sub) -> None:
@@ -135,16 +135,14 @@ def _seen_hint(session, robot: str, args) -> str:
 def _run(args) -> int:
     view = View()
     try:
-        session = open_client(args)
+        session, robot = open_robot(args, "vbnav monitor")
     except ConnectionError as exc:
         print(f"vbnav monitor: {exc}", file=sys.stderr)
         return 3
+    except LookupError as exc:
+        print(f"vbnav monitor: {exc}", file=sys.stderr)
+        return 1
     try:
-        try:
-            robot = robot_name(args, session, "vbnav monitor")
-        except LookupError as exc:
-            print(f"vbnav monitor: {exc}", file=sys.stderr)
-            return 1
         session.declare_subscriber(f"vbnav/{robot}/state", view.on_state)
         session.declare_subscriber(f"vbnav/{robot}/events", view.on_event)
         view.load_history(session, f"vbnav/{robot}/events/recent")

@@ -15,8 +15,7 @@ import sys
 import time
 
 from vbnav.control.commands._common import positive
-from vbnav.control.commands._net import (CommandPublisher, add_net_args, command_secret, open_client, robot_answers,
-                                         robot_name)
+from vbnav.control.commands._net import CommandPublisher, add_net_args, command_secret, open_robot, robot_answers
 from vbnav.drivers.errors import InputError
 
 #: key -> (forward, turn) direction; positive turn is to the right (vision/geometry.py)
@@ -67,16 +66,11 @@ def run(args) -> int:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     try:
-        session = open_client(args)
-    except ConnectionError as exc:
+        session, robot = open_robot(args, "vbnav teleop")
+    except (ConnectionError, LookupError) as exc:
         print(f"vbnav teleop: {exc}", file=sys.stderr)
         return 3
     try:
-        try:
-            robot = robot_name(args, session, "vbnav teleop")
-        except LookupError as exc:
-            print(f"vbnav teleop: {exc}", file=sys.stderr)
-            return 3
         if not robot_answers(session, robot, 2.0):
             print(f"vbnav teleop: no robot named {robot} answers at {args.connect}", file=sys.stderr)
             return 3
