@@ -60,9 +60,10 @@ def open_client(args):
                               f"telemetry.listen on this endpoint?)") from None
 
 
-def robots_seen(session, timeout_s: float = 1.0) -> list[str]:
+def robots_seen(session, timeout_s: float = 3.0) -> list[str]:
     """Names of the robots answering on this network: every robot's event history is readable by all
-    (``vbnav/<robot>/events/recent``)."""
+    (``vbnav/<robot>/events/recent``). The query ends when every robot answered, at once when none is
+    there; the timeout only bounds a robot slow to answer (a loaded machine)."""
     names = set()
     try:
         for reply in session.get("vbnav/*/events/recent", timeout=timeout_s):
