@@ -169,3 +169,9 @@ def test_readme_bring_up_teleop_on_the_shipped_dynamixel_config_without_a_camera
     # stream's messages arrive late and some are refused as stale (0.009 m measured): any forward motion
     assert summary["final_odometry"][1] > 0.004, summary["events"]
     assert "safety hold: command_timeout" in err               # the live echo, while the run was going
+
+
+def test_teleop_splits_terminal_input_into_keys():
+    from vbnav.control.commands.teleop import MOVES, keys
+    assert list(keys("w\x1b[A\x1b[Dq")) == ["w", "\x1b[A", "\x1b[D", "q"]
+    assert MOVES["\x1b[A"] == MOVES["w"] == (1, 0) and MOVES["\x1b[D"] == MOVES["a"] == (0, -1)   # left: w < 0
