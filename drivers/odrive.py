@@ -152,7 +152,7 @@ class ODriveDrive(SerialWheelDrive):
                 self._send(f"w axis{ax}.config.watchdog_timeout {self.opt.watchdog_s:.4f}")
                 self._send(f"w axis{ax}.config.enable_watchdog 1")
                 got = self._query(f"r axis{ax}.controller.config.control_mode", t)
-                if got is None or int(float(got)) != CONTROL_MODE_VELOCITY:
+                if _integer(got) != CONTROL_MODE_VELOCITY:
                     self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
                                                   f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
                     raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
@@ -171,7 +171,7 @@ class ODriveDrive(SerialWheelDrive):
             self._send(f"w axis{ax}.requested_state {AXIS_STATE_CLOSED_LOOP}")
         for ax in self.axes:
             state = self._query(f"r axis{ax}.current_state", self.opt.setup_timeout_s)
-            if state is None or int(float(state)) != AXIS_STATE_CLOSED_LOOP:
+            if _integer(state) != AXIS_STATE_CLOSED_LOOP:
                 faults = self._read_errors(self.opt.setup_timeout_s)
                 for f in faults or [DriveFault(FaultKind.SETUP, self._axis(ax),
                                                f"ODrive {self._axis(ax)} did not enter closed loop (state {state})")]:
@@ -350,6 +350,15 @@ class ODriveDrive(SerialWheelDrive):
             except Exception:
                 pass
         self.ser = None
+
+
+def _integer(answer: Optional[str]) -> Optional[int]:
+    """An answer read as an integer (the ODrive prints enums as numbers), None when missing or not a number:
+    a late answer to an earlier question (two numbers, say) is no answer, not a lost device."""
+    try:
+        return None if answer is None else int(float(answer))
+    except ValueError:
+        return None
 
 
 class _Corrupt(Exception):
