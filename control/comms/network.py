@@ -29,7 +29,6 @@ def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str
              "messages": ["put"], "key_exprs": telemetry_keys},
             {"id": "telemetry-subscribe", "permission": "allow", "flows": ["ingress"],
              "messages": ["declare_subscriber"], "key_exprs": telemetry_keys + [f"{prefix}/**"]},
-            # the history of every robot at once: `vbnav send/monitor/teleop` without --robot learn its name
             {"id": "events-history", "permission": "allow", "flows": ["ingress", "egress"],
              "messages": ["query", "reply", "declare_queryable"],
              "key_exprs": [f"{prefix}/events/recent", "vbnav/*/events/recent"]},
