@@ -13,7 +13,7 @@ def access_control_rules(robot: str, operators: Optional[list[str]]) -> dict[str
     """zenoh 1.x ``access_control`` of the robot's session (default deny).
 
     Everyone may subscribe to and receive ``state``, ``events`` and ``image`` and query the event
-    history (of every robot at once: how clients find a robot's name), and sees that the robot subscribes to ``cmd/**`` (so ``vbnav send`` can tell a robot that
+    history, and sees that the robot subscribes to ``cmd/**`` (so ``vbnav send`` can tell a robot that
     is not there from one that refuses it). Only ``operators`` may put on ``cmd/**``; ``None`` (no
     authentication: nobody is identified) lets everyone. Nobody may put on the robot's telemetry keys:
     another process cannot publish a fake ``state`` through the robot's session.
