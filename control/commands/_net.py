@@ -120,34 +120,6 @@ def open_robot(args, who: str):
         raise
 
 
-def add_telemetry_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--record", default=None, metavar="PATH",
-                   help="record state, events and images to an MCAP file (opens in Foxglove; see "
-                        "docs/telemetry.md); written as PATH.part and renamed when the run ends")
-    add_record_overwrite_arg(p)
-    p.add_argument("--no-telemetry", action="store_true",
-                   help="do not open the zenoh session (no telemetry, no network commands); runs on the "
-                        "simulated clock never open it")
-
-
-def attach_telemetry(rt, cfg, args):
-    """TelemetryLink for a runtime, or None (after a message on stderr) if the zenoh session cannot open.
-
-    Call after building the Runtime and before ``rt.run``; call ``link.close(result)`` after it.
-    The network opens only when the loop runs in real time: a run on the simulated clock is an offline
-    computation (it finishes faster than anyone could watch or command it), so it only records.
-    """
-    import sys
-
-    from vbnav.control.comms.link import TelemetryLink
-    network = not args.no_telemetry and not rt.clock.simulated
-    try:
-        return TelemetryLink.attach(rt, cfg, record=args.record, network=network, record_overwrite=args.overwrite)
-    except ConnectionError as exc:
-        print(f"vbnav: {exc}", file=sys.stderr)
-        return None
-
-
 def command_secret(args) -> bytes | None:
     """The shared secret to sign commands with (--secret-file, else --config's
     telemetry.shared_secret_file), or None; raises ValueError naming the file."""
@@ -202,3 +174,31 @@ class CommandPublisher:
             from vbnav.control.comms.command_auth import sign
             self.publisher(what).put(payload, attachment=sign(self.secret, self.key(what), payload,
                                                               stamp_ns=stamp_ns))
+
+
+def add_telemetry_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--record", default=None, metavar="PATH",
+                   help="record state, events and images to an MCAP file (opens in Foxglove; see "
+                        "docs/telemetry.md); written as PATH.part and renamed when the run ends")
+    add_record_overwrite_arg(p)
+    p.add_argument("--no-telemetry", action="store_true",
+                   help="do not open the zenoh session (no telemetry, no network commands); runs on the "
+                        "simulated clock never open it")
+
+
+def attach_telemetry(rt, cfg, args):
+    """TelemetryLink for a runtime, or None (after a message on stderr) if the zenoh session cannot open.
+
+    Call after building the Runtime and before ``rt.run``; call ``link.close(result)`` after it.
+    The network opens only when the loop runs in real time: a run on the simulated clock is an offline
+    computation (it finishes faster than anyone could watch or command it), so it only records.
+    """
+    import sys
+
+    from vbnav.control.comms.link import TelemetryLink
+    network = not args.no_telemetry and not rt.clock.simulated
+    try:
+        return TelemetryLink.attach(rt, cfg, record=args.record, network=network, record_overwrite=args.overwrite)
+    except ConnectionError as exc:
+        print(f"vbnav: {exc}", file=sys.stderr)
+        return None
