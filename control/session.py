@@ -159,12 +159,19 @@ class Session:
         rt = Runtime(self.cfg, robot.drive, controller, robot.clock, pipeline)
         rt.cycle_observers.extend(observers)
         link = self._attach_telemetry(rt, segment)
+        echo = None
+        if not robot.clock.simulated and self.progress is not None:   # a console run in real time
+            from vbnav.control.runtime.progress import EventEcho
+            echo = EventEcho()
+            rt.safety.listeners.append(echo)
         result = None
         try:
             result = rt.run(duration_s, self._progress_fn(segment.split()[0], status))
         finally:
             if link is not None:
                 link.close(result)
+            if echo is not None:
+                echo.close()
         return result
 
     def _claim(self) -> None:

@@ -112,10 +112,12 @@ class DynamixelDrive(SerialWheelDrive):
         profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
         bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
         latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")
-        margin_ms: float = Field(2.0, ge=0, le=20, description="extra wait for an answer, ms (raise it for an "
-                                 "emulator on a busy machine)")
-        max_missed_reads: int = Field(5, ge=1, description="consecutive failed reads that make a fault "
-                                      "(the state is held meanwhile)")
+        margin_ms: float = Field(3.0, ge=0, le=20, description="extra wait for an answer, ms: the answer window "
+                                 "2 x latency_ms + margin_ms stays within half of a 100 Hz period (docs/safety.md, "
+                                 "'Drive timing')")
+        max_missed_reads: int = Field(8, ge=1, description="consecutive failed reads that make a fault (the "
+                                      "state is held meanwhile; the writes still feed the servos' watchdog): 8 at "
+                                      "100 Hz tolerates 80 ms of misses, within the 100 ms bus watchdog")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
 
         @model_validator(mode="after")
@@ -359,8 +361,7 @@ class DynamixelDrive(SerialWheelDrive):
                 self._fault(DriveFault(
                     FaultKind.WATCHDOG, f"servo {i} ({self.sides[i]})",
                     f"servo {i} ({self.sides[i]}): bus watchdog expired after {gap * 1000:.0f} ms without "
-                    f"commands (limit {self._watchdog_units * 20} ms); wheels stopped, clear_faults() and "
-                    f"enable() again"))
+                    f"commands (limit {self._watchdog_units * 20} ms); wheels stopped, the bring-up re-arms it"))
 
     # -- failure handling ---------------------------------------------------------------------------
     def _guard_io(self, fn):

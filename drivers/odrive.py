@@ -87,8 +87,9 @@ class ODriveDrive(SerialWheelDrive):
         reply_timeout_s: float = Field(0.005, gt=0, le=0.5, description="wait for one answer line in the loop")
         setup_timeout_s: float = Field(0.1, gt=0, le=2.0, description="wait for an answer during setup")
         error_poll_every: int = Field(10, ge=1, description="read the error words every N cycles")
-        max_missed_reads: int = Field(2, ge=1, description="consecutive failed reads that make a fault (the "
-                                                          "state is held meanwhile)")
+        max_missed_reads: int = Field(8, ge=1, description="consecutive failed reads that make a fault (the "
+                                      "state is held meanwhile; the writes still feed the axis watchdog): 8 at "
+                                      "100 Hz tolerates 80 ms of misses, within the 100 ms axis watchdog")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
         clear_watchdog_error_at_start: bool = Field(
             False, description="an axis found at start-up with only WATCHDOG_TIMER_EXPIRED set (the host went "
@@ -119,6 +120,9 @@ class ODriveDrive(SerialWheelDrive):
             raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
         try:
             self.ser = serial.Serial(self.opt.port, self.opt.baudrate, timeout=0)
+            # answers still queued from before (late replies that made a reconnect necessary) would be
+            # taken for the answers to the bring-up's questions
+            self.ser.reset_input_buffer()
         except (serial.SerialException, OSError) as exc:
             raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
         try:
@@ -126,7 +130,10 @@ class ODriveDrive(SerialWheelDrive):
             vbus = self._query("r vbus_voltage", t)
             if vbus is None:
                 raise DriveError(f"ODrive on {self.opt.port} does not answer 'r vbus_voltage'")
-            self.vbus_voltage = float(vbus)
+            try:
+                self.vbus_voltage = float(vbus)
+            except ValueError:
+                raise DriveError(f"ODrive on {self.opt.port} answers 'r vbus_voltage' with {vbus!r}") from None
             if clear_errors:
                 self._send("sc")
             for ax in self.axes:
@@ -159,7 +166,7 @@ class ODriveDrive(SerialWheelDrive):
                 self._send(f"w axis{ax}.config.watchdog_timeout {self.opt.watchdog_s:.4f}")
                 self._send(f"w axis{ax}.config.enable_watchdog 1")
                 got = self._query(f"r axis{ax}.controller.config.control_mode", t)
-                if got is None or int(float(got)) != CONTROL_MODE_VELOCITY:
+                if _integer(got) != CONTROL_MODE_VELOCITY:
                     self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
                                                   f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
                     raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
@@ -179,7 +186,7 @@ class ODriveDrive(SerialWheelDrive):
             self._send(f"w axis{ax}.requested_state {AXIS_STATE_CLOSED_LOOP}")
         for ax in self.axes:
             state = self._query(f"r axis{ax}.current_state", self.opt.setup_timeout_s)
-            if state is None or int(float(state)) != AXIS_STATE_CLOSED_LOOP:
+            if _integer(state) != AXIS_STATE_CLOSED_LOOP:
                 faults = self._read_errors(self.opt.setup_timeout_s)
                 for f in faults or [DriveFault(FaultKind.SETUP, self._axis(ax),
                                                f"ODrive {self._axis(ax)} did not enter closed loop (state {state})")]:
@@ -358,6 +365,15 @@ class ODriveDrive(SerialWheelDrive):
             except Exception:
                 pass
         self.ser = None
+
+
+def _integer(answer: Optional[str]) -> Optional[int]:
+    """An answer read as an integer (the ODrive prints enums as numbers), None when missing or not a number:
+    a late answer to an earlier question (two numbers, say) is no answer, not a lost device."""
+    try:
+        return None if answer is None else int(float(answer))
+    except ValueError:
+        return None
 
 
 class _Corrupt(Exception):

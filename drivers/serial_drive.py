@@ -87,6 +87,7 @@ class SerialWheelDrive(WheelDrive):
             return False
         self._next_reconnect_ns = now + int(self.opt.reconnect_interval_s * 1e9)
         self._missed_reads = 0
+        self._release()        # a silent motor or an expired watchdog leaves the port open: start afresh
         try:
             self._configure()
         except DriveError:

@@ -55,8 +55,12 @@ class FaultKind(enum.Enum):
 
     @property
     def reconnectable(self) -> bool:
-        """A reconnect (the safe bring-up again) is the remedy: nothing is wrong with the device itself."""
-        return self is FaultKind.BUS_LOST
+        """A reconnect (the safe bring-up again) is the remedy: nothing is wrong with the device itself. The
+        device went away (``BUS_LOST``), stopped answering for longer than its missed-read allowance
+        (``NO_REPLY``: a servo's power or cable), or stopped its wheels because the host was silent for its
+        watchdog time (``WATCHDOG``: a frozen process); the bring-up re-arms it, unpowered, and the robot
+        waits for an operator's resume."""
+        return self in (FaultKind.BUS_LOST, FaultKind.NO_REPLY, FaultKind.WATCHDOG)
 
 
 @dataclass(frozen=True)

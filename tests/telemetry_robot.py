@@ -74,8 +74,9 @@ def main() -> int:
         controller["routes_dir"] = a.routes_dir
     # This robot tests the network path on the real clock beside other processes on a 2-core machine: a
     # scheduling hiccup there must not latch a stall (stalls are tested on the simulated clock in
-    # tests/test_command_path.py), as other real-clock test runs already ignore missed deadlines.
-    loop = {"rate_hz": a.rate, "stall_periods": 10 ** 6}
+    # tests/test_command_path.py), nor end the run on a streak of missed deadlines (the robot would vanish
+    # from the network under the clients' feet), as other real-clock test runs already ignore them.
+    loop = {"rate_hz": a.rate, "stall_periods": 10 ** 6, "max_missed_streak": 10 ** 6}
     try:   # the telemetry section refuses a remote listener without authentication here
         cfg = parse_config({"loop": loop, "telemetry": tele, "robot": {"name": a.name},
                             "controller": controller,

@@ -63,7 +63,7 @@ def test_run_realtime_with_threaded_camera(tmp_path):
     cfg = tmp_path / "rt.yaml"
     cfg.write_text("sim:\n  realtime: true\ncamera:\n  rate_hz: 10\n"
                    "controller:\n  kind: scripted\n  script: [[0.2, 0.0, 60.0]]\n" + RELAXED_STALL)
-    r = subprocess.run(VBNAV + ["run", "-c", str(cfg), "--duration", "3", "--json", "--no-telemetry"],
+    r = subprocess.run(VBNAV + ["run", "-c", str(cfg), "--camera", "--duration", "3", "--json", "--no-telemetry"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)

@@ -25,7 +25,12 @@ def endpoint(text: str) -> str:
 
 
 def add_net_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", default="sim", metavar="NAME", help="robot name (robot.name in its config; default sim)")
+    p.add_argument("--robot", default=None, metavar="NAME",
+                   help="robot name (robot.name in its config); default: from --config, else the only robot "
+                        "answering on the network")
+    p.add_argument("--config", "-c", default=None, metavar="FILE",
+                   help="the robot's configuration: its robot.name names the robot (and send signs with its "
+                        "telemetry.shared_secret_file)")
     p.add_argument("--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", type=endpoint,
                    help=f"zenoh endpoint of the robot or a router (default {DEFAULT_ENDPOINT})")
     p.add_argument("--user", default=None, help="zenoh user name, when the robot requires authentication")
@@ -53,6 +58,122 @@ def open_client(args):
     except Exception as exc:
         raise ConnectionError(f"cannot connect to {args.connect}: {exc} (is `vbnav run` going, with its "
                               f"telemetry.listen on this endpoint?)") from None
+
+
+def robots_seen(session, timeout_s: float = 3.0) -> list[str]:
+    """Names of the robots answering on this network: every robot's event history is readable by all
+    (``vbnav/<robot>/events/recent``). The query ends when every robot answered, at once when none is
+    there; the timeout only bounds a robot slow to answer (a loaded machine)."""
+    names = set()
+    try:
+        for reply in session.get("vbnav/*/events/recent", timeout=timeout_s):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) == 4:
+                    names.add(parts[1])
+    except Exception:
+        pass
+    return sorted(names)
+
+
+def robot_answers(session, robot: str, timeout_s: float) -> bool:
+    """Whether a robot of that name is there: its event-history queryable answers (every robot has one,
+    readable by everyone); with no such robot the query ends at once."""
+    try:
+        return any(r.ok is not None for r in session.get(f"vbnav/{robot}/events/recent", timeout=timeout_s))
+    except Exception:
+        return False
+
+
+def robot_name(args, session, who: str) -> str:
+    """The robot to talk to: --robot, else --config's robot.name, else the only robot on the network.
+
+    Raises InputError for an unreadable --config, LookupError (with what was seen) when the network has
+    no robot or several."""
+    if args.robot:
+        return args.robot
+    if args.config:
+        from vbnav.control.config import ConfigError, load_config
+        from vbnav.drivers.errors import InputError
+        try:
+            return load_config(args.config).robot.name
+        except ConfigError as exc:
+            raise InputError(str(exc)) from None
+    seen = robots_seen(session)
+    if len(seen) == 1:
+        return seen[0]
+    if not seen:
+        raise LookupError(f"no robot answers at {args.connect} (is `vbnav run` going, with telemetry on?); "
+                          f"name it with --robot NAME or -c CONFIG")
+    raise LookupError(f"several robots answer at {args.connect}: {', '.join(seen)}; pick one with --robot NAME "
+                      f"or -c CONFIG ({who})")
+
+
+def open_robot(args, who: str):
+    """A client session and the name of the robot to talk to (``robot_name``). Raises ConnectionError
+    when the endpoint cannot be reached, LookupError when no robot can be named (the session closed)."""
+    session = open_client(args)
+    try:
+        return session, robot_name(args, session, who)
+    except BaseException:
+        session.close()
+        raise
+
+
+def command_secret(args) -> bytes | None:
+    """The shared secret to sign commands with (--secret-file, else --config's
+    telemetry.shared_secret_file), or None; raises ValueError naming the file."""
+    from vbnav.control.comms.command_auth import read_secret
+    path = args.secret_file
+    if path is None and args.config:
+        from vbnav.control.config import ConfigError, load_config
+        try:
+            path = load_config(args.config).telemetry.shared_secret_file
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+    return None if path is None else read_secret(path, check_owner=False)
+
+
+class CommandPublisher:
+    """Operator commands to one robot, as ``vbnav send`` and ``vbnav teleop`` put them on the network.
+
+    Each message carries this sender's session id, an increasing ``seq`` and the send time on this
+    machine's monotonic clock (the robot refuses teleop that is out of order or older than its command
+    timeout, docs/telemetry.md "Commands"), and a signature when the robot has a shared secret.
+    """
+
+    def __init__(self, session, robot: str, sender: str, secret: bytes | None = None):
+        import uuid
+        self.session, self.robot, self.secret = session, robot, secret
+        self.base = {"sender": sender, "session": uuid.uuid4().hex[:16]}
+        self.seq = 0
+        self._publishers: dict = {}
+
+    def publisher(self, what: str):
+        """The reliable publisher of ``vbnav/<robot>/cmd/<what>`` (its matching_status says if the robot is there)."""
+        if what not in self._publishers:
+            import zenoh
+            self._publishers[what] = self.session.declare_publisher(
+                self.key(what), congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE)
+        return self._publishers[what]
+
+    def key(self, what: str) -> str:
+        return f"vbnav/{self.robot}/cmd/{what}"
+
+    def put(self, what: str, body: dict) -> None:
+        import json
+        import time
+        stamp_ns = time.monotonic_ns()
+        # body first: an ``ack`` leads, so the robot can echo it even for a payload it refuses unparsed
+        payload = json.dumps({**body, **self.base, "seq": self.seq, "stamp_ns": stamp_ns}).encode()
+        self.seq += 1
+        if self.secret is None:
+            self.publisher(what).put(payload)
+        else:   # the signature covers the payload bytes: seq, stamp_ns, session and ack cannot be altered
+            from vbnav.control.comms.command_auth import sign
+            self.publisher(what).put(payload, attachment=sign(self.secret, self.key(what), payload,
+                                                              stamp_ns=stamp_ns))
 
 
 def add_telemetry_args(p: argparse.ArgumentParser) -> None:

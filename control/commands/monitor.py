@@ -8,7 +8,7 @@ import threading
 import time
 
 from vbnav.control.commands._common import positive
-from vbnav.control.commands._net import add_net_args, open_client
+from vbnav.control.commands._net import add_net_args, open_client, open_robot, robots_seen
 
 
 def register(sub) -> None:
@@ -19,7 +19,8 @@ def register(sub) -> None:
     p.add_argument("--once", action="store_true", help="print the first state received and exit (for scripts)")
     p.add_argument("--json", action="store_true", help="with --once: print the raw JSON state message")
     p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
-                   help="with --once: give up after S seconds without state (exit 1); default 5")
+                   help="with --once: give up after S seconds without state (exit 1); live: say which robots "
+                        "answer after S seconds without state; default 5")
     p.add_argument("--refresh", type=positive, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
     p.add_argument("--all", action="store_true", help="every robot seen (a fleet behind a router), one line each")
     p.add_argument("--count", type=int, default=0, metavar="N",
@@ -122,19 +123,30 @@ def render(robot: str, state: dict | None, events, rx_age_s: float | None = None
     return "\n".join(lines)
 
 
+def _seen_hint(session, robot: str, args) -> str:
+    """What the network does have, when the robot asked for is silent."""
+    seen = robots_seen(session)
+    if not seen:
+        return (f"no robot answers at {args.connect} (is `vbnav run` going, with its telemetry.listen on this "
+                f"endpoint and telemetry enabled?)")
+    if robot in seen:
+        return (f"robot {robot} answers but publishes no state (telemetry.state_rate_hz, or its "
+                f"telemetry.operators refuse this client)")
+    return f"robots seen at {args.connect}: {', '.join(seen)} (pick one with --robot NAME or -c CONFIG)"
+
+
 def _run(args) -> int:
     view = View()
-    try:
-        session = open_client(args)
-    except ConnectionError as exc:
-        print(f"vbnav monitor: {exc}", file=sys.stderr)
-        return 3
     if (args.count and not (args.all and args.once)) or (args.all and args.json):
-        session.close()
         print("vbnav monitor: --count goes with --all --once; --json with a single robot's --once", file=sys.stderr)
         return 2
-    if args.all:
+    if args.all:        # every robot: no name to resolve
         from vbnav.control.comms.fleet_view import run_all
+        try:
+            session = open_client(args)
+        except ConnectionError as exc:
+            print(f"vbnav monitor: {exc}", file=sys.stderr)
+            return 3
         try:
             return run_all(args, session)
         except KeyboardInterrupt:
@@ -142,24 +154,38 @@ def _run(args) -> int:
         finally:
             session.close()
     try:
-        session.declare_subscriber(f"vbnav/{args.robot}/state", view.on_state)
-        session.declare_subscriber(f"vbnav/{args.robot}/events", view.on_event)
-        view.load_history(session, f"vbnav/{args.robot}/events/recent")
+        session, robot = open_robot(args, "vbnav monitor")
+    except ConnectionError as exc:
+        print(f"vbnav monitor: {exc}", file=sys.stderr)
+        return 3
+    except LookupError as exc:
+        print(f"vbnav monitor: {exc}", file=sys.stderr)
+        return 1
+    try:
+        session.declare_subscriber(f"vbnav/{robot}/state", view.on_state)
+        session.declare_subscriber(f"vbnav/{robot}/events", view.on_event)
+        view.load_history(session, f"vbnav/{robot}/events/recent")
         if args.once:
             if not view.got_state.wait(args.timeout):
-                print(f"vbnav monitor: no state on vbnav/{args.robot}/state within {args.timeout} s",
-                      file=sys.stderr)
+                print(f"vbnav monitor: no state on vbnav/{robot}/state within {args.timeout:g} s; "
+                      f"{_seen_hint(session, robot, args)}", file=sys.stderr)
                 return 1
             with view.lock:
                 state, events = view.state, list(view.events)
-            print(json.dumps(state) if args.json else render(args.robot, state, events))
+            print(json.dumps(state) if args.json else render(robot, state, events))
             return 0
         period = 1.0 / max(0.5, args.refresh)
+        started, hint = time.monotonic(), None
         while True:
             with view.lock:
                 state, events, last = view.state, list(view.events), view.last_rx
             age = time.monotonic() - last if state is not None else None
-            sys.stdout.write("\x1b[H\x1b[2J" + render(args.robot, state, events, age) + "\n")
+            text = render(robot, state, events, age)
+            if state is None and time.monotonic() - started > args.timeout:
+                if hint is None:
+                    hint = _seen_hint(session, robot, args)
+                text += f"\n  no state from {robot} after {args.timeout:g} s: {hint}"
+            sys.stdout.write("\x1b[H\x1b[2J" + text + "\n")
             sys.stdout.flush()
             time.sleep(period)
     except KeyboardInterrupt:

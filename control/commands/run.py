@@ -15,14 +15,21 @@ def register(sub) -> None:
                                    "configuration (controller.kind: scripted, teleop, operator, idle). 'operator' is the "
                                    "robot's everyday session: teleop driving plus cmd/mode idle, teach ROUTE and "
                                    "repeat ROUTE from the network (vbnav send mode ...). Prints progress and a "
-                                   "timing summary. Stops on SIGINT/SIGTERM with the wheels at zero.")
+                                   "timing summary; safety events print on stderr as they happen. Stops on "
+                                   "SIGINT/SIGTERM with the wheels at zero. The camera opens only when the run "
+                                   "uses it (controller operator, or obstacles.enabled; --camera to watch it "
+                                   "anyway): a robot without a camera runs teleop, scripted and idle.")
     add_config_arg(p)
     p.add_argument("--duration", type=positive, default=None, metavar="S",
                    help="stop after S seconds (simulated seconds on the simulated clock)")
     p.add_argument("--controller", choices=["scripted", "teleop", "operator", "idle"], default=None,
                    help="override controller.kind from the configuration")
-    p.add_argument("--no-camera", action="store_true",
-                   help="do not open the camera (by default it runs, so a stale camera stops the robot)")
+    cam = p.add_mutually_exclusive_group()
+    cam.add_argument("--no-camera", action="store_true",
+                     help="do not open the camera even when the run would use it (an operator session that "
+                          "only takes teleop)")
+    cam.add_argument("--camera", action="store_true",
+                     help="open the camera even when the run does not use it, so a stale camera stops the robot")
     p.add_argument("--realtime", action="store_true",
                    help="simulated robot: run on the wall clock (sim.realtime: true) so telemetry opens and "
                         "'vbnav monitor', 'vbnav send' and the Foxglove live view work; without it the "
@@ -57,10 +64,18 @@ def enable_live_view(cfg) -> None:
         raise InputError(f"--live-view: {exc.errors()[0]['msg']}") from None
 
 
+def camera_wanted(cfg, kind: str, args) -> bool:
+    """Whether this run opens the camera: when something uses it (the operator's teach and repeat, the
+    obstacle stop, the live view's image), or when asked; never with --no-camera."""
+    if args.no_camera:
+        return False
+    return args.camera or kind == "operator" or cfg.obstacles.enabled or cfg.telemetry.live_view.enabled
+
+
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.runtime.factory import make_robot
-    from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.runtime.progress import EventEcho, ProgressPrinter
     from vbnav.control.runtime.runtime import Runtime
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
@@ -73,7 +88,10 @@ def run(args) -> int:
     if args.live_view:
         enable_live_view(cfg)
     kind = args.controller or cfg.controller.kind
-    robot = make_robot(cfg, with_camera=not args.no_camera)
+    robot = make_robot(cfg, with_camera=camera_wanted(cfg, kind, args))
+    if robot.camera is None and not args.no_camera:
+        print(f"camera: not opened (controller {kind} does not use it" +
+              (")" if cfg.obstacles.enabled else ", obstacles are off); --camera opens it anyway"), file=sys.stderr)
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
     if kind == "operator":
         from vbnav.control.controllers.operator import OperatorController
@@ -90,6 +108,9 @@ def run(args) -> int:
         print("vbnav run: simulated clock (faster than real time): telemetry, network commands and the live "
               "view are not opened; add --realtime to watch and command the simulated robot", file=sys.stderr)
     printer = ProgressPrinter()
+    echo = None if clock.simulated else EventEcho()   # a simulated run is over before anyone could read them
+    if echo is not None:
+        rt.safety.listeners.append(echo)
 
     def progress(r: Runtime) -> None:
         t = (r.clock.now_ns() - r._start_ns) * 1e-9
@@ -107,6 +128,8 @@ def run(args) -> int:
     finally:
         controller.close()      # a route being taught keeps every keyframe so far
         link.close(result)
+        if echo is not None:
+            echo.close()
     printer.done()
     summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
                "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],

@@ -8,7 +8,8 @@ import time
 import uuid
 
 from vbnav.control.commands._common import finite, non_negative, positive
-from vbnav.control.commands._net import add_net_args, open_client
+from vbnav.control.commands._net import (CommandPublisher, add_net_args, command_secret, open_client, robot_answers,
+                                         robot_name)
 
 # Generous local bounds: the robot checks against its own configured limits and rejects with an event.
 _LOCAL_LIMIT = 1e3
@@ -44,13 +45,16 @@ def register(sub) -> None:
     r = cmds.add_parser("resume", help="clear an estop latch")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
-                                    "safety.command_timeout_s (and only a run with controller teleop follows it). "
-                                    "Without --duration one message is sent. The exit code is the robot's answer "
+                                    "safety.command_timeout_s (and only a run with controller teleop or operator follows "
+                                    "it). Without --for one message is sent (the robot drives up to the timeout); "
+                                    "`vbnav send teleop 0.1 0 --for 3` drives 3 s. The exit code is the robot's answer "
                                     "to the first message it applies or refuses; a refusal stops the stream.")
     t.add_argument("v", type=finite, metavar="V", help="linear velocity, m/s")
     t.add_argument("w", type=finite, metavar="W", help="angular velocity, rad/s")
-    t.add_argument("--duration", type=non_negative, default=0.0, metavar="S", help="keep sending for S seconds")
-    t.add_argument("--rate", type=positive, default=10.0, metavar="HZ", help="send rate with --duration (10)")
+    t.add_argument("--for", "--duration", dest="duration", type=non_negative, default=0.0, metavar="S",
+                   help="keep sending for S seconds, so the robot drives that long (one message drives it for "
+                        "at most safety.command_timeout_s)")
+    t.add_argument("--rate", type=positive, default=20.0, metavar="HZ", help="send rate with --for (default 20)")
     m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route NAME")
     m.add_argument("mode", choices=["idle", "teach", "repeat"])
     m.add_argument("--route", default=None, metavar="NAME",
@@ -62,8 +66,6 @@ def register(sub) -> None:
                         help="wait up to S seconds for the robot, then for its answer (default 3)")
         sp.add_argument("--secret-file", default=None, metavar="FILE",
                         help="sign the command with the robot's shared secret (telemetry.shared_secret_file)")
-        sp.add_argument("--config", "-c", default=None, metavar="FILE",
-                        help="take --secret-file from this robot configuration's telemetry.shared_secret_file")
     p.set_defaults(func=_run)
 
 
@@ -90,19 +92,6 @@ def build_payload(args) -> tuple[str, dict]:
     return args.what, body
 
 
-def _secret(args) -> bytes | None:
-    """The shared secret to sign with, or None; raises ValueError naming the file."""
-    from vbnav.control.comms.command_auth import read_secret
-    path = args.secret_file
-    if path is None and args.config:
-        from vbnav.control.config import ConfigError, load_config
-        try:
-            path = load_config(args.config).telemetry.shared_secret_file
-        except ConfigError as exc:
-            raise ValueError(str(exc)) from None
-    return None if path is None else read_secret(path, check_owner=False)
-
-
 def _who(args) -> str:
     if args.user:
         return f"user {args.user}"
@@ -114,7 +103,7 @@ def _who(args) -> str:
 def _run(args) -> int:
     try:
         what, body = build_payload(args)
-        secret = _secret(args)
+        secret = command_secret(args)
     except ValueError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
         return BAD_INPUT
@@ -129,19 +118,13 @@ def _run(args) -> int:
         session.close()
 
 
-def _robot_answers(session, robot: str, timeout_s: float) -> bool:
-    """Whether a robot of that name is there: its event-history queryable answers (every robot has one,
-    readable by everyone); with no such robot the query ends at once."""
-    try:
-        return any(r.ok is not None for r in session.get(f"vbnav/{robot}/events/recent", timeout=timeout_s))
-    except Exception:
-        return False
-
-
 def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int:
-    import zenoh
-    robot, ack = args.robot, body["ack"]
-    key = f"vbnav/{robot}/cmd/{what}"
+    try:
+        robot = robot_name(args, session, "vbnav send")
+    except LookupError as exc:
+        print(f"vbnav send: {exc}", file=sys.stderr)
+        return UNREACHABLE
+    ack = body["ack"]
     answers: queue.SimpleQueue = queue.SimpleQueue()
 
     def on_event(sample) -> None:   # zenoh thread
@@ -154,10 +137,10 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
-    pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                    reliability=zenoh.Reliability.RELIABLE)
+    out = CommandPublisher(session, robot, body["sender"], secret)
+    key, pub = out.key(what), out.publisher(what)
     deadline = time.monotonic() + args.wait
-    if not _robot_answers(session, robot, max(0.1, args.wait)):
+    if not robot_answers(session, robot, max(0.1, args.wait)):
         print(f"vbnav send: no robot named {robot} is listening on {key} at {args.connect} (is `vbnav run` going "
               f"with robot.name {robot}?)", file=sys.stderr)
         return UNREACHABLE
@@ -169,18 +152,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         return REFUSED
 
     def put(seq: int, with_ack: bool) -> None:
-        # seq and the send time on this machine's monotonic clock: the robot refuses teleop that is
-        # out of order or older than its command timeout (docs/telemetry.md, "Commands").
-        stamp_ns = time.monotonic_ns()
-        msg = dict(body, seq=seq, stamp_ns=stamp_ns)
-        if not with_ack:
-            del msg["ack"]
-        payload = json.dumps(msg).encode()
-        if secret is None:
-            pub.put(payload)
-        else:   # the signature covers the payload bytes: seq, stamp_ns, session and ack cannot be altered
-            from vbnav.control.comms.command_auth import sign
-            pub.put(payload, attachment=sign(secret, key, payload, stamp_ns=stamp_ns))
+        out.put(what, body if with_ack else {k: v for k, v in body.items() if k != "ack"})
 
     stream = what == "teleop" and args.duration > 0
     n = max(1, int(args.duration * args.rate)) if stream else 1

@@ -7,6 +7,11 @@ Two modes, same stages:
   loop's thread when a frame is due, and releases the result ``latency_s``
   later in simulated time. Deterministic, and as fast as the computation allows.
 
+Each stage gets the wheel odometry at its frame's stamp (``odometry_at``), interpolated
+in the loop's ``OdometryHistory``, not the newest pose: a frame processed 60 ms after
+its exposure while turning would otherwise pair its image with where the robot is
+now. Without a history (a pipeline driven by hand) the newest pose stands in.
+
 A stage exception is captured as ``fault`` (the loop turns it into a safety
 trip); the pipeline never raises into the loop.
 """
@@ -19,6 +24,7 @@ from collections import deque
 from typing import Callable, Optional
 
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.runtime.odometry import OdometryHistory
 from vbnav.drivers.camera import Camera, Frame
 from vbnav.vision.geometry import Pose2
 
@@ -37,7 +43,8 @@ class VisionPipeline:
         self.fault: Optional[str] = None
         self.fault_traceback: Optional[str] = None   # of a stage exception (None for a camera fault)
         self.frame_listeners: list[Callable[[Frame, dict], None]] = []
-        self.odom: Pose2 = Pose2()          # written by the loop every cycle
+        self.odom: Pose2 = Pose2()          # the newest pose, written by the loop every cycle
+        self.history: Optional[OdometryHistory] = None   # the loop's stamped odometry (Runtime sets it)
         self._pending: deque = deque()      # inline mode: (release_ns, frame, estimates)
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
@@ -74,7 +81,7 @@ class VisionPipeline:
             return
         frame = self.camera.read(0.0)
         if frame is not None:
-            self._pending.append((frame.stamp_ns + self.latency_ns, frame, self._process(frame, odom)))
+            self._pending.append((frame.stamp_ns + self.latency_ns, frame, self._process(frame)))
         while self._pending and self._pending[0][0] <= now_ns:
             _, frame, results = self._pending.popleft()
             self._publish(frame, results)
@@ -89,10 +96,16 @@ class VisionPipeline:
             if frame is None:
                 time.sleep(0.001)
                 continue
-            results = self._process(frame, self.odom)
+            results = self._process(frame)
             self._publish(frame, results)
 
-    def _process(self, frame: Frame, odom: Pose2) -> dict:
+    def odometry_at(self, stamp_ns: int) -> Pose2:
+        """The wheel odometry at ``stamp_ns`` (interpolated in the loop's history), else the newest pose."""
+        pose = self.history.at(stamp_ns) if self.history is not None else None
+        return self.odom if pose is None else pose
+
+    def _process(self, frame: Frame) -> dict:
+        odom = self.odometry_at(frame.stamp_ns)
         out = {}
         t0 = time.perf_counter()
         for stage in self.stages:

@@ -54,7 +54,7 @@ from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, Cont
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
 from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
-from vbnav.control.runtime.odometry import Odometry
+from vbnav.control.runtime.odometry import Odometry, OdometryHistory
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
 from vbnav.control.runtime.systemd_notify import SystemdNotifier
@@ -119,6 +119,9 @@ class Runtime:
         self.limiter = TwistLimiter.from_config(cfg.robot)
         self.kin = self.limiter.kinematics
         self.odometry = Odometry(cfg.robot.wheel_radius, cfg.robot.wheel_separation)
+        self.odometry_history = OdometryHistory()   # stamped poses: stages get the pose of their frame
+        if pipeline is not None:
+            pipeline.history = self.odometry_history
         self.safety = SafetyMonitor(release_s=cfg.safety.release_s)
         self.mailbox = CommandMailbox(clock.now_ns, int(cfg.safety.command_timeout_s * 1e9))
         self.cycle_observers: list[Callable[["Runtime", ControlContext, Twist, tuple], None]] = []
@@ -239,6 +242,7 @@ class Runtime:
                 return self._finish(now, "drive", "drive fault: " + "; ".join(map(str, wheels.faults)))
             stage = "odometry"
             odom = self.odometry.update(wheels)
+            self.odometry_history.record(wheels.stamp_ns or now, odom)
             stage = "vision"
             estimates = {}
             if self.pipeline is not None:

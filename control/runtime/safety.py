@@ -7,7 +7,8 @@ Two kinds of stop:
   stopped until ``reset`` (operator resume); fatal causes also end the run.
 - held (``hold``): a condition that stops the robot while it lasts and releases
   by itself once it has been clear for ``release_s`` (debounce): a stale camera
-  frame, a stale vision estimate, a silent command stream, an obstacle.
+  frame, a stale vision estimate, a silent command stream, an obstacle. The
+  silent command stream releases at once (``RELEASE_AT_ONCE``).
 
 Every change is an event (time, kind, cause, message) kept for telemetry and
 the run report. The runtime commands zero and disables the drive the same cycle
@@ -18,6 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 FATAL = ("exception", "signal", "deadline", "drive", "camera")
+
+#: Held causes that release the cycle they clear, without the ``release_s`` debounce. A silent command
+#: stream (``command_timeout``) ends when a fresh command arrives: the command's own freshness (sent within
+#: ``safety.command_timeout_s``) is the debounce, and waiting ``release_s`` (0.5 s, as long as the timeout)
+#: would let no single teleop message ever move the robot, and cut every stream's first half second.
+RELEASE_AT_ONCE = ("command_timeout",)
 
 
 @dataclass
@@ -59,10 +66,11 @@ class SafetyMonitor:
         if cause not in self.holds:
             return
         since = self._clear_since.setdefault(cause, now_ns)
-        if now_ns - since >= self.release_s * 1e9:
+        release_s = 0.0 if cause in RELEASE_AT_ONCE else self.release_s
+        if now_ns - since >= release_s * 1e9:
             del self.holds[cause]
             del self._clear_since[cause]
-            self._emit(SafetyEvent(now_ns, "release", cause, f"{cause} clear for {self.release_s:g} s"))
+            self._emit(SafetyEvent(now_ns, "release", cause, f"{cause} clear for {release_s:g} s"))
 
     def reset(self, now_ns: int, message: str = "operator resume") -> list[str]:
         """Clear the non-fatal latched stops (estop). Fatal ones need a restart."""

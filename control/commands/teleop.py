@@ -1,0 +1,135 @@
+"""``vbnav teleop``: drive a robot from the keyboard, streaming teleop at 20 Hz while a key is held.
+
+A terminal reports key presses, never releases: a held key repeats (after the keyboard's repeat delay,
+250-660 ms, then 25-30 times a second). So a key press drives for ``--hold`` seconds and each repeat
+extends it; the stream stops, with one zero command, ``--hold`` after the last repeat. The robot's own
+command timeout (safety.command_timeout_s) stops it if this program dies. The terminal goes to raw mode
+for single key presses and is restored on every exit (q, Ctrl-C, SIGTERM, an error).
+"""
+from __future__ import annotations
+
+import os
+import select
+import signal
+import sys
+import time
+
+from vbnav.control.commands._common import positive
+from vbnav.control.commands._net import CommandPublisher, add_net_args, command_secret, open_robot, robot_answers
+from vbnav.drivers.errors import InputError
+
+#: key -> (forward, turn) direction; positive turn is to the right (vision/geometry.py)
+MOVES = {"w": (1, 0), "s": (-1, 0), "a": (0, -1), "d": (0, 1),
+         "\x1b[A": (1, 0), "\x1b[B": (-1, 0), "\x1b[D": (0, -1), "\x1b[C": (0, 1)}
+QUIT = ("q", "\x03", "\x04")         # q, Ctrl-C, Ctrl-D
+HELP = ("vbnav teleop: hold w/s or up/down to drive, a/d or left/right to turn; space stops; "
+        "x estop, r resume; q or Ctrl-C quits")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("teleop", help="drive a robot from the keyboard (teleop at 20 Hz while a key is held)",
+                       description=HELP + ". Needs a run that takes teleop: `vbnav run -c CONFIG --controller "
+                                          "teleop` (or operator).")
+    add_net_args(p)
+    p.add_argument("--speed", type=positive, default=0.1, metavar="V", help="m/s while w/s is held (default 0.1)")
+    p.add_argument("--turn", type=positive, default=0.5, metavar="W", help="rad/s while a/d is held (default 0.5)")
+    p.add_argument("--rate", type=positive, default=20.0, metavar="HZ", help="send rate while driving (default 20)")
+    p.add_argument("--hold", type=positive, default=0.7, metavar="S",
+                   help="a key press drives this long, each repeat extends it (default 0.7: above the usual "
+                        "keyboard repeat delay, so a held key drives without a gap)")
+    p.add_argument("--secret-file", default=None, metavar="FILE",
+                   help="sign the commands with the robot's shared secret (telemetry.shared_secret_file)")
+    p.set_defaults(func=run)
+
+
+def keys(data: str):
+    """Split terminal input into keys: arrow escape sequences, or single characters."""
+    i = 0
+    while i < len(data):
+        if data.startswith("\x1b[", i) and i + 2 < len(data):
+            yield data[i:i + 3]
+            i += 3
+        else:
+            yield data[i]
+            i += 1
+
+
+def run(args) -> int:
+    import termios
+    import tty
+
+    fd = sys.stdin.fileno()
+    if not os.isatty(fd):
+        raise InputError("needs a terminal (stdin is not a tty); in scripts use `vbnav send teleop V W --for S`")
+    try:
+        secret = command_secret(args)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    try:
+        session, robot = open_robot(args, "vbnav teleop")
+    except (ConnectionError, LookupError) as exc:
+        print(f"vbnav teleop: {exc}", file=sys.stderr)
+        return 3
+    try:
+        if not robot_answers(session, robot, 2.0):
+            print(f"vbnav teleop: no robot named {robot} answers at {args.connect}", file=sys.stderr)
+            return 3
+        out = CommandPublisher(session, robot, "vbnav-teleop", secret)
+        saved = termios.tcgetattr(fd)
+        old_term = signal.signal(signal.SIGTERM, lambda *_: sys.exit(130))
+        try:
+            tty.setraw(fd)
+            return _drive(fd, out, args, robot)
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+            signal.signal(signal.SIGTERM, old_term)
+            print()
+    finally:
+        session.close()
+
+
+def _drive(fd: int, out: CommandPublisher, args, robot: str) -> int:
+    def say(text: str) -> None:        # raw mode: no newline translation
+        sys.stdout.write("\r\x1b[K" + text)
+        sys.stdout.flush()
+
+    sys.stdout.write(HELP + f" (robot {robot})\r\n")
+    period = 1.0 / args.rate
+    twist, held_until, streaming, shown = (0.0, 0.0), 0.0, False, None
+    next_send = time.monotonic()
+    while True:
+        now = time.monotonic()
+        ready, _, _ = select.select([fd], [], [], max(0.0, next_send - now))
+        if ready:
+            data = os.read(fd, 64).decode(errors="replace")
+            for key in keys(data):
+                if key in QUIT:
+                    if streaming:
+                        out.put("teleop", {"linear": 0.0, "angular": 0.0})
+                    return 0
+                if key in MOVES:
+                    fwd, turn = MOVES[key]
+                    twist = (fwd * args.speed, turn * args.turn)
+                    held_until = time.monotonic() + args.hold
+                elif key == " ":
+                    held_until = 0.0
+                elif key == "x":
+                    held_until = 0.0
+                    out.put("estop", {"reason": "vbnav teleop"})
+                    say("estop sent (r resumes)")
+                elif key == "r":
+                    out.put("resume", {})
+                    say("resume sent")
+        now = time.monotonic()
+        if now < next_send:
+            continue
+        next_send = max(next_send + period, now)       # 20 Hz without drift, no burst after a pause
+        if now < held_until:
+            out.put("teleop", {"linear": twist[0], "angular": twist[1]})
+            if twist != shown:
+                say(f"driving v {twist[0]:+.2f} m/s  w {twist[1]:+.2f} rad/s")
+            streaming, shown = True, twist
+        elif streaming:
+            out.put("teleop", {"linear": 0.0, "angular": 0.0})   # released: stop now, not at the timeout
+            streaming, shown = False, None
+            say("stopped")

@@ -1,0 +1,116 @@
+"""Drive faults that heal, with the real drivers over a pty to their emulators, on the real clock.
+
+- a motor that misses a few reads (shorter than ``max_missed_reads``) is no fault at all;
+- a motor that stops answering and answers again is reconnected with the safe bring-up, and the robot
+  waits, stopped, for ``resume`` (the run goes on: no exit);
+- a device watchdog that expired while the host was frozen is re-armed the same way.
+"""
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from test_drive_reconnect import Dxl, ODrv, _cfg, _events
+from test_safety import Cruise
+
+from vbnav.control.runtime.runtime import OperatorCommand, Runtime
+from vbnav.drivers.clock import MonotonicClock
+
+RESUME_AFTER_S = 0.3
+
+
+def silence(device, on: bool) -> None:
+    with device.dev.lock:
+        if isinstance(device, Dxl):
+            device.dev.servo(2).no_answer = on
+        else:
+            device.dev.no_answer = on
+
+
+@pytest.fixture(params=[Dxl, ODrv], ids=["dynamixel", "odrive"])
+def device(request, tmp_path):
+    d = request.param(tmp_path)
+    with d.dev:              # the emulator serves its pty for the test
+        yield d
+
+
+def _run(device, script, duration_s: float, window_s: float = 3.0):
+    """Cruise on the real clock; ``script(t, cycle)`` acts on the device; resume RESUME_AFTER_S after the
+    drive is back. Returns (result, samples (t, wheel command, device moving), runtime)."""
+    clock = MonotonicClock()
+    cfg = _cfg(window_s, max_missed_streak=1000, stall_periods=1000)   # the loop's timing is not under test
+    rt = Runtime(cfg, device.drive(clock), Cruise(), clock)
+    samples, back_at = [], [None]
+
+    def observe(r, ctx, twist, wheels):
+        t = (ctx.now_ns - r._start_ns) * 1e-9
+        with device.dev.lock:
+            samples.append((t, r.wheel_command, device.moving()))
+        script(t, ctx.cycle)
+        if back_at[0] is not None and t >= back_at[0] + RESUME_AFTER_S:
+            r.submit(OperatorCommand("resume", (), "test"))
+            back_at[0] = None
+
+    def on_event(ev):
+        if ev.kind == "drive_reconnected":
+            back_at[0] = (ev.stamp_ns - rt._start_ns) * 1e-9
+
+    rt.cycle_observers.append(observe)
+    rt.safety.listeners.append(on_event)
+    return rt.run(duration_s=duration_s), samples, rt
+
+
+def test_a_few_missed_reads_are_no_fault(device):
+    marks = {}
+
+    def script(t, cycle):
+        if t >= 0.5 and "off" not in marks:
+            silence(device, True)
+            marks["off"] = cycle
+        elif "off" in marks and "on" not in marks and cycle >= marks["off"] + 3:   # 3 reads unanswered
+            silence(device, False)
+            marks["on"] = cycle
+
+    result, samples, _ = _run(device, script, duration_s=1.0)
+    assert result.reason == "duration", result.message
+    assert not [e for e in result.events if e.cause in ("drive", "drive_lost")], result.events
+    assert samples[-1][2]                                     # still driving at the end
+
+
+def test_a_motor_that_stops_answering_and_comes_back_is_reconnected_and_waits_for_resume(device):
+    def script(t, cycle):
+        if 0.5 <= t < 1.1:
+            silence(device, True)
+        elif t >= 1.1:
+            silence(device, False)
+
+    result, samples, rt = _run(device, script, duration_s=2.6)
+    assert result.reason == "duration", result.message       # the run went on: no exit
+
+    def at(kind, cause=None) -> float:     # the first such event (a loaded machine may add a later miss streak)
+        return (_events(result, kind, cause)[0].stamp_ns - rt._start_ns) * 1e-9
+
+    lost, back, reset = at("trip", "drive_lost"), at("drive_reconnected"), at("reset", "drive_lost")
+    assert "no answer" in _events(result, "trip", "drive_lost")[0].message or \
+        "not answering" in _events(result, "trip", "drive_lost")[0].message
+    assert 0.5 < lost < 1.1 <= back < back + RESUME_AFTER_S <= reset
+    assert all(cmd == (0.0, 0.0) for t, cmd, _ in samples if lost <= t < reset)     # stopped until resume
+    assert any(moving for t, _, moving in samples if t >= reset + 0.5)               # drives again after it
+
+
+def test_an_expired_device_watchdog_after_a_frozen_loop_is_rearmed_and_waits_for_resume(device):
+    frozen = []
+
+    def script(t, cycle):
+        if t >= 0.5 and not frozen:
+            frozen.append(t)
+            time.sleep(0.45)          # the host silent beyond the 0.2 s device watchdog of these tests
+
+    result, samples, rt = _run(device, script, duration_s=3.0)
+    assert result.reason == "duration", result.message
+    lost = _events(result, "trip", "drive_lost")
+    assert lost and "watchdog" in lost[0].message.lower()
+    assert _events(result, "drive_reconnected") and _events(result, "reset", "drive_lost")
+    reset = (_events(result, "reset", "drive_lost")[0].stamp_ns - rt._start_ns) * 1e-9
+    assert any(moving for t, _, moving in samples if t >= reset + 0.5)
