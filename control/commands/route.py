@@ -130,7 +130,6 @@ def add_transfer_actions(act) -> None:
                     help="folder to put the route in (default: controller.routes_dir of --config, else the "
                          "current folder); the route lands in DIR/NAME")
     pl.add_argument("--overwrite", action="store_true", help="replace an existing DIR/NAME (swapped when complete)")
-    add_config_arg(pl)
     pl.set_defaults(func=run_pull)
     ps = act.add_parser("push", help="copy a local route to a robot over zenoh (operators only)", epilog=_EPILOG,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -140,13 +139,15 @@ def add_transfer_actions(act) -> None:
     ps.add_argument("--overwrite", action="store_true", help="replace the robot's route of that name")
     ps.add_argument("--secret-file", default=None, metavar="FILE",
                     help="sign the push with the robot's shared secret (telemetry.shared_secret_file)")
-    add_config_arg(ps)
     ps.set_defaults(func=run_push)
     for sp in (pl, ps):
         add_net_args(sp)
         for a in sp._actions:          # ROBOT is positional here: hide the shared --robot option
             if a.dest == "robot":
                 a.help = argparse.SUPPRESS
+            elif a.dest == "config":       # -c: where routes are taken from / put, and the push's secret
+                a.help = ("a configuration: its controller.routes_dir is the local routes folder (pull), its "
+                          "telemetry.shared_secret_file signs a push")
         sp.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                         help="wait up to S seconds for each answer of the robot (default 5)")
 
