@@ -34,7 +34,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -46,8 +45,8 @@ VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
 PENDING_BRINGUP = {
     "vbnav send teleop 0.1 0 --for 2 -c myrobot.yaml":
         ("send teleop --for and -c for the robot name", "vbnav send teleop 0.1 0 --duration 2 --robot sentry-dxl"),
-    "vbnav send teleop 0.1 0 --for 5 -c myrobot.yaml":
-        ("send teleop --for and -c for the robot name", "vbnav send teleop 0.1 0 --duration 5 --robot sentry-dxl"),
+    "vbnav send teleop 0.1 0 --for 4 -c myrobot.yaml":
+        ("send teleop --for and -c for the robot name", "vbnav send teleop 0.1 0 --duration 4 --robot sentry-dxl"),
 }
 
 # The README's comments where the user plugs servos in by hand, and the bus the emulator then stands for.
@@ -56,7 +55,7 @@ BUS_CHANGES = {
     "# both servos on the bus:": ("--ids", "1,2", "--baud", "1000000"),
 }
 FLOOR_MOUNT = dict(height=0.19, pitch_deg=12.0, roll_deg=1.5)     # the camera that took board_on_floor.png
-FRAMES = 80                # replayed at 10 Hz, looped: 8 s of a drive 0.8 m along the simulated room
+FRAMES = 60                # replayed at 10 Hz, looped: 6 s of a drive 0.6 m along the simulated room
 
 
 def readme_lines() -> list[str]:
@@ -93,7 +92,8 @@ class Emulator:
 
     def start(self, *bus: str) -> None:
         self.stop()
-        out, err = self.link.with_suffix(".out"), self.link.with_suffix(".err")
+        self.starts = getattr(self, "starts", 0) + 1
+        out, err = (self.link.with_name(f"emulator{self.starts}{s}") for s in (".out", ".err"))
         with open(out, "w") as o, open(err, "w") as e:
             self.proc = subprocess.Popen(VBNAV + ["emulate", "dynamixel", *bus, "-v", "--link", str(self.link)],
                                          stdout=o, stderr=e)
@@ -164,11 +164,12 @@ def stand_in_camera_and_test_settings(config: Path, camera: str, frames: Path, p
     assert f"path: {frames}" in text, "myrobot.yaml: the V4L2 camera options are not where they were"
     text = replace_once(text, "realtime_priority: 50", "realtime_priority: 0")
     text = replace_once(text, "max_missed_streak: 5", "max_missed_streak: 1000000\n  stall_periods: 1000000")
-    # the emulator answers late on a loaded machine: the answer window the config's comment gives for it,
-    # and 8 missed reads (80 ms, within the servos' 100 ms bus watchdog) before a fault
+    # the emulator shares two loaded cores with the test and answers late: the answer window the config's
+    # comment gives for it, and no fault for missed reads within 0.3 s (the emulated servos' watchdog 0.5 s)
     text = re.sub(r"margin_ms: [0-9.]+", "margin_ms: 5.0", text)
-    if "max_missed_reads:" not in text:
-        text = text.replace("    margin_ms: 5.0", "    max_missed_reads: 8\n    margin_ms: 5.0")
+    text = re.sub(r"bus_watchdog_s: [0-9.]+", "bus_watchdog_s: 0.5", text)
+    text = re.sub(r"\n    max_missed_reads: .*", "", text)
+    text = text.replace("    margin_ms: 5.0", "    max_missed_reads: 30\n    margin_ms: 5.0")
     config.write_text(text + f"\ntelemetry:\n  listen: [tcp/127.0.0.1:{port}]\n")
 
 
@@ -222,7 +223,6 @@ def bringup(tmp_path_factory, shared_data):
     results, seen_vars, background = {}, set(), None
     try:
         for n, line in enumerate(readme_lines()):
-            print(f"{time.monotonic():.1f} {line}")
             if line.startswith("#"):
                 if line in BUS_CHANGES:
                     emulator.start(*BUS_CHANGES.pop(line))
@@ -257,19 +257,26 @@ def bringup(tmp_path_factory, shared_data):
             background.proc.kill()
         emulator.stop()
     assert seen_vars == set(values), f"README no longer sets {set(values) - seen_vars}"
+    assert set(PENDING_BRINGUP) <= set(results), f"PENDING_BRINGUP names lines the README no longer has"
     assert not BUS_CHANGES, f"README no longer has the comments {list(BUS_CHANGES)}"
     return results, work
 
 
-def result(bringup, prefix: str) -> subprocess.CompletedProcess:
-    results, _ = bringup
-    found = [r for c, r in results.items() if c.startswith(prefix)]
+def results_for(bringup, prefix: str) -> list[subprocess.CompletedProcess]:
+    """What the README lines starting with ``prefix`` gave, in order."""
+    found = [r for c, r in bringup[0].items() if c.startswith(prefix)]
     assert found, f"no README line starts with {prefix!r}"
-    return found[-1] if len(found) == 1 else found
+    return found
+
+
+def result(bringup, prefix: str) -> subprocess.CompletedProcess:
+    found = results_for(bringup, prefix)
+    assert len(found) == 1, f"several README lines start with {prefix!r}"
+    return found[0]
 
 
 def test_a_new_servo_is_found_and_set_up(bringup):
-    first, last = result(bringup, "vbnav find servos")
+    first, last = results_for(bringup, "vbnav find servos")
     assert re.search(r"57600 bit/s: id 1 ", first.stdout), first.stdout
     assert re.search(r"1000000 bit/s: id 1 .*\n.*id 2 ", last.stdout), last.stdout
     assert "is now id 2" in result(bringup, "vbnav servo set-id").stdout
@@ -290,11 +297,17 @@ def test_the_config_uses_the_calibration_and_the_measured_mount(bringup):
 def test_the_robot_drove_taught_and_repeated(bringup):
     _, work = bringup
     run = result(bringup, "vbnav run")
-    assert run.returncode in (0, 130), run.stderr
+    assert run.returncode == 130, run.stderr                     # Ctrl-C: "interrupted"
+    for drive in results_for(bringup, "vbnav send teleop"):       # the robot took the teleop stream
+        assert "teleop applied by robot sentry-dxl" in drive.stdout, drive.stdout + drive.stderr
     teach = result(bringup, "vbnav teach")
-    assert teach.returncode in (0, 130), teach.stderr
-    manifest = yaml.safe_load((work / "routes" / "patrol" / "manifest.json").read_text())
-    assert manifest["keyframes"] if isinstance(manifest.get("keyframes"), int) else manifest, manifest
-    assert (work / "routes" / "patrol.png").is_file()
+    assert teach.returncode == 0, teach.stderr                   # Ctrl-C ends a teach: the route is kept
+    taught = re.search(r"(\d+) keyframes in routes/patrol", teach.stdout + teach.stderr)
+    assert taught and int(taught.group(1)) >= 2, teach.stdout + teach.stderr
+    check = result(bringup, "vbnav route check").stdout
+    assert "intact" in check and "complete" in check, check
+    assert "keyframes:   " + taught.group(1) in result(bringup, "vbnav route info").stdout
+    assert (work / "routes" / "patrol.png").stat().st_size > 0
     repeat = result(bringup, "vbnav repeat")
-    assert repeat.returncode == 0, repeat.stdout + repeat.stderr
+    reached = re.search(r"reached keyframe (\d+) of (\d+)", repeat.stdout)
+    assert reached and reached.group(1) == reached.group(2) == taught.group(1), repeat.stdout + repeat.stderr
