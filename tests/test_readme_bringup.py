@@ -85,6 +85,17 @@ def listening(port: int) -> bool:
     return any(r[1].endswith(f":{port:04X}") and r[3] == "0A" for r in rows)
 
 
+def ctrl_c(proc: subprocess.Popen, timeout_s: float) -> None:
+    """SIGINT, as Ctrl-C in its terminal; killed if it has not ended within ``timeout_s``."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 class Emulator:
     """``vbnav emulate dynamixel`` on ``link``, restartable with another bus (the user plugging servos)."""
 
@@ -105,13 +116,8 @@ class Emulator:
         assert out.read_text().strip() == str(self.link)
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc is not None:
+            ctrl_c(self.proc, 10)
         self.proc = None
 
 
@@ -194,13 +200,7 @@ class Terminal1:
         raise AssertionError(f"{self.command}: not running ({self.proc.poll()}):\n{self.err.read_text()}")
 
     def ctrl_c(self) -> subprocess.CompletedProcess:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
+        ctrl_c(self.proc, 30)
         return subprocess.CompletedProcess(self.command, self.proc.returncode, self.out.read_text(),
                                            self.err.read_text())
 
