@@ -171,12 +171,13 @@ def stand_in_camera_and_test_settings(config: Path, camera: str, frames: Path, p
     assert f"path: {frames}" in text, "myrobot.yaml: the V4L2 camera options are not where they were"
     text = replace_once(text, "realtime_priority: 50", "realtime_priority: 0")
     text = replace_once(text, "max_missed_streak: 5", "max_missed_streak: 1000000\n  stall_periods: 1000000")
-    # the emulator shares two loaded cores with the test and answers late: the answer window the config's
-    # comment gives for it, and no fault for missed reads within 0.3 s (the emulated servos' watchdog 0.5 s)
-    text = re.sub(r"margin_ms: [0-9.]+", "margin_ms: 5.0", text)
+    # the emulator (a Python process) shares two loaded cores with the test and other suites, and its answers
+    # came 7+ ms late for 0.3 s at a time: the widest answer window (a late answer costs a loop period, which
+    # this test tolerates), and no fault for missed reads within 0.3 s (the emulated servos' watchdog 0.5 s)
+    text = re.sub(r"margin_ms: [0-9.]+", "margin_ms: 20.0", text)
     text = re.sub(r"bus_watchdog_s: [0-9.]+", "bus_watchdog_s: 0.5", text)
     text = re.sub(r"\n    max_missed_reads: .*", "", text)
-    text = text.replace("    margin_ms: 5.0", "    max_missed_reads: 30\n    margin_ms: 5.0")
+    text = text.replace("    margin_ms: 20.0", "    max_missed_reads: 30\n    margin_ms: 20.0")
     config.write_text(text + f"\ntelemetry:\n  listen: [tcp/127.0.0.1:{port}]\n")
 
 
