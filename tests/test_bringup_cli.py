@@ -130,7 +130,8 @@ def test_monitor_finds_the_robot_or_says_which_robots_answer(session):
 
 
 def test_readme_bring_up_teleop_on_the_shipped_dynamixel_config_without_a_camera(tmp_path):
-    """README "On a real robot", step 3, as typed, with the emulated bus for the U2D2 and no camera."""
+    """README "On a real robot": teleop on the shipped Dynamixel config without a camera, the robot named by -c
+    (the whole bring-up runs literally in hil_tests/test_readme_bringup.py)."""
     from driver_test_utils import emulate_cli
 
     from vbnav.control.config import CONFIG_DIR
