@@ -113,7 +113,7 @@ CASES = [
     ("run-record-dir", "run --no-camera --duration 0.1 --record {d}/empty", 2, "--record"),
     ("run-record-no-folder", "run --no-camera --duration 0.1 --record {d}/nope/x.mcap", 2, "nope"),
     ("run-serial-port-missing", "run -c {d}/dxl.yaml --no-camera --no-telemetry --duration 0.2", 3, "/dev/ttyNOPE9"),
-    ("run-camera-missing", "run -c {d}/v4l2.yaml --no-telemetry --duration 0.2", 3, "/dev/video99"),
+    ("run-camera-missing", "run -c {d}/v4l2.yaml --camera --no-telemetry --duration 0.2", 3, "/dev/video99"),
     # send
     ("send-teleop-nan", "send teleop nan 0", 2, "V"),
     ("send-rate", "send teleop 0.1 0 --duration 1 --rate 0", 2, "--rate"),
