@@ -74,9 +74,9 @@ class VslamConfig(BaseModel):
     ba_window: int = Field(0, ge=0, description="monocular landmarks: bundle adjustment of the last this many "
                                                 "frames' poses and the landmarks they see (0: off; see "
                                                 "docs/vslam.md for why it is off)")
-    ba_history: int = Field(20, ge=2, description="frames before the adjusted ones whose views of the same "
-                                                  "landmarks take part with their poses fixed (they hold the "
-                                                  "scale); at least the two oldest frames are fixed")
+    ba_history: int = Field(2, ge=2, description="frames before the adjusted ones whose views of the same "
+                                                 "landmarks take part with their poses fixed (they hold the "
+                                                 "position and scale of the window)")
     ba_outlier_sigmas: float = Field(3.03, gt=0, description="after the adjustment, monocular landmarks with an "
                                                              "observation farther than this many inlier "
                                                              "thresholds are dropped (3.03: 99 % of 2-D "
