@@ -86,11 +86,21 @@ class _Trajectory:
         self.ds = ds
         self.poses: dict[int, np.ndarray] = {}
         self.status: dict[int, FrameStatus] = {}
+        self.ids: dict[int, int] = {}  # front end's image id -> dataset frame
 
     def put(self, i: int, state: str, pose: Optional[np.ndarray], landmarks: int = 0, inliers: int = 0) -> None:
         self.status[i] = FrameStatus(i, state, landmarks, inliers)
         if pose is not None:
             self.poses[i] = np.asarray(pose, float)
+
+    def adjust(self, slam: Vslam, i: int) -> None:
+        """Frame ``i`` is the front end's last image; the poses its bundle adjustment changed (the
+        frames of its window) replace those written when they were tracked."""
+        self.ids[slam.image_id] = i
+        for k, W in slam.adjusted.items():
+            j = self.ids.get(k)
+            if j is not None and j in self.poses:
+                self.poses[j] = W
 
     def predicted(self, i: int) -> np.ndarray:
         """World-from-camera of frame ``i`` at constant velocity from the last two frames with a pose."""
@@ -193,6 +203,7 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
         results.append(r)
         if r.ok:
             traj.put(i, "tracked", r.pose_wc, r.tracked, r.inliers)
+            traj.adjust(slam, i)
             last_seen = slam.world_landmarks()  # what to relocalise against should this run be lost
             if restarted_at is not None and _relocalise(ds, slam, i, restarted_at, kept_w, kept_desc, traj, say):
                 restarted_at = None
@@ -332,6 +343,7 @@ def _two_view_start(ds: Dataset, slam: Vslam, first: int, max_frames: int, traj:
             traj.put(j, state, pose_wc0 @ np.linalg.inv(Mj), int(v.sum()), int(est.inliers.sum()))
     pose_k = pose_wc0 @ np.linalg.inv(M)
     slam.prev = None
-    slam.initialise(img, px[keep][v], X2, pose_k)
+    slam.initialise(img, px[keep][v], X2, pose_k, estimated=True)
     traj.put(k, state, slam.pose_wc, int(v.sum()))
+    traj.adjust(slam, k)
     return k + 1

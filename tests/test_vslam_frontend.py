@@ -93,3 +93,25 @@ def test_landmark_normal_equations_survive_a_reference_change(rng):
     R, T = rot_y(0.4), np.array([0.5, -1.0, 0.3])
     L.transform(R, T)
     np.testing.assert_allclose(np.linalg.solve(L.A[0], L.b[0]), R @ X + T, atol=1e-9)
+
+
+def test_windowed_bundle_adjustment_halves_the_monocular_error(sequence):
+    """Left images only, started from the first stereo frame's landmarks marked as estimated (so the
+    adjustment may move them): with the windowed bundle adjustment the poses stay within 5.6 mm of
+    the truth (measured 2026-11-30; 15.8 mm max, 5.0 mm mean without it), and the front end's
+    current pose is the adjusted one."""
+    frames, truth = sequence
+    stereo = Vslam(CAM, VslamConfig(), stereo_baseline=BASELINE)
+    stereo.initialise_stereo(frames[0].image, frames[0].right)
+    slam = Vslam(CAM, VslamConfig(ba_window=5, ba_history=2))
+    slam.initialise(frames[0].image, stereo.lm.px, stereo.lm.P, estimated=True)
+    results = []
+    for f in frames[1:]:
+        results.append(slam.process(f.image))
+        if len(results) >= 2:  # from the third frame of the window on
+            np.testing.assert_allclose(slam.pose_wc, slam.adjusted[slam.image_id], atol=1e-9)
+    assert all(r.ok for r in results)
+    assert slam.ba_runs >= len(frames) - 3
+    poses = np.array([np.eye(4)] + [r.pose_wc for r in results])
+    err = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    assert err.max() < 0.011 and err.mean() < 0.0055  # measured 5.6 / 2.7 mm, bars 2x

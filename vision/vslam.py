@@ -17,6 +17,7 @@ Pure computation: images and arrays in, poses out.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -24,6 +25,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from vbnav.vision.bundle_adjust import bundle_adjust
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.features import KltTracker, describe, match_descriptors
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
@@ -69,6 +71,16 @@ class VslamConfig(BaseModel):
     min_distance_px: float = Field(12.0, gt=0, description="minimum spacing of detected corners, px")
     detect_cells: int = Field(0, ge=0, description="new corners spread over about this many square image "
                                                    "cells, each ranked on its own (0: the whole image at once)")
+    ba_window: int = Field(0, ge=0, description="monocular landmarks: bundle adjustment of the last this many "
+                                                "frames' poses and the landmarks they see (0: off; see "
+                                                "docs/vslam.md for why it is off)")
+    ba_history: int = Field(2, ge=2, description="frames before the adjusted ones whose views of the same "
+                                                 "landmarks take part with their poses fixed (they hold the "
+                                                 "position and scale of the window)")
+    ba_outlier_sigmas: float = Field(3.03, gt=0, description="after the adjustment, monocular landmarks with an "
+                                                             "observation farther than this many inlier "
+                                                             "thresholds are dropped (3.03: 99 % of 2-D "
+                                                             "Gaussian noise)")
 
 
 @dataclass
@@ -107,8 +119,10 @@ class _Landmarks:
     A: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     refine: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    uid: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # identity across frames (observations)
+    free: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # position from own motion: adjustable
 
-    _ROWS = ("P", "px", "own", "desc", "described", "anchor", "apx", "A", "b", "refine")
+    _ROWS = ("P", "px", "own", "desc", "described", "anchor", "apx", "A", "b", "refine", "uid", "free")
 
     def keep(self, m: np.ndarray) -> "_Landmarks":
         """Keep the rows in ``m``; return the others (for the dormant set)."""
@@ -126,8 +140,11 @@ class _Landmarks:
 
     def add(self, P: np.ndarray, px: np.ndarray, own: bool, image: np.ndarray | None = None,
             desc: np.ndarray | None = None, described: np.ndarray | None = None, anchor=None, apx=None,
-            A=None, b=None, refine=None) -> None:
+            A=None, b=None, refine=None, uid=None, free=None) -> None:
         n = len(P)
+        self.uid = np.concatenate((self.uid, _new_uids(n) if uid is None else uid))
+        refine_rows = np.zeros(n, bool) if refine is None else np.broadcast_to(refine, n)
+        self.free = np.concatenate((self.free, refine_rows if free is None else np.broadcast_to(free, n)))
         self.anchor = np.concatenate((self.anchor, np.broadcast_to(np.asarray(-1 if anchor is None else anchor), n)))
         self.apx = np.vstack((self.apx, px if apx is None else apx))
         self.A = np.concatenate((self.A, np.zeros((n, 3, 3)) if A is None else A))
@@ -147,7 +164,7 @@ class _Landmarks:
 
     def extend(self, other: "_Landmarks", own: bool = False) -> None:
         self.add(other.P, other.px, own, desc=other.desc, described=other.described, anchor=other.anchor,
-                 apx=other.apx, A=other.A, b=other.b, refine=other.refine)
+                 apx=other.apx, A=other.A, b=other.b, refine=other.refine, uid=other.uid, free=other.free)
 
 
 @dataclass
@@ -160,10 +177,34 @@ class _Candidates:
     T0: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     anchor: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     apx: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    uid: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # kept by the landmark it becomes
 
     def keep(self, m: np.ndarray) -> None:
         self.px, self.ray0, self.R0, self.T0 = self.px[m], self.ray0[m], self.R0[m], self.T0[m]
-        self.anchor, self.apx = self.anchor[m], self.apx[m]
+        self.anchor, self.apx, self.uid = self.anchor[m], self.apx[m], self.uid[m]
+
+
+_UIDS = itertools.count()
+
+
+def _new_uids(n: int) -> np.ndarray:
+    return np.fromiter(itertools.islice(_UIDS, n), int, n)
+
+
+@dataclass
+class _View:
+    """What one frame of the adjustment window saw: its pose and the rays of the features it tracked."""
+
+    image_id: int
+    pose_wc: np.ndarray
+    uid: np.ndarray
+    rays: np.ndarray
+
+
+def _to_h_batch(R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    M = np.repeat(np.eye(4)[None], len(R), 0)
+    M[:, :3, :3], M[:, :3, 3] = R, T
+    return M
 
 
 def _to_h(R: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -197,6 +238,10 @@ class Vslam:
         self._history: list[np.ndarray] = []  # last two good world-from-camera poses
         self._img_id = 0  # frame counter of the image being processed
         self._anchors: dict[int, np.ndarray] = {}  # images where live features were detected
+        self._window: list[_View] = []  # the frames the bundle adjustment works on, oldest first
+        self.adjusted: dict[int, np.ndarray] = {}  # image id -> world-from-camera after the last adjustment
+        self.ba_runs = 0
+        self.ba_dropped = 0  # landmarks dropped by the adjustment's outlier test, in total
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -204,19 +249,26 @@ class Vslam:
         return self.prev is not None
 
     @property
+    def image_id(self) -> int:
+        """Id of the last image given to ``initialise`` or ``process`` (the keys of ``adjusted``)."""
+        return self._img_id
+
+    @property
     def pose_wc(self) -> np.ndarray:
         return self.references[-1].pose_wc @ np.linalg.inv(_to_h(self.R, self.T))
 
     def initialise(self, image: np.ndarray, pixels: np.ndarray, points_cam: np.ndarray,
                    pose_wc: np.ndarray | None = None, right: np.ndarray | None = None,
-                   depth: np.ndarray | None = None) -> int:
+                   depth: np.ndarray | None = None, estimated: bool = False) -> int:
         """Start with landmarks of known metric position in this camera's frame (from stereo, a depth
-        image or a known reference structure); this camera becomes the first reference frame."""
+        image or a known reference structure); this camera becomes the first reference frame.
+        ``estimated``: the positions come from this camera's own motion (a two-view start), so the
+        bundle adjustment may move them."""
         self._img_id = self.frame
         self._anchors = {self._img_id: image}
         self.lm = _Landmarks()
         self.lm.add(np.asarray(points_cam, float).reshape(-1, 3), np.asarray(pixels, float).reshape(-1, 2), True,
-                    image=image, anchor=self._img_id)
+                    image=image, anchor=self._img_id, free=estimated)
         self.dormant = _Landmarks()
         self.cand = _Candidates()  # a restart: candidates' first poses belong to the old reference
         self.R, self.T = np.eye(3), np.zeros(3)
@@ -226,6 +278,8 @@ class Vslam:
         self.prev = image
         self._add_landmarks(image, right, depth, own=True)
         self.references[-1].landmarks = len(self.lm.P)
+        self._window, self.adjusted = [], {}
+        self._record_view()
         self.frame += 1
         return len(self.lm.P)
 
@@ -284,6 +338,8 @@ class Vslam:
         if len(self.lm.P) < cfg.min_landmarks or (self.baseline is None and depth is None):
             added = self._add_landmarks(image, right, depth, own=False)
         self._forget_anchors()
+        self._record_view()
+        self._adjust_window(f)
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
 
@@ -448,6 +504,85 @@ class Vslam:
         W = W2 @ np.linalg.inv(W1) @ W2  # W_k = W_{k-1} (W_{k-2}^-1 W_{k-1})
         M = np.linalg.inv(W) @ self.references[-1].pose_wc  # reference -> predicted camera
         return M[:3, :3], M[:3, 3]
+
+    # ------------------------------------------------------------------ windowed bundle adjustment
+    def _record_view(self) -> None:
+        """Keep this frame's pose and the rays of its landmarks and candidates for the adjustment."""
+        if self.cfg.ba_window < 1:
+            return
+        px = np.vstack((self.lm.px, self.cand.px))
+        self._window.append(_View(self._img_id, self.pose_wc, np.concatenate((self.lm.uid, self.cand.uid)),
+                                  self.camera.rays(px) if len(px) else np.zeros((0, 3))))
+        del self._window[:-(self.cfg.ba_window + self.cfg.ba_history)]
+
+    def _adjust_window(self, f: float) -> None:
+        """Bundle adjustment of the window's poses and the monocular landmarks they see (landmarks of
+        known position take part as fixed points); the oldest two poses stay fixed (gauge and scale).
+        The current pose, the reference frame (when in the window), the landmarks and the candidates'
+        first views take the adjusted values; landmarks left with an outlying observation are dropped."""
+        win = self._window
+        if self.cfg.ba_window < 1 or len(win) < 3 or not self.lm.free.any():
+            return
+        L = self.lm
+        order = np.argsort(L.uid)
+        obs_f, obs_p, obs_r = [], [], []
+        for k, v in enumerate(win):
+            pos = np.searchsorted(L.uid, v.uid, sorter=order)
+            pos = np.minimum(pos, len(order) - 1)
+            hit = L.uid[order[pos]] == v.uid
+            obs_f.append(np.full(int(hit.sum()), k))
+            obs_p.append(order[pos[hit]])
+            obs_r.append(v.rays[hit])
+        obs_f, obs_p, obs_r = np.concatenate(obs_f), np.concatenate(obs_p), np.concatenate(obs_r)
+        views = np.bincount(obs_p, minlength=len(L.P))
+        fixed_point = ~L.free | (views < 2)
+        if fixed_point.all():
+            return
+        W_ref = self.references[-1].pose_wc
+        X = L.P @ W_ref[:3, :3].T + W_ref[:3, 3]
+        poses_cw = np.array([np.linalg.inv(v.pose_wc) for v in win])
+        fixed_pose = np.arange(len(win)) < max(2, len(win) - self.cfg.ba_window)
+        res = bundle_adjust(poses_cw, fixed_pose, X, fixed_point, obs_f, obs_p, obs_r, f,
+                            sigma_px=self.cfg.inlier_threshold_px)
+        self.ba_runs += 1
+        new_wc = {v.image_id: np.linalg.inv(M) for v, M in zip(win, res.poses_cw)}
+        for v in win:
+            v.pose_wc = new_wc[v.image_id]
+        self.adjusted = new_wc
+        ref = self.references[-1]
+        W_ref_new = new_wc.get(ref.index, W_ref)
+        ref.pose_wc = W_ref_new
+        # Landmarks in the (possibly moved) reference frame: fixed ones keep their world position,
+        # adjusted ones take theirs; their normal equations keep their information (A) and are
+        # re-centred on the adjusted position (b = A P) so the N-view refinement continues from it.
+        D = np.linalg.inv(W_ref_new) @ W_ref
+        L.transform(D[:3, :3], D[:3, 3])
+        self.dormant.transform(D[:3, :3], D[:3, 3])
+        moved = ~fixed_point
+        inv = np.linalg.inv(W_ref_new)
+        L.P[moved] = res.points[moved] @ inv[:3, :3].T + inv[:3, 3]
+        L.b[moved] = np.einsum("nij,nj->ni", L.A[moved], L.P[moved])
+        # Candidates' first views (reference -> camera at first sight).
+        if len(self.cand.px):
+            first_wc = W_ref @ np.linalg.inv(_to_h_batch(self.cand.R0, self.cand.T0))
+            for a in np.unique(self.cand.anchor):
+                if int(a) in new_wc:
+                    first_wc[self.cand.anchor == a] = new_wc[int(a)]
+            M0 = np.linalg.inv(W_ref_new) @ first_wc  # ... reference -> first camera is its inverse
+            M0 = np.linalg.inv(M0)
+            self.cand.R0, self.cand.T0 = M0[:, :3, :3], M0[:, :3, 3]
+        cur = np.linalg.inv(new_wc[self._img_id]) @ W_ref_new  # reference -> current camera
+        self.R, self.T = cur[:3, :3], cur[:3, 3]
+        self._history = [new_wc.get(self._img_id - 1, self._history[0]), new_wc[self._img_id]] \
+            if len(self._history) == 2 else [new_wc[self._img_id]]
+        # Landmarks with an observation beyond the outlier bound, or behind a camera.
+        bad = (res.residual_px > self.cfg.ba_outlier_sigmas * self.cfg.inlier_threshold_px) | res.behind
+        drop = np.zeros(len(L.P), bool)
+        drop[obs_p[bad]] = True
+        drop &= L.free
+        if drop.any():
+            self.ba_dropped += int(drop.sum())
+            L.keep(~drop)
 
     # ------------------------------------------------------------------ reference set
     def _maybe_handoff(self) -> bool:
@@ -626,7 +761,7 @@ class Vslam:
                 P = np.einsum("hji,hj->hi", c.R0[ok], X0 - c.T0[ok])  # R0^T (X0 - T0)
                 A, b = self._two_view_normal_equations(P, c.ray0[ok], c.R0[ok], c.T0[ok], rays[ok])
                 self.lm.add(P, c.px[ok], own, image=image, anchor=c.anchor[ok], apx=c.apx[ok], A=A, b=b,
-                            refine=np.full(int(ok.sum()), self.cfg.refine_landmarks))
+                            refine=np.full(int(ok.sum()), self.cfg.refine_landmarks), uid=c.uid[ok], free=True)
                 added = int(ok.sum())
                 c.keep(~ok)
         budget = self.cfg.max_candidates - len(c.px)
@@ -640,4 +775,5 @@ class Vslam:
                 c.T0 = np.vstack((c.T0, np.repeat(self.T[None], m, 0)))
                 c.anchor = np.concatenate((c.anchor, np.full(m, self._img_id)))
                 c.apx = np.vstack((c.apx, px))
+                c.uid = np.concatenate((c.uid, _new_uids(m)))
         return added

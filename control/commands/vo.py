@@ -32,6 +32,9 @@ def register(subparsers) -> None:
                         "lost: no pose), landmarks, inliers")
     p.add_argument("--max-lost", type=float, default=0.10, metavar="FRACTION",
                    help="exit 1 when more than this fraction of the frames has no pose")
+    p.add_argument("--ba-window", type=int, default=0, metavar="N",
+                   help="monocular landmarks: windowed bundle adjustment of the last N frames (vslam.ba_window; "
+                        "0: off, the default; see docs/vslam.md)")
     p.add_argument("--quiet", action="store_true", help="no per-frame progress")
     p.set_defaults(func=run)
 
@@ -40,11 +43,15 @@ def run(args) -> int:
     from vbnav.control.trajectory_metrics import ate_rmse, rpe, scale_to, write_tum
     from vbnav.control.vo import VoError, run_vo
     from vbnav.drivers.datasets import DatasetError, open_dataset
+    from vbnav.vision.vslam import VslamConfig
 
     from vbnav.control.commands._common import output_file
     output_file(args.out, "--out")          # before minutes of tracking, not after
     output_file(args.plot, "--plot")
     output_file(args.status_out, "--status-out")
+    if args.ba_window < 0:
+        print(f"vbnav vo: --ba-window {args.ba_window}: expected a number of frames >= 0", file=sys.stderr)
+        return 2
     if not 0.0 <= args.max_lost <= 1.0:
         print(f"vbnav vo: --max-lost {args.max_lost}: expected a fraction of the frames in [0, 1]", file=sys.stderr)
         return 2
@@ -54,7 +61,7 @@ def run(args) -> int:
         say(f"{ds.root}: {ds.layout} layout, {len(ds)} frames, camera fx={ds.camera.fx:.1f}"
             + (f", stereo baseline {ds.stereo_baseline:.4f} m" if ds.stereo_baseline else ""))
         t0 = time.perf_counter()
-        res = run_vo(ds, args.init, progress=say)
+        res = run_vo(ds, args.init, VslamConfig(ba_window=args.ba_window), progress=say)
         dt = time.perf_counter() - t0
     except (DatasetError, VoError, ValueError) as exc:
         print(f"vbnav vo: {exc}", file=sys.stderr)
