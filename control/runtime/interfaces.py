@@ -161,6 +161,12 @@ class Controller(abc.ABC):
         """Small JSON-able summary for progress lines and telemetry."""
         return {}
 
+    @property
+    def teaching_route(self) -> Optional[str]:
+        """The route (name under controller.routes_dir) an operator-switched teach is recording now, which
+        a route push must not replace; None when none is."""
+        return None
+
     def safety_conditions(self) -> dict[str, tuple[bool, str]]:
         """Held stop conditions the controller detects: cause -> (active, message).
 
