@@ -56,14 +56,14 @@ def check_drive(cfg, robot) -> list[Check]:
     driver = cfg.drive.driver
     drive = robot.drive
     checks = []
-    port = getattr(getattr(drive, "opt", None), "port", None)
+    port = drive.serial_port
     if port is not None:
         problem = _serial_access("drive permission", port)
         if problem is not None:
             return [problem]
         checks.append(Check("drive permission", OK, f"{port} can be opened"))
         timer = discovery.read_latency_timer(port)
-        wanted = getattr(drive.opt, "latency_ms", None)
+        wanted = drive.serial_latency_ms
         if timer is None:
             checks.append(Check("serial latency timer", SKIP, f"{port} has none (not an FTDI USB adapter)"))
         elif wanted is not None and timer > wanted:
@@ -89,13 +89,15 @@ def check_drive(cfg, robot) -> list[Check]:
 
 
 def _drive_summary(drive) -> str:
-    port = getattr(getattr(drive, "opt", None), "port", None)
-    models = getattr(drive, "models", None)
-    if models:
+    """What the drive's bring-up found (called once it succeeded)."""
+    from vbnav.drivers.dynamixel import DynamixelDrive
+    from vbnav.drivers.odrive import ODriveDrive
+    port = drive.serial_port
+    if isinstance(drive, DynamixelDrive) and drive.models:
         from vbnav.drivers.dynamixel_setup import MODEL_NAMES
-        servos = ", ".join(f"{i} ({drive.sides[i]}, {MODEL_NAMES.get(m, m)})" for i, m in models.items())
+        servos = ", ".join(f"{i} ({drive.sides[i]}, {MODEL_NAMES.get(m, m)})" for i, m in drive.models.items())
         return f"servos {servos} answer on {port} at {drive.opt.baudrate} bit/s; brought up, torque off"
-    if hasattr(drive, "vbus_voltage"):
+    if isinstance(drive, ODriveDrive) and drive.vbus_voltage is not None:
         return f"answers on {port}, bus {drive.vbus_voltage:.1f} V; brought up, axes idle"
     return "opened and brought up" + (f" on {port}" if port else "")
 
@@ -104,7 +106,8 @@ def check_camera(cfg, robot) -> list[Check]:
     """The camera opens and gives a frame of the configured size (plus the OAK udev rule, V4L2 access)."""
     driver, cam = cfg.camera.driver, cfg.camera
     checks = []
-    device = getattr(getattr(robot.camera, "opt", None), "device", None)
+    from vbnav.drivers.v4l2_camera import V4L2Camera
+    device = robot.camera.opt.device if isinstance(robot.camera, V4L2Camera) else None
     if driver == "v4l2" and device and not os.path.isfile(device):
         if not os.path.exists(device):
             return [Check("camera", FAIL, f"{device} does not exist",

@@ -109,10 +109,14 @@ def configured_devices(cfg) -> list[Device]:
     from vbnav.control.config import validate_driver_options
     opts = validate_driver_options(cfg, cfg.source or "<config>")
     out = []
-    port = getattr(opts["drive"], "port", None)
+    from vbnav.drivers import registry
+    from vbnav.drivers.serial_drive import SerialWheelDrive
+    # A serial drive's options name its port (SerialWheelDrive); a V4L2 camera's, its device.
+    serial = issubclass(registry.load(registry.DRIVES, cfg.drive.driver), SerialWheelDrive)
+    port = opts["drive"].port if serial else None
     if port:
         out.append(Device("drive", "drive.options.port", port, "tty"))
-    device = getattr(opts["camera"], "device", None) if cfg.camera.driver == "v4l2" else None
+    device = opts["camera"].device if cfg.camera.driver == "v4l2" else None
     if device and not os.path.isfile(device):       # a video file is no device
         out.append(Device("camera", "camera.options.device", device, "video4linux"))
     return out

@@ -270,7 +270,7 @@ def _parallax_px(camera, rays0: np.ndarray, px: np.ndarray, R_model: np.ndarray)
     R = R_model
     rays1 = camera.rays(px)
     u0, u1 = rays0[:, :2] / rays0[:, 2:], rays1[:, :2] / rays1[:, 2:]
-    f = float(getattr(camera, "fx", 500.0))
+    f = float(camera.fx)
     E, inl = cv2.findEssentialMat(u0, u1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f)
     if E is not None and E.shape == (3, 3):
         n, R_e, _, _ = cv2.recoverPose(E, u0, u1, np.eye(3), mask=inl)

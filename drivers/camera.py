@@ -92,6 +92,8 @@ class Camera(abc.ABC):
     """Abstract camera. Subclasses set ``name`` and implement the four methods."""
 
     name: str = "camera"
+    #: a recorded source (a replay, a video file) has delivered its last frame; a live camera never has
+    finished: bool = False
 
     @abc.abstractmethod
     def connect(self) -> None:

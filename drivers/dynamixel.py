@@ -135,12 +135,16 @@ class DynamixelDrive(SerialWheelDrive):
         self.sides = {options.left_id: "left", options.right_id: "right"}
         self.port = None
         self.ph = None
-        self.models: dict[int, int] = {}
+        self.models: dict[int, int] = {}   # id -> model number, read at bring-up
         self._last_raw: dict[int, Optional[int]] = {i: None for i in self.ids}
         self._ticks = {i: 0 for i in self.ids}
         self._last_write_ns: Optional[int] = None
         self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
+
+    @property
+    def serial_latency_ms(self) -> Optional[float]:
+        return self.opt.latency_ms
 
     # -- lifecycle hooks (WheelDrive owns the states) ---------------------------------------
     def _configure(self) -> None:

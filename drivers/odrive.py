@@ -107,6 +107,7 @@ class ODriveDrive(SerialWheelDrive):
         self.axes = (self.opt.left_axis, self.opt.right_axis)
         self.sides = {self.opt.left_axis: "left", self.opt.right_axis: "right"}
         self.ser = None
+        self.vbus_voltage: Optional[float] = None   # bus voltage, V, read at bring-up
         self._cycle = 0
         self._rx = b""
         self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)

@@ -51,6 +51,10 @@ class SerialWheelDrive(WheelDrive):
         self._next_reconnect_ns = 0
         self._measured = WheelState(self.clock.now_ns(), (0.0, 0.0), (0.0, 0.0))
 
+    @property
+    def serial_port(self) -> Optional[str]:
+        return self.opt.port
+
     @classmethod
     def from_config(cls, cfg, clock, options=None):
         """As the runtime's factory builds drives: the robot config, its clock, the validated options."""

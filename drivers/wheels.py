@@ -30,6 +30,7 @@ import enum
 import math
 import threading
 from dataclasses import dataclass, field
+from typing import Optional
 
 
 class DriveState(enum.Enum):
@@ -130,6 +131,16 @@ class WheelDrive(abc.ABC):
     @property
     def faults(self) -> tuple[DriveFault, ...]:
         return tuple(self._faults)
+
+    @property
+    def serial_port(self) -> Optional[str]:
+        """The serial device the drive talks through (``vbnav doctor`` checks its access), or None."""
+        return None
+
+    @property
+    def serial_latency_ms(self) -> Optional[float]:
+        """The adapter latency timer the driver's timeouts assume, ms, or None when they assume none."""
+        return None
 
     # -- the lifecycle (the only place that changes ``state``) -----------------------------
     def connect(self) -> None:

@@ -26,6 +26,7 @@ ALLOWED = {
     ("commands/config.py", "out.append(words.format(getattr(m, attr)))"): "pydantic bound metadata, one attribute each",
     ("commands/config.py", '"Options", None)'): "driver classes without settings have no Options model",
     ("runtime/pipeline.py", "getattr(fn, '__qualname__', fn)"): "names a listener; a functools.partial has none",
+    ("commands/service.py", "getattr(cfg.loop, key)"): "a config field read by its name in a loop",
 }
 
 

@@ -212,7 +212,7 @@ def test_who_may_teleoperate_through_the_live_view(tmp_path):
 
 def test_route_landmarks_and_overlays_encode_to_what_they_say():
     from vbnav.control.comms import foxglove_channels as fc
-    from vbnav.control.comms.overlays import stop_zone_outline
+    from vbnav.control.stages.obstacles import stop_zone_outline
     from vbnav.vision.geometry import CameraMount, Pose2
     route = protobuf_fields(fc.encode(fc.route_message(5, "tour", [Pose2(0, 0, 0), Pose2(0.5, 1, 0), (1.0, 2.0, 0)])))
     entity = protobuf_fields(route[2][0])                      # SceneUpdate.entities

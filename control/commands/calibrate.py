@@ -98,7 +98,7 @@ def _board(args):
 
 
 def _say(args, text: str) -> None:
-    if not getattr(args, "quiet", False):
+    if not args.quiet:                  # intrinsics and stereo, the subcommands that say per-view lines
         print(text, file=sys.stderr, flush=True)
 
 
@@ -227,7 +227,7 @@ def _collect_live(args, collector, want: int) -> None:
         while len(collector.views) < want and time.monotonic() < deadline:
             frame = cam.read(0.5)
             if frame is None:
-                if getattr(cam, "finished", False):
+                if cam.finished:
                     break
                 continue
             n += 1

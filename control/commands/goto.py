@@ -99,7 +99,7 @@ def run(args) -> int:
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
-    world = getattr(robot, "world", None) if args.map else None
+    world = robot.world if args.map else None
     every_s = 0.05 if world is not None else 1.0
     closest = [math.inf]
     ticks = [0]

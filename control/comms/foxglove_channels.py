@@ -24,6 +24,7 @@ from foxglove.messages import (Color, CompressedImage, ImageAnnotations, LinePri
                                Log, LogLevel, Odometry, PackedElementField, PackedElementFieldNumericType, Point2,
                                Point3, PointCloud, PointsAnnotation, PointsAnnotationType, Pose, PoseInFrame,
                                Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector3)
+from vbnav.vision.geometry import Pose2
 
 # Event kinds that Foxglove's log panel shows as warnings / errors.
 _LOG_LEVEL = {"safety_trip": LogLevel.Error, "safety_hold": LogLevel.Warning, "command_rejected": LogLevel.Warning}
@@ -185,7 +186,7 @@ def route_message(stamp_ns: int, name: str, keyframes: Iterable) -> SceneUpdate:
     keyframes: planar poses (``.x .z .theta`` or (x, z, theta))."""
     xy = []
     for p in keyframes:
-        x, z = (p.x, p.z) if hasattr(p, "x") else (p[0], p[1])
+        x, z = (p.x, p.z) if isinstance(p, Pose2) else (p[0], p[1])
         xy.append((float(z), -float(x)))
     pts = [Point3(x=a, y=b, z=0.0) for a, b in xy]
     spheres = [SpherePrimitive(pose=Pose(position=Vector3(x=a, y=b, z=0.0),

@@ -107,8 +107,7 @@ def _route_server(session, cfg, verify, runtime):
     from vbnav.control.route import routes_root
 
     def busy(name: str) -> Optional[str]:     # the route thread reads two strings the loop sets
-        c = runtime.controller
-        if getattr(c, "mode", None) == "teach" and getattr(c, "route_path", None) == name:
+        if runtime.controller.teaching_route == name:
             return f"route {name!r} is being taught on this robot; push it after `mode idle`"
         return None
     return RouteServer(session, cfg.robot.name, routes_root(cfg.controller.routes_dir, cfg.source), verify=verify,
@@ -273,7 +272,7 @@ class TelemetryLink:
         from vbnav.control.comms.overlays import frame_overlay, landmarks, route_keyframes
         pub, stages, stamp = self.publisher, self.runtime.pipeline.stages, frame.stamp_ns
         teach = results.get("teach")
-        if teach is not None and getattr(teach.value, "odom", None) is not None:
+        if teach is not None and teach.value is not None:     # a Keyframe, on the frames that emit one
             self._taught.append(teach.value.odom)
         if pub.image_due(stamp):
             pub.offer_image(frame.image, stamp, frame.seq, overlay=frame_overlay(stages, results))

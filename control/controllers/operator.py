@@ -63,6 +63,10 @@ class OperatorController(Controller):
     def name(self) -> str:
         return "switching" if self._worker is not None else self.mode
 
+    @property
+    def teaching_route(self) -> Optional[str]:
+        return self.route_path if self.mode == "teach" else None
+
     def update(self, ctx: ControlContext) -> Twist:
         if self._pending is not None:
             self._apply_pending()

@@ -96,6 +96,23 @@ class VisionStage(abc.ABC):
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         """Estimate from one frame; ``odom`` is the wheel odometry at (about) the frame time."""
 
+    def overlay(self, estimate: Optional[Estimate]) -> Optional["StageOverlay"]:
+        """What to draw for the frame just processed (``estimate``: this stage's result for it), for
+        the live view and the recording (comms/overlays.py); None for a stage with nothing to show."""
+        return None
+
+
+@dataclass
+class StageOverlay:
+    """What one vision stage saw in a frame, in its own image pixels or world frame; None = nothing."""
+
+    tracked: Any = None               # (N, 2) pixels of the features tracked in this frame
+    matched: Any = None               # (M, 2) keyframe pixels of the matched keyframe's features tracked now
+    stop_zone: Any = None             # (K, 2) pixels: outline of the stop corridor on the floor
+    obstacle_labels: Any = None       # (H, W) obstacle label image, > 0 on obstacles
+    route: Optional[tuple[str, list]] = None   # (name, keyframe odometry poses) of the route followed
+    landmarks: Any = None             # (L, 3) landmark positions in the stage's world frame
+
 
 @dataclass(frozen=True)
 class CommandOutcome:
@@ -143,6 +160,12 @@ class Controller(abc.ABC):
     def status(self) -> dict:
         """Small JSON-able summary for progress lines and telemetry."""
         return {}
+
+    @property
+    def teaching_route(self) -> Optional[str]:
+        """The route (name under controller.routes_dir) an operator-switched teach is recording now, which
+        a route push must not replace; None when none is."""
+        return None
 
     def safety_conditions(self) -> dict[str, tuple[bool, str]]:
         """Held stop conditions the controller detects: cause -> (active, message).

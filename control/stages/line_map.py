@@ -107,8 +107,7 @@ class LineMapStage(VisionStage):
     @classmethod
     def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
         cam = cfg.camera.to_model()
-        baseline = (cfg.camera.options or {}).get("stereo_baseline") if isinstance(cfg.camera.options, dict) \
-            else getattr(cfg.camera.options, "stereo_baseline", None)
+        baseline = cfg.camera.options.get("stereo_baseline")     # the config keeps driver options as a dict
         if not baseline:
             raise ValueError("the line map needs a stereo pair: camera.options.stereo_baseline is not set")
         return cls(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, float(baseline),

@@ -39,7 +39,7 @@ from typing import Optional
 
 import numpy as np
 from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
-from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -169,6 +169,22 @@ def to_robot_frame(points: np.ndarray, mount: CameraMount) -> np.ndarray:
 
 
 
+def stop_zone_outline(camera, mount, half_width: float, max_range: float, near: float = 0.3) -> np.ndarray:
+    """The stop corridor on the floor (|x| <= half_width, near <= z <= max_range, robot frame) in pixels.
+
+    Robot frame: x right, y down, z forward, floor at y = 0; ``mount`` places the camera in it."""
+    zs = np.linspace(near, max_range, 8)
+    floor = np.array([(-half_width, 0.0, z) for z in zs] + [(half_width, 0.0, z) for z in zs[::-1]])
+    R, t = mount.rotation(), mount.translation()
+    pc = (floor - t) @ R                 # R^T (p - t), row-wise
+    pc = pc[pc[:, 2] > 0.05]             # in front of the camera
+    if len(pc) < 3:
+        return np.zeros((0, 2))
+    u = camera.fx * pc[:, 0] / pc[:, 2] + camera.cx
+    v = camera.fy * pc[:, 1] / pc[:, 2] + camera.cy
+    return np.column_stack([u, v])
+
+
 class ObstacleStage(VisionStage):
     """Stereo obstacle detection and stop zones as a vision stage (kind "obstacles")."""
 
@@ -240,6 +256,15 @@ class ObstacleStage(VisionStage):
         if src in ("auto", "sgbm") and frame.right is not None:
             return sgbm_disparity(frame.image, frame.right, self.sgbm)
         return None
+
+    def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
+        """The stop corridor once the stereo rig is known, and the obstacle labels of ``estimate``
+        when this stage keeps them (``keep_labels``)."""
+        zone = None
+        if self.rig is not None:
+            zone = stop_zone_outline(self.rig.camera, self.mount, self._stop_half_width, self.cfg.max_range)
+        report = estimate.value if estimate is not None else None
+        return StageOverlay(stop_zone=zone, obstacle_labels=None if report is None else report.labels)
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         if self._rig_for(frame) is None:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.route import Route
-from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.control.stages.vbc_fix import VBCFix, bearing_sigma
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import rays_from_angles
@@ -67,6 +67,15 @@ class RepeatStage(VisionStage):
         self._started = False
         self._since_guided = 10 ** 9
         self.stats = {"reacquired": 0, "guided": 0, "switches": 0}
+
+    def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
+        """The tracked features, the matched keyframe's features tracked now (at their keyframe
+        pixels) and the route being followed."""
+        tracks = self.tracker.tracks
+        kf = self.kfs[min(self.index, len(self.kfs) - 1)]
+        seen = np.isin(kf.track_ids, tracks.ids)
+        return StageOverlay(tracked=tracks.pts, matched=np.asarray(kf.pixels, float)[seen],
+                            route=(self.route.path.name or "route", [k.odom for k in self.kfs]))
 
     # -- image path
     def process(self, frame: Frame, odom: Pose2) -> Estimate:

@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.route import Keyframe
-from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.control.stages.vbc_fix import bearing_sigma
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import FeatureTracker, describe, to_grey
@@ -47,6 +47,10 @@ class TeachStage(VisionStage):
     @property
     def n_keyframes(self) -> int:
         return self._count
+
+    def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
+        """The features tracked in this frame."""
+        return StageOverlay(tracked=self.tracker.tracks.pts)
 
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image = to_grey(frame.image)

@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
-from vbnav.control.runtime.interfaces import Estimate, PoseFix, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, PoseFix, StageOverlay, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe, to_grey
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
@@ -153,6 +153,10 @@ class VslamStage(VisionStage):
     def reference_index(self) -> int:
         """Index of the current reference frame in the whole chain (across restarts)."""
         return self._ref_base + len(self.slam.references) - 1
+
+    def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
+        """The landmarks, in the VSLAM's world frame."""
+        return StageOverlay(landmarks=self.slam.lm.P)
 
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
