@@ -73,5 +73,8 @@ def test_vbnav_demo_record_is_read_back_with_every_channel(tmp_path):
     n_state = s.channels["/vbnav/state"].count
     assert abs(n_state - duration * 20) <= 4, (n_state, duration)
     assert abs(s.channels["/vbnav/image"].count - duration * 2) <= 4
+    # Every recorded image carries the stages' overlay (tracked features while teaching, the matched keyframe's
+    # while repeating): an overlay that raised would be dropped silently, counted only in sink_errors.
+    assert s.channels["/vbnav/image/annotations"].count == s.channels["/vbnav/image"].count
     assert s.channels["/vbnav/pose/odom"].count == n_state
     assert metrics["completed"]
