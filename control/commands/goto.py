@@ -7,22 +7,32 @@ import sys
 from vbnav.control.commands._common import add_config_arg, finite, positive
 
 
-def plan_on_map(path: str, start, goal, robot_radius: float):
-    """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the map's walls and objects."""
+def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
+    """The traversability grid (vision/nav_grid.py) of a loaded map: its verified segments and the object
+    footprints abstracted from them or stored with the map; ``extra_points`` (N, 2) x, z lie inside it."""
     import dataclasses
 
     import numpy as np
 
-    from vbnav.control.line_map_file import load_map
     from vbnav.vision.line_abstraction import box_polygons, vertical_edges
-    from vbnav.vision.nav_grid import GridParams, build_grid, plan
+    from vbnav.vision.nav_grid import GridParams, build_grid
 
-    lmap, meta = load_map(path)
     V = lmap.P[lmap.verified]
     polys = [p.footprint for p in box_polygons(vertical_edges(V))]
     polys += [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
     params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
-    grid = build_grid(V, params, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]), polygons=polys)
+    return build_grid(V, params, extra_points=extra_points, polygons=polys)
+
+
+def plan_on_map(path: str, start, goal, robot_radius: float):
+    """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the map's walls and objects."""
+    import numpy as np
+
+    from vbnav.control.line_map_file import load_map
+    from vbnav.vision.nav_grid import plan
+
+    lmap, meta = load_map(path)
+    grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
     return plan(grid, (start.x, start.z), (goal.x, goal.z))
 
 

@@ -1,4 +1,4 @@
-"""``vbnav map build|info|plot``: Marvin's line-segment map (DLM) on disk (docs/line_map.md)."""
+"""``vbnav map build|info|plot|view``: Marvin's line-segment map (DLM) on disk (docs/line_map.md)."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,8 @@ import sys
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import add_config_arg, output_file, positive
+from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
+from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
 
 
@@ -17,13 +18,21 @@ def register(sub) -> None:
                        description="Marvin's map of 3D line segments (section 11.2.1.1): 'build' drives the "
                                    "configured robot (controller.script) with a stereo camera while the line-map "
                                    "stage fuses the segments, then writes the map; 'info' prints its summary; "
-                                   "'plot' draws a top view and a 3D view as PNG.")
-    sp = p.add_subparsers(dest="map_command", required=True, metavar="{build,info,plot}")
+                                   "'plot' draws a top view and a 3D view as PNG; 'view' serves it to the Foxglove "
+                                   "app as a 3D scene.")
+    sp = p.add_subparsers(dest="map_command", required=True, metavar="{build,info,plot,view}")
     b = sp.add_parser("build", help="drive the configured script while mapping, then save the map")
     add_config_arg(b, default="sim_stereo")
     b.add_argument("--out", required=True, metavar="MAP", help="map file to write (JSON)")
     b.add_argument("--duration", type=positive, default=None, metavar="S",
                    help="stop after S seconds (default: the script's length)")
+    b.add_argument("--realtime", action="store_true",
+                   help="simulated robot: run on the wall clock (sim.realtime: true) so telemetry and the live view "
+                        "open; without it the simulated robot runs faster than real time and only records")
+    b.add_argument("--live-view", action="store_true",
+                   help="serve the live view to the Foxglove app (telemetry.live_view.enabled: true), the map "
+                        "growing as a 3D scene on /vbnav/map/lines")
+    add_telemetry_args(b)
     b.set_defaults(func=run_build)
     i = sp.add_parser("info", help="print a map's summary as JSON")
     i.add_argument("map", metavar="MAP")
@@ -33,6 +42,30 @@ def register(sub) -> None:
     pl.add_argument("--out", required=True, metavar="PNG")
     pl.add_argument("--all", action="store_true", help="also draw unverified candidates (grey)")
     pl.set_defaults(func=run_plot)
+    v = sp.add_parser("view", help="serve a map to the Foxglove app as a 3D scene until Ctrl-C",
+                      description="Open a Foxglove WebSocket server on 127.0.0.1 that publishes the map's segments "
+                                  "(/vbnav/map/lines, frame odom: green verified, grey candidates, orange "
+                                  "hypotheses) and its planning grid (/vbnav/map/grid: 100 mapped obstacle, 50 "
+                                  "within the robot radius, 0 free), until Ctrl-C. In Foxglove: Open connection, "
+                                  "Foxglove WebSocket, ws://127.0.0.1:PORT.")
+    v.add_argument("map", metavar="MAP")
+    v.add_argument("--port", type=_port, default=8765, metavar="P", help="WebSocket port (0: any free port)")
+    v.add_argument("--robot-radius", type=positive, default=0.2, metavar="M",
+                   help="robot radius the planning grid is grown by, m (as in vbnav goto --map)")
+    v.add_argument("--duration", type=positive, default=None, metavar="S",
+                   help="stop after S seconds (default: until Ctrl-C)")
+    v.set_defaults(func=run_view)
+
+
+def _port(text: str) -> int:
+    import argparse
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number 0..65535, got {text!r}")
+    return port
 
 
 def run_build(args) -> int:
@@ -41,11 +74,20 @@ def run_build(args) -> int:
     from vbnav.control.line_map_file import save_map
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.commands.run import enable_live_view
     from vbnav.control.runtime.runtime import Runtime
     from vbnav.control.stages.line_map import LineMapStage
 
     output_file(args.out, "--out")
+    output_file(args.record, "--record")
+    why = record_target_error(args)
+    if why:
+        raise InputError(why)
     cfg = load_config(args.config)
+    if args.realtime:
+        cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
+    if args.live_view:
+        enable_live_view(cfg)
     try:
         stage = LineMapStage.from_config(cfg)
     except ValueError as exc:
@@ -53,6 +95,9 @@ def run_build(args) -> int:
     controller = ScriptedController(cfg.controller.script)
     robot = make_robot(cfg, [stage])
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
+    link = attach_telemetry(rt, cfg, args)
+    if link is None:
+        return 3
     printer = ProgressPrinter()
 
     def progress(r) -> None:
@@ -62,10 +107,12 @@ def run_build(args) -> int:
 
     duration = args.duration if args.duration is not None else controller.total_s + 0.5
     stage.start()
+    result = None
     try:
         result = rt.run(duration, progress)
     finally:
         stage.stop()
+        link.close(result)          # a recording / the live view ends with the final map
         printer.done()
     stage.abstraction.step()            # a last abstraction pass on the final map
     meta = {"config": str(cfg.source), "frames": stage.stats["frames"],
@@ -137,4 +184,45 @@ def run_plot(args) -> int:
     view3d = _panel(P, colours, oblique, title="3D view")
     write_png(args.out, np.hstack((top, view3d)))
     print(f"vbnav map plot: {len(P)} segments -> {args.out}", file=sys.stdout)
+    return 0
+
+
+def run_view(args) -> int:
+    import signal
+    import threading
+    import time
+
+    from vbnav.control.commands.goto import map_grid
+    from vbnav.control.line_map_file import load_map
+    lmap, meta = load_map(args.map)
+    try:
+        from vbnav.control.comms import foxglove_channels as fc
+        from vbnav.control.comms.live_view import SceneServer
+    except ImportError as exc:
+        raise InputError(f"vbnav map view needs the foxglove-sdk package ({exc}); install vbnav's dependencies") \
+            from None
+    grid = map_grid(lmap, meta, args.robot_radius)
+    cells = np.where(grid.occupied, 100, np.where(grid.blocked, 50, 0)).astype(np.uint8)
+    try:
+        server = SceneServer("vbnav map", ["/vbnav/map/lines", "/vbnav/map/grid"], port=args.port)
+    except Exception as exc:
+        raise InputError(f"vbnav map view: cannot start the Foxglove server on 127.0.0.1:{args.port}: {exc}") \
+            from None
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *a: stop.set())
+    try:
+        now = time.time_ns()
+        server.publish("/vbnav/map/lines", fc.line_map_message(now, lmap.P, lmap.verified, lmap.hypothesis), now)
+        server.publish("/vbnav/map/grid", fc.grid_message(now, grid.x0, grid.z0, grid.res, cells), now)
+        s = lmap.summary()
+        print(f"vbnav map view: {args.map}: {s['verified']} verified segments, {s['candidates']} candidates on "
+              f"ws://127.0.0.1:{server.port} (Foxglove: Open connection, Foxglove WebSocket; topics "
+              f"/vbnav/map/lines, /vbnav/map/grid in frame odom); Ctrl-C stops", file=sys.stderr, flush=True)
+        end = None if args.duration is None else time.monotonic() + args.duration
+        while not stop.wait(0.2) and (end is None or time.monotonic() < end):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.close()
     return 0

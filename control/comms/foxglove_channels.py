@@ -11,7 +11,9 @@ run's odometry frame, vbnav's planar pose (x right, z forward, theta turning
 right) maps to (x_fg, y_fg, yaw_fg) = (z, -x, -theta); ``camera`` is the image;
 ``vslam`` is the VSLAM world (camera axes x right, y down, z forward at the
 reference frame, drawn as (z, -x, -y)). A taught route's keyframes are drawn in
-``odom``: the teach run's odometry frame (a repeat starts where the teach started).
+``odom``: the teach run's odometry frame (a repeat starts where the teach started). The line map
+(docs/line_map.md) is drawn in ``odom`` too: its world frame is the odometry frame of the run that built
+it (x right, y down, z forward, floor at y = 0), drawn as (z, -x, -y).
 """
 from __future__ import annotations
 
@@ -20,10 +22,12 @@ import math
 import struct
 from typing import Iterable, NamedTuple
 
-from foxglove.messages import (Color, CompressedImage, ImageAnnotations, LinePrimitive, LinePrimitiveLineType,
+import numpy as np
+
+from foxglove.messages import (Color, CompressedImage, Grid, ImageAnnotations, LinePrimitive, LinePrimitiveLineType,
                                Log, LogLevel, Odometry, PackedElementField, PackedElementFieldNumericType, Point2,
                                Point3, PointCloud, PointsAnnotation, PointsAnnotationType, Pose, PoseInFrame,
-                               Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector3)
+                               Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector2, Vector3)
 from vbnav.vision.geometry import Pose2
 
 # Event kinds that Foxglove's log panel shows as warnings / errors.
@@ -58,11 +62,16 @@ TOPICS = {
     "/vbnav/image/annotations": "foxglove.ImageAnnotations",
     "/vbnav/route": "foxglove.SceneUpdate",
     "/vbnav/landmarks": "foxglove.PointCloud",
+    "/vbnav/map/lines": "foxglove.SceneUpdate",
+    "/vbnav/map/grid": "foxglove.Grid",
 }
+
+# Sent when they change, not at a rate: the live view repeats the last one to each new subscriber.
+LATCHED_TOPICS = frozenset({"/vbnav/map/lines", "/vbnav/map/grid"})
 
 _SDK_TYPES = {"foxglove.Log": Log, "foxglove.PoseInFrame": PoseInFrame, "foxglove.Odometry": Odometry,
               "foxglove.CompressedImage": CompressedImage, "foxglove.ImageAnnotations": ImageAnnotations,
-              "foxglove.SceneUpdate": SceneUpdate, "foxglove.PointCloud": PointCloud}
+              "foxglove.SceneUpdate": SceneUpdate, "foxglove.PointCloud": PointCloud, "foxglove.Grid": Grid}
 
 
 class ChannelSchema(NamedTuple):
@@ -211,3 +220,46 @@ def landmarks_message(stamp_ns: int, points_vslam) -> PointCloud:
                                                PackedElementField(name="y", offset=4, type=f32),
                                                PackedElementField(name="z", offset=8, type=f32)],
                       data=bytes(data))
+
+
+# ---- the line map (vision/line_map.py): its 3D segments and the planning grid -----------------
+
+LINE_MAP_ENTITY = "line_map"
+# Colours of the segment kinds: the verified map, stereo candidates not verified yet, and the abstraction's
+# missing-line hypotheses not verified yet (docs/line_map.md).
+LINE_MAP_RGBA = {"verified": (0.1, 0.9, 0.2, 1.0), "candidate": (0.6, 0.6, 0.6, 0.7),
+                 "hypothesis": (1.0, 0.6, 0.1, 1.0)}
+
+
+def _fg_point(p) -> Point3:
+    """A world point (x right, y down, z forward) in Foxglove's axes (x forward, y left, z up)."""
+    return Point3(x=float(p[2]), y=-float(p[0]), z=-float(p[1]))
+
+
+def line_map_message(stamp_ns: int, P, verified, hypothesis) -> SceneUpdate:
+    """The map's segments (N, 2, 3) world metres as one scene entity in ``odom``: one line list per kind
+    (``LINE_MAP_RGBA``; an empty kind has no line list), two points per segment."""
+    kinds = {"verified": verified, "candidate": ~verified & ~hypothesis, "hypothesis": ~verified & hypothesis}
+    lines = []
+    for kind, sel in kinds.items():
+        seg = P[sel]
+        if len(seg):
+            lines.append(LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=0.02,
+                                       points=[_fg_point(p) for p in seg.reshape(-1, 3)],
+                                       color=Color(**dict(zip("rgba", LINE_MAP_RGBA[kind])))))
+    return SceneUpdate(entities=[SceneEntity(timestamp=timestamp(stamp_ns), frame_id="odom", id=LINE_MAP_ENTITY,
+                                             lines=lines)])
+
+
+def grid_message(stamp_ns: int, x0: float, z0: float, res: float, cells) -> Grid:
+    """A floor grid (rows along z, columns along x; cell (0, 0)'s corner at (x0, z0)) of uint8 ``cells`` as a
+    Foxglove grid in ``odom``: columns run along -y, rows along x (a -90 degree yaw of the grid's axes)."""
+    cells = np.ascontiguousarray(cells, np.uint8)
+    half = math.sqrt(0.5)
+    return Grid(timestamp=timestamp(stamp_ns), frame_id="odom",
+                pose=Pose(position=Vector3(x=float(z0), y=-float(x0), z=0.0),
+                          orientation=Quaternion(x=0.0, y=0.0, z=-half, w=half)),
+                column_count=int(cells.shape[1]), cell_size=Vector2(x=float(res), y=float(res)),
+                row_stride=int(cells.shape[1]), cell_stride=1,
+                fields=[PackedElementField(name="cost", offset=0, type=PackedElementFieldNumericType.Uint8)],
+                data=cells.tobytes())

@@ -20,7 +20,8 @@ extension points only:
   being applied, so a ``command_rejected`` the loop raises for it carries the ack too;
 - ``pipeline.frame_listeners``: decimated camera frames for ``.../image``, with what the vision
   stages saw in them (comms/overlays.py), and the 3D scene (taught route, VSLAM landmarks) at
-  ``telemetry.live_view.scene_rate_hz``;
+  ``telemetry.live_view.scene_rate_hz``; the line map's segments at that rate too, but only when the map
+  changed (and once more at ``close`` if it changed since, so a recording ends with the final map);
 - ``telemetry.live_view.enabled``: the Foxglove WebSocket server (comms/live_view.py), a sink like
   the recording, whose Teleop panel submits to the same ``CommandInbox`` as zenoh commands.
 
@@ -127,6 +128,7 @@ class TelemetryLink:
         self.routes = None               # the RouteServer of controller.routes_dir (comms/route_transfer.py)
         self._taught: list = []          # odometry poses of the keyframes taught in this run
         self._next_scene_ns: Optional[int] = None
+        self._map_revision: Optional[int] = None    # of the line map last offered
         self.inbox: CommandInbox
         self._mode: Optional[str] = None
         self._applying = None            # the command the loop is applying (loop thread)
@@ -286,6 +288,19 @@ class TelemetryLink:
         points = landmarks(stages)
         if points is not None:
             pub.offer_foxglove(stamp, "/vbnav/landmarks", lambda t: fc.landmarks_message(t, points))
+        self._offer_line_map(stamp)
+
+    def _offer_line_map(self, stamp: int) -> None:
+        """The line map's segments if it changed since they were last offered (a dropped offer is retried)."""
+        from vbnav.control.comms import foxglove_channels as fc
+        from vbnav.control.comms.overlays import line_map_scene
+        pipeline = self.runtime.pipeline
+        scene = None if pipeline is None else line_map_scene(pipeline.stages)
+        if scene is None or scene.revision == self._map_revision:
+            return
+        if self.publisher.offer_foxglove(stamp, "/vbnav/map/lines", lambda t: fc.line_map_message(
+                t, scene.P, scene.verified, scene.hypothesis)):
+            self._map_revision = scene.revision
 
     def _on_command_applied(self, rt, cmd, outcome, now_ns: int) -> None:
         """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: only a teleop that
@@ -319,6 +334,10 @@ class TelemetryLink:
             self.commands.close()
         if self.routes is not None:
             self.routes.close()
+        try:
+            self._offer_line_map(self.runtime.clock.now_ns())
+        except Exception:
+            self.publisher.sink_errors += 1
         if result is not None:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)

@@ -23,6 +23,10 @@ an operator follows the same rules as the zenoh side:
   local user may command it with ``vbnav send``): every client is an operator;
 - else nobody may teleoperate through the live view.
 
+Latched topics (``foxglove_channels.LATCHED_TOPICS``, the line map): sent only when they change, so the
+last message of each is kept and sent again when a client subscribes (Foxglove keeps a scene entity until
+it is replaced; a client that connects after the map stopped changing still sees it).
+
 Log times are the wall clock (``time.time_ns``), so Foxglove shows the real time of day.
 """
 from __future__ import annotations
@@ -70,6 +74,7 @@ class LiveView(Sink, ServerListener):
         self._seq: dict[int, int] = {}
         self._session = uuid.uuid4().hex[:8]
         self.bytes_sent = 0
+        self.latched = Latched()
         self.context = foxglove.Context()
         tls = {}
         if lv.tls_certificate is not None:
@@ -81,18 +86,18 @@ class LiveView(Sink, ServerListener):
             capabilities=[Capability.ClientPublish, Capability.Parameters], supported_encodings=["json"],
             server_listener=self, **tls)
         self.port = self.server.port
-        self.channels = {}
-        for topic in fc.TOPICS:
-            sch = fc.schema_of(topic)
-            self.channels[topic] = foxglove.Channel(
-                topic, schema=foxglove.Schema(name=sch.name, encoding=sch.encoding, data=sch.data),
-                message_encoding=sch.message_encoding, context=self.context)
+        self.channels = {topic: _channel(topic, self.context) for topic in fc.TOPICS}
 
     # ---- Sink (telemetry publisher thread) ------------------------------------------------
     def _log(self, topic: str, wall_ns: int, build) -> None:
-        """Encode and send ``build()`` only when a client subscribes to ``topic`` (bytes: already encoded)."""
+        """Encode and send ``build()`` only when a client subscribes to ``topic`` (bytes: already encoded);
+        a latched topic's message is always encoded and kept for later subscribers."""
         ch = self.channels[topic]
-        if ch.has_sinks():
+        if topic in fc.LATCHED_TOPICS:
+            data = build if isinstance(build, bytes) else fc.encode(build())
+            self.latched.log(topic, ch, data, wall_ns)
+            self.bytes_sent += len(data)
+        elif ch.has_sinks():
             data = build if isinstance(build, bytes) else fc.encode(build())
             ch.log(data, log_time=wall_ns)
             self.bytes_sent += len(data)
@@ -129,6 +134,9 @@ class LiveView(Sink, ServerListener):
             pass
 
     # ---- ServerListener (the server's threads) ---------------------------------------------
+    def on_subscribe(self, client, channel) -> None:
+        self.latched.on_subscribe(channel.topic)
+
     def on_client_advertise(self, client, channel) -> None:
         if channel.topic == TELEOP_TOPIC:
             with self._lock:
@@ -185,3 +193,52 @@ class LiveView(Sink, ServerListener):
             self._submit("teleop", payload.encode())
         except Exception:    # the link is still being built: the next message of the stream gets through
             pass
+
+
+class Latched:
+    """The last message of each latched channel, sent again when a client subscribes to it (the SDK then
+    sends it to every subscriber of the channel: a repeat of the current scene is harmless)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._last: dict[str, tuple] = {}       # topic -> (channel, data, log time)
+
+    def log(self, topic: str, channel, data: bytes, log_ns: int) -> None:
+        with self._lock:
+            self._last[topic] = (channel, data, log_ns)
+        channel.log(data, log_time=log_ns)
+
+    def on_subscribe(self, topic: str) -> None:
+        with self._lock:
+            last = self._last.get(topic)
+        if last is not None:
+            channel, data, log_ns = last
+            channel.log(data, log_time=log_ns)
+
+
+class SceneServer(ServerListener):
+    """A publish-only Foxglove server of latched topics (``vbnav map view``): no teleop, no parameters."""
+
+    def __init__(self, name: str, topics, host: str = "127.0.0.1", port: int = 8765):
+        self.latched = Latched()
+        self.context = foxglove.Context()
+        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context,
+                                            server_listener=self)
+        self.port = self.server.port
+        self.channels = {topic: _channel(topic, self.context) for topic in topics}
+
+    def publish(self, topic: str, msg, log_ns: int) -> None:
+        self.latched.log(topic, self.channels[topic], fc.encode(msg), log_ns)
+
+    def on_subscribe(self, client, channel) -> None:
+        self.latched.on_subscribe(channel.topic)
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+def _channel(topic: str, context) -> "foxglove.Channel":
+    """The SDK channel of one of foxglove_channels.TOPICS."""
+    sch = fc.schema_of(topic)
+    return foxglove.Channel(topic, schema=foxglove.Schema(name=sch.name, encoding=sch.encoding, data=sch.data),
+                            message_encoding=sch.message_encoding, context=context)

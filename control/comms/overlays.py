@@ -5,7 +5,7 @@ Read on the thread that ran the stages, right after they processed the frame (a
 (runtime/interfaces.py StageOverlay): the features the teach or repeat stage
 tracks, the keyframe features the repeat stage matches and its route, the
 obstacle stage's stop corridor and, when it keeps them, its obstacle labels; the
-VSLAM stage's landmarks. A stage without such state contributes nothing.
+VSLAM stage's landmarks; the line-map stage's segments. A stage without such state contributes nothing.
 """
 from __future__ import annotations
 
@@ -71,4 +71,13 @@ def landmarks(stages) -> Optional[np.ndarray]:
         P = None if drawn is None else drawn.landmarks
         if P is not None and len(P):
             return _thin(np.asarray(P, float).reshape(-1, 3))
+    return None
+
+
+def line_map_scene(stages):
+    """The line-map stage's ``MapScene`` (stages/line_map.py: its segments and revision), or None."""
+    for stage in stages:
+        drawn = stage.overlay(None)
+        if drawn is not None and drawn.line_map is not None:
+            return drawn.line_map
     return None

@@ -112,6 +112,7 @@ class StageOverlay:
     obstacle_labels: Any = None       # (H, W) obstacle label image, > 0 on obstacles
     route: Optional[tuple[str, list]] = None   # (name, keyframe odometry poses) of the route followed
     landmarks: Any = None             # (L, 3) landmark positions in the stage's world frame
+    line_map: Any = None              # stages/line_map.MapScene: the line map's segments and its revision
 
 
 @dataclass(frozen=True)

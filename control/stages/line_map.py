@@ -12,17 +12,21 @@
 
 The pose comes from ``pose_fn(odom)`` (default: the wheel odometry, in the frame the robot started in,
 which is the map's frame).
+
+The stage's overlay is a ``MapScene``: a copy of the map's segments taken when the map changed (a
+``revision`` count), which the telemetry link publishes as a Foxglove scene at the scene rate
+(comms/link.py, ``/vbnav/map/lines``); encoding happens on the telemetry thread.
 """
 from __future__ import annotations
 
 import queue
 import threading
 import time
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 
-from vbnav.control.runtime.interfaces import Estimate, VisionStage
+from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_abstraction import AbstractionParams, box_polygons, missing_lines, vertical_edges
@@ -31,6 +35,20 @@ from vbnav.vision.line_motion import motion_segments
 from vbnav.vision.line_segments import LineParams, Segments3D, reconstruct_pair
 
 KEYFRAME_BASELINE_M = 0.15     # motion triangulation pairs the frame with a keyframe at least this far back
+
+
+class MapScene(NamedTuple):
+    """A copy of the map's segments at one ``revision`` (the count of map changes): P (N, 2, 3) world
+    metres, verified and hypothesis (N,) bool."""
+
+    revision: int
+    P: np.ndarray
+    verified: np.ndarray
+    hypothesis: np.ndarray
+
+    @classmethod
+    def of(cls, lmap: LineMap, revision: int = 0) -> "MapScene":
+        return cls(revision, lmap.P.copy(), lmap.verified.copy(), lmap.hypothesis.copy())
 
 
 class AbstractionThread:
@@ -100,6 +118,8 @@ class LineMapStage(VisionStage):
         self._key = None              # (left segments, R_wc, t_wc) of the last keyframe
         self.lock = threading.Lock()
         self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0}
+        self.revision = 0             # counts the frames that changed the map
+        self._scene: Optional[MapScene] = None
         self.abstraction = None
         if abstraction_period_s is not None:
             self.abstraction = AbstractionThread(self.verified_snapshot, abstraction_period_s)
@@ -116,6 +136,16 @@ class LineMapStage(VisionStage):
     def verified_snapshot(self) -> np.ndarray:
         with self.lock:
             return self.map.P[self.map.verified].copy()
+
+    def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
+        """The map's segments, copied once per revision (the link publishes them at the scene rate)."""
+        return StageOverlay(line_map=self.scene())
+
+    def scene(self) -> MapScene:
+        with self.lock:
+            if self._scene is None or self._scene.revision != self.revision:
+                self._scene = MapScene.of(self.map, self.revision)
+            return self._scene
 
     def start(self) -> None:
         if self.abstraction is not None:
@@ -134,7 +164,8 @@ class LineMapStage(VisionStage):
         R, t = camera_pose(pose, self.mount)
         t0 = time.perf_counter()
         with self.lock:
-            self._drain_hypotheses()
+            if self._drain_hypotheses():
+                self.revision += 1
             pred = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H)
         prior_fn = (lambda segs: self.map.prior_for(segs, pred)) if self.guided else None
         res = reconstruct_pair(frame.image, frame.right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
@@ -151,6 +182,8 @@ class LineMapStage(VisionStage):
             everything = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H,
                                           which=np.ones(len(self.map), bool))
             st = self.map.update(segs, R, t, everything, res.left)
+            if st.fused or st.inserted or st.verified or st.pruned or st.rivals_dropped:
+                self.revision += 1
             summary = self.map.summary()
         t2 = time.perf_counter()
         self.stats["frames"] += 1
@@ -161,13 +194,15 @@ class LineMapStage(VisionStage):
                          "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
                          "predicted": len(pred)})
 
-    def _drain_hypotheses(self) -> None:
-        if self.abstraction is None:
-            return
-        while True:
+    def _drain_hypotheses(self) -> int:
+        """Insert the hypotheses the slow loop posted; returns how many."""
+        n = 0
+        while self.abstraction is not None:
             try:
                 hyp = self.abstraction.hypotheses.get_nowait()
             except queue.Empty:
-                return
+                break
             self.map.add_hypotheses(hyp)
-            self.stats["hypotheses_in"] += len(hyp)
+            n += len(hyp)
+        self.stats["hypotheses_in"] += n
+        return n
