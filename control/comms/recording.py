@@ -13,7 +13,7 @@ live Foxglove view, built in one place (control/comms/foxglove_channels.py):
 - ``/vbnav/image``       ``foxglove.CompressedImage`` decimated JPEG frames, and
   ``/vbnav/image/annotations`` ``foxglove.ImageAnnotations`` what the vision stages saw in them
 - ``/vbnav/route``       ``foxglove.SceneUpdate``   the taught route; ``/vbnav/landmarks``
-  ``foxglove.PointCloud`` VSLAM landmarks
+  ``foxglove.PointCloud`` VSLAM landmarks; ``/vbnav/map/lines`` ``foxglove.SceneUpdate`` the line map
 
 Foxglove messages are protobuf with the foxglove-sdk's schemas.
 Log times are the loop clock's stamps (monotonic or simulated ns); the wall
