@@ -186,3 +186,29 @@ def test_a_map_build_recording_ends_with_the_map_it_saved(tmp_path):
         assert got.shape == want.shape
         np.testing.assert_allclose(got, want, atol=2e-6)         # the file keeps 6 decimals
     assert len(lmap) > 20
+
+
+def test_the_live_view_repeats_the_last_map_to_a_client_that_subscribes_later():
+    from vbnav.control.comms.live_view import LiveView
+    from vbnav.control.config import Config
+    tcfg = Config.model_validate({"telemetry": {"live_view": {"enabled": True, "port": 0}}}).telemetry
+    lv = LiveView(tcfg, "sim", submit_teleop=lambda k, p: None, refuse=lambda k, r, p: None,
+                  to_wall_ns=lambda t: t + 1_000_000_000)
+    P = np.array([[a, b] for a, b, _, _ in SEGMENTS])
+    verified, hypothesis = np.array([s[2] for s in SEGMENTS]), np.array([s[3] for s in SEGMENTS])
+    try:
+        for n in (2, 4):           # the map grows before anyone watches: the client gets the last one
+            lv.foxglove(5_000 + n, "/vbnav/map/lines",
+                        lambda t, n=n: fc.line_map_message(t, P[:n], verified[:n], hypothesis[:n]))
+        c = FoxgloveClient("127.0.0.1", lv.port)
+        try:
+            chans = c.wait_for_channels(["/vbnav/map/lines"])
+            c.subscribe({3: chans["/vbnav/map/lines"]["id"]})
+            m = c.poll(10.0)
+        finally:
+            c.close()
+    finally:
+        lv.close()
+    assert m is not None and m[0] == 3 and m[1] == 1_000_005_004       # wall time of the last map
+    lines = decode_line_map(m[2])
+    assert {k: len(v) for k, v in lines.items()} == {"verified": 2, "candidate": 1, "hypothesis": 1}
