@@ -205,7 +205,8 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
             traj.put(i, "tracked", r.pose_wc, r.tracked, r.inliers)
             traj.adjust(slam, i)
             last_seen = slam.world_landmarks()  # what to relocalise against should this run be lost
-            if restarted_at is not None and _relocalise(ds, slam, i, restarted_at, kept_w, kept_desc, traj, say):
+            if restarted_at is not None and _relocalise(ds, slam, i, restarted_at, kept_w, kept_desc, traj, say,
+                                                         scale_known):
                 restarted_at = None
         if i % 10 == 0 or i == len(ds) - 1 or not r.ok:
             say(f"frame {i}/{len(ds) - 1}: {'ok' if r.ok else 'LOST'} landmarks {r.tracked} inliers {r.inliers} "
@@ -229,9 +230,24 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
 
 
 def _relocalise(ds: Dataset, slam: Vslam, i: int, since: int, kept_w: np.ndarray, kept_desc: np.ndarray,
-                traj: _Trajectory, say) -> bool:
+                traj: _Trajectory, say, scale_known: bool = True) -> bool:
     """Look for landmarks of the earlier runs in frame ``i``; when found, move the current run (and its
-    poses since the restart at ``since``) rigidly onto them. True when relocalised."""
+    poses since the restart at ``since``) onto them: rigidly, or for a monocular run by a similarity
+    (its restart took the scale from the last speed, which the kept landmarks now correct).
+    True when relocalised."""
+    if not scale_known:
+        sim = slam.similarity_to(kept_w, kept_desc, RELOCALISE_MIN_INLIERS)
+        if sim is not None:
+            s, R, t, n = sim
+            slam.correct_world_similarity(s, R, t)
+            for k in range(since, i + 1):
+                if k in traj.poses:
+                    W = traj.poses[k].copy()
+                    W[:3, :3], W[:3, 3] = R @ W[:3, :3], s * R @ W[:3, 3] + t
+                    traj.poses[k] = W
+            say(f"frame {i}: relocalised against {n} landmarks kept from before the restart at frame {since} "
+                f"(scale x{s:.3f})")
+            return True
     pose = slam.relocalise(ds.image(i), kept_w, kept_desc, RELOCALISE_MIN_INLIERS)
     if pose is None:
         return False

@@ -180,6 +180,35 @@ def test_a_restarted_vslam_relocalises_against_kept_landmarks(rng):
     assert after.relocalise(texture(rng), kept_w, kept_desc, min_inliers=20) is None  # another place
 
 
+def test_a_monocular_restart_with_the_wrong_scale_is_corrected_by_a_similarity(rng):
+    """A monocular restart takes its scale from the last speed: here 30 % too large, at a wrong pose.
+    The kept landmarks (true scale) map the run back by a similarity: scale, pose and structure."""
+    from vbnav.vision.vslam import Vslam, VslamConfig
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    wide = np.hstack((texture(rng), texture(rng)[:, :320]))
+    depth = np.full((480, 640), 2.0, np.float32)
+    before = Vslam(cam, VslamConfig(max_landmarks=300))
+    before.initialise_depth(wide[:, :640], depth)
+    kept_w, kept_desc = before.world_landmarks()
+    after = Vslam(cam, VslamConfig(max_landmarks=300), seed=3)
+    image = wide[:, 100:740]  # truly 0.4 m to the right, 2 m from the plane
+    guess = np.eye(4)
+    guess[:3, 3] = [0.1, 0.05, -0.2]  # where the motion model put the restart
+    after.initialise_depth(image, depth * 1.3, pose_wc=guess)  # the restart's scale 30 % off
+    sim = after.similarity_to(kept_w, kept_desc, min_inliers=20)
+    assert sim is not None
+    s, R, t, n = sim
+    assert n >= 100 and abs(s * 1.3 - 1.0) < 0.005, (s, n)
+    after.correct_world_similarity(s, R, t)
+    np.testing.assert_allclose(after.pose_wc[:3, 3], [0.4, 0.0, 0.0], atol=0.005)
+    assert rotation_angle_deg(after.pose_wc[:3, :3]) < 0.1
+    P, _ = after.world_landmarks()
+    np.testing.assert_allclose(P[:, 2], 2.0, atol=0.01)  # the structure is back at its true depth
+    other = Vslam(cam, VslamConfig(max_landmarks=300))
+    other.initialise_depth(texture(rng), depth)  # another place: nothing agrees
+    assert other.similarity_to(kept_w, kept_desc, min_inliers=20) is None
+
+
 def test_grid_detection_keeps_corners_in_a_dim_low_texture_half(rng):
     """GFTT ranks corners against the image's strongest: next to a bright textured half, a dim half (a
     shadow, an exposure change) gets nothing. Spread over cells, each ranked on its own, it keeps its share."""

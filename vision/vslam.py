@@ -28,8 +28,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from vbnav.vision.bundle_adjust import bundle_adjust
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.features import KltTracker, describe, match_descriptors
+from vbnav.vision.geometry import absolute_orientation
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
+
+
+# A monocular landmark triangulated at the 2 degree parallax gate with 1 px of noise at f = 500-720 px
+# has a depth error of 1 / (0.035 f) = 3-6 % (one sigma); 10 % of its distance is about two sigmas.
+SIM3_MAX_RELATIVE_ERROR = 0.10
 
 
 class VslamConfig(BaseModel):
@@ -403,6 +409,66 @@ class Vslam:
         if (est.inliers & (est.depths > 0)).sum() < min_inliers:
             return None
         return W @ np.linalg.inv(_to_h(est.R, est.T))
+
+    def similarity_to(self, points_w: np.ndarray, desc: np.ndarray, min_inliers: int,
+                      max_relative_error: float = SIM3_MAX_RELATIVE_ERROR, rounds: int = 200
+                      ) -> Optional[tuple[float, np.ndarray, np.ndarray, int]]:
+        """Monocular relocalisation with scale: (s, R, t, inliers) such that s R X + t maps this run's
+        world onto the world of the kept landmarks ``points_w``, from ORB matches of the kept
+        descriptors to this run's tracked landmarks (3-D to 3-D, Umeyama with scale inside RANSAC).
+        A pair agrees when the mapped point lies within ``max_relative_error`` of its distance from
+        the (mapped) camera of the kept point: monocular depth errors grow with distance, angles do not.
+        None when fewer than ``min_inliers`` agree."""
+        L = self.lm
+        own = np.flatnonzero(L.described)
+        if len(own) < min_inliers or len(points_w) < min_inliers:
+            return None
+        pairs = match_descriptors(desc, L.desc[own])
+        if len(pairs) < min_inliers:
+            return None
+        W = self.references[-1].pose_wc
+        X_new = L.P[own[pairs[:, 1]]] @ W[:3, :3].T + W[:3, 3]
+        X_old = np.asarray(points_w, float)[pairs[:, 0]]
+        c_new = self.pose_wc[:3, 3]
+        n = len(pairs)
+        idx = np.array([self.rng.choice(n, 3, replace=False) for _ in range(rounds)])
+        with np.errstate(invalid="ignore", divide="ignore"):  # collinear draws: no hypothesis (NaN)
+            Rs, ts, ss = absolute_orientation(X_new[idx], X_old[idx], with_scale=True)
+            mapped = ss[:, None, None] * np.einsum("hij,nj->hni", Rs, X_new) + ts[:, None, :]
+            cam = ss[:, None] * np.einsum("hij,j->hi", Rs, c_new) + ts
+            dist = np.linalg.norm(X_old[None] - cam[:, None, :], axis=2)
+            agree = np.linalg.norm(mapped - X_old[None], axis=2) < max_relative_error * dist
+        best = int(np.argmax(agree.sum(axis=1)))
+        inl = agree[best]
+        for _ in range(3):  # refit on the consensus set, then take its consensus again
+            if inl.sum() < max(min_inliers, 3):
+                return None
+            R, t, sc = absolute_orientation(X_new[inl], X_old[inl], with_scale=True)
+            c = sc * R @ c_new + t
+            inl = np.linalg.norm(sc * X_new @ R.T + t - X_old, axis=1) \
+                < max_relative_error * np.linalg.norm(X_old - c, axis=1)
+        if inl.sum() < min_inliers:
+            return None
+        return float(sc), R, t, int(inl.sum())
+
+    def correct_world_similarity(self, s: float, R: np.ndarray, t: np.ndarray) -> None:
+        """Apply a similarity X' = s R X + t to this run's world: the structure of the current
+        reference frame is rescaled by ``s`` and every reference frame, recent pose and window pose is
+        moved with it (a monocular run relocalised against landmarks of known scale)."""
+        self.rescale(s)
+
+        def move(Wc: np.ndarray) -> np.ndarray:
+            out = Wc.copy()
+            out[:3, :3] = R @ Wc[:3, :3]
+            out[:3, 3] = s * R @ Wc[:3, 3] + t
+            return out
+
+        for ref in self.references:
+            ref.pose_wc = move(ref.pose_wc)
+        self._history = [move(Wc) for Wc in self._history]
+        for v in self._window:
+            v.pose_wc = move(v.pose_wc)
+        self.adjusted = {k: move(Wc) for k, Wc in self.adjusted.items()}
 
     def correct_world(self, C: np.ndarray) -> None:
         """Apply a rigid world correction ``C`` (new world-from-old world) to the reference frames and
