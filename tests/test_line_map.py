@@ -67,6 +67,27 @@ def test_rival_hypotheses_wait_for_another_viewpoint():
     assert np.abs(m.P[0] - true).max() < 0.02
 
 
+def test_collinear_pieces_of_one_edge_merge_and_verify_together():
+    """LSD breaks a textured edge into different pieces in every frame: pieces on one line (covariance gate)
+    that overlap or nearly meet are one edge, so their viewpoints add up to a verification."""
+    m = LineMap(MapParams(view_baseline_m=0.1))
+    pieces = [np.array([[0.0, -0.9, 2.0], [0.0, -0.6, 2.0]]),        # top third
+              np.array([[0.0, -0.55, 2.0], [0.0, -0.3, 2.0]]),       # 5 cm gap below it
+              np.array([[0.0, -0.4, 2.0], [0.0, 0.0, 2.0]])]         # overlapping the middle one
+    for k, seg in enumerate(pieces):
+        R, t = at(0.2 * k)
+        m.update(obs([seg - t], sigma=0.005), R, t)
+    assert len(m) == 1 and m.verified[0] and m.support[0] == 3
+    assert np.allclose(sorted(m.P[0, :, 1]), [-0.9, 0.0], atol=1e-6)
+    assert np.allclose(m.P[0][:, [0, 2]], [0.0, 2.0], atol=1e-6)
+    # A parallel piece 5 cm deeper (10 sigma) or 0.3 m further along the line (beyond merge_gap_m) stays apart.
+    m2 = LineMap(MapParams(view_baseline_m=0.1))
+    m2.update(obs([pieces[0]], sigma=0.005), *at(0.0))
+    m2.update(obs([pieces[2] + [0, 0, 0.05] - [0.2, 0, 0]], sigma=0.005), *at(0.2))
+    m2.update(obs([pieces[0] + [0, 1.2, 0] - [0.4, 0, 0]], sigma=0.005), *at(0.4))
+    assert len(m2) == 3 and not m2.verified.any()
+
+
 def test_unconfirmed_candidate_is_pruned_after_misses():
     p = MapParams(miss_limit=3)
     m = LineMap(p)
