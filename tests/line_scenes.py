@@ -208,7 +208,7 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
 
 
 def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapParams = MapParams(),
-              guided: bool = True, compare: bool = False, motion: bool = False):
+              guided: bool = True, compare: bool = False, motion: bool = False, floor: bool = False):
     """Run the DLM's fast loop over the drive (true poses). With ``compare`` every frame is also matched
     without prediction and both best-match false rates are returned (true disparity decides)."""
     lmap = LineMap(map_params)
@@ -233,6 +233,10 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
                 segs3d = Segments3D.concat([segs3d, motion_segments(res.left, R, c, key[0], key[1], key[2], CAM.K)])
             if key is None or np.linalg.norm(c - key[2]) >= 0.15:
                 key = (res.left, R, c)
+        if floor:
+            from vbnav.vision.line_floor import floor_segments
+            from vbnav.vision.line_segments import Segments3D
+            segs3d = Segments3D.concat([segs3d, floor_segments(res.left, f.image, f.right, CAM.K, BASELINE, R, c)])
         pred_all = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
                                 which=np.ones(len(lmap), bool))
         lmap.update(segs3d, R, c, pred_all, res.left)

@@ -345,16 +345,33 @@ class LineMap:
         tested (the others were tested when they last changed). Returns the number of merges."""
         merged = 0
         alive = np.ones(len(self), bool)
-        queue = [int(i) for i in touched]
+        D, L = self.direction, self.length       # kept in step with the merges below
+        touched = np.asarray(touched, int)
+        if len(touched) == 0 or len(self) < 2:
+            return 0
+        # Cheap vectorised prefilter: another segment parallel, its midpoint near the line and the extent.
+        par = np.abs(D[touched] @ D.T) >= math.cos(math.radians(self.params.assoc_angle_deg))
+        par[np.arange(len(touched)), touched] = False
+        k, m = np.nonzero(par)
+        i = touched[k]
+        rel = 0.5 * (self.P[m, 0] + self.P[m, 1]) - self.P[i, 0]
+        s = (rel * D[i]).sum(axis=1)
+        perp = np.linalg.norm(rel - s[:, None] * D[i], axis=1)
+        half = 0.5 * L[m] + self.params.merge_gap_m
+        close = (perp < 0.2) & (s >= -half) & (s <= L[i] + half)
+        queue = [int(j) for j in np.unique(i[close])]
         while queue:
             i = queue.pop()
             if i >= len(alive) or not alive[i]:
                 continue
-            j = self._merge_partner(i, alive)
+            j = self._merge_partner(i, alive, D, L)
             if j is None:
                 continue
             keep, gone = (i, j) if self._rank(i) >= self._rank(j) else (j, i)
             self._absorb(keep, gone)
+            d = self.P[keep, 1] - self.P[keep, 0]
+            L[keep] = np.linalg.norm(d)
+            D[keep] = d / max(L[keep], 1e-12)
             alive[gone] = False
             merged += 1
             queue.append(keep)                   # the grown segment may now reach another piece
@@ -364,11 +381,10 @@ class LineMap:
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
 
-    def _merge_partner(self, i: int, alive: np.ndarray) -> Optional[int]:
+    def _merge_partner(self, i: int, alive: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> Optional[int]:
         """The alive segment on segment i's line (direction, both endpoints within the chi-square gate of
         both covariances across the line) that overlaps it or ends within ``merge_gap_m`` of it."""
         p = self.params
-        t = self.direction
         cosang = t @ t[i]
         cand = np.nonzero(alive & (np.abs(cosang) >= math.cos(math.radians(p.assoc_angle_deg))))[0]
         cand = cand[cand != i]
@@ -377,7 +393,7 @@ class LineMap:
             cand = cand[self.group[cand] != self.group[i]]
         if len(cand) == 0:
             return None
-        a, d, L = self.P[i, 0], t[i], self.length[i]
+        a, d, L = self.P[i, 0], t[i], lengths[i]
         s = (self.P[cand] - a) @ d                                                   # (K, 2) along i
         gap = np.maximum(s.min(axis=1) - L, -s.max(axis=1))
         foot = a + s[..., None] * d

@@ -14,12 +14,12 @@ def plan_on_map(path: str, start, goal, robot_radius: float):
     import numpy as np
 
     from vbnav.control.line_map_file import load_map
-    from vbnav.vision.line_abstraction import box_polygons, vertical_edges
+    from vbnav.vision.line_abstraction import object_polygons
     from vbnav.vision.nav_grid import GridParams, build_grid, plan
 
     lmap, meta = load_map(path)
     V = lmap.P[lmap.verified]
-    polys = [p.footprint for p in box_polygons(vertical_edges(V))]
+    polys = [p.footprint for p in object_polygons(V)]
     polys += [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
     params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
     grid = build_grid(V, params, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]), polygons=polys)
