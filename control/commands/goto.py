@@ -26,6 +26,15 @@ def plan_on_map(path: str, start, goal, robot_radius: float):
     return plan(grid, (start.x, start.z), (goal.x, goal.z))
 
 
+def map_route_in_reference_frame(planned, start, goal):
+    """The planned path's intermediate waypoints and the goal, moved from the map's frame into the goto
+    controller's reference frame (the robot's pose at the start, ``start`` in the map)."""
+    from vbnav.vision.geometry import Pose2
+
+    ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
+    return [(p.x, p.z) for p in ref], start.between(goal)
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "goto", help="drive to a goal pose using the VSLAM",
@@ -84,10 +93,7 @@ def run(args) -> int:
                   f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
             return 1
         print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
-        # The controller works in the reference frame: the robot's pose at the start.
-        ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
-        waypoints = [(p.x, p.z) for p in ref]
-        goal = start.between(goal)
+        waypoints, goal = map_route_in_reference_frame(planned, start, goal)
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:
