@@ -249,6 +249,17 @@ def test_horizontal_line_triangulated_from_forward_motion():
     key = Segments2D(np.vstack((s_key, s_key + [0, 40, 0, 40])), np.array([[80.0, 160.0], [30.0, 200.0]]))
     out = motion_segments(cur, I3, np.array([0, 0, 0.3]), key, I3, np.zeros(3), K)
     assert len(out) == 1 and np.abs(out.P[0] - (edge - [0, 0, 0.3])).max() < 1e-6
+    # The robot also turned 12 degrees since the keyframe: the line's midpoint moved ~85 px, mostly along
+    # the line. The match gates the parallax across the line (60 px) and the overlap along it, after the
+    # known rotation is removed, not the midpoint's displacement.
+    from vbnav.vision.geometry import rot_y
+    R_now = rot_y(math.radians(12.0))
+    Pc = (edge - [0.0, 0.0, 0.3]) @ R_now                           # camera frame of the turned camera
+    uv = (Pc @ K.T)[:, :2] / Pc[:, 2:3]
+    assert abs(uv[:, 0].mean() - s_key[[0, 2]].mean()) > 60
+    cur = Segments2D(uv.ravel()[None], np.array([[80.0, 160.0]]))
+    out = motion_segments(cur, R_now, np.array([0, 0, 0.3]), key, I3, np.zeros(3), K)
+    assert len(out) == 1 and np.abs(out.P[0] @ R_now.T + [0, 0, 0.3] - edge).max() < 1e-6
 
 
 # ------------------------------------------------------------------------- lines on the floor
