@@ -50,7 +50,7 @@ ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no i
 @dataclass(frozen=True)
 class MapParams:
     max_range_m: float = 3.0           # insert/predict only nearer segments (depth sigma grows as z^2)
-    min_range_m: float = 0.5           # nearer "segments" are mostly high-order false matches (largest disparities)
+    min_range_m: float = 0.35          # nearer "segments" are mostly high-order false matches (largest disparities)
     min_length_m: float = 0.05
     assoc_angle_deg: float = 6.0
     assoc_extra_m: float = 0.004       # added to both covariances (calibration/pose error), per axis sigma
