@@ -44,6 +44,7 @@ class AbstractionParams:
     foot_angle_deg: float = 10.0    # a floor line from one corner at right angles (this close) to a seen face
     corner_seen_m: float = 0.15     # a footprint corner this close to a seen vertical edge is not hypothesised
     min_side_m: float = 0.1         # a footprint thinner than this is a face, not a box: no hypotheses
+    right_angle_tol_deg: float = 15.0  # a hull corner this close to 90 deg is a box corner (sets the footprint's axes)
 
 
 @dataclass
@@ -123,7 +124,7 @@ def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParam
         pts = np.vstack(pts)
         if len(members) < 2 and len(pts) < 3:
             continue
-        out.append(ObjectPolygon(_rectangle(pts), float(edges[members, 2].mean()), len(members), seen.copy()))
+        out.append(ObjectPolygon(_rectangle(pts, params), float(edges[members, 2].mean()), len(members), seen.copy()))
     return out
 
 
@@ -145,17 +146,30 @@ def _square_to_a_face(feet: np.ndarray, seen: np.ndarray, on: np.ndarray, params
     return out
 
 
-def _rectangle(pts: np.ndarray) -> np.ndarray:
-    """The smallest rectangle (4, 2) around the points (boxes are rectangular; one of its sides lies along a
-    side of the convex hull), or the hull itself when the points are (nearly) collinear or fewer than 3."""
+def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
+    """The rectangle (4, 2) around the points (boxes are rectangular), or their hull when they are (nearly)
+    collinear or fewer than 3. Its sides follow the hull's corner nearest to a right angle (two faces of a
+    box, or a face and a lower edge, within ``right_angle_tol_deg``): the smallest rectangle alone cannot
+    tell a right triangle's legs from its hypotenuse (same area); failing such a corner, the smallest one
+    (a side of it along a side of the hull)."""
     hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2)
     if len(hull) < 3:
         return hull.astype(float)
     # The hull's vertices, at full precision: the input points nearest to them.
     hull = pts[np.argmin(np.linalg.norm(pts[None] - hull[:, None].astype(float), axis=2), axis=1)]
+    best_cos, axis = math.sin(math.radians(params.right_angle_tol_deg)), None
+    for k in range(len(hull)):
+        a, b = hull[k - 1] - hull[k], hull[(k + 1) % len(hull)] - hull[k]
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        if min(na, nb) < params.min_side_m:
+            continue
+        c = abs(a @ b) / (na * nb)
+        if c <= best_cos:
+            best_cos, axis = c, (a / na if na >= nb else b / nb)
+    axes = [axis] if axis is not None else [(b - a) / max(np.linalg.norm(b - a), 1e-12)
+                                             for a, b in zip(hull, np.roll(hull, -1, axis=0))]
     best = None
-    for a, b in zip(hull, np.roll(hull, -1, axis=0)):
-        u = (b - a) / max(np.linalg.norm(b - a), 1e-12)
+    for u in axes:
         v = np.array([-u[1], u[0]])
         su, sv = pts @ u, pts @ v
         area = np.ptp(su) * np.ptp(sv)

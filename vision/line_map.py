@@ -423,7 +423,7 @@ class LineMap:
         for e in range(2):
             sj = (self.P[i, e] - Pj[0]) @ tj
             x = Pj[0] + sj * tj
-            W = np.linalg.inv(self._perp_cov(Cj[e], t))
+            W = np.linalg.inv(Cj[e] + ALONG_VAR * np.outer(t, t))
             self.info[i, e] += W
             self.info_vec[i, e] += W @ x
         self.cov[i] = np.linalg.inv(self.info[i])
