@@ -67,6 +67,27 @@ def test_rival_hypotheses_wait_for_another_viewpoint():
     assert np.abs(m.P[0] - true).max() < 0.02
 
 
+def test_collinear_pieces_of_one_edge_merge_and_verify_together():
+    """LSD breaks a textured edge into different pieces in every frame: pieces on one line (covariance gate)
+    that overlap or nearly meet are one edge, so their viewpoints add up to a verification."""
+    m = LineMap(MapParams(view_baseline_m=0.1))
+    pieces = [np.array([[0.0, -0.9, 2.0], [0.0, -0.6, 2.0]]),        # top third
+              np.array([[0.0, -0.55, 2.0], [0.0, -0.3, 2.0]]),       # 5 cm gap below it
+              np.array([[0.0, -0.4, 2.0], [0.0, 0.0, 2.0]])]         # overlapping the middle one
+    for k, seg in enumerate(pieces):
+        R, t = at(0.2 * k)
+        m.update(obs([seg - t], sigma=0.005), R, t)
+    assert len(m) == 1 and m.verified[0] and m.support[0] == 3
+    assert np.allclose(sorted(m.P[0, :, 1]), [-0.9, 0.0], atol=1e-6)
+    assert np.allclose(m.P[0][:, [0, 2]], [0.0, 2.0], atol=1e-6)
+    # A parallel piece 5 cm deeper (10 sigma) or 0.3 m further along the line (beyond merge_gap_m) stays apart.
+    m2 = LineMap(MapParams(view_baseline_m=0.1))
+    m2.update(obs([pieces[0]], sigma=0.005), *at(0.0))
+    m2.update(obs([pieces[2] + [0, 0, 0.05] - [0.2, 0, 0]], sigma=0.005), *at(0.2))
+    m2.update(obs([pieces[0] + [0, 1.2, 0] - [0.4, 0, 0]], sigma=0.005), *at(0.4))
+    assert len(m2) == 3 and not m2.verified.any()
+
+
 def test_unconfirmed_candidate_is_pruned_after_misses():
     p = MapParams(miss_limit=3)
     m = LineMap(p)
@@ -228,3 +249,49 @@ def test_horizontal_line_triangulated_from_forward_motion():
     key = Segments2D(np.vstack((s_key, s_key + [0, 40, 0, 40])), np.array([[80.0, 160.0], [30.0, 200.0]]))
     out = motion_segments(cur, I3, np.array([0, 0, 0.3]), key, I3, np.zeros(3), K)
     assert len(out) == 1 and np.abs(out.P[0] - (edge - [0, 0, 0.3])).max() < 1e-6
+    # The robot also turned 12 degrees since the keyframe: the line's midpoint moved ~85 px, mostly along
+    # the line. The match gates the parallax across the line (60 px) and the overlap along it, after the
+    # known rotation is removed, not the midpoint's displacement.
+    from vbnav.vision.geometry import rot_y
+    R_now = rot_y(math.radians(12.0))
+    Pc = (edge - [0.0, 0.0, 0.3]) @ R_now                           # camera frame of the turned camera
+    uv = (Pc @ K.T)[:, :2] / Pc[:, 2:3]
+    assert abs(uv[:, 0].mean() - s_key[[0, 2]].mean()) > 60
+    cur = Segments2D(uv.ravel()[None], np.array([[80.0, 160.0]]))
+    out = motion_segments(cur, R_now, np.array([0, 0, 0.3]), key, I3, np.zeros(3), K)
+    assert len(out) == 1 and np.abs(out.P[0] @ R_now.T + [0, 0, 0.3] - edge).max() < 1e-6
+
+
+# ------------------------------------------------------------------------- lines on the floor
+def test_floor_lines_from_one_frame_find_a_box_foot():
+    """Near-horizontal segments (no stereo disparity) on the known floor plane: a box's front lower edge
+    from one stereo frame within 1 cm; segments whose floor band does not match the right image at the
+    floor's disparity are refused, and few of the accepted ones lie off the visible floor."""
+    from vbnav.vision.line_floor import floor_segments
+    from line_scenes import point_segment_distance
+    from vbnav.vision.line_segments import detect_segments
+    w = World(0)
+    w.add_floor(-2, 2, -1, 4)
+    w.add_box("b", (0.0, 1.5), (0.8, 0.5, 0.6), yaw=0.2)
+    w.add_wall("back", (-2, 3.0), (2, 3.0), 1.5)
+    mount = CameraMount(0.25, 0.1)
+    sc = SimCamera(w, CAM, mount, lambda: Pose2(), None, 15.0, noise_std=2.0, seed=0, stereo_baseline=BASELINE)
+    foot = np.array([[0.33, 0.0, 1.13], [-0.45, 0.0, 1.29]])        # the front face's lower edge (world)
+    pose = Pose2(0.1, 0.0, 0.05)
+    f = sc.render_frame(pose, seq=0)
+    R, t = camera_pose(pose, mount)
+    out = floor_segments(detect_segments(f.image), f.image, f.right, CAM.K, BASELINE, R, t)
+    assert len(out) > 0 and (np.abs(np.abs(out.left_xy[:, 3] - out.left_xy[:, 1]) /
+                                    np.hypot(*(out.left_xy[:, 2:] - out.left_xy[:, :2]).T)) < math.sin(math.radians(20))).all()
+    Pw = out.P @ R.T + t
+    assert np.allclose(Pw[..., 1], 0.0, atol=1e-9)
+    d = point_segment_distance(Pw.reshape(-1, 3), foot[0][None], foot[1][None]).reshape(-1, 2).max(axis=1)
+    on_foot = Pw[d < 0.01]
+    assert len(on_foot), d.min()
+    u = foot[1] - foot[0]
+    s = ((on_foot - foot[0]) @ u / (u @ u)).clip(0, 1)
+    assert np.ptp(s) >= 0.3                                   # of the 0.8 m edge (measured 0.58)
+    # Off the visible floor: inside the box's footprint or behind the wall (measured 2 of 44; the DLM's
+    # verification from three viewpoints removes more).
+    off = [min(w.clearance(x, z) for x, _, z in P) < -0.03 or P[:, 2].max() > 3.03 for P in Pw]
+    assert np.mean(off) <= 0.1

@@ -1,6 +1,7 @@
-"""Using the line map: localisation from 2D-3D line correspondences, the abstraction to objects, the
-traversability grid and planner, and the map file. One map of the simulated room, built once per module
-(30 frames of the 6 m loop, true poses)."""
+"""Using the line map: how much of the simulated room it holds, localisation from 2D-3D line
+correspondences, the abstraction to objects, the traversability grid and planner, and the map file. One
+map of the simulated room, built once per module (60 frames of the 6 m loop, one every 10 cm, true poses,
+stereo segments and floor lines)."""
 from __future__ import annotations
 
 import json
@@ -9,23 +10,47 @@ import math
 import numpy as np
 import pytest
 
-from line_scenes import BASELINE, CAM, MOUNT, build_map, loop_poses, render_drive, stereo_camera
+from line_scenes import BASELINE, CAM, MOUNT, build_map, loop_poses, render_drive, score_map, stereo_camera
 from vbnav.control.line_map_file import MapFileError, load_map, save_map
 from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2
-from vbnav.vision.line_abstraction import box_polygons, missing_lines, vertical_edges
+from vbnav.vision.line_abstraction import box_polygons, floor_lines, missing_lines, object_polygons, vertical_edges
 from vbnav.vision.line_localise import View, localise
 from vbnav.vision.line_segments import detect_segments
 from vbnav.vision.nav_grid import GridParams, build_grid, plan
 from vbnav.vision.line_map import LineMap
 
 
+LOOP_FRAMES = 60            # 10 cm apart: an edge is in view for a few frames, 0.15 m apart for verification
+
+
 @pytest.fixture(scope="module")
-def room_map():
+def room_drive():
     world = World.room(0)
-    drive = render_drive(world, loop_poses(30))
-    lmap, _ = build_map(drive)
-    return world, lmap
+    drive = render_drive(world, loop_poses(LOOP_FRAMES))
+    lmap, _ = build_map(drive, floor=True)
+    return world, lmap, drive
+
+
+@pytest.fixture(scope="module")
+def room_map(room_drive):
+    return room_drive[:2]
+
+
+def test_room_map_holds_the_edges_in_view(room_drive):
+    """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
+    Measured: 8 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 3/7, box lower and upper edges 4/8),
+    endpoints 5 mm median / 8.7 cm 95 %, 2.2 % of 410 verified segments false. The acceptance (90 %,
+    2 / 5 cm, 5 %) is not met: docs/line_map.md "Not met"."""
+    world, lmap, drive = room_drive
+    sc = score_map(lmap, world, drive)
+    assert sc.in_view >= 12 and sum(v[0] for v in sc.by_class.values()) == sc.in_view
+    assert sc.mapped >= 4, sc.missing
+    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 2   # floor lines
+    assert sc.mapped >= 4
+    assert sc.by_class["box_vertical"][1] >= 2, sc.by_class
+    assert np.median(sc.endpoint_err) <= 0.01 and np.percentile(sc.endpoint_err, 95) <= 0.18
+    assert sc.false_fraction <= 0.045
 
 
 VIEW = View(CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.width, CAM.height, BASELINE, MOUNT)
@@ -59,11 +84,36 @@ def test_abstraction_finds_box_corners_and_hypotheses():
     assert len(edges) == 3 and np.allclose(edges[:, 2], 0.9)
     polys = box_polygons(edges)
     assert len(polys) == 1 and polys[0].corners == 3
+    # The footprint is the whole rectangle: the unseen corner is occupied too.
+    assert len(polys[0].footprint) == 4 and np.isclose(abs(_area(polys[0].footprint)), 0.48)
     hyp = missing_lines(polys[0])
     assert np.allclose(hyp[0], [[0.0, 0.0, 0.6], [0.0, -0.9, 0.6]])     # the fourth corner
+    assert len(hyp) == 5                                                # and the four top edges
     lmap = LineMap()
     ids = lmap.add_hypotheses(hyp)
     assert len(ids) == len(hyp) and lmap.hypothesis.all() and not lmap.verified.any()
+
+
+def _area(poly: np.ndarray) -> float:
+    x, z = poly[:, 0], poly[:, 1]
+    return 0.5 * float(x @ np.roll(z, -1) - z @ np.roll(x, -1))
+
+
+def test_abstraction_closes_a_box_seen_at_two_corners_and_its_foot():
+    """Two vertical edges of one face and the floor line of the other face (vision/line_floor.py) close
+    the box; floor texture ending near a corner (one vertical edge on it) does not stretch it."""
+    P = np.array([[[x, 0.0, z], [x, -0.9, z]] for x, z in [(0.0, 0.0), (0.8, 0.0)]]
+                 + [[[0.8, 0.0, 0.0], [0.8, 0.0, 0.6]],          # the side face's foot, from a seen corner
+                    [[0.0, 0.0, 0.0], [-0.5, 0.0, -0.4]],        # floor texture ending at a corner, oblique
+                    [[0.0, -0.9, 0.0], [0.8, -0.9, 0.0]]])       # the top edge: not on the floor
+    assert len(floor_lines(P)) == 2
+    polys = object_polygons(P)
+    assert len(polys) == 1 and polys[0].corners == 2
+    fp = polys[0].footprint
+    assert len(fp) == 4 and np.isclose(abs(_area(fp)), 0.48)
+    assert np.allclose(sorted(map(tuple, fp.round(6))), [(0.0, 0.0), (0.0, 0.6), (0.8, 0.0), (0.8, 0.6)])
+    hyp = missing_lines(polys[0])
+    assert len(hyp) == 2 + 4                                            # two unseen corners, four top edges
 
 
 def test_planner_goes_around_a_mapped_box():
@@ -78,12 +128,20 @@ def test_planner_goes_around_a_mapped_box():
     assert plan(grid, (0.0, -1.5), (0.0, 0.0)) is None                    # goal inside the box
 
 
-@pytest.mark.xfail(strict=True, reason="acceptance not met: the loop map holds box_a's east corners only (LSD pieces "
-                   "of its textured west edges are not verified), so the plan cuts through the box's west half")
 def test_room_map_grid_plans_behind_box_a(room_map):
+    """box_a is seen from the loop at its south and east faces only; its footprint is closed from its
+    vertical edges and lower edges (hypothesised corner), so the plans go around the whole box."""
     world, lmap = room_map
     V = lmap.P[lmap.verified]
-    polys = [p.footprint for p in box_polygons(vertical_edges(V))]
+    polys = [p.footprint for p in object_polygons(V)]
+    box_a = [q for q in polys if np.hypot(*(q.mean(axis=0) - (-1.3, 0.3))) < 0.5]
+    assert len(box_a) == 1 and len(box_a[0]) == 4
+    # The true footprint (0.48 m^2) is inside the mapped one give or take 0.2 m, which the grid's growth by
+    # the radius + 8 cm covers (measured: 0.59 m^2 with the unseen corner 10 cm outside; with the half-size
+    # LSD of the fast loop 0.39 m^2, the west corners 14 cm outside: the lower edge is seen shorter).
+    true_a = np.array([[-0.83, 0.47], [-1.59, 0.70], [-1.77, 0.13], [-1.01, -0.10]])
+    assert 0.3 <= abs(_area(box_a[0])) <= 1.2
+    assert all(_inside(box_a[0], c, 0.2) for c in true_a)
     goal = (-1.3, 1.2)                        # north of box_a: seen from the loop, never visited
     grid = build_grid(V, GridParams(), extra_points=np.array([goal, (0.0, -2.3)]), polygons=polys)
     for start in [(0.0, -2.25), (0.8, -1.0), (-0.9, -1.5)]:
@@ -92,6 +150,47 @@ def test_room_map_grid_plans_behind_box_a(room_map):
         pts = np.concatenate([np.linspace(a, b, 40) for a, b in zip(path, path[1:])])
         clear = min(world.clearance(x, z) for x, z in pts)
         assert clear > GridParams().robot_radius_m, (start, clear, path)   # never touches box or wall
+
+
+# Start poses (x, z, heading deg) south, east and west of box_a: the first two never see behind it, the third
+# stands beside it; the goal north of it was seen from the loop, never visited.
+GOTO_STARTS = [(0.0, -2.25, -20.0), (0.8, -1.0, -60.0), (-0.9, -1.5, 10.0)]
+GOTO_GOAL = (-1.3, 1.2, 0.0)
+
+
+@pytest.mark.parametrize("start", GOTO_STARTS)
+def test_goto_on_the_room_map_drives_behind_box_a_without_touching_it(room_map, tmp_path, start):
+    """What `vbnav goto --map` does (control/commands/goto.py: plan on the saved map, waypoints into the
+    reference frame, the goto controller) on a unicycle localised by VSLAM fixes (the truth, 30 ms old) and
+    biased odometry: it arrives, and the robot's disc (radius 0.2 m) never touches a wall or box. The same
+    from the first start with the full simulated robot (camera, VSLAM, obstacle stop): 0.9 cm from the
+    goal, closest approach 0.448 m, measured by hand (docs/line_map.md)."""
+    from test_vslam_nav import Unicycle
+
+    from vbnav.control.map_planning import map_route_in_reference_frame, plan_on_map
+    from vbnav.control.config.vslam import GotoConfig
+    from vbnav.control.controllers.goto import GotoController
+    world, lmap = room_map
+    path = tmp_path / "room.json"
+    save_map(lmap, path)
+    s = Pose2(start[0], start[1], math.radians(start[2]))
+    g = Pose2(GOTO_GOAL[0], GOTO_GOAL[1], math.radians(GOTO_GOAL[2]))
+    planned = plan_on_map(str(path), s, g, 0.2)
+    assert planned is not None and len(planned) >= 3           # around the box, not straight through it
+    waypoints, goal_ref = map_route_in_reference_frame(planned, s, g)
+    ctrl = GotoController(goal_ref, GotoConfig(), waypoints=waypoints)
+    sim = Unicycle(s, odom_scale=1.03, odom_drift=0.03)
+    sim.run(ctrl, seconds=60.0)
+    assert ctrl.finished, ctrl.status()
+    assert math.hypot(sim.true.x - g.x, sim.true.z - g.z) < 0.02           # measured 1.0 cm
+    clearance = min(world.clearance(t.x, t.z) for _, t, _ in sim.history[::5])
+    assert clearance > 0.2, (clearance, planned)        # measured 0.41-0.46 m
+
+
+def _inside(poly: np.ndarray, p, margin: float = 0.05) -> bool:
+    """p within ``margin`` of the convex polygon (either orientation)."""
+    import cv2
+    return cv2.pointPolygonTest(poly.astype(np.float32), (float(p[0]), float(p[1])), True) >= -margin
 
 
 def test_map_file_round_trip_and_errors(room_map, tmp_path):

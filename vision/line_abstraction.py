@@ -7,11 +7,18 @@ Pure functions of the map's verified segments (world frame, y down, floor y = 0)
   ``floor_band_m`` of the floor: the corners of boxes and walls, as (x, z, height). A vertical edge is
   assumed to stand on the floor (man-made objects do): LSD rarely follows a textured edge all the way
   down, so the band is wide;
+- ``floor_lines``: horizontal segments lying on the floor (the feet of boxes and walls, vision/line_floor.py);
 - ``box_polygons``: vertical edges of similar height within ``box_max_m`` of each other are the corners of
-  one object: its footprint is their convex hull on the floor (two corners give the face between them);
-- ``missing_lines``: for an object with three corners seen, the fourth corner of the parallelogram is a
-  hypothesis (a vertical segment of the same height), and so are the top edges between seen corners not in
-  the map. The sensor loop verifies or prunes them like any candidate (``LineMap.add_hypotheses``).
+  one object, and a floor line is its lower edge when two of them stand on it (within ``foot_on_m``), or when
+it starts at one of them at right angles (``foot_angle_deg``) to a face between two of them. Boxes
+  are rectangular: the footprint is the smallest rectangle around the corners and the lower edges' ends, so
+  an object seen at two faces (three corners, or two corners and a lower edge) is closed on the side the
+  robot has not seen: the hypothesised corner is part of the footprint the grid marks as occupied
+  (two points give the face between them);
+- ``missing_lines``: the vertical edges at the footprint's corners where no vertical edge was seen, and the
+  top edges, are hypotheses. The sensor loop verifies or prunes them like any candidate
+  (``LineMap.add_hypotheses``).
+- ``object_polygons``: all of it from the map's verified segments.
 
 ``control/stages/line_abstraction.py`` runs this in its own thread, slower than the frame loop.
 """
@@ -32,13 +39,20 @@ class AbstractionParams:
     box_max_m: float = 1.3          # corners of one object are at most this far apart
     height_tol_m: float = 0.3       # and their tops within this of each other (LSD pieces end early)
     merge_m: float = 0.06           # vertical edges this close are one corner
+    foot_band_m: float = 0.03       # a floor line lies this close to the floor (both ends)
+    foot_on_m: float = 0.05         # vertical edges this close to a floor line stand on it
+    foot_angle_deg: float = 10.0    # a floor line from one corner at right angles (this close) to a seen face
+    corner_seen_m: float = 0.15     # a footprint corner this close to a seen vertical edge is not hypothesised
+    min_side_m: float = 0.1         # a footprint thinner than this is a face, not a box: no hypotheses
+    right_angle_tol_deg: float = 15.0  # a hull corner this close to 90 deg is a box corner (sets the footprint's axes)
 
 
 @dataclass
 class ObjectPolygon:
-    footprint: np.ndarray           # (N, 2) x, z on the floor, convex, counter-clockwise
+    footprint: np.ndarray           # (N, 2) x, z on the floor, convex (a rectangle when >= 3 points were seen)
     height: float                   # m
     corners: int                    # vertical edges it was built from
+    seen_xz: np.ndarray = None      # (corners, 2) where those vertical edges stand
 
 
 def vertical_edges(P: np.ndarray, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
@@ -65,8 +79,18 @@ def vertical_edges(P: np.ndarray, params: AbstractionParams = AbstractionParams(
     return np.array(out, float)
 
 
-def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParams()) -> list[ObjectPolygon]:
-    """Group vertical edges (x, z, height) into objects of similar height and close corners."""
+def floor_lines(P: np.ndarray, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
+    """(K, 2, 2) x, z of the segments lying on the floor (both ends within ``foot_band_m`` of it)."""
+    if len(P) == 0:
+        return np.zeros((0, 2, 2))
+    on = (np.abs(P[..., 1]) <= params.foot_band_m).all(axis=1)
+    return P[on][..., [0, 2]]
+
+
+def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParams(),
+                 feet: np.ndarray | None = None) -> list[ObjectPolygon]:
+    """Group vertical edges (x, z, height) into objects of similar height and close corners; ``feet``
+    (K, 2, 2): floor lines; an object's lower edges add their ends to its footprint (see the module)."""
     n = len(edges)
     parent = list(range(n))
 
@@ -84,37 +108,100 @@ def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParam
     groups: dict = {}
     for i in range(n):
         groups.setdefault(root(i), []).append(i)
+    feet = np.zeros((0, 2, 2)) if feet is None else np.asarray(feet, float).reshape(-1, 2, 2)
     out = []
     for members in groups.values():
-        if len(members) < 2:
+        seen = edges[members, :2]
+        pts = [seen]
+        if len(feet):
+            a, ab = feet[:, 0], feet[:, 1] - feet[:, 0]
+            t = np.clip(((seen[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab ** 2).sum(-1), 1e-12), 0, 1)
+            dist = np.linalg.norm(seen[:, None] - (a[None] + t[..., None] * ab[None]), axis=2)    # (corners, K)
+            on = dist <= params.foot_on_m
+            lower = (on.sum(axis=0) >= 2) | _square_to_a_face(feet, seen, on, params)
+            lower &= np.linalg.norm(ab, axis=1) <= params.box_max_m
+            pts.append(feet[lower].reshape(-1, 2))
+        pts = np.vstack(pts)
+        if len(members) < 2 and len(pts) < 3:
             continue
-        pts = edges[members, :2].astype(np.float32)
-        hull = cv2.convexHull(pts).reshape(-1, 2) if len(pts) >= 3 else pts
-        out.append(ObjectPolygon(hull.astype(float), float(edges[members, 2].mean()), len(members)))
+        out.append(ObjectPolygon(_rectangle(pts, params), float(edges[members, 2].mean()), len(members), seen.copy()))
     return out
 
 
-def missing_lines(poly: ObjectPolygon) -> np.ndarray:
-    """(K, 2, 3) hypothesised segments of a box seen at three corners: the fourth vertical edge, and the
-    top edges joining the corners (world frame, y = -height at the top)."""
-    if poly.corners != 3 or len(poly.footprint) != 3:
+def _square_to_a_face(feet: np.ndarray, seen: np.ndarray, on: np.ndarray, params: AbstractionParams) -> np.ndarray:
+    """(K,) bool: the floor line ends at a corner and runs at right angles to a face between two corners."""
+    out = np.zeros(len(feet), bool)
+    if len(seen) < 2:
+        return out
+    ends = np.linalg.norm(feet[:, :, None, :] - seen[None, None], axis=3).min(axis=1) <= params.foot_on_m  # (K, C)
+    u = feet[:, 1] - feet[:, 0]
+    u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+    sin_tol = math.sin(math.radians(params.foot_angle_deg))
+    for k in np.nonzero(ends.any(axis=1) & (on.sum(axis=0) == 1))[0]:
+        c = int(np.nonzero(ends[k])[0][0])
+        face = seen - seen[c]
+        n = np.linalg.norm(face, axis=1)
+        face = face[n > 2 * params.foot_on_m] / n[n > 2 * params.foot_on_m][:, None]
+        out[k] = bool(len(face)) and bool((np.abs(face @ u[k]) <= sin_tol).any())
+    return out
+
+
+def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
+    """The rectangle (4, 2) around the points (boxes are rectangular), or their hull when they are (nearly)
+    collinear or fewer than 3. Its sides follow the hull's corner nearest to a right angle (two faces of a
+    box, or a face and a lower edge, within ``right_angle_tol_deg``): the smallest rectangle alone cannot
+    tell a right triangle's legs from its hypotenuse (same area); failing such a corner, the smallest one
+    (a side of it along a side of the hull)."""
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2)
+    if len(hull) < 3:
+        return hull.astype(float)
+    # The hull's vertices, at full precision: the input points nearest to them.
+    hull = pts[np.argmin(np.linalg.norm(pts[None] - hull[:, None].astype(float), axis=2), axis=1)]
+    best_cos, axis = math.sin(math.radians(params.right_angle_tol_deg)), None
+    for k in range(len(hull)):
+        a, b = hull[k - 1] - hull[k], hull[(k + 1) % len(hull)] - hull[k]
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        if min(na, nb) < params.min_side_m:
+            continue
+        c = abs(a @ b) / (na * nb)
+        if c <= best_cos:
+            best_cos, axis = c, (a / na if na >= nb else b / nb)
+    axes = [axis] if axis is not None else [(b - a) / max(np.linalg.norm(b - a), 1e-12)
+                                             for a, b in zip(hull, np.roll(hull, -1, axis=0))]
+    best = None
+    for u in axes:
+        v = np.array([-u[1], u[0]])
+        su, sv = pts @ u, pts @ v
+        area = np.ptp(su) * np.ptp(sv)
+        if best is None or area < best[0]:
+            best = (area, u, v, su.min(), su.max(), sv.min(), sv.max())
+    area, u, v, u0, u1, v0, v1 = best
+    if min(u1 - u0, v1 - v0) < 1e-3:
+        return hull.astype(float)
+    return np.array([u0 * u + v0 * v, u1 * u + v0 * v, u1 * u + v1 * v, u0 * u + v1 * v])
+
+
+def object_polygons(P: np.ndarray, params: AbstractionParams = AbstractionParams()) -> list[ObjectPolygon]:
+    """Objects standing on the floor, from the map's verified segments (world frame)."""
+    return box_polygons(vertical_edges(P, params), params, floor_lines(P, params))
+
+
+def missing_lines(poly: ObjectPolygon, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
+    """(K, 2, 3) hypothesised segments of a box whose footprint is a rectangle: the vertical edges at its
+    corners where none was seen (first), then its four top edges (world frame, y = -height at the top).
+    Nothing for a face (a footprint thinner than ``min_side_m``)."""
+    fp = poly.footprint
+    if len(fp) != 4:
         return np.zeros((0, 2, 3))
-    a, b, c = poly.footprint
-    # The right angle of a box footprint is at the corner whose two sides are most nearly perpendicular.
-    best, corner = math.inf, None
-    for p, q, r in ((a, b, c), (b, c, a), (c, a, b)):
-        u, v = q - p, r - p
-        cosang = abs(u @ v) / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-12)
-        if cosang < best:
-            best, corner = cosang, (p, q, r)
-    p, q, r = corner
-    fourth = q + r - p
+    sides = np.linalg.norm(np.roll(fp, -1, axis=0) - fp, axis=1)
+    if sides.min() < params.min_side_m:
+        return np.zeros((0, 2, 3))
     h = poly.height
-
-    def vert(xz):
-        return [[xz[0], 0.0, xz[1]], [xz[0], -h, xz[1]]]
-
-    def top(s, e):
-        return [[s[0], -h, s[1]], [e[0], -h, e[1]]]
-
-    return np.array([vert(fourth), top(q, fourth), top(r, fourth), top(p, q), top(p, r)], float)
+    seen = np.zeros((0, 2)) if poly.seen_xz is None else poly.seen_xz
+    out = []
+    for c in fp:
+        if len(seen) == 0 or np.linalg.norm(seen - c, axis=1).min() > params.corner_seen_m:
+            out.append([[c[0], 0.0, c[1]], [c[0], -h, c[1]]])
+    for a, b in zip(fp, np.roll(fp, -1, axis=0)):
+        out.append([[a[0], -h, a[1]], [b[0], -h, b[1]]])
+    return np.array(out, float)

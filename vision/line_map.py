@@ -50,11 +50,12 @@ ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no i
 @dataclass(frozen=True)
 class MapParams:
     max_range_m: float = 3.0           # insert/predict only nearer segments (depth sigma grows as z^2)
-    min_range_m: float = 0.5           # nearer "segments" are mostly high-order false matches (largest disparities)
+    min_range_m: float = 0.35          # nearer "segments" are mostly high-order false matches (largest disparities)
     min_length_m: float = 0.05
     assoc_angle_deg: float = 6.0
     assoc_extra_m: float = 0.004       # added to both covariances (calibration/pose error), per axis sigma
     overlap_margin_m: float = 0.3      # collinear pieces this far apart along the line are one edge (LSD breaks edges)
+    merge_gap_m: float = 0.15          # map segments on one line (covariance gate) with a gap up to this merge
     verify_views: int = 3
     view_baseline_m: float = 0.15
     view_angle_deg: float = 10.0
@@ -89,6 +90,7 @@ class UpdateStats:
     verified: int = 0
     pruned: int = 0
     rivals_dropped: int = 0
+    merged: int = 0
 
 
 @dataclass
@@ -257,9 +259,12 @@ class LineMap:
             if left is not None and len(pred):
                 seen[pred.index[self.supported(pred, left)]] = True
             self._count_misses(pred, seen)
+        touched = np.nonzero(seen)[0]
         if len(new_P):
             self._insert(new_P, new_C, new_group, view)
             st.inserted = len(new_P)
+            touched = np.concatenate((touched, np.arange(len(self) - len(new_P), len(self))))
+        st.merged = self._merge_collinear(touched)
         st.verified, st.rivals_dropped = self._verify()
         st.pruned = self._prune()
         return st
@@ -382,6 +387,115 @@ class LineMap:
         self.P[j, 1] = q[:, 0] + s.max(axis=1)[:, None] * tq
         self.support[j] += 1
         self.misses[j] = np.maximum(0, self.misses[j] - 1)
+
+    # ------------------------------------------------------------ collinear merging
+    def _merge_collinear(self, touched: np.ndarray) -> int:
+        """Fuse map segments that lie on one 3D line and overlap or nearly meet along it (LSD breaks a
+        textured edge into pieces, differently in every frame): the pieces' observations are repeated
+        observations of one edge, so their information, support and viewpoints add up, and the edge is
+        verified from the viewpoints of all its pieces. Only pairs with a segment ``touched`` this frame are
+        tested (the others were tested when they last changed). Returns the number of merges."""
+        merged = 0
+        alive = np.ones(len(self), bool)
+        D, L = self.direction, self.length       # kept in step with the merges below
+        touched = np.asarray(touched, int)
+        if len(touched) == 0 or len(self) < 2:
+            return 0
+        # Cheap vectorised prefilter: another segment parallel, its midpoint near the line and the extent.
+        par = np.abs(D[touched] @ D.T) >= math.cos(math.radians(self.params.assoc_angle_deg))
+        par[np.arange(len(touched)), touched] = False
+        k, m = np.nonzero(par)
+        i = touched[k]
+        rel = 0.5 * (self.P[m, 0] + self.P[m, 1]) - self.P[i, 0]
+        s = (rel * D[i]).sum(axis=1)
+        perp = np.linalg.norm(rel - s[:, None] * D[i], axis=1)
+        half = 0.5 * L[m] + self.params.merge_gap_m
+        close = (perp < 0.2) & (s >= -half) & (s <= L[i] + half)
+        queue = [int(j) for j in np.unique(i[close])]
+        while queue:
+            i = queue.pop()
+            if i >= len(alive) or not alive[i]:
+                continue
+            j = self._merge_partner(i, alive, D, L)
+            if j is None:
+                continue
+            keep, gone = (i, j) if self._rank(i) >= self._rank(j) else (j, i)
+            self._absorb(keep, gone)
+            d = self.P[keep, 1] - self.P[keep, 0]
+            L[keep] = np.linalg.norm(d)
+            D[keep] = d / max(L[keep], 1e-12)
+            alive[gone] = False
+            merged += 1
+            queue.append(keep)                   # the grown segment may now reach another piece
+        self._remove(~alive)
+        return merged
+
+    def _rank(self, k: int) -> tuple:
+        return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
+
+    def _merge_partner(self, i: int, alive: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> Optional[int]:
+        """The alive segment on segment i's line (direction, both endpoints within the chi-square gate of
+        both covariances across the line) that overlaps it or ends within ``merge_gap_m`` of it."""
+        p = self.params
+        cosang = t @ t[i]
+        cand = np.nonzero(alive & (np.abs(cosang) >= math.cos(math.radians(p.assoc_angle_deg))))[0]
+        cand = cand[cand != i]
+        # Rivals of one left segment are alternatives, not pieces of one edge.
+        if self.group[i] >= 0:
+            cand = cand[self.group[cand] != self.group[i]]
+        if len(cand) == 0:
+            return None
+        a, d, L = self.P[i, 0], t[i], lengths[i]
+        s = (self.P[cand] - a) @ d                                                   # (K, 2) along i
+        gap = np.maximum(s.min(axis=1) - L, -s.max(axis=1))
+        foot = a + s[..., None] * d
+        r = self.P[cand] - foot                                                      # (K, 2, 3) across i
+        near = (gap <= p.merge_gap_m) & (np.linalg.norm(r, axis=2).max(axis=1) < 0.2)
+        cand, r = cand[near], r[near]
+        if len(cand) == 0:
+            return None
+        extra = p.assoc_extra_m ** 2 * np.eye(3)
+        Ci = self.cov[i].mean(axis=0)
+        S = Ci[None, None] + self.cov[cand] + extra + ALONG_VAR * np.outer(d, d)
+        m2 = np.einsum("kei,keij,kej->ke", r, np.linalg.inv(S), r)
+        ok = (m2 <= CHI2_3_99).all(axis=1)
+        if not ok.any():
+            return None
+        return int(cand[ok][np.argmin(m2[ok].sum(axis=1))])
+
+    def _absorb(self, i: int, j: int) -> None:
+        """Segment j's information, extent, support and viewpoints into segment i (j is then removed)."""
+        t = self.direction[i]
+        Pj, Cj = self.P[j], self.cov[j]
+        if (Pj[1] - Pj[0]) @ t < 0:
+            Pj, Cj = Pj[::-1], Cj[::-1]
+        # j's line evaluated where i's endpoints are along it (its information constrains the line, not
+        # the positions along it), with j's covariance; then summed like any repeated observation.
+        tj = (Pj[1] - Pj[0]) / max(np.linalg.norm(Pj[1] - Pj[0]), 1e-12)
+        for e in range(2):
+            sj = (self.P[i, e] - Pj[0]) @ tj
+            x = Pj[0] + sj * tj
+            W = np.linalg.inv(Cj[e] + ALONG_VAR * np.outer(t, t))
+            self.info[i, e] += W
+            self.info_vec[i, e] += W @ x
+        self.cov[i] = np.linalg.inv(self.info[i])
+        q = np.einsum("eij,ej->ei", self.cov[i], self.info_vec[i])
+        tq = q[1] - q[0]
+        tq = tq / max(np.linalg.norm(tq), 1e-12)
+        s = [float((x - q[0]) @ tq) for x in (self.P[i, 0], self.P[i, 1], Pj[0], Pj[1])]
+        self.P[i, 0] = q[0] + min(s) * tq
+        self.P[i, 1] = q[0] + max(s) * tq
+        if not self.verified[i]:
+            # A candidate's anchor (where it is re-observed) becomes the merged estimate.
+            self.anchor[i] = self.P[i]
+            self.anchor_cov[i] = self.cov[i]
+        self.support[i] += self.support[j]
+        self.misses[i] = min(self.misses[i], self.misses[j])
+        self.hypothesis[i] &= self.hypothesis[j]
+        if self.group[i] != self.group[j]:
+            self.group[i] = -1                   # the merged edge is no longer one left segment's alternative
+        for v in self.views[j]:
+            self._add_view(i, v)
 
     def _add_view(self, j: int, view: np.ndarray) -> None:
         p = self.params

@@ -7,10 +7,15 @@ back-projects to another plane through that camera centre, and the two planes me
 baseline is well placed exactly when the stereo one is not: driving toward a frontal edge moves the
 camera across the edge's plane.
 
-Matching across frames uses direction, the contrast on both sides and the image distance allowed by the
-motion; every candidate pair of a segment becomes a rival hypothesis (one group), and the DLM's
-verification from three viewpoints decides, as for stereo rivals (Fig. 11.4). The covariance comes from
-perturbing each image line by ``sigma_perp_px`` across itself (finite differences).
+Matching across frames first removes the rotation between the two views (the keyframe's segments mapped
+by the infinite homography K R_now^T R_key K^-1: a robot turning 10 degrees between the frames moves every
+line by ~70 px, mostly along a horizontal line), then uses direction, the contrast on both sides, the
+distance across the line (the parallax the triangulation needs, at most ``max_shift_px``) and the gap
+along it (``max_along_px``; a midpoint-distance gate refused most pairs of a turning robot); every candidate pair
+of a segment becomes a rival hypothesis (one group), and the DLM's verification from three viewpoints
+decides, as for stereo rivals (Fig. 11.4). The covariance comes from perturbing each image line by
+``sigma_perp_px`` across itself (finite differences); a pair whose endpoints come out with a sigma above
+``max_sigma_m`` (too little parallax across the line: motion along it) is not used.
 """
 from __future__ import annotations
 
@@ -26,12 +31,14 @@ from vbnav.vision.line_segments import Segments2D, Segments3D
 @dataclass(frozen=True)
 class MotionParams:
     max_angle_deg: float = 20.0        # handles the segments stereo leaves out (below this to the rows)
-    max_shift_px: float = 60.0         # midpoint displacement allowed between the keyframe and now
+    max_shift_px: float = 60.0         # parallax across the line allowed between the keyframe and now (rotation removed)
+    max_along_px: float = 80.0         # shift along the line allowed (the segments must still overlap)
     match_angle_deg: float = 6.0
     side_tol: float = 25.0             # grey levels, both sides
     min_plane_angle_deg: float = 0.5   # the two back-projected planes must differ this much (the covariance says how well)
     sigma_perp_px: float = 0.3
     max_candidates: int = 3
+    max_sigma_m: float = 0.1           # endpoint sigma (largest axis) above which a pair is not used
 
 
 def _plane(seg: np.ndarray, R: np.ndarray, t: np.ndarray, K_inv: np.ndarray) -> np.ndarray:
@@ -107,27 +114,41 @@ def triangulate_two_views(seg_k: np.ndarray, R_k, t_k, seg_j: np.ndarray, R_j, t
 
 
 def match_across_motion(cur: Segments2D, cur_sel: np.ndarray, key: Segments2D,
-                        params: MotionParams = MotionParams()) -> list[tuple[int, list[int]]]:
+                        params: MotionParams = MotionParams(), H: Optional[np.ndarray] = None) -> list[tuple[int, list[int]]]:
     """For each selected current segment, the keyframe segments it may be (direction, both sides' grey
-    levels, image distance), best first."""
+    levels, distance across the line and overlap along it after the keyframe's segments are mapped by
+    ``H``, the rotation between the views), best first."""
     if len(key) == 0:
         return []
-    kd = key.direction
-    kmid = 0.5 * (key.xy[:, 0:2] + key.xy[:, 2:4])
+    kxy = key.xy if H is None else _map_segments(key.xy, H)
+    kd = kxy[:, 2:4] - kxy[:, 0:2]
+    klen = np.maximum(np.linalg.norm(kd, axis=1), 1e-9)
+    kd = kd / klen[:, None]
+    kn = np.column_stack((-kd[:, 1], kd[:, 0]))
     out = []
     for i in np.nonzero(cur_sel)[0]:
         d = cur.direction[i]
         mid = 0.5 * (cur.xy[i, 0:2] + cur.xy[i, 2:4])
         cosang = kd @ d                      # same polarity
-        dist = np.linalg.norm(kmid - mid, axis=1)
+        across = np.abs(((mid - kxy[:, 0:2]) * kn).sum(axis=1))
+        s0 = ((cur.xy[i, 0:2] - kxy[:, 0:2]) * kd).sum(axis=1)
+        s1 = ((cur.xy[i, 2:4] - kxy[:, 0:2]) * kd).sum(axis=1)
+        lo, hi = np.minimum(s0, s1), np.maximum(s0, s1)
+        along = np.maximum(np.maximum(-hi, lo - klen), 0.0)           # gap between the extents along the line
         side = np.abs(key.sides - cur.sides[i]).max(axis=1)
-        ok = (cosang >= math.cos(math.radians(params.match_angle_deg))) & (dist <= params.max_shift_px) \
-            & (side <= params.side_tol)
+        ok = (cosang >= math.cos(math.radians(params.match_angle_deg))) & (across <= params.max_shift_px) \
+            & (along <= params.max_along_px) & (side <= params.side_tol)
         cand = np.nonzero(ok)[0]
         if len(cand):
-            cand = cand[np.argsort(side[cand] + 0.2 * dist[cand])][:params.max_candidates]
+            cand = cand[np.argsort(side[cand] + 0.2 * across[cand])][:params.max_candidates]
             out.append((int(i), cand.tolist()))
     return out
+
+
+def _map_segments(xy: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """Segments (N, 4) mapped by the homography H (their endpoints)."""
+    pts = np.column_stack((xy.reshape(-1, 2), np.ones(2 * len(xy)))) @ H.T
+    return (pts[:, :2] / pts[:, 2:3]).reshape(-1, 4)
 
 
 def motion_segments(cur: Segments2D, R_k, t_k, key: Segments2D, R_j, t_j, K: np.ndarray,
@@ -135,13 +156,16 @@ def motion_segments(cur: Segments2D, R_k, t_k, key: Segments2D, R_j, t_j, K: np.
     """3D segments (current camera frame) of the near-horizontal current segments matched in the keyframe.
     Rival pairs of one current segment share a group (numbered from ``first_group``)."""
     sel = np.abs(cur.direction[:, 1]) < math.sin(math.radians(params.max_angle_deg))
+    H = K @ R_k.T @ R_j @ np.linalg.inv(K)           # keyframe image -> current image, rotation only
     P, C, lx, grp = [], [], [], []
-    for i, cands in match_across_motion(cur, sel, key, params):
+    for i, cands in match_across_motion(cur, sel, key, params, H):
         for j in cands:
             r = triangulate_two_views(cur.xy[i], R_k, t_k, key.xy[j], R_j, t_j, K, params)
             if r is None:
                 continue
             Pw, Cw = r
+            if max(np.linalg.eigvalsh(c).max() for c in Cw) > params.max_sigma_m ** 2:
+                continue
             P.append((Pw - t_k) @ R_k)                          # into the current camera frame
             C.append(np.einsum("ji,ejk,kl->eil", R_k, Cw, R_k))
             lx.append(cur.xy[i])

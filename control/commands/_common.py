@@ -77,3 +77,14 @@ def output_file(path: str | Path | None, option: str) -> None:
     if not parent.is_dir():
         what = "is not a directory" if parent.exists() else "does not exist"
         raise InputError(f"{option} {p}: the folder {parent} {what}")
+
+
+def enable_live_view(cfg) -> None:
+    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more)."""
+    from pydantic import ValidationError
+    t = cfg.telemetry.model_dump()
+    t["live_view"]["enabled"] = True
+    try:
+        cfg.telemetry = type(cfg.telemetry).model_validate(t)
+    except ValidationError as exc:
+        raise InputError(f"--live-view: {exc.errors()[0]['msg']}") from None

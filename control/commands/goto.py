@@ -5,35 +5,7 @@ import math
 import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
-
-
-def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
-    """The traversability grid (vision/nav_grid.py) of a loaded map: its verified segments and the object
-    footprints abstracted from them or stored with the map; ``extra_points`` (N, 2) x, z lie inside it."""
-    import dataclasses
-
-    import numpy as np
-
-    from vbnav.vision.line_abstraction import box_polygons, vertical_edges
-    from vbnav.vision.nav_grid import GridParams, build_grid
-
-    V = lmap.P[lmap.verified]
-    polys = [p.footprint for p in box_polygons(vertical_edges(V))]
-    polys += [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
-    params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
-    return build_grid(V, params, extra_points=extra_points, polygons=polys)
-
-
-def plan_on_map(path: str, start, goal, robot_radius: float):
-    """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the map's walls and objects."""
-    import numpy as np
-
-    from vbnav.control.line_map_file import load_map
-    from vbnav.vision.nav_grid import plan
-
-    lmap, meta = load_map(path)
-    grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
-    return plan(grid, (start.x, start.z), (goal.x, goal.z))
+from vbnav.control.map_planning import map_route_in_reference_frame, plan_on_map
 
 
 def register(sub) -> None:
@@ -94,10 +66,7 @@ def run(args) -> int:
                   f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
             return 1
         print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
-        # The controller works in the reference frame: the robot's pose at the start.
-        ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
-        waypoints = [(p.x, p.z) for p in ref]
-        goal = start.between(goal)
+        waypoints, goal = map_route_in_reference_frame(planned, start, goal)
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:

@@ -74,7 +74,7 @@ def run_build(args) -> int:
     from vbnav.control.line_map_file import save_map
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
-    from vbnav.control.commands.run import enable_live_view
+    from vbnav.control.commands._common import enable_live_view
     from vbnav.control.runtime.runtime import Runtime
     from vbnav.control.stages.line_map import LineMapStage
 
@@ -192,7 +192,7 @@ def run_view(args) -> int:
     import threading
     import time
 
-    from vbnav.control.commands.goto import map_grid
+    from vbnav.control.map_planning import map_grid
     from vbnav.control.line_map_file import load_map
     lmap, meta = load_map(args.map)
     try:

@@ -4,7 +4,8 @@ from __future__ import annotations
 import json
 import sys
 
-from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
+from vbnav.control.commands._common import (add_config_arg, enable_live_view, output_file, positive,
+                                           record_target_error)
 from vbnav.drivers.errors import InputError
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
@@ -51,17 +52,6 @@ def build_controller(cfg, kind: str):
     if kind == "idle":
         return IdleController()
     raise ValueError(f"controller.kind {kind!r} is not available in 'vbnav run'")
-
-
-def enable_live_view(cfg) -> None:
-    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more)."""
-    from pydantic import ValidationError
-    t = cfg.telemetry.model_dump()
-    t["live_view"]["enabled"] = True
-    try:
-        cfg.telemetry = type(cfg.telemetry).model_validate(t)
-    except ValidationError as exc:
-        raise InputError(f"--live-view: {exc.errors()[0]['msg']}") from None
 
 
 def camera_wanted(cfg, kind: str, args) -> bool:

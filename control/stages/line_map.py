@@ -29,8 +29,9 @@ import numpy as np
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
-from vbnav.vision.line_abstraction import AbstractionParams, box_polygons, missing_lines, vertical_edges
+from vbnav.vision.line_abstraction import AbstractionParams, missing_lines, object_polygons
 from vbnav.vision.line_map import LineMap, MapParams
+from vbnav.vision.line_floor import floor_segments
 from vbnav.vision.line_motion import motion_segments
 from vbnav.vision.line_segments import LineParams, Segments3D, reconstruct_pair
 
@@ -69,11 +70,11 @@ class AbstractionThread:
     def step(self) -> int:
         """One abstraction pass (also callable inline, e.g. on a simulated clock). Returns hypotheses posted."""
         P = self.snapshot()
-        polys = box_polygons(vertical_edges(P, self.params), self.params)
+        polys = object_polygons(P, self.params)
         self.polygons = polys
         posted = 0
         for poly in polys:
-            hyp = missing_lines(poly)
+            hyp = missing_lines(poly, self.params)
             if len(hyp) == 0:
                 continue
             key = tuple(np.round(poly.footprint.ravel(), 1))     # post each object's hypotheses once
@@ -105,7 +106,8 @@ class LineMapStage(VisionStage):
     def __init__(self, fx: float, fy: float, cx: float, cy: float, width: int, height: int, baseline: float,
                  mount: CameraMount, line_params: LineParams = LineParams(), map_params: MapParams = MapParams(),
                  lmap: Optional[LineMap] = None, pose_fn: Optional[Callable[[Pose2], Pose2]] = None,
-                 abstraction_period_s: Optional[float] = 1.0, guided: bool = True, motion: bool = False):
+                 abstraction_period_s: Optional[float] = 1.0, guided: bool = True, motion: bool = False,
+                 floor: bool = True):
         self.cam = (fx, fy, cx, cy)
         self.size = (width, height)
         self.baseline = baseline
@@ -115,6 +117,7 @@ class LineMapStage(VisionStage):
         self.pose_fn = pose_fn or (lambda odom: odom)
         self.guided = guided
         self.motion = motion
+        self.floor = floor
         self._key = None              # (left segments, R_wc, t_wc) of the last keyframe
         self.lock = threading.Lock()
         self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0}
@@ -170,10 +173,13 @@ class LineMapStage(VisionStage):
         prior_fn = (lambda segs: self.map.prior_for(segs, pred)) if self.guided else None
         res = reconstruct_pair(frame.image, frame.right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
         segs = res.segments
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        if self.floor:
+            # Near-horizontal segments on the floor (box and wall feet): the known floor plane, checked in the pair.
+            segs = Segments3D.concat([segs, floor_segments(res.left, frame.image, frame.right, K, self.baseline, R, t)])
         if self.motion:
             # Near-horizontal segments (no disparity of their own) from the robot's motion since the keyframe.
             if self._key is not None:
-                K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
                 segs = Segments3D.concat([segs, motion_segments(res.left, R, t, *self._key, K)])
             if self._key is None or np.linalg.norm(t - self._key[2]) >= KEYFRAME_BASELINE_M:
                 self._key = (res.left, R, t)
