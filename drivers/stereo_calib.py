@@ -24,19 +24,29 @@ vbnav stereo YAML (``*.yaml`` / ``*.yml``), documented in docs/obstacles.md::
       pitch_deg: 0.0      # positive looking down
       roll_deg: 0.0
     disparity_scale: 1.0  # optional: disparity px per unit of a stored integer disparity image
+
+OpenCV stereo rectification (``%YAML`` FileStorage, ``.yaml``/``.yml``/``.xml``), the result of
+``cv2.stereoRectify`` for a pair of RAW (distorted, unrectified) cameras, e.g.
+``indoor_stereo/euroc_v101/stereo_rectify.yaml``: ``image_width``, ``image_height``, per camera
+``K0``/``D0`` (left) and ``K1``/``D1`` (right: 3x3 intrinsics, plumb_bob/radtan distortion), the
+rectifying rotations ``R1`` (left) and ``R2`` (right) and the rectified projections ``P1``/``P2``
+(OpenCV's names: 1 = left, 2 = right). The rectified left camera is K = P1[:, :3] and the baseline
+B = -P2[0, 3] / P2[0, 0]. Only a caller that rectifies the images it reads accepts this form
+(``raw_images=True``: ``StereoCalibration.rectify`` remaps a raw pair); the others reject it by name.
 """
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+import cv2
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from vbnav.drivers.calibration import CalibrationError, check_intrinsics
+from vbnav.drivers.calibration import CalibrationError, _fs_int, _fs_mat, check_baseline, check_intrinsics
 from vbnav.drivers.errors import yaml_problem
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
@@ -63,6 +73,32 @@ class _StereoYaml(BaseModel):
 
 
 @dataclass(frozen=True, eq=False)
+class Rectification:
+    """How a raw (distorted, unrectified) pair becomes the rectified one: per camera (left, right) its
+    intrinsics ``K``, distortion ``D``, rectifying rotation ``R`` and rectified projection ``P``, as
+    cv2.stereoRectify gives them, for raw images of ``size`` (width, height)."""
+
+    K: tuple
+    D: tuple
+    R: tuple
+    P: tuple
+    size: tuple[int, int]
+    _maps: list = field(default_factory=list, repr=False)
+
+    def apply(self, left: np.ndarray, right: np.ndarray, source: str) -> tuple[np.ndarray, np.ndarray]:
+        """The rectified pair (bilinear remap; the maps are made once)."""
+        for name, img in (("left", left), ("right", right)):
+            if (img.shape[1], img.shape[0]) != tuple(self.size):
+                raise CalibrationError(f"{source}: image_width/image_height: the rectification is for "
+                                       f"{self.size[0]}x{self.size[1]} raw images, the {name} image is "
+                                       f"{img.shape[1]}x{img.shape[0]}")
+        if not self._maps:
+            self._maps.extend(cv2.initUndistortRectifyMap(self.K[i], self.D[i], self.R[i], self.P[i],
+                                                          tuple(self.size), cv2.CV_32FC1) for i in range(2))
+        return tuple(cv2.remap(img, *self._maps[i], cv2.INTER_LINEAR) for i, img in enumerate((left, right)))
+
+
+@dataclass(frozen=True, eq=False)
 class StereoCalibration:
     """A rectified stereo pair as a calibration file gives it.
 
@@ -79,6 +115,7 @@ class StereoCalibration:
     mount_roll_deg: float = 0.0
     disparity_scale: Optional[float] = None
     source: str = "<calibration>"
+    rectification: Optional[Rectification] = None  # set when the file describes the raw cameras
 
     # the left camera's intrinsics by name
     fx = property(lambda self: float(self.K[0, 0]))
@@ -104,15 +141,80 @@ class StereoCalibration:
             raise CalibrationError(f"{self.source}: no right camera (P1) in the file")
         return StereoRig(self.camera(width, height), self.baseline)
 
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rectified pair: raw images remapped if the file describes raw cameras, else as given."""
+        if self.rectification is None:
+            return left, right
+        return self.rectification.apply(left, right, self.source)
 
-def load_stereo_calibration(path: str | Path) -> StereoCalibration:
-    """KITTI calib.txt or vbnav stereo YAML, chosen by the file suffix."""
+
+def load_stereo_calibration(path: str | Path, raw_images: bool = False) -> StereoCalibration:
+    """KITTI calib.txt, vbnav stereo YAML or (``raw_images``: the caller rectifies with
+    ``StereoCalibration.rectify``) an OpenCV stereo rectification, chosen by suffix and first line."""
     p = Path(path)
     if not p.is_file():
         raise CalibrationError(f"{p}: calibration file not found")
-    if p.suffix.lower() in (".yaml", ".yml"):
+    if p.suffix.lower() in (".yaml", ".yml", ".xml"):
+        if p.read_text(errors="replace").lstrip().startswith(("%YAML", "<?xml", "<opencv_storage")):
+            if not raw_images:
+                raise CalibrationError(f"{p}: an OpenCV stereo rectification (K0, D0, R1, P1, ...) describes raw "
+                                       f"cameras; this command takes rectified images and their calibration "
+                                       f"(vbnav stereo YAML or KITTI calib.txt)")
+            return read_opencv_rectification(p)
         return _load_yaml(p)
     return read_kitti_calib(p)
+
+
+_RECT_SHAPES = {"K0": (3, 3), "K1": (3, 3), "R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4)}
+
+
+def read_opencv_rectification(path: str | Path) -> StereoCalibration:
+    """The rectified pair and the maps to it from an OpenCV FileStorage file with cv2.stereoRectify's result
+    (module docstring). Errors name the file and the field."""
+    p = Path(path)
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:    # a parse error surfaces as SystemError from the constructor
+        why = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        raise CalibrationError(f"{p}: not a readable OpenCV YAML/XML file ({why})") from None
+    if not fs.isOpened():
+        raise CalibrationError(f"{p}: not a readable OpenCV YAML/XML file")
+    try:
+        m = {k: _fs_mat(fs, (k,)) for k in ("K0", "D0", "K1", "D1", "R1", "R2", "P1", "P2")}
+        w, h = _fs_int(fs, ("image_width",)), _fs_int(fs, ("image_height",))
+    finally:
+        fs.release()
+    for k, v in m.items():
+        want = _RECT_SHAPES.get(k)
+        if v is None:
+            raise CalibrationError(f"{p}: {k}: missing (an OpenCV stereo rectification needs K0, D0, K1, D1, "
+                                   f"R1, R2, P1, P2, image_width, image_height)")
+        v = np.asarray(v, float)
+        if (want is not None and v.shape != want) or (want is None and v.size not in (4, 5, 8, 12, 14)):
+            raise CalibrationError(f"{p}: {k}: expected " + (f"a {want[0]}x{want[1]} matrix" if want else
+                                   "4, 5, 8, 12 or 14 distortion coefficients") + f", got shape {v.shape}")
+        if not np.isfinite(v).all():
+            raise CalibrationError(f"{p}: {k}: expected finite numbers")
+        m[k] = v if want is not None else v.ravel()
+    if w is None or h is None or w <= 0 or h <= 0:
+        raise CalibrationError(f"{p}: image_width/image_height: expected the raw image size in pixels > 0")
+    for k in ("R1", "R2"):
+        if not np.allclose(m[k] @ m[k].T, np.eye(3), atol=1e-6):
+            raise CalibrationError(f"{p}: {k}: expected a rotation matrix (orthonormal)")
+    P1, P2 = m["P1"], m["P2"]
+    if not np.allclose(P1[:, :3], P2[:, :3], rtol=1e-6, atol=1e-6) or np.any(P1[:, 3] != 0):
+        raise CalibrationError(f"{p}: P1/P2: expected one rectified K for both cameras and P1 = K [I | 0]")
+    if P2[1, 3] != 0 or P2[2, 3] != 0:
+        raise CalibrationError(f"{p}: P2: expected a horizontal pair (P2[1,3] = P2[2,3] = 0), got a vertical "
+                               f"or skewed rectification")
+    baseline = float(-P2[0, 3] / P2[0, 0])
+    check_baseline(str(p), baseline, "P2 (baseline -P2[0,3]/P2[0,0])")
+    K = P1[:, :3].copy()
+    check_intrinsics(str(p), K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, prefix="P1 ")
+    for k in ("K0", "K1"):
+        check_intrinsics(str(p), m[k][0, 0], m[k][1, 1], m[k][0, 2], m[k][1, 2], w, h, prefix=f"{k} ")
+    rect = Rectification((m["K0"], m["K1"]), (m["D0"], m["D1"]), (m["R1"], m["R2"]), (P1, P2), (w, h))
+    return StereoCalibration(K, baseline, (w, h), source=str(p), rectification=rect)
 
 
 def _load_yaml(p: Path) -> StereoCalibration:

@@ -33,12 +33,15 @@ def register(subparsers) -> None:
                     "within --min-epipolar-angle of horizontal are not reconstructed: their disparity is "
                     "undetermined. Writes JSON; prints a one-line summary.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--left", required=True, metavar="L", help="rectified left image")
-    p.add_argument("--right", required=True, metavar="R", help="rectified right image")
+    p.add_argument("--left", required=True, metavar="L", help="left image (rectified, or raw with an OpenCV "
+                   "stereo rectification as --calib)")
+    p.add_argument("--right", required=True, metavar="R", help="right image (as --left)")
     p.add_argument("--calib", required=True, metavar="FILE",
-                   help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (as for vbnav obstacles)")
+                   help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (as for vbnav obstacles), or an OpenCV "
+                        "stereo rectification (K0 D0 K1 D1 R1 R2 P1 P2: the images are raw and are rectified "
+                        "with it; drivers/stereo_calib.py)")
     p.add_argument("--out", required=True, metavar="SEGMENTS.json", help="the segments (JSON)")
-    p.add_argument("--overlay-out", metavar="PNG", help="segments drawn on the left image, colour = depth")
+    p.add_argument("--overlay-out", metavar="PNG", help="segments drawn on the (rectified) left image, colour = depth")
     p.add_argument("--min-length", type=positive, default=LineParams.min_length_px, help="px")
     p.add_argument("--min-depth", type=positive, default=None,
                    help="m, nearest depth searched (sets the largest disparity); default 8 baselines")
@@ -74,12 +77,13 @@ def run(args) -> int:
     output_file(args.out, "--out")
     output_file(args.overlay_out, "--overlay-out")
     try:
-        calib = load_stereo_calibration(args.calib)
+        calib = load_stereo_calibration(args.calib, raw_images=True)
         left = read_image(args.left, "left image")
         right = read_image(args.right, "right image")
         if left.shape[:2] != right.shape[:2]:
             return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
                         f"{right.shape[1]}x{right.shape[0]}")
+        left, right = calib.rectify(left, right)
         h, w = left.shape[:2]
         rig = calib.rig(w, h)
     except (CalibrationError, ValueError, FileNotFoundError) as exc:
@@ -101,6 +105,8 @@ def run(args) -> int:
     data = {"format": FORMAT, "version": VERSION, "frame": "left camera: x right, y down, z forward (m)",
             "image": {"width": w, "height": h}, "baseline_m": rig.baseline,
             "detected": {"left": len(res.left), "right": len(res.right)}, "segments": items}
+    if calib.rectification is not None:      # image coordinates are those of the rectified pair
+        data["rectified_with"] = str(args.calib)
     write_json(args.out, data)
     if args.overlay_out:
         write_png(args.overlay_out, draw_segments(left, seg.left_xy, seg.P[..., 2].mean(axis=1)))
