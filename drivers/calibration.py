@@ -176,7 +176,7 @@ def _first(doc: dict, names):
 def _load_opencv(path: Path):
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
+    except (cv2.error, SystemError) as e:  # a parse error surfaces as SystemError from the constructor
         raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file ({str(e).strip()})") from None
     if not fs.isOpened():
         raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file")

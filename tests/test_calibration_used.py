@@ -54,7 +54,8 @@ def test_missing_file_fails_config_check_naming_it(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("garbage", ["camera_matrix: [1, 2\n", "just words\n", "image_width: 640\nimage_height: 480\n"
-                                     "camera_matrix: {data: [0, 0, 0, 0, 0, 0, 0, 0, 1]}\n"])
+                                     "camera_matrix: {data: [0, 0, 0, 0, 0, 0, 0, 0, 1]}\n",
+                                     "%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 3\n  cols: [\n"])
 def test_garbage_file_fails_config_check_naming_it(tmp_path, capsys, garbage):
     (tmp_path / "bad.yaml").write_text(garbage)
     code, text = check(capsys, config_with(tmp_path, "bad.yaml"))
