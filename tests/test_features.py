@@ -155,6 +155,28 @@ def test_vslam_poses_a_jump_beyond_klt_by_orb_matching(rng):
     assert rotation_angle_deg(r.pose_wc[:3, :3]) < 0.2
 
 
+def test_vslam_poses_a_rolled_jump_by_oriented_orb_tied_to_its_landmarks(rng):
+    """0.3 m sideways and 30 degrees of roll between two frames of a plane 2 m away: KLT and the
+    landmarks' upright descriptors both fail; oriented ORB between the two images gives the rotation and
+    the direction, the landmarks its corners sit on give the length of the step."""
+    from vbnav.vision.vslam import Vslam, VslamConfig
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    wide = np.hstack((texture(rng), texture(rng)[:, :320]))
+    depth = np.full((480, 640), 2.0, np.float32)
+    slam = Vslam(cam, VslamConfig(max_landmarks=400, min_landmarks=250, min_distance_px=8))
+    slam.initialise_depth(wide[:, :640], depth)
+    # Camera 75 px / 500 px * 2 m = 0.3 m to the right, then rolled 30 degrees about its optical axis:
+    # for a fronto-parallel plane that is the image rotated about the principal point.
+    moved = wide[:, 75:715]
+    rolled = cv2.warpAffine(moved, cv2.getRotationMatrix2D((319.5, 239.5), 30.0, 1.0), (640, 480),
+                            borderMode=cv2.BORDER_REFLECT)
+    r = slam.process(rolled, depth=depth)
+    assert r.ok and slam.descriptor_poses == 1, r
+    np.testing.assert_allclose(r.pose_wc[:3, 3], [0.3, 0.0, 0.0], atol=0.03)
+    assert abs(rotation_angle_deg(r.pose_wc[:3, :3]) - 30.0) < 0.5
+    assert abs(abs(r.pose_wc[2, 2]) - 1.0) < 1e-3  # about the optical axis
+
+
 def rotation_angle_deg(R):
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 

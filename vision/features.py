@@ -360,6 +360,21 @@ def describe(image: np.ndarray, pts: np.ndarray, size: float = 19.0) -> tuple[np
     return desc, np.array([k.class_id for k in kps], np.int64)
 
 
+def orb_matches(a: np.ndarray, b: np.ndarray, features: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (K, 2) in ``a`` and in ``b`` of oriented multi-scale ORB corners matched between the two
+    images (ratio test + mutual best): what survives a jump that KLT's pyramid cannot follow (a turn of
+    tens of degrees, frames a second apart), where upright single-scale descriptors stop matching."""
+    orb = cv2.ORB_create(nfeatures=features)
+    ka, da = orb.detectAndCompute(to_grey(a), None)
+    kb, db = orb.detectAndCompute(to_grey(b), None)
+    if da is None or db is None:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pairs = match_descriptors(da, db)
+    pa = np.array([ka[i].pt for i in pairs[:, 0]], float).reshape(-1, 2)
+    pb = np.array([kb[j].pt for j in pairs[:, 1]], float).reshape(-1, 2)
+    return pa, pb
+
+
 def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float = 0.8,
                       max_distance: int = 64) -> np.ndarray:
     """Pairs (K, 2) of (query index, train index): Lowe's ratio test and mutual best match."""

@@ -27,12 +27,21 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from vbnav.vision.bundle_adjust import bundle_adjust
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
-from vbnav.vision.features import KltTracker, describe, match_descriptors
+from vbnav.vision.features import KltTracker, describe, match_descriptors, orb_matches
 from vbnav.vision.geometry import absolute_orientation
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
 
 
+# ORB corners are tied to the landmarks they sit on in the last image within this distance: about the
+# localisation error of an ORB keypoint found on pyramid level 1-2 (scale 1.2-1.44, +-1 px there).
+ORB_TIE_PX = 3.0
+# A KLT pose whose consensus is under a quarter of the tracks is doubted: true tracks of a rigid scene agree
+# far more (40-95 % per frame on the real sequences in ../shared/data), tracks dragged by a jump beyond the
+# pyramid agree by chance. The ORB fallbacks are tried; the KLT pose stands only if they fail.
+MIN_INLIER_FRACTION = 0.25
+# Essential-matrix inliers needed from those matches: 5 determine it; 15 give a margin over outliers.
+ORB_MIN_MATCHES = 15
 # A monocular landmark triangulated at the 2 degree parallax gate with 1 px of noise at f = 500-720 px
 # has a depth error of 1 / (0.035 f) = 3-6 % (one sigma); 10 % of its distance is about two sigmas.
 SIM3_MAX_RELATIVE_ERROR = 0.10
@@ -306,6 +315,7 @@ class Vslam:
         n_lm = len(self.lm.P)
         before = _Landmarks(**{k: getattr(self.lm, k) for k in _Landmarks._ROWS})  # for the ORB fallback
         pts = np.vstack((self.lm.px, self.cand.px))
+        last_image = self.prev
         new_px, ok = self.tracker.track(self.prev, image, pts, guess=self._predicted_pixels())
         self.lm.px, self.cand.px = new_px[:n_lm], new_px[n_lm:]
         self.cand.keep(ok[n_lm:])
@@ -323,11 +333,17 @@ class Vslam:
             est = recover_motion_robust(self.lm.P, self.camera.rays(self.lm.px), prior=self._predicted_motion(),
                                         threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
                                         weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
-        if est is None or (est.inliers & (est.depths > 0)).sum() < cfg.min_inliers:
-            # KLT kept too few (a jump, blur, an exposure change): match ORB descriptors of the landmarks
-            # against fresh corners of this image, pose from those.
-            est = self._descriptor_pose(image, before, f)
-            if est is None:
+        agree = 0 if est is None else int((est.inliers & (est.depths > 0)).sum())
+        if agree < cfg.min_inliers or agree < MIN_INLIER_FRACTION * tracked:
+            # KLT kept too few, or mostly wrong ones (a jump, blur, an exposure change): match ORB
+            # descriptors of the landmarks against fresh corners of this image, pose from those; then
+            # oriented ORB between the last image and this one. A weak KLT pose stands only if both fail.
+            fallback = self._descriptor_pose(image, before, f)
+            if fallback is None:
+                fallback = self._orb_tie_pose(last_image, image, before, f)
+            if fallback is not None:
+                est = fallback
+            elif agree < cfg.min_inliers:
                 return FrameResult(False, self.pose_wc, tracked, 0, 0, float("nan"),
                                    reference=len(self.references) - 1)
         self.stats.append(est)
@@ -380,6 +396,60 @@ class Vslam:
         self.descriptor_poses += 1
         est.inliers, est.depths = est.inliers[order], est.depths[order]
         return est
+
+    def _orb_tie_pose(self, last_image: np.ndarray, image: np.ndarray, before: _Landmarks, f: float
+                      ) -> Optional[MotionEstimate]:
+        """Second fallback, for jumps that also defeat the landmarks' own upright descriptors (25 degrees
+        and 0.4 m between hand-held frames). Oriented multi-scale ORB matched between the last image and
+        this one gives the rotation and the direction of travel (essential matrix: many matches, no
+        landmark needed). The length of the step comes from the landmarks that an ORB corner sits on in
+        the last image (within ``ORB_TIE_PX``): each gives the length that puts it on its ray here; their
+        median is taken, and those within the inlier bound become the tracked set."""
+        d = before
+        if len(d.P) < 3:
+            return None
+        pa, pb = orb_matches(last_image, image)
+        if len(pa) < ORB_MIN_MATCHES:
+            return None
+        ra, rb = self.camera.rays(pa), self.camera.rays(pb)
+        ua, ub = ra[:, :2] / ra[:, 2:], rb[:, :2] / rb[:, 2:]
+        E, mask = cv2.findEssentialMat(ua, ub, np.eye(3), method=cv2.USAC_ACCURATE, prob=0.999,
+                                       threshold=self.cfg.inlier_threshold_px / f)
+        if E is None or E.shape != (3, 3):
+            return None
+        good, R_rel, t, mask = cv2.recoverPose(E, ua, ub, np.eye(3), mask=mask)
+        if good < ORB_MIN_MATCHES:
+            return None
+        t = t.ravel()
+        dist = np.linalg.norm(d.px[:, None, :] - pa[None, :, :], axis=2)  # landmarks x matches
+        near = np.argmin(dist, axis=1)
+        li = np.flatnonzero((dist[np.arange(len(d.P)), near] < ORB_TIE_PX) & (mask.ravel()[near] > 0))
+        if len(li) < 3:
+            return None
+        n = rb[near[li]]
+        X = (d.P[li] @ self.R.T + self.T) @ R_rel.T  # the landmarks rotated into this camera, before the step
+        nt, nX = np.cross(n, t), np.cross(n, X)
+        s = -np.einsum("ij,ij->i", nt, nX) / np.maximum(np.einsum("ij,ij->i", nt, nt), 1e-12)
+        step = float(np.median(s))
+        Xc = X + step * t
+        ang = np.arccos(np.clip(np.einsum("ij,ij->i", Xc / np.linalg.norm(Xc, axis=1)[:, None], n), -1, 1))
+        # A tied corner may sit up to ORB_TIE_PX from its landmark, here as in the last image.
+        inl = (ang < (ORB_TIE_PX + self.cfg.inlier_threshold_px) / f) & (Xc[:, 2] > 0)
+        if inl.sum() < 3:
+            return None
+        li = li[inl]
+        R, T = R_rel @ self.R, R_rel @ self.T + step * t
+        m = np.zeros(len(d.P), bool)
+        m[li] = True
+        d.keep(m)  # rows stay in index order: li is sorted
+        proj, _ = self.camera.project(Xc[inl])  # where the landmark is, not where its ORB corner was found
+        d.px = np.asarray(proj, float).reshape(-1, 2)
+        d.anchor[:], d.apx = self._img_id, d.px.copy()
+        self.lm = d
+        self.descriptor_poses += 1
+        k = len(li)
+        return MotionEstimate(R, T, np.linalg.norm(Xc[inl], axis=1), 0, float(np.sqrt(np.mean(ang[inl] ** 2))),
+                              np.ones(k, bool), True)
 
     # ------------------------------------------------------------------ relocalisation after a restart
     def world_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
