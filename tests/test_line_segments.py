@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -125,6 +126,41 @@ def test_prediction_breaks_a_tie_between_rival_matches():
     assert len(m) == 2 and m.best.sum() == 1                      # two hypotheses, tie to the first
     m = match_stereo(L, R, LineParams(), prior=np.array([[30.0, 0.3]]))
     assert m.right[m.best].tolist() == [1] and m.predicted[m.best].all()
+
+
+def _occluding_pair(with_object: bool = True):
+    """A uniform object face (grey 110, disparity 30 px, x >= 300 in the left image) in front of a wall of
+    20 px bands alternating dark and bright (disparity 10): the boundary's contrast changes sign every
+    20 rows, so LSD leaves no piece long enough; noise 2 grey levels."""
+    rng = np.random.default_rng(3)
+    H, W = 400, 480
+    rows = np.arange(H)[:, None]
+    cols = np.arange(W)[None, :]
+
+    def render(shift_obj, shift_bg):
+        bg = np.where((rows // 20) % 2 == 0, 40.0, 190.0) + 25.0 * np.sin((cols + shift_bg) / 7.0)
+        img = np.broadcast_to(bg, (H, W)).copy()
+        if with_object:
+            img[:, 300 - shift_obj:] = 110.0
+        img = cv2.GaussianBlur(img, (3, 3), 0.7) + rng.normal(0, 2.0, (H, W))
+        return np.clip(img, 0, 255).astype(np.uint8)
+
+    return render(0, 0), render(30, 10)
+
+
+@pytest.mark.parametrize("with_object", [True, False])
+def test_edge_search_matches_an_occluding_boundary_at_the_near_disparity(with_object):
+    from vbnav.vision.line_segments import Segments2D, match_edges
+    left, right = _occluding_pair()
+    _, right_without = _occluding_pair(with_object=False)
+    seg = Segments2D(np.array([[299.5, 100.0, 299.5, 300.0]]), np.array([[110.0, 110.0]]))
+    rxy, li = match_edges(left, right if with_object else right_without, seg, np.array([0]))
+    if not with_object:
+        assert len(li) == 0          # no edge anywhere along the epipolar lines with a side band matching
+        return
+    assert li.tolist() == [0]
+    d = 299.5 - rxy[0, [0, 2]]
+    assert np.all(np.abs(d - 30.0) < 0.3), d     # the object's disparity (the wall's is 10); measured ~0.1 px
 
 
 # ------------------------------------------------------------------------------- Middlebury

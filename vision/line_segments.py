@@ -63,6 +63,13 @@ class LineParams:
     sigma_along_px: float = 2.0         # endpoint accuracy along the line
     prior_bonus: float = 1.0            # score x (1 + bonus) for a candidate the prediction agrees with
     prior_gate_px: float = 1.5          # |d - d_predicted| allowed on top of 3 sigma of the prediction
+    # Edge search for left segments LSD found no partner for (occluding boundaries, see ``match_edges``).
+    edge_search: bool = True
+    edge_samples: int = 16              # points along the left segment
+    edge_strength: float = 0.5          # right-image edge along the line >= this x the left one's gradient
+    band_px: tuple = (2.0, 4.0, 6.0)    # side band offsets (beyond LSD's ~2 px support, as the floor test's)
+    band_max_diff: float = 12.0         # grey levels: mean |left - right| of a side band on one surface (noise ~2)
+    edge_refit_px: float = 1.0          # the right line's re-fit may move it this far from the searched disparity
 
 
 @dataclass
@@ -192,21 +199,30 @@ def detect_segments(image: np.ndarray, params: LineParams = LineParams()) -> Seg
 
 
 def refine_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams()) -> np.ndarray:
+    """See ``refit_lines``: the refined segments (a segment without enough gradient peaks keeps LSD's line)."""
+    return refit_lines(image, xy, params)[0]
+
+
+def refit_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams(), radius_px: float = None,
+                either_polarity: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Each segment moved across itself onto the full-resolution edge (endpoints stay where they are along it).
 
     At ``refine_samples`` points spread along the segment the gradient across the line (3x3 Sobel,
     bilinear) is sampled at whole-pixel offsets up to ``refine_radius_px`` either side; its peak, with the
     segment's own polarity, is located to sub-pixel by a parabola. A line offset(t) = a + b t fitted to the
     peaks (weighted by their strength, peaks more than 0.5 px off the first fit dropped) moves the endpoints.
-    A segment with fewer than a quarter of its samples on a peak keeps LSD's line.
+    A segment with fewer than a quarter of its samples on a peak keeps LSD's line. ``either_polarity``:
+    the gradient's magnitude across the line is fitted (an occluding boundary's contrast changes sign where
+    the background changes). Returns the segments and (N,) bool: re-fitted.
     """
     n_seg = len(xy)
     if n_seg == 0:
-        return xy
+        return xy, np.zeros(0, bool)
     g = image.astype(np.float32)
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    k, r = params.refine_samples, int(round(params.refine_radius_px))
+    k = params.refine_samples
+    r = int(round(params.refine_radius_px if radius_px is None else radius_px))
     t = (np.arange(k) + 0.5) / k                                       # (k,) along the segment
     off = np.arange(-r, r + 1, dtype=np.float64)                       # (m,) across it
     p0, p1 = xy[:, 0:2], xy[:, 2:4]
@@ -219,7 +235,10 @@ def refine_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LinePar
     sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(n_seg, k, -1)
     sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(n_seg, k, -1)
     prof = sx * nrm[:, None, None, 0] + sy * nrm[:, None, None, 1]      # gradient across the line (N, k, m)
-    prof = prof * np.sign(prof[:, :, r].sum(axis=1))[:, None, None]     # the segment's polarity: peaks positive
+    if either_polarity:
+        prof = np.abs(prof)
+    else:
+        prof = prof * np.sign(prof[:, :, r].sum(axis=1))[:, None, None]     # the segment's polarity: peaks positive
     j = prof.argmax(axis=2)                                            # (N, k)
     inner = (j > 0) & (j < 2 * r)
     jc = np.clip(j, 1, 2 * r - 1)
@@ -237,7 +256,7 @@ def refine_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LinePar
     out = xy.copy()
     out[ok, 0:2] += a[ok, None] * nrm[ok]
     out[ok, 2:4] += (a + b)[ok, None] * nrm[ok]
-    return out
+    return out, ok
 
 
 def _fit_offsets(t: np.ndarray, o: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -356,6 +375,86 @@ def match_stereo(left: Segments2D, right: Segments2D, params: LineParams = LineP
     return StereoMatches(il[a], ir[b], score[a, b], np.column_stack((d0, d1)), first, predicted[a, b])
 
 
+def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a float32 image at (x, y) (any equal shapes; 0 outside the image)."""
+    n = x.size
+    pad = (-n) % 1024                        # remap takes maps under 32767 rows and columns: 1024 columns
+    mx = np.concatenate((x.astype(np.float32).ravel(), np.zeros(pad, np.float32))).reshape(-1, 1024)
+    my = np.concatenate((y.astype(np.float32).ravel(), np.zeros(pad, np.float32))).reshape(-1, 1024)
+    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.ravel()[:n].reshape(x.shape)
+
+
+def _across_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    g = image.astype(np.float32)
+    return (cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125))
+
+
+def match_edges(left_image: np.ndarray, right_image: np.ndarray, left: Segments2D, todo: np.ndarray,
+                params: LineParams = LineParams()) -> tuple[np.ndarray, np.ndarray]:
+    """Partners in the right image for the left segments ``todo`` (indices) that LSD found none for.
+
+    At an occluding boundary the background differs between the two images, so the edge's contrast changes
+    along it, differently in each image, and LSD breaks it into pieces at different rows (or misses it) in
+    the right image. The edge itself is still there: along the epipolar lines, at the disparity of the
+    nearer surface (which owns the boundary). For every integer disparity in range the right image's
+    gradient across the segment (either sign) is averaged at the ``edge_samples`` points of the left
+    segment shifted by it; local maxima at least ``edge_strength`` x the left segment's own gradient are
+    candidates. A candidate needs one side band (``band_px`` off the line) to match between the images
+    (mean |left - right| <= ``band_max_diff``: the near surface is the same in both; at a wrong disparity
+    neither side is), and must be the only one (periodic texture gives several: no partner). The right
+    line is then re-fitted to the gradient's magnitude (``refit_lines``, 2 px either side) and kept if it
+    moved at most ``edge_refit_px`` from the searched disparity at both ends.
+
+    Returns the right segments' ``xy`` (K, 4) and the left index of each (K,).
+    """
+    todo = np.asarray(todo, int)
+    none = np.zeros((0, 4)), np.zeros(0, int)
+    if len(todo) == 0:
+        return none
+    L = grey(left_image).astype(np.float32)
+    R = grey(right_image).astype(np.float32)
+    xy = left.xy[todo]
+    d_dir = left.direction[todo]
+    nrm = np.column_stack((d_dir[:, 1], -d_dir[:, 0]))                          # (N, 2)
+    k = params.edge_samples
+    t = (np.arange(k) + 0.5) / k
+    q = xy[:, None, 0:2] + (xy[:, None, 2:4] - xy[:, None, 0:2]) * t[None, :, None]      # (N, k, 2)
+    lgx, lgy = _across_gradient(L)
+    rgx, rgy = _across_gradient(R)
+    strength = np.abs(_sample(lgx, q[..., 0], q[..., 1]) * nrm[:, None, 0]
+                      + _sample(lgy, q[..., 0], q[..., 1]) * nrm[:, None, 1]).mean(axis=1)   # (N,)
+    D = np.arange(math.ceil(params.min_disparity_px), math.floor(params.max_disparity_px) + 1, dtype=np.float64)
+    xs = q[..., 0][..., None] - D                                                  # (N, k, nD)
+    ys = np.broadcast_to(q[..., 1][..., None], xs.shape)
+    E = np.abs(_sample(rgx, xs, ys) * nrm[:, None, None, 0]
+               + _sample(rgy, xs, ys) * nrm[:, None, None, 1]).mean(axis=1)        # (N, nD)
+    Ep = np.pad(E, ((0, 0), (1, 1)))
+    peak = (E >= Ep[:, :-2]) & (E > Ep[:, 2:]) & (E >= params.edge_strength * strength[:, None])
+    n_idx, d_idx = np.nonzero(peak)
+    if len(n_idx) == 0:
+        return none
+    # Side bands at each candidate: either side matching is the near surface.
+    off = np.asarray(params.band_px, float)
+    cost = []
+    for sign in (1.0, -1.0):
+        bx = q[n_idx, :, None, 0] + sign * off[None, None, :] * nrm[n_idx, None, None, 0]     # (C, k, o)
+        by = q[n_idx, :, None, 1] + sign * off[None, None, :] * nrm[n_idx, None, None, 1]
+        cost.append(np.abs(_sample(L, bx, by) - _sample(R, bx - D[d_idx][:, None, None], by)).mean(axis=(1, 2)))
+    good = np.minimum(*cost) <= params.band_max_diff
+    n_idx, d_idx = n_idx[good], d_idx[good]
+    count = np.bincount(n_idx, minlength=len(todo))
+    one = count[n_idx] == 1
+    n_idx, d_idx = n_idx[one], d_idx[one]
+    if len(n_idx) == 0:
+        return none
+    shifted = xy[n_idx] - D[d_idx][:, None] * np.array([1.0, 0.0, 1.0, 0.0])
+    fit, ok = refit_lines(R, shifted, params, radius_px=2.0, either_polarity=True)
+    moved = np.abs(fit - shifted)[:, [0, 2]].max(axis=1)
+    keep = ok & (moved <= params.edge_refit_px)
+    return fit[keep], todo[n_idx[keep]]
+
+
 # ---------------------------------------------------------------------------------- triangulation
 def triangulate(left: Segments2D, right: Segments2D, matches: StereoMatches, fx: float, fy: float,
                 cx: float, cy: float, baseline: float, params: LineParams = LineParams(),
@@ -434,4 +533,28 @@ def reconstruct_pair(left_image: np.ndarray, right_image: np.ndarray, fx: float,
     ls, rs = detect_segments(left_image, params), detect_segments(right_image, params)
     prior = prior_fn(ls) if prior_fn is not None else None
     m = match_stereo(ls, rs, params, prior)
+    if params.edge_search:
+        rs, m = _add_edge_matches(left_image, right_image, ls, rs, m, params)
     return StereoLines(ls, rs, m, triangulate(ls, rs, m, fx, fy, cx, cy, baseline, params, doffs))
+
+
+def _add_edge_matches(left_image: np.ndarray, right_image: np.ndarray, ls: Segments2D, rs: Segments2D,
+                      m: StereoMatches, params: LineParams) -> tuple[Segments2D, StereoMatches]:
+    """The right segments and matches with ``match_edges``' partners of the steep left segments LSD left
+    unmatched appended (each its left segment's only, best candidate; score: its appearance as in
+    ``match_stereo``)."""
+    steep = np.abs(ls.direction[:, 1]) >= math.sin(math.radians(params.min_epipolar_angle_deg))
+    todo = np.nonzero(steep & ~np.isin(np.arange(len(ls)), m.left))[0]
+    rxy, li = match_edges(left_image, right_image, ls, todo, params)
+    if len(li) == 0:
+        return rs, m
+    sides = side_means(grey(right_image), rxy, params)
+    app = np.exp(-0.5 * (np.abs(ls.sides[li] - sides).min(axis=1) / params.appearance_sigma) ** 2)
+    ri = len(rs) + np.arange(len(li))
+    L = ls.xy[li]
+    disp = np.column_stack((L[:, 0] - _x_at(rxy, L[:, 1]), L[:, 2] - _x_at(rxy, L[:, 3])))
+    rs = Segments2D(np.concatenate((rs.xy, rxy)), np.concatenate((rs.sides, sides)))
+    cat = np.concatenate
+    m = StereoMatches(cat((m.left, li)), cat((m.right, ri)), cat((m.score, app)), cat((m.disparity, disp)),
+                      cat((m.best, np.ones(len(li), bool))), cat((m.predicted, np.zeros(len(li), bool))))
+    return rs, m
