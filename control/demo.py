@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +24,7 @@ from vbnav.control.config import Config, load_config
 from vbnav.control.controllers.path import PathFollower, lateral_errors, path_length, room_loop
 from vbnav.control.runtime.factory import Robot, make_robot
 from vbnav.control.session import Session
+from vbnav.drivers.atomic_file import atomic_output, write_atomic
 from vbnav.vision.geometry import Pose2
 
 
@@ -89,12 +88,7 @@ def start_pose(path: np.ndarray) -> Pose2:
 
 def write_json_atomic(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(data, indent=2))
 
 
 def summarise_errors(trace: RunTrace, taught: np.ndarray, settle_m: float) -> dict:
@@ -143,10 +137,11 @@ def plot_paths(png: Path, taught: np.ndarray, repeats: list[np.ndarray], keyfram
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     png.parent.mkdir(parents=True, exist_ok=True)
-    tmp = png.with_suffix(".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, png)
+    try:
+        with atomic_output(png) as tmp:
+            fig.savefig(tmp)
+    finally:
+        plt.close(fig)
 
 
 # ----------------------------------------------------------------------------- ground truth

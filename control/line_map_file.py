@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from vbnav.drivers.atomic_file import write_atomic
 from vbnav.drivers.errors import InputError
 from vbnav.vision.line_map import LineMap, MapParams
 
@@ -41,15 +40,7 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
             "frames": int(lmap.frames), "params": dataclasses.asdict(lmap.params), "meta": meta or {},
             "segments": segs}
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_atomic(path, json.dumps(data))
 
 
 def load_map(path: str | Path) -> tuple[LineMap, dict]:

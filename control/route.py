@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vbnav.drivers.atomic_file import fsync_folder, write_atomic
 from vbnav.drivers.errors import InputError
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -204,30 +205,6 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
                          f"with, or teach the route again")
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a fsynced temporary file and an atomic rename."""
-    tmp = path.with_name(path.name + _TMP)
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(d: Path) -> None:
-    try:
-        fd = os.open(d, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 # -- replacing a route ---------------------------------------------------------------------------
 _PARTIAL, _OLD = ".partial-", ".old-"
 _ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$")
@@ -251,7 +228,7 @@ def _swap_in(new: Path, route: Path) -> None:
     else:
         os.rename(route, old)
         os.rename(new, route)
-    _fsync_dir(route.parent)
+    fsync_folder(route.parent)
     shutil.rmtree(old)
 
 
@@ -287,7 +264,7 @@ def install_route_dir(new, route, overwrite: bool) -> None:
     new, route = Path(new), Path(route)
     if not route.exists():
         os.rename(new, route)
-        _fsync_dir(route.parent)
+        fsync_folder(route.parent)
         return
     if not overwrite:
         raise RouteError(f"{route}: exists (replace it with --overwrite)")
@@ -361,7 +338,7 @@ class RouteWriter:
         ok, png = cv2.imencode(".png", kf.image)
         if not ok:
             raise RouteError(f"{self._dir / (stem + '.png')}: could not encode the keyframe image")
-        _write_atomic(self._dir / f"{stem}.png", png.tobytes())
+        write_atomic(self._dir / f"{stem}.png", png.tobytes())
         buf = io.BytesIO()
         np.savez(buf, pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
                  beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
@@ -369,7 +346,7 @@ class RouteWriter:
                  inv_height_var=np.asarray(kf.inv_height_var, np.float64),
                  track_ids=np.asarray(kf.track_ids, np.int64), odom=kf.odom.as_array(),
                  distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
-        _write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
+        write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
         self._manifest["keyframes"].append({
             "index": i, "image": f"{stem}.png", "landmarks": f"{stem}.npz", "n_landmarks": len(kf.alpha),
             "distance": float(kf.distance), "odom": [float(v) for v in kf.odom.as_array()],
@@ -385,7 +362,7 @@ class RouteWriter:
             self._dir = self.path
 
     def _write_manifest(self) -> None:
-        _write_atomic(self._dir / MANIFEST, json.dumps(self._manifest, indent=1).encode())
+        write_atomic(self._dir / MANIFEST, json.dumps(self._manifest, indent=1).encode())
 
     def __enter__(self) -> "RouteWriter":
         return self

@@ -22,6 +22,7 @@ from typing import Optional
 import numpy as np
 
 from vbnav.control.route import MANIFEST, RouteError, load_route, stray_route_dirs, stray_temp_files
+from vbnav.drivers.atomic_file import atomic_output
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _KF_FILE = ("kf_", (".png", ".npz"))
@@ -124,10 +125,11 @@ def plot(path, out) -> Path:
     ax.set_title(f"{route.path.name}: {len(route)} keyframes, {route.length:.2f} m, "
                  f"{'complete' if route.complete else 'incomplete'}", fontsize=10)
     fig.tight_layout()
-    tmp = out.with_name(out.name + ".tmp.png")
-    fig.savefig(tmp, format="png")
-    plt.close(fig)
-    os.replace(tmp, out)
+    try:
+        with atomic_output(out, ".png") as tmp:
+            fig.savefig(tmp, format="png")
+    finally:
+        plt.close(fig)
     return out
 
 

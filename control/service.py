@@ -29,12 +29,12 @@ import os
 import re
 import shutil
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 from vbnav.control.runtime.systemd_notify import PINGS_PER_WATCHDOG
+from vbnav.drivers.atomic_file import write_atomic
 from vbnav.drivers.discovery import UsbIdentity, usb_identity
 from vbnav.drivers.errors import InputError
 
@@ -319,15 +319,7 @@ def uninstall(files: ServiceFiles) -> list[Path]:
 def _write(path: Path, text: str) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        write_atomic(path, text, mode=0o644)
     except PermissionError:
         raise InputError(f"{path}: permission denied; writing to {path.parent} needs root "
                          f"(sudo $(command -v vbnav) service install ...)") from None
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -8,12 +8,11 @@ and benchmarks that score trajectories use these same functions.
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from vbnav.drivers.atomic_file import write_atomic
 from vbnav.vision.geometry import absolute_orientation, quat_from_matrix
 
 
@@ -25,14 +24,7 @@ def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
         q = quat_from_matrix(M[:3, :3])
         lines.append(f"{t:.6f} {M[0, 3]:.6f} {M[1, 3]:.6f} {M[2, 3]:.6f} {q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, "# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "\n".join(lines) + "\n")
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple[float, np.ndarray]:

@@ -14,14 +14,13 @@ Errors name the file and the field and say what was expected.
 ``load_camera_calibration`` is the one entry of a configuration's ``camera.calibration_file``: it
 also takes the stereo formats of stereo_calib.py (vbnav stereo YAML, KITTI calib.txt) and returns a
 :class:`CameraCalibration` (camera, baseline, file, SHA-256). ``calibration_problems`` lists legal but
-implausible values (for ``vbnav doctor``); ``opencv_yaml_text``/``ros_camera_info_text`` and
-``write_atomic`` write what ``vbnav calibrate`` computes.
+implausible values (for ``vbnav doctor``); ``opencv_yaml_text``/``ros_camera_info_text`` format what ``vbnav calibrate`` computes
+(written with ``drivers.atomic_file.write_atomic``).
 """
 from __future__ import annotations
 
 import hashlib
 import math
-import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -291,18 +290,6 @@ def calibration_problems(cal: CameraCalibration) -> list[str]:
 
 
 # -- writing calibration files ----------------------------------------------------------------------
-
-def write_atomic(path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file renamed over it (never a half-written file)."""
-    p = Path(path)
-    tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, p)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
 
 def opencv_yaml_text(K, dist, size: tuple[int, int], model: str = "plumb_bob", extra: Optional[dict] = None) -> str:
     """An OpenCV FileStorage YAML (``%YAML:1.0``) with camera_matrix, distortion_coefficients, the image

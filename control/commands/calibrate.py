@@ -153,7 +153,8 @@ class ViewCollector:
 
 
 def _write_intrinsics(out: Path, prefix: str, result, views, args, name: str) -> list[Path]:
-    from vbnav.drivers.calibration import opencv_yaml_text, ros_camera_info_text, write_atomic
+    from vbnav.drivers.atomic_file import write_atomic
+    from vbnav.drivers.calibration import opencv_yaml_text, ros_camera_info_text
     per = {v.name: e for v, e in zip(views, result.per_view)}
     extra = {"avg_reprojection_error": result.rms, "per_view_reprojection_errors": result.per_view,
              "board": f"{args.board} {args.cols}x{args.rows} square {args.square}"}
@@ -240,7 +241,7 @@ def _collect_live(args, collector, want: int) -> None:
 
 
 def run_stereo(args) -> int:
-    from vbnav.drivers.calibration import write_atomic
+    from vbnav.drivers.atomic_file import write_atomic
     from vbnav.vision.board_calibration import calibrate_stereo
     board = _board(args)
     left, right = _images(args.left, "LEFT_DIR"), _images(args.right, "RIGHT_DIR")

@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
+
+from vbnav.drivers.atomic_file import atomic_output, write_atomic
 
 
 def register(subparsers) -> None:
@@ -99,10 +99,7 @@ def _write_status(path: str, status) -> None:
     path = Path(path)
     lines = ["# frame state landmarks inliers (state: init, tracked, reinit, lost)"]
     lines += [f"{s.frame} {s.state} {s.landmarks} {s.inliers}" for s in status]
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    with os.fdopen(fd, "w") as f:
-        f.write("\n".join(lines) + "\n")
-    os.replace(tmp, path)
+    write_atomic(path, "\n".join(lines) + "\n")
 
 
 def _plot_trajectory(path: str, aligned, gt, title: str) -> None:
@@ -120,9 +117,8 @@ def _plot_trajectory(path: str, aligned, gt, title: str) -> None:
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend()
     ax.set_title(title)
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".png", dir=path.parent if str(path.parent) else ".")
-    os.close(fd)
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=100)
+    finally:
+        plt.close(fig)

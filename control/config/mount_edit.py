@@ -16,7 +16,7 @@ from pathlib import Path
 import yaml
 
 from vbnav.control.config.base import ConfigError
-from vbnav.drivers.calibration import write_atomic
+from vbnav.drivers.atomic_file import write_atomic
 
 _TOP_KEY = re.compile(r"^([A-Za-z_][\w-]*)\s*:(.*)$")
 _KEY = re.compile(r"^(\s+)([A-Za-z_][\w-]*)\s*:(\s*)(.*?)(\s+#.*)?$")

@@ -1,0 +1,98 @@
+"""Files written whole or not at all.
+
+Everything vbnav records (routes, maps, calibrations, trajectories, metrics, plots, service files)
+goes through here: the data is written to a temporary file in the target's folder, flushed and
+fsynced, renamed over the target (``os.replace`` is atomic within a file system), and the folder is
+fsynced so the rename itself survives a power cut. A crash, a full disk or a Ctrl-C at any point
+leaves either the old file or the new one, never half of one; the temporary file is removed on
+failure. Temporary names are ``.<name>.<random>.tmp[<suffix>]`` beside the target, so a reader that
+lists ``*.tmp`` (``vbnav route check``) finds what an interrupted writer left.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Optional
+
+
+def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
+    """Write ``data`` (text as UTF-8, or bytes) to ``path`` atomically; ``mode``: permission bits of the
+    new file (default: those of the file it replaces, else what ``open`` would give under the umask)."""
+    p = Path(path)
+    raw = data.encode() if isinstance(data, str) else bytes(data)
+    fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(raw)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, _mode_for(p) if mode is None else mode)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    fsync_folder(_folder(p))
+    return p
+
+
+@contextmanager
+def atomic_output(path, suffix: Optional[str] = None) -> Iterator[Path]:
+    """For writers that want a file name (``cv2.imwrite``, matplotlib's ``savefig``): yields a temporary
+    path ending in ``suffix`` (default: the target's own, so format-by-extension writers work), renamed
+    over ``path`` when the block ends without an exception, removed otherwise."""
+    p = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp" + (p.suffix if suffix is None
+                                                                                      else suffix))
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        with open(tmp_path, "rb") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp_path, _mode_for(p))
+        os.replace(tmp_path, p)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+    fsync_folder(_folder(p))
+
+
+def fsync_folder(folder) -> None:
+    """Make a rename in ``folder`` durable (POSIX: fsync the directory); a no-op where that is refused."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _mode_for(p: Path) -> int:
+    """The permission bits the new file gets: the replaced file's, or 0666 less the umask (mkstemp's
+    0600 would make a config or a route unreadable to the other users that could read it before)."""
+    try:
+        return p.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def _umask() -> int:
+    """The process umask, read without setting it (``os.umask`` would change it for every thread for a
+    moment); 022 where /proc does not say."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o022
+
+
+def _folder(p: Path) -> Path:
+    return p.parent if str(p.parent) else Path(".")
