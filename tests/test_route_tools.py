@@ -82,6 +82,21 @@ def test_info(routes, capsys):
     assert "note:        the route is incomplete" in out
 
 
+def test_info_prints_the_calibration_in_one_line(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    cal = {"file": "/etc/vbnav/camera_info.yaml", "sha256": "0123456789abcdef" * 4, "format": "ros",
+           "model": "pinhole", "width": W, "height": H, "fx": 50.0, "fy": 50.5, "cx": 31.5, "cy": 23.5,
+           "distortion": [-0.1, 0.01, 0.0, 0.0, 0.0], "baseline": None}
+    writer = RouteWriter(tmp_path / "r", "testbot", PinholeCamera(W, H, 50.0, 50.5, 31.5, 23.5),
+                         CameraMount(0.2, 0.1, 0.0, 0.05, 0.0), calibration=cal)
+    writer.append(keyframe(0, rng))
+    writer.close(complete=True)
+    assert main(["route", "info", str(tmp_path / "r")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("calibration:"))
+    assert line == ("calibration: /etc/vbnav/camera_info.yaml (ros, sha256 0123456789ab); pinhole 64x48; "
+                    "fx 50.00 fy 50.50 cx 31.50 cy 23.50 px; distortion [-0.1, 0.01, 0, 0, 0]"), line
+
+
 def test_plot_writes_a_png_beside_the_route_or_where_asked(routes, tmp_path, capsys):
     route = shutil.copytree(routes / "patrol", tmp_path / "patrol")
     assert main(["route", "plot", str(route)]) == 0

@@ -76,12 +76,30 @@ def run_info(args) -> int:
                 "landmarks", "extent"):
         if key in info:
             value = info[key]
+            if key == "calibration" and isinstance(value, dict):
+                value = _calibration_text(value)
             value = f"{value:.2f}" if key == "length_m" else ("yes" if value is True else "no" if value is False
                                                              else value)
             print(f"{key + ':':<12} {value}")
     if info["note"]:
         print(f"note:        {info['note']}")
     return 0
+
+
+def _calibration_text(c: dict) -> str:
+    """The manifest's calibration record in one line: where it came from, then the intrinsics."""
+    src = (f"{c['file']} ({c.get('format', '?')}, sha256 {str(c.get('sha256'))[:12]})" if c.get("file")
+           else "inline in the configuration")
+    parts = [src]
+    if all(k in c for k in ("width", "height")):
+        parts.append(f"{c.get('model', '?')} {c['width']}x{c['height']}")
+    if all(isinstance(c.get(k), (int, float)) for k in ("fx", "fy", "cx", "cy")):
+        parts.append(f"fx {c['fx']:.2f} fy {c['fy']:.2f} cx {c['cx']:.2f} cy {c['cy']:.2f} px")
+    if c.get("distortion"):
+        parts.append("distortion [" + ", ".join(f"{d:.4g}" for d in c["distortion"]) + "]")
+    if c.get("baseline"):
+        parts.append(f"baseline {c['baseline']:.4f} m")
+    return "; ".join(parts)
 
 
 def run_plot(args) -> int:
