@@ -101,6 +101,15 @@ class RepeatResult:
 Observer = Callable[..., None]       # (runtime, ctx, twist, wheel_command), every cycle
 
 
+def repeat_status(status: dict, index: int, n: int) -> str:
+    """The repeat's progress text; while no camera fix has placed the robot on the route, says so and why
+    (a robot started away from the route's start otherwise stands still without a word)."""
+    text = f"keyframe {index + 1}/{n}"
+    if status.get("state") == "waiting":
+        text += " (waiting for a first match with the route: start at its beginning, facing along it)"
+    return text
+
+
 class Session:
     """A teach or a repeat run on one robot from ``make_robot`` (one run: it closes the robot's drive).
 
@@ -144,7 +153,7 @@ class Session:
         rep = Repeating(self.cfg, route)
         n = len(route.keyframes)
         result = self._run(rep.controller, rep.stage, None, segment, duration_s, observers,
-                           lambda: f"keyframe {rep.stage.index + 1}/{n}")
+                           lambda: repeat_status(rep.controller.status(), rep.stage.index, n))
         stops = sum(1 for e in result.events if e.kind == "hold")
         return RepeatResult(result.reason == "finished", result.reason, result.message, rep.stage.index, n,
                             [e.as_dict() for e in result.events], result.timing, stops)

@@ -18,7 +18,7 @@ from vbnav.control.controllers.manual import ScriptedController
 from vbnav.control.controllers.path import PathFollower
 from vbnav.control.controllers.repeat import RepeatController
 from vbnav.control.route import Keyframe, Route
-from vbnav.control.runtime.interfaces import ControlContext, Estimate
+from vbnav.control.runtime.interfaces import ControlContext, Estimate, Twist
 from vbnav.control.stages.vbc_fix import VBCFix
 from vbnav.control.stages.vslam import VslamFix
 from vbnav.drivers.wheels import WheelState
@@ -44,6 +44,19 @@ def repeat_command(pose: Pose2, n_agree: int = 100, **settings):
     ctl = RepeatController(_straight_route(), VBCConfig(**settings), max_linear_speed=0.5, max_angular_speed=1.5)
     est = Estimate(0, "vbc", True, VBCFix(0, pose, Pose2(), n_agree))
     return ctl.update(_ctx(Pose2(), "vbc", est))
+
+
+def test_a_repeat_without_a_fix_stands_still_and_says_why():
+    """Started away from the route, no keyframe matches: the robot waits, and the progress line says so."""
+    from vbnav.control.session import repeat_status
+    ctl = RepeatController(_straight_route(), VBCConfig(), max_linear_speed=0.5, max_angular_speed=1.5)
+    failed = Estimate(0, "vbc", False, VBCFix(0, Pose2(), Pose2(), 2))       # the keyframe does not match
+    assert ctl.update(_ctx(Pose2(), "vbc", failed)) == Twist(0.0, 0.0)
+    text = repeat_status(ctl.status(), 0, 3)
+    assert text.startswith("keyframe 1/3 (waiting for a first match with the route") and "facing along it" in text
+    placed = Estimate(10_000_000, "vbc", True, VBCFix(0, Pose2(0.0, 0.2, 0.0), Pose2(), 100))
+    ctl.update(_ctx(Pose2(), "vbc", placed, 1))
+    assert repeat_status(ctl.status(), 0, 3) == "keyframe 1/3"                 # placed: no more waiting
 
 
 def test_repeat_approach_gain_and_floor():
