@@ -67,6 +67,29 @@ def _nothing_to_undo() -> None:
     pass
 
 
+def _new_threads_leave_the_loop_scheduling():
+    """Linux threads inherit the scheduling policy and CPU set of the thread that creates them, so a thread
+    started from the loop thread after ``_apply_scheduling`` (a lazily started writer, an executor) would
+    run SCHED_FIFO on the loop's CPUs and could starve it. Every thread started through ``threading`` from
+    now on first puts itself back to normal scheduling on the process's CPUs (the profile hook runs once,
+    in the new thread, before its target). Returns the undo."""
+    cpus = os.sched_getaffinity(0)      # the process's set: called before the loop thread takes its own
+
+    earlier = threading.getprofile()   # a profiler's hook, if one is set: handed back to the new thread
+
+    def back_to_normal(frame, event, arg):
+        sys.setprofile(earlier)
+        try:
+            if os.sched_getscheduler(0) != os.SCHED_OTHER:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            os.sched_setaffinity(0, cpus)
+        except OSError:
+            pass
+
+    threading.setprofile(back_to_normal)
+    return lambda: threading.setprofile(earlier)
+
+
 def _set_process_affinity(cpus: set[int]) -> Callable[[], None]:
     """Every thread of this process (sched_setaffinity takes a thread id) onto ``cpus``; returns the undo.
     Under systemd the unit's CPUAffinity= did this at start; a run started by hand does it here."""
@@ -465,6 +488,8 @@ class Runtime:
                 undo.append(_set_process_affinity(set(lc.process_cpu_affinity)))
             except OSError as exc:
                 self.safety.events.append(SafetyEvent(now, "warning", "scheduling", f"process_cpu_affinity: {exc}"))
+        if lc.cpu_affinity or lc.realtime_priority:
+            undo.append(_new_threads_leave_the_loop_scheduling())
         if lc.cpu_affinity:
             try:
                 old_aff = os.sched_getaffinity(0)
