@@ -24,6 +24,7 @@ from vbnav.control.controllers.path import PathFollower, room_loop
 from vbnav.control.controllers.repeat import RepeatController
 from vbnav.control.route import Route, RouteWriter, check_route_camera
 from vbnav.control.runtime.factory import Robot
+from vbnav.control.runtime.finishing import finishing
 from vbnav.control.runtime.interfaces import Controller
 from vbnav.control.runtime.runtime import RunResult, Runtime
 from vbnav.control.stages.repeat import RepeatStage
@@ -177,10 +178,11 @@ class Session:
         try:
             result = rt.run(duration_s, self._progress_fn(segment.split()[0], status))
         finally:
-            if link is not None:
-                link.close(result)
-            if echo is not None:
-                echo.close()
+            with finishing():       # a second Ctrl-C must not cut the recording short
+                if link is not None:
+                    link.close(result)
+                if echo is not None:
+                    echo.close()
         return result
 
     def _claim(self) -> None:

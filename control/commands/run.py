@@ -65,6 +65,7 @@ def camera_wanted(cfg, kind: str, args) -> bool:
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.runtime.finishing import finishing
     from vbnav.control.runtime.progress import EventEcho, ProgressPrinter
     from vbnav.control.runtime.runtime import Runtime
 
@@ -116,21 +117,23 @@ def run(args) -> int:
     try:
         result = rt.run(duration, progress)      # under systemd the runtime itself notifies (systemd_notify.py)
     finally:
-        controller.close()      # a route being taught keeps every keyframe so far
-        link.close(result)
-        if echo is not None:
-            echo.close()
-    printer.done()
-    summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
-               "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],
-               "final_odometry": rt.odometry.pose.as_array().tolist()}
-    if args.json:
-        print(json.dumps(summary, indent=2))
-    else:
-        print(f"run ended: {result.reason} ({result.message})")
-        print("timing: " + result.timing.line())
-        for e in result.events:
-            print(f"safety {e.kind}: {e.cause}: {e.message}")
+        with finishing():           # a second Ctrl-C must not cut the recording or the route short
+            controller.close()      # a route being taught keeps every keyframe so far
+            link.close(result)
+            if echo is not None:
+                echo.close()
+    with finishing("printing the summary"):
+        printer.done()
+        summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
+                   "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],
+                   "final_odometry": rt.odometry.pose.as_array().tolist()}
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            print(f"run ended: {result.reason} ({result.message})")
+            print("timing: " + result.timing.line())
+            for e in result.events:
+                print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130
     if result.reason in ("drive", "camera"):     # a device failed or is not there
