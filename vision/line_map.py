@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Optional
 
 import numpy as np
@@ -45,6 +46,132 @@ from vbnav.vision.line_segments import Segments2D, Segments3D
 
 CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
 ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no information about the line
+ASSOC_PERP_M = 0.5       # association's coarse gate: both endpoints of an observation within this of the map line
+MERGE_PERP_M = 0.2       # merging's coarse gate: both endpoints of the other piece within this of the line
+GRID_CELL_M = 0.6        # the spatial hash's cell: about the association reach (hypot(0.3, 0.5) m)
+GRID_MIN_SEGMENTS = 4000 # below this the update scans the whole map: cheaper than the hash (measured, see _near)
+_CELL_OFFSET = 1 << 19   # cell coordinates are packed as 20-bit fields (+-300 km at 0.6 m), then 2 bits of class
+
+
+class SegmentGrid:
+    """A uniform 3-D grid hash of the map's segments, so the update looks only at the segments near what it
+    is updating and roughly parallel to it, not at the whole map.
+
+    A segment is listed in every cell its bounding box touches (the box of its estimate and its anchor: the
+    association compares observations with the anchor of a candidate), under its direction class (the axis
+    its direction is nearest to; both the estimate's and the anchor's). Entries are the segments' serial
+    numbers (stable while other segments are removed; removed ones are dropped when a query meets them).
+    A segment that grows, moves or turns is listed in the cells and classes it now reaches as well, so its
+    listing always covers it. ``near`` returns every segment whose box comes within ``r`` of a query box
+    in the classes asked for: a superset of the segments within ``r`` of the query segment and within the
+    angle gate of it. The gates that follow are exact, so restricting them to this set changes nothing but
+    the work.
+    """
+
+    def __init__(self, cell: float = GRID_CELL_M):
+        self.cell = cell
+        self.cells: dict = {}
+        self.lo = np.zeros((0, 3), np.int64)     # per map segment, the cell range and classes it is listed in
+        self.hi = np.zeros((0, 3), np.int64)
+        self.mask = np.zeros(0, np.int64)
+        self.entries = 0
+        self.live_entries = 0
+
+    @staticmethod
+    def _box_cells(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """All cells of the integer boxes [lo, hi] (B, 3): (owner box, cell coordinates (E, 3))."""
+        dims = np.maximum(hi - lo + 1, 0)
+        n = dims.prod(axis=1)
+        owner = np.repeat(np.arange(len(n)), n)
+        local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        dy, dz = dims[owner, 1], dims[owner, 2]
+        off = np.column_stack((local // (dy * dz), (local // dz) % dy, local % dz))
+        return owner, lo[owner] + off
+
+    @staticmethod
+    def _keys(owner: np.ndarray, c: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(owner, key) of every cell c (E, 3) in every class of its owner's class mask."""
+        c = c + _CELL_OFFSET
+        base = (c[:, 0] << 42) | (c[:, 1] << 22) | (c[:, 2] << 2)
+        parts = [(owner[sel], base[sel] | b) for b in range(3) for sel in [(mask[owner] >> b) & 1 == 1]]
+        return np.concatenate([o for o, _ in parts]), np.concatenate([k for _, k in parts])
+
+    def _range(self, lo: np.ndarray, hi: np.ndarray, r: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        return (np.floor((lo - r) / self.cell).astype(np.int64), np.floor((hi + r) / self.cell).astype(np.int64))
+
+    def add(self, serial: np.ndarray, lo: np.ndarray, hi: np.ndarray, mask: np.ndarray) -> None:
+        """New segments (appended to the map) with their bounding boxes (n, 3) and class masks (n,)."""
+        clo, chi = self._range(lo, hi)
+        self.lo = np.concatenate((self.lo, clo))
+        self.hi = np.concatenate((self.hi, chi))
+        self.mask = np.concatenate((self.mask, mask))
+        owner, c = self._box_cells(clo, chi)
+        self._list(serial, *self._keys(owner, c, mask))
+
+    def grow(self, pos: np.ndarray, serial: np.ndarray, lo: np.ndarray, hi: np.ndarray, mask: np.ndarray) -> None:
+        """Segments at map positions ``pos`` that changed: list them in the cells and classes they now reach."""
+        clo, chi = self._range(lo, hi)
+        olo, ohi, omask = self.lo[pos], self.hi[pos], self.mask[pos]
+        out = (clo < olo).any(axis=1) | (chi > ohi).any(axis=1) | (mask & ~omask != 0)
+        if not out.any():
+            return
+        pos, serial, olo, ohi, omask = pos[out], serial[out], olo[out], ohi[out], omask[out]
+        nlo, nhi, nmask = np.minimum(clo[out], olo), np.maximum(chi[out], ohi), mask[out] | omask
+        owner, c = self._box_cells(nlo, nhi)
+        new_cell = ((c < olo[owner]) | (c > ohi[owner])).any(axis=1)
+        # Classes already listed: the new cells only; a new class: every cell of the grown box.
+        o1, k1 = self._keys(owner[new_cell], c[new_cell], omask)
+        o2, k2 = self._keys(owner, c, nmask & ~omask)
+        self._list(serial, np.concatenate((o1, o2)), np.concatenate((k1, k2)))
+        self.lo[pos], self.hi[pos], self.mask[pos] = nlo, nhi, nmask
+
+    def _list(self, serial: np.ndarray, owner: np.ndarray, keys: np.ndarray) -> None:
+        cells = self.cells
+        for k, s in zip(keys.tolist(), serial[owner].tolist()):
+            cells.setdefault(k, []).append(s)
+        self.entries += len(owner)
+        self.live_entries += len(owner)
+
+    def remove(self, keep: np.ndarray) -> None:
+        gone = ~keep
+        ncls = sum((self.mask[gone] >> b) & 1 for b in range(3))
+        self.live_entries -= int((np.maximum(self.hi[gone] - self.lo[gone] + 1, 0).prod(axis=1) * ncls).sum())
+        self.lo, self.hi, self.mask = self.lo[keep], self.hi[keep], self.mask[keep]
+
+    def near(self, serials: np.ndarray, lo: np.ndarray, hi: np.ndarray, r: float,
+             mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q, pos): the map segments (positions; ``serials`` the map's serial numbers, ascending) listed in
+        a cell within ``r`` of query box q (Q, 3) under one of the classes of ``mask`` (Q,), each pair
+        once, sorted by q then position."""
+        owner, keys = self._keys(*self._box_cells(*self._range(lo, hi, r)), mask)
+        get = self.cells.get
+        lists = [get(k, ()) for k in keys.tolist()]
+        n = np.fromiter(map(len, lists), np.int64, len(lists))
+        found = np.fromiter(chain.from_iterable(lists), np.int64, int(n.sum()))
+        q = np.repeat(owner, n)
+        if len(serials) == 0 or len(found) == 0:
+            return np.zeros(0, int), np.zeros(0, int)
+        pos = np.minimum(np.searchsorted(serials, found), len(serials) - 1)
+        ok = serials[pos] == found
+        m = len(serials)
+        pair = _sorted_unique(q[ok] * m + pos[ok])
+        return pair // m, pair % m
+
+
+def direction_classes(P: np.ndarray) -> np.ndarray:
+    """(K,) bit mask of the axis each segment (K, 2, 3) is nearest to (bit 0 x, 1 y, 2 z)."""
+    return np.left_shift(1, np.abs(P[:, 1] - P[:, 0]).argmax(axis=1)).astype(np.int64)
+
+
+def classes_within(d: np.ndarray, angle_deg: float) -> np.ndarray:
+    """(K,) bit mask of the direction classes holding some direction within ``angle_deg`` of the unit
+    directions d (K, 3) or their opposites. A direction u within the angle differs from d by at most the
+    chord c = 2 sin(angle / 2) in every component, so it can be nearest to axis b only if
+    max|d| - |d_b| <= 2 c."""
+    a = np.abs(d)
+    c = 2.0 * math.sin(math.radians(angle_deg) / 2.0)
+    near = (a.max(axis=1, keepdims=True) - a) <= 2.0 * c + 1e-9
+    return (near * np.array([1, 2, 4])).sum(axis=1).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -91,6 +218,9 @@ class UpdateStats:
     pruned: int = 0
     rivals_dropped: int = 0
     merged: int = 0
+    # (observation or segment, map segment) pairs the association and the merging looked at: bounded by
+    # what is near this frame's observations, whatever the size of the map.
+    pairs: int = 0
 
 
 @dataclass
@@ -116,6 +246,13 @@ class LineMap:
     next_id: int = 0
     next_group: int = 0
     frames: int = 0
+    _pairs = 0                                       # work counter of the current update (UpdateStats.pairs)
+    # The spatial hash of the segments (SegmentGrid) and the serial numbers it knows them by. Derived
+    # state: rebuilt from the arrays when they were replaced from outside (a map file, a test).
+    serial: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    next_serial: int = field(default=0, repr=False)
+    grid: Optional[SegmentGrid] = field(default=None, repr=False)
+    grid_min_segments: int = field(default=GRID_MIN_SEGMENTS, repr=False)
 
     def __len__(self) -> int:
         return len(self.P)
@@ -123,8 +260,7 @@ class LineMap:
     # ------------------------------------------------------------------ geometry
     @property
     def direction(self) -> np.ndarray:
-        d = self.P[:, 1] - self.P[:, 0]
-        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        return _directions(self.P)
 
     @property
     def length(self) -> np.ndarray:
@@ -233,6 +369,7 @@ class LineMap:
         """
         st = UpdateStats()
         self.frames += 1
+        self._pairs = 0
         p = self.params
         if len(obs):
             zc = obs.P[..., 2]
@@ -267,6 +404,7 @@ class LineMap:
         st.merged = self._merge_collinear(touched)
         st.verified, st.rivals_dropped = self._verify()
         st.pruned = self._prune()
+        st.pairs = self._pairs
         return st
 
     def _associate_and_fuse(self, Pw: np.ndarray, Cw: np.ndarray, view: np.ndarray) -> np.ndarray:
@@ -286,16 +424,19 @@ class LineMap:
             return out
         k_all, c_all, score_all = self._gate_pairs(Pw, Cw)
         bounds = np.searchsorted(k_all, np.arange(len(Pw) + 1))
+        t_obs, lo, hi = _directions(Pw), Pw.min(axis=1), Pw.max(axis=1)
         dirty = np.zeros(len(self), bool)
-        fresh = np.full((len(Pw), len(self)), np.inf)     # scores of pairs with the fused verified segments
+        fresh: dict = {}       # verified segment fused this frame -> (K,) scores of its pairs (inf: no pair)
         deferred = []
         for k in range(len(Pw)):
             c, score = c_all[bounds[k]:bounds[k + 1]], score_all[bounds[k]:bounds[k + 1]]   # by score, index
-            if dirty.any():
+            if fresh:
+                cd = np.fromiter(fresh, int, len(fresh))
+                sd = np.array([f[k] for f in fresh.values()])
                 keep = ~dirty[c]
-                cd = np.nonzero(dirty & np.isfinite(fresh[k]))[0]
-                c = np.concatenate((c[keep], cd))
-                score = np.concatenate((score[keep], fresh[k, cd]))
+                ok = np.isfinite(sd)
+                c = np.concatenate((c[keep], cd[ok]))
+                score = np.concatenate((score[keep], sd[ok]))
                 c = c[np.lexsort((c, score))]
             if len(c) == 0:
                 continue
@@ -305,13 +446,27 @@ class LineMap:
                 continue
             self._fuse_distinct(out[k:k + 1], Pw[k:k + 1], Cw[k:k + 1])
             dirty[j] = True
-            kk, _, sc = self._gate_pairs(Pw[k + 1:], Cw[k + 1:], np.array([j]))
-            fresh[k + 1:, j] = np.inf
-            fresh[k + 1 + kk, j] = sc
+            fresh[j] = np.full(len(Pw), np.inf)
+            # Its pairs with the observations still to come, among those that can pass the gates: roughly
+            # parallel and with a point within the coarse gate's reach (bounding boxes).
+            rest = k + 1 + np.nonzero(self._may_pair(j, t_obs[k + 1:], lo[k + 1:], hi[k + 1:]))[0]
+            if len(rest):
+                kk, _, sc = self._gate_pairs(Pw[rest], Cw[rest], np.array([j]))
+                fresh[j][rest[kk]] = sc
         self._fuse_all(out[deferred], Pw[deferred], Cw[deferred])
         for j in out[out >= 0]:
             self._add_view(int(j), view)
         return out
+
+    def _may_pair(self, j: int, t_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """(K,) bool: observations (unit directions, boxes) that can pass the association's direction and
+        coarse gates with verified segment j (a superset: the gates decide)."""
+        p = self.params
+        d = self.P[j, 1] - self.P[j, 0]
+        d = d / max(float(np.linalg.norm(d)), 1e-12)
+        gap = np.maximum(np.maximum(lo - self.P[j].max(axis=0), self.P[j].min(axis=0) - hi), 0.0)
+        return ((np.abs(t_obs @ d) >= math.cos(math.radians(p.assoc_angle_deg)) - 1e-9)
+                & (np.linalg.norm(gap, axis=1) <= math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6))
 
     def _gate_pairs(self, Pw: np.ndarray, Cw: np.ndarray, cols: Optional[np.ndarray] = None):
         """The (observation, map segment) pairs that pass association, against the map as it is now.
@@ -319,28 +474,35 @@ class LineMap:
         Gates: direction within ``assoc_angle_deg``; overlap along the line (``overlap_margin_m``) and both
         endpoints within 0.5 m of it; then the Mahalanobis distance of both endpoints across the line under
         both covariances (chi-square, 3 dof, 99 %), evaluated only for the pairs that pass the cheap gates.
-        cols: the map segments to consider (default all). Returns (k, c, score) sorted by observation,
-        score, segment (the score prefers verified segments, then the smaller distance).
+        cols: the map segments to consider (default: those the spatial hash finds within the coarse gate's
+        reach of each observation, hypot(``overlap_margin_m``, 0.5 m): a pair that passes the coarse gate
+        has a point of the observation that near the map segment). Returns (k, c, score) sorted by
+        observation, score, segment (the score prefers verified segments, then the smaller distance).
         """
         p = self.params
         none = np.zeros(0, int)
-        cols = np.arange(len(self)) if cols is None else cols
-        t_obs = Pw[:, 1] - Pw[:, 0]
-        t_obs = t_obs / np.maximum(np.linalg.norm(t_obs, axis=1), 1e-12)[:, None]
-        ref = np.where(self.verified[cols, None, None], self.P[cols], self.anchor[cols])
+        if cols is None:
+            reach = math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6
+            k, c = self._near(Pw.min(axis=1), Pw.max(axis=1), reach, _directions(Pw),
+                              lambda: _directions(np.where(self.verified[:, None, None], self.P, self.anchor)))
+        else:
+            k, c = np.repeat(np.arange(len(Pw)), len(cols)), np.tile(cols, len(Pw))
+        self._pairs += len(k)
+        t_obs = _directions(Pw)
+        ref = np.where(self.verified[c, None, None], self.P[c], self.anchor[c])
         dirs = ref[:, 1] - ref[:, 0]
         lengths = np.linalg.norm(dirs, axis=1)
         dirs = dirs / np.maximum(lengths, 1e-12)[:, None]
-        k, i = np.nonzero(np.abs(t_obs @ dirs.T) >= math.cos(math.radians(p.assoc_angle_deg)))
+        par = np.abs(np.einsum("ki,ki->k", t_obs[k], dirs)) >= math.cos(math.radians(p.assoc_angle_deg))
+        k, c, ref, dirs, lengths = k[par], c[par], ref[par], dirs[par], lengths[par]
         # Coarse gate: overlap along the map line and both endpoints within 0.5 m of it.
-        a, d, ext = ref[i, 0], dirs[i], lengths[i]
+        a, d, ext = ref[:, 0], dirs, lengths
         s_obs = np.einsum("kei,ki->ke", Pw[k] - a[:, None], d)                        # (P, 2) along the line
         lo, hi = s_obs.min(axis=1, initial=np.inf), s_obs.max(axis=1, initial=-np.inf)
         overlap = (hi >= -p.overlap_margin_m) & (lo <= ext + p.overlap_margin_m)
         r = Pw[k] - (a[:, None] + s_obs[..., None] * d[:, None])                       # (P, 2, 3)
-        coarse = overlap & (np.linalg.norm(r, axis=2).max(axis=1, initial=0.0) < 0.5)
-        k, i, r, d = k[coarse], i[coarse], r[coarse], d[coarse]
-        c = cols[i]
+        coarse = overlap & (np.linalg.norm(r, axis=2).max(axis=1, initial=0.0) < ASSOC_PERP_M)
+        k, c, r, d = k[coarse], c[coarse], r[coarse], d[coarse]
         if len(k) == 0:
             return none, none, np.zeros(0)
         Cm = np.where(self.verified[c, None, None, None], self.cov[c], self.anchor_cov[c])
@@ -369,7 +531,7 @@ class LineMap:
 
     def _fuse_distinct(self, j: np.ndarray, Pw: np.ndarray, Cw: np.ndarray) -> None:
         """Fuse one observation into each of the distinct map segments j (information form)."""
-        t = self.direction[j]                                                           # (K, 3)
+        t = _directions(self.P[j])                                                      # (K, 3)
         flip = np.einsum("ki,ki->k", Pw[:, 1] - Pw[:, 0], t) < 0
         Pw = np.where(flip[:, None, None], Pw[:, ::-1], Pw)
         Cw = np.where(flip[:, None, None, None], Cw[:, ::-1], Cw)
@@ -387,6 +549,7 @@ class LineMap:
         self.P[j, 1] = q[:, 0] + s.max(axis=1)[:, None] * tq
         self.support[j] += 1
         self.misses[j] = np.maximum(0, self.misses[j] - 1)
+        self._moved(j)
 
     # ------------------------------------------------------------ collinear merging
     def _merge_collinear(self, touched: np.ndarray) -> int:
@@ -402,15 +565,24 @@ class LineMap:
         if len(touched) == 0 or len(self) < 2:
             return 0
         # Cheap vectorised prefilter: another segment parallel, its midpoint near the line and the extent.
-        par = np.abs(D[touched] @ D.T) >= math.cos(math.radians(self.params.assoc_angle_deg))
-        par[np.arange(len(touched)), touched] = False
-        k, m = np.nonzero(par)
+        # Its pairs are among the segments the spatial hash finds within the reach below: the midpoint is
+        # within MERGE_PERP_M across and 0.5 L + merge_gap_m along, so walking from it along the segment
+        # (at most assoc_angle_deg off) reaches a point within merge_gap_m + MERGE_PERP_M of the touched
+        # segment plus the segment's own margin (the hash lists it in a box widened by that, see _bbox).
+        p = self.params
+        ang = math.radians(p.assoc_angle_deg)
+        reach = p.merge_gap_m + MERGE_PERP_M + 1e-6
+        lo, hi, _ = self._bbox(touched)
+        k, m = self._near(lo, hi, reach, D[touched], lambda: D)
+        self._pairs += len(k)
         i = touched[k]
+        par = (np.abs(np.einsum("ki,ki->k", D[i], D[m])) >= math.cos(ang)) & (m != i)
+        k, m, i = k[par], m[par], i[par]
         rel = 0.5 * (self.P[m, 0] + self.P[m, 1]) - self.P[i, 0]
         s = (rel * D[i]).sum(axis=1)
         perp = np.linalg.norm(rel - s[:, None] * D[i], axis=1)
         half = 0.5 * L[m] + self.params.merge_gap_m
-        close = (perp < 0.2) & (s >= -half) & (s <= L[i] + half)
+        close = (perp < MERGE_PERP_M) & (s >= -half) & (s <= L[i] + half)
         queue = [int(j) for j in np.unique(i[close])]
         while queue:
             i = queue.pop()
@@ -437,8 +609,19 @@ class LineMap:
         """The alive segment on segment i's line (direction, both endpoints within the chi-square gate of
         both covariances across the line) that overlaps it or ends within ``merge_gap_m`` of it."""
         p = self.params
-        cosang = t @ t[i]
-        cand = np.nonzero(alive & (np.abs(cosang) >= math.cos(math.radians(p.assoc_angle_deg))))[0]
+        cos = math.cos(math.radians(p.assoc_angle_deg))
+        if len(self) >= self.grid_min_segments:
+            # A partner has a point within hypot(merge_gap_m, MERGE_PERP_M) of segment i (its extent along
+            # i's line meets i's, widened by the gap, and both its endpoints are that near the line).
+            lo, hi, _ = self._bbox(np.array([i]))
+            cand = self._index().near(self.serial, lo, hi, math.hypot(p.merge_gap_m, MERGE_PERP_M) + 1e-6,
+                                      classes_within(t[i:i + 1], p.assoc_angle_deg))[1]
+            self._pairs += len(cand)
+            cand = cand[alive[cand]]
+            cand = cand[np.abs(t[cand] @ t[i]) >= cos]
+        else:
+            self._pairs += len(self)
+            cand = np.nonzero(alive & (np.abs(t @ t[i]) >= cos))[0]
         cand = cand[cand != i]
         # Rivals of one left segment are alternatives, not pieces of one edge.
         if self.group[i] >= 0:
@@ -450,7 +633,7 @@ class LineMap:
         gap = np.maximum(s.min(axis=1) - L, -s.max(axis=1))
         foot = a + s[..., None] * d
         r = self.P[cand] - foot                                                      # (K, 2, 3) across i
-        near = (gap <= p.merge_gap_m) & (np.linalg.norm(r, axis=2).max(axis=1) < 0.2)
+        near = (gap <= p.merge_gap_m) & (np.linalg.norm(r, axis=2).max(axis=1) < MERGE_PERP_M)
         cand, r = cand[near], r[near]
         if len(cand) == 0:
             return None
@@ -465,7 +648,7 @@ class LineMap:
 
     def _absorb(self, i: int, j: int) -> None:
         """Segment j's information, extent, support and viewpoints into segment i (j is then removed)."""
-        t = self.direction[i]
+        t = _directions(self.P[i:i + 1])[0]
         Pj, Cj = self.P[j], self.cov[j]
         if (Pj[1] - Pj[0]) @ t < 0:
             Pj, Cj = Pj[::-1], Cj[::-1]
@@ -489,6 +672,7 @@ class LineMap:
             # A candidate's anchor (where it is re-observed) becomes the merged estimate.
             self.anchor[i] = self.P[i]
             self.anchor_cov[i] = self.cov[i]
+        self._moved(np.array([i]))
         self.support[i] += self.support[j]
         self.misses[i] = min(self.misses[i], self.misses[j])
         self.hypothesis[i] &= self.hypothesis[j]
@@ -508,6 +692,7 @@ class LineMap:
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
                 hypothesis: bool = False) -> np.ndarray:
         n = len(Pw)
+        indexed = self._indexed()
         t = Pw[:, 1] - Pw[:, 0]
         t = t / np.maximum(np.linalg.norm(t, axis=1), 1e-12)[:, None]
         info = np.linalg.inv(Cw + ALONG_VAR * np.einsum("ki,kj->kij", t, t)[:, None])    # (n, 2, 3, 3)
@@ -527,6 +712,12 @@ class LineMap:
         self.hypothesis = np.concatenate((self.hypothesis, np.full(n, hypothesis)))
         self.next_id += n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
+        if len(self.serial) == len(self) - n:
+            serial = np.arange(self.next_serial, self.next_serial + n)
+            self.serial = np.concatenate((self.serial, serial))
+            self.next_serial += n
+            if indexed:
+                self.grid.add(serial, *self._bbox(np.arange(len(self) - n, len(self))))
         return new_ids
 
     def _count_misses(self, pred: Prediction, seen: np.ndarray) -> None:
@@ -563,9 +754,57 @@ class LineMap:
         if not drop.any():
             return
         keep = ~drop
+        indexed = self._indexed()
+        if len(self.serial) == len(self):
+            self.serial = self.serial[keep]
+        if indexed:
+            self.grid.remove(keep)
         for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis"):
             setattr(self, name, getattr(self, name)[keep])
         self.views = [v for v, k in zip(self.views, keep) if k]
+
+    # ------------------------------------------------------------- spatial hash
+    def _near(self, lo: np.ndarray, hi: np.ndarray, reach: float, qdir: np.ndarray, ref_dirs) -> tuple:
+        """(q, pos), sorted: the pairs of query segments (boxes lo, hi (Q, 3), unit directions qdir) and map
+        segments that can be within ``reach`` of them and within ``assoc_angle_deg`` of their direction
+        (``ref_dirs()``: the map's directions the caller's gate uses). From the spatial hash once the map
+        holds ``grid_min_segments``; below that a scan of the whole map's directions (one matrix product)
+        costs less than the hash's lookups."""
+        angle = self.params.assoc_angle_deg
+        if len(self) >= self.grid_min_segments:
+            return self._index().near(self.serial, lo, hi, reach, classes_within(qdir, angle))
+        return np.nonzero(np.abs(qdir @ ref_dirs().T) >= math.cos(math.radians(angle)) - 1e-9)
+
+    def _indexed(self) -> bool:
+        """The grid is in step with the arrays (else the next query rebuilds it)."""
+        return self.grid is not None and len(self.grid.lo) == len(self) == len(self.serial)
+
+    def _index(self) -> SegmentGrid:
+        """The spatial hash, rebuilt when out of step with the arrays or when removed segments make up
+        more than half of its entries."""
+        if len(self.serial) != len(self):
+            self.serial = np.arange(self.next_serial, self.next_serial + len(self))
+            self.next_serial += len(self)
+            self.grid = None
+        g = self.grid
+        if not self._indexed() or g.entries > 2 * g.live_entries + 4096:
+            self.grid = SegmentGrid()
+            self.grid.add(self.serial, *self._bbox(np.arange(len(self))))
+        return self.grid
+
+    def _bbox(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Boxes (lo, hi) of segments idx and their direction classes: their estimates and anchors, widened
+        by 0.5 L (1 - cos a + sin a) (a = ``assoc_angle_deg``): how much nearer to a touched segment than its
+        midpoint a piece of length L reaches (the merging prefilter tests midpoints)."""
+        pts = np.concatenate((self.P[idx], self.anchor[idx]), axis=1)
+        a = math.radians(self.params.assoc_angle_deg)
+        e = (0.5 * (1.0 - math.cos(a) + math.sin(a)) * np.linalg.norm(self.P[idx, 1] - self.P[idx, 0], axis=1))[:, None]
+        return (pts.min(axis=1) - e, pts.max(axis=1) + e,
+                direction_classes(self.P[idx]) | direction_classes(self.anchor[idx]))
+
+    def _moved(self, idx: np.ndarray) -> None:
+        if self._indexed():
+            self.grid.grow(idx, self.serial[idx], *self._bbox(idx))
 
     # --------------------------------------------------------- abstraction input
     def add_hypotheses(self, P: np.ndarray, sigma_m: float = 0.05) -> np.ndarray:
@@ -586,6 +825,17 @@ class LineMap:
                 "candidates": int((~self.verified).sum()), "hypotheses": int(self.hypothesis.sum()),
                 "frames": int(self.frames),
                 "total_length_m": round(float(self.length[self.verified].sum()), 3) if len(self) else 0.0}
+
+
+def _sorted_unique(a: np.ndarray) -> np.ndarray:
+    a = np.sort(a)
+    return a[np.r_[True, a[1:] != a[:-1]]] if len(a) else a
+
+
+def _directions(P: np.ndarray) -> np.ndarray:
+    """Unit directions (K, 3) of segments (K, 2, 3)."""
+    d = P[:, 1] - P[:, 0]
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 def _clip_to_rect(a: np.ndarray, b: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
