@@ -425,34 +425,38 @@ class LineMap:
         k_all, c_all, score_all = self._gate_pairs(Pw, Cw)
         bounds = np.searchsorted(k_all, np.arange(len(Pw) + 1))
         t_obs, lo, hi = _directions(Pw), Pw.min(axis=1), Pw.max(axis=1)
-        dirty = np.zeros(len(self), bool)
-        fresh: dict = {}       # verified segment fused this frame -> (K,) scores of its pairs (inf: no pair)
+        dirty = np.zeros(len(self), bool)       # verified segments fused this frame: their scores are stale
+        pending: list = [{} for _ in range(len(Pw))]   # per observation: such a segment -> its new score
+        given: dict = {}                        # such a segment -> the observations it has a new score for
         deferred = []
         for k in range(len(Pw)):
             c, score = c_all[bounds[k]:bounds[k + 1]], score_all[bounds[k]:bounds[k + 1]]   # by score, index
-            if fresh:
-                cd = np.fromiter(fresh, int, len(fresh))
-                sd = np.array([f[k] for f in fresh.values()])
+            if given:
                 keep = ~dirty[c]
-                ok = np.isfinite(sd)
-                c = np.concatenate((c[keep], cd[ok]))
-                score = np.concatenate((score[keep], sd[ok]))
-                c = c[np.lexsort((c, score))]
-            if len(c) == 0:
+                c, score = c[keep], score[keep]
+            best = (score[0], c[0]) if len(c) else None
+            for j, sc in pending[k].items():
+                if best is None or (sc, j) < best:
+                    best = (sc, j)
+            if best is None:
                 continue
-            j = out[k] = c[0]
+            j = out[k] = best[1]
             if not self.verified[j]:
                 deferred.append(k)
                 continue
             self._fuse_distinct(out[k:k + 1], Pw[k:k + 1], Cw[k:k + 1])
             dirty[j] = True
-            fresh[j] = np.full(len(Pw), np.inf)
+            for o in given.pop(j, ()):
+                pending[o].pop(j, None)
             # Its pairs with the observations still to come, among those that can pass the gates: roughly
             # parallel and with a point within the coarse gate's reach (bounding boxes).
             rest = k + 1 + np.nonzero(self._may_pair(j, t_obs[k + 1:], lo[k + 1:], hi[k + 1:]))[0]
+            given[j] = []
             if len(rest):
                 kk, _, sc = self._gate_pairs(Pw[rest], Cw[rest], np.array([j]))
-                fresh[j][rest[kk]] = sc
+                given[j] = rest[kk].tolist()
+                for o, v in zip(given[j], sc.tolist()):
+                    pending[o][j] = v
         self._fuse_all(out[deferred], Pw[deferred], Cw[deferred])
         for j in out[out >= 0]:
             self._add_view(int(j), view)
