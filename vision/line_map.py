@@ -18,6 +18,10 @@ camera pose (VSLAM, odometry or the map's own localisation):
    of the extents along it), or inserted as new candidates. Rival stereo
    hypotheses of one left segment are inserted together under one ``group``
    and wait for another viewpoint to decide (Fig. 11.4).
+   Association and collinear merging look only at the map segments near
+   what they update (``SegmentGrid``, a 3-D grid hash, once the map is large
+   enough for it to pay), so their work is bounded by what is in view, not
+   by the size of the map.
 
 Verification rule (the chapter: correct matches stay close to their true
 position from every viewpoint, false matches move with the viewpoint): a
