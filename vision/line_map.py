@@ -492,7 +492,7 @@ class LineMap:
         if cols is None:
             reach = math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6
             k, c = self._near(Pw.min(axis=1), Pw.max(axis=1), reach, _directions(Pw),
-                              lambda: _directions(np.where(self.verified[:, None, None], self.P, self.anchor)))
+                              lambda i: _directions(np.where(self.verified[i, None, None], self.P[i], self.anchor[i])))
         else:
             k, c = np.repeat(np.arange(len(Pw)), len(cols)), np.tile(cols, len(Pw))
         self._pairs += len(k)
@@ -581,7 +581,7 @@ class LineMap:
         ang = math.radians(p.assoc_angle_deg)
         reach = p.merge_gap_m + MERGE_PERP_M + 1e-6
         lo, hi, _ = self._bbox(touched)
-        k, m = self._near(lo, hi, reach, D[touched], lambda: D)
+        k, m = self._near(lo, hi, reach, D[touched], lambda i: D[i])
         self._pairs += len(k)
         i = touched[k]
         par = (np.abs(np.einsum("ki,ki->k", D[i], D[m])) >= math.cos(ang)) & (m != i)
@@ -781,7 +781,12 @@ class LineMap:
         angle = self.params.assoc_angle_deg
         if len(self) >= self.grid_min_segments:
             return self._index().near(self.serial, lo, hi, reach, classes_within(qdir, angle))
-        return np.nonzero(np.abs(qdir @ ref_dirs().T) >= math.cos(math.radians(angle)) - 1e-9)
+        # The scan: the segments whose boxes meet the queries' joint box (widened by the reach), then their
+        # directions against the queries'.
+        blo, bhi = self._boxes()
+        sub = np.nonzero(((blo <= hi.max(axis=0) + reach) & (bhi >= lo.min(axis=0) - reach)).all(axis=1))[0]
+        q, k = np.nonzero(np.abs(qdir @ ref_dirs(sub).T) >= math.cos(math.radians(angle)) - 1e-9)
+        return q, sub[k]
 
     def _indexed(self) -> bool:
         """The grid is in step with the arrays (else the next query rebuilds it)."""
@@ -799,6 +804,13 @@ class LineMap:
             self.grid = SegmentGrid()
             self.grid.add(self.serial, *self._bbox(np.arange(len(self))))
         return self.grid
+
+    def _boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """All segments' boxes as in ``_bbox`` (lo, hi)."""
+        pts = np.concatenate((self.P, self.anchor), axis=1)
+        a = math.radians(self.params.assoc_angle_deg)
+        e = (0.5 * (1.0 - math.cos(a) + math.sin(a)) * self.length)[:, None]
+        return pts.min(axis=1) - e, pts.max(axis=1) + e
 
     def _bbox(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Boxes (lo, hi) of segments idx and their direction classes: their estimates and anchors, widened
