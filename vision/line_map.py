@@ -584,19 +584,33 @@ class LineMap:
         k, m = self._near(lo, hi, reach, D[touched], lambda i: D[i])
         self._pairs += len(k)
         i = touched[k]
-        par = (np.abs(np.einsum("ki,ki->k", D[i], D[m])) >= math.cos(ang)) & (m != i)
-        k, m, i = k[par], m[par], i[par]
+        dot = np.abs(np.einsum("ki,ki->k", D[i], D[m]))
+        eps = 1e-9
+        par = (dot >= math.cos(ang) - eps) & (m != i)
+        k, m, i, dot = k[par], m[par], i[par], dot[par]
         rel = 0.5 * (self.P[m, 0] + self.P[m, 1]) - self.P[i, 0]
         s = (rel * D[i]).sum(axis=1)
         perp = np.linalg.norm(rel - s[:, None] * D[i], axis=1)
         half = 0.5 * L[m] + self.params.merge_gap_m
-        close = (perp < MERGE_PERP_M) & (s >= -half) & (s <= L[i] + half)
+        near = (perp < MERGE_PERP_M + eps) & (s >= -half - eps) & (s <= L[i] + half + eps)
+        close = near & (dot >= math.cos(ang)) & (perp < MERGE_PERP_M) & (s >= -half) & (s <= L[i] + half)
         queue = [int(j) for j in np.unique(i[close])]
+        # A partner passes this prefilter too (both its endpoints near i's line put its midpoint there;
+        # overlapping or within the gap puts it within the extent): while neither i nor a piece changed,
+        # i's partner is among its prefilter pairs (with a rounding margin) or the segments grown since.
+        i, m = i[near], m[near]
+        first = np.r_[0, np.nonzero(i[1:] != i[:-1])[0] + 1] if len(i) else np.zeros(0, int)
+        pieces = dict(zip(i[first].tolist(), np.split(m, first[1:])))
+        changed = np.zeros(len(self), bool)
+        grown: list = []
         while queue:
             i = queue.pop()
             if i >= len(alive) or not alive[i]:
                 continue
-            j = self._merge_partner(i, alive, D, L)
+            cand = None
+            if i in pieces and not changed[i]:
+                cand = _sorted_unique(np.concatenate((pieces[i], grown))) if grown else pieces[i]
+            j = self._merge_partner(i, alive, D, L, cand)
             if j is None:
                 continue
             keep, gone = (i, j) if self._rank(i) >= self._rank(j) else (j, i)
@@ -605,6 +619,9 @@ class LineMap:
             L[keep] = np.linalg.norm(d)
             D[keep] = d / max(L[keep], 1e-12)
             alive[gone] = False
+            changed[keep] = changed[gone] = True
+            if keep not in grown:
+                grown.append(keep)
             merged += 1
             queue.append(keep)                   # the grown segment may now reach another piece
         self._remove(~alive)
@@ -613,12 +630,18 @@ class LineMap:
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
 
-    def _merge_partner(self, i: int, alive: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> Optional[int]:
+    def _merge_partner(self, i: int, alive: np.ndarray, t: np.ndarray, lengths: np.ndarray,
+                       cand: Optional[np.ndarray] = None) -> Optional[int]:
         """The alive segment on segment i's line (direction, both endpoints within the chi-square gate of
-        both covariances across the line) that overlaps it or ends within ``merge_gap_m`` of it."""
+        both covariances across the line) that overlaps it or ends within ``merge_gap_m`` of it. cand: the
+        segments it can be (ascending), if known; else searched for."""
         p = self.params
         cos = math.cos(math.radians(p.assoc_angle_deg))
-        if len(self) >= self.grid_min_segments:
+        if cand is not None:
+            self._pairs += len(cand)
+            cand = cand[alive[cand]]
+            cand = cand[np.abs(t[cand] @ t[i]) >= cos]
+        elif len(self) >= self.grid_min_segments:
             # A partner has a point within hypot(merge_gap_m, MERGE_PERP_M) of segment i (its extent along
             # i's line meets i's, widened by the gap, and both its endpoints are that near the line).
             lo, hi, _ = self._bbox(np.array([i]))
