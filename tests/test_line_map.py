@@ -136,7 +136,7 @@ def test_update_work_does_not_grow_with_the_map():
     """The update looks only at segments near the frame's observations (the spatial hash): the same drive
     past a few edges, on an empty map and on a map already holding 2000 segments far away, builds the
     same segments and evaluates the same number of (observation or segment, map segment) pairs. The scan
-    used below GRID_MIN_SEGMENTS builds the same map too, and its work does grow with the map."""
+    used below GRID_MIN_SEGMENTS builds the same map too."""
     def run(far: int, grid: bool) -> tuple:
         m = LineMap(MapParams(view_baseline_m=0.08))
         m.grid_min_segments = 0 if grid else 10 ** 9
@@ -159,9 +159,8 @@ def test_update_work_does_not_grow_with_the_map():
         assert np.array_equal(m.P[:far], _far_segments(far))                   # the far ones untouched
         assert [(s.fused, s.inserted, s.merged, s.verified, s.rivals_dropped) for s in stats] == \
             [(s.fused, s.inserted, s.merged, s.verified, s.rivals_dropped) for s in ref_stats]
-    grid_far, scan, scan_far = (results[k][2] for k in (1, 2, 3))
-    assert [s.pairs for s in grid_far] == [s.pairs for s in ref_stats]
-    assert sum(s.pairs for s in scan_far) > 5 * sum(s.pairs for s in scan)
+    assert [s.pairs for s in results[1][2]] == [s.pairs for s in ref_stats]
+    assert all(s.pairs > 0 for s in ref_stats[1:])
 
 
 def test_prediction_projects_segments_with_disparity():
