@@ -405,9 +405,11 @@ class LineMap:
             self._insert(new_P, new_C, new_group, view)
             st.inserted = len(new_P)
             touched = np.concatenate((touched, np.arange(len(self) - len(new_P), len(self))))
-        st.merged = self._merge_collinear(touched)
-        st.verified, st.rivals_dropped = self._verify()
-        st.pruned = self._prune()
+        # Merging, verification and pruning each decide which rows go; they are removed once, together
+        # (removing copies every array of the map).
+        st.merged, gone = self._merge_collinear(touched)
+        st.verified, st.rivals_dropped, drop = self._verify(gone)
+        st.pruned = self._prune(drop)
         st.pairs = self._pairs
         return st
 
@@ -560,18 +562,19 @@ class LineMap:
         self._moved(j)
 
     # ------------------------------------------------------------ collinear merging
-    def _merge_collinear(self, touched: np.ndarray) -> int:
+    def _merge_collinear(self, touched: np.ndarray) -> tuple[int, np.ndarray]:
         """Fuse map segments that lie on one 3D line and overlap or nearly meet along it (LSD breaks a
         textured edge into pieces, differently in every frame): the pieces' observations are repeated
         observations of one edge, so their information, support and viewpoints add up, and the edge is
         verified from the viewpoints of all its pieces. Only pairs with a segment ``touched`` this frame are
-        tested (the others were tested when they last changed). Returns the number of merges."""
+        tested (the others were tested when they last changed). Returns the number of merges and the
+        segments merged into others (to be removed)."""
         merged = 0
         alive = np.ones(len(self), bool)
         D, L = self.direction, self.length       # kept in step with the merges below
         touched = np.asarray(touched, int)
         if len(touched) == 0 or len(self) < 2:
-            return 0
+            return 0, ~alive
         # Cheap vectorised prefilter: another segment parallel, its midpoint near the line and the extent.
         # Its pairs are among the segments the spatial hash finds within the reach below: the midpoint is
         # within MERGE_PERP_M across and 0.5 L + merge_gap_m along, so walking from it along the segment
@@ -624,8 +627,7 @@ class LineMap:
                 grown.append(keep)
             merged += 1
             queue.append(keep)                   # the grown segment may now reach another piece
-        self._remove(~alive)
-        return merged
+        return merged, ~alive
 
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
@@ -762,24 +764,26 @@ class LineMap:
         missed = idx[~seen[idx]]
         self.misses[missed] += 1
 
-    def _verify(self) -> tuple[int, int]:
+    def _verify(self, gone: np.ndarray) -> tuple[int, int, np.ndarray]:
+        """Verify the segments (not ``gone``) seen from enough viewpoints; returns how many, how many rivals
+        that drops, and the rows to remove (``gone`` and the rivals)."""
         nviews = np.array([len(v) for v in self.views], int)
-        newly = (~self.verified) & (nviews >= self.params.verify_views)
+        newly = (~self.verified) & (nviews >= self.params.verify_views) & ~gone
         self.verified |= newly
         # A verified hypothesis decides its group: its rivals go.
-        drop = np.zeros(len(self), bool)
+        drop = gone.copy()
         for g in np.unique(self.group[newly]):
             if g >= 0:
                 drop |= (self.group == g) & ~self.verified
-        self._remove(drop)
-        return int(newly.sum()), int(drop.sum())
+        return int(newly.sum()), int((drop & ~gone).sum()), drop
 
-    def _prune(self) -> int:
+    def _prune(self, drop: np.ndarray) -> int:
+        """Remove the rows ``drop`` and the segments missed too often; returns how many of the latter."""
         p = self.params
-        drop = (~self.verified & (self.misses >= p.miss_limit)) | \
+        missed = (~self.verified & (self.misses >= p.miss_limit)) | \
             (self.verified & (self.misses > p.verified_miss_factor * self.support))
-        self._remove(drop)
-        return int(drop.sum())
+        self._remove(drop | missed)
+        return int((missed & ~drop).sum())
 
     def _remove(self, drop: np.ndarray) -> None:
         if not drop.any():
