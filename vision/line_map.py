@@ -284,6 +284,13 @@ class LineMap:
         seen from camera pose (R_wc, t_wc), clipped to the image and to ``max_range_m``."""
         sel = (self.verified | self.hypothesis) if which is None else which
         idx = np.nonzero(sel)[0]
+        # A point in the image and within max_range_m in depth is within max_range_m sqrt(1 + a^2 + b^2) of
+        # the camera (a, b: the image's half-extents over the focal lengths): segments whose boxes lie
+        # farther cannot be predicted, and are not projected (what a long drive left behind).
+        a, b = max(cx, width - 1.0 - cx) / fx, max(cy, height - 1.0 - cy) / fy
+        reach = self.params.max_range_m * math.sqrt(1.0 + a * a + b * b) + 1e-6
+        gap = np.maximum(np.maximum(self.P[idx].min(axis=1) - t_wc, t_wc - self.P[idx].max(axis=1)), 0.0)
+        idx = idx[(gap ** 2).sum(axis=1) <= reach ** 2]
         empty = Prediction(np.zeros(0, int), np.zeros((0, 4)), np.zeros((0, 2)), np.zeros(0))
         if len(idx) == 0:
             return empty
