@@ -289,8 +289,9 @@ class LineMap:
         # farther cannot be predicted, and are not projected (what a long drive left behind).
         a, b = max(cx, width - 1.0 - cx) / fx, max(cy, height - 1.0 - cy) / fy
         reach = self.params.max_range_m * math.sqrt(1.0 + a * a + b * b) + 1e-6
-        gap = np.maximum(np.maximum(self.P[idx].min(axis=1) - t_wc, t_wc - self.P[idx].max(axis=1)), 0.0)
-        idx = idx[(gap ** 2).sum(axis=1) <= reach ** 2]
+        P0, P1 = self.P[idx, 0], self.P[idx, 1]
+        gap = np.maximum(np.maximum(np.minimum(P0, P1) - t_wc, t_wc - np.maximum(P0, P1)), 0.0)
+        idx = idx[np.einsum("ki,ki->k", gap, gap) <= reach ** 2]
         empty = Prediction(np.zeros(0, int), np.zeros((0, 4)), np.zeros((0, 2)), np.zeros(0))
         if len(idx) == 0:
             return empty
@@ -844,10 +845,13 @@ class LineMap:
 
     def _boxes(self) -> tuple[np.ndarray, np.ndarray]:
         """All segments' boxes as in ``_bbox`` (lo, hi)."""
-        pts = np.concatenate((self.P, self.anchor), axis=1)
+        P, A = self.P, self.anchor
         a = math.radians(self.params.assoc_angle_deg)
-        e = (0.5 * (1.0 - math.cos(a) + math.sin(a)) * self.length)[:, None]
-        return pts.min(axis=1) - e, pts.max(axis=1) + e
+        d = P[:, 1] - P[:, 0]
+        e = (0.5 * (1.0 - math.cos(a) + math.sin(a)) * np.sqrt(np.einsum("ki,ki->k", d, d)))[:, None]
+        lo = np.minimum(np.minimum(P[:, 0], P[:, 1]), np.minimum(A[:, 0], A[:, 1]))
+        hi = np.maximum(np.maximum(P[:, 0], P[:, 1]), np.maximum(A[:, 0], A[:, 1]))
+        return lo - e, hi + e
 
     def _bbox(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Boxes (lo, hi) of segments idx and their direction classes: their estimates and anchors, widened
