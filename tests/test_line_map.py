@@ -102,6 +102,67 @@ def test_unconfirmed_candidate_is_pruned_after_misses():
     assert len(m) == 0
 
 
+def _drive_past_edges(m: LineMap) -> list:
+    """Five frames 0.1 m apart past a box corner: a vertical edge seen in pieces (merging), two horizontal
+    edges, a rival pair (Fig. 11.4) and a ghost; returns each frame's UpdateStats."""
+    rng = np.random.default_rng(3)
+    edges = [np.array([[0.3, -0.9, 2.0], [0.3, 0.0, 2.0]]), np.array([[-0.6, -0.9, 2.0], [0.3, -0.9, 2.0]]),
+             np.array([[0.3, -0.9, 2.0], [0.3, -0.9, 2.8]])]
+    out = []
+    for k in range(5):
+        R, t = at(0.1 * k)
+        lo, hi = 0.15 * (k % 3), 0.6 + 0.1 * (k % 2)            # a different piece of the vertical edge
+        piece = edges[0][0] + np.array([[0, lo, 0], [0, hi, 0]])
+        ghost = np.array([[0.1 * k, -0.5, 1.4], [0.1 * k, 0.2, 1.4]])           # moves with the viewpoint
+        rival = edges[0] + [0.0, 0.0, -0.6]
+        # A far edge of the box, in two pieces 10 cm apart in the first frame (inserted apart, then merged).
+        back = [np.array([[-0.6, 0.0, 2.8], [-0.2, 0.0, 2.8]]), np.array([[-0.1, 0.0, 2.8], [0.3, 0.0, 2.8]])]
+        back = back if k == 0 else [np.array([[-0.6, 0.0, 2.8], [0.3, 0.0, 2.8]])]
+        rivals = [rival] if k == 0 else []          # the other stereo match of the piece, in the first frame
+        P = np.stack([piece, edges[1], edges[2], ghost] + back + rivals)
+        P = P + rng.normal(0, 0.002, P.shape)
+        out.append(m.update(obs(P - t, sigma=0.004, group=[0, 1, 2, 3, 4, 5, 0][:len(P)]), R, t))
+    return out
+
+
+def _far_segments(n: int) -> np.ndarray:
+    """n segments of all directions 40-60 m away (another part of a long drive)."""
+    rng = np.random.default_rng(4)
+    a = rng.uniform([40.0, -1.0, 40.0], [60.0, 0.0, 60.0], (n, 3))
+    return np.stack((a, a + rng.normal(0, 0.5, (n, 3))), axis=1)
+
+
+def test_update_work_does_not_grow_with_the_map():
+    """The update looks only at segments near the frame's observations (the spatial hash): the same drive
+    past a few edges, on an empty map and on a map already holding 2000 segments far away, builds the
+    same segments and evaluates the same number of (observation or segment, map segment) pairs. The scan
+    used below GRID_MIN_SEGMENTS builds the same map too."""
+    def run(far: int, grid: bool) -> tuple:
+        m = LineMap(MapParams(view_baseline_m=0.08))
+        m.grid_min_segments = 0 if grid else 10 ** 9
+        if far:
+            m._insert(_far_segments(far), np.broadcast_to(1e-4 * I3, (far, 2, 3, 3)).copy(), np.full(far, -1),
+                      np.zeros(4))
+        stats = _drive_past_edges(m)
+        return m, far, stats
+
+    results = [run(0, True), run(2000, True), run(0, False), run(2000, False)]
+    ref, _, ref_stats = results[0]
+    assert sum(s.merged for s in ref_stats) > 0 and sum(s.rivals_dropped for s in ref_stats) > 0
+    assert ref.verified.sum() >= 3
+    for m, far, stats in results[1:]:
+        near = slice(far, None)
+        assert np.array_equal(m.ids[near] - far, ref.ids) and np.array_equal(m.support[near], ref.support)
+        assert np.array_equal(m.verified[near], ref.verified) and np.array_equal(m.group[near], ref.group)
+        assert np.array_equal(m.P[near], ref.P) and np.array_equal(m.cov[near], ref.cov)
+        assert [len(v) for v in m.views[near]] == [len(v) for v in ref.views]
+        assert np.array_equal(m.P[:far], _far_segments(far))                   # the far ones untouched
+        assert [(s.fused, s.inserted, s.merged, s.verified, s.rivals_dropped) for s in stats] == \
+            [(s.fused, s.inserted, s.merged, s.verified, s.rivals_dropped) for s in ref_stats]
+    assert [s.pairs for s in results[1][2]] == [s.pairs for s in ref_stats]
+    assert all(s.pairs > 0 for s in ref_stats[1:])
+
+
 def test_prediction_projects_segments_with_disparity():
     m = LineMap()
     m._insert(np.array([[[0.2, -0.3, 2.0], [0.2, 0.3, 2.0]]]), np.broadcast_to(1e-4 * I3, (1, 2, 3, 3)).copy(),
