@@ -39,3 +39,31 @@ def map_route_in_reference_frame(planned, start, goal):
 
     ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
     return [(p.x, p.z) for p in ref], start.between(goal)
+
+
+def localise_start(cfg, camera, map_path: str, guess, timeout_s: float = 3.0):
+    """The robot's pose in the map's frame from one stereo frame of ``camera`` (vision/line_localise.py),
+    searched around ``guess``: (Localisation, message). The camera is opened and closed again here (the
+    run opens it for itself)."""
+    from vbnav.control.line_map_file import load_map
+    from vbnav.vision.line_localise import View, localise
+    from vbnav.vision.line_segments import detect_segments
+
+    lmap, _ = load_map(map_path)
+    baseline = cfg.camera.stereo_baseline()
+    if not baseline:
+        return None, f"{cfg.source}: camera: localising against a line map needs a stereo camera (a baseline)"
+    camera.connect()
+    try:
+        frame = camera.read(timeout_s)
+    finally:
+        camera.disconnect()
+    if frame is None:
+        return None, f"camera: no frame within {timeout_s:.0f} s to localise against {map_path}"
+    model = cfg.camera.to_model()
+    view = View(model.fx, model.fy, model.cx, model.cy, model.width, model.height, baseline,
+                cfg.camera.mount.to_mount())
+    r = localise(lmap, detect_segments(frame.image), view, guess)
+    say = (f"{map_path}: {r.matches} of the {r.predicted} map segments predicted in view found, "
+           f"{r.rms_px:.2f} px rms")
+    return r, say

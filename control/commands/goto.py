@@ -5,7 +5,7 @@ import math
 import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
-from vbnav.control.map_planning import map_route_in_reference_frame, plan_on_map
+from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_on_map
 
 
 def register(sub) -> None:
@@ -30,6 +30,9 @@ def register(sub) -> None:
     p.add_argument("--start", nargs=3, type=finite, default=None, metavar=("X", "Z", "THETA_DEG"),
                    help="with --map: the robot's pose in the map's frame at the start (default 0 0 0: where the "
                         "mapping drive started)")
+    p.add_argument("--localise", action="store_true",
+                   help="with --map: find the start pose against the map from the first stereo frame, searched "
+                        "0.3 m / 12 deg around --start; exit 1 when the map does not confirm a pose there")
     p.add_argument("--robot-radius", type=positive, default=0.2, metavar="M",
                    help="with --map: the robot's radius for planning, m")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
@@ -55,26 +58,39 @@ def run(args) -> int:
         return 2
     goal = Pose2(args.goal[0], args.goal[1], math.radians(args.goal[2]))
     waypoints = None
-    if args.start is not None and not args.map:
-        print("vbnav goto: --start needs --map (it places the robot in the map's frame)", file=sys.stderr)
+    if (args.start is not None or args.localise) and not args.map:
+        print("vbnav goto: --start and --localise need --map (they place the robot in the map's frame)",
+              file=sys.stderr)
         return 2
-    if args.map:
-        start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
-        planned = plan_on_map(args.map, start, goal, args.robot_radius)
-        if planned is None:
-            print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
-                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
-            return 1
-        print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
-        waypoints, goal = map_route_in_reference_frame(planned, start, goal)
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:
         print(f"vbnav goto: {cfg.source}: {exc}")
         return 2
+    robot = make_robot(cfg, [stage])
+    if args.map:
+        start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
+        if args.localise:
+            found, say = localise_start(cfg, robot.camera, args.map, start)
+            if found is None or not found.ok:
+                print(f"vbnav goto: the map does not confirm a start pose within 0.3 m / 12 deg of "
+                      f"({start.x:+.2f}, {start.z:+.2f}, {math.degrees(start.theta):+.1f} deg): {say}; give --start "
+                      f"nearer the robot's pose, or turn it toward a mapped view", file=sys.stderr)
+                robot.drive.close()         # never enabled: released as it was opened
+                return 1
+            start = found.pose
+            print(f"localised against the map: x={start.x:+.3f} z={start.z:+.3f} "
+                  f"theta={math.degrees(start.theta):+.2f} deg ({say})")
+        planned = plan_on_map(args.map, start, goal, args.robot_radius)
+        if planned is None:
+            print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
+                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
+            robot.drive.close()
+            return 1
+        print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
+        waypoints, goal = map_route_in_reference_frame(planned, start, goal)
     controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
                                 waypoints=waypoints)
-    robot = make_robot(cfg, [stage])
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
