@@ -21,13 +21,19 @@ def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
 
 
 def plan_on_map(path: str, start, goal, robot_radius: float):
-    """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the map's walls and objects."""
+    """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the walls and objects of the map
+    file ``path``."""
+    from vbnav.control.line_map_file import load_map
+
+    return plan_path(*load_map(path), start, goal, robot_radius)
+
+
+def plan_path(lmap, meta: dict, start, goal, robot_radius: float):
+    """``plan_on_map`` on a loaded map."""
     import numpy as np
 
-    from vbnav.control.line_map_file import load_map
     from vbnav.vision.nav_grid import plan
 
-    lmap, meta = load_map(path)
     grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
     return plan(grid, (start.x, start.z), (goal.x, goal.z))
 
@@ -41,15 +47,13 @@ def map_route_in_reference_frame(planned, start, goal):
     return [(p.x, p.z) for p in ref], start.between(goal)
 
 
-def localise_start(cfg, camera, map_path: str, guess, timeout_s: float = 3.0):
-    """The robot's pose in the map's frame from one stereo frame of ``camera`` (vision/line_localise.py),
-    searched around ``guess``: (Localisation, message). The camera is opened and closed again here (the
-    run opens it for itself)."""
-    from vbnav.control.line_map_file import load_map
+def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3.0):
+    """The robot's pose in the frame of the loaded map ``lmap`` (from ``map_path``) from one stereo frame of
+    ``camera`` (vision/line_localise.py), searched around ``guess``: (Localisation, message). The camera is
+    opened and closed again here (the run opens it for itself)."""
     from vbnav.vision.line_localise import View, localise
     from vbnav.vision.line_segments import detect_segments
 
-    lmap, _ = load_map(map_path)
     baseline = cfg.camera.stereo_baseline()
     if not baseline:
         return None, f"{cfg.source}: camera: localising against a line map needs a stereo camera (a baseline)"

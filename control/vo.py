@@ -12,6 +12,7 @@ import numpy as np
 
 from vbnav.drivers.datasets import Dataset
 from vbnav.drivers.errors import InputError
+from vbnav.vision.geometry import similarity_moved
 from vbnav.vision.motion import recover_motion_robust
 from vbnav.vision.vslam import FrameResult, Vslam, VslamConfig
 from vbnav.vision.vslam_init import TagGrid, init_from_tags, init_two_view
@@ -240,11 +241,7 @@ def _relocalise(ds: Dataset, slam: Vslam, i: int, since: int, kept_w: np.ndarray
         if sim is not None:
             s, R, t, n = sim
             slam.correct_world_similarity(s, R, t)
-            for k in range(since, i + 1):
-                if k in traj.poses:
-                    W = traj.poses[k].copy()
-                    W[:3, :3], W[:3, 3] = R @ W[:3, :3], s * R @ W[:3, 3] + t
-                    traj.poses[k] = W
+            _move_poses(traj, since, i, s, R, t)
             say(f"frame {i}: relocalised against {n} landmarks kept from before the restart at frame {since} "
                 f"(scale x{s:.3f})")
             return True
@@ -253,12 +250,17 @@ def _relocalise(ds: Dataset, slam: Vslam, i: int, since: int, kept_w: np.ndarray
         return False
     C = pose @ np.linalg.inv(slam.pose_wc)
     slam.correct_world(C)
-    for k in range(since, i + 1):
-        if k in traj.poses:
-            traj.poses[k] = C @ traj.poses[k]
+    _move_poses(traj, since, i, 1.0, C[:3, :3], C[:3, 3])
     say(f"frame {i}: relocalised against the landmarks kept from before the restart at frame {since} "
         f"(moved {np.linalg.norm(C[:3, 3]):.3f} m)")
     return True
+
+
+def _move_poses(traj: _Trajectory, since: int, i: int, s: float, R: np.ndarray, t: np.ndarray) -> None:
+    """The run's poses of frames ``since``..``i`` moved by the world correction X' = s R X + t."""
+    for k in range(since, i + 1):
+        if k in traj.poses:
+            traj.poses[k] = similarity_moved(traj.poses[k], s, R, t)
 
 
 def _restart(ds: Dataset, slam: Vslam, init: str, i: int, traj: _Trajectory, essential_frames: int, say

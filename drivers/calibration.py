@@ -172,13 +172,20 @@ def _first(doc: dict, names):
     return None
 
 
-def _load_opencv(path: Path):
+def open_filestorage(path) -> "cv2.FileStorage":
+    """An OpenCV YAML/XML file opened for reading; CalibrationError naming it when it cannot be parsed."""
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as e:  # a parse error surfaces as SystemError from the constructor
-        raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file ({str(e).strip()})") from None
+    except (cv2.error, SystemError) as exc:    # a parse error surfaces as SystemError from the constructor
+        why = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file ({why})") from None
     if not fs.isOpened():
         raise CalibrationError(f"{path}: not a readable OpenCV YAML/XML file")
+    return fs
+
+
+def _load_opencv(path: Path):
+    fs = open_filestorage(path)
     try:
         K = _fs_mat(fs, _K_NAMES)
         if K is None:

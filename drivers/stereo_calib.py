@@ -46,7 +46,8 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from vbnav.drivers.calibration import CalibrationError, _fs_int, _fs_mat, check_baseline, check_intrinsics
+from vbnav.drivers.calibration import (CalibrationError, _fs_int, _fs_mat, check_baseline, check_intrinsics,
+                                      open_filestorage)
 from vbnav.drivers.errors import yaml_problem
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
@@ -172,13 +173,7 @@ def read_opencv_rectification(path: str | Path) -> StereoCalibration:
     """The rectified pair and the maps to it from an OpenCV FileStorage file with cv2.stereoRectify's result
     (module docstring). Errors name the file and the field."""
     p = Path(path)
-    try:
-        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError) as exc:    # a parse error surfaces as SystemError from the constructor
-        why = str(exc.__cause__ or exc).strip().splitlines()[-1]
-        raise CalibrationError(f"{p}: not a readable OpenCV YAML/XML file ({why})") from None
-    if not fs.isOpened():
-        raise CalibrationError(f"{p}: not a readable OpenCV YAML/XML file")
+    fs = open_filestorage(p)
     try:
         m = {k: _fs_mat(fs, (k,)) for k in ("K0", "D0", "K1", "D1", "R1", "R2", "P1", "P2")}
         w, h = _fs_int(fs, ("image_width",)), _fs_int(fs, ("image_height",))

@@ -161,6 +161,14 @@ def absolute_orientation(P: np.ndarray, Q: np.ndarray, weights: np.ndarray | Non
     return R, t, (float(s) if s.ndim == 0 else s)
 
 
+def similarity_moved(W: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """A 4x4 world-from-camera pose after the world moves by X' = s R X + t (the camera keeps its scale)."""
+    out = np.array(W, float, copy=True)
+    out[:3, :3] = R @ out[:3, :3]
+    out[:3, 3] = s * R @ out[:3, 3] + t
+    return out
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """Angle of a rotation matrix, rad (robust near 0 and pi)."""
     c = (np.trace(R) - 1.0) / 2.0

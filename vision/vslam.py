@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from vbnav.vision.bundle_adjust import bundle_adjust
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.features import KltTracker, describe, match_descriptors, orb_matches
-from vbnav.vision.geometry import absolute_orientation
+from vbnav.vision.geometry import absolute_orientation, similarity_moved
 from vbnav.vision.motion import MotionEstimate, recover_motion_robust
 from vbnav.vision.spherical import spherical_disparity
 
@@ -386,16 +386,21 @@ class Vslam:
                                     angular=True, rng=self.rng)
         if (est.inliers & (est.depths > 0)).sum() < self.cfg.min_inliers:
             return None
-        m = np.zeros(len(d.P), bool)
-        m[li] = True
-        d.keep(m)
         order = np.argsort(li)
-        d.px = pts[ci[order]].astype(float)
+        self._adopt(d, li, pts[ci[order]].astype(float))
+        est.inliers, est.depths = est.inliers[order], est.depths[order]
+        return est
+
+    def _adopt(self, d: _Landmarks, rows: np.ndarray, px: np.ndarray) -> None:
+        """An ORB fallback's outcome: landmarks ``rows`` of ``d`` (in index order) become the tracked set at
+        ``px``, anchored in this image (their old patches may be far from this view)."""
+        m = np.zeros(len(d.P), bool)
+        m[rows] = True
+        d.keep(m)
+        d.px = px
         d.anchor[:], d.apx = self._img_id, d.px.copy()
         self.lm = d
         self.descriptor_poses += 1
-        est.inliers, est.depths = est.inliers[order], est.depths[order]
-        return est
 
     def _orb_tie_pose(self, last_image: np.ndarray, image: np.ndarray, before: _Landmarks, f: float
                       ) -> Optional[MotionEstimate]:
@@ -439,14 +444,8 @@ class Vslam:
             return None
         li = li[inl]
         R, T = R_rel @ self.R, R_rel @ self.T + step * t
-        m = np.zeros(len(d.P), bool)
-        m[li] = True
-        d.keep(m)  # rows stay in index order: li is sorted
         proj, _ = self.camera.project(Xc[inl])  # where the landmark is, not where its ORB corner was found
-        d.px = np.asarray(proj, float).reshape(-1, 2)
-        d.anchor[:], d.apx = self._img_id, d.px.copy()
-        self.lm = d
-        self.descriptor_poses += 1
+        self._adopt(d, li, np.asarray(proj, float).reshape(-1, 2))  # li is sorted: rows stay in order
         k = len(li)
         return MotionEstimate(R, T, np.linalg.norm(Xc[inl], axis=1), 0, float(np.sqrt(np.mean(ang[inl] ** 2))),
                               np.ones(k, bool), True)
@@ -528,10 +527,7 @@ class Vslam:
         self.rescale(s)
 
         def move(Wc: np.ndarray) -> np.ndarray:
-            out = Wc.copy()
-            out[:3, :3] = R @ Wc[:3, :3]
-            out[:3, 3] = s * R @ Wc[:3, 3] + t
-            return out
+            return similarity_moved(Wc, s, R, t)
 
         for ref in self.references:
             ref.pose_wc = move(ref.pose_wc)
@@ -543,9 +539,7 @@ class Vslam:
     def correct_world(self, C: np.ndarray) -> None:
         """Apply a rigid world correction ``C`` (new world-from-old world) to the reference frames and
         the recent poses: what a relocalisation found wrong in the restart's placement."""
-        for ref in self.references:
-            ref.pose_wc = C @ ref.pose_wc
-        self._history = [C @ W for W in self._history]
+        self.correct_world_similarity(1.0, C[:3, :3], C[:3, 3])
 
     # ------------------------------------------------------------------ tracks and landmark positions
     def _refine_from_anchors(self, image: np.ndarray) -> None:

@@ -5,7 +5,7 @@ import math
 import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
-from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_on_map
+from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_path
 
 
 def register(sub) -> None:
@@ -67,11 +67,14 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"vbnav goto: {cfg.source}: {exc}")
         return 2
+    if args.map:       # a bad map file is refused before any device opens
+        from vbnav.control.line_map_file import load_map
+        lmap, meta = load_map(args.map)
     robot = make_robot(cfg, [stage])
     if args.map:
         start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
         if args.localise:
-            found, say = localise_start(cfg, robot.camera, args.map, start)
+            found, say = localise_start(cfg, robot.camera, lmap, args.map, start)
             if found is None or not found.ok:
                 print(f"vbnav goto: the map does not confirm a start pose within 0.3 m / 12 deg of "
                       f"({start.x:+.2f}, {start.z:+.2f}, {math.degrees(start.theta):+.1f} deg): {say}; give --start "
@@ -81,7 +84,7 @@ def run(args) -> int:
             start = found.pose
             print(f"localised against the map: x={start.x:+.3f} z={start.z:+.3f} "
                   f"theta={math.degrees(start.theta):+.2f} deg ({say})")
-        planned = plan_on_map(args.map, start, goal, args.robot_radius)
+        planned = plan_path(lmap, meta, start, goal, args.robot_radius)
         if planned is None:
             print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
                   f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
