@@ -30,38 +30,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from desk_view import build_desk_view  # noqa: E402
+from room_view import room_view  # noqa: E402
 from vo_peer import PeerVo  # noqa: E402
 
-from vbnav.control.trajectory_metrics import ate_rmse, write_tum  # noqa: E402
+from vbnav.control.trajectory_metrics import ate_rmse  # noqa: E402
 from vbnav.control.vo import run_vo  # noqa: E402
 from vbnav.drivers.datasets import open_dataset  # noqa: E402
-from vbnav.vision.geometry import matrix_from_quat  # noqa: E402
-
-def room_view(src: Path, dst: Path) -> Path:
-    """TUM-layout view of room_rgbd5: rgb.txt, depth.txt, groundtruth.txt, camera.yaml (1 s apart)."""
-    dst.mkdir(parents=True, exist_ok=True)
-    rows = np.loadtxt(src / "pose.txt").reshape(-1, 7)
-    rgb, dep, poses = ["# timestamp filename"], ["# timestamp filename"], []
-    for k in range(len(rows)):
-        for sub, ext, lst in (("color", "png", rgb), ("depth", "pgm", dep)):
-            link = dst / f"{sub}_{k + 1}.{ext}"
-            if not link.exists():
-                link.symlink_to(src / sub / f"{k + 1}.{ext}")
-            lst.append(f"{float(k):.6f} {link.name}")
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = matrix_from_quat(rows[k, 3:7]), rows[k, :3]
-        poses.append(M)
-    (dst / "rgb.txt").write_text("\n".join(rgb) + "\n")
-    (dst / "depth.txt").write_text("\n".join(dep) + "\n")
-    write_tum(dst / "groundtruth.txt", np.arange(len(rows), dtype=float), np.array(poses))
-    (dst / "camera.yaml").write_text(yaml.safe_dump({"width": 640, "height": 480, "fx": 518.0, "fy": 519.0,
-                                                     "cx": 325.5, "cy": 253.5, "depth_scale": 0.001}))
-    return dst
-
 
 SEQUENCE_FOLDERS = ("kitti06_stereo", "vo_turns_kitti03", "desk_rgbd", "room_rgbd5")
 

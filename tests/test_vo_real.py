@@ -139,3 +139,22 @@ def test_vo_bundle_adjustment_flag_on_kitti06_monocular(shared_data, tmp_path, c
     text = capsys.readouterr().out
     assert "Sim(3)" in text and _ate_from_output(text) <= 0.068, text
     assert main(["vo", str(shared_data / "kitti06_stereo"), "--ba-window", "-1", "--out", str(out)]) == 2
+
+
+def test_room_rgbd5_depth_holds_over_ransac_seeds(shared_data, tmp_path):
+    """room_rgbd5 (5 hand-held RGB-D frames 1 s apart, 0.2-0.7 m and up to 25 deg between them): with
+    few landmarks two 3-point hypotheses can tie on different consensus sets; LO-RANSAC (the pose refitted
+    to each new best consensus, for landmarks of known depth) picks the larger one. Measured on
+    2026-11-30 over seeds 0-7: APE median 0.053 m, worst 0.096 m (without LO: 0.067 m, worst 0.262 m;
+    the OpenCV peer 0.074 m). Bars: median 1.5x, worst 1.6x."""
+    from room_view import room_view
+    from vbnav.control.vo import run_vo
+
+    ds = open_dataset(room_view(shared_data / "room_rgbd5", tmp_path / "room"))
+    apes = []
+    for seed in range(8):
+        r = run_vo(ds, "depth", seed=seed)
+        assert len(r.frames) == 5 and r.scale_known
+        ok, gt = ds.ground_truth_at(ds.stamps[r.frames])
+        apes.append(ate_rmse(r.poses[ok], gt[ok], with_scale=False)[0])
+    assert np.median(apes) <= 0.08 and max(apes) <= 0.15, np.round(apes, 3)

@@ -263,7 +263,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
                           angular: bool = False, confidence: float = 0.999, max_hypotheses: int = 200,
                           batch: int = 16, minimal_iters: int = 8, refine_rounds: int = 3, score_factor: float = 3.0,
                           rng: np.random.Generator | None = None, tol: float = 1e-5,
-                          weights: np.ndarray | None = None) -> MotionEstimate:
+                          weights: np.ndarray | None = None, local_optimisation: bool = False) -> MotionEstimate:
     """Outlier-robust motion: 3-point hypotheses (the chapter's minimal set), then robust reweighting.
 
     Hypotheses run the alternation on 3 landmarks from the same initial depths
@@ -272,6 +272,8 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
     is refined by the full alternation with Cauchy weights on the ray angles,
     ``refine_rounds`` times, the inlier set recomputed each round. ``weights``
     (N,), if given, multiply the Cauchy weights (confidence in each landmark).
+    ``local_optimisation``: each new best hypothesis is refitted to its consensus set (LO-RANSAC),
+    for landmarks of known position (stereo, depth); see docs/vslam.md for why not monocular ones.
     """
     P = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3))
     n = np.ascontiguousarray(np.asarray(rays, float).reshape(-1, 3))
@@ -300,6 +302,21 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         eps = count / N
         return np.log(1 - confidence) / np.log(max(1 - eps ** 3, 1e-12)) if eps < 1 else 0
 
+    def local_optimum(R, T, count):
+        """LO-RANSAC (Chum, Matas and Kittler 2003): the pose fitted to a hypothesis' consensus set
+        replaces it when it gathers more rays; a 3-point pose is noisy, and on few landmarks two
+        noisy hypotheses can tie with different consensus sets."""
+        inl = angular_residuals(P, n, R, T) < score_factor * threshold
+        if inl.sum() <= 3:
+            return (R, T), count
+        w = None if weights is None else np.asarray(weights, float).reshape(N)[inl]
+        est = recover_motion(P[inl], n[inl], D0[inl], prior=(R, T), weights=w, angular=angular, tol=1e-4,
+                             max_iter=50)
+        c = int(np.sum(angular_residuals(P, n, est.R, est.T) < score_factor * threshold))
+        return ((est.R, est.T), c) if c > count else ((R, T), count)
+
+    if local_optimisation and best is not None:
+        best, best_count = local_optimum(*best, best_count)
     if N > 3 and best_count < N:
         needed = hypotheses_needed(best_count) if best_count > 0 else max_hypotheses
         while tried < min(needed, max_hypotheses):
@@ -310,6 +327,8 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
             tried += h
             if counts[k] > best_count:
                 best_count, best = int(counts[k]), (Rs[k], Ts[k])
+                if local_optimisation:
+                    best, best_count = local_optimum(*best, best_count)
                 needed = hypotheses_needed(best_count)
     if best is None:  # N == 3: the minimal set is all we have
         best = (None, None)

@@ -236,6 +236,7 @@ class Vslam:
         self.camera = camera
         self.cfg = config or VslamConfig()
         self.baseline = stereo_baseline
+        self._metric = stereo_baseline is not None  # landmarks of known position (set again each frame)
         self.tracker = KltTracker(window=self.cfg.klt_window, levels=self.cfg.klt_levels,
                                   min_distance=self.cfg.min_distance_px)
         self.lm = _Landmarks()
@@ -312,6 +313,7 @@ class Vslam:
         if not self.initialised:
             raise RuntimeError("Vslam.process before initialise")
         cfg = self.cfg
+        self._metric = self.baseline is not None or depth is not None  # landmarks of known position
         n_lm = len(self.lm.P)
         before = _Landmarks(**{k: getattr(self.lm, k) for k in _Landmarks._ROWS})  # for the ORB fallback
         pts = np.vstack((self.lm.px, self.cand.px))
@@ -332,7 +334,8 @@ class Vslam:
         if tracked >= max(cfg.min_inliers, 3):
             est = recover_motion_robust(self.lm.P, self.camera.rays(self.lm.px), prior=self._predicted_motion(),
                                         threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
-                                        weights=self._confidence(f) if cfg.weight_by_uncertainty else None)
+                                        weights=self._confidence(f) if cfg.weight_by_uncertainty else None,
+                                        local_optimisation=self._metric)
         agree = 0 if est is None else int((est.inliers & (est.depths > 0)).sum())
         if agree < cfg.min_inliers or agree < MIN_INLIER_FRACTION * tracked:
             # KLT kept too few, or mostly wrong ones (a jump, blur, an exposure change): match ORB
@@ -383,7 +386,7 @@ class Vslam:
         li, ci = pairs[:, 0], pairs[:, 1]
         est = recover_motion_robust(d.P[li], self.camera.rays(pts[ci].astype(float)),
                                     prior=self._predicted_motion(), threshold=2 * self.cfg.inlier_threshold_px / f,
-                                    angular=True, rng=self.rng)
+                                    angular=True, rng=self.rng, local_optimisation=self._metric)
         if (est.inliers & (est.depths > 0)).sum() < self.cfg.min_inliers:
             return None
         order = np.argsort(li)
