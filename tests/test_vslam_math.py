@@ -61,6 +61,26 @@ def test_spherical_disparity_gates_low_parallax_and_inconsistent_rays(rng):
     assert not rec.valid[:5].any() and rec.valid[5:].mean() > 0.8
 
 
+def test_spherical_disparity_with_a_motion_per_landmark_equals_one_at_a_time(rng):
+    """Monocular candidates each carry their own first view: the batched (N, 3, 3) / (N, 3) form
+    gives what N single-motion calls give, gates included."""
+    n = 30
+    P = scene(rng, n, 1.0)[0]
+    Rs = np.array([random_rotation(rng, 0.2) for _ in range(n)])
+    Ts = rng.normal(0, 0.3, (n, 3))
+    Ts[:4] *= 1e-4  # no parallax: gated out
+    X = np.einsum("nij,nj->ni", Rs, P) + Ts
+    batch = spherical_disparity(unit(P), unit(X), Rs, Ts, min_parallax=np.deg2rad(1.0))
+    assert not batch.valid[:4].any() and batch.valid[4:].mean() > 0.8
+    for k in range(n):
+        one = spherical_disparity(unit(P[k:k + 1]), unit(X[k:k + 1]), Rs[k], Ts[k], min_parallax=np.deg2rad(1.0))
+        assert one.valid[0] == batch.valid[k]
+        if one.valid[0]:  # (the gated rows are ill-conditioned: rounding differs between the two forms)
+            np.testing.assert_allclose([one.depth_ref[0], one.residual[0]], [batch.depth_ref[k], batch.residual[k]],
+                                       rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(batch.depth_ref[batch.valid], np.linalg.norm(P, axis=1)[batch.valid], rtol=1e-9)
+
+
 @pytest.mark.parametrize("scale", [1.0, 1e-3])
 def test_depth_update_needs_rotation_only(rng, scale):
     P, R, T = scene(rng, 30, scale)

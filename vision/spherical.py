@@ -33,17 +33,20 @@ def spherical_disparity(rays_ref: np.ndarray, rays_cur: np.ndarray, R: np.ndarra
     """Solve (11.11) for every landmark, vectorised.
 
     rays_ref (N, 3) in the first view, rays_cur (N, 3) in the second,
-    (R, T) maps first-view coordinates to second-view coordinates.
+    (R, T) maps first-view coordinates to second-view coordinates: one (3, 3), (3,) for all, or one
+    per landmark, (N, 3, 3) and (N, 3) (monocular candidates each have their own first view).
     Gates: parallax >= min_parallax (the conditioning of the 3x2 system), both
     depths positive, and the rays' miss distance <= max_residual_ratio * |T|.
     """
     n = np.asarray(rays_ref, float).reshape(-1, 3)
     n_cur = np.asarray(rays_cur, float).reshape(-1, 3)
-    T = np.asarray(T, float).reshape(3)
-    Rn = n @ np.asarray(R, float).T
+    R = np.asarray(R, float)
+    per_row = R.ndim == 3
+    T = np.asarray(T, float).reshape(-1, 3) if per_row else np.asarray(T, float).reshape(3)
+    Rn = np.einsum("nij,nj->ni", R, n) if per_row else n @ R.T
     c = np.einsum("ij,ij->i", n_cur, Rn)  # cos(parallax)
-    p = n_cur @ T  # n' . T
-    q = -(Rn @ T)  # -(R n) . T
+    p = np.einsum("ij,ij->i", n_cur, T) if per_row else n_cur @ T  # n' . T
+    q = -np.einsum("ij,ij->i", Rn, T) if per_row else -(Rn @ T)  # -(R n) . T
     det = 1.0 - c * c
     safe = np.where(det > 1e-15, det, 1.0)
     # [[1, -c], [-c, 1]]^-1 = [[1, c], [c, 1]] / det
@@ -53,7 +56,7 @@ def spherical_disparity(rays_ref: np.ndarray, rays_cur: np.ndarray, R: np.ndarra
     residual = np.linalg.norm(miss, axis=1)
     parallax = np.arccos(np.clip(c, -1.0, 1.0))
     valid = ((det > 1e-15) & (parallax >= min_parallax) & (d_cur > 0) & (d_ref > 0)
-             & (residual <= max_residual_ratio * max(np.linalg.norm(T), 1e-300)))
+             & (residual <= max_residual_ratio * np.maximum(np.linalg.norm(T, axis=-1), 1e-300)))
     return Reconstruction(d_cur, d_ref, parallax, residual, valid)
 
 

@@ -42,8 +42,9 @@ ORB_TIE_PX = 3.0
 MIN_INLIER_FRACTION = 0.25
 # Essential-matrix inliers needed from those matches: 5 determine it; 15 give a margin over outliers.
 ORB_MIN_MATCHES = 15
-# A monocular landmark triangulated at the 2 degree parallax gate with 1 px of noise at f = 500-720 px
-# has a depth error of 1 / (0.035 f) = 3-6 % (one sigma); 10 % of its distance is about two sigmas.
+# A monocular landmark born at the parallax gate (min_parallax_px, 10 px) with 1 px of noise has a 10 %
+# depth error (one sigma); the kept ones have been refined over their tracks since (5 % at 20 px of
+# parallax), so 10 % of its distance is one to two sigmas.
 SIM3_MAX_RELATIVE_ERROR = 0.10
 
 
@@ -54,8 +55,11 @@ class VslamConfig(BaseModel):
 
     max_landmarks: int = Field(400, gt=10, description="landmarks tracked at most")
     min_landmarks: int = Field(250, gt=3, description="below this many tracked, new landmarks are added")
-    max_candidates: int = Field(300, ge=0, description="monocular: features waiting for enough parallax")
-    min_parallax_deg: float = Field(2.0, gt=0, description="gate of the spherical disparity (monocular)")
+    max_candidates: int = Field(1000, ge=0, description="monocular: features waiting for enough parallax")
+    min_parallax_px: float = Field(10.0, gt=0, description="gate of the spherical disparity (monocular), in pixels "
+                                                          "at the focal length: a two-view depth's relative "
+                                                          "error is the ray noise over the parallax, so 10 px "
+                                                          "starts a landmark within 10 % for 1 px of noise")
     inlier_threshold_px: float = Field(1.0, gt=0, description="ray angle, in pixels at the focal length")
     handoff_fraction: float = Field(0.4, ge=0, le=1,
                                     description="hand-off when fewer of the reference frame's own landmarks "
@@ -610,7 +614,12 @@ class Vslam:
     @property
     def _min_conditioning(self) -> float:
         # two views at the parallax gate theta: eigenvalues ~ (2, 2 - theta^2/2, theta^2/2) / (D^2): ratio theta^2/8
-        return np.deg2rad(self.cfg.min_parallax_deg) ** 2 / 8.0
+        return self._min_parallax ** 2 / 8.0
+
+    @property
+    def _min_parallax(self) -> float:
+        """The parallax gate in radians: ``min_parallax_px`` at the focal length."""
+        return self.cfg.min_parallax_px / float(getattr(self.camera, "fx", 500.0))
 
     def _predicted_pixels(self) -> np.ndarray:
         """Where the landmarks and candidates should appear in the next image at constant velocity: the
@@ -881,14 +890,10 @@ class Vslam:
             # first view -> now: X_now = R X_ref + T, X_0 = R0 X_ref + T0  =>  R_rel = R R0^T, T_rel = T - R_rel T0
             R_rel = np.einsum("ij,hkj->hik", self.R, c.R0)
             T_rel = self.T - np.einsum("hij,hj->hi", R_rel, c.T0)
-            d0 = np.full(len(rays), np.nan)
-            ok = np.zeros(len(rays), bool)
-            for k in range(len(rays)):  # small systems; vectorising over distinct (R, T) is not worth it
-                rec = spherical_disparity(c.ray0[k:k + 1], rays[k:k + 1], R_rel[k], T_rel[k],
-                                          min_parallax=np.deg2rad(self.cfg.min_parallax_deg),
-                                          max_residual_ratio=0.05)
-                ok[k], d0[k] = rec.valid[0], rec.depth_ref[0]
-            ok &= d0 > self.cfg.min_depth
+            rec = spherical_disparity(c.ray0, rays, R_rel, T_rel, min_parallax=self._min_parallax,
+                                      max_residual_ratio=0.05)
+            d0 = rec.depth_ref
+            ok = rec.valid & (d0 > self.cfg.min_depth)
             if ok.any():
                 X0 = d0[ok, None] * c.ray0[ok]
                 P = np.einsum("hji,hj->hi", c.R0[ok], X0 - c.T0[ok])  # R0^T (X0 - T0)
