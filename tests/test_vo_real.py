@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 
 from vbnav.control.cli import main
+from vbnav.control.vo import run_vo
 from vbnav.control.trajectory_metrics import ate_rmse, rpe, write_tum
 from vbnav.drivers.datasets import DatasetError, open_dataset
 from vbnav.vision.geometry import absolute_orientation
 
 sys.path.insert(0, str(Path(__file__).parent))
 from desk_view import build_desk_view  # noqa: E402
+from room_view import room_view  # noqa: E402
 
 pytestmark = pytest.mark.realdata
 
@@ -150,9 +152,6 @@ def test_room_rgbd5_depth_holds_over_ransac_seeds(shared_data, tmp_path):
     to each new best consensus, for landmarks of known depth) picks the larger one. Measured on
     2026-11-30 over seeds 0-7: APE median 0.053 m, worst 0.096 m (without LO: 0.067 m, worst 0.262 m;
     the OpenCV peer 0.074 m). Bars: median 1.5x, worst 1.6x."""
-    from room_view import room_view
-    from vbnav.control.vo import run_vo
-
     ds = open_dataset(room_view(shared_data / "room_rgbd5", tmp_path / "room"))
     apes = []
     for seed in range(8):

@@ -302,6 +302,8 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         eps = count / N
         return np.log(1 - confidence) / np.log(max(1 - eps ** 3, 1e-12)) if eps < 1 else 0
 
+    given_w = None if weights is None else np.asarray(weights, float).reshape(N)
+
     def local_optimum(R, T, count):
         """LO-RANSAC (Chum, Matas and Kittler 2003): the pose fitted to a hypothesis' consensus set
         replaces it when it gathers more rays; a 3-point pose is noisy, and on few landmarks two
@@ -309,7 +311,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         inl = angular_residuals(P, n, R, T) < score_factor * threshold
         if inl.sum() <= 3:
             return (R, T), count
-        w = None if weights is None else np.asarray(weights, float).reshape(N)[inl]
+        w = None if given_w is None else given_w[inl]
         est = recover_motion(P[inl], n[inl], D0[inl], prior=(R, T), weights=w, angular=angular, tol=1e-4,
                              max_iter=50)
         c = int(np.sum(angular_residuals(P, n, est.R, est.T) < score_factor * threshold))
@@ -338,7 +340,7 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
         inl = np.ones(N, bool)
     est_prior = None if best[0] is None else best
     total_iters = 0
-    prior_w = np.ones(N) if weights is None else np.asarray(weights, float).reshape(N)
+    prior_w = np.ones(N) if given_w is None else given_w
     weights = prior_w.copy()
     est = None
     for _ in range(max(1, refine_rounds)):

@@ -240,7 +240,6 @@ class Vslam:
         self.camera = camera
         self.cfg = config or VslamConfig()
         self.baseline = stereo_baseline
-        self._metric = stereo_baseline is not None  # landmarks of known position (set again each frame)
         self.tracker = KltTracker(window=self.cfg.klt_window, levels=self.cfg.klt_levels,
                                   min_distance=self.cfg.min_distance_px)
         self.lm = _Landmarks()
@@ -317,7 +316,7 @@ class Vslam:
         if not self.initialised:
             raise RuntimeError("Vslam.process before initialise")
         cfg = self.cfg
-        self._metric = self.baseline is not None or depth is not None  # landmarks of known position
+        metric = self.baseline is not None or depth is not None  # landmarks of known position
         n_lm = len(self.lm.P)
         before = _Landmarks(**{k: getattr(self.lm, k) for k in _Landmarks._ROWS})  # for the ORB fallback
         pts = np.vstack((self.lm.px, self.cand.px))
@@ -339,13 +338,13 @@ class Vslam:
             est = recover_motion_robust(self.lm.P, self.camera.rays(self.lm.px), prior=self._predicted_motion(),
                                         threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
                                         weights=self._confidence(f) if cfg.weight_by_uncertainty else None,
-                                        local_optimisation=self._metric)
+                                        local_optimisation=metric)
         agree = 0 if est is None else int((est.inliers & (est.depths > 0)).sum())
         if agree < cfg.min_inliers or agree < MIN_INLIER_FRACTION * tracked:
             # KLT kept too few, or mostly wrong ones (a jump, blur, an exposure change): match ORB
             # descriptors of the landmarks against fresh corners of this image, pose from those; then
             # oriented ORB between the last image and this one. A weak KLT pose stands only if both fail.
-            fallback = self._descriptor_pose(image, before, f)
+            fallback = self._descriptor_pose(image, before, f, metric)
             if fallback is None:
                 fallback = self._orb_tie_pose(last_image, image, before, f)
             if fallback is not None:
@@ -372,9 +371,11 @@ class Vslam:
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
 
-    def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float) -> Optional[MotionEstimate]:
+    def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float, metric: bool
+                         ) -> Optional[MotionEstimate]:
         """Pose from ORB matches of the landmarks held before this frame's KLT (their descriptors from
-        creation) to fresh corners; on success the matched landmarks become the tracked set."""
+        creation) to fresh corners; on success the matched landmarks become the tracked set. ``metric``:
+        the landmarks' positions are known (stereo, depth), so the RANSAC refits its best hypotheses."""
         d = before
         d.keep(d.described)  # keeps those rows in place (and returns the others)
         if len(d.P) < self.cfg.min_inliers:
@@ -390,7 +391,7 @@ class Vslam:
         li, ci = pairs[:, 0], pairs[:, 1]
         est = recover_motion_robust(d.P[li], self.camera.rays(pts[ci].astype(float)),
                                     prior=self._predicted_motion(), threshold=2 * self.cfg.inlier_threshold_px / f,
-                                    angular=True, rng=self.rng, local_optimisation=self._metric)
+                                    angular=True, rng=self.rng, local_optimisation=metric)
         if (est.inliers & (est.depths > 0)).sum() < self.cfg.min_inliers:
             return None
         order = np.argsort(li)
