@@ -2,6 +2,8 @@
 that path in the goto controller's frame. Shared by ``vbnav goto --map`` and ``vbnav map view``."""
 from __future__ import annotations
 
+from typing import Optional
+
 
 def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
     """The traversability grid (vision/nav_grid.py) of a loaded map: its verified segments and the object
@@ -71,3 +73,125 @@ def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3
     say = (f"{map_path}: {r.matches} of the {r.predicted} map segments predicted in view found, "
            f"{r.rms_px:.2f} px rms")
     return r, say
+
+
+def route_is_clear(grid, here, route, skip_m: float) -> bool:
+    """True when the polyline from ``here`` (x, z) through ``route`` [(x, z), ...] crosses no blocked cell of
+    ``grid``, sampled every half cell. Blocked samples within ``skip_m`` of ``here`` at the very start are
+    not counted: a robot passing close to a wall stands in the grown margin itself (the planner leaves a
+    blocked start cell too)."""
+    import numpy as np
+
+    pts = [np.asarray(here, float)] + [np.asarray(p, float) for p in route]
+    step = grid.res / 2
+    leaving = True
+    for a, b in zip(pts, pts[1:]):
+        n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
+        for p in np.linspace(a, b, n):
+            cell = grid.cell(float(p[0]), float(p[1]))
+            blocked = grid.inside(*cell) and bool(grid.blocked[cell])
+            if leaving and (not blocked or np.linalg.norm(p - pts[0]) >= skip_m):
+                leaving = False
+            if blocked and not leaving:
+                return False
+    return True
+
+
+class Replanner:
+    """The mission loop on a map that grows while the robot drives (section 11.2.1.1: the DLM is the
+    centre of navigation). Each ``step`` (its own thread, every ``period_s``; or inline on a simulated
+    clock) looks at the line map only when it changed since the last look: it builds the traversability
+    grid of the map as it is now (verified segments, the slow loop's object polygons and those stored
+    with the map file), checks that the route still ahead of the robot is clear, and when the grown map
+    blocks it plans again from the robot's pose and hands the controller the new waypoints. With no path
+    at all the controller holds (stopped) until the map opens one again; the obstacle stop stays in force
+    whatever the plan says.
+
+    ``stage``: the LineMapStage updating the map (its ``revision``, ``verified_snapshot`` and abstraction);
+    ``start``: the robot's start pose in the map's frame (the controller's reference frame origin);
+    ``goal``: in the map's frame; ``robot_pose``: () -> the robot's pose in the reference frame, or None."""
+
+    def __init__(self, stage, meta: dict, start, goal, robot_radius: float, controller, robot_pose,
+                 period_s: float = 0.5):
+        import dataclasses
+
+        from vbnav.vision.nav_grid import GridParams
+
+        self.stage, self.meta = stage, meta
+        self.start, self.goal = start, goal
+        self.params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
+        self.controller, self.robot_pose = controller, robot_pose
+        self.period_s = float(period_s)
+        self.looked_at = -1            # map revision of the last check
+        self.checks = 0
+        self.replans = 0
+        self.events: list[str] = []    # what the re-planner did, in order (printed by the command)
+        self._held = False
+        self._stop = None
+        self._thread = None
+
+    def step(self) -> Optional[str]:
+        """One look at the map; returns what it did (a message) or None when nothing changed."""
+        import numpy as np
+
+        from vbnav.vision.geometry import Pose2
+        from vbnav.vision.nav_grid import build_grid, plan
+
+        revision = self.stage.revision
+        pose_ref = self.robot_pose()
+        if revision == self.looked_at or pose_ref is None:
+            return None
+        self.looked_at = revision
+        self.checks += 1
+        here = self.start.compose(pose_ref)
+        route = [self.start.compose(Pose2(x, z, 0.0)) for x, z in self.controller.route()]
+        route = [(p.x, p.z) for p in route]
+        V = self.stage.verified_snapshot()
+        ab = self.stage.abstraction
+        polys = [p.footprint for p in (ab.polygons if ab is not None else [])]
+        polys += [np.asarray(o["footprint"], float) for o in self.meta.get("objects", [])]
+        grid = build_grid(V, self.params, extra_points=np.array([(here.x, here.z)] + route), polygons=polys)
+        skip = self.params.robot_radius_m + self.params.clearance_m
+        if not self._held and route_is_clear(grid, (here.x, here.z), route, skip):
+            return None
+        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z))
+        at = f"map revision {revision}, robot at ({here.x:+.2f}, {here.z:+.2f})"
+        if path is None:
+            self.controller.hold("no path")
+            if self._held:
+                return None
+            self._held = True
+            return self._say(f"{at}: the map closes every path to the goal ({self.goal.x:+.2f}, "
+                             f"{self.goal.z:+.2f}); holding until it opens one")
+        waypoints = [self.start.between(Pose2(x, z, 0.0)) for x, z in path[1:-1]]
+        self.controller.replace_route([(w.x, w.z) for w in waypoints])
+        self.controller.hold(None)
+        self._held = False
+        self.replans += 1
+        return self._say(f"{at}: the route ahead crosses what the map now holds; re-planned: "
+                         + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
+
+    def _say(self, msg: str) -> str:
+        self.events.append(msg)
+        return msg
+
+    def start_thread(self) -> None:
+        import threading
+
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="vbnav-replanner", daemon=True)
+        self._thread.start()
+
+    def stop_thread(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                self.step()
+            except Exception as exc:   # a planner that cannot plan must not leave the robot on a stale route
+                self.controller.hold("re-planner failed")
+                self._say(f"re-planner failed ({exc!r}); the robot holds")
+                return

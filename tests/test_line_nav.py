@@ -290,7 +290,12 @@ def test_goto_map_refuses_unreachable_goal_and_start_without_map(tmp_path, capsy
     assert main(["goto", "--map", str(path), "--goal", "0", "3", "0"]) == 1
     assert "no path" in capsys.readouterr().err
     assert main(["goto", "--start", "0", "0", "0", "--goal", "0", "3", "0"]) == 2
-    assert "--start and --localise need --map" in capsys.readouterr().err
+    assert "--start need(s) --map" in capsys.readouterr().err
+    assert main(["goto", "--map-out", str(tmp_path / "out.json"), "--goal", "0", "3", "0"]) == 2
+    assert "--map-out need(s) --map" in capsys.readouterr().err
+    assert main(["goto", "--map", str(path), "--static-map", "--map-out", str(tmp_path / "o.json"), "--goal", "0",
+                 "3", "0"]) == 2
+    assert "--map-out needs the map to grow" in capsys.readouterr().err
 
 
 def test_goto_map_localises_its_start_against_the_map(room_map, tmp_path, capsys):

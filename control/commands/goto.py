@@ -33,6 +33,11 @@ def register(sub) -> None:
     p.add_argument("--localise", action="store_true",
                    help="with --map: find the start pose against the map from the first stereo frame, searched "
                         "0.3 m / 12 deg around --start; exit 1 when the map does not confirm a pose there")
+    p.add_argument("--static-map", action="store_true",
+                   help="with --map: plan once from the map file; by default a stereo robot keeps mapping while it "
+                        "drives and plans again when the grown map blocks the route ahead")
+    p.add_argument("--map-out", metavar="FILE",
+                   help="with --map: write the map as it grew while driving to FILE at the end (atomically)")
     p.add_argument("--robot-radius", type=positive, default=0.2, metavar="M",
                    help="with --map: the robot's radius for planning, m")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
@@ -58,21 +63,40 @@ def run(args) -> int:
         return 2
     goal = Pose2(args.goal[0], args.goal[1], math.radians(args.goal[2]))
     waypoints = None
-    if (args.start is not None or args.localise) and not args.map:
-        print("vbnav goto: --start and --localise need --map (they place the robot in the map's frame)",
-              file=sys.stderr)
+    map_only = [o for o, given in (("--start", args.start is not None), ("--localise", args.localise),
+                                   ("--static-map", args.static_map), ("--map-out", args.map_out)) if given]
+    if map_only and not args.map:
+        print(f"vbnav goto: {', '.join(map_only)} need(s) --map (they place the robot in the map's frame or "
+              "act on the map)", file=sys.stderr)
         return 2
+    if args.map_out and args.static_map:
+        print("vbnav goto: --map-out needs the map to grow while driving (leave out --static-map)", file=sys.stderr)
+        return 2
+    if args.map_out:
+        from vbnav.control.commands._common import output_file
+        output_file(args.map_out, "--map-out")
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:
         print(f"vbnav goto: {cfg.source}: {exc}")
         return 2
+    stages = [stage]
+    line_stage = None
+    start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
     if args.map:       # a bad map file is refused before any device opens
         from vbnav.control.line_map_file import load_map
         lmap, meta = load_map(args.map)
-    robot = make_robot(cfg, [stage])
+        if not args.static_map:
+            line_stage, why = _live_map_stage(cfg, lmap, stage, lambda: start)
+            if line_stage is None:
+                print(f"vbnav goto: the map is not updated while driving ({why}); planning once from {args.map}")
+                if args.map_out:
+                    print(f"vbnav goto: --map-out: {why}", file=sys.stderr)
+                    return 2
+            else:
+                stages.append(line_stage)
+    robot = make_robot(cfg, stages)
     if args.map:
-        start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
         if args.localise:
             found, say = localise_start(cfg, robot.camera, lmap, args.map, start)
             if found is None or not found.ok:
@@ -95,18 +119,34 @@ def run(args) -> int:
     controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
                                 waypoints=waypoints)
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
+    replanner = None
+    if line_stage is not None:
+        from vbnav.control.map_planning import Replanner
+        replanner = Replanner(line_stage, meta, start, start.compose(goal), args.robot_radius, controller,
+                              lambda: controller.pose)
+    inline = robot.clock.simulated      # a simulated clock: the slow loops run inline, on simulated time
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
     world = robot.world if args.map else None
     every_s = 0.05 if world is not None else 1.0
     closest = [math.inf]
     ticks = [0]
+    told = [0]
 
     def progress(r: Runtime) -> None:
         if world is not None:
             p = robot.drive.true_pose
             closest[0] = min(closest[0], world.clearance(p.x, p.z))
         ticks[0] += 1
+        if replanner is not None and inline:
+            if ticks[0] % round(line_stage.abstraction.period_s / every_s) == 0:
+                line_stage.abstraction.step()
+            if ticks[0] % round(replanner.period_s / every_s) == 0:
+                replanner.step()
+        if replanner is not None:
+            while told[0] < len(replanner.events):       # what the re-planner did, as it happens
+                say_replanned(replanner.events[told[0]])
+                told[0] += 1
         if ticks[0] % round(1.0 / every_s):
             return
         s = controller.status()
@@ -115,8 +155,36 @@ def run(args) -> int:
         printer(f"goto: {s.get('state')}  {where}  references {stage.stats['handoffs'] + 1}  "
                 f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}")
 
-    result = rt.run(args.duration, progress, progress_every_s=every_s)
+    def say_replanned(msg) -> None:
+        if msg:
+            printer.done()
+            print(f"goto: {msg}", flush=True)
+
+    if replanner is not None and not inline:
+        line_stage.start()
+        replanner.start_thread()
+    try:
+        result = rt.run(args.duration, progress, progress_every_s=every_s)
+    finally:
+        if replanner is not None and not inline:
+            replanner.stop_thread()
+            line_stage.stop()
     printer.done()
+    if replanner is not None:
+        for msg in replanner.events[told[0]:]:
+            print(f"goto: {msg}")
+        s = line_stage.map.summary()
+        print(f"map while driving: {line_stage.stats['frames']} frames, {s['verified']} verified segments, "
+              f"{replanner.checks} checks of the route, {replanner.replans} re-plans")
+        if args.map_out:
+            from vbnav.control.line_map_file import save_map
+            line_stage.abstraction.step()
+            out_meta = dict(meta, frames=int(meta.get("frames", 0)) + line_stage.stats["frames"],
+                            objects=meta.get("objects", []) + [
+                                {"footprint": [[round(float(v), 4) for v in q] for q in p.footprint],
+                                 "height": round(float(p.height), 3)} for p in line_stage.abstraction.polygons])
+            save_map(line_stage.map, args.map_out, out_meta)
+            print(f"map as grown while driving -> {args.map_out}")
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
     if "x" in s:
@@ -138,3 +206,19 @@ def run(args) -> int:
     if result.reason in ("drive", "camera"):     # a device failed or is not there
         return 3
     return 0 if result.reason == "finished" else 1
+
+
+def _live_map_stage(cfg, lmap, vslam_stage, start):
+    """The line-map stage that keeps mapping into ``lmap`` while the robot drives, posed by the VSLAM
+    (its pose of this very frame: the stage runs after the VSLAM's) in the map's frame, ``start()`` being
+    the robot's start pose there; (None, why) when the camera has no stereo pair."""
+    from vbnav.control.stages.line_map import LineMapStage
+
+    def pose_in_map(odom):
+        p = vslam_stage.pose_at(odom)
+        return start().compose(odom if p is None else p)
+
+    try:
+        return LineMapStage.from_config(cfg, lmap=lmap, pose_fn=pose_in_map), ""
+    except ValueError as exc:
+        return None, str(exc)

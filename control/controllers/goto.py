@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from typing import Optional
 
 from vbnav.control.config import RobotConfig
@@ -75,6 +76,10 @@ class GotoController(Controller):
         self._settled_ns: Optional[int] = None
         self._finished = False
         self._status: dict = {"state": "waiting"}
+        self._new_route: Optional[list] = None  # posted by the re-planner's thread, taken by update()
+        self._route_lock = threading.Lock()     # held for an assignment only: the loop never waits on planning
+        self.route_changes = 0
+        self._held: Optional[str] = None
 
     @property
     def finished(self) -> bool:
@@ -88,7 +93,41 @@ class GotoController(Controller):
     def status(self) -> dict:
         return {k: v for k, v in self._status.items() if not k.startswith("_")}
 
+    def route(self) -> list[tuple[float, float]]:
+        """The waypoints still ahead and the goal, (x, z) in the reference frame (a re-planner's pending
+        route if one was posted and not yet taken)."""
+        with self._route_lock:
+            pending = self._new_route
+            ahead = list(pending) if pending is not None else list(self.waypoints)
+        return ahead + [(self.final_goal.x, self.final_goal.z)]
+
+    def replace_route(self, waypoints: list) -> None:
+        """New waypoints (x, z) in the reference frame to the same goal, e.g. a path re-planned around what
+        the map now holds. Safe to call from another thread: the control loop takes them at its next
+        update."""
+        route = [tuple(map(float, w)) for w in waypoints]
+        with self._route_lock:
+            self._new_route = route
+
+    def hold(self, reason: Optional[str]) -> None:
+        """Stop and stay stopped while ``reason`` (e.g. "no path": the grown map closed the way to the goal);
+        ``None`` drives on. Safe to call from another thread."""
+        self._held = reason
+
+    def _take_new_route(self) -> None:
+        with self._route_lock:
+            route, self._new_route = self._new_route, None
+        if route is None:
+            return
+        self.waypoints = route
+        self.goal = self._next_target(self.final_goal)
+        self.route_changes += 1
+        if self.waypoints and self._phase in ("turn", "settle"):
+            self._phase, self._settled_ns = "drive", None
+
     def update(self, ctx: ControlContext) -> Twist:
+        if self._new_route is not None:
+            self._take_new_route()
         self._absorb(ctx.estimate("vslam", self.cfg.max_estimate_age_s), ctx.odom)
         if self._creep_from is not None and not self._finished:
             # A monocular VSLAM needs parallax before its first pose (at the start or after it was lost and
@@ -97,6 +136,9 @@ class GotoController(Controller):
             self._status = {"state": "initialising", "crept_m": crept}
             return Twist(self.cfg.init_creep_speed, 0.0) if crept <= self.cfg.blind_distance_m else STOP
         if not self._fusion.initialised or self._finished:
+            return STOP
+        if self._held is not None:
+            self._status = {**self._status, "state": "held", "held": self._held}
             return STOP
         P = self._fusion.predict(ctx.odom)
         blind = self._fusion.blind_distance(ctx.odom)

@@ -158,6 +158,13 @@ class VslamStage(VisionStage):
         """The landmarks, in the VSLAM's world frame."""
         return StageOverlay(landmarks=self.slam.lm.P)
 
+    def pose_at(self, odom: Pose2) -> Optional[Pose2]:
+        """The robot pose in the reference frame when odometry reads ``odom``: the last good VSLAM pose
+        carried forward by the odometry since its frame (None before the first). A stage after this one
+        in the pipeline gets this frame's own pose."""
+        good = self._good
+        return None if good is None else good[0].compose(good[1].between(odom))
+
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image = to_grey(frame.image)
