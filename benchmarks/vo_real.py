@@ -9,7 +9,10 @@ Printed per sequence, for vbnav and the peer: frames with a pose, APE (translati
 alignment, or Sim(3) for monocular runs whose scale is unknown; labelled), ms per frame, and the ratios
 vbnav / peer of APE and of time. The peer of the desk's tag-grid run is the depth peer (no tags).
 
-    VBNAV_DATA=../shared/data .venv/bin/python benchmarks/vo_real.py [--data DIR] [--only NAME ...] [--seeds N]
+    VBNAV_DATA=../shared/data .venv/bin/python benchmarks/vo_real.py [--data DIR] [--only NAME ...] [--seeds N] [--stride N]
+
+``--stride N`` keeps every N-th frame: N times the motion between frames on the same footage (kitti03 at
+stride 3: up to 10 degrees of turn and 0.7-2.2 m between frames).
 
 ``--seeds N`` runs vbnav and the peer again with seeds 1..N-1 and prints the spread of their APE and
 the ratio of the medians: a monocular run's figure is one draw (the peer's kitti06 left-only APE
@@ -86,10 +89,16 @@ def main(argv=None) -> int:
     default = Path(os.environ.get("VBNAV_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
     ap.add_argument("--data", type=Path, default=default, help="the shared data folder (default $VBNAV_DATA)")
     ap.add_argument("--only", nargs="*", default=None, help="run only sequences whose name contains one of these")
+    ap.add_argument("--stride", type=int, default=1, metavar="N",
+                    help="use every N-th frame of each sequence (N times the motion between frames: the "
+                         "'large inter-frame motion' of issue 13 on the same footage); sequences left with "
+                         "fewer than 10 frames are skipped")
     ap.add_argument("--seeds", type=int, default=1, metavar="N",
                     help="also run vbnav and the peer with seeds 1..N-1 (RANSAC draws) and print the spread of "
                          "their APE (monocular runs depend on the draws: one figure is one draw)")
     args = ap.parse_args(argv)
+    if args.stride < 1:
+        ap.error(f"--stride {args.stride}: expected a whole number >= 1")
     missing = missing_folders(args.data)
     if missing:
         msg = "sequence folder(s) missing: " + ", ".join(str(m) for m in missing) + \
@@ -100,7 +109,7 @@ def main(argv=None) -> int:
             ap.error(msg)
         print(f"WARNING: {msg}; their rows are left out", flush=True)
     print("APE: translation RMSE (m) after SE3 alignment, or Sim3 where the scale is unknown (monocular); "
-          "ms/fr over all frames; ratios vbnav / peer")
+          "ms/fr over all frames; ratios vbnav / peer" + (f"; one frame in {args.stride}" if args.stride > 1 else ""))
     print(f"{'sequence':<19} {'fr':>4} | {'vbnav: posed':>9} {'APE m':>7} {'':<4} {'ms/fr':>5} | "
           f"{'peer: posed':>9} {'APE m':>7} {'':<4} {'ms/fr':>5} | {'APE':>7} {'time':>7}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -108,6 +117,11 @@ def main(argv=None) -> int:
             if args.only and not any(o in name for o in args.only):
                 continue
             ds = open_dataset(root)
+            if args.stride > 1:
+                ds = ds.every(args.stride)
+                if len(ds) < 10:
+                    print(f"{name:<19} {len(ds):>4} | skipped: fewer than 10 frames at --stride {args.stride}")
+                    continue
             t0 = time.perf_counter()
             res = run_vo(ds, init)
             t_ours = (time.perf_counter() - t0) / len(ds) * 1e3

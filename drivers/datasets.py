@@ -19,7 +19,7 @@ Every problem is a ``DatasetError`` naming the file and what was expected.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -59,6 +59,16 @@ class Dataset:
 
     def __len__(self) -> int:
         return len(self.left)
+
+    def every(self, n: int) -> "Dataset":
+        """Every ``n``-th frame (0, n, 2n, ...): the same footage with ``n`` times the motion between frames
+        (a faster robot, a slower camera, dropped frames). Ground truth is looked up by stamp as before."""
+        if int(n) != n or n < 1:
+            raise ValueError(f"every: the frame step must be a whole number >= 1, got {n}")
+        n = int(n)
+        return replace(self, stamps=self.stamps[::n], left=self.left[::n],
+                       right=None if self.right is None else self.right[::n],
+                       depth=None if self.depth is None else self.depth[::n])
 
     def image(self, i: int, grey: bool = True) -> np.ndarray:
         return self._sized(_read_image(self.left[i], grey), self.left[i])
