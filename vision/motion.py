@@ -272,8 +272,8 @@ def recover_motion_robust(points: np.ndarray, rays: np.ndarray, depths: np.ndarr
     is refined by the full alternation with Cauchy weights on the ray angles,
     ``refine_rounds`` times, the inlier set recomputed each round. ``weights``
     (N,), if given, multiply the Cauchy weights (confidence in each landmark).
-    ``local_optimisation``: each new best hypothesis is refitted to its consensus set (LO-RANSAC),
-    for landmarks of known position (stereo, depth); see docs/vslam.md for why not monocular ones.
+    ``local_optimisation``: each new best hypothesis is refitted to its consensus set (LO-RANSAC;
+    docs/vslam.md).
     """
     P = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3))
     n = np.ascontiguousarray(np.asarray(rays, float).reshape(-1, 3))

@@ -316,7 +316,6 @@ class Vslam:
         if not self.initialised:
             raise RuntimeError("Vslam.process before initialise")
         cfg = self.cfg
-        metric = self.baseline is not None or depth is not None  # landmarks of known position
         n_lm = len(self.lm.P)
         before = _Landmarks(**{k: getattr(self.lm, k) for k in _Landmarks._ROWS})  # for the ORB fallback
         pts = np.vstack((self.lm.px, self.cand.px))
@@ -338,13 +337,13 @@ class Vslam:
             est = recover_motion_robust(self.lm.P, self.camera.rays(self.lm.px), prior=self._predicted_motion(),
                                         threshold=cfg.inlier_threshold_px / f, angular=True, rng=self.rng,
                                         weights=self._confidence(f) if cfg.weight_by_uncertainty else None,
-                                        local_optimisation=metric)
+                                        local_optimisation=True)
         agree = 0 if est is None else int((est.inliers & (est.depths > 0)).sum())
         if agree < cfg.min_inliers or agree < MIN_INLIER_FRACTION * tracked:
             # KLT kept too few, or mostly wrong ones (a jump, blur, an exposure change): match ORB
             # descriptors of the landmarks against fresh corners of this image, pose from those; then
             # oriented ORB between the last image and this one. A weak KLT pose stands only if both fail.
-            fallback = self._descriptor_pose(image, before, f, metric)
+            fallback = self._descriptor_pose(image, before, f)
             if fallback is None:
                 fallback = self._orb_tie_pose(last_image, image, before, f)
             if fallback is not None:
@@ -371,11 +370,9 @@ class Vslam:
         return FrameResult(True, self.pose_wc, tracked, int(inl.sum()), est.iterations, est.residual * f,
                            handoff, added, len(self.references) - 1)
 
-    def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float, metric: bool
-                         ) -> Optional[MotionEstimate]:
+    def _descriptor_pose(self, image: np.ndarray, before: _Landmarks, f: float) -> Optional[MotionEstimate]:
         """Pose from ORB matches of the landmarks held before this frame's KLT (their descriptors from
-        creation) to fresh corners; on success the matched landmarks become the tracked set. ``metric``:
-        the landmarks' positions are known (stereo, depth), so the RANSAC refits its best hypotheses."""
+        creation) to fresh corners; on success the matched landmarks become the tracked set."""
         d = before
         d.keep(d.described)  # keeps those rows in place (and returns the others)
         if len(d.P) < self.cfg.min_inliers:
@@ -391,7 +388,7 @@ class Vslam:
         li, ci = pairs[:, 0], pairs[:, 1]
         est = recover_motion_robust(d.P[li], self.camera.rays(pts[ci].astype(float)),
                                     prior=self._predicted_motion(), threshold=2 * self.cfg.inlier_threshold_px / f,
-                                    angular=True, rng=self.rng, local_optimisation=metric)
+                                    angular=True, rng=self.rng, local_optimisation=True)
         if (est.inliers & (est.depths > 0)).sum() < self.cfg.min_inliers:
             return None
         order = np.argsort(li)
