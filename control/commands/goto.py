@@ -179,10 +179,11 @@ def run(args) -> int:
         if args.map_out:
             from vbnav.control.line_map_file import save_map
             line_stage.abstraction.step()
+            # The objects are abstracted again from the whole grown map (as `map build` does), not added
+            # to the file's: the same box would otherwise be stored once per drive.
             out_meta = dict(meta, frames=int(meta.get("frames", 0)) + line_stage.stats["frames"],
-                            objects=meta.get("objects", []) + [
-                                {"footprint": [[round(float(v), 4) for v in q] for q in p.footprint],
-                                 "height": round(float(p.height), 3)} for p in line_stage.abstraction.polygons])
+                            objects=[{"footprint": [[round(float(v), 4) for v in q] for q in p.footprint],
+                                      "height": round(float(p.height), 3)} for p in line_stage.abstraction.polygons])
             save_map(line_stage.map, args.map_out, out_meta)
             print(f"map as grown while driving -> {args.map_out}")
     s = controller.status()
