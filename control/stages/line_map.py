@@ -22,6 +22,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from collections import deque
 from typing import Callable, NamedTuple, Optional
 
 import numpy as np
@@ -121,6 +122,7 @@ class LineMapStage(VisionStage):
         self._key = None              # (left segments, R_wc, t_wc) of the last keyframe
         self.lock = threading.Lock()
         self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0}
+        self.frame_ms: deque = deque(maxlen=4096)  # detection + update of the recent frames, for summaries
         self.revision = 0             # counts the frames that changed the map
         self._scene: Optional[MapScene] = None
         self.abstraction = None
@@ -195,6 +197,7 @@ class LineMapStage(VisionStage):
         self.stats["frames"] += 1
         self.stats["detect_ms"] = (t1 - t0) * 1e3
         self.stats["update_ms"] = (t2 - t1) * 1e3
+        self.frame_ms.append((t2 - t0) * 1e3)
         return Estimate(frame.stamp_ns, self.kind, True, summary,
                         {"segments": len(res.left), "reconstructed": len(segs), "fused": st.fused,
                          "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
