@@ -101,6 +101,13 @@ class VisionStage(abc.ABC):
         the live view and the recording (comms/overlays.py); None for a stage with nothing to show."""
         return None
 
+    def start(self) -> None:
+        """Start threads of the stage's own (the line map's slow loop); the command that runs the stage on
+        a real clock calls it. Nothing by default."""
+
+    def stop(self) -> None:
+        """Stop what ``start`` started. Nothing by default."""
+
 
 @dataclass
 class StageOverlay:

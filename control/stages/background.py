@@ -39,8 +39,7 @@ class BackgroundStage(VisionStage):
         self._thread: Optional[threading.Thread] = None
 
     def start(self) -> None:
-        if hasattr(self.stage, "start"):
-            self.stage.start()
+        self.stage.start()
         if not self.inline and self._thread is None:
             self._thread = threading.Thread(target=self._run, name=f"vbnav-{self.kind}", daemon=True)
             self._thread.start()
@@ -51,8 +50,7 @@ class BackgroundStage(VisionStage):
             self._cv.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        if hasattr(self.stage, "stop"):
-            self.stage.stop()
+        self.stage.stop()
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         if self._error is not None:
