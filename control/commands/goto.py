@@ -4,8 +4,6 @@ from __future__ import annotations
 import math
 import sys
 
-import numpy as np
-
 from vbnav.control.commands._common import add_config_arg, finite, positive
 from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_path
 
@@ -83,25 +81,22 @@ def run(args) -> int:
         print(f"vbnav goto: {cfg.source}: {exc}")
         return 2
     stages = [stage]
-    line_stage = None
+    live = None
     start = Pose2(*args.start[:2], math.radians(args.start[2])) if args.start else Pose2()
     if args.map:       # a bad map file is refused before any device opens
         from vbnav.control.line_map_file import load_map
+        from vbnav.control.live_map import LiveMap
         lmap, meta = load_map(args.map)
         if not args.static_map:
-            line_stage, why = _live_map_stage(cfg, lmap, stage, lambda: start)
-            if line_stage is None:
+            live, why = LiveMap.for_goto(cfg, lmap, meta, stage, lambda: start)
+            if live is None:
                 print(f"vbnav goto: the map is not updated while driving ({why}); planning once from {args.map}")
                 if args.map_out:
                     print(f"vbnav goto: --map-out: {why}", file=sys.stderr)
                     return 2
             else:
-                from vbnav.control.stages.background import BackgroundStage
-                background = BackgroundStage(line_stage, inline=True)   # set from the clock below
-                stages.append(background)
+                stages.append(live.stage)
     robot = make_robot(cfg, stages)
-    if line_stage is not None:
-        background.inline = robot.clock.simulated   # real time: the map's fast loop off the VSLAM's thread
     if args.map:
         if args.localise:
             found, say = localise_start(cfg, robot.camera, lmap, args.map, start)
@@ -125,34 +120,25 @@ def run(args) -> int:
     controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
                                 waypoints=waypoints)
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
-    replanner = None
-    if line_stage is not None:
-        from vbnav.control.map_planning import Replanner
-        replanner = Replanner(line_stage, meta, start, start.compose(goal), args.robot_radius, controller,
-                              lambda: controller.pose)
-    inline = robot.clock.simulated      # a simulated clock: the slow loops run inline, on simulated time
+    if live is not None:                # on a simulated clock the slow loops run inline, on simulated time
+        live.attach(controller, robot.clock.simulated, start, start.compose(goal), args.robot_radius)
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
     world = robot.world if args.map else None
     every_s = 0.05 if world is not None else 1.0
     closest = [math.inf]
     ticks = [0]
-    told = [0]
 
     def progress(r: Runtime) -> None:
         if world is not None:
             p = robot.drive.true_pose
             closest[0] = min(closest[0], world.clearance(p.x, p.z))
         ticks[0] += 1
-        if replanner is not None and inline:
-            if ticks[0] % round(line_stage.abstraction.period_s / every_s) == 0:
-                line_stage.abstraction.step()
-            if ticks[0] % round(replanner.period_s / every_s) == 0:
-                replanner.step()
-        if replanner is not None:
-            while told[0] < len(replanner.events):       # what the re-planner did, as it happens
-                say_replanned(replanner.events[told[0]])
-                told[0] += 1
+        if live is not None:
+            live.tick(every_s)
+            for msg in live.new_events():        # what the re-planner did, as it happens
+                printer.done()
+                print(f"goto: {msg}", flush=True)
         if ticks[0] % round(1.0 / every_s):
             return
         s = controller.status()
@@ -161,40 +147,20 @@ def run(args) -> int:
         printer(f"goto: {s.get('state')}  {where}  references {stage.stats['handoffs'] + 1}  "
                 f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}")
 
-    def say_replanned(msg) -> None:
-        if msg:
-            printer.done()
-            print(f"goto: {msg}", flush=True)
-
-    if replanner is not None and not inline:
-        background.start()
-        replanner.start_thread()
+    if live is not None:
+        live.start()
     try:
         result = rt.run(args.duration, progress, progress_every_s=every_s)
     finally:
-        if replanner is not None and not inline:
-            replanner.stop_thread()
-            background.stop()
+        if live is not None:
+            live.stop()
     printer.done()
-    if replanner is not None:
-        for msg in replanner.events[told[0]:]:
+    if live is not None:
+        for msg in live.new_events():
             print(f"goto: {msg}")
-        s = line_stage.map.summary()
-        ms = np.array(line_stage.frame_ms) if line_stage.frame_ms else np.zeros(1)
-        print(f"map while driving: {line_stage.stats['frames']} frames, {s['verified']} verified segments, "
-              f"{replanner.checks} checks of the route, {replanner.replans} re-plans; the map's fast loop "
-              f"{np.median(ms):.0f} ms median, {np.percentile(ms, 95):.0f} ms p95, {ms.max():.0f} ms max per frame "
-              + ("(detection and update, on the vision thread)" if inline else
-                 f"(detection and update, in its own thread; {background.replaced} frames came while it was busy)"))
+        print(live.summary())
         if args.map_out:
-            from vbnav.control.line_map_file import save_map
-            line_stage.abstraction.step()
-            # The objects are abstracted again from the whole grown map (as `map build` does), not added
-            # to the file's: the same box would otherwise be stored once per drive.
-            out_meta = dict(meta, frames=int(meta.get("frames", 0)) + line_stage.stats["frames"],
-                            objects=[{"footprint": [[round(float(v), 4) for v in q] for q in p.footprint],
-                                      "height": round(float(p.height), 3)} for p in line_stage.abstraction.polygons])
-            save_map(line_stage.map, args.map_out, out_meta)
+            live.save(args.map_out)
             print(f"map as grown while driving -> {args.map_out}")
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
@@ -218,18 +184,3 @@ def run(args) -> int:
         return 3
     return 0 if result.reason == "finished" else 1
 
-
-def _live_map_stage(cfg, lmap, vslam_stage, start):
-    """The line-map stage that keeps mapping into ``lmap`` while the robot drives, posed by the VSLAM
-    (its pose of this very frame: the stage runs after the VSLAM's) in the map's frame, ``start()`` being
-    the robot's start pose there; (None, why) when the camera has no stereo pair."""
-    from vbnav.control.stages.line_map import LineMapStage
-
-    def pose_in_map(odom):
-        p = vslam_stage.pose_at(odom)
-        return start().compose(odom if p is None else p)
-
-    try:
-        return LineMapStage.from_config(cfg, lmap=lmap, pose_fn=pose_in_map), ""
-    except ValueError as exc:
-        return None, str(exc)
