@@ -67,6 +67,53 @@ def test_exception_in_vision_stage():
     assert_stopped_within_two_periods(drive, first_bad_frame)
 
 
+def test_exception_in_a_stage_running_in_its_own_thread():
+    """BackgroundStage (the line map's fast loop during goto --map on a real clock): the stage fails in its
+    thread; the next frame on the vision thread raises, naming it, and the robot stops within two loop
+    periods of that frame, as for any stage."""
+    import threading
+
+    from vbnav.control.stages.background import BackgroundStage
+
+    class Exploding(VisionStage):
+        kind = "line_map"
+
+        def process(self, frame, odom):
+            if frame.stamp_ns >= T0 + 1_000_000_000:
+                raise ValueError("map update diverged")
+            return None
+
+    raised_at = []
+
+    class Watched(BackgroundStage):
+        def process(self, frame, odom):
+            try:
+                return super().process(frame, odom)
+            except RuntimeError:
+                raised_at.append(frame.stamp_ns)
+                raise
+
+    bg = Watched(Exploding(), inline=False)
+
+    def hook(ctx):   # a loaded machine may not run the worker for a while: hold simulated time until it failed
+        if ctx.now_ns >= T0 + 1_200_000_000:
+            for _ in range(1000):
+                if bg._error is not None:
+                    return
+                threading.Event().wait(0.01)
+
+    rt, drive, clock = make_runtime(Cruise(hook), stages=[bg])
+    bg.start()
+    try:
+        result = rt.run(duration_s=5)
+    finally:
+        bg.stop()
+    assert result.reason == "exception", result
+    assert "line_map" in result.message and "own thread" in result.message and "diverged" in result.message
+    assert raised_at and raised_at[0] > T0 + 1_000_000_000
+    assert_stopped_within_two_periods(drive, raised_at[0])
+
+
 def test_exception_in_controller():
     def hook(ctx):
         if ctx.now_ns >= T0 + 1_500_000_000:
