@@ -27,6 +27,12 @@ class MapFileError(InputError):
     """A map file is missing, corrupt, foreign or from a newer version; the message names the file."""
 
 
+def objects_meta(polygons) -> list[dict]:
+    """The ``objects`` block of a map file's meta: each object polygon's footprint (x, z, m) and height,
+    from the abstraction (vision/line_abstraction.py)."""
+    return [{"footprint": np.round(p.footprint, 4).tolist(), "height": round(float(p.height), 3)} for p in polygons]
+
+
 def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
     segs = []
     for k in range(len(lmap)):

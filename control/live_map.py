@@ -97,11 +97,10 @@ class LiveMap:
     def save(self, path: str) -> None:
         """Write the grown map; its objects abstracted again from the whole map (as ``map build`` does), not
         added to the file's: the same box would otherwise be stored once per drive."""
-        from vbnav.control.line_map_file import save_map
+        from vbnav.control.line_map_file import objects_meta, save_map
 
         ab = self.line_stage.abstraction
         ab.step()
         meta = dict(self.meta, frames=int(self.meta.get("frames", 0)) + self.line_stage.stats["frames"],
-                    objects=[{"footprint": [[round(float(v), 4) for v in q] for q in p.footprint],
-                              "height": round(float(p.height), 3)} for p in ab.polygons])
+                    objects=objects_meta(ab.polygons))
         save_map(self.line_stage.map, path, meta)

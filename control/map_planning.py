@@ -8,18 +8,24 @@ from typing import Optional
 def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
     """The traversability grid (vision/nav_grid.py) of a loaded map: its verified segments and the object
     footprints abstracted from them or stored with the map; ``extra_points`` (N, 2) x, z lie inside it."""
+    from vbnav.vision.line_abstraction import object_polygons
+
+    V = lmap.P[lmap.verified]
+    return grid_of(V, object_polygons(V), meta, robot_radius, extra_points)
+
+
+def grid_of(verified, polygons, meta: dict, robot_radius: float, extra_points=None):
+    """The grid of verified segments (K, 2, 3), object ``polygons`` (with ``footprint``) and the objects
+    stored in a map file's ``meta``, grown by ``robot_radius``."""
     import dataclasses
 
     import numpy as np
 
-    from vbnav.vision.line_abstraction import object_polygons
     from vbnav.vision.nav_grid import GridParams, build_grid
 
-    V = lmap.P[lmap.verified]
-    polys = [p.footprint for p in object_polygons(V)]
-    polys += [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
+    polys = [p.footprint for p in polygons] + [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
     params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
-    return build_grid(V, params, extra_points=extra_points, polygons=polys)
+    return build_grid(verified, params, extra_points=extra_points, polygons=polys)
 
 
 def plan_on_map(path: str, start, goal, robot_radius: float):
@@ -113,13 +119,13 @@ class Replanner:
 
     def __init__(self, stage, meta: dict, start, goal, robot_radius: float, controller, robot_pose,
                  period_s: float = 0.5):
-        import dataclasses
-
         from vbnav.vision.nav_grid import GridParams
 
         self.stage, self.meta = stage, meta
         self.start, self.goal = start, goal
-        self.params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
+        self.robot_radius = float(robot_radius)
+        # Blocked samples this near the robot at the start of its route are its own grown margin.
+        self.skip_m = self.robot_radius + GridParams().clearance_m
         self.controller, self.robot_pose = controller, robot_pose
         self.period_s = float(period_s)
         self.looked_at = -1            # map revision of the last check
@@ -135,7 +141,7 @@ class Replanner:
         import numpy as np
 
         from vbnav.vision.geometry import Pose2
-        from vbnav.vision.nav_grid import build_grid, plan
+        from vbnav.vision.nav_grid import plan
 
         revision = self.stage.revision
         pose_ref = self.robot_pose()
@@ -146,13 +152,10 @@ class Replanner:
         here = self.start.compose(pose_ref)
         route = [self.start.compose(Pose2(x, z, 0.0)) for x, z in self.controller.route()]
         route = [(p.x, p.z) for p in route]
-        V = self.stage.verified_snapshot()
-        ab = self.stage.abstraction
-        polys = [p.footprint for p in (ab.polygons if ab is not None else [])]
-        polys += [np.asarray(o["footprint"], float) for o in self.meta.get("objects", [])]
-        grid = build_grid(V, self.params, extra_points=np.array([(here.x, here.z)] + route), polygons=polys)
-        skip = self.params.robot_radius_m + self.params.clearance_m
-        if not self._held and route_is_clear(grid, (here.x, here.z), route, skip):
+        ab = self.stage.abstraction       # its last pass's polygons: abstracting again here would repeat it
+        grid = grid_of(self.stage.verified_snapshot(), ab.polygons if ab is not None else [], self.meta,
+                       self.robot_radius, extra_points=np.array([(here.x, here.z)] + route))
+        if not self._held and route_is_clear(grid, (here.x, here.z), route, self.skip_m):
             return None
         path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z))
         at = f"map revision {revision}, robot at ({here.x:+.2f}, {here.z:+.2f})"

@@ -71,7 +71,7 @@ def _port(text: str) -> int:
 def run_build(args) -> int:
     from vbnav.control.controllers.manual import ScriptedController
     from vbnav.control.config import load_config
-    from vbnav.control.line_map_file import save_map
+    from vbnav.control.line_map_file import objects_meta, save_map
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.commands._common import enable_live_view
@@ -116,8 +116,7 @@ def run_build(args) -> int:
         printer.done()
     stage.abstraction.step()            # a last abstraction pass on the final map
     meta = {"config": str(cfg.source), "frames": stage.stats["frames"],
-            "objects": [{"footprint": np.round(p.footprint, 4).tolist(), "height": round(p.height, 3)}
-                        for p in stage.abstraction.polygons]}
+            "objects": objects_meta(stage.abstraction.polygons)}
     save_map(stage.map, args.out, meta)
     s = stage.map.summary()
     print(f"map build ended: {result.reason}; {stage.stats['frames']} frames, {s['verified']} verified segments "

@@ -23,11 +23,10 @@ from vbnav.vision.geometry import Pose2
 
 class BackgroundStage(VisionStage):
     def __init__(self, stage: VisionStage, inline: bool):
+        if stage.safety_critical:             # a stage whose result may lag a frame must not gate safety
+            raise ValueError(f"stage '{stage.kind}' is safety critical: it must run on the vision thread")
         self.stage = stage
         self.kind = stage.kind
-        self.safety_critical = False          # a stage whose result may lag a frame must not gate safety
-        if stage.safety_critical:
-            raise ValueError(f"stage '{stage.kind}' is safety critical: it must run on the vision thread")
         self.inline = bool(inline)
         self.replaced = 0                     # frames replaced in the mailbox before the worker took them
         self.done = 0                         # frames the worker finished
