@@ -29,6 +29,9 @@ def write(tmp_path, text: str) -> Path:
     ("camera:\n  mount:\n    pitch_deg: 120\n", "camera.mount.pitch_deg", "less than or equal to 90"),
     ("drive:\n  driver: sim\n  options:\n    fail_after_s: -1\n", "drive.options.fail_after_s", "greater than 0"),
     ("robot:\n  max_linear_speed: 5.0\n", "max_linear_speed", "exceeds what the wheels can do"),
+    # a slow zone of the stop zone's name would share (and clear) its trigger history
+    ("obstacles:\n  zones:\n    - {name: z, action: stop, distance: 0.8, half_width: 0.25}\n"
+     "    - {name: z, action: slow, distance: 1.5, half_width: 0.35}\n", "obstacles", "'z' given more than once"),
 ])
 def test_bad_values_name_file_key_and_expectation(tmp_path, text, key, expected):
     p = write(tmp_path, text)

@@ -84,4 +84,11 @@ class ObstaclesConfig(Strict):
             raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        names = [z.name for z in self.zones]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            # Each zone's k-of-n persistence is kept by its name: two zones of one name would share it,
+            # and a slow zone could clear a stop zone's history.
+            raise ValueError(f"zones: names must be unique (each keeps its own trigger history), "
+                             f"{', '.join(map(repr, twice))} given more than once")
         return self
