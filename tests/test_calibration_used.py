@@ -99,6 +99,9 @@ def test_stereo_yaml_gives_the_rig_and_a_conflicting_baseline_is_refused(tmp_pat
     assert cfg.camera.fx == 410 and cfg.camera.stereo_baseline() == 0.09
     from vbnav.control.stages.vslam import stereo_baseline_of
     assert stereo_baseline_of(cfg) == 0.09
+    from vbnav.control.stages.line_map import LineMapStage   # the line map takes the file's rig too
+    lines = LineMapStage.from_config(cfg)
+    assert lines.baseline == 0.09 and lines.cam[0] == 410
     with pytest.raises(ConfigError, match="stereo baseline of 0.0900 m, camera.options.stereo_baseline says "
                                           "0.0600 m"):
         load_config(config_with(tmp_path, "rig.yaml", options={"stereo_baseline": 0.06}))

@@ -132,9 +132,10 @@ class LineMapStage(VisionStage):
     @classmethod
     def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
         cam = cfg.camera.to_model()
-        baseline = cfg.camera.options.get("stereo_baseline")     # the config keeps driver options as a dict
+        baseline = cfg.camera.stereo_baseline()    # the calibration file's, else camera.options.stereo_baseline
         if not baseline:
-            raise ValueError("the line map needs a stereo pair: camera.options.stereo_baseline is not set")
+            raise ValueError("the line map needs a stereo pair: neither camera.calibration_file nor "
+                             "camera.options.stereo_baseline gives a stereo baseline")
         return cls(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, float(baseline),
                    cfg.camera.mount.to_mount(), lmap=lmap, **kw)
 
