@@ -162,8 +162,10 @@ def check_calibration(cfg) -> Check:
     if cam.driver == "sim":
         return Check("calibration", SKIP, "simulated camera: its intrinsics are exact")
     if not cam.calibration_file and cam.driver == "oak" and cam.options.get("use_device_calibration", True):
-        return Check("calibration", OK, "OAK: intrinsics and baseline from the device's own calibration "
-                                        "(camera.options.use_device_calibration)")
+        return Check("calibration", OK, f"OAK: the inline fx {cam.fx:g} fy {cam.fy:g} cx {cam.cx:g} cy {cam.cy:g} "
+                                        f"are checked against the device's own calibration at start-up "
+                                        f"(camera.options.use_device_calibration; a mismatch refuses to start "
+                                        f"and prints the device's values)")
     if not cam.calibration_file:
         return Check("calibration", WARN, f"no camera.calibration_file: the inline fx {cam.fx:g} fy {cam.fy:g} "
                                           f"cx {cam.cx:g} cy {cam.cy:g} are used",

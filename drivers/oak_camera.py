@@ -7,8 +7,10 @@ with none, or not the one asked for, ``connect()`` fails within
 ``discovery_timeout_s`` naming what it found.
 
 Images and disparity come from non-blocking output queues of size 1 (latest
-only) and are paired by sequence number. Intrinsics and the stereo baseline
-come from the calibration stored on the device (``readCalibration``).
+only) and are paired by sequence number. The calibration stored on the device
+(``readCalibration``) is checked against the configured intrinsics and baseline,
+which the stages were built from (``use_device_calibration``), and rides along in
+each frame's meta.
 
 ``replay_file`` runs a host-only pipeline (``dai.Pipeline(createImplicitDevice=False)``
 with a ReplayVideo node) that needs no hardware: the same host-side code path
@@ -97,6 +99,32 @@ def describe(info) -> str:
         return str(info)
 
 
+# How far the configured intrinsics may be from the device's before start-up is refused. The stream is the
+# rectified left image, whose camera matrix is the calibrated one after rectification (a few px and well
+# under 1 % between the two mono sensors of one board); a config left at another camera's values (400 px
+# for a 450 px device) is 10 % off.
+FOCAL_TOL = 0.02        # relative
+CENTRE_TOL = 0.02       # of the image width / height
+BASELINE_TOL = 0.01     # relative
+
+
+def calibration_mismatch(K_device, baseline_device: Optional[float], cam, baseline_cfg: Optional[float]) -> list[str]:
+    """What of the configured camera (``cam``: fx, fy, cx, cy, width, height) and baseline (None: not
+    configured, the frames' own is used) disagrees with the device's calibration, as 'name: config vs device'."""
+    K = np.asarray(K_device, float)
+    out = []
+    for name, cfg_v, dev_v, tol in (("fx", cam.fx, K[0, 0], FOCAL_TOL * K[0, 0]),
+                                    ("fy", cam.fy, K[1, 1], FOCAL_TOL * K[1, 1]),
+                                    ("cx", cam.cx, K[0, 2], CENTRE_TOL * cam.width),
+                                    ("cy", cam.cy, K[1, 2], CENTRE_TOL * cam.height)):
+        if abs(cfg_v - dev_v) > tol:
+            out.append(f"camera.{name} {cfg_v:g} vs the device's {dev_v:.2f}")
+    if baseline_cfg is not None and baseline_device is not None \
+            and abs(baseline_cfg - baseline_device) > BASELINE_TOL * baseline_device:
+        out.append(f"stereo baseline {baseline_cfg:g} m vs the device's {baseline_device:.4f} m")
+    return out
+
+
 class OakCamera(GrabbingCamera):
     name = "oak"
     default_size = (640, 400)  # the mono cameras' 400p mode
@@ -111,7 +139,12 @@ class OakCamera(GrabbingCamera):
         extended_disparity: bool = Field(False, description="twice the disparity search range: nearer "
                                                             "minimum depth")
         lr_check: bool = Field(True, description="left-right consistency check of the disparity")
-        use_device_calibration: bool = Field(True, description="intrinsics and baseline from the device EEPROM")
+        use_device_calibration: bool = Field(
+            True, description="read the device's EEPROM calibration at start-up and refuse to start when the "
+                              "intrinsics the stages use (camera.fx/fy/cx/cy, inline or from calibration_file) "
+                              "or the stereo baseline differ from it (focal length 2 %, principal point 2 % of "
+                              "the image, baseline 1 %; the error prints the device's values); the frames then "
+                              "carry the device's K and baseline_m. false: the configured values, unchecked")
         grey: bool = Field(True, description="deliver single-channel images")
         discovery_timeout_s: float = Field(2.0, gt=0, le=30, description="fail start-up after this long")
         replay_file: Optional[str] = Field(None, description="host-only replay of a recorded video (no device)")
@@ -120,6 +153,10 @@ class OakCamera(GrabbingCamera):
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["OakCamera.Options"] = None,
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
         super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
+        self._camera_cfg = getattr(cfg, "camera", None)   # what the stages use, checked against the device
+        obstacles = getattr(cfg, "obstacles", None)
+        self._baseline_cfg = (getattr(obstacles, "baseline", None)
+                              or (self._camera_cfg.stereo_baseline() if self._camera_cfg is not None else None))
         self.intrinsics: Optional[np.ndarray] = None
         self.distortion: Optional[np.ndarray] = None
         self.baseline_m: Optional[float] = None
@@ -236,13 +273,35 @@ class OakCamera(GrabbingCamera):
         if stereo is not None and self.opt.stream == "mono":
             stereo.setDepthAlign(dai.StereoDepthConfig.AlgorithmControl.DepthAlign.RECTIFIED_LEFT)
         if self.opt.use_device_calibration:
-            self.intrinsics = np.array(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=float)
-            self.distortion = np.array(calib.getDistortionCoefficients(socket), dtype=float)
-            self.baseline_m = float(calib.getBaselineDistance(dai.CameraBoardSocket.CAM_C,
-                                                              dai.CameraBoardSocket.CAM_B)) / 100.0
+            self.read_calibration(calib, socket)
         self._pipeline = p
         self._img_q = img_out.createOutputQueue(maxSize=1, blocking=False)
         self._disp_q = stereo.disparity.createOutputQueue(maxSize=4, blocking=False) if stereo is not None else None
+
+    def read_calibration(self, calib: "dai.CalibrationHandler", socket: "dai.CameraBoardSocket") -> None:
+        """The device's intrinsics of the stream (at its size), distortion and stereo baseline, checked
+        against the configured camera."""
+        self.intrinsics = np.array(calib.getCameraIntrinsics(socket, self.width, self.height), dtype=float)
+        self.distortion = np.array(calib.getDistortionCoefficients(socket), dtype=float)
+        self.baseline_m = float(calib.getBaselineDistance(dai.CameraBoardSocket.CAM_C,
+                                                          dai.CameraBoardSocket.CAM_B)) / 100.0   # cm
+        self._check_calibration()
+
+    def _check_calibration(self) -> None:
+        """The stages were built from the configured intrinsics: refuse to run them on a device they do
+        not describe."""
+        cam = self._camera_cfg
+        if cam is None:
+            return
+        bad = calibration_mismatch(self.intrinsics, self.baseline_m, cam, self._baseline_cfg)
+        if bad:
+            K = self.intrinsics
+            raise CameraError(
+                f"OAK {self.device_id}: the configured camera does not match the device's own calibration "
+                f"({'; '.join(bad)}). Set camera.fx: {K[0, 0]:.2f}, fy: {K[1, 1]:.2f}, cx: {K[0, 2]:.2f}, "
+                f"cy: {K[1, 2]:.2f} (and a stereo baseline of {self.baseline_m:.4f} m, where one is set) for "
+                f"{self.width}x{self.height}, or set camera.options.use_device_calibration: false to run on the "
+                f"configured values unchecked")
 
     # -- grabbing ----------------------------------------------------------------------------------
     def _meta(self) -> dict:

@@ -117,3 +117,41 @@ def test_host_only_replay_pipeline(tmp_path):
 def test_missing_replay_file_is_a_clear_error(tmp_path):
     with pytest.raises(CameraError, match="replay file .* not found"):
         OakCamera(options=OakCamera.Options(replay_file=str(tmp_path / "nope.mp4"))).connect()
+
+
+def device_calibration(fx: float, baseline_cm: float, size=(640, 400)) -> "dai.CalibrationHandler":
+    """A real depthai calibration (as read from a device's EEPROM), built on the host."""
+    calib = dai.CalibrationHandler()
+    K = [[fx, 0.0, size[0] / 2], [0.0, fx, size[1] / 2], [0.0, 0.0, 1.0]]
+    for socket in (dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C):
+        calib.setCameraIntrinsics(socket, K, size[0], size[1])
+    calib.setCameraExtrinsics(dai.CameraBoardSocket.CAM_C, dai.CameraBoardSocket.CAM_B, np.eye(3).tolist(),
+                              [baseline_cm, 0.0, 0.0], [baseline_cm, 0.0, 0.0])
+    return calib
+
+
+def test_device_calibration_is_checked_against_the_configured_camera(tmp_path):
+    """use_device_calibration: the stages run on camera.fx/fy/cx/cy and the stereo baseline, so a device
+    whose own calibration says otherwise is refused at start-up with the values to set."""
+    from vbnav.control.config import load_config
+    size = {"width": 640, "height": 400}
+    cfg = load_config("sentry-oak", overrides={"camera": {**size, "fx": 452.0, "fy": 452.0, "cx": 320.0, "cy": 200.0}})
+    cam = OakCamera(cfg)
+    cam.read_calibration(device_calibration(450.0, 7.5), dai.CameraBoardSocket.CAM_B)   # 0.4 % off: the same
+    assert cam.intrinsics[0, 0] == 450.0 and cam._meta()["baseline_m"] == pytest.approx(0.075)
+    with pytest.raises(CameraError) as err:                       # the config left at another camera's 400 px
+        OakCamera(load_config("sentry-oak", overrides={"camera": {**size, "fx": 400.0, "fy": 400.0, "cx": 320.0,
+                                                                  "cy": 200.0}})
+                  ).read_calibration(device_calibration(450.0, 7.5), dai.CameraBoardSocket.CAM_B)
+    msg = str(err.value)
+    assert "camera.fx 400 vs the device's 450.00" in msg and "camera.fy 400" in msg and "camera.cx" not in msg
+    assert "Set camera.fx: 450.00" in msg and "use_device_calibration: false" in msg
+    rig = tmp_path / "rig.yaml"                                   # a stereo calibration file with its baseline
+    rig.write_text("width: 640\nheight: 400\nfx: 450\nfy: 450\ncx: 320\ncy: 200\nbaseline: 0.075\n")
+    filed = OakCamera(load_config("sentry-oak", overrides={"camera": {**size, "calibration_file": str(rig)}}))
+    filed.read_calibration(device_calibration(450.0, 7.5), dai.CameraBoardSocket.CAM_B)
+    with pytest.raises(CameraError, match=r"stereo baseline 0.075 m vs the device's 0.0600 m"):
+        filed.read_calibration(device_calibration(450.0, 6.0), dai.CameraBoardSocket.CAM_B)
+    by_obstacles = OakCamera(load_config("sentry-oak", overrides={"obstacles": {"baseline": 0.06}}))
+    with pytest.raises(CameraError, match=r"stereo baseline 0.06 m vs the device's 0.0750 m"):
+        by_obstacles.read_calibration(device_calibration(400.0, 7.5), dai.CameraBoardSocket.CAM_B)
