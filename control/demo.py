@@ -206,6 +206,9 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
         PathFollower(path, scenario.speed, start=start), out_dir / "route", overwrite=True,
         observers=[trace.observer(robot.drive), truth])
     taught_xz = trace.array()
+    if not teach.complete:      # an earlier demo's route may still be at out_dir/route: never repeat that one
+        raise RuntimeError(f"the demo's teach run did not complete a route ({teach.reason}: {teach.message}; "
+                           f"{teach.keyframes} keyframes)")
     if progress:
         say(f"taught {teach.keyframes} keyframes over {path_length(taught_xz):.1f} m")
     route = load_route(out_dir / "route")

@@ -353,6 +353,11 @@ class RouteWriter:
         })
         self._write_manifest()
 
+    @property
+    def directory(self) -> Path:
+        """Where the route's files are: its path, or (a replacement not yet complete) the sibling beside it."""
+        return self._dir
+
     def close(self, complete: bool = True) -> None:
         """Mark the route complete (or not); a complete replacement takes the old route's place."""
         self._manifest["complete"] = bool(complete)

@@ -33,6 +33,12 @@ from vbnav.control.stages.teach import TeachStage
 TEACH_LOOP_SPEED = 0.4   # m/s of the scripted teacher (controller.teach: room_loop)
 
 
+# How a teach run may end and still be a route: driven to the end, the time given, or stopped by the
+# operator (Ctrl-C, a stop command). A fault (camera, drive, exception) ends it as an interrupted route.
+TEACH_ENDS_WELL = ("finished", "duration", "signal", "stopped")
+MIN_ROUTE_KEYFRAMES = 2          # a repeat steers from one keyframe towards the next
+
+
 class Teaching:
     """A route being taught: the TeachStage, and the RouteWriter that stores each keyframe as it comes."""
 
@@ -49,12 +55,16 @@ class Teaching:
             self.writer.append(kf)
             self.stamps.append(kf.stamp_ns)
 
-    def close(self, complete: bool = True) -> None:
-        """End of teaching: the stage's last keyframes, then the route marked complete (or not)."""
+    def close(self, complete: bool = True) -> bool:
+        """End of teaching: the stage's last keyframes, then the route marked complete (or not). A route
+        of fewer than MIN_ROUTE_KEYFRAMES is never complete (a replacement would put an unusable route in
+        the old one's place). True when the route was closed complete."""
         if complete:
             self.stage.finish()
             self.save()
+            complete = len(self.stamps) >= MIN_ROUTE_KEYFRAMES
         self.writer.close(complete=complete)
+        return complete
 
 
 class Repeating:
@@ -85,6 +95,8 @@ class TeachResult:
     reason: str
     message: str
     timing: object
+    complete: bool = True        # closed complete: ended well with MIN_ROUTE_KEYFRAMES or more
+    directory: Optional[Path] = None   # where the keyframes are (beside the route when a replacement failed)
 
 
 @dataclass
@@ -143,9 +155,9 @@ class Session:
         except BaseException:
             teaching.close(complete=False)
             raise
-        teaching.close()
+        complete = teaching.close(complete=result.reason in TEACH_ENDS_WELL)
         return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
-                           result.timing)
+                           result.timing, complete, teaching.writer.directory)
 
     def repeat(self, route: Route, duration_s: Optional[float] = None, observers: Sequence[Observer] = (),
                segment: str = "repeat") -> RepeatResult:

@@ -119,3 +119,28 @@ def test_killed_demo_keeps_the_route_of_the_last_demo(tmp_path, rng):
     proc.wait(timeout=30)
     r = load_route(tmp_path / "out" / "route")
     assert r.complete and len(r) == 3 and r.camera == CAM
+
+
+def test_teach_overwrite_that_fails_keeps_the_old_route(tmp_path, rng):
+    """A teach that ends in a fault (here the drive's bus is lost 2 s in) is not a complete route: it must
+    not take the old route's place, and says where the keyframes it did record are."""
+    write_route(tmp_path / "r", rng, n=3)
+    cfg = tmp_path / "lossy.yaml"
+    cfg.write_text("drive:\n  driver: sim\n  reconnect_window_s: 0.2\n  options: {fail_after_s: 2.0}\n"
+                   "controller:\n  teach: room_loop\n")
+    r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "teach", "-c", str(cfg), "--out",
+                        str(tmp_path / "r"), "--overwrite", "--duration", "6"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 3, r.stdout + r.stderr
+    old = load_route(tmp_path / "r")
+    assert old.complete and len(old) == 3 and old.camera == CAM
+    left = stray_route_dirs(tmp_path / "r")
+    assert len(left) == 1 and left[0].name.startswith(".r.partial-")
+    partial = load_route(left[0])
+    assert not partial.complete and len(partial) >= 1
+    assert f"the route at {tmp_path / 'r'} is unchanged" in r.stdout and str(left[0]) in r.stdout, r.stdout
+    # teaching into a new folder: the keyframes stay, marked incomplete, and the exit code says it failed
+    r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "teach", "-c", str(cfg), "--out",
+                        str(tmp_path / "new"), "--duration", "6"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 3 and "marked incomplete" in r.stdout, r.stdout + r.stderr
+    assert not load_route(tmp_path / "new").complete

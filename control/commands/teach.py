@@ -60,5 +60,12 @@ def run(args) -> int:
     result = Session(cfg, robot, record=args.record, progress=printer, record_overwrite=args.overwrite).teach(
         teach_driver(cfg), out, overwrite=args.overwrite, duration_s=args.duration)
     printer.done()
-    print(f"teach ended: {result.reason} ({result.message}); {result.keyframes} keyframes in {out}")
-    return 0 if result.keyframes >= 2 and result.reason in ("finished", "duration", "signal", "stopped") else 1
+    if result.complete:
+        print(f"teach ended: {result.reason} ({result.message}); {result.keyframes} keyframes in {out}")
+        return 0
+    where = (f"the route at {out} is unchanged; the {result.keyframes} keyframes recorded are in "
+             f"{result.directory}" if result.directory != out else
+             f"{out} holds {result.keyframes} keyframes, marked incomplete (teach again with --overwrite to "
+             "replace it)")
+    print(f"teach ended: {result.reason} ({result.message}); not a complete route: {where}")
+    return 3 if result.reason in ("camera", "drive") else 1
