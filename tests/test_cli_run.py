@@ -10,6 +10,15 @@ import pytest
 VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
 
 
+def test_no_camera_is_refused_when_the_config_enables_the_obstacle_stop():
+    """--no-camera would silently switch off a safety function the configuration asks for."""
+    from vbnav.control.cli import main
+    r = subprocess.run(VBNAV + ["run", "-c", "sim_stereo", "--no-camera", "--duration", "0.1"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and "--no-camera" in r.stderr and "obstacles.enabled is true" in r.stderr, r.stderr
+    assert main(["run", "-c", "sim_stereo", "--duration", "0.1", "--no-telemetry"]) == 0   # with it: runs
+
+
 def test_run_scripted_sim_clock(tmp_path):
     r = subprocess.run(VBNAV + ["run", "--no-camera", "--json"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

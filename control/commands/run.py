@@ -79,6 +79,9 @@ def run(args) -> int:
     if args.live_view:
         enable_live_view(cfg)
     kind = args.controller or cfg.controller.kind
+    if args.no_camera and cfg.obstacles.enabled:     # a safety function the configuration asks for
+        raise InputError(f"--no-camera: {cfg.source}: obstacles.enabled is true, and the obstacle stop needs the "
+                         f"camera (set obstacles.enabled: false to run without it)")
     robot = make_robot(cfg, with_camera=camera_wanted(cfg, kind, args))
     if robot.camera is None and not args.no_camera:
         print(f"camera: not opened (controller {kind} does not use it" +
