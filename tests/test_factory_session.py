@@ -56,3 +56,14 @@ def test_a_session_runs_once_and_needs_the_camera(tmp_path):
     with pytest.raises(RuntimeError, match="one run"):
         session.teach(IdleController(), tmp_path / "again")
     assert not (tmp_path / "again").exists()
+
+
+def test_a_simulated_camera_on_a_real_drive_is_a_config_error_naming_the_file(tmp_path, capsys):
+    """It renders from the simulated robot's pose: on a real drive it cannot work, and that is the
+    configuration's fault (exit 2, the file named), not a traceback."""
+    from vbnav.control.cli import main
+    cfg = tmp_path / "real.yaml"
+    cfg.write_text("drive:\n  driver: dynamixel\n  options: {port: /dev/ttyNOPE}\n")   # camera: the default, sim
+    assert main(["teach", "-c", str(cfg), "--out", str(tmp_path / "r"), "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert str(cfg) in err and "camera.driver 'sim' needs drive.driver 'sim'" in err and "'dynamixel'" in err

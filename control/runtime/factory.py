@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from vbnav.control.config import Config, validate_driver_options
+from vbnav.control.config import Config, ConfigError, validate_driver_options
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.drivers import registry
 from vbnav.drivers.clock import Clock, MonotonicClock, SimClock
@@ -73,7 +73,9 @@ def make_camera(cfg: Config, clock, drive=None, options=None, world=None, run: i
     if cfg.camera.driver == "sim":
         from vbnav.drivers.sim.base import SimDiffDrive
         if not isinstance(drive, SimDiffDrive):
-            raise ValueError("camera.driver 'sim' needs drive.driver 'sim' (it renders from the simulated pose)")
+            raise ConfigError(f"{cfg.source or '<config>'}: camera.driver 'sim' needs drive.driver 'sim' (it renders "
+                              f"the simulated room from the simulated robot's pose), drive.driver is "
+                              f"{cfg.drive.driver!r}: set camera.driver to the robot's camera")
         return cls.from_config(cfg, clock, opts, pose_fn=lambda: drive.true_pose,
                                world=world if world is not None else make_world(cfg), seed=noise_seed(cfg, run))
     return cls.from_config(cfg, clock, opts)
