@@ -79,3 +79,12 @@ def test_run_realtime_with_threaded_camera(tmp_path):
     assert summary["reason"] == "duration"
     assert not [e for e in summary["events"] if e["cause"] == "camera_stale"], summary["events"]
     assert summary["final_odometry"][1] > 0.3     # it drove: ~0.2 m/s for ~3 s
+
+
+def test_teach_and_repeat_exit_3_when_the_drive_is_lost(tmp_path):
+    """vbnav's exit codes: 3 is a hardware fault (as for run), 1 a job that ran and failed."""
+    from vbnav.control.cli import main
+    assert main(["teach", "--out", str(tmp_path / "route"), "--duration", "4"]) == 0
+    lossy = tmp_path / "lossy.yaml"
+    lossy.write_text("drive:\n  driver: sim\n  reconnect_window_s: 0.2\n  options: {fail_after_s: 1.0}\n")
+    assert main(["repeat", "-c", str(lossy), "--path", str(tmp_path / "route"), "--duration", "5"]) == 3

@@ -49,4 +49,6 @@ def run(args) -> int:
     print("timing: " + result.timing.line())
     if result.reason == "signal":
         return 130
+    if result.reason in ("camera", "drive"):     # the hardware failed, not the patrol (vbnav's exit codes)
+        return 3
     return 0 if result.reason == "finished" else 1
