@@ -88,3 +88,18 @@ def test_teach_and_repeat_exit_3_when_the_drive_is_lost(tmp_path):
     lossy = tmp_path / "lossy.yaml"
     lossy.write_text("drive:\n  driver: sim\n  reconnect_window_s: 0.2\n  options: {fail_after_s: 1.0}\n")
     assert main(["repeat", "-c", str(lossy), "--path", str(tmp_path / "route"), "--duration", "5"]) == 3
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["run", "--live-view", "--no-telemetry", "--realtime", "--duration", "0.1"], "--no-telemetry"),
+    (["run", "--live-view", "--duration", "0.1"], "add --realtime"),
+    (["map", "build", "-c", "sim_stereo", "--live-view", "--duration", "0.1", "--out", "{tmp}/m.json"],
+     "add --realtime"),
+])
+def test_a_live_view_that_could_not_be_served_is_refused(tmp_path, capsys, argv, says):
+    """--live-view was accepted and nothing was served (no telemetry session; or the simulated clock)."""
+    from vbnav.control.cli import main
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert "--live-view" in err and says in err, err
+    assert not (tmp_path / "m.json").exists()

@@ -79,9 +79,20 @@ def output_file(path: str | Path | None, option: str) -> None:
         raise InputError(f"{option} {p}: the folder {parent} {what}")
 
 
-def enable_live_view(cfg) -> None:
-    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more)."""
+def enable_live_view(cfg, no_telemetry: bool) -> None:
+    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more).
+    Refused where it could not be served: it rides on the telemetry session, which opens only on the wall
+    clock (call after applying --realtime)."""
     from pydantic import ValidationError
+
+    from vbnav.control.runtime.factory import uses_sim_clock
+    if no_telemetry or not cfg.telemetry.enabled:
+        raise InputError("--live-view: it is served by the telemetry session, which " +
+                         ("--no-telemetry" if no_telemetry else f"{cfg.source}: telemetry.enabled: false") +
+                         " keeps closed")
+    if uses_sim_clock(cfg):
+        raise InputError("--live-view: the simulated robot runs on the simulated clock, faster than real time, "
+                         "where nothing is served: add --realtime")
     t = cfg.telemetry.model_dump()
     t["live_view"]["enabled"] = True
     try:

@@ -87,7 +87,7 @@ def run_build(args) -> int:
     if args.realtime:
         cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
     if args.live_view:
-        enable_live_view(cfg)
+        enable_live_view(cfg, args.no_telemetry)
     try:
         stage = LineMapStage.from_config(cfg)
     except ValueError as exc:

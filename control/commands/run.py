@@ -77,7 +77,7 @@ def run(args) -> int:
     if args.realtime:
         cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
     if args.live_view:
-        enable_live_view(cfg)
+        enable_live_view(cfg, args.no_telemetry)
     kind = args.controller or cfg.controller.kind
     if args.no_camera and cfg.obstacles.enabled:     # a safety function the configuration asks for
         raise InputError(f"--no-camera: {cfg.source}: obstacles.enabled is true, and the obstacle stop needs the "
