@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import math
+import sys
 from pathlib import Path
 
 from vbnav.control.commands._common import add_record_overwrite_arg, output_file, record_target_error
@@ -15,7 +17,8 @@ def register(sub) -> None:
                     "start offset of 0.3 m lateral and 10 degrees heading, with motor and image noise. Writes "
                     "metrics.json, paths.png (top view) and the route directory to --out.")
     p.add_argument("--out", default="out/demo", metavar="DIR", help="output directory (default out/demo)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the world textures and all noise (default 0)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the world textures and all noise (default: "
+                                                          "the configuration's sim.seed, 0 in configs/sim.yaml)")
     p.add_argument("--repeats", type=int, default=2, help="number of repeats (default 2)")
     p.add_argument("--config", "-c", default=None, metavar="FILE", help="simulated robot configuration "
                    "(default configs/sim.yaml)")
@@ -26,7 +29,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from vbnav.control.config import load_config
-    from vbnav.control.demo import Scenario, run_demo
+    from vbnav.control.demo import Scenario, demo_route, run_demo, start_pose
     from vbnav.control.runtime.progress import ProgressPrinter
 
     cfg = load_config(args.config)
@@ -42,9 +45,15 @@ def run(args) -> int:
     if args.repeats < 1:
         raise InputError(f"--repeats {args.repeats}: expected at least 1")
     output_file(args.record, "--record")
+    seed = cfg.sim.seed if args.seed is None else args.seed
+    route_start = start_pose(demo_route())
+    if "start_pose" in cfg.sim.model_fields_set and not _same_pose(cfg.sim.start(), route_start):
+        print(f"vbnav demo: note: {cfg.source}: sim.start_pose {cfg.sim.start_pose} is not used: the demo teaches "
+              f"its route from the route's start ({route_start.x:.2f}, {route_start.z:.2f}, "
+              f"{math.degrees(route_start.theta):.1f} deg)", file=sys.stderr)
     printer = ProgressPrinter()
-    printer(f"vbnav demo: seed {args.seed}, output in {out}/", force=True)
-    metrics = run_demo(out, Scenario(seed=args.seed, repeats=args.repeats), cfg,
+    printer(f"vbnav demo: seed {seed}, output in {out}/", force=True)
+    metrics = run_demo(out, Scenario(seed=seed, repeats=args.repeats), cfg,
                        progress=lambda s: printer(s, force=s.startswith(("taught", "repeat 1:", "repeat 2:",
                                                                          "repeat 3:"))),
                        record=args.record, record_overwrite=args.overwrite)
@@ -54,3 +63,7 @@ def run(args) -> int:
     ok = metrics["completed"] and metrics["rms_lateral_error_m"] <= 0.03 and metrics["max_lateral_error_m"] <= 0.10
     print("result: " + ("PASS" if ok else "OUTSIDE the bars (completed, RMS <= 3 cm, max <= 10 cm)"))
     return 0 if metrics["completed"] else 1
+
+
+def _same_pose(a, b) -> bool:
+    return abs(a.x - b.x) < 1e-6 and abs(a.z - b.z) < 1e-6 and abs(math.remainder(a.theta - b.theta, math.tau)) < 1e-6
