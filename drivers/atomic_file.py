@@ -59,6 +59,15 @@ def atomic_output(path, suffix: Optional[str] = None) -> Iterator[Path]:
     fsync_folder(_folder(p))
 
 
+def fsync_file(path) -> None:
+    """Make a file written in pieces durable before it is renamed into place (its data, not just its name)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def fsync_folder(folder) -> None:
     """Make a rename in ``folder`` durable (POSIX: fsync the directory); a no-op where that is refused."""
     try:

@@ -247,3 +247,35 @@ def test_a_push_never_replaces_the_route_being_taught(tmp_path):
     finally:
         server.close()
     assert q.answer == ("err", "route 'loop' is being taught") and other.answer[0] == "ok"
+
+
+def test_a_pushed_route_is_on_disk_before_it_is_installed(tmp_path, monkeypatch):
+    """Chunks are appended to the staging files; the commit renames the staging folder into the routes. A
+    power cut after the rename must not find empty files: each file is fsynced once verified."""
+    from pathlib import Path
+
+    import numpy as np
+    from test_route import write_route
+    write_route(tmp_path / "local" / "loop", np.random.default_rng(0), 3)
+    synced: list[str] = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(os.readlink(f"/proc/self/fd/{fd}")), real_fsync(fd)))
+    server = rt.RouteServer(_Session(), "r", tmp_path / "robot")
+    base = "vbnav/r/routes/push/loop/0123456789abcdef"
+    files = rt.route_files(tmp_path / "local" / "loop")
+    try:
+        for key, payload in [(f"{base}/begin", json.dumps({"bytes": sum(f["size"] for f in files)}).encode()),
+                             *[q for f in files for q in (
+                                 (f"{base}/chunk/{f['name']}/0", (tmp_path / "local" / "loop" / f["name"]).read_bytes()),
+                                 (f"{base}/file/{f['name']}",
+                                  json.dumps({"size": f["size"], "sha256": f["sha256"]}).encode()))]]:
+            q = _Query(key, payload)
+            server._handle(q)
+            assert q.answer[0] == "ok", (key, q.answer)
+        staged = {Path(p).name for p in synced if "/robot/" in p}
+        assert staged == {f["name"] for f in files}                 # every file, before the commit
+        q = _Query(f"{base}/commit", b"{}")
+        server._handle(q)
+    finally:
+        server.close()
+    assert q.answer[0] == "ok" and load_route(tmp_path / "robot" / "loop").complete

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import queue
 import re
 import shutil
@@ -44,6 +45,7 @@ from typing import Callable, Optional
 
 from vbnav.control.route import (MANIFEST, RouteError, check_route_name, describe_route_error, install_route_dir,
                                  load_route, resolve_route, staging_dir)
+from vbnav.drivers.atomic_file import fsync_file
 
 PUSH_CHUNK = 32 * 1024          # bytes per pushed chunk: well under the robot's 64 KiB receive limit
 PULL_CHUNK = 256 * 1024         # bytes per pulled chunk (the reply leaves the robot: no such limit)
@@ -284,6 +286,7 @@ class RouteServer:
         if size != spec.get("size") or digest != spec["sha256"]:
             raise TransferError(f"push: {file} arrived damaged ({size} bytes, sha256 {digest[:12]}..., sender "
                                 f"says {spec.get('size')} bytes, {spec['sha256'][:12]}...)")
+        fsync_file(path)        # on disk before the commit renames the staging folder into the routes
         inc.verified.add(file)
         return {"ok": True}
 
@@ -405,6 +408,8 @@ def pull(session, robot: str, name: str, dest_root, overwrite: bool = False, tim
                     if progress is not None:
                         progress(done, total)
                 size = out.tell()
+                out.flush()
+                os.fsync(out.fileno())     # the staging folder is renamed into place: its files must be on disk
             if size != f["size"] or h.hexdigest() != f["sha256"]:
                 raise TransferError(f"{f['name']}: received {size} bytes with sha256 {h.hexdigest()[:12]}..., robot "
                                     f"{robot} listed {f['size']} bytes, {f['sha256'][:12]}... (did the route change "
