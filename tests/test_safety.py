@@ -222,3 +222,6 @@ def test_obstacle_speed_scale_slows_and_stops():
     assert at(4.5)[0] == pytest.approx(full, rel=1e-6)
     holds = [e for e in rt.safety.events if e.cause == "obstacle"]
     assert holds[0].kind == "hold" and holds[0].message == "box ahead" and holds[1].kind == "release"
+    # the zone's own debounce (obstacles.release_s) is the release time: not safety.release_s on top of it
+    assert 0 <= holds[1].stamp_ns - (T0 + 3_000_000_000) < 0.15e9, (holds[1].stamp_ns - T0) / 1e9
+    assert at(3.25)[0] > 0.3 * full         # accelerating again (with the double debounce: still 0 until 3.5 s)

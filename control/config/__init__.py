@@ -171,9 +171,10 @@ class SafetyConfig(Strict):
     command_timeout_s: float = Field(0.5, gt=0, description="teleop/network command silence that stops the robot")
     estimate_timeout_s: float = Field(1.0, gt=0, description="vision estimate age that stops a vision controller")
     release_s: float = Field(0.5, ge=0, le=10, description="s: a held stop (stale frame or "
-                             "estimate, obstacle) ends after its cause has been clear this long: a debounce, so "
+                             "estimate) ends after its cause has been clear this long: a debounce, so "
                              "a flickering cause does not start and stop the wheels every cycle (a silent "
-                             "command stream ends with the first fresh command)")
+                             "command stream ends with the first fresh command; an obstacle stop after "
+                             "obstacles.release_s, its stage's own debounce)")
 
 
 class SimConfig(Strict):

@@ -8,7 +8,8 @@ Two kinds of stop:
 - held (``hold``): a condition that stops the robot while it lasts and releases
   by itself once it has been clear for ``release_s`` (debounce): a stale camera
   frame, a stale vision estimate, a silent command stream, an obstacle. The
-  silent command stream releases at once (``RELEASE_AT_ONCE``).
+  silent command stream and the obstacle (debounced by its stage) release at once
+  (``RELEASE_AT_ONCE``).
 
 Every change is an event (time, kind, cause, message) kept for telemetry and
 the run report. The runtime commands zero and disables the drive the same cycle
@@ -24,7 +25,9 @@ FATAL = ("exception", "signal", "deadline", "drive", "camera")
 #: stream (``command_timeout``) ends when a fresh command arrives: the command's own freshness (sent within
 #: ``safety.command_timeout_s``) is the debounce, and waiting ``release_s`` (0.5 s, as long as the timeout)
 #: would let no single teleop message ever move the robot, and cut every stream's first half second.
-RELEASE_AT_ONCE = ("command_timeout",)
+#: The obstacle stop is debounced by the obstacle stage itself (``obstacles.release_s``, after its k-of-n
+#: persistence): a second debounce here would make the configured release time the sum of both.
+RELEASE_AT_ONCE = ("command_timeout", "obstacle")
 
 
 @dataclass
