@@ -23,6 +23,7 @@ def write(tmp_path, text: str) -> Path:
     ("loop:\n  rate_hz: 0\n", "loop.rate_hz", "greater than 0"),
     ("robot:\n  wheel_radius: fast\n", "robot.wheel_radius", "valid number"),
     ("robot:\n  wheel_radus: 0.05\n", "robot.wheel_radus", "unknown key"),
+    ("source: elsewhere.yaml\n", "source", "unknown key"),        # not a setting: the file loaded
     ("drive:\n  driver: warp\n", "drive.driver", "unknown driver 'warp'"),
     ("camera:\n  driver: kinect\n", "camera.driver", "expected one of"),
     ("loop:\n  overrun_policy: hope\n", "loop.overrun_policy", "'skip' or 'catch_up'"),

@@ -300,6 +300,9 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    if "source" in data:        # the field records the file loaded; a key in the file would be overwritten
+        raise ConfigError(f"{source}: source: unknown key (check the spelling; see docs/configuration.md or "
+                          f"'vbnav config reference')")
     try:
         cfg = Config.model_validate(data)
     except ValidationError as exc:
