@@ -84,7 +84,8 @@ def lateral_error(path: np.ndarray, p: Pose2) -> float:
     return float(np.min(np.hypot(q[:, 0] - p.x, q[:, 1] - p.z)))
 
 
-def repeat(rng, pts, route, cfg, start: Pose2, occlude=None, max_time=40.0):
+def repeat(rng, pts, route, cfg, start: Pose2, occlude=None, max_time=40.0, silent=None):
+    """``occlude`` (t0, t1): the camera sees nothing (failed fixes); ``silent`` (t0, t1): no new fix at all."""
     stage = RepeatStage(route, cfg)
     ctl = RepeatController(route, cfg, max_linear_speed=0.5, max_angular_speed=1.5)
     true, odom = start, Pose2()
@@ -92,7 +93,7 @@ def repeat(rng, pts, route, cfg, start: Pose2, occlude=None, max_time=40.0):
     trace = []
     for step in range(int(max_time / DT)):
         t = step * DT
-        if step % FRAME_EVERY == 0:
+        if step % FRAME_EVERY == 0 and not (silent and silent[0] <= t < silent[1]):
             ids, px = observe(true, pts, rng)
             if occlude and occlude[0] <= t < occlude[1]:
                 ids, px = ids[:0], px[:0]
@@ -165,6 +166,21 @@ def test_repeat_slows_stops_and_resumes_through_an_occlusion(scene):
     assert ctl.finished                                                                  # resumed, completed
     lat = np.array([lateral_error(truth, p) for _, p, *_ in trace])
     assert lat.max() < 0.05
+
+
+def test_repeat_stops_after_blind_distance_when_fixes_stop_coming(scene):
+    """No fix at all (the stage delivers nothing) is driving blind too: the last fix was strong, but after
+    vbc.blind_distance_m on odometry alone the robot stops, and goes on when fixes return."""
+    pts, cfg, route, truth = scene
+    ctl, stage, trace = repeat(np.random.default_rng(13), pts, route, cfg, Pose2(), silent=(3.0, 7.0))
+    t = np.array([x[0] for x in trace])
+    v = np.array([x[2].v for x in trace])
+    blind_m = np.array([x[4].get("blind_m", 0.0) for x in trace])
+    assert v[(t > 3.0) & (t < 3.3)].min() > 0.2                 # a strong last fix: on at speed for a while
+    stopped = (t > 3.0) & (t < 7.0) & (v == 0)
+    assert stopped.any() and np.all(v[(t > 6.0) & (t < 7.0)] == 0)
+    assert blind_m[stopped].min() >= cfg.blind_distance_m and blind_m[stopped].max() < cfg.blind_distance_m + 0.05
+    assert ctl.finished
 
 
 def test_vbc_config_section_is_validated():

@@ -37,7 +37,8 @@ class VBCConfig(Strict):
     cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s (at most robot.max_linear_speed)")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new fix's correction applied at once")
-    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
+    blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone (no fix, or only "
+                                                            "failed ones) before stopping, m")
     blind_speed_factor: float = Field(0.4, gt=0, le=1, description="speed factor while driving on odometry "
                                                                   "alone")
     goal_tolerance_m: float = Field(0.03, gt=0, description="finished within this of the last keyframe")

@@ -114,12 +114,14 @@ class RepeatController(Controller):
     def _confidence(self) -> float:
         """Speed factor from the number of agreeing landmarks and the distance driven blind."""
         c = self.cfg
+        if self._blind >= c.blind_distance_m:    # however good the last fix was: none came for this long
+            return 0.0
         if self._n_agree >= c.slow_landmarks:
             return 1.0
         if self._n_agree >= c.min_landmarks:
             f = c.min_landmarks_speed_factor
             return f + (1.0 - f) * (self._n_agree - c.min_landmarks) / max(c.slow_landmarks - c.min_landmarks, 1)
-        return c.blind_speed_factor if self._blind < c.blind_distance_m else 0.0
+        return c.blind_speed_factor
 
     def _project(self, P: Pose2):
         """Closest segment near the current keyframe: (segment, arclength on it, signed lateral, remaining)."""
