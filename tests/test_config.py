@@ -24,6 +24,8 @@ def write(tmp_path, text: str) -> Path:
     ("robot:\n  wheel_radius: fast\n", "robot.wheel_radius", "valid number"),
     ("robot:\n  wheel_radus: 0.05\n", "robot.wheel_radus", "unknown key"),
     ("source: elsewhere.yaml\n", "source", "unknown key"),        # not a setting: the file loaded
+    ("drive:\n  driver: sim\n  invert_right: true\n", "drive.invert_left/invert_right", "'sim' has none"),
+    ("sim:\n  world: nope\n", "sim.world", "'corridor_step'"),         # at load, not when the camera opens
     ("drive:\n  driver: warp\n", "drive.driver", "unknown driver 'warp'"),
     ("camera:\n  driver: kinect\n", "camera.driver", "expected one of"),
     ("loop:\n  overrun_policy: hope\n", "loop.overrun_policy", "'skip' or 'catch_up'"),

@@ -78,7 +78,8 @@ class CameraConfig(Strict):
                           "calib.txt (docs/hardware.md); loaded with the config, its model, size, intrinsics, "
                           "distortion and stereo baseline replace the inline values (a different inline width/"
                           "height is an error). A relative path is taken from the config file's folder")
-    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz")
+    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz (the replay camera plays at the "
+                                                             "recorded times or its options.rate_hz instead)")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop")
     mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
@@ -124,8 +125,9 @@ class CameraConfig(Strict):
 
 class DriveConfig(Strict):
     driver: str = Field("sim", description="wheel drive driver: a name from drivers/registry.py (see Driver options)")
-    invert_left: bool = Field(False, description="flip the sign of the left wheel")
-    invert_right: bool = Field(False, description="flip the sign of the right wheel")
+    invert_left: bool = Field(False, description="flip the sign of the left wheel (a motor mounted the other "
+                                                 "way; the serial drives; refused for the simulated one)")
+    invert_right: bool = Field(False, description="flip the sign of the right wheel (as invert_left)")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
     reconnect_window_s: float = Field(
         5.0, ge=0, le=600,
@@ -180,7 +182,8 @@ class SafetyConfig(Strict):
 class SimConfig(Strict):
     seed: int = Field(0, description="random seed of the world's textures, the image noise and the wheel slip")
     realtime: bool = Field(False, description="run on the wall clock instead of the simulated clock")
-    world: str = Field("room", description="simulated world: room, empty_room, corridor or corridor_step")
+    world: Literal["room", "empty_room", "corridor", "corridor_step"] = Field(
+        "room", description="simulated world (drivers/sim/world.py World.by_name)")
     motor_time_constant_s: float = Field(0.05, ge=0, description="first-order lag of the wheel speed, s")
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
     encoder_ticks_per_rev: int = Field(4096, gt=0, description="encoder resolution, ticks per wheel turn")
@@ -257,6 +260,16 @@ class Config(Strict):
         if r.max_linear_speed > r.max_wheel_speed * r.wheel_radius + 1e-9:
             raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
                              f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
+        return self
+
+    @model_validator(mode="after")
+    def _inversion_only_on_real_motors(self):
+        # The simulated drive has no motor mounted the other way to correct: flipping its wheels would
+        # make the simulated robot drive backwards, and ignoring the flags would accept them for nothing.
+        d = self.drive
+        if d.driver == "sim" and (d.invert_left or d.invert_right):
+            raise ValueError("drive.invert_left/invert_right correct a motor mounted the other way on a real "
+                             "robot; drive.driver 'sim' has none (remove them, or choose the robot's driver)")
         return self
 
     @model_validator(mode="after")
