@@ -29,7 +29,8 @@ class VBCConfig(Strict):
     min_landmarks: int = Field(12, ge=4, description="fewer agreeing landmarks: the fix is not trusted")
     slow_landmarks: int = Field(30, ge=4, description="fewer agreeing landmarks: drive slower")
     reacquire_below: int = Field(40, ge=0, description="re-match descriptors when fewer keyframe landmarks are tracked")
-    reacquire_every: int = Field(3, ge=1, description="frames between re-acquisition attempts while short")
+    reacquire_every: int = Field(3, ge=1, description="frames between re-acquisition attempts while short, and "
+                                                       "between guided matching passes (guided_fraction)")
     guided_fraction: float = Field(0.6, ge=0, le=1, description="pull in keyframe landmarks by predicted KLT "
                                    "when fewer than this share are tracked")
     guided_radius_px: float = Field(25.0, gt=0, description="max distance of a guided match from its prediction")
