@@ -66,9 +66,14 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         raise MapFileError(f"{path}: version must be an integer >= 1, got {ver!r}")
     if ver > VERSION:
         raise MapFileError(f"{path}: version {ver} is newer than this vbnav reads (<= {VERSION}); upgrade vbnav")
+    known = {f.name for f in dataclasses.fields(MapParams)}
+    given = data.get("params", {})
+    unknown = sorted(set(given) - known) if isinstance(given, dict) else []
+    if unknown:     # a parameter the map was built with that this vbnav would silently not apply
+        raise MapFileError(f"{path}: params: unknown key(s) {', '.join(map(repr, unknown))} (this vbnav's map "
+                           f"parameters: {', '.join(sorted(known))})")
     try:
-        known = {f.name for f in dataclasses.fields(MapParams)}
-        params = MapParams(**{k: v for k, v in data.get("params", {}).items() if k in known})
+        params = MapParams(**given)
         lmap = LineMap(params)
         segs = data["segments"]
         n = len(segs)

@@ -226,6 +226,11 @@ def test_map_file_round_trip_and_errors(room_map, tmp_path):
     assert np.allclose(back.P, lmap.P, atol=1e-5) and (back.verified == lmap.verified).all()
     assert [len(v) for v in back.views] == [len(v) for v in lmap.views]
     data = json.loads(p.read_text())
+    data["params"]["verify_vievs"] = 2                  # a parameter this vbnav would not apply: refused
+    p.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=r"room.json: params: unknown key\(s\) 'verify_vievs'"):
+        load_map(p)
+    del data["params"]["verify_vievs"]
     data["version"] = 99
     p.write_text(json.dumps(data))
     with pytest.raises(MapFileError, match="newer"):
