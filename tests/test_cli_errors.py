@@ -26,6 +26,11 @@ CAMERA = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\n"
 CASES = [
     # top level
     ("unknown-command", "fly", 2, "fly"),
+    # calibrate
+    ("calibrate-live-camera-missing", "calibrate intrinsics --live -c {d}/v4l2.yaml --out {d}/calib", 3,
+     "camera /dev/video99 not found"),
+    ("calibrate-mount-camera-missing", "calibrate mount --live -c {d}/v4l2.yaml --dry-run", 3,
+     "camera /dev/video99 not found"),
     # config
     ("config-missing", "config check -c {d}/nope.yaml", 2, "nope.yaml"),
     ("config-dir", "config check -c {d}/empty", 2, "empty"),
@@ -218,7 +223,7 @@ def results(tmp_path_factory):
     argvs = {case[0]: case[1].format(d=d).split() for case in CASES}
     with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2)) as pool:
         done = dict(zip(argvs, pool.map(_run, argvs.values())))
-    assert not (d / "demo_out").exists() and not (d / "route").exists(), "a refused command wrote its output"
+    assert not any((d / out).exists() for out in ("demo_out", "route", "calib")), "a refused command wrote its output"
     return done
 
 

@@ -9,6 +9,7 @@ drivers/calibration.py.
 """
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -18,6 +19,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import add_config_arg, positive
+from vbnav.drivers.camera import CameraError
 from vbnav.drivers.errors import InputError
 
 
@@ -43,7 +45,7 @@ def register(sub) -> None:
     i.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
     i.add_argument("--fisheye", action="store_true", help="not supported yet: say so rather than fit pinhole")
     i.add_argument("--quiet", action="store_true", help="no per-view lines on stderr")
-    i.set_defaults(func=run_intrinsics)
+    i.set_defaults(func=_device_errors(run_intrinsics))
 
     s = what.add_parser("stereo", help="a stereo pair: each camera, their relative pose and the rectified rig",
                         description="Pairs LEFT and RIGHT images by sorted name, calibrates each camera, then "
@@ -74,7 +76,23 @@ def register(sub) -> None:
     m.add_argument("--board-thickness", type=float, default=0.0, metavar="M",
                    help="the board's top surface above the floor, m (added to the height)")
     m.add_argument("--dry-run", action="store_true", help="print the mounting, do not write the config")
-    m.set_defaults(func=run_mount)
+    m.set_defaults(func=_device_errors(run_mount))
+
+
+def _device_errors(run):
+    """``run`` with a camera that is not there or fails (--live) reported as a device error: one line, exit 3
+    (the contract in control/cli.py), not a bug's traceback. A recorded source of the wrong size
+    (CameraSizeError, also an InputError) stays bad input, exit 2."""
+    @functools.wraps(run)
+    def checked(args) -> int:
+        try:
+            return run(args)
+        except CameraError as exc:
+            if isinstance(exc, InputError):
+                raise
+            print(f"vbnav calibrate: {exc}", file=sys.stderr)
+            return 3
+    return checked
 
 
 def _board_args(p) -> None:
