@@ -31,6 +31,12 @@ CASES = [
      "camera /dev/video99 not found"),
     ("calibrate-mount-camera-missing", "calibrate mount --live -c {d}/v4l2.yaml --dry-run", 3,
      "camera /dev/video99 not found"),
+    ("calibrate-board-thickness-nan", "calibrate mount --image {d}/left.png --board-thickness nan --dry-run", 2,
+     "--board-thickness"),
+    ("calibrate-board-thickness-negative", "calibrate mount --image {d}/left.png --board-thickness -0.01 --dry-run",
+     2, "--board-thickness"),
+    ("calibrate-min-sharpness-nan", "calibrate intrinsics --images {d}/empty --min-sharpness nan --out {d}/calib", 2,
+     "--min-sharpness"),
     # config
     ("config-missing", "config check -c {d}/nope.yaml", 2, "nope.yaml"),
     ("config-dir", "config check -c {d}/empty", 2, "empty"),

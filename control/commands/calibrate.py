@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import add_config_arg, positive
+from vbnav.control.commands._common import add_config_arg, non_negative, positive
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.errors import InputError
 
@@ -73,7 +73,7 @@ def register(sub) -> None:
     msrc.add_argument("--live", action="store_true", help="one view of the board from the configured camera")
     msrc.add_argument("--stereo", nargs=2, metavar=("LEFT", "RIGHT"), help="a rectified stereo pair of the floor")
     _board_args(m)
-    m.add_argument("--board-thickness", type=float, default=0.0, metavar="M",
+    m.add_argument("--board-thickness", type=non_negative, default=0.0, metavar="M",
                    help="the board's top surface above the floor, m (added to the height)")
     m.add_argument("--dry-run", action="store_true", help="print the mounting, do not write the config")
     m.set_defaults(func=_device_errors(run_mount))
@@ -103,7 +103,7 @@ def _board_args(p) -> None:
                                                                   "mount height)")
     p.add_argument("--marker", type=positive, default=None, help="ChArUco: marker side, m")
     p.add_argument("--dictionary", default="DICT_6X6_250", help="ChArUco: ArUco dictionary name")
-    p.add_argument("--min-sharpness", type=float, default=None,
+    p.add_argument("--min-sharpness", type=non_negative, default=None,
                    help="reject views less sharp than this (default: vision/board_calibration.py SHARPNESS_MIN)")
 
 
