@@ -204,8 +204,9 @@ def test_mount_without_the_board_in_view_is_an_error(tmp_path, capsys):
     assert code == 2 and "is not in view" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("pitch_deg,roll_deg", [(25.0, -4.0)])
-def test_mount_from_the_stereo_ground_plane(tmp_path, capsys, pitch_deg, roll_deg):
+def render_floor_pair(folder, pitch_deg, roll_deg) -> list[str]:
+    """A rectified stereo pair of the empty room's floor from a camera 0.25 m up, and sim_stereo.yaml (mounted
+    level) as FOLDER/robot.yaml: the arguments ``-c robot.yaml --stereo l.png r.png``."""
     from vbnav.drivers.clock import SimClock
     from vbnav.drivers.sim.camera import SimCamera
     from vbnav.drivers.sim.world import World
@@ -215,13 +216,33 @@ def test_mount_from_the_stereo_ground_plane(tmp_path, capsys, pitch_deg, roll_de
     cam = SimCamera(World.by_name("empty_room", 0), PinholeCamera(640, 480, 400, 400, 319.5, 239.5), mount,
                     lambda: Pose2(0, 0, 0), SimClock(), 15, stereo_baseline=0.075)
     frame = cam.render_frame(Pose2(0, 0, 0))
-    cv2.imwrite(str(tmp_path / "l.png"), frame.image)
-    cv2.imwrite(str(tmp_path / "r.png"), frame.right)
-    (tmp_path / "robot.yaml").write_text((CONFIG_DIR / "sim_stereo.yaml").read_text())   # mounted level
-    code = cli.main(["calibrate", "mount", "-c", str(tmp_path / "robot.yaml"), "--stereo", str(tmp_path / "l.png"),
-                     str(tmp_path / "r.png")])
+    cv2.imwrite(str(folder / "l.png"), frame.image)
+    cv2.imwrite(str(folder / "r.png"), frame.right)
+    (folder / "robot.yaml").write_text((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    return ["-c", str(folder / "robot.yaml"), "--stereo", str(folder / "l.png"), str(folder / "r.png")]
+
+
+@pytest.mark.parametrize("pitch_deg,roll_deg", [(25.0, -4.0)])
+def test_mount_from_the_stereo_ground_plane(tmp_path, capsys, pitch_deg, roll_deg):
+    code = cli.main(["calibrate", "mount", *render_floor_pair(tmp_path, pitch_deg, roll_deg)])
     assert code == 0, capsys.readouterr().err
     m = load_config(str(tmp_path / "robot.yaml")).camera.mount
     # measured (pitch 15 or 25 deg, roll 2 or -4 deg): within 1.6 mm, 0.11 deg pitch, 0.2 deg roll (SGBM on the rendered room floor); bounds twice that
     assert abs(m.height - 0.25) < 0.004, m
     assert abs(m.pitch_deg - pitch_deg) < 0.3 and abs(m.roll_deg - roll_deg) < 0.5, m
+
+
+@pytest.mark.parametrize("given", [["--board-thickness", "0.01"], ["--square", "0.04"], ["--cols", "9"],
+                                   ["--board", "chessboard"], ["--min-sharpness", "5"],
+                                   ["--marker", "0.02", "--dictionary", "DICT_4X4_50"]])
+def test_mount_stereo_refuses_the_board_options(tmp_path, capsys, given):
+    """--stereo fits the floor plane, no board: a board option (even at its default value) would be silently
+    ignored, and --board-thickness was added to the floor's height."""
+    args = render_floor_pair(tmp_path, 25.0, -4.0)
+    text = (tmp_path / "robot.yaml").read_text()
+    code = cli.main(["calibrate", "mount", *args, *given])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    named = [g for g in given if g.startswith("--")]
+    assert f"vbnav calibrate: {', '.join(named)}: board options, and --stereo uses no board" in err, err
+    assert (tmp_path / "robot.yaml").read_text() == text           # nothing written

@@ -73,8 +73,8 @@ def register(sub) -> None:
     msrc.add_argument("--live", action="store_true", help="one view of the board from the configured camera")
     msrc.add_argument("--stereo", nargs=2, metavar=("LEFT", "RIGHT"), help="a rectified stereo pair of the floor")
     _board_args(m)
-    m.add_argument("--board-thickness", type=non_negative, default=0.0, metavar="M",
-                   help="the board's top surface above the floor, m (added to the height)")
+    m.add_argument("--board-thickness", type=non_negative, default=None, metavar="M",
+                   help="the board's top surface above the floor, m (added to the height; default 0)")
     m.add_argument("--dry-run", action="store_true", help="print the mounting, do not write the config")
     m.set_defaults(func=_device_errors(run_mount))
 
@@ -95,24 +95,38 @@ def _device_errors(run):
     return checked
 
 
+# The board options default to None and Board's own defaults apply, so that mount --stereo (no board) can tell
+# an option given from one left alone. Option dest -> Board field.
+BOARD_FIELDS = {"board": "kind", "cols": "cols", "rows": "rows", "square": "square", "marker": "marker",
+                "dictionary": "dictionary"}
+
+
 def _board_args(p) -> None:
-    p.add_argument("--board", choices=["chessboard", "charuco"], default="chessboard")
-    p.add_argument("--cols", type=int, default=9, help="chessboard: inner corners across; ChArUco: squares across")
-    p.add_argument("--rows", type=int, default=6, help="chessboard: inner corners down; ChArUco: squares down")
-    p.add_argument("--square", type=positive, default=0.025, help="square side, m (the unit of baseline and "
-                                                                  "mount height)")
+    p.add_argument("--board", choices=["chessboard", "charuco"], default=None, help="the target (default chessboard)")
+    p.add_argument("--cols", type=int, default=None, help="chessboard: inner corners across (default 9); ChArUco: "
+                                                          "squares across")
+    p.add_argument("--rows", type=int, default=None, help="chessboard: inner corners down (default 6); ChArUco: "
+                                                          "squares down")
+    p.add_argument("--square", type=positive, default=None, help="square side, m (default 0.025; the unit of "
+                                                                 "baseline and mount height)")
     p.add_argument("--marker", type=positive, default=None, help="ChArUco: marker side, m")
-    p.add_argument("--dictionary", default="DICT_6X6_250", help="ChArUco: ArUco dictionary name")
+    p.add_argument("--dictionary", default=None, help="ChArUco: ArUco dictionary name (default DICT_6X6_250)")
     p.add_argument("--min-sharpness", type=non_negative, default=None,
                    help="reject views less sharp than this (default: vision/board_calibration.py SHARPNESS_MIN)")
 
 
 def _board(args):
     from vbnav.vision.board_calibration import Board
+    given = {field: vars(args)[dest] for dest, field in BOARD_FIELDS.items() if vars(args)[dest] is not None}
     try:
-        return Board(args.board, args.cols, args.rows, args.square, args.marker or 0.0, args.dictionary)
+        return Board(**given)
     except ValueError as exc:
         raise InputError(f"--board: {exc}") from None
+
+
+def _given(args, dests) -> list[str]:
+    """The options among ``dests`` (defaults None) given on the command line, spelt as typed."""
+    return [f"--{d.replace('_', '-')}" for d in dests if vars(args)[d] is not None]
 
 
 def _say(args, text: str) -> None:
@@ -170,13 +184,13 @@ class ViewCollector:
         return view
 
 
-def _write_intrinsics(out: Path, prefix: str, result, views, args, name: str) -> list[Path]:
+def _write_intrinsics(out: Path, prefix: str, result, views, board, name: str) -> list[Path]:
     from vbnav.drivers.atomic_file import write_atomic
     from vbnav.drivers.calibration import opencv_yaml_text, ros_camera_info_text
     per = {v.name: e for v, e in zip(views, result.per_view)}
     extra = {"avg_reprojection_error": result.rms, "per_view_reprojection_errors": result.per_view,
-             "board": f"{args.board} {args.cols}x{args.rows} square {args.square}"}
-    notes = (f"calibrated by vbnav calibrate from {len(views)} views of a {args.board} {args.cols}x{args.rows}",
+             "board": f"{board.kind} {board.cols}x{board.rows} square {board.square}"}
+    notes = (f"calibrated by vbnav calibrate from {len(views)} views of a {board.kind} {board.cols}x{board.rows}",
              f"rms_reprojection_error_px: {result.rms:.4f}",
              *(f"view {n}: {e:.4f} px" for n, e in per.items()))
     a, b = out / f"{prefix}opencv.yaml", out / f"{prefix}info.yaml"
@@ -219,7 +233,7 @@ def run_intrinsics(args) -> int:
     _say(args, f"{len(collector.views)} views accepted, {collector.rejected} rejected; calibrating ...")
     result = _calibrate(collector.views, collector.size)
     out.mkdir(parents=True, exist_ok=True)
-    files = _write_intrinsics(out, "camera_", result, collector.views, args, "camera")
+    files = _write_intrinsics(out, "camera_", result, collector.views, board, "camera")
     _report("intrinsics", result)
     print(f"wrote {', '.join(map(str, files))} ({time.monotonic() - t0:.1f} s); use one as camera.calibration_file")
     return 0
@@ -284,8 +298,8 @@ def run_stereo(args) -> int:
         raise InputError(str(exc)) from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    files = _write_intrinsics(out, "left_", lres, lc.views, args, "left")
-    files += _write_intrinsics(out, "right_", rres, rc.views, args, "right")
+    files = _write_intrinsics(out, "left_", lres, lc.views, board, "left")
+    files += _write_intrinsics(out, "right_", rres, rc.views, board, "right")
     fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     fs.write("image_width", lc.size[0])
     fs.write("image_height", lc.size[1])
@@ -314,10 +328,14 @@ def run_stereo(args) -> int:
 def run_mount(args) -> int:
     from vbnav.control.config import load_config, resolve_config_path
     from vbnav.control.config.mount_edit import set_camera_mount
+    if args.stereo and (given := _given(args, (*BOARD_FIELDS, "min_sharpness", "board_thickness"))):
+        raise InputError(f"{', '.join(given)}: board options, and --stereo uses no board (it fits the floor "
+                         f"plane of the pair); leave them out")
     cfg = load_config(args.config)
     camera = cfg.camera.to_model()
     if args.stereo:
         pose = _mount_from_stereo(args, cfg)
+        height = pose.height        # the floor itself, no board on it
         how = "stereo ground plane"
     else:
         if args.image:
@@ -337,12 +355,13 @@ def run_mount(args) -> int:
             raise InputError(f"{name}: is {grey.shape[1]}x{grey.shape[0]}, the camera of {cfg.source} is "
                              f"{camera.width}x{camera.height}")
         from vbnav.vision.board_calibration import BoardDetector, floor_pose_from_board
-        view = BoardDetector(_board(args)).detect(grey, name)
+        board = _board(args)
+        view = BoardDetector(board).detect(grey, name)
         if view is None:
-            raise InputError(f"{name}: the board ({args.board} {args.cols}x{args.rows}) is not in view")
+            raise InputError(f"{name}: the board ({board.kind} {board.cols}x{board.rows}) is not in view")
         pose = floor_pose_from_board(view, camera.K, np.asarray(camera.dist, float))
+        height = pose.height + (args.board_thickness or 0.0)        # the plane measured is the board's top
         how = f"board on the floor ({len(view.ids)} corners, RMS {pose.rms:.3f} px)"
-    height = pose.height + args.board_thickness
     values = {"height": height, "pitch_deg": math.degrees(pose.pitch), "roll_deg": math.degrees(pose.roll)}
     print(f"camera mount from the {how}: height {height:.4f} m, pitch {values['pitch_deg']:.3f} deg (down), "
           f"roll {values['roll_deg']:.3f} deg")
