@@ -155,6 +155,30 @@ def test_live_intrinsics_from_the_configured_camera(stereo_dirs, tmp_path, capsy
     assert "over 13 views" in out.out
 
 
+@pytest.mark.parametrize("given,named", [(["--views", "5"], "--views"), (["--timeout", "10"], "--timeout"),
+                                         (["-c", "sim"], "--config"),
+                                         (["--views", "20", "--timeout", "120"], "--views, --timeout")])
+def test_images_refuse_the_live_options(stereo_dirs, tmp_path, capsys, given, named):
+    """--views, --timeout and --config are --live's: with --images they were accepted and ignored (every image
+    of the folder is used, whatever --views said)."""
+    code = cli.main(["calibrate", "intrinsics", "--images", str(stereo_dirs / "left"), *given, "--out",
+                     str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"vbnav calibrate: {named}: for --live" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_live_views_below_one_are_refused(stereo_dirs, tmp_path, capsys):
+    cfg = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
+    cfg["camera"].update(driver="replay", options={"path": str(stereo_dirs / "left"), "rate_hz": 20})
+    (tmp_path / "replay.yaml").write_text(yaml.safe_dump(cfg))
+    code = cli.main(["calibrate", "intrinsics", "--live", "-c", str(tmp_path / "replay.yaml"), "--views", "0",
+                     "--timeout", "5", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--views 0: expected at least 1" in err, err
+
+
 # -- the mount: a board lying on the floor, rendered from a known camera pose ----------------------
 
 def render_floor_board(K, mount: CameraMount, size=(640, 480), square=0.04, ahead=0.7):

@@ -22,6 +22,9 @@ from vbnav.control.commands._common import add_config_arg, non_negative, positiv
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.errors import InputError
 
+# --live's defaults; --images refuses the live options when given, so they default to None
+LIVE_VIEWS, LIVE_TIMEOUT_S = 20, 120.0
+
 
 def register(sub) -> None:
     p = sub.add_parser("calibrate", help="calibrate the camera (intrinsics, stereo pair) and its mounting",
@@ -40,8 +43,10 @@ def register(sub) -> None:
                                                          "board between views)")
     add_config_arg(i)
     _board_args(i)
-    i.add_argument("--views", type=int, default=20, help="--live: stop after this many accepted views")
-    i.add_argument("--timeout", type=positive, default=120.0, help="--live: give up after this long, s")
+    i.add_argument("--views", type=int, default=None,
+                   help=f"--live: stop after this many accepted views (default {LIVE_VIEWS})")
+    i.add_argument("--timeout", type=positive, default=None,
+                   help=f"--live: give up after this long, s (default {LIVE_TIMEOUT_S:g})")
     i.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
     i.add_argument("--fisheye", action="store_true", help="not supported yet: say so rather than fit pinhole")
     i.add_argument("--quiet", action="store_true", help="no per-view lines on stderr")
@@ -218,6 +223,12 @@ def run_intrinsics(args) -> int:
     if args.fisheye:
         raise InputError("--fisheye: fisheye calibration is not implemented; calibrate a pinhole model or use "
                          "OpenCV's cv2.fisheye.calibrate and load its file")
+    if args.images and (given := _given(args, ("config", "views", "timeout"))):
+        raise InputError(f"{', '.join(given)}: for --live (the camera of the config); --images calibrates from "
+                         f"every image of its folder")
+    views = LIVE_VIEWS if args.views is None else args.views
+    if views < 1:
+        raise InputError(f"--views {views}: expected at least 1")
     board = _board(args)
     out = Path(args.out)
     collector = ViewCollector(args, board)
@@ -227,7 +238,7 @@ def run_intrinsics(args) -> int:
         for k, f in enumerate(files, 1):
             collector.offer(_grey(f), f.name, f"[{k}/{len(files)}] ")
     else:
-        _collect_live(args, collector, args.views)
+        _collect_live(args, collector, views)
     if collector.size is None:
         raise InputError("no views")
     _say(args, f"{len(collector.views)} views accepted, {collector.rejected} rejected; calibrating ...")
@@ -254,7 +265,7 @@ def _open_live_camera(args):
 
 def _collect_live(args, collector, want: int) -> None:
     cfg, cam = _open_live_camera(args)
-    deadline = time.monotonic() + args.timeout
+    deadline = time.monotonic() + (LIVE_TIMEOUT_S if args.timeout is None else args.timeout)
     n = 0
     try:
         while len(collector.views) < want and time.monotonic() < deadline:
