@@ -246,6 +246,23 @@ def render_floor_pair(folder, pitch_deg, roll_deg) -> list[str]:
     return ["-c", str(folder / "robot.yaml"), "--stereo", str(folder / "l.png"), str(folder / "r.png")]
 
 
+def test_mount_rejects_a_blurred_board_by_min_sharpness(tmp_path, capsys):
+    """--min-sharpness was accepted and never used by mount. The rendered board scores ~2600 sharp and ~70
+    blurred by a sigma 1.5 px Gaussian (the board is still found): a limit of 100 takes one, refuses the other."""
+    K = np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]])
+    sharp = render_floor_board(K, CameraMount(height=0.32, forward=0.1, pitch=math.radians(25.0),
+                                              roll=math.radians(3.0)))
+    cv2.imwrite(str(tmp_path / "sharp.png"), sharp)
+    cv2.imwrite(str(tmp_path / "blurred.png"), cv2.GaussianBlur(sharp, (0, 0), 1.5))
+    argv = ["calibrate", "mount", "-c", "sim", "--square", "0.04", "--min-sharpness", "100", "--dry-run", "--image"]
+    assert cli.main(argv + [str(tmp_path / "sharp.png")]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    code = cli.main(argv + [str(tmp_path / "blurred.png")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "blurred.png: the board is blurred (sharpness" in err and "< 100, --min-sharpness" in err, err
+
+
 @pytest.mark.parametrize("pitch_deg,roll_deg", [(25.0, -4.0)])
 def test_mount_from_the_stereo_ground_plane(tmp_path, capsys, pitch_deg, roll_deg):
     code = cli.main(["calibrate", "mount", *render_floor_pair(tmp_path, pitch_deg, roll_deg)])

@@ -156,13 +156,18 @@ def _grey(path: Path) -> np.ndarray:
     return img
 
 
+def _min_sharpness(args) -> float:
+    from vbnav.vision.board_calibration import SHARPNESS_MIN
+    return SHARPNESS_MIN if args.min_sharpness is None else args.min_sharpness
+
+
 class ViewCollector:
     """Board views one by one: detected, sharp enough, not a repeat of an accepted one (each decision said)."""
 
     def __init__(self, args, board):
-        from vbnav.vision.board_calibration import SHARPNESS_MIN, BoardDetector
+        from vbnav.vision.board_calibration import BoardDetector
         self.args, self.detector = args, BoardDetector(board)
-        self.min_sharpness = SHARPNESS_MIN if args.min_sharpness is None else args.min_sharpness
+        self.min_sharpness = _min_sharpness(args)
         self.views, self.size, self.rejected = [], None, 0
 
     def offer(self, grey: np.ndarray, name: str, tag: str = "", keep_duplicates: bool = False):
@@ -370,6 +375,9 @@ def run_mount(args) -> int:
         view = BoardDetector(board).detect(grey, name)
         if view is None:
             raise InputError(f"{name}: the board ({board.kind} {board.cols}x{board.rows}) is not in view")
+        if view.sharpness < (limit := _min_sharpness(args)):     # blurred corners: a biased pose, as in intrinsics
+            raise InputError(f"{name}: the board is blurred (sharpness {view.sharpness:.1f} < {limit:g}, "
+                             f"--min-sharpness); take a sharper view")
         pose = floor_pose_from_board(view, camera.K, np.asarray(camera.dist, float))
         height = pose.height + (args.board_thickness or 0.0)        # the plane measured is the board's top
         how = f"board on the floor ({len(view.ids)} corners, RMS {pose.rms:.3f} px)"
