@@ -169,6 +169,20 @@ def test_images_refuse_the_live_options(stereo_dirs, tmp_path, capsys, given, na
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("given,named", [(["--marker", "0.02"], "--marker"),
+                                         (["--dictionary", "DICT_6X6_250"], "--dictionary"),
+                                         (["--board", "chessboard", "--marker", "0.02", "--dictionary", "DICT_4X4_50"],
+                                          "--marker, --dictionary")])
+def test_chessboard_refuses_the_charuco_options(stereo_dirs, tmp_path, capsys, given, named):
+    """--marker and --dictionary describe a ChArUco board: with a chessboard they were accepted and ignored."""
+    code = cli.main(["calibrate", "intrinsics", "--images", str(stereo_dirs / "left"), *given, "--out",
+                     str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"vbnav calibrate: {named}: ChArUco options, and the board is a chessboard" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_live_views_below_one_are_refused(stereo_dirs, tmp_path, capsys):
     cfg = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
     cfg["camera"].update(driver="replay", options={"path": str(stereo_dirs / "left"), "rate_hz": 20})
@@ -226,6 +240,15 @@ def test_mount_without_the_board_in_view_is_an_error(tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "floor.png"), np.full((480, 640), 100, np.uint8))
     code = cli.main(["calibrate", "mount", "-c", "sim", "--image", str(tmp_path / "floor.png"), "--dry-run"])
     assert code == 2 and "is not in view" in capsys.readouterr().err
+
+
+def test_mount_with_a_chessboard_refuses_the_charuco_options(tmp_path, capsys):
+    K = np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]])
+    cv2.imwrite(str(tmp_path / "floor.png"), render_floor_board(K, CameraMount(0.32, 0.1, pitch=math.radians(25.0))))
+    code = cli.main(["calibrate", "mount", "-c", "sim", "--image", str(tmp_path / "floor.png"), "--square", "0.04",
+                     "--marker", "0.02", "--dry-run"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--marker: ChArUco options, and the board is a chessboard" in err, err
 
 
 def render_floor_pair(folder, pitch_deg, roll_deg) -> list[str]:

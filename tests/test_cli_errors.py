@@ -35,6 +35,10 @@ CASES = [
      "--board-thickness"),
     ("calibrate-board-thickness-negative", "calibrate mount --image {d}/left.png --board-thickness -0.01 --dry-run",
      2, "--board-thickness"),
+    ("calibrate-dictionary-not-one", "calibrate intrinsics --images {d}/empty --board charuco --marker 0.01 "
+     "--dictionary CharucoBoard --out {d}/calib", 2, "--dictionary: unknown ArUco dictionary 'CharucoBoard'"),
+    ("calibrate-dictionary-chessboard", "calibrate mount --image {d}/left.png --dictionary DICT_BOGUS --dry-run", 2,
+     "--dictionary: unknown ArUco dictionary 'DICT_BOGUS'"),
     ("calibrate-min-sharpness-nan", "calibrate intrinsics --images {d}/empty --min-sharpness nan --out {d}/calib", 2,
      "--min-sharpness"),
     # config

@@ -30,6 +30,8 @@ SUBPIX_WINDOW = (11, 11)        # half-size, px: OpenCV's calibration sample's (
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
 MIN_CHARUCO_CORNERS = 6         # a homography needs 4; 6 keeps a view from being decided by one marker
 CHESSBOARD_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+# OpenCV's predefined ArUco dictionaries, by name (cv2.aruco has other attributes, a name must be one of these)
+ARUCO_DICTIONARIES = tuple(sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_")))
 
 
 @dataclass(frozen=True)
@@ -55,8 +57,8 @@ class Board:
             if not 0 < self.marker < self.square:
                 raise ValueError(f"ChArUco marker side {self.marker} must be > 0 and smaller than the square "
                                  f"{self.square}")
-            if not hasattr(cv2.aruco, self.dictionary):
-                raise ValueError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_6X6_250, DICT_4X4_50)")
+            if self.dictionary not in ARUCO_DICTIONARIES:
+                raise ValueError(unknown_dictionary(self.dictionary))
 
     def charuco(self):
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
@@ -66,6 +68,10 @@ class Board:
         """(N, 3) chessboard corners on the board plane z = 0, row by row, in ``square`` units."""
         g = np.mgrid[0:self.cols, 0:self.rows].T.reshape(-1, 2)
         return np.hstack([g * self.square, np.zeros((len(g), 1))]).astype(np.float32)
+
+
+def unknown_dictionary(name: str) -> str:
+    return f"unknown ArUco dictionary {name!r}: expected one of {', '.join(ARUCO_DICTIONARIES)}"
 
 
 @dataclass

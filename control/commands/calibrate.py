@@ -9,6 +9,7 @@ drivers/calibration.py.
 """
 from __future__ import annotations
 
+import argparse
 import functools
 import math
 import sys
@@ -115,18 +116,31 @@ def _board_args(p) -> None:
     p.add_argument("--square", type=positive, default=None, help="square side, m (default 0.025; the unit of "
                                                                  "baseline and mount height)")
     p.add_argument("--marker", type=positive, default=None, help="ChArUco: marker side, m")
-    p.add_argument("--dictionary", default=None, help="ChArUco: ArUco dictionary name (default DICT_6X6_250)")
+    p.add_argument("--dictionary", type=_dictionary, default=None, metavar="NAME",
+                   help="ChArUco: OpenCV ArUco dictionary name (default DICT_6X6_250)")
     p.add_argument("--min-sharpness", type=non_negative, default=None,
                    help="reject views less sharp than this (default: vision/board_calibration.py SHARPNESS_MIN)")
+
+
+def _dictionary(text: str) -> str:
+    """argparse type: one of OpenCV's predefined ArUco dictionaries."""
+    from vbnav.vision.board_calibration import ARUCO_DICTIONARIES, unknown_dictionary
+    if text not in ARUCO_DICTIONARIES:
+        raise argparse.ArgumentTypeError(unknown_dictionary(text))
+    return text
 
 
 def _board(args):
     from vbnav.vision.board_calibration import Board
     given = {field: vars(args)[dest] for dest, field in BOARD_FIELDS.items() if vars(args)[dest] is not None}
     try:
-        return Board(**given)
+        board = Board(**given)
     except ValueError as exc:
         raise InputError(f"--board: {exc}") from None
+    if board.kind == "chessboard" and (charuco := _given(args, ("marker", "dictionary"))):
+        raise InputError(f"{', '.join(charuco)}: ChArUco options, and the board is a chessboard (--board charuco "
+                         f"for a ChArUco board)")
+    return board
 
 
 def _given(args, dests) -> list[str]:
@@ -354,6 +368,7 @@ def run_mount(args) -> int:
         height = pose.height        # the floor itself, no board on it
         how = "stereo ground plane"
     else:
+        board = _board(args)        # its options checked before a camera opens
         if args.image:
             grey = _grey(Path(args.image))
             name = args.image
@@ -371,7 +386,6 @@ def run_mount(args) -> int:
             raise InputError(f"{name}: is {grey.shape[1]}x{grey.shape[0]}, the camera of {cfg.source} is "
                              f"{camera.width}x{camera.height}")
         from vbnav.vision.board_calibration import BoardDetector, floor_pose_from_board
-        board = _board(args)
         view = BoardDetector(board).detect(grey, name)
         if view is None:
             raise InputError(f"{name}: the board ({board.kind} {board.cols}x{board.rows}) is not in view")
