@@ -27,6 +27,8 @@ ALLOWED = {
     ("commands/config.py", '"Options", None)'): "driver classes without settings have no Options model",
     ("runtime/pipeline.py", "getattr(fn, '__qualname__', fn)"): "names a listener; a functools.partial has none",
     ("commands/service.py", "getattr(cfg.loop, key)"): "a config field read by its name in a loop",
+    ("commands/obstacles.py", "for d in dests if getattr(args, d) is not None]"): "parsed options read by name",
+    ("commands/obstacles.py", "if getattr(args, dest) is None:"): "parsed options read by name in a loop",
 }
 
 

@@ -100,6 +100,59 @@ def test_bad_input_exit_2(files, capsys, argv, match):
     assert match in err
 
 
+NO_MOUNT = YAML.split("mount:")[0]                                  # no camera height known
+KITTI = "P0: 400 0 319.5 0 0 400 239.5 0 0 0 1 0\nP1: 400 0 319.5 -30 0 400 239.5 0 0 0 1 0\n"   # 0.075 m
+
+
+@pytest.mark.parametrize("argv,match", [
+    # an option of the other input
+    (["--left", "l.png", "--right", "r.png", "--image", "l.png"], "--image goes with --disparity"),
+    (["--left", "l.png", "--right", "r.png", "--image", "/nonexistent.png"], "--image goes with --disparity"),
+    (["--left", "l.png", "--right", "r.png", "--disparity-scale", "0.5"], "--disparity-scale scales a --disparity"),
+    (["--disparity", "d.npy", "--block-size", "7"], "--block-size: set(s) OpenCV SGBM"),
+    (["--disparity", "d.npy", "--min-depth", "0.5"], "--min-depth: set(s) OpenCV SGBM"),
+    (["--disparity", "d.npy", "--image", "l.png"], "--image is the image --overlay-out draws on"),
+    # the piecewise ground's settings with one plane
+    (["--disparity", "d.npy", "--ground", "plane", "--ground-half-width", "2"], "--ground-half-width: shape(s)"),
+    (["--disparity", "d.npy", "--ground", "plane", "--max-grade-change", "0.1"], "--ground plane fits one plane"),
+    (["--disparity", "d.npy", "--ground", "plane", "--cross-slope-allowance", "0"], "--cross-slope-allowance"),
+    (["--disparity", "d.npy", "--calib", "nomount.yaml", "--max-grade-change", "0.1"],
+     "--ground auto without a camera height (--camera-height"),
+    # the mounting without a camera height: the fit is unseeded
+    (["--disparity", "d.npy", "--calib", "nomount.yaml", "--pitch-deg", "5"], "--pitch-deg: the mounting needs"),
+    (["--disparity", "d.npy", "--calib", "nomount.yaml", "--roll-deg", "1"], "--roll-deg: the mounting needs"),
+    (["--disparity", "d.npy", "--calib", "calib.txt", "--height-tol", "0.1", "--tilt-tol-deg", "3"],
+     "--height-tol, --tilt-tol-deg: the mounting needs the camera height"),
+])
+def test_options_that_do_not_apply_are_refused(files, capsys, argv, match):
+    """An option the chosen input or ground model would not use is refused, naming it and why (it was ignored,
+    exit 0: with a KITTI calib.txt the output said "used_prior": false)."""
+    d, _ = files
+    (d / "nomount.yaml").write_text(NO_MOUNT)
+    (d / "calib.txt").write_text(KITTI)
+    if "--calib" not in argv:
+        argv = [*argv, "--calib", "stereo.yaml"]
+    argv = [str(d / a) if a.endswith((".png", ".yaml", ".txt", ".npy")) and "/" not in a else a for a in argv]
+    code, out, err = _run(capsys, *argv)
+    assert code == 2 and out == "", err
+    assert len(err.strip().splitlines()) == 1 and match in err, err
+
+
+def test_settings_that_apply_are_used(files, capsys):
+    """The same options where they apply: accepted, and they change the result."""
+    d, _ = files
+    (d / "nomount.yaml").write_text(NO_MOUNT)
+    base = ["--disparity", d / "d.npy", "--noise-px", 0.0, "--obstacle-height", 0.02]
+    code, out, err = _run(capsys, *base, "--calib", d / "nomount.yaml", "--camera-height", 0.25,
+                          "--pitch-deg", 0.0, "--height-tol", 0.01)
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["ground_model"] == "piecewise" and s["plane"]["fit_ok"]
+    code, out, err = _run(capsys, *base, "--calib", d / "stereo.yaml", "--ground-half-width", 0.05)
+    assert code == 0, err
+    assert json.loads(out)["ground_bands"] != s["ground_bands"]
+
+
 def test_image_size_must_match_calibration(files, capsys, tmp_path):
     d, _ = files
     small = tmp_path / "s.png"

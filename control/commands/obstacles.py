@@ -11,6 +11,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -25,6 +26,11 @@ from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles,
 from vbnav.vision.stereo import as_disparity, sgbm_disparity, sgbm_params_for
 
 EXIT_OK, EXIT_BAD_INPUT = 0, 2
+
+# Defaults of the options that apply to one input or ground model only: the options default to None, so
+# that one given where it does not apply is refused (a setting that is accepted is used).
+DEFAULTS = {"block_size": 5, "height_tol": 0.05, "tilt_tol_deg": 2.0, "ground_half_width": 1.0,
+            "max_grade_change": 0.08, "cross_slope_allowance": 0.06}
 
 COLOURS_BGR = {PixelClass.GROUND: (60, 200, 60), PixelClass.OBSTACLE: (40, 40, 230),
                PixelClass.NEGATIVE: (230, 120, 30)}
@@ -41,6 +47,13 @@ def _block_size(text: str) -> int:
     return v
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults in the help, except None: those options say their default in their own words."""
+
+    def _get_help_string(self, action):
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "obstacles", help="find obstacles in a stereo pair by ground-plane suppression",
@@ -48,38 +61,46 @@ def register(subparsers) -> None:
                     "pixel ground / obstacle / negative obstacle / unknown with thresholds given in metres, and "
                     "report the nearest obstacle in the driving corridor. Input: a rectified pair (--left/--right, "
                     "disparity by OpenCV SGBM) or a disparity image (--disparity). Prints JSON.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=_HelpFormatter)
     src = p.add_argument_group("input")
     src.add_argument("--left", metavar="L", help="rectified left image")
     src.add_argument("--right", metavar="R", help="rectified right image")
     src.add_argument("--disparity", metavar="D",
                      help="disparity image instead of --left/--right: .npy (float px) or PNG/TIFF; integer images "
                           "are multiplied by --disparity-scale; 0 or NaN is unknown")
-    src.add_argument("--image", metavar="IMG", help="image for the overlay when --disparity is given")
+    src.add_argument("--image", metavar="IMG",
+                     help="image for --overlay-out when --disparity is given (with --left/--right: the left image)")
     src.add_argument("--calib", required=True, metavar="FILE",
                      help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (docs/obstacles.md)")
     src.add_argument("--disparity-scale", type=positive, default=None,
                      help="px per unit of an integer disparity image (default: the YAML's disparity_scale, "
-                          "else 1/256 for 16-bit as in KITTI's devkit, 1 for 8-bit)")
+                          "else 1/256 for 16-bit as in KITTI's devkit, 1 for 8-bit); with --disparity only")
     geo = p.add_argument_group("camera above the floor (seeds the plane fit)")
     geo.add_argument("--camera-height", type=positive, default=None,
                      help="m; default: the YAML's mount.height; without it the fit is unseeded")
-    geo.add_argument("--pitch-deg", type=finite, default=None, help="positive looking down (default: YAML or 0)")
-    geo.add_argument("--roll-deg", type=finite, default=None, help="camera roll over the floor (default: YAML or 0)")
+    geo.add_argument("--pitch-deg", type=finite, default=None,
+                     help="positive looking down (default: YAML or 0); needs the camera height")
+    geo.add_argument("--roll-deg", type=finite, default=None,
+                     help="camera roll over the floor (default: YAML or 0); needs the camera height")
     gm = p.add_argument_group("ground model (docs/obstacles.md)")
     gm.add_argument("--ground", choices=("auto", "piecewise", "plane"), default="auto",
                     help="piecewise: near band under the mounting's bounds, farther bands hinged (needs a camera "
                          "height); plane: one plane; auto: piecewise when the camera height is known")
-    gm.add_argument("--height-tol", type=positive, default=0.05,
-                    help="m: reject a near-band fit whose camera height is further from the mounting's")
-    gm.add_argument("--tilt-tol-deg", type=positive, default=2.0,
-                    help="deg: reject a near-band fit whose pitch or roll is further from the mounting's")
-    gm.add_argument("--ground-half-width", type=positive, default=1.0,
-                    help="m: the ground is fitted within this of the camera's line ahead")
-    gm.add_argument("--max-grade-change", type=non_negative, default=0.08,
-                    help="rise over run a band may bend by from the one before")
-    gm.add_argument("--cross-slope-allowance", type=non_negative, default=0.06,
-                    help="m per m: thresholds grow by this beyond the ground corridor (camber)")
+    gm.add_argument("--height-tol", type=positive, default=None,
+                    help="m: reject a near-band fit whose camera height is further from the mounting's (default: "
+                         f"{DEFAULTS['height_tol']}; needs the camera height)")
+    gm.add_argument("--tilt-tol-deg", type=positive, default=None,
+                    help="deg: reject a near-band fit whose pitch or roll is further from the mounting's (default: "
+                         f"{DEFAULTS['tilt_tol_deg']}; needs the camera height)")
+    gm.add_argument("--ground-half-width", type=positive, default=None,
+                    help="m: the ground is fitted within this of the camera's line ahead (default: "
+                         f"{DEFAULTS['ground_half_width']}; piecewise ground only)")
+    gm.add_argument("--max-grade-change", type=non_negative, default=None,
+                    help="rise over run a band may bend by from the one before (default: "
+                         f"{DEFAULTS['max_grade_change']}; piecewise ground only)")
+    gm.add_argument("--cross-slope-allowance", type=non_negative, default=None,
+                    help="m per m: thresholds grow by this beyond the ground corridor (camber) (default: "
+                         f"{DEFAULTS['cross_slope_allowance']}; piecewise ground only)")
     gm.add_argument("--fit-inlier-height", type=positive, default=0.02, help="m, ground fit inlier band")
     det = p.add_argument_group("detection")
     det.add_argument("--obstacle-height", type=positive, default=0.05, help="m above the floor")
@@ -89,10 +110,11 @@ def register(subparsers) -> None:
     det.add_argument("--max-range", type=positive, default=None, help="m; farther points are unknown")
     det.add_argument("--corridor-half-width", type=positive, default=0.3, help="m, for the nearest obstacle")
     det.add_argument("--corridor-range", type=positive, default=10.0, help="m, for the nearest obstacle")
-    det.add_argument("--block-size", type=_block_size, default=5, help="SGBM block size (odd)")
+    det.add_argument("--block-size", type=_block_size, default=None,
+                     help=f"SGBM block size (odd; default: {DEFAULTS['block_size']}); with --left/--right only")
     det.add_argument("--min-depth", type=positive, default=None,
                      help="m, nearest depth SGBM must cover (sets numDisparities); default: 8 baselines, or 0.85 x "
-                          "the nearest floor depth in view if that is nearer")
+                          "the nearest floor depth in view if that is nearer; with --left/--right only")
     out = p.add_argument_group("output")
     out.add_argument("--mask-out", metavar="M.png", help="labels: 0 ground, 1 obstacle, 2 negative, 255 unknown")
     out.add_argument("--overlay-out", metavar="O.png", help="the classes drawn on the left image")
@@ -102,6 +124,44 @@ def register(subparsers) -> None:
 def _bad(msg: str) -> int:
     print(f"vbnav obstacles: {msg}", file=sys.stderr)
     return EXIT_BAD_INPUT
+
+
+def _given(args, *dests: str) -> list[str]:
+    """The options among ``dests`` given on the command line (their defaults are None)."""
+    return ["--" + d.replace("_", "-") for d in dests if getattr(args, d) is not None]
+
+
+def _not_for_input(args) -> Optional[str]:
+    """Why an option given does not apply to the input chosen (a pair, or a disparity image), or None."""
+    if args.disparity is not None:
+        given = _given(args, "block_size", "min_depth")
+        if given:
+            return (f"{', '.join(given)}: set(s) OpenCV SGBM, which runs on --left/--right; with --disparity it "
+                    "does not run")
+        if args.image is not None and args.overlay_out is None:
+            return "--image is the image --overlay-out draws on; without --overlay-out it would not be used"
+        return None
+    if args.image is not None:
+        return "--image goes with --disparity; with --left/--right the overlay is drawn on the --left image"
+    if args.disparity_scale is not None:
+        return "--disparity-scale scales a --disparity file; with --left/--right SGBM computes the disparity"
+    return None
+
+
+def _not_for_ground(args, height, model: str) -> Optional[str]:
+    """Why a mounting or ground-model option given is unused (no camera height; one plane), or None."""
+    if height is None:
+        given = _given(args, "pitch_deg", "roll_deg", "height_tol", "tilt_tol_deg")
+        if given:
+            return (f"{', '.join(given)}: the mounting needs the camera height (--camera-height, or mount.height "
+                    "in the YAML); without it the fit is unseeded and these are not used")
+    if model == "plane":
+        given = _given(args, "ground_half_width", "max_grade_change", "cross_slope_allowance")
+        if given:
+            why = ("--ground plane" if args.ground == "plane" else
+                   "--ground auto without a camera height (--camera-height, or mount.height in the YAML)")
+            return f"{', '.join(given)}: shape(s) the piecewise ground; {why} fits one plane"
+    return None
 
 
 def _read_disparity(path: str, scale_arg, calib) -> np.ndarray:
@@ -159,6 +219,9 @@ def run(args) -> int:
         return _bad("give --left and --right, or --disparity")
     if args.disparity is not None and (args.left or args.right):
         return _bad("give either --left/--right or --disparity, not both")
+    why = _not_for_input(args)
+    if why:
+        return _bad(why)
     try:
         calib = load_stereo_calibration(args.calib)
         if args.disparity is not None:
@@ -187,6 +250,12 @@ def run(args) -> int:
         return _bad("--ground piecewise needs the camera height (--camera-height, or mount.height in the YAML); "
                     "give it, or --ground plane")
     model = args.ground if args.ground != "auto" else ("piecewise" if prior is not None else "plane")
+    why = _not_for_ground(args, height, model)
+    if why:
+        return _bad(why)
+    for dest, value in DEFAULTS.items():       # the options that apply here and were not given
+        if getattr(args, dest) is None:
+            setattr(args, dest, value)
 
     t1 = time.perf_counter()
     if disp is None:
