@@ -152,6 +152,8 @@ CASES = [
     ("vo-out-dir", "vo {d}/good --out {d}/empty", 2, "--out"),
     ("vo-out-no-folder", "vo {d}/good --out {d}/nope/t.txt", 2, "nope"),
     ("vo-plot-dir", "vo {d}/good --out {d}/t.txt --plot {d}/empty", 2, "--plot"),
+    ("vo-plot-no-ground-truth", "vo {d}/good --out {d}/t_plot.txt --plot {d}/p.png", 2,
+     "good has no ground truth to plot against (no poses.txt)"),
     ("vo-nan-focal", "vo {d}/nanfx --out {d}/t.txt", 2, "calib.txt: P0"),
     ("vo-zero-focal", "vo {d}/zerofx --out {d}/t.txt", 2, "calib.txt: P0"),
     ("vo-zero-baseline", "vo {d}/zerobase --out {d}/t.txt", 2, "calib.txt: P1"),
@@ -251,6 +253,13 @@ def test_bad_input_is_one_line_and_an_exit_code(results, case):
         assert needle in lines[0], r.stderr
     else:   # a device that is not there: the run's summary names it
         assert needle in both, both
+
+
+def test_vo_plot_without_ground_truth_is_refused_before_tracking(results):
+    """--plot on a dataset without ground truth was skipped without a word after the whole run; now it is
+    refused, naming --plot and the dataset, before any tracking (which would print on stdout)."""
+    r = results["vo-plot-no-ground-truth"]
+    assert r.stderr.startswith("vbnav vo: --plot ") and r.stdout == "", r.stdout + r.stderr
 
 
 def test_closed_stdout_is_no_traceback():

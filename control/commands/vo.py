@@ -8,6 +8,8 @@ from pathlib import Path
 
 from vbnav.drivers.atomic_file import atomic_output, write_atomic
 
+GROUND_TRUTH_FILE = {"kitti": "poses.txt", "tum": "groundtruth.txt"}
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -26,7 +28,8 @@ def register(subparsers) -> None:
     p.add_argument("--camera", metavar="YAML", default=None,
                    help="intrinsics (fx, fy, cx, cy, width, height[, dist, model, depth_scale, tag_grid]); "
                         "default camera.yaml in the dataset (TUM) or calib.txt (KITTI)")
-    p.add_argument("--plot", metavar="PNG", default=None, help="plot of the trajectory against ground truth")
+    p.add_argument("--plot", metavar="PNG", default=None,
+                   help="plot of the trajectory against ground truth (a dataset without ground truth is refused)")
     p.add_argument("--status-out", metavar="FILE", default=None,
                    help="one line per frame: index, state (init, tracked, reinit: started again after a loss, "
                         "lost: no pose), landmarks, inliers")
@@ -58,6 +61,10 @@ def run(args) -> int:
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     try:
         ds = open_dataset(args.dataset, args.camera)
+        if args.plot and ds.gt_poses is None:     # the plot is the aligned trajectory over the ground truth
+            print(f"vbnav vo: --plot {args.plot}: the dataset {ds.root} has no ground truth to plot against "
+                  f"(no {GROUND_TRUTH_FILE[ds.layout]}); leave out --plot", file=sys.stderr)
+            return 2
         say(f"{ds.root}: {ds.layout} layout, {len(ds)} frames, camera fx={ds.camera.fx:.1f}"
             + (f", stereo baseline {ds.stereo_baseline:.4f} m" if ds.stereo_baseline else ""))
         t0 = time.perf_counter()
@@ -86,7 +93,8 @@ def run(args) -> int:
             if args.plot:
                 _plot_trajectory(args.plot, aligned, gt[:, :3, 3], f"{ds.root.name}: ATE {ate:.3f} m")
         else:
-            print("ground truth present but fewer than 3 poses match the tracked frames' times")
+            print("ground truth present but fewer than 3 poses match the tracked frames' times"
+                  + (f"; --plot {args.plot} not written" if args.plot else ""))
     if lost > args.max_lost * len(ds) or len(res.stamps) < 2:
         print(f"vbnav vo: {lost} of {len(ds)} frames ({100 * lost / len(ds):.0f} %) have no pose, more than "
               f"--max-lost {args.max_lost:g}", file=sys.stderr)
