@@ -21,7 +21,8 @@ def test_goto_reaches_a_near_goal_on_the_simulated_robot():
 
 def test_goto_refuses_mono_config_and_bad_goals():
     r = _run("--config", "sim", "--goal", "0", "1", "0")
-    assert r.returncode == 2 and "stereo_baseline" in r.stdout and "metric_scale: odometry" in r.stdout
+    assert r.returncode == 2 and "stereo_baseline" in r.stderr and "metric_scale: odometry" in r.stderr
+    assert r.stdout == ""           # errors go to stderr (this one went to stdout)
     r = _run("--goal", "0", "inf", "0")
     assert r.returncode == 2 and "finite" in r.stderr
     r = _run("--goal", "0", "1")

@@ -299,6 +299,9 @@ def test_goto_map_refuses_unreachable_goal_and_start_without_map(tmp_path, capsy
     assert "--start need(s) --map" in capsys.readouterr().err
     assert main(["goto", "--map-out", str(tmp_path / "out.json"), "--goal", "0", "3", "0"]) == 2
     assert "--map-out need(s) --map" in capsys.readouterr().err
+    # --robot-radius only grows the map's planning grid: without --map it was accepted and ignored
+    assert main(["goto", "--robot-radius", "0.5", "--goal", "0", "3", "0"]) == 2
+    assert "--robot-radius need(s) --map" in capsys.readouterr().err
     assert main(["goto", "--map", str(path), "--static-map", "--map-out", str(tmp_path / "o.json"), "--goal", "0",
                  "3", "0"]) == 2
     assert "--map-out needs the map to grow" in capsys.readouterr().err

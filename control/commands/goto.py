@@ -7,6 +7,8 @@ import sys
 from vbnav.control.commands._common import add_config_arg, finite, positive
 from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_path
 
+ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -38,8 +40,8 @@ def register(sub) -> None:
                         "drives and plans again when the grown map blocks the route ahead")
     p.add_argument("--map-out", metavar="FILE",
                    help="with --map: write the map as it grew while driving to FILE at the end (atomically)")
-    p.add_argument("--robot-radius", type=positive, default=0.2, metavar="M",
-                   help="with --map: the robot's radius for planning, m")
+    p.add_argument("--robot-radius", type=positive, default=None, metavar="M",
+                   help=f"with --map: the robot's radius for planning, m (default {ROBOT_RADIUS_M})")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
                    help="give up after S seconds (default 120; simulated seconds on the simulated clock)")
     p.set_defaults(func=run)
@@ -59,26 +61,28 @@ def run(args) -> int:
     if nav.metric_scale == "stereo" and stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "
               "pair for metric scale (try --config sim_stereo, or set vslam.metric_scale: odometry for a single "
-              "camera scaled by the wheels)")
+              "camera scaled by the wheels)", file=sys.stderr)
         return 2
     goal = Pose2(args.goal[0], args.goal[1], math.radians(args.goal[2]))
     waypoints = None
     map_only = [o for o, given in (("--start", args.start is not None), ("--localise", args.localise),
-                                   ("--static-map", args.static_map), ("--map-out", args.map_out)) if given]
+                                   ("--static-map", args.static_map), ("--map-out", args.map_out),
+                                   ("--robot-radius", args.robot_radius is not None)) if given]
     if map_only and not args.map:
-        print(f"vbnav goto: {', '.join(map_only)} need(s) --map (they place the robot in the map's frame or "
-              "act on the map)", file=sys.stderr)
+        print(f"vbnav goto: {', '.join(map_only)} need(s) --map (they place the robot in the map's frame, plan on "
+              "the map or act on it)", file=sys.stderr)
         return 2
     if args.map_out and args.static_map:
         print("vbnav goto: --map-out needs the map to grow while driving (leave out --static-map)", file=sys.stderr)
         return 2
+    radius = args.robot_radius if args.robot_radius is not None else ROBOT_RADIUS_M
     if args.map_out:
         from vbnav.control.commands._common import output_file
         output_file(args.map_out, "--map-out")
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:
-        print(f"vbnav goto: {cfg.source}: {exc}")
+        print(f"vbnav goto: {cfg.source}: {exc}", file=sys.stderr)
         return 2
     stages = [stage]
     live = None
@@ -109,10 +113,10 @@ def run(args) -> int:
             start = found.pose
             print(f"localised against the map: x={start.x:+.3f} z={start.z:+.3f} "
                   f"theta={math.degrees(start.theta):+.2f} deg ({say})")
-        planned = plan_path(lmap, meta, start, goal, args.robot_radius)
+        planned = plan_path(lmap, meta, start, goal, radius)
         if planned is None:
             print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
-                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {args.robot_radius} m", file=sys.stderr)
+                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {radius} m", file=sys.stderr)
             robot.drive.close()
             return 1
         print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
@@ -121,7 +125,7 @@ def run(args) -> int:
                                 waypoints=waypoints)
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     if live is not None:                # on a simulated clock the slow loops run inline, on simulated time
-        live.attach(controller, robot.clock.simulated, start, start.compose(goal), args.robot_radius)
+        live.attach(controller, robot.clock.simulated, start, start.compose(goal), radius)
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
     world = robot.world if args.map else None
