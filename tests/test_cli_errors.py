@@ -74,6 +74,10 @@ CASES = [
     ("monitor-timeout", "monitor --once --timeout -1", 2, "--timeout"),
     ("monitor-refresh", "monitor --refresh 0", 2, "--refresh"),
     ("monitor-endpoint", "monitor --once --connect garbage", 2, "garbage"),
+    ("monitor-json-live", "monitor --json", 2, "--json prints one state with --once"),
+    ("monitor-all-robot", "monitor --all --robot r1", 2, "--robot names one robot"),
+    ("monitor-all-config", "monitor --all -c sim", 2, "--config names one robot"),
+    ("monitor-refresh-once", "monitor --once --refresh 2", 2, "--refresh is the live view's rate"),
     # obstacles
     ("obstacles-1x1-kitti-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/good/calib.txt",
      2, "calib.txt: P0 cx"),

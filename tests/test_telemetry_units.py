@@ -386,3 +386,35 @@ def test_vbc_pose_and_keyframe_come_from_the_repeat_estimate():
     assert _estimate_pose(Estimate(1, "vbc", False, fix, {"keyframe": 7})) is None     # not trusted
     assert _estimate_pose(Estimate(1, "vslam", True, Pose2(3, 4, 5))) == Pose2(3, 4, 5)
     assert _estimate_pose(Estimate(1, "obstacles", True, {"zones": []})) is None
+
+
+# ---- vbnav monitor's live view ------------------------------------------------------------------
+
+class _Silent:
+    """A zenoh session with nobody on it."""
+
+    def declare_subscriber(self, key, callback):
+        return None
+
+    def get(self, key, timeout=None):
+        return []
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("argv", [["monitor", "--robot", "sim"], ["monitor", "--all"]])
+def test_monitor_refresh_below_half_a_hertz_is_the_rate_used(monkeypatch, argv):
+    """--refresh 0.2 was raised to 0.5 Hz without a word: the live view now redraws every 5 s as asked."""
+    from vbnav.control import cli
+    from vbnav.control.commands import monitor
+    monkeypatch.setattr(monitor, "open_robot", lambda args, who: (_Silent(), "sim"))
+    monkeypatch.setattr(monitor, "open_client", lambda args: _Silent())
+    periods = []
+
+    def sleep(s):
+        periods.append(s)
+        raise KeyboardInterrupt     # one screen is enough
+    monkeypatch.setattr("time.sleep", sleep)
+    assert cli.main([*argv, "--refresh", "0.2"]) == 0
+    assert periods == [pytest.approx(5.0)]

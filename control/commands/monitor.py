@@ -6,9 +6,12 @@ import json
 import sys
 import threading
 import time
+from typing import Optional
 
 from vbnav.control.commands._common import positive
 from vbnav.control.commands._net import add_net_args, open_client, open_robot, robots_seen
+
+REFRESH_HZ = 5.0    # --refresh when not given (it defaults to None: with --once it is refused)
 
 
 def register(sub) -> None:
@@ -21,7 +24,8 @@ def register(sub) -> None:
     p.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                    help="with --once: give up after S seconds without state (exit 1); live: say which robots "
                         "answer after S seconds without state; default 5")
-    p.add_argument("--refresh", type=positive, default=5.0, metavar="HZ", help="screen refresh rate (default 5)")
+    p.add_argument("--refresh", type=positive, default=None, metavar="HZ",
+                   help=f"live view: screens per second (default {REFRESH_HZ:g}; 0.2 redraws every 5 s)")
     p.add_argument("--all", action="store_true", help="every robot seen (a fleet behind a router), one line each")
     p.add_argument("--count", type=int, default=0, metavar="N",
                    help="with --all --once: print as soon as N robots sent state (exit 1 if fewer within --timeout)")
@@ -135,11 +139,30 @@ def _seen_hint(session, robot: str, args) -> str:
     return f"robots seen at {args.connect}: {', '.join(seen)} (pick one with --robot NAME or -c CONFIG)"
 
 
+def _not_applied(args) -> Optional[str]:
+    """Why an option given would not be used with the others, or None."""
+    if args.count and not (args.all and args.once):
+        return "--count goes with --all --once"
+    if args.json and not args.once:
+        return "--json prints one state with --once; the live view is not JSON"
+    if args.all and args.json:
+        return "--json prints a single robot's state; --all shows every robot (one line each)"
+    if args.all and (args.robot or args.config):
+        named = "--robot" if args.robot else "--config"
+        return f"--all shows every robot; {named} names one robot (give one or the other)"
+    if args.once and args.refresh is not None:
+        return "--refresh is the live view's rate; --once prints once and exits"
+    return None
+
+
 def _run(args) -> int:
     view = View()
-    if (args.count and not (args.all and args.once)) or (args.all and args.json):
-        print("vbnav monitor: --count goes with --all --once; --json with a single robot's --once", file=sys.stderr)
+    why = _not_applied(args)
+    if why:
+        print(f"vbnav monitor: {why}", file=sys.stderr)
         return 2
+    if args.refresh is None:
+        args.refresh = REFRESH_HZ
     if args.all:        # every robot: no name to resolve
         from vbnav.control.comms.fleet_view import run_all
         try:
@@ -174,7 +197,7 @@ def _run(args) -> int:
                 state, events = view.state, list(view.events)
             print(json.dumps(state) if args.json else render(robot, state, events))
             return 0
-        period = 1.0 / max(0.5, args.refresh)
+        period = 1.0 / args.refresh
         started, hint = time.monotonic(), None
         while True:
             with view.lock:

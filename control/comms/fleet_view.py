@@ -113,7 +113,7 @@ def run_all(args, session) -> int:
                   file=sys.stderr)
             return 1
         return 0 if rows else 1
-    period = 1.0 / max(0.5, args.refresh)
+    period = 1.0 / args.refresh
     while True:
         sys.stdout.write("\x1b[H\x1b[2J" + render_fleet(view.rows(), view.now()) + "\n")
         sys.stdout.flush()
