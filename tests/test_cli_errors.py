@@ -140,6 +140,9 @@ CASES = [
     ("send-secret-missing", "send estop --secret-file {d}/nope.key --wait 0", 2, "nope.key"),
     ("send-endpoint", "send estop --connect garbage", 2, "garbage"),
     ("send-mode", "send mode fly", 2, "fly"),
+    ("send-mode-idle-route", "send mode idle --route hall", 2, "--route: mode idle takes no route"),
+    ("send-mode-teach-no-route", "send mode teach", 2, "mode 'teach' needs a route"),
+    ("send-rate-without-for", "send teleop 0.1 0 --rate 5", 2, "--rate is the rate of a --for S stream"),
     # teach
     ("teach-no-out", "teach", 2, "--out"),
     ("teach-out-file", "teach --out {d}/afile.txt --duration 0.1", 2, "afile.txt"),

@@ -124,6 +124,8 @@ def test_valid_commands_parse(kind, payload):
     ("teleop", '{"linear": 0.1, "angular": 0, "turbo": 1}', "turbo"),
     ("teleop", '{"linear": 0.1,', "not JSON"),
     ("mode", '{"mode": "repeat"}', "needs a route"),
+    ("mode", '{"mode": "teach"}', "needs a route"),
+    ("mode", '{"mode": "idle", "route": "hall"}', "takes no route"),     # idle showed it in its state, unused
     ("mode", '{"mode": "dance"}', "mode"),
     ("mode", '{"mode": "teach", "route": "../../etc/x"}', "plain name"),      # routes are names, never paths
     ("mode", '{"mode": "teach", "route": "/etc/x"}', "plain name"),

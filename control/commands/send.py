@@ -13,6 +13,8 @@ from vbnav.control.commands._net import (CommandPublisher, add_net_args, command
 
 # Generous local bounds: the robot checks against its own configured limits and rejects with an event.
 _LOCAL_LIMIT = 1e3
+RATE_HZ = 20.0      # teleop --for stream rate when --rate is not given (it defaults to None: without --for it
+                    # is refused, one message has no rate)
 
 OK, REFUSED, BAD_INPUT, UNREACHABLE = 0, 1, 2, 3
 
@@ -54,11 +56,13 @@ def register(sub) -> None:
     t.add_argument("--for", "--duration", dest="duration", type=non_negative, default=0.0, metavar="S",
                    help="keep sending for S seconds, so the robot drives that long (one message drives it for "
                         "at most safety.command_timeout_s)")
-    t.add_argument("--rate", type=positive, default=20.0, metavar="HZ", help="send rate with --for (default 20)")
+    t.add_argument("--rate", type=positive, default=None, metavar="HZ",
+                   help=f"send rate with --for (default {RATE_HZ:g})")
     m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route NAME")
     m.add_argument("mode", choices=["idle", "teach", "repeat"])
     m.add_argument("--route", default=None, metavar="NAME",
-                   help="route to repeat (or to teach into): a name in the robot's controller.routes_dir")
+                   help="route to repeat (or to teach into): a name in the robot's controller.routes_dir; "
+                        "mode idle takes none")
     for sp in (e, r, t, m):
         sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
         add_net_args(sp)
@@ -74,16 +78,20 @@ def build_payload(args) -> tuple[str, dict]:
 
     ``ack`` comes first, so the robot can echo it even for a payload it refuses unparsed.
     """
-    from vbnav.control.comms.operator_commands import CommandRejected, TeleopLimits, parse_command
+    from vbnav.control.comms.operator_commands import ROUTE_MODES, CommandRejected, TeleopLimits, parse_command
     # One session id per invocation: the robot tracks seq and the clock offset per (sender, session).
     body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
         body["reason"] = args.reason
     elif args.what == "teleop":
+        if args.rate is not None and not args.duration > 0:     # one message: there is no rate to send it at
+            raise ValueError("--rate is the rate of a --for S stream; without --for one message is sent")
         body.update(linear=args.v, angular=args.w)
     elif args.what == "mode":
+        if args.route is not None and args.mode not in ROUTE_MODES:     # the robot would ignore it
+            raise ValueError(f"--route: mode {args.mode} takes no route (only {' and '.join(ROUTE_MODES)} do)")
         body["mode"] = args.mode
-        if args.route:
+        if args.route is not None:
             body["route"] = args.route
     try:
         parse_command(args.what, json.dumps(body), TeleopLimits(_LOCAL_LIMIT, _LOCAL_LIMIT))
@@ -155,7 +163,8 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         out.put(what, body if with_ack else {k: v for k, v in body.items() if k != "ack"})
 
     stream = what == "teleop" and args.duration > 0
-    n = max(1, int(args.duration * args.rate)) if stream else 1
+    rate = (args.rate or RATE_HZ) if stream else None
+    n = max(1, int(args.duration * rate)) if stream else 1
     answer, sent = None, 0
     first = time.monotonic()
     for i in range(n):
@@ -168,7 +177,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         if answer is None and time.monotonic() - first > args.wait:
             break
         if i + 1 < n:
-            time.sleep(1.0 / args.rate)
+            time.sleep(1.0 / rate)
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
     return _report(args, robot, what, answer, sent)

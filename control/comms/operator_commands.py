@@ -5,8 +5,8 @@ Keys (``<robot>`` is ``robot.name``), payloads JSON objects:
 - ``vbnav/<robot>/cmd/estop``   ``{"reason": "..."}`` (optional): latching stop
 - ``vbnav/<robot>/cmd/resume``  ``{}``: clears an estop latch
 - ``vbnav/<robot>/cmd/teleop``  ``{"linear": m/s, "angular": rad/s}``: drive; must keep coming
-- ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "NAME"}`` (a route
-  name inside the robot's ``controller.routes_dir``, never a path: control/route.py ``resolve_route``)
+- ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "NAME"}`` (teach and repeat
+  only: a route name inside the robot's ``controller.routes_dir``, never a path: control/route.py ``resolve_route``)
 
 Every payload may carry ``"sender"`` (str), ``"session"`` (str, one per sender process),
 ``"seq"`` (int, increasing per session) and ``"stamp_ns"`` (int, the sender's
@@ -46,6 +46,7 @@ from vbnav.control.runtime.mailbox import OperatorCommand
 MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
 REPORT_EVERY_NS = 1_000_000_000    # teleop refusals are reported at most this often per reason
 ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
+ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
 
 class _Cmd(BaseModel):
@@ -85,9 +86,12 @@ class ModeCmd(_Cmd):
         return v
 
     @model_validator(mode="after")
-    def _repeat_needs_route(self):
-        if self.mode == "repeat" and not self.route:
-            raise ValueError("mode 'repeat' needs a route (\"route\": \"NAME\")")
+    def _route_as_the_mode_takes_it(self):
+        if self.mode in ROUTE_MODES and not self.route:
+            raise ValueError(f"mode {self.mode!r} needs a route (\"route\": \"NAME\")")
+        if self.mode not in ROUTE_MODES and self.route is not None:
+            # idle would show the route in its state while ignoring it
+            raise ValueError(f"mode {self.mode!r} takes no route")
         return self
 
 
