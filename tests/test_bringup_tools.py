@@ -89,6 +89,22 @@ def test_find_servos_on_a_silent_bus_exits_1_with_advice(capsys):
     assert "57600 bit/s: nothing" in out and "no servo answered at 57600 bit/s" in out
 
 
+def test_find_servos_refuses_the_listings_options_and_an_empty_or_wrong_baud_list(mixed_bus, capsys):
+    """find's own --port and --oak-timeout (before 'servos') were ignored by the scan, exit 0; '--baud ,'
+    was an empty list that fell back to the default rates."""
+    bus = mixed_bus.path
+    assert main(["find", "--port", "/dev/ttyOTHER", "servos", "--port", bus, "--baud", "57600"]) == 2
+    assert "--port /dev/ttyOTHER before 'servos'" in capsys.readouterr().err
+    assert main(["find", "--oak-timeout", "9", "servos", "--port", bus, "--baud", "57600"]) == 2
+    assert "--oak-timeout: 'find servos' does not search for OAK devices" in capsys.readouterr().err
+    for baud, why in ((",", "expected baud rates like 57600,1000000, got ','"),
+                      ("57600,12345", "12345 is not a Dynamixel X rate")):
+        with pytest.raises(SystemExit) as exit_:
+            main(["find", "servos", "--port", bus, "--baud", baud])
+        out, err = capsys.readouterr()
+        assert exit_.value.code == 2 and "argument --baud: " + why in err and "Scanning" not in out
+
+
 def test_find_lists_a_given_port_and_reports_no_cameras_as_a_normal_result(mixed_bus, capsys):
     assert main(["find", "--port", mixed_bus.path, "--oak-timeout", "0.5"]) == 0
     out = capsys.readouterr().out

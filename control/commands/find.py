@@ -13,16 +13,29 @@ answers; exit 1 when none does.
 from __future__ import annotations
 
 import argparse
+import sys
 
+from vbnav.control.commands._common import non_negative
+from vbnav.drivers.errors import InputError
 
 COMMAND = "vbnav find"
+OAK_TIMEOUT_S = 3.0     # --oak-timeout when not given (it defaults to None: with 'servos' it is refused)
 
 
 def _bauds(text: str) -> list[int]:
+    """argparse type: Dynamixel X rates, comma-separated; an empty list would scan the default rates."""
+    from vbnav.drivers.dynamixel_table import BAUD_VALUES
     try:
-        return [int(t) for t in text.split(",") if t.strip()]
+        bauds = [int(t) for t in text.split(",") if t.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected baud rates like 57600,1000000, got {text!r}") from None
+        bauds = []
+    if not bauds:
+        raise argparse.ArgumentTypeError(f"expected baud rates like 57600,1000000, got {text!r}")
+    for b in bauds:
+        if b not in BAUD_VALUES:
+            raise argparse.ArgumentTypeError(f"{b} is not a Dynamixel X rate; one of "
+                                             f"{', '.join(str(r) for r in BAUD_VALUES)}")
+    return bauds
 
 
 def register(sub) -> None:
@@ -30,8 +43,8 @@ def register(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--port", action="append", default=[], metavar="DEVICE",
                    help="also describe this serial device (e.g. an emulator's pty), repeatable")
-    p.add_argument("--oak-timeout", type=float, default=3.0, metavar="S", help="how long to search for OAK "
-                   "devices, s (default 3)")
+    p.add_argument("--oak-timeout", type=non_negative, default=None, metavar="S",
+                   help=f"how long to search for OAK devices, s (default {OAK_TIMEOUT_S:g})")
     p.set_defaults(func=run)
     what = p.add_subparsers(dest="what", metavar="WHAT")
     s = what.add_parser("servos", help="scan a Dynamixel bus: ids, models, firmware at each baud rate")
@@ -73,7 +86,7 @@ def run(args) -> int:
     if not cams:
         print("  none found")
     print("OAK devices:")
-    oaks, note = discovery.oak_devices(args.oak_timeout)
+    oaks, note = discovery.oak_devices(OAK_TIMEOUT_S if args.oak_timeout is None else args.oak_timeout)
     if oaks is None:
         print(f"  not searched: {note}")
     else:
@@ -87,6 +100,11 @@ def run(args) -> int:
 def run_servos(args) -> int:
     from vbnav.drivers.dynamixel_setup import SCAN_BAUDS, DynamixelBusTool
     from vbnav.drivers.wheels import DriveError
+    if args.port:       # find's own --port, before 'servos': the listing's
+        raise InputError(f"--port {args.port[0]} before 'servos' adds a port to the listing of 'vbnav find', "
+                         "which 'find servos' does not print; the bus is the --port after 'servos'")
+    if args.oak_timeout is not None:
+        raise InputError("--oak-timeout: 'find servos' does not search for OAK devices")
     bauds = args.baud or list(SCAN_BAUDS)
 
     def say(baud, servos):
@@ -101,7 +119,7 @@ def run_servos(args) -> int:
         with DynamixelBusTool(args.bus_port) as bus:
             found = bus.scan(bauds, progress=say)
     except DriveError as exc:
-        print(f"{COMMAND} servos: {exc}")
+        print(f"{COMMAND} servos: {exc}", file=sys.stderr)
         return 3
     if not found:
         print(f"no servo answered at {', '.join(map(str, bauds))} bit/s: check the power (the servo LED "
