@@ -22,6 +22,8 @@ P1_ROW = f"50 0 {W / 2} -5 0 50 {H / 2} 0 0 0 1 0"        # baseline 0.1 m
 STEREO = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\nbaseline: 0.1\n"
 CAMERA = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\n"
 
+OVERWRITE = "--overwrite replaces an existing --record file; without --record it has nothing to replace"
+
 # id, arguments ({d}: the fixture folder), expected exit code, text the error must contain
 CASES = [
     # top level
@@ -58,6 +60,7 @@ CASES = [
     ("demo-garbage-config", "demo -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("demo-hardware-config", "demo -c {d}/dxl.yaml", 2, "dxl.yaml"),
     ("demo-record-dir", "demo --out {d}/demo_out --record {d}/empty", 2, "--record"),
+    ("demo-overwrite-no-record", "demo --out {d}/demo_out --overwrite", 2, OVERWRITE),
     # emulate
     ("emulate-no-device", "emulate", 2, "DEVICE"),
     ("emulate-ids", "emulate dynamixel --ids 1,1", 2, "--ids"),
@@ -122,6 +125,7 @@ CASES = [
     ("repeat-duration", "repeat --path {d}/empty --duration nan", 2, "--duration"),
     ("repeat-garbage-config", "repeat --path {d}/empty -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("repeat-record-dir", "repeat --path {d}/empty --record {d}/empty", 2, "--record"),
+    ("repeat-overwrite-no-record", "repeat --path {d}/empty --overwrite", 2, OVERWRITE),
     # run
     ("run-config-missing", "run -c {d}/nope.yaml", 2, "nope.yaml"),
     ("run-config-dir", "run -c {d}/empty", 2, "empty"),
@@ -131,6 +135,8 @@ CASES = [
     ("run-controller", "run --controller fly", 2, "--controller"),
     ("run-record-dir", "run --no-camera --duration 0.1 --record {d}/empty", 2, "--record"),
     ("run-record-no-folder", "run --no-camera --duration 0.1 --record {d}/nope/x.mcap", 2, "nope"),
+    ("run-overwrite-no-record", "run --no-camera --duration 0.1 --overwrite", 2, OVERWRITE),
+    ("map-build-overwrite-no-record", "map build --out {d}/map.json --overwrite", 2, OVERWRITE),
     ("run-serial-port-missing", "run -c {d}/dxl.yaml --no-camera --no-telemetry --duration 0.2", 3, "/dev/ttyNOPE9"),
     ("run-camera-missing", "run -c {d}/v4l2.yaml --camera --no-telemetry --duration 0.2", 3, "/dev/video99"),
     # send
@@ -242,7 +248,8 @@ def results(tmp_path_factory):
     argvs = {case[0]: case[1].format(d=d).split() for case in CASES}
     with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2)) as pool:
         done = dict(zip(argvs, pool.map(_run, argvs.values())))
-    assert not any((d / out).exists() for out in ("demo_out", "route", "calib")), "a refused command wrote its output"
+    assert not [p for p in ("demo_out", "route", "calib", "map.json") if (d / p).exists()], \
+        "a refused command wrote its output"
     return done
 
 

@@ -25,11 +25,15 @@ def add_record_overwrite_arg(p: argparse.ArgumentParser) -> None:
                    help="replace an existing --record file (the new recording takes its place only when complete)")
 
 
-def record_target_error(args) -> Optional[str]:
+def record_target_error(args, overwrite_is_record_only: bool = False) -> Optional[str]:
     """Why ``--record`` cannot be written (a recording is there and no ``--overwrite``, or its folder is
-    missing), or None; checked before any device opens."""
+    missing), or None; checked before any device opens. With ``overwrite_is_record_only`` (the commands
+    whose ``--overwrite`` is ``add_record_overwrite_arg``'s), ``--overwrite`` without ``--record`` is an
+    error too: it would replace nothing."""
     from vbnav.control.comms.recording import check_record_target
     if not args.record:
+        if args.overwrite and overwrite_is_record_only:
+            return "--overwrite replaces an existing --record file; without --record it has nothing to replace"
         return None
     try:
         check_record_target(args.record, args.overwrite)

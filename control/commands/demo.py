@@ -36,7 +36,7 @@ def run(args) -> int:
     if cfg.camera.driver != "sim" or cfg.drive.driver != "sim":
         raise InputError(f"{cfg.source}: uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the "
                          "demo needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
-    why = record_target_error(args)
+    why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)
     out = Path(args.out)

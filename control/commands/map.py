@@ -80,7 +80,7 @@ def run_build(args) -> int:
 
     output_file(args.out, "--out")
     output_file(args.record, "--record")
-    why = record_target_error(args)
+    why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)
     cfg = load_config(args.config)

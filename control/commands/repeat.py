@@ -31,7 +31,7 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     output_file(args.record, "--record")
-    why = record_target_error(args)
+    why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)
     route = load_route(args.path)          # before any device is opened; a RouteError is exit 2

@@ -71,7 +71,7 @@ def run(args) -> int:
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
     output_file(args.record, "--record")
-    why = record_target_error(args)
+    why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)
     if args.realtime:
