@@ -53,6 +53,7 @@ CASES = [
     ("config-inf-focal", "config check -c {d}/cfg_inffx.yaml", 2, "camera.fx"),
     ("config-cx-outside", "config check -c {d}/cfg_cx.yaml", 2, "cx"),
     ("config-bad-action", "config frob", 2, "frob"),
+    ("config-reference-config", "config reference -c {d}/nope.yaml", 2, "--config goes with check and show"),
     # demo
     ("demo-out-file", "demo --out {d}/afile.txt", 2, "afile.txt"),
     ("demo-seed", "demo --seed x", 2, "--seed"),

@@ -15,6 +15,7 @@ from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
 from vbnav.control.commands._common import add_config_arg
+from vbnav.drivers.errors import InputError
 
 
 def register(sub) -> None:
@@ -32,6 +33,9 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.config import Config, load_config
     if args.action == "reference":
+        if args.config is not None:     # the reference is the same for every file: none is read
+            raise InputError(f"--config {args.config}: 'config reference' lists the keys of every configuration "
+                             "and reads no file (--config goes with check and show)")
         print(reference_markdown(Config))
         return 0
     cfg = load_config(args.config)
