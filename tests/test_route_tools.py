@@ -71,6 +71,9 @@ def test_list_reports_an_unreadable_manifest_and_a_missing_folder(routes, tmp_pa
     assert main(["route", "list", str(tmp_path / "nowhere")]) == 2
     assert main(["route", "list"]) == 2
     assert "give a folder of routes, or --config FILE" in capsys.readouterr().err
+    # a folder and -c: the configuration was not read, a missing one accepted
+    assert main(["route", "list", str(tmp_path), "-c", str(tmp_path / "nope.yaml")]) == 2
+    assert f"or --config {tmp_path / 'nope.yaml'} for its controller.routes_dir, not both" in capsys.readouterr().err
 
 
 def test_info(routes, capsys):

@@ -1,8 +1,8 @@
 """``vbnav route list|info|plot|check|pull|push``: look after taught routes.
 
 - ``list [DIR]``: the routes in a folder (default: the configuration's
-  ``controller.routes_dir`` with ``-c``), one line each: keyframes, length,
-  camera, complete or not.
+  ``controller.routes_dir`` with ``-c``; a folder and ``-c`` together are
+  refused), one line each: keyframes, length, camera, complete or not.
 - ``info PATH``: one route in full: robot, creation time, camera and mount it was
   taught with, keyframes, length, landmarks per keyframe, extent.
 - ``plot PATH [--out FILE.png]``: a top view of the taught path (odometry at the
@@ -54,6 +54,9 @@ def run_list(args) -> int:
         from vbnav.control.route import routes_root
         cfg = load_config(args.config)
         folder = routes_root(cfg.controller.routes_dir, cfg.source)
+    elif args.config is not None:       # the folder given is listed: the configuration would not be read
+        raise InputError(f"give a folder of routes ({args.dir}) or --config {args.config} for its "
+                         "controller.routes_dir, not both")
     else:
         folder = Path(args.dir)
     routes = list_routes(folder)
