@@ -420,3 +420,23 @@ def test_monitor_refresh_below_half_a_hertz_is_the_rate_used(monkeypatch, argv):
     monkeypatch.setattr("time.sleep", sleep)
     assert cli.main([*argv, "--refresh", "0.2"]) == 0
     assert periods == [pytest.approx(5.0)]
+
+
+def test_monitor_all_live_says_when_no_robot_sends_state_after_the_timeout(monkeypatch, capsys):
+    """--timeout in the live view of every robot: after S s with no state it says so, as for one robot."""
+    import time as _time
+
+    from vbnav.control import cli
+    from vbnav.control.commands import monitor
+    monkeypatch.setattr(monitor, "open_client", lambda args: _Silent())
+    real_sleep, screens = _time.sleep, []
+
+    def sleep(s):
+        screens.append(capsys.readouterr().out)
+        if len(screens) == 2:
+            raise KeyboardInterrupt
+        real_sleep(0.3)                                  # past the 0.2 s timeout before the second screen
+    monkeypatch.setattr("time.sleep", sleep)
+    assert cli.main(["monitor", "--all", "--timeout", "0.2"]) == 0
+    assert "no robot has sent state in 0.2 s" not in screens[0]
+    assert "no robot has sent state in 0.2 s" in screens[1]

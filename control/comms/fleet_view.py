@@ -114,7 +114,13 @@ def run_all(args, session) -> int:
             return 1
         return 0 if rows else 1
     period = 1.0 / args.refresh
+    started = time.monotonic()
     while True:
-        sys.stdout.write("\x1b[H\x1b[2J" + render_fleet(view.rows(), view.now()) + "\n")
+        rows = view.rows()
+        text = render_fleet(rows, view.now())
+        if not any(r.get("state") for _, r in rows) and time.monotonic() - started > args.timeout:
+            text += (f"\n  no robot has sent state in {args.timeout:g} s at {args.connect} (is `vbnav run` going, "
+                     f"with telemetry enabled and its telemetry.listen reachable from here?)")
+        sys.stdout.write("\x1b[H\x1b[2J" + text + "\n")
         sys.stdout.flush()
         time.sleep(period)
