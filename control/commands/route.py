@@ -173,6 +173,17 @@ def add_transfer_actions(act) -> None:
                         help="wait up to S seconds for each answer of the robot (default 5)")
 
 
+def _refuse_unused(args) -> None:
+    """The shared network options the transfer actions do not take: --robot (ROBOT is the positional
+    argument here), and for a pull -c with --to (-c only says where the route goes)."""
+    if args.robot is not None:
+        raise InputError(f"--robot {args.robot}: route {args.action} names the robot as its first argument "
+                         f"({args.target})")
+    if args.action == "pull" and args.to is not None and args.config is not None:
+        raise InputError(f"--config {args.config}: with --to {args.to} a pull reads nothing from it (it only gives "
+                         f"the routes folder); give one or the other")
+
+
 def _dest_root(args) -> Path:
     if args.to is not None:
         return Path(args.to)
@@ -214,6 +225,7 @@ def _transfer(args, what: str, fn) -> int:
 
 def run_pull(args) -> int:
     from vbnav.control.comms.route_transfer import pull
+    _refuse_unused(args)
     root = _dest_root(args)
 
     def go(session) -> int:
@@ -225,6 +237,7 @@ def run_pull(args) -> int:
 
 def run_push(args) -> int:
     from vbnav.control.comms.route_transfer import push
+    _refuse_unused(args)
     secret = _secret(args)
 
     def go(session) -> int:
