@@ -156,10 +156,10 @@ def test_servo_set_id_then_set_baud_on_a_new_servo(caplog, capsys):
 def test_servo_set_id_refuses_an_id_in_use_and_a_missing_servo(capsys):
     with DynamixelBus([1, 2]) as bus:
         assert main(["servo", "set-id", "--port", bus.path, "--id", "1", "--new-id", "2", "--baud", "1000000"]) == 3
-        assert "id 2 is taken" in capsys.readouterr().out
+        assert "id 2 is taken" in capsys.readouterr().err       # errors on stderr
         assert set(bus.servos) == {1, 2}
         assert main(["servo", "set-id", "--port", bus.path, "--id", "9", "--new-id", "3", "--baud", "1000000"]) == 3
-        assert "no servo with id 9 answers" in capsys.readouterr().out
+        assert "no servo with id 9 answers" in capsys.readouterr().err
     assert main(["servo", "set-id", "--port", "/nonexistent/tty", "--id", "1", "--new-id", "3"]) == 2
 
 

@@ -14,6 +14,7 @@ rates.
 from __future__ import annotations
 
 import argparse
+import sys
 
 COMMAND = "vbnav servo"
 
@@ -43,7 +44,7 @@ def run(args) -> int:
             else:
                 print(f"{COMMAND} {args.action}: no servo with id {args.dxl_id} answers on {args.port} at "
                       f"{', '.join(str(b) for b in ([args.baud] if args.baud else SCAN_BAUDS))} bit/s "
-                      f"('vbnav find servos --port {args.port}' shows what is there)")
+                      f"('vbnav find servos --port {args.port}' shows what is there)", file=sys.stderr)
                 return 3
             if args.action == "set-id":
                 s = bus.set_id(args.dxl_id, args.new)
@@ -52,6 +53,6 @@ def run(args) -> int:
                 s = bus.set_baud(args.dxl_id, args.new)
                 print(f"servo {s.dxl_id} ({s.model}) now talks at {s.baud} bit/s (was {baud})")
     except DriveError as exc:
-        print(f"{COMMAND} {args.action}: {exc}")
+        print(f"{COMMAND} {args.action}: {exc}", file=sys.stderr)
         return 3
     return 0
