@@ -66,15 +66,17 @@ def register(subparsers) -> None:
     src.add_argument("--left", metavar="L", help="rectified left image")
     src.add_argument("--right", metavar="R", help="rectified right image")
     src.add_argument("--disparity", metavar="D",
-                     help="disparity image instead of --left/--right: .npy (float px) or PNG/TIFF; integer images "
-                          "are multiplied by --disparity-scale; 0 or NaN is unknown")
+                     help="disparity image instead of --left/--right: .npy or PNG/TIFF, multiplied by "
+                          "--disparity-scale (a .npy of float px needs none: its default is the YAML's "
+                          "disparity_scale, else 1); 0 or NaN is unknown")
     src.add_argument("--image", metavar="IMG",
                      help="image for --overlay-out when --disparity is given (with --left/--right: the left image)")
     src.add_argument("--calib", required=True, metavar="FILE",
                      help="KITTI calib.txt (P0/P1) or a vbnav stereo YAML (docs/obstacles.md)")
     src.add_argument("--disparity-scale", type=positive, default=None,
-                     help="px per unit of an integer disparity image (default: the YAML's disparity_scale, "
-                          "else 1/256 for 16-bit as in KITTI's devkit, 1 for 8-bit); with --disparity only")
+                     help="px per unit of the --disparity file (default: the YAML's disparity_scale, else "
+                          "1/256 for a 16-bit image as in KITTI's devkit, 1 for an 8-bit one or a .npy); with "
+                          "--disparity only")
     geo = p.add_argument_group("camera above the floor (seeds the plane fit)")
     geo.add_argument("--camera-height", type=positive, default=None,
                      help="m; default: the YAML's mount.height; without it the fit is unseeded")
