@@ -58,7 +58,9 @@ def test_limits_hold():
     lim2 = TwistLimiter(DiffDriveKinematics(0.05, 0.3), 10, 10, 1e9, 1e9, 5.0)
     out = lim2.apply(Twist(1.0, 2.0), 0.01)
     assert out.w / out.v == pytest.approx(2.0)
-    assert not math.isnan(lim2.apply(Twist(float("nan"), 0.0), 0.01).v)
+    # A non-finite command is no command: not the limit a clip would map it to (lim2 allows any acceleration).
+    for bad in (Twist(float("nan"), 0.0), Twist(0.0, float("nan")), Twist(float("inf"), 0.0), Twist(0.2, -math.inf)):
+        assert lim2.apply(bad, 0.01) == Twist(0.0, 0.0), bad
 
 
 def _drive_figure_eight(slip_std: float, seed: int):

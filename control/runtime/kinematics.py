@@ -58,10 +58,10 @@ class TwistLimiter:
                    robot.max_wheel_speed)
 
     def apply(self, twist: Twist, dt: float) -> Twist:
+        if not (math.isfinite(twist.v) and math.isfinite(twist.w)):    # before the clip, which maps NaN to a limit
+            twist = Twist(0.0, 0.0)
         v = _clip(twist.v, self.max_v)
         w = _clip(twist.w, self.max_w)
-        if not (math.isfinite(v) and math.isfinite(w)):
-            v = w = 0.0
         v = self.last.v + _clip(v - self.last.v, self.max_dv * dt)
         w = self.last.w + _clip(w - self.last.w, self.max_dw * dt)
         left, right = self.kinematics.wheels(Twist(v, w))
