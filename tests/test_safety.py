@@ -1,4 +1,5 @@
 """Every safety trigger stops both wheels within two loop periods and says why."""
+import math
 import os
 import signal
 
@@ -125,6 +126,20 @@ def test_exception_in_controller():
     assert_stopped_within_two_periods(drive, T0 + 1_500_000_000)
 
 
+@pytest.mark.parametrize("bad", [(float("nan"), 0.0), (0.0, float("nan")), (float("inf"), 0.0), (0.3, -math.inf)])
+def test_non_finite_command_from_the_controller(bad):
+    """A NaN or inf from a controller (a NaN pose upstream) stops the robot and ends the run, named; the
+    speed limits would otherwise have turned it into full speed."""
+    class Broken(Cruise):
+        def update(self, ctx):
+            return Twist(*bad) if ctx.now_ns >= T0 + 1_500_000_000 else Twist(0.3, 0.1)
+
+    rt, drive, clock = make_runtime(Broken())
+    result = rt.run(duration_s=5)
+    assert result.reason == "exception" and "Broken commanded" in result.message, result.message
+    assert_stopped_within_two_periods(drive, T0 + 1_500_000_000)
+
+
 def test_missed_deadline_streak():
     def hook(ctx):
         if ctx.now_ns >= T0 + 1_000_000_000:
@@ -139,13 +154,13 @@ def test_missed_deadline_streak():
     assert_stopped_within_two_periods(drive, streak_full)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT])
 def test_signals(sig):
     def hook(ctx):
         if ctx.now_ns == T0 + 1_000_000_000:
             os.kill(os.getpid(), sig)
 
-    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)}
     rt, drive, clock = make_runtime(Cruise(hook))
     result = rt.run(duration_s=5)
     assert result.reason == "signal" and signal.Signals(sig).name in result.message

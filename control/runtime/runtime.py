@@ -284,6 +284,10 @@ class Runtime:
             if cycle == 0:
                 self.controller.start(ctx)
             twist = self.controller.update(ctx)
+            if not (math.isfinite(twist.v) and math.isfinite(twist.w)):
+                # A NaN or inf is a bug upstream (a NaN pose, a division by zero): the limiter's clip would
+                # turn it into full speed, so it ends the run like an exception.
+                raise FloatingPointError(f"{type(self.controller).__name__} commanded v={twist.v} w={twist.w}")
             for cause, (active, message) in self.controller.safety_conditions().items():
                 self.safety.hold(now, cause, active, message)
             self._check_estimates(ctx)
@@ -520,7 +524,10 @@ class Runtime:
         if threading.current_thread() is not threading.main_thread():
             return None
         old = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        # SIGHUP: the terminal or ssh session went away; SIGQUIT: Ctrl-\. Left at their defaults they kill
+        # the process with the wheels last commanded, stopped only by the device's watchdog (and an
+        # ODrive's then refuses the next start), with the recording and the route left unclosed.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
             old[sig] = signal.getsignal(sig)
             signal.signal(sig, lambda signum, frame: self.request_stop(signum))
         return old
