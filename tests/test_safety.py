@@ -115,6 +115,38 @@ def test_exception_in_a_stage_running_in_its_own_thread():
     assert_stopped_within_two_periods(drive, raised_at[0])
 
 
+def test_a_failed_line_map_abstraction_thread_fails_the_stage():
+    """The line map's slow loop runs in its own thread (map build, goto --map): when it fails, the fast
+    loop's next frame raises naming it, so the pipeline's fault stops the robot as for any stage (the
+    thread died silently, and the robot mapped on without objects)."""
+    import threading
+
+    import numpy as np
+
+    from vbnav.control.config import load_config
+    from vbnav.control.stages.line_map import LineMapStage
+    from vbnav.drivers.camera import Frame
+    from vbnav.vision.geometry import Pose2
+
+    stage = LineMapStage.from_config(load_config("sim_stereo"), abstraction_period_s=0.01)
+
+    def snapshot():
+        raise MemoryError("abstraction pass failed")
+    stage.abstraction.snapshot = snapshot
+    stage.start()
+    try:
+        for _ in range(500):
+            if stage.abstraction.error is not None:
+                break
+            threading.Event().wait(0.01)
+        img = np.zeros((480, 640), np.uint8)
+        with pytest.raises(RuntimeError, match="line-map abstraction thread failed: MemoryError") as err:
+            stage.process(Frame(img, T0, 1, right=img), Pose2())
+        assert isinstance(err.value.__cause__, MemoryError)      # its traceback goes with the run's fault
+    finally:
+        stage.stop()
+
+
 def test_exception_in_controller():
     def hook(ctx):
         if ctx.now_ns >= T0 + 1_500_000_000:

@@ -67,6 +67,14 @@ class AbstractionThread:
         self._posted: set = set()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
+        self.error: Optional[str] = None    # why the thread stopped; the fast loop raises it (check())
+        self._exc: Optional[BaseException] = None
+
+    def check(self) -> None:
+        """Raise the thread's failure, if it failed: the stage's next frame fails with it, so the pipeline's
+        fault stops the robot (the map would otherwise go on without objects or hypotheses, unannounced)."""
+        if self.error is not None:
+            raise RuntimeError(f"line-map abstraction thread failed: {self.error}") from self._exc
 
     def step(self) -> int:
         """One abstraction pass (also callable inline, e.g. on a simulated clock). Returns hypotheses posted."""
@@ -97,8 +105,12 @@ class AbstractionThread:
             self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
-        while not self._stop.wait(self.period_s):
-            self.step()
+        try:
+            while not self._stop.wait(self.period_s):
+                self.step()
+        except Exception as exc:        # an uncaught error would end the thread with a line on stderr only
+            self._exc = exc             # with its traceback: the stage's failure is raised from it
+            self.error = repr(exc)
 
 
 class LineMapStage(VisionStage):
@@ -164,6 +176,8 @@ class LineMapStage(VisionStage):
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         if frame.right is None:
             raise ValueError("the line map needs a stereo pair: the camera delivers no right image")
+        if self.abstraction is not None:
+            self.abstraction.check()
         fx, fy, cx, cy = self.cam
         W, H = self.size
         pose = self.pose_fn(odom)
