@@ -103,3 +103,21 @@ def test_a_live_view_that_could_not_be_served_is_refused(tmp_path, capsys, argv,
     err = capsys.readouterr().err
     assert "--live-view" in err and says in err, err
     assert not (tmp_path / "m.json").exists()
+
+
+def test_map_build_that_ends_in_a_fault_keeps_the_map_and_says_so(tmp_path, capsys):
+    """The drive lost 1 s in: the map mapped so far is written, labelled, and the exit code is a hardware
+    fault's (it exited 0, as for a finished drive)."""
+    from pathlib import Path
+
+    from vbnav.control.cli import main
+    from vbnav.control.line_map_file import load_map
+    text = (Path(__file__).resolve().parents[1] / "configs" / "sim_stereo.yaml").read_text()
+    lossy = tmp_path / "lossy_stereo.yaml"
+    lossy.write_text(text.replace("drive:\n  driver: sim\n", "drive:\n  driver: sim\n  reconnect_window_s: 0.2\n"
+                                  "  options: {fail_after_s: 1.0}\n"))
+    assert main(["map", "build", "-c", str(lossy), "--out", str(tmp_path / "m.json"), "--duration", "3"]) == 3
+    out = capsys.readouterr().out
+    assert "map build ended: drive" in out and "(the map up to the fault)" in out, out
+    lmap, meta = load_map(tmp_path / "m.json")
+    assert meta["frames"] > 0

@@ -114,13 +114,18 @@ def run_build(args) -> int:
         stage.stop()
         link.close(result)          # a recording / the live view ends with the final map
         printer.done()
-    stage.abstraction.step()            # a last abstraction pass on the final map
+    if stage.abstraction.error is None:
+        stage.abstraction.step()        # a last abstraction pass on the final map
     meta = {"config": str(cfg.source), "frames": stage.stats["frames"],
             "objects": objects_meta(stage.abstraction.polygons)}
-    save_map(stage.map, args.out, meta)
+    save_map(stage.map, args.out, meta)     # also after a fault: what was mapped is kept, and said so
     s = stage.map.summary()
-    print(f"map build ended: {result.reason}; {stage.stats['frames']} frames, {s['verified']} verified segments "
-          f"({s['total_length_m']} m), {s['candidates']} candidates, {len(meta['objects'])} objects -> {args.out}")
+    ended_well = result.ok or result.reason == "signal"      # driven to the end, or stopped by the operator
+    print(f"map build ended: {result.reason} ({result.message}); {stage.stats['frames']} frames, "
+          f"{s['verified']} verified segments ({s['total_length_m']} m), {s['candidates']} candidates, "
+          f"{len(meta['objects'])} objects -> {args.out}" + ("" if ended_well else " (the map up to the fault)"))
+    if not ended_well:
+        return 3 if result.reason in ("camera", "drive") else 1
     return 0 if stage.stats["frames"] > 0 else 1
 
 
