@@ -78,3 +78,29 @@ def test_vbnav_demo_record_is_read_back_with_every_channel(tmp_path):
     assert s.channels["/vbnav/image/annotations"].count == s.channels["/vbnav/image"].count
     assert s.channels["/vbnav/pose/odom"].count == n_state
     assert metrics["completed"]
+
+
+def test_a_recording_that_fails_is_said_and_the_run_exits_1(tmp_path, monkeypatch, capsys):
+    """A full disk under --record: the run itself goes on (a recording is no safety function), but the
+    failure is said on stderr and the exit code is not success; it was only counted."""
+    import errno
+
+    from vbnav.control.cli import main
+    from vbnav.control.comms import recording
+
+    calls = [0]
+    real_write = recording.McapRecorder._write
+
+    def full_disk(self, topic, log_ns, data):
+        calls[0] += 1
+        if calls[0] > 50:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, topic, log_ns, data)
+    monkeypatch.setattr(recording.McapRecorder, "_write", full_disk)
+    out = tmp_path / "run.mcap"
+    assert main(["run", "--no-camera", "--duration", "3", "--record", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"the recording {out} is incomplete" in err and "No space left on device" in err, err
+    monkeypatch.setattr(recording.McapRecorder, "_write", real_write)
+    assert main(["run", "--no-camera", "--duration", "1", "--record", str(tmp_path / "ok.mcap")]) == 0
+    assert "incomplete" not in capsys.readouterr().err

@@ -141,4 +141,4 @@ def run(args) -> int:
         return 130
     if result.reason in ("drive", "camera"):     # a device failed or is not there
         return 3
-    return 0 if result.ok else 1
+    return 0 if result.ok and link.recording_error is None else 1     # a --record asked for and not made

@@ -31,6 +31,7 @@ the recording and closes the session.
 from __future__ import annotations
 
 import re
+import sys
 import time
 from typing import Optional
 
@@ -133,6 +134,7 @@ class TelemetryLink:
         self._mode: Optional[str] = None
         self._applying = None            # the command the loop is applying (loop thread)
         self._closed = False
+        self.recording_error: Optional[str] = None   # the recording failed (set by close, said on stderr)
 
     # ---- construction ----------------------------------------------------------------------
     @classmethod
@@ -342,9 +344,22 @@ class TelemetryLink:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)
         self.publisher.close()
+        self._report_recording()
         if self.session is not None:
             time.sleep(0.05)  # let the last express puts leave before the transport closes
             try:
                 self.session.close()
             except Exception:
                 pass
+
+    def _report_recording(self) -> None:
+        """A recording that failed (a full disk) is said, not only counted: the run's own result says
+        nothing about it, and its file is incomplete or left as PATH.part."""
+        rec = self.recorder
+        exc = self.publisher.sink_failures.get(rec) if rec is not None else None
+        if exc is None:
+            return
+        where = rec.path if rec.path.exists() else rec.part_path
+        self.recording_error = repr(exc)
+        print(f"vbnav: the recording {rec.path} is incomplete: writing it failed ({exc}); what was written before "
+              f"is in {where}", file=sys.stderr)

@@ -221,6 +221,7 @@ class TelemetryPublisher:
         self._closed = False
         self.dropped = 0            # samples not queued because the queue was full
         self.sink_errors = 0
+        self.sink_failures: dict = {}   # sink -> its first error (a full disk under a recording, say)
         self.published = {"state": 0, "event": 0, "image": 0}
         self._seq = {"state": 0, "event": 0, "image": 0}
 
@@ -297,8 +298,8 @@ class TelemetryPublisher:
         for s in self.sinks:
             try:
                 s.close()
-            except Exception:
-                self.sink_errors += 1
+            except Exception as exc:
+                self._sink_failed(s, exc)
 
     def __enter__(self):
         return self.start()
@@ -339,8 +340,8 @@ class TelemetryPublisher:
                 for s in self.sinks:
                     try:
                         s.foxglove(stamp, topic, build)
-                    except Exception:
-                        self.sink_errors += 1
+                    except Exception as exc:
+                        self._sink_failed(s, exc)
             elif kind == "image":
                 _, stamp, seq, image, overlay = item
                 jpeg, w, h = encode_jpeg(image, self._image_width, self._jpeg_quality)
@@ -354,10 +355,14 @@ class TelemetryPublisher:
                     for s in self.sinks:
                         try:
                             s.annotations(stamp, scaled)
-                        except Exception:
-                            self.sink_errors += 1
+                        except Exception as exc:
+                            self._sink_failed(s, exc)
         except Exception:  # a bad sample must never kill telemetry
             self.sink_errors += 1
+
+    def _sink_failed(self, sink, exc: Exception) -> None:
+        self.sink_errors += 1
+        self.sink_failures.setdefault(sink, exc)
 
     def _next_seq(self, kind: str) -> int:
         self._seq[kind] += 1
@@ -373,8 +378,8 @@ class TelemetryPublisher:
                     s.event(stamp, payload, msg)
                 else:
                     s.image(stamp, payload, msg, jpeg)
-            except Exception:
-                self.sink_errors += 1
+            except Exception as exc:
+                self._sink_failed(s, exc)
         self.published[kind] += 1
 
 
