@@ -51,6 +51,36 @@ def test_stale_camera_stops_and_recovers():
     assert any(t > resume_at and p and l > 0 for t, l, r, p in drive.log)
 
 
+def test_stale_estimate_stops_and_recovers():
+    """A controller's estimate (here 'vslam') that stops coming while frames still do: held '<kind>_stale'
+    once it is older than safety.estimate_timeout_s, released when estimates return."""
+    from vbnav.control.runtime.interfaces import Estimate
+    gap = (T0 + 1_500_000_000, T0 + 4_000_000_000)
+
+    class Fixes(VisionStage):
+        kind = "vslam"
+
+        def process(self, frame, odom):
+            if gap[0] <= frame.stamp_ns < gap[1]:
+                return None                          # tracking lost: no estimate, frames keep coming
+            return Estimate(frame.stamp_ns, self.kind, True, None, {})
+
+    class NeedsVslam(Cruise):
+        requires = ("vslam",)
+
+    rt, drive, clock = make_runtime(NeedsVslam(), stages=[Fixes()])
+    result = rt.run(duration_s=6)
+    limit = rt.cfg.safety.estimate_timeout_s
+    holds = [e for e in result.events if e.kind == "hold" and e.cause == "vslam_stale"]
+    assert len(holds) == 1 and "vslam" in holds[0].message
+    trigger = holds[0].stamp_ns
+    assert gap[0] + limit * 1e9 - 0.1e9 < trigger <= gap[0] + limit * 1e9 + PERIOD_NS    # last fix <= 1 frame before
+    assert any(trigger - 5 * PERIOD_NS < t < trigger and p and l > 0 for t, l, r, p in drive.log)   # was moving
+    assert not [t for t, l, r, p in drive.log if p and l != 0 and trigger + 2 * PERIOD_NS <= t < gap[1]]
+    assert any(e.kind == "release" and e.cause == "vslam_stale" for e in result.events)
+    assert any(t > gap[1] and p and l > 0 for t, l, r, p in drive.log)
+
+
 def test_exception_in_vision_stage():
     class Exploding(VisionStage):
         kind = "boom"
@@ -145,6 +175,47 @@ def test_a_failed_line_map_abstraction_thread_fails_the_stage():
         assert isinstance(err.value.__cause__, MemoryError)      # its traceback goes with the run's fault
     finally:
         stage.stop()
+
+
+def test_exception_in_the_camera_thread():
+    """On a real clock the camera is read in the vision thread: a driver that raises there (a USB camera
+    gone mid-read) is the pipeline's fault, and the robot stops within two periods of the cycle that sees it."""
+    import threading
+
+    from runtime_helpers import RecordingDrive, TickCamera
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.pipeline import VisionPipeline
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    unplugged = threading.Event()       # set by the loop at 1.5 s: the fault can only arise while it waits
+
+    class Unplugged(TickCamera):
+        def read(self, timeout_s=0.0):
+            if unplugged.is_set():
+                raise OSError(19, "No such device")
+            threading.Event().wait(0.001)            # a driver's read takes a little time
+            return super().read(timeout_s)
+
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    pipeline = VisionPipeline(Unplugged(clock), [], clock, inline=False)
+    seen = []
+
+    def hook(ctx):   # hold simulated time once the camera is gone until the thread has met it
+        if ctx.now_ns >= T0 + 1_500_000_000 and not seen:
+            unplugged.set()
+            for _ in range(1000):
+                if pipeline.fault is not None:
+                    seen.append(ctx.now_ns)
+                    return
+                threading.Event().wait(0.01)
+
+    rt = Runtime(Config(camera={"stale_after_s": 5.0}), drive, Cruise(hook), clock, pipeline)
+    result = rt.run(duration_s=5)
+    assert result.reason == "exception" and "No such device" in result.message, result
+    assert seen and drive.last_motion_ns() < seen[0] + 2 * PERIOD_NS
+    assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
 
 
 def test_exception_in_controller():
