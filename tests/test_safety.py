@@ -343,3 +343,15 @@ def test_obstacle_speed_scale_slows_and_stops():
     # the zone's own debounce (obstacles.release_s) is the release time: not safety.release_s on top of it
     assert 0 <= holds[1].stamp_ns - (T0 + 3_000_000_000) < 0.15e9, (holds[1].stamp_ns - T0) / 1e9
     assert at(3.25)[0] > 0.3 * full         # accelerating again (with the double debounce: still 0 until 3.5 s)
+
+
+def test_exception_in_the_progress_callback_stops_the_robot_and_says_where():
+    rt, drive, clock = make_runtime(Cruise())
+
+    def progress(r):
+        if r.clock.now_ns() >= T0 + 1_000_000_000:
+            raise RuntimeError("console gone")
+    result = rt.run(duration_s=5, progress=progress, progress_every_s=0.5)
+    assert result.reason == "exception" and "outside the cycle" in result.message and "console gone" in result.message
+    assert "start-up" not in result.message
+    assert_stopped_within_two_periods(drive, T0 + 1_000_000_000)

@@ -220,8 +220,9 @@ class Runtime:
             self._make_safe()
             # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
             reason = "drive" if isinstance(exc, DriveError) else "camera" if isinstance(exc, CameraError) else "exception"
-            self.safety.trip(self.clock.now_ns(), reason, f"start-up: {exc}")
-            self._end = (reason, f"start-up: {exc}")
+            where = "start-up" if self.cycle == 0 else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
+            self.safety.trip(self.clock.now_ns(), reason, f"{where}: {exc}")
+            self._end = (reason, f"{where}: {exc}")
             timing = self.loop.timing.summary(self.loop.rate_hz)
         finally:
             if notifier is not None:
