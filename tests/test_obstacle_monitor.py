@@ -170,3 +170,37 @@ def test_stage_ground_settings_reach_the_ground_model():
     s = detect_obstacles(level, stage.rig, stage.prior, stage.fit_params, stage.params, stage.ground)
     assert 0.5 - 1e-6 <= math.degrees(s.fit.floor.roll) <= 2.5 + 1e-6
     assert ObstacleStage.from_config(_stage_cfg(ground_model="plane")).ground is None
+
+
+def _lens_cap_run(box: bool, covered=(10, 40), frames=60):
+    """The simulated stereo camera (sim_stereo) standing at the room's start, its lens covered for
+    ``covered`` frames (black images, all-NaN disparity: what an OAK gives too)."""
+    from vbnav.control.config import load_config
+    from vbnav.drivers.sim.camera import SimCamera
+    from vbnav.drivers.sim.world import World
+    cfg = load_config("sim_stereo")
+    world = World.by_name(cfg.sim.world, cfg.sim.seed)
+    if box:
+        world.add_box("obstacle", (-1.5, -1.55), (0.3, 0.3, 0.3))      # its face 0.75 m ahead: the stop zone
+    cam = SimCamera(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn=lambda: Pose2(), clock=None,
+                    rate_hz=15, noise_std=2.0, seed=4, stereo_baseline=0.075)
+    stage = make_obstacle_stage(cfg)
+    out = []
+    for i in range(frames):
+        cam.occluded = covered[0] <= i < covered[1]
+        out.append(stage.process(cam.render_frame(cfg.sim.start(), int(i * 1e9 / 15), i), Pose2()))
+    return out
+
+
+def test_a_covered_lens_is_blind_and_stops_until_the_zones_are_seen_clear():
+    """Nothing seen is nothing cleared: with the lens covered the stage says blind (not ok, speed 0) on
+    every frame, and after it the speed rises only once the zones were seen clear for release_s."""
+    with_box = _lens_cap_run(box=True)
+    assert all(e.info["speed_scale"] == 0.0 for e in with_box[3:])          # box, blind, box again
+    blind = with_box[10:40]
+    assert all(not e.ok and "blind: 0% of the stop zones' floor" in e.info["reason"] for e in blind)
+    clear = _lens_cap_run(box=False)
+    assert all(e.ok and e.info["speed_scale"] == 1.0 for e in clear[:10])
+    assert all(not e.ok and e.info["speed_scale"] == 0.0 for e in clear[10:40])
+    release = next(i for i in range(40, 60) if clear[i].info["speed_scale"] == 1.0)
+    assert (release - 40) / 15 >= ObstaclesConfig().release_s - 1 / 15       # not the first clear frame
