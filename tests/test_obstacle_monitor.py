@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -204,3 +205,20 @@ def test_a_covered_lens_is_blind_and_stops_until_the_zones_are_seen_clear():
     assert all(not e.ok and e.info["speed_scale"] == 0.0 for e in clear[10:40])
     release = next(i for i in range(40, 60) if clear[i].info["speed_scale"] == 1.0)
     assert (release - 40) / 15 >= ObstaclesConfig().release_s - 1 / 15       # not the first clear frame
+
+
+def test_a_frame_of_another_size_is_blind_and_a_bgra_pair_is_matched():
+    """A wrong-size frame (a camera that changed mode) stops like a blind one instead of ending the run;
+    a BGRA pair (some V4L2 cameras) goes through SGBM like a BGR one."""
+    stage = ObstacleStage.from_config(_stage_cfg(source="sgbm"))
+    rig = stage.rig
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, _ = ds.textured_pair(clear, rig)
+    e = stage.process(Frame(left, 0, 1, right=right), Pose2())
+    assert e.ok and e.info["speed_scale"] == 1.0
+    small = Frame(left[::2, ::2].copy(), FRAME_NS, 2, right=right[::2, ::2].copy())
+    e = stage.process(small, Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "320x240, the camera config says 640x480" in e.info["reason"]
+    bgra = [cv2.cvtColor(im, cv2.COLOR_GRAY2BGRA) for im in (left, right)]
+    e = stage.process(Frame(bgra[0], 10 * FRAME_NS, 3, right=bgra[1]), Pose2())
+    assert e.ok

@@ -115,8 +115,12 @@ def _matcher(p: SgbmParams):
 def _grey(img: np.ndarray, name: str) -> np.ndarray:
     if img.ndim == 3 and img.shape[2] == 3:
         return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.ndim == 3 and img.shape[2] == 4:          # BGRA, as some V4L2 cameras deliver
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[:, :, 0]
     if img.ndim != 2:
-        raise ValueError(f"{name} image must be HxW grey or HxWx3 BGR, got shape {img.shape}")
+        raise ValueError(f"{name} image must be HxW grey or HxWx3 BGR (or BGRA), got shape {img.shape}")
     return img
 
 

@@ -318,8 +318,11 @@ class ObstacleStage(VisionStage):
             self.monitor.blind(why)
             return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
         if disp.shape != (self.rig.height, self.rig.width):
-            raise ValueError(f"obstacle stage: disparity is {disp.shape[1]}x{disp.shape[0]}, "
-                             f"camera config says {self.rig.width}x{self.rig.height}")
+            # The zones are laid out for the configured size: a frame of another one cannot be judged.
+            why = (f"obstacles: blind: the disparity is {disp.shape[1]}x{disp.shape[0]}, the camera config "
+                   f"says {self.rig.width}x{self.rig.height}")
+            self.monitor.blind(why)
+            return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
         seen = seen_fraction(disp, self.watched)
         if seen < MIN_SEEN_FRACTION:
             # A covered lens, darkness or a blank view gives no disparity where the zones are: nothing
