@@ -143,11 +143,43 @@ def test_stage_needs_stereo():
     with pytest.raises(ValueError, match="stereo_baseline.*metric_scale: odometry"):
         VslamStage(model, CameraMount(), None)
     stage = VslamStage(model, CameraMount(), 0.12)
-    with pytest.raises(ValueError, match="right image or a disparity"):
-        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+    est = stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())    # not ok; the next is tried
+    assert not est.ok and "neither a right image nor a disparity image" in est.info["reason"]
     stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
     with pytest.raises(ValueError, match="baseline_m"):
         stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+
+
+@pytest.mark.parametrize("late", [[8], [0], [8, 9, 10, 11, 12, 13, 14, 15]],
+                         ids=["one-frame", "first-frame", "eight-frames"])
+def test_a_frame_without_disparity_is_not_ok_and_the_stage_carries_on(late):
+    """OAK-like camera (disparity only): the driver publishes a frame without disparity whenever its disparity
+    arrives late, the first frame too. That frame is an estimate that is not ok saying why (it raised
+    ValueError, which ends the run); the frames after it are ok again and the pose stays right."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(24):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    stage = VslamStage(model, mount, None, VslamNavConfig(), baseline_from_frames=True)
+    results = []
+    for i, (f, p) in enumerate(zip(_render(cam, poses, disparity_only=True), poses)):
+        if i in late:
+            f = Frame(f.image, f.stamp_ns, f.seq, disparity=None, meta=f.meta)
+        results.append(stage.process(f, start.between(p)))
+    for i, r in enumerate(results):
+        if i in late:
+            assert not r.ok and "disparity" in r.info["reason"], i
+            assert r.kind == "vslam" and isinstance(r.value, VslamFix)
+        else:
+            assert r.ok, (i, r.info)
+    assert stage.stats["unusable"] == len(late)
+    truth, got = start.between(poses[-1]), results[-1].value.pose
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.03
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.5
 
 
 def test_monocular_stage_takes_its_scale_from_the_wheels():

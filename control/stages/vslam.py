@@ -145,7 +145,7 @@ class VslamStage(VisionStage):
         self._ref_base = 0           # reference frames of earlier runs of the front end (before a restart)
         self._lost_streak = 0
         self._good: Optional[tuple[Pose2, Pose2]] = None   # (robot pose, odometry) at the last good frame
-        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0}
+        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0, "unusable": 0}
         if self.monocular:
             self.stats.update(rescaled=0, last_scale=1.0)
 
@@ -175,12 +175,14 @@ class VslamStage(VisionStage):
                                  "meta['baseline_m'] (set camera.options.stereo_baseline)")
             self.baseline = float(b)
             self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
-        right, depth = (None, None) if self.monocular else self._metric_input(frame)
+        right, depth, why = (None, None, "") if self.monocular else self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
         if self._last_odom is not None:
             self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
         self._last_odom = odom
+        if why:
+            return self._unusable(frame, odom, why)
         if not self.slam.initialised:
             if self.monocular:
                 return self._start_monocular(frame, image, odom, robot_to_camera_matrix(odom, self.mount))
@@ -310,16 +312,32 @@ class VslamStage(VisionStage):
         self._scale_base = (ref.pose_wc[:3, 3].copy(), p_odom)
         return self.slam.pose_wc
 
-    def _metric_input(self, frame: Frame):
+    def _metric_input(self, frame: Frame) -> tuple[Optional[np.ndarray], Optional[np.ndarray], str]:
+        """(right image, depth, "") for the frame's metric scale, or (None, None, why) when the frame has
+        neither a right image nor a disparity image. Not an error: an OAK publishes a frame without
+        disparity whenever that disparity arrives late (drivers/oak_camera.py), the first frame too; the
+        frame is then not ok and the next one is tried."""
         if frame.right is not None:
-            return to_grey(frame.right), None
+            return to_grey(frame.right), None, ""
         if frame.disparity is not None:
             d = np.asarray(frame.disparity, np.float32)
             with np.errstate(divide="ignore", invalid="ignore"):
                 depth = np.where(d > 0, float(self.camera.fx) * self.baseline / d, np.nan)
-            return None, depth
-        raise ValueError("the VSLAM stage needs stereo frames (a right image or a disparity image); this camera "
-                         "delivers neither (camera.options.stereo_baseline for the simulated camera)")
+            return None, depth, ""
+        return None, None, ("vslam: the frame has neither a right image nor a disparity image (the stereo "
+                            "VSLAM needs one for metric scale; camera.options.stereo_baseline for the "
+                            "simulated camera)")
+
+    def _unusable(self, frame: Frame, odom: Pose2, why: str) -> Estimate:
+        """The estimate for a frame the VSLAM cannot use (``why``): not ok, at the last good pose carried
+        by odometry (odometry before the first). The front end's state stays that of the last good frame,
+        so the next usable frame continues from there (or restarts once it is lost)."""
+        self.stats["unusable"] += 1
+        guess = self.pose_at(odom) or odom
+        est = self._estimate(frame, odom, False, robot_to_camera_matrix(guess, self.mount), 0, None,
+                             {"unusable": why})
+        est.info["reason"] = why
+        return est
 
     def _estimate(self, frame: Frame, odom: Pose2, ok: bool, pose_wc: np.ndarray, inliers: int,
                   anchor: Optional[int], quality: Optional[dict] = None) -> Estimate:
