@@ -182,6 +182,39 @@ def test_a_frame_without_disparity_is_not_ok_and_the_stage_carries_on(late):
     assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.5
 
 
+@pytest.mark.parametrize("first", ["dark", "grey"])
+@pytest.mark.parametrize("disparity_only", [False, True], ids=["stereo-pair", "disparity-image-oak-like"])
+def test_a_first_frame_without_landmarks_is_not_a_start(first, disparity_only):
+    """A dark first frame (lens cap just off, exposure not settled) or a uniform grey one gives no landmarks.
+    The stage initialised on it with none and stayed lost for the whole run (a restart needs an earlier good
+    pose). Now such a start is not ok, says why, and the next frames start the VSLAM at the odometry pose."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(20):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    stage = (VslamStage(model, mount, None, VslamNavConfig(), baseline_from_frames=True) if disparity_only
+             else VslamStage(model, mount, 0.12, VslamNavConfig()))
+    results = []
+    for i, (f, p) in enumerate(zip(_render(cam, poses, disparity_only), poses)):
+        if i < 2:                                       # the first two frames
+            grey = np.full_like(f.image, 0 if first == "dark" else 128)
+            f = Frame(grey, f.stamp_ns, f.seq, disparity=None if f.disparity is None else np.full_like(
+                f.disparity, np.nan if first == "dark" else 0.0), right=None if f.right is None else grey.copy(),
+                meta=f.meta)
+        results.append(stage.process(f, start.between(p)))
+    for r in results[:2]:
+        assert not r.ok and "landmarks" in r.info["reason"] and "min_inliers" in r.info["reason"]
+    assert all(r.ok for r in results[2:]), [r.info for r in results]
+    assert stage.stats["lost"] == 2 and stage.stats["restarts"] == 0
+    truth, got = start.between(poses[-1]), results[-1].value.pose
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.3
+
+
 def test_monocular_stage_takes_its_scale_from_the_wheels():
     """metric_scale odometry: no stereo; the two-view initialisation happens once the wheels have moved the
     camera 0.2 m, scaled by that distance (with a 2 % odometry scale error), then the VSLAM carries on."""

@@ -184,9 +184,12 @@ class VslamStage(VisionStage):
         if why:
             return self._unusable(frame, odom, why)
         if not self.slam.initialised:
+            # The first start at the odometry pose (the world frame is the odometry frame); a start retried
+            # after a restart found too few landmarks at the last good pose carried by odometry.
+            pose0_wc = robot_to_camera_matrix(self.pose_at(odom) or odom, self.mount)
             if self.monocular:
-                return self._start_monocular(frame, image, odom, robot_to_camera_matrix(odom, self.mount))
-            return self._start(frame, image, right, depth, odom, robot_to_camera_matrix(odom, self.mount))
+                return self._start_monocular(frame, image, odom, pose0_wc)
+            return self._start(frame, image, right, depth, odom, pose0_wc)
         res = self.slam.process(image, right, depth)
         if self.monocular and res.handoff:
             res.pose_wc = self._correct_scale(odom)
@@ -220,7 +223,12 @@ class VslamStage(VisionStage):
 
     def _start(self, frame: Frame, image, right, depth, odom: Pose2, pose_wc: np.ndarray,
                restart: bool = False) -> Estimate:
-        """(Re)initialise the front end from this frame's stereo pair (or depth) at world pose ``pose_wc``."""
+        """(Re)initialise the front end from this frame's stereo pair (or depth) at world pose ``pose_wc``.
+
+        With fewer landmarks than ``min_inliers`` (a dark or uniform view: lens cap, exposure not settled)
+        nothing could be tracked against them: the front end stays uninitialised, the estimate is not ok
+        and the next frame tries again (it was initialised with none and lost for good when no good pose
+        came before)."""
         if restart:
             self._new_chain()
         if right is not None:
@@ -228,6 +236,13 @@ class VslamStage(VisionStage):
         else:
             n = self.slam.initialise_depth(image, depth, pose_wc)
         self._lost_streak = 0
+        if n < self.cfg.min_inliers:
+            self.stats["lost"] += 1
+            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+            est = self._estimate(frame, odom, False, pose_wc, n, None, {"restart": restart, "landmarks": n})
+            est.info["reason"] = (f"vslam: {n} landmarks in this frame, fewer than vslam.min_inliers "
+                                  f"({self.cfg.min_inliers}) to start on; the next frame is tried")
+            return est
         self._maybe_add_anchor(image)
         est = self._estimate(frame, odom, n >= self.cfg.min_inliers, self.slam.pose_wc, n, None,
                              {"restart": restart})
