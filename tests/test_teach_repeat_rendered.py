@@ -168,3 +168,94 @@ def test_route_round_trip_through_disk_localises(world, taught, tmp_path):
         assert est.ok and est.value.n_agree > 85  # measured 168 on 2026-11-30, bar 1/2
         fixes.append(est.value.pose.as_array())
     np.testing.assert_allclose(fixes[0], fixes[1], atol=1e-9)
+
+
+# A frame of another format (a USB camera renegotiating after a reconnect, a 16-bit or float stream) raised
+# in the KLT (cv2.error), which ends the run; it is now a frame the stage skips: not ok, saying why.
+BAD_FORMATS = {
+    "half-size": (lambda im: im[::2, ::2].copy(), "is 320x240, the camera calibration is for 640x480"),
+    "uint16": (lambda im: im.astype(np.uint16) * 256, "uint16"),
+    "float": (lambda im: im.astype(np.float32) / 255.0, "float32"),
+}
+
+
+def _frames(world, poses):
+    cam = camera(world)
+    return [cam.render_frame(p, i, i) for i, p in enumerate(poses)]
+
+
+def _reformat(frame, fn):
+    from vbnav.drivers.camera import Frame
+    return Frame(fn(frame.image), frame.stamp_ns, frame.seq, meta=frame.meta)
+
+
+@pytest.mark.parametrize("kind", list(BAD_FORMATS))
+def test_teach_skips_a_frame_of_another_format_and_tracks_on(world, kind):
+    fn, says = BAD_FORMATS[kind]
+    poses = [drive(START, 0.25, 0.0, i / 15) for i in range(10)]
+    frames = _frames(world, poses)
+    odom = [START.between(p) for p in poses]
+    stage = TeachStage(CAM, MOUNT, VBCConfig())
+    results = []
+    for i, (f, o) in enumerate(zip(frames, odom)):
+        if i == 5:
+            before = stage.tracker.tracks.ids.copy()
+            f = _reformat(f, fn)
+        results.append(stage.process(f, o))
+    bad = results[5]
+    assert not bad.ok and bad.kind == "teach" and bad.value is None
+    assert bad.info["reason"].startswith("teach: ") and says in bad.info["reason"]
+    assert all(r.ok for i, r in enumerate(results) if i != 5)
+    # The tracks go on from the last good frame: most of them are still the ones of frame 4.
+    assert np.isin(before, stage.tracker.tracks.ids).mean() > 0.8
+    stage.finish()
+    assert len(stage.pop_keyframes()) >= 2
+
+
+@pytest.mark.parametrize("kind", list(BAD_FORMATS))
+def test_repeat_skips_a_frame_of_another_format_and_localises_on(world, taught, kind):
+    fn, says = BAD_FORMATS[kind]
+    route, _ = taught
+    cam = camera(world)
+    runs = []
+    for with_bad in (False, True):
+        stage = RepeatStage(route, VBCConfig())
+        pose = START.compose(Pose2(0.1, 0.0, 0.05))
+        out = []
+        for i in range(8):
+            f = cam.render_frame(pose, i, i)
+            if with_bad and i == 4:
+                f = _reformat(f, fn)
+            out.append(stage.process(f, Pose2(0.0, 0.02 * i, 0.0)))
+            pose = drive(pose, 0.2, 0.0, 0.1)
+        runs.append(out)
+    good, skipped = runs
+    bad = skipped[4]
+    assert not bad.ok and bad.kind == "vbc" and bad.value.n_agree == 0
+    assert bad.info["reason"].startswith("repeat: ") and says in bad.info["reason"]
+    assert all(r.ok and r.value.n_agree > 85 for i, r in enumerate(skipped) if i != 4)
+    # Recovered: the last fix is where the run without the bad frame puts it.
+    np.testing.assert_allclose(skipped[-1].value.pose.as_array(), good[-1].value.pose.as_array(), atol=0.01)
+
+
+def test_colour_frames_are_taken_as_before(world):
+    """BGR (the sim and V4L2 drivers with grey: false) and BGRA frames are made grey as before: the same tracks."""
+    import cv2
+    from vbnav.control.stages.frame_input import stage_image
+
+    poses = [drive(START, 0.25, 0.0, i / 15) for i in range(4)]
+    frames = _frames(world, poses)
+    tracks = []
+    for code in (None, cv2.COLOR_GRAY2BGR, cv2.COLOR_GRAY2BGRA):
+        stage = TeachStage(CAM, MOUNT, VBCConfig())
+        for i, f in enumerate(frames):
+            f = f if code is None else _reformat(f, lambda im: cv2.cvtColor(im, code))
+            assert stage.process(f, START.between(poses[i])).ok
+        tracks.append(stage.tracker.tracks.pts.copy())
+    np.testing.assert_array_equal(tracks[0], tracks[1])
+    np.testing.assert_array_equal(tracks[0], tracks[2])
+    grey = frames[0].image
+    assert stage_image(grey, CAM)[0] is grey                     # a valid grey frame is passed through
+    np.testing.assert_array_equal(stage_image(grey[:, :, None], CAM)[0], grey)
+    assert "shape (480, 640, 2)" in stage_image(np.zeros((480, 640, 2), np.uint8), CAM)[1]
+    assert stage_image(None, CAM, "right image") == (None, "the frame has no right image")

@@ -215,6 +215,52 @@ def test_a_first_frame_without_landmarks_is_not_a_start(first, disparity_only):
     assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.3
 
 
+VSLAM_BAD_FRAMES = {
+    # (make the bad frame from a good one, what the reason says)
+    "half-size-image": (lambda f: Frame(f.image[::2, ::2].copy(), f.stamp_ns, f.seq, f.disparity, f.right, f.meta),
+                        "the image is 160x120, the camera calibration is for 320x240"),
+    "uint16-image": (lambda f: Frame(f.image.astype(np.uint16) * 256, f.stamp_ns, f.seq, f.disparity, f.right,
+                                     f.meta), "the image is uint16"),
+    "float-image": (lambda f: Frame(f.image.astype(np.float32) / 255.0, f.stamp_ns, f.seq, f.disparity, f.right,
+                                    f.meta), "the image is float32"),
+    "half-size-right": (lambda f: Frame(f.image, f.stamp_ns, f.seq, f.disparity,
+                                        None if f.right is None else f.right[::2, ::2].copy(), f.meta),
+                        "the right image is 160x120"),
+    "half-size-disparity": (lambda f: Frame(f.image, f.stamp_ns, f.seq,
+                                            None if f.disparity is None else f.disparity[::2, ::2].copy(),
+                                            f.right, f.meta), "the disparity image has shape (120, 160)"),
+}
+
+
+@pytest.mark.parametrize("kind", list(VSLAM_BAD_FRAMES))
+def test_a_frame_of_another_format_is_not_ok_and_the_stage_carries_on(kind):
+    """A frame of another size or dtype raised in the KLT (cv2.error), which ends the run; it is not ok saying
+    why, and the frames after it are ok again."""
+    make, says = VSLAM_BAD_FRAMES[kind]
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(15):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    disparity_only = kind == "half-size-disparity"
+    stage = (VslamStage(model, mount, None, VslamNavConfig(), baseline_from_frames=True) if disparity_only
+             else VslamStage(model, mount, 0.12, VslamNavConfig()))
+    results = []
+    for i, (f, p) in enumerate(zip(_render(cam, poses, disparity_only), poses)):
+        results.append(stage.process(make(f) if i in (0, 6) else f, start.between(p)))
+    for i in (0, 6):                                       # before and after the start
+        assert not results[i].ok and isinstance(results[i].value, VslamFix)
+        assert results[i].info["reason"].startswith("vslam: ") and says in results[i].info["reason"], \
+            results[i].info["reason"]
+    assert all(r.ok for i, r in enumerate(results) if i not in (0, 6))
+    assert stage.stats["unusable"] == 2 and stage.stats["restarts"] == 0
+    truth, got = start.between(poses[-1]), results[-1].value.pose
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+
+
 def test_monocular_stage_takes_its_scale_from_the_wheels():
     """metric_scale odometry: no stereo; the two-view initialisation happens once the wheels have moved the
     camera 0.2 m, scaled by that distance (with a 2 % odometry scale error), then the VSLAM carries on."""

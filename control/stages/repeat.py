@@ -21,6 +21,7 @@ import numpy as np
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.route import Route
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
+from vbnav.control.stages.frame_input import stage_image
 from vbnav.control.stages.vbc_fix import VBCFix, bearing_sigma
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import rays_from_angles
@@ -79,7 +80,9 @@ class RepeatStage(VisionStage):
 
     # -- image path
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
-        image = to_grey(frame.image)
+        image, why = stage_image(frame.image, self.camera)
+        if image is None:
+            return self._unusable(frame, odom, f"repeat: {why}")
         if self._started:
             self.tracker.track(image)
         else:
@@ -104,6 +107,14 @@ class RepeatStage(VisionStage):
             self._guided(image, est.value.pose)
         self._prune()
         return est
+
+    def _unusable(self, frame: Frame, odom: Pose2, why: str) -> Estimate:
+        """A frame the stage cannot use (another size or dtype): not ok, no landmarks agree, at the pose
+        the last fix carried by odometry predicts; tracks and keyframe stay those of the last good frame."""
+        pose = self._pose.compose(self._odom.between(odom)) if self._pose is not None else Pose2()
+        fix = VBCFix(self.index, pose, odom, 0, {}, self.finished)
+        return Estimate(frame.stamp_ns, self.kind, False, fix, {"keyframe": self.index, "n_agree": 0,
+                                                                 "tracked": 0, "reason": why})
 
     def _after_switch(self, image: np.ndarray, est: Estimate, odom: Pose2, stamp_ns: int) -> Estimate:
         """This frame's fix against the keyframe just switched to, from that keyframe's own landmarks.

@@ -16,9 +16,10 @@ import numpy as np
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.route import Keyframe
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
+from vbnav.control.stages.frame_input import stage_image
 from vbnav.control.stages.vbc_fix import bearing_sigma
 from vbnav.drivers.camera import Frame
-from vbnav.vision.features import FeatureTracker, describe, to_grey
+from vbnav.vision.features import FeatureTracker, describe
 from vbnav.vision.geometry import CameraMount, Pose2
 from vbnav.vision.vbc import InverseHeightEstimator, levelled_bearings
 
@@ -53,7 +54,12 @@ class TeachStage(VisionStage):
         return StageOverlay(tracked=self.tracker.tracks.pts)
 
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
-        image = to_grey(frame.image)
+        image, why = stage_image(frame.image, self.camera)
+        if image is None:
+            # Another size or dtype: not ok, the tracks wait for the next usable frame.
+            return Estimate(frame.stamp_ns, self.kind, False, None,
+                            {"tracks": len(self.tracker.tracks), "keyframes": self._count,
+                             "distance": self._distance, "reason": f"teach: {why}"})
         t = self.tracker.track(image)
         return self.update(t.ids, t.pts, odom, frame.stamp_ns, image=image)
 

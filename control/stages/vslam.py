@@ -30,8 +30,9 @@ from typing import Optional
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.control.runtime.interfaces import Estimate, PoseFix, StageOverlay, VisionStage
+from vbnav.control.stages.frame_input import stage_image
 from vbnav.drivers.camera import Frame
-from vbnav.vision.features import describe, to_grey
+from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
 from vbnav.vision.motion import recover_motion_robust
 from vbnav.vision.motion import warm_up as warm_up_motion_kernels
@@ -167,7 +168,7 @@ class VslamStage(VisionStage):
 
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
-        image = to_grey(frame.image)
+        image, why = stage_image(frame.image, self.camera)
         if self.baseline is None and not self.monocular:
             b = (frame.meta or {}).get("baseline_m")
             if not b or b <= 0:
@@ -175,7 +176,11 @@ class VslamStage(VisionStage):
                                  "meta['baseline_m'] (set camera.options.stereo_baseline)")
             self.baseline = float(b)
             self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
-        right, depth, why = (None, None, "") if self.monocular else self._metric_input(frame)
+        right, depth = None, None
+        if why:
+            why = f"vslam: {why}"
+        elif not self.monocular:
+            right, depth, why = self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
         if self._last_odom is not None:
@@ -333,9 +338,13 @@ class VslamStage(VisionStage):
         disparity whenever that disparity arrives late (drivers/oak_camera.py), the first frame too; the
         frame is then not ok and the next one is tried."""
         if frame.right is not None:
-            return to_grey(frame.right), None, ""
+            right, why = stage_image(frame.right, self.camera, "right image")
+            return right, None, f"vslam: {why}" if why else ""
         if frame.disparity is not None:
             d = np.asarray(frame.disparity, np.float32)
+            if d.shape != (self.camera.height, self.camera.width):
+                return None, None, (f"vslam: the disparity image has shape {d.shape}, the camera calibration "
+                                    f"is for {self.camera.width}x{self.camera.height}")
             with np.errstate(divide="ignore", invalid="ignore"):
                 depth = np.where(d > 0, float(self.camera.fx) * self.baseline / d, np.nan)
             return None, depth, ""

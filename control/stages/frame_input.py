@@ -1,0 +1,42 @@
+"""Where a frame enters a feature-tracking stage (teach, repeat, VSLAM, line map): its image as the stage
+takes it (HxW grey uint8 of the configured camera's size), or why this frame cannot be used.
+
+A frame the stage cannot use is not a fault of the run: the stage returns an estimate that is not ok
+with the reason in ``info['reason']``, keeps its state from the last good frame and goes on with the
+next frame (a camera renegotiating its size after a reconnect delivers good frames again later).
+
+- Colour (HxWx3 BGR, HxWx4 BGRA, as the sim, V4L2 and replay drivers give with ``grey: false``) is made
+  grey the way the stages always did (``vision.features.to_grey``); HxWx1 is the grey plane.
+- Another size than the camera's: the intrinsics (and a route's keyframes) are for one size, so the
+  frame is refused naming both sizes; no resize, which would silently need another calibration.
+- Another dtype than uint8 (a 16-bit or float stream): refused naming the dtype. There is no clearly
+  right conversion (a 16-bit image may hold 10, 12 or 16 significant bits, a float one 0-1 or 0-255).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+from vbnav.vision.features import to_grey
+
+
+def stage_image(image: Optional[np.ndarray], camera, what: str = "image") -> tuple[Optional[np.ndarray], str]:
+    """(grey uint8 image, "") when ``image`` is usable with ``camera`` (its ``width`` x ``height``),
+    else (None, the reason). ``what`` names the image in the reason ("image", "right image")."""
+    if image is None:
+        return None, f"the frame has no {what}"
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        return None, f"the {what} is {image.dtype}, the stage takes 8-bit (uint8) images"
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = np.ascontiguousarray(image[:, :, 0])
+    elif image.ndim == 3 and image.shape[2] in (3, 4):
+        image = to_grey(image)
+    elif image.ndim != 2:
+        return None, (f"the {what} has shape {tuple(image.shape)}, the stage takes HxW grey or HxWx3 BGR "
+                      "images")
+    h, w = image.shape
+    if (w, h) != (int(camera.width), int(camera.height)):
+        return None, (f"the {what} is {w}x{h}, the camera calibration is for {int(camera.width)}x"
+                      f"{int(camera.height)}")
+    return image, ""
