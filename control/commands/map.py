@@ -124,6 +124,9 @@ def run_build(args) -> int:
     print(f"map build ended: {result.reason} ({result.message}); {stage.stats['frames']} frames, "
           f"{s['verified']} verified segments ({s['total_length_m']} m), {s['candidates']} candidates, "
           f"{len(meta['objects'])} objects -> {args.out}" + ("" if ended_well else " (the map up to the fault)"))
+    if stage.stats["unusable"]:
+        print(f"map build: {stage.stats['unusable']} frames not mapped, the last because {stage.unusable_reason}",
+              file=sys.stderr)
     if not ended_well:
         return 3 if result.reason in ("camera", "drive") else 1
     return 0 if stage.stats["frames"] > 0 else 1

@@ -133,9 +133,10 @@ class LineMapStage(VisionStage):
         self.floor = floor
         self._key = None              # (left segments, R_wc, t_wc) of the last keyframe
         self.lock = threading.Lock()
-        self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0}
+        self.stats = {"frames": 0, "hypotheses_in": 0, "update_ms": 0.0, "detect_ms": 0.0, "unusable": 0}
         self.frame_ms: deque = deque(maxlen=4096)  # detection + update of the recent frames, for summaries
         self.revision = 0             # counts the frames that changed the map
+        self.unusable_reason = ""     # why the last frame the stage could not use was refused
         self._scene: Optional[MapScene] = None
         self.abstraction = None
         if abstraction_period_s is not None:
@@ -174,10 +175,18 @@ class LineMapStage(VisionStage):
             self.abstraction.stop()
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
-        if frame.right is None:
-            raise ValueError("the line map needs a stereo pair: the camera delivers no right image")
         if self.abstraction is not None:
             self.abstraction.check()
+        why = self._unusable(frame)
+        if why:
+            # One frame without its right image (or of another size) is no fault of the run: not ok, the
+            # map is left as it is and the next frame goes on. A camera with no stereo baseline at all is
+            # refused when the stage is built (from_config).
+            self.stats["unusable"] += 1
+            self.unusable_reason = why
+            with self.lock:
+                summary = self.map.summary()
+            return Estimate(frame.stamp_ns, self.kind, False, summary, {"reason": f"line map: {why}"})
         fx, fy, cx, cy = self.cam
         W, H = self.size
         pose = self.pose_fn(odom)
@@ -217,6 +226,18 @@ class LineMapStage(VisionStage):
                         {"segments": len(res.left), "reconstructed": len(segs), "fused": st.fused,
                          "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
                          "predicted": len(pred)})
+
+    def _unusable(self, frame: Frame) -> str:
+        """Why the line map cannot use this frame ("" when it can): no right image, or an image of another size
+        than the camera's calibration (the segments would be triangulated with the wrong intrinsics)."""
+        if frame.right is None:
+            return "the frame has no right image (the line map needs a stereo pair)"
+        W, H = self.size
+        for what, image in (("image", frame.image), ("right image", frame.right)):
+            h, w = np.shape(image)[:2]
+            if (w, h) != (W, H):
+                return f"the {what} is {w}x{h}, the camera calibration is for {W}x{H}"
+        return ""
 
     def _drain_hypotheses(self) -> int:
         """Insert the hypotheses the slow loop posted; returns how many."""
