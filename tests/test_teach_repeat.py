@@ -183,6 +183,32 @@ def test_repeat_stops_after_blind_distance_when_fixes_stop_coming(scene):
     assert ctl.finished
 
 
+def test_fix_against_a_keyframe_without_heights_is_not_ok(scene):
+    """A keyframe whose landmarks have no height (taught from a blurred frame: its tracks died before
+    their heights were known; 181 of 189 in the audit) gives not-ok fixes, however many landmarks
+    agree: only landmarks with a height fix the translation. The same view against the keyframe
+    with its heights gives ok, accurate fixes."""
+    from dataclasses import replace
+    from vbnav.control.route import Route
+    pts, cfg, route, truth = scene
+    kf = route.keyframes[0]                                   # taught at the origin (odometry = truth)
+    keep = cfg.min_known_landmarks - 4                        # 8 keep a height, as in the audit
+    w = np.where(np.arange(len(kf)) < keep, kf.inv_height, np.nan)
+    var = np.where(np.arange(len(kf)) < keep, kf.inv_height_var, np.inf)
+    true = Pose2(0.05, -0.3, math.radians(3))                 # behind the keyframe: no switch, no finish
+    for stripped, want_ok in ((kf, True), (replace(kf, inv_height=w, inv_height_var=var), False)):
+        stage = RepeatStage(Route(None, "sim", "", CAM, MOUNT, True, [stripped]), cfg)
+        for i in range(3):
+            ids, px = observe(true, pts, np.random.default_rng(20 + i))
+            est = stage.localise(ids, px, Pose2(), i)
+            assert est.ok is want_ok, (want_ok, est.value.quality)
+            assert est.value.n_agree >= cfg.slow_landmarks       # they all agree: that is not enough
+            if want_ok:
+                assert abs(est.value.pose.x - true.x) < 0.03 and abs(est.value.pose.z - true.z) < 0.03
+            else:
+                assert est.value.quality["n_known"] <= keep
+
+
 def test_vbc_config_section_is_validated():
     from vbnav.control.config import ConfigError, parse_config
     assert parse_config({"vbc": {"cruise_speed": 0.2}}).vbc.cruise_speed == 0.2

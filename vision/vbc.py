@@ -77,6 +77,21 @@ _MIN_TAN = 1e-6
 UNKNOWN_RHO_VAR = 1.5 ** 2
 
 
+def known_range(beta: np.ndarray, inv_height: np.ndarray, inv_height_var: np.ndarray | None) -> np.ndarray:
+    """Landmarks whose range is known: a finite inverse height whose inverse-range variance
+    (var_w tan^2(beta), the variance the height estimator solves for) is below
+    ``UNKNOWN_RHO_VAR``, the variance ``estimate_pose`` gives a landmark without a height;
+    above it the estimate says less than no estimate. No variance given: every finite one."""
+    w = np.asarray(inv_height, dtype=np.float64).ravel()
+    known = np.isfinite(w)
+    if inv_height_var is None:
+        return known
+    t = np.tan(np.asarray(beta, dtype=np.float64).ravel())
+    with np.errstate(invalid="ignore"):
+        var_rho = np.asarray(inv_height_var, dtype=np.float64).ravel() * t * t
+    return known & np.isfinite(var_rho) & (var_rho < UNKNOWN_RHO_VAR)
+
+
 def levelled_bearings(rays: np.ndarray, mount: CameraMount) -> tuple[np.ndarray, np.ndarray]:
     """(alpha, beta) of camera-frame rays expressed in the levelled (robot-axis) frame."""
     n = np.asarray(rays, dtype=np.float64).reshape(-1, 3) @ mount.rotation().T
@@ -147,7 +162,9 @@ class VBCQuality:
     """How far to trust a VBC pose.
 
     n_landmarks: landmarks used; n_inliers: those whose error the pose explains
-    (robust normalised residual < 3); rms_residual: rad, over inliers;
+    (robust normalised residual < 3); n_known: those inliers whose range is known
+    (``known_range``), the only ones that fix the translation: a landmark without
+    one is taken as far away and informs the heading; rms_residual: rad, over inliers;
     condition: condition number of the (unit-scaled) normal matrix, large when
     the geometry does not constrain the pose; iterations, converged: Gauss-Newton.
     """
@@ -158,9 +175,10 @@ class VBCQuality:
     condition: float
     iterations: int
     converged: bool
+    n_known: int = 0
 
     def as_dict(self) -> dict:
-        return {"n_landmarks": self.n_landmarks, "n_inliers": self.n_inliers,
+        return {"n_landmarks": self.n_landmarks, "n_inliers": self.n_inliers, "n_known": self.n_known,
                 "rms_residual": self.rms_residual, "condition": self.condition,
                 "iterations": self.iterations, "converged": self.converged}
 
@@ -314,7 +332,8 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
         cov = np.full((3, 3), np.inf)
     n_in = int(inliers.sum())
     rms = float(np.sqrt(np.mean(np.concatenate([lin.ra[inliers], lin.rb[inliers]]) ** 2))) if n_in else math.inf
-    q = VBCQuality(n, n_in, rms, cond, it, converged)
+    n_known = int((inliers & known_range(b0, w, inv_height_var)).sum())
+    q = VBCQuality(n, n_in, rms, cond, it, converged, n_known)
     ok = converged and n_in >= min_landmarks and cond < 1e9
     return VBCResult(pose, cov, inliers, q, ok)
 

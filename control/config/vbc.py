@@ -27,6 +27,12 @@ class VBCConfig(Strict):
                                       "heading drifts ~1 deg/m), else the observed ones")
     # repeat
     min_landmarks: int = Field(12, ge=4, description="fewer agreeing landmarks: the fix is not trusted")
+    min_known_landmarks: int = Field(12, ge=2, description="fewer agreeing landmarks with a known height (finite "
+                                     "inverse height, its inverse-range variance below that of an unknown one): "
+                                     "the fix is not trusted. Only these fix the translation (one without a "
+                                     "height is taken as far away and informs the heading), so the count "
+                                     "min_landmarks asks of a fix is asked of them too; a keyframe taught from "
+                                     "a blurred frame has almost none")
     slow_landmarks: int = Field(30, ge=4, description="fewer agreeing landmarks: drive slower")
     reacquire_below: int = Field(40, ge=0, description="re-match descriptors when fewer keyframe landmarks are tracked")
     reacquire_every: int = Field(3, ge=1, description="frames between re-acquisition attempts while short, and "

@@ -220,7 +220,7 @@ class RepeatStage(VisionStage):
         if self._pose is not None:
             predicted = self._pose.compose(self._odom.between(odom))
         res, n_agree = self._fix(self.index, ids, pixels, predicted)
-        ok = res is not None and res.ok and n_agree >= self.cfg.min_landmarks
+        ok = self._trusted(res)
         pose = res.pose if ok else predicted
         if pose is not None:
             # Passing keyframe k (its z reached): continue against k+1 in k+1's frame.
@@ -231,7 +231,7 @@ class RepeatStage(VisionStage):
                 self._since_reacquire = 10 ** 9
                 pose = step.inverse().compose(pose)
                 res2, n2 = self._fix(self.index, ids, pixels, pose)
-                if res2 is not None and res2.ok and n2 >= self.cfg.min_landmarks:
+                if self._trusted(res2):
                     res, n_agree, pose, ok = res2, n2, res2.pose, True
                 else:
                     ok = False
@@ -243,6 +243,15 @@ class RepeatStage(VisionStage):
         fix = VBCFix(self.index, pose if pose is not None else Pose2(), odom, n_agree, quality, self.finished)
         return Estimate(stamp_ns, self.kind, bool(ok), fix, {"keyframe": self.index, "n_agree": n_agree,
                                                               "tracked": len(ids)})
+
+    def _trusted(self, res) -> bool:
+        """A fix is ok when it converged with ``min_landmarks`` agreeing landmarks, of which at least
+        ``min_known_landmarks`` have a known height: landmarks without one fix the heading but not
+        the translation, and a fix that rests on them (a keyframe taught from a blurred frame, whose
+        tracks died before their heights were known) can be metres off while all of them agree.
+        A fix that is not ok leaves the robot on odometry, under the controller's blind-distance rule."""
+        return (res is not None and res.ok and res.quality.n_inliers >= self.cfg.min_landmarks
+                and res.quality.n_known >= self.cfg.min_known_landmarks)
 
     def _fix(self, k: int, ids, pixels, initial: Optional[Pose2]):
         kf = self.kfs[k]
