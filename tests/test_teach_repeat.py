@@ -218,6 +218,33 @@ def test_vbc_config_section_is_validated():
         parse_config({"vbc": {"min_landmarks": 2}})
 
 
+def test_teach_sets_aside_one_frame_that_loses_most_tracks():
+    """A frame that keeps a third of the last frame's tracks (a blurred frame) starts no keyframe; a
+    keyframe due by distance on it comes one frame later. When the next frame has lost them too (all
+    tracks replaced: the scene changed), the keyframe starts there."""
+    def keyframes(glitch=None, change=None):
+        rng = np.random.default_rng(5)
+        pts = room_landmarks(rng)
+        stage = TeachStage(CAM, MOUNT, VBCConfig())
+        pose = Pose2()
+        for i in range(60):                               # 1.5 m straight, a frame every 2.5 cm
+            ids, px = observe(pose, pts, rng)
+            if change is not None and i >= change:
+                ids = ids + 100_000
+            if i == glitch:
+                ids, px = ids[::3], px[::3]
+            stage.update(ids, px, pose, i)
+            pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+        stage.finish()
+        return [kf.stamp_ns for kf in stage.pop_keyframes()], stage.suspect_frames
+
+    plain, none = keyframes()
+    assert plain == [0, 16, 32, 49, 59] and none == 0            # by distance (0.4 m = 16 frames), and the end
+    assert keyframes(glitch=20) == (plain, 1)                    # no keyframe on it, none after it
+    assert keyframes(glitch=16) == ([0, 17, 33, 50, 59], 1)      # the distance trigger, one frame late
+    assert keyframes(change=20) == ([0, 16, 21, 37, 54, 59], 1)  # the change is real: a keyframe at the next
+
+
 def test_keyframe_taken_at_the_last_frame_has_heights():
     """A keyframe triggered by the very last frame is emitted with its tracks' heights (else a repeat
     can never localise at the route's end)."""

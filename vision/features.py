@@ -266,6 +266,15 @@ class FeatureTracker:
         self.stats = {"tracked": len(self.tracks) - detected, "lost": lost, "detected": detected}
         return self.tracks
 
+    def snapshot(self) -> tuple:
+        """The tracks and the image they are in, for ``restore``."""
+        return self.tracks, self._prev_pyr
+
+    def restore(self, snapshot: tuple) -> None:
+        """Go back to a ``snapshot``: the next image is tracked from its image, as if the images
+        tracked since had not come (track ids issued since are not given out again)."""
+        self.tracks, self._prev_pyr = snapshot
+
     def track_points(self, image: np.ndarray, pts: np.ndarray, ids: np.ndarray) -> Tracks:
         """Replace the tracks by given points (e.g. re-acquired keyframe landmarks) in ``image``."""
         grey = to_grey(image)

@@ -6,6 +6,14 @@ features, estimates each landmark's inverse height from odometry, and emits
 A keyframe is emitted when the *next* one is started (or at ``finish()``), so its
 landmarks' heights already pool the motion after it. The runtime drains
 ``pop_keyframes()`` into a ``RouteWriter``.
+
+A frame that loses most tracks at once after a healthy one (motion blur, a flash, a
+corrupt frame) is set aside (``_suspect``): no keyframe starts on it, and the tracker
+goes back to the frame before, so the next frame is tracked from there. A keyframe
+started on a blurred frame had tracks that died at the next sharp frame, before their
+heights were known, and a repeat localised against it metres off. When the next frame
+loses them too, the scene did change, and that frame is taken as usual (a keyframe
+one frame later than without the check).
 """
 from __future__ import annotations
 
@@ -44,6 +52,9 @@ class TeachStage(VisionStage):
         self._distance = 0.0
         self._last_odom: Optional[Pose2] = None
         self._last_frame: Optional[tuple] = None
+        self._prev_ids: Optional[np.ndarray] = None     # tracks of the last frame taken
+        self._prev_suspect = False                      # the last frame was set aside
+        self.suspect_frames = 0
 
     @property
     def n_keyframes(self) -> int:
@@ -60,8 +71,14 @@ class TeachStage(VisionStage):
             return Estimate(frame.stamp_ns, self.kind, False, None,
                             {"tracks": len(self.tracker.tracks), "keyframes": self._count,
                              "distance": self._distance, "reason": f"teach: {why}"})
+        before = self.tracker.snapshot()
         t = self.tracker.track(image)
-        return self.update(t.ids, t.pts, odom, frame.stamp_ns, image=image)
+        est = self.update(t.ids, t.pts, odom, frame.stamp_ns, image=image)
+        if est.info.get("suspect"):
+            # Track the next frame from the last good one: if this was a blurred frame, most tracks
+            # (and their height fits) go on; if they are lost again, the scene changed.
+            self.tracker.restore(before)
+        return est
 
     def update(self, ids, pixels, odom: Pose2, stamp_ns: int = 0, image: np.ndarray | None = None,
                descriptors: np.ndarray | None = None) -> Estimate:
@@ -74,6 +91,13 @@ class TeachStage(VisionStage):
         if self._last_odom is not None:
             self._distance += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
         self._last_odom = odom
+        if self._suspect(ids):
+            # Not observed either: the heights estimator would forget every track missing here.
+            self._prev_suspect = True
+            self.suspect_frames += 1
+            info = {"tracks": len(ids), "keyframes": self._count, "distance": self._distance, "suspect": True}
+            return Estimate(stamp_ns, self.kind, True, None, info)
+        self._prev_ids, self._prev_suspect = ids, False
         alpha, beta = levelled_bearings(self.camera.rays(pixels), self.mount) if len(ids) else (np.zeros(0),) * 2
         self.heights.observe(ids, alpha, beta, odom)
         self._refresh_pending_heights()
@@ -105,6 +129,21 @@ class TeachStage(VisionStage):
         """Keyframes emitted since the last call, in order (for the RouteWriter)."""
         out, self._ready = self._ready, []
         return out
+
+    def _suspect(self, ids: np.ndarray) -> bool:
+        """This frame kept fewer than ``keyframe_min_overlap`` of the last frame's tracks, and that
+        frame was taken with at least ``min_keyframe_landmarks`` tracks.
+
+        That share is what the overlap trigger lets a keyframe lose over its whole span, where
+        tracks leave the view gradually (1-3 % a frame on the rendered routes); one frame that loses
+        it alone is an image event (blur, a flash, a corrupt frame) until the next frame confirms
+        it. Only one frame in a row is set aside (the one after it is always taken), so the
+        distance and rotation triggers are late by one frame at most.
+        """
+        prev = self._prev_ids
+        if prev is None or self._prev_suspect or len(prev) < self.cfg.min_keyframe_landmarks:
+            return False
+        return float(np.isin(prev, ids).mean()) < self.cfg.keyframe_min_overlap
 
     def _keyframe_due(self, ids: np.ndarray, odom: Pose2) -> bool:
         p = self._pending
