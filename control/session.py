@@ -26,16 +26,13 @@ from vbnav.control.route import Route, RouteWriter, check_route_camera
 from vbnav.control.runtime.factory import Robot
 from vbnav.control.runtime.finishing import finishing
 from vbnav.control.runtime.interfaces import Controller
-from vbnav.control.runtime.runtime import RunResult, Runtime
+from vbnav.control.runtime.runtime import ENDED_WELL, RunResult, Runtime
 from vbnav.control.stages.repeat import RepeatStage
 from vbnav.control.stages.teach import TeachStage
 
 TEACH_LOOP_SPEED = 0.4   # m/s of the scripted teacher (controller.teach: room_loop)
 
 
-# How a teach run may end and still be a route: driven to the end, the time given, or stopped by the
-# operator (Ctrl-C, a stop command). A fault (camera, drive, exception) ends it as an interrupted route.
-TEACH_ENDS_WELL = ("finished", "duration", "signal", "stopped")
 MIN_ROUTE_KEYFRAMES = 2          # a repeat steers from one keyframe towards the next
 
 
@@ -155,7 +152,7 @@ class Session:
         except BaseException:
             teaching.close(complete=False)
             raise
-        complete = teaching.close(complete=result.reason in TEACH_ENDS_WELL)
+        complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
         return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
                            result.timing, complete, teaching.writer.directory)
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.features import to_grey
 
 
 @dataclass(frozen=True)
@@ -113,10 +114,8 @@ def _matcher(p: SgbmParams):
 
 
 def _grey(img: np.ndarray, name: str) -> np.ndarray:
-    if img.ndim == 3 and img.shape[2] == 3:
-        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    if img.ndim == 3 and img.shape[2] == 4:          # BGRA, as some V4L2 cameras deliver
-        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    if img.ndim == 3 and img.shape[2] in (3, 4):     # BGR, or BGRA as some V4L2 cameras deliver
+        return to_grey(img)
     if img.ndim == 3 and img.shape[2] == 1:
         return img[:, :, 0]
     if img.ndim != 2:

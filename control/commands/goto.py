@@ -51,7 +51,7 @@ def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
-    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS, Runtime
     from vbnav.control.controllers.goto import GotoController
     from vbnav.control.stages.vslam import make_vslam_stage, stereo_baseline_of
     from vbnav.vision.geometry import Pose2
@@ -184,7 +184,7 @@ def run(args) -> int:
             print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130
-    if result.reason in ("drive", "camera"):     # a device failed or is not there
+    if result.reason in DEVICE_FAULTS:     # a device failed or is not there
         return 3
     return 0 if result.reason == "finished" else 1
 

@@ -75,7 +75,7 @@ def run_build(args) -> int:
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.commands._common import enable_live_view
-    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS, ENDED_WELL, Runtime
     from vbnav.control.stages.line_map import LineMapStage
 
     output_file(args.out, "--out")
@@ -120,7 +120,7 @@ def run_build(args) -> int:
             "objects": objects_meta(stage.abstraction.polygons)}
     save_map(stage.map, args.out, meta)     # also after a fault: what was mapped is kept, and said so
     s = stage.map.summary()
-    ended_well = result.ok or result.reason == "signal"      # driven to the end, or stopped by the operator
+    ended_well = result.reason in ENDED_WELL
     print(f"map build ended: {result.reason} ({result.message}); {stage.stats['frames']} frames, "
           f"{s['verified']} verified segments ({s['total_length_m']} m), {s['candidates']} candidates, "
           f"{len(meta['objects'])} objects -> {args.out}" + ("" if ended_well else " (the map up to the fault)"))
@@ -128,7 +128,7 @@ def run_build(args) -> int:
         print(f"map build: {stage.stats['unusable']} frames not mapped, the last because {stage.unusable_reason}",
               file=sys.stderr)
     if not ended_well:
-        return 3 if result.reason in ("camera", "drive") else 1
+        return 3 if result.reason in DEVICE_FAULTS else 1
     return 0 if stage.stats["frames"] > 0 else 1
 
 

@@ -27,6 +27,7 @@ def run(args) -> int:
     from vbnav.control.route import load_route
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS
     from vbnav.control.session import Session
 
     cfg = load_config(args.config)
@@ -49,6 +50,6 @@ def run(args) -> int:
     print("timing: " + result.timing.line())
     if result.reason == "signal":
         return 130
-    if result.reason in ("camera", "drive"):     # the hardware failed, not the patrol (vbnav's exit codes)
+    if result.reason in DEVICE_FAULTS:     # the hardware failed, not the patrol (vbnav's exit codes)
         return 3
     return 0 if result.reason == "finished" else 1

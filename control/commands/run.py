@@ -67,7 +67,7 @@ def run(args) -> int:
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.finishing import finishing
     from vbnav.control.runtime.progress import EventEcho, ProgressPrinter
-    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS, Runtime
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
     output_file(args.record, "--record")
@@ -139,6 +139,6 @@ def run(args) -> int:
                 print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130
-    if result.reason in ("drive", "camera"):     # a device failed or is not there
+    if result.reason in DEVICE_FAULTS:     # a device failed or is not there
         return 3
     return 0 if result.ok and link.recording_error is None else 1     # a --record asked for and not made

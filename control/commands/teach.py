@@ -32,6 +32,7 @@ def run(args) -> int:
     from vbnav.control.route import stray_route_dirs
     from vbnav.control.runtime.factory import make_robot, uses_sim_clock
     from vbnav.control.runtime.progress import ProgressPrinter
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS
     from vbnav.control.session import Session, teach_driver
 
     cfg = load_config(args.config)
@@ -68,4 +69,4 @@ def run(args) -> int:
              f"{out} holds {result.keyframes} keyframes, marked incomplete (teach again with --overwrite to "
              "replace it)")
     print(f"teach ended: {result.reason} ({result.message}); not a complete route: {where}")
-    return 3 if result.reason in ("camera", "drive") else 1
+    return 3 if result.reason in DEVICE_FAULTS else 1

@@ -117,6 +117,13 @@ def _restore_affinity(old: dict) -> None:
             pass
 
 
+#: How a run may end and what it made (a route, a map) still be whole: its plan done, its time up, or
+#: stopped by the operator (a stop command, Ctrl-C).
+ENDED_WELL = ("finished", "duration", "stopped", "signal")
+#: Ends that are a device's failure, not the job's (the commands' exit code 3).
+DEVICE_FAULTS = ("drive", "camera")
+
+
 @dataclass
 class RunResult:
     reason: str                       # "finished", "duration", "stopped", or a fatal cause

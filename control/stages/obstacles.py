@@ -288,6 +288,11 @@ class ObstacleStage(VisionStage):
             return cls(None, c.mount.to_mount(), ocfg, keep_labels, camera=camera)
         return cls(StereoRig(camera, float(baseline)), c.mount.to_mount(), ocfg, keep_labels)
 
+    def _blind(self, frame: Frame, why: str) -> Estimate:
+        """A frame on which the zones cannot be judged: not ok, stop (and the release debounce after it)."""
+        self.monitor.blind(why)
+        return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
+
     def disparity(self, frame: Frame) -> Optional[np.ndarray]:
         src = self.cfg.source
         if src in ("auto", "disparity") and frame.disparity is not None:
@@ -314,23 +319,17 @@ class ObstacleStage(VisionStage):
         disp = self.disparity(frame)
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
-            why = "obstacles: frame has no disparity and no right image"
-            self.monitor.blind(why)
-            return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
+            return self._blind(frame, "obstacles: frame has no disparity and no right image")
         if disp.shape != (self.rig.height, self.rig.width):
             # The zones are laid out for the configured size: a frame of another one cannot be judged.
-            why = (f"obstacles: blind: the disparity is {disp.shape[1]}x{disp.shape[0]}, the camera config "
-                   f"says {self.rig.width}x{self.rig.height}")
-            self.monitor.blind(why)
-            return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
+            return self._blind(frame, f"obstacles: blind: the disparity is {disp.shape[1]}x{disp.shape[0]}, the "
+                                      f"camera config says {self.rig.width}x{self.rig.height}")
         seen = seen_fraction(disp, self.watched)
         if seen < MIN_SEEN_FRACTION:
             # A covered lens, darkness or a blank view gives no disparity where the zones are: nothing
             # there can be found, so nothing there can be called clear.
-            why = (f"obstacles: blind: {seen:.0%} of the stop zones' floor has a disparity (needs "
-                   f"{MIN_SEEN_FRACTION:.0%}): covered lens, darkness or no texture")
-            self.monitor.blind(why)
-            return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
+            return self._blind(frame, f"obstacles: blind: {seen:.0%} of the stop zones' floor has a disparity "
+                                      f"(needs {MIN_SEEN_FRACTION:.0%}): covered lens, darkness or no texture")
         scene = detect_obstacles(disp, self.rig, self.prior, self.fit_params, self.params, self.ground)
         pts = to_robot_frame(scene.obstacle_points, self.mount)
         neg = to_robot_frame(scene.negative_points, self.mount)
