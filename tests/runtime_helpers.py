@@ -40,15 +40,21 @@ class RecordingDrive(SimDiffDrive):
 
 
 class TickCamera(Camera):
-    """A camera on a clock that delivers a small textured frame at ``rate_hz`` until ``stop_at_ns``."""
+    """A camera on a clock that delivers a small textured frame at ``rate_hz`` until ``stop_at_ns``.
+
+    Like a live sensor, one pixel differs from frame to frame (read noise); from ``freeze_at_ns`` until
+    ``thaw_at_ns`` the frames keep coming with the image they froze on (a frozen camera)."""
 
     name = "tick"
 
-    def __init__(self, clock, rate_hz=15.0, stop_at_ns=None, resume_at_ns=None):
+    def __init__(self, clock, rate_hz=15.0, stop_at_ns=None, resume_at_ns=None, freeze_at_ns=None,
+                 thaw_at_ns=None):
         self.clock = clock
         self.period = int(1e9 / rate_hz)
         self.stop_at_ns = stop_at_ns
         self.resume_at_ns = resume_at_ns
+        self.freeze_at_ns = freeze_at_ns
+        self.thaw_at_ns = thaw_at_ns
         self._next = None
         self._seq = 0
         self._connected = False
@@ -76,6 +82,11 @@ class TickCamera(Camera):
         if silent:
             return None
         self._seq += 1
+        frozen = self.freeze_at_ns is not None and due >= self.freeze_at_ns and (
+            self.thaw_at_ns is None or due < self.thaw_at_ns)
+        if not frozen:
+            self._img = self._img.copy()
+            self._img[0, 0] = self._seq % 256
         return Frame(self._img, due, self._seq)
 
 

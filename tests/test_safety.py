@@ -51,6 +51,48 @@ def test_stale_camera_stops_and_recovers():
     assert any(t > resume_at and p and l > 0 for t, l, r, p in drive.log)
 
 
+def test_frozen_camera_stops_and_recovers():
+    """Frames that keep coming on time with the image they froze on (a driver re-queuing its last buffer)
+    stop the robot like no frames at all: held 'camera_stale' once the image has not changed for
+    camera.stale_after_s while the wheels moved, released on the first new image."""
+    freeze_at = T0 + 2_000_000_000
+    thaw_at = T0 + 4_000_000_000
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 6.0]]),
+                                    cam_kw={"freeze_at_ns": freeze_at, "thaw_at_ns": thaw_at})
+    result = rt.run()
+    assert result.reason == "finished"
+    holds = [e for e in result.events if e.kind == "hold" and e.cause == "camera_stale"]
+    assert len(holds) == 1 and "frozen" in holds[0].message, holds
+    trigger = holds[0].stamp_ns
+    # The last new image came at most one camera period before freeze_at. The same image counts as
+    # fresh (a still scene) until the wheels have moved 2 cm since it: 67 ms at 0.3 m/s, then the next
+    # frame; the stop comes camera.stale_after_s after the last fresh frame.
+    limit_ns = int(rt.cfg.camera.stale_after_s * 1e9)
+    camera_ns = int(1e9 / 15)
+    travel_ns = int(0.02 / 0.3 * 1e9)
+    assert freeze_at - camera_ns + limit_ns < trigger <= freeze_at + travel_ns + camera_ns + limit_ns + PERIOD_NS
+    assert any(trigger - 5 * PERIOD_NS < t < trigger and p and l > 0 for t, l, r, p in drive.log)   # was moving
+    assert not [t for t, l, r, p in drive.log if p and l != 0 and trigger + 2 * PERIOD_NS <= t < thaw_at]
+    releases = [e for e in result.events if e.kind == "release" and e.cause == "camera_stale"]
+    release_ns = int(rt.safety.release_s * 1e9)             # like the stale camera's: clear this long
+    assert len(releases) == 1
+    assert thaw_at + release_ns <= releases[0].stamp_ns <= thaw_at + camera_ns + release_ns + PERIOD_NS
+    assert any(t > thaw_at and p and l > 0 for t, l, r, p in drive.log)
+
+
+def test_a_still_scene_is_not_a_frozen_camera():
+    """A noise-free camera in front of a still scene gives the same image while the robot stands still:
+    no stop. Once the wheels turn, the same image is frozen."""
+    rt, drive, clock = make_runtime(ScriptedController([[0.0, 0.0, 2.0], [0.0, 0.2, 1.0]]),
+                                    cam_kw={"freeze_at_ns": T0})
+    result = rt.run()
+    holds = [e for e in result.events if e.kind == "hold" and e.cause == "camera_stale"]
+    assert len(holds) == 1 and "frozen" in holds[0].message, holds
+    # Turning at 0.2 rad/s from 2 s: 5 mrad after 25 ms, then camera.stale_after_s from the last new
+    # image (the first frame, at T0).
+    assert holds[0].stamp_ns > T0 + 2_000_000_000
+
+
 def test_stale_estimate_stops_and_recovers():
     """A controller's estimate (here 'vslam') that stops coming while frames still do: held '<kind>_stale'
     once it is older than safety.estimate_timeout_s, released when estimates return."""

@@ -80,7 +80,9 @@ class CameraConfig(Strict):
                           "height is an error). A relative path is taken from the config file's folder")
     rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz (the replay camera plays at the "
                                                              "recorded times or its options.rate_hz instead)")
-    stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop")
+    stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
+                                                        "is an image that has not changed for this long "
+                                                        "while the wheels moved (a frozen camera)")
     mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
 

@@ -12,6 +12,10 @@ in the loop's ``OdometryHistory``, not the newest pose: a frame processed 60 ms 
 its exposure while turning would otherwise pair its image with where the robot is
 now. Without a history (a pipeline driven by hand) the newest pose stands in.
 
+Each frame is also checked for a frozen camera (``frozen_image``): ``last_fresh_stamp`` is the stamp of
+the last frame that showed a new image (or the same one while the robot stood still), and the loop's
+stale-camera check counts from it.
+
 A stage exception is captured as ``fault`` (the loop turns it into a safety
 trip); the pipeline never raises into the loop.
 """
@@ -23,6 +27,7 @@ import traceback
 from collections import deque
 from typing import Callable, Optional
 
+from vbnav.control.runtime.frozen_image import FrozenImageWatch
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.control.runtime.odometry import OdometryHistory
 from vbnav.drivers.camera import Camera, Frame
@@ -39,6 +44,8 @@ class VisionPipeline:
         self.latency_ns = int(latency_s * 1e9)
         self.latest: dict[str, Estimate] = {}
         self.last_frame: Optional[Frame] = None
+        self.last_fresh_stamp: Optional[int] = None   # of the last frame that was not frozen
+        self.frozen = FrozenImageWatch()
         self.frames = 0
         self.fault: Optional[str] = None
         self.fault_traceback: Optional[str] = None   # of a stage exception (None for a camera fault)
@@ -81,10 +88,11 @@ class VisionPipeline:
             return
         frame = self.camera.read(0.0)
         if frame is not None:
-            self._pending.append((frame.stamp_ns + self.latency_ns, frame, self._process(frame)))
+            fresh, results = self._process(frame)
+            self._pending.append((frame.stamp_ns + self.latency_ns, frame, fresh, results))
         while self._pending and self._pending[0][0] <= now_ns:
-            _, frame, results = self._pending.popleft()
-            self._publish(frame, results)
+            _, frame, fresh, results = self._pending.popleft()
+            self._publish(frame, fresh, results)
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -96,16 +104,18 @@ class VisionPipeline:
             if frame is None:
                 time.sleep(0.001)
                 continue
-            results = self._process(frame)
-            self._publish(frame, results)
+            fresh, results = self._process(frame)
+            self._publish(frame, fresh, results)
 
     def odometry_at(self, stamp_ns: int) -> Pose2:
         """The wheel odometry at ``stamp_ns`` (interpolated in the loop's history), else the newest pose."""
         pose = self.history.at(stamp_ns) if self.history is not None else None
         return self.odom if pose is None else pose
 
-    def _process(self, frame: Frame) -> dict:
+    def _process(self, frame: Frame) -> tuple[bool, dict]:
+        """(whether the frame is fresh, the stages' estimates)."""
         odom = self.odometry_at(frame.stamp_ns)
+        fresh = self.frozen.fresh(frame.image, odom)
         out = {}
         t0 = time.perf_counter()
         for stage in self.stages:
@@ -118,11 +128,13 @@ class VisionPipeline:
             if est is not None:
                 out[stage.kind] = est
         self.process_ms.append((time.perf_counter() - t0) * 1e3)
-        return out
+        return fresh, out
 
-    def _publish(self, frame: Frame, results: dict) -> None:
+    def _publish(self, frame: Frame, fresh: bool, results: dict) -> None:
         self.latest.update(results)
         self.last_frame = frame
+        if fresh:
+            self.last_fresh_stamp = frame.stamp_ns
         self.frames += 1
         for fn in self.frame_listeners:
             try:

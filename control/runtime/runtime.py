@@ -402,14 +402,20 @@ class Runtime:
         if cam is None:
             return
         limit = self.cfg.camera.stale_after_s
-        stamp = self.pipeline.last_frame_stamp
+        # From the last fresh frame: a frozen camera's frames come on time with the image it froze on.
+        stamp = self.pipeline.last_fresh_stamp
         if stamp is None:  # grace period at start-up: the camera may take a moment
             stale = now - self._start_ns > (limit + 2.0) * 1e9
             age = (now - self._start_ns) * 1e-9
         else:
             age = (now - stamp) * 1e-9
             stale = age > limit
-        self.safety.hold(now, "camera_stale", stale, f"last frame {age:.2f} s old (limit {limit:g} s)")
+        if self.pipeline.frozen.frozen:
+            why = (f"camera frozen: the same image for {age:.2f} s while the wheels moved "
+                   f"(limit {limit:g} s, camera.stale_after_s)")
+        else:
+            why = f"last frame {age:.2f} s old (limit {limit:g} s)"
+        self.safety.hold(now, "camera_stale", stale, why)
 
     def _apply_speed_scales(self, now: int, estimates: dict) -> None:
         """Estimates may carry ``info['speed_scale']`` in [0, 1] (obstacle zones): the smallest applies,

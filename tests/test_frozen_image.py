@@ -1,0 +1,54 @@
+"""FrozenImageWatch: the same image while the wheels move is frozen; a still scene, or a driver that
+refills one buffer, is not."""
+import numpy as np
+
+from vbnav.control.runtime.frozen_image import MIN_TRAVEL_M, MIN_TURN_RAD, FrozenImageWatch
+from vbnav.vision.geometry import Pose2
+
+
+def image(seed):
+    return np.random.default_rng(seed).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+
+
+def test_same_image_is_fresh_until_the_robot_moves():
+    w = FrozenImageWatch()
+    img = image(0)
+    assert w.fresh(img, Pose2())
+    assert w.fresh(img.copy(), Pose2(0.0, 0.5 * MIN_TRAVEL_M, 0.5 * MIN_TURN_RAD))   # still, or nearly
+    assert not w.frozen
+    assert not w.fresh(img.copy(), Pose2(0.0, MIN_TRAVEL_M * 1.01, 0.0))              # drove 2 cm
+    assert w.frozen
+    assert w.fresh(image(1), Pose2(0.0, 0.1, 0.0))                                    # a new image
+    assert not w.frozen
+
+
+def test_a_turn_on_the_spot_freezes_it():
+    w = FrozenImageWatch()
+    img = image(0)
+    assert w.fresh(img, Pose2(1.0, 2.0, 3.0))
+    assert not w.fresh(img, Pose2(1.0, 2.0, 3.0 + 1.01 * MIN_TURN_RAD))
+    # Travel counts from where the image last changed, not from the previous frame.
+    w = FrozenImageWatch()
+    assert w.fresh(img, Pose2())
+    for k in range(1, 10):
+        fresh = w.fresh(img, Pose2(0.0, k * 0.3 * MIN_TRAVEL_M, 0.0))
+        assert fresh == (k * 0.3 < 1.0), k
+
+
+def test_a_driver_that_refills_one_buffer():
+    """Comparing the new frame with a kept reference to the same buffer would call every frame frozen."""
+    w = FrozenImageWatch()
+    buf = image(0)
+    assert w.fresh(buf, Pose2())
+    for k in range(1, 5):
+        buf[...] = image(k)
+        assert w.fresh(buf, Pose2(0.0, 0.1 * k, 0.0)), k
+    assert not w.fresh(buf, Pose2(0.0, 1.0, 0.0))           # not refilled: frozen
+
+
+def test_size_or_type_change_is_a_new_image():
+    w = FrozenImageWatch()
+    assert w.fresh(np.zeros((4, 4), np.uint8), Pose2())
+    assert w.fresh(np.zeros((4, 5), np.uint8), Pose2(0.0, 1.0, 0.0))
+    assert w.fresh(np.zeros((4, 5), np.uint16), Pose2(0.0, 2.0, 0.0))
+    assert not w.fresh(np.zeros((4, 5), np.uint16), Pose2(0.0, 3.0, 0.0))
