@@ -7,9 +7,9 @@ every taught inverse height gets its scale from it), then RepeatStage.process on
 from the first frame and starting 1-3 frames further along the route. The mounting pitch is the
 camera's tilt against its direction of travel (1.22 deg, kitti_util.mount_pitch_from_travel).
 
-Bars (measured on 2026-11-30 with this code, shifts 0-3; the issue asks <= 20 mm and 0.3 deg):
-- median lateral error 7.6-9.6 mm (p95 40-172 mm: the first keyframes have few near landmarks);
-  bar 18 mm, about 2x the worst shift. Expected scale: 1 px at f = 707 is 1.4 mrad; landmarks at
+Bars (measured on 2026-11-30, shifts 0-3; the issue asks <= 20 mm and 0.3 deg):
+- median lateral error 7.6-9.6 mm then, 12.6-15.5 mm re-measured on 2026-12-01 (p95 47-172 mm: the
+  first keyframes have few near landmarks); bar 18 mm, about 2x the worst shift then. Expected scale: 1 px at f = 707 is 1.4 mrad; landmarks at
   ~10 m carry the lateral offset, so one match is worth ~14 mm and ~100 of them a few mm; taught
   inverse heights good to ~5-10 % each add little once averaged.
 - median heading error 0.032-0.039 deg, bar 0.08 deg (2x); p95 0.13-0.25 deg, bar 0.5 deg (2x).

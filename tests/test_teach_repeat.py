@@ -209,6 +209,49 @@ def test_fix_against_a_keyframe_without_heights_is_not_ok(scene):
                 assert est.value.quality["n_known"] <= keep
 
 
+def test_a_fix_that_odometry_cannot_explain_is_not_trusted(scene):
+    """After a trusted fix, a fix farther from where odometry carries it than vbc.fix_gate_m (plus
+    fix_gate_fraction of the distance driven since) is not ok and says why, however many landmarks
+    agree; the keyframe does not change on it. The same view with odometry that moved alike is ok."""
+    pts, cfg, route, truth = scene
+    start = Pose2(0.05, -0.3, 0.0)
+    for odom_moves, want_ok in ((False, False), (True, True)):
+        stage = RepeatStage(route, cfg)
+        for i in range(3):
+            ids, px = observe(start, pts, np.random.default_rng(30 + i))
+            assert stage.localise(ids, px, Pose2(), i).ok
+        # The view 0.5 m to the side (a kidnapped robot, or a fix converged somewhere wrong).
+        moved = Pose2(0.5, 0.0, 0.0)
+        ids, px = observe(start.compose(moved), pts, np.random.default_rng(40))
+        est = stage.localise(ids, px, moved if odom_moves else Pose2(), 3)
+        assert est.ok is want_ok, est.info
+        assert est.value.n_agree >= cfg.slow_landmarks               # the landmarks agree all the same
+        if want_ok:
+            assert abs(est.value.pose.x - 0.55) < 0.03
+        else:
+            assert "vbc.fix_gate_m" in est.info["reason"] and "gate 0.15 m" in est.info["reason"], est.info
+            assert abs(est.value.pose.x - 0.05) < 0.03 and est.value.keyframe == 0   # odometry's pose
+            assert stage.stats["gated"] >= 1          # (and the look-ahead to keyframe 1, alike)
+
+
+def test_repeat_skips_a_keyframe_whose_landmarks_cannot_be_found(scene):
+    """A keyframe none of whose landmarks are found again (taught from a blurred frame: its image and
+    descriptors match nothing sharp) gave no fix; the robot stopped after blind_distance_m (0.3 m),
+    short of the keyframe (0.4 m on), and stayed there. The keyframe after it, where odometry expects
+    it, now takes over."""
+    from dataclasses import replace
+    from vbnav.control.route import Route
+    pts, cfg, route, truth = scene
+    kfs = list(route.keyframes)
+    kfs[2] = replace(kfs[2], track_ids=kfs[2].track_ids + 10 ** 6)    # ids that are never observed
+    broken = Route(None, "sim", "now", CAM, MOUNT, True, kfs)
+    ctl, stage, trace = repeat(np.random.default_rng(5), pts, broken, cfg, Pose2(), max_time=40.0)
+    print(f"unfindable keyframe 2: finished {ctl.finished}, {stage.stats}")
+    assert ctl.finished, trace[-1][4]
+    assert stage.stats["skipped"] >= 1
+    assert max(lateral_error(truth, p) for _, p, _, _, _ in trace) < 0.05
+
+
 def test_vbc_config_section_is_validated():
     from vbnav.control.config import ConfigError, parse_config
     assert parse_config({"vbc": {"cruise_speed": 0.2}}).vbc.cruise_speed == 0.2

@@ -40,6 +40,17 @@ class VBCConfig(Strict):
     guided_fraction: float = Field(0.6, ge=0, le=1, description="pull in keyframe landmarks by predicted KLT "
                                    "when fewer than this share are tracked")
     guided_radius_px: float = Field(25.0, gt=0, description="max distance of a guided match from its prediction")
+    fix_gate_m: float = Field(0.15, gt=0, description="a fix farther than this (plus fix_gate_fraction of the "
+                              "distance driven since the last trusted fix) from where odometry carries the "
+                              "pose of the frame before is not trusted, m (RepeatStage._accept): 5x the "
+                              "largest such jump of a trusted fix measured on the simulated repeats, 3.2 cm")
+    fix_gate_deg: float = Field(3.0, gt=0, description="... or turned more than this (plus fix_gate_fraction of "
+                                "the turn since the last trusted fix) from it, deg: 12x the largest measured "
+                                "(0.24 deg, kitti06 real-image repeat)")
+    fix_gate_fraction: float = Field(0.25, ge=0, description="share of the distance and turn on odometry since "
+                                     "the last trusted fix added to the gates: 2x the largest measured (13 %: "
+                                     "kitti06, 1.2 m a frame), and above wheel odometry's error (scale and "
+                                     "heading a few per cent)")
     pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
     cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s (at most robot.max_linear_speed)")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")

@@ -6,6 +6,8 @@ when too few remain, e.g. after an occlusion or a jump; guided association, i.e.
 KLT from the keyframe image started at the pixels the current fix predicts, after
 each keyframe switch), computes the VBC pose relative to that keyframe and
 advances when the robot passes it. Returns ``Estimate(kind="vbc", value=VBCFix)``.
+A fix is trusted only where odometry since the frame before can explain it (``_accept``);
+a keyframe that gives no fix is skipped when the next one gives one there.
 
 Frames: a fix's pose is the robot relative to keyframe k. The path the
 controller follows is the polyline of the keyframes' taught odometry poses;
@@ -14,6 +16,7 @@ geometry around keyframe k matters, never the accumulated odometry drift.
 """
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import cv2
@@ -67,7 +70,11 @@ class RepeatStage(VisionStage):
         self._since_reacquire = 10 ** 9
         self._started = False
         self._since_guided = 10 ** 9
-        self.stats = {"reacquired": 0, "guided": 0, "switches": 0}
+        self._trusted_odom: Optional[Pose2] = None   # odometry at the last trusted fix
+        self._frame_start: Optional[tuple] = None        # the state before this frame (``_state``)
+        self._last_ok = True
+        self.stats = {"reacquired": 0, "guided": 0, "switches": 0, "skipped": 0, "gated": 0,
+                      "largest_jump_m": 0.0}
 
     def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
         """The tracked features, the matched keyframe's features tracked now (at their keyframe
@@ -94,8 +101,15 @@ class RepeatStage(VisionStage):
         tracked = int(np.isin(self.tracker.tracks.ids, kf.track_ids).sum())
         if tracked < self.cfg.reacquire_below and self._since_reacquire >= self.cfg.reacquire_every:
             self._reacquire(image)
+            if not self._last_ok and self.index + 1 < len(self.kfs):
+                # No fix from this keyframe: its landmarks may be unfindable (a keyframe taught from a
+                # blurred frame); the next one's let localise skip it.
+                self._reacquire(image, self.index + 1)
         t = self.tracker.tracks
         index = self.index
+        # A frame may be fixed again after more matches (``_relocalise``): every fix of it is gated
+        # against the prediction from the frame before, not against a weaker fix of the same frame.
+        self._frame_start = self._state()
         est = self.localise(t.ids, t.pts, odom, frame.stamp_ns)
         if est.ok and self.index != index:
             est = self._after_switch(image, est, odom, frame.stamp_ns)
@@ -106,6 +120,8 @@ class RepeatStage(VisionStage):
         if est.ok and tracked < self.cfg.guided_fraction * len(kf) and self._since_guided >= self.cfg.reacquire_every:
             self._guided(image, est.value.pose)
         self._prune()
+        self._last_ok = est.ok
+        self._frame_start = None
         return est
 
     def _unusable(self, frame: Frame, odom: Pose2, why: str) -> Estimate:
@@ -193,10 +209,11 @@ class RepeatStage(VisionStage):
         if not keep.all():
             self.tracker.tracks = self.tracker.tracks.subset(keep)
 
-    def _reacquire(self, image: np.ndarray) -> int:
-        """Match ORB descriptors of fresh corners against the keyframe; seed tracks for the matches."""
+    def _reacquire(self, image: np.ndarray, k: Optional[int] = None) -> int:
+        """Match ORB descriptors of fresh corners against keyframe ``k`` (the current one); seed tracks
+        for the matches."""
         self._since_reacquire = 0
-        kf = self.kfs[self.index]
+        kf = self.kfs[self.index if k is None else k]
         if len(kf) < 8:
             return 0
         pts, desc = detect_and_describe(image, self.cfg.reacquire_features)
@@ -219,8 +236,19 @@ class RepeatStage(VisionStage):
         predicted = None
         if self._pose is not None:
             predicted = self._pose.compose(self._odom.between(odom))
+        start = self._frame_start or self._state()
         res, n_agree = self._fix(self.index, ids, pixels, predicted)
-        ok = self._trusted(res)
+        ok, why = self._accept(res, self.index, odom, start)
+        if not ok and predicted is not None and self._trusted_odom is not None and self.index + 1 < len(self.kfs):
+            # Skip a keyframe that gives no fix when the next one does where odometry expects it.
+            step = self.kfs[self.index].odom.between(self.kfs[self.index + 1].odom)
+            ahead = step.inverse().compose(predicted)
+            res2, n2 = self._fix(self.index + 1, ids, pixels, ahead)
+            if self._accept(res2, self.index + 1, odom, start)[0]:
+                self.index += 1
+                self.stats["skipped"] += 1
+                self._since_reacquire = 10 ** 9
+                res, n_agree, ok, why, predicted = res2, n2, True, "", ahead
         pose = res.pose if ok else predicted
         if pose is not None:
             # Passing keyframe k (its z reached): continue against k+1 in k+1's frame.
@@ -231,18 +259,64 @@ class RepeatStage(VisionStage):
                 self._since_reacquire = 10 ** 9
                 pose = step.inverse().compose(pose)
                 res2, n2 = self._fix(self.index, ids, pixels, pose)
-                if self._trusted(res2):
-                    res, n_agree, pose, ok = res2, n2, res2.pose, True
+                ok2, why2 = self._accept(res2, self.index, odom, start)
+                if ok2:
+                    res, n_agree, pose, ok, why = res2, n2, res2.pose, True, ""
                 else:
-                    ok = False
+                    ok, why = False, why2
                     n_agree = n2
             if self.index == len(self.kfs) - 1 and pose.z >= -self.cfg.goal_tolerance_m:
                 self.finished = True
             self._pose, self._odom = pose, odom
+            if ok:
+                self._trusted_odom = odom
         quality = res.quality.as_dict() if res is not None else {}
         fix = VBCFix(self.index, pose if pose is not None else Pose2(), odom, n_agree, quality, self.finished)
-        return Estimate(stamp_ns, self.kind, bool(ok), fix, {"keyframe": self.index, "n_agree": n_agree,
-                                                              "tracked": len(ids)})
+        info = {"keyframe": self.index, "n_agree": n_agree, "tracked": len(ids)}
+        if why:
+            info["reason"] = why
+        return Estimate(stamp_ns, self.kind, bool(ok), fix, info)
+
+    def _state(self) -> tuple:
+        """(pose, its keyframe, odometry at it, odometry at the last trusted fix)."""
+        return self._pose, self.index, self._odom, self._trusted_odom
+
+    def _accept(self, res, k: int, odom: Pose2, start: tuple) -> tuple[bool, str]:
+        """Whether to trust fix ``res`` (``_trusted``) against keyframe ``k``, and why not: odometry
+        carries the pose before this frame (``start``: ``_state()`` then) to ``predicted`` (in ``k``'s
+        frame).
+
+        A fix is compared with that prediction (an innovation gate): it may differ by what the fix's
+        own noise and the odometry since the last trusted fix can explain, ``fix_gate_m`` plus
+        ``fix_gate_fraction`` of the distance driven since (``fix_gate_deg`` plus that share of the
+        turn). A fix outside the gate is not trusted, however many landmarks agree: a keyframe with
+        few findable landmarks can converge far away with all of them called inliers (the robust
+        scale grows with the residuals), the same wrong pose frame after frame, and the keyframe
+        switches that followed such a jump left the robot 21 m off on a keyframe it never reached.
+        Only the first fix has no prediction. Were it wrong, the right ones would fall outside the
+        gate and the controller stops after ``blind_distance_m``, saying why: a stop, where taking
+        fixes that disagree with odometry could drive the robot anywhere.
+        """
+        if not self._trusted(res):
+            return False, ""
+        pose, at, pose_odom, trusted_odom = start
+        if pose is None or trusted_odom is None:
+            return True, ""
+        step = self.kfs[at].odom.between(self.kfs[k].odom)
+        predicted = step.inverse().compose(pose.compose(pose_odom.between(odom)))
+        gap = predicted.between(res.pose)
+        jump, turn = math.hypot(gap.x, gap.z), abs(gap.theta)
+        moved = trusted_odom.between(odom)
+        share = self.cfg.fix_gate_fraction
+        gate_m = self.cfg.fix_gate_m + share * math.hypot(moved.x, moved.z)
+        gate_rad = math.radians(self.cfg.fix_gate_deg) + share * abs(moved.theta)
+        if jump <= gate_m and turn <= gate_rad:
+            self.stats["largest_jump_m"] = max(self.stats["largest_jump_m"], jump)
+            return True, ""
+        self.stats["gated"] += 1
+        return False, (f"repeat: fix {jump:.2f} m / {math.degrees(turn):.1f} deg from where odometry puts "
+                       f"the robot (gate {gate_m:.2f} m / {math.degrees(gate_rad):.1f} deg: vbc.fix_gate_m, "
+                       f"fix_gate_fraction, fix_gate_deg)")
 
     def _trusted(self, res) -> bool:
         """A fix is ok when it converged with ``min_landmarks`` agreeing landmarks, of which at least
