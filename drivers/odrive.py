@@ -178,7 +178,11 @@ class ODriveDrive(SerialWheelDrive):
             raise DriveError(f"ODrive {self.opt.port} during setup: {exc}") from exc
 
     def _activate(self) -> None:
-        self._io(self._arm)
+        try:
+            self._io(self._arm)
+        except _Corrupt as exc:   # a garbled answer to current_state: not known to be armed, so not enabled
+            self._record_fault(DriveFault(FaultKind.CORRUPT_REPLY, self.opt.port, f"while arming: {exc}"))
+            raise DriveError(f"ODrive {self.opt.port} while arming: {exc}") from exc
 
     def _arm(self) -> None:
         for ax in self.axes:

@@ -160,7 +160,8 @@ class WheelDrive(abc.ABC):
             self._require("enable", DriveState.INACTIVE)
             try:
                 self._activate()
-            except DriveError:
+            except BaseException:
+                # Whatever stopped the bring-up (a DriveError, or a driver's own bug), what it armed stops.
                 self._stop_wheels()
                 raise
             self._state = DriveState.ACTIVE

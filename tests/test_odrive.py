@@ -146,6 +146,25 @@ def test_corrupted_answers(emu, drive):
     assert wait_until(lambda: stopped(emu))
 
 
+def test_a_garbled_answer_while_arming_is_a_fault_and_disarms(emu):
+    """With checksums on, a bad checksum on the answer to current_state while arming escaped enable() as
+    the driver's internal _Corrupt, not a DriveError: the runtime saw no drive fault, and enable() skipped
+    its stop, leaving both axes in closed loop. It is a CORRUPT_REPLY fault now, and both axes go idle."""
+    from vbnav.drivers.wheels import FaultKind
+    d = make_drive(emu, checksum=True)
+    d.connect()
+    try:
+        emu.corrupt = True
+        with pytest.raises(DriveError, match="while arming.*bad checksum"):
+            d.enable()
+        emu.corrupt = False
+        assert wait_until(lambda: all(a.current_state == oe.AXIS_STATE_IDLE for a in emu.axes))
+        assert [f.kind for f in d.faults] == [FaultKind.CORRUPT_REPLY]
+    finally:
+        emu.corrupt = False
+        d.close()
+
+
 def test_device_disappears_then_comes_back(emu, drive):
     drive_for(drive, 2.0, 2.0)
     emu.unplug()
