@@ -104,3 +104,28 @@ def test_a_recording_that_fails_is_said_and_the_run_exits_1(tmp_path, monkeypatc
     monkeypatch.setattr(recording.McapRecorder, "_write", real_write)
     assert main(["run", "--no-camera", "--duration", "1", "--record", str(tmp_path / "ok.mcap")]) == 0
     assert "incomplete" not in capsys.readouterr().err
+
+
+def test_a_failed_recording_over_an_old_one_names_the_file_that_holds_it(tmp_path, monkeypatch, capsys):
+    """--record PATH --overwrite over an earlier recording, and the new one fails to close (a full disk at
+    its summary): the old PATH is still there, untouched, and what this run wrote is in PATH.part. The
+    message said it was in PATH, the previous run's file."""
+    import errno
+
+    from vbnav.control.cli import main
+    from vbnav.control.comms import recording
+
+    out = tmp_path / "run.mcap"
+    assert main(["run", "--no-camera", "--duration", "1", "--record", str(out)]) == 0
+    old = out.read_bytes()
+    capsys.readouterr()
+
+    def full_disk_at_close(self):
+        self._closed = True
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(recording.McapRecorder, "close", full_disk_at_close)
+    assert main(["run", "--no-camera", "--duration", "1", "--record", str(out), "--overwrite"]) == 1
+    err = capsys.readouterr().err
+    part = tmp_path / "run.mcap.part"
+    assert out.read_bytes() == old and part.exists()
+    assert f"what was written before is in {part}" in err, err

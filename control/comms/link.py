@@ -359,7 +359,9 @@ class TelemetryLink:
         exc = self.publisher.sink_failures.get(rec) if rec is not None else None
         if exc is None:
             return
-        where = rec.path if rec.path.exists() else rec.part_path
+        # PATH.part while the recording was not closed; PATH only once it was renamed (with --overwrite, a PATH
+        # beside a PATH.part is the earlier run's recording, left as it was)
+        where = rec.part_path if rec.part_path.exists() else rec.path
         self.recording_error = repr(exc)
         print(f"vbnav: the recording {rec.path} is incomplete: writing it failed ({exc}); what was written before "
               f"is in {where}", file=sys.stderr)
