@@ -56,3 +56,142 @@ def test_idle_teach_idle_repeat(tmp_path):
     last = kfs[-1].odom
     # measured 3.0 cm / 3.7 mm on 2026-11-30
     assert abs(end.z - (start.z + last.z)) < 0.06 and abs(end.x - start.x) < 0.008
+
+
+# ---- a mode command is answered once the switch took effect, and a refused one changes nothing ------------
+
+import json                                                   # noqa: E402
+import threading                                              # noqa: E402
+
+from vbnav.control.comms.link import TelemetryLink            # noqa: E402
+from vbnav.control.comms.telemetry import Sink                # noqa: E402
+from vbnav.control.controllers import operator as operator_module   # noqa: E402
+from vbnav.control.runtime.pipeline import VisionPipeline     # noqa: E402
+
+
+class _Events(Sink):
+    """A recorder stand-in that keeps the events the link publishes."""
+
+    def __init__(self):
+        self.events = []
+
+    def new_segment(self, segment):
+        pass
+
+    def event(self, stamp_ns, payload, msg):
+        self.events.append(json.loads(payload))
+
+    def answers(self):
+        """(kind, ack, reason) of the command and command_rejected events, in order."""
+        return [(e["kind"], e.get("ack"), e.get("reason", "")) for e in self.events
+                if e["kind"] in ("command", "command_rejected")]
+
+
+def _operator_session(tmp_path, pipeline=None):
+    cfg = load_config(None, overrides={"sim": {"start_pose": [-3.5, -1.0, 0.0]}, "telemetry": {"enabled": False},
+                                       "controller": {"routes_dir": str(tmp_path)}})
+    robot = make_robot(cfg, with_camera=True)
+    pipeline = pipeline(robot.clock) if pipeline is not None else robot.pipeline
+    ctl = OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)
+    rt = Runtime(cfg, robot.drive, ctl, robot.clock, pipeline)
+    ctl.attach(rt)
+    sink = _Events()
+    link = TelemetryLink.attach(rt, cfg, recorder=sink, network=False)
+    return robot, ctl, rt, link, sink
+
+
+def _at_cycles(rt, actions):
+    """Run ``actions[cycle](runtime)`` in the cycle observer of that cycle."""
+    def feed(r, ctx, twist, wheels):
+        fn = actions.get(ctx.cycle)
+        if fn is not None:
+            fn(r)
+    rt.cycle_observers.append(feed)
+
+
+def test_a_refused_mode_command_is_never_acknowledged_and_the_teach_goes_on(tmp_path):
+    robot, ctl, rt, link, sink = _operator_session(tmp_path)
+    seen = {}
+
+    def teleop(r):
+        r.submit(OperatorCommand("teleop", (0.3, 0.0), "op"))
+
+    actions = {c: teleop for c in range(0, 400, 10)}
+    actions[5] = lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1"))
+    actions[150] = lambda r: (r.submit(OperatorCommand("mode", ("repeat", "missing"), "op", ack="R1")),
+                              r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T2")))
+    actions[152] = lambda r: seen.update(kf=ctl.status()["keyframes"], stages=[s.kind for s in
+                                                                              robot.pipeline.stages])
+    _at_cycles(rt, actions)
+    result = rt.run(4.0)
+    ctl.close()
+    link.close(result)
+    answers = sink.answers()
+    assert answers[0][:2] == ("command", "T1")
+    # Refused, with the sender's ack, and never called applied.
+    assert ("command", "R1") not in [a[:2] for a in answers] and ("command", "T2") not in [a[:2] for a in answers]
+    refused = {a[1]: a[2] for a in answers if a[0] == "command_rejected"}
+    assert "no such route" in refused["R1"] and "not empty" in refused["T2"], answers
+    # The refused switches left the teach as it was: its stage still runs and keyframes keep coming.
+    assert ctl.mode == "teach" and ctl.teaching_route == "hall" and seen["stages"][0] == "teach"
+    assert len(load_route(tmp_path / "hall").keyframes) > seen["kf"]
+
+
+class _Gate:
+    """Teaching whose construction waits for ``open`` (a slow disk): the switch is on its worker meanwhile."""
+
+    def __init__(self):
+        self.open = threading.Event()
+        self.real = operator_module.Teaching
+
+    def __call__(self, *a, **kw):
+        assert self.open.wait(10.0)
+        return self.real(*a, **kw)
+
+
+def test_a_switch_on_the_worker_is_acknowledged_when_it_took_effect(tmp_path, monkeypatch):
+    gate = _Gate()
+    monkeypatch.setattr(operator_module, "Teaching", gate)
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))   # the real-clock path
+    modes = {}
+
+    def join(r):
+        worker = ctl._worker          # None when the loop already took its result
+        if worker is not None:
+            worker.join(10.0)
+
+    def let_it_finish(r):
+        gate.open.set()
+        join(r)
+
+    _at_cycles(rt, {10: lambda r: r.submit(OperatorCommand("mode", ("repeat", "missing"), "op", ack="R1")),
+                    11: join,                                 # applied in cycle 11, its worker done
+                    20: lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1")),
+                    25: lambda r: r.submit(OperatorCommand("mode", ("idle",), "op", ack="I1")),
+                    30: let_it_finish})
+    rt.cycle_observers.append(lambda r, ctx, twist, wheels: modes.setdefault(ctl.mode, ctx.cycle))
+    result = rt.run(1.0)
+    ctl.close()
+    link.close(result)
+    assert result.reason == "duration", result.message
+    events = [e for e in sink.events if e["kind"] in ("command", "command_rejected")]
+    assert [(e["kind"], e.get("ack")) for e in events] == [
+        ("command_rejected", "R1"), ("command_rejected", "I1"), ("command", "T1")], events
+    assert "no such route" in events[0]["reason"] and "still in progress" in events[1]["reason"]
+    # T1 was answered in the cycle the teach began, not when its worker started (cycle 21).
+    assert events[2]["cycle"] == modes["teach"] == 31
+
+
+def test_a_switch_the_run_ended_before_is_refused_and_its_route_closed(tmp_path, monkeypatch):
+    gate = _Gate()
+    monkeypatch.setattr(operator_module, "Teaching", gate)
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))
+    _at_cycles(rt, {10: lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1"))})
+    result = rt.run(0.5)
+    gate.open.set()
+    ctl.close()
+    link.close(result)
+    assert sink.answers() == [("command_rejected", "T1", "mode teach: the run ended before the switch took effect")]
+    assert (tmp_path / "hall" / "manifest.json").is_file()     # the route it opened is closed, not left open

@@ -14,10 +14,15 @@ never a path: the command comes from the network.
 
 Everything that touches files (opening a route writer, loading and checking a
 route) runs on a worker thread, never on the loop's thread: while it works the
-mode is ``switching`` and the robot holds still. (Under the simulated clock the
-switch is done in place: simulated time does not pass, and runs stay
-deterministic.) A route that fails to load is
-a rejected command; the robot stays in its mode.
+mode is ``switching`` and the robot holds still, and the command is answered
+(``command`` event, or ``command_rejected``) only once the switch is done
+(``PENDING``, then ``Runtime.complete_command``). (Under the simulated clock the
+switch is done in place, and answered at once: simulated time does not pass, and
+runs stay deterministic.) A route that fails to load is a rejected command; the
+robot stays in its mode, still teaching or repeating what it was (the target is
+built before the current mode is closed). The one exception: ``repeat`` of the
+route being taught closes the teach first (to read its last keyframes); if that
+route then fails to load, the robot is idle and the refusal says so.
 
 The teach and repeat parts (stage, route writer, controller) are the ones
 ``vbnav teach`` and ``vbnav repeat`` run with: ``session.Teaching`` and
@@ -31,7 +36,8 @@ from typing import TYPE_CHECKING, Optional
 
 from vbnav.control.controllers.manual import TeleopController
 from vbnav.control.route import describe_route_error, load_route, resolve_route, routes_root
-from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import (APPLIED, PENDING, STOP, CommandOutcome, ControlContext, Controller,
+                                              Twist)
 from vbnav.control.runtime.mailbox import OperatorCommand
 from vbnav.control.session import Repeating, Teaching
 
@@ -53,7 +59,8 @@ class OperatorController(Controller):
         self.route_path: Optional[str] = None
         self._base_stages = list(pipeline.stages) if pipeline is not None else []
         self._teaching = None                          # session.Teaching: the route being taught
-        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error)
+        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error, cmd)
+        self._previous: Optional[tuple] = None         # (stages, controller) detached by the switch in progress
         self._worker: Optional[threading.Thread] = None
         self.errors: list[str] = []
         self._runtime: Optional["Runtime"] = None       # hears a switch that fails after it was accepted
@@ -69,7 +76,7 @@ class OperatorController(Controller):
 
     def update(self, ctx: ControlContext) -> Twist:
         if self._pending is not None:
-            self._apply_pending()
+            self._apply_pending(ctx.now_ns)
         if self._worker is not None:
             return STOP
         if self.mode == "repeat" and self.active is not None:
@@ -119,13 +126,17 @@ class OperatorController(Controller):
             return CommandOutcome.refused(f"mode {target!r} needs a route path")
         if target == "teach" and self.pipeline is None:
             return CommandOutcome.refused("mode 'teach' needs a camera (this run has none)")
-        self._start_switch(target, route, now_ns)
-        return APPLIED
+        return self._start_switch(target, route, now_ns, cmd)
 
     # -- switching (worker thread) --------------------------------------------
-    def _start_switch(self, target: str, route: Optional[str], now_ns: int) -> None:
-        """On the loop thread: detach the current mode's stages, then let a worker do the file work."""
+    def _start_switch(self, target: str, route: Optional[str], now_ns: int,
+                      cmd: Optional[OperatorCommand] = None) -> CommandOutcome:
+        """On the loop thread: detach the current mode's stages, then let a worker do the file work.
+
+        cmd: the operator's command (None for the switch to idle at a repeat's end). Returns its answer:
+        at once under the simulated clock, else ``PENDING`` (answered when the worker is done)."""
         frames_at_swap = 0
+        self._previous = (list(self.pipeline.stages) if self.pipeline is not None else None, self.active)
         if self.pipeline is not None:
             if self._drain_keyframes in self.pipeline.frame_listeners:
                 self.pipeline.frame_listeners.remove(self._drain_keyframes)
@@ -134,26 +145,38 @@ class OperatorController(Controller):
         self.active = None
         if self.pipeline is None or self.pipeline.inline:
             # Simulated clock: switch synchronously, so runs stay deterministic (time does not pass meanwhile).
-            self._prepare(target, route, frames_at_swap)
-            return
-        self._worker = threading.Thread(target=self._prepare, args=(target, route, frames_at_swap), name=target,
-                                        daemon=True)
+            self._prepare(target, route, frames_at_swap, cmd)
+            return self._apply_pending(now_ns, deferred=False)
+        self._worker = threading.Thread(target=self._prepare, args=(target, route, frames_at_swap, cmd),
+                                        name=target, daemon=True)
         self._worker.start()
+        return PENDING
 
-    def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0) -> None:
-        """Close what the current mode opened, then build what the target needs (off the loop thread)."""
+    def _wait_for_the_vision_thread(self, frames_at_swap: int) -> None:
+        if self._teaching is not None and self.pipeline is not None and not self.pipeline.inline:
+            # The vision thread may still be inside the teach stage with the last frame before the swap.
+            deadline = time.monotonic() + 1.0
+            while self.pipeline.frames <= frames_at_swap + 1 and time.monotonic() < deadline:
+                time.sleep(0.01)
+
+    def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0,
+                 cmd: Optional[OperatorCommand] = None) -> None:
+        """Build what the target needs, then close what the current mode opened (off the loop thread).
+
+        The target first: a switch that fails leaves the current mode as it was (``_apply_pending`` puts
+        its stages back), a route being taught included."""
         where = None     # the route's directory, once resolved
+        closed = ""      # what the failed switch closed anyway
         try:
-            if self._teaching is not None and self.pipeline is not None and not self.pipeline.inline:
-                # The vision thread may still be inside the teach stage with the last frame before the swap.
-                deadline = time.monotonic() + 1.0
-                while self.pipeline.frames <= frames_at_swap + 1 and time.monotonic() < deadline:
-                    time.sleep(0.01)
-            self._close_teach()
-            stages, controller, teaching = list(self._base_stages), None, None
             if target in ("teach", "repeat"):   # a name inside controller.routes_dir, never a path
                 where = resolve_route(routes_root(self.cfg.controller.routes_dir, self.cfg.source), route,
                                       must_exist=target == "repeat")
+            if target == "repeat" and self.mode == "teach" and route == self.route_path:
+                # Repeat what is being taught: its last keyframes are written when the teach closes.
+                self._wait_for_the_vision_thread(frames_at_swap)
+                self._close_teach()
+                closed = f"; teaching {route!r} was closed, the robot is idle"
+            stages, controller, teaching = list(self._base_stages), None, None
             if target == "teach":
                 teaching = Teaching(self.cfg, where, overwrite=False)
                 stages = [teaching.stage] + stages
@@ -161,34 +184,74 @@ class OperatorController(Controller):
                 repeating = Repeating(self.cfg, load_route(where))
                 stages = [repeating.stage] + stages
                 controller = repeating.controller
-            self._pending = (target, route, stages, controller, teaching, None)
         except Exception as exc:  # the mode stays as it was; the operator sees why (never a path outside)
             why = describe_route_error(exc, where, route) if where is not None else str(exc)
-            self._pending = (self.mode, self.route_path, None, None, None, f"mode {target}: {why}")
+            if closed:
+                self._pending = ("idle", None, list(self._base_stages), None, None, f"mode {target}: {why}{closed}",
+                                 cmd)
+            else:
+                self._pending = (self.mode, self.route_path, None, None, None, f"mode {target}: {why}", cmd)
+            return
+        try:
+            self._wait_for_the_vision_thread(frames_at_swap)
+            self._close_teach()
+        except Exception as exc:   # the route being taught could not be closed (a full disk)
+            self._teaching = None
+            if teaching is not None:
+                teaching.close(complete=False)
+            why = describe_route_error(exc, where, route) if where is not None else str(exc)
+            self._pending = ("idle", None, list(self._base_stages), None, None,
+                             f"mode {target}: closing the route being taught failed: {why}; the robot is idle", cmd)
+            return
+        self._pending = (target, route, stages, controller, teaching, None, cmd)
 
     def _close_teach(self) -> None:
         if self._teaching is not None:
             self._teaching.close()
         self._teaching = None
 
-    def _apply_pending(self) -> None:
-        mode, route, stages, controller, teaching, error = self._pending
+    def _apply_pending(self, now_ns: Optional[int] = None, deferred: bool = True) -> CommandOutcome:
+        """On the loop thread: take the result of the switch, and answer the command that asked for it.
+
+        deferred: the command was answered ``PENDING`` (worker thread): its answer goes to the runtime now.
+        Otherwise it is returned (to ``handle_command``). A switch nobody asked for that fails is refused
+        in the runtime's events."""
+        mode, route, stages, controller, teaching, error, cmd = self._pending
         self._pending = None
         self._worker = None
+        previous, self._previous = self._previous, None
+        rt = self._runtime
+        if now_ns is None:
+            now_ns = rt.clock.now_ns() if rt is not None else 0
+        outcome = CommandOutcome.refused(error) if error else APPLIED
         if error:
             self.errors.append(error)
-            rt = self._runtime
-            if rt is not None:
-                rt.safety.reject(rt.clock.now_ns(), "mode", error)
+        if stages is None:   # failed, nothing closed: the mode stays, and what the switch detached goes back
+            self._restore(previous)
+        else:
+            self.mode, self.route_path, self.active = mode, route, controller
+            self.requires = ("vbc",) if mode == "repeat" else ()
+            self._teaching = teaching
+            if self.pipeline is not None:
+                if teaching is not None:
+                    self.pipeline.frame_listeners.append(self._drain_keyframes)
+                self.pipeline.latest.pop("vbc", None)
+                self.pipeline.stages = stages    # one reference swap: the vision thread sees old or new list
+        if rt is not None and cmd is None and error:
+            rt.safety.reject(now_ns, "mode", error)
+        elif rt is not None and cmd is not None and deferred:
+            rt.complete_command(cmd, outcome, now_ns)
+        return outcome
+
+    def _restore(self, previous: Optional[tuple]) -> None:
+        """A switch failed before anything was closed: the current mode's stages and controller go back."""
+        if previous is None:
             return
-        self.mode, self.route_path, self.active = mode, route, controller
-        self.requires = ("vbc",) if mode == "repeat" else ()
-        self._teaching = teaching
-        if self.pipeline is not None:
-            if teaching is not None:
+        stages, self.active = previous
+        if self.pipeline is not None and stages is not None:
+            if self._teaching is not None and self._drain_keyframes not in self.pipeline.frame_listeners:
                 self.pipeline.frame_listeners.append(self._drain_keyframes)
-            self.pipeline.latest.pop("vbc", None)
-            self.pipeline.stages = stages    # one reference swap: the vision thread sees old or new list
+            self.pipeline.stages = stages
 
     def _drain_keyframes(self, frame, results) -> None:
         teaching = self._teaching
@@ -199,4 +262,17 @@ class OperatorController(Controller):
         """End of the run: a route being taught is closed with every keyframe so far."""
         if self._worker is not None:
             self._worker.join(timeout=5.0)
+        if self._worker is None or not self._worker.is_alive():
+            pending, self._pending = self._pending, None
+            if pending is not None:
+                # The run ended before the loop took the switch: the route it opened is closed too, and
+                # the command that asked for it is refused (it never took effect).
+                mode, route, stages, controller, teaching, error, cmd = pending
+                self._worker = None
+                if teaching is not None:
+                    teaching.close()
+                rt = self._runtime
+                if cmd is not None and rt is not None:
+                    rt.complete_command(cmd, CommandOutcome.refused(
+                        f"mode {cmd.args[0]}: the run ended before the switch took effect"), rt.clock.now_ns())
         self._close_teach()

@@ -129,11 +129,15 @@ class CommandOutcome:
     applied: the command took effect (the runtime tells its ``command_listeners``); otherwise it is
     refused and ``reason`` becomes the ``rejected`` safety event the operator sees. unchanged: applied,
     but the state already was what the command asked for (a ``mode`` equal to the current one).
+    pending: neither yet: the controller finishes the command later (a mode switch that loads a route
+    off the loop thread) and answers it then with ``Runtime.complete_command``; until then nobody is told
+    it took effect.
     """
 
     applied: bool
     reason: str = ""
     unchanged: bool = False
+    pending: bool = False
 
     @classmethod
     def refused(cls, reason: str) -> "CommandOutcome":
@@ -141,6 +145,7 @@ class CommandOutcome:
 
 
 APPLIED = CommandOutcome(True)
+PENDING = CommandOutcome(False, pending=True)
 
 #: what starts each mode when a run has a single controller (the refusal names it)
 _NEW_RUN_FOR = {"idle": "stop this run", "teach": "vbnav teach --out ROUTE", "repeat": "vbnav repeat --path ROUTE"}

@@ -33,9 +33,10 @@ Operator commands reach the loop through a ``CommandMailbox`` (mailbox.py):
 ``submit`` from any thread, drained once per cycle. The runtime applies
 ``estop`` and ``resume`` itself and forwards every other command to the
 controller's ``handle_command`` (interfaces.py), which applies it or refuses it
-with a reason; a refusal is a ``rejected`` safety event. ``command_observers``
-hear each command before it is applied, ``command_listeners`` after it took
-effect.
+with a reason (or, for work it does off the loop thread, answers ``PENDING`` and
+later ``complete_command``); a refusal is a ``rejected`` safety event.
+``command_observers`` hear each command before it is applied (and a pending one
+again before its answer), ``command_listeners`` after it took effect.
 """
 from __future__ import annotations
 
@@ -155,7 +156,8 @@ class Runtime:
         self.safety = SafetyMonitor(release_s=cfg.safety.release_s)
         self.mailbox = CommandMailbox(clock.now_ns, int(cfg.safety.command_timeout_s * 1e9))
         self.cycle_observers: list[Callable[["Runtime", ControlContext, Twist, tuple], None]] = []
-        # called before each drained command is applied: (runtime, command, now_ns)
+        # called before each drained command is applied, and before the answer of one that was pending:
+        # (runtime, command, now_ns)
         self.command_observers: list[Callable[["Runtime", OperatorCommand, int], None]] = []
         # called after a command took effect (not for refused ones): (runtime, command, outcome, now_ns)
         self.command_listeners: list[Callable[["Runtime", OperatorCommand, CommandOutcome, int], None]] = []
@@ -449,11 +451,22 @@ class Runtime:
             for fn in self.command_observers:
                 fn(self, cmd, now)
             outcome = self._apply_command(cmd, now)
-            if not outcome.applied:
-                self.safety.reject(now, cmd.kind, outcome.reason)
-                continue
-            for fn in self.command_listeners:
-                fn(self, cmd, outcome, now)
+            if not outcome.pending:
+                self._answer(cmd, outcome, now)
+
+    def complete_command(self, cmd: OperatorCommand, outcome: CommandOutcome, now: int) -> None:
+        """A command the controller answered ``PENDING`` is done (loop thread): applied, or refused with
+        its reason. ``command_observers`` hear it again first, so the answer carries the sender's ack."""
+        for fn in self.command_observers:
+            fn(self, cmd, now)
+        self._answer(cmd, outcome, now)
+
+    def _answer(self, cmd: OperatorCommand, outcome: CommandOutcome, now: int) -> None:
+        if not outcome.applied:
+            self.safety.reject(now, cmd.kind, outcome.reason)
+            return
+        for fn in self.command_listeners:
+            fn(self, cmd, outcome, now)
 
     def _apply_command(self, cmd: OperatorCommand, now: int) -> CommandOutcome:
         """estop and resume are the runtime's; the controller answers every other command."""
