@@ -278,6 +278,40 @@ def test_after_a_flood_the_wheels_stop_within_timeout_plus_two_periods_of_the_la
     assert inbox.rejected >= FLOOD // 2 - 200
 
 
+# ---- estop, then resume ------------------------------------------------------------------------------
+
+def test_after_an_estop_and_a_quick_resume_teleop_from_before_the_estop_never_moves_the_robot():
+    """docs/safety.md: after a latched stop the robot needs fresh commands. A 10 Hz stream ends at 1.0 s, the
+    estop arrives at 1.01 s, then a last teleop of the stream sent at 1.005 s (both taken in the same cycle),
+    and resume comes at 1.2 s, well within the 0.5 s the last teleops would otherwise still drive for."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    events = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: events.append(("applied", cmd.kind, now)))
+    rt.safety.listeners.append(lambda ev: events.append((ev.kind, ev.cause, ev.message)))
+    plan = [(T0 + k * 100_000_000, "teleop", teleop(k + 1, T0 + k * 100_000_000)) for k in range(11)]
+    plan += [(T0 + 1_010_000_000, "estop", "{}"),
+             (T0 + 1_010_000_000, "teleop", teleop(12, T0 + 1_005_000_000)),
+             (T0 + 1_200_000_000, "resume", "{}"),
+             (T0 + 1_500_000_000, "teleop", teleop(1, T0 + 1_500_000_000, session="fresh"))]
+
+    def transport(r, ctx, twist, wheels):
+        while plan and plan[0][0] <= ctx.now_ns:
+            _, kind, payload = plan.pop(0)
+            inbox.submit(kind, payload)
+
+    rt.cycle_observers.append(transport)
+    rt.run(2.5)
+    estop_at = T0 + 1_010_000_000
+    moving = [t for t, l, r, p in drive.log if p and (l or r)]
+    assert [t for t in moving if t < estop_at] and not [t for t in moving if estop_at + 2 * PERIOD_NS <= t <
+                                                        T0 + 1_500_000_000], "old teleop drove after the resume"
+    assert [t for t in moving if t > T0 + 1_500_000_000], "a fresh teleop after the resume drives"
+    late = [e for e in events if e[:2] == ("rejected", "teleop")]
+    assert len(late) == 1 and "before the estop" in late[0][2], events
+    applied = [now for kind, what, now in events if (kind, what) == ("applied", "teleop")]
+    assert not [t for t in applied if estop_at < t < T0 + 1_500_000_000], applied
+
+
 # ---- stalls ------------------------------------------------------------------------------------------
 
 def test_a_2s_stall_inside_a_cycle_trips_safety_and_zeroes_the_wheels_in_the_next_cycle():

@@ -38,8 +38,9 @@ sender's clock, not by when the loop gets to a message:
 - A teleop without ``stamp_ns`` is accepted, its send time taken as its arrival time: a
   transport backlog before arrival then goes unseen (``vbnav send`` always stamps).
 
-After a loop stall the runtime calls ``refuse_teleop_sent_before``: teleop sent before the
-stall began is stale, even if younger than the timeout.
+After a loop stall, an estop or a lost drive the runtime calls ``refuse_teleop_sent_before``:
+teleop sent before the stop began is stale, even if younger than the timeout (``sent_before_stop``
+says so of a teleop already drained).
 """
 from __future__ import annotations
 
@@ -122,6 +123,7 @@ class CommandMailbox:
         self._senders: dict[tuple[str, str], _Sender] = {}
         self._order = 0
         self._fresh_after_ns: Optional[int] = None
+        self._fresh_why = ""      # what began then: "the loop stalled", "the estop", ...
         self.coalesced = 0        # teleops replaced by a newer one from the same sender before the loop took them
 
     # -- any thread ------------------------------------------------------------
@@ -167,8 +169,9 @@ class CommandMailbox:
 
     def _stale(self, s: _Sender, e: _Entry, now: int) -> Optional[str]:
         sent = s.sent_ns(e)
-        if self._fresh_after_ns is not None and sent < self._fresh_after_ns:
-            return f"stale: sent {(self._fresh_after_ns - sent) * 1e-6:.0f} ms before the loop stalled"
+        reason = self._sent_before_stop(sent)
+        if reason:
+            return reason
         age = now - sent
         if age > self.stale_after_ns:
             return (f"stale: sent {age * 1e-6:.0f} ms ago by the sender's clock "
@@ -202,10 +205,25 @@ class CommandMailbox:
         taken.sort(key=lambda e: e.order)
         return [replace(e.cmd, arrival_ns=e.arrival_ns, order=e.order, sent_ns=sent.get(e.order)) for e in taken], refused
 
-    def refuse_teleop_sent_before(self, t_ns: int) -> None:
-        """After a stall: teleop sent before ``t_ns`` (robot clock) is stale from now on."""
+    def refuse_teleop_sent_before(self, t_ns: int, why: str = "the loop stalled") -> None:
+        """After a stop (a stall, an estop): teleop sent before ``t_ns`` (robot clock) is stale from now on.
+        why: what began at ``t_ns``, for the refusal."""
         with self._lock:
-            self._fresh_after_ns = t_ns if self._fresh_after_ns is None else max(self._fresh_after_ns, t_ns)
+            if self._fresh_after_ns is None or t_ns >= self._fresh_after_ns:
+                self._fresh_after_ns, self._fresh_why = t_ns, why
+
+    def sent_before_stop(self, cmd: OperatorCommand) -> Optional[str]:
+        """Loop thread: the refusal of a drained teleop sent before the last stop began, else None (a teleop
+        that arrived behind an estop in the same drain, sent before it)."""
+        if cmd.kind != "teleop" or cmd.sent_ns is None:
+            return None
+        with self._lock:
+            return self._sent_before_stop(cmd.sent_ns)
+
+    def _sent_before_stop(self, sent: int) -> Optional[str]:
+        if self._fresh_after_ns is not None and sent < self._fresh_after_ns:
+            return f"stale: sent {(self._fresh_after_ns - sent) * 1e-6:.0f} ms before {self._fresh_why}"
+        return None
 
     @property
     def waiting(self) -> int:

@@ -378,6 +378,7 @@ class Runtime:
             self.safety.note(now, "warning", "drive_lost", message)
         else:
             self.safety.trip(now, "drive_lost", message)
+        self._forget_teleop(now, "the drive was lost")
         self._recovery = DriveRecovery(self.drive, cause, now, window,
                                        threaded=not self.clock.simulated)
         return True
@@ -396,7 +397,12 @@ class Runtime:
         self.safety.trip(now, "stall", f"loop stalled {late * 1e-6:.0f} ms ({late / period:.1f} periods, limit "
                                        f"{limit:g}, loop.stall_periods); the wheels kept their last command "
                                        f"meanwhile; resume to drive again")
-        self.mailbox.refuse_teleop_sent_before(now - late)
+        self._forget_teleop(now - late, "the loop stalled")
+
+    def _forget_teleop(self, since: int, why: str) -> None:
+        """A latched stop began at ``since``: the held teleop command is dropped and teleop sent before it is
+        refused, so after ``resume`` only a fresh command moves the robot."""
+        self.mailbox.refuse_teleop_sent_before(since, why)
         self.controller.forget_command()
 
     def _check_camera(self, now: int) -> None:
@@ -472,7 +478,11 @@ class Runtime:
         """estop and resume are the runtime's; the controller answers every other command."""
         if cmd.kind == "estop":
             self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
+            self._forget_teleop(now if cmd.arrival_ns is None else cmd.arrival_ns, "the estop")
             return APPLIED
+        stale = self.mailbox.sent_before_stop(cmd)   # a teleop drained behind the estop, sent before it
+        if stale:
+            return CommandOutcome.refused(stale)
         if cmd.kind == "resume" and self._recovery is not None:
             return CommandOutcome.refused(f"the drive is still lost: {self.drive.drive_name} has not come back yet; "
                                           f"resume once a drive_reconnected event says so")
