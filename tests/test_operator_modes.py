@@ -195,3 +195,37 @@ def test_a_switch_the_run_ended_before_is_refused_and_its_route_closed(tmp_path,
     link.close(result)
     assert sink.answers() == [("command_rejected", "T1", "mode teach: the run ended before the switch took effect")]
     assert (tmp_path / "hall" / "manifest.json").is_file()     # the route it opened is closed, not left open
+
+
+def test_teleop_is_refused_while_repeating_and_never_drives_after_the_repeat_ends():
+    from runtime_helpers import make_runtime
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.manual import ScriptedController
+    cfg = Config.model_validate({"safety": {"command_timeout_s": 0.5}})
+    ctl = OperatorController(cfg, None, cfg.safety.command_timeout_s)
+    rt, drive, clock = make_runtime(ctl, camera=False, cfg=cfg)
+    ctl.attach(rt)
+    # A repeat that drives straight for 1 s, then ends (the route's end): the operator controller goes idle.
+    ctl.mode, ctl.route_path, ctl.active = "repeat", "hall", ScriptedController([[0.2, 0.0, 1.0]])
+    answers, modes = [], {}
+    rt.command_listeners.append(lambda r, cmd, outcome, now: answers.append(("applied", cmd.ack)))
+    rt.safety.listeners.append(lambda ev: answers.append((ev.kind, ev.message)) if ev.kind == "rejected" else None)
+    t0 = clock.now_ns()
+
+    def operator(r, ctx, twist, wheels):
+        modes.setdefault(ctl.name, ctx.now_ns)
+        k = (ctx.now_ns - t0) // 10_000_000
+        if 50 <= k < 95 and k % 5 == 0:         # a 20 Hz stream, no ack, turning hard, until 0.95 s
+            r.submit(OperatorCommand("teleop", (0.0, 1.0), "stick", seq=int(k), stamp_ns=ctx.now_ns))
+        if k == 95:
+            r.submit(OperatorCommand("teleop", (0.0, 1.0), "op", ack="T1", stamp_ns=ctx.now_ns))
+
+    rt.cycle_observers.append(operator)
+    rt.run(2.0)
+    assert modes["idle"] - t0 <= 1_020_000_000, "the repeat ended at 1 s"
+    turning = [t for t, left, right, p in drive.log if p and abs(left - right) > 1e-9]
+    assert not turning, "a teleop given while repeating turned the robot"
+    rejected = [a for a in answers if a[0] == "rejected"]
+    assert ("applied", "T1") not in answers and rejected[-1][1].startswith("mode repeat: the robot follows route")
+    # the stream without ack: one report a second, not one per message
+    assert len(rejected) == 2, rejected

@@ -111,8 +111,12 @@ class OperatorController(Controller):
         return self
 
     def handle_command(self, cmd: OperatorCommand, now_ns: int) -> CommandOutcome:
-        """``teleop`` drives (in every mode; it only moves the robot in idle and teach); ``mode`` switches."""
+        """``teleop`` drives in idle and teach (refused while repeating: it would not move the robot, and held
+        until the repeat ends it would drive the robot then); ``mode`` switches."""
         if cmd.kind == "teleop":
+            if self.mode == "repeat" and self._worker is None:
+                return CommandOutcome.refused(f"mode repeat: the robot follows route {self.route_path!r}; teleop "
+                                              f"drives in idle and teach (send mode idle first)")
             return self.teleop.handle_command(cmd, now_ns)
         if cmd.kind != "mode":
             return super().handle_command(cmd, now_ns)
@@ -231,6 +235,8 @@ class OperatorController(Controller):
         else:
             self.mode, self.route_path, self.active = mode, route, controller
             self.requires = ("vbc",) if mode == "repeat" else ()
+            if mode == "repeat":
+                self.teleop.forget_command()    # what the operator drove with before must not outlast the repeat
             self._teaching = teaching
             if self.pipeline is not None:
                 if teaching is not None:

@@ -173,6 +173,7 @@ class Runtime:
         self._start_ns = 0
         self._deadline_ns: Optional[int] = None
         self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
+        self._teleop_reports: dict[str, tuple] = {}      # refusal reason -> (last reported ns, refused since)
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -469,7 +470,19 @@ class Runtime:
 
     def _answer(self, cmd: OperatorCommand, outcome: CommandOutcome, now: int) -> None:
         if not outcome.applied:
-            self.safety.reject(now, cmd.kind, outcome.reason)
+            reason = outcome.reason
+            if cmd.kind == "teleop" and not cmd.ack:
+                # A stream (10-20 Hz, no ack): reported at most once a second per reason, with a count, like
+                # the inbox's refusals of stale teleop.
+                key = reason.split(":", 1)[0]
+                last, since = self._teleop_reports.get(key, (None, 0))
+                if last is not None and now - last < 1_000_000_000:
+                    self._teleop_reports[key] = (last, since + 1)
+                    return
+                self._teleop_reports[key] = (now, 0)
+                if since:
+                    reason += f" (and {since} more teleop refused for this reason in the last second)"
+            self.safety.reject(now, cmd.kind, reason)
             return
         for fn in self.command_listeners:
             fn(self, cmd, outcome, now)
