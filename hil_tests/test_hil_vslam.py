@@ -77,15 +77,19 @@ def test_goto_reaches_a_goal_3m_away(goal):
 
 
 def test_goto_rides_out_a_covered_lens():
-    """1.5 s of black frames mid-way: the robot drives at most blind_distance_m on odometry, stops, and the
-    VSLAM restarts from the stereo pair once the lens is clear; the goal is still reached."""
+    """1.5 s of black frames mid-way: the obstacle stage is blind and stops the robot at once; the black
+    frames, identical while the wheels still move, are a frozen camera (camera_stale, and no stage takes
+    them); the VSLAM, lost on the first ones, restarts from the stereo pair once the lens is clear; the
+    goal is still reached."""
     g = Pose2(1.8, 2.4, 0.0)
     result, true, ctrl, stage = _goto(g, covered=(4.0, 5.5))
     pos_err = math.hypot(true.x - g.x, true.z - g.z)
     head_err = abs(math.degrees(wrap_angle(true.theta - g.theta)))
     print(f"\ngoto with a covered lens: {result.reason}; true error {pos_err * 100:.2f} cm, {head_err:.2f} deg; "
           f"{stage.stats}")
-    assert stage.stats["lost"] >= 10 and stage.stats["restarts"] >= 1
+    assert stage.stats["lost"] >= 1 and stage.stats["restarts"] >= 1      # measured 3 and 1
+    holds = {e.cause: e.message for e in result.events if e.kind == "hold"}
+    assert "blind" in holds["obstacle"] and "frozen" in holds["camera_stale"], holds
     assert result.reason == "finished", result.message
     assert pos_err <= 0.0065 and head_err <= 1.0  # measured 0.45 cm / 0.55 deg on 2026-12-01 (0.32 / 0.47 on 11-30)
 

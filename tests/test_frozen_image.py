@@ -52,3 +52,36 @@ def test_size_or_type_change_is_a_new_image():
     assert w.fresh(np.zeros((4, 5), np.uint8), Pose2(0.0, 1.0, 0.0))
     assert w.fresh(np.zeros((4, 5), np.uint16), Pose2(0.0, 2.0, 0.0))
     assert not w.fresh(np.zeros((4, 5), np.uint16), Pose2(0.0, 3.0, 0.0))
+
+
+def test_frozen_frames_do_not_reach_the_stages():
+    """A frozen frame pairs an old image with new odometry: fed to teach it would pull the landmarks'
+    heights towards 'far' (no parallax while the wheels moved) and could start a keyframe whose image
+    is not at its pose; fed to VSLAM, a pose that stops while the robot drives. The stages skip it (their
+    estimates age, and the stale-camera stop comes camera.stale_after_s after the last fresh frame)."""
+    from vbnav.control.controllers.manual import ScriptedController
+    from vbnav.control.runtime.interfaces import Estimate, VisionStage
+    from runtime_helpers import make_runtime
+
+    class Seen(VisionStage):
+        kind = "seen"
+
+        def __init__(self):
+            self.stamps = []
+
+        def process(self, frame, odom):
+            self.stamps.append(frame.stamp_ns)
+            return Estimate(frame.stamp_ns, self.kind, True, None, {})
+
+    t0 = 1_000_000_000                                   # SimClock start
+    freeze, thaw = t0 + 1_000_000_000, t0 + 2_000_000_000
+    stage = Seen()
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 3.0]]), stages=[stage],
+                                    cam_kw={"freeze_at_ns": freeze, "thaw_at_ns": thaw})
+    rt.run()
+    seen = np.array(stage.stamps)
+    frame_ns = 1e9 / 15
+    travel_ns = 0.02 / 0.3 * 1e9           # until the wheels have moved 2 cm, the same image is a still scene
+    assert len(seen[seen < freeze]) >= 14 and len(seen[seen >= thaw]) >= 14
+    inside = seen[(seen >= freeze) & (seen < thaw)]
+    assert len(inside) <= 2 and np.all(inside <= freeze + travel_ns + frame_ns), (inside - freeze) / 1e6

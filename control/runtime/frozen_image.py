@@ -14,9 +14,11 @@ wheels have moved far enough since the image last changed that a live camera wou
   points shift more.
 - ``MIN_TURN_RAD`` 5 mrad (0.29 deg): every point shifts by f * 0.005 = 2.5 px at f = 500 px.
 
-A frozen frame still goes to the stages; it is not *fresh*: the runtime's stale-camera check counts
-from the last fresh frame, so the robot stops ``camera.stale_after_s`` after the image froze (plus the
-distance above) and drives again on the first frame that differs. A covered lens that gives exactly black
+A frozen frame is not *fresh*: it goes to no vision stage (an old image paired with new odometry would
+pull teach's landmark heights towards far and start keyframes whose image is not at their pose), and
+the runtime's stale-camera check counts from the last fresh frame, so the robot stops
+``camera.stale_after_s`` after the image froze (plus the distance above) and drives again on the first
+frame that differs. A covered lens that gives exactly black
 frames counts as frozen too while the robot moves, which is the same answer: nothing can be seen.
 """
 from __future__ import annotations

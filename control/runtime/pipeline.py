@@ -12,9 +12,9 @@ in the loop's ``OdometryHistory``, not the newest pose: a frame processed 60 ms 
 its exposure while turning would otherwise pair its image with where the robot is
 now. Without a history (a pipeline driven by hand) the newest pose stands in.
 
-Each frame is also checked for a frozen camera (``frozen_image``): ``last_fresh_stamp`` is the stamp of
-the last frame that showed a new image (or the same one while the robot stood still), and the loop's
-stale-camera check counts from it.
+Each frame is also checked for a frozen camera (``frozen_image``): a frozen frame goes to no stage, and
+``last_fresh_stamp`` is the stamp of the last frame that showed a new image (or the same one while the
+robot stood still), from which the loop's stale-camera check counts.
 
 A stage exception is captured as ``fault`` (the loop turns it into a safety
 trip); the pipeline never raises into the loop.
@@ -116,6 +116,10 @@ class VisionPipeline:
         """(whether the frame is fresh, the stages' estimates)."""
         odom = self.odometry_at(frame.stamp_ns)
         fresh = self.frozen.fresh(frame.image, odom)
+        if not fresh:
+            # An old image with new odometry: no stage may take it (teach would pull heights towards far,
+            # VSLAM would stop its pose while the robot drives). Their estimates age meanwhile.
+            return False, {}
         out = {}
         t0 = time.perf_counter()
         for stage in self.stages:
