@@ -359,6 +359,36 @@ def test_estop_latches_until_resume():
     assert any(t > T0 + 2_000_000_000 for t in moving)
 
 
+def test_teleop_during_a_latched_stop_is_refused_and_never_drives_after_the_resume():
+    """A teleop stream (10 Hz) through an estop (1 s) and a resume (2 s): teleop taken during the latch was
+    answered 'applied' while the wheels stayed stopped, and the one held last (sent at 1.9 s, within the
+    command timeout) drove the robot the moment the resume came. Now refused, saying why, and the robot
+    moves again on the first teleop after the resume."""
+    teleop = TeleopController(timeout_s=0.5)
+
+    def feed(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        if t == 1_000_000_000:
+            r.submit(OperatorCommand("estop", ("test button",), "test"))
+        if t == 2_000_000_000:
+            r.submit(OperatorCommand("resume", (), "test"))
+        if t < 3_000_000_000 and t % 100_000_000 == 50_000_000:
+            r.submit(OperatorCommand("teleop", (0.3, 0.0), "test"))
+
+    rt, drive, clock = make_runtime(teleop)
+    rt.cycle_observers.append(feed)
+    applied = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.append((now, cmd.kind)))
+    result = rt.run(duration_s=3.5)
+    refused = [e for e in result.events if e.kind == "rejected" and e.cause == "teleop"]
+    assert refused and "estop" in refused[0].message and "latched" in refused[0].message, refused
+    in_latch = [t for t, k in applied if k == "teleop" and T0 + 1_000_000_000 < t < T0 + 2_000_000_000]
+    assert not in_latch
+    moving = [t for t, l, r, p in drive.log if p and l != 0]
+    assert not [t for t in moving if T0 + 1_000_000_000 + 2 * PERIOD_NS <= t < T0 + 2_050_000_000]
+    assert any(t > T0 + 2_050_000_000 for t in moving)
+
+
 def test_obstacle_speed_scale_slows_and_stops():
     from vbnav.control.runtime.interfaces import Estimate
 

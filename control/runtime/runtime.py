@@ -502,6 +502,11 @@ class Runtime:
         if cmd.kind == "resume":
             self.safety.reset(now, f"resume from {cmd.source}")
             return APPLIED
+        if cmd.kind == "teleop" and self.safety.latched:
+            # Taken, it would be 'applied' while the wheels stay stopped, and held it would drive the robot
+            # the moment a resume comes.
+            return CommandOutcome.refused(f"stopped by {', '.join(self.safety.latched)} (latched): teleop does "
+                                          f"not move the robot until a resume")
         return self.controller.handle_command(cmd, now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
