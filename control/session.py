@@ -164,7 +164,7 @@ class Session:
         n = len(route.keyframes)
         result = self._run(rep.controller, rep.stage, None, segment, duration_s, observers,
                            lambda: repeat_status(rep.controller.status(), rep.stage.index, n))
-        stops = sum(1 for e in result.events if e.kind == "hold")
+        stops = result.count("hold")      # over the whole run, events left out of the report included
         return RepeatResult(result.reason == "finished", result.reason, result.message, rep.stage.index, n,
                             [e.as_dict() for e in result.events], result.timing, stops)
 

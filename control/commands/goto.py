@@ -179,8 +179,10 @@ def run(args) -> int:
               f"{math.degrees(abs(math.remainder(true.theta - goal.theta, math.tau))):.2f} deg)")
         if math.isfinite(closest[0]):
             print(f"simulator ground truth: closest approach of the robot centre to a wall or box {closest[0]:.3f} m")
-    for e in result.events:
-        if e.kind != "hold" or result.reason != "finished":
+    for e in result.event_report():
+        if isinstance(e, str):
+            print(f"safety: {e}")
+        elif e.kind != "hold" or result.reason != "finished":
             print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130

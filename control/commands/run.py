@@ -129,14 +129,18 @@ def run(args) -> int:
         printer.done()
         summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,
                    "timing": result.timing.as_dict(), "events": [e.as_dict() for e in result.events],
+                   # a long run keeps its first and last events: how many were left out, and every kind's count
+                   "events_dropped": result.events_dropped,
+                   "event_counts": [{"kind": k, "cause": c, "count": n}
+                                    for (k, c), n in sorted(result.event_counts.items())],
                    "final_odometry": rt.odometry.pose.as_array().tolist()}
         if args.json:
             print(json.dumps(summary, indent=2))
         else:
             print(f"run ended: {result.reason} ({result.message})")
             print("timing: " + result.timing.line())
-            for e in result.events:
-                print(f"safety {e.kind}: {e.cause}: {e.message}")
+            for e in result.event_report():
+                print(f"safety: {e}" if isinstance(e, str) else f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130
     if result.reason in DEVICE_FAULTS:     # a device failed or is not there

@@ -130,12 +130,29 @@ class RunResult:
     reason: str                       # "finished", "duration", "stopped", or a fatal cause
     message: str
     timing: TimingSummary
-    events: list = field(default_factory=list)
+    events: list = field(default_factory=list)   # the first and the last safety events (safety.EventLog)
     cycles: int = 0
+    events_dropped: int = 0           # events left out of ``events`` between the first and the last ones
+    events_dropped_after: int = 0     # how many of ``events`` come before the ones left out
+    event_counts: dict = field(default_factory=dict)   # (kind, cause) -> events over the whole run
+    events_gap: str = ""              # what a report says where events were left out ("" when none were)
 
     @property
     def ok(self) -> bool:
         return self.reason in ("finished", "duration", "stopped")
+
+    def count(self, kind: str, cause: Optional[str] = None) -> int:
+        """Safety events of ``kind`` (and ``cause``) over the whole run, those left out of ``events`` included."""
+        if not self.event_counts:
+            return sum(1 for e in self.events if e.kind == kind and (cause is None or e.cause == cause))
+        return sum(n for (k, c), n in self.event_counts.items() if k == kind and (cause is None or c == cause))
+
+    def event_report(self) -> list:
+        """The kept events in order, with ``events_gap`` (a str) where events were left out."""
+        out: list = list(self.events)
+        if self.events_dropped:
+            out.insert(self.events_dropped_after, self.events_gap)
+        return out
 
 
 class Runtime:
@@ -250,7 +267,9 @@ class Runtime:
             self._restore_signal_handlers(handlers)
             restore_scheduling()
         reason, message = self._end or ("stopped", "loop stopped")
-        return RunResult(reason, message, timing, list(self.safety.events), self.cycle)
+        log = self.safety.events
+        return RunResult(reason, message, timing, list(log), self.cycle, log.dropped, log.dropped_after,
+                         dict(log.counts), log.gap_line())
 
     # -- one cycle -----------------------------------------------------------
     def _cycle(self, cycle: int, now: int) -> bool:

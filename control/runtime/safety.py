@@ -11,13 +11,19 @@ Two kinds of stop:
   silent command stream and the obstacle (debounced by its stage) release at once
   (``RELEASE_AT_ONCE``).
 
-Every change is an event (time, kind, cause, message) kept for telemetry and
-the run report. The runtime commands zero and disables the drive the same cycle
-a stop starts.
+Every change is an event (time, kind, cause, message), told to the listeners
+(telemetry, the console) as it happens and kept for the run report in an
+``EventLog``: a run of months holds and releases the obstacle stop each time
+someone walks past, so the log keeps the first ``EVENTS_FIRST`` and the last
+``EVENTS_LAST`` events in full, a count of every (kind, cause) since the start,
+and says how many it left out between them. The runtime commands zero and
+disables the drive the same cycle a stop starts.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
+from typing import Iterator
 
 FATAL = ("exception", "signal", "deadline", "drive", "camera")
 
@@ -41,13 +47,80 @@ class SafetyEvent:
         return {"stamp_ns": self.stamp_ns, "kind": self.kind, "cause": self.cause, "message": self.message}
 
 
+#: Events the run report keeps in full: the first ones (how the run started) and the last ones (how it went
+#: lately, how it ended). Those in between are counted (``EventLog.counts``, ``EventLog.dropped``), not kept.
+EVENTS_FIRST = 100
+EVENTS_LAST = 1000
+
+
+class EventLog:
+    """The safety events of a run, bounded: the first ``first`` and the last ``last`` in full, in order; the
+    number of every (kind, cause) over the whole run (``counts``); how many were left out (``dropped``).
+
+    Iterating gives the kept events in order (the first ones, then the last ones); ``dropped_after`` is
+    how many of them come before the gap (a report says there that events were left out)."""
+
+    def __init__(self, first: int = EVENTS_FIRST, last: int = EVENTS_LAST):
+        if first < 0 or last < 1:
+            raise ValueError(f"EventLog keeps first >= 0 and last >= 1 events, got {first}, {last}")
+        self.first = first
+        self._head: list = []
+        self._tail: deque = deque(maxlen=last)
+        self.total = 0
+        self.counts: dict[tuple[str, str], int] = {}     # (kind, cause) -> events over the whole run
+
+    def append(self, ev: "SafetyEvent") -> None:
+        self.total += 1
+        key = (ev.kind, ev.cause)
+        self.counts[key] = self.counts.get(key, 0) + 1
+        if len(self._head) < self.first:
+            self._head.append(ev)
+        else:
+            self._tail.append(ev)
+
+    @property
+    def dropped(self) -> int:
+        """Events left out between the first and the last ones kept."""
+        return self.total - len(self._head) - len(self._tail)
+
+    @property
+    def dropped_after(self) -> int:
+        """How many kept events come before the ones left out."""
+        return len(self._head)
+
+    def __iter__(self) -> Iterator["SafetyEvent"]:
+        yield from self._head
+        yield from self._tail
+
+    def __len__(self) -> int:
+        return len(self._head) + len(self._tail)
+
+    def __bool__(self) -> bool:
+        return self.total > 0
+
+    def __getitem__(self, i):
+        return list(self)[i]
+
+    def count(self, kind: str, cause: str | None = None) -> int:
+        """Events of ``kind`` (and ``cause``) over the whole run, the ones left out included."""
+        return sum(n for (k, c), n in self.counts.items() if k == kind and (cause is None or c == cause))
+
+    def gap_line(self) -> str:
+        """What the report says where events were left out ("" when none were)."""
+        if not self.dropped:
+            return ""
+        counts = ", ".join(f"{k} {c} {n}" for (k, c), n in sorted(self.counts.items()))
+        return (f"{self.dropped} safety events left out here (the report keeps the first {self.first} and the "
+                f"last {self._tail.maxlen}); the whole run's events by kind and cause: {counts}")
+
+
 @dataclass
 class SafetyMonitor:
     release_s: float                                   # s a held cause must stay clear (safety.release_s)
     latched: dict = field(default_factory=dict)        # cause -> message
     holds: dict = field(default_factory=dict)          # cause -> message (active)
     _clear_since: dict = field(default_factory=dict)   # cause -> ns when it went clear
-    events: list = field(default_factory=list)
+    events: EventLog = field(default_factory=EventLog)   # bounded: first and last events, counts
     speed_scale: float = 1.0                           # from obstacle zones, in [0, 1]
     listeners: list = field(default_factory=list)      # callables(SafetyEvent)
 
