@@ -66,3 +66,96 @@ class _NoLog(list):
 
     def append(self, item):
         pass
+
+
+# ---- operator mode switches: teach, idle, a refused repeat, many times in one run --------------------------
+
+import gc                                                       # noqa: E402
+import weakref                                                  # noqa: E402
+from types import SimpleNamespace                               # noqa: E402
+
+from vbnav.control.comms.link import TelemetryLink              # noqa: E402
+from vbnav.control.comms.telemetry import Sink                  # noqa: E402
+from vbnav.control.controllers import operator as operator_module   # noqa: E402
+from vbnav.control.runtime.mailbox import OperatorCommand       # noqa: E402
+
+
+class _KeyframeEveryFrame(VisionStage):
+    """A teach stage that emits a keyframe on every frame (the real one needs a textured world)."""
+
+    kind = "teach"
+    n_keyframes = 0
+
+    def process(self, frame, odom):
+        self.n_keyframes += 1
+        return Estimate(frame.stamp_ns, self.kind, True, SimpleNamespace(odom=odom))
+
+
+class _Teaching:
+    """session.Teaching without files: the operator's teach parts around ``_KeyframeEveryFrame``."""
+
+    made: list = []
+
+    def __init__(self, cfg, route_dir, overwrite=False):
+        self.stage = _KeyframeEveryFrame()
+        _Teaching.made.append(weakref.ref(self.stage))
+
+    def save(self, frame=None, results=None):
+        pass
+
+    def close(self, complete=True):
+        return True
+
+
+class _Quiet(Sink):
+    def new_segment(self, segment):
+        pass
+
+
+def test_many_teach_sessions_keep_only_the_latest_route_and_release_the_old_ones(tmp_path, monkeypatch):
+    # Before: the link's taught poses (drawn as the route being taught, sent whole at the scene rate) kept every
+    # keyframe of every teach of the run, and OperatorController.errors every refused switch (one a cycle here:
+    # 60 teach sessions of 15 keyframes grew them to 900 poses and 60 errors).
+    monkeypatch.setattr(operator_module, "Teaching", _Teaching)
+    _Teaching.made = []
+    cfg = Config()
+    cfg.controller.routes_dir = str(tmp_path)
+    cfg.telemetry.enabled = False
+    rt, drive, clock = make_runtime(None, cfg=cfg)
+    drive.log = _NoLog()
+    pipeline = rt.pipeline
+    ctl = operator_module.OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)
+    rt.controller = ctl
+    ctl.attach(rt)
+    link = TelemetryLink.attach(rt, cfg, recorder=_Quiet(), network=False)
+    sessions, period = 60, 130                     # cycles: teach 1.0 s, idle 0.3 s
+    seen = []
+
+    def feed(r, ctx, twist, wheels):
+        k, phase = divmod(ctx.cycle, period)
+        if phase == 0 and k < sessions:
+            r.submit(OperatorCommand("mode", ("teach", f"route{k}"), "op"))
+        elif phase == 100:
+            seen.append((ctl.status().get("keyframes"), len(link._taught)))
+            r.submit(OperatorCommand("mode", ("idle",), "op"))
+        elif phase == 110:
+            r.submit(OperatorCommand("mode", ("repeat", "missing"), "op"))
+        elif phase == 120:
+            seen[-1] += (len(pipeline.stages), len(pipeline.frame_listeners))
+
+    rt.cycle_observers.append(feed)
+    result = rt.run(duration_s=sessions * period / cfg.loop.rate_hz)
+    ctl.close()
+    link.close(result)
+    assert len(seen) == sessions and len(_Teaching.made) == sessions
+    per_teach = max(kf for kf, *_ in seen)
+    assert 10 <= per_teach <= 16                                       # 1 s at 15 frames/s
+    # The taught route drawn is the latest teach's, never more than one teach's keyframes.
+    assert all(taught <= kf + 1 for kf, taught, *_ in seen), seen
+    assert len(link._taught) <= per_teach + 1
+    assert len(ctl.errors) <= operator_module.ERRORS_KEPT < sessions
+    assert "missing" in ctl.errors[-1]
+    # Nothing else piles up per switch: the same stages and listeners, the old teach stages released.
+    assert {s[2:] for s in seen} == {seen[0][2:]}
+    gc.collect()
+    assert sum(ref() is not None for ref in _Teaching.made) <= 1

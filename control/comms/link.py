@@ -33,6 +33,7 @@ from __future__ import annotations
 import re
 import sys
 import time
+import weakref
 from typing import Optional
 
 from vbnav.control.comms.operator_commands import ACK_PATTERN, CommandInbox, CommandSubscriber, limits_from_config
@@ -127,7 +128,8 @@ class TelemetryLink:
         self.commands: Optional[CommandSubscriber] = None
         self.live_view = None            # comms/live_view.LiveView when telemetry.live_view.enabled
         self.routes = None               # the RouteServer of controller.routes_dir (comms/route_transfer.py)
-        self._taught: list = []          # odometry poses of the keyframes taught in this run
+        self._taught: list = []          # odometry poses of the keyframes of the latest teach in this run
+        self._taught_by = None           # weakref to the teach stage they come from
         self._next_scene_ns: Optional[int] = None
         self._map_revision: Optional[int] = None    # of the line map last offered
         self.inbox: CommandInbox
@@ -277,6 +279,12 @@ class TelemetryLink:
         pub, stages, stamp = self.publisher, self.runtime.pipeline.stages, frame.stamp_ns
         teach = results.get("teach")
         if teach is not None and teach.value is not None:     # a Keyframe, on the frames that emit one
+            # The route being taught: an operator run teaches many, one after another, for months; each
+            # new teach stage starts its own list (the scene shows the latest teach, not all of them).
+            stage = next((st for st in stages if st.kind == "teach"), None)
+            by = self._taught_by
+            if stage is not None and (by is None or by() is not stage):
+                self._taught, self._taught_by = [], weakref.ref(stage)
             self._taught.append(teach.value.odom)
         if pub.image_due(stamp):
             pub.offer_image(frame.image, stamp, frame.seq, overlay=frame_overlay(stages, results))

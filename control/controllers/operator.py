@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import TYPE_CHECKING, Optional
 
 from vbnav.control.controllers.manual import TeleopController
@@ -45,6 +46,7 @@ if TYPE_CHECKING:
     from vbnav.control.runtime.runtime import Runtime
 
 MODES = ("idle", "teach", "repeat")
+ERRORS_KEPT = 20                 # failed switches kept in OperatorController.errors
 
 
 class OperatorController(Controller):
@@ -62,7 +64,8 @@ class OperatorController(Controller):
         self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error, cmd)
         self._previous: Optional[tuple] = None         # (stages, controller) detached by the switch in progress
         self._worker: Optional[threading.Thread] = None
-        self.errors: list[str] = []
+        # the latest failed switches (each is also a rejected safety event): a run of months keeps a few
+        self.errors: deque[str] = deque(maxlen=ERRORS_KEPT)
         self._runtime: Optional["Runtime"] = None       # hears a switch that fails after it was accepted
 
     # -- Controller ----------------------------------------------------------
