@@ -159,3 +159,49 @@ def test_many_teach_sessions_keep_only_the_latest_route_and_release_the_old_ones
     assert {s[2:] for s in seen} == {seen[0][2:]}
     gc.collect()
     assert sum(ref() is not None for ref in _Teaching.made) <= 1
+
+
+# ---- live view: a Foxglove client reconnects under a new id after every network blip ----------------------
+
+def test_live_view_clients_that_come_and_go_leave_bounded_state(tmp_path):
+    # Before: the ids of every client that ever gave the operator token, and a seq counter per client that ever
+    # sent teleop, were kept for the life of the process (measured with real WebSocket clients: 20 connections,
+    # 20 operators and 20 counters left after all of them went; the SDK unadvertises their teleop channels).
+    import json
+    import os
+
+    import foxglove
+
+    from vbnav.control.comms import live_view as lv_module
+
+    token = tmp_path / "token"
+    token.write_text("operator-token-0123456789\n")
+    os.chmod(token, 0o600)
+    cfg = Config()
+    cfg.telemetry.live_view.enabled = True
+    cfg.telemetry.live_view.port = 0
+    cfg.telemetry.live_view.operator_token_file = str(token)
+    sent = []
+    lv = lv_module.LiveView(cfg.telemetry, "r", submit_teleop=lambda k, p: sent.append(json.loads(p)),
+                            refuse=lambda k, r, p: sent.append(r), to_wall_ns=lambda t: t)
+    try:
+        twist = json.dumps({"linear": {"x": 0.1, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": 0}}).encode()
+        n = 3 * lv_module.OPERATORS_KEPT
+        for i in range(n):                           # connect, authenticate, drive, go away (as the SDK tells it)
+            client, channel = SimpleNamespace(id=i + 1), SimpleNamespace(id=7, topic=lv_module.TELEOP_TOPIC)
+            lv.on_set_parameters(client, [foxglove.Parameter(lv_module.TOKEN_PARAMETER,
+                                                             value="operator-token-0123456789")])
+            lv.on_client_advertise(client, channel)
+            lv.on_message_data(client, 7, twist)
+            lv.on_message_data(client, 7, twist)
+            lv.on_client_unadvertise(client, 7)
+        assert len(lv._operators) <= lv_module.OPERATORS_KEPT and not lv._teleop_channels
+        assert isinstance(lv._seq, int)
+        assert lv.is_operator(n) and not lv.is_operator(1)      # the latest stay operators, the oldest went
+        assert all(isinstance(m, dict) for m in sent) and len(sent) == 2 * n
+        per_sender = {}
+        for m in sent:                               # each sender's seq still increases
+            per_sender.setdefault(m["session"], []).append(m["seq"])
+        assert all(a < b for seqs in per_sender.values() for a, b in zip(seqs, seqs[1:]))
+    finally:
+        lv.close()

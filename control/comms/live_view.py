@@ -60,6 +60,10 @@ def operator_rule(tcfg) -> tuple[Optional[bytes], bool, str]:
     return None, True, ""
 
 
+#: Live-view clients remembered as operators at once (the latest to give the token).
+OPERATORS_KEPT = 64
+
+
 class LiveView(Sink, ServerListener):
     """The WebSocket server and its channels. ``teleop(sender, session, payload)`` submits a command."""
 
@@ -69,9 +73,12 @@ class LiveView(Sink, ServerListener):
         self._token, self._everyone, self._why_nobody = operator_rule(tcfg)
         self._submit, self._refuse, self._to_wall = submit_teleop, refuse, to_wall_ns
         self._lock = threading.Lock()
-        self._operators: set[int] = set()
-        self._teleop_channels: set[tuple[int, int]] = set()
-        self._seq: dict[int, int] = {}
+        # Client ids that gave the operator token, oldest first. The SDK tells no disconnect, and the Foxglove
+        # app reconnects after every network blip under a new id: only the latest OPERATORS_KEPT are kept (an
+        # older one still connected sets the token again).
+        self._operators: dict[int, None] = {}
+        self._teleop_channels: set[tuple[int, int]] = set()   # the SDK unadvertises them when a client goes
+        self._seq = 0           # teleop seq, one counter for every client: it increases per sender all the same
         self._session = uuid.uuid4().hex[:8]
         self.bytes_sent = 0
         self.latched = Latched()
@@ -155,7 +162,11 @@ class LiveView(Sink, ServerListener):
             good = self._token is not None and isinstance(value, str) and \
                 hmac.compare_digest(value.strip().encode(), self._token)
             with self._lock:
-                (self._operators.add if good else self._operators.discard)(client.id)
+                self._operators.pop(client.id, None)
+                if good:
+                    self._operators[client.id] = None
+                    while len(self._operators) > OPERATORS_KEPT:
+                        del self._operators[next(iter(self._operators))]
             out.append(foxglove.Parameter(TOKEN_PARAMETER, value="accepted" if good else "refused"))
         return out
 
@@ -185,7 +196,7 @@ class LiveView(Sink, ServerListener):
                          bytes(data[:200]))
             return
         with self._lock:
-            seq = self._seq[client.id] = self._seq.get(client.id, 0) + 1
+            seq = self._seq = self._seq + 1
         payload = json.dumps({"sender": f"foxglove-{client.id}", "session": f"{self._session}-{client.id}",
                               "seq": seq, "stamp_ns": time.monotonic_ns(), "linear": linear,
                               "angular": angular}, allow_nan=True)
