@@ -18,6 +18,7 @@ Pure computation: images and arrays in, poses out.
 from __future__ import annotations
 
 import itertools
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -40,6 +41,8 @@ ORB_TIE_PX = 3.0
 # far more (40-95 % per frame on the real sequences in ../shared/data), tracks dragged by a jump beyond the
 # pyramid agree by chance. The ORB fallbacks are tried; the KLT pose stands only if they fail.
 MIN_INLIER_FRACTION = 0.25
+#: Frame-to-frame motion estimates kept in ``Vslam.stats`` (the latest; ~3 kB each with their arrays).
+STATS_KEPT = 32
 # Essential-matrix inliers needed from those matches: 5 determine it; 15 give a margin over outliers.
 ORB_MIN_MATCHES = 15
 # A monocular landmark born at the parallax gate (min_parallax_px, 10 px) with 1 px of noise has a 10 %
@@ -253,7 +256,7 @@ class Vslam:
         self.prev: Optional[np.ndarray] = None
         self.frame = 0
         self.rng = np.random.default_rng(seed)  # RANSAC draws
-        self.stats: list[MotionEstimate] = []
+        self.stats: deque[MotionEstimate] = deque(maxlen=STATS_KEPT)   # the latest frames' solves
         self._history: list[np.ndarray] = []  # last two good world-from-camera poses
         self._img_id = 0  # frame counter of the image being processed
         self._anchors: dict[int, np.ndarray] = {}  # images where live features were detected
