@@ -50,7 +50,9 @@ ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes non
 
 
 class _Cmd(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: types as JSON gives them (an int is a number too), never coerced: "linear": true was taken as
+    # 1.0 m/s and "0.3" as 0.3, a sender's bug driving the robot instead of a refusal
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
     seq: Optional[int] = Field(None, description="increasing per session: teleop at or below the last is refused")
     sender: Optional[str] = Field(None, max_length=64)
     session: Optional[str] = Field(None, max_length=64, description="one id per sender process; a new one "
