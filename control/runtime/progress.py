@@ -48,29 +48,48 @@ class EventEcho:
     must never stall the loop, so a thread of its own does the writing. A closed stream silences it.
     """
 
+    #: events waiting for a console that blocks (a paused terminal, a full pipe); more are counted, not kept
+    QUEUE_LIMIT = 1000
+
     def __init__(self, stream: Optional[TextIO] = None):
         self.stream = stream or sys.stderr
         self.tty = self.stream.isatty()
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE_LIMIT)
+        self._lock = threading.Lock()
+        self.dropped = 0          # events not echoed because the console did not keep up (not yet said)
         self._thread = threading.Thread(target=self._write, name="vbnav-event-echo", daemon=True)
         self._thread.start()
 
     def __call__(self, event) -> None:
-        self._queue.put(event)
+        try:
+            self._queue.put_nowait(event)
+        except queue.Full:        # a blocked console must not grow the process for months
+            with self._lock:
+                self.dropped += 1
 
     def close(self) -> None:
         """Write what is queued, then stop."""
-        self._queue.put(None)
+        try:
+            self._queue.put(None, timeout=2.0)
+        except queue.Full:
+            return
         self._thread.join(timeout=2.0)
 
     def _write(self) -> None:
         while True:
             e = self._queue.get()
-            if e is None:
-                return
+            with self._lock:
+                dropped, self.dropped = self.dropped, 0
             clear = "\r\x1b[K" if self.tty else ""     # over a progress line in place
+            stamp = time.strftime('%H:%M:%S')
+            lines = [f"{clear}{stamp} {dropped} safety events not echoed: the console did not keep up "
+                     f"(the run summary counts them)\n"] if dropped else []
+            if e is not None:
+                lines.append(f"{clear}{stamp} safety {e.kind}: {e.cause}: {e.message}\n")
             try:
-                self.stream.write(f"{clear}{time.strftime('%H:%M:%S')} safety {e.kind}: {e.cause}: {e.message}\n")
+                self.stream.write("".join(lines))
                 self.stream.flush()
             except (OSError, ValueError):              # closed pipe or stream: nobody is reading
+                return
+            if e is None:
                 return
