@@ -220,7 +220,7 @@ def test_clear_errors_refuses_another_drive_and_a_missing_port(tmp_path, capsys)
     assert main(["odrive", "clear-errors", "-c", "sim"]) == 2
     assert "drive.driver is 'sim'" in capsys.readouterr().err
     assert main(["odrive", "clear-errors", "-c", odrive_config(tmp_path, tmp_path / "gone")]) == 3
-    assert "not found" in capsys.readouterr().out
+    assert "not found" in capsys.readouterr().err
 
 
 # -- the emulators' log ------------------------------------------------------------------------------

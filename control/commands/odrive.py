@@ -11,6 +11,7 @@ hardware fault whose cause is still there) or the device does not answer.
 from __future__ import annotations
 
 import argparse
+import sys
 
 from vbnav.control.commands._common import add_config_arg
 from vbnav.drivers.errors import InputError
@@ -44,14 +45,14 @@ def run_clear(args) -> int:
             return 0
         except DriveError as exc:
             if not drive.faults:            # not an error word: the device is missing or silent
-                print(f"{COMMAND} clear-errors: {exc}")
+                print(f"{COMMAND} clear-errors: {exc}", file=sys.stderr)
                 return 3
         for fault in drive.faults:
             print(f"ODrive on {drive.opt.port}: {fault}")
         try:
             drive.clear_faults()
-        except DriveError as exc:
-            print(f"{COMMAND} clear-errors: still reported after 'sc': {exc}")
+        except DriveError as exc:       # an error word that 'sc' did not clear, or the device went silent
+            print(f"{COMMAND} clear-errors: clearing did not succeed: {exc}", file=sys.stderr)
             return 3
         print(f"ODrive on {drive.opt.port}: errors cleared, axes idle; 'vbnav run' can start")
         return 0
