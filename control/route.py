@@ -161,11 +161,17 @@ def camera_from_dict(d: dict, where: str):
         cls = FisheyeCamera if d["model"] == "fisheye" else PinholeCamera
         if d["model"] not in ("pinhole", "fisheye"):
             raise ValueError(f"model {d['model']!r}")
-        return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
-                   float(d["cy"]), tuple(float(x) for x in d.get("dist", [])))
+        w, h = int(d["width"]), int(d["height"])
+        fx, fy, cx, cy = (float(d[k]) for k in ("fx", "fy", "cx", "cy"))
+        dist = tuple(float(x) for x in d.get("dist", []))
     except (KeyError, TypeError, ValueError) as e:
         raise RouteError(f"{where}: camera: expected model pinhole|fisheye, width, height, fx, fy, cx, cy, dist "
                          f"({e})") from None
+    # A NaN or negative focal length passed every later check (NaN compares false) and bent every bearing.
+    if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy) + dist) or fx <= 0 or fy <= 0:
+        raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy, dist; got "
+                         f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy} dist {list(dist)}")
+    return cls(w, h, fx, fy, cx, cy, dist)
 
 
 def mount_to_dict(m: CameraMount) -> dict:
@@ -390,6 +396,8 @@ def load_route(path, load_images: bool = True) -> Route:
         m = json.loads(mpath.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise RouteError(f"{mpath}: not valid JSON ({e})") from None
+    except RecursionError:
+        raise RouteError(f"{mpath}: not a route manifest (JSON nested too deeply)") from None
     if not isinstance(m, dict) or m.get("format") != FORMAT:
         got = m.get("format") if isinstance(m, dict) else type(m).__name__
         raise RouteError(f"{mpath}: format is {got!r}, expected {FORMAT!r} (a foreign directory?)")
@@ -409,6 +417,10 @@ def load_route(path, load_images: bool = True) -> Route:
                             roll=float(m["mount"].get("roll", 0.0)))
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise RouteError(f"{mpath}: mount: expected height, forward, lateral, pitch, yaw numbers ({e})") from None
+    if not all(math.isfinite(v) for v in mount_to_dict(mount).values()):
+        raise RouteError(f"{mpath}: mount: expected finite numbers, got {mount_to_dict(mount)}")
+    if not isinstance(m.get("complete", False), bool):
+        raise RouteError(f"{mpath}: complete: expected true or false, got {m['complete']!r}")
     calibration = m.get("calibration")
     if calibration is not None and not isinstance(calibration, dict):
         raise RouteError(f"{mpath}: calibration: expected an object (file, sha256, fx, ...) or null")
@@ -426,7 +438,12 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
         raise RouteError(f"{where}: expected an object with 'image' and 'landmarks' file names")
     img_path, lm_path = root / str(entry["image"]), root / str(entry["landmarks"])
     for p in (img_path, lm_path):
-        if p.resolve().parent != root.resolve():     # resolved: a symlinked keyframe file must not lead out
+        try:
+            inside = p.resolve().parent == root.resolve()   # resolved: a symlinked keyframe file must not lead out
+        except (RuntimeError, OSError):                     # a symbolic link loop
+            raise RouteError(f"{p}: a symbolic link loop, expected a keyframe file (listed in {mpath.name} "
+                             f"keyframes[{i}])") from None
+        if not inside:
             raise RouteError(f"{where}: file {p.name!r} must be inside the route directory")
         if not p.is_file():
             raise RouteError(f"{p}: missing keyframe file (listed in {mpath.name} keyframes[{i}])")
@@ -447,8 +464,9 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RouteError(f"{lm_path}: corrupt or truncated landmark file, expected a numpy .npz ({e})") from None
     n = _check_landmarks(lm_path, data, f"keyframes[{i}]")
-    if "n_landmarks" in entry and int(entry["n_landmarks"]) != n:
-        raise RouteError(f"{lm_path}: has {n} landmarks, manifest says {entry['n_landmarks']}")
+    if "n_landmarks" in entry and (not isinstance(entry["n_landmarks"], int) or entry["n_landmarks"] != n):
+        raise RouteError(f"{lm_path}: has {n} landmarks, manifest keyframes[{i}].n_landmarks says "
+                         f"{entry['n_landmarks']!r}")
     odom = np.asarray(data["odom"], float).ravel()
     return Keyframe(i, image, data["pixels"], data["alpha"], data["beta"], data["descriptors"], data["inv_height"],
                     data["inv_height_var"], data["track_ids"], Pose2(*odom[:3]), float(data["distance"]),
@@ -468,7 +486,15 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
     for k in list(_LANDMARK_FIELDS) + ["odom", "distance", "stamp_ns"]:
         if k not in data:
             raise RouteError(f"{path}: missing array {k!r}")
+    if data["alpha"].ndim != 1:
+        raise RouteError(f"{path}: array 'alpha' has shape {data['alpha'].shape}, expected one value per landmark")
     n = len(data["alpha"])
+    for k, kind in (("odom", "f"), ("distance", "f"), ("stamp_ns", "i")):
+        a = data[k]
+        if a.dtype.kind not in ("iu" if kind == "i" else "fiu") or (k != "odom" and a.shape != ()):
+            raise RouteError(f"{path}: {k!r} has shape {a.shape} dtype {a.dtype}, expected "
+                             + ("3 numbers (x, z, theta)" if k == "odom" else
+                                "one integer (ns)" if kind == "i" else "one number"))
     for k, (kind, trailing) in _LANDMARK_FIELDS.items():
         a = data[k]
         if a.shape != (n,) + trailing or a.dtype.kind != kind:

@@ -56,7 +56,7 @@ def summary(path) -> RouteSummary:
         s.created, s.robot = str(m.get("created", "")), str(m.get("robot", ""))
     except FileNotFoundError:
         s.error = f"no {MANIFEST} (not a route)"
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, IndexError, RecursionError) as exc:
         s.error = f"{MANIFEST} unreadable ({type(exc).__name__}: {exc})"
     return s
 
@@ -178,6 +178,14 @@ def npz_crc_problem(path: Path) -> Optional[str]:
     return f"{path.name}: CRC-32 mismatch in member {bad!r}" if bad else None
 
 
+def _same(compare) -> bool:
+    """``compare()``; False when the manifest's value is not a number or of another shape (damage too)."""
+    try:
+        return bool(compare())
+    except (TypeError, ValueError):
+        return False
+
+
 def check(path) -> CheckReport:
     """Verify checksums, decode everything, compare manifest and files. RouteError only when ``path`` is
     not a route at all (no directory, no manifest)."""
@@ -190,7 +198,7 @@ def check(path) -> CheckReport:
     try:
         manifest = json.loads((root / MANIFEST).read_text())
         listed = manifest["keyframes"]
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
         report.problems.append(f"{MANIFEST}: unreadable ({exc})")
         return report
     files = set()
@@ -213,11 +221,13 @@ def check(path) -> CheckReport:
     report.keyframes, report.complete = len(route), route.complete
     for i, (entry, kf) in enumerate(zip(listed, route.keyframes)):
         odom = entry.get("odom")
-        if odom is not None and not np.allclose(odom, kf.odom.as_array(), atol=1e-9):
+        if odom is not None and not _same(lambda: np.allclose(np.asarray(odom, float), kf.odom.as_array(),
+                                                              atol=1e-9)):
             report.problems.append(f"keyframes[{i}]: the manifest's odom {odom} differs from "
                                    f"{entry['landmarks']}'s {kf.odom.as_array().tolist()}")
-        if "distance" in entry and not math.isclose(float(entry["distance"]), kf.distance, abs_tol=1e-9):
-            report.problems.append(f"keyframes[{i}]: the manifest's distance {entry['distance']} differs from "
+        if "distance" in entry and not _same(lambda: math.isclose(float(entry["distance"]), kf.distance,
+                                                                  abs_tol=1e-9)):
+            report.problems.append(f"keyframes[{i}]: the manifest's distance {entry['distance']!r} differs from "
                                    f"{entry['landmarks']}'s {kf.distance}")
     unlisted = sorted(p.name for p in root.iterdir()
                       if p.name.startswith(_KF_FILE[0]) and p.suffix in _KF_FILE[1] and p.name not in files)

@@ -61,6 +61,18 @@ def test_refuses_non_empty_directory(tmp_path, rng):
     ("truncated_npz", "kf_00002.npz: corrupt or truncated"),
     ("bad_array", "kf_00000.npz: array 'beta' has shape"),
     ("bad_png", "kf_00001.png: not a readable PNG"),
+    # these were tracebacks (TypeError, ValueError, RuntimeError, RecursionError) or loaded without a word
+    ("n_landmarks_word", r"kf_00001.npz: has 20 landmarks, manifest keyframes\[1\].n_landmarks says 'abc'"),
+    ("distance_array", r"kf_00001.npz: 'distance' has shape \(2,\) dtype float64, expected one number"),
+    ("stamp_word", r"kf_00001.npz: 'stamp_ns' has shape \(\) dtype <U3, expected one integer"),
+    ("odom_words", r"kf_00001.npz: 'odom' has shape \(3,\) dtype <U1, expected 3 numbers"),
+    ("alpha_scalar", r"kf_00001.npz: array 'alpha' has shape \(\), expected one value per landmark"),
+    ("nan_focal", r"manifest.json: camera: expected .*fx, fy > 0.*; got 64x48 fx nan"),
+    ("negative_focal", r"manifest.json: camera: expected .*; got 64x48 fx -40.0"),
+    ("nan_mount", r"manifest.json: mount: expected finite numbers, got \{'height': nan"),
+    ("complete_word", "manifest.json: complete: expected true or false, got 'false'"),
+    ("png_link_loop", r"kf_00001.png: a symbolic link loop, expected a keyframe file"),
+    ("deep_json", "manifest.json: not a route manifest"),
 ])
 def test_clear_errors(tmp_path, rng, case, match):
     d = tmp_path / "r"
@@ -90,6 +102,27 @@ def test_clear_errors(tmp_path, rng, case, match):
         np.savez(d / "kf_00000.npz", **z)
     elif case == "bad_png":
         (d / "kf_00001.png").write_bytes(b"garbage")
+    elif case in ("distance_array", "stamp_word", "odom_words", "alpha_scalar"):
+        z = dict(np.load(d / "kf_00001.npz"))
+        key, value = {"distance_array": ("distance", np.array([0.5, 1.0])),
+                      "stamp_word": ("stamp_ns", np.array("abc")),
+                      "odom_words": ("odom", np.array(["a", "b", "c"])),
+                      "alpha_scalar": ("alpha", np.float64(0.1))}[case]
+        z[key] = value
+        np.savez(d / "kf_00001.npz", **z)
+    elif case == "png_link_loop":
+        (d / "kf_00001.png").unlink()
+        os.symlink(d / "kf_00001.png", d / "kf_00001.png")
+    elif case == "deep_json":
+        mpath.write_text("[" * 100000 + "]" * 100000)
+    else:
+        edit = {"n_landmarks_word": lambda: m["keyframes"][1].update(n_landmarks="abc"),
+                "nan_focal": lambda: m["camera"].update(fx=float("nan")),
+                "negative_focal": lambda: m["camera"].update(fx=-40.0),
+                "nan_mount": lambda: m["mount"].update(height=float("nan")),
+                "complete_word": lambda: m.update(complete="false")}[case]
+        edit()
+        mpath.write_text(json.dumps(m))
     with pytest.raises(RouteError, match=match):
         load_route(d)
 

@@ -169,3 +169,20 @@ def test_check_notes_leftovers_and_refuses_what_is_not_a_route(routes, tmp_path,
     assert main(["route", "check", str(tmp_path / "nothing")]) == 2
     assert main(["route", "check", str(routes / "notes")]) == 2
     assert "manifest.json: missing" in capsys.readouterr().err
+
+
+def test_check_and_info_say_what_is_wrong_with_non_numbers_in_the_manifest(routes, tmp_path, capsys):
+    """A manifest's odom or distance that is not a number, or calibration fields that are not numbers, were
+    tracebacks of route check and route info; now check reports the damage and info shows them as written."""
+    route = damaged_copy(routes, tmp_path)
+    m = json.loads((route / "manifest.json").read_text())
+    m["keyframes"][2].update(odom="abc", distance="x")
+    m["calibration"] = {"file": "cam.yaml", "distortion": ["a"], "baseline": "q"}
+    (route / "manifest.json").write_text(json.dumps(m))
+    assert main(["route", "check", str(route)]) == 1
+    out = capsys.readouterr().out
+    assert "keyframes[2]: the manifest's odom abc differs" in out
+    assert "keyframes[2]: the manifest's distance 'x' differs" in out
+    assert main(["route", "info", str(route)]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("calibration:"))
+    assert "distortion [['a']]" in line and "baseline 'q'" in line, line

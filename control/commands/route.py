@@ -98,10 +98,13 @@ def _calibration_text(c: dict) -> str:
         parts.append(f"{c.get('model', '?')} {c['width']}x{c['height']}")
     if all(isinstance(c.get(k), (int, float)) for k in ("fx", "fy", "cx", "cy")):
         parts.append(f"fx {c['fx']:.2f} fy {c['fy']:.2f} cx {c['cx']:.2f} cy {c['cy']:.2f} px")
-    if c.get("distortion"):
-        parts.append("distortion [" + ", ".join(f"{d:.4g}" for d in c["distortion"]) + "]")
+    dist = c.get("distortion")
+    if dist:        # a hand-edited manifest may hold anything here: shown as written, not formatted
+        parts.append("distortion [" + (", ".join(f"{d:.4g}" for d in dist) if isinstance(dist, list) and all(
+            isinstance(d, (int, float)) for d in dist) else repr(dist)) + "]")
     if c.get("baseline"):
-        parts.append(f"baseline {c['baseline']:.4f} m")
+        b = c["baseline"]
+        parts.append(f"baseline {b:.4f} m" if isinstance(b, (int, float)) else f"baseline {b!r}")
     return "; ".join(parts)
 
 
