@@ -58,11 +58,13 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise MapFileError(f"{path}: not a JSON map file ({exc})") from None
+    except RecursionError:
+        raise MapFileError(f"{path}: not a JSON map file (nested too deeply)") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise MapFileError(f"{path}: not a vbnav line map (format {data.get('format') if isinstance(data, dict) else None!r},"
                            f" expected {FORMAT!r})")
     ver = data.get("version")
-    if not isinstance(ver, int) or ver < 1:
+    if not isinstance(ver, int) or isinstance(ver, bool) or ver < 1:
         raise MapFileError(f"{path}: version must be an integer >= 1, got {ver!r}")
     if ver > VERSION:
         raise MapFileError(f"{path}: version {ver} is newer than this vbnav reads (<= {VERSION}); upgrade vbnav")
@@ -72,6 +74,26 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
     if unknown:     # a parameter the map was built with that this vbnav would silently not apply
         raise MapFileError(f"{path}: params: unknown key(s) {', '.join(map(repr, unknown))} (this vbnav's map "
                            f"parameters: {', '.join(sorted(known))})")
+    if not isinstance(given, dict):
+        raise MapFileError(f"{path}: params: expected an object of map parameters, got {type(given).__name__}")
+    for f in dataclasses.fields(MapParams):     # a word here was taken, and failed the first mapping frame
+        v = given.get(f.name, 0)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or \
+                (f.type == "int" and not float(v).is_integer()):
+            raise MapFileError(f"{path}: params: {f.name}: expected a finite {'integer' if f.type == 'int' else 'number'}"
+                               f", got {v!r}")
+    meta = data.get("meta", {})
+    if not isinstance(meta, dict) or not isinstance(meta.get("objects", []), list):
+        raise MapFileError(f"{path}: meta: expected an object with a list 'objects', got {meta!r:.60}")
+    for k, o in enumerate(meta.get("objects", [])):
+        try:
+            fp = np.asarray(o["footprint"], float)
+            ok = fp.ndim == 2 and fp.shape[1] == 2 and np.isfinite(fp).all() and np.isfinite(float(o["height"]))
+        except (KeyError, TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise MapFileError(f"{path}: meta.objects[{k}]: expected footprint (a list of [x, z] pairs) and height, "
+                               f"finite numbers")
     try:
         params = MapParams(**given)
         lmap = LineMap(params)
@@ -94,4 +116,9 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         raise MapFileError(f"{path}: segments: malformed entry ({type(exc).__name__}: {exc})") from None
     if not np.isfinite(lmap.P).all():
         raise MapFileError(f"{path}: segments: endpoints must be finite numbers")
-    return lmap, data.get("meta", {})
+    if not np.isfinite(lmap.cov).all():
+        raise MapFileError(f"{path}: segments: cov0/cov1 must be finite numbers")
+    for k, views in enumerate(lmap.views):     # a wrong shape was taken, and failed the first mapping frame
+        if any(v.shape != (4,) or not np.isfinite(v).all() for v in views):
+            raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
+    return lmap, meta

@@ -240,6 +240,29 @@ def test_map_file_round_trip_and_errors(room_map, tmp_path):
         load_map(p)
 
 
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["params"].update(max_range_m="far"), r"params: max_range_m: expected a finite number, got 'far'"),
+    (lambda d: d["params"].update(verify_views=2.5), r"params: verify_views: expected a finite integer, got 2.5"),
+    (lambda d: d["segments"][0].update(views=[[1.0, 2.0]]), r"segments\[0\].views: expected \[x, y, z, heading\]"),
+    (lambda d: d["segments"][0].update(cov0=[[float("nan")] * 3] * 3), "segments: cov0/cov1 must be finite"),
+    (lambda d: d.update(meta=[1]), "meta: expected an object with a list 'objects'"),
+    (lambda d: d.update(meta={"objects": [{"footprint": "abc", "height": 1}]}), r"meta.objects\[0\]: expected"),
+    (lambda d: d.update(version=True), "version must be an integer >= 1, got True"),
+], ids=["param-word", "param-int", "views-shape", "cov-nan", "meta-list", "object-footprint", "version-bool"])
+def test_a_malformed_map_file_is_refused_at_load_naming_the_field(room_map, tmp_path, edit, match):
+    """Wrong parameter types and view shapes loaded, then failed the first mapping frame of a goto --map
+    (a safety trip naming no file); a malformed meta was a traceback of map info and goto; NaN covariances
+    loaded. Now load_map refuses each, naming the file and the field."""
+    _, lmap = room_map
+    p = tmp_path / "room.json"
+    save_map(lmap, p, {"world": "room"})
+    data = json.loads(p.read_text())
+    edit(data)
+    p.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match="room.json: " + match):
+        load_map(p)
+
+
 def test_map_build_info_plot_commands(tmp_path, capsys):
     from vbnav.control.cli import main
     out, png = tmp_path / "m.json", tmp_path / "m.png"
