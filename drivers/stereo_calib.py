@@ -219,15 +219,19 @@ def _load_yaml(p: Path) -> StereoCalibration:
         raise CalibrationError(f"{p}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise CalibrationError(f"{p}: expected a mapping with width, height, fx, fy, cx, cy, baseline")
+    if "baseline" not in data and any(k in data for k in ("camera_matrix", "K", "cameraMatrix")):
+        raise CalibrationError(f"{p}: a single-camera calibration (camera_matrix, no baseline); expected a stereo "
+                               f"calibration: vbnav stereo YAML (width, height, fx, fy, cx, cy, baseline) or KITTI "
+                               f"calib.txt")
     try:
         m = _StereoYaml.model_validate(data)
-    except ValidationError as exc:
-        lines = []
+    except ValidationError as exc:      # one line (vbnav's errors are), naming the file once
+        parts = []
         for err in exc.errors():
             loc = ".".join(str(x) for x in err["loc"])
             msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
-            lines.append(f"{p}: {loc}: {msg}")
-        raise CalibrationError("\n".join(lines)) from None
+            parts.append(f"{loc}: {msg}")
+        raise CalibrationError(f"{p}: " + "; ".join(parts)) from None
     check_intrinsics(str(p), m.fx, m.fy, m.cx, m.cy, m.width, m.height)
     mount = m.mount
     K = np.array([[m.fx, 0.0, m.cx], [0.0, m.fy, m.cy], [0.0, 0.0, 1.0]])

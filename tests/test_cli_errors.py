@@ -102,6 +102,10 @@ CASES = [
      2, "cx"),
     ("obstacles-kitti-p1-is-p0", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/zerobase/calib.txt",
      2, "P1"),
+    ("obstacles-calib-mono", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/camera_info.yaml",
+     2, "camera_info.yaml: a single-camera calibration"),
+    ("obstacles-calib-two-fields", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo_2bad.yaml",
+     2, "stereo_2bad.yaml: fx: Input should be a valid number, unable to parse string as a number; baseline: "),
     ("obstacles-left-missing", "obstacles --left {d}/nope.png --right {d}/left.png --calib {d}/stereo.yaml",
      2, "nope.png"),
     ("obstacles-left-dir", "obstacles --left {d}/empty --right {d}/left.png --calib {d}/stereo.yaml", 2, "empty"),
@@ -234,6 +238,9 @@ def make_fixtures(d) -> None:
     (d / "stereo_nan.yaml").write_text(STEREO.replace("fx: 50", "fx: .nan"))
     (d / "stereo_base0.yaml").write_text(STEREO.replace("baseline: 0.1", "baseline: 0"))
     (d / "stereo_cx.yaml").write_text(STEREO.replace(f"cx: {W / 2}", "cx: -3"))
+    (d / "camera_info.yaml").write_text(f"image_width: {W}\nimage_height: {H}\ncamera_matrix: {{rows: 3, cols: 3, "
+                                        f"data: [50, 0, 32, 0, 50, 24, 0, 0, 1]}}\ndistortion_model: plumb_bob\n")
+    (d / "stereo_2bad.yaml").write_text(STEREO.replace("fx: 50", "fx: abc").replace("baseline: 0.1", "baseline: x"))
     (d / "stereo_1x1.yaml").write_text("width: 1\nheight: 1\nfx: 1\nfy: 1\ncx: 0.5\ncy: 0.5\nbaseline: 0.1\n")
     cv2.imwrite(str(d / "one.png"), np.zeros((1, 1), np.uint8))
     cv2.imwrite(str(d / "left.png"), _texture(0))
