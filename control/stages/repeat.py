@@ -73,6 +73,7 @@ class RepeatStage(VisionStage):
         self._trusted_odom: Optional[Pose2] = None   # odometry at the last trusted fix
         self._frame_start: Optional[tuple] = None        # the state before this frame (``_state``)
         self._last_ok = True
+        self._confirmed = False                  # a fix has passed the gate against an earlier one
         self.stats = {"reacquired": 0, "guided": 0, "switches": 0, "skipped": 0, "gated": 0,
                       "largest_jump_m": 0.0}
 
@@ -249,7 +250,15 @@ class RepeatStage(VisionStage):
                 self.stats["skipped"] += 1
                 self._since_reacquire = 10 ** 9
                 res, n_agree, ok, why, predicted = res2, n2, True, "", ahead
-        pose = res.pose if ok else predicted
+        # Until one fix has been confirmed by the gate, the reference is a single fix no prediction
+        # checked (the first): a camera knocked on that frame made it wrong, and every right fix after
+        # it was refused for good (the robot stood 3.4 m from the end). While unconfirmed, a fix the
+        # gate refuses replaces the reference instead (not ok, the controller is not given it); the
+        # next fix that agrees with it confirms it.
+        replace = not ok and not self._confirmed and start[0] is not None and self._trusted(res)
+        if replace:
+            why += "; no fix confirmed yet: this one replaces the first as the reference"
+        pose = res.pose if ok or replace else predicted
         if pose is not None:
             # Passing keyframe k (its z reached): continue against k+1 in k+1's frame.
             while self.index < len(self.kfs) - 1 and pose.z >= -self.cfg.pass_margin_m:
@@ -268,7 +277,7 @@ class RepeatStage(VisionStage):
             if self.index == len(self.kfs) - 1 and pose.z >= -self.cfg.goal_tolerance_m:
                 self.finished = True
             self._pose, self._odom = pose, odom
-            if ok:
+            if ok or replace:
                 self._trusted_odom = odom
         quality = res.quality.as_dict() if res is not None else {}
         fix = VBCFix(self.index, pose if pose is not None else Pose2(), odom, n_agree, quality, self.finished)
@@ -293,9 +302,11 @@ class RepeatStage(VisionStage):
         few findable landmarks can converge far away with all of them called inliers (the robust
         scale grows with the residuals), the same wrong pose frame after frame, and the keyframe
         switches that followed such a jump left the robot 21 m off on a keyframe it never reached.
-        Only the first fix has no prediction. Were it wrong, the right ones would fall outside the
-        gate and the controller stops after ``blind_distance_m``, saying why: a stop, where taking
-        fixes that disagree with odometry could drive the robot anywhere.
+        Only the first fix has no prediction. Until a fix passes the gate (``_confirmed``), one that
+        fails it replaces the reference (``localise``): a first fix from a knocked frame is dropped
+        by the next two that agree. Once confirmed, fixes outside the gate are refused and the
+        controller stops after ``blind_distance_m``, saying why: a stop, where taking fixes that
+        disagree with odometry could drive the robot anywhere.
         """
         if not self._trusted(res):
             return False, ""
@@ -312,6 +323,7 @@ class RepeatStage(VisionStage):
         gate_rad = math.radians(self.cfg.fix_gate_deg) + share * abs(moved.theta)
         if jump <= gate_m and turn <= gate_rad:
             self.stats["largest_jump_m"] = max(self.stats["largest_jump_m"], jump)
+            self._confirmed = True
             return True, ""
         self.stats["gated"] += 1
         return False, (f"repeat: fix {jump:.2f} m / {math.degrees(turn):.1f} deg from where odometry puts "
