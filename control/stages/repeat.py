@@ -260,8 +260,9 @@ class RepeatStage(VisionStage):
             why += "; no fix confirmed yet: this one replaces the first as the reference"
         pose = res.pose if ok or replace else predicted
         if pose is not None:
-            # Passing keyframe k (its z reached): continue against k+1 in k+1's frame.
-            while self.index < len(self.kfs) - 1 and pose.z >= -self.cfg.pass_margin_m:
+            # Passing keyframe k (its z reached): continue against k+1 in k+1's frame. Not on a fix that
+            # only replaced an unconfirmed reference: a wrong one must not carry the index past keyframes.
+            while not replace and self.index < len(self.kfs) - 1 and pose.z >= -self.cfg.pass_margin_m:
                 step = self.kfs[self.index].odom.between(self.kfs[self.index + 1].odom)
                 self.index += 1
                 self.stats["switches"] += 1
