@@ -234,6 +234,21 @@ def test_a_fix_that_odometry_cannot_explain_is_not_trusted(scene):
             assert stage.stats["gated"] >= 1          # (and the look-ahead to keyframe 1, alike)
 
 
+def test_an_unconfirmed_replacement_fix_does_not_pass_keyframes(scene):
+    """Before any fix has passed the gate, one outside it replaces the reference (a knocked first frame
+    is outvoted), not ok. It must not carry the keyframe index along the route: a wrong one 1 m ahead
+    switched past two keyframes the robot never reached."""
+    pts, cfg, route, truth = scene
+    stage = RepeatStage(route, cfg)
+    start = Pose2(0.0, -0.3, 0.0)
+    ids, px = observe(start, pts, np.random.default_rng(50))
+    assert stage.localise(ids, px, Pose2(), 0).ok
+    ids, px = observe(start.compose(Pose2(0.0, 1.0, 0.0)), pts, np.random.default_rng(51))   # odometry: still
+    est = stage.localise(ids, px, Pose2(), 1)
+    assert not est.ok and "replaces the first" in est.info["reason"], est.info
+    assert stage.index == 0 and stage.stats["switches"] == 0
+
+
 def test_repeat_skips_a_keyframe_whose_landmarks_cannot_be_found(scene):
     """A keyframe none of whose landmarks are found again (taught from a blurred frame: its image and
     descriptors match nothing sharp) gave no fix; the robot stopped after blind_distance_m (0.3 m),
