@@ -137,10 +137,21 @@ def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
             raise DatasetError(f"{path}:{k}: expected {per_line} numbers ({what}), got {line[:60]!r}") from None
         if len(vals) != per_line:
             raise DatasetError(f"{path}:{k}: expected {per_line} numbers ({what}), got {len(vals)}")
+        if not all(np.isfinite(vals)):       # float() takes 'nan' and 'inf'; a pose or time cannot be either
+            raise DatasetError(f"{path}:{k}: expected finite numbers ({what}), got {line[:60]!r}")
         rows.append(vals)
     if not rows:
         raise DatasetError(f"{path}: empty, expected {what}")
     return np.array(rows)
+
+
+def _check_increasing(path: Path, stamps: np.ndarray) -> None:
+    """Frame times must increase: the replay camera plays them in order and the velocities divide by them."""
+    bad = np.flatnonzero(np.diff(stamps) <= 0)
+    if len(bad):
+        k = int(bad[0])
+        raise DatasetError(f"{path}: entry {k + 2} ({stamps[k + 1]:g} s) is not after entry {k + 1} "
+                           f"({stamps[k]:g} s): expected increasing times")
 
 
 def detect_layout(root: Path) -> str:
@@ -214,6 +225,7 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
         stamps = _numbers(times_path, 1, "one time in seconds per line").ravel()
         if len(stamps) != len(left):
             raise DatasetError(f"{times_path}: {len(stamps)} times but {len(left)} images")
+        _check_increasing(times_path, stamps)
     else:
         stamps = np.arange(len(left)) / KITTI_RATE_HZ
     gt_stamps = gt_poses = None
@@ -240,6 +252,8 @@ def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
             stamps.append(float(parts[0]))
         except ValueError:
             raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}") from None
+        if not np.isfinite(stamps[-1]):
+            raise DatasetError(f"{path}:{k}: expected a finite timestamp, got {line[:60]!r}")
         if len(parts) < 2:
             raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}")
         names.append(parts[1])
@@ -253,6 +267,7 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     if not rgb_path.is_file():
         raise DatasetError(f"{rgb_path}: missing (TUM layout needs rgb.txt)")
     stamps, names = _tum_list(rgb_path, "path/to/image.png")
+    _check_increasing(rgb_path, stamps)
     left = [root / n for n in names]
     for p in left:
         if not p.is_file():

@@ -83,6 +83,18 @@ def test_missing_and_malformed_dataset_files_are_named(tmp_path, capsys):
     (tum / "groundtruth.txt").write_text("0.0 1 2 3\n")
     with pytest.raises(DatasetError, match=r"groundtruth.txt:1: expected 8 numbers"):
         open_dataset(tum)
+    # NaN, inf and times that do not increase were taken (float() reads 'nan'), and vo wrote its --out anyway
+    (tum / "groundtruth.txt").write_text("0.0 1 2 3 0 0 0 1\n0.1 nan 2 3 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"groundtruth.txt:2: expected finite numbers"):
+        open_dataset(tum)
+    (tum / "groundtruth.txt").unlink()
+    (tum / "b.png").write_bytes(b"")
+    (tum / "rgb.txt").write_text("0.5 a.png\n0.2 b.png\n")
+    with pytest.raises(DatasetError, match=r"rgb.txt: entry 2 \(0.2 s\) is not after entry 1"):
+        open_dataset(tum)
+    (tum / "rgb.txt").write_text("inf a.png\n")
+    with pytest.raises(DatasetError, match=r"rgb.txt:1: expected a finite timestamp"):
+        open_dataset(tum)
 
 
 def test_trajectory_metrics_and_atomic_writer(tmp_path, rng):
