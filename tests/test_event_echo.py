@@ -1,5 +1,6 @@
 """EventEcho: safety events on the console, never holding the loop, never growing without bound."""
 import io
+import re
 import threading
 
 from vbnav.control.runtime.progress import EventEcho
@@ -26,9 +27,12 @@ def test_a_blocked_console_keeps_a_bounded_queue_and_says_what_it_did_not_echo()
     for k in range(n):
         echo(SafetyEvent(k, "hold", "obstacle", f"box {k}"))
     assert echo._queue.qsize() <= EventEcho.QUEUE_LIMIT
-    assert echo.dropped >= 499                     # the writer may hold one event, blocked in write()
     out.go.set()
     echo.close()
     text = out.getvalue()
-    assert "safety events not echoed" in text and "box 0" in text
-    assert text.count("safety hold") == n - int(text.split(" safety events not echoed")[0].split()[-1])
+    # Every event is either echoed or counted in a 'not echoed' line (the writer may take some of the count
+    # before it blocks, so it can come in more than one line).
+    echoed = text.count("safety hold")
+    not_echoed = sum(int(m) for m in re.findall(r"(\d+) safety events not echoed", text))
+    assert echoed + not_echoed == n, (echoed, not_echoed)
+    assert not_echoed >= 499 and echoed <= EventEcho.QUEUE_LIMIT + 1 and "box 0" in text
