@@ -18,8 +18,8 @@ A frozen frame is not *fresh*: it goes to no vision stage (an old image paired w
 pull teach's landmark heights towards far and start keyframes whose image is not at their pose), and
 the runtime's stale-camera check counts from the last fresh frame, so the robot stops
 ``camera.stale_after_s`` after the image froze (plus the distance above) and drives again on the first
-frame that differs. A covered lens that gives exactly black
-frames counts as frozen too while the robot moves, which is the same answer: nothing can be seen.
+frame that differs. A covered lens that gives exactly black frames counts as frozen too while the robot
+moves, which is the same answer: nothing can be seen.
 """
 from __future__ import annotations
 
