@@ -33,7 +33,6 @@ send time.
 from __future__ import annotations
 
 import json
-import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -41,7 +40,7 @@ from typing import Callable, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from vbnav.control.route import check_route_name
-from vbnav.control.runtime.mailbox import OperatorCommand
+from vbnav.control.runtime.mailbox import OperatorCommand, RefusalThrottle
 
 MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
 REPORT_EVERY_NS = 1_000_000_000    # teleop refusals are reported at most this often per reason
@@ -178,8 +177,7 @@ class CommandInbox:
         self._deliver = deliver
         self._on_reject = on_reject
         self._now = now_ns
-        self._lock = threading.Lock()
-        self._reports: dict[str, tuple[int, int]] = {}   # teleop reason -> (last report ns, refused since)
+        self._reports = RefusalThrottle(REPORT_EVERY_NS)   # stream refusals: once a second per reason
         self.accepted = 0
         self.rejected = 0
 
@@ -212,15 +210,9 @@ class CommandInbox:
         if stream:
             words = reason.split(maxsplit=1)
             key = words[0].rstrip(":") if words else ""
-            now = self._now()
-            with self._lock:
-                last, since = self._reports.get(key, (None, 0))
-                if last is not None and now - last < REPORT_EVERY_NS:
-                    self._reports[key] = (last, since + 1)
-                    return
-                self._reports[key] = (now, 0)
-            if since:
-                reason += f" (and {since} more teleop refused for this reason in the last second)"
+            reason = self._reports.report(key, reason, self._now())
+            if reason is None:
+                return
         excerpt = payload[:200] if isinstance(payload, str) else bytes(payload[:200]).decode("utf-8", "replace")
         try:
             self._on_reject(kind, reason, excerpt)

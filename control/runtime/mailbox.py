@@ -78,6 +78,28 @@ class OperatorCommand:
     sent_ns: Optional[int] = None
 
 
+class RefusalThrottle:
+    """Refusals of a teleop stream (10-20 Hz, thousands in a flood) reported at most once per ``every_ns``
+    per reason key, the first one with a count of those held back since the last report. Any thread."""
+
+    def __init__(self, every_ns: int = 1_000_000_000):
+        self.every_ns = every_ns
+        self._lock = threading.Lock()
+        self._last: dict[str, tuple[int, int]] = {}     # key -> (last report ns, held back since)
+
+    def report(self, key: str, reason: str, now_ns: int) -> Optional[str]:
+        """The reason to report now (with the count held back), or None to hold this one back."""
+        with self._lock:
+            last, since = self._last.get(key, (None, 0))
+            if last is not None and now_ns - last < self.every_ns:
+                self._last[key] = (last, since + 1)
+                return None
+            self._last[key] = (now_ns, 0)
+        if since:
+            reason += f" (and {since} more teleop refused for this reason in the last second)"
+        return reason
+
+
 class _Entry:
     """A posted command with its arrival order and time (the command itself stays as the sender made it)."""
 

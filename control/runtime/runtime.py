@@ -54,7 +54,7 @@ from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
-from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand
+from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand, RefusalThrottle
 from vbnav.control.runtime.odometry import Odometry, OdometryHistory
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
@@ -190,7 +190,7 @@ class Runtime:
         self._start_ns = 0
         self._deadline_ns: Optional[int] = None
         self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
-        self._teleop_reports: dict[str, tuple] = {}      # refusal reason -> (last reported ns, refused since)
+        self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -490,17 +490,10 @@ class Runtime:
     def _answer(self, cmd: OperatorCommand, outcome: CommandOutcome, now: int) -> None:
         if not outcome.applied:
             reason = outcome.reason
-            if cmd.kind == "teleop" and not cmd.ack:
-                # A stream (10-20 Hz, no ack): reported at most once a second per reason, with a count, like
-                # the inbox's refusals of stale teleop.
-                key = reason.split(":", 1)[0]
-                last, since = self._teleop_reports.get(key, (None, 0))
-                if last is not None and now - last < 1_000_000_000:
-                    self._teleop_reports[key] = (last, since + 1)
+            if cmd.kind == "teleop" and not cmd.ack:   # a stream: like the inbox's refusals of stale teleop
+                reason = self._teleop_reports.report(reason.split(":", 1)[0], reason, now)
+                if reason is None:
                     return
-                self._teleop_reports[key] = (now, 0)
-                if since:
-                    reason += f" (and {since} more teleop refused for this reason in the last second)"
             self.safety.reject(now, cmd.kind, reason)
             return
         for fn in self.command_listeners:
