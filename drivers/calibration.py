@@ -93,7 +93,22 @@ def load_calibration(path) -> PinholeCamera | FisheyeCamera:
     return _from_plain_yaml(p, doc)
 
 
+def _plain_numbers(path: Path, field: str, value) -> None:
+    """Refuse text and true/false where numbers belong: numpy would read "400" and true as numbers."""
+    if isinstance(value, (list, tuple)):
+        for v in value:
+            _plain_numbers(path, field, v)
+    elif isinstance(value, (bool, str)):
+        raise CalibrationError(f"{path}: {field}: expected numbers, got {value!r}")
+
+
 def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, height):
+    for field, value in (("camera_matrix", K), ("distortion_coefficients", dist)):
+        _plain_numbers(path, field, value)
+    for value in (width, height):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise CalibrationError(f"{path}: image_width/image_height: expected whole numbers of pixels, got "
+                                   f"{width!r}, {height!r}")
     K = np.asarray(K, dtype=float)
     if K.size != 9:
         raise CalibrationError(f"{path}: camera_matrix: expected 3x3 (9 numbers), got {K.size}")
@@ -131,6 +146,7 @@ def _from_ros(path: Path, doc: dict):
             return np.zeros(0)
         if not isinstance(node, dict) or "data" not in node:
             raise CalibrationError(f"{path}: {field}: expected a mapping with 'data' (ROS camera_info)")
+        _plain_numbers(path, f"{field}.data", node["data"])
         try:
             return np.asarray(node["data"], dtype=float)
         except (TypeError, ValueError):
@@ -157,8 +173,7 @@ def _from_plain_yaml(path: Path, doc: dict):
     if w is None or h is None:
         raise CalibrationError(f"{path}: image_width/image_height: missing")
     try:
-        return _build(path, str(doc.get("distortion_model", "")), np.asarray(K, float),
-                      np.asarray(D if D is not None else [], float), w, h)
+        return _build(path, str(doc.get("distortion_model", "")), K, D if D is not None else [], w, h)
     except (TypeError, ValueError) as e:
         if isinstance(e, CalibrationError):
             raise

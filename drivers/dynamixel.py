@@ -21,7 +21,8 @@ import select
 import time
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
@@ -100,7 +101,7 @@ class DynamixelDrive(SerialWheelDrive):
     drive_name = "dynamixel drive"
     device_name = "dynamixel adapter"
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         port: str = Field("/dev/ttyUSB0", description="serial device of the U2D2 (prefer /dev/serial/by-id/...)")
         baudrate: int = Field(1_000_000, description="bus rate, bit/s")

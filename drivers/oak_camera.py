@@ -25,7 +25,8 @@ from typing import Any, Literal, Optional
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
 
@@ -129,7 +130,7 @@ class OakCamera(GrabbingCamera):
     name = "oak"
     default_size = (640, 400)  # the mono cameras' 400p mode
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         device_id: Optional[str] = Field(None, description="device id (MxID) or IP; None: the only device attached")
         stream: Literal["mono", "color"] = Field("mono", description="mono: rectified left camera; color: CAM_A")

@@ -17,7 +17,8 @@ import select
 import time
 from typing import Any, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelState
@@ -73,7 +74,7 @@ class ODriveDrive(SerialWheelDrive):
     drive_name = "ODrive"
     device_name = "ODrive"
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         port: str = Field("/dev/ttyACM0", description="ODrive USB CDC or UART device")
         baudrate: int = Field(115200, description="UART rate (ignored by USB CDC)")

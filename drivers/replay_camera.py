@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import Camera, CameraError, CameraSizeError, Frame
 from vbnav.drivers.clock import MonotonicClock
@@ -27,7 +28,7 @@ FOLDER_DEFAULT_RATE_HZ = 10.0
 class ReplayCamera(Camera):
     name = "replay"
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         path: str = Field(..., description="folder of images, KITTI odometry folder or TUM RGB-D folder")
         layout: Literal["auto", "folder", "kitti", "tum"] = Field(

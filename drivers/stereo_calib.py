@@ -10,7 +10,7 @@ B = -(P1[0,3] - P0[0,3]) / P1[0,0]. The image size is not in the file; it comes
 from the images. ``read_kitti_calib`` is the one reader of this format (the
 dataset reader and the tests use it too).
 
-vbnav stereo YAML (``*.yaml`` / ``*.yml``), documented in docs/obstacles.md::
+vbnav stereo YAML (``*.yaml`` / ``*.yml``; ``*.json`` with the same fields), documented in docs/obstacles.md::
 
     width: 640            # px, rectified images
     height: 480
@@ -44,7 +44,8 @@ from typing import Optional
 import cv2
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.calibration import (CalibrationError, _fs_int, _fs_mat, check_baseline, check_intrinsics,
                                       open_filestorage)
@@ -53,14 +54,14 @@ from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.stereo import StereoRig
 
 
-class _Mount(BaseModel):
+class _Mount(PlainValues):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     height: float = Field(gt=0, description="m")
     pitch_deg: float = Field(0.0, ge=-90, le=90)
     roll_deg: float = Field(0.0, ge=-45, le=45)
 
 
-class _StereoYaml(BaseModel):
+class _StereoYaml(PlainValues):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     width: int = Field(gt=0)
     height: int = Field(gt=0)
@@ -163,6 +164,8 @@ def load_stereo_calibration(path: str | Path, raw_images: bool = False) -> Stere
                                        f"(vbnav stereo YAML or KITTI calib.txt)")
             return read_opencv_rectification(p)
         return _load_yaml(p)
+    if p.suffix.lower() == ".json":     # JSON is YAML: the same fields, checked the same way
+        return _load_yaml(p)
     return read_kitti_calib(p)
 
 
@@ -229,7 +232,7 @@ def _load_yaml(p: Path) -> StereoCalibration:
         parts = []
         for err in exc.errors():
             loc = ".".join(str(x) for x in err["loc"])
-            msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+            msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"].removeprefix("Value error, ")
             parts.append(f"{loc}: {msg}")
         raise CalibrationError(f"{p}: " + "; ".join(parts)) from None
     check_intrinsics(str(p), m.fx, m.fy, m.cx, m.cy, m.width, m.height)

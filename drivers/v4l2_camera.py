@@ -22,7 +22,8 @@ import time
 from typing import Any, Literal, Optional
 
 import cv2
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
 
@@ -35,7 +36,7 @@ def fourcc_to_str(value: float) -> str:
 class V4L2Camera(GrabbingCamera):
     name = "v4l2"
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         device: str = Field("/dev/video0", description="V4L2 device (prefer /dev/v4l/by-id/...) or a video file")
         fourcc: str = Field("MJPG", description="pixel format to request, e.g. MJPG, YUYV, GREY")

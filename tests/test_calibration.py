@@ -96,6 +96,15 @@ def test_ros_equidistant_is_fisheye(tmp_path):
     (ROS.format(model="plumb_bob", n=3, d=[0.1, 0.2, 0.3]), "distortion_coefficients: expected 4, 5"),
     ("foo: [1, 2", "not valid YAML"),
     ("width: 640\nheight: 480\n", "camera_matrix: missing"),
+    # numpy reads "520.5" and true as numbers, and int() cuts 640.7 to 640: each was a camera nobody wrote
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("[520.5, 0,", "['520.5', 0,"),
+     "camera_matrix.data: expected numbers, got '520.5'"),
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("[520.5, 0,", "[true, 0,"),
+     "camera_matrix.data: expected numbers, got True"),
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("image_width: 640\n", "image_width: 640.7\n"),
+     "image_width/image_height: expected whole numbers"),
+    ("image_width: 640\nimage_height: '480'\ncamera_matrix: [500, 0, 320, 0, 500, 240, 0, 0, 1]\n",
+     "image_width/image_height: expected whole numbers"),
 ])
 def test_errors_name_file_and_field(tmp_path, text, match):
     p = tmp_path / "bad.yaml"

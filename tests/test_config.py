@@ -22,6 +22,13 @@ def write(tmp_path, text: str) -> Path:
     ("robot:\n  wheel_radius: -0.05\n", "robot.wheel_radius", "greater than 0"),
     ("loop:\n  rate_hz: 0\n", "loop.rate_hz", "greater than 0"),
     ("robot:\n  wheel_radius: fast\n", "robot.wheel_radius", "valid number"),
+    # lax pydantic read these as 1.0 m/s, 15 Hz, 0.2 m and False: values nobody wrote
+    ("robot:\n  max_linear_speed: true\n", "robot.max_linear_speed", "expected a number, not true/false"),
+    ("camera:\n  rate_hz: '15'\n", "camera.rate_hz", "not the text '15'"),
+    ("vbc:\n  fix_gate_m: '0.2'\n", "vbc.fix_gate_m", "not the text '0.2'"),
+    ("vslam:\n  min_parallax_px: yes\n", "vslam.min_parallax_px", "not true/false"),
+    ("obstacles:\n  negative_stops: 'no'\n", "obstacles.negative_stops", "expected true or false"),
+    ("drive:\n  driver: sim\n  options:\n    fail_after_s: true\n", "drive.options.fail_after_s", "not true/false"),
     ("robot:\n  wheel_radus: 0.05\n", "robot.wheel_radus", "unknown key"),
     ("source: elsewhere.yaml\n", "source", "unknown key"),        # not a setting: the file loaded
     ("drive:\n  driver: sim\n  invert_right: true\n", "drive.invert_left/invert_right", "'sim' has none"),

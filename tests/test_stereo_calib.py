@@ -56,6 +56,9 @@ def test_yaml(tmp_path):
      "mount.height: Field required"),
     ("- 1\n- 2\n", "expected a mapping"),
     ("a: [\n", "not valid YAML"),
+    # lax pydantic read these as fx 1.0 and a 0.075 m baseline
+    ("width: 640\nheight: 480\nfx: true\nfy: 400\ncx: 1\ncy: 1\nbaseline: 0.1\n", "fx: expected a number, not true"),
+    ("width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 1\ncy: 1\nbaseline: '0.075'\n", "baseline: expected a number"),
 ])
 def test_yaml_errors_name_file_and_field(tmp_path, text, match):
     f = tmp_path / "stereo.yml"
@@ -63,6 +66,17 @@ def test_yaml_errors_name_file_and_field(tmp_path, text, match):
     with pytest.raises(CalibrationError, match=match) as exc:
         load_stereo_calibration(f)
     assert str(f) in str(exc.value)
+
+
+def test_json_is_read_as_the_stereo_yaml(tmp_path):
+    """A .json calibration was read as a KITTI calib.txt and refused as 'expected numbers' on line 1."""
+    f = tmp_path / "stereo.json"
+    f.write_text('{"width": 640, "height": 480, "fx": 400, "fy": 401, "cx": 319.5, "cy": 239.5, "baseline": 0.075}')
+    c = load_stereo_calibration(f)
+    assert c.fy == 401 and c.baseline == 0.075 and c.size == (640, 480)
+    f.write_text('{"width": 640, "height": 480, "fx": true, "fy": 401, "cx": 319.5, "cy": 239.5, "baseline": 0.075}')
+    with pytest.raises(CalibrationError, match="stereo.json: fx: expected a number"):
+        load_stereo_calibration(f)
 
 
 def test_missing_file(tmp_path):

@@ -9,17 +9,19 @@ greater than 0 (got -0.05)``.
 """
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import ConfigDict, ValidationError
 
 from vbnav.drivers.errors import InputError
+from vbnav.drivers.plain_values import PlainValues
 
 
 class ConfigError(InputError):
     """A configuration file is missing, malformed or invalid. The message says where."""
 
 
-class Strict(BaseModel):
-    """Base of every configuration model: unknown keys are errors, assignments are validated."""
+class Strict(PlainValues):
+    """Base of every configuration model: unknown keys are errors, assignments are validated, and no
+    value is converted from another kind (``true`` or ``"15"`` for a number: drivers/plain_values.py)."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelDrive, WheelState
 from vbnav.vision.geometry import Pose2, arc_step
@@ -113,7 +114,7 @@ class SimDiffDrive(WheelDrive):
     name = "sim"
     drive_name = "sim drive"
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         fail_after_s: Optional[float] = Field(None, gt=0, description="testing: lose the bus after this time")
         lost_for_s: Optional[float] = Field(None, gt=0, description="testing: with fail_after_s, the bus comes "

@@ -26,7 +26,8 @@ from typing import Callable, Optional
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
+from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import Camera, CameraError, Frame
 from vbnav.drivers.sim.render import Renderer
@@ -92,7 +93,7 @@ class SimCamera(Camera):
 
     name = "sim"
 
-    class Options(BaseModel):
+    class Options(PlainValues):
         """The ``camera.options`` block of a configuration for driver ``sim``."""
 
         model_config = ConfigDict(extra="forbid")

@@ -1,0 +1,63 @@
+"""Settings files give numbers as numbers and switches as true/false: nothing is guessed.
+
+pydantic's lax mode turns ``max_linear_speed: true`` into 1.0 m/s (twice a 0.5 default), ``rate_hz:
+"15"`` into 15 and ``enabled: "no"`` into False. A YAML slip (``yes`` is a bool in YAML 1.1, a quoted
+number is a string) then runs the robot on a value nobody wrote. Full strict mode would also refuse
+what YAML cannot give otherwise (lists for tuples, strings for paths and enums), so this mixin refuses
+only the two silent conversions: a bool or a string for a number, a string or a number for a bool.
+Integers stay accepted for floats (``fx: 400``).
+"""
+from __future__ import annotations
+
+import types
+import typing
+
+from pydantic import BaseModel, ValidationInfo, field_validator
+
+
+def _kinds(annotation) -> set:
+    """The plain types an annotation admits: Optional[float] -> {float, NoneType}."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _kinds(typing.get_args(annotation)[0])
+    if origin is typing.Union or origin is types.UnionType:
+        return set().union(*(_kinds(a) for a in typing.get_args(annotation)))
+    return {annotation}
+
+
+def _number_text(value) -> bool:
+    try:
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
+def refused_conversion(annotation, value) -> str | None:
+    """Why ``value`` must not be converted to ``annotation``, or None when it may be validated (text
+    that is no number is left to pydantic, which refuses it with its own words)."""
+    kinds = _kinds(annotation)
+    if str in kinds or typing.Any in kinds:
+        return None
+    numeric = bool(kinds & {int, float})
+    if numeric and bool not in kinds:
+        if isinstance(value, bool):
+            return "expected a number, not true/false"
+        if isinstance(value, str) and _number_text(value):
+            return f"expected a number, not the text {value!r} (write it without quotes)"
+    if bool in kinds and not numeric and not isinstance(value, bool) and isinstance(value, (int, float, str)):
+        return "expected true or false"
+    return None
+
+
+class PlainValues(BaseModel):
+    """Base of settings models whose values come from files or the network: see the module docstring."""
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_silent_conversion(cls, value, info: ValidationInfo):
+        field = cls.model_fields.get(info.field_name) if info.field_name else None
+        why = refused_conversion(field.annotation, value) if field is not None else None
+        if why:
+            raise ValueError(why)
+        return value
