@@ -389,6 +389,44 @@ def test_teleop_during_a_latched_stop_is_refused_and_never_drives_after_the_resu
     assert any(t > T0 + 2_050_000_000 for t in moving)
 
 
+def test_teleop_during_a_held_stop_is_refused_and_never_drives_when_it_clears():
+    """A teleop stream (10 Hz) through an obstacle stop zone (1-2 s): teleop taken during the hold was
+    answered 'applied' while the wheels stayed stopped. Now refused, naming the hold, and the robot moves
+    again on teleop sent after the zone has cleared."""
+    from vbnav.control.runtime.interfaces import Estimate
+
+    class Zone(VisionStage):
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            return Estimate(frame.stamp_ns, self.kind, True, None,
+                            {"speed_scale": 0.0 if 1.0 <= t < 2.0 else 1.0, "reason": "box ahead"})
+
+    teleop = TeleopController(timeout_s=0.5)
+
+    def feed(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        if t < 3_000_000_000 and t % 100_000_000 == 50_000_000:
+            r.submit(OperatorCommand("teleop", (0.3, 0.0), "test", ack=f"t{t}"))
+
+    rt, drive, clock = make_runtime(teleop, stages=[Zone()])
+    rt.cycle_observers.append(feed)
+    applied = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.append(now))
+    result = rt.run(duration_s=3.5)
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "obstacle")
+    release = next(e for e in result.events if e.kind == "release" and e.cause == "obstacle")
+    refused = [e for e in result.events if e.kind == "rejected" and e.cause == "teleop"]
+    assert refused and all("obstacle" in e.message and "held" in e.message for e in refused), refused
+    # every teleop while held is refused (each carries an ack, so none is throttled), none applied
+    assert len(refused) >= (release.stamp_ns - hold.stamp_ns) // 100_000_000 - 1, len(refused)
+    assert not [t for t in applied if hold.stamp_ns <= t < release.stamp_ns]
+    moving = [t for t, l, r, p in drive.log if p and l != 0]
+    assert not [t for t in moving if hold.stamp_ns + 2 * PERIOD_NS <= t < release.stamp_ns]
+    assert any(t > release.stamp_ns for t in moving)
+
+
 def test_obstacle_speed_scale_slows_and_stops():
     from vbnav.control.runtime.interfaces import Estimate
 

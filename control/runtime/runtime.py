@@ -191,6 +191,7 @@ class Runtime:
         self._deadline_ns: Optional[int] = None
         self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
         self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
+        self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -319,6 +320,7 @@ class Runtime:
                 # turn it into full speed, so it ends the run like an exception.
                 raise FloatingPointError(f"{type(self.controller).__name__} commanded v={twist.v} w={twist.w}")
             for cause, (active, message) in self.controller.safety_conditions().items():
+                self._controller_holds.add(cause)
                 self.safety.hold(now, cause, active, message)
             self._check_estimates(ctx)
             stage = "safety"
@@ -519,6 +521,13 @@ class Runtime:
             # the moment a resume comes.
             return CommandOutcome.refused(f"stopped by {', '.join(self.safety.latched)} (latched): teleop does "
                                           f"not move the robot until a resume")
+        holds = [c for c in self.safety.holds if c not in self._controller_holds]
+        if cmd.kind == "teleop" and holds:
+            # A hold (obstacle, stale camera or estimate) keeps the wheels stopped while it lasts: 'applied'
+            # would be untrue, and a teleop held through it would drive the robot the moment it clears.
+            # The controller's own holds (command_timeout) are what a teleop clears.
+            return CommandOutcome.refused(f"stopped by {', '.join(holds)} (held while it lasts): teleop does "
+                                          f"not move the robot until it clears")
         return self.controller.handle_command(cmd, now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
