@@ -197,6 +197,32 @@ def test_a_switch_the_run_ended_before_is_refused_and_its_route_closed(tmp_path,
     assert (tmp_path / "hall" / "manifest.json").is_file()     # the route it opened is closed, not left open
 
 
+def test_commands_the_run_ended_before_are_answered_and_later_ones_refused(tmp_path):
+    """Commands posted in the run's last cycle (after the loop drained its mailbox) got no answer at all:
+    'vbnav send' waited for its timeout. Each command gets exactly one answer."""
+    robot, ctl, rt, link, sink = _operator_session(tmp_path)
+    sent = []
+
+    def post(r, ctx, twist, wheels):          # after this cycle's drain: the last cycle's are never taken
+        if ctx.cycle >= 40:
+            for kind, args in (("teleop", (0.1, 0.0)), ("mode", ("idle",)), ("estop", ())):
+                ack = f"{kind}{ctx.cycle}"
+                if r.submit(OperatorCommand(kind, args, "op", ack=ack)) is None:
+                    sent.append(ack)
+
+    rt.cycle_observers.append(post)
+    result = rt.run(0.5)
+    late = rt.submit(OperatorCommand("estop", (), "op", ack="late"))
+    ctl.close()
+    link.close(result)
+    answers = sink.answers()
+    assert sorted(a for _, a, _ in answers) == sorted(sent), answers
+    final = max(int(a.lstrip("teleopmdsi")) for a in sent)      # the last cycle that posted
+    ended = {a[1] for a in answers if a[0] == "command_rejected" and "the run ended (duration" in a[2]}
+    assert ended == {f"teleop{final}", f"mode{final}", f"estop{final}"}, answers
+    assert late is not None and "the run ended (duration" in late
+
+
 def test_teleop_is_refused_while_repeating_and_never_drives_after_the_repeat_ends():
     from runtime_helpers import make_runtime
     from vbnav.control.config import Config

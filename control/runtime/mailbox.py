@@ -147,12 +147,15 @@ class CommandMailbox:
         self._fresh_after_ns: Optional[int] = None
         self._fresh_why = ""      # what began then: "the loop stalled", "the estop", ...
         self.coalesced = 0        # teleops replaced by a newer one from the same sender before the loop took them
+        self._closed = ""         # why the loop takes no more commands (the run ended)
 
     # -- any thread ------------------------------------------------------------
     def post(self, cmd: OperatorCommand) -> Optional[str]:
         """Accept ``cmd`` (returns None) or refuse it (returns the reason, for the sender)."""
         now = self._now()
         with self._lock:
+            if self._closed:
+                return self._closed
             self._order += 1
             e = _Entry(cmd, self._order, now if cmd.arrival_ns is None else cmd.arrival_ns)
             if cmd.kind != "teleop":
@@ -226,6 +229,23 @@ class CommandMailbox:
                     sent[e.order] = s.sent_ns(e)
         taken.sort(key=lambda e: e.order)
         return [replace(e.cmd, arrival_ns=e.arrival_ns, order=e.order, sent_ns=sent.get(e.order)) for e in taken], refused
+
+    def close(self, why: str) -> list[OperatorCommand]:
+        """The run ended: the commands still waiting (each needs its refusal), and every later post is
+        refused with ``why``. Any thread."""
+        with self._lock:
+            self._closed = why
+            waiting = [e.cmd for e in self._lane]
+            waiting += [s.pending.cmd for s in self._senders.values() if s.pending is not None]
+            self._lane = []
+            for s in self._senders.values():
+                s.pending = None
+        return waiting
+
+    def reopen(self) -> None:
+        """A new run of the same loop takes commands again."""
+        with self._lock:
+            self._closed = ""
 
     def refuse_teleop_sent_before(self, t_ns: int, why: str = "the loop stalled") -> None:
         """After a stop (a stall, an estop): teleop sent before ``t_ns`` (robot clock) is stale from now on.

@@ -213,6 +213,7 @@ class Runtime:
         if notifier is not None and notifier.watchdog_period_ns and not faulthandler.is_enabled():
             faulthandler.enable()    # systemd's watchdog kills with SIGABRT: the journal then shows where it hung
         next_progress = [0]
+        self.mailbox.reopen()
         try:
             self.drive.connect()
             if self.pipeline is not None:
@@ -259,6 +260,7 @@ class Runtime:
                 notifier.close()
             self._end_recovery()
             self._make_safe()
+            self._refuse_waiting_commands()
             try:
                 self.drive.close()
             except Exception:
@@ -529,6 +531,17 @@ class Runtime:
             return CommandOutcome.refused(f"stopped by {', '.join(holds)} (held while it lasts): teleop does "
                                           f"not move the robot until it clears")
         return self.controller.handle_command(cmd, now)
+
+    def _refuse_waiting_commands(self) -> None:
+        """Commands that arrived in the last cycle or after it are answered, not left unanswered; later
+        ones are refused by the mailbox with the same reason."""
+        reason, message = self._end or ("stopped", "loop stopped")
+        why = f"the run ended ({reason}: {message}) before the loop took this command"
+        now = self.clock.now_ns()
+        for cmd in self.mailbox.close(why):
+            for fn in self.command_observers:      # they tell the answer which command (and ack) it is for
+                fn(self, cmd, now)
+            self._answer(cmd, CommandOutcome.refused(why), now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):
