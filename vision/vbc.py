@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vbnav.vision.camera_model import azimuth_elevation
+from vbnav.vision.camera_model import azimuth_elevation, rays_from_angles
 from vbnav.vision.geometry import CameraMount, Pose2
 
 #: tan(beta) is floored at this magnitude when converting between w and rho.
@@ -239,10 +239,49 @@ class _Linearisation:
             self.da = self.db = None
 
 
+def tilt_rotation(tilt) -> np.ndarray:
+    """The rotation exp([w]x), w = (tilt[0], 0, tilt[1]): the camera's tilt since teaching, about the
+    levelled x axis (pitch) and z axis (roll), that takes the current levelled rays back to the taught
+    mounting (``estimate_pose``)."""
+    w = np.array([tilt[0], 0.0, tilt[1]], dtype=np.float64)
+    a = float(np.linalg.norm(w))
+    if a < 1e-15:
+        return np.eye(3)
+    k = w / a
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(a) * K + (1.0 - math.cos(a)) * (K @ K)
+
+
+def _tilted_bearings(n1: np.ndarray, R: np.ndarray):
+    """Bearings of the rays ``n1`` (N, 3) turned by ``R`` and their derivatives with respect to a small
+    further turn d = (d_x, 0, d_z) on the left (dn = d x n): for a unit n = (x, y, z), r = |(x, z)|,
+        d alpha / d_x = -x y / r^2,   d alpha / d_z = -z y / r^2,
+        d beta  / d_x = -z / r,       d beta  / d_z =  x / r.
+    Returns (alpha, beta, Jm) with Jm (2N, 2) stacked like the residuals (azimuths over elevations)."""
+    n = n1 @ R.T
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    r2 = np.maximum(x * x + z * z, 1e-12)
+    r = np.sqrt(r2)
+    Jm = np.empty((2 * len(n), 2))
+    Jm[:len(n), 0] = -x * y / r2
+    Jm[:len(n), 1] = -z * y / r2
+    Jm[len(n):, 0] = -z / r
+    Jm[len(n):, 1] = x / r
+    return np.arctan2(x, z), np.arctan2(y, r), Jm
+
+
+def _tilt_of(R: np.ndarray) -> np.ndarray:
+    """(pitch, roll) of a tilt rotation (the log map's x and z components)."""
+    a = math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
+    f = 0.5 if a < 1e-9 else a / (2.0 * math.sin(a))
+    return np.array([f * (R[2, 1] - R[1, 2]), f * (R[1, 0] - R[0, 1])])
+
+
 def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current_beta,
                   inv_height_var=None, *, forward: float = 0.0, lateral: float = 0.0,
                   sigma: float = 1.5e-3, initial: Pose2 | None = None, max_iter: int = 40,
-                  tol: float = 1e-5, huber_iters: int = 2, min_landmarks: int = 4) -> VBCResult:
+                  tol: float = 1e-5, huber_iters: int = 2, min_landmarks: int = 4,
+                  tilt_prior: tuple | None = None) -> VBCResult:
     """Planar pose of the robot relative to the taught pose from matched bearings.
 
     taught_alpha/beta: levelled bearings stored with the keyframe; inv_heights:
@@ -257,6 +296,13 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
     ``huber_iters`` Huber iterations (with a MAD scale estimate, floored at
     sigma) until the steps are small, then Cauchy with that scale frozen, which
     down-weights gross outliers to ~0, until the step is below ``tol`` (m, rad).
+
+    tilt_prior: (mean (2,), information (2, 2)) of the camera's tilt since teaching, (pitch, roll) in
+    rad about the levelled x and z axes. Given, the tilt is solved with the pose (five unknowns, the
+    prior as a Gaussian term) and ``info['tilt']`` / ``info['tilt_cov']`` hold its estimate: the current
+    rays are turned by it before they are compared with the taught ones. A camera pitched or rolled by
+    1 deg on its mount since teaching (a knock, a load, tyre pressure) moves every bearing by up to
+    7 px, which a planar pose explains as 10-20 cm of lateral offset. Yaw is the heading's.
     """
     a0 = np.asarray(taught_alpha, dtype=np.float64).ravel()
     b0 = np.asarray(taught_beta, dtype=np.float64).ravel()
@@ -282,6 +328,13 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
         # Turning shifts every azimuth by -dtheta: the median azimuth change is a robust heading guess.
         initial = Pose2(0.0, 0.0, -float(np.median((a1 - a0 + math.pi) % (2 * math.pi) - math.pi)))
     pose = initial
+    tilted = tilt_prior is not None
+    if tilted:
+        tilt0 = np.asarray(tilt_prior[0], dtype=np.float64).reshape(2)
+        info0 = np.asarray(tilt_prior[1], dtype=np.float64).reshape(2, 2)
+        n1 = rays_from_angles(a1, b1)
+        R_tilt = tilt_rotation(tilt0)
+        a1, b1, Jm = _tilted_bearings(n1, R_tilt)
     scale = sigma
     converged = False
     phase = "huber"          # Huber with a re-estimated scale until the steps are small, then Cauchy
@@ -304,12 +357,20 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
         d2 = _pair_sum(r * r / var)
         wts = _robust_weights(d2, "huber", 2.0) if phase == "huber" else _robust_weights(d2, "cauchy", 2.5)
         W = np.concatenate((wts, wts)) / var
-        JW = lin.J.T * W
+        J = np.hstack((lin.J, -Jm)) if tilted else lin.J
+        JW = J.T * W
+        H, g = JW @ J + 1e-12 * np.eye(J.shape[1]), JW @ r
+        if tilted:
+            H[3:, 3:] += info0
+            g[3:] += info0 @ (tilt0 - _tilt_of(R_tilt))
         try:
-            delta = np.linalg.solve(JW @ lin.J + 1e-12 * np.eye(3), JW @ r)
+            delta = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             return _failed(n, pose, "singular normal matrix")
-        pose = pose.compose(Pose2(*delta))
+        pose = pose.compose(Pose2(*delta[:3]))
+        if tilted:
+            R_tilt = tilt_rotation(delta[3:]) @ R_tilt
+            a1, b1, Jm = _tilted_bearings(n1, R_tilt)
         step = float(np.max(np.abs(delta)))
         if phase == "huber":
             huber_done += 1
@@ -324,18 +385,23 @@ def estimate_pose(taught_alpha, taught_beta, inv_heights, current_alpha, current
     d2 = _pair_sum(r * r / var)
     inliers = d2 < 9.0 * 2
     W = np.concatenate((inliers, inliers)) / var
-    H = (lin.J.T * W) @ lin.J
+    J = np.hstack((lin.J, -Jm)) if tilted else lin.J
+    H = (J.T * W) @ J
+    if tilted:
+        H[3:, 3:] += info0
     cond = _condition(H)
     try:
-        cov = np.linalg.inv(H)
+        cov_all = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        cov = np.full((3, 3), np.inf)
+        cov_all = np.full(H.shape, np.inf)
+    cov = cov_all[:3, :3]
+    extra = {"tilt": _tilt_of(R_tilt), "tilt_cov": cov_all[3:, 3:]} if tilted else {}
     n_in = int(inliers.sum())
     rms = float(np.sqrt(np.mean(np.concatenate([lin.ra[inliers], lin.rb[inliers]]) ** 2))) if n_in else math.inf
     n_known = int((inliers & known_range(b0, w, inv_height_var)).sum())
     q = VBCQuality(n, n_in, rms, cond, it, converged, n_known)
     ok = converged and n_in >= min_landmarks and cond < 1e9
-    return VBCResult(pose, cov, inliers, q, ok)
+    return VBCResult(pose, cov, inliers, q, ok, extra)
 
 
 def _pair_sum(x: np.ndarray) -> np.ndarray:

@@ -51,6 +51,28 @@ class VBCConfig(Strict):
                                      "the last trusted fix added to the gates: 2x the largest measured (13 %: "
                                      "kitti06, 1.2 m a frame), and above wheel odometry's error (scale and "
                                      "heading a few per cent)")
+    tilt_sigma_deg: float = Field(2.0, ge=0, description="prior standard deviation of the camera's tilt "
+                                  "(pitch, roll) on its mount since the route was taught, deg: the prior of "
+                                  "the tilt repeat measures with each fix (vision/vbc.py, estimate_pose). "
+                                  "1 deg of pitch or roll moves bearings by up to 7 px at the image corner, "
+                                  "which a planar fix took for up to 13 cm of lateral offset; 1 deg of "
+                                  "pitch or 2 of roll stopped the repeat 1.7-2.1 m short. 0: not measured")
+    tilt_smoothing: float = Field(0.1, gt=0, le=1, description="share of each fix's tilt measurement taken "
+                                  "into the smoothed tilt (an exponential mean over about 10 fixes, 0.7 s at "
+                                  "15 Hz): a knock is followed within a second")
+    tilt_threshold_pitch_deg: float = Field(0.4, gt=0, description="the smoothed tilt is applied to the fixes "
+                                            "once its pitch exceeds this, deg (and until both fall under half "
+                                            "their thresholds): 2x the largest smoothed pitch measured on the "
+                                            "untilted simulated repeats (0.19 deg, 5 seeds x 2 repeats)")
+    tilt_threshold_roll_deg: float = Field(0.75, gt=0, description="... or its roll exceeds this, deg: roll "
+                                           "and lateral offset move bearings alike, and the untilted repeats' "
+                                           "smoothed roll reached 0.57-0.66 deg where boxes had been moved. "
+                                           "Below the thresholds nothing is applied: solving the tilt freely "
+                                           "with every fix cost up to half more lateral error on a camera "
+                                           "that did not move (RepeatStage._observe_tilt)")
+    max_tilt_deg: float = Field(5.0, gt=0, description="a fix whose camera tilt since teaching is larger is "
+                                "not trusted, and the reason names the camera mount, deg: beyond a few "
+                                "degrees the mount itself has moved and needs fixing")
     pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
     cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s (at most robot.max_linear_speed)")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")

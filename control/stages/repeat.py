@@ -17,6 +17,7 @@ geometry around keyframe k matters, never the accumulated odometry drift.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Optional
 
 import cv2
@@ -27,7 +28,7 @@ from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.control.stages.frame_input import stage_image
 from vbnav.control.stages.vbc_fix import VBCFix, bearing_sigma
 from vbnav.drivers.camera import Frame
-from vbnav.vision.camera_model import rays_from_angles
+from vbnav.vision.camera_model import azimuth_elevation, rays_from_angles
 from vbnav.vision.features import (
     FeatureTracker,
     detect_and_describe,
@@ -41,7 +42,15 @@ from vbnav.vision.vbc import (
     inverse_range,
     levelled_bearings,
     predict_bearings,
+    tilt_rotation,
 )
+
+
+def _pitch_roll_deg(tilt) -> tuple[float, float]:
+    """The tilt of ``estimate_pose`` (rotations about the robot's x and z axes that take the current rays
+    back) as the camera's change of mounting in CameraMount's terms: pitch positive looking further
+    down, roll positive turned clockwise seen from behind; deg."""
+    return -math.degrees(float(tilt[0])), math.degrees(float(tilt[1]))
 
 
 # -------------------------------------------------------------------------------------------- repeat
@@ -74,8 +83,16 @@ class RepeatStage(VisionStage):
         self._frame_start: Optional[tuple] = None        # the state before this frame (``_state``)
         self._last_ok = True
         self._confirmed = False                  # a fix has passed the gate against an earlier one
+        # The camera's tilt (pitch, roll) on its mount since teaching (``_observe_tilt``): measured with
+        # each fix, smoothed, and applied to the rays once it passes vbc.tilt_threshold_pitch_deg or _roll_deg.
+        s0 = math.radians(self.cfg.tilt_sigma_deg)
+        self._tilt_info = np.eye(2) / (s0 * s0) if s0 > 0 else None    # None: tilt not measured
+        self._tilt_mean: Optional[np.ndarray] = None   # smoothed measurement, rad
+        self._tilt_seen: Optional[np.ndarray] = None   # this frame's measurement
+        self.tilt = np.zeros(2)                        # applied, rad
+        self._tilt_R = np.eye(3)                       # its rotation (fixes, guided matching's predictions)
         self.stats = {"reacquired": 0, "guided": 0, "switches": 0, "skipped": 0, "gated": 0,
-                      "largest_jump_m": 0.0}
+                      "largest_jump_m": 0.0, "largest_tilt_deg": 0.0}
 
     def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
         """The tracked features, the matched keyframe's features tracked now (at their keyframe
@@ -175,7 +192,8 @@ class RepeatStage(VisionStage):
             return 0
         rho = np.nan_to_num(inverse_range(kf.beta[missing], kf.inv_height[missing]), nan=0.0)
         a, b = predict_bearings(kf.alpha[missing], kf.beta[missing], rho, pose, self.mount.forward, self.mount.lateral)
-        rays = rays_from_angles(a, b) @ self.mount.rotation()     # levelled -> camera frame
+        # levelled -> camera frame, through the camera's tilt since teaching (R^T n, row vectors)
+        rays = rays_from_angles(a, b) @ self._tilt_R @ self.mount.rotation()
         px, front = self.camera.project(rays)
         inside = front & self.camera.in_image(px, margin=10)
         if inside.sum() < 4:
@@ -280,9 +298,11 @@ class RepeatStage(VisionStage):
             self._pose, self._odom = pose, odom
             if ok or replace:
                 self._trusted_odom = odom
+        self._observe_tilt()
         quality = res.quality.as_dict() if res is not None else {}
         fix = VBCFix(self.index, pose if pose is not None else Pose2(), odom, n_agree, quality, self.finished)
-        info = {"keyframe": self.index, "n_agree": n_agree, "tracked": len(ids)}
+        info = {"keyframe": self.index, "n_agree": n_agree, "tracked": len(ids),
+                "camera_tilt_deg": [round(v, 3) for v in _pitch_roll_deg(self.tilt)]}   # applied
         if why:
             info["reason"] = why
         return Estimate(stamp_ns, self.kind, bool(ok), fix, info)
@@ -310,7 +330,7 @@ class RepeatStage(VisionStage):
         disagree with odometry could drive the robot anywhere.
         """
         if not self._trusted(res):
-            return False, ""
+            return False, (res.info.get("reason", "") if res is not None else "")
         pose, at, pose_odom, trusted_odom = start
         if pose is None or trusted_odom is None:
             return True, ""
@@ -331,6 +351,35 @@ class RepeatStage(VisionStage):
                        f"the robot (gate {gate_m:.2f} m / {math.degrees(gate_rad):.1f} deg: vbc.fix_gate_m, "
                        f"fix_gate_fraction, fix_gate_deg)")
 
+    def _observe_tilt(self) -> None:
+        """Smooth this frame's tilt measurement (``vbc.tilt_smoothing``) and decide what the fixes apply.
+
+        The camera's pitch and roll on its mount change rarely (a knock, a load, tyre pressure) and then
+        stay, so the tilt is applied only once its smoothed pitch or roll exceeds its threshold
+        (``tilt_threshold_pitch_deg``, ``tilt_threshold_roll_deg``), and dropped below half of both. Solved freely with every fix, it also took up what the taught
+        landmark heights get wrong: on the untilted simulated repeats each fix's roll wandered by up to
+        0.4 deg and the lateral error grew by up to half. A change of the applied tilt moves every fix at
+        once, so the gate's reference is then taken afresh (``_confirmed``)."""
+        seen, self._tilt_seen = self._tilt_seen, None
+        if seen is None:
+            return
+        a = self.cfg.tilt_smoothing
+        self._tilt_mean = seen.copy() if self._tilt_mean is None else self._tilt_mean + a * (seen - self._tilt_mean)
+        big = math.degrees(float(np.max(np.abs(self._tilt_mean))))
+        self.stats["largest_tilt_deg"] = max(self.stats["largest_tilt_deg"], big)
+        # how far over its threshold the larger axis is (1 = at it)
+        over = float(np.max(np.degrees(np.abs(self._tilt_mean))
+                            / [self.cfg.tilt_threshold_pitch_deg, self.cfg.tilt_threshold_roll_deg]))
+        applied = bool(self.tilt.any())
+        if over > 1.0 or (applied and over > 0.5):
+            tilt = self._tilt_mean.copy()
+        else:
+            tilt = np.zeros(2)
+        if bool(tilt.any()) != applied:
+            self._confirmed = False
+        self.tilt = tilt
+        self._tilt_R = tilt_rotation(tilt)
+
     def _trusted(self, res) -> bool:
         """A fix is ok when it converged with ``min_landmarks`` agreeing landmarks, of which at least
         ``min_known_landmarks`` have a known height: landmarks without one fix the heading but not
@@ -346,7 +395,25 @@ class RepeatStage(VisionStage):
         if len(i_kf) < 4:
             return None, 0
         a, b = levelled_bearings(self.camera.rays(pixels[i_cur]), self.mount)
-        res = estimate_pose(kf.alpha[i_kf], kf.beta[i_kf], kf.inv_height[i_kf], a, b, kf.inv_height_var[i_kf],
-                            forward=self.mount.forward, lateral=self.mount.lateral, sigma=self.sigma,
-                            initial=initial)
+        kw = dict(forward=self.mount.forward, lateral=self.mount.lateral, sigma=self.sigma, initial=initial)
+        taught = (kf.alpha[i_kf], kf.beta[i_kf], kf.inv_height[i_kf])
+        measured = None
+        if self._tilt_info is not None:        # the tilt, solved with the pose (a loose prior)
+            mean = np.zeros(2) if self._tilt_mean is None else self._tilt_mean
+            m = estimate_pose(*taught, a, b, kf.inv_height_var[i_kf], tilt_prior=(mean, self._tilt_info), **kw)
+            if self._trusted(m):
+                measured = np.asarray(m.info["tilt"], dtype=np.float64)
+                if self._tilt_seen is None:    # once a frame: the first fix tried (the current keyframe)
+                    self._tilt_seen = measured
+        if self.tilt.any():
+            a, b = azimuth_elevation(rays_from_angles(a, b) @ self._tilt_R.T)
+        res = estimate_pose(*taught, a, b, kf.inv_height_var[i_kf], **kw)
+        if res.ok and measured is not None:
+            tilt_deg = math.degrees(float(np.max(np.abs(measured))))
+            if tilt_deg > self.cfg.max_tilt_deg:
+                pitch, roll = _pitch_roll_deg(measured)
+                res = replace(res, ok=False, info={**res.info, "reason": (
+                    f"repeat: the camera is tilted {pitch:+.1f} deg (pitch) / {roll:+.1f} deg (roll) from its "
+                    f"mounting when the route was taught (limit vbc.max_tilt_deg {self.cfg.max_tilt_deg:g}): "
+                    f"check the camera mount")})
         return res, res.quality.n_inliers
