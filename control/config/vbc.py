@@ -53,7 +53,7 @@ class VBCConfig(Strict):
                                      "heading a few per cent)")
     tilt_sigma_deg: float = Field(2.0, ge=0, description="prior standard deviation of the camera's tilt "
                                   "(pitch, roll) on its mount since the route was taught, deg: the prior of "
-                                  "the tilt repeat measures with each fix (vision/vbc.py, estimate_pose). "
+                                  "the tilt repeat measures once a frame (vision/vbc.py, estimate_pose; docs/teach_repeat.md). "
                                   "1 deg of pitch or roll moves bearings by up to 7 px at the image corner, "
                                   "which a planar fix took for up to 13 cm of lateral offset; 1 deg of "
                                   "pitch or 2 of roll stopped the repeat 1.7-2.1 m short. 0: not measured")

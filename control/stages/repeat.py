@@ -397,14 +397,15 @@ class RepeatStage(VisionStage):
         a, b = levelled_bearings(self.camera.rays(pixels[i_cur]), self.mount)
         kw = dict(forward=self.mount.forward, lateral=self.mount.lateral, sigma=self.sigma, initial=initial)
         taught = (kf.alpha[i_kf], kf.beta[i_kf], kf.inv_height[i_kf])
-        measured = None
-        if self._tilt_info is not None:        # the tilt, solved with the pose (a loose prior)
+        # The tilt, solved with the pose (a loose prior): once a frame, by the first fix that gives a
+        # trusted one (the current keyframe's, as a rule). The camera's tilt is the same against every
+        # keyframe, so the look-ahead and switch fixes of the frame reuse it instead of solving again.
+        if self._tilt_info is not None and self._tilt_seen is None:
             mean = np.zeros(2) if self._tilt_mean is None else self._tilt_mean
             m = estimate_pose(*taught, a, b, kf.inv_height_var[i_kf], tilt_prior=(mean, self._tilt_info), **kw)
             if self._trusted(m):
-                measured = np.asarray(m.info["tilt"], dtype=np.float64)
-                if self._tilt_seen is None:    # once a frame: the first fix tried (the current keyframe)
-                    self._tilt_seen = measured
+                self._tilt_seen = np.asarray(m.info["tilt"], dtype=np.float64)
+        measured = self._tilt_seen
         if self.tilt.any():
             a, b = azimuth_elevation(rays_from_angles(a, b) @ self._tilt_R.T)
         res = estimate_pose(*taught, a, b, kf.inv_height_var[i_kf], **kw)
