@@ -427,6 +427,37 @@ def test_teleop_during_a_held_stop_is_refused_and_never_drives_when_it_clears():
     assert any(t > release.stamp_ns for t in moving)
 
 
+def test_a_teleop_held_from_before_a_hold_does_not_drive_when_it_clears():
+    """One teleop at 0.8 s (command timeout 1 s), an obstacle stop zone at 1.0-1.2 s: the command, held
+    through the stop, drove the robot again the moment the zone cleared (until 1.8 s), on an order given
+    before anyone knew of the obstacle. The hold now drops it; a teleop sent after the zone drives."""
+    from vbnav.control.runtime.interfaces import Estimate
+
+    class Zone(VisionStage):
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            return Estimate(frame.stamp_ns, self.kind, True, None,
+                            {"speed_scale": 0.0 if 1.0 <= t < 1.2 else 1.0, "reason": "box ahead"})
+
+    def feed(r, ctx, twist, wheels):
+        if ctx.now_ns - T0 in (800_000_000, 2_000_000_000):
+            r.submit(OperatorCommand("teleop", (0.3, 0.0), "test", ack=f"t{ctx.now_ns}"))
+
+    rt, drive, clock = make_runtime(TeleopController(timeout_s=1.0), stages=[Zone()])
+    rt.cycle_observers.append(feed)
+    result = rt.run(duration_s=2.5)
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "obstacle")
+    release = next(e for e in result.events if e.kind == "release" and e.cause == "obstacle")
+    assert release.stamp_ns < T0 + 1_700_000_000, (release.stamp_ns - T0) / 1e9   # inside the old command's life
+    moving = [t for t, l, r, p in drive.log if p and l != 0]
+    assert any(t < hold.stamp_ns for t in moving)                                   # it drove before the zone
+    assert not [t for t in moving if hold.stamp_ns + 2 * PERIOD_NS <= t < T0 + 2_000_000_000], \
+        [(t - T0) / 1e9 for t in moving if t > hold.stamp_ns][:5]
+    assert any(t > T0 + 2_000_000_000 for t in moving)                              # a fresh teleop drives
+
+
 def test_obstacle_speed_scale_slows_and_stops():
     from vbnav.control.runtime.interfaces import Estimate
 

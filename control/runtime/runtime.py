@@ -191,6 +191,7 @@ class Runtime:
         self._deadline_ns: Optional[int] = None
         self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
         self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
+        self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
@@ -325,6 +326,7 @@ class Runtime:
                 self._controller_holds.add(cause)
                 self.safety.hold(now, cause, active, message)
             self._check_estimates(ctx)
+            self._forget_teleop_on_new_hold(now)
             stage = "safety"
             if self.safety.may_move:
                 s = self.safety.speed_scale
@@ -428,6 +430,16 @@ class Runtime:
         refused, so after ``resume`` only a fresh command moves the robot."""
         self.mailbox.refuse_teleop_sent_before(since, why)
         self.controller.forget_command()
+
+    def _forget_teleop_on_new_hold(self, now: int) -> None:
+        """A hold that begins (obstacle, stale or frozen camera, stale estimate) drops the held teleop
+        command, as a latched stop does: held through the stop, it drove the robot again for the rest of
+        its command_timeout the moment the hold cleared, on a command sent before anyone knew of it."""
+        held = {c for c in self.safety.holds if c not in self._controller_holds}
+        began = held - self._holds_seen
+        self._holds_seen = held
+        if began:
+            self._forget_teleop(now, f"the {', '.join(sorted(began))} hold")
 
     def _check_camera(self, now: int) -> None:
         cam = self.pipeline.camera
