@@ -4,6 +4,8 @@ import math
 import numpy as np
 import pytest
 
+from line_scenes import loop_poses
+
 from vbnav.control.runtime.interfaces import ControlContext, Estimate
 from vbnav.control.config.vslam import GotoConfig, VslamNavConfig
 from vbnav.control.controllers.goto import GotoController, polar_coordinates
@@ -355,6 +357,32 @@ def test_stage_restarts_after_the_lens_was_covered_and_still_closes_the_loop_lat
     got = results[-1].value.pose
     # 0.15 m bridged on odometry with 2 % error: a few mm, plus the VSLAM's own error
     assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+
+
+def test_anchors_grow_with_the_area_seen_not_the_distance_driven():
+    """Three laps of a 6 m loop (8 cm a frame): every reference frame was kept as an anchor, 14 more a lap
+    without end. A place already anchored (within half the relocalisation radius and heading) keeps its
+    anchor; the loop still closes against it on every lap."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    lap = loop_poses(72)
+    start = lap[0]
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    stage = VslamStage(model, mount, 0.12, VslamNavConfig())
+    kept, relocalised = [], []
+    for i, p in enumerate(lap * 3):
+        est = stage.process(cam.render_frame(p, int(i * 1e8), i), start.between(p))
+        assert est.ok
+        relocalised.append(est.info["anchor"] is not None)
+        if (i + 1) % len(lap) == 0:
+            kept.append(len(stage.anchors))
+            truth, got = start.between(p), est.value.pose
+            assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.01   # measured 0.27-0.43 cm, bar 2x
+    assert kept[0] >= 8, kept                       # a lap is anchored all round (14 measured)
+    assert kept[2] <= kept[0] + 2, kept             # measured 14, 14, 15 (without the rule 14, 28, 42)
+    assert sum(relocalised[len(lap):]) > len(lap)   # laps 2-3 are posed against lap 1's anchors (144 of 144)
+    assert stage.stats["anchors_skipped"] >= 2 * (kept[0] - 2)
 
 
 def test_guided_matches_pick_the_nearest_descriptor_inside_the_radius_once():

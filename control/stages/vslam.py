@@ -11,11 +11,13 @@ landmarks then come from motion (11.11) in that scale. The world frame is
 the robot's odometry frame at the first frame (the robot's start pose), so a
 goal "in the reference frame" is a pose relative to where the robot started.
 Each reference frame of the VSLAM's chain is kept as an *anchor*: its
-landmarks (world coordinates) with ORB descriptors. When the robot comes back
+landmarks (world coordinates) with ORB descriptors, unless an older anchor lies
+within half the relocalisation radius and heading (the anchors grow with the
+area seen, not with the distance driven). When the robot comes back
 near an older anchor, the frame is matched against that anchor's landmarks and
 the pose is computed against them (11.15-11.17), not through the chain of
 hand-offs: returning to the start gives the pose against the first reference
-set. Anchors cost ~7 kB each (about 3 per metre driven). After a few lost
+set. Anchors cost ~7 kB each (about 3 per metre of new ground). After a few lost
 frames in a row (a covered lens) the front end restarts from the current
 stereo pair at the pose odometry carried since the last good frame; the
 anchors survive, so a later loop still closes. The stage reports the robot's
@@ -146,7 +148,8 @@ class VslamStage(VisionStage):
         self._ref_base = 0           # reference frames of earlier runs of the front end (before a restart)
         self._lost_streak = 0
         self._good: Optional[tuple[Pose2, Pose2]] = None   # (robot pose, odometry) at the last good frame
-        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0, "unusable": 0}
+        self.stats = {"frames": 0, "lost": 0, "handoffs": 0, "relocalised": 0, "restarts": 0, "unusable": 0,
+                      "anchors_skipped": 0}
         if self.monocular:
             self.stats.update(rescaled=0, last_scale=1.0)
 
@@ -388,9 +391,27 @@ class VslamStage(VisionStage):
         desc, idx = describe(image, lm.px)
         if len(idx) < self.cfg.anchor_min_landmarks:
             return
+        robot = camera_to_robot(cur_wc, self.mount)[0]
+        if self._anchored_near(robot):
+            self.stats["anchors_skipped"] += 1
+            return
         Pw = lm.P[idx] @ ref_wc[:3, :3].T + ref_wc[:3, 3]
-        self.anchors.append(Anchor(ref_index, cur_wc, camera_to_robot(cur_wc, self.mount)[0], Pw, desc,
-                                   self._travelled))
+        self.anchors.append(Anchor(ref_index, cur_wc, robot, Pw, desc, self._travelled))
+
+    def _anchored_near(self, robot: Pose2) -> bool:
+        """Whether a kept anchor lies within half the relocalisation radius and heading of ``robot``.
+
+        Every pose within half the radius of such a place is within the whole radius of the kept anchor,
+        and relocalisation tries the oldest near anchor first, so a new one there adds little and the list
+        grew with the distance driven (16 anchors a lap of a 6 m loop, lap after lap: a patrol's memory and
+        search time without bound). Kept this way, it grows with the area seen, not the distance."""
+        r = 0.5 * self.cfg.relocalise_radius_m
+        h = math.radians(0.5 * self.cfg.relocalise_heading_deg)
+        for a in self.anchors:
+            rel = a.robot.between(robot)
+            if math.hypot(rel.x, rel.z) <= r and abs(rel.theta) <= h:
+                return True
+        return False
 
     def _relocalise(self, image: np.ndarray, pose_wc: np.ndarray) -> Optional[tuple[int, np.ndarray]]:
         """Pose against the oldest anchor near the current pose, or None."""
