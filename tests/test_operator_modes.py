@@ -255,3 +255,31 @@ def test_teleop_is_refused_while_repeating_and_never_drives_after_the_repeat_end
     assert ("applied", "T1") not in answers and rejected[-1][1].startswith("mode repeat: the robot follows route")
     # the stream without ack: one report a second, not one per message
     assert len(rejected) == 2, rejected
+
+
+def test_teleop_during_a_switch_is_refused_not_answered_applied(tmp_path, monkeypatch):
+    """While a switch runs on its worker the robot holds still: a teleop then was answered 'applied', and a
+    switch to repeat dropped it without a word. It is refused, saying the switch is in progress."""
+    gate = _Gate()
+    monkeypatch.setattr(operator_module, "Teaching", gate)
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))   # the real-clock path
+    start = robot.drive.physics.pose
+
+    def let_it_finish(r):
+        gate.open.set()
+        if ctl._worker is not None:
+            ctl._worker.join(10.0)
+
+    _at_cycles(rt, {10: lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1")),
+                    15: lambda r: r.submit(OperatorCommand("teleop", (0.3, 0.0), "op", ack="V1",
+                                                           stamp_ns=r.clock.now_ns())),
+                    40: let_it_finish})
+    result = rt.run(1.0)
+    ctl.close()
+    link.close(result)
+    answers = sink.answers()
+    assert [a[:2] for a in answers] == [("command_rejected", "V1"), ("command", "T1")], answers
+    assert "a switch to teach is in progress" in answers[0][2]
+    end = robot.drive.physics.pose
+    assert abs(end.x - start.x) < 1e-6 and abs(end.z - start.z) < 1e-6, "the refused teleop drove after the switch"
