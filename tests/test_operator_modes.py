@@ -283,3 +283,24 @@ def test_teleop_during_a_switch_is_refused_not_answered_applied(tmp_path, monkey
     assert "a switch to teach is in progress" in answers[0][2]
     end = robot.drive.physics.pose
     assert abs(end.x - start.x) < 1e-6 and abs(end.z - start.z) < 1e-6, "the refused teleop drove after the switch"
+
+
+def test_mode_repeat_without_a_camera_is_refused_like_teach(tmp_path, monkeypatch):
+    """A run without a camera (--no-camera) answered 'mode repeat' as applied, then sat in repeat for good: no
+    VBC fix ever comes, the stale estimate holds the robot, and teleop is refused while repeating."""
+    from types import SimpleNamespace
+    from runtime_helpers import make_runtime
+    from test_controller_settings import _straight_route
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.repeat import RepeatController
+    cfg = Config.model_validate({"controller": {"routes_dir": str(tmp_path)}})
+    (tmp_path / "hall").mkdir()
+    monkeypatch.setattr(operator_module, "load_route", lambda where: _straight_route())
+    monkeypatch.setattr(operator_module, "Repeating",
+                        lambda cfg, route: SimpleNamespace(stage=None, controller=RepeatController(route)))
+    ctl = OperatorController(cfg, None, cfg.safety.command_timeout_s)
+    rt, drive, clock = make_runtime(ctl, camera=False, cfg=cfg)
+    ctl.attach(rt)
+    out = ctl.handle_command(OperatorCommand("mode", ("repeat", "hall"), "op"), clock.now_ns())
+    assert not out.applied and out.reason == "mode 'repeat' needs a camera (this run has none)", out
+    assert ctl.mode == "idle"

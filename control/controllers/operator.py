@@ -136,8 +136,8 @@ class OperatorController(Controller):
             return CommandOutcome.refused(f"a switch to {self._worker.name} is still in progress")
         if target in ("teach", "repeat") and not route:
             return CommandOutcome.refused(f"mode {target!r} needs a route path")
-        if target == "teach" and self.pipeline is None:
-            return CommandOutcome.refused("mode 'teach' needs a camera (this run has none)")
+        if target in ("teach", "repeat") and self.pipeline is None:   # repeat: no VBC fix would ever come
+            return CommandOutcome.refused(f"mode {target!r} needs a camera (this run has none)")
         return self._start_switch(target, route, now_ns, cmd)
 
     # -- switching (worker thread) --------------------------------------------
