@@ -312,6 +312,9 @@ class Runtime:
                 self._apply_speed_scales(now, estimates)
             ctx = ControlContext(now, dt, odom, wheels, estimates, cycle)
             self.ctx = ctx
+            # before the commands, as the camera and obstacle holds: a teleop taken in the cycle a stale-estimate
+            # hold begins is refused, not answered 'applied' and then dropped by the hold
+            self._check_estimates(ctx)
             stage = "commands"
             self._apply_commands(now)
             stage = "controller"
@@ -325,7 +328,6 @@ class Runtime:
             for cause, (active, message) in self.controller.safety_conditions().items():
                 self._controller_holds.add(cause)
                 self.safety.hold(now, cause, active, message)
-            self._check_estimates(ctx)
             self._forget_teleop_on_new_hold(now)
             stage = "safety"
             if self.safety.may_move:
