@@ -304,3 +304,51 @@ def test_mode_repeat_without_a_camera_is_refused_like_teach(tmp_path, monkeypatc
     out = ctl.handle_command(OperatorCommand("mode", ("repeat", "hall"), "op"), clock.now_ns())
     assert not out.applied and out.reason == "mode 'repeat' needs a camera (this run has none)", out
     assert ctl.mode == "idle"
+
+
+def test_a_stale_vbc_hold_of_a_repeat_ends_with_the_repeat(tmp_path, monkeypatch):
+    """A repeat that got no VBC fix for safety.estimate_timeout_s holds the robot ('vbc_stale'). After 'mode
+    idle' nothing required vbc any more, so nothing released the hold: the robot stayed stopped for good and
+    every teleop was refused naming it. A hold on an estimate nobody requires any more is released."""
+    from types import SimpleNamespace
+    from runtime_helpers import make_runtime
+    from test_controller_settings import _straight_route
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.repeat import RepeatController
+    from vbnav.control.runtime.interfaces import VisionStage
+
+    class Lost(VisionStage):             # the repeat's stage, never localised
+        kind = "vbc"
+
+        def process(self, frame, odom):
+            return None
+
+    cfg = Config.model_validate({"controller": {"routes_dir": str(tmp_path)}})
+    (tmp_path / "hall").mkdir()
+    monkeypatch.setattr(operator_module, "load_route", lambda where: _straight_route())
+    monkeypatch.setattr(operator_module, "Repeating",
+                        lambda cfg, route: SimpleNamespace(stage=Lost(), controller=RepeatController(route)))
+    rt, drive, clock = make_runtime(None, cfg=cfg)
+    ctl = OperatorController(cfg, rt.pipeline, cfg.safety.command_timeout_s)
+    rt.controller = ctl
+    ctl.attach(rt)
+    t0 = clock.now_ns()
+    refused = []
+    rt.safety.listeners.append(lambda ev: refused.append(ev.message) if ev.kind == "rejected" else None)
+
+    def operator(r, ctx, twist, wheels):
+        k = (ctx.now_ns - t0) // 10_000_000
+        if k == 5:
+            r.submit(OperatorCommand("mode", ("repeat", "hall"), "op", ack="R1"))
+        if k == 400:
+            r.submit(OperatorCommand("mode", ("idle",), "op", ack="I1"))
+        if 460 <= k < 540 and k % 10 == 0:     # once the hold had safety.release_s to clear
+            r.submit(OperatorCommand("teleop", (0.3, 0.0), "op", ack=f"t{k}", stamp_ns=ctx.now_ns))
+
+    rt.cycle_observers.append(operator)
+    result = rt.run(5.5)
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "vbc_stale")
+    assert hold.stamp_ns < t0 + 4_000_000_000
+    assert ctl.mode == "idle" and not refused, refused[:2]
+    assert any(e.kind == "release" and e.cause == "vbc_stale" for e in result.events)
+    assert any(t > t0 + 4_600_000_000 and p and left > 0 for t, left, right, p in drive.log), "teleop never drove"

@@ -193,6 +193,7 @@ class Runtime:
         self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
+        self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -486,6 +487,14 @@ class Runtime:
             stale = e is None and ctx.now_ns - self._start_ns > (limit + 2.0) * 1e9 \
                 or (e is not None and e.age_s(ctx.now_ns) > limit)
             self.safety.hold(ctx.now_ns, f"{kind}_stale", stale, f"no {kind} estimate newer than {limit:g} s")
+        # A kind no longer needed (the operator left repeat, which needs vbc): its hold is cleared, not kept
+        # for good with nothing left to release it.
+        gone = self._estimate_kinds - set(kinds)
+        for kind in list(gone):
+            self.safety.hold(ctx.now_ns, f"{kind}_stale", False)
+            if f"{kind}_stale" not in self.safety.holds:
+                gone.discard(kind)
+        self._estimate_kinds = set(kinds) | gone
 
     def _apply_commands(self, now: int) -> None:
         commands, refused = self.mailbox.drain(now)
