@@ -337,6 +337,32 @@ def test_a_2s_stall_inside_a_cycle_trips_safety_and_zeroes_the_wheels_in_the_nex
     assert any(e.kind == "reset" and e.cause == "stall" for e in result.events)
 
 
+def test_a_resume_that_arrived_during_a_stall_does_not_clear_it():
+    """A resume that arrived while the loop was frozen (sent before anyone could know of the stall) was taken
+    in the cycle the stall tripped, after the trip: the stall latch was cleared the moment it was set and the
+    robot drove on. It is refused, saying why; a resume after the stall clears it."""
+    def hook(ctx):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            rt.clock.advance(2_000_000_000)            # the process froze for 2 s in this cycle ...
+            rt.submit(OperatorCommand("resume", (), "op", ack="early"))   # ... and a resume came meanwhile
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 4_000_000_000:
+            r.submit(OperatorCommand("resume", (), "op", ack="late"))
+
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False)
+    rt.cycle_observers.append(operator)
+    applied = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.append((cmd.ack, now)))
+    result = rt.run(duration_s=5)
+    t_stall = next(e for e in result.events if e.kind == "trip" and e.cause == "stall").stamp_ns
+    rejected = [e.message for e in result.events if e.kind == "rejected" and e.cause == "resume"]
+    assert len(rejected) == 1 and "before the stall" in rejected[0], rejected
+    assert [a for a, t in applied] == ["late"]
+    assert not [t for t, l, r, p in drive.log if p and l != 0 and t_stall <= t < T0 + 4_000_000_000]
+    assert [t for t, l, r, p in drive.log if p and l != 0 and t > T0 + 4_000_000_000]
+
+
 class FreezingClock(SimClock):
     """A simulated clock on which the process freezes once, in its sleep, for ``length_ns`` at ``at_ns``."""
 

@@ -11,7 +11,7 @@ after the tick it follows (a frozen process, a 2 s garbage collection, a blocked
 callback) trips the latched, non-fatal ``stall`` stop in that cycle: the wheels
 go to zero and the drive is disabled until an operator ``resume``; teleop sent
 before the stall is refused and the teleop command is forgotten, so moving again
-needs fresh commands. During the stall itself the drive keeps its last command:
+needs fresh commands; a resume that arrived during the stall (before it was detected) is refused. During the stall itself the drive keeps its last command:
 only the drive's own watchdog can act inside it.
 
 A lost drive bus is not the end at once: the drive goes to ERROR (its own
@@ -194,6 +194,9 @@ class Runtime:
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
+        # (time, what): a resume that arrived before this time (a stall detected) was sent before anyone could
+        # know of it, and does not clear it
+        self._resume_after: Optional[tuple[int, str]] = None
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -426,6 +429,7 @@ class Runtime:
         self.safety.trip(now, "stall", f"loop stalled {late * 1e-6:.0f} ms ({late / period:.1f} periods, limit "
                                        f"{limit:g}, loop.stall_periods); the wheels kept their last command "
                                        f"meanwhile; resume to drive again")
+        self._resume_after = (now, "the stall was detected")
         self._forget_teleop(now - late, "the loop stalled")
 
     def _forget_teleop(self, since: int, why: str) -> None:
@@ -538,6 +542,11 @@ class Runtime:
         if cmd.kind == "resume" and self._recovery is not None:
             return CommandOutcome.refused(f"the drive is still lost: {self.drive.drive_name} has not come back yet; "
                                           f"resume once a drive_reconnected event says so")
+        if cmd.kind == "resume" and self._resume_after is not None and cmd.arrival_ns is not None \
+                and cmd.arrival_ns < self._resume_after[0]:
+            t, what = self._resume_after
+            return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
+                                          f"{what}, so it was not meant to clear it; resume again")
         if cmd.kind == "resume":
             self.safety.reset(now, f"resume from {cmd.source}")
             return APPLIED
