@@ -352,3 +352,16 @@ def test_a_stale_vbc_hold_of_a_repeat_ends_with_the_repeat(tmp_path, monkeypatch
     assert ctl.mode == "idle" and not refused, refused[:2]
     assert any(e.kind == "release" and e.cause == "vbc_stale" for e in result.events)
     assert any(t > t0 + 4_600_000_000 and p and left > 0 for t, left, right, p in drive.log), "teleop never drove"
+
+
+def test_mode_idle_while_idle_is_acknowledged_as_unchanged(tmp_path):
+    """'mode idle' in idle ran a whole switch (on the real clock: a worker, the robot held still meanwhile,
+    teleop refused) and was answered as a switch; it is the mode already running: 'mode_unchanged'."""
+    robot, ctl, rt, link, sink = _operator_session(tmp_path)
+    _at_cycles(rt, {5: lambda r: r.submit(OperatorCommand("mode", ("idle",), "op", ack="I1"))})
+    result = rt.run(0.2)
+    ctl.close()
+    link.close(result)
+    kinds = [e["kind"] for e in sink.events if e["kind"] in ("mode_unchanged", "command", "command_rejected")]
+    assert kinds == ["mode_unchanged", "command"], kinds
+    assert ctl.mode == "idle"

@@ -134,6 +134,8 @@ class OperatorController(Controller):
             return CommandOutcome.refused(f"unknown mode {target!r}; expected one of {', '.join(MODES)}")
         if self._worker is not None:
             return CommandOutcome.refused(f"a switch to {self._worker.name} is still in progress")
+        if target == "idle" and self.mode == "idle":     # nothing to switch: no worker, no pause of the teleop
+            return CommandOutcome(True, unchanged=True)
         if target in ("teach", "repeat") and not route:
             return CommandOutcome.refused(f"mode {target!r} needs a route path")
         if target in ("teach", "repeat") and self.pipeline is None:   # repeat: no VBC fix would ever come
