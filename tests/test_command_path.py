@@ -526,3 +526,31 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
     assert [m["seq"] for m in got] == list(range(5))
     stamps = [m["stamp_ns"] for m in got]
     assert stamps == sorted(stamps) and stamps[0] > t0 and len({m["session"] for m in got}) == 1
+
+
+def test_a_teleop_refused_when_the_loop_took_it_is_answered_with_its_ack():
+    """Teleop the mailbox refuses as stale when the loop drains it was reported without the sender's ack
+    (vbnav send waited for its timeout, 'no acknowledgement') and, without an ack, not summarised like
+    every other refusal of a stream. It is answered as the loop's other refusals are."""
+    from test_operator_modes import _Events
+    from vbnav.control.comms.link import TelemetryLink
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    sink = _Events()
+    link = TelemetryLink.attach(rt, rt.cfg, recorder=sink, network=False)
+
+    def operator(r, ctx, twist, wheels):
+        k = (ctx.now_ns - T0) // PERIOD_NS
+        if k == 10:      # fixes the sender's clock offset
+            r.submit(OperatorCommand("teleop", (0.1, 0.0), "op", seq=1, stamp_ns=ctx.now_ns))
+        if k == 20:      # fresh when it arrives (495 ms old), stale when the loop takes it next cycle
+            r.submit(OperatorCommand("teleop", (0.1, 0.0), "op", seq=2, ack="A1",
+                                     stamp_ns=ctx.now_ns - TIMEOUT_NS + 5_000_000))
+        if 30 <= k < 40:  # a stream without ack, each stale when taken: one report, not ten
+            r.submit(OperatorCommand("teleop", (0.1, 0.0), "op", seq=k, stamp_ns=ctx.now_ns - TIMEOUT_NS + 5_000_000))
+
+    rt.cycle_observers.append(operator)
+    result = rt.run(0.6)
+    link.close(result)
+    answers = [(e["kind"], e.get("ack"), e.get("reason", "")) for e in sink.events if e["kind"] == "command_rejected"]
+    assert answers[0][:2] == ("command_rejected", "A1") and "when the loop took it" in answers[0][2], answers
+    assert len(answers) == 2 and answers[1][1] is None, answers

@@ -502,8 +502,10 @@ class Runtime:
 
     def _apply_commands(self, now: int) -> None:
         commands, refused = self.mailbox.drain(now)
-        for cmd, reason in refused:
-            self.safety.reject(now, cmd.kind, reason)
+        for cmd, reason in refused:     # answered like the loop's own refusals: with the ack, a stream summarised
+            for fn in self.command_observers:
+                fn(self, cmd, now)
+            self._answer(cmd, CommandOutcome.refused(reason), now)
         for cmd in commands:
             for fn in self.command_observers:
                 fn(self, cmd, now)
