@@ -194,8 +194,8 @@ class Runtime:
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
-        # (time, what): a resume that arrived before this time (a stall detected) was sent before anyone could
-        # know of it, and does not clear it
+        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back) was sent
+        # before anyone could know of it, and does not clear it
         self._resume_after: Optional[tuple[int, str]] = None
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
@@ -381,6 +381,7 @@ class Runtime:
         lost_s = (now - recovery.since_ns) * 1e-9
         if outcome is Outcome.BACK:
             self.odometry.rebase()   # a device that restarted counts from elsewhere: no jump in the pose
+            self._resume_after = (now, "the drive came back")
             self.safety.note(now, "drive_reconnected", "drive_lost",
                              f"{self.drive.drive_name} is back after {lost_s:.2f} s and ran its safe bring-up "
                              f"(wheels unpowered); stopped until resume")
