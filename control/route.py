@@ -59,14 +59,14 @@ class RouteError(InputError):
 # -- routes by name (cmd/mode: network input) -------------------------------------------------
 #: A route name: one path component of letters, digits, ``_ . -``, not starting with a dot
 #: (so never ``.``, ``..`` or a hidden or temporary directory of a writer).
-ROUTE_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}$")
+ROUTE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}")
 NAME_RULE = "a plain name of letters, digits, '_', '.' and '-' (at most 128, not starting with '.')"
 
 
 def check_route_name(name) -> str:
     """``name`` if it is a plain route name, else RouteError. The message does not repeat the name:
     a name with slashes is a path, and errors about network input never echo paths."""
-    if not isinstance(name, str) or not ROUTE_NAME.match(name):
+    if not isinstance(name, str) or not ROUTE_NAME.fullmatch(name):    # match(): "$" also matches before a "\n"
         raise RouteError(f"route must be {NAME_RULE}, not a path")
     return name
 

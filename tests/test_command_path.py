@@ -337,6 +337,32 @@ def test_a_2s_stall_inside_a_cycle_trips_safety_and_zeroes_the_wheels_in_the_nex
     assert any(e.kind == "reset" and e.cause == "stall" for e in result.events)
 
 
+def test_a_resume_that_arrived_during_a_stall_does_not_clear_it():
+    """A resume that arrived while the loop was frozen (sent before anyone could know of the stall) was taken
+    in the cycle the stall tripped, after the trip: the stall latch was cleared the moment it was set and the
+    robot drove on. It is refused, saying why; a resume after the stall clears it."""
+    def hook(ctx):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            rt.clock.advance(2_000_000_000)            # the process froze for 2 s in this cycle ...
+            rt.submit(OperatorCommand("resume", (), "op", ack="early"))   # ... and a resume came meanwhile
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 4_000_000_000:
+            r.submit(OperatorCommand("resume", (), "op", ack="late"))
+
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False)
+    rt.cycle_observers.append(operator)
+    applied = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.append((cmd.ack, now)))
+    result = rt.run(duration_s=5)
+    t_stall = next(e for e in result.events if e.kind == "trip" and e.cause == "stall").stamp_ns
+    rejected = [e.message for e in result.events if e.kind == "rejected" and e.cause == "resume"]
+    assert len(rejected) == 1 and "before the stall" in rejected[0], rejected
+    assert [a for a, t in applied] == ["late"]
+    assert not [t for t, l, r, p in drive.log if p and l != 0 and t_stall <= t < T0 + 4_000_000_000]
+    assert [t for t, l, r, p in drive.log if p and l != 0 and t > T0 + 4_000_000_000]
+
+
 class FreezingClock(SimClock):
     """A simulated clock on which the process freezes once, in its sleep, for ``length_ns`` at ``at_ns``."""
 
@@ -500,3 +526,31 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
     assert [m["seq"] for m in got] == list(range(5))
     stamps = [m["stamp_ns"] for m in got]
     assert stamps == sorted(stamps) and stamps[0] > t0 and len({m["session"] for m in got}) == 1
+
+
+def test_a_teleop_refused_when_the_loop_took_it_is_answered_with_its_ack():
+    """Teleop the mailbox refuses as stale when the loop drains it was reported without the sender's ack
+    (vbnav send waited for its timeout, 'no acknowledgement') and, without an ack, not summarised like
+    every other refusal of a stream. It is answered as the loop's other refusals are."""
+    from test_operator_modes import _Events
+    from vbnav.control.comms.link import TelemetryLink
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    sink = _Events()
+    link = TelemetryLink.attach(rt, rt.cfg, recorder=sink, network=False)
+
+    def operator(r, ctx, twist, wheels):
+        k = (ctx.now_ns - T0) // PERIOD_NS
+        if k == 10:      # fixes the sender's clock offset
+            r.submit(OperatorCommand("teleop", (0.1, 0.0), "op", seq=1, stamp_ns=ctx.now_ns))
+        if k == 20:      # fresh when it arrives (495 ms old), stale when the loop takes it next cycle
+            r.submit(OperatorCommand("teleop", (0.1, 0.0), "op", seq=2, ack="A1",
+                                     stamp_ns=ctx.now_ns - TIMEOUT_NS + 5_000_000))
+        if 30 <= k < 40:  # a stream without ack, each stale when taken: one report, not ten
+            r.submit(OperatorCommand("teleop", (0.1, 0.0), "op", seq=k, stamp_ns=ctx.now_ns - TIMEOUT_NS + 5_000_000))
+
+    rt.cycle_observers.append(operator)
+    result = rt.run(0.6)
+    link.close(result)
+    answers = [(e["kind"], e.get("ack"), e.get("reason", "")) for e in sink.events if e["kind"] == "command_rejected"]
+    assert answers[0][:2] == ("command_rejected", "A1") and "when the loop took it" in answers[0][2], answers
+    assert len(answers) == 2 and answers[1][1] is None, answers

@@ -70,6 +70,28 @@ def test_sim_bus_back_within_the_window_stays_stopped_until_resume():
     assert states[-1][1] is DriveState.ACTIVE
 
 
+def test_a_resume_that_arrived_before_the_drive_came_back_does_not_clear_its_stop():
+    """Resumes sent while the drive is away are refused ('still lost'), but the one that arrived in the last
+    loop period before the reconnect was taken in the cycle the drive came back, after it: the stop was
+    cleared before anyone saw drive_reconnected. Refused too; a resume after the event clears it."""
+    rt, drive, _clock = make_runtime(Cruise(), camera=False, cfg=_cfg(3.0))
+    drive.options = drive.Options(fail_after_s=1.0, lost_for_s=1.5)
+
+    def operator(r, ctx, twist, wheels):
+        if r._recovery is not None:                          # an operator pressing resume while it is away
+            r.submit(OperatorCommand("resume", (), "test"))
+        if ctx.now_ns == T0 + 4 * S:
+            r.submit(OperatorCommand("resume", (), "test"))
+
+    rt.cycle_observers.append(operator)
+    result = rt.run(duration_s=5.0)
+    back, = _events(result, "drive_reconnected")
+    reset, = _events(result, "reset", "drive_lost")
+    refused = [e.message for e in _events(result, "rejected", "resume")]
+    assert reset.stamp_ns > T0 + 4 * S, (reset.stamp_ns - back.stamp_ns) / 1e6
+    assert "before the drive came back" in refused[-1], refused[-1]
+
+
 def test_sim_bus_not_back_within_the_window_ends_the_run_with_the_cause():
     result, drive, _states = _sim_run(window_s=1.0, lost_for_s=3.0)
     assert result.reason == "drive"

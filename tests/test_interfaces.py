@@ -85,3 +85,18 @@ def test_single_mode_controller_answers_mode_commands():
     assert applied == [("mode", CommandOutcome(True, unchanged=True))]
     rejected = [e.message for e in result.events if e.kind == "rejected"]
     assert rejected == ["this run is 'teleop'; switching to 'repeat' needs a new run (vbnav repeat --path ROUTE)"]
+
+
+def test_a_repeat_run_refuses_a_repeat_of_another_route():
+    """'mode repeat --route other' on a run repeating 'hall' was acknowledged as unchanged: the sender was told
+    the robot repeats the route it asked for. Only the route being repeated is the current mode."""
+    from test_controller_settings import _straight_route
+    from vbnav.control.controllers.repeat import RepeatController
+    route = _straight_route()
+    route.path = Path("/routes/hall")
+    result, applied = _run_with(RepeatController(route), [OperatorCommand("mode", ("repeat", "hall"), "op"),
+                                                          OperatorCommand("mode", ("repeat", "other"), "op")])
+    assert applied == [("mode", CommandOutcome(True, unchanged=True))]
+    rejected = [e.message for e in result.events if e.kind == "rejected"]
+    assert rejected == ["this run repeats route 'hall'; repeating 'other' needs a new run "
+                        "(vbnav repeat --path ROUTE)"]

@@ -236,3 +236,21 @@ def test_route_landmarks_and_overlays_encode_to_what_they_say():
     # The floor in front of a level camera 0.25 m up is below the horizon (v > cy), left and right of centre.
     assert len(zone) == 16 and (zone[:, 1] > Cam.cy).all()
     assert zone[:, 0].min() < Cam.cx < zone[:, 0].max()
+
+
+def test_foxglove_teleop_takes_numbers_only():
+    """The Foxglove path coerced with float(): a Twist whose linear.x was true drove at 1 m/s and "0.3" at
+    0.3 m/s, where the zenoh path refuses both (a sender's bug must not drive the robot). Refused too."""
+    import threading
+    from types import SimpleNamespace
+    from vbnav.control.comms.live_view import LiveView
+    submitted, refused = [], []
+    view = SimpleNamespace(_lock=threading.Lock(), _teleop_channels={(1, 7)}, is_operator=lambda cid: True,
+                           _refuse=lambda k, why, p: refused.append(why), _submit=lambda k, p: submitted.append(p),
+                           _seq=0, _session="s")
+    client = SimpleNamespace(id=1)
+    for x in (True, "0.3", None):
+        LiveView.on_message_data(view, client, 7, json.dumps({"linear": {"x": x}, "angular": {"z": 0}}).encode())
+    assert not submitted and len(refused) == 3, (submitted, refused)
+    LiveView.on_message_data(view, client, 7, json.dumps({"linear": {"x": 0.3}, "angular": {"z": 1}}).encode())
+    assert len(submitted) == 1 and json.loads(submitted[0])["angular"] == -1.0

@@ -255,3 +255,113 @@ def test_teleop_is_refused_while_repeating_and_never_drives_after_the_repeat_end
     assert ("applied", "T1") not in answers and rejected[-1][1].startswith("mode repeat: the robot follows route")
     # the stream without ack: one report a second, not one per message
     assert len(rejected) == 2, rejected
+
+
+def test_teleop_during_a_switch_is_refused_not_answered_applied(tmp_path, monkeypatch):
+    """While a switch runs on its worker the robot holds still: a teleop then was answered 'applied', and a
+    switch to repeat dropped it without a word. It is refused, saying the switch is in progress."""
+    gate = _Gate()
+    monkeypatch.setattr(operator_module, "Teaching", gate)
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))   # the real-clock path
+    start = robot.drive.physics.pose
+
+    def let_it_finish(r):
+        gate.open.set()
+        if ctl._worker is not None:
+            ctl._worker.join(10.0)
+
+    _at_cycles(rt, {10: lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1")),
+                    15: lambda r: r.submit(OperatorCommand("teleop", (0.3, 0.0), "op", ack="V1",
+                                                           stamp_ns=r.clock.now_ns())),
+                    40: let_it_finish})
+    result = rt.run(1.0)
+    ctl.close()
+    link.close(result)
+    answers = sink.answers()
+    assert [a[:2] for a in answers] == [("command_rejected", "V1"), ("command", "T1")], answers
+    assert "a switch to teach is in progress" in answers[0][2]
+    end = robot.drive.physics.pose
+    assert abs(end.x - start.x) < 1e-6 and abs(end.z - start.z) < 1e-6, "the refused teleop drove after the switch"
+
+
+def test_mode_repeat_without_a_camera_is_refused_like_teach(tmp_path, monkeypatch):
+    """A run without a camera (--no-camera) answered 'mode repeat' as applied, then sat in repeat for good: no
+    VBC fix ever comes, the stale estimate holds the robot, and teleop is refused while repeating."""
+    from types import SimpleNamespace
+    from runtime_helpers import make_runtime
+    from test_controller_settings import _straight_route
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.repeat import RepeatController
+    cfg = Config.model_validate({"controller": {"routes_dir": str(tmp_path)}})
+    (tmp_path / "hall").mkdir()
+    monkeypatch.setattr(operator_module, "load_route", lambda where: _straight_route())
+    monkeypatch.setattr(operator_module, "Repeating",
+                        lambda cfg, route: SimpleNamespace(stage=None, controller=RepeatController(route)))
+    ctl = OperatorController(cfg, None, cfg.safety.command_timeout_s)
+    rt, drive, clock = make_runtime(ctl, camera=False, cfg=cfg)
+    ctl.attach(rt)
+    out = ctl.handle_command(OperatorCommand("mode", ("repeat", "hall"), "op"), clock.now_ns())
+    assert not out.applied and out.reason == "mode 'repeat' needs a camera (this run has none)", out
+    assert ctl.mode == "idle"
+
+
+def test_a_stale_vbc_hold_of_a_repeat_ends_with_the_repeat(tmp_path, monkeypatch):
+    """A repeat that got no VBC fix for safety.estimate_timeout_s holds the robot ('vbc_stale'). After 'mode
+    idle' nothing required vbc any more, so nothing released the hold: the robot stayed stopped for good and
+    every teleop was refused naming it. A hold on an estimate nobody requires any more is released."""
+    from types import SimpleNamespace
+    from runtime_helpers import make_runtime
+    from test_controller_settings import _straight_route
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.repeat import RepeatController
+    from vbnav.control.runtime.interfaces import VisionStage
+
+    class Lost(VisionStage):             # the repeat's stage, never localised
+        kind = "vbc"
+
+        def process(self, frame, odom):
+            return None
+
+    cfg = Config.model_validate({"controller": {"routes_dir": str(tmp_path)}})
+    (tmp_path / "hall").mkdir()
+    monkeypatch.setattr(operator_module, "load_route", lambda where: _straight_route())
+    monkeypatch.setattr(operator_module, "Repeating",
+                        lambda cfg, route: SimpleNamespace(stage=Lost(), controller=RepeatController(route)))
+    rt, drive, clock = make_runtime(None, cfg=cfg)
+    ctl = OperatorController(cfg, rt.pipeline, cfg.safety.command_timeout_s)
+    rt.controller = ctl
+    ctl.attach(rt)
+    t0 = clock.now_ns()
+    refused = []
+    rt.safety.listeners.append(lambda ev: refused.append(ev.message) if ev.kind == "rejected" else None)
+
+    def operator(r, ctx, twist, wheels):
+        k = (ctx.now_ns - t0) // 10_000_000
+        if k == 5:
+            r.submit(OperatorCommand("mode", ("repeat", "hall"), "op", ack="R1"))
+        if k == 400:
+            r.submit(OperatorCommand("mode", ("idle",), "op", ack="I1"))
+        if 460 <= k < 540 and k % 10 == 0:     # once the hold had safety.release_s to clear
+            r.submit(OperatorCommand("teleop", (0.3, 0.0), "op", ack=f"t{k}", stamp_ns=ctx.now_ns))
+
+    rt.cycle_observers.append(operator)
+    result = rt.run(5.5)
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "vbc_stale")
+    assert hold.stamp_ns < t0 + 4_000_000_000
+    assert ctl.mode == "idle" and not refused, refused[:2]
+    assert any(e.kind == "release" and e.cause == "vbc_stale" for e in result.events)
+    assert any(t > t0 + 4_600_000_000 and p and left > 0 for t, left, right, p in drive.log), "teleop never drove"
+
+
+def test_mode_idle_while_idle_is_acknowledged_as_unchanged(tmp_path):
+    """'mode idle' in idle ran a whole switch (on the real clock: a worker, the robot held still meanwhile,
+    teleop refused) and was answered as a switch; it is the mode already running: 'mode_unchanged'."""
+    robot, ctl, rt, link, sink = _operator_session(tmp_path)
+    _at_cycles(rt, {5: lambda r: r.submit(OperatorCommand("mode", ("idle",), "op", ack="I1"))})
+    result = rt.run(0.2)
+    ctl.close()
+    link.close(result)
+    kinds = [e["kind"] for e in sink.events if e["kind"] in ("mode_unchanged", "command", "command_rejected")]
+    assert kinds == ["mode_unchanged", "command"], kinds
+    assert ctl.mode == "idle"

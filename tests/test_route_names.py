@@ -14,7 +14,7 @@ from vbnav.control.runtime.runtime import OperatorCommand, Runtime
 
 from test_route import CAM, MOUNT, make_kf
 
-BAD_NAMES = ["../x", "../../etc/x", "/etc/x", "a/b", "..", ".", ".hidden", "", "a\\b", "x" * 129, "a\nb"]
+BAD_NAMES = ["../x", "../../etc/x", "/etc/x", "a/b", "..", ".", ".hidden", "", "a\\b", "x" * 129, "a\nb", "hall\n"]
 
 
 @pytest.mark.parametrize("name", BAD_NAMES)
@@ -99,3 +99,11 @@ def test_operator_teach_and_repeat_only_inside_routes_dir(tmp_path):
     _switch(ctl, rt, "teach", "new")
     assert ctl.mode == "teach" and (tmp_path / "routes" / "new" / "manifest.json").is_file()
     ctl.close()
+
+
+def test_a_trailing_newline_is_no_route_name():
+    """The name's pattern ended in '$', which also matches before a final newline: 'hall\\n' passed the check
+    (and the command model) and teach made a directory named with a newline."""
+    from vbnav.control.comms.operator_commands import CommandRejected, TeleopLimits, parse_command
+    with pytest.raises(CommandRejected, match="route must be a plain name"):
+        parse_command("mode", '{"mode": "teach", "route": "hall\\n"}', TeleopLimits(1.0, 1.0))

@@ -496,3 +496,33 @@ def test_exception_in_the_progress_callback_stops_the_robot_and_says_where():
     assert result.reason == "exception" and "outside the cycle" in result.message and "console gone" in result.message
     assert "start-up" not in result.message
     assert_stopped_within_two_periods(drive, T0 + 1_000_000_000)
+
+
+def test_a_teleop_taken_in_the_cycle_an_estimate_hold_begins_is_refused_not_applied():
+    """Estimates were checked after the commands: a teleop taken in the cycle a stale-estimate hold began was
+    answered 'applied', then dropped by that same hold the same cycle. Now the hold is known first and the
+    teleop refused, naming it."""
+    from vbnav.control.runtime.interfaces import Estimate
+    gap_ns = T0 + 1_000_000_000
+
+    class Fixes(VisionStage):
+        kind = "vslam"
+
+        def process(self, frame, odom):
+            return None if frame.stamp_ns >= gap_ns else Estimate(frame.stamp_ns, self.kind, True, None, {})
+
+    class NeedsVslam(TeleopController):
+        requires = ("vslam",)
+
+    def feed(r, ctx, twist, wheels):       # one teleop a cycle, each asking for its answer
+        r.submit(OperatorCommand("teleop", (0.3, 0.0), "test", ack=f"t{ctx.cycle}"))
+
+    rt, drive, clock = make_runtime(NeedsVslam(timeout_s=0.5), stages=[Fixes()])
+    rt.cycle_observers.append(feed)
+    applied, refused = [], []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.append(now))
+    rt.safety.listeners.append(lambda ev: refused.append((ev.stamp_ns, ev.message)) if ev.kind == "rejected" else None)
+    result = rt.run(duration_s=2.0)
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "vslam_stale")
+    assert applied and max(applied) < hold.stamp_ns, [(t - hold.stamp_ns) / 1e6 for t in applied[-3:]]
+    assert refused[0][0] == hold.stamp_ns and "vslam_stale" in refused[0][1], refused[:2]

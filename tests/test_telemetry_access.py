@@ -134,6 +134,25 @@ def test_signed_commands_unsigned_wrong_stale_and_replayed_are_refused():
     assert v.verify(key, payload, att).startswith("stale")
 
 
+def test_an_estop_is_verified_even_when_a_flood_filled_the_replay_cache(monkeypatch):
+    """The replay cache is bounded: once full, new signed commands were refused, an estop too. An estop is
+    never dropped whatever floods the inbox; it is still checked (signature, age, replay)."""
+    from vbnav.control.comms import command_auth
+    monkeypatch.setattr(command_auth, "REPLAY_CACHE_LIMIT", 3)
+    secret, now = b"0123456789abcdef-secret", [10_000_000_000]
+    v = CommandVerifier(secret, window_s=5.0, now_ns=lambda: now[0])
+    teleop, estop = "vbnav/sim/cmd/teleop", "vbnav/sim/cmd/estop"
+    for i in range(3):
+        p = b'{"seq": %d}' % i
+        assert v.verify(teleop, p, sign(secret, teleop, p, stamp_ns=now[0])) is None
+    p = b'{"seq": 9}'
+    assert v.verify(teleop, p, sign(secret, teleop, p, stamp_ns=now[0])).startswith("more than 3 signed")
+    att = sign(secret, estop, b"{}", stamp_ns=now[0])
+    assert v.verify(estop, b"{}", att) is None
+    assert v.verify(estop, b"{}", att).startswith("replayed")      # still replay-checked
+    assert v.verify(estop, b"{}", sign(secret, estop, b"{}", stamp_ns=now[0] - 6_000_000_000)).startswith("stale")
+
+
 def test_read_secret_checks_the_owner_for_the_robot_only(tmp_path):
     p = _secret_file(tmp_path)
     assert read_secret(str(p)) == b"0123456789abcdef0123456789abcdef"

@@ -21,7 +21,9 @@ unchanged) is the ASCII text ``vbnav-hmac1 <stamp_ns> <nonce> <mac>``:
 
 Replay: the robot refuses a signed message older than ``window_s`` (5 s) by
 its own monotonic clock, and one whose MAC it has already seen within that
-window. The secret is allowed only on a robot that is reachable from this
+window. At most ``REPLAY_CACHE_LIMIT`` MACs are remembered: beyond that (a flood) new commands
+are refused until older ones leave the window, except an estop, which is never refused for it.
+The secret is allowed only on a robot that is reachable from this
 machine alone, so sender and robot read the same monotonic clock (the clock
 of the machine, shared by all its processes).
 """
@@ -42,7 +44,8 @@ SCHEME = b"vbnav-hmac1"
 MIN_SECRET_BYTES = 16
 REPLAY_WINDOW_S = 5.0
 FUTURE_SLACK_NS = 100_000_000     # a stamp may lead the robot's clock by this much (it is the same clock)
-REPLAY_CACHE_LIMIT = 200_000      # MACs remembered at once; beyond that new commands are refused, never forgotten
+REPLAY_CACHE_LIMIT = 200_000      # MACs remembered at once; beyond that new commands (but estop) are refused, never
+                                  # forgotten
 
 
 def read_secret(path: str, check_owner: bool = True) -> bytes:
@@ -124,7 +127,9 @@ class CommandVerifier:
                 seen.popitem(last=False)
             if tag in seen:
                 return "replayed: this signed command was already received"
-            if len(seen) >= REPLAY_CACHE_LIMIT:
+            # An estop is never refused for a full cache (a flood of other signed commands): it is kept
+            # beyond the limit, still checked for replay.
+            if len(seen) >= REPLAY_CACHE_LIMIT and not key.endswith("/cmd/estop"):
                 return (f"more than {REPLAY_CACHE_LIMIT} signed commands within {self._window_ns * 1e-9:g} s; "
                         f"refused until older ones expire")
             seen[tag] = now

@@ -189,8 +189,11 @@ class LiveView(Sink, ServerListener):
             return
         try:
             twist = json.loads(bytes(data))
-            linear = float(twist["linear"]["x"])
-            angular = -float(twist["angular"]["z"])      # ROS/Foxglove: positive turns left; vbnav: right
+            x, z = twist["linear"]["x"], twist["angular"]["z"]
+            # numbers as JSON gives them, never coerced (as the zenoh path): true is no 1 m/s, "0.3" no 0.3 m/s
+            if not all(isinstance(n, (int, float)) and not isinstance(n, bool) for n in (x, z)):
+                raise TypeError(f"linear.x and angular.z must be numbers, got {x!r} and {z!r}")
+            linear, angular = float(x), -float(z)       # ROS/Foxglove: positive turns left; vbnav: right
         except (ValueError, KeyError, TypeError) as exc:
             self._refuse("teleop", f"Foxglove teleop: expected a JSON geometry_msgs/Twist ({exc!r})",
                          bytes(data[:200]))

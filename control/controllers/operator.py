@@ -14,7 +14,7 @@ never a path: the command comes from the network.
 
 Everything that touches files (opening a route writer, loading and checking a
 route) runs on a worker thread, never on the loop's thread: while it works the
-mode is ``switching`` and the robot holds still, and the command is answered
+mode is ``switching`` and the robot holds still (teleop is refused), and the command is answered
 (``command`` event, or ``command_rejected``) only once the switch is done
 (``PENDING``, then ``Runtime.complete_command``). (Under the simulated clock the
 switch is done in place, and answered at once: simulated time does not pass, and
@@ -114,10 +114,15 @@ class OperatorController(Controller):
         return self
 
     def handle_command(self, cmd: OperatorCommand, now_ns: int) -> CommandOutcome:
-        """``teleop`` drives in idle and teach (refused while repeating: it would not move the robot, and held
-        until the repeat ends it would drive the robot then); ``mode`` switches."""
+        """``teleop`` drives in idle and teach (refused while repeating or switching: it would not move the robot,
+        and held until the repeat or the switch ends it would drive the robot then); ``mode`` switches."""
         if cmd.kind == "teleop":
-            if self.mode == "repeat" and self._worker is None:
+            if self._worker is not None:
+                # The robot holds still until the switch is done: 'applied' would be untrue, a switch to repeat
+                # drops it, and held through the switch it would drive the robot when the new mode begins.
+                return CommandOutcome.refused(f"a switch to {self._worker.name} is in progress: the robot holds "
+                                              f"still until it is done; teleop again then")
+            if self.mode == "repeat":
                 return CommandOutcome.refused(f"mode repeat: the robot follows route {self.route_path!r}; teleop "
                                               f"drives in idle and teach (send mode idle first)")
             return self.teleop.handle_command(cmd, now_ns)
@@ -129,10 +134,12 @@ class OperatorController(Controller):
             return CommandOutcome.refused(f"unknown mode {target!r}; expected one of {', '.join(MODES)}")
         if self._worker is not None:
             return CommandOutcome.refused(f"a switch to {self._worker.name} is still in progress")
+        if target == "idle" and self.mode == "idle":     # nothing to switch: no worker, no pause of the teleop
+            return CommandOutcome(True, unchanged=True)
         if target in ("teach", "repeat") and not route:
             return CommandOutcome.refused(f"mode {target!r} needs a route path")
-        if target == "teach" and self.pipeline is None:
-            return CommandOutcome.refused("mode 'teach' needs a camera (this run has none)")
+        if target in ("teach", "repeat") and self.pipeline is None:   # repeat: no VBC fix would ever come
+            return CommandOutcome.refused(f"mode {target!r} needs a camera (this run has none)")
         return self._start_switch(target, route, now_ns, cmd)
 
     # -- switching (worker thread) --------------------------------------------

@@ -22,12 +22,14 @@ from vbnav.control.controllers.fusion import PoseFusion
 from vbnav.control.route import Route
 from vbnav.control.runtime.interfaces import (
     STOP,
+    CommandOutcome,
     ControlContext,
     Controller,
     Estimate,
     Twist,
 )
 from vbnav.control.runtime.kinematics import keep_curvature, saturate
+from vbnav.control.runtime.mailbox import OperatorCommand
 from vbnav.control.stages.vbc_fix import VBCFix
 from vbnav.vision.geometry import Pose2
 
@@ -47,6 +49,7 @@ class RepeatController(Controller):
         self.cfg = cfg or VBCConfig()
         limits = RobotConfig()
         self.kfs = route.keyframes
+        self.route_name = route.path.name if route.path is not None else None   # what `mode repeat` names
         self.path = np.array([[kf.odom.x, kf.odom.z] for kf in self.kfs])
         self.v_max = min(self.cfg.cruise_speed,
                          limits.max_linear_speed if max_linear_speed is None else max_linear_speed)
@@ -62,6 +65,14 @@ class RepeatController(Controller):
     @property
     def finished(self) -> bool:
         return self._finished
+
+    def handle_command(self, cmd: OperatorCommand, now_ns: int) -> CommandOutcome:
+        """``mode repeat`` naming another route is no 'unchanged': this run repeats its own route only."""
+        name = self.route_name
+        if cmd.kind == "mode" and len(cmd.args) > 1 and cmd.args[0] == self.name and name != cmd.args[1]:
+            return CommandOutcome.refused(f"this run repeats route {name!r}; repeating {cmd.args[1]!r} needs a new "
+                                          f"run (vbnav repeat --path ROUTE)")
+        return super().handle_command(cmd, now_ns)
 
     def status(self) -> dict:
         return dict(self._status)

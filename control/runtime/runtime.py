@@ -11,7 +11,7 @@ after the tick it follows (a frozen process, a 2 s garbage collection, a blocked
 callback) trips the latched, non-fatal ``stall`` stop in that cycle: the wheels
 go to zero and the drive is disabled until an operator ``resume``; teleop sent
 before the stall is refused and the teleop command is forgotten, so moving again
-needs fresh commands. During the stall itself the drive keeps its last command:
+needs fresh commands; a resume that arrived during the stall (before it was detected) is refused. During the stall itself the drive keeps its last command:
 only the drive's own watchdog can act inside it.
 
 A lost drive bus is not the end at once: the drive goes to ERROR (its own
@@ -193,6 +193,10 @@ class Runtime:
         self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
+        self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
+        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back) was sent
+        # before anyone could know of it, and does not clear it
+        self._resume_after: Optional[tuple[int, str]] = None
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -312,6 +316,9 @@ class Runtime:
                 self._apply_speed_scales(now, estimates)
             ctx = ControlContext(now, dt, odom, wheels, estimates, cycle)
             self.ctx = ctx
+            # before the commands, as the camera and obstacle holds: a teleop taken in the cycle a stale-estimate
+            # hold begins is refused, not answered 'applied' and then dropped by the hold
+            self._check_estimates(ctx)
             stage = "commands"
             self._apply_commands(now)
             stage = "controller"
@@ -325,7 +332,6 @@ class Runtime:
             for cause, (active, message) in self.controller.safety_conditions().items():
                 self._controller_holds.add(cause)
                 self.safety.hold(now, cause, active, message)
-            self._check_estimates(ctx)
             self._forget_teleop_on_new_hold(now)
             stage = "safety"
             if self.safety.may_move:
@@ -375,6 +381,7 @@ class Runtime:
         lost_s = (now - recovery.since_ns) * 1e-9
         if outcome is Outcome.BACK:
             self.odometry.rebase()   # a device that restarted counts from elsewhere: no jump in the pose
+            self._resume_after = (now, "the drive came back")
             self.safety.note(now, "drive_reconnected", "drive_lost",
                              f"{self.drive.drive_name} is back after {lost_s:.2f} s and ran its safe bring-up "
                              f"(wheels unpowered); stopped until resume")
@@ -423,6 +430,7 @@ class Runtime:
         self.safety.trip(now, "stall", f"loop stalled {late * 1e-6:.0f} ms ({late / period:.1f} periods, limit "
                                        f"{limit:g}, loop.stall_periods); the wheels kept their last command "
                                        f"meanwhile; resume to drive again")
+        self._resume_after = (now, "the stall was detected")
         self._forget_teleop(now - late, "the loop stalled")
 
     def _forget_teleop(self, since: int, why: str) -> None:
@@ -484,11 +492,21 @@ class Runtime:
             stale = e is None and ctx.now_ns - self._start_ns > (limit + 2.0) * 1e9 \
                 or (e is not None and e.age_s(ctx.now_ns) > limit)
             self.safety.hold(ctx.now_ns, f"{kind}_stale", stale, f"no {kind} estimate newer than {limit:g} s")
+        # A kind no longer needed (the operator left repeat, which needs vbc): its hold is cleared, not kept
+        # for good with nothing left to release it.
+        gone = self._estimate_kinds - set(kinds)
+        for kind in list(gone):
+            self.safety.hold(ctx.now_ns, f"{kind}_stale", False)
+            if f"{kind}_stale" not in self.safety.holds:
+                gone.discard(kind)
+        self._estimate_kinds = set(kinds) | gone
 
     def _apply_commands(self, now: int) -> None:
         commands, refused = self.mailbox.drain(now)
-        for cmd, reason in refused:
-            self.safety.reject(now, cmd.kind, reason)
+        for cmd, reason in refused:     # answered like the loop's own refusals: with the ack, a stream summarised
+            for fn in self.command_observers:
+                fn(self, cmd, now)
+            self._answer(cmd, CommandOutcome.refused(reason), now)
         for cmd in commands:
             for fn in self.command_observers:
                 fn(self, cmd, now)
@@ -527,6 +545,11 @@ class Runtime:
         if cmd.kind == "resume" and self._recovery is not None:
             return CommandOutcome.refused(f"the drive is still lost: {self.drive.drive_name} has not come back yet; "
                                           f"resume once a drive_reconnected event says so")
+        if cmd.kind == "resume" and self._resume_after is not None and cmd.arrival_ns is not None \
+                and cmd.arrival_ns < self._resume_after[0]:
+            t, what = self._resume_after
+            return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
+                                          f"{what}, so it was not meant to clear it; resume again")
         if cmd.kind == "resume":
             self.safety.reset(now, f"resume from {cmd.source}")
             return APPLIED
