@@ -221,6 +221,8 @@ class _Session:
     ("chunk/loop/manifest.json/x", "byte offset"),
     ("files/bad", "route 'bad': manifest.json: not a route manifest"),
     ("push/loop/short/begin", "transfer id"),
+    ("push/loop/abcdefgh\n/begin", "transfer id"),            # '$' matched before a final newline
+    ("chunk/loop/manifest.json\n/0", "route file name"),
     ("bogus", "unknown route query"),
 ])
 def test_the_route_server_refuses_bad_queries_without_naming_its_folders(tmp_path, key, reason):

@@ -101,7 +101,7 @@ def route_files(path) -> list[dict]:
         raise RouteError(f"{mpath}: not a route manifest ({type(exc).__name__}: {exc})") from None
     out = []
     for n in names:
-        if not _FILE.match(n):
+        if not _FILE.fullmatch(n):
             raise RouteError(f"{mpath}: lists {n!r}, which is not a route file name")
         try:
             size, digest = _sha256_file(path / n)
@@ -203,7 +203,7 @@ class RouteServer:
                  "created": r.created, "robot": r.robot, "error": r.error} for r in list_routes(self.root)]
 
     def _chunk(self, name: str, file: str, offset: str) -> bytes:
-        if not _FILE.match(file) or not offset.isdigit():
+        if not _FILE.fullmatch(file) or not offset.isdigit():
             raise TransferError("chunk: expected a route file name and a byte offset")
         path = resolve_route(self.root, name, must_exist=True) / file
         with open(path, "rb") as f:
@@ -213,7 +213,7 @@ class RouteServer:
     # -- pushes --------------------------------------------------------------------------------------
     def _push(self, name: str, tid: str, op: str, rest: list[str], payload: bytes) -> dict:
         check_route_name(name)
-        if not _ID.match(tid):
+        if not _ID.fullmatch(tid):
             raise TransferError("push: the transfer id must be 8-64 letters or digits")
         self._abandon_idle()
         if op == "begin" and not rest:
@@ -262,7 +262,7 @@ class RouteServer:
         return {"ok": True, "chunk": PUSH_CHUNK}
 
     def _write_chunk(self, inc: _Incoming, file: str, offset: str, data: bytes) -> dict:
-        if not _FILE.match(file) or not offset.isdigit():
+        if not _FILE.fullmatch(file) or not offset.isdigit():
             raise TransferError("push chunk: expected a route file name and a byte offset")
         have, at = inc.sizes.get(file, 0), int(offset)
         if file in inc.verified or at != have:
@@ -277,7 +277,7 @@ class RouteServer:
 
     def _file_done(self, inc: _Incoming, file: str, payload: bytes) -> dict:
         spec = _json_object(payload, "push file")
-        if not _FILE.match(file) or not _SHA.match(str(spec.get("sha256", ""))):
+        if not _FILE.fullmatch(file) or not _SHA.fullmatch(str(spec.get("sha256", ""))):
             raise TransferError("push file: expected a route file name and its 'sha256' (64 hex digits)")
         path = inc.staging / file
         if not path.exists():
@@ -394,7 +394,7 @@ def pull(session, robot: str, name: str, dest_root, overwrite: bool = False, tim
     staging.mkdir()
     try:
         for f in files:
-            if not _FILE.match(str(f["name"])):
+            if not _FILE.fullmatch(str(f["name"])):
                 raise TransferError(f"robot {robot} lists {f['name']!r} in route {name!r}: not a route file name")
             h = hashlib.sha256()
             with open(staging / f["name"], "wb") as out:
