@@ -458,6 +458,34 @@ def test_a_teleop_held_from_before_a_hold_does_not_drive_when_it_clears():
     assert any(t > T0 + 2_000_000_000 for t in moving)                              # a fresh teleop drives
 
 
+def test_a_command_that_raises_ends_the_run_and_it_and_the_rest_of_its_drain_are_answered():
+    """A controller that raises on a command ends the run (motors stopped); that command and the estop
+    drained behind it in the same cycle were never answered, so their senders waited for a timeout."""
+    class Fragile(Cruise):
+        def handle_command(self, cmd, now_ns):
+            if cmd.kind == "mode":
+                raise RuntimeError("mode switch broke")
+            return super().handle_command(cmd, now_ns)
+
+    rt, drive, clock = make_runtime(Fragile())
+    seen = []
+    rt.command_observers.append(lambda r, cmd, now: seen.append(cmd.ack))
+
+    def post(r, ctx, twist, wheels):
+        if ctx.cycle == 10:
+            for kind, args in (("mode", ("idle",)), ("estop", ())):
+                r.submit(OperatorCommand(kind, args, "op", ack=kind))
+
+    rt.cycle_observers.append(post)
+    result = rt.run(duration_s=2.0)
+    assert result.reason == "exception" and "mode switch broke" in result.message
+    rejected = [e for e in result.events if e.kind == "rejected"]
+    assert [e.cause for e in rejected] == ["mode", "estop"], rejected
+    assert all("the run ended (exception" in e.message for e in rejected), rejected
+    assert seen[-2:] == ["mode", "estop"]           # each answer is told which command (ack) it is for
+    assert drive.log[-1][1:3] == (0.0, 0.0)
+
+
 def test_obstacle_speed_scale_slows_and_stops():
     from vbnav.control.runtime.interfaces import Estimate
 

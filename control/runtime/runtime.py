@@ -191,6 +191,7 @@ class Runtime:
         self._deadline_ns: Optional[int] = None
         self._recovery: Optional[DriveRecovery] = None   # while the drive's bus is lost
         self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
+        self._in_hand: list[OperatorCommand] = []          # drained commands not yet answered
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
@@ -507,10 +508,15 @@ class Runtime:
             for fn in self.command_observers:
                 fn(self, cmd, now)
             self._answer(cmd, CommandOutcome.refused(reason), now)
-        for cmd in commands:
+        # Held until answered: a command that raises ends the run, and it and the rest of the drain (an
+        # estop among them) are then answered by _refuse_waiting_commands, not left to time out.
+        self._in_hand = commands
+        while self._in_hand:
+            cmd = self._in_hand[0]
             for fn in self.command_observers:
                 fn(self, cmd, now)
             outcome = self._apply_command(cmd, now)
+            self._in_hand = self._in_hand[1:]
             if not outcome.pending:
                 self._answer(cmd, outcome, now)
 
@@ -573,7 +579,8 @@ class Runtime:
         reason, message = self._end or ("stopped", "loop stopped")
         why = f"the run ended ({reason}: {message}) before the loop took this command"
         now = self.clock.now_ns()
-        for cmd in self.mailbox.close(why):
+        in_hand, self._in_hand = self._in_hand, []
+        for cmd in in_hand + self.mailbox.close(why):
             for fn in self.command_observers:      # they tell the answer which command (and ack) it is for
                 fn(self, cmd, now)
             self._answer(cmd, CommandOutcome.refused(why), now)
