@@ -486,6 +486,39 @@ def test_a_command_that_raises_ends_the_run_and_it_and_the_rest_of_its_drain_are
     assert drive.log[-1][1:3] == (0.0, 0.0)
 
 
+def test_a_resume_says_what_it_did_not_clear():
+    """A resume during an obstacle hold, or with nothing latched, was answered plainly 'applied', as if the
+    robot were free to move. It is taken, with a note on what it left."""
+    from vbnav.control.runtime.interfaces import Estimate
+
+    class Zone(VisionStage):
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            return Estimate(frame.stamp_ns, self.kind, True, None,
+                            {"speed_scale": 0.0 if 1.0 <= t < 2.0 else 1.0, "reason": "box ahead"})
+
+    rt, drive, clock = make_runtime(Cruise(), stages=[Zone()])
+    answers = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: answers.append((cmd.ack, outcome)))
+
+    def post(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        for at, kind in ((500_000_000, "estop"), (700_000_000, "resume"), (800_000_000, "resume"),
+                         (1_300_000_000, "estop"), (1_500_000_000, "resume"), (1_600_000_000, "resume")):
+            if t == at:
+                r.submit(OperatorCommand(kind, (), "op", ack=f"{kind}@{at // 100_000_000}"))
+
+    rt.cycle_observers.append(post)
+    rt.run(duration_s=2.5)
+    notes = {ack: (o.applied, o.reason, o.unchanged) for ack, o in answers}
+    assert notes["resume@7"] == (True, "", False)                       # cleared the estop, free to move
+    assert notes["resume@8"] == (True, "nothing was latched", True)
+    assert notes["resume@15"] == (True, "cleared estop; still held by obstacle until it clears", False)
+    assert notes["resume@16"] == (True, "nothing was latched; still held by obstacle until it clears", True)
+
+
 def test_obstacle_speed_scale_slows_and_stops():
     from vbnav.control.runtime.interfaces import Estimate
 

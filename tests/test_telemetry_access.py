@@ -181,7 +181,9 @@ def test_send_waits_for_the_robots_answer(tmp_path):
         assert r.stdout.startswith("estop applied by robot sim at cycle ")
         cycle = int(r.stdout.split("at cycle ")[1].split()[0])
         r = _send(port, "resume")
-        assert r.returncode == 0 and "resume applied" in r.stdout, r.stderr
+        assert r.returncode == 0 and "resume applied" in r.stdout and ": " not in r.stdout, r.stderr
+        r = _send(port, "resume")           # nothing to clear: taken, and the answer says so
+        assert r.returncode == 0 and r.stdout.rstrip().endswith(": nothing was latched"), r.stdout
         r = _send(port, "teleop", 0.2, 0.0, "--duration", 1.0)      # a stream answers on its first message
         assert r.returncode == 0 and "teleop applied" in r.stdout and "messages sent" in r.stdout, r.stderr
 

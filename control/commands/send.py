@@ -199,5 +199,6 @@ def _report(args, robot: str, what: str, answer, sent: int) -> int:
         print(f"vbnav send: robot {robot} refused {what}: {answer.get('reason', '?')}", file=sys.stderr)
         return REFUSED
     stream = f" ({sent} messages sent)" if sent > 1 else ""
-    print(f"{what} applied by robot {robot} at cycle {answer.get('cycle', '?')}{stream}")
+    note = f": {answer['note']}" if answer.get("note") else ""
+    print(f"{what} applied by robot {robot} at cycle {answer.get('cycle', '?')}{stream}{note}")
     return OK

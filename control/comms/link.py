@@ -322,6 +322,8 @@ class TelemetryLink:
             return
         fields = dict(command=cmd.kind, args=list(cmd.args), sender=cmd.source, cycle=rt.cycle,
                       arrival_ns=cmd.arrival_ns)
+        if outcome.reason:
+            fields["note"] = outcome.reason
         if cmd.ack:
             fields["ack"] = cmd.ack
         self.publisher.event("command", stamp_ns=now_ns, **fields)

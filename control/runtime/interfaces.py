@@ -126,7 +126,8 @@ class StageOverlay:
 class CommandOutcome:
     """A controller's answer to an operator command.
 
-    applied: the command took effect (the runtime tells its ``command_listeners``); otherwise it is
+    applied: the command took effect (the runtime tells its ``command_listeners``; ``reason``, if any, is a
+    note on what it did not change, e.g. a resume with a hold still active); otherwise it is
     refused and ``reason`` becomes the ``rejected`` safety event the operator sees. unchanged: applied,
     but the state already was what the command asked for (a ``mode`` equal to the current one).
     pending: neither yet: the controller finishes the command later (a mode switch that loads a route

@@ -557,8 +557,15 @@ class Runtime:
             return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
                                           f"{what}, so it was not meant to clear it; resume again")
         if cmd.kind == "resume":
-            self.safety.reset(now, f"resume from {cmd.source}")
-            return APPLIED
+            cleared = self.safety.reset(now, f"resume from {cmd.source}")
+            held = [c for c in self.safety.holds if c not in self._controller_holds]
+            if cleared and not held:
+                return APPLIED
+            # Taken, but 'applied' alone would promise a robot free to move: say what it did not change.
+            note = "cleared " + ", ".join(cleared) if cleared else "nothing was latched"
+            if held:
+                note += f"; still held by {', '.join(held)} until it clears"
+            return CommandOutcome(True, note, unchanged=not cleared)
         if cmd.kind == "teleop" and self.safety.latched:
             # Taken, it would be 'applied' while the wheels stay stopped, and held it would drive the robot
             # the moment a resume comes.
