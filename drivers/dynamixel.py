@@ -21,13 +21,13 @@ import select
 import time
 from typing import Any, Literal, Optional
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
-from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, HW_ERROR_BITS, MODE_VELOCITY, MODEL_NUMBERS,
-                                           TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
+from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, BAUD_VALUES, HW_ERROR_BITS, MODE_VELOCITY,
+                                           MODEL_NUMBERS, TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
 from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, FaultKind, WheelState
 
@@ -104,7 +104,8 @@ class DynamixelDrive(SerialWheelDrive):
     class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         port: str = Field("/dev/ttyUSB0", description="serial device of the U2D2 (prefer /dev/serial/by-id/...)")
-        baudrate: int = Field(1_000_000, description="bus rate, bit/s")
+        baudrate: int = Field(1_000_000, description="bus rate, bit/s: one a Dynamixel X servo runs at "
+                                                     f"({', '.join(map(str, BAUD_VALUES))})")
         left_id: int = Field(1, ge=0, le=252, description="bus ID of the left wheel servo")
         right_id: int = Field(2, ge=0, le=252, description="bus ID of the right wheel servo")
         model: Optional[Literal[tuple(MODEL_NUMBERS)]] = Field(  # type: ignore[valid-type]
@@ -120,6 +121,13 @@ class DynamixelDrive(SerialWheelDrive):
                                       "state is held meanwhile; the writes still feed the servos' watchdog): 8 at "
                                       "100 Hz tolerates 80 ms of misses, within the 100 ms bus watchdog")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
+
+        @field_validator("baudrate")
+        @classmethod
+        def _x_series_rate(cls, v: int) -> int:
+            if v not in BAUD_VALUES:
+                raise ValueError(f"{v} bit/s is not a Dynamixel X rate; one of {', '.join(map(str, BAUD_VALUES))}")
+            return v
 
         @model_validator(mode="after")
         def _distinct_ids(self):

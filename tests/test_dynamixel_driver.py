@@ -259,3 +259,12 @@ def test_hardware_error_found_at_bring_up_then_cleared(bus):
     d.enable()
     assert drive_for(d, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
     d.close()
+
+
+def test_a_baud_rate_no_dynamixel_x_servo_runs_at_is_refused_by_the_config():
+    """A baud rate outside the X series' table passed the config check and failed only at start-up, as "cannot
+    open the adapter" or as servo 1 "did not answer ping": the field and the rates it takes went unsaid."""
+    from vbnav.control.config import ConfigError, parse_config
+    with pytest.raises(ConfigError, match=r"drive\.options\.baudrate.*100000.*57600.*1000000"):
+        parse_config({"drive": {"driver": "dynamixel", "options": {"baudrate": 100000}}}, "robot.yaml")
+    assert DynamixelDrive.Options(baudrate=57600).baudrate == 57600
