@@ -180,7 +180,7 @@ class DynamixelDrive(SerialWheelDrive):
     def _write(self, left: float, right: float) -> None:
         now = self.clock.now_ns()
         if self._last_write_ns is not None and (now - self._last_write_ns) * 1e-9 > self._watchdog_units * WATCHDOG_UNIT_S:
-            self._check_watchdog(now)
+            self._guard_io(lambda: self._check_watchdog(now))
         units = [self._to_units(self.signs[k] * v) for k, v in enumerate((left, right))]
         ok, why = self._guard_io(lambda: self._sync_write_velocity(units))
         if not ok:

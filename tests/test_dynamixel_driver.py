@@ -268,3 +268,19 @@ def test_a_baud_rate_no_dynamixel_x_servo_runs_at_is_refused_by_the_config():
     with pytest.raises(ConfigError, match=r"drive\.options\.baudrate.*100000.*57600.*1000000"):
         parse_config({"drive": {"driver": "dynamixel", "options": {"baudrate": 100000}}}, "robot.yaml")
     assert DynamixelDrive.Options(baudrate=57600).baudrate == 57600
+
+
+def test_adapter_unplugged_while_the_loop_stalled_is_a_lost_bus(bus, drive):
+    """The first write after a stall longer than the watchdog reads the servos' Bus Watchdog; with the adapter
+    gone meanwhile that read raised termios.error out of write(): the runtime ended the run on an "exception"
+    instead of a lost bus it waits for. It is a BUS_LOST fault now, and the adapter is looked for again."""
+    drive_for(drive, 2.0, 2.0)
+    time.sleep(WATCHDOG_S * 2)
+    bus.unplug()
+    with pytest.raises(DriveError, match=r"ttyDXL lost.*watchdog"):
+        drive.write(1.0, 1.0)
+    assert drive.state is DriveState.ERROR and [f.kind for f in drive.faults] == [FaultKind.BUS_LOST]
+    assert wait_until(lambda: wheels_stopped(bus))
+    bus.replug()
+    assert wait_until(lambda: _reads(drive), timeout=3.0)
+    assert drive.state is DriveState.INACTIVE
