@@ -37,6 +37,7 @@ except ImportError as _exc:  # pragma: no cover - dependency is in pyproject
     sdk = None
     _SDK_ERROR = _exc
 
+VELOCITY_LIMIT_MAX_RAD_S = round(1023 * VELOCITY_UNIT_RAD_S, 2)   # what Velocity Limit (44) holds: 0..1023 units
 BRING_UP_EXTRA_MS = 30.0  # answer window added during bring-up: not time-critical, and must not flake
 BRING_UP_ATTEMPTS = 3
 # Present Velocity and Present Position are adjacent (tests check it): one sync read of (address, length)
@@ -110,7 +111,9 @@ class DynamixelDrive(SerialWheelDrive):
         right_id: int = Field(2, ge=0, le=252, description="bus ID of the right wheel servo")
         model: Optional[Literal[tuple(MODEL_NUMBERS)]] = Field(  # type: ignore[valid-type]
             None, description="expected servo model; None accepts any known X-series model")
-        velocity_limit_rad_s: float = Field(6.0, gt=0, description="written to Velocity Limit (44); commands clamp")
+        velocity_limit_rad_s: float = Field(6.0, gt=0, le=VELOCITY_LIMIT_MAX_RAD_S,
+                                            description="written to Velocity Limit (44), at most its 1023 units "
+                                                        f"({VELOCITY_LIMIT_MAX_RAD_S:g} rad/s); commands clamp")
         profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
         bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
         latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")

@@ -284,3 +284,11 @@ def test_adapter_unplugged_while_the_loop_stalled_is_a_lost_bus(bus, drive):
     bus.replug()
     assert wait_until(lambda: _reads(drive), timeout=3.0)
     assert drive.state is DriveState.INACTIVE
+
+
+def test_a_velocity_limit_above_the_register_range_is_refused_not_cut():
+    """velocity_limit_rad_s above what Velocity Limit (44) holds (1023 units, 24.5 rad/s) was accepted and
+    cut to 1023 units without a word: the robot drove slower than its configuration said."""
+    with pytest.raises(ValueError, match=r"velocity_limit_rad_s[\s\S]*24\.5"):
+        DynamixelDrive.Options(velocity_limit_rad_s=30.0)
+    assert DynamixelDrive(options=DynamixelDrive.Options(velocity_limit_rad_s=24.53))._limit_units == 1023
