@@ -114,7 +114,9 @@ class DynamixelDrive(SerialWheelDrive):
         velocity_limit_rad_s: float = Field(6.0, gt=0, le=VELOCITY_LIMIT_MAX_RAD_S,
                                             description="written to Velocity Limit (44), at most its 1023 units "
                                                         f"({VELOCITY_LIMIT_MAX_RAD_S:g} rad/s); commands clamp")
-        profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
+        profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108), in its "
+                                                   f"{ACCEL_UNIT_RAD_S2:.4f} rad/s^2 units (a smaller positive value "
+                                                   "is one unit); 0 = none")
         bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
         latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")
         margin_ms: float = Field(3.0, ge=0, le=20, description="extra wait for an answer, ms: the answer window "
@@ -277,6 +279,8 @@ class DynamixelDrive(SerialWheelDrive):
                 self._record_fault(fault)
                 raise DriveError(fault.message)
         accel_units = int(round(self.opt.profile_acceleration_rad_s2 / ACCEL_UNIT_RAD_S2))
+        if self.opt.profile_acceleration_rad_s2 > 0:
+            accel_units = max(1, accel_units)   # 0 is "no limit": a gentle setting is the gentlest limit
         steps = [(reg.TORQUE_ENABLE, 0),
                  (reg.OPERATING_MODE, MODE_VELOCITY),
                  (reg.VELOCITY_LIMIT, self._limit_units),

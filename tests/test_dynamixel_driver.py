@@ -292,3 +292,14 @@ def test_a_velocity_limit_above_the_register_range_is_refused_not_cut():
     with pytest.raises(ValueError, match=r"velocity_limit_rad_s[\s\S]*24\.5"):
         DynamixelDrive.Options(velocity_limit_rad_s=30.0)
     assert DynamixelDrive(options=DynamixelDrive.Options(velocity_limit_rad_s=24.53))._limit_units == 1023
+
+
+def test_a_small_profile_acceleration_is_not_rounded_to_no_limit(bus):
+    """Profile Acceleration counts in 0.3745 rad/s^2 units and 0 means no limit: a gentle 0.1 rad/s^2 was
+    rounded to 0, so the configured limit turned into none at all. A positive setting writes at least 1."""
+    d = make_drive(bus, profile_acceleration_rad_s2=0.1)
+    d.connect()
+    try:
+        assert all(bus.servo(i).get(dt.PROFILE_ACCELERATION) == 1 for i in (1, 2))
+    finally:
+        d.close()
