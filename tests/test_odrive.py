@@ -263,3 +263,20 @@ def test_a_device_that_resets_during_the_bring_up_is_a_lost_bus_not_a_traceback(
         d.close()
     finally:
         emu.stop()
+
+
+def test_vel_ramp_rate_limits_the_acceleration(emu):
+    """The driver sets input mode VEL_RAMP and vel_ramp_rate, but the emulator followed input_vel at once in
+    every input mode, so no test could tell the option from passthrough. It ramps now, and the drive with
+    a ramp accelerates at that rate."""
+    d = make_drive(emu, vel_ramp_rate=1.0)     # 1 motor turn/s^2; gear 2: 1 rad/s at the wheel = 0.32 turn/s
+    d.connect()
+    d.enable()
+    try:
+        assert all(a.input_mode == 2 and a.vel_ramp_rate == pytest.approx(1.0) for a in emu.axes)
+        drive_for(d, 1.0, 1.0, cycles=10)                 # about 0.05-0.1 s
+        with emu.lock:
+            assert all(abs(a.vel) < 0.2 for a in emu.axes)   # passthrough would be at 0.32 turn/s by now
+        assert wait_until(lambda: drive_for(d, 1.0, 1.0, cycles=1).velocity[0] > 0.9, timeout=3.0)
+    finally:
+        d.close()
