@@ -202,11 +202,11 @@ def open_filestorage(path) -> "cv2.FileStorage":
 def _load_opencv(path: Path):
     fs = open_filestorage(path)
     try:
-        K = _fs_mat(fs, _K_NAMES)
+        K = _fs_mat(path, fs, _K_NAMES)
         if K is None:
             raise CalibrationError(f"{path}: camera_matrix: missing (looked for {', '.join(_K_NAMES)})")
-        D = _fs_mat(fs, _D_NAMES)
-        w, h = _fs_int(fs, _W_NAMES), _fs_int(fs, _H_NAMES)
+        D = _fs_mat(path, fs, _D_NAMES)
+        w, h = _fs_int(path, fs, _W_NAMES), _fs_int(path, fs, _H_NAMES)
         if w is None or h is None:
             raise CalibrationError(f"{path}: image_width/image_height: missing")
         model_node = fs.getNode("distortion_model")
@@ -216,24 +216,38 @@ def _load_opencv(path: Path):
         fs.release()
 
 
-def _fs_mat(fs, names):
+def _fs_mat(path: Path, fs, names):
+    """The first of ``names`` present, as a matrix (an ``!!opencv-matrix`` or a list of numbers); None when none
+    is. Anything else there is a CalibrationError naming the field: OpenCV's own assertion (data that does not
+    fill rows x cols, text or a mapping where the matrix belongs) would otherwise escape as a cv2.error."""
     for n in names:
         node = fs.getNode(n)
         if node.empty():
             continue
-        m = node.mat()
-        if m is None and node.isSeq():
+        try:
+            m = node.mat()
+        except cv2.error:
+            m = None
+        if m is None and node.isSeq() and all(node.at(i).isReal() or node.at(i).isInt() for i in range(node.size())):
             m = np.array([node.at(i).real() for i in range(node.size())])
-        if m is not None:
-            return m
+        if m is None:
+            raise CalibrationError(f"{path}: {n}: expected a matrix (!!opencv-matrix with rows x cols numbers in "
+                                   f"data, or a list of numbers)")
+        return m
     return None
 
 
-def _fs_int(fs, names):
+def _fs_int(path: Path, fs, names):
+    """The first of ``names`` present as a whole number; None when none is (``FileNode.real()`` reads text as
+    1.8e308 and would cut 640.7 to 640)."""
     for n in names:
         node = fs.getNode(n)
-        if not node.empty():
-            return int(node.real())
+        if node.empty():
+            continue
+        if not node.isInt():
+            raise CalibrationError(f"{path}: {n}: expected a whole number of pixels, got "
+                                   f"{node.string() if node.isString() else node.real() if node.isReal() else 'no number'}")
+        return int(node.real())
     return None
 
 

@@ -88,6 +88,10 @@ class CameraSizeError(CameraError, InputError):
     """Recorded images are not of the configured size: bad input (exit 2), not a device fault."""
 
 
+class RecordedCameraError(CameraError, InputError):
+    """A recording's own camera (its intrinsics file) is not the configured one: bad input (exit 2)."""
+
+
 class Camera(abc.ABC):
     """Abstract camera. Subclasses set ``name`` and implement the four methods."""
 

@@ -324,6 +324,13 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
     if missing:
         raise DatasetError(f"{path}: missing key(s) {', '.join(missing)} (camera intrinsics)")
+    # YAML gives the types: int() would cut 32.5 to 32, float() read true as 1 and "16" as 16
+    for k in ("width", "height"):
+        if isinstance(data[k], bool) or not isinstance(data[k], int):
+            raise DatasetError(f"{path}: {k}: expected a whole number of pixels, got {data[k]!r}")
+    for k in ("fx", "fy", "cx", "cy"):
+        if isinstance(data[k], (bool, str)):
+            raise DatasetError(f"{path}: {k}: expected a number, got {data[k]!r}")
     try:
         args = dict(width=int(data["width"]), height=int(data["height"]), fx=float(data["fx"]),
                     fy=float(data["fy"]), cx=float(data["cx"]), cy=float(data["cy"]),

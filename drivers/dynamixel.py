@@ -21,13 +21,13 @@ import select
 import time
 from typing import Any, Literal, Optional
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
-from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, HW_ERROR_BITS, MODE_VELOCITY, MODEL_NUMBERS,
-                                           TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
+from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, BAUD_VALUES, HW_ERROR_BITS, MODE_VELOCITY,
+                                           MODEL_NUMBERS, TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
 from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, FaultKind, WheelState
 
@@ -37,6 +37,7 @@ except ImportError as _exc:  # pragma: no cover - dependency is in pyproject
     sdk = None
     _SDK_ERROR = _exc
 
+VELOCITY_LIMIT_MAX_RAD_S = round(1023 * VELOCITY_UNIT_RAD_S, 2)   # what Velocity Limit (44) holds: 0..1023 units
 BRING_UP_EXTRA_MS = 30.0  # answer window added during bring-up: not time-critical, and must not flake
 BRING_UP_ATTEMPTS = 3
 # Present Velocity and Present Position are adjacent (tests check it): one sync read of (address, length)
@@ -104,13 +105,18 @@ class DynamixelDrive(SerialWheelDrive):
     class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         port: str = Field("/dev/ttyUSB0", description="serial device of the U2D2 (prefer /dev/serial/by-id/...)")
-        baudrate: int = Field(1_000_000, description="bus rate, bit/s")
+        baudrate: int = Field(1_000_000, description="bus rate, bit/s: one a Dynamixel X servo runs at "
+                                                     f"({', '.join(map(str, BAUD_VALUES))})")
         left_id: int = Field(1, ge=0, le=252, description="bus ID of the left wheel servo")
         right_id: int = Field(2, ge=0, le=252, description="bus ID of the right wheel servo")
         model: Optional[Literal[tuple(MODEL_NUMBERS)]] = Field(  # type: ignore[valid-type]
             None, description="expected servo model; None accepts any known X-series model")
-        velocity_limit_rad_s: float = Field(6.0, gt=0, description="written to Velocity Limit (44); commands clamp")
-        profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108); 0 = none")
+        velocity_limit_rad_s: float = Field(6.0, gt=0, le=VELOCITY_LIMIT_MAX_RAD_S,
+                                            description="written to Velocity Limit (44), at most its 1023 units "
+                                                        f"({VELOCITY_LIMIT_MAX_RAD_S:g} rad/s); commands clamp")
+        profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108), in its "
+                                                   f"{ACCEL_UNIT_RAD_S2:.4f} rad/s^2 units (a smaller positive value "
+                                                   "is one unit); 0 = none")
         bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
         latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")
         margin_ms: float = Field(3.0, ge=0, le=20, description="extra wait for an answer, ms: the answer window "
@@ -120,6 +126,13 @@ class DynamixelDrive(SerialWheelDrive):
                                       "state is held meanwhile; the writes still feed the servos' watchdog): 8 at "
                                       "100 Hz tolerates 80 ms of misses, within the 100 ms bus watchdog")
         reconnect_interval_s: float = Field(0.5, gt=0, description="how often a lost adapter is looked for")
+
+        @field_validator("baudrate")
+        @classmethod
+        def _x_series_rate(cls, v: int) -> int:
+            if v not in BAUD_VALUES:
+                raise ValueError(f"{v} bit/s is not a Dynamixel X rate; one of {', '.join(map(str, BAUD_VALUES))}")
+            return v
 
         @model_validator(mode="after")
         def _distinct_ids(self):
@@ -172,7 +185,7 @@ class DynamixelDrive(SerialWheelDrive):
     def _write(self, left: float, right: float) -> None:
         now = self.clock.now_ns()
         if self._last_write_ns is not None and (now - self._last_write_ns) * 1e-9 > self._watchdog_units * WATCHDOG_UNIT_S:
-            self._check_watchdog(now)
+            self._guard_io(lambda: self._check_watchdog(now))
         units = [self._to_units(self.signs[k] * v) for k, v in enumerate((left, right))]
         ok, why = self._guard_io(lambda: self._sync_write_velocity(units))
         if not ok:
@@ -266,6 +279,8 @@ class DynamixelDrive(SerialWheelDrive):
                 self._record_fault(fault)
                 raise DriveError(fault.message)
         accel_units = int(round(self.opt.profile_acceleration_rad_s2 / ACCEL_UNIT_RAD_S2))
+        if self.opt.profile_acceleration_rad_s2 > 0:
+            accel_units = max(1, accel_units)   # 0 is "no limit": a gentle setting is the gentlest limit
         steps = [(reg.TORQUE_ENABLE, 0),
                  (reg.OPERATING_MODE, MODE_VELOCITY),
                  (reg.VELOCITY_LIMIT, self._limit_units),

@@ -317,6 +317,8 @@ class OakCamera(GrabbingCamera):
             try:
                 if not self._pipeline.isRunning():
                     self.error = self.error or "OAK pipeline stopped (device lost or replay finished)"
+                    # a recording has delivered its last frame (a device pipeline that stops is lost, not done)
+                    self.finished = bool(self.opt.replay_file)
                     return
                 img = self._img_q.tryGet()
                 if self._disp_q is not None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import select
+import termios
 import time
 from typing import Any, Optional
 
@@ -125,7 +126,7 @@ class ODriveDrive(SerialWheelDrive):
             # answers still queued from before (late replies that made a reconnect necessary) would be
             # taken for the answers to the bring-up's questions
             self.ser.reset_input_buffer()
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, termios.error) as exc:
             raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
         try:
             t = self.opt.setup_timeout_s
@@ -173,7 +174,8 @@ class ODriveDrive(SerialWheelDrive):
                                                   f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
                     raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
             self._was_up = True
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, termios.error) as exc:
+            # termios.error (not an OSError): the flush before a question, on a device gone mid-setup
             raise DriveError(f"ODrive {self.opt.port} failed during setup: {exc}") from exc
         except _Corrupt as exc:
             raise DriveError(f"ODrive {self.opt.port} during setup: {exc}") from exc

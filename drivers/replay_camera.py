@@ -18,11 +18,15 @@ import numpy as np
 from pydantic import ConfigDict, Field
 from vbnav.drivers.plain_values import PlainValues
 
-from vbnav.drivers.camera import Camera, CameraError, CameraSizeError, Frame
+from vbnav.drivers.camera import Camera, CameraError, CameraSizeError, Frame, RecordedCameraError
 from vbnav.drivers.clock import MonotonicClock
 from vbnav.drivers.datasets import DatasetError, _images_in, _read_image, open_dataset
 
 FOLDER_DEFAULT_RATE_HZ = 10.0
+# How far the configured intrinsics may be from a recording's own (as the OAK driver checks its device's):
+# focal lengths relative, the principal point as a share of the image size.
+FOCAL_TOL = 0.02
+CENTRE_TOL = 0.02
 
 
 class ReplayCamera(Camera):
@@ -71,8 +75,32 @@ class ReplayCamera(Camera):
             raise
         except CameraError:
             pass
-        replay.disconnect()
+        else:
+            replay.check_camera(cam)
+        finally:
+            replay.disconnect()
         return replay
+
+    def check_camera(self, cam: Any) -> None:
+        """A recording that carries its camera (TUM ``camera.yaml`` or ``camera_yaml``, KITTI ``calib.txt``) is
+        replayed only to stages built for that camera: the configured ``cam`` (fx, fy, cx, cy, width, height)
+        must agree with it (focal lengths 2 %, principal point 2 % of the image), else RecordedCameraError names
+        both. A plain folder of images carries none."""
+        ds = self._dataset
+        if ds is None or cam is None:
+            return
+        rec = ds.camera
+        bad = [f"camera.{name} {mine:g} vs the recording's {theirs:g}"
+               for name, mine, theirs, tol in (("fx", cam.fx, rec.fx, FOCAL_TOL * rec.fx),
+                                               ("fy", cam.fy, rec.fy, FOCAL_TOL * rec.fy),
+                                               ("cx", cam.cx, rec.cx, CENTRE_TOL * cam.width),
+                                               ("cy", cam.cy, rec.cy, CENTRE_TOL * cam.height))
+               if abs(mine - theirs) > tol]
+        if bad:
+            source = self.opt.camera_yaml or ds.root / ("calib.txt" if ds.layout == "kitti" else "camera.yaml")
+            raise RecordedCameraError(
+                f"replay camera: {source}: the recording's camera is not the configured one ({'; '.join(bad)}); "
+                f"set camera.fx/fy/cx/cy (or camera.calibration_file) to the recording's camera")
 
     @property
     def is_connected(self) -> bool:

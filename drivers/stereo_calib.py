@@ -178,8 +178,8 @@ def read_opencv_rectification(path: str | Path) -> StereoCalibration:
     p = Path(path)
     fs = open_filestorage(p)
     try:
-        m = {k: _fs_mat(fs, (k,)) for k in ("K0", "D0", "K1", "D1", "R1", "R2", "P1", "P2")}
-        w, h = _fs_int(fs, ("image_width",)), _fs_int(fs, ("image_height",))
+        m = {k: _fs_mat(p, fs, (k,)) for k in ("K0", "D0", "K1", "D1", "R1", "R2", "P1", "P2")}
+        w, h = _fs_int(p, fs, ("image_width",)), _fs_int(p, fs, ("image_height",))
     finally:
         fs.release()
     for k, v in m.items():

@@ -128,6 +128,9 @@ class V4L2Camera(GrabbingCamera):
                               f"(list them with: v4l2-ctl -d {self.opt.device} --list-formats-ext)")
 
     def _open_file(self):
+        if not os.path.isfile(self.opt.device):
+            what = "is a directory, not a video file" if os.path.isdir(self.opt.device) else "not found"
+            raise CameraError(f"video file {self.opt.device} {what} (camera.options.device)")
         cap = cv2.VideoCapture(self.opt.device)
         if not cap.isOpened():
             raise CameraError(f"video file {self.opt.device} cannot be opened (unknown container or codec?)")

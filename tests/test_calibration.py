@@ -126,3 +126,27 @@ def test_opencv_file_without_matrix(tmp_path):
     fs.release()
     with pytest.raises(CalibrationError, match="c.yaml: camera_matrix: missing"):
         load_calibration(p)
+
+
+OPENCV_K = "camera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [520.5, 0, 321.2, 0, 519.8, 243.9, 0, 0, 1]\n"
+
+
+@pytest.mark.parametrize("text, match", [
+    # a matrix whose data does not fill rows x cols, a matrix given as text or as a plain mapping: OpenCV's
+    # own assertion escaped as a cv2.error traceback
+    ("image_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n"
+     "  data: [520.5, 0]\n", "camera_matrix: expected a matrix"),
+    ("image_width: 640\nimage_height: 480\ncamera_matrix: hello\n", "camera_matrix: expected a matrix"),
+    ("image_width: 640\nimage_height: 480\ncamera_matrix:\n  a: 1\n", "camera_matrix: expected a matrix"),
+    ("image_width: 640\nimage_height: 480\n" + OPENCV_K + "distortion_coefficients: !!opencv-matrix\n"
+     "  rows: 1\n  cols: 5\n  dt: d\n  data: [0.1]\n", "distortion_coefficients: expected a matrix"),
+    # a width that is text was read as 1.8e308 px (FileNode.real() of a string), 640.7 cut to 640
+    ("image_width: abc\nimage_height: 480\n" + OPENCV_K, "image_width: expected a whole number of pixels"),
+    ("image_width: 640.7\nimage_height: 480\n" + OPENCV_K, "image_width: expected a whole number of pixels"),
+])
+def test_opencv_file_errors_name_file_and_field(tmp_path, text, match):
+    p = tmp_path / "bad.yaml"
+    p.write_text("%YAML:1.0\n---\n" + text)
+    with pytest.raises(CalibrationError, match=match) as e:
+        load_calibration(p)
+    assert "bad.yaml" in str(e.value)

@@ -171,3 +171,18 @@ def test_kitti_calib_txt_gives_the_rig_at_the_configured_size(tmp_path, shared_d
     cfg = load_config(config)
     assert cfg.camera.calibration.format == "kitti" and abs(cfg.camera.stereo_baseline() - 0.537) < 0.002
     assert abs(cfg.camera.fx - 707.09) < 0.01 and "stereo baseline 0.53" in text
+
+
+def test_the_simulated_camera_renders_the_stereo_rig_of_the_calibration_file(tmp_path):
+    """A stereo calibration file's baseline replaces the inline values for every stage and the simulated
+    camera (docs/hardware.md); the simulated camera took only camera.options.stereo_baseline, so with the
+    rig in the file it rendered no right image and no disparity while the stereo stages waited for them."""
+    from vbnav.control.runtime.factory import make_robot
+    (tmp_path / "rig.yaml").write_text("width: 640\nheight: 480\nfx: 410\nfy: 410\ncx: 320\ncy: 240\n"
+                                       "baseline: 0.09\n")
+    cfg = load_config(config_with(tmp_path, "rig.yaml"))
+    robot = make_robot(cfg, with_camera=True)
+    assert robot.camera.stereo_baseline == 0.09
+    robot.camera.connect()
+    frame = robot.camera.read(timeout_s=1.0)
+    assert frame is not None and frame.right is not None and frame.disparity is not None

@@ -340,3 +340,25 @@ def test_telemetry_says_the_drive_state_its_typed_faults_and_the_reconnect(tmp_p
     assert events["safety_trip"]["cause"] == "drive_lost"
     back = events["drive_reconnected"]
     assert back["cause"] == "drive_lost" and "until resume" in back["message"]
+
+
+def test_a_reconnect_attempt_that_raises_ends_the_run_with_what_it_raised():
+    """On the real clock the attempts run on their own thread, which caught only DriveError: anything else a
+    bring-up raised ended the thread, and the run waited out the whole window and then said the drive was
+    "not back within" it. The run ends at that attempt now, reason drive, with what was raised."""
+    from vbnav.drivers.sim.base import BaseParams, SimDiffDrive
+
+    class BrokenBringUp(SimDiffDrive):
+        def _reconnect(self) -> bool:
+            raise OSError(5, "Input/output error")
+
+    clock = MonotonicClock()
+    drive = BrokenBringUp(BaseParams(), clock, options=SimDiffDrive.Options(fail_after_s=0.3, lost_for_s=0.1))
+    rt = Runtime(_cfg(3.0, max_missed_streak=1000, stall_periods=1000), drive, Cruise(), clock)
+    result = rt.run(duration_s=5.0)
+    assert result.reason == "drive", result.message
+    assert "not back within" not in result.message and "came back" not in result.message
+    assert "reconnecting failed" in result.message and "OSError" in result.message
+    assert "_reconnect" in rt.fault_traceback and "Input/output error" in result.message
+    lost, end = _events(result, "trip", "drive_lost")[0], _events(result, "trip", "drive")[0]
+    assert (end.stamp_ns - lost.stamp_ns) * 1e-9 < 1.0

@@ -259,3 +259,47 @@ def test_hardware_error_found_at_bring_up_then_cleared(bus):
     d.enable()
     assert drive_for(d, 1.0, 1.0, cycles=20).velocity == pytest.approx((1.0, 1.0), abs=VELOCITY_UNIT_RAD_S)
     d.close()
+
+
+def test_a_baud_rate_no_dynamixel_x_servo_runs_at_is_refused_by_the_config():
+    """A baud rate outside the X series' table passed the config check and failed only at start-up, as "cannot
+    open the adapter" or as servo 1 "did not answer ping": the field and the rates it takes went unsaid."""
+    from vbnav.control.config import ConfigError, parse_config
+    with pytest.raises(ConfigError, match=r"drive\.options\.baudrate.*100000.*57600.*1000000"):
+        parse_config({"drive": {"driver": "dynamixel", "options": {"baudrate": 100000}}}, "robot.yaml")
+    assert DynamixelDrive.Options(baudrate=57600).baudrate == 57600
+
+
+def test_adapter_unplugged_while_the_loop_stalled_is_a_lost_bus(bus, drive):
+    """The first write after a stall longer than the watchdog reads the servos' Bus Watchdog; with the adapter
+    gone meanwhile that read raised termios.error out of write(): the runtime ended the run on an "exception"
+    instead of a lost bus it waits for. It is a BUS_LOST fault now, and the adapter is looked for again."""
+    drive_for(drive, 2.0, 2.0)
+    time.sleep(WATCHDOG_S * 2)
+    bus.unplug()
+    with pytest.raises(DriveError, match=r"ttyDXL lost.*watchdog"):
+        drive.write(1.0, 1.0)
+    assert drive.state is DriveState.ERROR and [f.kind for f in drive.faults] == [FaultKind.BUS_LOST]
+    assert wait_until(lambda: wheels_stopped(bus))
+    bus.replug()
+    assert wait_until(lambda: _reads(drive), timeout=3.0)
+    assert drive.state is DriveState.INACTIVE
+
+
+def test_a_velocity_limit_above_the_register_range_is_refused_not_cut():
+    """velocity_limit_rad_s above what Velocity Limit (44) holds (1023 units, 24.5 rad/s) was accepted and
+    cut to 1023 units without a word: the robot drove slower than its configuration said."""
+    with pytest.raises(ValueError, match=r"velocity_limit_rad_s[\s\S]*24\.5"):
+        DynamixelDrive.Options(velocity_limit_rad_s=30.0)
+    assert DynamixelDrive(options=DynamixelDrive.Options(velocity_limit_rad_s=24.53))._limit_units == 1023
+
+
+def test_a_small_profile_acceleration_is_not_rounded_to_no_limit(bus):
+    """Profile Acceleration counts in 0.3745 rad/s^2 units and 0 means no limit: a gentle 0.1 rad/s^2 was
+    rounded to 0, so the configured limit turned into none at all. A positive setting writes at least 1."""
+    d = make_drive(bus, profile_acceleration_rad_s2=0.1)
+    d.connect()
+    try:
+        assert all(bus.servo(i).get(dt.PROFILE_ACCELERATION) == 1 for i in (1, 2))
+    finally:
+        d.close()

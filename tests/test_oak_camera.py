@@ -155,3 +155,23 @@ def test_device_calibration_is_checked_against_the_configured_camera(tmp_path):
     by_obstacles = OakCamera(load_config("sentry-oak", overrides={"obstacles": {"baseline": 0.06}}))
     with pytest.raises(CameraError, match=r"stereo baseline 0.06 m vs the device's 0.0750 m"):
         by_obstacles.read_calibration(device_calibration(400.0, 7.5), dai.CameraBoardSocket.CAM_B)
+
+
+def test_a_replay_that_ended_is_finished(tmp_path):
+    """A recorded source says when it has delivered its last frame (Camera.finished): the OAK replay never
+    did, so a reader that stops at the end (vbnav calibrate --live) waited out its whole timeout."""
+    path = tmp_path / "rec.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (64, 48))
+    for k in range(5):
+        writer.write(np.full((48, 64, 3), 8 * k, np.uint8))
+    writer.release()
+    cam = OakCamera(options=OakCamera.Options(replay_file=str(path), replay_fps=60.0, disparity=False),
+                    width=64, height=48)
+    cam.connect()
+    try:
+        deadline = time.monotonic() + 8.0
+        while time.monotonic() < deadline and not cam.finished:
+            cam.read(timeout_s=0.1)
+        assert cam.finished
+    finally:
+        cam.disconnect()

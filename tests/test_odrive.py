@@ -212,3 +212,71 @@ def test_vbnav_emulate_odrive_prints_device_path_first():
         d.connect()
         assert d.vbus_voltage == 24.0
         d.close()
+
+
+class _ResetsDuringBringUp(oe.ODriveEmulator):
+    """Answers 'r vbus_voltage', then its USB resets ``resets`` times (the pty closes, the path goes), as a
+    device re-enumerating while it is being brought up."""
+
+    resets = 0
+
+    def _serve_bytes(self, data: bytes) -> None:
+        super()._serve_bytes(data)
+        if self.resets and b"vbus_voltage" in data:
+            self.resets -= 1
+            self._close_pty()
+
+
+def test_a_device_that_resets_during_the_bring_up_is_a_lost_bus_not_a_traceback(tmp_path):
+    """The setup caught SerialException and OSError, but a vanished pty makes the next tcflush raise
+    termios.error: it escaped connect() as a traceback, and reconnect() too, which ended the runtime's
+    reconnect thread, so a device back a moment later was never brought up. It is a DriveError now: not
+    back yet, and the next attempt brings it up."""
+    from vbnav.drivers.wheels import DriveState
+    emu = _ResetsDuringBringUp(link=tmp_path / "ttyODRV")
+    emu.start()
+    try:
+        d = make_drive(emu, reconnect_interval_s=0.05)
+        # where the setup meets the reset is up to the scheduler (a read, a write, or the flush before the
+        # next question, which raised termios.error): enough tries to meet each
+        for _ in range(100):
+            emu.resets = 1
+            with pytest.raises(DriveError, match="ttyODRV"):
+                d.connect()
+            assert d.state is DriveState.UNCONFIGURED
+            emu.replug()
+        d.connect()
+        d.enable()
+        drive_for(d, 1.0, 1.0)
+        emu.unplug()
+        with pytest.raises(DriveError, match="ttyODRV lost"):
+            drive_for(d, 1.0, 1.0)
+        for _ in range(20):
+            emu.resets = 1
+            emu.replug()
+            assert wait_until(lambda: d.reconnect() or emu.resets == 0)   # an attempt met the reset: not back
+            assert d.state is DriveState.ERROR and "ttyODRV" in d.reconnect_note
+        emu.replug()
+        assert wait_until(d.reconnect) and d.state is DriveState.INACTIVE
+        d.enable()
+        assert drive_for(d, 1.0, 1.0, cycles=30).velocity == pytest.approx((1.0, 1.0), abs=0.05)
+        d.close()
+    finally:
+        emu.stop()
+
+
+def test_vel_ramp_rate_limits_the_acceleration(emu):
+    """The driver sets input mode VEL_RAMP and vel_ramp_rate, but the emulator followed input_vel at once in
+    every input mode, so no test could tell the option from passthrough. It ramps now, and the drive with
+    a ramp accelerates at that rate."""
+    d = make_drive(emu, vel_ramp_rate=1.0)     # 1 motor turn/s^2; gear 2: 1 rad/s at the wheel = 0.32 turn/s
+    d.connect()
+    d.enable()
+    try:
+        assert all(a.input_mode == 2 and a.vel_ramp_rate == pytest.approx(1.0) for a in emu.axes)
+        drive_for(d, 1.0, 1.0, cycles=10)                 # about 0.05-0.1 s
+        with emu.lock:
+            assert all(abs(a.vel) < 0.2 for a in emu.axes)   # passthrough would be at 0.32 turn/s by now
+        assert wait_until(lambda: drive_for(d, 1.0, 1.0, cycles=1).velocity[0] > 0.9, timeout=3.0)
+    finally:
+        d.close()

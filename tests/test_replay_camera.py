@@ -100,3 +100,45 @@ def test_replays_the_real_kitti_sequence(shared_data):
             frames.append(f)
     assert len(frames) == 51 and frames[-1].right.shape == (370, 1226)
     assert (frames[-1].stamp_ns - frames[0].stamp_ns) == 5 * S  # 10 Hz without times.txt
+
+
+def test_a_recording_whose_intrinsics_are_not_the_configured_camera_is_refused(tmp_path, rng):
+    """A TUM or KITTI recording carries its camera (camera.yaml or camera_yaml, calib.txt): it was loaded and
+    then ignored, and every stage ran on the configured intrinsics, which nothing compared with it. Another
+    camera is now refused before a run, naming both; the same camera replays."""
+    from vbnav.control.config import load_config
+    from vbnav.drivers.errors import InputError
+    root = tmp_path / "tum"
+    write_folder(root / "rgb", 2, rng)
+    (root / "rgb.txt").write_text("10.0 rgb/000000.png\n10.1 rgb/000001.png\n")
+    (root / "cam.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32\nheight: 24\n")
+    camera = {"driver": "replay", "width": 32, "height": 24, "fx": 25.0, "fy": 25.0, "cx": 16.0, "cy": 12.0,
+              "options": {"path": str(root), "camera_yaml": str(root / "cam.yaml")}}
+    cfg = load_config("sim", overrides={"camera": camera})
+    with pytest.raises(InputError, match=r"cam\.yaml.*camera\.fx 25 vs the recording's 30.*camera\.fy 25") as e:
+        ReplayCamera.from_config(cfg, SimClock())
+    assert isinstance(e.value, CameraError)
+    camera.update(fx=30.0, fy=30.0)
+    cam = ReplayCamera.from_config(load_config("sim", overrides={"camera": camera}), SimClock())
+    with cam:
+        assert cam.read() is not None
+
+
+@pytest.mark.parametrize("line, match", [
+    ("width: 32.5", r"width: expected a whole number of pixels, got 32\.5"),
+    ("width: '32'", r"width: expected a whole number of pixels, got '32'"),
+    ("fx: true", r"fx: expected a number, got True"),
+    ("cx: '16'", r"cx: expected a number, got '16'"),
+])
+def test_a_recordings_camera_yaml_takes_numbers_only(tmp_path, rng, line, match):
+    """int() cut a width of 32.5 to 32 and float() read true as 1 px and '16' as 16: each a camera nobody
+    wrote. They are errors naming the file and the key now, as in a calibration file."""
+    root = tmp_path / "tum"
+    write_folder(root / "rgb", 2, rng)
+    (root / "rgb.txt").write_text("10.0 rgb/000000.png\n10.1 rgb/000001.png\n")
+    values = dict(x.split(": ") for x in "fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32\nheight: 24".split("\n"))
+    key, value = line.split(": ")
+    values[key] = value
+    (root / "camera.yaml").write_text("".join(f"{k}: {v}\n" for k, v in values.items()))
+    with pytest.raises(CameraError, match=rf"camera\.yaml: {match}"):
+        ReplayCamera({"path": str(root)}, SimClock()).connect()

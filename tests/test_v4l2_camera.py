@@ -143,3 +143,12 @@ def test_reconnects_after_the_device_goes_away_and_comes_back(video, tmp_path):
         assert f is not None and f.seq > seen[0].seq and f.meta["reconnects"] >= 1
     finally:
         cam.disconnect()
+
+
+def test_a_missing_video_file_is_named_as_missing(tmp_path):
+    """With source: file a path that does not exist was reported as a file OpenCV "cannot open (unknown
+    container or codec?)": the wrong path looked like a wrong file."""
+    missing = tmp_path / "clips" / "run1.avi"
+    cam = V4L2Camera(options=V4L2Camera.Options(device=str(missing), source="file"), width=W, height=H, fps=30.0)
+    with pytest.raises(CameraError, match=rf"video file {missing} not found \(camera.options.device\)"):
+        cam.connect()

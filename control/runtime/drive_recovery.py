@@ -10,12 +10,14 @@ they run inline, once per cycle, so a simulated run stays deterministic. The
 loop does not touch the drive meanwhile.
 
 Outcomes: ``BACK`` (the drive is INACTIVE again), ``FAILED`` (the device is back
-but faulted, waiting longer will not help), ``EXPIRED`` (the window passed).
+but faulted, or an attempt raised something other than a DriveError: waiting longer
+will not help), ``EXPIRED`` (the window passed).
 """
 from __future__ import annotations
 
 import enum
 import threading
+import traceback
 from typing import Optional
 
 from vbnav.drivers.wheels import DriveError, WheelDrive
@@ -37,6 +39,7 @@ class DriveRecovery:
         self.window_s = window_s
         self.deadline_ns = since_ns + int(window_s * 1e9)
         self.error: Optional[str] = None   # why it FAILED
+        self.traceback: Optional[str] = None   # when it FAILED because an attempt raised (not a DriveError)
         self._outcome: Optional[Outcome] = None
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
@@ -66,6 +69,12 @@ class DriveRecovery:
                 self._outcome = Outcome.BACK
         except DriveError as exc:
             self.error = str(exc)
+            self._outcome = Outcome.FAILED
+        except Exception as exc:
+            # Not a device answer but a failure of the attempt itself: on the thread it would end the attempts
+            # unseen, and the run would wait out its window and then call the drive "not back".
+            self.error = f"the reconnect attempt raised {exc!r}"
+            self.traceback = traceback.format_exc()
             self._outcome = Outcome.FAILED
 
     def _run(self) -> None:

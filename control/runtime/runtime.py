@@ -388,7 +388,10 @@ class Runtime:
                              f"(wheels unpowered); stopped until resume")
             return self.drive.read()
         cause = recovery.cause
-        if outcome is Outcome.FAILED:
+        if outcome is Outcome.FAILED and recovery.traceback is not None:
+            self.fault_traceback = recovery.traceback
+            self._finish(now, "drive", f"{cause}; reconnecting failed after {lost_s:.2f} s: {recovery.error}")
+        elif outcome is Outcome.FAILED:
             self._finish(now, "drive", f"{cause}; it came back after {lost_s:.2f} s but is not usable: "
                                        f"{recovery.error}")
         else:

@@ -146,10 +146,14 @@ class SimCamera(Camera):
         opts = options if isinstance(options, cls.Options) else cls.Options.model_validate(options)
         if world is None:
             world = World.by_name(cfg.sim.world, cfg.sim.seed)
+        # the rig of camera.calibration_file (a stereo file's baseline), else options.stereo_baseline: the
+        # configuration checked that they agree, and the stages use the same one
+        rig = getattr(cfg.camera, "stereo_baseline", None)
+        baseline = (rig() if callable(rig) else None) or opts.stereo_baseline
         return cls(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn, clock,
                    cfg.camera.rate_hz, noise_std=cfg.sim.image_noise_std,
                    seed=cfg.sim.seed if seed is None else seed,
-                   stereo_baseline=opts.stereo_baseline, gain=opts.gain, color=opts.color)
+                   stereo_baseline=baseline, gain=opts.gain, color=opts.color)
 
     # ------------------------------------------------------------ lifecycle
     def connect(self) -> None:

@@ -39,6 +39,7 @@ log = logging.getLogger("vbnav.emulator.odrive")
 AXIS_STATE_IDLE = 1
 AXIS_STATE_CLOSED_LOOP = 8
 CONTROL_MODE_VELOCITY = 2
+INPUT_MODE_VEL_RAMP = 2
 AXIS_ERROR_INVALID_STATE = 0x1
 AXIS_ERROR_MOTOR_FAILED = 0x40
 AXIS_ERROR_ENCODER_FAILED = 0x100
@@ -65,6 +66,7 @@ class EmulatedAxis:
         self.input_vel = 0.0
         self.vel_limit = 2.0  # turns/s
         self.vel_ramp_rate = 1.0  # turns/s^2
+        self.vel_setpoint = 0.0   # what the velocity loop follows: input_vel, ramped in VEL_RAMP input mode
         self.watchdog_timeout = 0.0
         self.enable_watchdog = False
         self.pos = 0.0
@@ -142,9 +144,21 @@ class EmulatedAxis:
     def target(self) -> float:
         if self.current_state != AXIS_STATE_CLOSED_LOOP or self.control_mode != CONTROL_MODE_VELOCITY:
             return 0.0
-        return max(-self.vel_limit, min(self.vel_limit, self.input_vel))
+        return max(-self.vel_limit, min(self.vel_limit, self.vel_setpoint))
+
+    def _ramp(self, dt: float) -> None:
+        """input_vel -> vel_setpoint: at once in passthrough, at ``vel_ramp_rate`` in VEL_RAMP; from 0 when
+        the axis (re)enters closed loop."""
+        if self.current_state != AXIS_STATE_CLOSED_LOOP:
+            self.vel_setpoint = 0.0
+        elif self.input_mode == INPUT_MODE_VEL_RAMP:
+            step = abs(self.vel_ramp_rate) * dt
+            self.vel_setpoint += max(-step, min(step, self.input_vel - self.vel_setpoint))
+        else:
+            self.vel_setpoint = self.input_vel
 
     def step(self, dt: float, coupling: Optional[WheelCoupling] = None) -> None:
+        self._ramp(dt)
         target = self.target()
         if coupling is not None:
             coupling.command(self.index, target * 2 * math.pi)
