@@ -116,7 +116,8 @@ class ReplayCamera(Camera):
         layout = self.opt.layout
         if layout == "auto":
             layout = "tum" if (root / "rgb.txt").is_file() else (
-                "kitti" if (root / "calib.txt").is_file() or (root / "image_l").is_dir() else "folder")
+                "kitti" if (root / "calib.txt").is_file() or (root / "image_l").is_dir()
+                or (root / "image_0").is_dir() else "folder")   # as datasets.detect_layout
         try:
             if layout == "folder":
                 if not root.is_dir():

@@ -90,6 +90,11 @@ def test_errors_name_the_missing_thing(tmp_path):
     (tmp_path / "tum" / "rgb.txt").write_text("0 a.png\n")
     with pytest.raises(CameraError, match="a.png"):
         ReplayCamera({"path": str(tmp_path / "tum")}, SimClock()).connect()
+    # KITTI's own folder name image_0/ without calib.txt: the missing calibration, not "no images" in the root
+    (tmp_path / "kitti" / "image_0").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "kitti" / "image_0" / "000000.png"), np.zeros((8, 8), np.uint8))
+    with pytest.raises(CameraError, match="calib.txt: missing"):
+        ReplayCamera({"path": str(tmp_path / "kitti")}, SimClock()).connect()
 
 
 def test_replays_the_real_kitti_sequence(shared_data):
