@@ -174,8 +174,16 @@ class GrabbingCamera(Camera):
     def _start_grabbing(self, thread_name: str) -> None:
         self._connected = True
         self._stop.clear()
-        self._thread = threading.Thread(target=self._grab_loop, name=thread_name, daemon=True)
+        self._thread = threading.Thread(target=self._grab_guarded, name=thread_name, daemon=True)
         self._thread.start()
+
+    def _grab_guarded(self) -> None:
+        """The grabbing thread: a bug or an unexpected driver error ends it, and says so in ``error`` (the
+        runtime's stale-camera hold names it) instead of ending it silently."""
+        try:
+            self._grab_loop()
+        except Exception as exc:
+            self.error = f"{type(self).__name__}: the grabbing thread failed: {type(exc).__name__}: {exc}"
 
     def _join_grabbing(self, timeout_s: float) -> None:
         """Wait for the grabbing thread to end (``_stop`` is set)."""

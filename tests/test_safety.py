@@ -51,6 +51,43 @@ def test_stale_camera_stops_and_recovers():
     assert any(t > resume_at and p and l > 0 for t, l, r, p in drive.log)
 
 
+def test_a_camera_whose_grabbing_thread_failed_stops_the_robot_and_the_hold_says_why():
+    """A grabbing thread that raised ended silently: the stale-camera hold stopped the robot, but nothing
+    said why. The driver keeps the failure in ``error`` and the hold names it."""
+    import threading
+
+    from vbnav.drivers.camera import GrabbingCamera
+
+    class Broken(GrabbingCamera):
+        class Options:
+            @staticmethod
+            def model_validate(d):
+                return d
+
+        def connect(self):
+            self._start_grabbing("broken-grab")
+
+        def disconnect(self):
+            self._stop.set()
+            self._join_grabbing(1.0)
+
+        def _grab_loop(self):
+            raise RuntimeError("VIDIOC_DQBUF: bad buffer")
+
+    cam = Broken(options={})
+    cam.connect()
+    cam._thread.join(2.0)
+    assert cam.error == "Broken: the grabbing thread failed: RuntimeError: VIDIOC_DQBUF: bad buffer"
+    assert not any(t.name == "broken-grab" for t in threading.enumerate())
+
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.0, 4.0]]), cam_kw={"stop_at_ns": T0 + 1_000_000_000})
+    rt.pipeline.camera.error = cam.error          # the loop's camera, as a driver whose thread failed at 1 s
+    result = rt.run()
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "camera_stale")
+    assert hold.message.endswith(": " + cam.error), hold.message
+    assert not [t for t, l, r, p in drive.log if p and l != 0 and t > hold.stamp_ns + 2 * PERIOD_NS]
+
+
 def test_frozen_camera_stops_and_recovers():
     """Frames that keep coming on time with the image they froze on (a driver re-queuing its last buffer)
     stop the robot like no frames at all: held 'camera_stale' once the image has not changed for
