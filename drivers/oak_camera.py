@@ -18,6 +18,7 @@ with a ReplayVideo node) that needs no hardware: the same host-side code path
 """
 from __future__ import annotations
 
+import atexit
 import threading
 import time
 from datetime import timedelta
@@ -76,8 +77,14 @@ def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = N
     return Frame(np.ascontiguousarray(image), timedelta_ns(img.getTimestamp()), seq, disparity=disparity, meta=m)
 
 
+# A search left running when the process exits is waited for this long before the interpreter shuts down:
+# one returning into a finalising interpreter aborts the process (C++ terminate, exit 134).
+SEARCH_EXIT_GRACE_S = 10.0
+
+
 def list_devices(timeout_s: float) -> list:
-    """``dai.Device.getAllAvailableDevices()`` under a hard time limit (None if it did not return in time)."""
+    """``dai.Device.getAllAvailableDevices()`` under a hard time limit (None if it did not return in time).
+    A search that did not return in time is waited for at exit (up to SEARCH_EXIT_GRACE_S)."""
     result: list = []
     done = threading.Event()
 
@@ -89,6 +96,7 @@ def list_devices(timeout_s: float) -> list:
 
     threading.Thread(target=work, name="oak-discovery", daemon=True).start()
     if not done.wait(timeout_s):
+        atexit.register(done.wait, SEARCH_EXIT_GRACE_S)
         return None
     return result
 

@@ -278,3 +278,18 @@ def test_config_check_rejects_a_duplicate_servo_id_or_axis(tmp_path, capsys, dri
     path.write_text(yaml.safe_dump({"drive": {"driver": driver, "options": {"port": os.devnull, **options}}}))
     assert main(["config", "check", "-c", str(path)]) == 2
     assert f"{path}: drive.options: {fields}" in capsys.readouterr().err
+
+
+def test_find_with_an_oak_search_cut_short_exits_cleanly():
+    """--oak-timeout shorter than depthai's device search (0.5 s here) said 'not searched' and then the
+    process aborted (exit 134, a C++ 'terminate called' and a stack trace) when the search returned into
+    an interpreter that was shutting down."""
+    import subprocess
+    import sys
+    pytest.importorskip("depthai")
+    p = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "find", "--oak-timeout", "0"],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "not searched: the device search did not return within 0 s" in p.stdout
+    assert "terminate called" not in p.stderr and "Stack trace" not in p.stderr
+
