@@ -293,3 +293,19 @@ def test_find_with_an_oak_search_cut_short_exits_cleanly():
     assert "not searched: the device search did not return within 0 s" in p.stdout
     assert "terminate called" not in p.stderr and "Stack trace" not in p.stderr
 
+
+@pytest.mark.parametrize("argv, why", [
+    (["--id", "-1", "--new-id", "2"], "argument --id: expected a servo id 0..252, got '-1'"),
+    (["--id", "300", "--new-id", "2"], "argument --id: expected a servo id 0..252, got '300'"),
+    (["--id", "1", "--new-id", "999"], "argument --new-id: expected a servo id 0..252, got '999'"),
+    (["--id", "1", "--baud", "0", "--new-id", "2"], "argument --baud: 0 is not a Dynamixel X rate"),
+])
+def test_servo_refuses_an_id_or_rate_out_of_range_before_touching_the_bus(argv, why, capsys):
+    """--id -1 crashed with a traceback (a byte out of range), --id 300 scanned six rates and said no servo
+    answers (exit 3), --baud 0 was ignored (every rate scanned, the servo changed), --new-id 999 was refused
+    only once a servo was found: now each is bad input (exit 2) naming the option, and the bus is untouched."""
+    with DynamixelBus([1], baud=57_600) as bus:
+        with pytest.raises(SystemExit) as exit_:
+            main(["servo", "set-id", "--port", bus.path, *argv])
+        assert exit_.value.code == 2 and why in capsys.readouterr().err
+        assert set(bus.servos) == {1}
