@@ -82,6 +82,10 @@ CASES = [
     ("monitor-all-robot", "monitor --all --robot r1", 2, "--robot names one robot"),
     ("monitor-all-config", "monitor --all -c sim", 2, "--config names one robot"),
     ("monitor-refresh-once", "monitor --once --refresh 2", 2, "--refresh is the live view's rate"),
+    # --count -3 waited for no robot (exit 0), --count 0 without --all was not refused: both tried to connect
+    ("monitor-count-negative", "monitor --all --once --count -3", 2,
+     "argument --count: expected a number of robots >= 1, got '-3'"),
+    ("monitor-count-zero", "monitor --count 0", 2, "argument --count: expected a number of robots >= 1, got '0'"),
     # obstacles
     ("obstacles-1x1-kitti-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/good/calib.txt",
      2, "calib.txt: P0 cx"),
