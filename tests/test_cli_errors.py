@@ -58,6 +58,10 @@ CASES = [
     ("demo-out-file", "demo --out {d}/afile.txt", 2, "afile.txt"),
     ("demo-seed", "demo --seed x", 2, "--seed"),
     ("demo-repeats", "demo --repeats 0 --out {d}/demo_out", 2, "--repeats"),
+    # a negative seed was a traceback from numpy ('this is a bug in vbnav'); sim.seed -1 was valid
+    ("demo-seed-negative", "demo --seed -1 --out {d}/demo_out", 2, "argument --seed: expected an integer >= 0"),
+    ("config-seed-negative", "config check -c {d}/cfg_seed.yaml", 2, "sim.seed"),
+    ("run-seed-negative", "run -c {d}/cfg_seed.yaml --duration 0.1", 2, "sim.seed"),
     ("demo-garbage-config", "demo -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("demo-hardware-config", "demo -c {d}/dxl.yaml", 2, "dxl.yaml"),
     ("demo-record-dir", "demo --out {d}/demo_out --record {d}/empty", 2, "--record"),
@@ -223,6 +227,7 @@ def make_fixtures(d) -> None:
     (d / "cfg_nanfx.yaml").write_text("camera: {fx: .nan}\n")
     (d / "cfg_inffx.yaml").write_text("camera: {fx: .inf}\n")
     (d / "cfg_cx.yaml").write_text("camera: {cx: 5000}\n")
+    (d / "cfg_seed.yaml").write_text("sim: {seed: -1}\n")
     (d / "dxl.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                 "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
     (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
