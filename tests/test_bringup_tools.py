@@ -309,3 +309,18 @@ def test_servo_refuses_an_id_or_rate_out_of_range_before_touching_the_bus(argv, 
             main(["servo", "set-id", "--port", bus.path, *argv])
         assert exit_.value.code == 2 and why in capsys.readouterr().err
         assert set(bus.servos) == {1}
+
+
+@pytest.mark.parametrize("kind, why", [("missing", "no such device"), ("folder", "is not a device"),
+                                       ("file", "is not a device")])
+def test_find_refuses_a_port_that_is_not_a_device(tmp_path, capsys, kind, why):
+    """find --port /no/such/tty was left out of the listing without a word (exit 0), and a folder or a plain
+    file was listed as 'not USB (a pseudo-terminal or built-in UART)'."""
+    path = tmp_path / kind
+    if kind == "folder":
+        path.mkdir()
+    elif kind == "file":
+        path.write_text("x")
+    assert main(["find", "--port", str(path), "--oak-timeout", "0.5"]) == 2
+    out, err = capsys.readouterr()
+    assert f"vbnav find: --port {path}: {why}" in err and "Serial ports:" not in out
