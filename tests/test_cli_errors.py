@@ -165,6 +165,18 @@ CASES = [
     ("send-mode-idle-route", "send mode idle --route hall", 2, "--route: mode idle takes no route"),
     ("send-mode-teach-no-route", "send mode teach", 2, "mode 'teach' needs a route"),
     ("send-rate-without-for", "send teleop 0.1 0 --rate 5", 2, "--rate is the rate of a --for S stream"),
+    # network options that cannot work were 'cannot connect' (exit 3), a missing TLS file was not named, and
+    # TLS options for a tcp/ endpoint were not used
+    ("send-user-no-password", "send estop --user bob --password-env VBNAV_TEST_UNSET --wait 0", 2,
+     "--user bob given but $VBNAV_TEST_UNSET is not set"),
+    ("send-tls-partial", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/afile.txt --wait 0", 2,
+     "mutual TLS needs all of --tls-ca, --tls-cert and --tls-key"),
+    ("send-tls-missing", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/nope.pem --tls-cert {d}/afile.txt "
+     "--tls-key {d}/afile.txt --wait 0", 2, "nope.pem: no such file"),
+    ("monitor-tls-on-tcp", "monitor --once --connect tcp/127.0.0.1:9 --tls-ca {d}/afile.txt --tls-cert {d}/afile.txt "
+     "--tls-key {d}/afile.txt", 2, "--connect tcp/127.0.0.1:9 is not a TLS link"),
+    ("route-pull-tls-dir", "route pull r1 loop --to {d}/empty --connect tls/127.0.0.1:9 --tls-ca {d}/empty "
+     "--tls-cert {d}/afile.txt --tls-key {d}/afile.txt", 2, "empty: is a directory, expected a PEM file"),
     # teach
     ("teach-no-out", "teach", 2, "--out"),
     ("teach-out-file", "teach --out {d}/afile.txt --duration 0.1", 2, "afile.txt"),
