@@ -153,6 +153,9 @@ CASES = [
     ("run-record-no-folder", "run --no-camera --duration 0.1 --record {d}/nope/x.mcap", 2, "nope"),
     ("run-overwrite-no-record", "run --no-camera --duration 0.1 --overwrite", 2, OVERWRITE),
     ("map-build-overwrite-no-record", "map build --out {d}/map.json --overwrite", 2, OVERWRITE),
+    # a folder given as the map was 'map file not found'
+    ("map-info-dir", "map info {d}/empty", 2, "empty: is a directory, expected a map file"),
+    ("map-plot-dir", "map plot {d}/empty --out {d}/plot.png", 2, "empty: is a directory, expected a map file"),
     ("run-serial-port-missing", "run -c {d}/dxl.yaml --no-camera --no-telemetry --duration 0.2", 3, "/dev/ttyNOPE9"),
     ("run-camera-missing", "run -c {d}/v4l2.yaml --camera --no-telemetry --duration 0.2", 3, "/dev/video99"),
     # send
