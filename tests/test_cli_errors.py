@@ -78,6 +78,9 @@ CASES = [
     ("goto-goal-word", "goto --goal 1 x 0", 2, "--goal"),
     ("goto-duration", "goto --goal 1 1 0 --duration -1", 2, "--duration"),
     ("goto-config-missing", "goto --goal 1 1 0 -c {d}/nope.yaml", 2, "nope.yaml"),
+    # lines: --min-epipolar-angle 180 let horizontal segments through (its sine is 0), 95 acted as 85
+    ("lines-epipolar-angle", "lines --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml --out "
+     "{d}/seg.json --min-epipolar-angle 180", 2, "argument --min-epipolar-angle: expected an angle to the rows"),
     # monitor
     ("monitor-timeout", "monitor --once --timeout -1", 2, "--timeout"),
     ("monitor-refresh", "monitor --refresh 0", 2, "--refresh"),
