@@ -165,7 +165,10 @@ CASES = [
     ("send-teleop-nan", "send teleop nan 0", 2, "V"),
     ("send-rate", "send teleop 0.1 0 --duration 1 --rate 0", 2, "--rate"),
     ("send-wait", "send estop --wait -1", 2, "--wait"),
-    ("send-secret-missing", "send estop --secret-file {d}/nope.key --wait 0", 2, "nope.key"),
+    # --wait 0 gave the robot no time to be found: 'does not offer ... may refuse commands' or 'no
+    # acknowledgement within 0 s', exit 1, about a robot that takes the command
+    ("send-wait-zero", "send estop --wait 0", 2, "argument --wait: expected a number > 0, got '0'"),
+    ("send-secret-missing", "send estop --secret-file {d}/nope.key", 2, "nope.key"),
     ("send-endpoint", "send estop --connect garbage", 2, "garbage"),
     ("send-mode", "send mode fly", 2, "fly"),
     ("send-mode-idle-route", "send mode idle --route hall", 2, "--route: mode idle takes no route"),
@@ -173,12 +176,12 @@ CASES = [
     ("send-rate-without-for", "send teleop 0.1 0 --rate 5", 2, "--rate is the rate of a --for S stream"),
     # network options that cannot work were 'cannot connect' (exit 3), a missing TLS file was not named, and
     # TLS options for a tcp/ endpoint were not used
-    ("send-user-no-password", "send estop --user bob --password-env VBNAV_TEST_UNSET --wait 0", 2,
+    ("send-user-no-password", "send estop --user bob --password-env VBNAV_TEST_UNSET", 2,
      "--user bob given but $VBNAV_TEST_UNSET is not set"),
-    ("send-tls-partial", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/afile.txt --wait 0", 2,
+    ("send-tls-partial", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/afile.txt", 2,
      "mutual TLS needs all of --tls-ca, --tls-cert and --tls-key"),
     ("send-tls-missing", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/nope.pem --tls-cert {d}/afile.txt "
-     "--tls-key {d}/afile.txt --wait 0", 2, "nope.pem: no such file"),
+     "--tls-key {d}/afile.txt", 2, "nope.pem: no such file"),
     ("monitor-tls-on-tcp", "monitor --once --connect tcp/127.0.0.1:9 --tls-ca {d}/afile.txt --tls-cert {d}/afile.txt "
      "--tls-key {d}/afile.txt", 2, "--connect tcp/127.0.0.1:9 is not a TLS link"),
     ("route-pull-tls-dir", "route pull r1 loop --to {d}/empty --connect tls/127.0.0.1:9 --tls-ca {d}/empty "

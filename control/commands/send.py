@@ -67,7 +67,7 @@ def register(sub) -> None:
     for sp in (e, r, t, m):
         sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
         add_net_args(sp)
-        sp.add_argument("--wait", type=non_negative, default=3.0, metavar="S",
+        sp.add_argument("--wait", type=positive, default=3.0, metavar="S",
                         help="wait up to S seconds for the robot, then for its answer (default 3)")
         sp.add_argument("--secret-file", default=None, metavar="FILE",
                         help="sign the command with the robot's shared secret (telemetry.shared_secret_file)")
