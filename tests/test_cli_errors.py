@@ -129,6 +129,11 @@ CASES = [
     ("obstacles-mask-out-dir", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
      "--mask-out {d}/empty", 2, "--mask-out"),
     ("obstacles-no-input", "obstacles --calib {d}/stereo.yaml", 2, "--left"),
+    # --pitch-deg 400 ran as 40 (the stereo YAML's mount allows -90..90, roll -45..45)
+    ("obstacles-pitch-range", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--camera-height 0.3 --pitch-deg 400", 2, "argument --pitch-deg: expected degrees in -90..90, got '400'"),
+    ("obstacles-roll-range", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--camera-height 0.3 --roll-deg -60", 2, "argument --roll-deg: expected degrees in -45..45, got '-60'"),
     ("obstacles-disparity-missing", "obstacles --disparity {d}/nope.npy --calib {d}/stereo.yaml", 2, "nope.npy"),
     # record-info
     ("record-info-dir", "record-info {d}/empty", 2, "empty"),

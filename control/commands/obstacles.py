@@ -47,6 +47,17 @@ def _block_size(text: str) -> int:
     return v
 
 
+def _degrees(limit: float):
+    """argparse type: an angle in degrees within +-limit, the bounds of the stereo YAML's mount (and of
+    camera.mount in a configuration)."""
+    def angle(text: str) -> float:
+        v = finite(text)
+        if abs(v) > limit:
+            raise argparse.ArgumentTypeError(f"expected degrees in -{limit:g}..{limit:g}, got {text!r}")
+        return v
+    return angle
+
+
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Defaults in the help, except None: those options say their default in their own words."""
 
@@ -80,10 +91,10 @@ def register(subparsers) -> None:
     geo = p.add_argument_group("camera above the floor (seeds the plane fit)")
     geo.add_argument("--camera-height", type=positive, default=None,
                      help="m; default: the YAML's mount.height; without it the fit is unseeded")
-    geo.add_argument("--pitch-deg", type=finite, default=None,
-                     help="positive looking down (default: YAML or 0); needs the camera height")
-    geo.add_argument("--roll-deg", type=finite, default=None,
-                     help="camera roll over the floor (default: YAML or 0); needs the camera height")
+    geo.add_argument("--pitch-deg", type=_degrees(90), default=None,
+                     help="positive looking down, -90..90 (default: YAML or 0); needs the camera height")
+    geo.add_argument("--roll-deg", type=_degrees(45), default=None,
+                     help="camera roll over the floor, -45..45 (default: YAML or 0); needs the camera height")
     gm = p.add_argument_group("ground model (docs/obstacles.md)")
     gm.add_argument("--ground", choices=("auto", "piecewise", "plane"), default="auto",
                     help="piecewise: near band under the mounting's bounds, farther bands hinged (needs a camera "
