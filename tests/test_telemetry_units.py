@@ -498,3 +498,15 @@ def test_send_teleop_for_ends_its_stream_with_a_stop(monkeypatch, capsys):
     robot.sent.clear()
     assert cli.main(["send", "teleop", "0.2", "0", "--robot", "sim"]) == 0     # one message: no stream to end
     assert [(m["linear"], m["angular"]) for m in robot.sent] == [(0.2, 0.0)]
+
+
+@pytest.mark.parametrize("argv, why", [
+    (["--speed", "0.8"], "--speed 0.8: above robot.max_linear_speed 0.5"),
+    (["--turn", "2"], "--turn 2: above robot.max_angular_speed 1.5"),
+])
+def test_keyboard_teleop_refuses_speeds_the_configured_robot_refuses(argv, why, capsys):
+    """vbnav teleop -c sim --speed 0.8 said 'driving v +0.80 m/s' while the robot refused every message
+    (robot.max_linear_speed 0.5): with the robot's configuration given, the speeds are checked first."""
+    from vbnav.control import cli
+    assert cli.main(["teleop", "-c", "sim", *argv]) == 2
+    assert f"vbnav teleop: {why} of " in capsys.readouterr().err
