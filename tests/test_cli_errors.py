@@ -147,6 +147,9 @@ CASES = [
     ("repeat-garbage-config", "repeat --path {d}/empty -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("repeat-record-dir", "repeat --path {d}/empty --record {d}/empty", 2, "--record"),
     ("repeat-overwrite-no-record", "repeat --path {d}/empty --overwrite", 2, OVERWRITE),
+    # route: a file given as a route (or folder of routes) was 'route directory does not exist' / 'no such directory'
+    ("route-check-file", "route check {d}/afile.txt", 2, "afile.txt: is a file, expected a route directory"),
+    ("route-list-file", "route list {d}/afile.txt", 2, "afile.txt: is a file, expected a folder of routes"),
     # route pull / push: options they would not use
     ("route-pull-to-and-config", "route pull r1 loop --to {d}/empty -c sim", 2, "a pull reads nothing from it"),
     ("route-push-robot", "route push r1 {d}/empty --robot r2", 2, "--robot r2: route push names the robot"),
