@@ -324,3 +324,15 @@ def test_find_refuses_a_port_that_is_not_a_device(tmp_path, capsys, kind, why):
     assert main(["find", "--port", str(path), "--oak-timeout", "0.5"]) == 2
     out, err = capsys.readouterr()
     assert f"vbnav find: --port {path}: {why}" in err and "Serial ports:" not in out
+
+
+@pytest.mark.parametrize("kind", ["folder", "file"])
+def test_servo_tools_refuse_a_port_that_is_not_a_device(tmp_path, capsys, kind):
+    """find servos / servo set-id --port on a folder or plain file was a device error ('cannot open ...',
+    exit 3) after 'Scanning'; it is bad input (exit 2) naming --port, like a path that is not there."""
+    path = tmp_path / kind
+    path.mkdir() if kind == "folder" else path.write_text("x")
+    assert main(["find", "servos", "--port", str(path), "--baud", "57600"]) == 2
+    assert f"--port {path}: is not a device" in capsys.readouterr().err
+    assert main(["servo", "set-id", "--port", str(path), "--id", "1", "--new-id", "2", "--baud", "57600"]) == 2
+    assert f"--port {path}: is not a device" in capsys.readouterr().err
