@@ -147,6 +147,15 @@ CASES = [
     ("repeat-garbage-config", "repeat --path {d}/empty -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("repeat-record-dir", "repeat --path {d}/empty --record {d}/empty", 2, "--record"),
     ("repeat-overwrite-no-record", "repeat --path {d}/empty --overwrite", 2, OVERWRITE),
+    # two outputs naming one file, or an output naming an input: one overwrote the other
+    ("vo-out-status-same", "vo {d}/good --out {d}/same.txt --status-out {d}/same.txt --quiet", 2,
+     "--out and --status-out name the same file"),
+    ("lines-overlay-is-left", "lines --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml --out "
+     "{d}/seg.json --overlay-out {d}/left.png", 2,
+     "left.png: is the --left file; writing it would replace the input"),
+    ("obstacles-mask-overlay-same", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--mask-out {d}/same.png --overlay-out {d}/same.png", 2, "--mask-out and --overlay-out name the same file"),
+    ("map-plot-out-is-map", "map plot {d}/afile.txt --out {d}/afile.txt", 2, "afile.txt: is the MAP file"),
     # route: a file given as a route (or folder of routes) was 'route directory does not exist' / 'no such directory'
     ("route-check-file", "route check {d}/afile.txt", 2, "afile.txt: is a file, expected a route directory"),
     ("route-list-file", "route list {d}/afile.txt", 2, "afile.txt: is a file, expected a folder of routes"),

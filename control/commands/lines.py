@@ -15,7 +15,7 @@ import time
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import output_file, positive
+from vbnav.control.commands._common import distinct_files, output_file, positive
 from vbnav.control.image_files import read_image, write_json, write_png
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
@@ -85,6 +85,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     output_file(args.out, "--out")
     output_file(args.overlay_out, "--overlay-out")
+    distinct_files({"--out": args.out, "--overlay-out": args.overlay_out},
+                   {"--left": args.left, "--right": args.right, "--calib": args.calib})
     try:
         calib = load_stereo_calibration(args.calib, raw_images=True)
         left = read_image(args.left, "left image")

@@ -16,7 +16,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import finite, non_negative, output_file, positive
+from vbnav.control.commands._common import distinct_files, finite, non_negative, output_file, positive
 from vbnav.control.image_files import read_image, write_png
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
@@ -228,6 +228,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     output_file(args.mask_out, "--mask-out")
     output_file(args.overlay_out, "--overlay-out")
+    distinct_files({"--mask-out": args.mask_out, "--overlay-out": args.overlay_out},
+                   {"--left": args.left, "--right": args.right, "--disparity": args.disparity, "--image": args.image,
+                    "--calib": args.calib})
     if args.disparity is None and not (args.left and args.right):
         return _bad("give --left and --right, or --disparity")
     if args.disparity is not None and (args.left or args.right):
