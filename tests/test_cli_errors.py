@@ -211,6 +211,9 @@ CASES = [
     ("teach-duration", "teach --out {d}/route --duration nan", 2, "--duration"),
     ("teach-record-dir", "teach --out {d}/route --duration 0.1 --record {d}/empty", 2, "--record"),
     ("teach-garbage-config", "teach --out {d}/route -c {d}/garbage.yaml", 2, "garbage.yaml"),
+    # taught by teleop with the network closed: nobody could drive it, and it ran until --duration or Ctrl-C
+    ("teach-teleop-no-telemetry", "teach --out {d}/route -c {d}/teach_quiet.yaml --duration 0.5", 2,
+     "teach_quiet.yaml: controller.teach 'teleop' takes the driving commands over the network"),
     # vo
     ("vo-missing", "vo {d}/nope --out {d}/t.txt", 2, "nope"),
     ("vo-file", "vo {d}/afile.txt --out {d}/t.txt", 2, "afile.txt"),
@@ -266,6 +269,8 @@ def make_fixtures(d) -> None:
     (d / "cfg_inffx.yaml").write_text("camera: {fx: .inf}\n")
     (d / "cfg_cx.yaml").write_text("camera: {cx: 5000}\n")
     (d / "cfg_seed.yaml").write_text("sim: {seed: -1}\n")
+    (d / "teach_quiet.yaml").write_text("sim: {realtime: true}\ncontroller: {teach: teleop}\n"
+                                        "telemetry: {enabled: false}\n")
     (d / "dxl.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                 "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
     (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
