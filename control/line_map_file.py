@@ -52,6 +52,8 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
 def load_map(path: str | Path) -> tuple[LineMap, dict]:
     """(map, meta) from a map file; MapFileError names the file and what is wrong."""
     path = Path(path)
+    if path.is_dir():
+        raise MapFileError(f"{path}: is a directory, expected a map file (JSON, from vbnav map build)")
     if not path.is_file():
         raise MapFileError(f"{path}: map file not found")
     try:

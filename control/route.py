@@ -385,6 +385,8 @@ class RouteWriter:
 def load_route(path, load_images: bool = True) -> Route:
     """Load and validate a route directory; raises RouteError naming the file and what was expected."""
     root = Path(path)
+    if root.exists() and not root.is_dir():
+        raise RouteError(f"{root}: is a file, expected a route directory")
     if not root.is_dir():
         left = stray_route_dirs(root)
         hint = f" (an interrupted replacement left {', '.join(p.name for p in left)} beside it)" if left else ""

@@ -65,7 +65,8 @@ def list_routes(folder) -> list[RouteSummary]:
     """Every sub-directory of ``folder`` that holds a manifest (hidden ones are a writer's scratch space)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise RouteError(f"{folder}: no such directory")
+        raise RouteError(f"{folder}: " + ("is a file, expected a folder of routes" if folder.exists()
+                                         else "no such directory"))
     return [summary(p) for p in sorted(folder.iterdir())
             if p.is_dir() and not p.name.startswith(".") and (p / MANIFEST).exists()]
 

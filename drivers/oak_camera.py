@@ -18,6 +18,7 @@ with a ReplayVideo node) that needs no hardware: the same host-side code path
 """
 from __future__ import annotations
 
+import atexit
 import threading
 import time
 from datetime import timedelta
@@ -76,8 +77,22 @@ def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = N
     return Frame(np.ascontiguousarray(image), timedelta_ns(img.getTimestamp()), seq, disparity=disparity, meta=m)
 
 
+# Searches still running when the process exits are waited for, this long in all, before the interpreter
+# shuts down: one returning into a finalising interpreter aborts the process (C++ terminate, exit 134).
+SEARCH_EXIT_GRACE_S = 10.0
+_searching: set = set()         # the done-events of the searches running now
+
+
+@atexit.register
+def _wait_for_searches() -> None:
+    deadline = time.monotonic() + SEARCH_EXIT_GRACE_S
+    for done in list(_searching):
+        done.wait(max(0.0, deadline - time.monotonic()))
+
+
 def list_devices(timeout_s: float) -> list:
-    """``dai.Device.getAllAvailableDevices()`` under a hard time limit (None if it did not return in time)."""
+    """``dai.Device.getAllAvailableDevices()`` under a hard time limit (None if it did not return in time).
+    A search that did not return in time is waited for at exit (SEARCH_EXIT_GRACE_S)."""
     result: list = []
     done = threading.Event()
 
@@ -86,7 +101,9 @@ def list_devices(timeout_s: float) -> list:
             result.extend(dai.Device.getAllAvailableDevices())
         finally:
             done.set()
+            _searching.discard(done)
 
+    _searching.add(done)
     threading.Thread(target=work, name="oak-discovery", daemon=True).start()
     if not done.wait(timeout_s):
         return None

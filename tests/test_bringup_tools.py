@@ -278,3 +278,61 @@ def test_config_check_rejects_a_duplicate_servo_id_or_axis(tmp_path, capsys, dri
     path.write_text(yaml.safe_dump({"drive": {"driver": driver, "options": {"port": os.devnull, **options}}}))
     assert main(["config", "check", "-c", str(path)]) == 2
     assert f"{path}: drive.options: {fields}" in capsys.readouterr().err
+
+
+def test_find_with_an_oak_search_cut_short_exits_cleanly():
+    """--oak-timeout shorter than depthai's device search (0.5 s here) said 'not searched' and then the
+    process aborted (exit 134, a C++ 'terminate called' and a stack trace) when the search returned into
+    an interpreter that was shutting down."""
+    import subprocess
+    import sys
+    pytest.importorskip("depthai")
+    p = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "find", "--oak-timeout", "0"],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "not searched: the device search did not return within 0 s" in p.stdout
+    assert "terminate called" not in p.stderr and "Stack trace" not in p.stderr
+
+
+@pytest.mark.parametrize("argv, why", [
+    (["--id", "-1", "--new-id", "2"], "argument --id: expected a servo id 0..252, got '-1'"),
+    (["--id", "300", "--new-id", "2"], "argument --id: expected a servo id 0..252, got '300'"),
+    (["--id", "1", "--new-id", "999"], "argument --new-id: expected a servo id 0..252, got '999'"),
+    (["--id", "1", "--baud", "0", "--new-id", "2"], "argument --baud: 0 is not a Dynamixel X rate"),
+])
+def test_servo_refuses_an_id_or_rate_out_of_range_before_touching_the_bus(argv, why, capsys):
+    """--id -1 crashed with a traceback (a byte out of range), --id 300 scanned six rates and said no servo
+    answers (exit 3), --baud 0 was ignored (every rate scanned, the servo changed), --new-id 999 was refused
+    only once a servo was found: now each is bad input (exit 2) naming the option, and the bus is untouched."""
+    with DynamixelBus([1], baud=57_600) as bus:
+        with pytest.raises(SystemExit) as exit_:
+            main(["servo", "set-id", "--port", bus.path, *argv])
+        assert exit_.value.code == 2 and why in capsys.readouterr().err
+        assert set(bus.servos) == {1}
+
+
+@pytest.mark.parametrize("kind, why", [("missing", "no such device"), ("folder", "is not a device"),
+                                       ("file", "is not a device")])
+def test_find_refuses_a_port_that_is_not_a_device(tmp_path, capsys, kind, why):
+    """find --port /no/such/tty was left out of the listing without a word (exit 0), and a folder or a plain
+    file was listed as 'not USB (a pseudo-terminal or built-in UART)'."""
+    path = tmp_path / kind
+    if kind == "folder":
+        path.mkdir()
+    elif kind == "file":
+        path.write_text("x")
+    assert main(["find", "--port", str(path), "--oak-timeout", "0.5"]) == 2
+    out, err = capsys.readouterr()
+    assert f"vbnav find: --port {path}: {why}" in err and "Serial ports:" not in out
+
+
+@pytest.mark.parametrize("kind", ["folder", "file"])
+def test_servo_tools_refuse_a_port_that_is_not_a_device(tmp_path, capsys, kind):
+    """find servos / servo set-id --port on a folder or plain file was a device error ('cannot open ...',
+    exit 3) after 'Scanning'; it is bad input (exit 2) naming --port, like a path that is not there."""
+    path = tmp_path / kind
+    path.mkdir() if kind == "folder" else path.write_text("x")
+    assert main(["find", "servos", "--port", str(path), "--baud", "57600"]) == 2
+    assert f"--port {path}: is not a device" in capsys.readouterr().err
+    assert main(["servo", "set-id", "--port", str(path), "--id", "1", "--new-id", "2", "--baud", "57600"]) == 2
+    assert f"--port {path}: is not a device" in capsys.readouterr().err

@@ -310,3 +310,22 @@ def test_mount_stereo_refuses_the_board_options(tmp_path, capsys, given):
     named = [g for g in given if g.startswith("--")]
     assert f"vbnav calibrate: {', '.join(named)}: board options, and --stereo uses no board" in err, err
     assert (tmp_path / "robot.yaml").read_text() == text           # nothing written
+
+
+@pytest.mark.parametrize("what", ["intrinsics", "stereo"])
+@pytest.mark.parametrize("out,why", [("afile", "is a file, expected a folder for the calibration files"),
+                                     ("afile/calib", "afile is a file, not a folder")])
+def test_an_out_that_cannot_be_a_folder_is_refused_before_calibrating(stereo_dirs, tmp_path, capsys, monkeypatch,
+                                                                      what, out, why):
+    """--out naming a file (or a folder under a file) was found out only after every view was detected and
+    calibrated, as 'File exists' / 'Not a directory'; it is refused first, naming --out."""
+    from vbnav.control.commands import calibrate
+    (tmp_path / "afile").write_text("keep me\n")
+    monkeypatch.setattr(calibrate, "ViewCollector", None)      # no view may be examined
+    src = (["--images", str(stereo_dirs / "left")] if what == "intrinsics"
+           else [str(stereo_dirs / "left"), str(stereo_dirs / "right")])
+    code = cli.main(["calibrate", what, *src, "--out", str(tmp_path / out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"vbnav calibrate: --out {tmp_path / out}: " in err and why in err, err
+    assert (tmp_path / "afile").read_text() == "keep me\n"

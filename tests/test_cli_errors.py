@@ -58,6 +58,10 @@ CASES = [
     ("demo-out-file", "demo --out {d}/afile.txt", 2, "afile.txt"),
     ("demo-seed", "demo --seed x", 2, "--seed"),
     ("demo-repeats", "demo --repeats 0 --out {d}/demo_out", 2, "--repeats"),
+    # a negative seed was a traceback from numpy ('this is a bug in vbnav'); sim.seed -1 was valid
+    ("demo-seed-negative", "demo --seed -1 --out {d}/demo_out", 2, "argument --seed: expected an integer >= 0"),
+    ("config-seed-negative", "config check -c {d}/cfg_seed.yaml", 2, "sim.seed"),
+    ("run-seed-negative", "run -c {d}/cfg_seed.yaml --duration 0.1", 2, "sim.seed"),
     ("demo-garbage-config", "demo -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("demo-hardware-config", "demo -c {d}/dxl.yaml", 2, "dxl.yaml"),
     ("demo-record-dir", "demo --out {d}/demo_out --record {d}/empty", 2, "--record"),
@@ -74,6 +78,9 @@ CASES = [
     ("goto-goal-word", "goto --goal 1 x 0", 2, "--goal"),
     ("goto-duration", "goto --goal 1 1 0 --duration -1", 2, "--duration"),
     ("goto-config-missing", "goto --goal 1 1 0 -c {d}/nope.yaml", 2, "nope.yaml"),
+    # lines: --min-epipolar-angle 180 let horizontal segments through (its sine is 0), 95 acted as 85
+    ("lines-epipolar-angle", "lines --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml --out "
+     "{d}/seg.json --min-epipolar-angle 180", 2, "argument --min-epipolar-angle: expected an angle to the rows"),
     # monitor
     ("monitor-timeout", "monitor --once --timeout -1", 2, "--timeout"),
     ("monitor-refresh", "monitor --refresh 0", 2, "--refresh"),
@@ -82,6 +89,10 @@ CASES = [
     ("monitor-all-robot", "monitor --all --robot r1", 2, "--robot names one robot"),
     ("monitor-all-config", "monitor --all -c sim", 2, "--config names one robot"),
     ("monitor-refresh-once", "monitor --once --refresh 2", 2, "--refresh is the live view's rate"),
+    # --count -3 waited for no robot (exit 0), --count 0 without --all was not refused: both tried to connect
+    ("monitor-count-negative", "monitor --all --once --count -3", 2,
+     "argument --count: expected a number of robots >= 1, got '-3'"),
+    ("monitor-count-zero", "monitor --count 0", 2, "argument --count: expected a number of robots >= 1, got '0'"),
     # obstacles
     ("obstacles-1x1-kitti-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/good/calib.txt",
      2, "calib.txt: P0 cx"),
@@ -118,6 +129,11 @@ CASES = [
     ("obstacles-mask-out-dir", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
      "--mask-out {d}/empty", 2, "--mask-out"),
     ("obstacles-no-input", "obstacles --calib {d}/stereo.yaml", 2, "--left"),
+    # --pitch-deg 400 ran as 40 (the stereo YAML's mount allows -90..90, roll -45..45)
+    ("obstacles-pitch-range", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--camera-height 0.3 --pitch-deg 400", 2, "argument --pitch-deg: expected degrees in -90..90, got '400'"),
+    ("obstacles-roll-range", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--camera-height 0.3 --roll-deg -60", 2, "argument --roll-deg: expected degrees in -45..45, got '-60'"),
     ("obstacles-disparity-missing", "obstacles --disparity {d}/nope.npy --calib {d}/stereo.yaml", 2, "nope.npy"),
     # record-info
     ("record-info-dir", "record-info {d}/empty", 2, "empty"),
@@ -131,6 +147,18 @@ CASES = [
     ("repeat-garbage-config", "repeat --path {d}/empty -c {d}/garbage.yaml", 2, "garbage.yaml"),
     ("repeat-record-dir", "repeat --path {d}/empty --record {d}/empty", 2, "--record"),
     ("repeat-overwrite-no-record", "repeat --path {d}/empty --overwrite", 2, OVERWRITE),
+    # two outputs naming one file, or an output naming an input: one overwrote the other
+    ("vo-out-status-same", "vo {d}/good --out {d}/same.txt --status-out {d}/same.txt --quiet", 2,
+     "--out and --status-out name the same file"),
+    ("lines-overlay-is-left", "lines --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml --out "
+     "{d}/seg.json --overlay-out {d}/left.png", 2,
+     "left.png: is the --left file; writing it would replace the input"),
+    ("obstacles-mask-overlay-same", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml "
+     "--mask-out {d}/same.png --overlay-out {d}/same.png", 2, "--mask-out and --overlay-out name the same file"),
+    ("map-plot-out-is-map", "map plot {d}/afile.txt --out {d}/afile.txt", 2, "afile.txt: is the MAP file"),
+    # route: a file given as a route (or folder of routes) was 'route directory does not exist' / 'no such directory'
+    ("route-check-file", "route check {d}/afile.txt", 2, "afile.txt: is a file, expected a route directory"),
+    ("route-list-file", "route list {d}/afile.txt", 2, "afile.txt: is a file, expected a folder of routes"),
     # route pull / push: options they would not use
     ("route-pull-to-and-config", "route pull r1 loop --to {d}/empty -c sim", 2, "a pull reads nothing from it"),
     ("route-push-robot", "route push r1 {d}/empty --robot r2", 2, "--robot r2: route push names the robot"),
@@ -145,18 +173,36 @@ CASES = [
     ("run-record-no-folder", "run --no-camera --duration 0.1 --record {d}/nope/x.mcap", 2, "nope"),
     ("run-overwrite-no-record", "run --no-camera --duration 0.1 --overwrite", 2, OVERWRITE),
     ("map-build-overwrite-no-record", "map build --out {d}/map.json --overwrite", 2, OVERWRITE),
+    # a folder given as the map was 'map file not found'
+    ("map-info-dir", "map info {d}/empty", 2, "empty: is a directory, expected a map file"),
+    ("map-plot-dir", "map plot {d}/empty --out {d}/plot.png", 2, "empty: is a directory, expected a map file"),
     ("run-serial-port-missing", "run -c {d}/dxl.yaml --no-camera --no-telemetry --duration 0.2", 3, "/dev/ttyNOPE9"),
     ("run-camera-missing", "run -c {d}/v4l2.yaml --camera --no-telemetry --duration 0.2", 3, "/dev/video99"),
     # send
     ("send-teleop-nan", "send teleop nan 0", 2, "V"),
     ("send-rate", "send teleop 0.1 0 --duration 1 --rate 0", 2, "--rate"),
     ("send-wait", "send estop --wait -1", 2, "--wait"),
-    ("send-secret-missing", "send estop --secret-file {d}/nope.key --wait 0", 2, "nope.key"),
+    # --wait 0 gave the robot no time to be found: 'does not offer ... may refuse commands' or 'no
+    # acknowledgement within 0 s', exit 1, about a robot that takes the command
+    ("send-wait-zero", "send estop --wait 0", 2, "argument --wait: expected a number > 0, got '0'"),
+    ("send-secret-missing", "send estop --secret-file {d}/nope.key", 2, "nope.key"),
     ("send-endpoint", "send estop --connect garbage", 2, "garbage"),
     ("send-mode", "send mode fly", 2, "fly"),
     ("send-mode-idle-route", "send mode idle --route hall", 2, "--route: mode idle takes no route"),
     ("send-mode-teach-no-route", "send mode teach", 2, "mode 'teach' needs a route"),
     ("send-rate-without-for", "send teleop 0.1 0 --rate 5", 2, "--rate is the rate of a --for S stream"),
+    # network options that cannot work were 'cannot connect' (exit 3), a missing TLS file was not named, and
+    # TLS options for a tcp/ endpoint were not used
+    ("send-user-no-password", "send estop --user bob --password-env VBNAV_TEST_UNSET", 2,
+     "--user bob given but $VBNAV_TEST_UNSET is not set"),
+    ("send-tls-partial", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/afile.txt", 2,
+     "mutual TLS needs all of --tls-ca, --tls-cert and --tls-key"),
+    ("send-tls-missing", "send estop --connect tls/127.0.0.1:9 --tls-ca {d}/nope.pem --tls-cert {d}/afile.txt "
+     "--tls-key {d}/afile.txt", 2, "nope.pem: no such file"),
+    ("monitor-tls-on-tcp", "monitor --once --connect tcp/127.0.0.1:9 --tls-ca {d}/afile.txt --tls-cert {d}/afile.txt "
+     "--tls-key {d}/afile.txt", 2, "--connect tcp/127.0.0.1:9 is not a TLS link"),
+    ("route-pull-tls-dir", "route pull r1 loop --to {d}/empty --connect tls/127.0.0.1:9 --tls-ca {d}/empty "
+     "--tls-cert {d}/afile.txt --tls-key {d}/afile.txt", 2, "empty: is a directory, expected a PEM file"),
     # teach
     ("teach-no-out", "teach", 2, "--out"),
     ("teach-out-file", "teach --out {d}/afile.txt --duration 0.1", 2, "afile.txt"),
@@ -165,6 +211,9 @@ CASES = [
     ("teach-duration", "teach --out {d}/route --duration nan", 2, "--duration"),
     ("teach-record-dir", "teach --out {d}/route --duration 0.1 --record {d}/empty", 2, "--record"),
     ("teach-garbage-config", "teach --out {d}/route -c {d}/garbage.yaml", 2, "garbage.yaml"),
+    # taught by teleop with the network closed: nobody could drive it, and it ran until --duration or Ctrl-C
+    ("teach-teleop-no-telemetry", "teach --out {d}/route -c {d}/teach_quiet.yaml --duration 0.5", 2,
+     "teach_quiet.yaml: controller.teach 'teleop' takes the driving commands over the network"),
     # vo
     ("vo-missing", "vo {d}/nope --out {d}/t.txt", 2, "nope"),
     ("vo-file", "vo {d}/afile.txt --out {d}/t.txt", 2, "afile.txt"),
@@ -219,6 +268,9 @@ def make_fixtures(d) -> None:
     (d / "cfg_nanfx.yaml").write_text("camera: {fx: .nan}\n")
     (d / "cfg_inffx.yaml").write_text("camera: {fx: .inf}\n")
     (d / "cfg_cx.yaml").write_text("camera: {cx: 5000}\n")
+    (d / "cfg_seed.yaml").write_text("sim: {seed: -1}\n")
+    (d / "teach_quiet.yaml").write_text("sim: {realtime: true}\ncontroller: {teach: teleop}\n"
+                                        "telemetry: {enabled: false}\n")
     (d / "dxl.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                 "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
     (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"

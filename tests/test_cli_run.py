@@ -121,3 +121,16 @@ def test_map_build_that_ends_in_a_fault_keeps_the_map_and_says_so(tmp_path, caps
     assert "map build ended: drive" in out and "(the map up to the fault)" in out, out
     lmap, meta = load_map(tmp_path / "m.json")
     assert meta["frames"] > 0
+
+
+@pytest.mark.parametrize("argv", [["--controller", "teleop", "--no-telemetry"],
+                                  ["--controller", "operator", "--no-telemetry", "--no-camera"],
+                                  ["--controller", "teleop", "-c", "{tmp}/quiet.yaml"]])
+def test_a_run_driven_from_the_network_without_the_network_is_refused(tmp_path, capsys, argv):
+    """--controller teleop (or operator) with --no-telemetry or telemetry.enabled: false was accepted and
+    ran holding the robot still until --duration: its commands only come over the network, kept closed."""
+    from vbnav.control.cli import main
+    (tmp_path / "quiet.yaml").write_text("telemetry: {enabled: false}\n")
+    assert main(["run", "--realtime", "--duration", "0.5", *[a.format(tmp=tmp_path) for a in argv]]) == 2
+    err = capsys.readouterr().err
+    assert f"--controller {argv[1]}: takes its commands over the network, which " in err, err

@@ -170,3 +170,12 @@ def test_devices_without_permission_name_the_group_to_join(tmp_path, bus, monkey
     assert "fix: sudo usermod -aG dialout $USER" in out
     assert f"[FAIL] camera permission: no permission to open {video}" in out
     assert "fix: sudo usermod -aG video $USER" in out
+
+
+def test_no_camera_is_refused_when_the_obstacle_stop_needs_the_camera(capsys):
+    """doctor -c sim_stereo --no-camera skipped the camera and said 'ready to run', for a run that
+    'vbnav run --no-camera' refuses (obstacles.enabled: the obstacle stop needs the camera)."""
+    assert main(["doctor", "-c", "sim_stereo", "--no-camera"]) == 2
+    out, err = capsys.readouterr()
+    assert "sim_stereo.yaml: obstacles.enabled is true, and the obstacle stop needs the camera" in err
+    assert "ready to run" not in out

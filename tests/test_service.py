@@ -421,3 +421,13 @@ def test_status_logs_and_uninstall_wrap_systemctl_and_journalctl(tmp_path, monke
     assert not (root / "etc/udev/rules.d/99-vbnav.rules").exists()
     assert cli.main(["service", "uninstall", "--root", str(root)]) == 0
     assert "nothing to remove" in capsys.readouterr().out
+
+
+def test_a_serial_given_twice_for_one_device_is_refused(tmp_path, capsys):
+    """--serial drive=A --serial drive=B installed rules for B only, A dropped without a word."""
+    config = _robot_config(tmp_path)
+    argv = ["service", "install", "-c", str(config), "--root", str(tmp_path / "r"), "--user", _user(),
+            "--serial", "drive=FT6Z5XDZ", "--serial", "drive=A50285BI"]
+    assert cli.main(argv) == 2
+    assert "--serial drive=A50285BI: drive is given twice (drive=FT6Z5XDZ before)" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()

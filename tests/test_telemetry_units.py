@@ -448,3 +448,65 @@ def test_monitor_all_live_says_when_no_robot_sends_state_after_the_timeout(monke
     assert cli.main(["monitor", "--all", "--timeout", "0.2"]) == 0
     assert "no robot has sent state in 0.2 s" not in screens[0]
     assert "no robot has sent state in 0.2 s" in screens[1]
+
+
+# ---- vbnav send teleop --for ---------------------------------------------------------------------
+
+class _Robot:
+    """A zenoh session with one robot on it that applies every command (answers the first ack)."""
+
+    def __init__(self):
+        self.sent, self.events = [], None
+
+    def declare_subscriber(self, key, callback):
+        self.events = callback
+
+    def declare_publisher(self, key, **kw):
+        robot = self
+
+        class Pub:
+            matching_status = type("M", (), {"matching": True})()
+
+            def put(self, payload, attachment=None):
+                msg = json.loads(payload)
+                robot.sent.append(msg)
+                if "ack" in msg:
+                    answer = json.dumps({"ack": msg["ack"], "kind": "command", "cycle": 7}).encode()
+                    robot.events(type("S", (), {"payload": type("P", (), {"to_bytes": lambda s: answer})()})())
+        return Pub()
+
+    def get(self, key, timeout=None):
+        return [type("R", (), {"ok": object()})()]
+
+    def close(self):
+        pass
+
+
+def test_send_teleop_for_ends_its_stream_with_a_stop(monkeypatch, capsys):
+    """send teleop V W --for S promises the robot drives S seconds, but the stream just ended: the robot drove
+    on with the last command until its safety.command_timeout_s (0.5 s more in configs/sim.yaml; a 0.01 s
+    --for drove 0.5 s). The stream now ends with a zero command, as the keyboard teleop's does."""
+    from vbnav.control import cli
+    from vbnav.control.commands import send
+    robot = _Robot()
+    monkeypatch.setattr(send, "open_client", lambda args: robot)
+    assert cli.main(["send", "teleop", "0.2", "0.1", "--for", "0.2", "--rate", "20", "--robot", "sim"]) == 0
+    moving = [m for m in robot.sent if (m["linear"], m["angular"]) == (0.2, 0.1)]
+    assert len(moving) == 4 and robot.sent[:4] == moving
+    assert [(m["linear"], m["angular"]) for m in robot.sent[4:]] == [(0.0, 0.0)]
+    assert "teleop applied by robot sim at cycle 7 (4 messages sent, then a stop)" in capsys.readouterr().out
+    robot.sent.clear()
+    assert cli.main(["send", "teleop", "0.2", "0", "--robot", "sim"]) == 0     # one message: no stream to end
+    assert [(m["linear"], m["angular"]) for m in robot.sent] == [(0.2, 0.0)]
+
+
+@pytest.mark.parametrize("argv, why", [
+    (["--speed", "0.8"], "--speed 0.8: above robot.max_linear_speed 0.5"),
+    (["--turn", "2"], "--turn 2: above robot.max_angular_speed 1.5"),
+])
+def test_keyboard_teleop_refuses_speeds_the_configured_robot_refuses(argv, why, capsys):
+    """vbnav teleop -c sim --speed 0.8 said 'driving v +0.80 m/s' while the robot refused every message
+    (robot.max_linear_speed 0.5): with the robot's configuration given, the speeds are checked first."""
+    from vbnav.control import cli
+    assert cli.main(["teleop", "-c", "sim", *argv]) == 2
+    assert f"vbnav teleop: {why} of " in capsys.readouterr().err

@@ -83,6 +83,26 @@ def output_file(path: str | Path | None, option: str) -> None:
         raise InputError(f"{option} {p}: the folder {parent} {what}")
 
 
+def distinct_files(outputs: dict, inputs: Optional[dict] = None) -> None:
+    """Raise InputError when two outputs (option -> path) name one file, or an output names one of the
+    ``inputs`` (option -> path): one would overwrite the other. Paths that are None are not given."""
+    import os
+    seen: dict = {}
+    given_inputs: dict = {}
+    for o, p in (inputs or {}).items():
+        if p is not None:
+            given_inputs.setdefault(os.path.realpath(p), o)        # the first option naming it
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        key = os.path.realpath(path)
+        if key in given_inputs:
+            raise InputError(f"{option} {path}: is the {given_inputs[key]} file; writing it would replace the input")
+        if key in seen:
+            raise InputError(f"{seen[key]} and {option} name the same file {path}: one would overwrite the other")
+        seen[key] = option
+
+
 def enable_live_view(cfg, no_telemetry: bool) -> None:
     """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more).
     Refused where it could not be served: it rides on the telemetry session, which opens only on the wall

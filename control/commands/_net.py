@@ -42,15 +42,29 @@ def add_net_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tls-key", default=None, metavar="PEM", help="this client's private key (mutual TLS)")
 
 
+TLS_PROTOCOLS = ("tls", "quic")      # the zenoh links that use transport.link.tls
+
+
 def open_client(args):
-    """A zenoh client session from the parsed arguments; raises ConnectionError with a clear message."""
+    """A zenoh client session from the parsed arguments; raises ConnectionError with a clear message when
+    the endpoint cannot be reached, InputError (nothing tried) for options that cannot work: --user without
+    its password, part of the TLS options, a TLS file that is not there, TLS options for a link without TLS."""
+    from vbnav.drivers.errors import InputError
     password = os.environ.get(args.password_env) if args.user else None
     if args.user and password is None:
-        raise ConnectionError(f"--user {args.user} given but ${args.password_env} is not set")
+        raise InputError(f"--user {args.user} given but ${args.password_env} is not set (the password is read "
+                         f"from it, --password-env)")
     tls = None
     if args.tls_ca or args.tls_cert or args.tls_key:
         if not (args.tls_ca and args.tls_cert and args.tls_key):
-            raise ConnectionError("mutual TLS needs all of --tls-ca, --tls-cert and --tls-key")
+            raise InputError("mutual TLS needs all of --tls-ca, --tls-cert and --tls-key")
+        if args.connect.split("/", 1)[0] not in TLS_PROTOCOLS:
+            raise InputError(f"--tls-ca, --tls-cert, --tls-key: --connect {args.connect} is not a TLS link, which "
+                             f"would not use them (connect to tls/HOST:PORT)")
+        for option, path in (("--tls-ca", args.tls_ca), ("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key)):
+            if not os.path.isfile(path):
+                raise InputError(f"{option} {path}: " + ("is a directory, expected a PEM file" if os.path.isdir(path)
+                                                         else "no such file"))
         tls = {"root_ca_certificate": args.tls_ca, "connect_certificate": args.tls_cert,
                "connect_private_key": args.tls_key, "enable_mtls": True}
     try:

@@ -163,6 +163,17 @@ def _images(folder: str, what: str) -> list[Path]:
     return files
 
 
+def _out_folder(text: str) -> Path:
+    """--out: a folder to create (or one that exists), checked before any view is examined."""
+    out = Path(text)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, expected a folder for the calibration files")
+    above = next(p for p in out.parents if p.exists())      # the folders below it are created
+    if not above.is_dir():
+        raise InputError(f"--out {out}: {above} is a file, not a folder")
+    return out
+
+
 def _grey(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
@@ -249,7 +260,7 @@ def run_intrinsics(args) -> int:
     if views < 1:
         raise InputError(f"--views {views}: expected at least 1")
     board = _board(args)
-    out = Path(args.out)
+    out = _out_folder(args.out)
     collector = ViewCollector(args, board)
     t0 = time.monotonic()
     if args.images:
@@ -306,6 +317,7 @@ def run_stereo(args) -> int:
     from vbnav.drivers.atomic_file import write_atomic
     from vbnav.vision.board_calibration import calibrate_stereo
     board = _board(args)
+    out = _out_folder(args.out)
     left, right = _images(args.left, "LEFT_DIR"), _images(args.right, "RIGHT_DIR")
     if len(left) != len(right):
         raise InputError(f"{args.left} has {len(left)} images, {args.right} has {len(right)}: expected pairs "
@@ -326,7 +338,6 @@ def run_stereo(args) -> int:
         st = calibrate_stereo(pairs, lres, rres)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     files = _write_intrinsics(out, "left_", lres, lc.views, board, "left")
     files += _write_intrinsics(out, "right_", rres, rc.views, board, "right")

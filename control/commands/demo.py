@@ -1,6 +1,7 @@
 """vbnav demo: teach a route in the simulated room and repeat it twice from an offset start."""
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -10,6 +11,17 @@ from vbnav.control.commands._common import add_record_overwrite_arg, output_file
 from vbnav.drivers.errors import InputError
 
 
+def _seed(text: str) -> int:
+    """argparse type: a seed, an integer >= 0 (numpy's generators take no negative seed)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return v
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "demo", help="teach and repeat a 20 m route on the simulated robot (no hardware needed)",
@@ -17,7 +29,7 @@ def register(sub) -> None:
                     "start offset of 0.3 m lateral and 10 degrees heading, with motor and image noise. Writes "
                     "metrics.json, paths.png (top view) and the route directory to --out.")
     p.add_argument("--out", default="out/demo", metavar="DIR", help="output directory (default out/demo)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the world textures and all noise (default: "
+    p.add_argument("--seed", type=_seed, default=None, help="seed of the world textures and all noise (default: "
                                                           "the configuration's sim.seed, 0 in configs/sim.yaml)")
     p.add_argument("--repeats", type=int, default=2, help="number of repeats (default 2)")
     p.add_argument("--config", "-c", default=None, metavar="FILE", help="simulated robot configuration "

@@ -15,13 +15,22 @@ import time
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import output_file, positive
+from vbnav.control.commands._common import distinct_files, output_file, positive
 from vbnav.control.image_files import read_image, write_json, write_png
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
 
 EXIT_OK, EXIT_BAD_INPUT = 0, 2
 FORMAT, VERSION = "vbnav-line-segments", 1
+
+
+def _angle(text: str) -> float:
+    """argparse type: an angle to the image rows, degrees, in (0, 90) (past 90 its sine, which the
+    matcher compares, falls again: 180 would let horizontal segments through)."""
+    v = positive(text)
+    if v >= 90.0:
+        raise argparse.ArgumentTypeError(f"expected an angle to the rows in degrees, 0 < A < 90, got {text!r}")
+    return v
 
 
 def register(subparsers) -> None:
@@ -45,7 +54,7 @@ def register(subparsers) -> None:
     p.add_argument("--min-length", type=positive, default=LineParams.min_length_px, help="px")
     p.add_argument("--min-depth", type=positive, default=None,
                    help="m, nearest depth searched (sets the largest disparity); default 8 baselines")
-    p.add_argument("--min-epipolar-angle", type=positive, default=LineParams.min_epipolar_angle_deg,
+    p.add_argument("--min-epipolar-angle", type=_angle, default=LineParams.min_epipolar_angle_deg,
                    help="degrees to the image rows below which a segment is not reconstructed")
     p.add_argument("--all-hypotheses", action="store_true",
                    help="also write the rival matches of ambiguous segments (default: the best match only)")
@@ -76,6 +85,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     output_file(args.out, "--out")
     output_file(args.overlay_out, "--overlay-out")
+    distinct_files({"--out": args.out, "--overlay-out": args.overlay_out},
+                   {"--left": args.left, "--right": args.right, "--calib": args.calib})
     try:
         calib = load_stereo_calibration(args.calib, raw_images=True)
         left = read_image(args.left, "left image")

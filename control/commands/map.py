@@ -8,7 +8,8 @@ import sys
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
+from vbnav.control.commands._common import (add_config_arg, distinct_files, output_file, positive,
+                                           record_target_error)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
 
@@ -80,6 +81,7 @@ def run_build(args) -> int:
 
     output_file(args.out, "--out")
     output_file(args.record, "--record")
+    distinct_files({"--out": args.out, "--record": args.record})
     why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)
@@ -172,6 +174,7 @@ def run_plot(args) -> int:
     from vbnav.control.image_files import write_png
     from vbnav.control.line_map_file import load_map
     output_file(args.out, "--out")
+    distinct_files({"--out": args.out}, {"MAP": args.map})
     lmap, meta = load_map(args.map)
     sel = np.ones(len(lmap), bool) if args.all else lmap.verified
     P = lmap.P[sel]

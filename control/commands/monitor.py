@@ -1,6 +1,7 @@
 """``vbnav monitor``: a live terminal view of a robot's state and events."""
 from __future__ import annotations
 
+import argparse
 import collections
 import json
 import sys
@@ -12,6 +13,17 @@ from vbnav.control.commands._common import positive
 from vbnav.control.commands._net import add_net_args, open_client, open_robot, robots_seen
 
 REFRESH_HZ = 5.0    # --refresh when not given (it defaults to None: with --once it is refused)
+
+
+def _robots(text: str) -> int:
+    """argparse type: a number of robots, >= 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a number of robots >= 1, got {text!r}")
+    return n
 
 
 def register(sub) -> None:
@@ -27,7 +39,7 @@ def register(sub) -> None:
     p.add_argument("--refresh", type=positive, default=None, metavar="HZ",
                    help=f"live view: screens per second (default {REFRESH_HZ:g}; 0.2 redraws every 5 s)")
     p.add_argument("--all", action="store_true", help="every robot seen (a fleet behind a router), one line each")
-    p.add_argument("--count", type=int, default=0, metavar="N",
+    p.add_argument("--count", type=_robots, default=None, metavar="N",
                    help="with --all --once: print as soon as N robots sent state (exit 1 if fewer within --timeout)")
     p.set_defaults(func=_run)
 
@@ -141,7 +153,7 @@ def _seen_hint(session, robot: str, args) -> str:
 
 def _not_applied(args) -> Optional[str]:
     """Why an option given would not be used with the others, or None."""
-    if args.count and not (args.all and args.once):
+    if args.count is not None and not (args.all and args.once):
         return "--count goes with --all --once"
     if args.json and not args.once:
         return "--json prints one state with --once; the live view is not JSON"

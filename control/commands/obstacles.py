@@ -16,7 +16,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import finite, non_negative, output_file, positive
+from vbnav.control.commands._common import distinct_files, finite, non_negative, output_file, positive
 from vbnav.control.image_files import read_image, write_png
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
@@ -45,6 +45,17 @@ def _block_size(text: str) -> int:
     if v < 1 or v > 51 or v % 2 == 0:
         raise argparse.ArgumentTypeError(f"expected an odd integer in 1..51, got {text!r}")
     return v
+
+
+def _degrees(limit: float):
+    """argparse type: an angle in degrees within +-limit, the bounds of the stereo YAML's mount (and of
+    camera.mount in a configuration)."""
+    def angle(text: str) -> float:
+        v = finite(text)
+        if abs(v) > limit:
+            raise argparse.ArgumentTypeError(f"expected degrees in -{limit:g}..{limit:g}, got {text!r}")
+        return v
+    return angle
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -80,10 +91,10 @@ def register(subparsers) -> None:
     geo = p.add_argument_group("camera above the floor (seeds the plane fit)")
     geo.add_argument("--camera-height", type=positive, default=None,
                      help="m; default: the YAML's mount.height; without it the fit is unseeded")
-    geo.add_argument("--pitch-deg", type=finite, default=None,
-                     help="positive looking down (default: YAML or 0); needs the camera height")
-    geo.add_argument("--roll-deg", type=finite, default=None,
-                     help="camera roll over the floor (default: YAML or 0); needs the camera height")
+    geo.add_argument("--pitch-deg", type=_degrees(90), default=None,
+                     help="positive looking down, -90..90 (default: YAML or 0); needs the camera height")
+    geo.add_argument("--roll-deg", type=_degrees(45), default=None,
+                     help="camera roll over the floor, -45..45 (default: YAML or 0); needs the camera height")
     gm = p.add_argument_group("ground model (docs/obstacles.md)")
     gm.add_argument("--ground", choices=("auto", "piecewise", "plane"), default="auto",
                     help="piecewise: near band under the mounting's bounds, farther bands hinged (needs a camera "
@@ -217,6 +228,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     output_file(args.mask_out, "--mask-out")
     output_file(args.overlay_out, "--overlay-out")
+    distinct_files({"--mask-out": args.mask_out, "--overlay-out": args.overlay_out},
+                   {"--left": args.left, "--right": args.right, "--disparity": args.disparity, "--image": args.image,
+                    "--calib": args.calib})
     if args.disparity is None and not (args.left and args.right):
         return _bad("give --left and --right, or --disparity")
     if args.disparity is not None and (args.left or args.right):

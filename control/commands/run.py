@@ -79,6 +79,11 @@ def run(args) -> int:
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
     kind = args.controller or cfg.controller.kind
+    if kind in ("teleop", "operator") and (args.no_telemetry or not cfg.telemetry.enabled):
+        what = f"--controller {kind}" if args.controller else f"{cfg.source}: controller.kind {kind}"
+        closed = "--no-telemetry" if args.no_telemetry else f"{cfg.source}: telemetry.enabled: false"
+        raise InputError(f"{what}: takes its commands over the network, which {closed} keeps closed (the robot "
+                         "would stand still until the end)")
     if args.no_camera and cfg.obstacles.enabled:     # a safety function the configuration asks for
         raise InputError(f"--no-camera: {cfg.source}: obstacles.enabled is true, and the obstacle stop needs the "
                          f"camera (set obstacles.enabled: false to run without it)")

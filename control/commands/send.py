@@ -49,8 +49,9 @@ def register(sub) -> None:
                         description="Teleop must keep arriving: the robot stops when it is silent for "
                                     "safety.command_timeout_s (and only a run with controller teleop or operator follows "
                                     "it). Without --for one message is sent (the robot drives up to the timeout); "
-                                    "`vbnav send teleop 0.1 0 --for 3` drives 3 s. The exit code is the robot's answer "
-                                    "to the first message it applies or refuses; a refusal stops the stream.")
+                                    "`vbnav send teleop 0.1 0 --for 3` drives 3 s, then sends a stop (V and W 0). The "
+                                    "exit code is the robot's answer to the first message it applies or refuses; a "
+                                    "refusal stops the stream.")
     t.add_argument("v", type=finite, metavar="V", help="linear velocity, m/s")
     t.add_argument("w", type=finite, metavar="W", help="angular velocity, rad/s")
     t.add_argument("--for", "--duration", dest="duration", type=non_negative, default=0.0, metavar="S",
@@ -66,7 +67,7 @@ def register(sub) -> None:
     for sp in (e, r, t, m):
         sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
         add_net_args(sp)
-        sp.add_argument("--wait", type=non_negative, default=3.0, metavar="S",
+        sp.add_argument("--wait", type=positive, default=3.0, metavar="S",
                         help="wait up to S seconds for the robot, then for its answer (default 3)")
         sp.add_argument("--secret-file", default=None, metavar="FILE",
                         help="sign the command with the robot's shared secret (telemetry.shared_secret_file)")
@@ -176,11 +177,14 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             break
         if answer is None and time.monotonic() - first > args.wait:
             break
-        if i + 1 < n:
+        if stream:      # after the last one too: it drives for its period, then the stop
             time.sleep(1.0 / rate)
+    stopped = stream and not (answer is not None and answer["kind"] == "command_rejected")
+    if stopped:     # the robot would drive on with the last command until its command timeout
+        out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
-    return _report(args, robot, what, answer, sent)
+    return _report(args, robot, what, answer, sent, stopped)
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
@@ -190,7 +194,7 @@ def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
         return None
 
 
-def _report(args, robot: str, what: str, answer, sent: int) -> int:
+def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False) -> int:
     if answer is None:
         print(f"vbnav send: no acknowledgement within {args.wait:g} s: the robot may refuse commands from "
               f"{_who(args)} (telemetry.operators)", file=sys.stderr)
@@ -198,7 +202,7 @@ def _report(args, robot: str, what: str, answer, sent: int) -> int:
     if answer["kind"] == "command_rejected":
         print(f"vbnav send: robot {robot} refused {what}: {answer.get('reason', '?')}", file=sys.stderr)
         return REFUSED
-    stream = f" ({sent} messages sent)" if sent > 1 else ""
+    stream = f" ({sent} messages sent{', then a stop' if stopped else ''})" if sent > 1 or stopped else ""
     note = f": {answer['note']}" if answer.get("note") else ""
     print(f"{what} applied by robot {robot} at cycle {answer.get('cycle', '?')}{stream}{note}")
     return OK

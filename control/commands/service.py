@@ -68,6 +68,8 @@ def _serials(pairs: list[str]) -> dict[str, str]:
         role, sep, serial = pair.partition("=")
         if not sep or not role or not serial:
             raise InputError(f"--serial {pair!r}: expected ROLE=SERIAL, e.g. drive=FT6Z5XDZ")
+        if role in out:
+            raise InputError(f"--serial {pair}: {role} is given twice ({role}={out[role]} before)")
         out[role] = serial
     return out
 

@@ -19,17 +19,43 @@ import sys
 COMMAND = "vbnav servo"
 
 
+def _servo_id(text: str) -> int:
+    """argparse type: a Dynamixel id, 0..252 (253 and 254, broadcast, are reserved)."""
+    from vbnav.drivers.dynamixel_table import MAX_ID
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if not 0 <= v <= MAX_ID:
+        raise argparse.ArgumentTypeError(f"expected a servo id 0..{MAX_ID}, got {text!r}")
+    return v
+
+
+def _rate(text: str) -> int:
+    """argparse type: a Dynamixel X baud rate, bit/s."""
+    from vbnav.drivers.dynamixel_table import BAUD_VALUES
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a baud rate like 57600, got {text!r}") from None
+    if v not in BAUD_VALUES:
+        raise argparse.ArgumentTypeError(f"{v} is not a Dynamixel X rate; one of "
+                                         f"{', '.join(str(r) for r in BAUD_VALUES)}")
+    return v
+
+
 def register(sub) -> None:
     p = sub.add_parser("servo", help="set a Dynamixel servo's id or baud rate (first set-up)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     act = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    for name, target, help_ in (("set-id", "--new-id", "the id to give it (0..252)"),
-                                ("set-baud", "--new-baud", "the rate to switch it to, bit/s (e.g. 1000000)")):
+    for name, target, kind, help_ in (("set-id", "--new-id", _servo_id, "the id to give it (0..252)"),
+                                      ("set-baud", "--new-baud", _rate,
+                                       "the rate to switch it to, bit/s (e.g. 1000000)")):
         a = act.add_parser(name, help=f"{name.replace('-', ' ')} of one servo")
         a.add_argument("--port", required=True, metavar="DEVICE", help="the bus adapter (U2D2)")
-        a.add_argument("--id", type=int, required=True, dest="dxl_id", help="the servo's id now")
-        a.add_argument("--baud", type=int, default=None, help="its rate now, bit/s (default: found by pinging)")
-        a.add_argument(target, type=int, required=True, dest="new", help=help_)
+        a.add_argument("--id", type=_servo_id, required=True, dest="dxl_id", help="the servo's id now")
+        a.add_argument("--baud", type=_rate, default=None, help="its rate now, bit/s (default: found by pinging)")
+        a.add_argument(target, type=kind, required=True, dest="new", help=help_)
         a.set_defaults(func=run)
 
 

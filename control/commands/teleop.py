@@ -54,10 +54,25 @@ def keys(data: str):
             i += 1
 
 
+def _check_speeds(args) -> None:
+    """With the robot's configuration (-c), --speed and --turn within its limits: the robot refuses every
+    teleop beyond them, while this screen would say 'driving'."""
+    if not args.config:
+        return
+    from vbnav.control.config import load_config
+    cfg = load_config(args.config)
+    for option, value, key, limit in (("--speed", args.speed, "max_linear_speed", cfg.robot.max_linear_speed),
+                                      ("--turn", args.turn, "max_angular_speed", cfg.robot.max_angular_speed)):
+        if value > limit + 1e-9:
+            raise InputError(f"{option} {value:g}: above robot.{key} {limit:g} of {cfg.source}; the robot would "
+                             "refuse every command")
+
+
 def run(args) -> int:
     import termios
     import tty
 
+    _check_speeds(args)
     fd = sys.stdin.fileno()
     if not os.isatty(fd):
         raise InputError("needs a terminal (stdin is not a tty); in scripts use `vbnav send teleop V W --for S`")

@@ -48,10 +48,12 @@ def run(args) -> int:
     from vbnav.drivers.datasets import DatasetError, open_dataset
     from vbnav.vision.vslam import VslamConfig
 
-    from vbnav.control.commands._common import output_file
+    from vbnav.control.commands._common import distinct_files, output_file
     output_file(args.out, "--out")          # before minutes of tracking, not after
     output_file(args.plot, "--plot")
     output_file(args.status_out, "--status-out")
+    distinct_files({"--out": args.out, "--plot": args.plot, "--status-out": args.status_out},
+                   {"--camera": args.camera})
     if args.ba_window < 0:
         print(f"vbnav vo: --ba-window {args.ba_window}: expected a number of frames >= 0", file=sys.stderr)
         return 2

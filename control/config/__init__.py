@@ -182,7 +182,8 @@ class SafetyConfig(Strict):
 
 
 class SimConfig(Strict):
-    seed: int = Field(0, description="random seed of the world's textures, the image noise and the wheel slip")
+    seed: int = Field(0, ge=0, description="random seed of the world's textures, the image noise and the wheel "
+                                           "slip")
     realtime: bool = Field(False, description="run on the wall clock instead of the simulated clock")
     world: Literal["room", "empty_room", "corridor", "corridor_step"] = Field(
         "room", description="simulated world (drivers/sim/world.py World.by_name)")
