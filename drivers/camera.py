@@ -98,6 +98,9 @@ class Camera(abc.ABC):
     name: str = "camera"
     #: a recorded source (a replay, a video file) has delivered its last frame; a live camera never has
     finished: bool = False
+    #: why the camera is not delivering, as far as the driver knows (unplugged and reconnecting, its grabbing
+    #: thread failed), else None; the runtime's stale-camera hold names it
+    error: Optional[str] = None
 
     @abc.abstractmethod
     def connect(self) -> None:

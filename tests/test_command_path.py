@@ -523,7 +523,9 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
         recent.undeclare()
         sub.undeclare()
         robot.close()
-    assert [m["seq"] for m in got] == list(range(5))
+    # 5 messages of the stream, then the stop that ends it (the robot does not drive on to its timeout)
+    assert [m["seq"] for m in got] == list(range(6))
+    assert [m["linear"] for m in got] == [0.1] * 5 + [0.0]
     stamps = [m["stamp_ns"] for m in got]
     assert stamps == sorted(stamps) and stamps[0] > t0 and len({m["session"] for m in got}) == 1
 

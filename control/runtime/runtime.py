@@ -471,9 +471,8 @@ class Runtime:
                    f"(limit {limit:g} s, camera.stale_after_s)")
         else:
             why = f"last frame {age:.2f} s old (limit {limit:g} s)"
-        error = getattr(cam, "error", None)    # what the driver knows of why (unplugged, its thread failed)
-        if stale and error:
-            why += f": {error}"
+        if stale and cam.error:                 # what the driver knows of why (unplugged, its thread failed)
+            why += f": {cam.error}"
         self.safety.hold(now, "camera_stale", stale, why)
 
     def _apply_speed_scales(self, now: int, estimates: dict) -> None:
