@@ -172,7 +172,13 @@ CASES = [
     ("run-record-dir", "run --no-camera --duration 0.1 --record {d}/empty", 2, "--record"),
     ("run-record-no-folder", "run --no-camera --duration 0.1 --record {d}/nope/x.mcap", 2, "nope"),
     ("run-overwrite-no-record", "run --no-camera --duration 0.1 --overwrite", 2, OVERWRITE),
-    ("map-build-overwrite-no-record", "map build --out {d}/map.json --overwrite", 2, OVERWRITE),
+    # a map, a grown map or a calibration already recorded was replaced without asking (teach --out refuses)
+    ("map-build-out-exists", "map build --out {d}/afile.txt", 2, "a map is already there"),
+    ("goto-map-out-exists", "goto --map {d}/afile.txt --map-out {d}/unknown.yaml --goal 0 1 0", 2,
+     "a map is already there"),
+    ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out it has nothing"),
+    ("calibrate-out-exists", "calibrate intrinsics --images {d}/empty --out {d}/calibrated", 2,
+     "a calibration is already there"),
     # a folder given as the map was 'map file not found'
     ("map-info-dir", "map info {d}/empty", 2, "empty: is a directory, expected a map file"),
     ("map-plot-dir", "map plot {d}/empty --out {d}/plot.png", 2, "empty: is a directory, expected a map file"),
@@ -262,6 +268,8 @@ def make_fixtures(d) -> None:
     (d / "full").mkdir()
     (d / "full" / "x").write_text("x")
     (d / "afile.txt").write_text("not what was asked for\n")
+    (d / "calibrated").mkdir()
+    (d / "calibrated" / "camera_opencv.yaml").write_text("%YAML:1.0\n")
     (d / "garbage.yaml").write_text("robot: [\n")
     (d / "unknown.yaml").write_text("robot: {bogus: 1}\n")
     (d / "badnum.yaml").write_text("robot: {wheel_radius: abc}\n")

@@ -20,9 +20,10 @@ def add_config_arg(p: argparse.ArgumentParser, default: str | None = None) -> No
                         "'sim' is looked up in configs/)")
 
 
-def add_record_overwrite_arg(p: argparse.ArgumentParser) -> None:
+def add_record_overwrite_arg(p: argparse.ArgumentParser, also: str = "") -> None:
     p.add_argument("--overwrite", action="store_true",
-                   help="replace an existing --record file (the new recording takes its place only when complete)")
+                   help=f"replace {also + ' and ' if also else ''}an existing --record file (the new one takes its "
+                        f"place only when complete)")
 
 
 def record_target_error(args, overwrite_is_record_only: bool = False) -> Optional[str]:
@@ -81,6 +82,18 @@ def output_file(path: str | Path | None, option: str) -> None:
     if not parent.is_dir():
         what = "is not a directory" if parent.exists() else "does not exist"
         raise InputError(f"{option} {p}: the folder {parent} {what}")
+
+
+def add_overwrite_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--overwrite", action="store_true", help=f"replace {what} (written atomically, when complete)")
+
+
+def not_recorded_yet(paths, option: str, overwrite: bool, what: str) -> None:
+    """Raise InputError when one of ``paths`` exists and ``overwrite`` is not given: a map or calibration
+    already recorded is not replaced without asking (as teach --out and --record)."""
+    there = [str(p) for p in paths if p is not None and Path(p).exists()]
+    if there and not overwrite:
+        raise InputError(f"{option}: {what} already there ({', '.join(there)}); use --overwrite to replace it")
 
 
 def distinct_files(outputs: dict, inputs: Optional[dict] = None) -> None:

@@ -190,11 +190,12 @@ class CommandPublisher:
                                                               stamp_ns=stamp_ns))
 
 
-def add_telemetry_args(p: argparse.ArgumentParser) -> None:
+def add_telemetry_args(p: argparse.ArgumentParser, overwrite_help: str = "") -> None:
+    """``overwrite_help``: what else the command's --overwrite replaces (its own output), if anything."""
     p.add_argument("--record", default=None, metavar="PATH",
                    help="record state, events and images to an MCAP file (opens in Foxglove; see "
                         "docs/telemetry.md); written as PATH.part and renamed when the run ends")
-    add_record_overwrite_arg(p)
+    add_record_overwrite_arg(p, overwrite_help)
     p.add_argument("--no-telemetry", action="store_true",
                    help="do not open the zenoh session (no telemetry, no network commands); runs on the "
                         "simulated clock never open it")

@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import add_config_arg, non_negative, positive
+from vbnav.control.commands._common import add_config_arg, add_overwrite_arg, non_negative, not_recorded_yet, positive
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.errors import InputError
 
@@ -49,6 +49,7 @@ def register(sub) -> None:
     i.add_argument("--timeout", type=positive, default=None,
                    help=f"--live: give up after this long, s (default {LIVE_TIMEOUT_S:g})")
     i.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
+    add_overwrite_arg(i, "calibration files already in --out")
     i.add_argument("--fisheye", action="store_true", help="not supported yet: say so rather than fit pinhole")
     i.add_argument("--quiet", action="store_true", help="no per-view lines on stderr")
     i.set_defaults(func=_device_errors(run_intrinsics))
@@ -63,6 +64,7 @@ def register(sub) -> None:
     s.add_argument("right", metavar="RIGHT_DIR")
     _board_args(s)
     s.add_argument("--out", required=True, metavar="DIR")
+    add_overwrite_arg(s, "calibration files already in --out")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=run_stereo)
 
@@ -261,6 +263,8 @@ def run_intrinsics(args) -> int:
         raise InputError(f"--views {views}: expected at least 1")
     board = _board(args)
     out = _out_folder(args.out)
+    not_recorded_yet([out / "camera_opencv.yaml", out / "camera_info.yaml"], f"--out {out}", args.overwrite,
+                     "a calibration is")
     collector = ViewCollector(args, board)
     t0 = time.monotonic()
     if args.images:
@@ -318,6 +322,9 @@ def run_stereo(args) -> int:
     from vbnav.vision.board_calibration import calibrate_stereo
     board = _board(args)
     out = _out_folder(args.out)
+    not_recorded_yet([out / f"{side}_{kind}.yaml" for side in ("left", "right") for kind in ("opencv", "info")]
+                     + [out / "stereo_opencv.yaml", out / "stereo.yaml"], f"--out {out}", args.overwrite,
+                     "a calibration is")
     left, right = _images(args.left, "LEFT_DIR"), _images(args.right, "RIGHT_DIR")
     if len(left) != len(right):
         raise InputError(f"{args.left} has {len(left)} images, {args.right} has {len(right)}: expected pairs "

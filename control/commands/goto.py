@@ -40,6 +40,8 @@ def register(sub) -> None:
                         "drives and plans again when the grown map blocks the route ahead")
     p.add_argument("--map-out", metavar="FILE",
                    help="with --map: write the map as it grew while driving to FILE at the end (atomically)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="with --map-out: replace an existing map file there (written when the run ends)")
     p.add_argument("--robot-radius", type=positive, default=None, metavar="M",
                    help=f"with --map: the robot's radius for planning, m (default {ROBOT_RADIUS_M})")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
@@ -76,9 +78,14 @@ def run(args) -> int:
         print("vbnav goto: --map-out needs the map to grow while driving (leave out --static-map)", file=sys.stderr)
         return 2
     radius = args.robot_radius if args.robot_radius is not None else ROBOT_RADIUS_M
+    if args.overwrite and not args.map_out:
+        print("vbnav goto: --overwrite replaces an existing --map-out file; without --map-out it has nothing to "
+              "replace", file=sys.stderr)
+        return 2
     if args.map_out:
-        from vbnav.control.commands._common import output_file
+        from vbnav.control.commands._common import not_recorded_yet, output_file
         output_file(args.map_out, "--map-out")
+        not_recorded_yet([args.map_out], f"--map-out {args.map_out}", args.overwrite, "a map is")
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:

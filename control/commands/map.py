@@ -8,8 +8,8 @@ import sys
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import (add_config_arg, distinct_files, output_file, positive,
-                                           record_target_error)
+from vbnav.control.commands._common import (add_config_arg, distinct_files, not_recorded_yet, output_file,
+                                           positive, record_target_error)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
 
@@ -33,7 +33,7 @@ def register(sub) -> None:
     b.add_argument("--live-view", action="store_true",
                    help="serve the live view to the Foxglove app (telemetry.live_view.enabled: true), the map "
                         "growing as a 3D scene on /vbnav/map/lines")
-    add_telemetry_args(b)
+    add_telemetry_args(b, overwrite_help="an existing --out map")
     b.set_defaults(func=run_build)
     i = sp.add_parser("info", help="print a map's summary as JSON")
     i.add_argument("map", metavar="MAP")
@@ -82,7 +82,8 @@ def run_build(args) -> int:
     output_file(args.out, "--out")
     output_file(args.record, "--record")
     distinct_files({"--out": args.out, "--record": args.record})
-    why = record_target_error(args, overwrite_is_record_only=True)
+    not_recorded_yet([args.out], f"--out {args.out}", args.overwrite, "a map is")
+    why = record_target_error(args)
     if why:
         raise InputError(why)
     cfg = load_config(args.config)
