@@ -179,3 +179,44 @@ def test_teleop_splits_terminal_input_into_keys():
     from vbnav.control.commands.teleop import MOVES, keys
     assert list(keys("w\x1b[A\x1b[Dq")) == ["w", "\x1b[A", "\x1b[D", "q"]
     assert MOVES["\x1b[A"] == MOVES["w"] == (1, 0) and MOVES["\x1b[D"] == MOVES["a"] == (0, -1)   # left: w < 0
+
+
+def test_keyboard_teleop_shows_the_robots_refusal_instead_of_driving(tmp_path):
+    """A held key towards a robot that refuses teleop (here: stopped by an estop) showed 'driving v +0.30
+    m/s' while the robot stood still. The robot's refusal replaces that line until the keys change."""
+    port = free_port()
+    proc = start_robot("--port", port, "--controller", "teleop", "--duration", 60, "--report", tmp_path / "r.json")
+    net = ["--connect", f"tcp/127.0.0.1:{port}"]
+    try:
+        r = subprocess.run(VBNAV + ["send", "estop", "--reason", "test", *net], capture_output=True, text=True,
+                           timeout=30)
+        assert r.returncode == 0, r.stderr
+        master, slave = pty.openpty()
+        p = subprocess.Popen(VBNAV + ["teleop", *net, "--hold", "0.3"], stdin=slave, stdout=slave,
+                             stderr=subprocess.PIPE, text=True)
+        buf = b""
+
+        def read_for(seconds, until=None):
+            nonlocal buf
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline and p.poll() is None and not (until and until in buf):
+                if select.select([master], [], [], 0.1)[0]:
+                    buf += os.read(master, 4096)
+
+        read_for(20, b"hold w/s")
+        assert p.poll() is None, p.stderr.read()
+        for _ in range(40):                       # 'w' held for 1.2 s
+            os.write(master, b"w")
+            read_for(0.03)
+        read_for(1.0, b"refused teleop")
+        os.write(master, b"q")
+        assert p.wait(20) == 0, p.stderr.read()
+        os.close(master)
+        os.close(slave)
+    finally:
+        finish(proc, stop=True)
+    screen = buf.decode(errors="replace").split("\r\x1b[K")
+    refusals = [s for s in screen if s.startswith("robot sim refused teleop:")]
+    assert refusals and "estop" in refusals[0], screen[-5:]
+    last = [s.strip() for s in screen if s.strip()][-1]
+    assert last.startswith("robot sim refused teleop:"), screen[-3:]     # not 'driving' while refused

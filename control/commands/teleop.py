@@ -4,11 +4,16 @@ A terminal reports key presses, never releases: a held key repeats (after the ke
 250-660 ms, then 25-30 times a second). So a key press drives for ``--hold`` seconds and each repeat
 extends it; the stream stops, with one zero command, ``--hold`` after the last repeat. The robot's own
 command timeout (safety.command_timeout_s) stops it if this program dies. The terminal goes to raw mode
-for single key presses and is restored on every exit (q, Ctrl-C, SIGTERM, an error).
+for single key presses and is restored on every exit (q, Ctrl-C, SIGTERM, an error). The robot's
+refusals of teleop, estop and resume (its ``command_rejected`` events: a latched or held stop, speeds
+beyond its limits, a repeat in progress) replace the 'driving' line, so the screen never says 'driving'
+while the robot stands still.
 """
 from __future__ import annotations
 
+import json
 import os
+import queue
 import select
 import signal
 import sys
@@ -90,11 +95,23 @@ def run(args) -> int:
             print(f"vbnav teleop: no robot named {robot} answers at {args.connect}", file=sys.stderr)
             return 3
         out = CommandPublisher(session, robot, "vbnav-teleop", secret)
+        refusals: queue.SimpleQueue = queue.SimpleQueue()
+
+        def on_event(sample) -> None:
+            try:
+                msg = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            if isinstance(msg, dict) and msg.get("kind") == "command_rejected" and \
+                    msg.get("command") in ("teleop", "estop", "resume"):
+                refusals.put(f"robot {robot} refused {msg['command']}: {msg.get('reason', '?')}")
+
+        session.declare_subscriber(f"vbnav/{robot}/events", on_event)
         saved = termios.tcgetattr(fd)
         old_term = signal.signal(signal.SIGTERM, lambda *_: sys.exit(130))
         try:
             tty.setraw(fd)
-            return _drive(fd, out, args, robot)
+            return _drive(fd, out, args, robot, refusals)
         finally:
             termios.tcsetattr(fd, termios.TCSADRAIN, saved)
             signal.signal(signal.SIGTERM, old_term)
@@ -103,7 +120,7 @@ def run(args) -> int:
         session.close()
 
 
-def _drive(fd: int, out: CommandPublisher, args, robot: str) -> int:
+def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue) -> int:
     def say(text: str) -> None:        # raw mode: no newline translation
         sys.stdout.write("\r\x1b[K" + text)
         sys.stdout.flush()
@@ -135,6 +152,11 @@ def _drive(fd: int, out: CommandPublisher, args, robot: str) -> int:
                 elif key == "r":
                     out.put("resume", {})
                     say("resume sent")
+        refused = None
+        while not refusals.empty():
+            refused = refusals.get_nowait()
+        if refused is not None:
+            say(refused)       # stays until the twist changes: the robot is not doing what the keys ask
         now = time.monotonic()
         if now < next_send:
             continue
