@@ -197,6 +197,29 @@ def test_a_switch_the_run_ended_before_is_refused_and_its_route_closed(tmp_path,
     assert (tmp_path / "hall" / "manifest.json").is_file()     # the route it opened is closed, not left open
 
 
+def test_a_switch_still_on_its_worker_when_the_run_ends_is_answered_and_its_route_closed(tmp_path, monkeypatch):
+    """A switch whose worker outlived the run's end (a route still loading from a slow disk) was never
+    answered: the sender waited for its timeout. It is refused at the end, and the route the worker then
+    opens is closed, not left open."""
+    gate = _Gate()
+    monkeypatch.setattr(operator_module, "Teaching", gate)
+    monkeypatch.setattr(OperatorController, "close_wait_s", 0.2)
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))
+    _at_cycles(rt, {10: lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1"))})
+    result = rt.run(0.5)
+    worker = ctl._worker
+    ctl.close()                                   # the gate is still shut: the worker is still at it
+    assert worker.is_alive()
+    gate.open.set()
+    worker.join(10.0)
+    link.close(result)
+    assert sink.answers() == [("command_rejected", "T1", "mode teach: the run ended while the switch was still "
+                                                         "under way (not done after 0.2 s)")]
+    assert ctl._pending is None and ctl.mode == "idle"
+    assert (tmp_path / "hall" / "manifest.json").is_file()     # what it opened was closed by the worker
+
+
 def test_commands_the_run_ended_before_are_answered_and_later_ones_refused(tmp_path):
     """Commands posted in the run's last cycle (after the loop drained its mailbox) got no answer at all:
     'vbnav send' waited for its timeout. Each command gets exactly one answer."""

@@ -51,6 +51,7 @@ ERRORS_KEPT = 20                 # failed switches kept in OperatorController.er
 
 class OperatorController(Controller):
     requires: tuple[str, ...] = ()
+    close_wait_s = 5.0      # how long the run's end waits for a switch still on its worker
 
     def __init__(self, cfg, pipeline, teleop_timeout_s: float):
         self.cfg = cfg
@@ -62,6 +63,9 @@ class OperatorController(Controller):
         self._base_stages = list(pipeline.stages) if pipeline is not None else []
         self._teaching = None                          # session.Teaching: the route being taught
         self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error, cmd)
+        self._worker_cmd: Optional[OperatorCommand] = None  # the command the worker's switch answers
+        self._switch_lock = threading.Lock()           # _pending posted vs. the run ending without it
+        self._abandoned = False                        # the run ended while the worker was still at it
         self._previous: Optional[tuple] = None         # (stages, controller) detached by the switch in progress
         self._worker: Optional[threading.Thread] = None
         # the latest failed switches (each is also a rejected safety event): a run of months keeps a few
@@ -161,6 +165,7 @@ class OperatorController(Controller):
             # Simulated clock: switch synchronously, so runs stay deterministic (time does not pass meanwhile).
             self._prepare(target, route, frames_at_swap, cmd)
             return self._apply_pending(now_ns, deferred=False)
+        self._worker_cmd = cmd
         self._worker = threading.Thread(target=self._prepare, args=(target, route, frames_at_swap, cmd),
                                         name=target, daemon=True)
         self._worker.start()
@@ -201,10 +206,10 @@ class OperatorController(Controller):
         except Exception as exc:  # the mode stays as it was; the operator sees why (never a path outside)
             why = describe_route_error(exc, where, route) if where is not None else str(exc)
             if closed:
-                self._pending = ("idle", None, list(self._base_stages), None, None, f"mode {target}: {why}{closed}",
-                                 cmd)
+                self._post(("idle", None, list(self._base_stages), None, None, f"mode {target}: {why}{closed}",
+                            cmd))
             else:
-                self._pending = (self.mode, self.route_path, None, None, None, f"mode {target}: {why}", cmd)
+                self._post((self.mode, self.route_path, None, None, None, f"mode {target}: {why}", cmd))
             return
         try:
             self._wait_for_the_vision_thread(frames_at_swap)
@@ -214,10 +219,21 @@ class OperatorController(Controller):
             if teaching is not None:
                 teaching.close(complete=False)
             why = describe_route_error(exc, where, route) if where is not None else str(exc)
-            self._pending = ("idle", None, list(self._base_stages), None, None,
-                             f"mode {target}: closing the route being taught failed: {why}; the robot is idle", cmd)
+            self._post(("idle", None, list(self._base_stages), None, None,
+                             f"mode {target}: closing the route being taught failed: {why}; the robot is idle", cmd))
             return
-        self._pending = (target, route, stages, controller, teaching, None, cmd)
+        self._post((target, route, stages, controller, teaching, None, cmd))
+
+    def _post(self, pending: tuple) -> None:
+        """Worker: hand the prepared switch to the loop, unless the run ended without waiting for it
+        (``close``): then what it opened is closed here, and its command was answered already."""
+        with self._switch_lock:
+            if not self._abandoned:
+                self._pending = pending
+                return
+        teaching = pending[4]
+        if teaching is not None:
+            teaching.close()
 
     def _close_teach(self) -> None:
         if self._teaching is not None:
@@ -277,8 +293,18 @@ class OperatorController(Controller):
     def close(self) -> None:
         """End of the run: a route being taught is closed with every keyframe so far."""
         if self._worker is not None:
-            self._worker.join(timeout=5.0)
-        if self._worker is None or not self._worker.is_alive():
+            self._worker.join(timeout=self.close_wait_s)
+        with self._switch_lock:
+            gone = self._worker is not None and self._worker.is_alive() and self._pending is None
+            self._abandoned = gone
+        rt = self._runtime
+        if gone and self._worker_cmd is not None and rt is not None:
+            # Still loading or opening its route: answered now, not never; the worker closes what it opens.
+            cmd = self._worker_cmd
+            rt.complete_command(cmd, CommandOutcome.refused(
+                f"mode {cmd.args[0]}: the run ended while the switch was still under way (not done after "
+                f"{self.close_wait_s:g} s)"), rt.clock.now_ns())
+        if not gone:
             pending, self._pending = self._pending, None
             if pending is not None:
                 # The run ended before the loop took the switch: the route it opened is closed too, and
