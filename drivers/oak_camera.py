@@ -219,6 +219,16 @@ class OakCamera(GrabbingCamera):
         import os
         if not os.path.isfile(self.opt.replay_file):
             raise CameraError(f"OAK replay file {self.opt.replay_file} not found")
+        # depthai's ReplayVideo takes any file and its pipeline just stops: a file that is no video ran as
+        # a camera that never delivered ('pipeline stopped'). Read its first frame here instead.
+        probe = cv2.VideoCapture(self.opt.replay_file)
+        try:
+            readable = probe.isOpened() and probe.read()[0]
+        finally:
+            probe.release()
+        if not readable:
+            raise CameraError(f"OAK replay file {self.opt.replay_file}: no video frame could be read from it "
+                              f"(expected a recorded video, e.g. .mp4 or .avi)")
         p = dai.Pipeline(createImplicitDevice=False)
         replay = p.create(dai.node.ReplayVideo)
         replay.setReplayVideoFile(self.opt.replay_file)

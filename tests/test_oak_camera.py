@@ -117,6 +117,10 @@ def test_host_only_replay_pipeline(tmp_path):
 def test_missing_replay_file_is_a_clear_error(tmp_path):
     with pytest.raises(CameraError, match="replay file .* not found"):
         OakCamera(options=OakCamera.Options(replay_file=str(tmp_path / "nope.mp4"))).connect()
+    # a file that is no video connected, then delivered nothing ('pipeline stopped')
+    (tmp_path / "notvideo.mp4").write_text("not a video\n")
+    with pytest.raises(CameraError, match="notvideo.mp4: no video frame could be read"):
+        OakCamera(options=OakCamera.Options(replay_file=str(tmp_path / "notvideo.mp4"))).connect()
 
 
 def device_calibration(fx: float, baseline_cm: float, size=(640, 400)) -> "dai.CalibrationHandler":
