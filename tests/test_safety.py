@@ -624,3 +624,51 @@ def test_a_teleop_taken_in_the_cycle_an_estimate_hold_begins_is_refused_not_appl
     hold = next(e for e in result.events if e.kind == "hold" and e.cause == "vslam_stale")
     assert applied and max(applied) < hold.stamp_ns, [(t - hold.stamp_ns) / 1e6 for t in applied[-3:]]
     assert refused[0][0] == hold.stamp_ns and "vslam_stale" in refused[0][1], refused[:2]
+
+
+def test_an_exception_in_the_vision_thread_outside_the_stages_ends_the_run_and_says_why():
+    """On a real clock the vision thread does more than the stages: the frozen-image check, the odometry at
+    the frame's stamp. An exception there ended the thread with a line on stderr only: no fault, the
+    estimates and frames stopped, and the robot was left to the stale-camera hold, with no word of why."""
+    import threading
+
+    from runtime_helpers import RecordingDrive, TickCamera
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.pipeline import VisionPipeline
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    broken = threading.Event()          # set by the loop at 1.5 s
+
+    class BrokenWatch:
+        frozen = False
+
+        def fresh(self, image, odom):
+            if broken.is_set():
+                raise ValueError("watch broke")
+            threading.Event().wait(0.001)
+            return True
+
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    pipeline = VisionPipeline(TickCamera(clock), [], clock, inline=False)
+    pipeline.frozen = BrokenWatch()
+    seen = []
+
+    def hook(ctx):   # hold simulated time once the watch is broken until the thread has met it
+        if ctx.now_ns >= T0 + 1_500_000_000 and not seen:
+            broken.set()
+            for _ in range(300):
+                if pipeline.fault is not None or not pipeline._thread.is_alive():
+                    seen.append(ctx.now_ns)
+                    return
+                threading.Event().wait(0.01)
+
+    rt = Runtime(Config(camera={"stale_after_s": 5.0}), drive, Cruise(hook), clock, pipeline)
+    result = rt.run(duration_s=5)
+    assert seen
+    assert result.reason == "exception" and "vision thread" in result.message and "watch broke" in result.message, \
+        result.message
+    assert rt.fault_traceback and "ValueError" in rt.fault_traceback
+    assert drive.last_motion_ns() < seen[0] + 2 * PERIOD_NS
+    assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False

@@ -17,7 +17,9 @@ Each frame is also checked for a frozen camera (``frozen_image``): a frozen fram
 robot stood still), from which the loop's stale-camera check counts.
 
 A stage exception is captured as ``fault`` (the loop turns it into a safety
-trip); the pipeline never raises into the loop.
+trip), and so is any other exception in the vision thread (the frozen-image
+check, a frame listener): the thread never ends without a fault that says why;
+the pipeline never raises into the loop.
 """
 from __future__ import annotations
 
@@ -104,8 +106,16 @@ class VisionPipeline:
             if frame is None:
                 time.sleep(0.001)
                 continue
-            fresh, results = self._process(frame)
-            self._publish(frame, fresh, results)
+            try:
+                fresh, results = self._process(frame)
+                self._publish(frame, fresh, results)
+            except Exception as exc:
+                # Beyond the stages (the frozen-image check, the odometry at the frame's stamp): uncaught, it
+                # would end this thread with a line on stderr only, and the robot would wait for the
+                # stale-camera hold without a word of why.
+                self.fault_traceback = traceback.format_exc()
+                self.fault = f"vision thread: {exc!r}"
+                return
 
     def odometry_at(self, stamp_ns: int) -> Pose2:
         """The wheel odometry at ``stamp_ns`` (interpolated in the loop's history), else the newest pose."""
