@@ -672,3 +672,26 @@ def test_an_exception_in_the_vision_thread_outside_the_stages_ends_the_run_and_s
     assert rt.fault_traceback and "ValueError" in rt.fault_traceback
     assert drive.last_motion_ns() < seen[0] + 2 * PERIOD_NS
     assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
+
+
+def test_a_non_finite_wheel_position_ends_the_run_and_never_reaches_the_odometry():
+    """A drive that reads NaN for a wheel angle (an ODrive answering 'nan' for a failed encoder) made the
+    pose NaN for the rest of the run: telemetry, the vision stages' odometry and a teleop run drove on
+    without a position. It is a drive fault: the run ends with reason 'drive' the cycle it comes, the wheels
+    stop and the pose stays the last finite one."""
+    import dataclasses
+
+    rt, drive, clock = make_runtime(Cruise(), camera=False)
+    read = drive.read
+
+    def glitchy_read():
+        s = read()
+        if clock.now_ns() >= T0 + 1_000_000_000:
+            s = dataclasses.replace(s, position=(math.nan, s.position[1]))
+        return s
+    drive.read = glitchy_read
+    result = rt.run(duration_s=3)
+    assert result.reason == "drive" and "non-finite" in result.message, result.message
+    pose = rt.odometry.pose
+    assert math.isfinite(pose.x) and math.isfinite(pose.z) and math.isfinite(pose.theta)
+    assert_stopped_within_two_periods(drive, T0 + 1_000_000_000)

@@ -299,6 +299,11 @@ class Runtime:
             wheels = self._read_wheels(now)
             if wheels is None:
                 return False
+            if not all(map(math.isfinite, wheels.position)):
+                # A NaN or inf wheel angle (a failed encoder, a corrupted answer) would make the pose NaN for
+                # the rest of the run: the drive's fault, before the odometry takes it.
+                return self._finish(now, "drive", f"{self.drive.drive_name} read a non-finite wheel position "
+                                                  f"{wheels.position}: the odometry cannot go on")
             self.wheels = wheels
             if wheels.drive_state is DriveState.ERROR and self._recovery is None:
                 return self._finish(now, "drive", "drive fault: " + "; ".join(map(str, wheels.faults)))
