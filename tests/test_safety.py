@@ -695,3 +695,16 @@ def test_a_non_finite_wheel_position_ends_the_run_and_never_reaches_the_odometry
     pose = rt.odometry.pose
     assert math.isfinite(pose.x) and math.isfinite(pose.z) and math.isfinite(pose.theta)
     assert_stopped_within_two_periods(drive, T0 + 1_000_000_000)
+
+
+def test_an_exception_in_the_first_progress_call_is_not_called_a_start_up_failure():
+    """The progress callback runs in the first cycle too: its exception there was reported as 'start-up:',
+    as if the drive or the camera had not come up, after a cycle had driven."""
+    rt, drive, clock = make_runtime(Cruise())
+
+    def progress(r):
+        raise RuntimeError("console gone")
+    result = rt.run(duration_s=5, progress=progress)
+    assert result.reason == "exception" and "console gone" in result.message
+    assert "start-up" not in result.message and "outside the cycle" in result.message, result.message
+    assert drive.log[-1][3] is False

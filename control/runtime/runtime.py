@@ -219,6 +219,7 @@ class Runtime:
         if notifier is not None and notifier.watchdog_period_ns and not faulthandler.is_enabled():
             faulthandler.enable()    # systemd's watchdog kills with SIGABRT: the journal then shows where it hung
         next_progress = [0]
+        looping = False      # the loop started: a failure from now on is no start-up failure
         self.mailbox.reopen()
         try:
             self.drive.connect()
@@ -244,6 +245,7 @@ class Runtime:
                     progress(self)
                 return keep
 
+            looping = True
             timing = self.loop.run(step)
         except KeyboardInterrupt:  # pragma: no cover - handlers normally catch it first
             self._make_safe()
@@ -255,7 +257,7 @@ class Runtime:
             self._make_safe()
             # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
             reason = "drive" if isinstance(exc, DriveError) else "camera" if isinstance(exc, CameraError) else "exception"
-            where = "start-up" if self.cycle == 0 else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
+            where = "start-up" if not looping else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
             self.safety.trip(self.clock.now_ns(), reason, f"{where}: {exc}")
             self._end = (reason, f"{where}: {exc}")
             timing = self.loop.timing.summary(self.loop.rate_hz)
