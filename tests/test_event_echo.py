@@ -36,3 +36,27 @@ def test_a_blocked_console_keeps_a_bounded_queue_and_says_what_it_did_not_echo()
     not_echoed = sum(int(m) for m in re.findall(r"(\d+) safety events not echoed", text))
     assert echoed + not_echoed == n, (echoed, not_echoed)
     assert not_echoed >= 499 and echoed <= EventEcho.QUEUE_LIMIT + 1 and "box 0" in text
+
+
+def test_a_blocked_console_never_holds_the_progress_caller():
+    """ProgressPrinter wrote on the caller's thread, and the runtime calls progress on the loop's: a terminal
+    paused with Ctrl-S (or a pipe nobody reads) froze the control loop in the write, estops unread."""
+    import time
+
+    from runtime_helpers import make_runtime
+
+    from vbnav.control.controllers.manual import IdleController
+    from vbnav.control.runtime.progress import ProgressPrinter
+
+    out = BlockedConsole()
+    printer = ProgressPrinter(out)
+    rt, drive, clock = make_runtime(IdleController(), camera=False)
+    t0 = time.monotonic()
+    result = rt.run(duration_s=3, progress=lambda r: printer(f"cycle {r.cycle}", force=True))
+    elapsed = time.monotonic() - t0
+    assert result.reason == "duration"
+    assert elapsed < 5.0, f"the loop waited {elapsed:.1f} s on the console"
+    out.go.set()
+    printer.done("the end")
+    text = out.getvalue()
+    assert "cycle 0" in text and text.endswith("the end\n"), text

@@ -1,4 +1,5 @@
-"""Progress lines for long runs: one updating line on a terminal, plain lines in logs."""
+"""Progress lines for long runs: one updating line on a terminal, plain lines in logs; never written on the
+caller's thread (the control loop's), so a console that blocks cannot hold the loop."""
 from __future__ import annotations
 
 import queue
@@ -9,36 +10,67 @@ from typing import Optional, TextIO
 
 
 class ProgressPrinter:
+    """Progress lines, written by a thread of its own.
+
+    The runtime calls progress on the loop's thread: a terminal paused with Ctrl-S or a pipe nobody reads
+    blocks a write, and must never hold the control loop. ``__call__`` only leaves the newest line for the
+    writer (a line not yet written is replaced by a newer one); ``done`` waits for the writer (briefly)
+    and then writes on the caller's thread."""
+
+    #: how long ``done`` waits for a line still being written (a blocked console) before it goes on
+    DONE_WAIT_S = 2.0
+
     def __init__(self, stream: Optional[TextIO] = None, min_interval_s: float = 0.5):
         self.stream = stream or sys.stderr
         self.tty = self.stream.isatty()
         self.min_interval_s = min_interval_s if self.tty else 5.0
         self._last = 0.0
         self._width = 0
+        self._cv = threading.Condition()
+        self._line: Optional[str] = None     # the newest line not yet taken by the writer
+        self._writing = False
+        self._thread = threading.Thread(target=self._write, name="vbnav-progress", daemon=True)
+        self._thread.start()
 
     def __call__(self, text: str, force: bool = False) -> None:
         now = time.monotonic()
         if not force and now - self._last < self.min_interval_s:
             return
         self._last = now
-        try:
-            if self.tty:
-                pad = max(0, self._width - len(text))
-                self.stream.write("\r" + text + " " * pad)
-                self._width = len(text)
-            else:
-                self.stream.write(text + "\n")
-            self.stream.flush()
-        except (OSError, ValueError):   # a closed pipe (`vbnav run 2>&1 | head`): progress is a courtesy
-            pass
+        with self._cv:
+            self._line = text
+            self._cv.notify()
 
     def done(self, text: str = "") -> None:
+        with self._cv:
+            self._cv.wait_for(lambda: self._line is None and not self._writing, timeout=self.DONE_WAIT_S)
         if self.tty and self._width:
             self.stream.write("\r" + " " * self._width + "\r")
         if text:
             self.stream.write(text + "\n")
         self.stream.flush()
         self._width = 0
+
+    def _write(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._line is not None)
+                text, self._line = self._line, None
+                self._writing = True
+            try:
+                if self.tty:
+                    pad = max(0, self._width - len(text))
+                    self.stream.write("\r" + text + " " * pad)
+                    self._width = len(text)
+                else:
+                    self.stream.write(text + "\n")
+                self.stream.flush()
+            except (OSError, ValueError):   # a closed pipe (`vbnav run 2>&1 | head`): progress is a courtesy
+                pass
+            finally:
+                with self._cv:
+                    self._writing = False
+                    self._cv.notify_all()
 
 
 class EventEcho:
