@@ -60,3 +60,26 @@ def test_a_blocked_console_never_holds_the_progress_caller():
     printer.done("the end")
     text = out.getvalue()
     assert "cycle 0" in text and text.endswith("the end\n"), text
+
+
+def test_news_lines_between_progress_lines_never_hold_the_caller_and_keep_their_order():
+    """vbnav goto printed the re-planner's news from the progress callback (the loop's thread) with print()
+    after ``done()``: a blocked console held the loop there. ``say`` queues the line for the writer."""
+    import time
+
+    from vbnav.control.runtime.progress import ProgressPrinter
+
+    out = BlockedConsole()
+    news = BlockedConsole()
+    printer = ProgressPrinter(out)
+    t0 = time.monotonic()
+    printer("goto: drive 1", force=True)
+    for k in range(3):
+        printer.say(f"goto: re-planned {k}", stream=news)
+    printer("goto: drive 2", force=True)
+    assert time.monotonic() - t0 < 1.0
+    out.go.set()
+    news.go.set()
+    printer.done()
+    assert news.getvalue() == "goto: re-planned 0\ngoto: re-planned 1\ngoto: re-planned 2\n"
+    assert out.getvalue().endswith("goto: drive 2\n")

@@ -147,9 +147,8 @@ def run(args) -> int:
         ticks[0] += 1
         if live is not None:
             live.tick(every_s)
-            for msg in live.new_events():        # what the re-planner did, as it happens
-                printer.done()
-                print(f"goto: {msg}", flush=True)
+            for msg in live.new_events():        # what the re-planner did, as it happens (the loop's thread:
+                printer.say(f"goto: {msg}", stream=sys.stdout)   # written by the printer's, never blocking)
         if ticks[0] % round(1.0 / every_s):
             return
         s = controller.status()

@@ -6,6 +6,7 @@ import queue
 import sys
 import threading
 import time
+from collections import deque
 from typing import Optional, TextIO
 
 
@@ -14,11 +15,14 @@ class ProgressPrinter:
 
     The runtime calls progress on the loop's thread: a terminal paused with Ctrl-S or a pipe nobody reads
     blocks a write, and must never hold the control loop. ``__call__`` only leaves the newest line for the
-    writer (a line not yet written is replaced by a newer one); ``done`` waits for the writer (briefly)
-    and then writes on the caller's thread."""
+    writer (a line not yet written is replaced by a newer one); ``say`` queues a line that stays (news
+    between the progress lines, in order); ``done`` waits for the writer (briefly) and then writes on the
+    caller's thread, so it is for the end of a run, never for the loop's thread."""
 
     #: how long ``done`` waits for a line still being written (a blocked console) before it goes on
     DONE_WAIT_S = 2.0
+    #: lines of ``say`` waiting for a console that blocks; more are counted in ``dropped``, not kept
+    SAY_LIMIT = 100
 
     def __init__(self, stream: Optional[TextIO] = None, min_interval_s: float = 0.5):
         self.stream = stream or sys.stderr
@@ -28,6 +32,8 @@ class ProgressPrinter:
         self._width = 0
         self._cv = threading.Condition()
         self._line: Optional[str] = None     # the newest line not yet taken by the writer
+        self._said: deque = deque()           # (stream, text) of ``say``, in order
+        self.dropped = 0                      # lines of ``say`` left out: the console did not keep up
         self._writing = False
         self._thread = threading.Thread(target=self._write, name="vbnav-progress", daemon=True)
         self._thread.start()
@@ -41,9 +47,20 @@ class ProgressPrinter:
             self._line = text
             self._cv.notify()
 
+    def say(self, text: str, stream: Optional[TextIO] = None) -> None:
+        """A line that stays (on ``stream``, by default the progress stream), written before the next
+        progress line; never blocks."""
+        with self._cv:
+            if len(self._said) >= self.SAY_LIMIT:
+                self.dropped += 1
+                return
+            self._said.append((stream or self.stream, text))
+            self._cv.notify()
+
     def done(self, text: str = "") -> None:
         with self._cv:
-            self._cv.wait_for(lambda: self._line is None and not self._writing, timeout=self.DONE_WAIT_S)
+            self._cv.wait_for(lambda: self._line is None and not self._said and not self._writing,
+                              timeout=self.DONE_WAIT_S)
         if self.tty and self._width:
             self.stream.write("\r" + " " * self._width + "\r")
         if text:
@@ -54,11 +71,21 @@ class ProgressPrinter:
     def _write(self) -> None:
         while True:
             with self._cv:
-                self._cv.wait_for(lambda: self._line is not None)
+                self._cv.wait_for(lambda: self._line is not None or self._said)
+                said, self._said = list(self._said), deque()
                 text, self._line = self._line, None
                 self._writing = True
             try:
-                if self.tty:
+                for stream, news in said:
+                    if self.tty and self._width:       # off the progress line first
+                        self.stream.write("\r" + " " * self._width + "\r")
+                        self.stream.flush()
+                        self._width = 0
+                    stream.write(news + "\n")
+                    stream.flush()
+                if text is None:
+                    pass
+                elif self.tty:
                     pad = max(0, self._width - len(text))
                     self.stream.write("\r" + text + " " * pad)
                     self._width = len(text)
