@@ -708,3 +708,34 @@ def test_an_exception_in_the_first_progress_call_is_not_called_a_start_up_failur
     assert result.reason == "exception" and "console gone" in result.message
     assert "start-up" not in result.message and "outside the cycle" in result.message, result.message
     assert drive.log[-1][3] is False
+
+
+def test_ctrl_z_stops_the_robot_and_ends_the_run():
+    """SIGTSTP (Ctrl-Z) was left at its default: the process stopped where it was with the wheels at their
+    last command, stopped only by the device's watchdog, and the loop found a stall when it was continued.
+    It now ends the run like SIGINT: the wheels to zero and the drive disabled at the next cycle. In a child
+    process: unhandled, the signal stops it."""
+    import subprocess
+    import sys
+
+    code = '''
+import os, signal, sys
+sys.path.insert(0, "tests")
+from runtime_helpers import make_runtime, PERIOD_NS
+from test_safety import Cruise, T0, assert_stopped_within_two_periods
+def hook(ctx):
+    if ctx.now_ns == T0 + 1_000_000_000:
+        os.kill(os.getpid(), signal.SIGTSTP)
+rt, drive, clock = make_runtime(Cruise(hook))
+result = rt.run(duration_s=5)
+assert result.reason == "signal" and "SIGTSTP" in result.message, result
+assert_stopped_within_two_periods(drive, T0 + 1_000_000_000)
+assert signal.getsignal(signal.SIGTSTP) is signal.SIG_DFL
+print("ok", flush=True)
+'''
+    try:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=20,
+                           cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    except subprocess.TimeoutExpired:
+        pytest.fail("the run stopped itself on SIGTSTP, wheels as they were")
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr

@@ -3,8 +3,8 @@
 Once the runtime has stopped the wheels and handed the signals back, a second Ctrl-C (or a SIGTERM
 from a service manager that is not patient) would raise KeyboardInterrupt in the middle of closing
 the recording, the telemetry link or a route being taught, and lose the run's summary. While a run
-finishes, ``finishing()`` holds SIGINT, SIGTERM, SIGHUP (a terminal that hangs up sends it twice) and
-SIGQUIT, the signals the runtime stops on: the first says once what is being waited for, and the
+finishes, ``finishing()`` holds SIGINT, SIGTERM, SIGHUP (a terminal that hangs up sends it twice),
+SIGQUIT and SIGTSTP, the signals the runtime stops on: the first says once what is being waited for, and the
 finishing goes on; the handlers are restored afterwards. The motors are already stopped at this
 point (the runtime disables the drive before it returns), so nothing waits on a moving robot.
 """
@@ -17,9 +17,9 @@ from contextlib import contextmanager
 from typing import Iterator, TextIO
 
 
-#: The signals the runtime turns into a stop (runtime.py): while a run finishes, each of them is held. SIGHUP
-#: comes twice when a terminal hangs up (the kernel's, then the shell's to its jobs), and its default kills.
-HELD = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+#: The signals the runtime turns into a stop (runtime.STOP_SIGNALS): while a run finishes, each of them is held.
+#: SIGHUP comes twice when a terminal hangs up (the kernel's, then the shell's to its jobs), and its default kills.
+HELD = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP)
 
 
 @contextmanager

@@ -121,6 +121,8 @@ def _restore_affinity(old: dict) -> None:
 #: How a run may end and what it made (a route, a map) still be whole: its plan done, its time up, or
 #: stopped by the operator (a stop command, Ctrl-C).
 ENDED_WELL = ("finished", "duration", "stopped", "signal")
+#: The signals that end a run (fatal ``signal``), the wheels to zero and the drive disabled at the next cycle.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP)
 #: Ends that are a device's failure, not the job's (the commands' exit code 3).
 DEVICE_FAULTS = ("drive", "camera")
 
@@ -676,8 +678,9 @@ class Runtime:
         old = {}
         # SIGHUP: the terminal or ssh session went away; SIGQUIT: Ctrl-\. Left at their defaults they kill
         # the process with the wheels last commanded, stopped only by the device's watchdog (and an
-        # ODrive's then refuses the next start), with the recording and the route left unclosed.
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+        # ODrive's then refuses the next start), with the recording and the route left unclosed. SIGTSTP
+        # (Ctrl-Z) would stop the process where it is, the wheels as last commanded: it ends the run too.
+        for sig in STOP_SIGNALS:
             old[sig] = signal.getsignal(sig)
             signal.signal(sig, lambda signum, frame: self.request_stop(signum))
         return old
