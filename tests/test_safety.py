@@ -739,3 +739,40 @@ print("ok", flush=True)
     except subprocess.TimeoutExpired:
         pytest.fail("the run stopped itself on SIGTSTP, wheels as they were")
     assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_with_catch_up_a_stall_is_the_latched_stall_stop_not_a_fatal_deadline():
+    """With loop.overrun_policy catch_up, the ticks a 2 s stall left behind run back to back; each of them
+    ended after its (long past) deadline, so five of them made a 'deadline' streak: the run ended, saying
+    '5 consecutive missed deadlines ... last compute 0.0 ms', for a stall the loop recovers from (a latched,
+    non-fatal stop). A catch-up tick that gains ground is no overrun of the loop's work."""
+    from vbnav.control.config import Config
+
+    cfg = Config()
+    cfg.loop.overrun_policy = "catch_up"
+
+    def hook(ctx):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            rt.clock.advance(2_000_000_000)            # the process froze for 2 s in this cycle
+
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False, cfg=cfg)
+    result = rt.run(duration_s=5)
+    assert result.reason == "duration", result.message
+    assert result.count("trip", "stall") == 1 and result.count("trip", "deadline") == 0
+    assert drive.stopped_since(T0 + 3_010_000_000)        # latched: no resume came
+
+
+def test_with_catch_up_a_loop_that_cannot_keep_up_still_ends_on_the_deadline_streak():
+    from vbnav.control.config import Config
+
+    cfg = Config()
+    cfg.loop.overrun_policy = "catch_up"
+
+    def hook(ctx):
+        if ctx.now_ns >= T0 + 1_000_000_000:
+            rt.clock.advance(25_000_000)  # the cycle's work takes 25 ms at 100 Hz
+
+    rt, drive, clock = make_runtime(Cruise(hook), camera=False, cfg=cfg)
+    result = rt.run(duration_s=5)
+    assert result.reason == "deadline" and "consecutive missed deadlines" in result.message
+    assert_stopped_within_two_periods(drive, T0 + 1_000_000_000 + cfg.loop.max_missed_streak * 25_000_000)

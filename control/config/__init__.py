@@ -146,7 +146,9 @@ class LoopConfig(Strict):
     overrun_policy: Literal["skip", "catch_up"] = Field(
         "skip", description="skip: a late cycle drops the missed ticks and re-aligns to the grid; "
                             "catch_up: run missed ticks back to back")
-    max_missed_streak: int = Field(5, ge=1, description="consecutive overruns that trigger a safety stop")
+    max_missed_streak: int = Field(5, ge=1, description="consecutive overruns that trigger a safety stop "
+                                   "(fatal 'deadline'); with catch_up, a tick that only ran late to catch up "
+                                   "(its work took less than a period) ends the streak")
     spin_us: int = Field(0, ge=0, le=2000, description="busy-wait before each deadline, microseconds")
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority of the loop thread "
                                    "(0: normal scheduling); needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO as high (the "

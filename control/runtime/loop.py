@@ -10,6 +10,10 @@ Overrun policy (a cycle whose work ends after the next deadline):
 - ``catch_up``: the missed ticks run back to back until the loop is on time.
 Either way each overrun is counted, and the consecutive-overrun streak is
 exposed so the safety monitor can stop the robot when the loop cannot keep up.
+With ``catch_up`` a tick that ends after its deadline but took less than a
+period (it started late only to catch up, and gained ground) ends the streak:
+after a stall, the catch-up run is no streak of missed deadlines (the stall is
+its own, non-fatal stop).
 ``late_ns`` tells the running step how late it started against the tick that
 follows the previous cycle's, skipped ticks included: the length of a stall,
 whether the process froze in the step or in the sleep.
@@ -132,11 +136,15 @@ class FixedRateLoop:
             due = deadline
             if done > deadline:
                 timing.overruns += 1
-                timing.streak += 1
                 if self.policy == "skip":
+                    timing.streak += 1
                     missed = (done - deadline) // period + 1
                     timing.skipped_ticks += int(missed)
                     deadline += missed * period
+                elif done - wake >= period:
+                    timing.streak += 1          # this tick's own work lost ground
+                else:
+                    timing.streak = 0           # a tick run late to catch up, gaining ground: no overrun streak
             else:
                 timing.streak = 0
             if keep_going is False:
