@@ -157,3 +157,21 @@ def test_reference_names_a_driver_whose_sdk_is_missing_instead_of_importing_it(m
     monkeypatch.setattr(registry, "load", load_all_but_oak)
     part = reference_markdown(Config).split("### `camera.driver: oak`", 1)[1].split("\n#", 1)[0]
     assert "needs the `no_such_sdk_here` package, which is not installed here" in part
+
+
+@pytest.mark.parametrize("script, expected", [
+    ("[[.nan, 0.0, 3.0]]", "finite"),
+    ("[[0.3, .inf, 3.0]]", "finite"),
+    ("[[0.3]]", "[linear, angular, seconds]"),
+    ("[[0.3, 0.0, -1.0]]", "seconds > 0"),
+    ("[]", "no segments"),
+])
+def test_a_scripted_drive_that_cannot_be_driven_is_refused_at_load(tmp_path, script, expected):
+    """controller.script took any lists of numbers: a NaN segment loaded, started the run and ended it with an
+    exception in its first cycle; a short or negative segment loaded and failed when `vbnav run` built the
+    controller (`vbnav config check` said it was fine)."""
+    p = write(tmp_path, f"controller:\n  script: {script}\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert "controller.script" in msg and expected in msg, msg

@@ -232,6 +232,20 @@ class ControllerConfig(Strict):
                     "named by a plain name (letters, digits, _ . -), never a path; ~ is the home directory, a "
                     "relative path is taken from the config file's folder")
 
+    @field_validator("script")
+    @classmethod
+    def _drivable_script(cls, v: list[list[float]]) -> list[list[float]]:
+        if not v:
+            raise ValueError("the script has no segments")
+        for i, seg in enumerate(v):
+            if len(seg) != 3:
+                raise ValueError(f"segment {i}: expected [linear, angular, seconds], got {seg}")
+            if not all(math.isfinite(x) for x in seg):
+                raise ValueError(f"segment {i}: expected finite numbers, got {seg}")
+            if seg[2] <= 0:
+                raise ValueError(f"segment {i}: expected seconds > 0, got {seg[2]}")
+        return v
+
     @field_validator("routes_dir")
     @classmethod
     def _plain_dir(cls, v: str) -> str:
