@@ -83,3 +83,18 @@ def test_news_lines_between_progress_lines_never_hold_the_caller_and_keep_their_
     printer.done()
     assert news.getvalue() == "goto: re-planned 0\ngoto: re-planned 1\ngoto: re-planned 2\n"
     assert out.getvalue().endswith("goto: drive 2\n")
+
+
+def test_a_forced_progress_line_is_never_replaced_by_the_next_one():
+    """Forced lines are milestones (the demo's 'taught ...', 'repeat 1: ...'): handed to the writer while it
+    was blocked, the next line replaced them and they were never written."""
+    from vbnav.control.runtime.progress import ProgressPrinter
+
+    out = BlockedConsole()
+    printer = ProgressPrinter(out)
+    printer("start", force=True)          # the writer takes it and blocks on the console
+    printer("taught 12 keyframes", force=True)
+    printer("repeat: keyframe 1/12", force=True)
+    out.go.set()
+    printer.done()
+    assert out.getvalue() == "start\ntaught 12 keyframes\nrepeat: keyframe 1/12\n"

@@ -15,8 +15,8 @@ class ProgressPrinter:
 
     The runtime calls progress on the loop's thread: a terminal paused with Ctrl-S or a pipe nobody reads
     blocks a write, and must never hold the control loop. ``__call__`` only leaves the newest line for the
-    writer (a line not yet written is replaced by a newer one); ``say`` queues a line that stays (news
-    between the progress lines, in order); ``done`` waits for the writer (briefly) and then writes on the
+    writer (a line not yet written is replaced by a newer one); ``say`` (and ``force``) queues a line that
+    stays (news and milestones between the progress lines, in order, never replaced); ``done`` waits for the writer (briefly) and then writes on the
     caller's thread, so it is for the end of a run, never for the loop's thread."""
 
     #: how long ``done`` waits for a line still being written (a blocked console) before it goes on
@@ -43,6 +43,9 @@ class ProgressPrinter:
         if not force and now - self._last < self.min_interval_s:
             return
         self._last = now
+        if force:             # a milestone: written in order, never replaced by the next line
+            self.say(text)
+            return
         with self._cv:
             self._line = text
             self._cv.notify()
@@ -55,6 +58,7 @@ class ProgressPrinter:
                 self.dropped += 1
                 return
             self._said.append((stream or self.stream, text))
+            self._line = None     # an older progress line not yet written: the news supersedes it
             self._cv.notify()
 
     def done(self, text: str = "") -> None:
