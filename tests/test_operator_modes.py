@@ -388,3 +388,41 @@ def test_mode_idle_while_idle_is_acknowledged_as_unchanged(tmp_path):
     kinds = [e["kind"] for e in sink.events if e["kind"] in ("mode_unchanged", "command", "command_rejected")]
     assert kinds == ["mode_unchanged", "command"], kinds
     assert ctl.mode == "idle"
+
+
+def test_a_switch_whose_worker_fails_unexpectedly_is_answered_and_the_robot_is_idle(tmp_path, monkeypatch):
+    """A full disk: closing the route being taught fails, and so does closing the new one the switch opened.
+    The second failure ended the worker thread with a line on stderr only: the command was never answered,
+    every later mode command was refused as 'still in progress' and the robot stood for the rest of the run
+    without a word of why. The switch is now refused with the error, and the robot is idle."""
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))   # the real-clock path
+    full = threading.Event()
+    real_close = operator_module.Teaching.close
+
+    def close(self, complete=True):
+        if full.is_set():
+            raise OSError(28, "No space left on device")
+        return real_close(self, complete)
+    monkeypatch.setattr(operator_module.Teaching, "close", close)
+
+    def join(r):
+        if ctl._worker is not None:
+            ctl._worker.join(10.0)
+
+    _at_cycles(rt, {5: lambda r: r.submit(OperatorCommand("mode", ("teach", "a"), "op", ack="A")),
+                    6: join,
+                    20: lambda r: (full.set(), r.submit(OperatorCommand("mode", ("teach", "b"), "op", ack="B"))),
+                    21: join,
+                    30: lambda r: r.submit(OperatorCommand("mode", ("idle",), "op", ack="I"))})
+    result = rt.run(0.5)
+    full.clear()
+    ctl.close()
+    link.close(result)
+    answers = sink.answers()
+    acks = [(kind, ack) for kind, ack, _ in answers]
+    assert ("command", "A") in acks and ("command_rejected", "B") in acks, answers
+    reason_b = next(r for kind, ack, r in answers if ack == "B")
+    assert "No space left on device" in reason_b and "idle" in reason_b, reason_b
+    assert ("command", "I") in acks, answers          # not 'a switch ... is still in progress'
+    assert ctl.mode == "idle"

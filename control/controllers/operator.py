@@ -180,6 +180,23 @@ class OperatorController(Controller):
 
     def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0,
                  cmd: Optional[OperatorCommand] = None) -> None:
+        """The switch (``_prepare_switch``), always answered: an error it did not expect (closing the new
+        route failed too, on a full disk) would end the worker unseen, the command unanswered and every later
+        switch refused as still in progress. Then the robot goes idle, saying why."""
+        try:
+            self._prepare_switch(target, route, frames_at_swap, cmd)
+        except Exception as exc:
+            old, self._teaching = self._teaching, None
+            if old is not None:
+                try:
+                    old.close(complete=False)
+                except Exception:
+                    pass
+            self._post(("idle", None, list(self._base_stages), None, None,
+                        f"mode {target}: the switch failed ({exc!r}); the robot is idle", cmd))
+
+    def _prepare_switch(self, target: str, route: Optional[str], frames_at_swap: int = 0,
+                        cmd: Optional[OperatorCommand] = None) -> None:
         """Build what the target needs, then close what the current mode opened (off the loop thread).
 
         The target first: a switch that fails leaves the current mode as it was (``_apply_pending`` puts
