@@ -70,8 +70,7 @@ class LiveMap:
 
     def new_events(self) -> list[str]:
         """What the re-planner did since the last call."""
-        ev = self.replanner.events[self.told:]
-        self.told += len(ev)
+        ev, self.told = self.replanner.events_since(self.told)
         return ev
 
     def start(self) -> None:

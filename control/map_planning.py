@@ -2,7 +2,11 @@
 that path in the goto controller's frame. Shared by ``vbnav goto --map`` and ``vbnav map view``."""
 from __future__ import annotations
 
+import collections
+import threading
 from typing import Optional
+
+EVENTS_KEPT = 100   # re-planner lines kept for the command to print (a weeks-long goto re-plans without end)
 
 
 def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
@@ -131,7 +135,10 @@ class Replanner:
         self.looked_at = -1            # map revision of the last check
         self.checks = 0
         self.replans = 0
-        self.events: list[str] = []    # what the re-planner did, in order (printed by the command)
+        # what the re-planner did, in order (printed by the command): the newest EVENTS_KEPT, and how many in all
+        self.events: collections.deque[str] = collections.deque(maxlen=EVENTS_KEPT)
+        self.said = 0
+        self._events_lock = threading.Lock()
         self._held = False
         self._stop = None
         self._thread = None
@@ -175,12 +182,18 @@ class Replanner:
                          + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
 
     def _say(self, msg: str) -> str:
-        self.events.append(msg)
+        with self._events_lock:
+            self.events.append(msg)
+            self.said += 1
         return msg
 
-    def start_thread(self) -> None:
-        import threading
+    def events_since(self, n: int) -> tuple[list[str], int]:
+        """(the events after the first ``n`` said, as far as they are kept; how many have been said)."""
+        with self._events_lock:
+            new = min(self.said - n, len(self.events))
+            return (list(self.events)[len(self.events) - new:] if new > 0 else []), self.said
 
+    def start_thread(self) -> None:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="vbnav-replanner", daemon=True)
         self._thread.start()

@@ -129,3 +129,18 @@ def test_goto_map_replans_around_a_box_the_map_did_not_hold(tmp_path, capsys):
     assert err_cm < 2.0 and closest > 0.25, out          # measured 0.9 cm, 0.338 m
     grown, meta = load_map(tmp_path / "grown.json")
     assert grown.verified.sum() >= 100 and meta["frames"] > 50    # measured 337 verified, 117 frames
+
+
+def test_replanner_news_is_kept_bounded_and_read_once_each():
+    """Every re-plan or hold line was kept for the run (a weeks-long goto --map re-plans without end); the
+    newest EVENTS_KEPT are kept, and the command's reader gets each once, in order."""
+    from vbnav.control.map_planning import EVENTS_KEPT
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    rp = Replanner(_stage(), {"objects": []}, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl,
+                   lambda: ctrl.pose)
+    for k in range(3 * EVENTS_KEPT):
+        rp._say(f"line {k}")
+    assert len(rp.events) == EVENTS_KEPT and rp.said == 3 * EVENTS_KEPT
+    got, told = rp.events_since(3 * EVENTS_KEPT - 2)
+    assert got == [f"line {3 * EVENTS_KEPT - 2}", f"line {3 * EVENTS_KEPT - 1}"] and told == 3 * EVENTS_KEPT
+    assert rp.events_since(told) == ([], told)
