@@ -46,7 +46,10 @@ RULES_DIR = "etc/udev/rules.d"
 WATCHDOG_FLOOR_S = 5.0       # longer than a stall the loop reports and survives (a 2 s garbage collection)
 WATCHDOG_STALLS = 20         # times the loop's own stall limit (loop.stall_periods x period)
 START_TIMEOUT_S = 60         # imports on a small computer, drive bring-up, an OAK's boot and first frame
-STOP_TIMEOUT_S = 15          # the loop ends within a cycle of SIGTERM; then the drive and camera close
+# The loop ends (wheels stopped) within a cycle of SIGTERM; closing down may then take the telemetry
+# publisher's flush (10 s), the event echo (4 s), a mode switch still on its worker (5 s) and the drive and
+# camera: past 15 s systemd killed it mid-close and the recording stayed a .part.
+STOP_TIMEOUT_S = 30
 RESTART_S = 2                # a USB device that re-enumerates after a brown-out is back by then
 
 FTDI_VENDOR, U2D2_PRODUCT = "0403", "6014"

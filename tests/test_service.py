@@ -264,6 +264,20 @@ def test_install_writes_a_unit_that_systemd_accepts(tmp_path, capsys):
     assert "Unknown key 'WatchdogSecs'" in done.stderr and done.returncode != 0
 
 
+def test_systemd_waits_for_the_slowest_close_down_before_it_kills():
+    """TimeoutStopSec was 15 s while closing down (after the wheels stopped) may take the publisher's flush
+    (10 s), the event echo (2 + 2 s) and a mode switch still on its worker (5 s): systemd killed the process
+    mid-close and the recording stayed a .part."""
+    import inspect
+
+    from vbnav.control.comms.telemetry import TelemetryPublisher
+    from vbnav.control.controllers.operator import OperatorController
+    from vbnav.control.service import STOP_TIMEOUT_S
+    flush = inspect.signature(TelemetryPublisher.close).parameters["timeout_s"].default
+    worst = flush + 4.0 + OperatorController.close_wait_s
+    assert STOP_TIMEOUT_S >= worst + 5.0, (STOP_TIMEOUT_S, worst)     # 5 s for the drive, camera and route
+
+
 def test_install_refuses_to_overwrite_without_overwrite(tmp_path, capsys):
     config = _robot_config(tmp_path)
     root = tmp_path / "root"
