@@ -400,3 +400,33 @@ def test_guided_matches_pick_the_nearest_descriptor_inside_the_radius_once():
     # landmark 0 -> corner 0 (corner 1 is as similar but outside the radius); 1 -> 2 (3 is near but unlike);
     # landmark 2's twin is 280 px away: no match
     assert lm.tolist() == [0, 1] and cn.tolist() == [0, 2]
+
+
+def test_a_frame_with_non_finite_odometry_is_not_ok_and_the_stage_carries_on():
+    """A NaN odometry reading (a drive reporting a NaN encoder position) made an ok fix whose odometry was NaN:
+    the goto controller's fusion took it as its anchor and every later pose was NaN; the distance travelled
+    stayed NaN for the run (relocalise_min_travel_m then never held anchors back). That frame is not ok now,
+    saying why, at the last good pose, and the frames after it are ok again."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(10):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    stage = VslamStage(model, mount, 0.12, VslamNavConfig())
+    results = []
+    for i, (f, p) in enumerate(zip(_render(cam, poses), poses)):
+        odom = start.between(p)
+        if i in (0, 5):
+            odom = Pose2(float("nan"), odom.z, odom.theta)
+        results.append(stage.process(f, odom))
+    for i in (0, 5):
+        r = results[i]
+        assert not r.ok and "odometry" in r.info["reason"], (i, r.info)
+        assert np.isfinite(r.value.pose.as_array()).all()
+    assert all(r.ok for i, r in enumerate(results) if i not in (0, 5))
+    assert math.isfinite(stage._travelled)
+    truth, got = start.between(poses[-1]), results[-1].value.pose
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.control.runtime.interfaces import Estimate, PoseFix, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import stage_image
+from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
@@ -172,6 +172,8 @@ class VslamStage(VisionStage):
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image, why = stage_image(frame.image, self.camera)
+        odom_why = odometry_problem(odom)
+        why = why or odom_why
         if self.baseline is None and not self.monocular:
             b = (frame.meta or {}).get("baseline_m")
             if not b or b <= 0:
@@ -186,9 +188,10 @@ class VslamStage(VisionStage):
             right, depth, why = self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
-        if self._last_odom is not None:
-            self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
-        self._last_odom = odom
+        if not odom_why:
+            if self._last_odom is not None:
+                self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
+            self._last_odom = odom
         if why:
             return self._unusable(frame, odom, why)
         if not self.slam.initialised:
@@ -357,10 +360,14 @@ class VslamStage(VisionStage):
 
     def _unusable(self, frame: Frame, odom: Pose2, why: str) -> Estimate:
         """The estimate for a frame the VSLAM cannot use (``why``): not ok, at the last good pose carried
-        by odometry (odometry before the first). The front end's state stays that of the last good frame,
-        so the next usable frame continues from there (or restarts once it is lost)."""
+        by odometry (odometry before the first; the last good pose itself when odometry is not finite). The
+        front end's state stays that of the last good frame, so the next usable frame continues from there
+        (or restarts once it is lost)."""
         self.stats["unusable"] += 1
-        guess = self.pose_at(odom) or odom
+        if odometry_problem(odom):
+            guess = self._good[0] if self._good is not None else Pose2()
+        else:
+            guess = self.pose_at(odom) or odom
         est = self._estimate(frame, odom, False, robot_to_camera_matrix(guess, self.mount), 0, None,
                              {"unusable": why})
         est.info["reason"] = why
