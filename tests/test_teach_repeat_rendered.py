@@ -413,3 +413,23 @@ def test_colour_frames_are_taken_as_before(world):
     np.testing.assert_array_equal(stage_image(grey[:, :, None], CAM)[0], grey)
     assert "shape (480, 640, 2)" in stage_image(np.zeros((480, 640, 2), np.uint8), CAM)[1]
     assert stage_image(None, CAM, "right image") == (None, "the frame has no right image")
+
+
+def test_teach_skips_a_frame_with_non_finite_odometry(world):
+    """A NaN odometry reading was taken: the distance driven stayed NaN (no keyframe by distance again) and a
+    keyframe started on that frame went into the route with a NaN pose. The frame is not ok now, saying why."""
+    poses = [drive(START, 0.25, 0.0, i / 15) for i in range(40)]
+    frames = _frames(world, poses)
+    stage = TeachStage(CAM, MOUNT, VBCConfig())
+    results = []
+    for i, (f, p) in enumerate(zip(frames, poses)):
+        o = START.between(p)
+        results.append(stage.process(f, Pose2(o.x, float("nan"), o.theta) if i in (0, 20) else o))
+    for i in (0, 20):
+        assert not results[i].ok and "odometry is not finite" in results[i].info["reason"], results[i].info
+    assert all(r.ok for i, r in enumerate(results) if i not in (0, 20))
+    assert math.isfinite(stage._distance)
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    assert len(kfs) >= 3 and all(np.isfinite(k.odom.as_array()).all() for k in kfs)
+
