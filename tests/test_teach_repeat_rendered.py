@@ -433,3 +433,27 @@ def test_teach_skips_a_frame_with_non_finite_odometry(world):
     kfs = stage.pop_keyframes()
     assert len(kfs) >= 3 and all(np.isfinite(k.odom.as_array()).all() for k in kfs)
 
+
+def test_repeat_skips_a_frame_with_non_finite_odometry(world, taught):
+    """A NaN odometry reading reached the fix (its odometry, the gate's prediction): the frame is not ok now,
+    saying why, with a finite pose, and the fixes after it are those of a run without it."""
+    route, _ = taught
+    cam = camera(world)
+    runs = []
+    for with_bad in (False, True):
+        stage = RepeatStage(route, VBCConfig())
+        pose = START.compose(Pose2(0.1, 0.0, 0.05))
+        out = []
+        for i in range(8):
+            odom = Pose2(0.0, 0.02 * i, 0.0)
+            if with_bad and i == 4:
+                odom = Pose2(0.0, float("nan"), 0.0)
+            out.append(stage.process(cam.render_frame(pose, i, i), odom))
+            pose = drive(pose, 0.2, 0.0, 0.1)
+        runs.append(out)
+    good, skipped = runs
+    bad = skipped[4]
+    assert not bad.ok and "odometry is not finite" in bad.info["reason"], bad.info
+    assert np.isfinite(bad.value.pose.as_array()).all()
+    assert all(r.ok and r.value.n_agree > 85 for i, r in enumerate(skipped) if i != 4)
+    np.testing.assert_allclose(skipped[-1].value.pose.as_array(), good[-1].value.pose.as_array(), atol=0.01)
