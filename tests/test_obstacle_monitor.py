@@ -222,3 +222,17 @@ def test_a_frame_of_another_size_is_blind_and_a_bgra_pair_is_matched():
     bgra = [cv2.cvtColor(im, cv2.COLOR_GRAY2BGRA) for im in (left, right)]
     e = stage.process(Frame(bgra[0], 10 * FRAME_NS, 3, right=bgra[1]), Pose2())
     assert e.ok
+
+
+def test_a_pair_whose_images_differ_in_size_is_blind():
+    """SGBM on a left and right image of different sizes (one camera of the pair renegotiated its mode) raised
+    ValueError out of the stage, which ends the run; the frame is blind now (not ok, stop) saying both sizes,
+    and the next good pair is judged again."""
+    stage = ObstacleStage.from_config(_stage_cfg(source="sgbm"))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, _ = ds.textured_pair(clear, stage.rig)
+    e = stage.process(Frame(left, 0, 1, right=right[::2, ::2].copy()), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0
+    assert "640x480" in e.info["reason"] and "320x240" in e.info["reason"], e.info["reason"]
+    e = stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2())
+    assert e.ok

@@ -293,13 +293,17 @@ class ObstacleStage(VisionStage):
         self.monitor.blind(why)
         return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
 
-    def disparity(self, frame: Frame) -> Optional[np.ndarray]:
+    def _sgbm_pair(self, frame: Frame) -> bool:
+        """Whether this frame's disparity comes from SGBM on its stereo pair."""
         src = self.cfg.source
         if src in ("auto", "disparity") and frame.disparity is not None:
-            return frame.disparity
-        if src in ("auto", "sgbm") and frame.right is not None:
+            return False
+        return src in ("auto", "sgbm") and frame.right is not None
+
+    def disparity(self, frame: Frame) -> Optional[np.ndarray]:
+        if self._sgbm_pair(frame):
             return sgbm_disparity(frame.image, frame.right, self.sgbm)
-        return None
+        return frame.disparity if self.cfg.source in ("auto", "disparity") else None
 
     def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
         """The stop corridor once the stereo rig is known, and the obstacle labels of ``estimate``
@@ -316,6 +320,10 @@ class ObstacleStage(VisionStage):
                 "speed_scale": 0.0, "reason": "obstacles: no stereo baseline (set obstacles.baseline or "
                                               "camera.options.stereo_baseline, or use a camera reporting "
                                               "meta['baseline_m'])"})
+        if self._sgbm_pair(frame) and np.shape(frame.image)[:2] != np.shape(frame.right)[:2]:
+            (lh, lw), (rh, rw) = np.shape(frame.image)[:2], np.shape(frame.right)[:2]
+            return self._blind(frame, f"obstacles: blind: the left image is {lw}x{lh}, the right one {rw}x{rh}: "
+                                      "no stereo matching between them")
         disp = self.disparity(frame)
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
