@@ -236,3 +236,20 @@ def test_a_pair_whose_images_differ_in_size_is_blind():
     assert "640x480" in e.info["reason"] and "320x240" in e.info["reason"], e.info["reason"]
     e = stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2())
     assert e.ok
+
+
+@pytest.mark.parametrize("baseline", [-0.075, float("nan"), float("inf")])
+def test_a_frame_baseline_that_is_no_distance_is_no_baseline(baseline):
+    """meta['baseline_m'] of -0.075, NaN or inf (a device calibration gone wrong) raised ValueError from
+    StereoRig out of the stage on every frame, which ends the run; the stage now says it has no usable baseline
+    (not ok, stop), naming the value, and takes a good one from a later frame."""
+    stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
+    rig = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
+    disp = ds.render(ds.Scene(0.25, 0.0), rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=disp, meta={"baseline_m": baseline}), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "baseline" in e.info["reason"]
+    assert str(baseline) in e.info["reason"], e.info["reason"]
+    assert stage.rig is None
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075}), Pose2())
+    assert e.ok and stage.rig.baseline == 0.075

@@ -267,7 +267,10 @@ class ObstacleStage(VisionStage):
         self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
 
     def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
-        if self.rig is None and frame.meta.get("baseline_m"):
+        """The stereo rig, from the first frame whose meta['baseline_m'] is a finite distance > 0 when the
+        configuration gave none."""
+        b = frame.meta.get("baseline_m")
+        if self.rig is None and b and math.isfinite(b) and b > 0:
             camera = self._camera
             K = frame.meta.get("K")
             if K is not None:
@@ -316,8 +319,10 @@ class ObstacleStage(VisionStage):
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         if self._rig_for(frame) is None:
+            b = frame.meta.get("baseline_m")
+            got = f": the frame's meta['baseline_m'] is {b}, not a distance > 0" if b is not None else ""
             return Estimate(frame.stamp_ns, self.kind, False, None, {
-                "speed_scale": 0.0, "reason": "obstacles: no stereo baseline (set obstacles.baseline or "
+                "speed_scale": 0.0, "reason": f"obstacles: no stereo baseline{got} (set obstacles.baseline or "
                                               "camera.options.stereo_baseline, or use a camera reporting "
                                               "meta['baseline_m'])"})
         if self._sgbm_pair(frame) and np.shape(frame.image)[:2] != np.shape(frame.right)[:2]:
