@@ -430,3 +430,16 @@ def test_a_frame_with_non_finite_odometry_is_not_ok_and_the_stage_carries_on():
     assert math.isfinite(stage._travelled)
     truth, got = start.between(poses[-1]), results[-1].value.pose
     assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+
+
+@pytest.mark.parametrize("baseline", [float("nan"), float("inf")])
+def test_a_frame_baseline_that_is_no_distance_is_refused_like_a_missing_one(baseline):
+    """meta['baseline_m'] NaN or inf was taken as the baseline: every depth NaN (or 0), and the stage said on
+    every frame that it found no landmarks, never that the baseline was wrong. It is refused like a missing
+    one, naming the value."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
+    disp = np.full((240, 320), 4.0, np.float32)
+    with pytest.raises(ValueError, match=f"baseline_m.*{baseline}"):
+        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0, disparity=disp, meta={"baseline_m": baseline}),
+                      Pose2())

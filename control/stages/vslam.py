@@ -176,9 +176,12 @@ class VslamStage(VisionStage):
         why = why or odom_why
         if self.baseline is None and not self.monocular:
             b = (frame.meta or {}).get("baseline_m")
-            if not b or b <= 0:
+            if not b:
                 raise ValueError("the VSLAM stage needs the stereo baseline: the camera's frames carry no "
                                  "meta['baseline_m'] (set camera.options.stereo_baseline)")
+            if not (math.isfinite(b) and b > 0):
+                raise ValueError(f"the VSLAM stage needs the stereo baseline: the camera's frames carry "
+                                 f"meta['baseline_m'] {b}, not a distance > 0 (set camera.options.stereo_baseline)")
             self.baseline = float(b)
             self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
         right, depth = None, None
