@@ -228,8 +228,9 @@ class LineMapStage(VisionStage):
                          "predicted": len(pred)})
 
     def _unusable(self, frame: Frame) -> str:
-        """Why the line map cannot use this frame ("" when it can): no right image, or an image of another size
-        than the camera's calibration (the segments would be triangulated with the wrong intrinsics)."""
+        """Why the line map cannot use this frame ("" when it can): no right image, an image of another size
+        than the camera's calibration (the segments would be triangulated with the wrong intrinsics), or of
+        another dtype than uint8 (the edge detector's thresholds are for 8-bit intensities)."""
         if frame.right is None:
             return "the frame has no right image (the line map needs a stereo pair)"
         W, H = self.size
@@ -237,6 +238,9 @@ class LineMapStage(VisionStage):
             h, w = np.shape(image)[:2]
             if (w, h) != (W, H):
                 return f"the {what} is {w}x{h}, the camera calibration is for {W}x{H}"
+            dtype = np.asarray(image).dtype
+            if dtype != np.uint8:
+                return f"the {what} is {dtype}, the line map takes 8-bit (uint8) images"
         return ""
 
     def _drain_hypotheses(self) -> int:
