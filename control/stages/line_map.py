@@ -28,6 +28,7 @@ from typing import Callable, NamedTuple, Optional
 import numpy as np
 
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
+from vbnav.control.stages.frame_input import odometry_problem
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_abstraction import AbstractionParams, missing_lines, object_polygons
@@ -177,7 +178,7 @@ class LineMapStage(VisionStage):
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         if self.abstraction is not None:
             self.abstraction.check()
-        why = self._unusable(frame)
+        why = self._unusable(frame) or odometry_problem(odom)
         if why:
             # One frame without its right image (or of another size) is no fault of the run: not ok, the
             # map is left as it is and the next frame goes on. A camera with no stereo baseline at all is
