@@ -443,3 +443,23 @@ def test_a_frame_baseline_that_is_no_distance_is_refused_like_a_missing_one(base
     with pytest.raises(ValueError, match=f"baseline_m.*{baseline}"):
         stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0, disparity=disp, meta={"baseline_m": baseline}),
                       Pose2())
+
+
+def test_monocular_start_spreads_its_corners_over_vslam_detect_cells():
+    """vslam.detect_cells spread the front end's new corners over the image, but not the monocular start's: its
+    first view's corners (the landmarks it starts with) were ranked over the whole image at once, all of them on
+    the bright textured half. They are spread like the front end's now."""
+    import cv2
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    blobs = cv2.GaussianBlur(np.random.default_rng(3).uniform(0, 1, (240, 320)).astype(np.float32), (0, 0), 2.0)
+    blobs = (blobs - blobs.mean()) / blobs.std() / 3.0           # texture of about +-1 (3 sigma)
+    image = np.where(np.arange(320)[None, :] < 160, 128 + 120 * blobs, 128 + 8 * blobs).clip(0, 255).astype(np.uint8)
+    dim_share = {}
+    for cells in (0, 16):
+        stage = VslamStage(model, CameraMount(0.25, 0.1), None, VslamNavConfig(metric_scale="odometry",
+                                                                              detect_cells=cells))
+        est = stage.process(Frame(image, 0, 0), Pose2())
+        assert not est.ok and est.value.quality["initialising"] == "monocular"
+        dim_share[cells] = float(np.mean(stage._mono.px0[:, 0] >= 160))
+    assert dim_share[0] < 0.05 and dim_share[16] > 0.3, dim_share
+

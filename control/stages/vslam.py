@@ -280,7 +280,7 @@ class VslamStage(VisionStage):
         pose odometry gives (the go-to controller creeps ahead for the parallax)."""
         cfg, m = self.cfg, self._mono
         if m is None:
-            px0 = self.slam.tracker.detect(image, cfg.max_landmarks)
+            px0 = self.slam.tracker.detect(image, cfg.max_landmarks, cells=cfg.detect_cells)
             self._mono = _MonocularStart(px0, px0.copy(), np.ones(len(px0), bool), image, odom, pose0_wc)
             return self._estimate(frame, odom, False, pose0_wc, 0, None, {"initialising": "monocular"})
         idx = np.flatnonzero(m.keep)
