@@ -350,7 +350,13 @@ class VslamStage(VisionStage):
             right, why = stage_image(frame.right, self.camera, "right image")
             return right, None, f"vslam: {why}" if why else ""
         if frame.disparity is not None:
-            d = np.asarray(frame.disparity, np.float32)
+            d = np.asarray(frame.disparity)
+            if not np.issubdtype(d.dtype, np.floating):
+                # Frame.disparity is float pixels: an integer one is a raw device format (an OAK's has 3
+                # subpixel bits) whose scale is not known here, and taken as pixels it scales every depth.
+                return None, None, (f"vslam: the disparity image is {d.dtype}, the stage takes disparity in "
+                                    "pixels as floats (NaN unknown)")
+            d = d.astype(np.float32, copy=False)
             if d.shape != (self.camera.height, self.camera.width):
                 return None, None, (f"vslam: the disparity image has shape {d.shape}, the camera calibration "
                                     f"is for {self.camera.width}x{self.camera.height}")
