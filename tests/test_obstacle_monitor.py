@@ -253,3 +253,16 @@ def test_a_frame_baseline_that_is_no_distance_is_no_baseline(baseline):
     assert stage.rig is None
     e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075}), Pose2())
     assert e.ok and stage.rig.baseline == 0.075
+
+
+def test_a_disparity_that_is_not_float_pixels_is_blind():
+    """Frame.disparity is float pixels: an integer one (an OAK's raw fixed-point disparity, 3 subpixel bits,
+    passed on unscaled) was judged as pixels, the whole floor 8 times nearer, i.e. high above the plane: a stop
+    with an obstacle 'at 0.15 m', ok. It is blind now (not ok, stop), naming the dtype."""
+    stage = ObstacleStage.from_config(_stage_cfg())
+    clear = ds.render(ds.Scene(0.25, 0.0), stage.rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=(np.nan_to_num(clear) * 8).astype(np.uint16)), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "uint16" in e.info["reason"], e.info
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=clear.astype(np.float64)), Pose2())
+    assert e.ok and e.info["speed_scale"] == 0.0                  # clear, but the release debounce runs

@@ -333,6 +333,11 @@ class ObstacleStage(VisionStage):
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
             return self._blind(frame, "obstacles: frame has no disparity and no right image")
+        if not np.issubdtype(disp.dtype, np.floating):
+            # Frame.disparity is float pixels: an integer one is a raw device format whose scale is not
+            # known here (an OAK's has 3 subpixel bits); taken as pixels, the floor stands above the plane.
+            return self._blind(frame, f"obstacles: blind: the disparity is {disp.dtype}, the stage takes "
+                                      "disparity in pixels as floats (NaN unknown)")
         if disp.shape != (self.rig.height, self.rig.width):
             # The zones are laid out for the configured size: a frame of another one cannot be judged.
             return self._blind(frame, f"obstacles: blind: the disparity is {disp.shape[1]}x{disp.shape[0]}, the "
