@@ -266,3 +266,18 @@ def test_a_disparity_that_is_not_float_pixels_is_blind():
     assert not e.ok and e.info["speed_scale"] == 0.0 and "uint16" in e.info["reason"], e.info
     e = stage.process(Frame(img, FRAME_NS, 2, disparity=clear.astype(np.float64)), Pose2())
     assert e.ok and e.info["speed_scale"] == 0.0                  # clear, but the release debounce runs
+
+
+@pytest.mark.parametrize("source", ["disparity", "sgbm"])
+def test_a_frame_without_what_the_source_needs_says_what_it_has(source):
+    """obstacles.source disparity on a frame with only a stereo pair (or sgbm on one with only a disparity) said
+    'frame has no disparity and no right image' of a frame that had one of them; it says what the source
+    needs and that the frame's other input is not used."""
+    stage = ObstacleStage.from_config(_stage_cfg(source=source))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, truth = ds.textured_pair(clear, stage.rig)
+    frame = (Frame(left, 0, 1, right=right) if source == "disparity" else
+             Frame(left, 0, 1, disparity=truth.disparity))
+    e = stage.process(frame, Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0
+    assert f"obstacles.source is {source}" in e.info["reason"], e.info["reason"]

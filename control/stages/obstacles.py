@@ -332,7 +332,14 @@ class ObstacleStage(VisionStage):
         disp = self.disparity(frame)
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
-            return self._blind(frame, "obstacles: frame has no disparity and no right image")
+            src = self.cfg.source
+            if src == "disparity" and frame.right is not None:
+                why = "obstacles: frame has no disparity (obstacles.source is disparity: its right image is not used)"
+            elif src == "sgbm" and frame.disparity is not None:
+                why = "obstacles: frame has no right image (obstacles.source is sgbm: its disparity is not used)"
+            else:
+                why = "obstacles: frame has no disparity and no right image"
+            return self._blind(frame, why)
         if not np.issubdtype(disp.dtype, np.floating):
             # Frame.disparity is float pixels: an integer one is a raw device format whose scale is not
             # known here (an OAK's has 3 subpixel bits); taken as pixels, the floor stands above the plane.
