@@ -281,3 +281,24 @@ def test_a_frame_without_what_the_source_needs_says_what_it_has(source):
     e = stage.process(frame, Pose2())
     assert not e.ok and e.info["speed_scale"] == 0.0
     assert f"obstacles.source is {source}" in e.info["reason"], e.info["reason"]
+
+
+@pytest.mark.parametrize("K,says", [
+    ([[0.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]], "fx 0"),
+    ([[400.0, 0, float("nan")], [0, 400.0, 239.5], [0, 0, 1]], "cx nan"),
+    ([[400.0, 0, 900.0], [0, 400.0, 239.5], [0, 0, 1]], "cx 900"),
+])
+def test_frame_intrinsics_that_are_no_camera_are_refused(K, says):
+    """meta['K'] with a zero focal length or a NaN principal point raised ValueError from StereoRig out of the
+    stage on every frame (which ends the run); a principal point outside the image was used, every floor
+    distance wrong. Such intrinsics are refused (not ok, stop) naming the value, and good ones are taken later."""
+    stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
+    rig = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
+    disp = ds.render(ds.Scene(0.25, 0.0), rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=disp, meta={"baseline_m": 0.075, "K": K}), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and says in e.info["reason"], e.info["reason"]
+    assert stage.rig is None
+    good = [[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075, "K": good}), Pose2())
+    assert e.ok and stage.rig == rig

@@ -266,17 +266,30 @@ class ObstacleStage(VisionStage):
         nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
         self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
 
-    def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
-        """The stereo rig, from the first frame whose meta['baseline_m'] is a finite distance > 0 when the
-        configuration gave none."""
+    def _rig_for(self, frame: Frame) -> tuple[Optional[StereoRig], str]:
+        """(the stereo rig, ""), from the first frame whose meta['baseline_m'] is a finite distance > 0 (and
+        meta['K'], if given, intrinsics of this image size) when the configuration gave none; else (None, why
+        this frame gives none)."""
+        if self.rig is not None:
+            return self.rig, ""
         b = frame.meta.get("baseline_m")
-        if self.rig is None and b and math.isfinite(b) and b > 0:
-            camera = self._camera
-            K = frame.meta.get("K")
-            if K is not None:
-                camera = replace(camera, fx=float(K[0][0]), fy=float(K[1][1]), cx=float(K[0][2]), cy=float(K[1][2]))
-            self._set_rig(StereoRig(camera, float(frame.meta["baseline_m"])))
-        return self.rig
+        if b is None:
+            return None, ""
+        if not (b and math.isfinite(b) and b > 0):
+            return None, f": the frame's meta['baseline_m'] is {b}, not a distance > 0"
+        camera = self._camera
+        K = frame.meta.get("K")
+        if K is not None:
+            fx, fy, cx, cy = (float(v) for v in (K[0][0], K[1][1], K[0][2], K[1][2]))
+            bad = [f"{n} {v}" for n, v, ok in (("fx", fx, fx > 0), ("fy", fy, fy > 0),
+                                               ("cx", cx, 0 <= cx < camera.width),
+                                               ("cy", cy, 0 <= cy < camera.height)) if not ok]
+            if bad:
+                return None, (f": the frame's meta['K'] is no camera of {camera.width}x{camera.height} "
+                              f"({', '.join(bad)})")
+            camera = replace(camera, fx=fx, fy=fy, cx=cx, cy=cy)
+        self._set_rig(StereoRig(camera, float(b)))
+        return self.rig, ""
 
     @classmethod
     def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
@@ -318,9 +331,8 @@ class ObstacleStage(VisionStage):
         return StageOverlay(stop_zone=zone, obstacle_labels=None if report is None else report.labels)
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
-        if self._rig_for(frame) is None:
-            b = frame.meta.get("baseline_m")
-            got = f": the frame's meta['baseline_m'] is {b}, not a distance > 0" if b is not None else ""
+        rig, got = self._rig_for(frame)
+        if rig is None:
             return Estimate(frame.stamp_ns, self.kind, False, None, {
                 "speed_scale": 0.0, "reason": f"obstacles: no stereo baseline{got} (set obstacles.baseline or "
                                               "camera.options.stereo_baseline, or use a camera reporting "
