@@ -302,3 +302,17 @@ def test_frame_intrinsics_that_are_no_camera_are_refused(K, says):
     good = [[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]
     e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075, "K": good}), Pose2())
     assert e.ok and stage.rig == rig
+
+
+def test_the_nearest_obstacle_is_looked_for_in_the_stop_zones_width():
+    """The report's nearest obstacle ('in the stop zone's width') was looked for within the narrowest band of
+    any zone: with a wide stop band and a narrow slow band, an obstacle that stopped the robot was 'nowhere'
+    (nearest None). It is looked for within the stop zones' width, as the watched floor is."""
+    zones = [{"name": "stop", "action": "stop", "distance": 0.8, "half_width": 0.5},
+             {"name": "slow", "action": "slow", "distance": 1.5, "half_width": 0.2}]
+    stage = ObstacleStage.from_config(_stage_cfg(zones=zones))
+    box = ds.Scene(0.25, 0.0, boxes=(ds.Box(0.28, 0.42, 0.55, 0.7, 0.05),))     # right of the slow band
+    e = stage.process(Frame(np.zeros((480, 640), np.uint8), 0, 1, disparity=ds.render(box, stage.rig).disparity),
+                      Pose2())
+    assert e.ok and e.info["speed_scale"] == 0.0 and e.info["zones"]["slow"] == 0
+    assert e.value.nearest is not None and e.value.nearest[0] == pytest.approx(0.65, abs=0.03), e.value.nearest

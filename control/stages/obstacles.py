@@ -200,11 +200,21 @@ def stop_zone_outline(camera, mount, half_width: float, max_range: float, near: 
 MIN_SEEN_FRACTION = 0.5
 
 
+def _stop_zones(zones) -> list:
+    """The stop zones (all zones when none stops)."""
+    return [z for z in zones if z.action == "stop"] or list(zones)
+
+
+def stop_half_width(zones) -> float:
+    """The widest half-width of the stop zones (a polygon's: its largest |x|), m."""
+    return max((z.half_width if z.polygon is None else max(abs(x) for x, _ in z.polygon)) for z in _stop_zones(zones))
+
+
 def watched_floor(camera, mount, zones) -> Optional[np.ndarray]:
     """(H, W) bool: the pixels that see the floor under the stop zones (the corridor of their widest
     half-width out to their farthest point, from 0.3 m), None if none of it is in view."""
-    stops = [z for z in zones if z.action == "stop"] or list(zones)
-    half = max((z.half_width if z.polygon is None else max(abs(x) for x, _ in z.polygon)) for z in stops)
+    stops = _stop_zones(zones)
+    half = stop_half_width(zones)
     far = max((z.distance if z.polygon is None else max(zz for _, zz in z.polygon)) for z in stops)
     outline = stop_zone_outline(camera, mount, half, far)
     if len(outline) < 3:
@@ -248,7 +258,7 @@ class ObstacleStage(VisionStage):
         self.ground = ground_model_params(c)
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
-        self._stop_half_width = min((z.half_width for z in self.cfg.zones if z.half_width), default=0.25)
+        self._stop_half_width = stop_half_width(self.cfg.zones) if self.cfg.zones else 0.25
         self._camera = camera
         self.watched: Optional[np.ndarray] = None   # the stop zones' floor in the image (with the rig)
         self.rig: Optional[StereoRig] = None
