@@ -316,3 +316,10 @@ def test_the_nearest_obstacle_is_looked_for_in_the_stop_zones_width():
                       Pose2())
     assert e.ok and e.info["speed_scale"] == 0.0 and e.info["zones"]["slow"] == 0
     assert e.value.nearest is not None and e.value.nearest[0] == pytest.approx(0.65, abs=0.03), e.value.nearest
+
+
+def test_obstacles_without_zones_are_refused_at_load():
+    """obstacles.zones: [] was accepted, and building the stage then failed with "max() arg is an empty
+    sequence" (no stop zone to watch the floor of). It is refused at load, naming the key."""
+    with pytest.raises(ConfigError, match=r"robot.yaml: obstacles: zones: at least one zone"):
+        parse_config({"obstacles": {"enabled": True, "zones": []}}, "robot.yaml")

@@ -86,6 +86,9 @@ class ObstaclesConfig(Strict):
             raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        if not self.zones:
+            raise ValueError("zones: at least one zone (the stage watches the floor of the stop zones; without "
+                             "zones it could never slow or stop the robot)")
         names = [z.name for z in self.zones]
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:

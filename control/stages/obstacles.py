@@ -258,7 +258,7 @@ class ObstacleStage(VisionStage):
         self.ground = ground_model_params(c)
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
-        self._stop_half_width = stop_half_width(self.cfg.zones) if self.cfg.zones else 0.25
+        self._stop_half_width = stop_half_width(self.cfg.zones)
         self._camera = camera
         self.watched: Optional[np.ndarray] = None   # the stop zones' floor in the image (with the rig)
         self.rig: Optional[StereoRig] = None
