@@ -323,3 +323,12 @@ def test_obstacles_without_zones_are_refused_at_load():
     sequence" (no stop zone to watch the floor of). It is refused at load, naming the key."""
     with pytest.raises(ConfigError, match=r"robot.yaml: obstacles: zones: at least one zone"):
         parse_config({"obstacles": {"enabled": True, "zones": []}}, "robot.yaml")
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_zone_polygon_with_a_vertex_that_is_no_number_is_refused_at_load(bad):
+    """A polygon vertex of NaN or inf was accepted: no point is inside such a polygon, so the stop zone never
+    triggered (and its floor outline came out of NaN pixels). It is refused at load, naming the zone."""
+    with pytest.raises(ConfigError, match=r"obstacles\.zones\.0: zone 'p': polygon vertices must be finite"):
+        parse_config({"obstacles": {"zones": [{"name": "p", "polygon": [(-0.3, 0.0), (0.3, 0.0), (bad, 1.0)]}]}},
+                     "robot.yaml")

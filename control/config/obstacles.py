@@ -1,6 +1,7 @@
 """The ``obstacles:`` section: ground-plane suppression and the stop/slow zones."""
 from __future__ import annotations
 
+import math
 from typing import Literal, Optional
 
 from pydantic import Field, model_validator
@@ -28,6 +29,8 @@ class ZoneConfig(Strict):
             raise ValueError(f"zone {self.name!r}: a band needs both distance and half_width (or give polygon)")
         if self.polygon is not None and len(self.polygon) < 3:
             raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
+        if self.polygon is not None and not all(math.isfinite(v) for vertex in self.polygon for v in vertex):
+            raise ValueError(f"zone {self.name!r}: polygon vertices must be finite numbers, m")
         return self
 
 
