@@ -332,3 +332,21 @@ def test_a_zone_polygon_with_a_vertex_that_is_no_number_is_refused_at_load(bad):
     with pytest.raises(ConfigError, match=r"obstacles\.zones\.0: zone 'p': polygon vertices must be finite"):
         parse_config({"obstacles": {"zones": [{"name": "p", "polygon": [(-0.3, 0.0), (0.3, 0.0), (bad, 1.0)]}]}},
                      "robot.yaml")
+
+
+@pytest.mark.parametrize("make,says", [
+    (lambda l, r: (l, r.astype(np.uint16) * 256), "uint8, the right one uint16"),
+    (lambda l, r: (l.astype(np.uint16) * 256, r), "uint16, the right one uint8"),
+    (lambda l, r: (np.dstack([l, l]), r), "shape (480, 640, 2)"),
+])
+def test_a_pair_sgbm_cannot_match_is_blind(make, says):
+    """A pair of two dtypes (8-bit left, 16-bit right) raised cv2.error out of the stage, which ends the run, and
+    the other way round SGBM matched a 16-bit left against an 8-bit right each stretched on its own; a 2-channel
+    image raised ValueError. Each is blind now (not ok, stop), saying why; the next good pair is judged."""
+    stage = ObstacleStage.from_config(_stage_cfg(source="sgbm"))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, _ = ds.textured_pair(clear, stage.rig)
+    bad_left, bad_right = make(left, right)
+    e = stage.process(Frame(bad_left, 0, 1, right=bad_right), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and says in e.info["reason"], e.info["reason"]
+    assert stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2()).ok

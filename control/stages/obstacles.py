@@ -326,6 +326,21 @@ class ObstacleStage(VisionStage):
             return False
         return src in ("auto", "sgbm") and frame.right is not None
 
+    @staticmethod
+    def _pair_problem(frame: Frame) -> str:
+        """Why SGBM cannot match this frame's pair ("" when it can): images of two sizes or dtypes (each
+        would be stretched to 8 bits on its own, or OpenCV refuses them), or not HxW grey / HxWx3 BGR / HxWx4."""
+        left, right = np.asarray(frame.image), np.asarray(frame.right)
+        for what, im in (("left", left), ("right", right)):
+            if not (im.ndim == 2 or (im.ndim == 3 and im.shape[2] in (1, 3, 4))):
+                return f"the {what} image has shape {im.shape}, not HxW grey or HxWx3 BGR"
+        if left.shape[:2] != right.shape[:2]:
+            (lh, lw), (rh, rw) = left.shape[:2], right.shape[:2]
+            return f"the left image is {lw}x{lh}, the right one {rw}x{rh}"
+        if left.dtype != right.dtype:
+            return f"the left image is {left.dtype}, the right one {right.dtype}"
+        return ""
+
     def disparity(self, frame: Frame) -> Optional[np.ndarray]:
         if self._sgbm_pair(frame):
             return sgbm_disparity(frame.image, frame.right, self.sgbm)
@@ -347,10 +362,9 @@ class ObstacleStage(VisionStage):
                 "speed_scale": 0.0, "reason": f"obstacles: no stereo baseline{got} (set obstacles.baseline or "
                                               "camera.options.stereo_baseline, or use a camera reporting "
                                               "meta['baseline_m'])"})
-        if self._sgbm_pair(frame) and np.shape(frame.image)[:2] != np.shape(frame.right)[:2]:
-            (lh, lw), (rh, rw) = np.shape(frame.image)[:2], np.shape(frame.right)[:2]
-            return self._blind(frame, f"obstacles: blind: the left image is {lw}x{lh}, the right one {rw}x{rh}: "
-                                      "no stereo matching between them")
+        why = self._pair_problem(frame) if self._sgbm_pair(frame) else ""
+        if why:
+            return self._blind(frame, f"obstacles: blind: {why}: no stereo matching between them")
         disp = self.disparity(frame)
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
