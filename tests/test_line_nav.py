@@ -397,3 +397,24 @@ def test_line_map_stage_skips_a_frame_it_cannot_use(bad):
     assert stage.stats["unusable"] == 1 and stage.unusable_reason in r.info["reason"]
     assert all(e.ok for i, e in enumerate(results) if i != 4)
     assert stage.stats["frames"] == 7 and results[-1].info["fused"] > 0
+
+
+def test_line_map_stage_takes_a_grey_plane_like_the_other_stages():
+    """An HxWx1 grey pair (as some V4L2 cameras deliver, and as teach, repeat and the VSLAM take: frame_input.py)
+    raised cv2.error in the line detector, which ends the run. The line map takes it as the grey image: the
+    same map as from the HxW pair."""
+    from vbnav.control.stages.line_map import LineMapStage
+    from vbnav.drivers.camera import Frame
+
+    poses = loop_poses(60)[:4]
+    drive = render_drive(World.room(seed=1), poses)
+    maps = []
+    for plane in (False, True):
+        stage = LineMapStage(CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.width, CAM.height, BASELINE, MOUNT,
+                             abstraction_period_s=None)
+        for f, p in zip(drive.frames, poses):
+            if plane:
+                f = Frame(f.image[:, :, None], f.stamp_ns, f.seq, right=f.right[:, :, None], meta=f.meta)
+            assert stage.process(f, p).ok
+        maps.append(stage.map.P.copy())
+    np.testing.assert_array_equal(maps[0], maps[1])
