@@ -164,16 +164,12 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
     if init == "stereo":
         if ds.right is None:
             raise VoError(f"{ds.root}: --init stereo needs right images (image_r/)")
-        n = slam.initialise_stereo(ds.image(0), ds.right_image(0))
-        traj.put(0, "init", slam.pose_wc, n)
-        start = 1
+        start = _metric_start(ds, slam, traj, lambda i: slam.initialise_stereo(ds.image(i), ds.right_image(i)), say)
     elif init == "depth":
-        depth = ds.depth_image(0)
-        if depth is None:
+        if ds.depth_image(0) is None:
             raise VoError(f"{ds.root}: --init depth needs a depth image for the first frame (depth.txt)")
-        n = slam.initialise_depth(ds.image(0), depth)
-        traj.put(0, "init", slam.pose_wc, n)
-        start = 1
+        start = _metric_start(ds, slam, traj, lambda i: slam.initialise_depth(ds.image(i), ds.depth_image(i))
+                              if ds.depth_image(i) is not None else 0, say)
     elif init == "tags":
         if "tag_grid" not in ds.extras:
             raise VoError(f"{ds.root}: --init tags needs a 'tag_grid' block in the camera YAML")
@@ -228,6 +224,21 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
             restarted_at = i - 1
             i = nxt
     return traj.result(init, scale_known, earlier_refs + len(slam.references), results)
+
+
+def _metric_start(ds: Dataset, slam: Vslam, traj: _Trajectory, initialise: Callable[[int], int], say) -> int:
+    """The first start of a stereo or depth run: on the first frame that gives at least ``min_inliers``
+    landmarks (a black or uniform frame gives none: nothing could be tracked against it), the frames before
+    it lost. Returns the next frame to process."""
+    for i in range(len(ds)):
+        n = initialise(i)
+        if n >= max(slam.cfg.min_inliers, 3):
+            traj.put(i, "init", slam.pose_wc, n)
+            return i + 1
+        say(f"frame {i}: {n} landmarks, fewer than min_inliers ({slam.cfg.min_inliers}) to start on; "
+            "the next frame is tried")
+        traj.put(i, "lost", None, n)
+    raise VoError(f"{ds.root}: no frame gives the {slam.cfg.min_inliers} landmarks a start needs")
 
 
 def _relocalise(ds: Dataset, slam: Vslam, i: int, since: int, kept_w: np.ndarray, kept_desc: np.ndarray,

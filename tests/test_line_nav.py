@@ -360,11 +360,12 @@ def test_goto_map_localises_its_start_against_the_map(room_map, tmp_path, capsys
     assert "the map does not confirm a start pose" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("bad", ["no-right", "half-size"])
+@pytest.mark.parametrize("bad", ["no-right", "half-size", "uint16", "nan-odometry"])
 def test_line_map_stage_skips_a_frame_it_cannot_use(bad):
     """A frame without its right image raised ValueError ('the line map needs a stereo pair'), which ends the run;
-    a half-size frame was mapped with the intrinsics of the full size. Either is now not ok, saying why, the map
-    is left as it is, and the frames after it are mapped again."""
+    a half-size frame was mapped with the intrinsics of the full size; a 16-bit pair was mapped as if 8-bit; a frame
+    at a NaN odometry pose fused its segments into the map at a NaN pose. Each is now not ok, saying why, the map is
+    left as it is, and the frames after it are mapped again."""
     from vbnav.control.stages.line_map import LineMapStage
     from vbnav.drivers.camera import Frame
 
@@ -376,15 +377,44 @@ def test_line_map_stage_skips_a_frame_it_cannot_use(bad):
     for i, (f, p) in enumerate(zip(drive.frames, poses)):
         if i == 4:
             before = (stage.revision, stage.stats["frames"], len(stage.map))
-            f = (Frame(f.image, f.stamp_ns, f.seq, disparity=f.disparity, meta=f.meta) if bad == "no-right" else
-                 Frame(f.image[::2, ::2].copy(), f.stamp_ns, f.seq, right=f.right[::2, ::2].copy(), meta=f.meta))
+            if bad == "no-right":
+                f = Frame(f.image, f.stamp_ns, f.seq, disparity=f.disparity, meta=f.meta)
+            elif bad == "half-size":
+                f = Frame(f.image[::2, ::2].copy(), f.stamp_ns, f.seq, right=f.right[::2, ::2].copy(), meta=f.meta)
+            elif bad == "uint16":
+                f = Frame(f.image.astype(np.uint16) * 256, f.stamp_ns, f.seq, right=f.right.astype(np.uint16) * 256,
+                          meta=f.meta)
+            else:
+                p = Pose2(float("nan"), p.z, p.theta)
         results.append(stage.process(f, p))
         if i == 4:
             assert (stage.revision, stage.stats["frames"], len(stage.map)) == before
     r = results[4]
     assert not r.ok and r.kind == "line_map" and r.value["segments"] == before[2]
-    says = "no right image" if bad == "no-right" else "the image is 320x240, the camera calibration is for 640x480"
+    says = {"no-right": "no right image", "half-size": "the image is 320x240, the camera calibration is for 640x480",
+            "uint16": "the image is uint16", "nan-odometry": "odometry is not finite"}[bad]
     assert r.info["reason"].startswith("line map: ") and says in r.info["reason"]
     assert stage.stats["unusable"] == 1 and stage.unusable_reason in r.info["reason"]
     assert all(e.ok for i, e in enumerate(results) if i != 4)
     assert stage.stats["frames"] == 7 and results[-1].info["fused"] > 0
+
+
+def test_line_map_stage_takes_a_grey_plane_like_the_other_stages():
+    """An HxWx1 grey pair (as some V4L2 cameras deliver, and as teach, repeat and the VSLAM take: frame_input.py)
+    raised cv2.error in the line detector, which ends the run. The line map takes it as the grey image: the
+    same map as from the HxW pair."""
+    from vbnav.control.stages.line_map import LineMapStage
+    from vbnav.drivers.camera import Frame
+
+    poses = loop_poses(60)[:4]
+    drive = render_drive(World.room(seed=1), poses)
+    maps = []
+    for plane in (False, True):
+        stage = LineMapStage(CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.width, CAM.height, BASELINE, MOUNT,
+                             abstraction_period_s=None)
+        for f, p in zip(drive.frames, poses):
+            if plane:
+                f = Frame(f.image[:, :, None], f.stamp_ns, f.seq, right=f.right[:, :, None], meta=f.meta)
+            assert stage.process(f, p).ok
+        maps.append(stage.map.P.copy())
+    np.testing.assert_array_equal(maps[0], maps[1])

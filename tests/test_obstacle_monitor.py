@@ -222,3 +222,131 @@ def test_a_frame_of_another_size_is_blind_and_a_bgra_pair_is_matched():
     bgra = [cv2.cvtColor(im, cv2.COLOR_GRAY2BGRA) for im in (left, right)]
     e = stage.process(Frame(bgra[0], 10 * FRAME_NS, 3, right=bgra[1]), Pose2())
     assert e.ok
+
+
+def test_a_pair_whose_images_differ_in_size_is_blind():
+    """SGBM on a left and right image of different sizes (one camera of the pair renegotiated its mode) raised
+    ValueError out of the stage, which ends the run; the frame is blind now (not ok, stop) saying both sizes,
+    and the next good pair is judged again."""
+    stage = ObstacleStage.from_config(_stage_cfg(source="sgbm"))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, _ = ds.textured_pair(clear, stage.rig)
+    e = stage.process(Frame(left, 0, 1, right=right[::2, ::2].copy()), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0
+    assert "640x480" in e.info["reason"] and "320x240" in e.info["reason"], e.info["reason"]
+    e = stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2())
+    assert e.ok
+
+
+@pytest.mark.parametrize("baseline", [-0.075, float("nan"), float("inf")])
+def test_a_frame_baseline_that_is_no_distance_is_no_baseline(baseline):
+    """meta['baseline_m'] of -0.075, NaN or inf (a device calibration gone wrong) raised ValueError from
+    StereoRig out of the stage on every frame, which ends the run; the stage now says it has no usable baseline
+    (not ok, stop), naming the value, and takes a good one from a later frame."""
+    stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
+    rig = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
+    disp = ds.render(ds.Scene(0.25, 0.0), rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=disp, meta={"baseline_m": baseline}), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "baseline" in e.info["reason"]
+    assert str(baseline) in e.info["reason"], e.info["reason"]
+    assert stage.rig is None
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075}), Pose2())
+    assert e.ok and stage.rig.baseline == 0.075
+
+
+def test_a_disparity_that_is_not_float_pixels_is_blind():
+    """Frame.disparity is float pixels: an integer one (an OAK's raw fixed-point disparity, 3 subpixel bits,
+    passed on unscaled) was judged as pixels, the whole floor 8 times nearer, i.e. high above the plane: a stop
+    with an obstacle 'at 0.15 m', ok. It is blind now (not ok, stop), naming the dtype."""
+    stage = ObstacleStage.from_config(_stage_cfg())
+    clear = ds.render(ds.Scene(0.25, 0.0), stage.rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=(np.nan_to_num(clear) * 8).astype(np.uint16)), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "uint16" in e.info["reason"], e.info
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=clear.astype(np.float64)), Pose2())
+    assert e.ok and e.info["speed_scale"] == 0.0                  # clear, but the release debounce runs
+
+
+@pytest.mark.parametrize("source", ["disparity", "sgbm"])
+def test_a_frame_without_what_the_source_needs_says_what_it_has(source):
+    """obstacles.source disparity on a frame with only a stereo pair (or sgbm on one with only a disparity) said
+    'frame has no disparity and no right image' of a frame that had one of them; it says what the source
+    needs and that the frame's other input is not used."""
+    stage = ObstacleStage.from_config(_stage_cfg(source=source))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, truth = ds.textured_pair(clear, stage.rig)
+    frame = (Frame(left, 0, 1, right=right) if source == "disparity" else
+             Frame(left, 0, 1, disparity=truth.disparity))
+    e = stage.process(frame, Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0
+    assert f"obstacles.source is {source}" in e.info["reason"], e.info["reason"]
+
+
+@pytest.mark.parametrize("K,says", [
+    ([[0.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]], "fx 0"),
+    ([[400.0, 0, float("nan")], [0, 400.0, 239.5], [0, 0, 1]], "cx nan"),
+    ([[400.0, 0, 900.0], [0, 400.0, 239.5], [0, 0, 1]], "cx 900"),
+])
+def test_frame_intrinsics_that_are_no_camera_are_refused(K, says):
+    """meta['K'] with a zero focal length or a NaN principal point raised ValueError from StereoRig out of the
+    stage on every frame (which ends the run); a principal point outside the image was used, every floor
+    distance wrong. Such intrinsics are refused (not ok, stop) naming the value, and good ones are taken later."""
+    stage = ObstacleStage.from_config(parse_config({"obstacles": {"persist_k": 1, "persist_n": 1}}))
+    rig = StereoRig(PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5), 0.075)
+    disp = ds.render(ds.Scene(0.25, 0.0), rig).disparity
+    img = np.zeros((480, 640), np.uint8)
+    e = stage.process(Frame(img, 0, 1, disparity=disp, meta={"baseline_m": 0.075, "K": K}), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and says in e.info["reason"], e.info["reason"]
+    assert stage.rig is None
+    good = [[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]
+    e = stage.process(Frame(img, FRAME_NS, 2, disparity=disp, meta={"baseline_m": 0.075, "K": good}), Pose2())
+    assert e.ok and stage.rig == rig
+
+
+def test_the_nearest_obstacle_is_looked_for_in_the_stop_zones_width():
+    """The report's nearest obstacle ('in the stop zone's width') was looked for within the narrowest band of
+    any zone: with a wide stop band and a narrow slow band, an obstacle that stopped the robot was 'nowhere'
+    (nearest None). It is looked for within the stop zones' width, as the watched floor is."""
+    zones = [{"name": "stop", "action": "stop", "distance": 0.8, "half_width": 0.5},
+             {"name": "slow", "action": "slow", "distance": 1.5, "half_width": 0.2}]
+    stage = ObstacleStage.from_config(_stage_cfg(zones=zones))
+    box = ds.Scene(0.25, 0.0, boxes=(ds.Box(0.28, 0.42, 0.55, 0.7, 0.05),))     # right of the slow band
+    e = stage.process(Frame(np.zeros((480, 640), np.uint8), 0, 1, disparity=ds.render(box, stage.rig).disparity),
+                      Pose2())
+    assert e.ok and e.info["speed_scale"] == 0.0 and e.info["zones"]["slow"] == 0
+    assert e.value.nearest is not None and e.value.nearest[0] == pytest.approx(0.65, abs=0.03), e.value.nearest
+
+
+def test_obstacles_without_zones_are_refused_at_load():
+    """obstacles.zones: [] was accepted, and building the stage then failed with "max() arg is an empty
+    sequence" (no stop zone to watch the floor of). It is refused at load, naming the key."""
+    with pytest.raises(ConfigError, match=r"robot.yaml: obstacles: zones: at least one zone"):
+        parse_config({"obstacles": {"enabled": True, "zones": []}}, "robot.yaml")
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_zone_polygon_with_a_vertex_that_is_no_number_is_refused_at_load(bad):
+    """A polygon vertex of NaN or inf was accepted: no point is inside such a polygon, so the stop zone never
+    triggered (and its floor outline came out of NaN pixels). It is refused at load, naming the zone."""
+    with pytest.raises(ConfigError, match=r"obstacles\.zones\.0: zone 'p': polygon vertices must be finite"):
+        parse_config({"obstacles": {"zones": [{"name": "p", "polygon": [(-0.3, 0.0), (0.3, 0.0), (bad, 1.0)]}]}},
+                     "robot.yaml")
+
+
+@pytest.mark.parametrize("make,says", [
+    (lambda l, r: (l, r.astype(np.uint16) * 256), "uint8, the right one uint16"),
+    (lambda l, r: (l.astype(np.uint16) * 256, r), "uint16, the right one uint8"),
+    (lambda l, r: (np.dstack([l, l]), r), "shape (480, 640, 2)"),
+])
+def test_a_pair_sgbm_cannot_match_is_blind(make, says):
+    """A pair of two dtypes (8-bit left, 16-bit right) raised cv2.error out of the stage, which ends the run, and
+    the other way round SGBM matched a 16-bit left against an 8-bit right each stretched on its own; a 2-channel
+    image raised ValueError. Each is blind now (not ok, stop), saying why; the next good pair is judged."""
+    stage = ObstacleStage.from_config(_stage_cfg(source="sgbm"))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, _ = ds.textured_pair(clear, stage.rig)
+    bad_left, bad_right = make(left, right)
+    e = stage.process(Frame(bad_left, 0, 1, right=bad_right), Pose2())
+    assert not e.ok and e.info["speed_scale"] == 0.0 and says in e.info["reason"], e.info["reason"]
+    assert stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2()).ok

@@ -182,3 +182,21 @@ def test_sgbm_boxes_sheet_and_step(sgbm_scene):
     assert _flagged(s.labels, lower, PixelClass.NEGATIVE) >= 0.72
     n = nearest_in_corridor(s.obstacle_points, half_width=0.3)
     assert n is not None and n.distance == pytest.approx(2.0, abs=0.1)
+
+
+@pytest.mark.parametrize("piecewise", [False, True], ids=["plane", "piecewise"])
+def test_infinite_disparity_is_unknown_not_ground(piecewise):
+    """An infinite disparity (a depth of 0 turned into disparity, fB / 0) counted as a disparity: a patch of it on
+    a clear floor came out mostly ground (seen clear) with a rim of obstacle pixels at 0 m. It is unknown now,
+    like NaN: the labels and points are those of the same image with NaN there."""
+    from vbnav.vision.ground_model import GroundModelParams
+    D = ds.render(ds.Scene(H, 0.0), RIG).disparity
+    D[380:460, 250:390] = np.inf
+    ground = GroundModelParams() if piecewise else None
+    s = detect_obstacles(D, RIG, PRIOR, ground=ground)
+    assert (s.labels[380:460, 250:390] == PixelClass.UNKNOWN).all()
+    nan = D.copy()
+    nan[380:460, 250:390] = np.nan
+    ref = detect_obstacles(nan, RIG, PRIOR, ground=ground)
+    np.testing.assert_array_equal(s.labels, ref.labels)
+    assert len(s.obstacle_points) == len(ref.obstacle_points) == 0

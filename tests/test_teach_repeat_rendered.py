@@ -413,3 +413,47 @@ def test_colour_frames_are_taken_as_before(world):
     np.testing.assert_array_equal(stage_image(grey[:, :, None], CAM)[0], grey)
     assert "shape (480, 640, 2)" in stage_image(np.zeros((480, 640, 2), np.uint8), CAM)[1]
     assert stage_image(None, CAM, "right image") == (None, "the frame has no right image")
+
+
+def test_teach_skips_a_frame_with_non_finite_odometry(world):
+    """A NaN odometry reading was taken: the distance driven stayed NaN (no keyframe by distance again) and a
+    keyframe started on that frame went into the route with a NaN pose. The frame is not ok now, saying why."""
+    poses = [drive(START, 0.25, 0.0, i / 15) for i in range(40)]
+    frames = _frames(world, poses)
+    stage = TeachStage(CAM, MOUNT, VBCConfig())
+    results = []
+    for i, (f, p) in enumerate(zip(frames, poses)):
+        o = START.between(p)
+        results.append(stage.process(f, Pose2(o.x, float("nan"), o.theta) if i in (0, 20) else o))
+    for i in (0, 20):
+        assert not results[i].ok and "odometry is not finite" in results[i].info["reason"], results[i].info
+    assert all(r.ok for i, r in enumerate(results) if i not in (0, 20))
+    assert math.isfinite(stage._distance)
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    assert len(kfs) >= 3 and all(np.isfinite(k.odom.as_array()).all() for k in kfs)
+
+
+def test_repeat_skips_a_frame_with_non_finite_odometry(world, taught):
+    """A NaN odometry reading reached the fix (its odometry, the gate's prediction): the frame is not ok now,
+    saying why, with a finite pose, and the fixes after it are those of a run without it."""
+    route, _ = taught
+    cam = camera(world)
+    runs = []
+    for with_bad in (False, True):
+        stage = RepeatStage(route, VBCConfig())
+        pose = START.compose(Pose2(0.1, 0.0, 0.05))
+        out = []
+        for i in range(8):
+            odom = Pose2(0.0, 0.02 * i, 0.0)
+            if with_bad and i == 4:
+                odom = Pose2(0.0, float("nan"), 0.0)
+            out.append(stage.process(cam.render_frame(pose, i, i), odom))
+            pose = drive(pose, 0.2, 0.0, 0.1)
+        runs.append(out)
+    good, skipped = runs
+    bad = skipped[4]
+    assert not bad.ok and "odometry is not finite" in bad.info["reason"], bad.info
+    assert np.isfinite(bad.value.pose.as_array()).all()
+    assert all(r.ok and r.value.n_agree > 85 for i, r in enumerate(skipped) if i != 4)
+    np.testing.assert_allclose(skipped[-1].value.pose.as_array(), good[-1].value.pose.as_array(), atol=0.01)

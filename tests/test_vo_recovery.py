@@ -83,3 +83,31 @@ def test_a_clean_run_exits_0_and_the_status_file_is_complete(shared_data, tmp_pa
     assert len(rows) == 8 and {r[1] for r in rows} <= {"init", "tracked"}
     assert all(int(r[2]) > 0 for r in rows)  # landmarks
     assert main(["vo", str(view), "--out", str(tmp_path / "t.txt"), "--max-lost", "1.5"]) == 2
+
+
+def test_a_black_first_stereo_frame_is_lost_not_the_start(shared_data, tmp_path):
+    """--init stereo on a sequence whose first pair is black (lens cap just off): the front end was
+    initialised on it with 0 landmarks, the frame written as 'init' with a pose, and the next frame re-started
+    at that same pose though the car had driven on. The black frame is lost now, and the next pair starts."""
+    import cv2
+
+    src = shared_data / "kitti06_stereo"
+    seq = tmp_path / "seq"
+    for side in ("image_l", "image_r"):
+        (seq / side).mkdir(parents=True)
+        for i in range(12):                   # 1 lost frame of 12: within --max-lost 0.1
+            out = seq / side / f"{i:06d}.png"
+            if i == 0:
+                cv2.imwrite(str(out), np.zeros((370, 1226), np.uint8))
+            else:
+                out.symlink_to(src / side / f"{i:06d}.png")
+    (seq / "calib.txt").symlink_to(src / "calib.txt")
+    (seq / "poses.txt").write_text("\n".join((src / "poses.txt").read_text().splitlines()[:12]) + "\n")
+    status = tmp_path / "status.txt"
+    rc = main(["vo", str(seq), "--init", "stereo", "--out", str(tmp_path / "traj.txt"), "--status-out", str(status),
+               "--quiet"])
+    states = [line.split()[1] for line in status.read_text().splitlines() if not line.startswith("#")]
+    assert states == ["lost", "init"] + ["tracked"] * 10, states
+    assert rc == 0
+    poses = [line for line in (tmp_path / "traj.txt").read_text().splitlines() if not line.startswith("#")]
+    assert len(poses) == 11 and poses[0].startswith("0.100000 ")     # from frame 1 (0.1 s) on

@@ -231,6 +231,12 @@ VSLAM_BAD_FRAMES = {
     "half-size-disparity": (lambda f: Frame(f.image, f.stamp_ns, f.seq,
                                             None if f.disparity is None else f.disparity[::2, ::2].copy(),
                                             f.right, f.meta), "the disparity image has shape (120, 160)"),
+    # an OAK's raw fixed-point disparity (3 subpixel bits) passed on unscaled: depths 8 times too near, a
+    # VSLAM at an eighth of the scale, ok
+    "uint16-disparity": (lambda f: Frame(f.image, f.stamp_ns, f.seq,
+                                         None if f.disparity is None else
+                                         (np.nan_to_num(f.disparity) * 8).astype(np.uint16), f.right, f.meta),
+                         "the disparity image is uint16"),
 }
 
 
@@ -247,7 +253,7 @@ def test_a_frame_of_another_format_is_not_ok_and_the_stage_carries_on(kind):
     poses = [start]
     for _ in range(15):
         poses.append(arc_step(poses[-1], 0.03, 0.0))
-    disparity_only = kind == "half-size-disparity"
+    disparity_only = kind.endswith("-disparity")
     stage = (VslamStage(model, mount, None, VslamNavConfig(), baseline_from_frames=True) if disparity_only
              else VslamStage(model, mount, 0.12, VslamNavConfig()))
     results = []
@@ -400,3 +406,66 @@ def test_guided_matches_pick_the_nearest_descriptor_inside_the_radius_once():
     # landmark 0 -> corner 0 (corner 1 is as similar but outside the radius); 1 -> 2 (3 is near but unlike);
     # landmark 2's twin is 280 px away: no match
     assert lm.tolist() == [0, 1] and cn.tolist() == [0, 2]
+
+
+def test_a_frame_with_non_finite_odometry_is_not_ok_and_the_stage_carries_on():
+    """A NaN odometry reading (a drive reporting a NaN encoder position) made an ok fix whose odometry was NaN:
+    the goto controller's fusion took it as its anchor and every later pose was NaN; the distance travelled
+    stayed NaN for the run (relocalise_min_travel_m then never held anchors back). That frame is not ok now,
+    saying why, at the last good pose, and the frames after it are ok again."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    mount = CameraMount(0.25, 0.1)
+    start = Pose2(-1.5, -2.5, 0.0)
+    cam = SimCamera(World.room(0), model, mount, lambda: start, clock=None, rate_hz=10, noise_std=2.0,
+                    stereo_baseline=0.12)
+    poses = [start]
+    for _ in range(10):
+        poses.append(arc_step(poses[-1], 0.03, 0.0))
+    stage = VslamStage(model, mount, 0.12, VslamNavConfig())
+    results = []
+    for i, (f, p) in enumerate(zip(_render(cam, poses), poses)):
+        odom = start.between(p)
+        if i in (0, 5):
+            odom = Pose2(float("nan"), odom.z, odom.theta)
+        results.append(stage.process(f, odom))
+    for i in (0, 5):
+        r = results[i]
+        assert not r.ok and "odometry" in r.info["reason"], (i, r.info)
+        assert np.isfinite(r.value.pose.as_array()).all()
+    assert all(r.ok for i, r in enumerate(results) if i not in (0, 5))
+    assert math.isfinite(stage._travelled)
+    truth, got = start.between(poses[-1]), results[-1].value.pose
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+
+
+@pytest.mark.parametrize("baseline", [float("nan"), float("inf")])
+def test_a_frame_baseline_that_is_no_distance_is_refused_like_a_missing_one(baseline):
+    """meta['baseline_m'] NaN or inf was taken as the baseline: every depth NaN (or 0), and the stage said on
+    every frame that it found no landmarks, never that the baseline was wrong. It is refused like a missing
+    one, naming the value."""
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
+    disp = np.full((240, 320), 4.0, np.float32)
+    with pytest.raises(ValueError, match=f"baseline_m.*{baseline}"):
+        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0, disparity=disp, meta={"baseline_m": baseline}),
+                      Pose2())
+
+
+def test_monocular_start_spreads_its_corners_over_vslam_detect_cells():
+    """vslam.detect_cells spread the front end's new corners over the image, but not the monocular start's: its
+    first view's corners (the landmarks it starts with) were ranked over the whole image at once, all of them on
+    the bright textured half. They are spread like the front end's now."""
+    import cv2
+    model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    blobs = cv2.GaussianBlur(np.random.default_rng(3).uniform(0, 1, (240, 320)).astype(np.float32), (0, 0), 2.0)
+    blobs = (blobs - blobs.mean()) / blobs.std() / 3.0           # texture of about +-1 (3 sigma)
+    image = np.where(np.arange(320)[None, :] < 160, 128 + 120 * blobs, 128 + 8 * blobs).clip(0, 255).astype(np.uint8)
+    dim_share = {}
+    for cells in (0, 16):
+        stage = VslamStage(model, CameraMount(0.25, 0.1), None, VslamNavConfig(metric_scale="odometry",
+                                                                              detect_cells=cells))
+        est = stage.process(Frame(image, 0, 0), Pose2())
+        assert not est.ok and est.value.quality["initialising"] == "monocular"
+        dim_share[cells] = float(np.mean(stage._mono.px0[:, 0] >= 160))
+    assert dim_share[0] < 0.05 and dim_share[16] > 0.3, dim_share
+

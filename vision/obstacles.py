@@ -231,7 +231,11 @@ def detect_obstacles(disparity: np.ndarray, rig: StereoRig, prior: Optional[Disp
     """Fit the ground, label every pixel and list obstacle points on the floor.
 
     The ground is one plane, or with ``ground`` (and a mounting ``prior``) the piecewise model
-    of vision/ground_model.py; ``scene.fit`` is then its near band's fit."""
+    of vision/ground_model.py; ``scene.fit`` is then its near band's fit. An infinite disparity (a depth
+    of 0 turned into disparity) is unknown, like NaN."""
+    inf = np.isinf(disparity)
+    if inf.any():
+        disparity = np.where(inf, np.float32(np.nan), disparity)
     model = None
     if ground is not None and prior is not None:
         model = fit_ground_model(disparity, rig, prior, fit_params, ground)

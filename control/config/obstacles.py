@@ -1,6 +1,7 @@
 """The ``obstacles:`` section: ground-plane suppression and the stop/slow zones."""
 from __future__ import annotations
 
+import math
 from typing import Literal, Optional
 
 from pydantic import Field, model_validator
@@ -28,6 +29,8 @@ class ZoneConfig(Strict):
             raise ValueError(f"zone {self.name!r}: a band needs both distance and half_width (or give polygon)")
         if self.polygon is not None and len(self.polygon) < 3:
             raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
+        if self.polygon is not None and not all(math.isfinite(v) for vertex in self.polygon for v in vertex):
+            raise ValueError(f"zone {self.name!r}: polygon vertices must be finite numbers, m")
         return self
 
 
@@ -86,6 +89,9 @@ class ObstaclesConfig(Strict):
             raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        if not self.zones:
+            raise ValueError("zones: at least one zone (the stage watches the floor of the stop zones; without "
+                             "zones it could never slow or stop the robot)")
         names = [z.name for z in self.zones]
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:

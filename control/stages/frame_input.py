@@ -11,9 +11,14 @@ next frame (a camera renegotiating its size after a reconnect delivers good fram
   frame is refused naming both sizes; no resize, which would silently need another calibration.
 - Another dtype than uint8 (a 16-bit or float stream): refused naming the dtype. There is no clearly
   right conversion (a 16-bit image may hold 10, 12 or 16 significant bits, a float one 0-1 or 0-255).
+
+The frame's odometry (``odometry_problem``) is checked the same way: a pose with a NaN or infinite
+coordinate (a drive reporting a NaN encoder position) cannot place the frame, and a fix or keyframe
+taken at it would carry the NaN into the controllers and the route.
 """
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import numpy as np
@@ -40,3 +45,12 @@ def stage_image(image: Optional[np.ndarray], camera, what: str = "image") -> tup
         return None, (f"the {what} is {w}x{h}, the camera calibration is for {int(camera.width)}x"
                       f"{int(camera.height)}")
     return image, ""
+
+
+def odometry_problem(odom) -> str:
+    """"" when the odometry pose of a frame is finite, else why the frame cannot be used with it."""
+    values = (odom.x, odom.z, odom.theta)
+    if all(math.isfinite(v) for v in values):
+        return ""
+    return (f"the odometry is not finite (x {values[0]}, z {values[1]}, theta {values[2]}): the frame cannot "
+            "be placed")

@@ -23,11 +23,13 @@ import queue
 import threading
 import time
 from collections import deque
+from types import SimpleNamespace
 from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
+from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_abstraction import AbstractionParams, missing_lines, object_polygons
@@ -123,6 +125,7 @@ class LineMapStage(VisionStage):
                  floor: bool = True):
         self.cam = (fx, fy, cx, cy)
         self.size = (width, height)
+        self._frame_size = SimpleNamespace(width=width, height=height)    # what stage_image checks frames against
         self.baseline = baseline
         self.mount = mount
         self.line_params = line_params
@@ -177,7 +180,8 @@ class LineMapStage(VisionStage):
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         if self.abstraction is not None:
             self.abstraction.check()
-        why = self._unusable(frame)
+        left, right, why = self._images(frame)
+        why = why or odometry_problem(odom)
         if why:
             # One frame without its right image (or of another size) is no fault of the run: not ok, the
             # map is left as it is and the next frame goes on. A camera with no stereo baseline at all is
@@ -197,12 +201,12 @@ class LineMapStage(VisionStage):
                 self.revision += 1
             pred = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H)
         prior_fn = (lambda segs: self.map.prior_for(segs, pred)) if self.guided else None
-        res = reconstruct_pair(frame.image, frame.right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
+        res = reconstruct_pair(left, right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
         segs = res.segments
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         if self.floor:
             # Near-horizontal segments on the floor (box and wall feet): the known floor plane, checked in the pair.
-            segs = Segments3D.concat([segs, floor_segments(res.left, frame.image, frame.right, K, self.baseline, R, t)])
+            segs = Segments3D.concat([segs, floor_segments(res.left, left, right, K, self.baseline, R, t)])
         if self.motion:
             # Near-horizontal segments (no disparity of their own) from the robot's motion since the keyframe.
             if self._key is not None:
@@ -227,17 +231,17 @@ class LineMapStage(VisionStage):
                          "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
                          "predicted": len(pred)})
 
-    def _unusable(self, frame: Frame) -> str:
-        """Why the line map cannot use this frame ("" when it can): no right image, or an image of another size
-        than the camera's calibration (the segments would be triangulated with the wrong intrinsics)."""
+    def _images(self, frame: Frame) -> tuple[Optional[np.ndarray], Optional[np.ndarray], str]:
+        """(left, right, "") as the line map takes them (``stage_image``: HxW grey uint8 of the camera's size;
+        colour and HxWx1 made grey), or (None, None, why the line map cannot use this frame): no right image,
+        an image of another size than the camera's calibration (the segments would be triangulated with the
+        wrong intrinsics), or of another dtype than uint8."""
         if frame.right is None:
-            return "the frame has no right image (the line map needs a stereo pair)"
-        W, H = self.size
-        for what, image in (("image", frame.image), ("right image", frame.right)):
-            h, w = np.shape(image)[:2]
-            if (w, h) != (W, H):
-                return f"the {what} is {w}x{h}, the camera calibration is for {W}x{H}"
-        return ""
+            return None, None, "the frame has no right image (the line map needs a stereo pair)"
+        left, why = stage_image(frame.image, self._frame_size, "image")
+        right, why_right = stage_image(frame.right, self._frame_size, "right image")
+        why = why or why_right
+        return (None, None, why) if why else (left, right, "")
 
     def _drain_hypotheses(self) -> int:
         """Insert the hypotheses the slow loop posted; returns how many."""

@@ -200,11 +200,21 @@ def stop_zone_outline(camera, mount, half_width: float, max_range: float, near: 
 MIN_SEEN_FRACTION = 0.5
 
 
+def _stop_zones(zones) -> list:
+    """The stop zones (all zones when none stops)."""
+    return [z for z in zones if z.action == "stop"] or list(zones)
+
+
+def stop_half_width(zones) -> float:
+    """The widest half-width of the stop zones (a polygon's: its largest |x|), m."""
+    return max((z.half_width if z.polygon is None else max(abs(x) for x, _ in z.polygon)) for z in _stop_zones(zones))
+
+
 def watched_floor(camera, mount, zones) -> Optional[np.ndarray]:
     """(H, W) bool: the pixels that see the floor under the stop zones (the corridor of their widest
     half-width out to their farthest point, from 0.3 m), None if none of it is in view."""
-    stops = [z for z in zones if z.action == "stop"] or list(zones)
-    half = max((z.half_width if z.polygon is None else max(abs(x) for x, _ in z.polygon)) for z in stops)
+    stops = _stop_zones(zones)
+    half = stop_half_width(zones)
     far = max((z.distance if z.polygon is None else max(zz for _, zz in z.polygon)) for z in stops)
     outline = stop_zone_outline(camera, mount, half, far)
     if len(outline) < 3:
@@ -248,7 +258,7 @@ class ObstacleStage(VisionStage):
         self.ground = ground_model_params(c)
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
-        self._stop_half_width = min((z.half_width for z in self.cfg.zones if z.half_width), default=0.25)
+        self._stop_half_width = stop_half_width(self.cfg.zones)
         self._camera = camera
         self.watched: Optional[np.ndarray] = None   # the stop zones' floor in the image (with the rig)
         self.rig: Optional[StereoRig] = None
@@ -266,14 +276,30 @@ class ObstacleStage(VisionStage):
         nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
         self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
 
-    def _rig_for(self, frame: Frame) -> Optional[StereoRig]:
-        if self.rig is None and frame.meta.get("baseline_m"):
-            camera = self._camera
-            K = frame.meta.get("K")
-            if K is not None:
-                camera = replace(camera, fx=float(K[0][0]), fy=float(K[1][1]), cx=float(K[0][2]), cy=float(K[1][2]))
-            self._set_rig(StereoRig(camera, float(frame.meta["baseline_m"])))
-        return self.rig
+    def _rig_for(self, frame: Frame) -> tuple[Optional[StereoRig], str]:
+        """(the stereo rig, ""), from the first frame whose meta['baseline_m'] is a finite distance > 0 (and
+        meta['K'], if given, intrinsics of this image size) when the configuration gave none; else (None, why
+        this frame gives none)."""
+        if self.rig is not None:
+            return self.rig, ""
+        b = frame.meta.get("baseline_m")
+        if b is None:
+            return None, ""
+        if not (b and math.isfinite(b) and b > 0):
+            return None, f": the frame's meta['baseline_m'] is {b}, not a distance > 0"
+        camera = self._camera
+        K = frame.meta.get("K")
+        if K is not None:
+            fx, fy, cx, cy = (float(v) for v in (K[0][0], K[1][1], K[0][2], K[1][2]))
+            bad = [f"{n} {v}" for n, v, ok in (("fx", fx, fx > 0), ("fy", fy, fy > 0),
+                                               ("cx", cx, 0 <= cx < camera.width),
+                                               ("cy", cy, 0 <= cy < camera.height)) if not ok]
+            if bad:
+                return None, (f": the frame's meta['K'] is no camera of {camera.width}x{camera.height} "
+                              f"({', '.join(bad)})")
+            camera = replace(camera, fx=fx, fy=fy, cx=cx, cy=cy)
+        self._set_rig(StereoRig(camera, float(b)))
+        return self.rig, ""
 
     @classmethod
     def from_config(cls, cfg, keep_labels: bool = False) -> "ObstacleStage":
@@ -293,13 +319,32 @@ class ObstacleStage(VisionStage):
         self.monitor.blind(why)
         return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
 
-    def disparity(self, frame: Frame) -> Optional[np.ndarray]:
+    def _sgbm_pair(self, frame: Frame) -> bool:
+        """Whether this frame's disparity comes from SGBM on its stereo pair."""
         src = self.cfg.source
         if src in ("auto", "disparity") and frame.disparity is not None:
-            return frame.disparity
-        if src in ("auto", "sgbm") and frame.right is not None:
+            return False
+        return src in ("auto", "sgbm") and frame.right is not None
+
+    @staticmethod
+    def _pair_problem(frame: Frame) -> str:
+        """Why SGBM cannot match this frame's pair ("" when it can): images of two sizes or dtypes (each
+        would be stretched to 8 bits on its own, or OpenCV refuses them), or not HxW grey / HxWx3 BGR / HxWx4."""
+        left, right = np.asarray(frame.image), np.asarray(frame.right)
+        for what, im in (("left", left), ("right", right)):
+            if not (im.ndim == 2 or (im.ndim == 3 and im.shape[2] in (1, 3, 4))):
+                return f"the {what} image has shape {im.shape}, not HxW grey or HxWx3 BGR"
+        if left.shape[:2] != right.shape[:2]:
+            (lh, lw), (rh, rw) = left.shape[:2], right.shape[:2]
+            return f"the left image is {lw}x{lh}, the right one {rw}x{rh}"
+        if left.dtype != right.dtype:
+            return f"the left image is {left.dtype}, the right one {right.dtype}"
+        return ""
+
+    def disparity(self, frame: Frame) -> Optional[np.ndarray]:
+        if self._sgbm_pair(frame):
             return sgbm_disparity(frame.image, frame.right, self.sgbm)
-        return None
+        return frame.disparity if self.cfg.source in ("auto", "disparity") else None
 
     def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
         """The stop corridor once the stereo rig is known, and the obstacle labels of ``estimate``
@@ -311,15 +356,31 @@ class ObstacleStage(VisionStage):
         return StageOverlay(stop_zone=zone, obstacle_labels=None if report is None else report.labels)
 
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
-        if self._rig_for(frame) is None:
+        rig, got = self._rig_for(frame)
+        if rig is None:
             return Estimate(frame.stamp_ns, self.kind, False, None, {
-                "speed_scale": 0.0, "reason": "obstacles: no stereo baseline (set obstacles.baseline or "
+                "speed_scale": 0.0, "reason": f"obstacles: no stereo baseline{got} (set obstacles.baseline or "
                                               "camera.options.stereo_baseline, or use a camera reporting "
                                               "meta['baseline_m'])"})
+        why = self._pair_problem(frame) if self._sgbm_pair(frame) else ""
+        if why:
+            return self._blind(frame, f"obstacles: blind: {why}: no stereo matching between them")
         disp = self.disparity(frame)
         if disp is None:
             # No depth at all: blind, so stop (a stale or missing stage would stop the robot too).
-            return self._blind(frame, "obstacles: frame has no disparity and no right image")
+            src = self.cfg.source
+            if src == "disparity" and frame.right is not None:
+                why = "obstacles: frame has no disparity (obstacles.source is disparity: its right image is not used)"
+            elif src == "sgbm" and frame.disparity is not None:
+                why = "obstacles: frame has no right image (obstacles.source is sgbm: its disparity is not used)"
+            else:
+                why = "obstacles: frame has no disparity and no right image"
+            return self._blind(frame, why)
+        if not np.issubdtype(disp.dtype, np.floating):
+            # Frame.disparity is float pixels: an integer one is a raw device format whose scale is not
+            # known here (an OAK's has 3 subpixel bits); taken as pixels, the floor stands above the plane.
+            return self._blind(frame, f"obstacles: blind: the disparity is {disp.dtype}, the stage takes "
+                                      "disparity in pixels as floats (NaN unknown)")
         if disp.shape != (self.rig.height, self.rig.width):
             # The zones are laid out for the configured size: a frame of another one cannot be judged.
             return self._blind(frame, f"obstacles: blind: the disparity is {disp.shape[1]}x{disp.shape[0]}, the "

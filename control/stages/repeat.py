@@ -25,7 +25,7 @@ import numpy as np
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.route import Route
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import stage_image
+from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.control.stages.vbc_fix import VBCFix, bearing_sigma
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import azimuth_elevation, rays_from_angles
@@ -106,7 +106,8 @@ class RepeatStage(VisionStage):
     # -- image path
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image, why = stage_image(frame.image, self.camera)
-        if image is None:
+        why = why or odometry_problem(odom)
+        if why:
             return self._unusable(frame, odom, f"repeat: {why}")
         if self._started:
             self.tracker.track(image)
@@ -143,9 +144,15 @@ class RepeatStage(VisionStage):
         return est
 
     def _unusable(self, frame: Frame, odom: Pose2, why: str) -> Estimate:
-        """A frame the stage cannot use (another size or dtype): not ok, no landmarks agree, at the pose
-        the last fix carried by odometry predicts; tracks and keyframe stay those of the last good frame."""
-        pose = self._pose.compose(self._odom.between(odom)) if self._pose is not None else Pose2()
+        """A frame the stage cannot use (another size or dtype, odometry that is not finite): not ok, no
+        landmarks agree, at the pose the last fix carried by odometry predicts (the last fix's pose itself
+        when odometry is not finite); tracks and keyframe stay those of the last good frame."""
+        if self._pose is None:
+            pose = Pose2()
+        elif odometry_problem(odom):
+            pose = self._pose
+        else:
+            pose = self._pose.compose(self._odom.between(odom))
         fix = VBCFix(self.index, pose, odom, 0, {}, self.finished)
         return Estimate(frame.stamp_ns, self.kind, False, fix, {"keyframe": self.index, "n_agree": 0,
                                                                  "tracked": 0, "reason": why})

@@ -24,7 +24,7 @@ import numpy as np
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.route import Keyframe
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import stage_image
+from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.control.stages.vbc_fix import bearing_sigma
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import FeatureTracker, describe
@@ -66,8 +66,10 @@ class TeachStage(VisionStage):
 
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image, why = stage_image(frame.image, self.camera)
-        if image is None:
-            # Another size or dtype: not ok, the tracks wait for the next usable frame.
+        why = why or odometry_problem(odom)
+        if why:
+            # Another size or dtype, or no odometry to place it: not ok, the tracks wait for the next
+            # usable frame.
             return Estimate(frame.stamp_ns, self.kind, False, None,
                             {"tracks": len(self.tracker.tracks), "keyframes": self._count,
                              "distance": self._distance, "reason": f"teach: {why}"})

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.control.runtime.interfaces import Estimate, PoseFix, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import stage_image
+from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
@@ -172,11 +172,16 @@ class VslamStage(VisionStage):
     # -- per frame
     def process(self, frame: Frame, odom: Pose2) -> Estimate:
         image, why = stage_image(frame.image, self.camera)
+        odom_why = odometry_problem(odom)
+        why = why or odom_why
         if self.baseline is None and not self.monocular:
             b = (frame.meta or {}).get("baseline_m")
-            if not b or b <= 0:
+            if not b:
                 raise ValueError("the VSLAM stage needs the stereo baseline: the camera's frames carry no "
                                  "meta['baseline_m'] (set camera.options.stereo_baseline)")
+            if not (math.isfinite(b) and b > 0):
+                raise ValueError(f"the VSLAM stage needs the stereo baseline: the camera's frames carry "
+                                 f"meta['baseline_m'] {b}, not a distance > 0 (set camera.options.stereo_baseline)")
             self.baseline = float(b)
             self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
         right, depth = None, None
@@ -186,9 +191,10 @@ class VslamStage(VisionStage):
             right, depth, why = self._metric_input(frame)
         self._frames += 1
         self.stats["frames"] += 1
-        if self._last_odom is not None:
-            self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
-        self._last_odom = odom
+        if not odom_why:
+            if self._last_odom is not None:
+                self._travelled += math.hypot(odom.x - self._last_odom.x, odom.z - self._last_odom.z)
+            self._last_odom = odom
         if why:
             return self._unusable(frame, odom, why)
         if not self.slam.initialised:
@@ -274,7 +280,7 @@ class VslamStage(VisionStage):
         pose odometry gives (the go-to controller creeps ahead for the parallax)."""
         cfg, m = self.cfg, self._mono
         if m is None:
-            px0 = self.slam.tracker.detect(image, cfg.max_landmarks)
+            px0 = self.slam.tracker.detect(image, cfg.max_landmarks, cells=cfg.detect_cells)
             self._mono = _MonocularStart(px0, px0.copy(), np.ones(len(px0), bool), image, odom, pose0_wc)
             return self._estimate(frame, odom, False, pose0_wc, 0, None, {"initialising": "monocular"})
         idx = np.flatnonzero(m.keep)
@@ -344,7 +350,13 @@ class VslamStage(VisionStage):
             right, why = stage_image(frame.right, self.camera, "right image")
             return right, None, f"vslam: {why}" if why else ""
         if frame.disparity is not None:
-            d = np.asarray(frame.disparity, np.float32)
+            d = np.asarray(frame.disparity)
+            if not np.issubdtype(d.dtype, np.floating):
+                # Frame.disparity is float pixels: an integer one is a raw device format (an OAK's has 3
+                # subpixel bits) whose scale is not known here, and taken as pixels it scales every depth.
+                return None, None, (f"vslam: the disparity image is {d.dtype}, the stage takes disparity in "
+                                    "pixels as floats (NaN unknown)")
+            d = d.astype(np.float32, copy=False)
             if d.shape != (self.camera.height, self.camera.width):
                 return None, None, (f"vslam: the disparity image has shape {d.shape}, the camera calibration "
                                     f"is for {self.camera.width}x{self.camera.height}")
@@ -357,10 +369,14 @@ class VslamStage(VisionStage):
 
     def _unusable(self, frame: Frame, odom: Pose2, why: str) -> Estimate:
         """The estimate for a frame the VSLAM cannot use (``why``): not ok, at the last good pose carried
-        by odometry (odometry before the first). The front end's state stays that of the last good frame,
-        so the next usable frame continues from there (or restarts once it is lost)."""
+        by odometry (odometry before the first; the last good pose itself when odometry is not finite). The
+        front end's state stays that of the last good frame, so the next usable frame continues from there
+        (or restarts once it is lost)."""
         self.stats["unusable"] += 1
-        guess = self.pose_at(odom) or odom
+        if odometry_problem(odom):
+            guess = self._good[0] if self._good is not None else Pose2()
+        else:
+            guess = self.pose_at(odom) or odom
         est = self._estimate(frame, odom, False, robot_to_camera_matrix(guess, self.mount), 0, None,
                              {"unusable": why})
         est.info["reason"] = why
