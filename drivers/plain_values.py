@@ -5,10 +5,12 @@ pydantic's lax mode turns ``max_linear_speed: true`` into 1.0 m/s (twice a 0.5 d
 number is a string) then runs the robot on a value nobody wrote. Full strict mode would also refuse
 what YAML cannot give otherwise (lists for tuples, strings for paths and enums), so this mixin refuses
 only the two silent conversions: a bool or a string for a number, a string or a number for a bool.
-Integers stay accepted for floats (``fx: 400``).
+Integers stay accepted for floats (``fx: 400``). A number must be finite: no setting means anything
+by .inf or .nan, and .inf slips past a lower bound to switch off what it sets.
 """
 from __future__ import annotations
 
+import math
 import types
 import typing
 
@@ -40,6 +42,10 @@ def refused_conversion(annotation, value) -> str | None:
     if str in kinds or typing.Any in kinds:
         return None
     numeric = bool(kinds & {int, float})
+    if numeric and isinstance(value, float) and not math.isfinite(value):
+        # .inf passes a lower bound and disables what it sets (obstacles.obstacle_height: .inf, no obstacle
+        # is ever tall enough; vbc.fix_gate_m: .inf, no gate); .nan passes no bound but reads as a number
+        return f"expected a finite number, not {value}"
     if numeric and bool not in kinds:
         if isinstance(value, bool):
             return "expected a number, not true/false"

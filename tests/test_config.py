@@ -24,6 +24,10 @@ def write(tmp_path, text: str) -> Path:
     ("robot:\n  wheel_radius: fast\n", "robot.wheel_radius", "valid number"),
     # lax pydantic read these as 1.0 m/s, 15 Hz, 0.2 m and False: values nobody wrote
     ("robot:\n  max_linear_speed: true\n", "robot.max_linear_speed", "expected a number, not true/false"),
+    # .inf passed the lower bounds and switched off what it set: no obstacle is ever taller, no fix gate
+    ("obstacles:\n  obstacle_height: .inf\n", "obstacles.obstacle_height", "expected a finite number, not inf"),
+    ("vbc:\n  fix_gate_m: .inf\n", "vbc.fix_gate_m", "expected a finite number, not inf"),
+    ("vbc:\n  tilt_smoothing: .nan\n", "vbc.tilt_smoothing", "expected a finite number, not nan"),
     ("camera:\n  rate_hz: '15'\n", "camera.rate_hz", "not the text '15'"),
     ("vbc:\n  fix_gate_m: '0.2'\n", "vbc.fix_gate_m", "not the text '0.2'"),
     ("vslam:\n  min_parallax_px: yes\n", "vslam.min_parallax_px", "not true/false"),
