@@ -197,7 +197,8 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
 
     def describe(d, f):
         return (f"{d['model']} {d['width']}x{d['height']} fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} "
-                f"cy {d['cy']:.1f}" + (f" from {f}" if f else ""))
+                f"cy {d['cy']:.1f} distortion {d['dist'] if any(d['dist']) else 'none'}"
+                + (f" from {f}" if f else ""))
     problem = None
     if taught["model"] != now["model"]:
         problem = "another lens model"
@@ -205,10 +206,24 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
         problem = "another image size"
     elif any(abs(taught[k] - now[k]) > INTRINSICS_AGREEMENT * taught["fx"] for k in ("fx", "fy", "cx", "cy")):
         problem = f"other intrinsics (beyond {INTRINSICS_AGREEMENT:.0%} of fx)"
+    elif _distortion_bend(route.camera, camera) > INTRINSICS_AGREEMENT:
+        problem = (f"another lens distortion (it turns a pixel at the image border into a ray more than "
+                   f"{INTRINSICS_AGREEMENT:.2f} rad from the taught one)")
     if problem:
         raise RouteError(f"{route.path}: taught with camera {describe(taught, tf)}; {config_source} has "
                          f"{problem}: {describe(now, cf)}. Repeat with the configuration the route was taught "
                          f"with, or teach the route again")
+
+
+def _distortion_bend(taught, camera) -> float:
+    """The largest angle (rad) between the rays the two distortions give the same pixel of the image border
+    (corners and edge midpoints), with the taught intrinsics for both: what the distortion alone changes."""
+    w, h = taught.width - 1, taught.height - 1
+    px = np.array([(u, v) for u in (0, w / 2, w) for v in (0, h / 2, h)], float)
+    same_k = type(taught)(taught.width, taught.height, taught.fx, taught.fy, taught.cx, taught.cy, camera.dist)
+    cos = np.clip(np.sum(taught.rays(px) * same_k.rays(px), axis=1), -1.0, 1.0)
+    bend = np.arccos(cos)
+    return float(np.max(bend)) if np.all(np.isfinite(bend)) else math.inf
 
 
 # -- replacing a route ---------------------------------------------------------------------------
