@@ -45,9 +45,10 @@ VERSION = 1
 MANIFEST = "manifest.json"
 _TMP = ".tmp"
 
-#: npz arrays of a keyframe: name -> (dtype kind, trailing shape); N is the landmark count.
+#: npz arrays of a keyframe: name -> (dtype kind, or the exact dtype, trailing shape); N is the landmark count.
+#: ORB descriptors must be uint8: the matcher refuses another type (an OpenCV assertion mid-repeat).
 _LANDMARK_FIELDS = {
-    "pixels": ("f", (2,)), "alpha": ("f", ()), "beta": ("f", ()), "descriptors": ("u", (32,)),
+    "pixels": ("f", (2,)), "alpha": ("f", ()), "beta": ("f", ()), "descriptors": ("uint8", (32,)),
     "inv_height": ("f", ()), "inv_height_var": ("f", ()), "track_ids": ("i", ()),
 }
 
@@ -514,9 +515,10 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
                                 "one integer (ns)" if kind == "i" else "one number"))
     for k, (kind, trailing) in _LANDMARK_FIELDS.items():
         a = data[k]
-        if a.shape != (n,) + trailing or a.dtype.kind != kind:
+        if a.shape != (n,) + trailing or (a.dtype.kind != kind if len(kind) == 1 else a.dtype != np.dtype(kind)):
             raise RouteError(f"{path}: array {k!r} has shape {a.shape} dtype {a.dtype}, "
-                             f"expected shape {(n,) + trailing} of kind {kind!r}")
+                             f"expected shape {(n,) + trailing} of " + (f"kind {kind!r}" if len(kind) == 1
+                                                                         else f"dtype {kind}"))
     if data["odom"].shape != (3,) or not np.all(np.isfinite(data["odom"])):
         raise RouteError(f"{path}: 'odom' must be 3 finite numbers (x, z, theta)")
     if not math.isfinite(float(data["distance"])):

@@ -110,3 +110,16 @@ def test_repeat_of_an_incomplete_route_warns_how_much_exists(tmp_path):
     r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "repeat", "--path", str(tmp_path / "r"),
                         "--duration", "0.1"], capture_output=True, text=True, timeout=120)
     assert "warning" in r.stderr and "incomplete" in r.stderr and "3 keyframes over 1.00 m exist" in r.stderr, r.stderr
+
+
+def test_descriptors_of_another_type_are_refused(tmp_path, rng):
+    """ORB descriptors are uint8: uint16 ones passed (kind 'u') and the repeat's matcher raised an OpenCV
+    assertion at that keyframe; ``vbnav route check`` called the route intact."""
+    write_route(tmp_path / "r", rng)
+    npz = tmp_path / "r" / "kf_00001.npz"
+    with np.load(npz) as z:
+        d = z["descriptors"].astype(np.uint16)
+    _edit_npz(npz, descriptors=d)
+    with pytest.raises(RouteError, match=r"kf_00001.npz: array 'descriptors' has shape \(20, 32\) dtype uint16, "
+                                         r"expected shape \(20, 32\) of dtype uint8"):
+        load_route(tmp_path / "r")
