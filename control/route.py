@@ -466,13 +466,16 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
         if not p.is_file():
             raise RouteError(f"{p}: missing keyframe file (listed in {mpath.name} keyframes[{i}])")
     image = None
+    size, depth, colour = _png_header(img_path)
     if load_images:
         image = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise RouteError(f"{img_path}: not a readable PNG image")
         size = (image.shape[1], image.shape[0])
-    else:
-        size = _png_size(img_path)
+    if depth != 8 or colour not in _PNG_COLOURS:
+        raise RouteError(f"{img_path}: keyframes[{i}] image is {depth}-bit with "
+                         f"{_PNG_COLOURS.get(colour, f'PNG colour type {colour}')}, expected an 8-bit grey or "
+                         f"colour image (the repeat's tracker reads no other)")
     if size != (camera.width, camera.height):
         raise RouteError(f"{img_path}: keyframes[{i}] image is {size[0]}x{size[1]}, the route's camera is "
                          f"{camera.width}x{camera.height}")
@@ -491,13 +494,17 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
                     int(data["stamp_ns"]))
 
 
-def _png_size(path: Path) -> tuple[int, int]:
-    """(width, height) from a PNG's header, without decoding the image."""
+#: PNG colour types of a keyframe image (what cv2.imencode writes for 8-bit grey and BGR images).
+_PNG_COLOURS = {0: "1 channel (grey)", 2: "3 channels (colour)"}
+
+
+def _png_header(path: Path) -> tuple[tuple[int, int], int, int]:
+    """((width, height), bit depth, colour type) from a PNG's header, without decoding the image."""
     with open(path, "rb") as f:
-        head = f.read(24)
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        head = f.read(26)
+    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         raise RouteError(f"{path}: not a readable PNG image")
-    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return (int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")), head[24], head[25]
 
 
 def _check_landmarks(path: Path, data: dict, which: str) -> int:

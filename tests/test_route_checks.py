@@ -123,3 +123,16 @@ def test_descriptors_of_another_type_are_refused(tmp_path, rng):
     with pytest.raises(RouteError, match=r"kf_00001.npz: array 'descriptors' has shape \(20, 32\) dtype uint16, "
                                          r"expected shape \(20, 32\) of dtype uint8"):
         load_route(tmp_path / "r")
+
+
+@pytest.mark.parametrize("load_images", [True, False])
+@pytest.mark.parametrize("image,what", [(np.full((48, 64), 5000, np.uint16), "16-bit"),
+                                        (np.zeros((48, 64, 4), np.uint8), "4 channels")])
+def test_keyframe_image_of_another_type_is_refused(tmp_path, rng, load_images, image, what):
+    """A keyframe image is 8-bit grey or colour: a 16-bit (or RGBA) PNG of the right size loaded, route check
+    called the route intact and the repeat's guided search (KLT) raised an OpenCV assertion there."""
+    write_route(tmp_path / "r", rng)
+    cv2.imwrite(str(tmp_path / "r" / "kf_00001.png"), image)
+    with pytest.raises(RouteError, match=r"kf_00001.png: keyframes\[1\] image is .*expected an 8-bit grey or "
+                                         r"colour image"):
+        load_route(tmp_path / "r", load_images=load_images)
