@@ -229,7 +229,9 @@ def _distortion_bend(taught, camera) -> float:
 
 # -- replacing a route ---------------------------------------------------------------------------
 _PARTIAL, _OLD = ".partial-", ".old-"
-_ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$")
+#: A route's files, and the temporary files of an interrupted write_atomic of one (``.NAME.<random>.tmp``).
+_ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$|"
+                         r"^\.(manifest\.json|kf_\d{5}\.(png|npz))\.\w+\.tmp$")
 _RENAME_EXCHANGE = 2        # renameat2(2) flag: swap two paths atomically (Linux >= 3.15)
 
 
