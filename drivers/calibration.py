@@ -124,6 +124,8 @@ def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, heigh
         raise CalibrationError(f"{path}: image_width/image_height: must be positive, got {w}x{h}")
     check_intrinsics(str(path), K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, prefix="camera_matrix ")
     d = tuple(float(x) for x in np.asarray(dist, dtype=float).ravel())
+    if not all(np.isfinite(d)):
+        raise CalibrationError(f"{path}: distortion_coefficients: expected finite numbers, got {list(d)}")
     model = (model or "").strip().lower()
     if model in _FISHEYE_MODELS:
         if len(d) not in (0, 4):

@@ -105,6 +105,9 @@ def test_ros_equidistant_is_fisheye(tmp_path):
      "image_width/image_height: expected whole numbers"),
     ("image_width: 640\nimage_height: '480'\ncamera_matrix: [500, 0, 320, 0, 500, 240, 0, 0, 1]\n",
      "image_width/image_height: expected whole numbers"),
+    # a NaN distortion coefficient loaded (and bent every ray to NaN)
+    (ROS.format(model="plumb_bob", n=5, d="[.nan, 0.0, 0.0, 0.0, 0.0]"),
+     r"distortion_coefficients: expected finite numbers, got \[nan, 0.0, 0.0, 0.0, 0.0\]"),
 ])
 def test_errors_name_file_and_field(tmp_path, text, match):
     p = tmp_path / "bad.yaml"
