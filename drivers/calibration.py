@@ -115,6 +115,9 @@ def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, heigh
     K = K.reshape(3, 3)
     if not (K[0, 0] > 0 and K[1, 1] > 0 and np.isfinite(K).all()):
         raise CalibrationError(f"{path}: camera_matrix: focal lengths must be positive finite numbers")
+    if abs(K[0, 1]) > 1e-6 * K[0, 0] or K[1, 0] != 0 or not np.allclose(K[2], (0.0, 0.0, 1.0), rtol=0, atol=1e-9):
+        raise CalibrationError(f"{path}: camera_matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew: "
+                               f"the camera models have fx, fy, cx, cy only), got {K.tolist()}")
     try:
         w, h = int(width), int(height)
     except (TypeError, ValueError):
