@@ -63,3 +63,4 @@ def test_a_symbolic_link_keeps_pointing_at_the_file_it_replaces(tmp_path):
         tmp.write_text("a: 1\n")
     assert link.is_symlink() and target.read_text() == "a: 1\n"
     assert sorted(p.name for p in (tmp_path / "configs").iterdir()) == ["robot-v2.yaml"]
+

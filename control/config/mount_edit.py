@@ -36,7 +36,12 @@ def set_camera_mount(path, values: dict) -> str:
     from vbnav.control.config import parse_config
     p = Path(path)
     values = {k: round(float(v), 4) for k, v in values.items()}     # 0.1 mm, 1e-4 deg: far below what is measured
-    text = p.read_text()
+    try:
+        raw = p.read_bytes().decode()
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text file ({exc})") from None
+    newline = "\r\n" if "\r\n" in raw else "\n"        # kept: every line not edited stays as it was
+    text = raw.replace("\r\n", "\n")
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
@@ -54,7 +59,7 @@ def set_camera_mount(path, values: dict) -> str:
         raise ConfigError(f"{p}: editing camera.mount in place would change other keys; set it by hand: "
                           f"camera: mount: {_flow(new_mount)}")
     parse_config(got, str(p))      # the result must be a valid configuration (the file is not written else)
-    write_atomic(p, new_text)
+    write_atomic(p, new_text.replace("\n", newline))
     return new_text
 
 

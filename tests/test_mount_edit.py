@@ -1,0 +1,14 @@
+"""control/config/mount_edit.py: calibrate mount edits a config in place, keeping what it does not set."""
+from __future__ import annotations
+
+from vbnav.control.config.mount_edit import set_camera_mount
+
+
+def test_calibrate_mount_keeps_the_line_endings_of_a_config(tmp_path):
+    """A config with CRLF line endings (edited on Windows) came back with LF on every line: ``calibrate
+    mount`` promises to keep every line it does not edit as it was."""
+    p = tmp_path / "robot.yaml"
+    p.write_bytes(b"# my robot\r\ncamera:\r\n  driver: sim\r\n  mount:\r\n    height: 0.3  # tape\r\n  rate_hz: 15\r\n")
+    set_camera_mount(p, {"height": 0.25, "pitch_deg": 2.0})
+    assert p.read_bytes() == (b"# my robot\r\ncamera:\r\n  driver: sim\r\n  mount:\r\n    height: 0.25  # tape\r\n"
+                              b"    pitch_deg: 2.0\r\n  rate_hz: 15\r\n")
