@@ -457,6 +457,11 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
     if not isinstance(entry, dict) or not {"image", "landmarks"} <= set(entry):
         raise RouteError(f"{where}: expected an object with 'image' and 'landmarks' file names")
     img_path, lm_path = root / str(entry["image"]), root / str(entry["landmarks"])
+    if "index" in entry and (not isinstance(entry["index"], int) or entry["index"] != i):
+        raise RouteError(f"{where}: index {entry['index']!r}, expected {i} (its position in the list)")
+    if img_path.stem != lm_path.stem:       # written as kf_NNNNN.png + kf_NNNNN.npz
+        raise RouteError(f"{where}: image {img_path.name!r} and landmarks {lm_path.name!r} are not the files of "
+                         f"one keyframe (expected the same name, .png and .npz)")
     for p in (img_path, lm_path):
         try:
             inside = p.resolve().parent == root.resolve()   # resolved: a symlinked keyframe file must not lead out

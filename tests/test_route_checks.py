@@ -136,3 +136,22 @@ def test_keyframe_image_of_another_type_is_refused(tmp_path, rng, load_images, i
     with pytest.raises(RouteError, match=r"kf_00001.png: keyframes\[1\] image is .*expected an 8-bit grey or "
                                          r"colour image"):
         load_route(tmp_path / "r", load_images=load_images)
+
+
+def test_a_manifest_that_pairs_one_keyframe_s_image_with_another_s_landmarks_is_refused(tmp_path, rng):
+    """keyframes[1] listing kf_00002.png with kf_00001.npz (images swapped in the manifest) loaded: the guided
+    search then tracked kf_00001's landmark pixels in kf_00002's image. An index that is not the entry's
+    position was taken as well."""
+    write_route(tmp_path / "r", rng)
+    m = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    kfs = m["keyframes"]
+    kfs[1]["image"], kfs[2]["image"] = kfs[2]["image"], kfs[1]["image"]
+    _edit_manifest(tmp_path / "r", keyframes=kfs)
+    with pytest.raises(RouteError, match=r"manifest.json: keyframes\[1\]: image 'kf_00002.png' and landmarks "
+                                         r"'kf_00001.npz' are not the files of one keyframe"):
+        load_route(tmp_path / "r")
+    kfs[1]["image"], kfs[2]["image"] = kfs[2]["image"], kfs[1]["image"]
+    kfs[2]["index"] = 1
+    _edit_manifest(tmp_path / "r", keyframes=kfs)
+    with pytest.raises(RouteError, match=r"manifest.json: keyframes\[2\]: index 1, expected 2"):
+        load_route(tmp_path / "r")
