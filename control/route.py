@@ -341,9 +341,10 @@ class RouteWriter:
                 raise RouteError(f"{self.path}: holds {foreign[0]!r}, which is not a route file; not replacing "
                                  f"a directory that is not a vbnav route")
             if names:
-                self._dir = _sibling(self.path, _PARTIAL)
-                if self._dir.exists():      # left by an earlier process that had our pid
-                    shutil.rmtree(self._dir)
+                self._dir = base = _sibling(self.path, _PARTIAL)
+                n = 1
+                while self._dir.exists():   # left by an earlier process that had our pid: kept (keyframes)
+                    self._dir, n = base.with_name(f"{base.name}.{n}"), n + 1
         self._dir.mkdir(parents=True, exist_ok=True)
         self._manifest = {
             "format": FORMAT, "version": VERSION, "robot": robot,

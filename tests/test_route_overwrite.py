@@ -160,3 +160,18 @@ def test_overwrite_replaces_a_route_with_the_temporary_files_of_an_interrupted_w
     (tmp_path / "r" / ".notes.txt.a8b9c0d1.tmp").write_text("not ours")
     with pytest.raises(RouteError, match="holds '.notes.txt.a8b9c0d1.tmp', which is not a route file"):
         RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True)
+
+
+def test_a_partial_route_left_by_an_earlier_process_with_our_pid_is_kept(tmp_path, rng):
+    """After a reboot a service often gets the pid it had before: a replacement interrupted then left
+    ``.r.partial-<pid>`` (recorded keyframes, which nothing is to delete), and the next replacement by a
+    process with that pid deleted it before writing its own."""
+    write_route(tmp_path / "r", rng, n=3)
+    earlier = tmp_path / f".r.partial-{os.getpid()}"
+    write_route(earlier, rng, n=2)
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True) as w:
+        assert w.directory != earlier
+        for i in range(4):
+            w.append(make_kf(rng, i))
+    assert len(load_route(tmp_path / "r")) == 4 and len(load_route(earlier)) == 2
+    assert stray_route_dirs(tmp_path / "r") == [earlier]
