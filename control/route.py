@@ -239,6 +239,16 @@ def _sibling(route: Path, kind: str) -> Path:
     return route.with_name(f".{route.name}{kind}{os.getpid()}")
 
 
+def _free_sibling(route: Path, kind: str) -> Path:
+    """``_sibling``, or ``.1``, ``.2``... after it where one exists: left by an earlier process that had our
+    pid (a service after a reboot), it holds recorded keyframes and is kept."""
+    base = path = _sibling(route, kind)
+    n = 1
+    while path.exists():
+        path, n = base.with_name(f"{base.name}.{n}"), n + 1
+    return path
+
+
 def _swap_in(new: Path, route: Path) -> None:
     """Put the complete directory ``new`` at ``route`` and delete the route it replaces.
 
@@ -246,7 +256,7 @@ def _swap_in(new: Path, route: Path) -> None:
     else two renames with the old route at ``.NAME.old-<pid>`` in between (a crash in that gap
     leaves both beside the path; ``stray_route_dirs`` and ``load_route`` point at them).
     """
-    old = _sibling(route, _OLD)
+    old = _free_sibling(route, _OLD)
     if _exchange(new, route):
         os.rename(new, old)          # ``new`` now holds the old route
     else:
@@ -341,10 +351,7 @@ class RouteWriter:
                 raise RouteError(f"{self.path}: holds {foreign[0]!r}, which is not a route file; not replacing "
                                  f"a directory that is not a vbnav route")
             if names:
-                self._dir = base = _sibling(self.path, _PARTIAL)
-                n = 1
-                while self._dir.exists():   # left by an earlier process that had our pid: kept (keyframes)
-                    self._dir, n = base.with_name(f"{base.name}.{n}"), n + 1
+                self._dir = _free_sibling(self.path, _PARTIAL)
         self._dir.mkdir(parents=True, exist_ok=True)
         self._manifest = {
             "format": FORMAT, "version": VERSION, "robot": robot,

@@ -175,3 +175,20 @@ def test_a_partial_route_left_by_an_earlier_process_with_our_pid_is_kept(tmp_pat
             w.append(make_kf(rng, i))
     assert len(load_route(tmp_path / "r")) == 4 and len(load_route(earlier)) == 2
     assert stray_route_dirs(tmp_path / "r") == [earlier]
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_an_old_route_left_by_an_earlier_process_with_our_pid_is_kept(tmp_path, rng, monkeypatch, exchange):
+    """``.r.old-<pid>`` (the complete old route of a swap a crash cut between its renames) from an earlier
+    process that had our pid: the swap renamed onto it, failed (directory not empty) and the teach ended with
+    an OSError, the new route in place (exchange) or not swapped in at all."""
+    if not exchange:
+        monkeypatch.setattr(route_mod, "_exchange", lambda a, b: False)
+    write_route(tmp_path / "r", rng, n=3)
+    earlier = tmp_path / f".r.old-{os.getpid()}"
+    write_route(earlier, rng, n=2)
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True) as w:
+        for i in range(4):
+            w.append(make_kf(rng, i))
+    assert len(load_route(tmp_path / "r")) == 4 and len(load_route(earlier)) == 2
+    assert stray_route_dirs(tmp_path / "r") == [earlier]
