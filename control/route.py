@@ -172,6 +172,10 @@ def camera_from_dict(d: dict, where: str):
     if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy) + dist) or fx <= 0 or fy <= 0:
         raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy, dist; got "
                          f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy} dist {list(dist)}")
+    lengths = (0, 4) if cls is FisheyeCamera else (0, 4, 5, 8, 12, 14)
+    if len(dist) not in lengths:
+        raise RouteError(f"{where}: camera: dist: {d['model']} expects {', '.join(map(str, lengths[1:]))} "
+                         f"coefficients (or none), got {len(dist)}")
     return cls(w, h, fx, fy, cx, cy, dist)
 
 

@@ -155,3 +155,14 @@ def test_a_manifest_that_pairs_one_keyframe_s_image_with_another_s_landmarks_is_
     _edit_manifest(tmp_path / "r", keyframes=kfs)
     with pytest.raises(RouteError, match=r"manifest.json: keyframes\[2\]: index 1, expected 2"):
         load_route(tmp_path / "r")
+
+
+@pytest.mark.parametrize("model,dist", [("fisheye", [0.1, 0.0, 0.0, 0.0, 0.2]), ("pinhole", [0.1, 0.0, 0.0])])
+def test_a_camera_with_a_distortion_of_another_length_is_refused(tmp_path, rng, model, dist):
+    """A fisheye has k1..k4 and a pinhole 4, 5, 8, 12 or 14 OpenCV coefficients: a fifth fisheye coefficient
+    was silently dropped, three pinhole ones failed OpenCV's undistortion at the first frame of a repeat."""
+    write_route(tmp_path / "r", rng)
+    m = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    _edit_manifest(tmp_path / "r", camera={**m["camera"], "model": model, "dist": dist})
+    with pytest.raises(RouteError, match=rf"manifest.json: camera: dist: {model} expects .*, got {len(dist)}"):
+        load_route(tmp_path / "r")
