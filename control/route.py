@@ -504,6 +504,13 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RouteError(f"{lm_path}: corrupt or truncated landmark file, expected a numpy .npz ({e})") from None
     n = _check_landmarks(lm_path, data, f"keyframes[{i}]")
+    px = data["pixels"]     # where each landmark was seen in the keyframe image (give or take a pixel at its edge)
+    out = (px[:, 0] < -1) | (px[:, 1] < -1) | (px[:, 0] > camera.width) | (px[:, 1] > camera.height)
+    if out.any():
+        k = int(np.argmax(out))
+        raise RouteError(f"{lm_path}: keyframes[{i}]: landmark {k}'s pixel ({float(px[k, 0]):.1f}, "
+                         f"{float(px[k, 1]):.1f}) is outside the {camera.width}x{camera.height} image "
+                         f"({int(out.sum())} of {n} landmarks)")
     if "n_landmarks" in entry and (not isinstance(entry["n_landmarks"], int) or entry["n_landmarks"] != n):
         raise RouteError(f"{lm_path}: has {n} landmarks, manifest keyframes[{i}].n_landmarks says "
                          f"{entry['n_landmarks']!r}")

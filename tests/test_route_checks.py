@@ -166,3 +166,17 @@ def test_a_camera_with_a_distortion_of_another_length_is_refused(tmp_path, rng, 
     _edit_manifest(tmp_path / "r", camera={**m["camera"], "model": model, "dist": dist})
     with pytest.raises(RouteError, match=rf"manifest.json: camera: dist: {model} expects .*, got {len(dist)}"):
         load_route(tmp_path / "r")
+
+
+def test_landmark_pixels_outside_the_image_are_refused(tmp_path, rng):
+    """A landmark's pixel is where it was seen in the keyframe image: pixels 5000 px off the 64x48 image
+    loaded and route check called the route intact (the guided search then tracked nothing from them)."""
+    write_route(tmp_path / "r", rng)
+    npz = tmp_path / "r" / "kf_00001.npz"
+    with np.load(npz) as z:
+        px = z["pixels"].copy()
+    px[4] = (70.0, 10.0)
+    _edit_npz(npz, pixels=px)
+    with pytest.raises(RouteError, match=r"kf_00001.npz: keyframes\[1\]: landmark 4's pixel \(70.0, 10.0\) is "
+                                         r"outside the 64x48 image"):
+        load_route(tmp_path / "r")
