@@ -374,14 +374,17 @@ class RouteWriter:
         ok, png = cv2.imencode(".png", kf.image)
         if not ok:
             raise RouteError(f"{self._dir / (stem + '.png')}: could not encode the keyframe image")
+        arrays = dict(pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
+                      beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
+                      inv_height=np.asarray(kf.inv_height, np.float64),
+                      inv_height_var=np.asarray(kf.inv_height_var, np.float64),
+                      track_ids=np.asarray(kf.track_ids, np.int64), odom=np.asarray(kf.odom.as_array(), np.float64),
+                      distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
+        # What load_route would refuse is refused here: written, it would make the whole route unloadable.
+        _check_landmarks(self._dir / f"{stem}.npz", arrays, f"keyframes[{i}]")
         write_atomic(self._dir / f"{stem}.png", png.tobytes())
         buf = io.BytesIO()
-        np.savez(buf, pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
-                 beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
-                 inv_height=np.asarray(kf.inv_height, np.float64),
-                 inv_height_var=np.asarray(kf.inv_height_var, np.float64),
-                 track_ids=np.asarray(kf.track_ids, np.int64), odom=kf.odom.as_array(),
-                 distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
+        np.savez(buf, **arrays)
         write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
         self._manifest["keyframes"].append({
             "index": i, "image": f"{stem}.png", "landmarks": f"{stem}.npz", "n_landmarks": len(kf.alpha),

@@ -180,3 +180,18 @@ def test_landmark_pixels_outside_the_image_are_refused(tmp_path, rng):
     with pytest.raises(RouteError, match=r"kf_00001.npz: keyframes\[1\]: landmark 4's pixel \(70.0, 10.0\) is "
                                          r"outside the 64x48 image"):
         load_route(tmp_path / "r")
+
+
+def test_a_keyframe_the_route_could_not_load_is_refused_when_written(tmp_path, rng):
+    """A keyframe with a NaN odometry pose (or a landmark pixel) was written, and the whole route then failed
+    to load at the repeat ('odom must be 3 finite numbers'): every keyframe taught was unusable. The writer
+    now refuses it, the route keeps the keyframes before it."""
+    with pytest.raises(RouteError, match=r"kf_00001.npz: 'odom' must be 3 finite numbers"):
+        with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT) as w:
+            w.append(make_kf(rng, 0))
+            bad = make_kf(rng, 1)
+            bad.odom = type(bad.odom)(float("nan"), 0.0, 0.0)
+            w.append(bad)
+    r = load_route(tmp_path / "r")
+    assert len(r) == 1 and not r.complete
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["kf_00000.npz", "kf_00000.png", "manifest.json"]
