@@ -357,6 +357,8 @@ class RouteWriter:
             if names:
                 self._dir = _free_sibling(self.path, _PARTIAL)
         self._dir.mkdir(parents=True, exist_ok=True)
+        self._camera = camera
+        self._last: Optional[Keyframe] = None     # the keyframe appended last (its index, odometry, distance)
         self._manifest = {
             "format": FORMAT, "version": VERSION, "robot": robot,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -382,10 +384,14 @@ class RouteWriter:
                       distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
         # What load_route would refuse is refused here: written, it would make the whole route unloadable.
         _check_landmarks(self._dir / f"{stem}.npz", arrays, f"keyframes[{i}]")
+        _check_pixels(self._dir / f"{stem}.npz", f"keyframes[{i}]", arrays["pixels"], self._camera)
+        if self._last is not None:
+            _check_step(self._dir / MANIFEST, self._last, _step(i, kf))
         write_atomic(self._dir / f"{stem}.png", png.tobytes())
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
+        self._last = _step(i, kf)
         self._manifest["keyframes"].append({
             "index": i, "image": f"{stem}.png", "landmarks": f"{stem}.npz", "n_landmarks": len(kf.alpha),
             "distance": float(kf.distance), "odom": [float(v) for v in kf.odom.as_array()],
@@ -507,13 +513,7 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RouteError(f"{lm_path}: corrupt or truncated landmark file, expected a numpy .npz ({e})") from None
     n = _check_landmarks(lm_path, data, f"keyframes[{i}]")
-    px = data["pixels"]     # where each landmark was seen in the keyframe image (give or take a pixel at its edge)
-    out = (px[:, 0] < -1) | (px[:, 1] < -1) | (px[:, 0] > camera.width) | (px[:, 1] > camera.height)
-    if out.any():
-        k = int(np.argmax(out))
-        raise RouteError(f"{lm_path}: keyframes[{i}]: landmark {k}'s pixel ({float(px[k, 0]):.1f}, "
-                         f"{float(px[k, 1]):.1f}) is outside the {camera.width}x{camera.height} image "
-                         f"({int(out.sum())} of {n} landmarks)")
+    _check_pixels(lm_path, f"keyframes[{i}]", data["pixels"], camera)
     if "n_landmarks" in entry and (not isinstance(entry["n_landmarks"], int) or entry["n_landmarks"] != n):
         raise RouteError(f"{lm_path}: has {n} landmarks, manifest keyframes[{i}].n_landmarks says "
                          f"{entry['n_landmarks']!r}")
@@ -572,17 +572,36 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
     return n
 
 
+def _check_pixels(path: Path, which: str, px: np.ndarray, camera) -> None:
+    """Where each landmark was seen in the keyframe image: inside it (give or take a pixel at its edge)."""
+    out = (px[:, 0] < -1) | (px[:, 1] < -1) | (px[:, 0] > camera.width) | (px[:, 1] > camera.height)
+    if out.any():
+        k = int(np.argmax(out))
+        raise RouteError(f"{path}: {which}: landmark {k}'s pixel ({float(px[k, 0]):.1f}, {float(px[k, 1]):.1f}) "
+                         f"is outside the {camera.width}x{camera.height} image ({int(out.sum())} of {len(px)} "
+                         f"landmarks)")
+
+
 def _check_progress(mpath: Path, kfs: list) -> None:
     """Keyframes follow the route: along-route distance increases; at the same distance only a turn on
     the spot (another heading) makes a new keyframe. A copy of the keyframe before is an error."""
     for a, b in zip(kfs, kfs[1:]):
-        if b.distance > a.distance:
-            continue
-        if b.distance == a.distance and b.odom.theta != a.odom.theta:
-            continue
-        what = "repeats" if b.distance == a.distance else "is less than"
-        raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
-                         f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
+        _check_step(mpath, a, b)
+
+
+def _step(i: int, kf: Keyframe) -> Keyframe:
+    """What ``_check_step`` compares of keyframe ``kf`` written as number ``i`` (no image, no landmarks)."""
+    return Keyframe(i, None, *(None,) * 7, odom=kf.odom, distance=float(kf.distance))
+
+
+def _check_step(mpath: Path, a: Keyframe, b: Keyframe) -> None:
+    if b.distance > a.distance:
+        return
+    if b.distance == a.distance and b.odom.theta != a.odom.theta:
+        return
+    what = "repeats" if b.distance == a.distance else "is less than"
+    raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
+                     f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
 
 
 def stray_temp_files(path) -> list[Path]:

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from vbnav.control import route as route_mod
 from vbnav.control.route import RouteError, RouteWriter, load_route
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount
@@ -39,14 +40,16 @@ def test_version_out_of_range(tmp_path, rng, version, why):
 
 
 @pytest.mark.parametrize("load_images", [True, False])
-def test_image_size_must_match_the_camera(tmp_path, rng, load_images):
+def test_image_size_must_match_the_camera(tmp_path, rng, load_images, monkeypatch):
     write_route(tmp_path / "r", rng)
     cv2.imwrite(str(tmp_path / "r" / "kf_00001.png"), np.zeros((47, 64), np.uint8))
     with pytest.raises(RouteError, match=r"kf_00001.png: keyframes\[1\] image is 64x47, the route's camera is 64x48"):
         load_route(tmp_path / "r", load_images=load_images)
     other = PinholeCamera(32, 24, 20.0, 20.0, 15.5, 11.5)
-    with RouteWriter(tmp_path / "o", "sim", other, MOUNT) as w:      # images of CAM, manifest of another camera
-        w.append(make_kf(rng, 0))
+    with monkeypatch.context() as m:    # the writer refuses the pixels outside `other`: written as they are
+        m.setattr(route_mod, "_check_pixels", lambda *a: None)
+        with RouteWriter(tmp_path / "o", "sim", other, MOUNT) as w:      # images of CAM, manifest of another camera
+            w.append(make_kf(rng, 0))
     with pytest.raises(RouteError, match=r"keyframes\[0\] image is 64x48, the route's camera is 32x24"):
         load_route(tmp_path / "o", load_images=load_images)
 
@@ -72,18 +75,22 @@ def test_unknown_inverse_heights_are_allowed(tmp_path, rng):
     assert len(load_route(tmp_path / "r")) == 3
 
 
-def test_copies_of_one_keyframe_and_going_back_are_refused(tmp_path, rng):
+def test_copies_of_one_keyframe_and_going_back_are_refused(tmp_path, rng, monkeypatch):
+    monkeypatch.setattr(route_mod, "_check_step", lambda *a: None)     # the writer refuses them: written anyway
     kf = make_kf(rng, 0)
     with RouteWriter(tmp_path / "copies", "sim", CAM, MOUNT) as w:
         for _ in range(62):
             w.append(kf)
+    monkeypatch.undo()
     with pytest.raises(RouteError, match=r"keyframes\[1\]: along-route distance 0.000 m repeats keyframes\[0\]"):
         load_route(tmp_path / "copies")
+    monkeypatch.setattr(route_mod, "_check_step", lambda *a: None)
     kfs = [make_kf(rng, i) for i in range(4)]
     kfs[3].distance = 0.7
     with RouteWriter(tmp_path / "back", "sim", CAM, MOUNT) as w:
         for k in kfs:
             w.append(k)
+    monkeypatch.undo()
     with pytest.raises(RouteError, match=r"keyframes\[3\]: along-route distance 0.700 m is less than keyframes\[2\]"):
         load_route(tmp_path / "back")
 
@@ -195,3 +202,23 @@ def test_a_keyframe_the_route_could_not_load_is_refused_when_written(tmp_path, r
     r = load_route(tmp_path / "r")
     assert len(r) == 1 and not r.complete
     assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["kf_00000.npz", "kf_00000.png", "manifest.json"]
+
+
+def test_a_keyframe_that_goes_back_or_lies_outside_the_image_is_refused_when_written(tmp_path, rng):
+    """A keyframe at a shorter along-route distance than the one before (or a copy of it), or with landmark
+    pixels outside the camera's image, was written and made the whole route unloadable."""
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT) as w:
+        w.append(make_kf(rng, 0))
+        w.append(make_kf(rng, 1))
+        back = make_kf(rng, 2)
+        back.distance = 0.2
+        with pytest.raises(RouteError, match=r"keyframes\[2\]: along-route distance 0.200 m is less than "
+                                             r"keyframes\[1\]'s 0.500 m"):
+            w.append(back)
+        off = make_kf(rng, 2)
+        off.pixels[3] = (500.0, 10.0)
+        with pytest.raises(RouteError, match=r"kf_00002.npz: keyframes\[2\]: landmark 3's pixel \(500.0, 10.0\) "
+                                             r"is outside the 64x48 image"):
+            w.append(off)
+        w.append(make_kf(rng, 2))
+    assert len(load_route(tmp_path / "r")) == 3
