@@ -83,3 +83,19 @@ def test_a_clean_run_exits_0_and_the_status_file_is_complete(shared_data, tmp_pa
     assert len(rows) == 8 and {r[1] for r in rows} <= {"init", "tracked"}
     assert all(int(r[2]) > 0 for r in rows)  # landmarks
     assert main(["vo", str(view), "--out", str(tmp_path / "t.txt"), "--max-lost", "1.5"]) == 2
+
+
+@pytest.mark.parametrize("name,option", [("poses.txt", "--out"), ("times.txt", "--status-out"),
+                                         ("calib.txt", "--out")])
+def test_an_output_that_is_a_file_of_the_dataset_is_refused(shared_data, tmp_path, capsys, name, option):
+    """``vbnav vo SEQ --out SEQ/poses.txt`` replaced the dataset's ground truth with the trajectory (and
+    --status-out SEQ/times.txt its frame times): the recorded data was gone, the run said nothing."""
+    view = _view(shared_data / "vo_turns_kitti03", tmp_path / "seq", list(range(0, 4)))
+    before = (view / name).read_bytes()
+    (view / name).unlink()
+    (view / name).write_bytes(before)       # a copy: a test that failed must not write into the shared data
+    args = ["vo", str(view), "--init", "essential", "--quiet", "--max-lost", "1"]
+    args += [option, str(view / name)] + (["--out", str(tmp_path / "t.txt")] if option != "--out" else [])
+    assert main(args) == 2
+    assert f"{option} {view / name}: is a file of the dataset" in capsys.readouterr().err
+    assert (view / name).read_bytes() == before
