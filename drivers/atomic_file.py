@@ -6,8 +6,7 @@ fsynced, renamed over the target (``os.replace`` is atomic within a file system)
 fsynced so the rename itself survives a power cut. A crash, a full disk or a Ctrl-C at any point
 leaves either the old file or the new one, never half of one; the temporary file is removed on
 failure. Temporary names are ``.<name>.<random>.tmp[<suffix>]`` beside the target, so a reader that
-lists ``*.tmp`` (``vbnav route check``) finds what an interrupted writer left. A target that is a
-symbolic link keeps it: the file it points to is replaced (in that file's folder), as ``open`` would write it.
+lists ``*.tmp`` (``vbnav route check``) finds what an interrupted writer left.
 """
 from __future__ import annotations
 
@@ -21,7 +20,7 @@ from typing import Iterator, Optional
 def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
     """Write ``data`` (text as UTF-8, or bytes) to ``path`` atomically; ``mode``: permission bits of the
     new file (default: those of the file it replaces, else what ``open`` would give under the umask)."""
-    p = _through_link(Path(path))
+    p = Path(path)
     raw = data.encode() if isinstance(data, str) else bytes(data)
     fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp")
     try:
@@ -35,7 +34,7 @@ def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     fsync_folder(_folder(p))
-    return Path(path)
+    return p
 
 
 @contextmanager
@@ -43,7 +42,7 @@ def atomic_output(path, suffix: Optional[str] = None) -> Iterator[Path]:
     """For writers that want a file name (``cv2.imwrite``, matplotlib's ``savefig``): yields a temporary
     path ending in ``suffix`` (default: the target's own, so format-by-extension writers work), renamed
     over ``path`` when the block ends without an exception, removed otherwise."""
-    p = _through_link(Path(path))
+    p = Path(path)
     fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp" + (p.suffix if suffix is None
                                                                                       else suffix))
     os.close(fd)
@@ -102,12 +101,6 @@ def _umask() -> int:
     except (OSError, ValueError):
         pass
     return 0o022
-
-
-def _through_link(p: Path) -> Path:
-    """The file a symbolic link ``p`` points to (renaming over the link would replace the link with a copy
-    and leave the file it pointed at, and every other link to it, as it was); ``p`` itself otherwise."""
-    return Path(os.path.realpath(p)) if p.is_symlink() else p
 
 
 def _folder(p: Path) -> Path:

@@ -47,20 +47,3 @@ def test_a_writer_that_wants_a_file_name_gets_one_with_the_target_s_suffix(tmp_p
             raise ValueError("the plot failed")
     assert out.read_bytes() == b"png" and sorted(x.name for x in tmp_path.iterdir()) == ["plot.png"]
 
-
-def test_a_symbolic_link_keeps_pointing_at_the_file_it_replaces(tmp_path):
-    """``calibrate mount`` on a config that is a link (robot.yaml -> configs/robot-v2.yaml) replaced the link
-    with a copy: the file it pointed at kept the old mount, and every other link to it too."""
-    from vbnav.control.config.mount_edit import set_camera_mount
-    (tmp_path / "configs").mkdir()
-    target = tmp_path / "configs" / "robot-v2.yaml"
-    target.write_text("camera:\n  driver: sim\n  mount:\n    height: 0.3\n")
-    link = tmp_path / "robot.yaml"
-    link.symlink_to(os.path.join("configs", "robot-v2.yaml"))
-    set_camera_mount(link, {"height": 0.25})
-    assert link.is_symlink() and "height: 0.25" in target.read_text()
-    with atomic_output(link, ".yaml") as tmp:
-        tmp.write_text("a: 1\n")
-    assert link.is_symlink() and target.read_text() == "a: 1\n"
-    assert sorted(p.name for p in (tmp_path / "configs").iterdir()) == ["robot-v2.yaml"]
-
