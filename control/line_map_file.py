@@ -103,6 +103,7 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         n = len(segs)
         P = np.array([[s["p0"], s["p1"]] for s in segs], float).reshape(n, 2, 3)
         C = np.array([[s["cov0"], s["cov1"]] for s in segs], float).reshape(n, 2, 3, 3)
+        _check_segments(path, P, C, [s["id"] for s in segs])
         if n:
             lmap._insert(P, C, np.array([s["group"] for s in segs]), None)
             lmap.ids = np.array([s["id"] for s in segs], int)
@@ -114,13 +115,38 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
             lmap.next_id = int(lmap.ids.max()) + 1
             lmap.next_group = int(max(lmap.group.max(), -1)) + 1
         lmap.frames = int(data.get("frames", 0))
+    except MapFileError:
+        raise
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFileError(f"{path}: segments: malformed entry ({type(exc).__name__}: {exc})") from None
-    if not np.isfinite(lmap.P).all():
-        raise MapFileError(f"{path}: segments: endpoints must be finite numbers")
-    if not np.isfinite(lmap.cov).all():
-        raise MapFileError(f"{path}: segments: cov0/cov1 must be finite numbers")
     for k, views in enumerate(lmap.views):     # a wrong shape was taken, and failed the first mapping frame
         if any(v.shape != (4,) or not np.isfinite(v).all() for v in views):
             raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
     return lmap, meta
+
+
+def _check_segments(path: Path, P: np.ndarray, C: np.ndarray, ids: list) -> None:
+    """Each segment has two finite, distinct endpoints, symmetric positive definite endpoint covariances and
+    an id of its own (a zero-length segment has no direction, a singular or indefinite covariance no
+    information form: both were taken and bent every later fusion or match)."""
+    if not np.isfinite(P).all():
+        raise MapFileError(f"{path}: segments: endpoints must be finite numbers")
+    if not np.isfinite(C).all():
+        raise MapFileError(f"{path}: segments: cov0/cov1 must be finite numbers")
+    seen = {}
+    for k in range(len(P)):
+        if not np.linalg.norm(P[k, 1] - P[k, 0]) > 1e-9:
+            raise MapFileError(f"{path}: segments[{k}]: p0 and p1 are the same point (a segment of zero length), "
+                               f"expected two distinct endpoints")
+        for e in (0, 1):
+            c = C[k, e]
+            if not np.allclose(c, c.T, rtol=1e-6, atol=1e-9) or not np.linalg.eigvalsh(c).min() > 0:
+                raise MapFileError(f"{path}: segments[{k}]: cov{e} {c.tolist()} is not a symmetric positive "
+                                   f"definite 3x3 matrix")
+        i = int(ids[k])
+        if i != ids[k]:
+            raise MapFileError(f"{path}: segments[{k}]: id {ids[k]!r} is not an integer")
+        if i in seen:
+            raise MapFileError(f"{path}: segments[{k}]: id {i} is also segments[{seen[i]}]'s; expected one id per "
+                               f"segment")
+        seen[i] = k

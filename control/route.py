@@ -45,9 +45,10 @@ VERSION = 1
 MANIFEST = "manifest.json"
 _TMP = ".tmp"
 
-#: npz arrays of a keyframe: name -> (dtype kind, trailing shape); N is the landmark count.
+#: npz arrays of a keyframe: name -> (dtype kind, or the exact dtype, trailing shape); N is the landmark count.
+#: ORB descriptors must be uint8: the matcher refuses another type (an OpenCV assertion mid-repeat).
 _LANDMARK_FIELDS = {
-    "pixels": ("f", (2,)), "alpha": ("f", ()), "beta": ("f", ()), "descriptors": ("u", (32,)),
+    "pixels": ("f", (2,)), "alpha": ("f", ()), "beta": ("f", ()), "descriptors": ("uint8", (32,)),
     "inv_height": ("f", ()), "inv_height_var": ("f", ()), "track_ids": ("i", ()),
 }
 
@@ -171,6 +172,10 @@ def camera_from_dict(d: dict, where: str):
     if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy) + dist) or fx <= 0 or fy <= 0:
         raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy, dist; got "
                          f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy} dist {list(dist)}")
+    lengths = (0, 4) if cls is FisheyeCamera else (0, 4, 5, 8, 12, 14)
+    if len(dist) not in lengths:
+        raise RouteError(f"{where}: camera: dist: {d['model']} expects {', '.join(map(str, lengths[1:]))} "
+                         f"coefficients (or none), got {len(dist)}")
     return cls(w, h, fx, fy, cx, cy, dist)
 
 
@@ -197,7 +202,8 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
 
     def describe(d, f):
         return (f"{d['model']} {d['width']}x{d['height']} fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} "
-                f"cy {d['cy']:.1f}" + (f" from {f}" if f else ""))
+                f"cy {d['cy']:.1f} distortion {d['dist'] if any(d['dist']) else 'none'}"
+                + (f" from {f}" if f else ""))
     problem = None
     if taught["model"] != now["model"]:
         problem = "another lens model"
@@ -205,20 +211,46 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
         problem = "another image size"
     elif any(abs(taught[k] - now[k]) > INTRINSICS_AGREEMENT * taught["fx"] for k in ("fx", "fy", "cx", "cy")):
         problem = f"other intrinsics (beyond {INTRINSICS_AGREEMENT:.0%} of fx)"
+    elif _distortion_bend(route.camera, camera) > INTRINSICS_AGREEMENT:
+        problem = (f"another lens distortion (it turns a pixel at the image border into a ray more than "
+                   f"{INTRINSICS_AGREEMENT:.2f} rad from the taught one)")
     if problem:
         raise RouteError(f"{route.path}: taught with camera {describe(taught, tf)}; {config_source} has "
                          f"{problem}: {describe(now, cf)}. Repeat with the configuration the route was taught "
                          f"with, or teach the route again")
 
 
+def _distortion_bend(taught, camera) -> float:
+    """The largest angle (rad) between the rays the two distortions give the same pixel of the image border
+    (corners and edge midpoints), with the taught intrinsics for both: what the distortion alone changes."""
+    w, h = taught.width - 1, taught.height - 1
+    px = np.array([(u, v) for u in (0, w / 2, w) for v in (0, h / 2, h)], float)
+    same_k = type(taught)(taught.width, taught.height, taught.fx, taught.fy, taught.cx, taught.cy, camera.dist)
+    cos = np.clip(np.sum(taught.rays(px) * same_k.rays(px), axis=1), -1.0, 1.0)
+    bend = np.arccos(cos)
+    return float(np.max(bend)) if np.all(np.isfinite(bend)) else math.inf
+
+
 # -- replacing a route ---------------------------------------------------------------------------
 _PARTIAL, _OLD = ".partial-", ".old-"
-_ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$")
+#: A route's files, and the temporary files of an interrupted write_atomic of one (``.NAME.<random>.tmp``).
+_ROUTE_FILE = re.compile(r"^(manifest\.json|kf_\d{5}\.(png|npz))(\.tmp)?$|"
+                         r"^\.(manifest\.json|kf_\d{5}\.(png|npz))\.\w+\.tmp$")
 _RENAME_EXCHANGE = 2        # renameat2(2) flag: swap two paths atomically (Linux >= 3.15)
 
 
 def _sibling(route: Path, kind: str) -> Path:
     return route.with_name(f".{route.name}{kind}{os.getpid()}")
+
+
+def _free_sibling(route: Path, kind: str) -> Path:
+    """``_sibling``, or ``.1``, ``.2``... after it where one exists: left by an earlier process that had our
+    pid (a service after a reboot), it holds recorded keyframes and is kept."""
+    base = path = _sibling(route, kind)
+    n = 1
+    while path.exists():
+        path, n = base.with_name(f"{base.name}.{n}"), n + 1
+    return path
 
 
 def _swap_in(new: Path, route: Path) -> None:
@@ -228,7 +260,7 @@ def _swap_in(new: Path, route: Path) -> None:
     else two renames with the old route at ``.NAME.old-<pid>`` in between (a crash in that gap
     leaves both beside the path; ``stray_route_dirs`` and ``load_route`` point at them).
     """
-    old = _sibling(route, _OLD)
+    old = _free_sibling(route, _OLD)
     if _exchange(new, route):
         os.rename(new, old)          # ``new`` now holds the old route
     else:
@@ -323,10 +355,10 @@ class RouteWriter:
                 raise RouteError(f"{self.path}: holds {foreign[0]!r}, which is not a route file; not replacing "
                                  f"a directory that is not a vbnav route")
             if names:
-                self._dir = _sibling(self.path, _PARTIAL)
-                if self._dir.exists():      # left by an earlier process that had our pid
-                    shutil.rmtree(self._dir)
+                self._dir = _free_sibling(self.path, _PARTIAL)
         self._dir.mkdir(parents=True, exist_ok=True)
+        self._camera = camera
+        self._last: Optional[Keyframe] = None     # the keyframe appended last (its index, odometry, distance)
         self._manifest = {
             "format": FORMAT, "version": VERSION, "robot": robot,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -344,15 +376,22 @@ class RouteWriter:
         ok, png = cv2.imencode(".png", kf.image)
         if not ok:
             raise RouteError(f"{self._dir / (stem + '.png')}: could not encode the keyframe image")
+        arrays = dict(pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
+                      beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
+                      inv_height=np.asarray(kf.inv_height, np.float64),
+                      inv_height_var=np.asarray(kf.inv_height_var, np.float64),
+                      track_ids=np.asarray(kf.track_ids, np.int64), odom=np.asarray(kf.odom.as_array(), np.float64),
+                      distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
+        # What load_route would refuse is refused here: written, it would make the whole route unloadable.
+        _check_landmarks(self._dir / f"{stem}.npz", arrays, f"keyframes[{i}]")
+        _check_pixels(self._dir / f"{stem}.npz", f"keyframes[{i}]", arrays["pixels"], self._camera)
+        if self._last is not None:
+            _check_step(self._dir / MANIFEST, self._last, _step(i, kf))
         write_atomic(self._dir / f"{stem}.png", png.tobytes())
         buf = io.BytesIO()
-        np.savez(buf, pixels=np.asarray(kf.pixels, np.float32), alpha=np.asarray(kf.alpha, np.float64),
-                 beta=np.asarray(kf.beta, np.float64), descriptors=np.asarray(kf.descriptors, np.uint8),
-                 inv_height=np.asarray(kf.inv_height, np.float64),
-                 inv_height_var=np.asarray(kf.inv_height_var, np.float64),
-                 track_ids=np.asarray(kf.track_ids, np.int64), odom=kf.odom.as_array(),
-                 distance=np.float64(kf.distance), stamp_ns=np.int64(kf.stamp_ns))
+        np.savez(buf, **arrays)
         write_atomic(self._dir / f"{stem}.npz", buf.getvalue())
+        self._last = _step(i, kf)
         self._manifest["keyframes"].append({
             "index": i, "image": f"{stem}.png", "landmarks": f"{stem}.npz", "n_landmarks": len(kf.alpha),
             "distance": float(kf.distance), "odom": [float(v) for v in kf.odom.as_array()],
@@ -439,6 +478,11 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
     if not isinstance(entry, dict) or not {"image", "landmarks"} <= set(entry):
         raise RouteError(f"{where}: expected an object with 'image' and 'landmarks' file names")
     img_path, lm_path = root / str(entry["image"]), root / str(entry["landmarks"])
+    if "index" in entry and (not isinstance(entry["index"], int) or entry["index"] != i):
+        raise RouteError(f"{where}: index {entry['index']!r}, expected {i} (its position in the list)")
+    if img_path.stem != lm_path.stem:       # written as kf_NNNNN.png + kf_NNNNN.npz
+        raise RouteError(f"{where}: image {img_path.name!r} and landmarks {lm_path.name!r} are not the files of "
+                         f"one keyframe (expected the same name, .png and .npz)")
     for p in (img_path, lm_path):
         try:
             inside = p.resolve().parent == root.resolve()   # resolved: a symlinked keyframe file must not lead out
@@ -450,13 +494,16 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
         if not p.is_file():
             raise RouteError(f"{p}: missing keyframe file (listed in {mpath.name} keyframes[{i}])")
     image = None
+    size, depth, colour = _png_header(img_path)
     if load_images:
         image = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise RouteError(f"{img_path}: not a readable PNG image")
         size = (image.shape[1], image.shape[0])
-    else:
-        size = _png_size(img_path)
+    if depth != 8 or colour not in _PNG_COLOURS:
+        raise RouteError(f"{img_path}: keyframes[{i}] image is {depth}-bit with "
+                         f"{_PNG_COLOURS.get(colour, f'PNG colour type {colour}')}, expected an 8-bit grey or "
+                         f"colour image (the repeat's tracker reads no other)")
     if size != (camera.width, camera.height):
         raise RouteError(f"{img_path}: keyframes[{i}] image is {size[0]}x{size[1]}, the route's camera is "
                          f"{camera.width}x{camera.height}")
@@ -466,6 +513,7 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         raise RouteError(f"{lm_path}: corrupt or truncated landmark file, expected a numpy .npz ({e})") from None
     n = _check_landmarks(lm_path, data, f"keyframes[{i}]")
+    _check_pixels(lm_path, f"keyframes[{i}]", data["pixels"], camera)
     if "n_landmarks" in entry and (not isinstance(entry["n_landmarks"], int) or entry["n_landmarks"] != n):
         raise RouteError(f"{lm_path}: has {n} landmarks, manifest keyframes[{i}].n_landmarks says "
                          f"{entry['n_landmarks']!r}")
@@ -475,13 +523,17 @@ def _load_keyframe(root: Path, mpath: Path, i: int, entry, camera, load_images: 
                     int(data["stamp_ns"]))
 
 
-def _png_size(path: Path) -> tuple[int, int]:
-    """(width, height) from a PNG's header, without decoding the image."""
+#: PNG colour types of a keyframe image (what cv2.imencode writes for 8-bit grey and BGR images).
+_PNG_COLOURS = {0: "1 channel (grey)", 2: "3 channels (colour)"}
+
+
+def _png_header(path: Path) -> tuple[tuple[int, int], int, int]:
+    """((width, height), bit depth, colour type) from a PNG's header, without decoding the image."""
     with open(path, "rb") as f:
-        head = f.read(24)
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        head = f.read(26)
+    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         raise RouteError(f"{path}: not a readable PNG image")
-    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return (int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")), head[24], head[25]
 
 
 def _check_landmarks(path: Path, data: dict, which: str) -> int:
@@ -499,9 +551,10 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
                                 "one integer (ns)" if kind == "i" else "one number"))
     for k, (kind, trailing) in _LANDMARK_FIELDS.items():
         a = data[k]
-        if a.shape != (n,) + trailing or a.dtype.kind != kind:
+        if a.shape != (n,) + trailing or (a.dtype.kind != kind if len(kind) == 1 else a.dtype != np.dtype(kind)):
             raise RouteError(f"{path}: array {k!r} has shape {a.shape} dtype {a.dtype}, "
-                             f"expected shape {(n,) + trailing} of kind {kind!r}")
+                             f"expected shape {(n,) + trailing} of " + (f"kind {kind!r}" if len(kind) == 1
+                                                                         else f"dtype {kind}"))
     if data["odom"].shape != (3,) or not np.all(np.isfinite(data["odom"])):
         raise RouteError(f"{path}: 'odom' must be 3 finite numbers (x, z, theta)")
     if not math.isfinite(float(data["distance"])):
@@ -519,17 +572,36 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
     return n
 
 
+def _check_pixels(path: Path, which: str, px: np.ndarray, camera) -> None:
+    """Where each landmark was seen in the keyframe image: inside it (give or take a pixel at its edge)."""
+    out = (px[:, 0] < -1) | (px[:, 1] < -1) | (px[:, 0] > camera.width) | (px[:, 1] > camera.height)
+    if out.any():
+        k = int(np.argmax(out))
+        raise RouteError(f"{path}: {which}: landmark {k}'s pixel ({float(px[k, 0]):.1f}, {float(px[k, 1]):.1f}) "
+                         f"is outside the {camera.width}x{camera.height} image ({int(out.sum())} of {len(px)} "
+                         f"landmarks)")
+
+
 def _check_progress(mpath: Path, kfs: list) -> None:
     """Keyframes follow the route: along-route distance increases; at the same distance only a turn on
     the spot (another heading) makes a new keyframe. A copy of the keyframe before is an error."""
     for a, b in zip(kfs, kfs[1:]):
-        if b.distance > a.distance:
-            continue
-        if b.distance == a.distance and b.odom.theta != a.odom.theta:
-            continue
-        what = "repeats" if b.distance == a.distance else "is less than"
-        raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
-                         f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
+        _check_step(mpath, a, b)
+
+
+def _step(i: int, kf: Keyframe) -> Keyframe:
+    """What ``_check_step`` compares of keyframe ``kf`` written as number ``i`` (no image, no landmarks)."""
+    return Keyframe(i, None, *(None,) * 7, odom=kf.odom, distance=float(kf.distance))
+
+
+def _check_step(mpath: Path, a: Keyframe, b: Keyframe) -> None:
+    if b.distance > a.distance:
+        return
+    if b.distance == a.distance and b.odom.theta != a.odom.theta:
+        return
+    what = "repeats" if b.distance == a.distance else "is less than"
+    raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
+                     f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
 
 
 def stray_temp_files(path) -> list[Path]:

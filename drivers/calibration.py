@@ -115,6 +115,9 @@ def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, heigh
     K = K.reshape(3, 3)
     if not (K[0, 0] > 0 and K[1, 1] > 0 and np.isfinite(K).all()):
         raise CalibrationError(f"{path}: camera_matrix: focal lengths must be positive finite numbers")
+    if abs(K[0, 1]) > 1e-6 * K[0, 0] or K[1, 0] != 0 or not np.allclose(K[2], (0.0, 0.0, 1.0), rtol=0, atol=1e-9):
+        raise CalibrationError(f"{path}: camera_matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew: "
+                               f"the camera models have fx, fy, cx, cy only), got {K.tolist()}")
     try:
         w, h = int(width), int(height)
     except (TypeError, ValueError):
@@ -124,6 +127,8 @@ def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, heigh
         raise CalibrationError(f"{path}: image_width/image_height: must be positive, got {w}x{h}")
     check_intrinsics(str(path), K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, prefix="camera_matrix ")
     d = tuple(float(x) for x in np.asarray(dist, dtype=float).ravel())
+    if not all(np.isfinite(d)):
+        raise CalibrationError(f"{path}: distortion_coefficients: expected finite numbers, got {list(d)}")
     model = (model or "").strip().lower()
     if model in _FISHEYE_MODELS:
         if len(d) not in (0, 4):

@@ -46,3 +46,4 @@ def test_a_writer_that_wants_a_file_name_gets_one_with_the_target_s_suffix(tmp_p
             tmp.write_bytes(b"half")
             raise ValueError("the plot failed")
     assert out.read_bytes() == b"png" and sorted(x.name for x in tmp_path.iterdir()) == ["plot.png"]
+

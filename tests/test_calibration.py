@@ -105,6 +105,14 @@ def test_ros_equidistant_is_fisheye(tmp_path):
      "image_width/image_height: expected whole numbers"),
     ("image_width: 640\nimage_height: '480'\ncamera_matrix: [500, 0, 320, 0, 500, 240, 0, 0, 1]\n",
      "image_width/image_height: expected whole numbers"),
+    # a NaN distortion coefficient loaded (and bent every ray to NaN)
+    (ROS.format(model="plumb_bob", n=5, d="[.nan, 0.0, 0.0, 0.0, 0.0]"),
+     r"distortion_coefficients: expected finite numbers, got \[nan, 0.0, 0.0, 0.0, 0.0\]"),
+    # a skew or a bottom row other than 0 0 1 was accepted and never used (the models have fx, fy, cx, cy)
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("[520.5, 0, 321.2,", "[520.5, 40, 321.2,"),
+     r"camera_matrix: expected \[\[fx, 0, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
+    (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("243.9, 0, 0, 1]", "243.9, 0, 0, 0]"),
+     r"camera_matrix: expected \[\[fx, 0, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
 ])
 def test_errors_name_file_and_field(tmp_path, text, match):
     p = tmp_path / "bad.yaml"

@@ -186,3 +186,21 @@ def test_the_simulated_camera_renders_the_stereo_rig_of_the_calibration_file(tmp
     robot.camera.connect()
     frame = robot.camera.read(timeout_s=1.0)
     assert frame is not None and frame.right is not None and frame.disparity is not None
+
+
+def test_repeat_refuses_a_route_taught_with_another_lens_distortion(tmp_path):
+    """Same model, size and intrinsics but another distortion is another lens: the current pixels would be
+    turned into bearings that bend away from the taught ones towards the image border. It was accepted."""
+    taught_cfg = load_config("sim")                    # distortion []
+    Teaching(taught_cfg, tmp_path / "route").close(complete=False)
+    route = load_route(tmp_path / "route")
+    same = load_config("sim", overrides={"camera": {"distortion": [0.0, 0.0, 0.0, 0.0]}})
+    check_route_camera(route, same.camera.to_model())  # no distortion written out: the same camera
+    slight = load_config("sim", overrides={"camera": {"distortion": [-0.002, 0.001, 0.0, 0.0]}})
+    check_route_camera(route, slight.camera.to_model())  # what a recalibration of the same lens moves
+    other = load_config("sim", overrides={"camera": {"distortion": [-0.35, 0.12, 0.0, 0.0]}})
+    with pytest.raises(RouteError) as e:
+        Repeating(other, route)
+    msg = str(e.value)
+    assert "another lens distortion" in msg and "distortion [-0.35, 0.12, 0.0, 0.0]" in msg and \
+        "distortion none" in msg

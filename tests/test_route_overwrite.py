@@ -144,3 +144,51 @@ def test_teach_overwrite_that_fails_keeps_the_old_route(tmp_path, rng):
                         str(tmp_path / "new"), "--duration", "6"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 3 and "marked incomplete" in r.stdout, r.stdout + r.stderr
     assert not load_route(tmp_path / "new").complete
+
+
+def test_overwrite_replaces_a_route_with_the_temporary_files_of_an_interrupted_write(tmp_path, rng):
+    """A teach killed in the middle of writing a keyframe leaves ``.kf_00003.npz.<random>.tmp`` (the atomic
+    writer's name; loading ignores it). --overwrite refused that route as 'not a route file'."""
+    write_route(tmp_path / "r", rng, n=3)
+    (tmp_path / "r" / ".kf_00003.npz.k2j_3h4x.tmp").write_bytes(b"PK\x03\x04")
+    (tmp_path / "r" / ".manifest.json.a8b9c0d1.tmp").write_text('{"format": "vbn')
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True) as w:
+        for i in range(2):
+            w.append(make_kf(rng, i))
+    assert len(load_route(tmp_path / "r")) == 2 and not any(p.name.endswith(".tmp")
+                                                            for p in (tmp_path / "r").iterdir())
+    (tmp_path / "r" / ".notes.txt.a8b9c0d1.tmp").write_text("not ours")
+    with pytest.raises(RouteError, match="holds '.notes.txt.a8b9c0d1.tmp', which is not a route file"):
+        RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True)
+
+
+def test_a_partial_route_left_by_an_earlier_process_with_our_pid_is_kept(tmp_path, rng):
+    """After a reboot a service often gets the pid it had before: a replacement interrupted then left
+    ``.r.partial-<pid>`` (recorded keyframes, which nothing is to delete), and the next replacement by a
+    process with that pid deleted it before writing its own."""
+    write_route(tmp_path / "r", rng, n=3)
+    earlier = tmp_path / f".r.partial-{os.getpid()}"
+    write_route(earlier, rng, n=2)
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True) as w:
+        assert w.directory != earlier
+        for i in range(4):
+            w.append(make_kf(rng, i))
+    assert len(load_route(tmp_path / "r")) == 4 and len(load_route(earlier)) == 2
+    assert stray_route_dirs(tmp_path / "r") == [earlier]
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_an_old_route_left_by_an_earlier_process_with_our_pid_is_kept(tmp_path, rng, monkeypatch, exchange):
+    """``.r.old-<pid>`` (the complete old route of a swap a crash cut between its renames) from an earlier
+    process that had our pid: the swap renamed onto it, failed (directory not empty) and the teach ended with
+    an OSError, the new route in place (exchange) or not swapped in at all."""
+    if not exchange:
+        monkeypatch.setattr(route_mod, "_exchange", lambda a, b: False)
+    write_route(tmp_path / "r", rng, n=3)
+    earlier = tmp_path / f".r.old-{os.getpid()}"
+    write_route(earlier, rng, n=2)
+    with RouteWriter(tmp_path / "r", "sim", CAM, MOUNT, overwrite=True) as w:
+        for i in range(4):
+            w.append(make_kf(rng, i))
+    assert len(load_route(tmp_path / "r")) == 4 and len(load_route(earlier)) == 2
+    assert stray_route_dirs(tmp_path / "r") == [earlier]

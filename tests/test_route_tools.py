@@ -21,7 +21,7 @@ W, H, N = 64, 48, 6
 def keyframe(i: int, rng) -> Keyframe:
     theta = 0.2 * i                                     # a gentle right turn
     image = rng.integers(0, 255, (H, W), dtype=np.uint8)
-    return Keyframe(i, image, rng.uniform(0, W, (N, 2)).astype(np.float32), rng.normal(size=N),
+    return Keyframe(i, image, rng.uniform(0, (W, H), (N, 2)).astype(np.float32), rng.normal(size=N),
                     rng.normal(size=N), rng.integers(0, 255, (N, 32), dtype=np.uint8), np.full(N, 0.5),
                     np.full(N, 0.01), np.arange(N, dtype=np.int64) + i, Pose2(math.sin(theta), math.cos(theta),
                                                                                  theta), 0.5 * i, 1000 * i)

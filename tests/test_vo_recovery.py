@@ -111,3 +111,19 @@ def test_a_black_first_stereo_frame_is_lost_not_the_start(shared_data, tmp_path)
     assert rc == 0
     poses = [line for line in (tmp_path / "traj.txt").read_text().splitlines() if not line.startswith("#")]
     assert len(poses) == 11 and poses[0].startswith("0.100000 ")     # from frame 1 (0.1 s) on
+
+
+@pytest.mark.parametrize("name,option", [("poses.txt", "--out"), ("times.txt", "--status-out"),
+                                         ("calib.txt", "--out")])
+def test_an_output_that_is_a_file_of_the_dataset_is_refused(shared_data, tmp_path, capsys, name, option):
+    """``vbnav vo SEQ --out SEQ/poses.txt`` replaced the dataset's ground truth with the trajectory (and
+    --status-out SEQ/times.txt its frame times): the recorded data was gone, the run said nothing."""
+    view = _view(shared_data / "vo_turns_kitti03", tmp_path / "seq", list(range(0, 4)))
+    before = (view / name).read_bytes()
+    (view / name).unlink()
+    (view / name).write_bytes(before)       # a copy: a test that failed must not write into the shared data
+    args = ["vo", str(view), "--init", "essential", "--quiet", "--max-lost", "1"]
+    args += [option, str(view / name)] + (["--out", str(tmp_path / "t.txt")] if option != "--out" else [])
+    assert main(args) == 2
+    assert f"{option} {view / name}: is a file of the dataset" in capsys.readouterr().err
+    assert (view / name).read_bytes() == before

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -9,6 +10,8 @@ from pathlib import Path
 from vbnav.drivers.atomic_file import atomic_output, write_atomic
 
 GROUND_TRUTH_FILE = {"kitti": "poses.txt", "tum": "groundtruth.txt"}
+#: The files of a dataset folder besides its images (drivers/datasets.py): never an output.
+DATASET_FILES = ("calib.txt", "times.txt", "poses.txt", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml")
 
 
 def register(subparsers) -> None:
@@ -63,6 +66,15 @@ def run(args) -> int:
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     try:
         ds = open_dataset(args.dataset, args.camera)
+        # An output that is one of the dataset's files (--out SEQ/poses.txt) would replace recorded data.
+        dataset_files = {os.path.realpath(p) for p in [ds.root / n for n in DATASET_FILES] + list(ds.left)
+                         + list(ds.right or []) + [d for d in ds.depth or [] if d is not None] if p.exists()}
+        outputs = {"--out": args.out, "--plot": args.plot, "--status-out": args.status_out}
+        for option, path in outputs.items():
+            if path is not None and os.path.realpath(path) in dataset_files:
+                print(f"vbnav vo: {option} {path}: is a file of the dataset {ds.root}; writing it would replace "
+                      f"recorded data (choose another file)", file=sys.stderr)
+                return 2
         if args.plot and ds.gt_poses is None:     # the plot is the aligned trajectory over the ground truth
             print(f"vbnav vo: --plot {args.plot}: the dataset {ds.root} has no ground truth to plot against "
                   f"(no {GROUND_TRUTH_FILE[ds.layout]}); leave out --plot", file=sys.stderr)

@@ -10,6 +10,7 @@ refused with the values to set by hand; nothing is written then.
 """
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -36,7 +37,12 @@ def set_camera_mount(path, values: dict) -> str:
     from vbnav.control.config import parse_config
     p = Path(path)
     values = {k: round(float(v), 4) for k, v in values.items()}     # 0.1 mm, 1e-4 deg: far below what is measured
-    text = p.read_text()
+    try:
+        raw = p.read_bytes().decode()
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text file ({exc})") from None
+    newline = "\r\n" if "\r\n" in raw else "\n"        # kept: every line not edited stays as it was
+    text = raw.replace("\r\n", "\n")
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
@@ -54,7 +60,9 @@ def set_camera_mount(path, values: dict) -> str:
         raise ConfigError(f"{p}: editing camera.mount in place would change other keys; set it by hand: "
                           f"camera: mount: {_flow(new_mount)}")
     parse_config(got, str(p))      # the result must be a valid configuration (the file is not written else)
-    write_atomic(p, new_text)
+    # A config that is a symbolic link (robot.yaml -> configs/robot-v2.yaml) stays one: the file it points to
+    # is edited (renaming over the link would replace it with an edited copy, the linked file unchanged).
+    write_atomic(Path(os.path.realpath(p)), new_text.replace("\n", newline))
     return new_text
 
 
