@@ -53,6 +53,9 @@ def test_a_session_runs_once_and_needs_the_camera(tmp_path):
     result = session.teach(IdleController(), tmp_path / "route", duration_s=0.5)
     assert result.reason == "duration" and result.keyframes == len(result.keyframe_stamps)
     assert (tmp_path / "route" / "manifest.json").exists()
+    # the robot stood still: no second keyframe at the same place (the route would not load with it)
+    from vbnav.control.route import load_route
+    assert len(load_route(tmp_path / "route").keyframes) == result.keyframes == 1
     with pytest.raises(RuntimeError, match="one run"):
         session.teach(IdleController(), tmp_path / "again")
     assert not (tmp_path / "again").exists()

@@ -49,6 +49,7 @@ class TeachStage(VisionStage):
         self._pending: Optional[dict] = None
         self._ready: list[Keyframe] = []
         self._count = 0
+        self._last_kf: Optional[Keyframe] = None   # the last keyframe emitted
         self._distance = 0.0
         self._last_odom: Optional[Pose2] = None
         self._last_frame: Optional[tuple] = None
@@ -123,6 +124,11 @@ class TeachStage(VisionStage):
         if self._last_frame is not None and len(self._last_frame[0]) >= 4:
             self._pending = self._candidate(*self._last_frame)
             self._last_frame = None
+            if self._last_kf is not None and not _advances(self._last_kf, self._pending):
+                # A robot that has not moved since that keyframe: the same place again is no step along
+                # the route (the route refuses it, and would be unloadable with it).
+                self._pending = None
+                return self._last_kf
             self._refresh_pending_heights()
             last = self._finalise_pending()
         return last
@@ -197,4 +203,12 @@ class TeachStage(VisionStage):
                       p["var"], p["track_ids"], p["odom"], p["distance"], p["stamp_ns"])
         self._count += 1
         self._ready.append(kf)
+        self._last_kf = kf
         return kf
+
+
+def _advances(kf: Keyframe, candidate: dict) -> bool:
+    """Whether ``candidate`` is a step along the route after ``kf``: further along, or turned on the spot
+    (the route's own rule, control/route.py)."""
+    return candidate["distance"] > kf.distance or (candidate["distance"] == kf.distance
+                                                   and candidate["odom"].theta != kf.odom.theta)
