@@ -97,6 +97,7 @@ def main(argv=None) -> int:
                     help="also run vbnav and the peer with seeds 1..N-1 (RANSAC draws) and print the spread of "
                          "their APE (monocular runs depend on the draws: one figure is one draw)")
     args = ap.parse_args(argv)
+    args.data = args.data.resolve()   # the desk and room views link to its files from a temporary folder
     if args.stride < 1:
         ap.error(f"--stride {args.stride}: expected a whole number >= 1")
     missing = missing_folders(args.data)
