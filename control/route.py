@@ -308,7 +308,7 @@ def install_route_dir(new, route, overwrite: bool) -> None:
         raise RouteError(f"{route}: exists (replace it with --overwrite)")
     if not route.is_dir():
         raise RouteError(f"{route}: exists and is not a directory")
-    foreign = sorted(p.name for p in route.iterdir() if not _ROUTE_FILE.match(p.name))
+    foreign = sorted(p.name for p in route.iterdir() if not _ROUTE_FILE.fullmatch(p.name))
     if foreign:
         raise RouteError(f"{route}: holds {foreign[0]!r}, which is not a route file; not replacing a directory "
                          f"that is not a vbnav route")
@@ -350,7 +350,7 @@ class RouteWriter:
             names = [p.name for p in self.path.iterdir()]
             if names and not overwrite:
                 raise RouteError(f"{self.path}: directory is not empty (choose a new route path)")
-            foreign = sorted(n for n in names if not _ROUTE_FILE.match(n))
+            foreign = sorted(n for n in names if not _ROUTE_FILE.fullmatch(n))
             if foreign:
                 raise RouteError(f"{self.path}: holds {foreign[0]!r}, which is not a route file; not replacing "
                                  f"a directory that is not a vbnav route")
@@ -594,10 +594,14 @@ def _step(i: int, kf: Keyframe) -> Keyframe:
     return Keyframe(i, None, *(None,) * 7, odom=kf.odom, distance=float(kf.distance))
 
 
+def is_step(distance_before: float, theta_before: float, distance: float, theta: float) -> bool:
+    """Whether a keyframe at ``distance``/``theta`` is a step along the route after one at the values
+    before: further along, or turned on the spot. The route refuses any other (teach keeps to it too)."""
+    return distance > distance_before or (distance == distance_before and theta != theta_before)
+
+
 def _check_step(mpath: Path, a: Keyframe, b: Keyframe) -> None:
-    if b.distance > a.distance:
-        return
-    if b.distance == a.distance and b.odom.theta != a.odom.theta:
+    if is_step(a.distance, a.odom.theta, b.distance, b.odom.theta):
         return
     what = "repeats" if b.distance == a.distance else "is less than"
     raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import sys
 
-from vbnav.control.commands._common import add_config_arg, finite, positive
+from vbnav.control.commands._common import add_config_arg, add_overwrite_arg, finite, positive
 from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_path
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
@@ -40,8 +40,7 @@ def register(sub) -> None:
                         "drives and plans again when the grown map blocks the route ahead")
     p.add_argument("--map-out", metavar="FILE",
                    help="with --map: write the map as it grew while driving to FILE at the end (atomically)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="with --map-out: replace an existing map file there (written when the run ends)")
+    add_overwrite_arg(p, "an existing --map-out map")
     p.add_argument("--robot-radius", type=positive, default=None, metavar="M",
                    help=f"with --map: the robot's radius for planning, m (default {ROBOT_RADIUS_M})")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",

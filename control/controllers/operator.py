@@ -251,6 +251,7 @@ class OperatorController(Controller):
         teaching = pending[4]
         if teaching is not None:
             teaching.close()
+        self._close_teach()     # the route being taught when the run ended: close() left it to this thread
 
     def _close_teach(self) -> None:
         if self._teaching is not None:
@@ -266,6 +267,7 @@ class OperatorController(Controller):
         mode, route, stages, controller, teaching, error, cmd = self._pending
         self._pending = None
         self._worker = None
+        self._worker_cmd = None
         previous, self._previous = self._previous, None
         rt = self._runtime
         if now_ns is None:
@@ -334,4 +336,5 @@ class OperatorController(Controller):
                 if cmd is not None and rt is not None:
                     rt.complete_command(cmd, CommandOutcome.refused(
                         f"mode {cmd.args[0]}: the run ended before the switch took effect"), rt.clock.now_ns())
-        self._close_teach()
+        if not gone:      # else the worker closes the route being taught: one thread, never two at once
+            self._close_teach()

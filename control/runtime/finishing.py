@@ -17,9 +17,10 @@ from contextlib import contextmanager
 from typing import Iterator, TextIO
 
 
-#: The signals the runtime turns into a stop (runtime.STOP_SIGNALS): while a run finishes, each of them is held.
-#: SIGHUP comes twice when a terminal hangs up (the kernel's, then the shell's to its jobs), and its default kills.
-HELD = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP)
+#: The signals the runtime turns into a stop: while a run finishes, each of them is held. SIGHUP comes twice
+#: when a terminal hangs up (the kernel's, then the shell's to its jobs), and its default kills.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP)
+HELD = STOP_SIGNALS
 
 
 @contextmanager

@@ -50,6 +50,7 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
+from vbnav.control.runtime.finishing import STOP_SIGNALS as _FINISHING_STOP_SIGNALS
 from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
@@ -121,8 +122,9 @@ def _restore_affinity(old: dict) -> None:
 #: How a run may end and what it made (a route, a map) still be whole: its plan done, its time up, or
 #: stopped by the operator (a stop command, Ctrl-C).
 ENDED_WELL = ("finished", "duration", "stopped", "signal")
-#: The signals that end a run (fatal ``signal``), the wheels to zero and the drive disabled at the next cycle.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP)
+#: The signals that end a run (fatal ``signal``), the wheels to zero and the drive disabled at the next cycle:
+#: finishing.STOP_SIGNALS, which the close-down holds too (one tuple, so the two never differ).
+STOP_SIGNALS = _FINISHING_STOP_SIGNALS
 #: Ends that are a device's failure, not the job's (the commands' exit code 3).
 DEVICE_FAULTS = ("drive", "camera")
 
@@ -600,11 +602,12 @@ class Runtime:
         reason, message = self._end or ("stopped", "loop stopped")
         why = f"the run ended ({reason}: {message}) before the loop took this command"
         now = self.clock.now_ns()
-        in_hand, self._in_hand = self._in_hand, []
-        for cmd in in_hand + self.mailbox.close(why):
+        in_hand, self._in_hand = self._in_hand, []     # taken from the mailbox, never applied
+        taken = f"the run ended ({reason}: {message}) before this command took effect"
+        for cmd, because in [(c, taken) for c in in_hand] + [(c, why) for c in self.mailbox.close(why)]:
             for fn in self.command_observers:      # they tell the answer which command (and ack) it is for
                 fn(self, cmd, now)
-            self._answer(cmd, CommandOutcome.refused(why), now)
+            self._answer(cmd, CommandOutcome.refused(because), now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):

@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 from vbnav.control.config.vbc import VBCConfig
-from vbnav.control.route import Keyframe
+from vbnav.control.route import Keyframe, is_step
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.control.stages.vbc_fix import bearing_sigma
@@ -124,7 +124,8 @@ class TeachStage(VisionStage):
         if self._last_frame is not None and len(self._last_frame[0]) >= 4:
             self._pending = self._candidate(*self._last_frame)
             self._last_frame = None
-            if self._last_kf is not None and not _advances(self._last_kf, self._pending):
+            if self._last_kf is not None and not is_step(self._last_kf.distance, self._last_kf.odom.theta,
+                                                        self._pending["distance"], self._pending["odom"].theta):
                 # A robot that has not moved since that keyframe: the same place again is no step along
                 # the route (the route refuses it, and would be unloadable with it).
                 self._pending = None
@@ -205,10 +206,3 @@ class TeachStage(VisionStage):
         self._ready.append(kf)
         self._last_kf = kf
         return kf
-
-
-def _advances(kf: Keyframe, candidate: dict) -> bool:
-    """Whether ``candidate`` is a step along the route after ``kf``: further along, or turned on the spot
-    (the route's own rule, control/route.py)."""
-    return candidate["distance"] > kf.distance or (candidate["distance"] == kf.distance
-                                                   and candidate["odom"].theta != kf.odom.theta)
