@@ -154,7 +154,9 @@ def _check_increasing(path: Path, stamps: np.ndarray) -> None:
                            f"({stamps[k]:g} s): expected increasing times")
 
 
-def detect_layout(root: Path) -> str:
+def detect_layout(root: Path, fallback: Optional[str] = None) -> str:
+    """'tum' or 'kitti' by the files that make them; else ``fallback`` if given (the replay camera's plain
+    folder of images), else an error naming the folder."""
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: is a file, expected a dataset folder" if root.exists()
@@ -163,6 +165,8 @@ def detect_layout(root: Path) -> str:
         return "tum"
     if (root / "calib.txt").is_file() or (root / "image_l").is_dir() or (root / "image_0").is_dir():
         return "kitti"
+    if fallback is not None:
+        return fallback
     raise DatasetError(f"{root}: neither a KITTI odometry folder (image_l/ + calib.txt) "
                        f"nor a TUM RGB-D folder (rgb.txt)")
 

@@ -20,7 +20,7 @@ from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import Camera, CameraError, CameraSizeError, Frame, RecordedCameraError
 from vbnav.drivers.clock import MonotonicClock
-from vbnav.drivers.datasets import DatasetError, _images_in, _read_image, open_dataset
+from vbnav.drivers.datasets import DatasetError, _images_in, _read_image, detect_layout, open_dataset
 
 FOLDER_DEFAULT_RATE_HZ = 10.0
 # How far the configured intrinsics may be from a recording's own (as the OAK driver checks its device's):
@@ -115,9 +115,7 @@ class ReplayCamera(Camera):
             raise CameraError(f"replay camera: {root} does not exist")
         layout = self.opt.layout
         if layout == "auto":
-            layout = "tum" if (root / "rgb.txt").is_file() else (
-                "kitti" if (root / "calib.txt").is_file() or (root / "image_l").is_dir()
-                or (root / "image_0").is_dir() else "folder")   # as datasets.detect_layout
+            layout = detect_layout(root, fallback="folder") if root.is_dir() else "folder"
         try:
             if layout == "folder":
                 if not root.is_dir():

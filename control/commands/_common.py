@@ -96,6 +96,14 @@ def not_recorded_yet(paths, option: str, overwrite: bool, what: str) -> None:
         raise InputError(f"{option}: {what} already there ({', '.join(there)}); use --overwrite to replace it")
 
 
+def refuse_no_camera_with_obstacle_stop(cfg, no_camera: bool) -> None:
+    """--no-camera on a configuration whose obstacle stop (a safety function it asks for) needs the camera:
+    refused by run and doctor alike."""
+    if no_camera and cfg.obstacles.enabled:
+        raise InputError(f"--no-camera: {cfg.source}: obstacles.enabled is true, and the obstacle stop needs the "
+                         f"camera (set obstacles.enabled: false to run without it)")
+
+
 def distinct_files(outputs: dict, inputs: Optional[dict] = None) -> None:
     """Raise InputError when two outputs (option -> path) name one file, or an output names one of the
     ``inputs`` (option -> path): one would overwrite the other. Paths that are None are not given."""

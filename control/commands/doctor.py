@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 
 from vbnav.control.commands._common import add_config_arg
-from vbnav.drivers.errors import InputError
 
 MARK = {"ok": "[ ok ]", "warn": "[warn]", "fail": "[FAIL]", "skip": "[skip]"}
 
@@ -31,9 +30,8 @@ def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.doctor import FAIL, WARN, run_checks
     cfg = load_config(args.config)
-    if args.no_camera and cfg.obstacles.enabled:        # as 'vbnav run --no-camera' refuses it
-        raise InputError(f"--no-camera: {cfg.source}: obstacles.enabled is true, and the obstacle stop needs the "
-                         f"camera (set obstacles.enabled: false to run without it)")
+    from vbnav.control.commands._common import refuse_no_camera_with_obstacle_stop
+    refuse_no_camera_with_obstacle_stop(cfg, args.no_camera)
     print(f"vbnav doctor: {cfg.source} (robot {cfg.robot.name}, drive {cfg.drive.driver}, camera "
           f"{'none' if args.no_camera else cfg.camera.driver})", flush=True)
     checks = run_checks(cfg, camera=not args.no_camera)

@@ -84,9 +84,8 @@ def run(args) -> int:
         closed = "--no-telemetry" if args.no_telemetry else f"{cfg.source}: telemetry.enabled: false"
         raise InputError(f"{what}: takes its commands over the network, which {closed} keeps closed (the robot "
                          "would stand still until the end)")
-    if args.no_camera and cfg.obstacles.enabled:     # a safety function the configuration asks for
-        raise InputError(f"--no-camera: {cfg.source}: obstacles.enabled is true, and the obstacle stop needs the "
-                         f"camera (set obstacles.enabled: false to run without it)")
+    from vbnav.control.commands._common import refuse_no_camera_with_obstacle_stop
+    refuse_no_camera_with_obstacle_stop(cfg, args.no_camera)
     robot = make_robot(cfg, with_camera=camera_wanted(cfg, kind, args))
     if robot.camera is None and not args.no_camera:
         print(f"camera: not opened (controller {kind} does not use it" +
