@@ -94,6 +94,7 @@ class TeachResult:
     timing: object
     complete: bool = True        # closed complete: ended well with MIN_ROUTE_KEYFRAMES or more
     directory: Optional[Path] = None   # where the keyframes are (beside the route when a replacement failed)
+    note: Optional[str] = None   # why the route ends before the last frame (TeachStage.end_note)
 
 
 @dataclass
@@ -154,7 +155,7 @@ class Session:
             raise
         complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
         return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
-                           result.timing, complete, teaching.writer.directory)
+                           result.timing, complete, teaching.writer.directory, teaching.stage.end_note)
 
     def repeat(self, route: Route, duration_s: Optional[float] = None, observers: Sequence[Observer] = (),
                segment: str = "repeat") -> RepeatResult:

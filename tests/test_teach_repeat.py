@@ -326,3 +326,27 @@ def test_keyframe_taken_at_the_last_frame_has_heights():
     assert kfs[-1].stamp_ns == 41
     last = kfs[-1]
     assert np.isfinite(last.inv_height).mean() > 0.8
+
+
+def test_route_does_not_end_on_a_last_frame_below_the_keyframe_minimum():
+    """finish() takes a keyframe at the last frame only when it keeps ``min_keyframe_landmarks`` tracks,
+    as every other keyframe: a last frame of 5 tracks (the lens covered as the teach stopped) ends the
+    route at the keyframe before, and the stage says so (a repeat cannot localise on 5 landmarks)."""
+    rng = np.random.default_rng(5)
+    pts = room_landmarks(rng)
+    cfg = VBCConfig()
+    stage = TeachStage(CAM, MOUNT, cfg)
+    pose = Pose2()
+    for i in range(30):                                   # 0.75 m straight, a frame every 2.5 cm
+        ids, px = observe(pose, pts, rng)
+        stage.update(ids, px, pose, i)
+        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+    for i in (30, 31):                                    # the last frames: 5 tracks (the first set aside)
+        ids, px = observe(pose, pts, rng)
+        stage.update(ids[:5], px[:5], pose, i)
+        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    assert [kf.stamp_ns for kf in kfs] == [0, 16]          # by distance; none on the 5 tracks of frame 31
+    assert all(len(kf.track_ids) >= cfg.min_keyframe_landmarks for kf in kfs)
+    assert "5 tracks" in stage.end_note and f"min_keyframe_landmarks {cfg.min_keyframe_landmarks}" in stage.end_note

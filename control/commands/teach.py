@@ -64,6 +64,8 @@ def run(args) -> int:
     result = Session(cfg, robot, record=args.record, progress=printer, record_overwrite=args.overwrite).teach(
         teach_driver(cfg), out, overwrite=args.overwrite, duration_s=args.duration)
     printer.done()
+    if result.note:
+        print(f"vbnav teach: note: {result.note}", file=sys.stderr)
     if result.complete:
         print(f"teach ended: {result.reason} ({result.message}); {result.keyframes} keyframes in {out}")
         return 0

@@ -56,6 +56,7 @@ class TeachStage(VisionStage):
         self._prev_ids: Optional[np.ndarray] = None     # tracks of the last frame taken
         self._prev_suspect = False                      # the last frame was set aside
         self.suspect_frames = 0
+        self.end_note: Optional[str] = None             # why finish() took no keyframe at the last frame
 
     @property
     def n_keyframes(self) -> int:
@@ -116,12 +117,23 @@ class TeachStage(VisionStage):
         return Estimate(stamp_ns, self.kind, True, emitted, info)
 
     def finish(self) -> Optional[Keyframe]:
-        """End of teaching: emit the pending keyframe and one at the last frame, where the route ends.
+        """End of teaching: emit the pending keyframe and one at the last frame, where the route ends
+        (when that frame keeps ``min_keyframe_landmarks`` tracks, as every keyframe; else ``end_note``
+        says why the route ends at the keyframe before).
 
         Returns the final keyframe (all are queued for ``pop_keyframes``).
         """
         last = self._finalise_pending()
-        if self._last_frame is not None and len(self._last_frame[0]) >= 4:
+        tracks = len(self._last_frame[0]) if self._last_frame is not None else 0
+        if self._last_frame is not None and tracks < self.cfg.min_keyframe_landmarks:
+            # As every keyframe: a repeat could not localise on so few landmarks at the route's end.
+            self._last_frame = None
+            self.end_note = (f"no keyframe at the last frame: it kept {tracks} tracks, below "
+                             f"vbc.min_keyframe_landmarks {self.cfg.min_keyframe_landmarks}")
+            if self._last_kf is not None:
+                self.end_note += (f"; the route ends at the keyframe before, "
+                                  f"{self._distance - self._last_kf.distance:.2f} m short of where the teach stopped")
+        if self._last_frame is not None:
             self._pending = self._candidate(*self._last_frame)
             self._last_frame = None
             if self._last_kf is not None and not is_step(self._last_kf.distance, self._last_kf.odom.theta,
