@@ -148,8 +148,9 @@ def test_stage_needs_stereo():
     est = stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())    # not ok; the next is tried
     assert not est.ok and "neither a right image nor a disparity image" in est.info["reason"]
     stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
-    with pytest.raises(ValueError, match="baseline_m"):
-        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())
+    est = stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0), Pose2())   # not ok; the next is tried
+    assert not est.ok and "carries no meta['baseline_m']" in est.info["reason"]
+    assert est.info["reason"].startswith("vslam: ") and stage.baseline is None
 
 
 @pytest.mark.parametrize("late", [[8], [0], [8, 9, 10, 11, 12, 13, 14, 15]],
@@ -438,17 +439,21 @@ def test_a_frame_with_non_finite_odometry_is_not_ok_and_the_stage_carries_on():
     assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
 
 
-@pytest.mark.parametrize("baseline", [float("nan"), float("inf")])
-def test_a_frame_baseline_that_is_no_distance_is_refused_like_a_missing_one(baseline):
-    """meta['baseline_m'] NaN or inf was taken as the baseline: every depth NaN (or 0), and the stage said on
-    every frame that it found no landmarks, never that the baseline was wrong. It is refused like a missing
-    one, naming the value."""
+@pytest.mark.parametrize("baseline", [float("nan"), float("inf"), -0.12, "0.12"])
+def test_a_frame_baseline_that_is_no_distance_is_an_unusable_frame(baseline):
+    """meta['baseline_m'] NaN, inf, negative or not a number (a device calibration gone wrong) raised ValueError
+    out of the stage, which ended the run, where the obstacle stage and every other bad frame (no disparity,
+    another size) are a frame that is not ok and a later frame goes on. It is that now: not ok, naming the
+    value, no fix (the go-to controller stays stopped); a later frame with a good baseline starts the VSLAM."""
     model = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
     stage = VslamStage(model, CameraMount(), None, baseline_from_frames=True)
     disp = np.full((240, 320), 4.0, np.float32)
-    with pytest.raises(ValueError, match=f"baseline_m.*{baseline}"):
-        stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0, disparity=disp, meta={"baseline_m": baseline}),
-                      Pose2())
+    est = stage.process(Frame(np.zeros((240, 320), np.uint8), 0, 0, disparity=disp, meta={"baseline_m": baseline}),
+                        Pose2())
+    assert not est.ok and stage.baseline is None and stage.stats["unusable"] == 1
+    assert f"meta['baseline_m'] is {baseline!r}, not a distance > 0" in est.info["reason"], est.info["reason"]
+    stage.process(Frame(np.zeros((240, 320), np.uint8), 1, 1, disparity=disp, meta={"baseline_m": 0.12}), Pose2())
+    assert stage.baseline == 0.12 and stage.slam.baseline == 0.12
 
 
 def test_monocular_start_spreads_its_corners_over_vslam_detect_cells():

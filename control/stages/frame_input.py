@@ -47,6 +47,22 @@ def stage_image(image: Optional[np.ndarray], camera, what: str = "image") -> tup
     return image, ""
 
 
+def frame_baseline(frame) -> tuple[Optional[float], str]:
+    """(baseline m, "") from the frame's ``meta['baseline_m']`` (a camera reporting its device's stereo
+    calibration, the OAK) when it is a finite distance > 0, else (None, why): a camera that sends none, or
+    a calibration gone wrong (NaN, inf, <= 0, not a number) is a frame the stage cannot use."""
+    b = (frame.meta or {}).get("baseline_m")
+    if b is None:
+        return None, "the frame carries no meta['baseline_m']"
+    try:
+        ok = not isinstance(b, (str, bool)) and math.isfinite(float(b)) and float(b) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        return None, f"the frame's meta['baseline_m'] is {b!r}, not a distance > 0"
+    return float(b), ""
+
+
 def odometry_problem(odom) -> str:
     """"" when the odometry pose of a frame is finite, else why the frame cannot be used with it."""
     values = (odom.x, odom.z, odom.theta)

@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
+from vbnav.control.stages.frame_input import frame_baseline
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -282,11 +283,9 @@ class ObstacleStage(VisionStage):
         this frame gives none)."""
         if self.rig is not None:
             return self.rig, ""
-        b = frame.meta.get("baseline_m")
+        b, why = frame_baseline(frame)
         if b is None:
-            return None, ""
-        if not (b and math.isfinite(b) and b > 0):
-            return None, f": the frame's meta['baseline_m'] is {b}, not a distance > 0"
+            return None, f": {why}"
         camera = self._camera
         K = frame.meta.get("K")
         if K is not None:
@@ -298,7 +297,7 @@ class ObstacleStage(VisionStage):
                 return None, (f": the frame's meta['K'] is no camera of {camera.width}x{camera.height} "
                               f"({', '.join(bad)})")
             camera = replace(camera, fx=fx, fy=fy, cx=cx, cy=cy)
-        self._set_rig(StereoRig(camera, float(b)))
+        self._set_rig(StereoRig(camera, b))
         return self.rig, ""
 
     @classmethod

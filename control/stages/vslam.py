@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.control.runtime.interfaces import Estimate, PoseFix, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import odometry_problem, stage_image
+from vbnav.control.stages.frame_input import frame_baseline, odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
@@ -123,7 +123,8 @@ class VslamStage(VisionStage):
     def __init__(self, camera, mount: CameraMount, stereo_baseline: Optional[float],
                  cfg: VslamNavConfig | None = None, baseline_from_frames: bool = False):
         """stereo_baseline: metres. With ``baseline_from_frames`` it may be None: the first frame's
-        ``meta['baseline_m']`` gives it (the OAK driver reads it from the device's calibration)."""
+        ``meta['baseline_m']`` gives it (the OAK driver reads it from the device's calibration); a frame
+        before it without a usable one is an unusable frame (not ok, ``info['reason']`` says why)."""
         self.cfg = cfg or VslamNavConfig()
         self.monocular = self.cfg.metric_scale == "odometry"
         if not self.monocular and (stereo_baseline is None or stereo_baseline <= 0) and not baseline_from_frames:
@@ -175,15 +176,15 @@ class VslamStage(VisionStage):
         odom_why = odometry_problem(odom)
         why = why or odom_why
         if self.baseline is None and not self.monocular:
-            b = (frame.meta or {}).get("baseline_m")
-            if not b:
-                raise ValueError("the VSLAM stage needs the stereo baseline: the camera's frames carry no "
-                                 "meta['baseline_m'] (set camera.options.stereo_baseline)")
-            if not (math.isfinite(b) and b > 0):
-                raise ValueError(f"the VSLAM stage needs the stereo baseline: the camera's frames carry "
-                                 f"meta['baseline_m'] {b}, not a distance > 0 (set camera.options.stereo_baseline)")
-            self.baseline = float(b)
-            self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
+            # From the first frame that carries a usable one; until then each frame is unusable (as any bad
+            # frame: not ok, the go-to controller has no pose and stays stopped), saying why.
+            b, b_why = frame_baseline(frame)
+            if b is None:
+                why = why or (f"{b_why}: the stereo VSLAM needs the stereo baseline for metric scale (set "
+                              "camera.options.stereo_baseline)")
+            else:
+                self.baseline = b
+                self.slam = Vslam(self.camera, self.cfg, stereo_baseline=self.baseline)
         right, depth = None, None
         if why:
             why = f"vslam: {why}"
