@@ -218,7 +218,7 @@ def test_a_frame_of_another_size_is_blind_and_a_bgra_pair_is_matched():
     assert e.ok and e.info["speed_scale"] == 1.0
     small = Frame(left[::2, ::2].copy(), FRAME_NS, 2, right=right[::2, ::2].copy())
     e = stage.process(small, Pose2())
-    assert not e.ok and e.info["speed_scale"] == 0.0 and "320x240, the camera config says 640x480" in e.info["reason"]
+    assert not e.ok and e.info["speed_scale"] == 0.0 and "320x240, the camera calibration is for 640x480" in e.info["reason"]
     bgra = [cv2.cvtColor(im, cv2.COLOR_GRAY2BGRA) for im in (left, right)]
     e = stage.process(Frame(bgra[0], 10 * FRAME_NS, 3, right=bgra[1]), Pose2())
     assert e.ok
@@ -284,9 +284,9 @@ def test_a_frame_without_what_the_source_needs_says_what_it_has(source):
 
 
 @pytest.mark.parametrize("K,says", [
-    ([[0.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]], "fx 0"),
-    ([[400.0, 0, float("nan")], [0, 400.0, 239.5], [0, 0, 1]], "cx nan"),
-    ([[400.0, 0, 900.0], [0, 400.0, 239.5], [0, 0, 1]], "cx 900"),
+    ([[0.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]], "meta['K']: fx: the focal length must be > 0 px, got 0.0"),
+    ([[400.0, 0, float("nan")], [0, 400.0, 239.5], [0, 0, 1]], "meta['K']: cx: expected a finite number, got nan"),
+    ([[400.0, 0, 900.0], [0, 400.0, 239.5], [0, 0, 1]], "meta['K']: cx: the principal point 900.0 is outside"),
 ])
 def test_frame_intrinsics_that_are_no_camera_are_refused(K, says):
     """meta['K'] with a zero focal length or a NaN principal point raised ValueError from StereoRig out of the

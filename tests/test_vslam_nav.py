@@ -231,7 +231,7 @@ VSLAM_BAD_FRAMES = {
                         "the right image is 160x120"),
     "half-size-disparity": (lambda f: Frame(f.image, f.stamp_ns, f.seq,
                                             None if f.disparity is None else f.disparity[::2, ::2].copy(),
-                                            f.right, f.meta), "the disparity image has shape (120, 160)"),
+                                            f.right, f.meta), "the disparity image is 160x120"),
     # an OAK's raw fixed-point disparity (3 subpixel bits) passed on unscaled: depths 8 times too near, a
     # VSLAM at an eighth of the scale, ok
     "uint16-disparity": (lambda f: Frame(f.image, f.stamp_ns, f.seq,

@@ -47,6 +47,20 @@ def stage_image(image: Optional[np.ndarray], camera, what: str = "image") -> tup
     return image, ""
 
 
+def disparity_problem(disparity: np.ndarray, camera) -> str:
+    """"" when ``disparity`` is a disparity image the stages take: floats in pixels (NaN unknown) of the
+    camera's ``width`` x ``height``; else why not. An integer one is a raw device format whose scale is not
+    known here (an OAK's has 3 subpixel bits): taken as pixels, every depth is that many times too near."""
+    d = np.asarray(disparity)
+    if not np.issubdtype(d.dtype, np.floating):
+        return f"the disparity image is {d.dtype}, the stage takes disparity in pixels as floats (NaN unknown)"
+    w, h = int(camera.width), int(camera.height)
+    if d.shape != (h, w):
+        size = f"{d.shape[1]}x{d.shape[0]}" if d.ndim == 2 else f"of shape {tuple(d.shape)}"
+        return f"the disparity image is {size}, the camera calibration is for {w}x{h}"
+    return ""
+
+
 def frame_baseline(frame) -> tuple[Optional[float], str]:
     """(baseline m, "") from the frame's ``meta['baseline_m']`` (a camera reporting its device's stereo
     calibration, the OAK) when it is a finite distance > 0, else (None, why): a camera that sends none, or

@@ -41,7 +41,8 @@ import cv2
 import numpy as np
 from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import frame_baseline
+from vbnav.control.stages.frame_input import disparity_problem, frame_baseline
+from vbnav.drivers.calibration import CalibrationError, check_intrinsics
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -285,17 +286,16 @@ class ObstacleStage(VisionStage):
             return self.rig, ""
         b, why = frame_baseline(frame)
         if b is None:
-            return None, f": {why}"
+            return None, (f"no stereo baseline: {why} (set obstacles.baseline or camera.options.stereo_baseline, "
+                          "or use a camera reporting meta['baseline_m'])")
         camera = self._camera
         K = frame.meta.get("K")
         if K is not None:
             fx, fy, cx, cy = (float(v) for v in (K[0][0], K[1][1], K[0][2], K[1][2]))
-            bad = [f"{n} {v}" for n, v, ok in (("fx", fx, fx > 0), ("fy", fy, fy > 0),
-                                               ("cx", cx, 0 <= cx < camera.width),
-                                               ("cy", cy, 0 <= cy < camera.height)) if not ok]
-            if bad:
-                return None, (f": the frame's meta['K'] is no camera of {camera.width}x{camera.height} "
-                              f"({', '.join(bad)})")
+            try:
+                check_intrinsics("the frame's meta['K']", fx, fy, cx, cy, camera.width, camera.height)
+            except CalibrationError as exc:
+                return None, f"no stereo rig: {exc}"
             camera = replace(camera, fx=fx, fy=fy, cx=cx, cy=cy)
         self._set_rig(StereoRig(camera, b))
         return self.rig, ""
@@ -357,10 +357,7 @@ class ObstacleStage(VisionStage):
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         rig, got = self._rig_for(frame)
         if rig is None:
-            return Estimate(frame.stamp_ns, self.kind, False, None, {
-                "speed_scale": 0.0, "reason": f"obstacles: no stereo baseline{got} (set obstacles.baseline or "
-                                              "camera.options.stereo_baseline, or use a camera reporting "
-                                              "meta['baseline_m'])"})
+            return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": f"obstacles: {got}"})
         why = self._pair_problem(frame) if self._sgbm_pair(frame) else ""
         if why:
             return self._blind(frame, f"obstacles: blind: {why}: no stereo matching between them")
@@ -375,15 +372,11 @@ class ObstacleStage(VisionStage):
             else:
                 why = "obstacles: frame has no disparity and no right image"
             return self._blind(frame, why)
-        if not np.issubdtype(disp.dtype, np.floating):
-            # Frame.disparity is float pixels: an integer one is a raw device format whose scale is not
-            # known here (an OAK's has 3 subpixel bits); taken as pixels, the floor stands above the plane.
-            return self._blind(frame, f"obstacles: blind: the disparity is {disp.dtype}, the stage takes "
-                                      "disparity in pixels as floats (NaN unknown)")
-        if disp.shape != (self.rig.height, self.rig.width):
-            # The zones are laid out for the configured size: a frame of another one cannot be judged.
-            return self._blind(frame, f"obstacles: blind: the disparity is {disp.shape[1]}x{disp.shape[0]}, the "
-                                      f"camera config says {self.rig.width}x{self.rig.height}")
+        why = disparity_problem(disp, self.rig)
+        if why:
+            # An integer one taken as pixels puts the floor above the plane; the zones are laid out for the
+            # configured size, and a frame of another one cannot be judged.
+            return self._blind(frame, f"obstacles: blind: {why}")
         seen = seen_fraction(disp, self.watched)
         if seen < MIN_SEEN_FRACTION:
             # A covered lens, darkness or a blank view gives no disparity where the zones are: nothing

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.control.runtime.interfaces import Estimate, PoseFix, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import frame_baseline, odometry_problem, stage_image
+from vbnav.control.stages.frame_input import disparity_problem, frame_baseline, odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
 from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose, rot_y
@@ -351,16 +351,10 @@ class VslamStage(VisionStage):
             right, why = stage_image(frame.right, self.camera, "right image")
             return right, None, f"vslam: {why}" if why else ""
         if frame.disparity is not None:
-            d = np.asarray(frame.disparity)
-            if not np.issubdtype(d.dtype, np.floating):
-                # Frame.disparity is float pixels: an integer one is a raw device format (an OAK's has 3
-                # subpixel bits) whose scale is not known here, and taken as pixels it scales every depth.
-                return None, None, (f"vslam: the disparity image is {d.dtype}, the stage takes disparity in "
-                                    "pixels as floats (NaN unknown)")
-            d = d.astype(np.float32, copy=False)
-            if d.shape != (self.camera.height, self.camera.width):
-                return None, None, (f"vslam: the disparity image has shape {d.shape}, the camera calibration "
-                                    f"is for {self.camera.width}x{self.camera.height}")
+            why = disparity_problem(frame.disparity, self.camera)
+            if why:
+                return None, None, f"vslam: {why}"
+            d = np.asarray(frame.disparity).astype(np.float32, copy=False)
             with np.errstate(divide="ignore", invalid="ignore"):
                 depth = np.where(d > 0, float(self.camera.fx) * self.baseline / d, np.nan)
             return None, depth, ""
