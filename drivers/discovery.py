@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from vbnav.drivers.errors import InputError
+
 # USB vendor:product -> what it probably is on a robot (the same chip serves other gadgets too).
 USB_IDS = {
     (0x0403, 0x6014): "ROBOTIS U2D2 (FTDI FT232H): Dynamixel bus adapter",
@@ -27,6 +29,22 @@ USB_IDS = {
     (0x1A86, 0x7523): "WCH CH340 USB-serial",
     (0x2341, 0x0043): "Arduino Uno",
 }
+
+
+def check_device(port: str, expected: str, hint: str = "") -> None:
+    """Raise InputError (naming ``--port``) unless ``port`` is a character device (a serial adapter, an
+    emulator's pty or a link to one); ``expected`` says what it should be, ``hint`` is added to both
+    messages (" (vbnav find lists the serial ports)")."""
+    import stat
+    try:
+        mode = os.stat(port).st_mode
+    except FileNotFoundError:
+        raise InputError(f"--port {port}: no such device{hint}") from None
+    except OSError as exc:       # a folder on the way that may not be read
+        raise InputError(f"--port {port}: {exc.strerror}{hint}") from None
+    if not stat.S_ISCHR(mode):
+        raise InputError(f"--port {port}: is not a device ({'a folder' if stat.S_ISDIR(mode) else 'a file'}); "
+                         f"expected {expected}{hint}")
 
 
 def usb_kind(vid: Optional[int], pid: Optional[int]) -> str:

@@ -13,12 +13,11 @@ one id answer together and garble each other.
 """
 from __future__ import annotations
 
-import os
-import stat
 from dataclasses import dataclass
 from typing import Iterable, Optional
 
 from vbnav.drivers import dynamixel_table as reg
+from vbnav.drivers.discovery import check_device
 from vbnav.drivers.dynamixel_table import BAUD_VALUES, MAX_ID, MODEL_NUMBERS
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.wheels import DriveError
@@ -53,11 +52,7 @@ class DynamixelBusTool:
     def __init__(self, port: str):
         if sdk is None:  # pragma: no cover
             raise DriveError("dynamixel-sdk is not installed")
-        if not os.path.exists(port):
-            raise InputError(f"--port {port}: no such device (vbnav find lists the serial ports)")
-        if not stat.S_ISCHR(os.stat(port).st_mode):
-            raise InputError(f"--port {port}: is not a device ({'a folder' if os.path.isdir(port) else 'a file'}); "
-                             "expected the bus adapter's serial device (vbnav find lists the serial ports)")
+        check_device(port, "the bus adapter's serial device", " (vbnav find lists the serial ports)")
         self.port_name = port
         self.port = BudgetedPort(port, ADAPTER_LATENCY_MS, 2.0)
         self.ph = sdk.PacketHandler(2.0)

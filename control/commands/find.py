@@ -55,23 +55,10 @@ def register(sub) -> None:
     s.set_defaults(func=run_servos)
 
 
-def _check_ports(ports: list[str]) -> None:
-    """Each --port must be a device (a serial adapter, an emulator's pty or a link to one)."""
-    import os
-    import stat
-    for port in ports:
-        try:
-            mode = os.stat(port).st_mode
-        except FileNotFoundError:
-            raise InputError(f"--port {port}: no such device") from None
-        if not stat.S_ISCHR(mode):
-            raise InputError(f"--port {port}: is not a device ({'a folder' if stat.S_ISDIR(mode) else 'a file'}); "
-                             "expected a serial device such as /dev/ttyUSB0 or an emulator's pty")
-
-
 def run(args) -> int:
     from vbnav.drivers import discovery
-    _check_ports(args.port)
+    for port in args.port:
+        discovery.check_device(port, "a serial device such as /dev/ttyUSB0 or an emulator's pty")
     print("Serial ports:")
     ports = discovery.serial_ports(extra=tuple(args.port))
     for port in ports:
