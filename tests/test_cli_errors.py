@@ -219,7 +219,7 @@ CASES = [
     ("teach-garbage-config", "teach --out {d}/route -c {d}/garbage.yaml", 2, "garbage.yaml"),
     # taught by teleop with the network closed: nobody could drive it, and it ran until --duration or Ctrl-C
     ("teach-teleop-no-telemetry", "teach --out {d}/route -c {d}/teach_quiet.yaml --duration 0.5", 2,
-     "teach_quiet.yaml: controller.teach 'teleop' takes the driving commands over the network"),
+     "teach_quiet.yaml: controller.teach teleop: takes its commands over the network"),
     # vo
     ("vo-missing", "vo {d}/nope --out {d}/t.txt", 2, "nope"),
     ("vo-file", "vo {d}/afile.txt --out {d}/t.txt", 2, "afile.txt"),

@@ -124,6 +124,23 @@ def distinct_files(outputs: dict, inputs: Optional[dict] = None) -> None:
         seen[key] = option
 
 
+def network_closed(cfg, no_telemetry: bool = False) -> str:
+    """What keeps the telemetry session (network commands, the live view) closed: "--no-telemetry",
+    "<config>: telemetry.enabled: false", or "" when it opens."""
+    if no_telemetry:
+        return "--no-telemetry"
+    return "" if cfg.telemetry.enabled else f"{cfg.source}: telemetry.enabled: false"
+
+
+def refuse_network_driver_without_network(cfg, what: str, no_telemetry: bool, consequence: str) -> None:
+    """Refuse ``what`` (a controller driven by commands over the network: teleop, the operator) when the
+    network is kept closed; ``consequence`` says what the run would have been."""
+    closed = network_closed(cfg, no_telemetry)
+    if closed:
+        raise InputError(f"{what}: takes its commands over the network, which {closed} keeps closed "
+                         f"({consequence})")
+
+
 def enable_live_view(cfg, no_telemetry: bool) -> None:
     """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more).
     Refused where it could not be served: it rides on the telemetry session, which opens only on the wall
@@ -131,10 +148,9 @@ def enable_live_view(cfg, no_telemetry: bool) -> None:
     from pydantic import ValidationError
 
     from vbnav.control.runtime.factory import uses_sim_clock
-    if no_telemetry or not cfg.telemetry.enabled:
-        raise InputError("--live-view: it is served by the telemetry session, which " +
-                         ("--no-telemetry" if no_telemetry else f"{cfg.source}: telemetry.enabled: false") +
-                         " keeps closed")
+    closed = network_closed(cfg, no_telemetry)
+    if closed:
+        raise InputError(f"--live-view: it is served by the telemetry session, which {closed} keeps closed")
     if uses_sim_clock(cfg):
         raise InputError("--live-view: the simulated robot runs on the simulated clock, faster than real time, "
                          "where nothing is served: add --realtime")

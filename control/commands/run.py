@@ -5,7 +5,7 @@ import json
 import sys
 
 from vbnav.control.commands._common import (add_config_arg, enable_live_view, output_file, positive,
-                                           record_target_error)
+                                           record_target_error, refuse_network_driver_without_network)
 from vbnav.drivers.errors import InputError
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
@@ -79,11 +79,10 @@ def run(args) -> int:
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
     kind = args.controller or cfg.controller.kind
-    if kind in ("teleop", "operator") and (args.no_telemetry or not cfg.telemetry.enabled):
-        what = f"--controller {kind}" if args.controller else f"{cfg.source}: controller.kind {kind}"
-        closed = "--no-telemetry" if args.no_telemetry else f"{cfg.source}: telemetry.enabled: false"
-        raise InputError(f"{what}: takes its commands over the network, which {closed} keeps closed (the robot "
-                         "would stand still until the end)")
+    if kind in ("teleop", "operator"):
+        refuse_network_driver_without_network(
+            cfg, f"--controller {kind}" if args.controller else f"{cfg.source}: controller.kind {kind}",
+            args.no_telemetry, "the robot would stand still until the end")
     from vbnav.control.commands._common import refuse_no_camera_with_obstacle_stop
     refuse_no_camera_with_obstacle_stop(cfg, args.no_camera)
     robot = make_robot(cfg, with_camera=camera_wanted(cfg, kind, args))

@@ -4,7 +4,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg, output_file, positive, record_target_error
+from vbnav.control.commands._common import (add_config_arg, output_file, positive, record_target_error,
+                                             refuse_network_driver_without_network)
 from vbnav.drivers.errors import InputError
 
 
@@ -53,9 +54,9 @@ def run(args) -> int:
         print(f"vbnav teach: {cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
               "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
         return 2
-    if cfg.controller.teach == "teleop" and not cfg.telemetry.enabled:
-        raise InputError(f"{cfg.source}: controller.teach 'teleop' takes the driving commands over the network, "
-                         "which telemetry.enabled: false keeps closed (nobody could drive the route)")
+    if cfg.controller.teach == "teleop":
+        refuse_network_driver_without_network(cfg, f"{cfg.source}: controller.teach teleop", False,
+                                              "nobody could drive the route")
     for left in stray_route_dirs(out):
         print(f"vbnav teach: note: {left} was left by an interrupted replacement of {out.name} (kept: it holds "
               f"recorded keyframes; delete it when it is not needed)", file=sys.stderr)
