@@ -164,12 +164,11 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
     if init == "stereo":
         if ds.right is None:
             raise VoError(f"{ds.root}: --init stereo needs right images (image_r/)")
-        start = _metric_start(ds, slam, traj, lambda i: slam.initialise_stereo(ds.image(i), ds.right_image(i)), say)
+        start = _metric_start(ds, slam, init, traj, say)
     elif init == "depth":
         if ds.depth_image(0) is None:
             raise VoError(f"{ds.root}: --init depth needs a depth image for the first frame (depth.txt)")
-        start = _metric_start(ds, slam, traj, lambda i: slam.initialise_depth(ds.image(i), ds.depth_image(i))
-                              if ds.depth_image(i) is not None else 0, say)
+        start = _metric_start(ds, slam, init, traj, say)
     elif init == "tags":
         if "tag_grid" not in ds.extras:
             raise VoError(f"{ds.root}: --init tags needs a 'tag_grid' block in the camera YAML")
@@ -226,13 +225,24 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
     return traj.result(init, scale_known, earlier_refs + len(slam.references), results)
 
 
-def _metric_start(ds: Dataset, slam: Vslam, traj: _Trajectory, initialise: Callable[[int], int], say) -> int:
+def _metric_init(ds: Dataset, slam: Vslam, init: str, i: int, pose: Optional[np.ndarray] = None
+                 ) -> tuple[int, bool]:
+    """Start the stereo or depth front end on frame ``i`` at ``pose``: (landmarks, whether they are enough to
+    track against: ``min_inliers``, at least 3; a black or uniform frame, or one without depth, gives none)."""
+    if init == "stereo":
+        n = slam.initialise_stereo(ds.image(i), ds.right_image(i), pose)
+    else:
+        n = slam.initialise_depth(ds.image(i), ds.depth_image(i), pose) if ds.depth_image(i) is not None else 0
+    return n, n >= max(slam.cfg.min_inliers, 3)
+
+
+def _metric_start(ds: Dataset, slam: Vslam, init: str, traj: _Trajectory, say) -> int:
     """The first start of a stereo or depth run: on the first frame that gives at least ``min_inliers``
     landmarks (a black or uniform frame gives none: nothing could be tracked against it), the frames before
     it lost. Returns the next frame to process."""
     for i in range(len(ds)):
-        n = initialise(i)
-        if n >= max(slam.cfg.min_inliers, 3):
+        n, started = _metric_init(ds, slam, init, i)
+        if started:
             traj.put(i, "init", slam.pose_wc, n)
             return i + 1
         say(f"frame {i}: {n} landmarks, fewer than min_inliers ({slam.cfg.min_inliers}) to start on; "
@@ -278,15 +288,13 @@ def _restart(ds: Dataset, slam: Vslam, init: str, i: int, traj: _Trajectory, ess
              ) -> Optional[int]:
     """Start the front end again at lost frame ``i``; the next frame to process, or None (still lost)."""
     pose = traj.predicted(i)
-    if init == "stereo":
-        n = slam.initialise_stereo(ds.image(i), ds.right_image(i), pose)
-    elif init == "depth" and ds.depth_image(i) is not None:
-        n = slam.initialise_depth(ds.image(i), ds.depth_image(i), pose)
+    if init == "stereo" or (init == "depth" and ds.depth_image(i) is not None):
+        n, started = _metric_init(ds, slam, init, i, pose)
     else:  # monocular (or no depth here): two views, at the speed of the last good frames
         speed = traj.speed(i)
         # on failure the front end keeps what it still tracks and the next frame tries again
         return _two_view_start(ds, slam, i, essential_frames, traj, "reinit", pose, speed, say) if speed > 0 else None
-    if n < max(slam.cfg.min_inliers, 3):
+    if not started:
         return None
     say(f"frame {i}: re-initialised with {n} landmarks at the predicted pose")
     traj.put(i, "reinit", slam.pose_wc, n)
