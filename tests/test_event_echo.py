@@ -98,3 +98,31 @@ def test_a_forced_progress_line_is_never_replaced_by_the_next_one():
     out.go.set()
     printer.done()
     assert out.getvalue() == "start\ntaught 12 keyframes\nrepeat: keyframe 1/12\n"
+
+
+def test_progress_lines_dropped_for_a_slow_console_are_reported_at_the_end():
+    """ProgressPrinter counted the lines of ``say`` it left out for a console that did not keep up (``dropped``)
+    but never said so: the run's output just lacked them. ``done`` reports the count."""
+    from vbnav.control.runtime.progress import ProgressPrinter
+
+    out = BlockedConsole()
+    printer = ProgressPrinter(out)
+    n = ProgressPrinter.SAY_LIMIT + 50
+    for k in range(n):
+        printer.say(f"news {k}")
+    out.go.set()
+    printer.done("the end")
+    text = out.getvalue()
+    written = len(re.findall(r"^news \d+$", text, re.M))
+    assert printer.dropped >= 49 and written + printer.dropped == n, (written, printer.dropped)
+    assert text.endswith(f"{printer.dropped} progress lines dropped (slow terminal)\nthe end\n"), text[-200:]
+
+
+def test_no_dropped_line_no_report():
+    from vbnav.control.runtime.progress import ProgressPrinter
+
+    out = io.StringIO()
+    printer = ProgressPrinter(out)
+    printer.say("news")
+    printer.done("the end")
+    assert "dropped" not in out.getvalue()

@@ -17,7 +17,8 @@ class ProgressPrinter:
     blocks a write, and must never hold the control loop. ``__call__`` only leaves the newest line for the
     writer (a line not yet written is replaced by a newer one); ``say`` (and ``force``) queues a line that
     stays (news and milestones between the progress lines, in order, never replaced); ``done`` waits for the writer (briefly) and then writes on the
-    caller's thread, so it is for the end of a run, never for the loop's thread."""
+    caller's thread (how many lines of ``say`` a slow console made it drop, then ``text``), so it is for the
+    end of a run, never for the loop's thread."""
 
     #: how long ``done`` waits for a line still being written (a blocked console) before it goes on
     DONE_WAIT_S = 2.0
@@ -67,6 +68,8 @@ class ProgressPrinter:
                               timeout=self.DONE_WAIT_S)
         if self.tty and self._width:
             self.stream.write("\r" + " " * self._width + "\r")
+        if self.dropped:
+            self.stream.write(f"{self.dropped} progress lines dropped (slow terminal)\n")
         if text:
             self.stream.write(text + "\n")
         self.stream.flush()
