@@ -27,7 +27,8 @@ from vbnav.drivers.plain_values import PlainValues
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
 from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, BAUD_VALUES, HW_ERROR_BITS, MODE_VELOCITY,
-                                           MODEL_NUMBERS, TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register)
+                                           MODEL_NUMBERS, TICKS_PER_REV, VELOCITY_UNIT_RAD_S, WATCHDOG_UNIT_S, Register,
+                                           rate_problem)
 from vbnav.drivers.serial_drive import SerialWheelDrive, require_two_wheels
 from vbnav.drivers.wheels import DriveError, DriveFault, FaultKind, WheelState
 
@@ -130,8 +131,9 @@ class DynamixelDrive(SerialWheelDrive):
         @field_validator("baudrate")
         @classmethod
         def _x_series_rate(cls, v: int) -> int:
-            if v not in BAUD_VALUES:
-                raise ValueError(f"{v} bit/s is not a Dynamixel X rate; one of {', '.join(map(str, BAUD_VALUES))}")
+            why = rate_problem(v)
+            if why:
+                raise ValueError(why)
             return v
 
         @model_validator(mode="after")

@@ -18,7 +18,7 @@ from typing import Iterable, Optional
 
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.discovery import check_device
-from vbnav.drivers.dynamixel_table import BAUD_VALUES, MAX_ID, MODEL_NUMBERS
+from vbnav.drivers.dynamixel_table import BAUD_VALUES, MAX_ID, MODEL_NUMBERS, rate_problem
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.wheels import DriveError
 
@@ -71,9 +71,8 @@ class DynamixelBusTool:
 
     def at(self, baud: int) -> "DynamixelBusTool":
         """Talk at ``baud`` bit/s from now on."""
-        if baud not in BAUD_VALUES:
-            raise InputError(f"--baud {baud}: not a Dynamixel X rate; one of "
-                             f"{', '.join(str(b) for b in BAUD_VALUES)}")
+        if rate_problem(baud):
+            raise InputError(f"--baud: {rate_problem(baud)}")
         if self.baud == baud:
             return self
         try:
@@ -145,9 +144,8 @@ class DynamixelBusTool:
 
     def set_baud(self, dxl_id: int, new_baud: int) -> FoundServo:
         """Switch servo ``dxl_id`` to ``new_baud`` bit/s, then find it there."""
-        if new_baud not in BAUD_VALUES:
-            raise InputError(f"--new-baud {new_baud}: not a Dynamixel X rate; one of "
-                             f"{', '.join(str(b) for b in BAUD_VALUES)}")
+        if rate_problem(new_baud):
+            raise InputError(f"--new-baud: {rate_problem(new_baud)}")
         self._require(dxl_id)
         self._write_eeprom(dxl_id, reg.BAUD_RATE, BAUD_VALUES[new_baud])
         servo = self.at(new_baud).ping(dxl_id)

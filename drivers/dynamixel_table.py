@@ -97,6 +97,14 @@ BAUD_RATES = {0: 9600, 1: 57_600, 2: 115_200, 3: 1_000_000, 4: 2_000_000, 5: 3_0
               7: 4_500_000}
 BAUD_VALUES = {bps: value for value, bps in BAUD_RATES.items()}
 FACTORY_BAUD = 57_600
+
+
+def rate_problem(baud) -> str:
+    """"" when ``baud`` (bit/s) is a rate a Dynamixel X servo runs at, else why not, naming those rates."""
+    if baud in BAUD_VALUES:
+        return ""
+    return f"{baud} is not a Dynamixel X rate; one of {', '.join(map(str, BAUD_VALUES))} bit/s"
+
 MAX_ID = 252  # 253 and 254 (broadcast) are reserved
 
 # Hardware Error Status bits (only a REBOOT clears them).

@@ -24,7 +24,7 @@ OAK_TIMEOUT_S = 3.0     # --oak-timeout when not given (it defaults to None: wit
 
 def _bauds(text: str) -> list[int]:
     """argparse type: Dynamixel X rates, comma-separated; an empty list would scan the default rates."""
-    from vbnav.drivers.dynamixel_table import BAUD_VALUES
+    from vbnav.drivers.dynamixel_table import rate_problem
     try:
         bauds = [int(t) for t in text.split(",") if t.strip()]
     except ValueError:
@@ -32,9 +32,8 @@ def _bauds(text: str) -> list[int]:
     if not bauds:
         raise argparse.ArgumentTypeError(f"expected baud rates like 57600,1000000, got {text!r}")
     for b in bauds:
-        if b not in BAUD_VALUES:
-            raise argparse.ArgumentTypeError(f"{b} is not a Dynamixel X rate; one of "
-                                             f"{', '.join(str(r) for r in BAUD_VALUES)}")
+        if rate_problem(b):
+            raise argparse.ArgumentTypeError(rate_problem(b))
     return bauds
 
 

@@ -33,14 +33,13 @@ def _servo_id(text: str) -> int:
 
 def _rate(text: str) -> int:
     """argparse type: a Dynamixel X baud rate, bit/s."""
-    from vbnav.drivers.dynamixel_table import BAUD_VALUES
+    from vbnav.drivers.dynamixel_table import rate_problem
     try:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a baud rate like 57600, got {text!r}") from None
-    if v not in BAUD_VALUES:
-        raise argparse.ArgumentTypeError(f"{v} is not a Dynamixel X rate; one of "
-                                         f"{', '.join(str(r) for r in BAUD_VALUES)}")
+    if rate_problem(v):
+        raise argparse.ArgumentTypeError(rate_problem(v))
     return v
 
 

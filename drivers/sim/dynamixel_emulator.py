@@ -56,7 +56,7 @@ from vbnav.drivers.dynamixel_table import (
     OPERATING_MODES, PRESENT_INPUT_VOLTAGE, PRESENT_POSITION, PRESENT_TEMPERATURE, PRESENT_VELOCITY,
     PROFILE_ACCELERATION, REGISTERED_INSTRUCTION, REGISTERS, RETURN_DELAY_TIME, RETURN_DELAY_UNIT_S,
     STATUS_RETURN_LEVEL, TABLE_SIZE, TICKS_PER_REV, TORQUE_ENABLE, VELOCITY_LIMIT, VELOCITY_UNIT_RPM,
-    WATCHDOG_UNIT_S, Register)
+    WATCHDOG_UNIT_S, Register, rate_problem)
 from vbnav.drivers.sim.pty_device import LoggedFlag, PtyDevice
 
 log = logging.getLogger("vbnav.emulator.dynamixel")
@@ -113,9 +113,8 @@ class EmulatedServo:
     """One servo: control table, motion and faults."""
 
     def __init__(self, dxl_id: int, model: ServoModel, baud: int = 1_000_000):
-        if baud not in BAUD_VALUES:
-            raise ValueError(f"{baud} bit/s is not a Dynamixel X baud rate; one of "
-                             f"{', '.join(str(b) for b in BAUD_VALUES)}")
+        if rate_problem(baud):
+            raise ValueError(rate_problem(baud))
         self.dxl_id = dxl_id
         self.model = model
         self._factory_baud = baud
