@@ -291,7 +291,15 @@ class ObstacleStage(VisionStage):
         camera = self._camera
         K = frame.meta.get("K")
         if K is not None:
-            fx, fy, cx, cy = (float(v) for v in (K[0][0], K[1][1], K[0][2], K[1][2]))
+            try:
+                K = np.asarray(K, dtype=np.float64)
+            except (TypeError, ValueError):
+                return None, (f"no stereo rig: the frame's meta['K'] is {K!r}: not numbers, expected a 3x3 camera "
+                              "matrix")
+            if K.shape != (3, 3):
+                return None, (f"no stereo rig: the frame's meta['K'] has shape {K.shape}, expected a 3x3 camera "
+                              "matrix")
+            fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
             try:
                 check_intrinsics("the frame's meta['K']", fx, fy, cx, cy, camera.width, camera.height)
             except CalibrationError as exc:
