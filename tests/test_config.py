@@ -1,4 +1,5 @@
 """Bad configurations stop start-up with the file, key path and expectation."""
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -179,3 +180,21 @@ def test_a_scripted_drive_that_cannot_be_driven_is_refused_at_load(tmp_path, scr
         load_config(p)
     msg = str(err.value)
     assert "controller.script" in msg and expected in msg, msg
+
+
+@pytest.mark.parametrize("camera,says", [
+    ({"distortion": [-0.3, 0.1, 0.0, 0.0, 0.0]}, "camera.distortion [-0.3, 0.1, 0.0, 0.0, 0.0]"),
+    ({"model": "fisheye", "distortion": [0.0, 0.0, 0.0, 0.0]}, "camera.model fisheye"),
+])
+def test_obstacles_on_a_distorted_camera_are_refused(camera, says):
+    """The obstacle stage builds a plain pinhole camera from fx, fy, cx, cy ('rectified: no distortion'): with
+    camera.distortion or a fisheye model it read the distorted images as rectified, every floor distance and
+    the zones' outline wrong, without a word. Such a config is refused, naming the field; zeros are no
+    distortion (the sentry configs write them)."""
+    cfg = {"camera": {"options": {"stereo_baseline": 0.075}, **camera}, "obstacles": {"enabled": True}}
+    with pytest.raises(ConfigError, match=re.escape(says)) as err:
+        parse_config(cfg, "robot.yaml")
+    assert "robot.yaml: obstacles.enabled" in str(err.value) and "rectified" in str(err.value)
+    parse_config({**cfg, "obstacles": {"enabled": False}})           # the other stages use the distortion
+    parse_config({"camera": {"options": {"stereo_baseline": 0.075}, "distortion": [0.0] * 5},
+                  "obstacles": {"enabled": True}})

@@ -418,3 +418,14 @@ def test_line_map_stage_takes_a_grey_plane_like_the_other_stages():
             assert stage.process(f, p).ok
         maps.append(stage.map.P.copy())
     np.testing.assert_array_equal(maps[0], maps[1])
+
+
+def test_the_line_map_refuses_a_distorted_camera():
+    """LineMapStage.from_config took fx, fy, cx, cy alone: camera.distortion (or a fisheye model) was accepted
+    and the distorted pair triangulated as if rectified. It is refused, naming the field."""
+    from vbnav.control.config import parse_config
+    from vbnav.control.stages.line_map import LineMapStage
+    cfg = parse_config({"camera": {"options": {"stereo_baseline": 0.1}, "distortion": [-0.2, 0.05, 0, 0, 0]}})
+    with pytest.raises(ValueError, match=r"rectified stereo pair .*camera.distortion \[-0.2, 0.05"):
+        LineMapStage.from_config(cfg)
+    LineMapStage.from_config(parse_config({"camera": {"options": {"stereo_baseline": 0.1}}}))

@@ -100,6 +100,16 @@ class CameraConfig(Strict):
         b = (self.options or {}).get("stereo_baseline")
         return float(b) if b else None
 
+    def rectified_problem(self) -> str:
+        """"" when the images are a rectified pinhole camera's (no distortion), as the stereo stages (obstacles,
+        line map) take them; else which field says otherwise (they would read distorted images as rectified)."""
+        src = " (from camera.calibration_file)" if self._calibration is not None else ""
+        if self.model == "fisheye":
+            return f"camera.model fisheye{src}"
+        if any(self.distortion):
+            return f"camera.distortion {list(self.distortion)}{src}"
+        return ""
+
     def calibration_record(self) -> dict:
         """The calibration in use as a route manifest records it: the intrinsics every stage uses, and the
         file they came from with its hash (file None, format 'inline': the values in the config)."""
@@ -342,6 +352,11 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     cfg.source = source
     validate_driver_options(cfg, source)
     apply_calibration_file(cfg, source)
+    distorted = cfg.camera.rectified_problem() if cfg.obstacles.enabled else ""
+    if distorted:
+        raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage takes rectified stereo images (a pinhole "
+                          f"camera without distortion), and {distorted} describes distorted ones it would read as "
+                          "rectified (rectify the pair first, e.g. with a stereo calibration file)")
     return cfg
 
 

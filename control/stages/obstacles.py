@@ -316,7 +316,8 @@ class ObstacleStage(VisionStage):
         ocfg = cfg.obstacles
         baseline = ocfg.baseline or cfg.camera.stereo_baseline()
         c = cfg.camera
-        camera = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)  # rectified: no distortion
+        # Rectified: no distortion (a distorted camera with obstacles on is refused at config load).
+        camera = PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
         if not baseline:
             return cls(None, c.mount.to_mount(), ocfg, keep_labels, camera=camera)
         return cls(StereoRig(camera, float(baseline)), c.mount.to_mount(), ocfg, keep_labels)
