@@ -303,18 +303,27 @@ def test_teach_sets_aside_one_frame_that_loses_most_tracks():
     assert keyframes(change=20) == ([0, 16, 21, 37, 54, 59], 1)  # the change is real: a keyframe at the next
 
 
+def teach_straight(frames: int, keep=None):
+    """A TeachStage (default VBCConfig) fed ``frames`` frames 2.5 cm apart straight ahead in the room, frame
+    ``i`` stamped ``i``; ``keep(i, ids, px)`` may thin a frame's tracks. Returns (stage, next pose, rng, pts)."""
+    rng = np.random.default_rng(5)
+    pts = room_landmarks(rng)
+    stage = TeachStage(CAM, MOUNT, VBCConfig())
+    pose = Pose2()
+    for i in range(frames):
+        ids, px = observe(pose, pts, rng)
+        if keep is not None:
+            ids, px = keep(i, ids, px)
+        stage.update(ids, px, pose, i)
+        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+    return stage, pose, rng, pts
+
+
 def test_keyframe_taken_at_the_last_frame_has_heights():
     """A keyframe triggered by the very last frame is emitted with its tracks' heights (else a repeat
     can never localise at the route's end)."""
-    rng = np.random.default_rng(5)
-    pts = room_landmarks(rng)
     cfg = VBCConfig()
-    stage = TeachStage(CAM, MOUNT, cfg)
-    pose = Pose2()
-    for i in range(40):                                   # 1 m straight, a frame every 2.5 cm
-        ids, px = observe(pose, pts, rng)
-        stage.update(ids, px, pose, i)
-        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+    stage, pose, rng, pts = teach_straight(40)            # 1 m straight, a frame every 2.5 cm
     pose = pose.compose(Pose2(0.0, cfg.keyframe_distance_m, 0.0))   # the last frame is due a keyframe
     ids, px = observe(pose, pts, rng)
     before = stage.n_keyframes
@@ -332,19 +341,9 @@ def test_route_does_not_end_on_a_last_frame_below_the_keyframe_minimum():
     """finish() takes a keyframe at the last frame only when it keeps ``min_keyframe_landmarks`` tracks,
     as every other keyframe: a last frame of 5 tracks (the lens covered as the teach stopped) ends the
     route at the keyframe before, and the stage says so (a repeat cannot localise on 5 landmarks)."""
-    rng = np.random.default_rng(5)
-    pts = room_landmarks(rng)
     cfg = VBCConfig()
-    stage = TeachStage(CAM, MOUNT, cfg)
-    pose = Pose2()
-    for i in range(30):                                   # 0.75 m straight, a frame every 2.5 cm
-        ids, px = observe(pose, pts, rng)
-        stage.update(ids, px, pose, i)
-        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
-    for i in (30, 31):                                    # the last frames: 5 tracks (the first set aside)
-        ids, px = observe(pose, pts, rng)
-        stage.update(ids[:5], px[:5], pose, i)
-        pose = pose.compose(Pose2(0.0, 0.025, 0.0))
+    # 0.75 m straight, a frame every 2.5 cm; the last two frames keep 5 tracks (the first is set aside)
+    stage, _, _, _ = teach_straight(32, keep=lambda i, ids, px: (ids[:5], px[:5]) if i >= 30 else (ids, px))
     stage.finish()
     kfs = stage.pop_keyframes()
     assert [kf.stamp_ns for kf in kfs] == [0, 16]          # by distance; none on the 5 tracks of frame 31
