@@ -210,7 +210,8 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
         raise RuntimeError(f"the demo's teach run did not complete a route ({teach.reason}: {teach.message}; "
                            f"{teach.keyframes} keyframes)")
     if progress:
-        say(f"taught {teach.keyframes} keyframes over {path_length(taught_xz):.1f} m")
+        say(f"taught {teach.keyframes} keyframes over {path_length(taught_xz):.1f} m"
+            + (f" ({teach.note})" if teach.note else ""))
     route = load_route(out_dir / "route")
 
     repeats = []
