@@ -1,6 +1,8 @@
 """How good is the desk_rgbd ground truth, and where does our error come from?
 
-    .venv/bin/python benchmarks/desk_groundtruth.py [DATA_DIR]
+    .venv/bin/python benchmarks/desk_groundtruth.py [--data DATA_DIR]
+
+DATA_DIR is the shared data folder (default $VBNAV_DATA, else ../shared/data beside the repository).
 
 Peer: a per-frame OpenCV pose of the tag grid (SQPNP + Levenberg-Marquardt on every
 detected tag corner, same layout as the test) -- the best any tracker of those
@@ -11,6 +13,8 @@ and our error by segment with the number of tag corners still tracked.
 """
 from __future__ import annotations
 
+import argparse
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -52,7 +56,13 @@ def jitter(poses: np.ndarray, window: int = 7) -> np.ndarray:
 
 
 def main() -> int:
-    data = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[2] / "shared" / "data"
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=Path(os.environ.get("VBNAV_DATA") or
+                                                      Path(__file__).resolve().parents[2] / "shared" / "data"),
+                    help="the shared data folder (default $VBNAV_DATA, else ../shared/data)")
+    data = ap.parse_args().data
+    if not (data / "desk_rgbd").is_dir():
+        ap.error(f"{data / 'desk_rgbd'}: no such folder (set --data or VBNAV_DATA to the shared data folder)")
     with tempfile.TemporaryDirectory() as tmp:
         ds = open_dataset(build_desk_view(data / "desk_rgbd", Path(tmp) / "desk"))
         gt = ds.gt_poses
