@@ -776,3 +776,74 @@ def test_with_catch_up_a_loop_that_cannot_keep_up_still_ends_on_the_deadline_str
     result = rt.run(duration_s=5)
     assert result.reason == "deadline" and "consecutive missed deadlines" in result.message
     assert_stopped_within_two_periods(drive, T0 + 1_000_000_000 + cfg.loop.max_missed_streak * 25_000_000)
+
+
+_BACKGROUND_RUN = '''
+import os, signal, subprocess, sys, termios
+tty = sys.argv[1]
+if sys.argv[2] == "leader":
+    # the session's foreground job: the run goes to a background process group of its own
+    p = subprocess.Popen([sys.executable, "-c", sys.argv[3], tty, "run"], process_group=0)
+    pid, status = os.waitpid(p.pid, os.WUNTRACED)
+    if os.WIFSTOPPED(status):
+        os.kill(p.pid, signal.SIGKILL)
+        os.waitpid(p.pid, 0)
+        print("stopped by", signal.Signals(os.WSTOPSIG(status)).name, file=sys.stderr, flush=True)
+        sys.exit(2)
+    sys.exit(os.waitstatus_to_exitcode(status))
+sys.path.insert(0, "tests")
+from runtime_helpers import make_runtime
+from test_safety import Cruise
+assert os.getpgrp() != os.tcgetpgrp(0), "not in the background"
+out = open(tty, "w")
+rt, drive, clock = make_runtime(Cruise())
+read = []
+def progress(r):                         # a background job's output to its terminal (stty tostop)
+    print("cycle", r.cycle, file=out, flush=True)
+    if not read:
+        try:
+            os.read(0, 1)                # a background job's read of its terminal
+        except OSError as exc:
+            read.append(exc)
+result = rt.run(duration_s=3, progress=progress)
+assert result.reason == "duration", result
+assert read and read[0].errno == 5, read          # EIO: the read fails, it does not stop the process
+assert drive.log[-1][3] is False
+print("ok", file=sys.stderr, flush=True)
+'''
+
+
+def test_a_background_run_that_writes_or_reads_its_terminal_is_not_stopped_with_the_wheels_live():
+    """A run started in the background (``vbnav run ... &``) with ``stty tostop`` got SIGTTOU at its first
+    progress line, and SIGTTIN at a read of its terminal: left at their defaults they stop the process where
+    it is, the wheels at their last command. The run ignores both while the wheels are live: the line is
+    written, the read fails (EIO), and the run goes on. A real background job: a session of its own on a
+    pseudo-terminal with tostop set, its leader in the foreground, the run in a background process group."""
+    import fcntl
+    import subprocess
+    import sys
+    import termios
+
+    master, slave = os.openpty()
+    attrs = termios.tcgetattr(slave)
+    attrs[3] |= termios.TOSTOP
+    termios.tcsetattr(slave, termios.TCSANOW, attrs)
+    name = os.ttyname(slave)
+
+    def take_the_terminal():
+        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+    try:
+        r = subprocess.run([sys.executable, "-c", _BACKGROUND_RUN, name, "leader", _BACKGROUND_RUN],
+                           stdin=slave, stdout=slave, stderr=subprocess.PIPE, text=True, timeout=60,
+                           start_new_session=True, preexec_fn=take_the_terminal,
+                           cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    finally:
+        os.close(slave)
+    try:
+        written = os.read(master, 65536).decode()
+    except OSError:
+        written = ""
+    os.close(master)
+    assert r.returncode == 0 and "ok" in r.stderr, r.stderr
+    assert "cycle" in written, written

@@ -125,6 +125,13 @@ ENDED_WELL = ("finished", "duration", "stopped", "signal")
 #: The signals that end a run (fatal ``signal``), the wheels to zero and the drive disabled at the next cycle:
 #: finishing.STOP_SIGNALS, which the close-down holds too (one tuple, so the two never differ).
 STOP_SIGNALS = _FINISHING_STOP_SIGNALS
+#: Job-control signals the process gets from its own terminal I/O: SIGTTOU when a background run writes to its
+#: terminal under ``stty tostop``, SIGTTIN when it reads it. Their default stops the process where it is, the
+#: wheels at their last command; they are no operator's request to stop (that is SIGTSTP, Ctrl-Z), and a handler
+#: would not do either: the kernel sends the signal again each time the interrupted write is retried, so the loop
+#: thread would never get past its progress line. While the loop runs they are ignored: the line is written, a
+#: read of the terminal fails (EIO), and the run goes on.
+IGNORED_SIGNALS = (signal.SIGTTOU, signal.SIGTTIN)
 #: Ends that are a device's failure, not the job's (the commands' exit code 3).
 DEVICE_FAULTS = ("drive", "camera")
 
@@ -686,6 +693,8 @@ class Runtime:
         for sig in STOP_SIGNALS:
             old[sig] = signal.getsignal(sig)
             signal.signal(sig, lambda signum, frame: self.request_stop(signum))
+        for sig in IGNORED_SIGNALS:      # a background run's terminal output or input: see IGNORED_SIGNALS
+            old[sig] = signal.signal(sig, signal.SIG_IGN)
         return old
 
     @staticmethod
