@@ -297,6 +297,52 @@ def test_exception_in_the_camera_thread():
     assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
 
 
+@pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
+def test_a_camera_that_fails_mid_run_ends_it_as_a_camera_fault_on_either_thread(inline):
+    """A camera whose read raised CameraError (the device went away) ended the run as 'camera' (exit 3, a
+    device's failure) only when it failed at start-up; mid-run, on the vision thread (real clock) or in the
+    loop's own cycle (inline), it ended as 'exception' (exit 1, a bug). Every camera failure is now 'camera',
+    and the robot stops as before."""
+    import threading
+
+    from runtime_helpers import RecordingDrive, TickCamera
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.pipeline import VisionPipeline
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS, Runtime
+    from vbnav.drivers.camera import CameraError
+    from vbnav.drivers.clock import SimClock
+
+    gone = threading.Event()
+
+    class Gone(TickCamera):
+        def read(self, timeout_s=0.0):
+            if gone.is_set():
+                raise CameraError("camera /dev/video0 went away (unplugged?)")
+            if not inline:
+                threading.Event().wait(0.001)
+            return super().read(timeout_s)
+
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    pipeline = VisionPipeline(Gone(clock), [], clock, inline=inline)
+    seen = []
+
+    def hook(ctx):
+        if ctx.now_ns >= T0 + 1_500_000_000 and not seen:
+            gone.set()
+            seen.append(ctx.now_ns)
+            for _ in range(1000):      # the vision thread: hold simulated time until it met the failure
+                if inline or pipeline.fault is not None:
+                    return
+                threading.Event().wait(0.01)
+
+    rt = Runtime(Config(camera={"stale_after_s": 5.0}), drive, Cruise(hook), clock, pipeline)
+    result = rt.run(duration_s=5)
+    assert result.reason == "camera" and result.reason in DEVICE_FAULTS, result
+    assert "went away" in result.message and "camera" in result.message, result
+    assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
+
+
 def test_exception_in_controller():
     def hook(ctx):
         if ctx.now_ns >= T0 + 1_500_000_000:

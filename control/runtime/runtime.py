@@ -136,6 +136,13 @@ IGNORED_SIGNALS = (signal.SIGTTOU, signal.SIGTTIN)
 DEVICE_FAULTS = ("drive", "camera")
 
 
+def _failure_reason(exc: Exception) -> str:
+    """The run's end for an exception other than a DriveError: a camera that failed (CameraError: not there,
+    gone, wrong format) is a device's failure wherever it raised (start-up, the loop's read); anything else is
+    a bug. The vision thread's camera read follows the same rule (``VisionPipeline.fault_reason``)."""
+    return "camera" if isinstance(exc, CameraError) else "exception"
+
+
 @dataclass
 class RunResult:
     reason: str                       # "finished", "duration", "stopped", or a fatal cause
@@ -267,7 +274,7 @@ class Runtime:
             self.fault_traceback = traceback.format_exc()
             self._make_safe()
             # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
-            reason = "drive" if isinstance(exc, DriveError) else "camera" if isinstance(exc, CameraError) else "exception"
+            reason = "drive" if isinstance(exc, DriveError) else _failure_reason(exc)
             where = "start-up" if not looping else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
             self.safety.trip(self.clock.now_ns(), reason, f"{where}: {exc}")
             self._end = (reason, f"{where}: {exc}")
@@ -329,7 +336,7 @@ class Runtime:
                 self.pipeline.poll(now, odom)
                 if self.pipeline.fault:
                     self.fault_traceback = self.pipeline.fault_traceback
-                    return self._finish(now, "exception", self.pipeline.fault)
+                    return self._finish(now, self.pipeline.fault_reason, self.pipeline.fault)
                 estimates = dict(self.pipeline.latest)
                 self._check_camera(now)
                 self._apply_speed_scales(now, estimates)
@@ -383,7 +390,7 @@ class Runtime:
             return self._drive_failed(now, stage, exc)
         except Exception as exc:
             self.fault_traceback = traceback.format_exc()
-            return self._finish(now, "exception", f"exception in {stage}: {exc!r}")
+            return self._finish(now, _failure_reason(exc), f"exception in {stage}: {exc!r}")
 
     # -- a lost drive ---------------------------------------------------------
     def _read_wheels(self, now: int) -> Optional[WheelState]:
