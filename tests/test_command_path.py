@@ -113,6 +113,44 @@ def test_stale_stamp_is_refused_by_the_senders_clock_whatever_its_offset():
     assert applied[0].sent_ns == pytest.approx(clock.now_ns() - 20_000_000, abs=5_000)
 
 
+@pytest.mark.parametrize("bogus", [10 ** 300, 10 ** 400, 2 ** 63, "far"])
+def test_a_stamp_that_cannot_be_the_senders_clock_is_refused_and_does_not_move_its_clock(bogus):
+    """One teleop stamped 10**300 (or 2**63, past an int64; or far ahead of what the sender's clock read a
+    moment ago) was taken as fresh (sent 'now') and drove the robot, and it set the sender's clock offset so far
+    back that every later teleop of that sender was stale, until its session was forgotten. Such a stamp is now
+    refused, saying why, and the sender's clock is tracked as before it: its next teleop is taken."""
+    box, clock = _box()
+    offset = -123_456_789_000      # the sender's clock reads 123 s less than the robot's
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=clock.now_ns() + offset)) is None
+    box.drain(clock.now_ns())
+    clock.advance(50_000_000)
+    stamp = bogus if bogus != "far" else clock.now_ns() + offset + TIMEOUT_NS + 1_000_000   # 501 ms ahead
+    reason = box.post(OperatorCommand("teleop", (0.9, 0), "A", seq=2, stamp_ns=stamp))
+    assert reason is not None and "cannot be a reading of A's clock" in reason, reason
+    assert ("int64" in reason) if bogus != "far" else ("501 ms ahead" in reason and "500 ms" in reason), reason
+    assert box.drain(clock.now_ns()) == ([], [])
+    clock.advance(50_000_000)
+    assert box.post(OperatorCommand("teleop", (0.3, 0), "A", seq=3, stamp_ns=clock.now_ns() - 5_000_000 + offset)) \
+        is None
+    applied, refused = box.drain(clock.now_ns())
+    assert [c.args[0] for c in applied] == [0.3] and not refused
+    assert applied[0].sent_ns == pytest.approx(clock.now_ns() - 5_000_000, abs=50_000)
+
+
+def test_a_peer_posing_as_another_sender_cannot_make_its_teleop_stale_with_a_far_stamp():
+    """sender and session are what the message says (every authorised peer shares the signing secret): a
+    peer that copies another operator's sender and session and sends one far-future stamp made all of that
+    operator's teleop stale. The stamp is refused and the operator's clock is tracked as before."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    assert inbox.submit("teleop", teleop(1, clock.now_ns(), session="op-1")) is not None
+    assert inbox.submit("teleop", teleop(10 ** 6, 10 ** 18, session="op-1")) is None   # the peer's, refused
+    clock.advance(20_000_000)
+    assert inbox.submit("teleop", teleop(2, clock.now_ns(), session="op-1")) is not None
+    applied, refused = rt.mailbox.drain(clock.now_ns())
+    assert [c.seq for c in applied] == [2] and not refused, (applied, refused, rejected)
+    assert any("cannot be a reading of zenoh:op's clock" in r for _, r in rejected), rejected
+
+
 def test_a_teleop_that_waited_too_long_for_the_loop_is_refused_when_taken():
     box, clock = _box()
     box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=5))
