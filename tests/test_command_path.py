@@ -594,3 +594,68 @@ def test_a_teleop_refused_when_the_loop_took_it_is_answered_with_its_ack():
     answers = [(e["kind"], e.get("ack"), e.get("reason", "")) for e in sink.events if e["kind"] == "command_rejected"]
     assert answers[0][:2] == ("command_rejected", "A1") and "when the loop took it" in answers[0][2], answers
     assert len(answers) == 2 and answers[1][1] is None, answers
+
+
+# ---- a resume names the stop it has seen ------------------------------------------------------------
+
+def test_a_resume_sent_before_another_operators_estop_does_not_clear_it(tmp_path):
+    """Commands apply in arrival order: operator B saw A's estop (the state's safety.latched_ns) and resumed;
+    operator C's estop arrived before B's resume and was cleared by it, a stop B never knew of (a second
+    estop while one is latched did not even count as a new stop). A resume that names the newest stop it has
+    seen (latched_ns) clears nothing that began after it, and says so; a resume naming C's estop clears it,
+    and a resume without latched_ns (older senders) clears as before."""
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.comms.operator_commands import CommandInbox, limits_from_config
+    from vbnav.control.comms.recording import iter_recording
+
+    cfg = Config.model_validate({"telemetry": {"enabled": False}})
+    rt, drive, clock = make_runtime(Cruise(), camera=False, cfg=cfg)
+    link = TelemetryLink.attach(rt, cfg, record=str(tmp_path / "run.mcap"))
+    inbox = CommandInbox(limits_from_config(cfg), deliver=rt.submit, now_ns=clock.now_ns)
+    seen = {}
+
+    def operators(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        if t == 500_000_000:
+            inbox.submit("estop", json.dumps({"sender": "A", "reason": "person ahead"}))
+        elif t == 600_000_000:
+            seen["B"] = r.safety.latched_ns            # what B's dashboard shows (safety.latched_ns)
+        elif t == 1_000_000_000:
+            inbox.submit("estop", json.dumps({"sender": "C", "reason": "cable on the floor"}))
+        elif t == 1_010_000_000:                       # B's resume, sent before C's estop, arrives after it
+            inbox.submit("resume", json.dumps({"sender": "B", "latched_ns": seen["B"], "ack": "b1"}))
+        elif t == 1_500_000_000:
+            seen["B2"] = r.safety.latched_ns
+            inbox.submit("resume", json.dumps({"sender": "B", "latched_ns": seen["B2"], "ack": "b2"}))
+        elif t == 2_000_000_000:
+            inbox.submit("estop", json.dumps({"sender": "A"}))
+        elif t == 2_500_000_000:
+            inbox.submit("resume", json.dumps({"sender": "old-client"}))
+
+    rt.cycle_observers.append(operators)
+    result = rt.run(duration_s=3.0)
+    link.close(result)
+    estop_a, estop_c = T0 + 500_000_000 + PERIOD_NS, T0 + 1_000_000_000 + PERIOD_NS
+    assert seen["B"] == estop_a and seen["B2"] == estop_c, seen
+    refused = [e.message for e in result.events if e.kind == "rejected" and e.cause == "resume"]
+    assert len(refused) == 1 and "estop" in refused[0] and "cable on the floor" in refused[0], refused
+    assert f"latched_ns {estop_a}" in refused[0] and f"began at {estop_c}" in refused[0], refused[0]
+    moving = [t for t, l, r, p in drive.log if p and (l or r)]
+    assert not [t for t in moving if estop_a + PERIOD_NS < t <= T0 + 1_500_000_000], "B's resume cleared C's estop"
+    assert [t for t in moving if T0 + 1_500_000_000 < t < T0 + 2_000_000_000], "B's second resume clears it"
+    assert [t for t in moving if t > T0 + 2_500_000_000 + PERIOD_NS], "a resume without latched_ns clears"
+    states = [json.loads(d) for t, _, _, d in iter_recording(tmp_path / "run.mcap") if t == "/vbnav/state"]
+    assert {s["safety"]["latched_ns"] for s in states if s["safety"]["state"] == "estop"} == \
+        {estop_a, estop_c, T0 + 2_000_000_000 + PERIOD_NS}
+    assert all(s["safety"]["latched_ns"] is None for s in states if s["safety"]["state"] == "ok")
+
+
+def test_vbnav_send_resume_names_the_stop_it_has_seen():
+    from vbnav.control.cli import build_parser
+    from vbnav.control.commands.send import build_payload
+
+    args = build_parser().parse_args(["send", "resume", "--latched-ns", "1510000000", "--robot", "r1"])
+    what, body = build_payload(args)
+    assert what == "resume" and body["latched_ns"] == 1_510_000_000
+    what, body = build_payload(build_parser().parse_args(["send", "resume", "--robot", "r1"]))
+    assert "latched_ns" not in body

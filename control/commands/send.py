@@ -45,6 +45,10 @@ def register(sub) -> None:
     e = cmds.add_parser("estop", help="latching stop: wheels to zero until `resume`")
     e.add_argument("--reason", default="", help="free text recorded in the event")
     r = cmds.add_parser("resume", help="clear an estop latch")
+    r.add_argument("--latched-ns", type=int, default=None, metavar="T",
+                   help="the newest stop you have seen (the robot's state: safety.latched_ns, or its trip event's "
+                        "stamp_ns): a stop that began after it, another operator's estop, is not cleared and the "
+                        "robot refuses the resume (docs/telemetry.md)")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
                                     "safety.command_timeout_s (and only a run with controller teleop or operator follows "
@@ -84,6 +88,8 @@ def build_payload(args) -> tuple[str, dict]:
     body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
         body["reason"] = args.reason
+    elif args.what == "resume" and args.latched_ns is not None:
+        body["latched_ns"] = args.latched_ns
     elif args.what == "teleop":
         if args.rate is not None and not args.duration > 0:     # one message: there is no rate to send it at
             raise ValueError("--rate is the rate of a --for S stream; without --for one message is sent")

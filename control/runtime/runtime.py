@@ -586,6 +586,12 @@ class Runtime:
             t, what = self._resume_after
             return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
                                           f"{what}, so it was not meant to clear it; resume again")
+        if cmd.kind == "resume" and cmd.args:
+            unseen = self.safety.latched_after(cmd.args[0])
+            if unseen:
+                return CommandOutcome.refused(f"stale: this resume names latched_ns {cmd.args[0]}, the newest stop "
+                                              f"its sender had seen; {'; '.join(unseen)} came after it and is not "
+                                              f"cleared; resume again naming latched_ns {self.safety.latched_ns}")
         if cmd.kind == "resume":
             cleared = self.safety.reset(now, f"resume from {cmd.source}")
             held = [c for c in self.safety.holds if c not in self._controller_holds]
