@@ -568,6 +568,55 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
     assert stamps == sorted(stamps) and stamps[0] > t0 and len({m["session"] for m in got}) == 1
 
 
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP"])
+def test_vbnav_send_teleop_stream_cut_short_ends_with_a_stop(sig):
+    """`vbnav send teleop V W --for S` ends its stream with a zero command, but one cut short (Ctrl-C, a
+    SIGTERM, the terminal gone) ended without it: the robot drove on the last command until its command
+    timeout. Every end of the stream now sends the stop."""
+    import signal
+    import subprocess
+    import sys
+
+    from vbnav.control.comms.network import open_session, robot_session_config
+    from vbnav.control.config.telemetry import TelemetryConfig
+    port = _free_port()
+    robot = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "sim"))
+    got = []
+
+    def on_command(sample):
+        msg = json.loads(sample.payload.to_bytes())
+        got.append(msg)
+        if msg.get("ack"):
+            robot.put("vbnav/sim/events", json.dumps({"kind": "command", "command": "teleop", "ack": msg["ack"],
+                                                      "cycle": len(got)}))
+
+    sub = robot.declare_subscriber("vbnav/sim/cmd/**", on_command)
+    recent = robot.declare_queryable("vbnav/sim/events/recent",
+                                     lambda q: q.reply("vbnav/sim/events/recent", json.dumps({"events": []})))
+    try:
+        p = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "send", "teleop", "0.1", "0", "--for", "30",
+                              "--rate", "20", "--connect", f"tcp/127.0.0.1:{port}"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        for _ in range(3000):
+            if len(got) >= 3 or p.poll() is not None:
+                break
+            time.sleep(0.01)
+        assert len(got) >= 3, p.communicate(timeout=30)
+        p.send_signal(getattr(signal, sig))
+        p.communicate(timeout=30)
+        for _ in range(200):             # the last message on its way
+            if got[-1]["linear"] == 0.0:
+                break
+            time.sleep(0.01)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        recent.undeclare()
+        sub.undeclare()
+        robot.close()
+    assert got[-1]["linear"] == 0.0 and all(m["linear"] == 0.1 for m in got[:-1]), [m["linear"] for m in got]
+
+
 def test_a_teleop_refused_when_the_loop_took_it_is_answered_with_its_ack():
     """Teleop the mailbox refuses as stale when the loop drains it was reported without the sender's ack
     (vbnav send waited for its timeout, 'no acknowledgement') and, without an ack, not summarised like
