@@ -893,3 +893,26 @@ def test_a_background_run_that_writes_or_reads_its_terminal_is_not_stopped_with_
     os.close(master)
     assert r.returncode == 0 and "ok" in r.stderr, r.stderr
     assert "cycle" in written, written
+
+
+def test_a_stop_signal_during_start_up_never_powers_the_wheels():
+    """Ctrl-C (or a service manager's SIGTERM) while the camera was still coming up (an OAK's discovery
+    takes seconds) was seen at the first cycle only: start-up went on and powered the drive first. The run
+    now ends before the drive is enabled."""
+    rt, drive, clock = make_runtime(Cruise())
+    connect = rt.pipeline.camera.connect
+    enabled = []
+
+    def slow_connect():
+        os.kill(os.getpid(), signal.SIGINT)         # the operator gives up waiting for the camera
+        connect()
+
+    def enable():
+        enabled.append(clock.now_ns())
+        type(drive).enable(drive)
+
+    rt.pipeline.camera.connect = slow_connect
+    drive.enable = enable
+    result = rt.run(duration_s=2)
+    assert result.reason == "signal" and "SIGINT" in result.message, result
+    assert enabled == [] and not [p for t, l, r, p in drive.log if p], drive.log

@@ -143,6 +143,10 @@ def _failure_reason(exc: Exception) -> str:
     return "camera" if isinstance(exc, CameraError) else "exception"
 
 
+class _StoppedDuringStartUp(Exception):
+    """A stop signal came while the devices came up: the run ends before the drive is enabled."""
+
+
 @dataclass
 class RunResult:
     reason: str                       # "finished", "duration", "stopped", or a fatal cause
@@ -246,6 +250,9 @@ class Runtime:
             # after the pipeline's threads started: threads inherit their creator's CPU set and policy, and
             # the vision threads must not run SCHED_FIFO on the loop's CPUs
             restore_scheduling = self._apply_scheduling()
+            if self._signal is not None:
+                # a stop asked for while the devices came up (a camera's slow discovery): never powered
+                raise _StoppedDuringStartUp(signal.Signals(self._signal).name)
             self.drive.enable()
             self._enabled = True
             self._start_ns = self.clock.now_ns()
@@ -265,6 +272,10 @@ class Runtime:
 
             looping = True
             timing = self.loop.run(step)
+        except _StoppedDuringStartUp as stop:
+            self._finish(self.clock.now_ns(), "signal", f"received {stop} during start-up, before the drive "
+                                                        f"was enabled")
+            timing = self.loop.timing.summary(self.loop.rate_hz)
         except KeyboardInterrupt:  # pragma: no cover - handlers normally catch it first
             self._make_safe()
             self._end = ("signal", "SIGINT")
