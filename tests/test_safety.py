@@ -916,3 +916,47 @@ def test_a_stop_signal_during_start_up_never_powers_the_wheels():
     result = rt.run(duration_s=2)
     assert result.reason == "signal" and "SIGINT" in result.message, result
     assert enabled == [] and not [p for t, l, r, p in drive.log if p], drive.log
+
+
+def test_a_stop_the_drive_did_not_take_is_reported_not_swallowed():
+    """When the run ends (here SIGTERM) the runtime disables the drive; a drive that could not stop a motor
+    (a servo that stopped answering just then) passed over it in silence (its disable never raises), and
+    the run ended as if its wheels had stopped. The drive now says what it could not stop
+    (``stop_failure``) and the run reports it as a warning: only the device's own watchdog stops that motor."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    class Unconfirmed(RecordingDrive):
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "servo 2 (right): torque off not acknowledged (no answer)" if self.fail else None
+
+    def after_the_write(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            drive.fail = True
+            rt.request_stop(signal.SIGTERM)
+
+    clock = SimClock()
+    drive = Unconfirmed(clock)
+    drive.fail = False
+    rt = Runtime(Config(), drive, Cruise(), clock)
+    rt.cycle_observers.append(after_the_write)
+    result = rt.run(duration_s=3)
+    assert result.reason == "signal", result
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1, result.events
+    msg = warnings[0].message
+    assert drive.drive_name in msg and "servo 2 (right): torque off not acknowledged" in msg and "watchdog" in msg
+
+
+def test_a_start_up_failure_before_the_drive_was_enabled_reports_no_unconfirmed_stop():
+    rt, drive, clock = make_runtime(Cruise())
+
+    def no_bus():
+        from vbnav.drivers.wheels import DriveError
+        raise DriveError("no bus")
+    drive.connect = no_bus
+    result = rt.run(duration_s=1)
+    assert result.reason == "drive" and not [e for e in result.events if e.cause == "stop_unconfirmed"], result

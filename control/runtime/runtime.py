@@ -283,7 +283,7 @@ class Runtime:
         except Exception as exc:
             # Failure before or outside a cycle (connect, enable): still leave the wheels safe.
             self.fault_traceback = traceback.format_exc()
-            self._make_safe()
+            self._make_safe(drive_failed=isinstance(exc, DriveError))
             # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
             reason = "drive" if isinstance(exc, DriveError) else _failure_reason(exc)
             where = "start-up" if not looping else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
@@ -443,7 +443,7 @@ class Runtime:
         lost = (self.drive.state is DriveState.ERROR and faults and all(f.kind.reconnectable for f in faults))
         if not lost or window <= 0 or not self.drive.can_reconnect or self._recovery is not None:
             return self._finish(now, "drive", f"{stage}: {exc}")
-        self._make_safe()
+        self._make_safe(drive_failed=True)
         cause = f"{stage}: {exc}"
         message = (f"{cause}; waiting up to {window:g} s (drive.reconnect_window_s) for it to come back, then "
                    f"stopped until resume")
@@ -644,21 +644,29 @@ class Runtime:
         if reason not in ("finished", "duration"):
             self.safety.trip(now, reason, message)
         self._end_recovery()
-        self._make_safe()
+        self._make_safe(drive_failed=reason == "drive")
         self._end = (reason, message)
         return False
 
-    def _make_safe(self) -> None:
+    def _make_safe(self, drive_failed: bool = False) -> None:
+        """Zero and disable the drive. What an enabled drive could not stop (``stop_failure``: a motor that did
+        not answer) is a warning, unless the drive itself is what failed (its own stop says so): only the
+        device's watchdog stops that motor then."""
         self.wheel_command = (0.0, 0.0)
         self.limiter.stop()
         try:
             self.drive.write(0.0, 0.0)
         except Exception:
-            pass
+            pass                  # disabled already, or faulted: the disable below is the stop that counts
         try:
             self.drive.disable()
-        except Exception:
-            pass
+            failed = self.drive.stop_failure
+        except Exception as exc:  # a drive that breaks its never-raises contract
+            failed = f"disable() raised {exc!r}"
+        if self._enabled and failed and not drive_failed:
+            self.safety.note(self.clock.now_ns(), "warning", "stop_unconfirmed",
+                             f"{self.drive.drive_name} did not take the stop: {failed}; only the device's own "
+                             f"watchdog stops it now")
         self._enabled = False
 
     # -- scheduling ----------------------------------------------------------
