@@ -960,3 +960,30 @@ def test_a_start_up_failure_before_the_drive_was_enabled_reports_no_unconfirmed_
     drive.connect = no_bus
     result = rt.run(duration_s=1)
     assert result.reason == "drive" and not [e for e in result.events if e.cause == "stop_unconfirmed"], result
+
+
+def test_an_estop_a_motor_did_not_take_is_reported():
+    """The loop's own stop (an estop, a hold) disables the drive too: a motor that did not take it went
+    unsaid there as well, the state saying 'estop' as if the wheels had stopped."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    class Unconfirmed(RecordingDrive):
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "servo 1 (left): torque off not acknowledged (no answer)"
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            r.submit(OperatorCommand("estop", (), "op"))
+
+    clock = SimClock()
+    drive = Unconfirmed(clock)
+    rt = Runtime(Config(), drive, Cruise(), clock)
+    rt.cycle_observers.append(operator)
+    result = rt.run(duration_s=2)
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1, result.events          # the estop's (at the end the drive was already disabled)
+    assert warnings[0].stamp_ns == T0 + 1_000_000_000 + PERIOD_NS and "servo 1 (left)" in warnings[0].message

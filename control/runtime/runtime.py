@@ -383,6 +383,7 @@ class Runtime:
                     self.drive.write(0.0, 0.0)
                     self.drive.disable()
                     self._enabled = False
+                    self._unconfirmed_stop(now, self.drive.stop_failure)
             stage = "write"
             left, right = self.kin.wheels(twist)
             if self._enabled:
@@ -663,11 +664,15 @@ class Runtime:
             failed = self.drive.stop_failure
         except Exception as exc:  # a drive that breaks its never-raises contract
             failed = f"disable() raised {exc!r}"
-        if self._enabled and failed and not drive_failed:
-            self.safety.note(self.clock.now_ns(), "warning", "stop_unconfirmed",
-                             f"{self.drive.drive_name} did not take the stop: {failed}; only the device's own "
-                             f"watchdog stops it now")
+        if self._enabled and not drive_failed:
+            self._unconfirmed_stop(self.clock.now_ns(), failed)
         self._enabled = False
+
+    def _unconfirmed_stop(self, now: int, failed: Optional[str]) -> None:
+        """A stop the drive could not fully carry out (``stop_failure``) is a warning, not silence."""
+        if failed:
+            self.safety.note(now, "warning", "stop_unconfirmed", f"{self.drive.drive_name} did not take the stop: "
+                                                                  f"{failed}; only the device's own watchdog stops it now")
 
     # -- scheduling ----------------------------------------------------------
     def _apply_scheduling(self):
