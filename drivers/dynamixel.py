@@ -398,15 +398,21 @@ class DynamixelDrive(SerialWheelDrive):
     def _watchdog_note(self) -> str:
         return f"the servos' bus watchdog ({self._watchdog_units * 20} ms) stops the wheels"
 
-    def _stop_wheels(self) -> None:
-        """Goal Velocity 0 and torque off on every servo still answering."""
+    def _stop_wheels(self) -> Optional[str]:
+        """Goal Velocity 0 and torque off on every servo still answering; the servos whose torque-off was not
+        acknowledged, named (their bus watchdog is what stops them)."""
         if self.port is None or self.ph is None:
-            return
+            return None
+        missed = []
         for i in self.ids:
             try:
                 self.port.is_using = False  # an exception mid-transfer leaves the SDK's flag set
                 self.ph.write4ByteTxRx(self.port, i, reg.GOAL_VELOCITY.address, 0)
-                self.ph.write1ByteTxRx(self.port, i, reg.TORQUE_ENABLE.address, 0)
-            except Exception:
-                pass
+                res, _err = self.ph.write1ByteTxRx(self.port, i, reg.TORQUE_ENABLE.address, 0)
+                why = None if res == sdk.COMM_SUCCESS else self.ph.getTxRxResult(res)
+            except Exception as exc:
+                why = repr(exc)
+            if why is not None:
+                missed.append(f"servo {i} ({self.sides[i]}): torque off not acknowledged ({why})")
+        return "; ".join(missed) or None
 

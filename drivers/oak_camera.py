@@ -191,12 +191,29 @@ class OakCamera(GrabbingCamera):
 
     # -- lifecycle ------------------------------------------------------------------------
     def connect(self) -> None:
-        if self.opt.replay_file:
-            self._build_replay()
-        else:
-            self._build_device()
-        self._pipeline.start()
+        try:
+            if self.opt.replay_file:
+                self._build_replay()
+            else:
+                self._build_device()
+            self._pipeline.start()
+        except Exception as exc:
+            self.disconnect()      # a device left open is busy for the next start
+            if isinstance(exc, CameraError):
+                raise
+            # depthai's own errors (a size or rate the sensors do not offer, a pipeline the device cannot
+            # start): a camera that cannot run as configured, said of which device and what it was asked for
+            raise CameraError(f"OAK {self.device_id or self.opt.device_id or 'device'}: {self._asked()} could not "
+                              f"start: {type(exc).__name__}: {exc}. Expected settings this device offers "
+                              f"(camera.width/height/rate_hz, camera.options)") from exc
         self._start_grabbing("oak-grab")
+
+    def _asked(self) -> str:
+        """What the pipeline was asked for, as an error names it."""
+        if self.opt.replay_file:
+            return f"replay pipeline ({self.width}x{self.height} at {self.opt.replay_fps:g} fps)"
+        stereo = " with stereo disparity" if self.opt.disparity else " without disparity"
+        return f"{self.opt.stream} stream of {self.width}x{self.height} at {self.fps:g} fps{stereo}"
 
     def disconnect(self) -> None:
         self._stop.set()
@@ -229,6 +246,7 @@ class OakCamera(GrabbingCamera):
         if not readable:
             raise CameraError(f"OAK replay file {self.opt.replay_file}: no video frame could be read from it "
                               f"(expected a recorded video, e.g. .mp4 or .avi)")
+        self.device_id = "replay:" + self.opt.replay_file
         p = dai.Pipeline(createImplicitDevice=False)
         replay = p.create(dai.node.ReplayVideo)
         replay.setReplayVideoFile(self.opt.replay_file)
@@ -239,7 +257,6 @@ class OakCamera(GrabbingCamera):
         self._pipeline = p
         self._img_q = replay.out.createOutputQueue(maxSize=1, blocking=False)
         self._disp_q = None
-        self.device_id = "replay:" + self.opt.replay_file
 
     def _select_device(self):
         t0 = time.monotonic()
@@ -268,7 +285,7 @@ class OakCamera(GrabbingCamera):
             self._device = dai.Device(info)
         except Exception as exc:
             raise CameraError(f"OAK device {describe(info)} cannot be opened: {exc}") from exc
-        self.device_id = info.getDeviceId()
+        self.device_id = info.getDeviceId()   # from here on, connect() names it in depthai's errors
         calib = self._device.readCalibration()
         p = dai.Pipeline(self._device)
         size = (self.width, self.height)

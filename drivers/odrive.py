@@ -352,16 +352,19 @@ class ODriveDrive(SerialWheelDrive):
     def _watchdog_note(self) -> str:
         return f"its axis watchdog ({self.opt.watchdog_s * 1000:.0f} ms) disarms the motors"
 
-    def _stop_wheels(self) -> None:
-        """Velocity 0 and IDLE on both axes (disarmed)."""
+    def _stop_wheels(self) -> Optional[str]:
+        """Velocity 0 and IDLE on both axes (disarmed); the axes whose stop could not be sent, named (the ASCII
+        protocol acknowledges neither: a sent stop is taken as taken)."""
         if self.ser is None:
-            return
+            return None
+        missed = []
         for ax in self.axes:
             try:
                 self._send(f"v {ax} 0")
                 self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
-            except Exception:
-                pass
+            except Exception as exc:
+                missed.append(f"axis {ax}: the stop could not be sent ({exc!r})")
+        return "; ".join(missed) or None
 
     def _device_open(self) -> bool:
         return self.ser is not None

@@ -122,6 +122,9 @@ class WheelDrive(abc.ABC):
         self._faults: list[DriveFault] = []
         self._lock = threading.RLock()   # lifecycle and I/O; a reconnect may run on another thread
         self.reconnect_note = ""         # why the last reconnect attempt failed ("" when none failed)
+        # what the last disable() or close() could not stop (a motor that did not answer), None when it stopped
+        # all: they never raise, so this is where the caller learns that only the device's watchdog is left
+        self.stop_failure: Optional[str] = None
 
     # -- what a drive is in --------------------------------------------------------------
     @property
@@ -172,7 +175,7 @@ class WheelDrive(abc.ABC):
         with self._lock:
             if self._state in (DriveState.UNCONFIGURED, DriveState.FINALIZED):
                 return
-            self._stop_wheels()
+            self.stop_failure = self._stop_wheels()
             if self._state is DriveState.ACTIVE:
                 self._state = DriveState.INACTIVE
 
@@ -182,7 +185,7 @@ class WheelDrive(abc.ABC):
             if self._state is DriveState.FINALIZED:
                 return
             if self._state is not DriveState.UNCONFIGURED:
-                self._stop_wheels()
+                self.stop_failure = self._stop_wheels()
             self._release()
             self._state = DriveState.FINALIZED
 
@@ -267,8 +270,9 @@ class WheelDrive(abc.ABC):
         """Measure the wheels. A fault goes through ``_fault``."""
 
     @abc.abstractmethod
-    def _stop_wheels(self) -> None:
-        """Command zero and remove power on whatever is still reachable; never raises."""
+    def _stop_wheels(self) -> Optional[str]:
+        """Command zero and remove power on whatever is still reachable; never raises. Returns what it could
+        not stop, as a message naming the motor (None when every one took the stop)."""
 
     @abc.abstractmethod
     def _release(self) -> None:

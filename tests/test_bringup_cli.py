@@ -220,3 +220,76 @@ def test_keyboard_teleop_shows_the_robots_refusal_instead_of_driving(tmp_path):
     assert refusals and "estop" in refusals[0], screen[-5:]
     last = [s.strip() for s in screen if s.strip()][-1]
     assert last.startswith("robot sim refused teleop:"), screen[-3:]     # not 'driving' while refused
+
+
+class _Recorder:
+    """A CommandPublisher stand-in: what vbnav teleop sends; ``fail_at``: the put that raises ``exc``."""
+
+    def __init__(self, fail_at=None, exc=None):
+        self.sent, self.fail_at, self.exc = [], fail_at, exc
+
+    def put(self, what, body):
+        self.sent.append((what, body))
+        if len(self.sent) == self.fail_at:
+            raise self.exc
+
+
+def _teleop_in_thread(fd, out):
+    import argparse
+    import queue
+    import threading
+
+    from vbnav.control.commands.teleop import _drive
+    args = argparse.Namespace(speed=0.2, turn=0.5, rate=200.0, hold=5.0)
+    done = []
+    t = threading.Thread(target=lambda: done.append(_catch(lambda: _drive(fd, out, args, "r1", queue.SimpleQueue()))),
+                         daemon=True)
+    t.start()
+    return t, done
+
+
+def _catch(fn):
+    try:
+        return fn()
+    except BaseException as exc:       # noqa: BLE001 - the test looks at what ended the stream
+        return exc
+
+
+def test_keyboard_teleop_whose_terminal_goes_away_sends_a_stop_and_ends():
+    """A terminal that went away while a key drove (ssh dropped with SIGHUP ignored, nohup) read as end of
+    file for ever: vbnav teleop spun at full CPU without end and only the robot's command timeout stopped it.
+    End of input now ends it like q: a zero command at once, then it returns."""
+    r, w = os.pipe()
+    out = _Recorder()
+    try:
+        t, done = _teleop_in_thread(r, out)
+        os.write(w, b"w")
+        for _ in range(500):
+            if any(b.get("linear") for k, b in out.sent):
+                break
+            time.sleep(0.01)
+        os.close(w)                                  # the terminal is gone
+        t.join(10)
+        assert not t.is_alive(), "vbnav teleop went on after its terminal went away"
+    finally:
+        os.close(r)
+    assert done == [0] and out.sent[-1] == ("teleop", {"linear": 0.0, "angular": 0.0}), out.sent[-3:]
+
+
+def test_keyboard_teleop_stopped_by_sigterm_or_an_error_while_driving_sends_a_stop():
+    """SIGTERM (its handler raises SystemExit wherever the stream is) or an error while a key drove ended vbnav
+    teleop without a zero command: the robot drove on its last command until its command timeout."""
+    for exc in (SystemExit(130), OSError(5, "Input/output error")):
+        r, w = os.pipe()
+        out = _Recorder(fail_at=3, exc=exc)
+        try:
+            t, done = _teleop_in_thread(r, out)
+            os.write(w, b"w")
+            t.join(10)
+            assert not t.is_alive()
+        finally:
+            os.close(r)
+            os.close(w)
+        assert done[0] is exc, done
+        assert out.sent[2][1]["linear"] == 0.2 and out.sent[-1] == ("teleop", {"linear": 0.0, "angular": 0.0}), \
+            out.sent

@@ -113,6 +113,44 @@ def test_stale_stamp_is_refused_by_the_senders_clock_whatever_its_offset():
     assert applied[0].sent_ns == pytest.approx(clock.now_ns() - 20_000_000, abs=5_000)
 
 
+@pytest.mark.parametrize("bogus", [10 ** 300, 10 ** 400, 2 ** 63, "far"])
+def test_a_stamp_that_cannot_be_the_senders_clock_is_refused_and_does_not_move_its_clock(bogus):
+    """One teleop stamped 10**300 (or 2**63, past an int64; or far ahead of what the sender's clock read a
+    moment ago) was taken as fresh (sent 'now') and drove the robot, and it set the sender's clock offset so far
+    back that every later teleop of that sender was stale, until its session was forgotten. Such a stamp is now
+    refused, saying why, and the sender's clock is tracked as before it: its next teleop is taken."""
+    box, clock = _box()
+    offset = -123_456_789_000      # the sender's clock reads 123 s less than the robot's
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=clock.now_ns() + offset)) is None
+    box.drain(clock.now_ns())
+    clock.advance(50_000_000)
+    stamp = bogus if bogus != "far" else clock.now_ns() + offset + TIMEOUT_NS + 1_000_000   # 501 ms ahead
+    reason = box.post(OperatorCommand("teleop", (0.9, 0), "A", seq=2, stamp_ns=stamp))
+    assert reason is not None and "cannot be a reading of A's clock" in reason, reason
+    assert ("int64" in reason) if bogus != "far" else ("501 ms ahead" in reason and "500 ms" in reason), reason
+    assert box.drain(clock.now_ns()) == ([], [])
+    clock.advance(50_000_000)
+    assert box.post(OperatorCommand("teleop", (0.3, 0), "A", seq=3, stamp_ns=clock.now_ns() - 5_000_000 + offset)) \
+        is None
+    applied, refused = box.drain(clock.now_ns())
+    assert [c.args[0] for c in applied] == [0.3] and not refused
+    assert applied[0].sent_ns == pytest.approx(clock.now_ns() - 5_000_000, abs=50_000)
+
+
+def test_a_peer_posing_as_another_sender_cannot_make_its_teleop_stale_with_a_far_stamp():
+    """sender and session are what the message says (every authorised peer shares the signing secret): a
+    peer that copies another operator's sender and session and sends one far-future stamp made all of that
+    operator's teleop stale. The stamp is refused and the operator's clock is tracked as before."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    assert inbox.submit("teleop", teleop(1, clock.now_ns(), session="op-1")) is not None
+    assert inbox.submit("teleop", teleop(10 ** 6, 10 ** 18, session="op-1")) is None   # the peer's, refused
+    clock.advance(20_000_000)
+    assert inbox.submit("teleop", teleop(2, clock.now_ns(), session="op-1")) is not None
+    applied, refused = rt.mailbox.drain(clock.now_ns())
+    assert [c.seq for c in applied] == [2] and not refused, (applied, refused, rejected)
+    assert any("cannot be a reading of zenoh:op's clock" in r for _, r in rejected), rejected
+
+
 def test_a_teleop_that_waited_too_long_for_the_loop_is_refused_when_taken():
     box, clock = _box()
     box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=5))
@@ -530,6 +568,55 @@ def test_vbnav_send_stamps_and_numbers_teleop(tmp_path):
     assert stamps == sorted(stamps) and stamps[0] > t0 and len({m["session"] for m in got}) == 1
 
 
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP"])
+def test_vbnav_send_teleop_stream_cut_short_ends_with_a_stop(sig):
+    """`vbnav send teleop V W --for S` ends its stream with a zero command, but one cut short (Ctrl-C, a
+    SIGTERM, the terminal gone) ended without it: the robot drove on the last command until its command
+    timeout. Every end of the stream now sends the stop."""
+    import signal
+    import subprocess
+    import sys
+
+    from vbnav.control.comms.network import open_session, robot_session_config
+    from vbnav.control.config.telemetry import TelemetryConfig
+    port = _free_port()
+    robot = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "sim"))
+    got = []
+
+    def on_command(sample):
+        msg = json.loads(sample.payload.to_bytes())
+        got.append(msg)
+        if msg.get("ack"):
+            robot.put("vbnav/sim/events", json.dumps({"kind": "command", "command": "teleop", "ack": msg["ack"],
+                                                      "cycle": len(got)}))
+
+    sub = robot.declare_subscriber("vbnav/sim/cmd/**", on_command)
+    recent = robot.declare_queryable("vbnav/sim/events/recent",
+                                     lambda q: q.reply("vbnav/sim/events/recent", json.dumps({"events": []})))
+    try:
+        p = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "send", "teleop", "0.1", "0", "--for", "30",
+                              "--rate", "20", "--connect", f"tcp/127.0.0.1:{port}"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        for _ in range(3000):
+            if len(got) >= 3 or p.poll() is not None:
+                break
+            time.sleep(0.01)
+        assert len(got) >= 3, p.communicate(timeout=30)
+        p.send_signal(getattr(signal, sig))
+        p.communicate(timeout=30)
+        for _ in range(200):             # the last message on its way
+            if got[-1]["linear"] == 0.0:
+                break
+            time.sleep(0.01)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        recent.undeclare()
+        sub.undeclare()
+        robot.close()
+    assert got[-1]["linear"] == 0.0 and all(m["linear"] == 0.1 for m in got[:-1]), [m["linear"] for m in got]
+
+
 def test_a_teleop_refused_when_the_loop_took_it_is_answered_with_its_ack():
     """Teleop the mailbox refuses as stale when the loop drains it was reported without the sender's ack
     (vbnav send waited for its timeout, 'no acknowledgement') and, without an ack, not summarised like
@@ -556,3 +643,68 @@ def test_a_teleop_refused_when_the_loop_took_it_is_answered_with_its_ack():
     answers = [(e["kind"], e.get("ack"), e.get("reason", "")) for e in sink.events if e["kind"] == "command_rejected"]
     assert answers[0][:2] == ("command_rejected", "A1") and "when the loop took it" in answers[0][2], answers
     assert len(answers) == 2 and answers[1][1] is None, answers
+
+
+# ---- a resume names the stop it has seen ------------------------------------------------------------
+
+def test_a_resume_sent_before_another_operators_estop_does_not_clear_it(tmp_path):
+    """Commands apply in arrival order: operator B saw A's estop (the state's safety.latched_ns) and resumed;
+    operator C's estop arrived before B's resume and was cleared by it, a stop B never knew of (a second
+    estop while one is latched did not even count as a new stop). A resume that names the newest stop it has
+    seen (latched_ns) clears nothing that began after it, and says so; a resume naming C's estop clears it,
+    and a resume without latched_ns (older senders) clears as before."""
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.comms.operator_commands import CommandInbox, limits_from_config
+    from vbnav.control.comms.recording import iter_recording
+
+    cfg = Config.model_validate({"telemetry": {"enabled": False}})
+    rt, drive, clock = make_runtime(Cruise(), camera=False, cfg=cfg)
+    link = TelemetryLink.attach(rt, cfg, record=str(tmp_path / "run.mcap"))
+    inbox = CommandInbox(limits_from_config(cfg), deliver=rt.submit, now_ns=clock.now_ns)
+    seen = {}
+
+    def operators(r, ctx, twist, wheels):
+        t = ctx.now_ns - T0
+        if t == 500_000_000:
+            inbox.submit("estop", json.dumps({"sender": "A", "reason": "person ahead"}))
+        elif t == 600_000_000:
+            seen["B"] = r.safety.latched_ns            # what B's dashboard shows (safety.latched_ns)
+        elif t == 1_000_000_000:
+            inbox.submit("estop", json.dumps({"sender": "C", "reason": "cable on the floor"}))
+        elif t == 1_010_000_000:                       # B's resume, sent before C's estop, arrives after it
+            inbox.submit("resume", json.dumps({"sender": "B", "latched_ns": seen["B"], "ack": "b1"}))
+        elif t == 1_500_000_000:
+            seen["B2"] = r.safety.latched_ns
+            inbox.submit("resume", json.dumps({"sender": "B", "latched_ns": seen["B2"], "ack": "b2"}))
+        elif t == 2_000_000_000:
+            inbox.submit("estop", json.dumps({"sender": "A"}))
+        elif t == 2_500_000_000:
+            inbox.submit("resume", json.dumps({"sender": "old-client"}))
+
+    rt.cycle_observers.append(operators)
+    result = rt.run(duration_s=3.0)
+    link.close(result)
+    estop_a, estop_c = T0 + 500_000_000 + PERIOD_NS, T0 + 1_000_000_000 + PERIOD_NS
+    assert seen["B"] == estop_a and seen["B2"] == estop_c, seen
+    refused = [e.message for e in result.events if e.kind == "rejected" and e.cause == "resume"]
+    assert len(refused) == 1 and "estop" in refused[0] and "cable on the floor" in refused[0], refused
+    assert f"latched_ns {estop_a}" in refused[0] and f"began at {estop_c}" in refused[0], refused[0]
+    moving = [t for t, l, r, p in drive.log if p and (l or r)]
+    assert not [t for t in moving if estop_a + PERIOD_NS < t <= T0 + 1_500_000_000], "B's resume cleared C's estop"
+    assert [t for t in moving if T0 + 1_500_000_000 < t < T0 + 2_000_000_000], "B's second resume clears it"
+    assert [t for t in moving if t > T0 + 2_500_000_000 + PERIOD_NS], "a resume without latched_ns clears"
+    states = [json.loads(d) for t, _, _, d in iter_recording(tmp_path / "run.mcap") if t == "/vbnav/state"]
+    assert {s["safety"]["latched_ns"] for s in states if s["safety"]["state"] == "estop"} == \
+        {estop_a, estop_c, T0 + 2_000_000_000 + PERIOD_NS}
+    assert all(s["safety"]["latched_ns"] is None for s in states if s["safety"]["state"] == "ok")
+
+
+def test_vbnav_send_resume_names_the_stop_it_has_seen():
+    from vbnav.control.cli import build_parser
+    from vbnav.control.commands.send import build_payload
+
+    args = build_parser().parse_args(["send", "resume", "--latched-ns", "1510000000", "--robot", "r1"])
+    what, body = build_payload(args)
+    assert what == "resume" and body["latched_ns"] == 1_510_000_000
+    what, body = build_payload(build_parser().parse_args(["send", "resume", "--robot", "r1"]))
+    assert "latched_ns" not in body

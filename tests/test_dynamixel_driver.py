@@ -303,3 +303,17 @@ def test_a_small_profile_acceleration_is_not_rounded_to_no_limit(bus):
         assert all(bus.servo(i).get(dt.PROFILE_ACCELERATION) == 1 for i in (1, 2))
     finally:
         d.close()
+
+
+def test_a_servo_that_does_not_take_the_stop_is_named_in_stop_failure(bus, drive):
+    """disable() never raises, so a servo that did not answer the torque-off went unsaid: the caller took
+    the wheels for stopped. The drive keeps what it could not stop in ``stop_failure``."""
+    drive_for(drive, 2.0, 2.0)
+    bus.servo(2).no_answer = True
+    drive.disable()
+    assert drive.stop_failure is not None and "servo 2" in drive.stop_failure, drive.stop_failure
+    assert "servo 1" not in drive.stop_failure and not bus.servo(1).torque_on
+    bus.servo(2).no_answer = False
+    drive.enable()
+    drive.disable()
+    assert drive.stop_failure is None

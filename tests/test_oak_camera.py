@@ -179,3 +179,100 @@ def test_a_replay_that_ended_is_finished(tmp_path):
         assert cam.finished
     finally:
         cam.disconnect()
+
+
+def test_a_replay_pipeline_that_fails_to_start_is_a_camera_error_naming_the_source(tmp_path, monkeypatch):
+    """depthai's own start-up errors (a pipeline that fails to start) came out as its bare RuntimeError: the
+    runtime called them a bug (exit 1), and nothing named the device or what it was asked for. They are now a
+    CameraError with both. The host-only replay pipeline, its start failing as depthai's does."""
+    path = tmp_path / "rec.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (64, 48))
+    for k in range(3):
+        writer.write(np.full((48, 64, 3), 8 * k, np.uint8))
+    writer.release()
+
+    def refuse(self):
+        raise RuntimeError("Pipeline build failed: node ReplayVideo has no output")
+    monkeypatch.setattr(dai.Pipeline, "start", refuse)
+    cam = OakCamera(options=OakCamera.Options(replay_file=str(path), replay_fps=60.0, disparity=False),
+                    width=64, height=48, fps=20.0)
+    with pytest.raises(CameraError) as err:
+        cam.connect()
+    msg = str(err.value)
+    assert f"OAK replay:{path}" in msg and "64x48" in msg and "could not start" in msg, msg
+    assert "RuntimeError: Pipeline build failed: node ReplayVideo has no output" in msg, msg
+    assert not cam.is_connected and cam._pipeline is None
+
+
+class _Refused(RuntimeError):
+    pass
+
+
+def _fake_device_layer(monkeypatch, fail_at: str):
+    """depthai's device side without a device: a real DeviceInfo and a real calibration, and a pipeline whose
+    ``fail_at`` step ('requestOutput' or 'start') raises as depthai does for settings the device cannot run."""
+    import vbnav.drivers.oak_camera as oak
+
+    opened = []
+
+    class Device:
+        def __init__(self, info):
+            self.closed = False
+            opened.append(self)
+
+        def readCalibration(self):
+            return device_calibration(450.0, 7.5)
+
+        def close(self):
+            self.closed = True
+
+    class Node:
+        def build(self, socket):
+            return self
+
+        def requestOutput(self, size, typ, fps):
+            if fail_at == "requestOutput":
+                raise _Refused(f"CAM_B: no sensor configuration for {size[0]}x{size[1]} at {fps:g} fps")
+            return self
+
+        def __getattr__(self, name):      # setters, links, outputs and their queues: all fine
+            return self
+
+        def __call__(self, *args, **kwargs):
+            return self
+
+    class Pipeline:
+        def __init__(self, device):
+            assert isinstance(device, Device)
+
+        def create(self, node):
+            return Node()
+
+        def start(self):
+            if fail_at == "start":
+                raise _Refused("Device booted but the pipeline failed to start: out of memory on the device")
+
+    fake = type("FakeDai", (), {})()
+    for name in ("CameraBoardSocket", "ImgFrame", "node", "StereoDepthConfig", "CalibrationHandler"):
+        setattr(fake, name, getattr(dai, name))
+    fake.Device, fake.Pipeline = Device, Pipeline
+    monkeypatch.setattr(oak, "dai", fake)
+    monkeypatch.setattr(oak, "list_devices", lambda timeout_s: [dai.DeviceInfo("14442C10D13EABCE00")])
+    return opened
+
+
+@pytest.mark.parametrize("fail_at", ["requestOutput", "start"])
+def test_a_device_that_refuses_its_settings_is_a_camera_error_naming_it_and_what_was_asked(monkeypatch, fail_at):
+    """An unsupported resolution, or a pipeline that fails to start on the device, raised depthai's error as
+    it was (the run called it a bug, exit 1) and left the device open (the next start finds it busy). It is
+    now a CameraError naming the device and the stream, size and rate it was asked for, and the device is
+    closed."""
+    opened = _fake_device_layer(monkeypatch, fail_at)
+    cam = OakCamera(options=OakCamera.Options(use_device_calibration=False), width=1234, height=567, fps=45.0)
+    with pytest.raises(CameraError) as err:
+        cam.connect()
+    msg = str(err.value)
+    assert "OAK 14442C10D13EABCE00" in msg and "mono" in msg and "1234x567 at 45 fps" in msg, msg
+    assert "disparity" in msg and "camera.width" in msg and "_Refused" in msg, msg
+    assert opened and opened[0].closed, "the device was left open"
+    assert not cam.is_connected

@@ -297,6 +297,52 @@ def test_exception_in_the_camera_thread():
     assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
 
 
+@pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
+def test_a_camera_that_fails_mid_run_ends_it_as_a_camera_fault_on_either_thread(inline):
+    """A camera whose read raised CameraError (the device went away) ended the run as 'camera' (exit 3, a
+    device's failure) only when it failed at start-up; mid-run, on the vision thread (real clock) or in the
+    loop's own cycle (inline), it ended as 'exception' (exit 1, a bug). Every camera failure is now 'camera',
+    and the robot stops as before."""
+    import threading
+
+    from runtime_helpers import RecordingDrive, TickCamera
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.pipeline import VisionPipeline
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS, Runtime
+    from vbnav.drivers.camera import CameraError
+    from vbnav.drivers.clock import SimClock
+
+    gone = threading.Event()
+
+    class Gone(TickCamera):
+        def read(self, timeout_s=0.0):
+            if gone.is_set():
+                raise CameraError("camera /dev/video0 went away (unplugged?)")
+            if not inline:
+                threading.Event().wait(0.001)
+            return super().read(timeout_s)
+
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    pipeline = VisionPipeline(Gone(clock), [], clock, inline=inline)
+    seen = []
+
+    def hook(ctx):
+        if ctx.now_ns >= T0 + 1_500_000_000 and not seen:
+            gone.set()
+            seen.append(ctx.now_ns)
+            for _ in range(1000):      # the vision thread: hold simulated time until it met the failure
+                if inline or pipeline.fault is not None:
+                    return
+                threading.Event().wait(0.01)
+
+    rt = Runtime(Config(camera={"stale_after_s": 5.0}), drive, Cruise(hook), clock, pipeline)
+    result = rt.run(duration_s=5)
+    assert result.reason == "camera" and result.reason in DEVICE_FAULTS, result
+    assert "went away" in result.message and "camera" in result.message, result
+    assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
+
+
 def test_exception_in_controller():
     def hook(ctx):
         if ctx.now_ns >= T0 + 1_500_000_000:
@@ -776,3 +822,168 @@ def test_with_catch_up_a_loop_that_cannot_keep_up_still_ends_on_the_deadline_str
     result = rt.run(duration_s=5)
     assert result.reason == "deadline" and "consecutive missed deadlines" in result.message
     assert_stopped_within_two_periods(drive, T0 + 1_000_000_000 + cfg.loop.max_missed_streak * 25_000_000)
+
+
+_BACKGROUND_RUN = '''
+import os, signal, subprocess, sys, termios
+tty = sys.argv[1]
+if sys.argv[2] == "leader":
+    # the session's foreground job: the run goes to a background process group of its own
+    p = subprocess.Popen([sys.executable, "-c", sys.argv[3], tty, "run"], process_group=0)
+    pid, status = os.waitpid(p.pid, os.WUNTRACED)
+    if os.WIFSTOPPED(status):
+        os.kill(p.pid, signal.SIGKILL)
+        os.waitpid(p.pid, 0)
+        print("stopped by", signal.Signals(os.WSTOPSIG(status)).name, file=sys.stderr, flush=True)
+        sys.exit(2)
+    sys.exit(os.waitstatus_to_exitcode(status))
+sys.path.insert(0, "tests")
+from runtime_helpers import make_runtime
+from test_safety import Cruise
+assert os.getpgrp() != os.tcgetpgrp(0), "not in the background"
+out = open(tty, "w")
+rt, drive, clock = make_runtime(Cruise())
+read = []
+def progress(r):                         # a background job's output to its terminal (stty tostop)
+    print("cycle", r.cycle, file=out, flush=True)
+    if not read:
+        try:
+            os.read(0, 1)                # a background job's read of its terminal
+        except OSError as exc:
+            read.append(exc)
+result = rt.run(duration_s=3, progress=progress)
+assert result.reason == "duration", result
+assert read and read[0].errno == 5, read          # EIO: the read fails, it does not stop the process
+assert drive.log[-1][3] is False
+print("ok", file=sys.stderr, flush=True)
+'''
+
+
+def test_a_background_run_that_writes_or_reads_its_terminal_is_not_stopped_with_the_wheels_live():
+    """A run started in the background (``vbnav run ... &``) with ``stty tostop`` got SIGTTOU at its first
+    progress line, and SIGTTIN at a read of its terminal: left at their defaults they stop the process where
+    it is, the wheels at their last command. The run ignores both while the wheels are live: the line is
+    written, the read fails (EIO), and the run goes on. A real background job: a session of its own on a
+    pseudo-terminal with tostop set, its leader in the foreground, the run in a background process group."""
+    import fcntl
+    import subprocess
+    import sys
+    import termios
+
+    master, slave = os.openpty()
+    attrs = termios.tcgetattr(slave)
+    attrs[3] |= termios.TOSTOP
+    termios.tcsetattr(slave, termios.TCSANOW, attrs)
+    name = os.ttyname(slave)
+
+    def take_the_terminal():
+        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+    try:
+        r = subprocess.run([sys.executable, "-c", _BACKGROUND_RUN, name, "leader", _BACKGROUND_RUN],
+                           stdin=slave, stdout=slave, stderr=subprocess.PIPE, text=True, timeout=60,
+                           start_new_session=True, preexec_fn=take_the_terminal,
+                           cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    finally:
+        os.close(slave)
+    try:
+        written = os.read(master, 65536).decode()
+    except OSError:
+        written = ""
+    os.close(master)
+    assert r.returncode == 0 and "ok" in r.stderr, r.stderr
+    assert "cycle" in written, written
+
+
+def test_a_stop_signal_during_start_up_never_powers_the_wheels():
+    """Ctrl-C (or a service manager's SIGTERM) while the camera was still coming up (an OAK's discovery
+    takes seconds) was seen at the first cycle only: start-up went on and powered the drive first. The run
+    now ends before the drive is enabled."""
+    rt, drive, clock = make_runtime(Cruise())
+    connect = rt.pipeline.camera.connect
+    enabled = []
+
+    def slow_connect():
+        os.kill(os.getpid(), signal.SIGINT)         # the operator gives up waiting for the camera
+        connect()
+
+    def enable():
+        enabled.append(clock.now_ns())
+        type(drive).enable(drive)
+
+    rt.pipeline.camera.connect = slow_connect
+    drive.enable = enable
+    result = rt.run(duration_s=2)
+    assert result.reason == "signal" and "SIGINT" in result.message, result
+    assert enabled == [] and not [p for t, l, r, p in drive.log if p], drive.log
+
+
+def test_a_stop_the_drive_did_not_take_is_reported_not_swallowed():
+    """When the run ends (here SIGTERM) the runtime disables the drive; a drive that could not stop a motor
+    (a servo that stopped answering just then) passed over it in silence (its disable never raises), and
+    the run ended as if its wheels had stopped. The drive now says what it could not stop
+    (``stop_failure``) and the run reports it as a warning: only the device's own watchdog stops that motor."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    class Unconfirmed(RecordingDrive):
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "servo 2 (right): torque off not acknowledged (no answer)" if self.fail else None
+
+    def after_the_write(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            drive.fail = True
+            rt.request_stop(signal.SIGTERM)
+
+    clock = SimClock()
+    drive = Unconfirmed(clock)
+    drive.fail = False
+    rt = Runtime(Config(), drive, Cruise(), clock)
+    rt.cycle_observers.append(after_the_write)
+    result = rt.run(duration_s=3)
+    assert result.reason == "signal", result
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1, result.events
+    msg = warnings[0].message
+    assert drive.drive_name in msg and "servo 2 (right): torque off not acknowledged" in msg and "watchdog" in msg
+
+
+def test_a_start_up_failure_before_the_drive_was_enabled_reports_no_unconfirmed_stop():
+    rt, drive, clock = make_runtime(Cruise())
+
+    def no_bus():
+        from vbnav.drivers.wheels import DriveError
+        raise DriveError("no bus")
+    drive.connect = no_bus
+    result = rt.run(duration_s=1)
+    assert result.reason == "drive" and not [e for e in result.events if e.cause == "stop_unconfirmed"], result
+
+
+def test_an_estop_a_motor_did_not_take_is_reported():
+    """The loop's own stop (an estop, a hold) disables the drive too: a motor that did not take it went
+    unsaid there as well, the state saying 'estop' as if the wheels had stopped."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    class Unconfirmed(RecordingDrive):
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "servo 1 (left): torque off not acknowledged (no answer)"
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 1_000_000_000:
+            r.submit(OperatorCommand("estop", (), "op"))
+
+    clock = SimClock()
+    drive = Unconfirmed(clock)
+    rt = Runtime(Config(), drive, Cruise(), clock)
+    rt.cycle_observers.append(operator)
+    result = rt.run(duration_s=2)
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1, result.events          # the estop's (at the end the drive was already disabled)
+    assert warnings[0].stamp_ns == T0 + 1_000_000_000 + PERIOD_NS and "servo 1 (left)" in warnings[0].message

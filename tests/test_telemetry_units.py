@@ -208,13 +208,14 @@ def test_state_message_fields():
     sink = ListSink()
     pub = TelemetryPublisher("bot", [sink], state_rate_hz=20, loop_rate_hz=100)
     pub.offer_state(StateSample(123, 7, "repeat", "estop", ("estop: from zenoh",), (1, 2, 0.5), None,
-                                (1.1, 2.1, 0.4), 3, 1.0, -1.0, 0.9, -0.8, 0.1, 0.2, 150_000, 20_000, 2, "r.json"))
+                                (1.1, 2.1, 0.4), 3, 1.0, -1.0, 0.9, -0.8, 0.1, 0.2, 150_000, 20_000, 2, "r.json",
+                                latched_ns=100))
     pub.event("mode_change", stamp_ns=5, mode="repeat", previous="idle")
     pub.close()
     s = sink.states[0]
     assert (s["schema"], s["version"], s["robot"], s["mode"], s["route"]) == ("vbnav.state", 1, "bot", "repeat",
                                                                               "r.json")
-    assert s["safety"] == {"state": "estop", "faults": ["estop: from zenoh"]}
+    assert s["safety"] == {"state": "estop", "faults": ["estop: from zenoh"], "latched_ns": 100}
     assert s["pose"] == {"odom": {"x": 1.0, "z": 2.0, "theta": 0.5}, "vbc": None,
                          "vslam": {"x": 1.1, "z": 2.1, "theta": 0.4}}
     assert s["wheels"] == {"cmd": {"left": 1.0, "right": -1.0}, "meas": {"left": 0.9, "right": -0.8}}

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
 import sys
 import time
 import uuid
@@ -45,6 +46,10 @@ def register(sub) -> None:
     e = cmds.add_parser("estop", help="latching stop: wheels to zero until `resume`")
     e.add_argument("--reason", default="", help="free text recorded in the event")
     r = cmds.add_parser("resume", help="clear an estop latch")
+    r.add_argument("--latched-ns", type=int, default=None, metavar="T",
+                   help="the newest stop you have seen (the robot's state: safety.latched_ns, or its trip event's "
+                        "stamp_ns): a stop that began after it, another operator's estop, is not cleared and the "
+                        "robot refuses the resume (docs/telemetry.md)")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
                                     "safety.command_timeout_s (and only a run with controller teleop or operator follows "
@@ -84,6 +89,8 @@ def build_payload(args) -> tuple[str, dict]:
     body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
         body["reason"] = args.reason
+    elif args.what == "resume" and args.latched_ns is not None:
+        body["latched_ns"] = args.latched_ns
     elif args.what == "teleop":
         if args.rate is not None and not args.duration > 0:     # one message: there is no rate to send it at
             raise ValueError("--rate is the rate of a --for S stream; without --for one message is sent")
@@ -121,9 +128,13 @@ def _run(args) -> int:
     except ConnectionError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
         return UNREACHABLE
+    # SIGTERM and SIGHUP (the terminal gone) end a teleop stream as Ctrl-C does: with its stop
+    old_handlers = {sig: signal.signal(sig, lambda *_: sys.exit(130)) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         return _exchange(session, args, what, body, secret)
     finally:
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
         session.close()
 
 
@@ -168,20 +179,24 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     n = max(1, int(args.duration * rate)) if stream else 1
     answer, sent = None, 0
     first = time.monotonic()
-    for i in range(n):
-        put(i, with_ack=answer is None)   # ack until answered: a coalesced or lost one cannot hide the answer
-        sent += 1
-        if answer is None:
-            answer = _poll(answers)
-        if answer is not None and answer["kind"] == "command_rejected":
-            break
-        if answer is None and time.monotonic() - first > args.wait:
-            break
-        if stream:      # after the last one too: it drives for its period, then the stop
-            time.sleep(1.0 / rate)
-    stopped = stream and not (answer is not None and answer["kind"] == "command_rejected")
-    if stopped:     # the robot would drive on with the last command until its command timeout
-        out.put(what, {"linear": 0.0, "angular": 0.0})
+    try:
+        for i in range(n):
+            put(i, with_ack=answer is None)   # ack until answered: a coalesced or lost one cannot hide the answer
+            sent += 1
+            if answer is None:
+                answer = _poll(answers)
+            if answer is not None and answer["kind"] == "command_rejected":
+                break
+            if answer is None and time.monotonic() - first > args.wait:
+                break
+            if stream:      # after the last one too: it drives for its period, then the stop
+                time.sleep(1.0 / rate)
+    finally:
+        # however the stream ends (its time up, Ctrl-C, SIGTERM or SIGHUP, an error): the robot would drive on
+        # with the last command until its command timeout
+        stopped = stream and sent > 0 and not (answer is not None and answer["kind"] == "command_rejected")
+        if stopped:
+            out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
     return _report(args, robot, what, answer, sent, stopped)

@@ -4,7 +4,8 @@ A terminal reports key presses, never releases: a held key repeats (after the ke
 250-660 ms, then 25-30 times a second). So a key press drives for ``--hold`` seconds and each repeat
 extends it; the stream stops, with one zero command, ``--hold`` after the last repeat. The robot's own
 command timeout (safety.command_timeout_s) stops it if this program dies. The terminal goes to raw mode
-for single key presses and is restored on every exit (q, Ctrl-C, SIGTERM, an error). The robot's
+for single key presses and is restored on every exit (q, Ctrl-C, SIGTERM, SIGHUP, the terminal gone, an
+error); each of them, while a key drives, sends a zero command first. The robot's
 refusals of teleop, estop and resume (its ``command_rejected`` events: a latched or held stop, speeds
 beyond its limits, a repeat in progress) replace the 'driving' line, so the screen never says 'driving'
 while the robot stands still.
@@ -108,13 +109,15 @@ def run(args) -> int:
 
         session.declare_subscriber(f"vbnav/{robot}/events", on_event)
         saved = termios.tcgetattr(fd)
-        old_term = signal.signal(signal.SIGTERM, lambda *_: sys.exit(130))
+        # SIGTERM, and SIGHUP (the terminal or ssh session gone): the stream ends with a stop, the terminal restored
+        old_handlers = {sig: signal.signal(sig, lambda *_: sys.exit(130)) for sig in (signal.SIGTERM, signal.SIGHUP)}
         try:
             tty.setraw(fd)
             return _drive(fd, out, args, robot, refusals)
         finally:
             termios.tcsetattr(fd, termios.TCSADRAIN, saved)
-            signal.signal(signal.SIGTERM, old_term)
+            for sig, handler in old_handlers.items():
+                signal.signal(sig, handler)
             print()
     finally:
         session.close()
@@ -125,19 +128,36 @@ def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.Sim
         sys.stdout.write("\r\x1b[K" + text)
         sys.stdout.flush()
 
+    streaming = [False]
+    try:
+        return _keys_to_teleop(fd, out, args, robot, refusals, say, streaming)
+    finally:
+        # However it ends (q, the terminal gone, SIGTERM or SIGHUP, an error) while a key drove: stop now, not
+        # at the robot's command timeout
+        if streaming[0]:
+            try:
+                out.put("teleop", {"linear": 0.0, "angular": 0.0})
+            except Exception:
+                pass
+
+
+def _keys_to_teleop(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue, say,
+                    streaming_flag: list) -> int:
+    """The key loop; ``streaming_flag[0]``: whether the last teleop sent drove the robot (the caller stops it)."""
     sys.stdout.write(HELP + f" (robot {robot})\r\n")
     period = 1.0 / args.rate
-    twist, held_until, streaming, shown = (0.0, 0.0), 0.0, False, None
+    twist, held_until, shown = (0.0, 0.0), 0.0, None
     next_send = time.monotonic()
     while True:
         now = time.monotonic()
         ready, _, _ = select.select([fd], [], [], max(0.0, next_send - now))
         if ready:
-            data = os.read(fd, 64).decode(errors="replace")
+            raw = os.read(fd, 64)
+            if not raw:            # end of input: the terminal went away (a hang-up, with SIGHUP ignored)
+                return 0
+            data = raw.decode(errors="replace")
             for key in keys(data):
                 if key in QUIT:
-                    if streaming:
-                        out.put("teleop", {"linear": 0.0, "angular": 0.0})
                     return 0
                 if key in MOVES:
                     fwd, turn = MOVES[key]
@@ -162,11 +182,12 @@ def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.Sim
             continue
         next_send = max(next_send + period, now)       # 20 Hz without drift, no burst after a pause
         if now < held_until:
+            streaming_flag[0] = True     # from this put on: it may have reached the robot
             out.put("teleop", {"linear": twist[0], "angular": twist[1]})
             if twist != shown:
                 say(f"driving v {twist[0]:+.2f} m/s  w {twist[1]:+.2f} rad/s")
-            streaming, shown = True, twist
-        elif streaming:
+            shown = twist
+        elif streaming_flag[0]:
             out.put("teleop", {"linear": 0.0, "angular": 0.0})   # released: stop now, not at the timeout
-            streaming, shown = False, None
+            streaming_flag[0], shown = False, None
             say("stopped")

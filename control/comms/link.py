@@ -245,7 +245,7 @@ class TelemetryLink:
             ctx.odom, _estimate_pose(vbc), _estimate_pose(vslam), keyframe,
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
             twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns,
-            drive_state=wheels.drive_state, drive_faults=wheels.faults))
+            drive_state=wheels.drive_state, drive_faults=wheels.faults, latched_ns=safety.latched_ns))
 
     def _on_command_start(self, rt, cmd, now_ns: int) -> None:
         """First observer of every command: a refusal raised while it is applied answers its ``ack``."""

@@ -3,7 +3,8 @@
 Keys (``<robot>`` is ``robot.name``), payloads JSON objects:
 
 - ``vbnav/<robot>/cmd/estop``   ``{"reason": "..."}`` (optional): latching stop
-- ``vbnav/<robot>/cmd/resume``  ``{}``: clears an estop latch
+- ``vbnav/<robot>/cmd/resume``  ``{"latched_ns": T}`` (optional): clears an estop latch; with
+  ``latched_ns`` (the state's ``safety.latched_ns`` its sender saw) only if no stop began after T
 - ``vbnav/<robot>/cmd/teleop``  ``{"linear": m/s, "angular": rad/s}``: drive; must keep coming
 - ``vbnav/<robot>/cmd/mode``    ``{"mode": "idle"|"teach"|"repeat", "route": "NAME"}`` (teach and repeat
   only: a route name inside the robot's ``controller.routes_dir``, never a path: control/route.py ``resolve_route``)
@@ -66,7 +67,9 @@ class EstopCmd(_Cmd):
 
 
 class ResumeCmd(_Cmd):
-    pass
+    latched_ns: Optional[int] = Field(None, description="the newest latched stop the sender has seen (the state's "
+                                      "safety.latched_ns): a stop that began after it is not cleared, the resume is "
+                                      "refused. Without it, every stop a resume may clear is cleared")
 
 
 class TeleopCmd(_Cmd):
@@ -152,6 +155,8 @@ def operator_command(cmd: NetCommand) -> OperatorCommand:
         args = (b.linear, b.angular)
     elif cmd.kind == "mode":
         args = (b.mode, b.route) if b.route else (b.mode,)
+    elif cmd.kind == "resume":
+        args = () if b.latched_ns is None else (b.latched_ns,)
     else:
         args = ()
     return OperatorCommand(cmd.kind, args, source=f"zenoh:{b.sender}" if b.sender else "zenoh", seq=b.seq,

@@ -72,6 +72,7 @@ class StateSample(NamedTuple):
     route: Optional[str] = None
     drive_state: Any = None         # the drive's DriveState
     drive_faults: tuple = ()        # its DriveFaults
+    latched_ns: Optional[int] = None   # when the newest latched stop began (what a resume names)
 
 
 def _num(x) -> Optional[float]:
@@ -99,7 +100,7 @@ def state_message(robot: str, seq: int, s: StateSample, rate_hz: float) -> dict:
         "schema": STATE_SCHEMA, "version": SCHEMA_VERSION, "robot": robot, "seq": seq,
         "stamp_ns": int(s.stamp_ns), "cycle": int(s.cycle),
         "mode": s.mode, "route": s.route,
-        "safety": {"state": s.safety, "faults": list(s.faults)},
+        "safety": {"state": s.safety, "faults": list(s.faults), "latched_ns": s.latched_ns},
         "drive": {"state": s.drive_state.value if s.drive_state is not None else None,
                   "faults": [f.as_dict() for f in s.drive_faults]},
         "pose": {"odom": _pose(s.odom), "vbc": _pose(s.vbc), "vslam": _pose(s.vslam)},

@@ -37,6 +37,14 @@ sender's clock, not by when the loop gets to a message:
   to another machine must use a new ``session``.
 - A teleop without ``stamp_ns`` is accepted, its send time taken as its arrival time: a
   transport backlog before arrival then goes unseen (``vbnav send`` always stamps).
+- A stamp that cannot be a reading of the sender's clock is refused and does not move the offset
+  estimate: past an int64 (a monotonic_ns never is), or ahead of the sender's clock as tracked
+  (arrival - offset) by more than the staleness window. Taken, one such stamp (10**300) was fresh
+  by construction, drove the robot, and set the offset so far back that every later teleop of its
+  sender (or of the operator whose ``sender`` and ``session`` a peer copied: they are what the
+  message says) was stale for good. A stamp up to the window ahead is still taken: it cannot be
+  told from a first message that was that long on the way, and it costs the sender at most that
+  much of each later teleop's freshness (a new ``session`` starts afresh).
 
 After a loop stall, an estop or a lost drive the runtime calls ``refuse_teleop_sent_before``:
 teleop sent before the stop began is stale, even if younger than the timeout (``sent_before_stop``
@@ -52,6 +60,7 @@ SAFETY_LANE_LIMIT = 256      # waiting resume/mode commands; estop is never refu
 MAX_SENDERS = 16             # teleop senders tracked at once
 DRIFT = 1e-4                 # clock-rate difference the offset estimate follows (100 ppm)
 DRIFT_CAP_NS = 10_000_000    # ... by at most 10 ms between two messages of a sender
+INT64 = (-2 ** 63, 2 ** 63 - 1)   # a clock's nanosecond reading fits in one
 
 
 @dataclass(frozen=True)
@@ -130,6 +139,20 @@ class _Sender:
             self.offset_ns = min(self.offset_ns + max(rise, 0), d)
         self.offset_at = arrival_ns
 
+    def impossible_stamp(self, arrival_ns: int, stamp_ns: int, window_ns: int, source: str) -> Optional[str]:
+        """Why ``stamp_ns`` cannot be a reading of this sender's clock, else None."""
+        if not INT64[0] <= stamp_ns <= INT64[1]:
+            return (f"stamp_ns cannot be a reading of {source}'s clock: a {stamp_ns.bit_length()}-bit number, not an "
+                    f"int64 nanosecond count")
+        if self.offset_ns is None:
+            return None
+        ahead = stamp_ns - (arrival_ns - self.offset_ns)
+        if ahead > window_ns:
+            return (f"stamp_ns cannot be a reading of {source}'s clock: {ahead * 1e-6:.0f} ms ahead of it as the robot "
+                    f"tracks it, more than the {window_ns * 1e-6:.0f} ms staleness window "
+                    f"(safety.command_timeout_s); a sender whose clock was reset needs a new session")
+        return None
+
     def sent_ns(self, e: _Entry) -> int:
         if e.cmd.stamp_ns is None or self.offset_ns is None:
             return e.arrival_ns
@@ -180,6 +203,9 @@ class CommandMailbox:
         if cmd.seq is not None and s.last_seq is not None and cmd.seq <= s.last_seq:
             return f"out of order: seq {cmd.seq} after {s.last_seq} from {cmd.source}"
         if cmd.stamp_ns is not None:
+            impossible = s.impossible_stamp(arrival, cmd.stamp_ns, self.stale_after_ns, cmd.source)
+            if impossible:
+                return impossible
             s.observe_clock(arrival, cmd.stamp_ns)
         reason = self._stale(s, e, arrival)
         if reason:

@@ -19,7 +19,9 @@ robot stood still), from which the loop's stale-camera check counts.
 A stage exception is captured as ``fault`` (the loop turns it into a safety
 trip), and so is any other exception in the vision thread (the frozen-image
 check, a frame listener): the thread never ends without a fault that says why;
-the pipeline never raises into the loop.
+the pipeline never raises into the loop. ``fault_reason`` is the run's end it
+makes: ``camera`` for a camera whose read raised ``CameraError`` (a device's
+failure, as at start-up or in the loop's own read), else ``exception``.
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ from typing import Callable, Optional
 from vbnav.control.runtime.frozen_image import FrozenImageWatch
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
 from vbnav.control.runtime.odometry import OdometryHistory
-from vbnav.drivers.camera import Camera, Frame
+from vbnav.drivers.camera import Camera, CameraError, Frame
 from vbnav.vision.geometry import Pose2
 
 
@@ -51,6 +53,7 @@ class VisionPipeline:
         self.frames = 0
         self.fault: Optional[str] = None
         self.fault_traceback: Optional[str] = None   # of a stage exception (None for a camera fault)
+        self.fault_reason = "exception"              # the run's end for ``fault``: "camera" or "exception"
         self.frame_listeners: list[Callable[[Frame, dict], None]] = []
         self.odom: Pose2 = Pose2()          # the newest pose, written by the loop every cycle
         self.history: Optional[OdometryHistory] = None   # the loop's stamped odometry (Runtime sets it)
@@ -101,6 +104,8 @@ class VisionPipeline:
             try:
                 frame = self.camera.read(0.05)
             except Exception as exc:
+                if isinstance(exc, CameraError):
+                    self.fault_reason = "camera"
                 self.fault = f"camera {self.camera.name}: {exc!r}"
                 return
             if frame is None:

@@ -125,8 +125,26 @@ ENDED_WELL = ("finished", "duration", "stopped", "signal")
 #: The signals that end a run (fatal ``signal``), the wheels to zero and the drive disabled at the next cycle:
 #: finishing.STOP_SIGNALS, which the close-down holds too (one tuple, so the two never differ).
 STOP_SIGNALS = _FINISHING_STOP_SIGNALS
+#: Job-control signals the process gets from its own terminal I/O: SIGTTOU when a background run writes to its
+#: terminal under ``stty tostop``, SIGTTIN when it reads it. Their default stops the process where it is, the
+#: wheels at their last command; they are no operator's request to stop (that is SIGTSTP, Ctrl-Z), and a handler
+#: would not do either: the kernel sends the signal again each time the interrupted write is retried, so the loop
+#: thread would never get past its progress line. While the loop runs they are ignored: the line is written, a
+#: read of the terminal fails (EIO), and the run goes on.
+IGNORED_SIGNALS = (signal.SIGTTOU, signal.SIGTTIN)
 #: Ends that are a device's failure, not the job's (the commands' exit code 3).
 DEVICE_FAULTS = ("drive", "camera")
+
+
+def _failure_reason(exc: Exception) -> str:
+    """The run's end for an exception other than a DriveError: a camera that failed (CameraError: not there,
+    gone, wrong format) is a device's failure wherever it raised (start-up, the loop's read); anything else is
+    a bug. The vision thread's camera read follows the same rule (``VisionPipeline.fault_reason``)."""
+    return "camera" if isinstance(exc, CameraError) else "exception"
+
+
+class _StoppedDuringStartUp(Exception):
+    """A stop signal came while the devices came up: the run ends before the drive is enabled."""
 
 
 @dataclass
@@ -232,6 +250,9 @@ class Runtime:
             # after the pipeline's threads started: threads inherit their creator's CPU set and policy, and
             # the vision threads must not run SCHED_FIFO on the loop's CPUs
             restore_scheduling = self._apply_scheduling()
+            if self._signal is not None:
+                # a stop asked for while the devices came up (a camera's slow discovery): never powered
+                raise _StoppedDuringStartUp(signal.Signals(self._signal).name)
             self.drive.enable()
             self._enabled = True
             self._start_ns = self.clock.now_ns()
@@ -251,6 +272,10 @@ class Runtime:
 
             looping = True
             timing = self.loop.run(step)
+        except _StoppedDuringStartUp as stop:
+            self._finish(self.clock.now_ns(), "signal", f"received {stop} during start-up, before the drive "
+                                                        f"was enabled")
+            timing = self.loop.timing.summary(self.loop.rate_hz)
         except KeyboardInterrupt:  # pragma: no cover - handlers normally catch it first
             self._make_safe()
             self._end = ("signal", "SIGINT")
@@ -258,9 +283,9 @@ class Runtime:
         except Exception as exc:
             # Failure before or outside a cycle (connect, enable): still leave the wheels safe.
             self.fault_traceback = traceback.format_exc()
-            self._make_safe()
+            self._make_safe(drive_failed=isinstance(exc, DriveError))
             # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
-            reason = "drive" if isinstance(exc, DriveError) else "camera" if isinstance(exc, CameraError) else "exception"
+            reason = "drive" if isinstance(exc, DriveError) else _failure_reason(exc)
             where = "start-up" if not looping else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
             self.safety.trip(self.clock.now_ns(), reason, f"{where}: {exc}")
             self._end = (reason, f"{where}: {exc}")
@@ -322,7 +347,7 @@ class Runtime:
                 self.pipeline.poll(now, odom)
                 if self.pipeline.fault:
                     self.fault_traceback = self.pipeline.fault_traceback
-                    return self._finish(now, "exception", self.pipeline.fault)
+                    return self._finish(now, self.pipeline.fault_reason, self.pipeline.fault)
                 estimates = dict(self.pipeline.latest)
                 self._check_camera(now)
                 self._apply_speed_scales(now, estimates)
@@ -358,6 +383,7 @@ class Runtime:
                     self.drive.write(0.0, 0.0)
                     self.drive.disable()
                     self._enabled = False
+                    self._unconfirmed_stop(now, self.drive.stop_failure)
             stage = "write"
             left, right = self.kin.wheels(twist)
             if self._enabled:
@@ -376,7 +402,7 @@ class Runtime:
             return self._drive_failed(now, stage, exc)
         except Exception as exc:
             self.fault_traceback = traceback.format_exc()
-            return self._finish(now, "exception", f"exception in {stage}: {exc!r}")
+            return self._finish(now, _failure_reason(exc), f"exception in {stage}: {exc!r}")
 
     # -- a lost drive ---------------------------------------------------------
     def _read_wheels(self, now: int) -> Optional[WheelState]:
@@ -418,7 +444,7 @@ class Runtime:
         lost = (self.drive.state is DriveState.ERROR and faults and all(f.kind.reconnectable for f in faults))
         if not lost or window <= 0 or not self.drive.can_reconnect or self._recovery is not None:
             return self._finish(now, "drive", f"{stage}: {exc}")
-        self._make_safe()
+        self._make_safe(drive_failed=True)
         cause = f"{stage}: {exc}"
         message = (f"{cause}; waiting up to {window:g} s (drive.reconnect_window_s) for it to come back, then "
                    f"stopped until resume")
@@ -572,6 +598,12 @@ class Runtime:
             t, what = self._resume_after
             return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
                                           f"{what}, so it was not meant to clear it; resume again")
+        if cmd.kind == "resume" and cmd.args:
+            unseen = self.safety.latched_after(cmd.args[0])
+            if unseen:
+                return CommandOutcome.refused(f"stale: this resume names latched_ns {cmd.args[0]}, the newest stop "
+                                              f"its sender had seen; {'; '.join(unseen)} came after it and is not "
+                                              f"cleared; resume again naming latched_ns {self.safety.latched_ns}")
         if cmd.kind == "resume":
             cleared = self.safety.reset(now, f"resume from {cmd.source}")
             held = [c for c in self.safety.holds if c not in self._controller_holds]
@@ -613,22 +645,34 @@ class Runtime:
         if reason not in ("finished", "duration"):
             self.safety.trip(now, reason, message)
         self._end_recovery()
-        self._make_safe()
+        self._make_safe(drive_failed=reason == "drive")
         self._end = (reason, message)
         return False
 
-    def _make_safe(self) -> None:
+    def _make_safe(self, drive_failed: bool = False) -> None:
+        """Zero and disable the drive. What an enabled drive could not stop (``stop_failure``: a motor that did
+        not answer) is a warning, unless the drive itself is what failed (its own stop says so): only the
+        device's watchdog stops that motor then."""
         self.wheel_command = (0.0, 0.0)
         self.limiter.stop()
         try:
             self.drive.write(0.0, 0.0)
         except Exception:
-            pass
+            pass                  # disabled already, or faulted: the disable below is the stop that counts
         try:
             self.drive.disable()
-        except Exception:
-            pass
+            failed = self.drive.stop_failure
+        except Exception as exc:  # a drive that breaks its never-raises contract
+            failed = f"disable() raised {exc!r}"
+        if self._enabled and not drive_failed:
+            self._unconfirmed_stop(self.clock.now_ns(), failed)
         self._enabled = False
+
+    def _unconfirmed_stop(self, now: int, failed: Optional[str]) -> None:
+        """A stop the drive could not fully carry out (``stop_failure``) is a warning, not silence."""
+        if failed:
+            self.safety.note(now, "warning", "stop_unconfirmed", f"{self.drive.drive_name} did not take the stop: "
+                                                                  f"{failed}; only the device's own watchdog stops it now")
 
     # -- scheduling ----------------------------------------------------------
     def _apply_scheduling(self):
@@ -686,6 +730,8 @@ class Runtime:
         for sig in STOP_SIGNALS:
             old[sig] = signal.getsignal(sig)
             signal.signal(sig, lambda signum, frame: self.request_stop(signum))
+        for sig in IGNORED_SIGNALS:      # a background run's terminal output or input: see IGNORED_SIGNALS
+            old[sig] = signal.signal(sig, signal.SIG_IGN)
         return old
 
     @staticmethod

@@ -5,6 +5,9 @@ Two kinds of stop:
   missed deadlines, a faulted drive, a drive whose bus was lost (``drive_lost``,
   while it may still come back), a stall, an operator estop. The robot stays
   stopped until ``reset`` (operator resume); fatal causes also end the run.
+  ``latched_at`` keeps when each latched stop last began (a second estop while one
+  is latched begins it anew): a resume that names the newest stop its sender has
+  seen (``latched_ns``) clears nothing that began after it (``latched_after``).
 - held (``hold``): a condition that stops the robot while it lasts and releases
   by itself once it has been clear for ``release_s`` (debounce): a stale camera
   frame, a stale vision estimate, a silent command stream, an obstacle. The
@@ -118,6 +121,7 @@ class EventLog:
 class SafetyMonitor:
     release_s: float                                   # s a held cause must stay clear (safety.release_s)
     latched: dict = field(default_factory=dict)        # cause -> message
+    latched_at: dict = field(default_factory=dict)     # cause -> ns it (last) began
     holds: dict = field(default_factory=dict)          # cause -> message (active)
     _clear_since: dict = field(default_factory=dict)   # cause -> ns when it went clear
     events: EventLog = field(default_factory=EventLog)   # bounded: first and last events, counts
@@ -127,8 +131,13 @@ class SafetyMonitor:
     # -- inputs ------------------------------------------------------------
     def trip(self, now_ns: int, cause: str, message: str) -> None:
         if cause in self.latched:
+            # begun anew (a second operator's estop): a resume sent before it did not know of it, and the
+            # latch now stands for the newest stop's reason
+            self.latched[cause] = message
+            self.latched_at[cause] = now_ns
             return
         self.latched[cause] = message
+        self.latched_at[cause] = now_ns
         self._emit(SafetyEvent(now_ns, "trip", cause, message))
 
     def hold(self, now_ns: int, cause: str, active: bool, message: str = "") -> None:
@@ -153,6 +162,7 @@ class SafetyMonitor:
         cleared = [c for c in self.latched if c not in FATAL]
         for c in cleared:
             del self.latched[c]
+            del self.latched_at[c]
         if cleared:
             self._emit(SafetyEvent(now_ns, "reset", ",".join(cleared), message))
         return cleared
@@ -166,6 +176,15 @@ class SafetyMonitor:
         self._emit(SafetyEvent(now_ns, kind, cause, message))
 
     # -- outputs -----------------------------------------------------------
+    @property
+    def latched_ns(self) -> int | None:
+        """When the newest latched stop began (None when none is latched): what a resume names."""
+        return max(self.latched_at.values(), default=None)
+
+    def latched_after(self, seen_ns: int) -> list[str]:
+        """The latched stops that began after ``seen_ns``, as 'cause (began at T: message)'."""
+        return [f"{c} (began at {t}: {self.latched[c]})" for c, t in self.latched_at.items() if t > seen_ns]
+
     @property
     def may_move(self) -> bool:
         return not self.latched and not self.holds

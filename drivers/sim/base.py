@@ -167,11 +167,12 @@ class SimDiffDrive(WheelDrive):
         return WheelState(ph.time_ns, ph.encoder_angles(), (float(ph.rate[0]), float(ph.rate[1])),
                           self.faults, self.state)
 
-    def _stop_wheels(self) -> None:
+    def _stop_wheels(self) -> Optional[str]:
         if self._t0 is not None:
             self._advance()
         self.physics.command = [0.0, 0.0]
         self.physics.powered = False
+        return None
 
     def _release(self) -> None:
         pass
