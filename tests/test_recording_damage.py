@@ -151,3 +151,26 @@ def test_no_flip_anywhere_loses_messages_silently(tmp_path):
         assert s.messages == total or s.damaged, (offset, format_summary(s))
         reported += s.damaged
     assert reported >= 20
+
+
+def test_overwrite_keeps_the_part_of_an_interrupted_recording(tmp_path, capsys):
+    """--overwrite replaces PATH when the new recording is complete; the PATH.part of an earlier crash is
+    another recording (the only copy of that run): it was truncated as soon as the new one opened."""
+    path = tmp_path / "i.mcap"
+    crashed = _record(tmp_path / "crashed.mcap", n=30)
+    crashed._writer.flush()
+    crashed._file.close()                               # as SIGKILL leaves it: no summary, still .part
+    part = tmp_path / "crashed.mcap.part"
+    os.rename(part, tmp_path / "i.mcap.part")
+    before = (tmp_path / "i.mcap.part").read_bytes()
+    rec = _record(path, n=10, overwrite=True)
+    kept = tmp_path / "i.interrupted-1.mcap.part"
+    assert kept.read_bytes() == before
+    assert rec.kept_part == kept and f"kept as {kept}" in capsys.readouterr().err
+    rec.close()
+    assert read_recording(path).channels["/vbnav/state"].count == 10
+    assert read_recording(kept).channels["/vbnav/state"].count > 0     # still readable as the crash left it
+    (tmp_path / "i.mcap.part").write_bytes(b"a second crash")
+    _record(path, n=5, overwrite=True).close()                       # a unique name: the first kept one stays
+    assert kept.read_bytes() == before
+    assert (tmp_path / "i.interrupted-2.mcap.part").read_bytes() == b"a second crash"
