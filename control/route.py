@@ -35,7 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vbnav.drivers.atomic_file import fsync_folder, write_atomic
+from vbnav.drivers.atomic_file import fsync_folder, replace_durably, write_atomic
 from vbnav.drivers.errors import InputError
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
@@ -300,9 +300,9 @@ def install_route_dir(new, route, overwrite: bool) -> None:
     holds nothing but route files, in one atomic swap (``_swap_in``). RouteError otherwise.
     """
     new, route = Path(new), Path(route)
+    fsync_folder(new)           # its entries (files written into it without write_atomic: a pull, a push)
     if not route.exists():
-        os.rename(new, route)
-        fsync_folder(route.parent)
+        replace_durably(new, route)
         return
     if not overwrite:
         raise RouteError(f"{route}: exists (replace it with --overwrite)")

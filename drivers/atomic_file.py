@@ -29,11 +29,10 @@ def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, _mode_for(p) if mode is None else mode)
-        os.replace(tmp, p)
+        replace_durably(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    fsync_folder(_folder(p))
     return p
 
 
@@ -52,11 +51,18 @@ def atomic_output(path, suffix: Optional[str] = None) -> Iterator[Path]:
         with open(tmp_path, "rb") as f:
             os.fsync(f.fileno())
         os.chmod(tmp_path, _mode_for(p))
-        os.replace(tmp_path, p)
+        replace_durably(tmp_path, p)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
-    fsync_folder(_folder(p))
+
+
+def replace_durably(src, dst) -> None:
+    """Rename the complete, fsynced file ``src`` over ``dst`` (same folder) and fsync the folder, so the
+    rename survives a power cut: the last step of every writer here, and of those that write a file in
+    pieces under a temporary name (the MCAP recorder's ``PATH.part``)."""
+    os.replace(src, dst)
+    fsync_folder(_folder(Path(dst)))
 
 
 def fsync_file(path) -> None:

@@ -174,3 +174,12 @@ def test_overwrite_keeps_the_part_of_an_interrupted_recording(tmp_path, capsys):
     _record(path, n=5, overwrite=True).close()                       # a unique name: the first kept one stays
     assert kept.read_bytes() == before
     assert (tmp_path / "i.interrupted-2.mcap.part").read_bytes() == b"a second crash"
+
+
+
+def test_close_makes_the_rename_durable(tmp_path, disk_log):
+    """The rename PATH.part -> PATH is an entry of the folder: without an fsync of the folder after it, a power
+    cut could leave only PATH.part although close() returned."""
+    rec = _record(tmp_path / "r.mcap", n=10)
+    rec.close()
+    assert disk_log.durable(tmp_path / "r.mcap"), disk_log

@@ -44,7 +44,7 @@ from typing import Iterator, Optional
 
 from vbnav.control.comms import foxglove_channels as fc
 from vbnav.control.comms.telemetry import Sink
-from vbnav.drivers.atomic_file import fsync_folder
+from vbnav.drivers.atomic_file import fsync_folder, replace_durably
 
 PART_SUFFIX = ".part"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -189,7 +189,7 @@ class McapRecorder(Sink):
         self._write(topic, t, fc.encode(build(t)))
 
     def close(self) -> None:
-        """Write the summary and index, then rename PATH.part -> PATH (idempotent)."""
+        """Write the summary and index, fsync, then rename PATH.part -> PATH durably (idempotent)."""
         if self._closed:
             return
         self._closed = True
@@ -197,7 +197,7 @@ class McapRecorder(Sink):
         self._file.flush()
         os.fsync(self._file.fileno())
         self._file.close()
-        os.replace(self.part_path, self.path)
+        replace_durably(self.part_path, self.path)
 
 
 # ---- reading ---------------------------------------------------------------------------
