@@ -21,6 +21,37 @@ def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
     """Write ``data`` (text as UTF-8, or bytes) to ``path`` atomically; ``mode``: permission bits of the
     new file (default: those of the file it replaces, else what ``open`` would give under the umask)."""
     p = Path(path)
+    tmp = _write_temporary(p, data, mode)
+    try:
+        replace_durably(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return p
+
+
+def write_atomic_set(files: dict) -> list[Path]:
+    """Write several files that belong together (a stereo calibration's) as one set: every file is written
+    and fsynced under a temporary name first, so a failure (a full disk, an exception) before the renames
+    replaces none of them; then each is renamed into place and the folders fsynced. What remains: a crash
+    during the renames themselves (microseconds, no writing) can leave some renamed and some not."""
+    done: dict[Path, Path] = {}
+    try:
+        for path, data in files.items():
+            done[Path(path)] = _write_temporary(Path(path), data, None)
+        for path, tmp in done.items():
+            os.replace(tmp, path)
+    except BaseException:
+        for tmp in done.values():
+            tmp.unlink(missing_ok=True)
+        raise
+    for folder in {_folder(p) for p in done}:
+        fsync_folder(folder)
+    return list(done)
+
+
+def _write_temporary(p: Path, data: str | bytes, mode: Optional[int]) -> Path:
+    """``data`` in a new fsynced file ``.<name>.<random>.tmp`` beside ``p``, with ``p``'s permission bits."""
     raw = data.encode() if isinstance(data, str) else bytes(data)
     fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp")
     try:
@@ -29,11 +60,10 @@ def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, _mode_for(p) if mode is None else mode)
-        replace_durably(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return p
+    return Path(tmp)
 
 
 @contextmanager
