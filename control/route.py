@@ -37,7 +37,7 @@ import numpy as np
 
 from vbnav.drivers.atomic_file import fsync_folder, replace_durably, write_atomic
 from vbnav.drivers.errors import InputError
-from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import CameraMount, Pose2
 
 FORMAT = "vbnav-route"
@@ -169,13 +169,13 @@ def camera_from_dict(d: dict, where: str):
         raise RouteError(f"{where}: camera: expected model pinhole|fisheye, width, height, fx, fy, cx, cy, dist "
                          f"({e})") from None
     # A NaN or negative focal length passed every later check (NaN compares false) and bent every bearing.
-    if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy) + dist) or fx <= 0 or fy <= 0:
-        raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy, dist; got "
-                         f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy} dist {list(dist)}")
-    lengths = (0, 4) if cls is FisheyeCamera else (0, 4, 5, 8, 12, 14)
-    if len(dist) not in lengths:
-        raise RouteError(f"{where}: camera: dist: {d['model']} expects {', '.join(map(str, lengths[1:]))} "
-                         f"coefficients (or none), got {len(dist)}")
+    if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy; got "
+                         f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy}")
+    try:
+        dist = check_distortion(d["model"], dist)
+    except ValueError as e:
+        raise RouteError(f"{where}: camera: dist: {e}") from None
     return cls(w, h, fx, fy, cx, cy, dist)
 
 

@@ -179,3 +179,21 @@ def test_a_scripted_drive_that_cannot_be_driven_is_refused_at_load(tmp_path, scr
         load_config(p)
     msg = str(err.value)
     assert "controller.script" in msg and expected in msg, msg
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("  distortion: [.nan, 0, 0, 0]\n", "expected finite numbers"),
+    ("  distortion: [0.1, 0, .inf, 0, 0]\n", "expected finite numbers"),
+    ("  distortion: [0.1, 0, 0]\n", "pinhole expects 4, 5, 8, 12 or 14 coefficients (or none), got 3"),
+    ("  distortion: [0.1, 0, 0, 0, 0, 0]\n", "pinhole expects 4, 5, 8, 12 or 14 coefficients (or none), got 6"),
+    # a fisheye with 2 was padded with zeros, one with 6 cut to 4: coefficients nobody calibrated
+    ("  model: fisheye\n  distortion: [0.1, 0.1]\n", "fisheye expects 4 coefficients (or none), got 2"),
+])
+def test_distortion_opencv_would_refuse_is_refused_at_load(tmp_path, text, expected):
+    """NaN, inf or a coefficient count OpenCV refuses loaded, and failed (or bent every bearing) in the first
+    undistortPoints of the run; refused at load, naming the file and the field."""
+    p = write(tmp_path, "camera:\n" + text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert str(p) in msg and "camera.distortion" in msg and expected in msg, msg
