@@ -46,7 +46,16 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
             "frames": int(lmap.frames), "params": dataclasses.asdict(lmap.params), "meta": meta or {},
             "segments": segs}
     path = Path(path)
-    write_atomic(path, json.dumps(data))
+    try:
+        text = json.dumps(data)
+    except (TypeError, ValueError) as exc:      # a meta value JSON has no word for
+        raise MapFileError(f"{path}: not saved: meta is not JSON ({exc})") from None
+    try:    # what load_map would refuse is not written: a map that cannot be loaded back is no map
+        map_from_data(path, json.loads(text))
+    except MapFileError as exc:
+        raise MapFileError(f"{path}: not saved, it could not be loaded back: "
+                           f"{str(exc).removeprefix(f'{path}: ')}") from None
+    write_atomic(path, text)
 
 
 def load_map(path: str | Path) -> tuple[LineMap, dict]:
@@ -62,6 +71,12 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         raise MapFileError(f"{path}: not a JSON map file ({exc})") from None
     except RecursionError:
         raise MapFileError(f"{path}: not a JSON map file (nested too deeply)") from None
+    return map_from_data(path, data)
+
+
+def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
+    """(map, meta) from a map file's parsed JSON, every check of load_map (and of save_map before it
+    writes); MapFileError names ``path`` and what is wrong."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise MapFileError(f"{path}: not a vbnav line map (format {data.get('format') if isinstance(data, dict) else None!r},"
                            f" expected {FORMAT!r})")

@@ -50,3 +50,34 @@ def test_covariance_not_symmetric_positive_definite_is_refused(tmp_path, cov):
     _edit(path, lambda s: s[0].__setitem__("cov1", cov))
     with pytest.raises(MapFileError, match=r"map\.json: segments\[0\]: cov1 .*symmetric positive definite"):
         load_map(path)
+
+
+def _map(P, C, views=None):
+    m = LineMap(MapParams())
+    m._insert(np.asarray(P, float), np.asarray(C, float), np.arange(len(P)), np.array([0, 0, 0, 0.0]))
+    if views is not None:
+        m.views = views
+    return m
+
+
+GOOD_P = [[[0, -1, 2], [1, -1, 2]]]
+GOOD_C = [[np.eye(3) * 1e-4] * 2]
+
+
+@pytest.mark.parametrize("lmap, meta, why", [
+    # rounded to 10 decimals on writing, a very certain endpoint's covariance is all zeros: singular
+    (lambda: _map(GOOD_P, [[np.eye(3) * 1e-12] * 2]), None, r"segments\[0\]: cov0 .*symmetric positive definite"),
+    (lambda: _map([[[0, -1, 2], [np.nan, -1, 2]]], GOOD_C), None, "endpoints must be finite numbers"),
+    # two endpoints 1e-7 m apart are one point once rounded to the file's 6 decimals
+    (lambda: _map([[[0, -1, 2], [1e-7, -1, 2]]], GOOD_C), None, r"segments\[0\]: p0 and p1 are the same point"),
+    (lambda: _map(GOOD_P, GOOD_C, views=[[np.array([0, 0, np.inf, 0.0])]]), None, r"segments\[0\]\.views"),
+    (lambda: _map(GOOD_P, GOOD_C), {"objects": [{"footprint": [[0, np.nan]], "height": 0.3}]}, r"meta\.objects\[0\]"),
+])
+def test_save_refuses_what_load_would_refuse_and_writes_nothing(tmp_path, lmap, meta, why):
+    """save_map wrote maps load_map then refused (a map build's whole drive lost at the next goto); it checks
+    what it writes with load_map's own checks first, and leaves the file there untouched."""
+    path = tmp_path / "map.json"
+    path.write_text("the previous map\n")
+    with pytest.raises(MapFileError, match=rf"map\.json: not saved, it could not be loaded back: .*{why}"):
+        save_map(lmap(), path, meta)
+    assert path.read_text() == "the previous map\n" and sorted(p.name for p in tmp_path.iterdir()) == ["map.json"]
