@@ -143,6 +143,13 @@ class Route:
     def length(self) -> float:
         return self.keyframes[-1].distance if self.keyframes else 0.0
 
+    def repeat_refusal(self) -> Optional[str]:
+        """Why a repeat of this route is refused whatever the configuration (None: it is not), said alike
+        by ``vbnav repeat``, ``mode repeat``, the repeat stage and controller, and ``vbnav route check``."""
+        if not self.keyframes:
+            return "the route has no keyframes (a repeat steers from one keyframe to the next): teach it again"
+        return None
+
     def incomplete_note(self) -> str:
         """'' for a complete route; else what exists of it (teaching was interrupted before the end)."""
         if self.complete:

@@ -142,6 +142,7 @@ class CheckReport:
     notes: list[str] = field(default_factory=list)       # harmless leftovers, incompleteness
     keyframes: int = 0
     complete: bool = False
+    repeat_refusal: Optional[str] = None     # intact, but vbnav repeat refuses it (Route.repeat_refusal)
 
     @property
     def intact(self) -> bool:
@@ -219,7 +220,7 @@ def check(path) -> CheckReport:
     except RouteError as exc:
         report.problems.append(str(exc).replace(f"{root}{os.sep}", ""))
         return report
-    report.keyframes, report.complete = len(route), route.complete
+    report.keyframes, report.complete, report.repeat_refusal = len(route), route.complete, route.repeat_refusal()
     for i, (entry, kf) in enumerate(zip(listed, route.keyframes)):
         odom = entry.get("odom")
         if odom is not None and not _same(lambda: np.allclose(np.asarray(odom, float), kf.odom.as_array(),

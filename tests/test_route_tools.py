@@ -186,3 +186,16 @@ def test_check_and_info_say_what_is_wrong_with_non_numbers_in_the_manifest(route
     assert main(["route", "info", str(route)]) == 0
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("calibration:"))
     assert "distortion [['a']]" in line and "baseline 'q'" in line, line
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_check_fails_a_route_repeat_refuses(tmp_path, capsys, complete):
+    """A route of 0 keyframes loads (every file is intact), and route check called it 'intact ... complete'
+    with exit 0 while vbnav repeat refuses it: check fails it with repeat's own reason."""
+    route = write_route(tmp_path / "empty", n=0, complete=complete)
+    assert main(["repeat", "--path", str(route)]) == 2
+    refusal = capsys.readouterr().err
+    assert "the route has no keyframes" in refusal
+    assert main(["route", "check", str(route)]) == 1
+    out = capsys.readouterr().out
+    assert "intact" not in out and "vbnav repeat refuses it: the route has no keyframes" in out, out
