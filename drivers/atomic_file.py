@@ -14,7 +14,7 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Callable, Iterator, Optional
 
 
 def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
@@ -30,15 +30,21 @@ def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
     return p
 
 
-def write_atomic_set(files: dict) -> list[Path]:
+def write_atomic_set(files: dict, check: Optional[Callable[[dict], None]] = None) -> list[Path]:
     """Write several files that belong together (a stereo calibration's) as one set: every file is written
     and fsynced under a temporary name first, so a failure (a full disk, an exception) before the renames
     replaces none of them; then each is renamed into place and the folders fsynced. What remains: a crash
-    during the renames themselves (microseconds, no writing) can leave some renamed and some not."""
+    during the renames themselves (microseconds, no writing) can leave some renamed and some not.
+
+    ``check``, given {target: temporary file} (each temporary ends in its target's suffix, for loaders that
+    go by it), may raise to refuse the set before anything is replaced: read the files back with their
+    loaders, so nothing is written that cannot be loaded."""
     done: dict[Path, Path] = {}
     try:
         for path, data in files.items():
-            done[Path(path)] = _write_temporary(Path(path), data, None)
+            done[Path(path)] = _write_temporary(Path(path), data, None, ".tmp" + Path(path).suffix)
+        if check is not None:
+            check(dict(done))
         for path, tmp in done.items():
             os.replace(tmp, path)
     except BaseException:
@@ -50,10 +56,10 @@ def write_atomic_set(files: dict) -> list[Path]:
     return list(done)
 
 
-def _write_temporary(p: Path, data: str | bytes, mode: Optional[int]) -> Path:
-    """``data`` in a new fsynced file ``.<name>.<random>.tmp`` beside ``p``, with ``p``'s permission bits."""
+def _write_temporary(p: Path, data: str | bytes, mode: Optional[int], suffix: str = ".tmp") -> Path:
+    """``data`` in a new fsynced file ``.<name>.<random><suffix>`` beside ``p``, with ``p``'s permission bits."""
     raw = data.encode() if isinstance(data, str) else bytes(data)
-    fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=suffix)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(raw)

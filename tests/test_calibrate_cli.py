@@ -362,3 +362,17 @@ def test_a_stereo_overwrite_that_fails_part_way_keeps_the_old_set(stereo_dirs, s
     assert not any(p.read_text().startswith("the old") for p in out.iterdir())
     assert load_camera_calibration(out / "stereo.yaml").baseline == \
         pytest.approx(load_camera_calibration(stereo_run / "stereo.yaml").baseline, rel=1e-6)
+
+
+def test_a_stereo_calibration_that_would_not_load_is_not_written(stereo_dirs, tmp_path, capsys):
+    """LEFT_DIR and RIGHT_DIR given the wrong way round give a rectified rig with a negative baseline: its
+    stereo.yaml was written (and 'wrote ...' said) although no command can load it. Every file that is a
+    camera.calibration_file is now loaded back before the set is put in place; nothing is written else."""
+    out = tmp_path / "out"
+    code = cli.main(["calibrate", "stereo", str(stereo_dirs / "right"), str(stereo_dirs / "left"), "--square", "1",
+                     "--out", str(out), "--quiet"])
+    captured = capsys.readouterr()
+    assert code == 2, captured
+    assert f"{out / 'stereo.yaml'}: not written (nor the other files of the calibration)" in captured.err
+    assert "baseline" in captured.err and "wrote" not in captured.out
+    assert not out.exists() or not any(out.iterdir())

@@ -237,6 +237,22 @@ def _intrinsics_files(out: Path, prefix: str, result, views, board, name: str) -
                                                              comments=notes)}
 
 
+def _loads_back(temps: dict) -> None:
+    """``write_atomic_set``'s check: each file that is a camera.calibration_file (all but the stereo_opencv.yaml
+    record) loads as one, or the set is not written (InputError naming the file and the loader's reason)."""
+    from vbnav.drivers.calibration import CalibrationError, load_camera_calibration
+    for target, tmp in temps.items():
+        if target.name == "stereo_opencv.yaml":     # K1 D1 K2 D2 R T: a record of the fit, not a calibration_file
+            continue
+        try:
+            load_camera_calibration(tmp)
+        except CalibrationError as exc:
+            why = str(exc).replace(f"{tmp}: ", "").replace(str(tmp), str(target))
+            swapped = " (LEFT_DIR and RIGHT_DIR the wrong way round?)" if "baseline" in why else ""
+            raise InputError(f"{target}: not written (nor the other files of the calibration): it would not load "
+                             f"as a camera.calibration_file: {why}{swapped}") from None
+
+
 def _report(label: str, result) -> None:
     K = result.K
     print(f"{label}: RMS reprojection error {result.rms:.4f} px over {len(result.per_view)} views (worst "
@@ -279,7 +295,8 @@ def run_intrinsics(args) -> int:
     _say(args, f"{len(collector.views)} views accepted, {collector.rejected} rejected; calibrating ...")
     result = _calibrate(collector.views, collector.size)
     out.mkdir(parents=True, exist_ok=True)
-    files = write_atomic_set(_intrinsics_files(out, "camera_", result, collector.views, board, "camera"))
+    files = write_atomic_set(_intrinsics_files(out, "camera_", result, collector.views, board, "camera"),
+                             check=_loads_back)
     _report("intrinsics", result)
     print(f"wrote {', '.join(map(str, files))} ({time.monotonic() - t0:.1f} s); use one as camera.calibration_file")
     return 0
@@ -363,7 +380,7 @@ def run_stereo(args) -> int:
         f"width: {lc.size[0]}\nheight: {lc.size[1]}\nfx: {r['fx']:.6f}\nfy: {r['fy']:.6f}\n"
         f"cx: {r['cx']:.6f}\ncy: {r['cy']:.6f}\nbaseline: {r['baseline']:.6f}\n")
     out.mkdir(parents=True, exist_ok=True)
-    files = write_atomic_set(files)     # the six files are one calibration: all replaced, or none
+    files = write_atomic_set(files, check=_loads_back)     # one calibration: all replaced, or none
     _report("left", lres)
     _report("right", rres)
     print(f"stereo: RMS {st.rms:.4f} px over {len(pairs)} pairs; baseline {st.baseline:.5f} (T "
