@@ -111,11 +111,18 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         if not ok:
             raise MapFileError(f"{path}: meta.objects[{k}]: expected footprint (a list of [x, z] pairs) and height, "
                                f"finite numbers")
+    _check_count(path, "frames", data.get("frames", 0), 0)
     try:
         params = MapParams(**given)
         lmap = LineMap(params)
         segs = data["segments"]
         n = len(segs)
+        for k, s in enumerate(segs):    # np.array(..., bool) made "false" True; int arrays cut 2.5 to 2
+            for name, low in (("support", 0), ("misses", 0), ("group", -1)):
+                _check_count(path, f"segments[{k}].{name}", s[name], low)
+            for name in ("verified", "hypothesis"):
+                if not isinstance(s[name], bool):
+                    raise MapFileError(f"{path}: segments[{k}].{name}: expected true or false, got {s[name]!r}")
         P = np.array([[s["p0"], s["p1"]] for s in segs], float).reshape(n, 2, 3)
         C = np.array([[s["cov0"], s["cov1"]] for s in segs], float).reshape(n, 2, 3, 3)
         _check_segments(path, P, C, [s["id"] for s in segs])
@@ -138,6 +145,11 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         if any(v.shape != (4,) or not np.isfinite(v).all() for v in views):
             raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
     return lmap, meta
+
+
+def _check_count(path: Path, field: str, v, low: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise MapFileError(f"{path}: {field}: expected an integer >= {low}, got {v!r}")
 
 
 def _check_segments(path: Path, P: np.ndarray, C: np.ndarray, ids: list) -> None:

@@ -81,3 +81,28 @@ def test_save_refuses_what_load_would_refuse_and_writes_nothing(tmp_path, lmap, 
     with pytest.raises(MapFileError, match=rf"map\.json: not saved, it could not be loaded back: .*{why}"):
         save_map(lmap(), path, meta)
     assert path.read_text() == "the previous map\n" and sorted(p.name for p in tmp_path.iterdir()) == ["map.json"]
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("verified", "false", "expected true or false"),       # a non-empty string was np.array(..., bool): True
+    ("hypothesis", 0, "expected true or false"),
+    ("support", 2.5, "expected an integer >= 0"),           # cut to 2
+    ("misses", -1, "expected an integer >= 0"),
+    ("group", True, "expected an integer >= -1"),
+])
+def test_segment_counts_and_flags_of_another_type_are_refused(tmp_path, field, value, expected):
+    """A hand-edited map's "verified": "false" loaded as verified (planning trusted the segment), 2.5 support
+    as 2: refused naming the segment and the field."""
+    path = _saved(tmp_path)
+    _edit(path, lambda s: s[1].__setitem__(field, value))
+    with pytest.raises(MapFileError, match=rf"map\.json: segments\[1\]\.{field}: {expected}, got {value!r}"):
+        load_map(path)
+
+
+def test_frames_must_be_a_count(tmp_path):
+    path = _saved(tmp_path)
+    data = json.loads(path.read_text())
+    data["frames"] = -3
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=r"map\.json: frames: expected an integer >= 0, got -3"):
+        load_map(path)
