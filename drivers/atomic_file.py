@@ -66,8 +66,10 @@ def _write_temporary(p: Path, data: str | bytes, mode: Optional[int], suffix: st
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, _mode_for(p) if mode is None else mode)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename is None:   # a full disk: name the file being written
+            raise OSError(exc.errno, exc.strerror, str(p)) from exc
         raise
     return Path(tmp)
 
