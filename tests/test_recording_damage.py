@@ -171,6 +171,10 @@ def test_overwrite_keeps_the_part_of_an_interrupted_recording(tmp_path, capsys):
     assert read_recording(path).channels["/vbnav/state"].count == 10
     assert read_recording(kept).channels["/vbnav/state"].count > 0     # still readable as the crash left it
     (tmp_path / "i.mcap.part").write_bytes(b"a second crash")
+    (tmp_path / "j.mcap.part").write_bytes(b"crashed")
+    (tmp_path / "j.interrupted-1.mcap.part").write_bytes(b"crashed before")
+    with pytest.raises(FileExistsError, match=r"kept as j\.interrupted-2\.mcap\.part"):   # the name it will get
+        McapRecorder(tmp_path / "j.mcap", "sim")
     _record(path, n=5, overwrite=True).close()                       # a unique name: the first kept one stays
     assert kept.read_bytes() == before
     assert (tmp_path / "i.interrupted-2.mcap.part").read_bytes() == b"a second crash"

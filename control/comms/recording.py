@@ -65,7 +65,7 @@ def check_record_target(path: str | os.PathLike, overwrite: bool = False) -> Non
     if part.exists():
         raise FileExistsError(f"--record {p}: {part.name} of an interrupted recording exists (read it with "
                               f"'vbnav record-info {p}'; with --overwrite it is kept as "
-                              f"{interrupted_name(p, 1).name} and a new recording starts)")
+                              f"{free_interrupted_name(p).name} and a new recording starts)")
 
 
 def interrupted_name(path: Path, n: int) -> Path:
@@ -74,16 +74,21 @@ def interrupted_name(path: Path, n: int) -> Path:
     return path.with_name(f"{path.stem}.interrupted-{n}{path.suffix}{PART_SUFFIX}")
 
 
-def keep_interrupted(path: Path) -> Optional[Path]:
-    """Rename an interrupted ``PATH.part`` aside to the first free ``interrupted_name`` (the new recording
-    is written as ``PATH.part``: opening it would truncate the earlier run's); its new path, or None."""
-    part = path.with_name(path.name + PART_SUFFIX)
-    if not part.exists():
-        return None
+def free_interrupted_name(path: Path) -> Path:
+    """The first ``interrupted_name`` of ``path`` not taken (earlier kept recordings stay)."""
     n = 1
     while interrupted_name(path, n).exists():
         n += 1
-    kept = interrupted_name(path, n)
+    return interrupted_name(path, n)
+
+
+def keep_interrupted(path: Path) -> Optional[Path]:
+    """Rename an interrupted ``PATH.part`` aside to ``free_interrupted_name`` (the new recording is written
+    as ``PATH.part``: opening it would truncate the earlier run's); its new path, or None."""
+    part = path.with_name(path.name + PART_SUFFIX)
+    if not part.exists():
+        return None
+    kept = free_interrupted_name(path)
     os.rename(part, kept)
     fsync_folder(kept.parent)
     return kept
