@@ -150,9 +150,18 @@ def _from_ros(path: Path, doc: dict):
             raise CalibrationError(f"{path}: {field}: expected a mapping with 'data' (ROS camera_info)")
         _plain_numbers(path, f"{field}.data", node["data"])
         try:
-            return np.asarray(node["data"], dtype=float)
+            values = np.asarray(node["data"], dtype=float)
         except (TypeError, ValueError):
             raise CalibrationError(f"{path}: {field}.data: expected a list of numbers") from None
+        rows, cols = node.get("rows"), node.get("cols")
+        if rows is not None or cols is not None:    # the shape the data claims: a number lost in an edit shows
+            if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in (rows, cols)):
+                raise CalibrationError(f"{path}: {field}: rows and cols must be whole numbers, got {rows!r}, "
+                                       f"{cols!r}")
+            if rows * cols != values.size:
+                raise CalibrationError(f"{path}: {field}: rows x cols is {rows}x{cols} = {rows * cols} numbers, "
+                                       f"data has {values.size}")
+        return values
 
     for key in ("image_width", "image_height"):
         if key not in doc:

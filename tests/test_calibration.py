@@ -91,7 +91,7 @@ def test_ros_equidistant_is_fisheye(tmp_path):
 @pytest.mark.parametrize("text, match", [
     (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("image_width: 640\n", ""), "image_width: missing"),
     (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("[520.5, 0, 321.2, 0, 519.8, 243.9, 0, 0, 1]",
-                                                            "[520.5, 0, 321.2]"), "camera_matrix: expected 3x3"),
+                                                            "[520.5, 0, 321.2]"), "camera_matrix: rows x cols is 3x3 = 9 numbers, data has 3"),
     (ROS.format(model="weird_model", n=5, d=D.tolist()), "distortion_model: 'weird_model' is not supported"),
     (ROS.format(model="plumb_bob", n=3, d=[0.1, 0.2, 0.3]), "distortion_coefficients: pinhole expects 4, 5"),
     ("foo: [1, 2", "not valid YAML"),
@@ -170,3 +170,15 @@ def test_a_dataset_camera_yaml_with_distortion_opencv_refuses_is_refused(tmp_pat
     p.write_text(f"fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\ndist: {dist}\n")
     with pytest.raises(DatasetError, match=f"{p}: dist: {expected}"):
         load_camera_yaml(p)
+
+
+@pytest.mark.parametrize("n, d, field", [(5, [0.1, 0.01, 0.0, 0.0], "distortion_coefficients"),
+                                         (8, D.tolist(), "distortion_coefficients")])
+def test_ros_rows_and_cols_must_agree_with_the_data(tmp_path, n, d, field):
+    """A camera_info whose data holds fewer numbers than its rows x cols (a coefficient lost in an edit or a
+    cut copy) loaded with what was left: refused naming the field and both counts."""
+    p = tmp_path / "front.yaml"
+    p.write_text(ROS.format(model="plumb_bob", n=n, d=d))
+    with pytest.raises(CalibrationError, match=rf"{p}: {field}: rows x cols is 1x{n} = {n} numbers, data has "
+                                               rf"{len(d)}"):
+        load_calibration(p)
