@@ -30,7 +30,8 @@ def write_atomic(path, data: str | bytes, mode: Optional[int] = None) -> Path:
     return p
 
 
-def write_atomic_set(files: dict, check: Optional[Callable[[dict], None]] = None) -> list[Path]:
+def write_atomic_set(files: dict, check: Optional[Callable[[dict], None]] = None,
+                     mode: Optional[int] = None) -> list[Path]:
     """Write several files that belong together (a stereo calibration's) as one set: every file is written
     and fsynced under a temporary name first, so a failure (a full disk, an exception) before the renames
     replaces none of them; then each is renamed into place and the folders fsynced. What remains: a crash
@@ -38,11 +39,11 @@ def write_atomic_set(files: dict, check: Optional[Callable[[dict], None]] = None
 
     ``check``, given {target: temporary file} (each temporary ends in its target's suffix, for loaders that
     go by it), may raise to refuse the set before anything is replaced: read the files back with their
-    loaders, so nothing is written that cannot be loaded."""
+    loaders, so nothing is written that cannot be loaded. ``mode``: as ``write_atomic``'s, for every file."""
     done: dict[Path, Path] = {}
     try:
         for path, data in files.items():
-            done[Path(path)] = _write_temporary(Path(path), data, None, ".tmp" + Path(path).suffix)
+            done[Path(path)] = _write_temporary(Path(path), data, mode, ".tmp" + Path(path).suffix)
         if check is not None:
             check(dict(done))
         for path, tmp in done.items():
