@@ -187,3 +187,19 @@ def test_close_makes_the_rename_durable(tmp_path, disk_log):
     rec = _record(tmp_path / "r.mcap", n=10)
     rec.close()
     assert disk_log.durable(tmp_path / "r.mcap"), disk_log
+
+
+def test_record_info_says_an_interrupted_recording_lies_beside_the_complete_one(tmp_path, capsys):
+    """A run with --overwrite that was killed leaves the earlier complete PATH and its own PATH.part:
+    record-info PATH described the earlier run as 'complete' and said nothing of the newer, interrupted one."""
+    from vbnav.control import cli
+    path = tmp_path / "r.mcap"
+    _record(path, n=10).close()
+    newer = _record(path, n=30, overwrite=True)
+    newer._writer.flush()
+    newer._file.close()                                  # killed: PATH.part stays beside PATH
+    assert cli.main(["record-info", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert f"{path}: complete" in out
+    assert f"note: {path.name}.part beside it is an interrupted recording (read it with 'vbnav record-info " \
+           f"{path}.part')" in err, err
