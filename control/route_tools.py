@@ -52,7 +52,9 @@ def summary(path) -> RouteSummary:
         s.keyframes = len(kfs)
         s.length_m = float(kfs[-1]["distance"]) if kfs else 0.0
         s.camera = f"{cam['model']} {cam['width']}x{cam['height']} fx {float(cam['fx']):.0f}"
-        s.complete = bool(m.get("complete", False))
+        s.complete = m.get("complete", False)
+        if not isinstance(s.complete, bool):        # load_route refuses it: not listed as complete
+            raise ValueError(f"complete: expected true or false, got {s.complete!r}")
         s.created, s.robot = str(m.get("created", "")), str(m.get("robot", ""))
     except FileNotFoundError:
         s.error = f"no {MANIFEST} (not a route)"

@@ -199,3 +199,16 @@ def test_check_fails_a_route_repeat_refuses(tmp_path, capsys, complete):
     assert main(["route", "check", str(route)]) == 1
     out = capsys.readouterr().out
     assert "intact" not in out and "vbnav repeat refuses it: the route has no keyframes" in out, out
+
+
+def test_list_does_not_call_a_complete_of_another_type_complete(tmp_path, capsys):
+    """A hand-edited "complete": "false" was listed as complete (bool of a non-empty string) while every
+    command that loads the route refuses it: the list says what is wrong with it instead."""
+    import json as _json
+    route = write_route(tmp_path / "edited", n=2)
+    m = _json.loads((route / "manifest.json").read_text())
+    m["complete"] = "false"
+    (route / "manifest.json").write_text(_json.dumps(m))
+    assert main(["route", "list", str(tmp_path)]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert "edited" in line and "complete: expected true or false, got 'false'" in line and " yes " not in line
