@@ -102,6 +102,8 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
     meta = data.get("meta", {})
     if not isinstance(meta, dict) or not isinstance(meta.get("objects", []), list):
         raise MapFileError(f"{path}: meta: expected an object with a list 'objects', got {meta!r:.60}")
+    if "frames" in meta:        # goto --map-out adds its own frames to it
+        _check_count(path, "meta.frames", meta["frames"], 0)
     for k, o in enumerate(meta.get("objects", [])):
         try:
             fp = np.asarray(o["footprint"], float)

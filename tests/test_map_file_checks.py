@@ -106,3 +106,16 @@ def test_frames_must_be_a_count(tmp_path):
     path.write_text(json.dumps(data))
     with pytest.raises(MapFileError, match=r"map\.json: frames: expected an integer >= 0, got -3"):
         load_map(path)
+
+
+@pytest.mark.parametrize("frames", ["many", -1, 2.5])
+def test_meta_frames_must_be_a_count(tmp_path, frames):
+    """goto --map-out adds its frames to meta.frames when it saves the grown map: a word there loaded, and the
+    drive ended in a traceback with the grown map lost. Refused at load."""
+    path = tmp_path / "map.json"
+    save_map(LineMap(MapParams()), path, {"frames": 3})
+    data = json.loads(path.read_text())
+    data["meta"]["frames"] = frames
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=rf"map\.json: meta\.frames: expected an integer >= 0, got {frames!r}"):
+        load_map(path)
