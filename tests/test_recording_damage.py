@@ -203,3 +203,21 @@ def test_record_info_says_an_interrupted_recording_lies_beside_the_complete_one(
     assert f"{path}: complete" in out
     assert f"note: {path.name}.part beside it is an interrupted recording (read it with 'vbnav record-info " \
            f"{path}.part')" in err, err
+
+
+def test_a_recording_that_cannot_start_leaves_no_part(tmp_path, monkeypatch):
+    """A failure while the recording's header is written (a full disk) left an empty PATH.part open: the next
+    run then refused the path for an 'interrupted recording' that never held a message."""
+    import errno
+
+    from mcap.writer import Writer
+
+    def full(self, *a, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Writer, "add_metadata", full)
+    with pytest.raises(OSError, match="No space"):
+        McapRecorder(tmp_path / "r.mcap", "sim")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+    _record(tmp_path / "r.mcap", n=3).close()                  # the path is free for the next run

@@ -111,13 +111,6 @@ class McapRecorder(Sink):
         if self.kept_part is not None:
             print(f"vbnav: --record {self.path}: the interrupted recording {self.part_path.name} of an earlier run "
                   f"is kept as {self.kept_part} (--overwrite replaces {self.path.name} only)", file=sys.stderr)
-        self._file = open(self.part_path, "xb")
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self._writer.start(profile="", library="vbnav")
-        meta = {"robot": robot, "wall_time_start": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                "monotonic_start_ns": str(time.monotonic_ns())}
-        meta.update({k: str(v) for k, v in (metadata or {}).items()})
-        self._writer.add_metadata("vbnav", meta)
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._flush_interval_s = flush_interval_s
@@ -130,9 +123,24 @@ class McapRecorder(Sink):
         self._last_log_ns = 0
         self._rebase_gap_ns: Optional[int] = None
         self.segments: list[str] = []
-        for topic in ("/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"):
-            self._channel(topic)
-        self._writer.flush()  # header, metadata and channels reach the disk first
+        self._file = open(self.part_path, "xb")
+        try:        # a recording that cannot start leaves no PATH.part (the next run would take it for a crash's)
+            self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self._writer.start(profile="", library="vbnav")
+            meta = {"robot": robot, "wall_time_start": datetime.datetime.now(datetime.timezone.utc).isoformat(),
+                    "monotonic_start_ns": str(time.monotonic_ns())}
+            meta.update({k: str(v) for k, v in (metadata or {}).items()})
+            self._writer.add_metadata("vbnav", meta)
+            for topic in ("/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"):
+                self._channel(topic)
+            self._writer.flush()  # header, metadata and channels reach the disk first
+        except BaseException:
+            try:
+                self._file.close()      # may fail again flushing to the full disk
+            except OSError:
+                pass
+            self.part_path.unlink(missing_ok=True)
+            raise
 
     def _channel(self, topic: str) -> int:
         if topic not in self._channels:
