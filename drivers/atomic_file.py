@@ -5,8 +5,10 @@ goes through here: the data is written to a temporary file in the target's folde
 fsynced, renamed over the target (``os.replace`` is atomic within a file system), and the folder is
 fsynced so the rename itself survives a power cut. A crash, a full disk or a Ctrl-C at any point
 leaves either the old file or the new one, never half of one; the temporary file is removed on
-failure. Temporary names are ``.<name>.<random>.tmp[<suffix>]`` beside the target, so a reader that
-lists ``*.tmp`` (``vbnav route check``) finds what an interrupted writer left.
+failure. Files that belong together (a calibration's, a service's) are written as one set
+(``write_atomic_set``): all to temporary files first, then renamed. Temporary names are
+``.<name>.<random>.tmp[<suffix>]`` beside the target, so a reader that lists ``*.tmp`` (``vbnav route
+check``) finds what an interrupted writer left.
 """
 from __future__ import annotations
 
@@ -69,7 +71,7 @@ def _write_temporary(p: Path, data: str | bytes, mode: Optional[int], suffix: st
         os.chmod(tmp, _mode_for(p) if mode is None else mode)
     except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
-        if isinstance(exc, OSError) and exc.filename is None:   # a full disk: name the file being written
+        if isinstance(exc, OSError) and exc.errno is not None and exc.filename is None:   # a full disk: name it
             raise OSError(exc.errno, exc.strerror, str(p)) from exc
         raise
     return Path(tmp)
