@@ -31,6 +31,7 @@ import numpy as np
 import yaml
 
 from vbnav.drivers.errors import InputError, yaml_problem
+from vbnav.drivers.plain_values import load_yaml
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 
 _K_NAMES = ("camera_matrix", "K", "cameraMatrix")
@@ -82,7 +83,7 @@ def load_calibration(path) -> PinholeCamera | FisheyeCamera:
     if p.suffix.lower() == ".xml" or text.lstrip().startswith(("%YAML", "<?xml", "<opencv_storage")):
         return _load_opencv(p)
     try:
-        doc = yaml.safe_load(text)
+        doc = load_yaml(text)
     except yaml.YAMLError as e:
         raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
     if not isinstance(doc, dict):
@@ -297,7 +298,7 @@ def load_camera_calibration(path, width: Optional[int] = None, height: Optional[
         return CameraCalibration(st.camera(width, height), st.baseline, str(p), file_sha256(p), "kitti")
     if not head.startswith(("%YAML", "<?xml", "<opencv_storage")) and p.suffix.lower() != ".xml":
         try:
-            doc = yaml.safe_load(text)
+            doc = load_yaml(text)
         except yaml.YAMLError as e:
             raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
         if isinstance(doc, dict) and "baseline" in doc:

@@ -29,6 +29,7 @@ import yaml
 
 from vbnav.drivers.calibration import CalibrationError, check_baseline, check_intrinsics
 from vbnav.drivers.errors import InputError, yaml_problem
+from vbnav.drivers.plain_values import load_yaml
 from vbnav.drivers.stereo_calib import read_kitti_calib
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import matrix_from_quat
@@ -318,7 +319,7 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     Returns the camera model and the remaining keys."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read camera YAML: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 import yaml
 from pydantic import ConfigDict, Field, ValidationError
-from vbnav.drivers.plain_values import PlainValues
+from vbnav.drivers.plain_values import PlainValues, load_yaml
 
 from vbnav.drivers.calibration import (CalibrationError, _fs_int, _fs_mat, check_baseline, check_intrinsics,
                                       open_filestorage)
@@ -222,7 +222,7 @@ def read_opencv_rectification(path: str | Path) -> StereoCalibration:
 
 def _load_yaml(p: Path) -> StereoCalibration:
     try:
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text())
     except yaml.YAMLError as exc:
         raise CalibrationError(f"{p}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):

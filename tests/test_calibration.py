@@ -182,3 +182,10 @@ def test_ros_rows_and_cols_must_agree_with_the_data(tmp_path, n, d, field):
     with pytest.raises(CalibrationError, match=rf"{p}: {field}: rows x cols is 1x{n} = {n} numbers, data has "
                                                rf"{len(d)}"):
         load_calibration(p)
+
+
+def test_a_calibration_with_a_key_given_twice_is_refused(tmp_path):
+    p = tmp_path / "front.yaml"
+    p.write_text(ROS.format(model="plumb_bob", n=5, d=D.tolist()) + "image_width: 320\n")
+    with pytest.raises(CalibrationError, match=rf"{p}: line \d+, column 1: .*duplicate key 'image_width'"):
+        load_calibration(p)

@@ -197,3 +197,17 @@ def test_distortion_opencv_would_refuse_is_refused_at_load(tmp_path, text, expec
         load_config(p)
     msg = str(err.value)
     assert str(p) in msg and "camera.distortion" in msg and expected in msg, msg
+
+
+@pytest.mark.parametrize("text, key, line", [
+    ("camera:\n  fx: 410\n  fy: 410\n  fx: 500\n", "fx", 4),
+    # a second section replaced the first whole: the drive's settings above were silently dropped
+    ("robot:\n  wheel_radius: 0.04\nloop:\n  rate_hz: 50\nrobot:\n  max_linear_speed: 0.3\n", "robot", 5),
+])
+def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path, text, key, line):
+    """YAML readers keep the last of two equal keys: the first value was silently not used."""
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert str(p) in msg and f"line {line}" in msg and f"duplicate key '{key}'" in msg, msg

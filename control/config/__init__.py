@@ -22,6 +22,7 @@ from pydantic import Field, PrivateAttr, ValidationError, field_validator, model
 
 from vbnav.drivers.calibration import CalibrationError, CameraCalibration, load_camera_calibration
 from vbnav.drivers.errors import yaml_problem
+from vbnav.drivers.plain_values import load_yaml
 from vbnav.control.config.base import ConfigError, Strict, format_errors
 from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.control.config.telemetry import TelemetryConfig
@@ -420,7 +421,7 @@ def load_config(path: str | Path | None = None, overrides: Optional[dict] = None
     if p.is_dir():
         raise ConfigError(f"{p}: is a directory, expected a YAML config file")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: {yaml_problem(exc)}") from None
     if overrides:
