@@ -18,6 +18,7 @@ import numpy as np
 
 from vbnav.drivers.atomic_file import write_atomic
 from vbnav.drivers.errors import InputError
+from vbnav.drivers.plain_values import load_json
 from vbnav.vision.line_map import LineMap, MapParams
 
 FORMAT, VERSION = "vbnav-line-map", 1
@@ -66,8 +67,8 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
     if not path.is_file():
         raise MapFileError(f"{path}: map file not found")
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = load_json(path.read_text())
+    except ValueError as exc:       # not JSON, not UTF-8, a key given twice
         raise MapFileError(f"{path}: not a JSON map file ({exc})") from None
     except RecursionError:
         raise MapFileError(f"{path}: not a JSON map file (nested too deeply)") from None

@@ -37,6 +37,7 @@ import numpy as np
 
 from vbnav.drivers.atomic_file import fsync_folder, replace_durably, write_atomic
 from vbnav.drivers.errors import InputError
+from vbnav.drivers.plain_values import load_json
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import CameraMount, Pose2
 
@@ -441,8 +442,8 @@ def load_route(path, load_images: bool = True) -> Route:
     if not mpath.is_file():
         raise RouteError(f"{mpath}: missing (not a vbnav route directory?)")
     try:
-        m = json.loads(mpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        m = load_json(mpath.read_text())
+    except ValueError as e:         # not JSON, not UTF-8, a key given twice
         raise RouteError(f"{mpath}: not valid JSON ({e})") from None
     except RecursionError:
         raise RouteError(f"{mpath}: not a route manifest (JSON nested too deeply)") from None

@@ -10,6 +10,7 @@ by .inf or .nan, and .inf slips past a lower bound to switch off what it sets.
 """
 from __future__ import annotations
 
+import json
 import math
 import types
 import typing
@@ -39,6 +40,19 @@ class _UniqueKeys(yaml.SafeLoader):
                                     f"silently replace it", key_node.start_mark)
                 first[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep)
+
+
+def load_json(text: str | bytes):
+    """``json.loads`` for the files vbnav records (route manifests, maps), refusing a key given twice in one
+    object (a ValueError ``duplicate key 'complete'``: JSON readers keep the last, the first is lost)."""
+    def unique(pairs):
+        out = {}
+        for k, v in pairs:
+            if k in out:
+                raise ValueError(f"duplicate key {k!r}")
+            out[k] = v
+        return out
+    return json.loads(text, object_pairs_hook=unique)
 
 
 def load_yaml(text: str):

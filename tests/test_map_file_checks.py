@@ -119,3 +119,13 @@ def test_meta_frames_must_be_a_count(tmp_path, frames):
     path.write_text(json.dumps(data))
     with pytest.raises(MapFileError, match=rf"map\.json: meta\.frames: expected an integer >= 0, got {frames!r}"):
         load_map(path)
+
+
+def test_a_key_given_twice_is_refused(tmp_path):
+    """JSON readers keep the last of two equal keys: a hand-edited second "params" or "segments" replaced
+    the first silently."""
+    path = _saved(tmp_path)
+    text = path.read_text()
+    path.write_text(text[:-1] + ', "frames": 7}')
+    with pytest.raises(MapFileError, match=r"map\.json: not a JSON map file \(duplicate key 'frames'\)"):
+        load_map(path)

@@ -212,3 +212,12 @@ def test_list_does_not_call_a_complete_of_another_type_complete(tmp_path, capsys
     assert main(["route", "list", str(tmp_path)]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     assert "edited" in line and "complete: expected true or false, got 'false'" in line and " yes " not in line
+
+
+def test_a_manifest_key_given_twice_is_refused(tmp_path, capsys):
+    """A hand-edited manifest with "complete" twice loaded with the last one: refused naming the key."""
+    route = write_route(tmp_path / "twice", n=2, complete=False)
+    text = (route / "manifest.json").read_text()
+    (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
+    assert main(["repeat", "--path", str(route)]) == 2
+    assert "manifest.json: not valid JSON (duplicate key 'complete')" in capsys.readouterr().err
