@@ -7,6 +7,9 @@ what YAML cannot give otherwise (lists for tuples, strings for paths and enums),
 only the two silent conversions: a bool or a string for a number, a string or a number for a bool.
 Integers stay accepted for floats (``fx: 400``). A number must be finite: no setting means anything
 by .inf or .nan, and .inf slips past a lower bound to switch off what it sets.
+
+``load_yaml`` and ``load_json`` read settings, calibration and recorded files refusing a key given twice
+(YAML and JSON readers keep the last one: the first, often a whole section, was silently not used).
 """
 from __future__ import annotations
 
