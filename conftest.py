@@ -43,3 +43,36 @@ def shared_data() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+
+class DiskLog(list):
+    """Renames and folder fsyncs in order: ("rename", dst) and ("fsync folder", path)."""
+
+    def durable(self, dst) -> bool:
+        """``dst`` was renamed into place and its folder fsynced after that (the rename survives a power cut)."""
+        key = ("rename", str(dst))
+        return key in self and ("fsync folder", str(Path(dst).parent)) in self[self.index(key):]
+
+
+@pytest.fixture
+def disk_log(monkeypatch) -> DiskLog:
+    """The renames (os.replace, os.rename) and folder fsyncs done while the test runs."""
+    events = DiskLog()
+    real_replace, real_rename, real_fsync = os.replace, os.rename, os.fsync
+
+    def renamer(real):
+        def rename(src, dst, *a, **kw):
+            real(src, dst, *a, **kw)
+            events.append(("rename", str(dst)))
+        return rename
+
+    def fsync(fd):
+        real_fsync(fd)
+        if os.path.isdir(f"/proc/self/fd/{fd}"):
+            events.append(("fsync folder", os.readlink(f"/proc/self/fd/{fd}")))
+
+    monkeypatch.setattr(os, "replace", renamer(real_replace))
+    monkeypatch.setattr(os, "rename", renamer(real_rename))
+    monkeypatch.setattr(os, "fsync", fsync)
+    return events

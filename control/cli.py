@@ -13,13 +13,15 @@ process ended by SIGPIPE).
 Bad input is reported here, in one place: a command raises
 :class:`~vbnav.drivers.errors.InputError` (ConfigError, RouteError, DatasetError,
 CalibrationError, ... derive from it), or an OSError naming a file, and the user
-sees ``vbnav <command>: <message>`` and exit code 2, never a traceback. Any other
-exception is a bug: its traceback is printed, with a note saying so, and the exit
-code is 1.
+sees ``vbnav <command>: <message>`` and exit code 2, never a traceback. A disk that
+is full or read-only (``DISK_ERRORS``) is said the same way, naming the file being
+written, with exit code 1 (the input was fine). Any other exception is a bug: its
+traceback is printed, with a note saying so, and the exit code is 1.
 """
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import pkgutil
@@ -34,6 +36,8 @@ EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_DEVICE, EXIT_INTERRUPTED, EXIT_BROKEN
 # OSErrors about a path the user gave (an output that is a directory, a parent folder that is not
 # there): bad input, reported with the path. Any other OSError (a device, the network) is not.
 PATH_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
+# OSErrors of the disk being written (full, over quota, read-only, failing): no bug of vbnav's, no bad input.
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -83,10 +87,20 @@ def main(argv: list[str] | None = None) -> int:
         return _say(f"{name}: interrupted", EXIT_INTERRUPTED)
     except BrokenPipeError:
         return _stdout_closed()
+    except OSError as exc:
+        if exc.errno not in DISK_ERRORS:
+            return _bug(name)
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _say(f"{name}: {where}{exc.strerror or exc}", EXIT_FAILED)
     except Exception:
-        traceback.print_exc()
-        return _say(f"{name}: this is a bug in vbnav (the traceback above says where); please report it "
-                    "with the command line that caused it", EXIT_FAILED)
+        return _bug(name)
+
+
+def _bug(name: str) -> int:
+    """Inside an ``except``: the traceback, and that it is a bug (exit 1)."""
+    traceback.print_exc()
+    return _say(f"{name}: this is a bug in vbnav (the traceback above says where); please report it "
+                "with the command line that caused it", EXIT_FAILED)
 
 
 def _say(message: str, code: int) -> int:

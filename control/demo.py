@@ -11,7 +11,6 @@ is reported as the distance travelled until the error first falls under 5 cm).
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -24,7 +23,8 @@ from vbnav.control.config import Config, load_config
 from vbnav.control.controllers.path import PathFollower, lateral_errors, path_length, room_loop
 from vbnav.control.runtime.factory import Robot, make_robot
 from vbnav.control.session import Session
-from vbnav.drivers.atomic_file import atomic_output, write_atomic
+from vbnav.control.image_files import write_json
+from vbnav.drivers.atomic_file import atomic_output
 from vbnav.vision.geometry import Pose2
 
 
@@ -88,7 +88,7 @@ def start_pose(path: np.ndarray) -> Pose2:
 
 def write_json_atomic(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, json.dumps(data, indent=2))
+    write_json(path, data, indent=2)
 
 
 def summarise_errors(trace: RunTrace, taught: np.ndarray, settle_m: float) -> dict:

@@ -3,6 +3,7 @@ for the commands that read image pairs and write PNG / JSON results (``vbnav lin
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -28,5 +29,17 @@ def write_png(path: str, img: np.ndarray) -> None:
     write_atomic(path, buf.tobytes())
 
 
-def write_json(path: str, data) -> None:
-    write_atomic(path, json.dumps(data, indent=1))
+def write_json(path: str, data, indent: int = 1) -> None:
+    """``data`` as strict JSON: a NaN or infinity (a value not measured) is written as null (JSON has no
+    word for them: Python's NaN made files that jq and most readers refuse whole)."""
+    write_atomic(path, json.dumps(_finite_or_null(data), indent=indent, allow_nan=False))
+
+
+def _finite_or_null(x):
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite_or_null(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_null(v) for v in x]
+    return x

@@ -18,6 +18,7 @@ import numpy as np
 
 from vbnav.drivers.atomic_file import write_atomic
 from vbnav.drivers.errors import InputError
+from vbnav.drivers.plain_values import load_json
 from vbnav.vision.line_map import LineMap, MapParams
 
 FORMAT, VERSION = "vbnav-line-map", 1
@@ -46,7 +47,16 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
             "frames": int(lmap.frames), "params": dataclasses.asdict(lmap.params), "meta": meta or {},
             "segments": segs}
     path = Path(path)
-    write_atomic(path, json.dumps(data))
+    try:
+        text = json.dumps(data)
+    except (TypeError, ValueError) as exc:      # a meta value JSON has no word for
+        raise MapFileError(f"{path}: not saved: meta is not JSON ({exc})") from None
+    try:    # what load_map would refuse is not written: a map that cannot be loaded back is no map
+        map_from_data(path, json.loads(text))
+    except MapFileError as exc:
+        raise MapFileError(f"{path}: not saved, it could not be loaded back: "
+                           f"{str(exc).removeprefix(f'{path}: ')}") from None
+    write_atomic(path, text)
 
 
 def load_map(path: str | Path) -> tuple[LineMap, dict]:
@@ -57,11 +67,17 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
     if not path.is_file():
         raise MapFileError(f"{path}: map file not found")
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = load_json(path.read_text())
+    except ValueError as exc:       # not JSON, not UTF-8, a key given twice
         raise MapFileError(f"{path}: not a JSON map file ({exc})") from None
     except RecursionError:
         raise MapFileError(f"{path}: not a JSON map file (nested too deeply)") from None
+    return map_from_data(path, data)
+
+
+def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
+    """(map, meta) from a map file's parsed JSON, every check of load_map (and of save_map before it
+    writes); MapFileError names ``path`` and what is wrong."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise MapFileError(f"{path}: not a vbnav line map (format {data.get('format') if isinstance(data, dict) else None!r},"
                            f" expected {FORMAT!r})")
@@ -87,6 +103,8 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
     meta = data.get("meta", {})
     if not isinstance(meta, dict) or not isinstance(meta.get("objects", []), list):
         raise MapFileError(f"{path}: meta: expected an object with a list 'objects', got {meta!r:.60}")
+    if "frames" in meta:        # goto --map-out adds its own frames to it
+        _check_count(path, "meta.frames", meta["frames"], 0)
     for k, o in enumerate(meta.get("objects", [])):
         try:
             fp = np.asarray(o["footprint"], float)
@@ -96,11 +114,18 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         if not ok:
             raise MapFileError(f"{path}: meta.objects[{k}]: expected footprint (a list of [x, z] pairs) and height, "
                                f"finite numbers")
+    _check_count(path, "frames", data.get("frames", 0), 0)
     try:
         params = MapParams(**given)
         lmap = LineMap(params)
         segs = data["segments"]
         n = len(segs)
+        for k, s in enumerate(segs):    # np.array(..., bool) made "false" True; int arrays cut 2.5 to 2
+            for name, low in (("support", 0), ("misses", 0), ("group", -1)):
+                _check_count(path, f"segments[{k}].{name}", s[name], low)
+            for name in ("verified", "hypothesis"):
+                if not isinstance(s[name], bool):
+                    raise MapFileError(f"{path}: segments[{k}].{name}: expected true or false, got {s[name]!r}")
         P = np.array([[s["p0"], s["p1"]] for s in segs], float).reshape(n, 2, 3)
         C = np.array([[s["cov0"], s["cov1"]] for s in segs], float).reshape(n, 2, 3, 3)
         _check_segments(path, P, C, [s["id"] for s in segs])
@@ -123,6 +148,11 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
         if any(v.shape != (4,) or not np.isfinite(v).all() for v in views):
             raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
     return lmap, meta
+
+
+def _check_count(path: Path, field: str, v, low: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise MapFileError(f"{path}: {field}: expected an integer >= {low}, got {v!r}")
 
 
 def _check_segments(path: Path, P: np.ndarray, C: np.ndarray, ids: list) -> None:

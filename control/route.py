@@ -35,9 +35,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vbnav.drivers.atomic_file import fsync_folder, write_atomic
+from vbnav.drivers.atomic_file import fsync_folder, replace_durably, write_atomic
 from vbnav.drivers.errors import InputError
-from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.drivers.plain_values import load_json
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import CameraMount, Pose2
 
 FORMAT = "vbnav-route"
@@ -143,6 +144,13 @@ class Route:
     def length(self) -> float:
         return self.keyframes[-1].distance if self.keyframes else 0.0
 
+    def repeat_refusal(self) -> Optional[str]:
+        """Why a repeat of this route is refused whatever the configuration (None: it is not), said alike
+        by ``vbnav repeat``, ``mode repeat``, the repeat stage and controller, and ``vbnav route check``."""
+        if not self.keyframes:
+            return "the route has no keyframes (a repeat steers from one keyframe to the next): teach it again"
+        return None
+
     def incomplete_note(self) -> str:
         """'' for a complete route; else what exists of it (teaching was interrupted before the end)."""
         if self.complete:
@@ -169,13 +177,13 @@ def camera_from_dict(d: dict, where: str):
         raise RouteError(f"{where}: camera: expected model pinhole|fisheye, width, height, fx, fy, cx, cy, dist "
                          f"({e})") from None
     # A NaN or negative focal length passed every later check (NaN compares false) and bent every bearing.
-    if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy) + dist) or fx <= 0 or fy <= 0:
-        raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy, dist; got "
-                         f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy} dist {list(dist)}")
-    lengths = (0, 4) if cls is FisheyeCamera else (0, 4, 5, 8, 12, 14)
-    if len(dist) not in lengths:
-        raise RouteError(f"{where}: camera: dist: {d['model']} expects {', '.join(map(str, lengths[1:]))} "
-                         f"coefficients (or none), got {len(dist)}")
+    if w <= 0 or h <= 0 or not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise RouteError(f"{where}: camera: expected width, height > 0, fx, fy > 0 and finite cx, cy; got "
+                         f"{w}x{h} fx {fx} fy {fy} cx {cx} cy {cy}")
+    try:
+        dist = check_distortion(d["model"], dist)
+    except ValueError as e:
+        raise RouteError(f"{where}: camera: dist: {e}") from None
     return cls(w, h, fx, fy, cx, cy, dist)
 
 
@@ -300,9 +308,9 @@ def install_route_dir(new, route, overwrite: bool) -> None:
     holds nothing but route files, in one atomic swap (``_swap_in``). RouteError otherwise.
     """
     new, route = Path(new), Path(route)
+    fsync_folder(new)           # its entries (files written into it without write_atomic: a pull, a push)
     if not route.exists():
-        os.rename(new, route)
-        fsync_folder(route.parent)
+        replace_durably(new, route)
         return
     if not overwrite:
         raise RouteError(f"{route}: exists (replace it with --overwrite)")
@@ -434,8 +442,8 @@ def load_route(path, load_images: bool = True) -> Route:
     if not mpath.is_file():
         raise RouteError(f"{mpath}: missing (not a vbnav route directory?)")
     try:
-        m = json.loads(mpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        m = load_json(mpath.read_text())
+    except ValueError as e:         # not JSON, not UTF-8, a key given twice
         raise RouteError(f"{mpath}: not valid JSON ({e})") from None
     except RecursionError:
         raise RouteError(f"{mpath}: not a route manifest (JSON nested too deeply)") from None

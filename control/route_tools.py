@@ -52,7 +52,9 @@ def summary(path) -> RouteSummary:
         s.keyframes = len(kfs)
         s.length_m = float(kfs[-1]["distance"]) if kfs else 0.0
         s.camera = f"{cam['model']} {cam['width']}x{cam['height']} fx {float(cam['fx']):.0f}"
-        s.complete = bool(m.get("complete", False))
+        s.complete = m.get("complete", False)
+        if not isinstance(s.complete, bool):        # load_route refuses it: not listed as complete
+            raise ValueError(f"complete: expected true or false, got {s.complete!r}")
         s.created, s.robot = str(m.get("created", "")), str(m.get("robot", ""))
     except FileNotFoundError:
         s.error = f"no {MANIFEST} (not a route)"
@@ -142,6 +144,7 @@ class CheckReport:
     notes: list[str] = field(default_factory=list)       # harmless leftovers, incompleteness
     keyframes: int = 0
     complete: bool = False
+    repeat_refusal: Optional[str] = None     # intact, but vbnav repeat refuses it (Route.repeat_refusal)
 
     @property
     def intact(self) -> bool:
@@ -219,7 +222,7 @@ def check(path) -> CheckReport:
     except RouteError as exc:
         report.problems.append(str(exc).replace(f"{root}{os.sep}", ""))
         return report
-    report.keyframes, report.complete = len(route), route.complete
+    report.keyframes, report.complete, report.repeat_refusal = len(route), route.complete, route.repeat_refusal()
     for i, (entry, kf) in enumerate(zip(listed, route.keyframes)):
         odom = entry.get("odom")
         if odom is not None and not _same(lambda: np.allclose(np.asarray(odom, float), kf.odom.as_array(),

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Optional
 
 from vbnav.control.runtime.systemd_notify import PINGS_PER_WATCHDOG
-from vbnav.drivers.atomic_file import write_atomic
+from vbnav.drivers.atomic_file import write_atomic_set
 from vbnav.drivers.discovery import UsbIdentity, usb_identity
 from vbnav.drivers.errors import InputError
 
@@ -292,17 +292,23 @@ def plan(cfg, user: str, serials: Optional[dict[str, str]] = None, sysfs: str = 
 
 
 def install(p: Plan, files: ServiceFiles, overwrite: bool = False) -> list[Path]:
-    """Write the unit and the rules (each to a temporary file, then renamed). Refuses to replace an existing
-    unit or rules file without ``overwrite``, before writing anything."""
+    """Write the unit and the rules as one set (both to temporary files, then both renamed: a failure leaves
+    the old pair). Refuses to replace an existing unit or rules file without ``overwrite``, before writing
+    anything."""
     targets = [(files.unit, p.unit), (files.rules, p.rules)]
     if not overwrite:
         for path, _ in targets:
             if path.exists():
                 raise InputError(f"{path} exists (installed before?); give --overwrite to replace it, or "
                                  f"'vbnav service uninstall' first")
-    for path, text in targets:
-        _write(path, text)
-    return [path for path, _ in targets]
+    try:
+        for path, _ in targets:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        return write_atomic_set(dict(targets), mode=0o644)
+    except PermissionError as exc:     # named by the folder (the file refused may be a temporary one)
+        folder = next((t.parent for t, _ in targets if str(exc.filename).startswith(str(t.parent))), exc.filename)
+        raise InputError(f"{folder}: permission denied; writing there needs root "
+                         f"(sudo $(command -v vbnav) service install ...)") from None
 
 
 def uninstall(files: ServiceFiles) -> list[Path]:
@@ -318,11 +324,3 @@ def uninstall(files: ServiceFiles) -> list[Path]:
             raise InputError(f"{path}: permission denied; removing it needs root (sudo)") from None
     return removed
 
-
-def _write(path: Path, text: str) -> None:
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(path, text, mode=0o644)
-    except PermissionError:
-        raise InputError(f"{path}: permission denied; writing to {path.parent} needs root "
-                         f"(sudo $(command -v vbnav) service install ...)") from None

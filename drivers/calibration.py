@@ -31,7 +31,8 @@ import numpy as np
 import yaml
 
 from vbnav.drivers.errors import InputError, yaml_problem
-from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.drivers.plain_values import load_yaml
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 
 _K_NAMES = ("camera_matrix", "K", "cameraMatrix")
 _D_NAMES = ("distortion_coefficients", "D", "dist_coeffs", "distCoeffs")
@@ -82,7 +83,7 @@ def load_calibration(path) -> PinholeCamera | FisheyeCamera:
     if p.suffix.lower() == ".xml" or text.lstrip().startswith(("%YAML", "<?xml", "<opencv_storage")):
         return _load_opencv(p)
     try:
-        doc = yaml.safe_load(text)
+        doc = load_yaml(text)
     except yaml.YAMLError as e:
         raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
     if not isinstance(doc, dict):
@@ -126,21 +127,18 @@ def _build(path: Path, model: str, K: np.ndarray, dist: np.ndarray, width, heigh
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{path}: image_width/image_height: must be positive, got {w}x{h}")
     check_intrinsics(str(path), K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, prefix="camera_matrix ")
-    d = tuple(float(x) for x in np.asarray(dist, dtype=float).ravel())
-    if not all(np.isfinite(d)):
-        raise CalibrationError(f"{path}: distortion_coefficients: expected finite numbers, got {list(d)}")
     model = (model or "").strip().lower()
-    if model in _FISHEYE_MODELS:
-        if len(d) not in (0, 4):
-            raise CalibrationError(f"{path}: distortion_coefficients: fisheye ({model}) expects 4 numbers "
-                                   f"k1..k4, got {len(d)}")
-        return FisheyeCamera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], d or (0.0, 0.0, 0.0, 0.0))
-    if model not in _PINHOLE_MODELS:
+    if model not in _PINHOLE_MODELS + _FISHEYE_MODELS:
         raise CalibrationError(f"{path}: distortion_model: {model!r} is not supported "
                                f"(expected one of {_PINHOLE_MODELS[:2] + _FISHEYE_MODELS[:1]})")
-    if len(d) not in (0, 4, 5, 8, 12, 14):
-        raise CalibrationError(f"{path}: distortion_coefficients: expected 4, 5, 8, 12 or 14 numbers "
-                               f"(OpenCV order k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]), got {len(d)}")
+    fisheye = model in _FISHEYE_MODELS
+    try:
+        d = check_distortion("fisheye" if fisheye else "pinhole", dist)
+    except ValueError as exc:
+        order = "k1 k2 k3 k4" if fisheye else "k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]"
+        raise CalibrationError(f"{path}: distortion_coefficients: {exc} ({model}, OpenCV order {order})") from None
+    if fisheye:
+        return FisheyeCamera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], d or (0.0, 0.0, 0.0, 0.0))
     return PinholeCamera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], d)
 
 
@@ -153,9 +151,18 @@ def _from_ros(path: Path, doc: dict):
             raise CalibrationError(f"{path}: {field}: expected a mapping with 'data' (ROS camera_info)")
         _plain_numbers(path, f"{field}.data", node["data"])
         try:
-            return np.asarray(node["data"], dtype=float)
+            values = np.asarray(node["data"], dtype=float)
         except (TypeError, ValueError):
             raise CalibrationError(f"{path}: {field}.data: expected a list of numbers") from None
+        rows, cols = node.get("rows"), node.get("cols")
+        if rows is not None or cols is not None:    # the shape the data claims: a number lost in an edit shows
+            if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in (rows, cols)):
+                raise CalibrationError(f"{path}: {field}: rows and cols must be whole numbers, got {rows!r}, "
+                                       f"{cols!r}")
+            if rows * cols != values.size:
+                raise CalibrationError(f"{path}: {field}: rows x cols is {rows}x{cols} = {rows * cols} numbers, "
+                                       f"data has {values.size}")
+        return values
 
     for key in ("image_width", "image_height"):
         if key not in doc:
@@ -291,7 +298,7 @@ def load_camera_calibration(path, width: Optional[int] = None, height: Optional[
         return CameraCalibration(st.camera(width, height), st.baseline, str(p), file_sha256(p), "kitti")
     if not head.startswith(("%YAML", "<?xml", "<opencv_storage")) and p.suffix.lower() != ".xml":
         try:
-            doc = yaml.safe_load(text)
+            doc = load_yaml(text)
         except yaml.YAMLError as e:
             raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
         if isinstance(doc, dict) and "baseline" in doc:

@@ -29,8 +29,9 @@ import yaml
 
 from vbnav.drivers.calibration import CalibrationError, check_baseline, check_intrinsics
 from vbnav.drivers.errors import InputError, yaml_problem
+from vbnav.drivers.plain_values import load_yaml
 from vbnav.drivers.stereo_calib import read_kitti_calib
-from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import matrix_from_quat
 
 KITTI_RATE_HZ = 10.0
@@ -318,7 +319,7 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     Returns the camera model and the remaining keys."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read camera YAML: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
@@ -354,11 +355,15 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     except CalibrationError as exc:
         raise DatasetError(str(exc)) from None
     model = data.get("model", "pinhole")
+    if model not in ("pinhole", "fisheye"):
+        raise DatasetError(f"{path}: model must be 'pinhole' or 'fisheye', got {model!r}")
+    try:
+        args["dist"] = check_distortion(model, args["dist"])
+    except ValueError as exc:
+        raise DatasetError(f"{path}: dist: {exc}") from None
     if model == "pinhole":
         cam = PinholeCamera(**args)
-    elif model == "fisheye":
-        cam = FisheyeCamera(**{**args, "dist": args["dist"] or (0.0, 0.0, 0.0, 0.0)})
     else:
-        raise DatasetError(f"{path}: model must be 'pinhole' or 'fisheye', got {model!r}")
+        cam = FisheyeCamera(**{**args, "dist": args["dist"] or (0.0, 0.0, 0.0, 0.0)})
     extras = {k: v for k, v in data.items() if k not in ("fx", "fy", "cx", "cy", "width", "height", "dist", "model")}
     return cam, extras

@@ -7,14 +7,61 @@ what YAML cannot give otherwise (lists for tuples, strings for paths and enums),
 only the two silent conversions: a bool or a string for a number, a string or a number for a bool.
 Integers stay accepted for floats (``fx: 400``). A number must be finite: no setting means anything
 by .inf or .nan, and .inf slips past a lower bound to switch off what it sets.
+
+``load_yaml`` and ``load_json`` read settings, calibration and recorded files refusing a key given twice
+(YAML and JSON readers keep the last one: the first, often a whole section, was silently not used).
 """
 from __future__ import annotations
 
+import json
 import math
 import types
 import typing
 
+import yaml
 from pydantic import BaseModel, ValidationInfo, field_validator
+
+
+class _UniqueKeys(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses a key given twice in one mapping (PyYAML keeps the last: the first
+    value, often a whole section, was silently not used)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            first: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=deep)
+                try:
+                    seen = first.get(key)
+                except TypeError:           # an unhashable key: the base class says so
+                    continue
+                if seen is not None:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"found duplicate key {key!r} (first on line {seen + 1}); the later one would "
+                                    f"silently replace it", key_node.start_mark)
+                first[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep)
+
+
+def load_json(text: str | bytes):
+    """``json.loads`` for the files vbnav records (route manifests, maps), refusing a key given twice in one
+    object (a ValueError ``duplicate key 'complete'``: JSON readers keep the last, the first is lost)."""
+    def unique(pairs):
+        out = {}
+        for k, v in pairs:
+            if k in out:
+                raise ValueError(f"duplicate key {k!r}")
+            out[k] = v
+        return out
+    return json.loads(text, object_pairs_hook=unique)
+
+
+def load_yaml(text: str):
+    """``yaml.safe_load`` for settings and calibration files, refusing duplicate keys (a yaml.YAMLError
+    with the line, as ``errors.yaml_problem`` formats it)."""
+    return yaml.load(text, Loader=_UniqueKeys)
 
 
 def _kinds(annotation) -> set:

@@ -45,12 +45,12 @@ import cv2
 import numpy as np
 import yaml
 from pydantic import ConfigDict, Field, ValidationError
-from vbnav.drivers.plain_values import PlainValues
+from vbnav.drivers.plain_values import PlainValues, load_yaml
 
 from vbnav.drivers.calibration import (CalibrationError, _fs_int, _fs_mat, check_baseline, check_intrinsics,
                                       open_filestorage)
 from vbnav.drivers.errors import yaml_problem
-from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.camera_model import PinholeCamera, check_distortion
 from vbnav.vision.stereo import StereoRig
 
 
@@ -188,12 +188,17 @@ def read_opencv_rectification(path: str | Path) -> StereoCalibration:
             raise CalibrationError(f"{p}: {k}: missing (an OpenCV stereo rectification needs K0, D0, K1, D1, "
                                    f"R1, R2, P1, P2, image_width, image_height)")
         v = np.asarray(v, float)
-        if (want is not None and v.shape != want) or (want is None and v.size not in (4, 5, 8, 12, 14)):
-            raise CalibrationError(f"{p}: {k}: expected " + (f"a {want[0]}x{want[1]} matrix" if want else
-                                   "4, 5, 8, 12 or 14 distortion coefficients") + f", got shape {v.shape}")
+        if want is None:            # D0, D1: a pinhole's distortion coefficients
+            try:
+                m[k] = np.asarray(check_distortion("pinhole", v), float)
+            except ValueError as exc:
+                raise CalibrationError(f"{p}: {k}: {exc}") from None
+            continue
+        if v.shape != want:
+            raise CalibrationError(f"{p}: {k}: expected a {want[0]}x{want[1]} matrix, got shape {v.shape}")
         if not np.isfinite(v).all():
             raise CalibrationError(f"{p}: {k}: expected finite numbers")
-        m[k] = v if want is not None else v.ravel()
+        m[k] = v
     if w is None or h is None or w <= 0 or h <= 0:
         raise CalibrationError(f"{p}: image_width/image_height: expected the raw image size in pixels > 0")
     for k in ("R1", "R2"):
@@ -217,7 +222,7 @@ def read_opencv_rectification(path: str | Path) -> StereoCalibration:
 
 def _load_yaml(p: Path) -> StereoCalibration:
     try:
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text())
     except yaml.YAMLError as exc:
         raise CalibrationError(f"{p}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):

@@ -329,3 +329,50 @@ def test_an_out_that_cannot_be_a_folder_is_refused_before_calibrating(stereo_dir
     assert code == 2, err
     assert f"vbnav calibrate: --out {tmp_path / out}: " in err and why in err, err
     assert (tmp_path / "afile").read_text() == "keep me\n"
+
+
+def test_a_stereo_overwrite_that_fails_part_way_keeps_the_old_set(stereo_dirs, stereo_run, tmp_path, monkeypatch):
+    """The six files of a stereo calibration are one calibration: a write failing after the first file was
+    replaced left a new left_opencv.yaml beside the old right and stereo files. Now every file is written
+    under a temporary name first; a failure replaces none of them."""
+    import errno
+    import tempfile
+    out = tmp_path / "out"
+    out.mkdir()
+    names = sorted(p.name for p in stereo_run.iterdir())
+    for n in names:
+        (out / n).write_text(f"the old {n}\n")
+    real, calls = tempfile.mkstemp, []
+
+    def second_fails(*a, **kw):
+        calls.append(kw.get("prefix"))
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(tempfile, "mkstemp", second_fails)
+    code = cli.main(["calibrate", "stereo", str(stereo_dirs / "left"), str(stereo_dirs / "right"), "--square", "1",
+                     "--out", str(out), "--overwrite", "--quiet"])
+    monkeypatch.undo()
+    assert code != 0 and len(calls) == 2
+    assert {p.name: p.read_text() for p in out.iterdir()} == {n: f"the old {n}\n" for n in names}
+    code = cli.main(["calibrate", "stereo", str(stereo_dirs / "left"), str(stereo_dirs / "right"), "--square", "1",
+                     "--out", str(out), "--overwrite", "--quiet"])
+    assert code == 0 and sorted(p.name for p in out.iterdir()) == names      # all replaced, no temporaries
+    assert not any(p.read_text().startswith("the old") for p in out.iterdir())
+    assert load_camera_calibration(out / "stereo.yaml").baseline == \
+        pytest.approx(load_camera_calibration(stereo_run / "stereo.yaml").baseline, rel=1e-6)
+
+
+def test_a_stereo_calibration_that_would_not_load_is_not_written(stereo_dirs, tmp_path, capsys):
+    """LEFT_DIR and RIGHT_DIR given the wrong way round give a rectified rig with a negative baseline: its
+    stereo.yaml was written (and 'wrote ...' said) although no command can load it. Every file that is a
+    camera.calibration_file is now loaded back before the set is put in place; nothing is written else."""
+    out = tmp_path / "out"
+    code = cli.main(["calibrate", "stereo", str(stereo_dirs / "right"), str(stereo_dirs / "left"), "--square", "1",
+                     "--out", str(out), "--quiet"])
+    captured = capsys.readouterr()
+    assert code == 2, captured
+    assert f"{out / 'stereo.yaml'}: not written (nor the other files of the calibration)" in captured.err
+    assert "baseline" in captured.err and "wrote" not in captured.out
+    assert not out.exists() or not any(out.iterdir())

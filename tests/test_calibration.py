@@ -91,9 +91,9 @@ def test_ros_equidistant_is_fisheye(tmp_path):
 @pytest.mark.parametrize("text, match", [
     (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("image_width: 640\n", ""), "image_width: missing"),
     (ROS.format(model="plumb_bob", n=5, d=D.tolist()).replace("[520.5, 0, 321.2, 0, 519.8, 243.9, 0, 0, 1]",
-                                                            "[520.5, 0, 321.2]"), "camera_matrix: expected 3x3"),
+                                                            "[520.5, 0, 321.2]"), "camera_matrix: rows x cols is 3x3 = 9 numbers, data has 3"),
     (ROS.format(model="weird_model", n=5, d=D.tolist()), "distortion_model: 'weird_model' is not supported"),
-    (ROS.format(model="plumb_bob", n=3, d=[0.1, 0.2, 0.3]), "distortion_coefficients: expected 4, 5"),
+    (ROS.format(model="plumb_bob", n=3, d=[0.1, 0.2, 0.3]), "distortion_coefficients: pinhole expects 4, 5"),
     ("foo: [1, 2", "not valid YAML"),
     ("width: 640\nheight: 480\n", "camera_matrix: missing"),
     # numpy reads "520.5" and true as numbers, and int() cuts 640.7 to 640: each was a camera nobody wrote
@@ -158,3 +158,34 @@ def test_opencv_file_errors_name_file_and_field(tmp_path, text, match):
     with pytest.raises(CalibrationError, match=match) as e:
         load_calibration(p)
     assert "bad.yaml" in str(e.value)
+
+
+@pytest.mark.parametrize("dist, expected", [("[.nan, 0, 0, 0]", "expected finite numbers"),
+                                            ("[0.1, 0.2, 0.3]", "pinhole expects 4, 5, 8, 12 or 14")])
+def test_a_dataset_camera_yaml_with_distortion_opencv_refuses_is_refused(tmp_path, dist, expected):
+    """drivers/datasets.load_camera_yaml took any dist (NaN, 3 numbers): it is checked as every other camera
+    reader checks it (vision/camera_model.check_distortion)."""
+    from vbnav.drivers.datasets import DatasetError, load_camera_yaml
+    p = tmp_path / "camera.yaml"
+    p.write_text(f"fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\ndist: {dist}\n")
+    with pytest.raises(DatasetError, match=f"{p}: dist: {expected}"):
+        load_camera_yaml(p)
+
+
+@pytest.mark.parametrize("n, d, field", [(5, [0.1, 0.01, 0.0, 0.0], "distortion_coefficients"),
+                                         (8, D.tolist(), "distortion_coefficients")])
+def test_ros_rows_and_cols_must_agree_with_the_data(tmp_path, n, d, field):
+    """A camera_info whose data holds fewer numbers than its rows x cols (a coefficient lost in an edit or a
+    cut copy) loaded with what was left: refused naming the field and both counts."""
+    p = tmp_path / "front.yaml"
+    p.write_text(ROS.format(model="plumb_bob", n=n, d=d))
+    with pytest.raises(CalibrationError, match=rf"{p}: {field}: rows x cols is 1x{n} = {n} numbers, data has "
+                                               rf"{len(d)}"):
+        load_calibration(p)
+
+
+def test_a_calibration_with_a_key_given_twice_is_refused(tmp_path):
+    p = tmp_path / "front.yaml"
+    p.write_text(ROS.format(model="plumb_bob", n=5, d=D.tolist()) + "image_width: 320\n")
+    with pytest.raises(CalibrationError, match=rf"{p}: line \d+, column 1: .*duplicate key 'image_width'"):
+        load_calibration(p)

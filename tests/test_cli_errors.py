@@ -377,3 +377,30 @@ def test_unexpected_exception_is_a_bug_with_its_traceback(monkeypatch, capsys):
     assert cli.main(["config", "reference"]) == 1
     err = capsys.readouterr().err
     assert "Traceback" in err and "ZeroDivisionError: boom" in err and "this is a bug" in err
+
+
+def test_a_full_disk_is_said_naming_the_file_not_called_a_bug(tmp_path, monkeypatch, capsys):
+    """A write that fails for want of space (or a read-only disk) was 'a bug in vbnav' with a traceback and no
+    file named: it names the file being written and the reason, exit 1, and the file there is untouched."""
+    import errno
+    from vbnav.control import cli
+    from vbnav.control.line_map_file import save_map
+    from vbnav.vision.line_map import LineMap
+    save_map(LineMap(), tmp_path / "m.json")
+    out = tmp_path / "m.png"
+    out.write_bytes(b"the previous plot")
+    real_fsync = os.fsync
+
+    def full(fd):
+        if not os.path.isdir(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", full)
+    code = cli.main(["map", "plot", str(tmp_path / "m.json"), "--out", str(out)])
+    monkeypatch.undo()
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert f"vbnav map: {out}: No space left on device" in err and "bug" not in err and "Traceback" not in err
+    assert out.read_bytes() == b"the previous plot" and sorted(p.name for p in tmp_path.iterdir()) == ["m.json",
+                                                                                                      "m.png"]

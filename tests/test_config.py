@@ -198,3 +198,35 @@ def test_obstacles_on_a_distorted_camera_are_refused(camera, says):
     parse_config({**cfg, "obstacles": {"enabled": False}})           # the other stages use the distortion
     parse_config({"camera": {"options": {"stereo_baseline": 0.075}, "distortion": [0.0] * 5},
                   "obstacles": {"enabled": True}})
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("  distortion: [.nan, 0, 0, 0]\n", "expected finite numbers"),
+    ("  distortion: [0.1, 0, .inf, 0, 0]\n", "expected finite numbers"),
+    ("  distortion: [0.1, 0, 0]\n", "pinhole expects 4, 5, 8, 12 or 14 coefficients (or none), got 3"),
+    ("  distortion: [0.1, 0, 0, 0, 0, 0]\n", "pinhole expects 4, 5, 8, 12 or 14 coefficients (or none), got 6"),
+    # a fisheye with 2 was padded with zeros, one with 6 cut to 4: coefficients nobody calibrated
+    ("  model: fisheye\n  distortion: [0.1, 0.1]\n", "fisheye expects 4 coefficients (or none), got 2"),
+])
+def test_distortion_opencv_would_refuse_is_refused_at_load(tmp_path, text, expected):
+    """NaN, inf or a coefficient count OpenCV refuses loaded, and failed (or bent every bearing) in the first
+    undistortPoints of the run; refused at load, naming the file and the field."""
+    p = write(tmp_path, "camera:\n" + text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert str(p) in msg and "camera.distortion" in msg and expected in msg, msg
+
+
+@pytest.mark.parametrize("text, key, line", [
+    ("camera:\n  fx: 410\n  fy: 410\n  fx: 500\n", "fx", 4),
+    # a second section replaced the first whole: the drive's settings above were silently dropped
+    ("robot:\n  wheel_radius: 0.04\nloop:\n  rate_hz: 50\nrobot:\n  max_linear_speed: 0.3\n", "robot", 5),
+])
+def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path, text, key, line):
+    """YAML readers keep the last of two equal keys: the first value was silently not used."""
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert str(p) in msg and f"line {line}" in msg and f"duplicate key '{key}'" in msg, msg

@@ -281,3 +281,35 @@ def test_a_pushed_route_is_on_disk_before_it_is_installed(tmp_path, monkeypatch)
     finally:
         server.close()
     assert q.answer[0] == "ok" and load_route(tmp_path / "robot" / "loop").complete
+
+
+def test_a_route_repeat_refuses_is_not_pushed_nor_installed(tmp_path):
+    """A whole route of 0 keyframes passed the push's check and the robot's commit, and with overwrite replaced
+    the robot's working route by one its repeat refuses. The sender refuses it, and so does the robot."""
+    import numpy as np
+    from test_route import write_route
+    write_route(tmp_path / "local" / "loop", np.random.default_rng(0), 0)
+    with pytest.raises(rt.RouteError, match="vbnav repeat refuses it: the route has no keyframes.*not pushing"):
+        rt.push(None, "r", tmp_path / "local" / "loop")           # refused before any network use
+    write_route(tmp_path / "robot" / "loop", np.random.default_rng(1), 3)
+    before = (tmp_path / "robot" / "loop" / "manifest.json").read_bytes()
+    server = rt.RouteServer(_Session(), "r", tmp_path / "robot")
+    base = "vbnav/r/routes/push/loop/0123456789abcdef"
+    files = rt.route_files(tmp_path / "local" / "loop")
+    try:
+        for key, payload in [(f"{base}/begin", json.dumps({"bytes": sum(f["size"] for f in files),
+                                                            "overwrite": True}).encode()),
+                             *[q for f in files for q in (
+                                 (f"{base}/chunk/{f['name']}/0", (tmp_path / "local" / "loop" / f["name"]).read_bytes()),
+                                 (f"{base}/file/{f['name']}",
+                                  json.dumps({"size": f["size"], "sha256": f["sha256"]}).encode()))]]:
+            q = _Query(key, payload)
+            server._handle(q)
+            assert q.answer[0] == "ok", (key, q.answer)
+        q = _Query(f"{base}/commit", b"{}")
+        server._handle(q)
+    finally:
+        server.close()
+    assert q.answer[0] == "err" and "the route has no keyframes" in q.answer[1], q.answer
+    assert (tmp_path / "robot" / "loop" / "manifest.json").read_bytes() == before
+    assert len(load_route(tmp_path / "robot" / "loop")) == 3 and not stray_route_dirs(tmp_path / "robot" / "loop")

@@ -50,3 +50,82 @@ def test_covariance_not_symmetric_positive_definite_is_refused(tmp_path, cov):
     _edit(path, lambda s: s[0].__setitem__("cov1", cov))
     with pytest.raises(MapFileError, match=r"map\.json: segments\[0\]: cov1 .*symmetric positive definite"):
         load_map(path)
+
+
+def _map(P, C, views=None):
+    m = LineMap(MapParams())
+    m._insert(np.asarray(P, float), np.asarray(C, float), np.arange(len(P)), np.array([0, 0, 0, 0.0]))
+    if views is not None:
+        m.views = views
+    return m
+
+
+GOOD_P = [[[0, -1, 2], [1, -1, 2]]]
+GOOD_C = [[np.eye(3) * 1e-4] * 2]
+
+
+@pytest.mark.parametrize("lmap, meta, why", [
+    # rounded to 10 decimals on writing, a very certain endpoint's covariance is all zeros: singular
+    (lambda: _map(GOOD_P, [[np.eye(3) * 1e-12] * 2]), None, r"segments\[0\]: cov0 .*symmetric positive definite"),
+    (lambda: _map([[[0, -1, 2], [np.nan, -1, 2]]], GOOD_C), None, "endpoints must be finite numbers"),
+    # two endpoints 1e-7 m apart are one point once rounded to the file's 6 decimals
+    (lambda: _map([[[0, -1, 2], [1e-7, -1, 2]]], GOOD_C), None, r"segments\[0\]: p0 and p1 are the same point"),
+    (lambda: _map(GOOD_P, GOOD_C, views=[[np.array([0, 0, np.inf, 0.0])]]), None, r"segments\[0\]\.views"),
+    (lambda: _map(GOOD_P, GOOD_C), {"objects": [{"footprint": [[0, np.nan]], "height": 0.3}]}, r"meta\.objects\[0\]"),
+])
+def test_save_refuses_what_load_would_refuse_and_writes_nothing(tmp_path, lmap, meta, why):
+    """save_map wrote maps load_map then refused (a map build's whole drive lost at the next goto); it checks
+    what it writes with load_map's own checks first, and leaves the file there untouched."""
+    path = tmp_path / "map.json"
+    path.write_text("the previous map\n")
+    with pytest.raises(MapFileError, match=rf"map\.json: not saved, it could not be loaded back: .*{why}"):
+        save_map(lmap(), path, meta)
+    assert path.read_text() == "the previous map\n" and sorted(p.name for p in tmp_path.iterdir()) == ["map.json"]
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("verified", "false", "expected true or false"),       # a non-empty string was np.array(..., bool): True
+    ("hypothesis", 0, "expected true or false"),
+    ("support", 2.5, "expected an integer >= 0"),           # cut to 2
+    ("misses", -1, "expected an integer >= 0"),
+    ("group", True, "expected an integer >= -1"),
+])
+def test_segment_counts_and_flags_of_another_type_are_refused(tmp_path, field, value, expected):
+    """A hand-edited map's "verified": "false" loaded as verified (planning trusted the segment), 2.5 support
+    as 2: refused naming the segment and the field."""
+    path = _saved(tmp_path)
+    _edit(path, lambda s: s[1].__setitem__(field, value))
+    with pytest.raises(MapFileError, match=rf"map\.json: segments\[1\]\.{field}: {expected}, got {value!r}"):
+        load_map(path)
+
+
+def test_frames_must_be_a_count(tmp_path):
+    path = _saved(tmp_path)
+    data = json.loads(path.read_text())
+    data["frames"] = -3
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=r"map\.json: frames: expected an integer >= 0, got -3"):
+        load_map(path)
+
+
+@pytest.mark.parametrize("frames", ["many", -1, 2.5])
+def test_meta_frames_must_be_a_count(tmp_path, frames):
+    """goto --map-out adds its frames to meta.frames when it saves the grown map: a word there loaded, and the
+    drive ended in a traceback with the grown map lost. Refused at load."""
+    path = tmp_path / "map.json"
+    save_map(LineMap(MapParams()), path, {"frames": 3})
+    data = json.loads(path.read_text())
+    data["meta"]["frames"] = frames
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=rf"map\.json: meta\.frames: expected an integer >= 0, got {frames!r}"):
+        load_map(path)
+
+
+def test_a_key_given_twice_is_refused(tmp_path):
+    """JSON readers keep the last of two equal keys: a hand-edited second "params" or "segments" replaced
+    the first silently."""
+    path = _saved(tmp_path)
+    text = path.read_text()
+    path.write_text(text[:-1] + ', "frames": 7}')
+    with pytest.raises(MapFileError, match=r"map\.json: not a JSON map file \(duplicate key 'frames'\)"):
+        load_map(path)

@@ -151,3 +151,73 @@ def test_no_flip_anywhere_loses_messages_silently(tmp_path):
         assert s.messages == total or s.damaged, (offset, format_summary(s))
         reported += s.damaged
     assert reported >= 20
+
+
+def test_overwrite_keeps_the_part_of_an_interrupted_recording(tmp_path, capsys):
+    """--overwrite replaces PATH when the new recording is complete; the PATH.part of an earlier crash is
+    another recording (the only copy of that run): it was truncated as soon as the new one opened."""
+    path = tmp_path / "i.mcap"
+    crashed = _record(tmp_path / "crashed.mcap", n=30)
+    crashed._writer.flush()
+    crashed._file.close()                               # as SIGKILL leaves it: no summary, still .part
+    part = tmp_path / "crashed.mcap.part"
+    os.rename(part, tmp_path / "i.mcap.part")
+    before = (tmp_path / "i.mcap.part").read_bytes()
+    rec = _record(path, n=10, overwrite=True)
+    kept = tmp_path / "i.interrupted-1.mcap.part"
+    assert kept.read_bytes() == before
+    assert rec.kept_part == kept and f"kept as {kept}" in capsys.readouterr().err
+    rec.close()
+    assert read_recording(path).channels["/vbnav/state"].count == 10
+    assert read_recording(kept).channels["/vbnav/state"].count > 0     # still readable as the crash left it
+    (tmp_path / "i.mcap.part").write_bytes(b"a second crash")
+    (tmp_path / "j.mcap.part").write_bytes(b"crashed")
+    (tmp_path / "j.interrupted-1.mcap.part").write_bytes(b"crashed before")
+    with pytest.raises(FileExistsError, match=r"kept as j\.interrupted-2\.mcap\.part"):   # the name it will get
+        McapRecorder(tmp_path / "j.mcap", "sim")
+    _record(path, n=5, overwrite=True).close()                       # a unique name: the first kept one stays
+    assert kept.read_bytes() == before
+    assert (tmp_path / "i.interrupted-2.mcap.part").read_bytes() == b"a second crash"
+
+
+
+def test_close_makes_the_rename_durable(tmp_path, disk_log):
+    """The rename PATH.part -> PATH is an entry of the folder: without an fsync of the folder after it, a power
+    cut could leave only PATH.part although close() returned."""
+    rec = _record(tmp_path / "r.mcap", n=10)
+    rec.close()
+    assert disk_log.durable(tmp_path / "r.mcap"), disk_log
+
+
+def test_record_info_says_an_interrupted_recording_lies_beside_the_complete_one(tmp_path, capsys):
+    """A run with --overwrite that was killed leaves the earlier complete PATH and its own PATH.part:
+    record-info PATH described the earlier run as 'complete' and said nothing of the newer, interrupted one."""
+    from vbnav.control import cli
+    path = tmp_path / "r.mcap"
+    _record(path, n=10).close()
+    newer = _record(path, n=30, overwrite=True)
+    newer._writer.flush()
+    newer._file.close()                                  # killed: PATH.part stays beside PATH
+    assert cli.main(["record-info", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert f"{path}: complete" in out
+    assert f"note: {path.name}.part beside it is an interrupted recording (read it with 'vbnav record-info " \
+           f"{path}.part')" in err, err
+
+
+def test_a_recording_that_cannot_start_leaves_no_part(tmp_path, monkeypatch):
+    """A failure while the recording's header is written (a full disk) left an empty PATH.part open: the next
+    run then refused the path for an 'interrupted recording' that never held a message."""
+    import errno
+
+    from mcap.writer import Writer
+
+    def full(self, *a, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Writer, "add_metadata", full)
+    with pytest.raises(OSError, match="No space"):
+        McapRecorder(tmp_path / "r.mcap", "sim")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+    _record(tmp_path / "r.mcap", n=3).close()                  # the path is free for the next run

@@ -192,3 +192,15 @@ def test_an_old_route_left_by_an_earlier_process_with_our_pid_is_kept(tmp_path, 
             w.append(make_kf(rng, i))
     assert len(load_route(tmp_path / "r")) == 4 and len(load_route(earlier)) == 2
     assert stray_route_dirs(tmp_path / "r") == [earlier]
+
+
+def test_an_installed_route_directory_is_durable(tmp_path, rng, disk_log):
+    """A pulled or pushed route is a staging folder renamed into place: its own entries (the files written
+    into it) and the rename must reach the disk, or a power cut leaves an empty or missing route."""
+    staging = tmp_path / "staging"
+    write_route(staging, rng)
+    disk_log.clear()        # what the install does (route_transfer writes the staging files with plain writes)
+    route_mod.install_route_dir(staging, tmp_path / "r", overwrite=False)
+    assert ("fsync folder", str(staging)) in disk_log
+    assert disk_log.durable(tmp_path / "r"), disk_log
+    assert load_route(tmp_path / "r").keyframes

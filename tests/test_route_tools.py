@@ -186,3 +186,38 @@ def test_check_and_info_say_what_is_wrong_with_non_numbers_in_the_manifest(route
     assert main(["route", "info", str(route)]) == 0
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("calibration:"))
     assert "distortion [['a']]" in line and "baseline 'q'" in line, line
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_check_fails_a_route_repeat_refuses(tmp_path, capsys, complete):
+    """A route of 0 keyframes loads (every file is intact), and route check called it 'intact ... complete'
+    with exit 0 while vbnav repeat refuses it: check fails it with repeat's own reason."""
+    route = write_route(tmp_path / "empty", n=0, complete=complete)
+    assert main(["repeat", "--path", str(route)]) == 2
+    refusal = capsys.readouterr().err
+    assert "the route has no keyframes" in refusal
+    assert main(["route", "check", str(route)]) == 1
+    out = capsys.readouterr().out
+    assert "intact" not in out and "vbnav repeat refuses it: the route has no keyframes" in out, out
+
+
+def test_list_does_not_call_a_complete_of_another_type_complete(tmp_path, capsys):
+    """A hand-edited "complete": "false" was listed as complete (bool of a non-empty string) while every
+    command that loads the route refuses it: the list says what is wrong with it instead."""
+    import json as _json
+    route = write_route(tmp_path / "edited", n=2)
+    m = _json.loads((route / "manifest.json").read_text())
+    m["complete"] = "false"
+    (route / "manifest.json").write_text(_json.dumps(m))
+    assert main(["route", "list", str(tmp_path)]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert "edited" in line and "complete: expected true or false, got 'false'" in line and " yes " not in line
+
+
+def test_a_manifest_key_given_twice_is_refused(tmp_path, capsys):
+    """A hand-edited manifest with "complete" twice loaded with the last one: refused naming the key."""
+    route = write_route(tmp_path / "twice", n=2, complete=False)
+    text = (route / "manifest.json").read_text()
+    (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
+    assert main(["repeat", "--path", str(route)]) == 2
+    assert "manifest.json: not valid JSON (duplicate key 'complete')" in capsys.readouterr().err

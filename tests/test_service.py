@@ -445,3 +445,31 @@ def test_a_serial_given_twice_for_one_device_is_refused(tmp_path, capsys):
     assert cli.main(argv) == 2
     assert "--serial drive=A50285BI: drive is given twice (drive=FT6Z5XDZ before)" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+def test_an_overwrite_that_fails_part_way_keeps_both_old_files(tmp_path, capsys, monkeypatch):
+    """The unit and the udev rules are one installation: the second write failing left the new unit beside
+    the old rules (a unit naming devices the rules do not create). Both are written beside first, then renamed."""
+    import errno
+    import tempfile
+    config = _robot_config(tmp_path)
+    root = tmp_path / "root"
+    args = ["service", "install", "-c", str(config), "--root", str(root), "--user", _user(), "--overwrite"]
+    assert cli.main(args) == 0
+    unit, rules = root / "etc/systemd/system/vbnav.service", root / "etc/udev/rules.d/99-vbnav.rules"
+    for f in (unit, rules):
+        f.write_text(f"# the {f.name} in use\n")
+    real, calls = tempfile.mkstemp, []
+
+    def second_fails(*a, **kw):
+        calls.append(kw.get("prefix"))
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(tempfile, "mkstemp", second_fails)
+    capsys.readouterr()
+    assert cli.main(args) == 1 and len(calls) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert unit.read_text() == "# the vbnav.service in use\n" and rules.read_text() == f"# the {rules.name} in use\n"
+    assert not list(unit.parent.glob(".*.tmp")) and not list(rules.parent.glob(".*.tmp"))

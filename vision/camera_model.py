@@ -11,6 +11,25 @@ import cv2
 import numpy as np
 
 
+#: How many distortion coefficients OpenCV takes per lens model (0: no distortion).
+DISTORTION_COUNTS = {"pinhole": (0, 4, 5, 8, 12, 14), "fisheye": (0, 4)}
+
+
+def check_distortion(model: str, dist) -> tuple:
+    """The distortion coefficients of a ``model`` ('pinhole' or 'fisheye') lens as a tuple of floats; a
+    ValueError says what OpenCV would refuse (a count it does not take, numbers that are not finite). Every
+    reader of a camera (config, calibration files, routes, datasets) checks with this; the message is
+    the caller's to prefix with the file and field."""
+    d = tuple(float(x) for x in np.asarray(dist, dtype=float).ravel())
+    counts = DISTORTION_COUNTS[model]
+    if len(d) not in counts:
+        raise ValueError(f"{model} expects {', '.join(map(str, counts[1:-1]))}"
+                         f"{' or ' if len(counts) > 2 else ''}{counts[-1]} coefficients (or none), got {len(d)}")
+    if not np.isfinite(d).all():
+        raise ValueError(f"expected finite numbers, got {list(d)}")
+    return d
+
+
 @dataclass(frozen=True)
 class CameraIntrinsics:
     """Image size (px) and the linear intrinsics every camera model here shares."""

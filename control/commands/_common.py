@@ -23,7 +23,8 @@ def add_config_arg(p: argparse.ArgumentParser, default: str | None = None) -> No
 def add_record_overwrite_arg(p: argparse.ArgumentParser, also: str = "") -> None:
     p.add_argument("--overwrite", action="store_true",
                    help=f"replace {also + ' and ' if also else ''}an existing --record file (the new one takes its "
-                        f"place only when complete)")
+                        f"place only when complete; an interrupted FILE.part is kept, renamed "
+                        f"FILE-STEM.interrupted-N.SUFFIX.part)")
 
 
 def record_target_error(args, overwrite_is_record_only: bool = False) -> Optional[str]:

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import add_config_arg, add_overwrite_arg, non_negative, not_recorded_yet, positive
+from vbnav.drivers.atomic_file import write_atomic_set
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.errors import InputError
 
@@ -221,8 +222,9 @@ class ViewCollector:
         return view
 
 
-def _write_intrinsics(out: Path, prefix: str, result, views, board, name: str) -> list[Path]:
-    from vbnav.drivers.atomic_file import write_atomic
+def _intrinsics_files(out: Path, prefix: str, result, views, board, name: str) -> dict[Path, str]:
+    """The OpenCV and ROS files of one camera's calibration: path -> text (written by the caller, with the
+    other files of the set: ``write_atomic_set``)."""
     from vbnav.drivers.calibration import opencv_yaml_text, ros_camera_info_text
     per = {v.name: e for v, e in zip(views, result.per_view)}
     extra = {"avg_reprojection_error": result.rms, "per_view_reprojection_errors": result.per_view,
@@ -230,10 +232,25 @@ def _write_intrinsics(out: Path, prefix: str, result, views, board, name: str) -
     notes = (f"calibrated by vbnav calibrate from {len(views)} views of a {board.kind} {board.cols}x{board.rows}",
              f"rms_reprojection_error_px: {result.rms:.4f}",
              *(f"view {n}: {e:.4f} px" for n, e in per.items()))
-    a, b = out / f"{prefix}opencv.yaml", out / f"{prefix}info.yaml"
-    write_atomic(a, opencv_yaml_text(result.K, result.dist, result.size, extra=extra))
-    write_atomic(b, ros_camera_info_text(result.K, result.dist, result.size, name=name, comments=notes))
-    return [a, b]
+    return {out / f"{prefix}opencv.yaml": opencv_yaml_text(result.K, result.dist, result.size, extra=extra),
+            out / f"{prefix}info.yaml": ros_camera_info_text(result.K, result.dist, result.size, name=name,
+                                                             comments=notes)}
+
+
+def _loads_back(temps: dict) -> None:
+    """``write_atomic_set``'s check: each file that is a camera.calibration_file (all but the stereo_opencv.yaml
+    record) loads as one, or the set is not written (InputError naming the file and the loader's reason)."""
+    from vbnav.drivers.calibration import CalibrationError, load_camera_calibration
+    for target, tmp in temps.items():
+        if target.name == "stereo_opencv.yaml":     # K1 D1 K2 D2 R T: a record of the fit, not a calibration_file
+            continue
+        try:
+            load_camera_calibration(tmp)
+        except CalibrationError as exc:
+            why = str(exc).replace(f"{tmp}: ", "").replace(str(tmp), str(target))
+            swapped = " (LEFT_DIR and RIGHT_DIR the wrong way round?)" if "baseline" in why else ""
+            raise InputError(f"{target}: not written (nor the other files of the calibration): it would not load "
+                             f"as a camera.calibration_file: {why}{swapped}") from None
 
 
 def _report(label: str, result) -> None:
@@ -278,7 +295,8 @@ def run_intrinsics(args) -> int:
     _say(args, f"{len(collector.views)} views accepted, {collector.rejected} rejected; calibrating ...")
     result = _calibrate(collector.views, collector.size)
     out.mkdir(parents=True, exist_ok=True)
-    files = _write_intrinsics(out, "camera_", result, collector.views, board, "camera")
+    files = write_atomic_set(_intrinsics_files(out, "camera_", result, collector.views, board, "camera"),
+                             check=_loads_back)
     _report("intrinsics", result)
     print(f"wrote {', '.join(map(str, files))} ({time.monotonic() - t0:.1f} s); use one as camera.calibration_file")
     return 0
@@ -318,7 +336,6 @@ def _collect_live(args, collector, want: int) -> None:
 
 
 def run_stereo(args) -> int:
-    from vbnav.drivers.atomic_file import write_atomic
     from vbnav.vision.board_calibration import calibrate_stereo
     board = _board(args)
     out = _out_folder(args.out)
@@ -345,9 +362,8 @@ def run_stereo(args) -> int:
         st = calibrate_stereo(pairs, lres, rres)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    out.mkdir(parents=True, exist_ok=True)
-    files = _write_intrinsics(out, "left_", lres, lc.views, board, "left")
-    files += _write_intrinsics(out, "right_", rres, rc.views, board, "right")
+    files = {**_intrinsics_files(out, "left_", lres, lc.views, board, "left"),
+             **_intrinsics_files(out, "right_", rres, rc.views, board, "right")}
     fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     fs.write("image_width", lc.size[0])
     fs.write("image_height", lc.size[1])
@@ -356,14 +372,15 @@ def run_stereo(args) -> int:
         fs.write(key, np.asarray(val, float))
     fs.write("rms_reprojection_error", st.rms)
     fs.write("baseline", st.baseline)
-    write_atomic(out / "stereo_opencv.yaml", fs.releaseAndGetString())
+    files[out / "stereo_opencv.yaml"] = fs.releaseAndGetString()
     r = st.rectified
-    write_atomic(out / "stereo.yaml",
-                 f"# the rectified pair of {out / 'stereo_opencv.yaml'} (vbnav stereo format, docs/obstacles.md)\n"
-                 f"# stereoCalibrate RMS {st.rms:.4f} px over {len(pairs)} pairs; baseline in --square units\n"
-                 f"width: {lc.size[0]}\nheight: {lc.size[1]}\nfx: {r['fx']:.6f}\nfy: {r['fy']:.6f}\n"
-                 f"cx: {r['cx']:.6f}\ncy: {r['cy']:.6f}\nbaseline: {r['baseline']:.6f}\n")
-    files += [out / "stereo_opencv.yaml", out / "stereo.yaml"]
+    files[out / "stereo.yaml"] = (
+        f"# the rectified pair of {out / 'stereo_opencv.yaml'} (vbnav stereo format, docs/obstacles.md)\n"
+        f"# stereoCalibrate RMS {st.rms:.4f} px over {len(pairs)} pairs; baseline in --square units\n"
+        f"width: {lc.size[0]}\nheight: {lc.size[1]}\nfx: {r['fx']:.6f}\nfy: {r['fy']:.6f}\n"
+        f"cx: {r['cx']:.6f}\ncy: {r['cy']:.6f}\nbaseline: {r['baseline']:.6f}\n")
+    out.mkdir(parents=True, exist_ok=True)
+    files = write_atomic_set(files, check=_loads_back)     # one calibration: all replaced, or none
     _report("left", lres)
     _report("right", rres)
     print(f"stereo: RMS {st.rms:.4f} px over {len(pairs)} pairs; baseline {st.baseline:.5f} (T "

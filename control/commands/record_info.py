@@ -16,11 +16,17 @@ def register(sub) -> None:
 
 
 def _run(args) -> int:
-    from vbnav.control.comms.recording import format_summary, read_recording
+    from pathlib import Path
+
+    from vbnav.control.comms.recording import PART_SUFFIX, format_summary, read_recording
     try:
         summary = read_recording(args.path)
     except ValueError as exc:
         print(f"vbnav record-info: {exc}", file=sys.stderr)
         return 2
     print(format_summary(summary))
+    part = Path(args.path).with_name(Path(args.path).name + PART_SUFFIX)
+    if summary.path != part and part.exists():     # a later run with --overwrite that did not end
+        print(f"vbnav record-info: note: {part.name} beside it is an interrupted recording (read it with "
+              f"'vbnav record-info {part}')", file=sys.stderr)
     return 1 if summary.damaged else 0

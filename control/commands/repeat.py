@@ -36,8 +36,8 @@ def run(args) -> int:
     if why:
         raise InputError(why)
     route = load_route(args.path)          # before any device is opened; a RouteError is exit 2
-    if not route.keyframes:
-        raise InputError(f"{args.path}: the route has no keyframes")
+    if route.repeat_refusal():
+        raise InputError(f"{args.path}: {route.repeat_refusal()}")
     if not route.complete:
         print(f"vbnav repeat: warning: {args.path}: {route.incomplete_note()}", file=sys.stderr)
     printer = ProgressPrinter()

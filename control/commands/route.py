@@ -9,7 +9,8 @@
   keyframes, headings, start and end); default file ``PATH.png`` beside the route.
 - ``check PATH``: every PNG chunk and ``.npz`` member against its CRC-32, every
   file decoded, the manifest compared with the files. Exit 0 intact (complete or
-  not: the verdict says which), 1 damaged, 2 not a route.
+  not: the verdict says which), 1 damaged or refused by ``vbnav repeat`` (no
+  keyframes), 2 not a route.
 - ``pull ROBOT NAME``, ``push ROBOT PATH``: copy a route from or to a robot over
   zenoh, checksummed (comms/route_transfer.py, docs/fleet.md). Exit codes as
   ``vbnav send``: 0 copied, 1 refused or failed, 2 bad input, 3 cannot connect or
@@ -126,6 +127,9 @@ def run_check(args) -> int:
     if not report.intact:
         print(f"{report.path}: DAMAGED ({len(report.problems)} problem(s)); a repeat would refuse or misread it: "
               f"teach it again (vbnav teach -c CONFIG --out {report.path} --overwrite)")
+        return 1
+    if report.repeat_refusal:
+        print(f"{report.path}: its files are whole, but vbnav repeat refuses it: {report.repeat_refusal}")
         return 1
     print(f"{report.path}: intact, {report.keyframes} keyframes, "
           f"{'complete' if report.complete else 'incomplete (teaching was interrupted)'}")

@@ -27,13 +27,16 @@ flushed to the OS at least every ``flush_interval_s``, so a process killed with
 SIGKILL leaves a file readable up to its last completed chunk (it lacks the
 summary section, so read it with ``read_recording``/``iter_recording``, which
 stream through it). The file is written as ``PATH.part`` and renamed to ``PATH``
-when the recording closes cleanly.
+when the recording closes cleanly. A ``PATH.part`` already there is an earlier run's interrupted recording
+(its only copy): ``--overwrite`` replaces ``PATH``, never that; it is renamed aside to
+``STEM.interrupted-N.SUFFIX.part`` (``interrupted_name``) before the new recording opens, and said so.
 """
 from __future__ import annotations
 
 import datetime
 import os
 import struct
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +44,7 @@ from typing import Iterator, Optional
 
 from vbnav.control.comms import foxglove_channels as fc
 from vbnav.control.comms.telemetry import Sink
+from vbnav.drivers.atomic_file import fsync_folder, replace_durably
 
 PART_SUFFIX = ".part"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -48,7 +52,8 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 def check_record_target(path: str | os.PathLike, overwrite: bool = False) -> None:
     """Refuse to record over a recording (PATH, or PATH.part of an interrupted one) unless ``overwrite``;
     FileExistsError / FileNotFoundError name the file. With ``overwrite`` the old file stays until the
-    new one is complete (it is written as PATH.part and renamed over PATH when it closes)."""
+    new one is complete (it is written as PATH.part and renamed over PATH when it closes), and an
+    interrupted PATH.part is kept under another name (``keep_interrupted``)."""
     p = Path(path)
     if p.parent and not p.parent.exists():
         raise FileNotFoundError(f"--record {p}: directory {p.parent} does not exist")
@@ -59,13 +64,41 @@ def check_record_target(path: str | os.PathLike, overwrite: bool = False) -> Non
     part = p.with_name(p.name + PART_SUFFIX)
     if part.exists():
         raise FileExistsError(f"--record {p}: {part.name} of an interrupted recording exists (read it with "
-                              f"'vbnav record-info {p}'; use --overwrite to replace it)")
+                              f"'vbnav record-info {p}'; with --overwrite it is kept as "
+                              f"{free_interrupted_name(p).name} and a new recording starts)")
+
+
+def interrupted_name(path: Path, n: int) -> Path:
+    """Where the n-th kept interrupted recording of ``path`` goes: ``run.mcap`` -> ``run.interrupted-1.mcap.part``
+    (still a ``.part``: ``vbnav record-info`` reads it as the interrupted file it is)."""
+    return path.with_name(f"{path.stem}.interrupted-{n}{path.suffix}{PART_SUFFIX}")
+
+
+def free_interrupted_name(path: Path) -> Path:
+    """The first ``interrupted_name`` of ``path`` not taken (earlier kept recordings stay)."""
+    n = 1
+    while interrupted_name(path, n).exists():
+        n += 1
+    return interrupted_name(path, n)
+
+
+def keep_interrupted(path: Path) -> Optional[Path]:
+    """Rename an interrupted ``PATH.part`` aside to ``free_interrupted_name`` (the new recording is written
+    as ``PATH.part``: opening it would truncate the earlier run's); its new path, or None."""
+    part = path.with_name(path.name + PART_SUFFIX)
+    if not part.exists():
+        return None
+    kept = free_interrupted_name(path)
+    os.rename(part, kept)
+    fsync_folder(kept.parent)
+    return kept
 
 
 class McapRecorder(Sink):
     """Writes telemetry to an MCAP file (call only from one thread: the telemetry publisher's).
 
-    An existing PATH (or PATH.part) is refused unless ``overwrite``: see ``check_record_target``.
+    An existing PATH (or PATH.part) is refused unless ``overwrite``: see ``check_record_target``. With
+    ``overwrite``, a PATH.part left by an interrupted run is renamed aside first (``kept_part``, said on stderr).
     """
 
     def __init__(self, path: str | os.PathLike, robot: str, chunk_size: int = 256 * 1024,
@@ -74,13 +107,10 @@ class McapRecorder(Sink):
         self.path = Path(path)
         check_record_target(self.path, overwrite)
         self.part_path = self.path.with_name(self.path.name + PART_SUFFIX)
-        self._file = open(self.part_path, "wb")
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
-        self._writer.start(profile="", library="vbnav")
-        meta = {"robot": robot, "wall_time_start": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                "monotonic_start_ns": str(time.monotonic_ns())}
-        meta.update({k: str(v) for k, v in (metadata or {}).items()})
-        self._writer.add_metadata("vbnav", meta)
+        self.kept_part = keep_interrupted(self.path) if overwrite else None
+        if self.kept_part is not None:
+            print(f"vbnav: --record {self.path}: the interrupted recording {self.part_path.name} of an earlier run "
+                  f"is kept as {self.kept_part} (--overwrite replaces {self.path.name} only)", file=sys.stderr)
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._flush_interval_s = flush_interval_s
@@ -93,9 +123,24 @@ class McapRecorder(Sink):
         self._last_log_ns = 0
         self._rebase_gap_ns: Optional[int] = None
         self.segments: list[str] = []
-        for topic in ("/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"):
-            self._channel(topic)
-        self._writer.flush()  # header, metadata and channels reach the disk first
+        self._file = open(self.part_path, "xb")
+        try:        # a recording that cannot start leaves no PATH.part (the next run would take it for a crash's)
+            self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self._writer.start(profile="", library="vbnav")
+            meta = {"robot": robot, "wall_time_start": datetime.datetime.now(datetime.timezone.utc).isoformat(),
+                    "monotonic_start_ns": str(time.monotonic_ns())}
+            meta.update({k: str(v) for k, v in (metadata or {}).items()})
+            self._writer.add_metadata("vbnav", meta)
+            for topic in ("/vbnav/state", "/vbnav/events", "/vbnav/log", "/vbnav/pose/odom"):
+                self._channel(topic)
+            self._writer.flush()  # header, metadata and channels reach the disk first
+        except BaseException:
+            try:
+                self._file.close()      # may fail again flushing to the full disk
+            except OSError:
+                pass
+            self.part_path.unlink(missing_ok=True)
+            raise
 
     def _channel(self, topic: str) -> int:
         if topic not in self._channels:
@@ -157,7 +202,7 @@ class McapRecorder(Sink):
         self._write(topic, t, fc.encode(build(t)))
 
     def close(self) -> None:
-        """Write the summary and index, then rename PATH.part -> PATH (idempotent)."""
+        """Write the summary and index, fsync, then rename PATH.part -> PATH durably (idempotent)."""
         if self._closed:
             return
         self._closed = True
@@ -165,7 +210,7 @@ class McapRecorder(Sink):
         self._file.flush()
         os.fsync(self._file.fileno())
         self._file.close()
-        os.replace(self.part_path, self.path)
+        replace_durably(self.part_path, self.path)
 
 
 # ---- reading ---------------------------------------------------------------------------

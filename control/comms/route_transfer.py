@@ -298,6 +298,8 @@ class RouteServer:
             raise TransferError(f"push commit: {'missing ' + ', '.join(missing[:3]) if missing else ''}"
                                 f"{'; not in the manifest: ' + ', '.join(extra[:3]) if extra else ''}")
         route = load_route(inc.staging, load_images=False)
+        if route.repeat_refusal():          # it would replace a route that can be repeated by one that cannot
+            raise TransferError(f"push commit: route {inc.name!r}: a repeat refuses it: {route.repeat_refusal()}")
         reason = self._busy(inc.name)      # teaching may have begun since the push did
         if reason:
             raise TransferError(reason)
@@ -414,7 +416,9 @@ def pull(session, robot: str, name: str, dest_root, overwrite: bool = False, tim
                 raise TransferError(f"{f['name']}: received {size} bytes with sha256 {h.hexdigest()[:12]}..., robot "
                                     f"{robot} listed {f['size']} bytes, {f['sha256'][:12]}... (did the route change "
                                     f"on the robot meanwhile? pull again)")
-        load_route(staging, load_images=False)
+        refusal = load_route(staging, load_images=False).repeat_refusal()
+        if refusal:
+            raise TransferError(f"robot {robot}'s route {name!r}: a repeat refuses it: {refusal}; not pulling it")
         install_route_dir(staging, dest, overwrite)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -436,6 +440,8 @@ def push(session, robot: str, path, name: Optional[str] = None, overwrite: bool 
     report = check(path)
     if not report.intact:
         raise RouteError(f"{path}: damaged ({'; '.join(report.problems[:2])}); not pushing it")
+    if report.repeat_refusal:
+        raise RouteError(f"{path}: vbnav repeat refuses it: {report.repeat_refusal}; not pushing it")
     files = route_files(path)
     base = f"{keys(robot)['push']}/{name}/{uuid.uuid4().hex}"
 

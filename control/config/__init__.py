@@ -22,13 +22,14 @@ from pydantic import Field, PrivateAttr, ValidationError, field_validator, model
 
 from vbnav.drivers.calibration import CalibrationError, CameraCalibration, load_camera_calibration
 from vbnav.drivers.errors import yaml_problem
+from vbnav.drivers.plain_values import load_yaml
 from vbnav.control.config.base import ConfigError, Strict, format_errors
 from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.config.vbc import VBCConfig
 from vbnav.control.config.vslam import VslamNavConfig
 from vbnav.drivers import registry
-from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera
+from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import CameraMount, Pose2
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"   # control/config/__init__.py -> repo/configs
@@ -71,8 +72,9 @@ class CameraConfig(Strict):
     cx: float = Field(319.5, allow_inf_nan=False, description="principal point x, px")
     cy: float = Field(239.5, allow_inf_nan=False, description="principal point y, px")
     distortion: list[float] = Field(default_factory=list, max_length=14,
-                                    description="OpenCV distortion coefficients: pinhole k1 k2 p1 p2 [k3 ...], "
-                                                "fisheye k1 k2 k3 k4; empty: none")
+                                    description="OpenCV distortion coefficients, finite numbers: pinhole k1 k2 p1 "
+                                                "p2 [k3 ...] (4, 5, 8, 12 or 14 of them), fisheye k1 k2 k3 k4; "
+                                                "empty: none")
     calibration_file: Optional[str] = Field(
         None, description="camera calibration: OpenCV YAML/XML, ROS camera_info YAML, vbnav stereo YAML or KITTI "
                           "calib.txt (docs/hardware.md); loaded with the config, its model, size, intrinsics, "
@@ -119,6 +121,13 @@ class CameraConfig(Strict):
                 "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
                 "distortion": list(self.distortion), "baseline": self.stereo_baseline()}
 
+    @field_validator("distortion")
+    @classmethod
+    def _distortion_opencv_takes(cls, v, info):
+        # NaN, inf or a count OpenCV refuses failed the first undistortPoints of the run (a fisheye's was
+        # padded or cut to 4); the model is validated first (declared before)
+        return list(check_distortion(info.data.get("model", "pinhole"), v))
+
     @model_validator(mode="after")
     def _principal_point_in_image(self):
         # A principal point outside the image is a calibration for another image size (or a typo).
@@ -131,7 +140,7 @@ class CameraConfig(Strict):
         cls = FisheyeCamera if self.model == "fisheye" else PinholeCamera
         dist = tuple(self.distortion)
         if self.model == "fisheye":
-            dist = (tuple(dist) + (0.0,) * 4)[:4]
+            dist = dist or (0.0,) * 4           # none: the equidistant projection (check_distortion: 0 or 4)
         return cls(self.width, self.height, self.fx, self.fy, self.cx, self.cy, dist)
 
 
@@ -427,7 +436,7 @@ def load_config(path: str | Path | None = None, overrides: Optional[dict] = None
     if p.is_dir():
         raise ConfigError(f"{p}: is a directory, expected a YAML config file")
     try:
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: {yaml_problem(exc)}") from None
     if overrides:

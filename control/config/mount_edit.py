@@ -18,6 +18,7 @@ import yaml
 
 from vbnav.control.config.base import ConfigError
 from vbnav.drivers.atomic_file import write_atomic
+from vbnav.drivers.plain_values import load_yaml
 
 _TOP_KEY = re.compile(r"^([A-Za-z_][\w-]*)\s*:(.*)$")
 _KEY = re.compile(r"^(\s+)([A-Za-z_][\w-]*)\s*:(\s*)(.*?)(\s+#.*)?$")
@@ -44,7 +45,7 @@ def set_camera_mount(path, values: dict) -> str:
     newline = "\r\n" if "\r\n" in raw else "\n"        # kept: every line not edited stays as it was
     text = raw.replace("\r\n", "\n")
     try:
-        data = yaml.safe_load(text) or {}
+        data = load_yaml(text) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({exc})") from None
     old_mount = dict(((data.get("camera") or {}).get("mount") or {}))
@@ -55,7 +56,7 @@ def set_camera_mount(path, values: dict) -> str:
                           f"hand: camera: mount: {_flow(new_mount)}")
     expected = dict(data)
     expected["camera"] = {**(data.get("camera") or {}), "mount": new_mount}
-    got = yaml.safe_load(new_text)
+    got = load_yaml(new_text)
     if got != expected:
         raise ConfigError(f"{p}: editing camera.mount in place would change other keys; set it by hand: "
                           f"camera: mount: {_flow(new_mount)}")

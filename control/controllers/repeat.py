@@ -44,8 +44,8 @@ class RepeatController(Controller):
     def __init__(self, route: Route, cfg: VBCConfig | None = None, max_linear_speed: float | None = None,
                  max_angular_speed: float | None = None):
         """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's)."""
-        if not route.keyframes:
-            raise ValueError(f"{route.path}: route has no keyframes")
+        if route.repeat_refusal():
+            raise ValueError(f"{route.path}: {route.repeat_refusal()}")
         self.cfg = cfg or VBCConfig()
         limits = RobotConfig()
         self.kfs = route.keyframes

@@ -60,8 +60,8 @@ class RepeatStage(VisionStage):
     kind = "vbc"
 
     def __init__(self, route: Route, cfg: VBCConfig | None = None, camera=None, mount: CameraMount | None = None):
-        if not route.keyframes:
-            raise ValueError(f"{route.path}: route has no keyframes")
+        if route.repeat_refusal():
+            raise ValueError(f"{route.path}: {route.repeat_refusal()}")
         self.route = route
         self.kfs = route.keyframes
         self.camera = camera or route.camera
