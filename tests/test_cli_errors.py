@@ -15,6 +15,9 @@ import numpy as np
 import pytest
 
 VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
+# The module fixture runs all ~150 cases (a Python start-up each, ~2 s of CPU) before the first test: on two
+# busy cores that is several minutes, more than the suite's 300 s per test. Each case keeps its own 120 s limit.
+pytestmark = pytest.mark.timeout(1200)
 
 W, H = 64, 48     # the tiny test sequence's images
 K_ROW = f"50 0 {W / 2} 0 0 50 {H / 2} 0 0 0 1 0"          # P0 of the tiny sequence
