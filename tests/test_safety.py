@@ -987,3 +987,32 @@ def test_an_estop_a_motor_did_not_take_is_reported():
     warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
     assert len(warnings) == 1, result.events          # the estop's (at the end the drive was already disabled)
     assert warnings[0].stamp_ns == T0 + 1_000_000_000 + PERIOD_NS and "servo 1 (left)" in warnings[0].message
+
+
+def test_a_drive_fault_whose_stop_another_motor_did_not_take_is_reported():
+    """When the drive itself failed (a fault of one servo), the run did not report what the stop could not
+    reach ('its own stop says so'), but the fault names only the servo that failed: the other servo, whose
+    torque-off went unacknowledged, was passed over and the run ended as if both wheels had stopped."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+    from vbnav.drivers.wheels import DriveFault, FaultKind
+
+    class Overload(RecordingDrive):
+        def _read(self):
+            if self.clock.now_ns() >= T0 + 1_000_000_000:
+                self._fault(DriveFault(FaultKind.HARDWARE_ERROR, "servo 2 (right)", "servo 2 (right): overload"))
+            return super()._read()
+
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "servo 1 (left): torque off not acknowledged (no answer)"
+
+    clock = SimClock()
+    drive = Overload(clock)
+    result = Runtime(Config(), drive, Cruise(), clock).run(duration_s=2)
+    assert result.reason == "drive" and "overload" in result.message, result
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1 and "servo 1 (left): torque off not acknowledged" in warnings[0].message, \
+        result.events
