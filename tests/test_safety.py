@@ -1016,3 +1016,44 @@ def test_a_drive_fault_whose_stop_another_motor_did_not_take_is_reported():
     warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
     assert len(warnings) == 1 and "servo 1 (left): torque off not acknowledged" in warnings[0].message, \
         result.events
+
+
+@pytest.mark.parametrize("at", ["start-up", "after an estop"])
+def test_an_enable_that_failed_part_way_and_whose_stop_was_not_taken_is_reported(at):
+    """An enable() that armed one motor and then failed (the other did not enter closed loop) stops what it
+    armed; the run reported that stop only for a drive it had seen enabled, so a motor armed by the failed
+    enable that did not take the stop went unsaid."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+    from vbnav.drivers.wheels import DriveError
+
+    class HalfArmed(RecordingDrive):
+        enables, armed_left = 0, False
+
+        def _activate(self):
+            super()._activate()
+            self.enables += 1
+            if self.enables == (1 if at == "start-up" else 2):
+                self.armed_left = True
+                raise DriveError("axis1 (right) did not enter closed loop")
+
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "axis0 (left): did not take the stop: current_state 8" if self.armed_left else None
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 500_000_000:
+            r.submit(OperatorCommand("estop", (), "op"))
+        elif ctx.now_ns == T0 + 800_000_000:
+            r.submit(OperatorCommand("resume", (), "op"))
+
+    clock = SimClock()
+    drive = HalfArmed(clock)
+    rt = Runtime(Config(), drive, Cruise(), clock)
+    rt.cycle_observers.append(operator)
+    result = rt.run(duration_s=2)
+    assert result.reason == "drive" and "closed loop" in result.message, result
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1 and "axis0 (left): did not take the stop" in warnings[0].message, result.events

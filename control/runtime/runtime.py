@@ -253,8 +253,8 @@ class Runtime:
             if self._signal is not None:
                 # a stop asked for while the devices came up (a camera's slow discovery): never powered
                 raise _StoppedDuringStartUp(signal.Signals(self._signal).name)
+            self._enabled = True      # before enable(): what a failed enable armed is stopped and reported too
             self.drive.enable()
-            self._enabled = True
             self._start_ns = self.clock.now_ns()
             self._deadline_ns = None if duration_s is None else self._start_ns + int(duration_s * 1e9)
             next_progress[0] = self._start_ns
@@ -375,8 +375,8 @@ class Runtime:
                 s = self.safety.speed_scale
                 twist = self.limiter.apply(Twist(twist.v * s, twist.w * s), dt)
                 if not self._enabled:
+                    self._enabled = True      # before enable(): a failed enable's stop is reported by _make_safe
                     self.drive.enable()
-                    self._enabled = True
             else:
                 twist = self.limiter.stop()
                 if self._enabled:
