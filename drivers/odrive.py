@@ -372,14 +372,21 @@ class ODriveDrive(SerialWheelDrive):
         return "; ".join(f"{self._axis(ax)}: {m}" for ax, m in missed.items() if m) or None
 
     def _stop_not_taken(self, ax: int) -> Optional[str]:
-        """Why axis ``ax`` is not known to have taken the stop (read back: IDLE), None when it has."""
+        """Why axis ``ax`` is not known to have taken the stop (read back: IDLE), None when it has. The axis
+        leaves closed loop within a control period or so: its state is read again until ``t`` has passed."""
         t = self.opt.reply_timeout_s * 4
+        end = time.monotonic() + t
         try:
-            state = self._query(f"r axis{ax}.current_state", t)
-            if state is None:
-                return f"no answer to 'r axis{ax}.current_state' within {t * 1000:.0f} ms: the stop is unconfirmed"
-            if _integer(state) == AXIS_STATE_IDLE:
-                return None
+            while True:
+                state = self._query(f"r axis{ax}.current_state", t)
+                if state is None:
+                    return (f"no answer to 'r axis{ax}.current_state' within {t * 1000:.0f} ms: the stop is "
+                            "unconfirmed")
+                if _integer(state) == AXIS_STATE_IDLE:
+                    return None
+                if time.monotonic() >= end:
+                    break
+                time.sleep(0.001)
             vel = self._query(f"r axis{ax}.controller.input_vel", t)
         except Exception as exc:     # a device gone or a garbled answer: not known to have stopped
             return f"the stop's read-back failed ({exc!r})"

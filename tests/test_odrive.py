@@ -311,3 +311,15 @@ def test_a_stop_sent_to_a_silent_odrive_is_unconfirmed(emu, drive):
 
 def stopped_or_idle(emu) -> bool:
     return all(a.current_state == oe.AXIS_STATE_IDLE and a.input_vel == 0.0 for a in emu.axes)
+
+
+def test_an_axis_that_reaches_idle_a_little_after_the_stop_has_taken_it(emu, drive):
+    """The firmware's state machine leaves closed loop at its own pace: one read-back right after the stop
+    could still see closed loop and call a stop that was taken unconfirmed. The state is read again until
+    the read-back's time has passed."""
+    drive_for(drive, 2.0, 2.0)
+    with emu.lock:
+        emu.axis(1).idle_after_s = 0.01
+    drive.disable()
+    assert drive.stop_failure is None, drive.stop_failure
+    assert stopped_or_idle(emu)
