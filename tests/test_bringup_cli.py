@@ -305,27 +305,33 @@ def test_keyboard_teleop_resume_names_the_stop_it_has_seen(capsys):
     r, w = os.pipe()
     out = _Recorder()
     last_state = [None]
+    screen = []
+
+    def until(cond):                 # the key loop runs in its thread: wait for what it shows or sends
+        deadline = time.monotonic() + 10
+        while not cond():
+            assert time.monotonic() < deadline, (screen, out.sent)
+            screen.append(capsys.readouterr().out)
+            time.sleep(0.01)
+
     try:
         t, done = _teleop_in_thread(r, out, last_state)
-
-        def press_r():
-            n = len(out.sent)
-            os.write(w, b"r")
-            time.sleep(0.1)          # the key loop reads it (200 Hz); nothing else is sent without a move key
-            return out.sent[n:]
-
-        assert press_r() == []                      # no state yet: nothing it could know it clears
+        os.write(w, b"r")                           # no state yet: nothing it could know it clears
+        until(lambda: "resume not sent" in "".join(screen))
         last_state[0] = {"stamp_ns": 5_000_000_000, "safety": {"state": "estop", "latched_ns": 4_200_000_000}}
-        assert press_r() == [("resume", {"latched_ns": 4_200_000_000})]
+        os.write(w, b"r")
+        until(lambda: len(out.sent) == 1)
         last_state[0] = {"stamp_ns": 6_000_000_000, "safety": {"state": "ok", "latched_ns": None}}
-        assert press_r() == [("resume", {"latched_ns": 6_000_000_000})]
+        os.write(w, b"r")
+        until(lambda: len(out.sent) == 2)
         os.write(w, b"q")
         t.join(10)
     finally:
         os.close(r)
         os.close(w)
     assert done == [0]
-    assert "resume not sent: no state from robot r1 yet" in capsys.readouterr().out
+    assert out.sent == [("resume", {"latched_ns": 4_200_000_000}), ("resume", {"latched_ns": 6_000_000_000})]
+    assert "resume not sent: no state from robot r1 yet" in "".join(screen)
 
 
 def test_keyboard_teleop_resume_clears_the_estop_it_saw_on_the_robot(tmp_path):
