@@ -400,7 +400,8 @@ class DynamixelDrive(SerialWheelDrive):
 
     def _stop_wheels(self) -> Optional[str]:
         """Goal Velocity 0 and torque off on every servo still answering; the servos whose torque-off was not
-        acknowledged, named (their bus watchdog is what stops them)."""
+        acknowledged, or answered with an error (a CRC error: the packet arrived corrupted and was not
+        applied), named (their bus watchdog is what stops them)."""
         if self.port is None or self.ph is None:
             return None
         missed = []
@@ -408,11 +409,12 @@ class DynamixelDrive(SerialWheelDrive):
             try:
                 self.port.is_using = False  # an exception mid-transfer leaves the SDK's flag set
                 self.ph.write4ByteTxRx(self.port, i, reg.GOAL_VELOCITY.address, 0)
-                res, _err = self.ph.write1ByteTxRx(self.port, i, reg.TORQUE_ENABLE.address, 0)
-                why = None if res == sdk.COMM_SUCCESS else self.ph.getTxRxResult(res)
+                res, err = self.ph.write1ByteTxRx(self.port, i, reg.TORQUE_ENABLE.address, 0)
+                why = (f"not acknowledged ({self.ph.getTxRxResult(res)})" if res != sdk.COMM_SUCCESS else
+                       f"refused ({self.ph.getRxPacketError(err)})" if err & 0x7F else None)
             except Exception as exc:
-                why = repr(exc)
+                why = f"not acknowledged ({exc!r})"
             if why is not None:
-                missed.append(f"servo {i} ({self.sides[i]}): torque off not acknowledged ({why})")
+                missed.append(f"servo {i} ({self.sides[i]}): torque off {why}")
         return "; ".join(missed) or None
 

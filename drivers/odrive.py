@@ -353,18 +353,45 @@ class ODriveDrive(SerialWheelDrive):
         return f"its axis watchdog ({self.opt.watchdog_s * 1000:.0f} ms) disarms the motors"
 
     def _stop_wheels(self) -> Optional[str]:
-        """Velocity 0 and IDLE on both axes (disarmed); the axes whose stop could not be sent, named (the ASCII
-        protocol acknowledges neither: a sent stop is taken as taken)."""
+        """Velocity 0 and IDLE on both axes (disarmed); the axes that did not take it, named. The ASCII protocol
+        acknowledges neither command, so each axis's ``current_state`` is read back (``_stop_not_taken``)."""
         if self.ser is None:
             return None
-        missed = []
+        missed = {}
         for ax in self.axes:
             try:
                 self._send(f"v {ax} 0")
                 self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
             except Exception as exc:
-                missed.append(f"axis {ax}: the stop could not be sent ({exc!r})")
-        return "; ".join(missed) or None
+                missed[ax] = f"the stop could not be sent ({exc!r})"
+        silent = False       # a device that did not answer one axis's read-back answers no other: not waited for
+        for ax in self.axes:
+            if ax not in missed:
+                missed[ax] = "no answer to the stop's read-back" if silent else self._stop_not_taken(ax)
+                silent = silent or (missed[ax] or "").startswith("no answer")
+        return "; ".join(f"{self._axis(ax)}: {m}" for ax, m in missed.items() if m) or None
+
+    def _stop_not_taken(self, ax: int) -> Optional[str]:
+        """Why axis ``ax`` is not known to have taken the stop (read back: IDLE), None when it has. The axis
+        leaves closed loop within a control period or so: its state is read again until ``t`` has passed."""
+        t = self.opt.reply_timeout_s * 4
+        end = time.monotonic() + t
+        try:
+            while True:
+                state = self._query(f"r axis{ax}.current_state", t)
+                if state is None:
+                    return (f"no answer to 'r axis{ax}.current_state' within {t * 1000:.0f} ms: the stop is "
+                            "unconfirmed")
+                if _integer(state) == AXIS_STATE_IDLE:
+                    return None
+                if time.monotonic() >= end:
+                    break
+                time.sleep(0.001)
+            vel = self._query(f"r axis{ax}.controller.input_vel", t)
+        except Exception as exc:     # a device gone or a garbled answer: not known to have stopped
+            return f"the stop's read-back failed ({exc!r})"
+        return (f"did not take the stop: current_state {state} (not IDLE {AXIS_STATE_IDLE}), "
+                f"controller.input_vel {vel} turns/s")
 
     def _device_open(self) -> bool:
         return self.ser is not None

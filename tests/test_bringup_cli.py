@@ -234,7 +234,7 @@ class _Recorder:
             raise self.exc
 
 
-def _teleop_in_thread(fd, out):
+def _teleop_in_thread(fd, out, last_state=None):
     import argparse
     import queue
     import threading
@@ -242,7 +242,9 @@ def _teleop_in_thread(fd, out):
     from vbnav.control.commands.teleop import _drive
     args = argparse.Namespace(speed=0.2, turn=0.5, rate=200.0, hold=5.0)
     done = []
-    t = threading.Thread(target=lambda: done.append(_catch(lambda: _drive(fd, out, args, "r1", queue.SimpleQueue()))),
+    last_state = [None] if last_state is None else last_state
+    t = threading.Thread(target=lambda: done.append(_catch(lambda: _drive(fd, out, args, "r1", queue.SimpleQueue(),
+                                                                              last_state))),
                          daemon=True)
     t.start()
     return t, done
@@ -293,3 +295,87 @@ def test_keyboard_teleop_stopped_by_sigterm_or_an_error_while_driving_sends_a_st
         assert done[0] is exc, done
         assert out.sent[2][1]["linear"] == 0.2 and out.sent[-1] == ("teleop", {"linear": 0.0, "angular": 0.0}), \
             out.sent
+
+
+def test_keyboard_teleop_resume_names_the_stop_it_has_seen(capsys):
+    """vbnav teleop's r sent a resume without latched_ns, clearing every latch, another operator's estop that
+    its screen never showed among them. It now names the safety.latched_ns of the robot's last state (with
+    nothing latched then, that state's stamp: any later stop is unseen); before any state it sends nothing
+    and says why."""
+    r, w = os.pipe()
+    out = _Recorder()
+    last_state = [None]
+    screen = []
+
+    def until(cond):                 # the key loop runs in its thread: wait for what it shows or sends
+        deadline = time.monotonic() + 10
+        while not cond():
+            assert time.monotonic() < deadline, (screen, out.sent)
+            screen.append(capsys.readouterr().out)
+            time.sleep(0.01)
+
+    try:
+        t, done = _teleop_in_thread(r, out, last_state)
+        os.write(w, b"r")                           # no state yet: nothing it could know it clears
+        until(lambda: "resume not sent" in "".join(screen))
+        last_state[0] = {"stamp_ns": 5_000_000_000, "safety": {"state": "estop", "latched_ns": 4_200_000_000}}
+        os.write(w, b"r")
+        until(lambda: len(out.sent) == 1)
+        last_state[0] = {"stamp_ns": 6_000_000_000, "safety": {"state": "ok", "latched_ns": None}}
+        os.write(w, b"r")
+        until(lambda: len(out.sent) == 2)
+        os.write(w, b"q")
+        t.join(10)
+    finally:
+        os.close(r)
+        os.close(w)
+    assert done == [0]
+    assert out.sent == [("resume", {"latched_ns": 4_200_000_000}), ("resume", {"latched_ns": 6_000_000_000})]
+    assert "resume not sent: no state from robot r1 yet" in "".join(screen)
+
+
+def test_keyboard_teleop_resume_clears_the_estop_it_saw_on_the_robot(tmp_path):
+    """Through the real processes: an estop, then vbnav teleop on a pty presses r until it says 'resume sent'
+    (at first it has no state and sends nothing); the robot received the resume naming the estop's
+    latched_ns, and cleared it."""
+    port = free_port()
+    report = tmp_path / "r.json"
+    proc = start_robot("--port", port, "--controller", "teleop", "--duration", 60, "--report", report)
+    net = ["--connect", f"tcp/127.0.0.1:{port}"]
+    try:
+        r = subprocess.run(VBNAV + ["send", "estop", "--reason", "test", *net], capture_output=True, text=True,
+                           timeout=30)
+        assert r.returncode == 0, r.stderr
+        master, slave = pty.openpty()
+        p = subprocess.Popen(VBNAV + ["teleop", *net], stdin=slave, stdout=slave, stderr=subprocess.PIPE, text=True)
+        buf = b""
+
+        def read_for(seconds, until):
+            nonlocal buf
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline and p.poll() is None and until not in buf:
+                if select.select([master], [], [], 0.1)[0]:
+                    buf += os.read(master, 4096)
+
+        read_for(20, b"hold w/s")
+        for _ in range(60):
+            os.write(master, b"r")
+            read_for(0.3, b"resume sent")
+            if b"resume sent" in buf:
+                break
+        os.write(master, b"q")
+        assert p.wait(20) == 0, p.stderr.read()
+        os.close(master)
+        os.close(slave)
+        after = subprocess.run(VBNAV + ["monitor", "--once", "--json", *net], capture_output=True, text=True,
+                               timeout=30)
+    finally:
+        finish(proc, stop=True)
+    assert b"resume sent" in buf, buf[-300:]
+    received = json.loads(report.read_text())["received"]
+    estop, = [c for c in received if c["kind"] == "estop"]
+    resumes = [c for c in received if c["kind"] == "resume"]
+    assert len(resumes) == 1 and len(resumes[0]["args"]) == 1, resumes       # it named the stop it saw
+    assert resumes[0]["args"][0] >= estop["t_ns"]
+    safety = json.loads(after.stdout)["safety"]          # no teleop: held by command_timeout, nothing latched
+    assert safety["state"] != "estop" and safety["latched_ns"] is None, safety

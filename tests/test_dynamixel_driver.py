@@ -317,3 +317,16 @@ def test_a_servo_that_does_not_take_the_stop_is_named_in_stop_failure(bus, drive
     drive.enable()
     drive.disable()
     assert drive.stop_failure is None
+
+
+def test_a_servo_that_refuses_the_torque_off_is_named_in_stop_failure(bus, drive):
+    """A status packet that answers the torque-off with an error (CRC Error: the instruction arrived corrupted
+    and the servo applied nothing) was taken as the stop taken: only no answer at all was noticed."""
+    drive_for(drive, 2.0, 2.0)
+    bus.servo(2).garbled_rx = True
+    drive.disable()
+    assert drive.stop_failure is not None and "servo 2 (right): torque off refused" in drive.stop_failure, \
+        drive.stop_failure
+    assert "CRC" in drive.stop_failure and "servo 1" not in drive.stop_failure
+    assert bus.servo(2).torque_on and not bus.servo(1).torque_on     # the emulated servo really is still on
+    bus.servo(2).garbled_rx = False

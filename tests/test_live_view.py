@@ -247,10 +247,53 @@ def test_foxglove_teleop_takes_numbers_only():
     submitted, refused = [], []
     view = SimpleNamespace(_lock=threading.Lock(), _teleop_channels={(1, 7)}, is_operator=lambda cid: True,
                            _refuse=lambda k, why, p: refused.append(why), _submit=lambda k, p: submitted.append(p),
-                           _seq=0, _session="s")
+                           _seq=0, _session="s", _driving=set())
+    view._submit_twist = lambda *a: LiveView._submit_twist(view, *a)
     client = SimpleNamespace(id=1)
     for x in (True, "0.3", None):
         LiveView.on_message_data(view, client, 7, json.dumps({"linear": {"x": x}, "angular": {"z": 0}}).encode())
     assert not submitted and len(refused) == 3, (submitted, refused)
     LiveView.on_message_data(view, client, 7, json.dumps({"linear": {"x": 0.3}, "angular": {"z": 1}}).encode())
     assert len(submitted) == 1 and json.loads(submitted[0])["angular"] == -1.0
+
+
+@pytest.mark.parametrize("how", ["close", "drop"])
+def test_a_foxglove_client_that_goes_while_driving_stops_the_robot_at_once(how):
+    """A Foxglove teleop client that disconnected while driving sent no stop: the robot drove on its last twist
+    until safety.command_timeout_s. The SDK unadvertises a departing client's channels (after a close frame,
+    or a connection just dropped), and the live view then sends a zero twist in its name, as vbnav teleop does
+    when it ends; a client that stopped driving first gets no second stop."""
+    from vbnav.control.comms.live_view import LiveView
+    from vbnav.control.config import Config
+    submitted = []
+    view = LiveView(Config.model_validate({"telemetry": {"live_view": {"port": 0}}}).telemetry, "r1",
+                    submit_teleop=lambda k, p: submitted.append(json.loads(p)), refuse=lambda *a: None,
+                    to_wall_ns=lambda t: t)
+    try:
+        clients = [FoxgloveClient("127.0.0.1", view.port, timeout_s=0.5) for _ in range(2)]
+        for c, twist in zip(clients, (TWIST, json.dumps({"linear": {"x": 0}, "angular": {"z": 0}}).encode())):
+            c.poll(0.2)
+            c.advertise(7, "/vbnav/teleop")
+            _wait(lambda: len(view._teleop_channels) == clients.index(c) + 1)
+            c.publish(7, twist)
+            _wait(lambda: len(submitted) == clients.index(c) + 1)
+        driver, idle = (m["sender"] for m in submitted)
+        for c in clients:
+            if how == "close":
+                c.close()
+            else:
+                c.sock.close()          # no close frame: the connection just drops
+        _wait(lambda: not view._teleop_channels)
+        _wait(lambda: len(submitted) >= 3)
+    finally:
+        view.close()
+    assert [(m["sender"], m["linear"], m["angular"]) for m in submitted] == \
+        [(driver, 0.3, -0.0), (idle, 0.0, -0.0), (driver, 0.0, 0.0)], submitted
+    assert submitted[2]["seq"] > submitted[0]["seq"] and submitted[2]["session"] == submitted[0]["session"]
+
+
+def _wait(cond, deadline_s=10.0):
+    end = time.monotonic() + deadline_s
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.01)

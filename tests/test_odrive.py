@@ -280,3 +280,46 @@ def test_vel_ramp_rate_limits_the_acceleration(emu):
         assert wait_until(lambda: drive_for(d, 1.0, 1.0, cycles=1).velocity[0] > 0.9, timeout=3.0)
     finally:
         d.close()
+
+
+def test_an_axis_that_does_not_take_the_stop_is_named_in_stop_failure(emu, drive):
+    """The ASCII protocol acknowledges neither 'v 0' nor 'w requested_state 1': a sent stop was taken as
+    taken, and an axis that ignored it went unsaid. The stop is read back (current_state, input_vel)."""
+    drive_for(drive, 2.0, 2.0)
+    with emu.lock:
+        emu.axis(1).ignores_commands = True
+    drive.disable()
+    assert drive.stop_failure is not None and "axis1 (right)" in drive.stop_failure, drive.stop_failure
+    assert f"current_state {oe.AXIS_STATE_CLOSED_LOOP}" in drive.stop_failure and "input_vel" in drive.stop_failure
+    assert "axis0" not in drive.stop_failure and emu.axis(0).current_state == oe.AXIS_STATE_IDLE
+    assert emu.axis(1).current_state == oe.AXIS_STATE_CLOSED_LOOP        # the emulated axis really drives on
+    with emu.lock:
+        emu.axis(1).ignores_commands = False
+    drive.enable()
+    drive.disable()
+    assert drive.stop_failure is None and stopped_or_idle(emu)
+
+
+def test_a_stop_sent_to_a_silent_odrive_is_unconfirmed(emu, drive):
+    drive_for(drive, 2.0, 2.0)
+    emu.no_answer = True
+    drive.disable()
+    assert drive.stop_failure is not None and "axis0 (left): no answer" in drive.stop_failure, drive.stop_failure
+    assert "axis1 (right): no answer" in drive.stop_failure
+    emu.no_answer = False
+
+
+def stopped_or_idle(emu) -> bool:
+    return all(a.current_state == oe.AXIS_STATE_IDLE and a.input_vel == 0.0 for a in emu.axes)
+
+
+def test_an_axis_that_reaches_idle_a_little_after_the_stop_has_taken_it(emu, drive):
+    """The firmware's state machine leaves closed loop at its own pace: one read-back right after the stop
+    could still see closed loop and call a stop that was taken unconfirmed. The state is read again until
+    the read-back's time has passed."""
+    drive_for(drive, 2.0, 2.0)
+    with emu.lock:
+        emu.axis(1).idle_after_s = 0.01
+    drive.disable()
+    assert drive.stop_failure is None, drive.stop_failure
+    assert stopped_or_idle(emu)

@@ -987,3 +987,73 @@ def test_an_estop_a_motor_did_not_take_is_reported():
     warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
     assert len(warnings) == 1, result.events          # the estop's (at the end the drive was already disabled)
     assert warnings[0].stamp_ns == T0 + 1_000_000_000 + PERIOD_NS and "servo 1 (left)" in warnings[0].message
+
+
+def test_a_drive_fault_whose_stop_another_motor_did_not_take_is_reported():
+    """When the drive itself failed (a fault of one servo), the run did not report what the stop could not
+    reach ('its own stop says so'), but the fault names only the servo that failed: the other servo, whose
+    torque-off went unacknowledged, was passed over and the run ended as if both wheels had stopped."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+    from vbnav.drivers.wheels import DriveFault, FaultKind
+
+    class Overload(RecordingDrive):
+        def _read(self):
+            if self.clock.now_ns() >= T0 + 1_000_000_000:
+                self._fault(DriveFault(FaultKind.HARDWARE_ERROR, "servo 2 (right)", "servo 2 (right): overload"))
+            return super()._read()
+
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "servo 1 (left): torque off not acknowledged (no answer)"
+
+    clock = SimClock()
+    drive = Overload(clock)
+    result = Runtime(Config(), drive, Cruise(), clock).run(duration_s=2)
+    assert result.reason == "drive" and "overload" in result.message, result
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1 and "servo 1 (left): torque off not acknowledged" in warnings[0].message, \
+        result.events
+
+
+@pytest.mark.parametrize("at", ["start-up", "after an estop"])
+def test_an_enable_that_failed_part_way_and_whose_stop_was_not_taken_is_reported(at):
+    """An enable() that armed one motor and then failed (the other did not enter closed loop) stops what it
+    armed; the run reported that stop only for a drive it had seen enabled, so a motor armed by the failed
+    enable that did not take the stop went unsaid."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+    from vbnav.drivers.wheels import DriveError
+
+    class HalfArmed(RecordingDrive):
+        enables, armed_left = 0, False
+
+        def _activate(self):
+            super()._activate()
+            self.enables += 1
+            if self.enables == (1 if at == "start-up" else 2):
+                self.armed_left = True
+                raise DriveError("axis1 (right) did not enter closed loop")
+
+        def _stop_wheels(self):
+            super()._stop_wheels()
+            return "axis0 (left): did not take the stop: current_state 8" if self.armed_left else None
+
+    def operator(r, ctx, twist, wheels):
+        if ctx.now_ns == T0 + 500_000_000:
+            r.submit(OperatorCommand("estop", (), "op"))
+        elif ctx.now_ns == T0 + 800_000_000:
+            r.submit(OperatorCommand("resume", (), "op"))
+
+    clock = SimClock()
+    drive = HalfArmed(clock)
+    rt = Runtime(Config(), drive, Cruise(), clock)
+    rt.cycle_observers.append(operator)
+    result = rt.run(duration_s=2)
+    assert result.reason == "drive" and "closed loop" in result.message, result
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
+    assert len(warnings) == 1 and "axis0 (left): did not take the stop" in warnings[0].message, result.events

@@ -9,6 +9,10 @@ error); each of them, while a key drives, sends a zero command first. The robot'
 refusals of teleop, estop and resume (its ``command_rejected`` events: a latched or held stop, speeds
 beyond its limits, a repeat in progress) replace the 'driving' line, so the screen never says 'driving'
 while the robot stands still.
+
+``r`` resumes only the stops this program has seen: it names the ``safety.latched_ns`` of the robot's last
+state (``resume_body``), so another operator's estop that came after it is not cleared (the robot refuses
+the resume and says why); before any state has come, ``r`` sends nothing and says so.
 """
 from __future__ import annotations
 
@@ -74,6 +78,16 @@ def _check_speeds(args) -> None:
                              "refuse every command")
 
 
+def resume_body(state: dict | None) -> dict | None:
+    """The resume that clears only what the robot's last ``state`` showed: its ``safety.latched_ns``, or, with
+    nothing latched then, the state's own ``stamp_ns`` (a stop that began after it was not seen). None before
+    any state: this program cannot know which stop a resume would clear."""
+    if state is None:
+        return None
+    latched = state["safety"].get("latched_ns")
+    return {"latched_ns": state["stamp_ns"] if latched is None else latched}
+
+
 def run(args) -> int:
     import termios
     import tty
@@ -97,6 +111,7 @@ def run(args) -> int:
             return 3
         out = CommandPublisher(session, robot, "vbnav-teleop", secret)
         refusals: queue.SimpleQueue = queue.SimpleQueue()
+        last_state: list = [None]       # the robot's last state message (its safety.latched_ns: what r resumes)
 
         def on_event(sample) -> None:
             try:
@@ -107,13 +122,22 @@ def run(args) -> int:
                     msg.get("command") in ("teleop", "estop", "resume"):
                 refusals.put(f"robot {robot} refused {msg['command']}: {msg.get('reason', '?')}")
 
+        def on_state(sample) -> None:
+            try:
+                msg = json.loads(sample.payload.to_bytes())
+                if isinstance(msg, dict) and isinstance(msg["safety"], dict) and isinstance(msg["stamp_ns"], int):
+                    last_state[0] = msg
+            except (ValueError, KeyError, TypeError):
+                pass
+
         session.declare_subscriber(f"vbnav/{robot}/events", on_event)
+        session.declare_subscriber(f"vbnav/{robot}/state", on_state)
         saved = termios.tcgetattr(fd)
         # SIGTERM, and SIGHUP (the terminal or ssh session gone): the stream ends with a stop, the terminal restored
         old_handlers = {sig: signal.signal(sig, lambda *_: sys.exit(130)) for sig in (signal.SIGTERM, signal.SIGHUP)}
         try:
             tty.setraw(fd)
-            return _drive(fd, out, args, robot, refusals)
+            return _drive(fd, out, args, robot, refusals, last_state)
         finally:
             termios.tcsetattr(fd, termios.TCSADRAIN, saved)
             for sig, handler in old_handlers.items():
@@ -123,14 +147,14 @@ def run(args) -> int:
         session.close()
 
 
-def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue) -> int:
+def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue, last_state: list) -> int:
     def say(text: str) -> None:        # raw mode: no newline translation
         sys.stdout.write("\r\x1b[K" + text)
         sys.stdout.flush()
 
     streaming = [False]
     try:
-        return _keys_to_teleop(fd, out, args, robot, refusals, say, streaming)
+        return _keys_to_teleop(fd, out, args, robot, refusals, last_state, say, streaming)
     finally:
         # However it ends (q, the terminal gone, SIGTERM or SIGHUP, an error) while a key drove: stop now, not
         # at the robot's command timeout
@@ -141,9 +165,10 @@ def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.Sim
                 pass
 
 
-def _keys_to_teleop(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue, say,
-                    streaming_flag: list) -> int:
-    """The key loop; ``streaming_flag[0]``: whether the last teleop sent drove the robot (the caller stops it)."""
+def _keys_to_teleop(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue,
+                    last_state: list, say, streaming_flag: list) -> int:
+    """The key loop; ``streaming_flag[0]``: whether the last teleop sent drove the robot (the caller stops it);
+    ``last_state[0]``: the robot's last state message, or None."""
     sys.stdout.write(HELP + f" (robot {robot})\r\n")
     period = 1.0 / args.rate
     twist, held_until, shown = (0.0, 0.0), 0.0, None
@@ -170,8 +195,13 @@ def _keys_to_teleop(fd: int, out: CommandPublisher, args, robot: str, refusals: 
                     out.put("estop", {"reason": "vbnav teleop"})
                     say("estop sent (r resumes)")
                 elif key == "r":
-                    out.put("resume", {})
-                    say("resume sent")
+                    body = resume_body(last_state[0])
+                    if body is None:
+                        say(f"resume not sent: no state from robot {robot} yet, so this screen cannot know "
+                            "which stop it would clear; press r again once it has")
+                    else:
+                        out.put("resume", body)
+                        say("resume sent")
         refused = None
         while not refusals.empty():
             refused = refusals.get_nowait()

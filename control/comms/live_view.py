@@ -13,8 +13,11 @@ Teleop: a client (Foxglove's Teleop panel) advertises ``/vbnav/teleop`` with JSO
 turning left) and publishes on it. Each message becomes a ``teleop`` command with
 the client as sender and goes through the link's ``CommandInbox``: the same
 validation, limits (robot.max_linear_speed / max_angular_speed), mailbox
-(order, freshness) and ``command_rejected`` events as ``vbnav send teleop``. Who is
-an operator follows the same rules as the zenoh side:
+(order, freshness) and ``command_rejected`` events as ``vbnav send teleop``. A client
+that goes (the SDK unadvertises its channels when it disconnects, cleanly or not) or
+unadvertises the teleop topic while its last twist drove sends a zero twist in its name,
+as ``vbnav teleop`` does when it ends: the robot stops then, not at its command timeout.
+Who is an operator follows the same rules as the zenoh side:
 
 - ``live_view.operator_token_file`` set: a client is an operator once it sets the
   parameter ``vbnav.operator_token`` to the file's content (Foxglove's Parameters
@@ -78,6 +81,7 @@ class LiveView(Sink, ServerListener):
         # older one still connected sets the token again).
         self._operators: dict[int, None] = {}
         self._teleop_channels: set[tuple[int, int]] = set()   # the SDK unadvertises them when a client goes
+        self._driving: set[tuple[int, int]] = set()   # of those, the ones whose last twist submitted was not zero
         self._seq = 0           # teleop seq, one counter for every client: it increases per sender all the same
         self._session = uuid.uuid4().hex[:8]
         self.bytes_sent = 0
@@ -150,8 +154,12 @@ class LiveView(Sink, ServerListener):
                 self._teleop_channels.add((client.id, channel.id))
 
     def on_client_unadvertise(self, client, client_channel_id: int) -> None:
+        key = (client.id, client_channel_id)
         with self._lock:
-            self._teleop_channels.discard((client.id, client_channel_id))
+            self._teleop_channels.discard(key)
+            if key in self._driving:     # the client went (or stopped its teleop) while driving: stop now
+                self._driving.discard(key)
+                self._submit_twist(client.id, 0.0, 0.0)
 
     def on_set_parameters(self, client, parameters, request_id=None):
         out = []
@@ -198,9 +206,20 @@ class LiveView(Sink, ServerListener):
             self._refuse("teleop", f"Foxglove teleop: expected a JSON geometry_msgs/Twist ({exc!r})",
                          bytes(data[:200]))
             return
-        with self._lock:
-            seq = self._seq = self._seq + 1
-        payload = json.dumps({"sender": f"foxglove-{client.id}", "session": f"{self._session}-{client.id}",
+        key = (client.id, client_channel_id)
+        with self._lock:     # one at a time: a twist in flight when its client goes is never sent after the stop
+            if key not in self._teleop_channels:
+                return       # unadvertised meanwhile (the client went): its stop was sent, this twist comes late
+            if linear or angular:
+                self._driving.add(key)
+            else:
+                self._driving.discard(key)
+            self._submit_twist(client.id, linear, angular)
+
+    def _submit_twist(self, client_id: int, linear: float, angular: float) -> None:
+        """A teleop command in the client's name (under ``_lock``: the seq and the order of submission agree)."""
+        seq = self._seq = self._seq + 1
+        payload = json.dumps({"sender": f"foxglove-{client_id}", "session": f"{self._session}-{client_id}",
                               "seq": seq, "stamp_ns": time.monotonic_ns(), "linear": linear,
                               "angular": angular}, allow_nan=True)
         try:

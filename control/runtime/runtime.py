@@ -253,8 +253,8 @@ class Runtime:
             if self._signal is not None:
                 # a stop asked for while the devices came up (a camera's slow discovery): never powered
                 raise _StoppedDuringStartUp(signal.Signals(self._signal).name)
+            self._enabled = True      # before enable(): what a failed enable armed is stopped and reported too
             self.drive.enable()
-            self._enabled = True
             self._start_ns = self.clock.now_ns()
             self._deadline_ns = None if duration_s is None else self._start_ns + int(duration_s * 1e9)
             next_progress[0] = self._start_ns
@@ -283,7 +283,7 @@ class Runtime:
         except Exception as exc:
             # Failure before or outside a cycle (connect, enable): still leave the wheels safe.
             self.fault_traceback = traceback.format_exc()
-            self._make_safe(drive_failed=isinstance(exc, DriveError))
+            self._make_safe()
             # a device that is not there is no bug: the commands report "drive" and "camera" as device errors
             reason = "drive" if isinstance(exc, DriveError) else _failure_reason(exc)
             where = "start-up" if not looping else f"outside the cycle (after cycle {self.cycle}, e.g. progress)"
@@ -375,8 +375,8 @@ class Runtime:
                 s = self.safety.speed_scale
                 twist = self.limiter.apply(Twist(twist.v * s, twist.w * s), dt)
                 if not self._enabled:
+                    self._enabled = True      # before enable(): a failed enable's stop is reported by _make_safe
                     self.drive.enable()
-                    self._enabled = True
             else:
                 twist = self.limiter.stop()
                 if self._enabled:
@@ -444,7 +444,7 @@ class Runtime:
         lost = (self.drive.state is DriveState.ERROR and faults and all(f.kind.reconnectable for f in faults))
         if not lost or window <= 0 or not self.drive.can_reconnect or self._recovery is not None:
             return self._finish(now, "drive", f"{stage}: {exc}")
-        self._make_safe(drive_failed=True)
+        self._make_safe()
         cause = f"{stage}: {exc}"
         message = (f"{cause}; waiting up to {window:g} s (drive.reconnect_window_s) for it to come back, then "
                    f"stopped until resume")
@@ -645,14 +645,15 @@ class Runtime:
         if reason not in ("finished", "duration"):
             self.safety.trip(now, reason, message)
         self._end_recovery()
-        self._make_safe(drive_failed=reason == "drive")
+        self._make_safe()
         self._end = (reason, message)
         return False
 
-    def _make_safe(self, drive_failed: bool = False) -> None:
+    def _make_safe(self) -> None:
         """Zero and disable the drive. What an enabled drive could not stop (``stop_failure``: a motor that did
-        not answer) is a warning, unless the drive itself is what failed (its own stop says so): only the
-        device's watchdog stops that motor then."""
+        not answer) is a warning, also when the drive itself is what failed (its fault names the motor that
+        failed, not the others its stop did not reach; a device gone entirely reports no stop_failure, its
+        fault says its watchdog stops it): only the device's watchdog stops that motor then."""
         self.wheel_command = (0.0, 0.0)
         self.limiter.stop()
         try:
@@ -664,7 +665,7 @@ class Runtime:
             failed = self.drive.stop_failure
         except Exception as exc:  # a drive that breaks its never-raises contract
             failed = f"disable() raised {exc!r}"
-        if self._enabled and not drive_failed:
+        if self._enabled:
             self._unconfirmed_stop(self.clock.now_ns(), failed)
         self._enabled = False
 

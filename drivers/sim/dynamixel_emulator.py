@@ -31,7 +31,9 @@ exactly what a host at the wrong rate sees on a real bus (silence, then a
 timeout). ``handle_bytes`` (no pty) has no rate: every servo hears it.
 
 Faults are injected per servo: ``no_answer`` (silent, as if unplugged from the
-bus), ``corrupt`` (answers with a broken CRC), ``set_hardware_error(bits)``.
+bus), ``corrupt`` (answers with a broken CRC), ``garbled_rx`` (hears every packet
+corrupted: answers a unicast one with CRC Error and applies nothing, ignores its share of a
+sync packet), ``set_hardware_error(bits)``.
 ``unplug()``/``replug()`` simulate the USB adapter going away and coming back
 (the stable device path is a symlink, as /dev/serial/by-id/... is).
 
@@ -128,6 +130,8 @@ class EmulatedServo:
     # -- injected faults (logged: what a test or an operator did to the bus) ---------------
     no_answer = LoggedFlag("silent (fault injected)", "answers again")
     corrupt = LoggedFlag("answers with a broken CRC (fault injected)", "answers intact again")
+    garbled_rx = LoggedFlag("hears every packet corrupted: answers CRC Error, applies nothing (fault injected)",
+                            "hears intact packets again")
 
     def _log_event(self, text: str) -> None:
         log.info("servo %d: %s", self.dxl_id, text)
@@ -413,7 +417,7 @@ class DynamixelBus(PtyDevice):
         now = time.monotonic()
         targets = self._targets(pkt)
         live = [s for s in targets if not s.no_answer]
-        if not pkt.crc_ok:
+        if not pkt.crc_ok or (pkt.dxl_id != dp.BROADCAST_ID and live and live[0].garbled_rx):
             # a servo answers a unicast packet with a broken CRC with CRC Error
             if pkt.dxl_id != dp.BROADCAST_ID and live:
                 return [self._status(live[0], dp.ERR_CRC)]
@@ -446,7 +450,7 @@ class DynamixelBus(PtyDevice):
                 out = []
                 for dxl_id in body:
                     s = self._listener(dxl_id)
-                    if s is None or s.no_answer:
+                    if s is None or s.no_answer or s.garbled_rx:
                         continue
                     s.last_comm = now
                     err, data = s.read(addr, size)
@@ -454,7 +458,7 @@ class DynamixelBus(PtyDevice):
                 return out
             for k in range(0, len(body) - size, size + 1):
                 s = self._listener(body[k])
-                if s is None or s.no_answer:
+                if s is None or s.no_answer or s.garbled_rx:
                     continue
                 s.last_comm = now
                 value = bytes(body[k + 1:k + 1 + size])

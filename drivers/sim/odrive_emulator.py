@@ -14,7 +14,10 @@ with control_mode VELOCITY (2). An axis error drops the axis to IDLE (1). The
 watchdog (``axisN.config.enable_watchdog``, ``axisN.config.watchdog_timeout``)
 expires without feeds in closed loop: AXIS_ERROR_WATCHDOG_TIMER_EXPIRED (0x800).
 Faults: ``no_answer`` (the whole device silent), ``corrupt`` (answers with a
-wrong checksum or garbled text), ``axis(n).inject(motor=..., encoder=...)``.
+wrong checksum or garbled text), ``axis(n).inject(motor=..., encoder=...)``,
+``axis(n).ignores_commands`` (the axis takes no ``v``/``w``: lines lost on their way, a
+hung axis; it still answers reads, so a host that reads back sees it did not stop);
+``axis(n).idle_after_s`` (a requested IDLE is reached that long after the request).
 
 Baud rate: the emulated port is the ODrive's USB CDC port, which ignores the
 rate (as the real one does); the host may set any.
@@ -73,6 +76,9 @@ class EmulatedAxis:
         self.vel = 0.0
         self.last_feed = time.monotonic()
         self.time_constant_s = 0.02  # velocity loop response
+        self.ignores_commands = False    # fault: v and w to this axis are dropped (reads are answered)
+        self.idle_after_s = 0.0          # a requested IDLE is reached this long after the request
+        self._idle_at: Optional[float] = None
 
     def properties(self) -> dict[str, tuple]:
         """name -> (getter, setter or None)."""
@@ -110,7 +116,10 @@ class EmulatedAxis:
             self.last_feed = time.monotonic()
             self.current_state = AXIS_STATE_CLOSED_LOOP
         elif state == AXIS_STATE_IDLE:
-            self.current_state = AXIS_STATE_IDLE
+            if self.idle_after_s > 0:      # the state machine leaves closed loop at its own pace
+                self._idle_at = time.monotonic() + self.idle_after_s
+            else:
+                self.current_state = AXIS_STATE_IDLE
 
     def inject(self, motor: int = 0, encoder: int = 0, controller: int = 0) -> None:
         """A hardware fault: the axis records it and disarms."""
@@ -158,6 +167,8 @@ class EmulatedAxis:
             self.vel_setpoint = self.input_vel
 
     def step(self, dt: float, coupling: Optional[WheelCoupling] = None) -> None:
+        if self._idle_at is not None and time.monotonic() >= self._idle_at:
+            self.current_state, self._idle_at = AXIS_STATE_IDLE, None
         self._ramp(dt)
         target = self.target()
         if coupling is not None:
@@ -260,6 +271,8 @@ class ODriveEmulator(PtyDevice):
         try:
             if cmd == "v":
                 ax = self.axes[int(tok[1])]
+                if ax.ignores_commands:
+                    return None
                 ax.input_vel = float(tok[2])
                 ax.feed()
                 return None
@@ -303,5 +316,12 @@ class ODriveEmulator(PtyDevice):
                 ax = self.axes[int(head[4:])]
             except (ValueError, IndexError):
                 return None, None
-            return ax.properties().get(rest, (None, None))
+            getter, setter = ax.properties().get(rest, (None, None))
+            if setter is not None and ax.ignores_commands:
+                return getter, _dropped
+            return getter, setter
         return None, None
+
+
+def _dropped(value) -> None:
+    """The setter of an axis that ignores commands: the write is lost."""
