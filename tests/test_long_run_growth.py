@@ -198,7 +198,9 @@ def test_live_view_clients_that_come_and_go_leave_bounded_state(tmp_path):
         assert len(lv._operators) <= lv_module.OPERATORS_KEPT and not lv._teleop_channels
         assert isinstance(lv._seq, int)
         assert lv.is_operator(n) and not lv.is_operator(1)      # the latest stay operators, the oldest went
-        assert all(isinstance(m, dict) for m in sent) and len(sent) == 2 * n
+        # each client: its two twists, then the stop sent in its name when it went away while driving
+        assert all(isinstance(m, dict) for m in sent) and len(sent) == 3 * n
+        assert all(m["linear"] == 0 and m["angular"] == 0 for m in sent[2::3]), sent[2::3][:3]
         per_sender = {}
         for m in sent:                               # each sender's seq still increases
             per_sender.setdefault(m["session"], []).append(m["seq"])
