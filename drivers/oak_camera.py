@@ -30,6 +30,7 @@ from pydantic import ConfigDict, Field
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
+from vbnav.drivers.errors import InputError
 
 # depthai (~370 MB) is the optional extra vbnav[oak]: a robot with a USB camera does not carry it.
 DEPTHAI_MISSING = "the OAK camera driver needs depthai: pip install 'vbnav[oak]'"
@@ -172,6 +173,12 @@ class OakCamera(GrabbingCamera):
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
         super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
         self._camera_cfg = getattr(cfg, "camera", None)   # what the stages use, checked against the device
+        distorted = self._camera_cfg.rectified_problem() if self._camera_cfg is not None else ""
+        if distorted and self.opt.stream == "mono" and self.opt.disparity and not self.opt.replay_file:
+            raise InputError(f"camera.options.stream mono with camera.options.disparity is the device's rectified "
+                             f"left image (no distortion), and {distorted} describes a distorted one: every stage "
+                             f"would undistort it again (remove the distortion, set camera.model: pinhole, or use "
+                             f"the raw left image: camera.options.disparity: false)")
         obstacles = getattr(cfg, "obstacles", None)
         self._baseline_cfg = (getattr(obstacles, "baseline", None)
                               or (self._camera_cfg.stereo_baseline() if self._camera_cfg is not None else None))

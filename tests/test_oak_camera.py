@@ -2,6 +2,7 @@
 with no device, and a host-only depthai pipeline (ReplayVideo) through the driver."""
 from __future__ import annotations
 
+import re
 import time
 from datetime import timedelta
 
@@ -179,3 +180,23 @@ def test_a_replay_that_ended_is_finished(tmp_path):
         assert cam.finished
     finally:
         cam.disconnect()
+
+
+@pytest.mark.parametrize("camera, says", [
+    ({"distortion": [-0.1, 0.02, 0.0, 0.0, 0.0]}, "camera.distortion [-0.1, 0.02, 0.0, 0.0, 0.0]"),
+    ({"model": "fisheye"}, "camera.model fisheye"),
+])
+def test_a_distorted_camera_on_the_rectified_mono_stream_is_refused(camera, says):
+    """The mono stream with on-device stereo is the RECTIFIED left image (stereo.rectifiedLeft): a
+    camera.distortion or fisheye model (a calibration of the raw sensor) was accepted and every stage
+    undistorted images that have none; the device check compares fx/fy/cx/cy only. It is refused when the
+    camera is built, naming the field; without disparity (the raw left image) and on the colour stream the
+    distortion is the lens's and is taken."""
+    from vbnav.control.config import load_config
+    from vbnav.drivers.errors import InputError
+    off = {"obstacles": {"enabled": False}}          # the obstacle stage refuses it at load (test_config.py)
+    with pytest.raises(InputError, match=r"camera\.options\.stream mono .*rectified.*" + re.escape(says)):
+        OakCamera(load_config("sentry-oak", overrides={"camera": camera, **off}))
+    OakCamera(load_config("sentry-oak", overrides={"camera": {**camera, "options": {"disparity": False}}, **off}))
+    OakCamera(load_config("sentry-oak", overrides={"camera": {**camera, "options": {"stream": "color"}}, **off}))
+    OakCamera(load_config("sentry-oak", overrides={"camera": {"distortion": [0.0] * 5}, **off}))
