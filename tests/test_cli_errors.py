@@ -176,7 +176,7 @@ CASES = [
     ("map-build-out-exists", "map build --out {d}/afile.txt", 2, "a map is already there"),
     ("goto-map-out-exists", "goto --map {d}/afile.txt --map-out {d}/unknown.yaml --goal 0 1 0", 2,
      "a map is already there"),
-    ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out it has nothing"),
+    ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out or --record it has nothing"),
     ("calibrate-out-exists", "calibrate intrinsics --images {d}/empty --out {d}/calibrated", 2,
      "a calibration is already there"),
     # a folder given as the map was 'map file not found'
