@@ -36,6 +36,22 @@ def test_the_scripted_teacher_never_drives_a_real_drive():
     assert type(teach_driver(load_config(None))).__name__ == "PathFollower"
 
 
+@pytest.mark.parametrize("world", ["corridor", "corridor_step"])
+def test_the_room_loop_is_driven_in_a_room_only(tmp_path, capsys, world):
+    """controller.teach room_loop (and vbnav demo) drive the simulated room's 7 m x 4 m loop: with sim.world a
+    3 m wide corridor it was accepted and the robot taught a loop through the corridor's walls. Both are refused,
+    naming sim.world; the room without boxes has the same walls and is taken."""
+    from vbnav.control.cli import main
+    with pytest.raises(ConfigError, match=rf"controller.teach 'room_loop'.*sim.world {world!r}"):
+        load_config(None, overrides={"controller": {"teach": "room_loop"}, "sim": {"world": world}})
+    load_config(None, overrides={"controller": {"teach": "room_loop"}, "sim": {"world": "empty_room"}})
+    cfg = tmp_path / "corridor.yaml"
+    cfg.write_text(f"controller:\n  teach: teleop\nsim:\n  world: {world}\n")
+    assert main(["demo", "-c", str(cfg), "--out", str(tmp_path / "demo")]) == 2
+    assert f"sim.world {world!r}" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
+
+
 def test_teleop_teaching_on_the_simulated_clock_is_refused(tmp_path, capsys):
     from vbnav.control.cli import main
     cfg = tmp_path / "teleop.yaml"

@@ -193,6 +193,10 @@ class SafetyConfig(Strict):
                              "obstacles.release_s, its stage's own debounce)")
 
 
+# The simulated worlds the room's loop (controller.teach room_loop, vbnav demo) runs in: the room's walls.
+ROOM_WORLDS = ("room", "empty_room")
+
+
 class SimConfig(Strict):
     seed: int = Field(0, ge=0, description="random seed of the world's textures, the image noise and the wheel "
                                            "slip")
@@ -234,7 +238,7 @@ class ControllerConfig(Strict):
         description="[linear m/s, angular rad/s, duration s] segments for the scripted drive")
     teach: Literal["teleop", "room_loop"] = Field(
         "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
-                              "room_loop (simulated drive only: a scripted teacher once around the simulated "
+                              "room_loop (simulated drive and room only: a scripted teacher once around the simulated "
                               "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
     routes_dir: str = Field(
         "~/.local/share/vbnav/routes", min_length=1, max_length=1024,
@@ -307,6 +311,9 @@ class Config(Strict):
         if self.controller.teach == "room_loop" and self.drive.driver != "sim":
             raise ValueError(f"controller.teach 'room_loop' drives the simulated room's loop; drive.driver "
                              f"{self.drive.driver!r} is a real drive (use teach: teleop)")
+        if self.controller.teach == "room_loop" and self.sim.world not in ROOM_WORLDS:
+            raise ValueError(f"controller.teach 'room_loop' drives the simulated room's 7 m x 4 m loop; sim.world "
+                             f"{self.sim.world!r} has no room for it (use sim.world {' or '.join(ROOM_WORLDS)})")
         return self
 
 
