@@ -159,6 +159,10 @@ class DynamixelDrive(SerialWheelDrive):
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
 
     @property
+    def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
+        return self.opt.velocity_limit_rad_s, "drive.options.velocity_limit_rad_s"
+
+    @property
     def serial_latency_ms(self) -> Optional[float]:
         return self.opt.latency_ms
 

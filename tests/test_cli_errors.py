@@ -279,7 +279,8 @@ def make_fixtures(d) -> None:
     (d / "cfg_seed.yaml").write_text("sim: {seed: -1}\n")
     (d / "teach_quiet.yaml").write_text("sim: {realtime: true}\ncontroller: {teach: teleop}\n"
                                         "telemetry: {enabled: false}\n")
-    (d / "dxl.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
+    (d / "dxl.yaml").write_text("robot: {max_wheel_speed: 6.0, max_linear_speed: 0.3}\n"   # the servos' 6 rad/s
+                                "camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                 "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
     (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                  "controller: {kind: idle}\n")

@@ -38,7 +38,9 @@ class RobotConfig(Strict):
     name: str = Field("sim", pattern=r"^[A-Za-z0-9_\-]+$", description="robot name, used in telemetry keys")
     wheel_radius: float = Field(0.05, gt=0, le=1.0, description="wheel radius, m")
     wheel_separation: float = Field(0.30, gt=0, le=5.0, description="distance between wheel contact points, m")
-    max_wheel_speed: float = Field(20.0, gt=0, description="wheel speed limit, rad/s, per wheel")
+    max_wheel_speed: float = Field(20.0, gt=0, description="wheel speed limit, rad/s, per wheel; at most the "
+                                   "drive's own (Dynamixel velocity_limit_rad_s, ODrive vel_limit_turns_s / "
+                                   "gear_ratio x 2 pi), which clips one wheel alone")
     max_linear_speed: float = Field(0.5, gt=0, description="forward speed limit, m/s; at most "
                                     "max_wheel_speed * wheel_radius")
     max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s")
