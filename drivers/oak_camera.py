@@ -26,7 +26,7 @@ from typing import Any, Literal, Optional
 
 import cv2
 import numpy as np
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, model_validator
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
@@ -168,6 +168,21 @@ class OakCamera(GrabbingCamera):
         discovery_timeout_s: float = Field(2.0, gt=0, le=30, description="fail start-up after this long")
         replay_file: Optional[str] = Field(None, description="host-only replay of a recorded video (no device)")
         replay_fps: float = Field(30.0, gt=0, description="frame rate of replay_file, Hz")
+
+        @model_validator(mode="after")
+        def _options_of_a_mode_that_is_on(self):
+            # An option of a mode that is off is never read by the pipeline: refuse it rather than ignore it.
+            values = self.model_dump()
+            changed = {n for n in self.model_fields_set if values[n] != type(self).model_fields[n].default}
+            for names, mode, off in ((("subpixel", "subpixel_bits", "extended_disparity", "lr_check"),
+                                      "disparity: true", not self.disparity),
+                                     (("subpixel_bits",), "subpixel: true", not self.subpixel),
+                                     (("replay_fps",), "replay_file", self.replay_file is None)):
+                idle = [n for n in names if n in changed]
+                if off and idle:
+                    raise ValueError(f"{', '.join(f'{n}: {values[n]}' for n in idle)}: takes effect only with "
+                                     f"{mode} (remove it, or set {mode})")
+            return self
 
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["OakCamera.Options"] = None,
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
