@@ -177,7 +177,10 @@ class OakCamera(GrabbingCamera):
             for names, mode, off in ((("subpixel", "subpixel_bits", "extended_disparity", "lr_check"),
                                       "disparity: true", not self.disparity),
                                      (("subpixel_bits",), "subpixel: true", not self.subpixel),
-                                     (("replay_fps",), "replay_file", self.replay_file is None)):
+                                     (("replay_fps",), "replay_file", self.replay_file is None),
+                                     (("device_id", "stream", "subpixel", "subpixel_bits", "extended_disparity",
+                                       "lr_check", "use_device_calibration", "discovery_timeout_s"),
+                                      "replay_file: null (a device)", self.replay_file is not None)):
                 idle = [n for n in names if n in changed]
                 if off and idle:
                     raise ValueError(f"{', '.join(f'{n}: {values[n]}' for n in idle)}: takes effect only with "

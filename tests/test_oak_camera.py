@@ -207,15 +207,19 @@ def test_a_distorted_camera_on_the_rectified_mono_stream_is_refused(camera, says
      r"subpixel: True, extended_disparity: True: .*only with disparity: true"),
     ({"subpixel_bits": 5}, r"subpixel_bits: 5: .*only with subpixel: true"),
     ({"replay_fps": 10.0}, r"replay_fps: 10\.0: .*only with replay_file"),
+    ({"replay_file": "x.mp4", "device_id": "1844", "use_device_calibration": False},
+     r"device_id: 1844, use_device_calibration: False: .*only with replay_file: null \(a device\)"),
 ])
 def test_oak_options_of_a_mode_that_is_off_are_refused(options, says):
     """subpixel, subpixel_bits, extended_disparity and lr_check tune the on-device stereo, subpixel_bits the
     subpixel disparity, replay_fps the host-only replay: set while that is off they were accepted and the
     pipeline never read them (no finer depth, no nearer range). They are refused, naming the option and what
-    turns it on; the defaults written out, and the same options with their mode on, are taken."""
+    turns it on; the defaults written out, and the same options with their mode on, are taken. The device's
+    options (device_id, stream, the stereo's, use_device_calibration, discovery_timeout_s) with replay_file
+    likewise: the host-only replay builds no device pipeline."""
     from pydantic import ValidationError
     with pytest.raises(ValidationError, match=says):
         OakCamera.Options(**options)
     OakCamera.Options(disparity=False, subpixel=False, lr_check=True)        # the defaults, written out
     OakCamera.Options(subpixel=True, subpixel_bits=5, extended_disparity=True)
-    OakCamera.Options(replay_file="x.mp4", replay_fps=10.0)
+    OakCamera.Options(replay_file="x.mp4", replay_fps=10.0, disparity=False)   # a replay has no disparity
