@@ -69,6 +69,10 @@ def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3
     baseline = cfg.camera.stereo_baseline()
     if not baseline:
         return None, f"{cfg.source}: camera: localising against a line map needs a stereo camera (a baseline)"
+    distorted = cfg.camera.rectified_problem()
+    if distorted:
+        return None, (f"{cfg.source}: localising against a line map takes a rectified stereo pair (a pinhole camera "
+                      f"without distortion), and {distorted} describes distorted images it would read as rectified")
     camera.connect()
     try:
         frame = camera.read(timeout_s)

@@ -24,6 +24,7 @@ from typing import Any, Literal, Optional
 from pydantic import ConfigDict, Field, field_validator, model_validator
 from vbnav.drivers.plain_values import PlainValues
 
+from vbnav.drivers import discovery
 from vbnav.drivers import dynamixel_table as reg
 from vbnav.drivers.dynamixel_protocol import to_signed
 from vbnav.drivers.dynamixel_table import (ACCEL_UNIT_RAD_S2, BAUD_VALUES, HW_ERROR_BITS, MODE_VELOCITY,
@@ -159,6 +160,10 @@ class DynamixelDrive(SerialWheelDrive):
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
 
     @property
+    def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
+        return self.opt.velocity_limit_rad_s, "drive.options.velocity_limit_rad_s"
+
+    @property
     def serial_latency_ms(self) -> Optional[float]:
         return self.opt.latency_ms
 
@@ -233,6 +238,12 @@ class DynamixelDrive(SerialWheelDrive):
         if not os.path.exists(self.opt.port):
             raise DriveError(f"dynamixel adapter {self.opt.port} not found (is the U2D2 plugged in? "
                              f"see /dev/serial/by-id/)")
+        timer = discovery.read_latency_timer(self.opt.port)     # None: not an FTDI adapter
+        if timer is not None and timer > self.opt.latency_ms:
+            raise DriveError(f"dynamixel adapter {self.opt.port}: its latency timer is {timer} ms, and the answer "
+                             f"window assumes drive.options.latency_ms {self.opt.latency_ms:g} ms: every answer "
+                             f"would come too late (echo 1 | sudo tee {discovery.latency_timer_path(self.opt.port)}"
+                             f"; a udev rule makes it permanent, docs/hardware.md)")
         self.port = BudgetedPort(self.opt.port, self.opt.latency_ms, self.opt.margin_ms)
         self.ph = sdk.PacketHandler(2.0)
         try:

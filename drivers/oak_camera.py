@@ -26,10 +26,11 @@ from typing import Any, Literal, Optional
 
 import cv2
 import numpy as np
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, model_validator
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
+from vbnav.drivers.errors import InputError
 
 # depthai (~370 MB) is the optional extra vbnav[oak]: a robot with a USB camera does not carry it.
 DEPTHAI_MISSING = "the OAK camera driver needs depthai: pip install 'vbnav[oak]'"
@@ -168,10 +169,34 @@ class OakCamera(GrabbingCamera):
         replay_file: Optional[str] = Field(None, description="host-only replay of a recorded video (no device)")
         replay_fps: float = Field(30.0, gt=0, description="frame rate of replay_file, Hz")
 
+        @model_validator(mode="after")
+        def _options_of_a_mode_that_is_on(self):
+            # An option of a mode that is off is never read by the pipeline: refuse it rather than ignore it.
+            values = self.model_dump()
+            changed = {n for n in self.model_fields_set if values[n] != type(self).model_fields[n].default}
+            for names, mode, off in ((("subpixel", "subpixel_bits", "extended_disparity", "lr_check"),
+                                      "disparity: true", not self.disparity),
+                                     (("subpixel_bits",), "subpixel: true", not self.subpixel),
+                                     (("replay_fps",), "replay_file", self.replay_file is None),
+                                     (("device_id", "stream", "subpixel", "subpixel_bits", "extended_disparity",
+                                       "lr_check", "use_device_calibration", "discovery_timeout_s"),
+                                      "replay_file: null (a device)", self.replay_file is not None)):
+                idle = [n for n in names if n in changed]
+                if off and idle:
+                    raise ValueError(f"{', '.join(f'{n}: {values[n]}' for n in idle)}: takes effect only with "
+                                     f"{mode} (remove it, or set {mode})")
+            return self
+
     def __init__(self, cfg: Any = None, clock=None, *, options: Optional["OakCamera.Options"] = None,
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
         super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
         self._camera_cfg = getattr(cfg, "camera", None)   # what the stages use, checked against the device
+        distorted = self._camera_cfg.rectified_problem() if self._camera_cfg is not None else ""
+        if distorted and self.opt.stream == "mono" and self.opt.disparity and not self.opt.replay_file:
+            raise InputError(f"camera.options.stream mono with camera.options.disparity is the device's rectified "
+                             f"left image (no distortion), and {distorted} describes a distorted one: every stage "
+                             f"would undistort it again (remove the distortion, set camera.model: pinhole, or use "
+                             f"the raw left image: camera.options.disparity: false)")
         obstacles = getattr(cfg, "obstacles", None)
         self._baseline_cfg = (getattr(obstacles, "baseline", None)
                               or (self._camera_cfg.stereo_baseline() if self._camera_cfg is not None else None))

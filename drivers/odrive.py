@@ -114,6 +114,11 @@ class ODriveDrive(SerialWheelDrive):
         self._rx = b""
         self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
 
+    @property
+    def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
+        return self.opt.vel_limit_turns_s * 2 * math.pi / self.opt.gear_ratio, \
+            "drive.options.vel_limit_turns_s / gear_ratio"
+
     # -- lifecycle hooks (WheelDrive owns the states) ------------------------------------
     def _configure(self) -> None:
         self._connect(clear_errors=False)

@@ -21,12 +21,15 @@ from vbnav.drivers.plain_values import PlainValues
 from vbnav.drivers.camera import Camera, CameraError, CameraSizeError, Frame, RecordedCameraError
 from vbnav.drivers.clock import MonotonicClock
 from vbnav.drivers.datasets import DatasetError, _images_in, _read_image, detect_layout, open_dataset
+from vbnav.vision.camera_model import FisheyeCamera
 
 FOLDER_DEFAULT_RATE_HZ = 10.0
 # How far the configured intrinsics may be from a recording's own (as the OAK driver checks its device's):
 # focal lengths relative, the principal point as a share of the image size.
 FOCAL_TOL = 0.02
 CENTRE_TOL = 0.02
+DIST_RTOL, DIST_ATOL = 0.02, 1e-3   # distortion coefficients
+BASELINE_TOL = 0.01                 # relative
 
 
 class ReplayCamera(Camera):
@@ -67,6 +70,12 @@ class ReplayCamera(Camera):
             options = cls.Options.model_validate(getattr(getattr(cfg, "camera", None), "options", {}) or {})
         cam = getattr(cfg, "camera", None)
         replay = cls(options, clock, (cam.width, cam.height) if cam is not None else None)
+        # The stereo baseline the stages take (the obstacle stage's own first, as it does).
+        baseline = getattr(getattr(cfg, "obstacles", None), "baseline", None)
+        if baseline:
+            named = ("obstacles.baseline", baseline)
+        else:
+            named = ("camera.calibration_file's stereo baseline", cam.stereo_baseline() if cam is not None else None)
         # Recordings of another size are bad input: refused now, before a run starts (and a teach creates
         # its route). Any other problem (a missing folder) is reported when the run connects, as before.
         try:
@@ -76,16 +85,18 @@ class ReplayCamera(Camera):
         except CameraError:
             pass
         else:
-            replay.check_camera(cam)
+            replay.check_camera(cam, named)
         finally:
             replay.disconnect()
         return replay
 
-    def check_camera(self, cam: Any) -> None:
+    def check_camera(self, cam: Any, baseline: tuple[str, Optional[float]] = ("", None)) -> None:
         """A recording that carries its camera (TUM ``camera.yaml`` or ``camera_yaml``, KITTI ``calib.txt``) is
-        replayed only to stages built for that camera: the configured ``cam`` (fx, fy, cx, cy, width, height)
-        must agree with it (focal lengths 2 %, principal point 2 % of the image), else RecordedCameraError names
-        both. A plain folder of images carries none."""
+        replayed only to stages built for that camera: the configured ``cam`` (fx, fy, cx, cy, width, height,
+        model, distortion) must agree with it (focal lengths 2 %, principal point 2 % of the image, distortion
+        coefficients 2 % + 0.001), and so must the configured stereo ``baseline`` (its field name, metres;
+        None: not configured) with the recording's (1 %), else RecordedCameraError names both. A plain folder
+        of images carries none."""
         ds = self._dataset
         if ds is None or cam is None:
             return
@@ -96,11 +107,24 @@ class ReplayCamera(Camera):
                                                ("cx", cam.cx, rec.cx, CENTRE_TOL * cam.width),
                                                ("cy", cam.cy, rec.cy, CENTRE_TOL * cam.height))
                if abs(mine - theirs) > tol]
+        rec_model = "fisheye" if isinstance(rec, FisheyeCamera) else "pinhole"
+        if cam.model != rec_model:
+            bad.append(f"camera.model {cam.model} vs the recording's {rec_model}")
+        mine_d = [float(d) for d in cam.distortion]
+        theirs_d = [float(d) for d in rec.dist] if any(rec.dist) else []
+        n = max(len(mine_d), len(theirs_d))
+        if not np.allclose(mine_d + [0.0] * (n - len(mine_d)), theirs_d + [0.0] * (n - len(theirs_d)),
+                           rtol=DIST_RTOL, atol=DIST_ATOL):
+            bad.append(f"camera.distortion {mine_d} vs the recording's {theirs_d}")
+        name, b = baseline
+        if b and ds.stereo_baseline and abs(b - ds.stereo_baseline) > BASELINE_TOL * ds.stereo_baseline:
+            bad.append(f"{name} {b:g} m vs the recording's {ds.stereo_baseline:g} m")
         if bad:
             source = self.opt.camera_yaml or ds.root / ("calib.txt" if ds.layout == "kitti" else "camera.yaml")
             raise RecordedCameraError(
                 f"replay camera: {source}: the recording's camera is not the configured one ({'; '.join(bad)}); "
-                f"set camera.fx/fy/cx/cy (or camera.calibration_file) to the recording's camera")
+                f"set camera.fx/fy/cx/cy, model and distortion (or camera.calibration_file) to the recording's "
+                f"camera")
 
     @property
     def is_connected(self) -> bool:

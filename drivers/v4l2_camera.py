@@ -26,11 +26,17 @@ from pydantic import ConfigDict, Field, field_validator
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import CameraError, Frame, GrabbingCamera
+from vbnav.drivers.errors import InputError
 
 
 def fourcc_to_str(value: float) -> str:
     v = int(value)
     return "".join(chr((v >> (8 * i)) & 0xFF) for i in range(4)) if v > 0 else "????"
+
+
+# Options only a live device reads, and only a video file.
+DEVICE_ONLY = ("fourcc", "backend", "fps_tolerance", "stall_timeout_s", "reconnect_interval_s")
+FILE_ONLY = ("replay_rate_hz", "loop")
 
 
 class V4L2Camera(GrabbingCamera):
@@ -66,6 +72,14 @@ class V4L2Camera(GrabbingCamera):
         super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
         options = self.opt
         self.is_file = options.source == "file" or (options.source == "auto" and os.path.isfile(options.device))
+        # An option of the other kind of source is never read: refuse it rather than ignore it.
+        values = options.model_dump()
+        changed = {n for n in options.model_fields_set if values[n] != type(options).model_fields[n].default}
+        idle = [n for n in (DEVICE_ONLY if self.is_file else FILE_ONLY) if n in changed]
+        if idle:
+            what, other = ("video file", "live device") if self.is_file else ("live device", "video file")
+            raise InputError(f"camera.options {', '.join(f'{n}: {values[n]}' for n in idle)}: only a {other} "
+                             f"reads it, and camera.options.device {options.device} is a {what} (remove it)")
         self.reconnects = 0
         self.finished = False
         self._cap = None

@@ -145,6 +145,12 @@ class WheelDrive(abc.ABC):
         """The adapter latency timer the driver's timeouts assume, ms, or None when they assume none."""
         return None
 
+    @property
+    def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
+        """(rad/s, the setting that gives it): the speed at which the drive clips each wheel's command on its
+        own, or None when it clips none (the runtime's kinematics keep within robot.max_wheel_speed)."""
+        return None
+
     # -- the lifecycle (the only place that changes ``state``) -----------------------------
     def connect(self) -> None:
         """UNCONFIGURED -> INACTIVE: open the device and run the safe bring-up; wheels stay unpowered.

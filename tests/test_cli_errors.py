@@ -179,7 +179,7 @@ CASES = [
     ("map-build-out-exists", "map build --out {d}/afile.txt", 2, "a map is already there"),
     ("goto-map-out-exists", "goto --map {d}/afile.txt --map-out {d}/unknown.yaml --goal 0 1 0", 2,
      "a map is already there"),
-    ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out it has nothing"),
+    ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out or --record it has nothing"),
     ("calibrate-out-exists", "calibrate intrinsics --images {d}/empty --out {d}/calibrated", 2,
      "a calibration is already there"),
     # a folder given as the map was 'map file not found'
@@ -282,7 +282,8 @@ def make_fixtures(d) -> None:
     (d / "cfg_seed.yaml").write_text("sim: {seed: -1}\n")
     (d / "teach_quiet.yaml").write_text("sim: {realtime: true}\ncontroller: {teach: teleop}\n"
                                         "telemetry: {enabled: false}\n")
-    (d / "dxl.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
+    (d / "dxl.yaml").write_text("robot: {max_wheel_speed: 6.0, max_linear_speed: 0.3}\n"   # the servos' 6 rad/s
+                                "camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                 "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
     (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                  "controller: {kind: idle}\n")

@@ -330,3 +330,20 @@ def test_a_servo_that_refuses_the_torque_off_is_named_in_stop_failure(bus, drive
     assert "CRC" in drive.stop_failure and "servo 1" not in drive.stop_failure
     assert bus.servo(2).torque_on and not bus.servo(1).torque_on     # the emulated servo really is still on
     bus.servo(2).garbled_rx = False
+
+
+def test_an_adapter_slower_than_latency_ms_is_refused_at_bring_up(bus, monkeypatch):
+    """drive.options.latency_ms is the FTDI latency timer the answer window assumes (2 x latency_ms +
+    margin_ms): only 'vbnav doctor' compared it with the adapter's own. A run on an adapter left at the
+    kernel's 16 ms waited 1 ms and every ping timed out as 'a wrong id or baud rate?'. The bring-up now refuses
+    it, naming the adapter's timer, the option and the fix; an adapter as fast as the option is taken."""
+    from vbnav.drivers import discovery
+    monkeypatch.setattr(discovery, "read_latency_timer", lambda port, sysfs="/sys": 16)
+    d = make_drive(bus)
+    with pytest.raises(DriveError, match=r"latency timer is 16 ms.*drive.options.latency_ms 1 ms.*latency_timer"):
+        d.connect()
+    d.close()
+    monkeypatch.setattr(discovery, "read_latency_timer", lambda port, sysfs="/sys": 1)
+    d = make_drive(bus)
+    d.connect()
+    d.close()

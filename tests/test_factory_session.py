@@ -36,6 +36,22 @@ def test_the_scripted_teacher_never_drives_a_real_drive():
     assert type(teach_driver(load_config(None))).__name__ == "PathFollower"
 
 
+@pytest.mark.parametrize("world", ["corridor", "corridor_step"])
+def test_the_room_loop_is_driven_in_a_room_only(tmp_path, capsys, world):
+    """controller.teach room_loop (and vbnav demo) drive the simulated room's 7 m x 4 m loop: with sim.world a
+    3 m wide corridor it was accepted and the robot taught a loop through the corridor's walls. Both are refused,
+    naming sim.world; the room without boxes has the same walls and is taken."""
+    from vbnav.control.cli import main
+    with pytest.raises(ConfigError, match=rf"controller.teach 'room_loop'.*sim.world {world!r}"):
+        load_config(None, overrides={"controller": {"teach": "room_loop"}, "sim": {"world": world}})
+    load_config(None, overrides={"controller": {"teach": "room_loop"}, "sim": {"world": "empty_room"}})
+    cfg = tmp_path / "corridor.yaml"
+    cfg.write_text(f"controller:\n  teach: teleop\nsim:\n  world: {world}\n")
+    assert main(["demo", "-c", str(cfg), "--out", str(tmp_path / "demo")]) == 2
+    assert f"sim.world {world!r}" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
+
+
 def test_teleop_teaching_on_the_simulated_clock_is_refused(tmp_path, capsys):
     from vbnav.control.cli import main
     cfg = tmp_path / "teleop.yaml"
@@ -70,3 +86,26 @@ def test_a_simulated_camera_on_a_real_drive_is_a_config_error_naming_the_file(tm
     assert main(["teach", "-c", str(cfg), "--out", str(tmp_path / "r"), "--duration", "1"]) == 2
     err = capsys.readouterr().err
     assert str(cfg) in err and "camera.driver 'sim' needs drive.driver 'sim'" in err and "'dynamixel'" in err
+
+
+@pytest.mark.parametrize("drive, says, fits", [
+    ({"driver": "dynamixel", "options": {"port": "/dev/ttyNOPE", "velocity_limit_rad_s": 6.0}},
+     r"drive.options.velocity_limit_rad_s \(6\.000 rad/s", {"velocity_limit_rad_s": 12.0}),
+    ({"driver": "odrive", "options": {"port": "/dev/ttyNOPE", "vel_limit_turns_s": 2.0, "gear_ratio": 2.0}},
+     r"drive.options.vel_limit_turns_s / gear_ratio \(6\.283 rad/s", {"gear_ratio": 1.0}),
+])
+def test_a_drive_limit_below_robot_max_wheel_speed_is_refused(drive, says, fits):
+    """robot.max_wheel_speed is the limit the kinematics scale both wheels within (keeping the curvature); a
+    serial drive clips each wheel on its own at its limit (Dynamixel Velocity Limit, ODrive vel_limit). With
+    the drive's limit below it (the defaults: 20 rad/s, a Dynamixel's 6), the robot section's limit was
+    accepted and the drive clipped the faster wheel, bending the path. make_robot refuses it, naming both."""
+    from vbnav.control.runtime.factory import make_robot
+    robot = {"max_wheel_speed": 10.0, "max_linear_speed": 0.3}
+    teleop = {"teach": "teleop"}
+    cfg = load_config(None, overrides={"robot": robot, "drive": drive, "controller": teleop})
+    with pytest.raises(ConfigError, match=r"robot.max_wheel_speed 10 rad/s.*" + says):
+        make_robot(cfg, with_camera=False)
+    fitting = {**drive, "options": {**drive["options"], **fits}}
+    built = make_robot(load_config(None, overrides={"robot": robot, "drive": fitting, "controller": teleop}),
+                       with_camera=False)
+    built.drive.close()

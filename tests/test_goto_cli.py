@@ -66,7 +66,27 @@ def test_goto_in_real_time_with_the_threaded_vision_pipeline(tmp_path):
     d["loop"]["stall_periods"] = 1000       # nor the stall stop
     cfg = tmp_path / "rt.yaml"
     cfg.write_text(yaml.safe_dump(d))
-    r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40")
+    r = _run("--config", str(cfg), "--goal", "0.3", "0.8", "10", "--duration", "40", "--no-telemetry")
     assert r.returncode == 0, r.stdout + r.stderr
     err_cm = float(r.stdout.split("position error ")[1].split(" cm")[0])
     assert err_cm < 2.5  # measured 0.5 cm on 2026-11-30; the wall clock varies the run, so the bar is the mono one
+
+
+def test_goto_takes_the_telemetry_section_and_records(tmp_path):
+    """vbnav goto built its Runtime without a TelemetryLink: the telemetry section (telemetry.enabled, its
+    listen endpoints, the live view) was accepted and never opened on a real robot, so a goto published no
+    state and took no network stop, and it had no --record. It attaches the link as vbnav run does: on the
+    simulated clock it records (the network opens in real time, unless --no-telemetry)."""
+    import json
+
+    from vbnav.control.comms.recording import iter_recording, read_recording
+    out = tmp_path / "goto.mcap"
+    r = _run("--goal", "0", "3", "0", "--duration", "1", "--record", str(out))
+    assert r.returncode == 1 and "goto ended: duration" in r.stdout, r.stdout + r.stderr
+    assert read_recording(out).complete
+    states = [json.loads(d) for topic, _, _, d in iter_recording(out) if topic == "/vbnav/state"]
+    assert len(states) >= 15 and {s["mode"] for s in states} == {"goto"}
+    r = _run("--goal", "0", "3", "0", "--duration", "1", "--record", str(out))     # no --overwrite
+    assert r.returncode == 2 and "--overwrite" in r.stderr, r.stdout + r.stderr
+    r = _run("--goal", "0", "3", "0", "--duration", "1", "--overwrite")            # nothing to replace
+    assert r.returncode == 2 and "nothing to replace" in r.stderr, r.stdout + r.stderr

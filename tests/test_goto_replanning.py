@@ -144,3 +144,22 @@ def test_replanner_news_is_kept_bounded_and_read_once_each():
     got, told = rp.events_since(3 * EVENTS_KEPT - 2)
     assert got == [f"line {3 * EVENTS_KEPT - 2}", f"line {3 * EVENTS_KEPT - 1}"] and told == 3 * EVENTS_KEPT
     assert rp.events_since(told) == ([], told)
+
+
+def test_localising_against_a_map_refuses_a_distorted_camera():
+    """localise_start projects the map through fx, fy, cx, cy (a rectified pinhole pair): with camera.distortion
+    it read the distorted image as rectified and placed the robot wrong, without a word (goto --localise with a
+    monocular VSLAM, whose own stage takes the distortion). It refuses, naming the field, before the camera
+    is opened."""
+    from vbnav.control.config import parse_config
+    from vbnav.control.map_planning import localise_start
+    from vbnav.vision.geometry import Pose2
+
+    class Unopened:
+        def connect(self):
+            raise AssertionError("the camera was opened")
+
+    cfg = parse_config({"camera": {"options": {"stereo_baseline": 0.1}, "distortion": [-0.2, 0.0, 0.0, 0.0, 0.0]},
+                        "vslam": {"metric_scale": "odometry"}}, "robot.yaml")
+    found, say = localise_start(cfg, Unopened(), None, "map.npz", Pose2())
+    assert found is None and "robot.yaml" in say and "camera.distortion [-0.2" in say and "rectified" in say

@@ -2,6 +2,7 @@
 with no device, and a host-only depthai pipeline (ReplayVideo) through the driver."""
 from __future__ import annotations
 
+import re
 import time
 from datetime import timedelta
 
@@ -276,3 +277,46 @@ def test_a_device_that_refuses_its_settings_is_a_camera_error_naming_it_and_what
     assert "disparity" in msg and "camera.width" in msg and "_Refused" in msg, msg
     assert opened and opened[0].closed, "the device was left open"
     assert not cam.is_connected
+
+
+@pytest.mark.parametrize("camera, says", [
+    ({"distortion": [-0.1, 0.02, 0.0, 0.0, 0.0]}, "camera.distortion [-0.1, 0.02, 0.0, 0.0, 0.0]"),
+    ({"model": "fisheye"}, "camera.model fisheye"),
+])
+def test_a_distorted_camera_on_the_rectified_mono_stream_is_refused(camera, says):
+    """The mono stream with on-device stereo is the RECTIFIED left image (stereo.rectifiedLeft): a
+    camera.distortion or fisheye model (a calibration of the raw sensor) was accepted and every stage
+    undistorted images that have none; the device check compares fx/fy/cx/cy only. It is refused when the
+    camera is built, naming the field; without disparity (the raw left image) and on the colour stream the
+    distortion is the lens's and is taken."""
+    from vbnav.control.config import load_config
+    from vbnav.drivers.errors import InputError
+    off = {"obstacles": {"enabled": False}}          # the obstacle stage refuses it at load (test_config.py)
+    with pytest.raises(InputError, match=r"camera\.options\.stream mono .*rectified.*" + re.escape(says)):
+        OakCamera(load_config("sentry-oak", overrides={"camera": camera, **off}))
+    OakCamera(load_config("sentry-oak", overrides={"camera": {**camera, "options": {"disparity": False}}, **off}))
+    OakCamera(load_config("sentry-oak", overrides={"camera": {**camera, "options": {"stream": "color"}}, **off}))
+    OakCamera(load_config("sentry-oak", overrides={"camera": {"distortion": [0.0] * 5}, **off}))
+
+
+@pytest.mark.parametrize("options, says", [
+    ({"disparity": False, "subpixel": True, "extended_disparity": True},
+     r"subpixel: True, extended_disparity: True: .*only with disparity: true"),
+    ({"subpixel_bits": 5}, r"subpixel_bits: 5: .*only with subpixel: true"),
+    ({"replay_fps": 10.0}, r"replay_fps: 10\.0: .*only with replay_file"),
+    ({"replay_file": "x.mp4", "device_id": "1844", "use_device_calibration": False},
+     r"device_id: 1844, use_device_calibration: False: .*only with replay_file: null \(a device\)"),
+])
+def test_oak_options_of_a_mode_that_is_off_are_refused(options, says):
+    """subpixel, subpixel_bits, extended_disparity and lr_check tune the on-device stereo, subpixel_bits the
+    subpixel disparity, replay_fps the host-only replay: set while that is off they were accepted and the
+    pipeline never read them (no finer depth, no nearer range). They are refused, naming the option and what
+    turns it on; the defaults written out, and the same options with their mode on, are taken. The device's
+    options (device_id, stream, the stereo's, use_device_calibration, discovery_timeout_s) with replay_file
+    likewise: the host-only replay builds no device pipeline."""
+    from pydantic import ValidationError
+    with pytest.raises(ValidationError, match=says):
+        OakCamera.Options(**options)
+    OakCamera.Options(disparity=False, subpixel=False, lr_check=True)        # the defaults, written out
+    OakCamera.Options(subpixel=True, subpixel_bits=5, extended_disparity=True)
+    OakCamera.Options(replay_file="x.mp4", replay_fps=10.0, disparity=False)   # a replay has no disparity

@@ -147,3 +147,30 @@ def test_a_recordings_camera_yaml_takes_numbers_only(tmp_path, rng, line, match)
     (root / "camera.yaml").write_text("".join(f"{k}: {v}\n" for k, v in values.items()))
     with pytest.raises(CameraError, match=rf"camera\.yaml: {match}"):
         ReplayCamera({"path": str(root)}, SimClock()).connect()
+
+
+@pytest.mark.parametrize("camera_extra, extra, says", [
+    ({"distortion": [-0.2, 0.05, 0.0, 0.0, 0.0]}, {},
+     r"camera\.distortion \[-0\.2, 0\.05, 0\.0, 0\.0, 0\.0\] vs the recording's \[\]"),
+    ({"model": "fisheye"}, {}, r"camera\.model fisheye vs the recording's pinhole"),
+    ({}, {"obstacles": {"baseline": 0.3}}, r"obstacles\.baseline 0\.3 m vs the recording's 0\.5 m"),
+])
+def test_a_recording_of_another_lens_or_rig_than_the_configured_one_is_refused(tmp_path, rng, camera_extra, extra,
+                                                                               says):
+    """check_camera compared fx, fy, cx, cy only: a KITTI recording (rectified: no distortion, its stereo
+    baseline in calib.txt) replayed to stages configured with camera.distortion, a fisheye model or another
+    obstacles.baseline ran them on a lens or a rig the images were not taken with, without a word. Each is
+    refused now, naming the field and the recording's value; the recording's own lens and rig replay."""
+    from vbnav.control.config import load_config
+    from vbnav.drivers.camera import RecordedCameraError
+    root = tmp_path / "kitti"
+    write_folder(root / "image_l", 2, rng)
+    write_folder(root / "image_r", 2, rng)
+    (root / "calib.txt").write_text("P0: 500 0 16 0 0 500 12 0 0 0 1 0\nP1: 500 0 16 -250 0 500 12 0 0 0 1 0\n")
+    camera = {"driver": "replay", "width": 32, "height": 24, "fx": 500.0, "fy": 500.0, "cx": 16.0, "cy": 12.0,
+              "options": {"path": str(root)}}
+    for same in ({"camera": camera}, {"camera": {**camera, "distortion": [0.0] * 5}, "obstacles": {"baseline": 0.5}}):
+        ReplayCamera.from_config(load_config("sim", overrides=same), SimClock())
+    bad = load_config("sim", overrides={"camera": {**camera, **camera_extra}, **extra})
+    with pytest.raises(RecordedCameraError, match=r"calib\.txt.*" + says):
+        ReplayCamera.from_config(bad, SimClock())

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -340,3 +341,21 @@ def test_descriptors_match_nearby_views_but_not_other_places(room):
     elsewhere = [Pose2(3.5, 2.0, math.pi), Pose2(-3.5, 2.0, math.pi / 2), Pose2(0.0, -2.0, -1.5)]
     assert min(ratio_matches(ref, features(p, 1)) for p in near) >= 300
     assert max(ratio_matches(ref, features(p, 1)) for p in elsewhere) <= 50  # measured 25 on 2026-11-30, bar 2x
+
+
+def test_a_distorted_simulated_stereo_pair_or_a_fisheye_is_a_config_error():
+    """The simulated stereo pair is rectified: a config with camera.distortion and
+    camera.options.stereo_baseline raised a bare ValueError out of SimCamera, and camera.model fisheye a
+    TypeError out of the renderer, each a traceback 'this is a bug in vbnav'. They are input errors naming the
+    fields; a single simulated pinhole camera renders the distortion."""
+    from vbnav.control.config import load_config
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.drivers.errors import InputError
+    distortion = {"distortion": [-0.1, 0.0, 0.0, 0.0, 0.0]}
+    cfg = load_config(None, overrides={"camera": {**distortion, "options": {"stereo_baseline": 0.1}}})
+    with pytest.raises(InputError, match=r"camera\.options\.stereo_baseline: .*rectified.*"
+                                         + re.escape("camera.distortion [-0.1, 0.0, 0.0, 0.0, 0.0]")):
+        make_robot(cfg, with_camera=True)
+    with pytest.raises(InputError, match=r"camera\.model fisheye: the simulated camera renders pinhole"):
+        make_robot(load_config(None, overrides={"camera": {"model": "fisheye"}}), with_camera=True)
+    make_robot(load_config(None, overrides={"camera": distortion}), with_camera=True).drive.close()

@@ -107,7 +107,8 @@ def test_fourcc_option_is_validated():
 
 def test_format_verification_names_each_mismatch(video):
     # a capture whose read-back differs from the request: the video file reports MJPG 64x48 at 30 fps
-    cam = V4L2Camera(options=V4L2Camera.Options(device=str(video), fourcc="YUYV"), width=W, height=32, fps=15.0)
+    cam = V4L2Camera(options=V4L2Camera.Options(device=str(video), fourcc="YUYV", source="device"), width=W,
+                     height=32, fps=15.0)
     cap = cv2.VideoCapture(str(video))
     try:
         with pytest.raises(CameraError) as err:
@@ -152,3 +153,21 @@ def test_a_missing_video_file_is_named_as_missing(tmp_path):
     cam = V4L2Camera(options=V4L2Camera.Options(device=str(missing), source="file"), width=W, height=H, fps=30.0)
     with pytest.raises(CameraError, match=rf"video file {missing} not found \(camera.options.device\)"):
         cam.connect()
+
+
+@pytest.mark.parametrize("opts, says", [
+    ({"fourcc": "YUYV", "stall_timeout_s": 3.0},
+     r"fourcc: YUYV, stall_timeout_s: 3\.0: .*live device.* is a video file"),
+    ({"device": "/dev/video99", "loop": True}, r"loop: True: .*video file.*/dev/video99 is a live device"),
+    ({"device": "/dev/video99", "replay_rate_hz": 5.0}, r"replay_rate_hz: 5\.0: .*video file"),
+])
+def test_options_of_the_other_source_are_refused(video, opts, says):
+    """The file options (replay_rate_hz, loop) on a live device, and the device's (fourcc, backend,
+    fps_tolerance, stall_timeout_s, reconnect_interval_s) on a video file, were accepted and never read: a
+    loop: true on a camera, a fourcc YUYV on a clip. They are refused when the camera is built, naming the
+    options and what the device is; the defaults written out are taken."""
+    from vbnav.drivers.errors import InputError
+    with pytest.raises(InputError, match=says):
+        camera(opts.pop("device", video), **opts)
+    camera(video, fourcc="MJPG", loop=True, replay_rate_hz=0)
+    camera("/dev/video99", fourcc="YUYV", loop=False)

@@ -1,5 +1,6 @@
 """VslamStage, the mount conversion and the GotoController (control/vslam_nav.py)."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -474,3 +475,23 @@ def test_monocular_start_spreads_its_corners_over_vslam_detect_cells():
         dim_share[cells] = float(np.mean(stage._mono.px0[:, 0] >= 160))
     assert dim_share[0] < 0.05 and dim_share[16] > 0.3, dim_share
 
+
+
+@pytest.mark.parametrize("camera,says", [
+    ({"distortion": [-0.3, 0.1, 0.0, 0.0, 0.0]}, "camera.distortion [-0.3, 0.1, 0.0, 0.0, 0.0]"),
+    ({"model": "fisheye", "distortion": [0.1, 0.0, 0.0, 0.0]}, "camera.model fisheye"),
+])
+def test_the_stereo_vslam_refuses_a_distorted_camera(camera, says):
+    """The stereo VSLAM takes a rectified pair (Frame.right, or the device's disparity: depth = fx B / d, and
+    a right-image match must lie on the same row): with camera.distortion or a fisheye model its rays
+    undistorted rectified images, or its stereo read distorted ones as rectified, and every landmark's depth
+    was wrong without a word. It is refused, naming the field; the monocular VSLAM (metric_scale odometry)
+    takes the distortion."""
+    from vbnav.control.config import parse_config
+    from vbnav.control.stages.vslam import make_vslam_stage
+    cfg = parse_config({"camera": {"options": {"stereo_baseline": 0.1}, **camera}})
+    with pytest.raises(ValueError, match=r"rectified stereo pair .*" + re.escape(says)):
+        make_vslam_stage(cfg)
+    mono = parse_config({"camera": camera, "vslam": {"metric_scale": "odometry"}})
+    assert make_vslam_stage(mono).monocular
+    make_vslam_stage(parse_config({"camera": {"options": {"stereo_baseline": 0.1}, "distortion": [0.0] * 5}}))

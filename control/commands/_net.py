@@ -1,8 +1,9 @@
 """Network arguments shared by subcommands.
 
 - Clients (monitor, send): ``add_net_args`` and ``open_client``.
-- Robot runs (run, and teach/repeat/demo): ``add_telemetry_args`` (--record, --no-telemetry) and
-  ``attach_telemetry(runtime, cfg, args)`` which connects telemetry, network commands and the recording.
+- Robot runs (run, map build, goto; teach/repeat/demo through the session): ``add_telemetry_args`` (--record,
+  --no-telemetry) and ``attach_telemetry(runtime, cfg, args)`` which connects telemetry, network commands and
+  the recording.
 """
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from vbnav.control.config import load_config
+    from vbnav.control.config import ROOM_WORLDS, load_config
     from vbnav.control.demo import Scenario, demo_route, run_demo, start_pose
     from vbnav.control.runtime.progress import ProgressPrinter
 
@@ -48,6 +48,9 @@ def run(args) -> int:
     if cfg.camera.driver != "sim" or cfg.drive.driver != "sim":
         raise InputError(f"{cfg.source}: uses camera '{cfg.camera.driver}' and drive '{cfg.drive.driver}'; the "
                          "demo needs the simulated robot (use 'vbnav teach' and 'vbnav repeat' on hardware)")
+    if cfg.sim.world not in ROOM_WORLDS:
+        raise InputError(f"{cfg.source}: sim.world {cfg.sim.world!r}: the demo teaches the simulated room's 7 m x "
+                         f"4 m loop, which needs sim.world {' or '.join(ROOM_WORLDS)}")
     why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)

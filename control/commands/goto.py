@@ -4,7 +4,8 @@ from __future__ import annotations
 import math
 import sys
 
-from vbnav.control.commands._common import add_config_arg, add_overwrite_arg, finite, positive
+from vbnav.control.commands._common import add_config_arg, finite, positive
+from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_path
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
@@ -40,7 +41,7 @@ def register(sub) -> None:
                         "drives and plans again when the grown map blocks the route ahead")
     p.add_argument("--map-out", metavar="FILE",
                    help="with --map: write the map as it grew while driving to FILE at the end (atomically)")
-    add_overwrite_arg(p, "an existing --map-out map")
+    add_telemetry_args(p, overwrite_help="an existing --map-out map")
     p.add_argument("--robot-radius", type=positive, default=None, metavar="M",
                    help=f"with --map: the robot's radius for planning, m (default {ROBOT_RADIUS_M})")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
@@ -51,6 +52,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.runtime.finishing import finishing
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.runtime.runtime import DEVICE_FAULTS, Runtime
     from vbnav.control.controllers.goto import GotoController
@@ -77,14 +79,21 @@ def run(args) -> int:
         print("vbnav goto: --map-out needs the map to grow while driving (leave out --static-map)", file=sys.stderr)
         return 2
     radius = args.robot_radius if args.robot_radius is not None else ROBOT_RADIUS_M
-    if args.overwrite and not args.map_out:
-        print("vbnav goto: --overwrite replaces an existing --map-out file; without --map-out it has nothing to "
-              "replace", file=sys.stderr)
+    if args.overwrite and not args.map_out and not args.record:
+        print("vbnav goto: --overwrite replaces an existing --map-out or --record file; without --map-out or "
+              "--record it has nothing to replace", file=sys.stderr)
         return 2
+    from vbnav.control.commands._common import distinct_files, output_file, record_target_error
+    output_file(args.record, "--record")
     if args.map_out:
-        from vbnav.control.commands._common import not_recorded_yet, output_file
+        from vbnav.control.commands._common import not_recorded_yet
         output_file(args.map_out, "--map-out")
+        distinct_files({"--map-out": args.map_out, "--record": args.record})
         not_recorded_yet([args.map_out], f"--map-out {args.map_out}", args.overwrite, "a map is")
+    why = record_target_error(args)
+    if why:
+        print(f"vbnav goto: {why}", file=sys.stderr)
+        return 2
     try:
         stage = make_vslam_stage(cfg)
     except ValueError as exc:
@@ -130,6 +139,10 @@ def run(args) -> int:
     controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
                                 waypoints=waypoints)
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
+    link = attach_telemetry(rt, cfg, args)     # state, network commands and the live view; --record
+    if link is None:
+        robot.drive.close()         # never enabled: released as it was opened
+        return 3
     if live is not None:                # on a simulated clock the slow loops run inline, on simulated time
         live.attach(controller, robot.clock.simulated, start, start.compose(goal), radius)
     printer = ProgressPrinter()
@@ -158,11 +171,14 @@ def run(args) -> int:
 
     if live is not None:
         live.start()
+    result = None
     try:
         result = rt.run(args.duration, progress, progress_every_s=every_s)
     finally:
         if live is not None:
             live.stop()
+        with finishing():           # a second Ctrl-C must not cut the recording short
+            link.close(result)
     printer.done()
     if live is not None:
         for msg in live.new_events():
@@ -193,5 +209,5 @@ def run(args) -> int:
         return 130
     if result.reason in DEVICE_FAULTS:     # a device failed or is not there
         return 3
-    return 0 if result.reason == "finished" else 1
+    return 0 if result.reason == "finished" and link.recording_error is None else 1   # a --record not made
 

@@ -39,7 +39,9 @@ class RobotConfig(Strict):
     name: str = Field("sim", pattern=r"^[A-Za-z0-9_\-]+$", description="robot name, used in telemetry keys")
     wheel_radius: float = Field(0.05, gt=0, le=1.0, description="wheel radius, m")
     wheel_separation: float = Field(0.30, gt=0, le=5.0, description="distance between wheel contact points, m")
-    max_wheel_speed: float = Field(20.0, gt=0, description="wheel speed limit, rad/s, per wheel")
+    max_wheel_speed: float = Field(20.0, gt=0, description="wheel speed limit, rad/s, per wheel; at most the "
+                                   "drive's own (Dynamixel velocity_limit_rad_s, ODrive vel_limit_turns_s / "
+                                   "gear_ratio x 2 pi), which clips one wheel alone")
     max_linear_speed: float = Field(0.5, gt=0, description="forward speed limit, m/s; at most "
                                     "max_wheel_speed * wheel_radius")
     max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s")
@@ -202,6 +204,10 @@ class SafetyConfig(Strict):
                              "obstacles.release_s, its stage's own debounce)")
 
 
+# The simulated worlds the room's loop (controller.teach room_loop, vbnav demo) runs in: the room's walls.
+ROOM_WORLDS = ("room", "empty_room")
+
+
 class SimConfig(Strict):
     seed: int = Field(0, ge=0, description="random seed of the world's textures, the image noise and the wheel "
                                            "slip")
@@ -243,7 +249,7 @@ class ControllerConfig(Strict):
         description="[linear m/s, angular rad/s, duration s] segments for the scripted drive")
     teach: Literal["teleop", "room_loop"] = Field(
         "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
-                              "room_loop (simulated drive only: a scripted teacher once around the simulated "
+                              "room_loop (simulated drive and room only: a scripted teacher once around the simulated "
                               "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
     routes_dir: str = Field(
         "~/.local/share/vbnav/routes", min_length=1, max_length=1024,
@@ -316,6 +322,9 @@ class Config(Strict):
         if self.controller.teach == "room_loop" and self.drive.driver != "sim":
             raise ValueError(f"controller.teach 'room_loop' drives the simulated room's loop; drive.driver "
                              f"{self.drive.driver!r} is a real drive (use teach: teleop)")
+        if self.controller.teach == "room_loop" and self.sim.world not in ROOM_WORLDS:
+            raise ValueError(f"controller.teach 'room_loop' drives the simulated room's 7 m x 4 m loop; sim.world "
+                             f"{self.sim.world!r} has no room for it (use sim.world {' or '.join(ROOM_WORLDS)})")
         return self
 
 

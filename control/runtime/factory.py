@@ -95,6 +95,18 @@ def make_pipeline(cfg: Config, clock, camera, stages) -> VisionPipeline:
                           latency_s=cfg.sim.vision_latency_s if inline else 0.0)
 
 
+def check_wheel_speed_limit(cfg: Config, drive) -> None:
+    """Raise ConfigError when the drive clips a wheel below robot.max_wheel_speed: the kinematics scale both
+    wheels together within that limit (the curvature kept), a drive clipping the faster one alone bends the
+    path."""
+    own = drive.wheel_speed_limit
+    if own is not None and cfg.robot.max_wheel_speed > own[0] * (1 + 1e-9):
+        raise ConfigError(f"{cfg.source or '<config>'}: robot.max_wheel_speed {cfg.robot.max_wheel_speed:g} rad/s is "
+                          f"above what the drive lets a wheel turn, {own[1]} ({own[0]:.3f} rad/s): it would clip the "
+                          f"faster wheel alone and bend the robot's path; lower robot.max_wheel_speed (and "
+                          f"max_linear_speed) or raise the drive's limit")
+
+
 def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, run: int = 0) -> Robot:
     """The robot of a configuration, with a pipeline running ``stages`` (plus the enabled safety stages).
 
@@ -109,4 +121,5 @@ def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, run: 
     world = make_world(cfg) if want_camera and cfg.camera.driver == "sim" else None
     camera = make_camera(cfg, clock, drive, opts["camera"], world, run) if want_camera else None
     pipeline = make_pipeline(cfg, clock, camera, list(stages)) if camera is not None else None
+    check_wheel_speed_limit(cfg, drive)
     return Robot(clock, drive, camera, pipeline, world, cfg.sim.start() if simulated else None)

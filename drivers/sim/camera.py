@@ -30,6 +30,7 @@ from pydantic import ConfigDict, Field
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.camera import Camera, CameraError, Frame
+from vbnav.drivers.errors import InputError
 from vbnav.drivers.sim.render import Renderer
 from vbnav.drivers.sim.world import World
 from vbnav.vision.camera_model import PinholeCamera
@@ -150,6 +151,14 @@ class SimCamera(Camera):
         # configuration checked that they agree, and the stages use the same one
         rig = getattr(cfg.camera, "stereo_baseline", None)
         baseline = (rig() if callable(rig) else None) or opts.stereo_baseline
+        if cfg.camera.model != "pinhole":
+            raise InputError(f"{cfg.source or '<config>'}: camera.model {cfg.camera.model}: the simulated camera "
+                             f"renders pinhole cameras (with their camera.distortion) only")
+        distorted = cfg.camera.rectified_problem() if baseline else ""
+        if distorted:
+            raise InputError(f"{cfg.source or '<config>'}: camera.options.stereo_baseline: the simulated stereo pair "
+                             f"is rectified (a pinhole camera without distortion), and {distorted} describes a "
+                             f"distorted one (remove the distortion, or the stereo baseline for a single camera)")
         return cls(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn, clock,
                    cfg.camera.rate_hz, noise_std=cfg.sim.image_noise_std,
                    seed=cfg.sim.seed if seed is None else seed,
