@@ -201,3 +201,21 @@ def test_kitti_at_three_times_the_motion(shared_data):
         ok, g = ds.ground_truth_at(ds.stamps[r.frames])
         ape = ate_rmse(r.poses[ok], g[ok], with_scale=init == "essential")[0]
         assert ape < bound, (name, ape)
+
+
+def test_kitti06_left_only_at_three_times_the_motion_keeps_its_klt_poses(shared_data):
+    """kitti06 left images only, every third frame, RANSAC seeds 0-2. Under this motion most tracked
+    landmarks were triangulated in the frame before and only 24 % of them lie within the 1 px bound at
+    their first re-observation, so a quarter of all tracks agreeing with the KLT pose (the test that
+    doubts it and tries the ORB fallbacks) was missed on good frames, and poses of 7-11 ORB matches
+    replaced KLT poses of 13-19 inliers (seed 0: scale 0.99 -> 0.84 in one frame). The quarter is now counted
+    over the landmarks seen again since their triangulation. Median Sim(3) APE measured 0.379 m
+    (0.296-0.507), peer 0.374 m; 0.549 m (0.174-0.656) before. Bar between the two."""
+    ds = open_dataset(shared_data / "kitti06_stereo").every(3)
+    apes = []
+    for seed in (0, 1, 2):
+        r = run_vo(ds, "essential", seed=seed)
+        assert len(r.frames) == len(ds) and r.count("lost") == 0, (seed, r.count("lost"))
+        ok, g = ds.ground_truth_at(ds.stamps[r.frames])
+        apes.append(ate_rmse(r.poses[ok], g[ok], with_scale=True)[0])
+    assert np.median(apes) < 0.45, apes
