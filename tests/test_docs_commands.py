@@ -1,6 +1,10 @@
 """Documented commands and their promised messages (README.md, docs/*.md), checked cheaply at the CLI."""
 from __future__ import annotations
 
+import re
+import shlex
+from pathlib import Path
+
 import pytest
 
 
@@ -16,3 +20,52 @@ def test_send_mode_route_errors_name_the_flag(capsys, argv, message):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(message) and "Value error" not in err and len(err.splitlines()) == 1, err
+
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+SHELL_VARS = {"$PORT": "/dev/ttyUSB0", "$CAMERA": "/dev/video0",     # README, bring-up
+              "$TLS": "--tls-ca ca.pem --tls-cert alice.pem --tls-key alice.key"}    # docs/fleet.md
+
+
+def _documented_command_lines():
+    """Every `vbnav ...` line of a code block in README.md and docs/ (fenced or indented), and every
+    `vbnav ...` command of the README's benchmark table: (file:line, argv). Syntax summaries (with
+    [optional] parts or a|b alternatives) are left out."""
+    for doc in DOCS:
+        fenced = benchmarks = False
+        for n, line in enumerate(doc.read_text().splitlines(), 1):
+            benchmarks = line.startswith("## Benchmarks") or (benchmarks and not line.startswith("## "))
+            if line.startswith("```"):
+                fenced = not fenced
+                continue
+            cmds = []
+            if fenced or line.startswith("    vbnav "):
+                text = line.split(" #")[0].strip().rstrip("\\").strip()
+                text = text.replace("sudo $(command -v vbnav)", "vbnav")
+                cmds = [c.strip() for c in text.split(";")]
+            elif benchmarks and line.startswith("| ") and "`vbnav " in line:
+                cmds = [c for c in re.findall(r"`(vbnav [^`]*)`", line.split(" | ")[1])]
+            for cmd in cmds:
+                if not cmd.startswith("vbnav ") or re.search(r"[\[|]|\.\.\.", cmd):
+                    continue
+                for var, value in SHELL_VARS.items():
+                    cmd = cmd.replace(var, value)
+                yield f"{doc.name}:{n}", shlex.split(cmd)[1:]
+
+
+def test_every_documented_command_line_parses():
+    """The README's benchmark table showed `vbnav vo ../shared/data/kitti06_stereo --init stereo`, which
+    stops at 'the following arguments are required: --out': every command line the documentation shows
+    must at least be accepted by the parser."""
+    from vbnav.control.cli import build_parser
+    parser = build_parser()
+    seen, refused = 0, []
+    for where, argv in _documented_command_lines():
+        seen += 1
+        try:
+            parser.parse_args(argv)
+        except SystemExit:
+            refused.append(f"{where}: vbnav {shlex.join(argv)}")
+    assert seen > 40 and not refused, "\n".join(refused)
+
