@@ -69,3 +69,19 @@ def test_every_documented_command_line_parses():
             refused.append(f"{where}: vbnav {shlex.join(argv)}")
     assert seen > 40 and not refused, "\n".join(refused)
 
+
+def test_telemetry_doc_names_the_route_keys_and_chunk_sizes_the_robot_serves():
+    """docs/telemetry.md described an older route transfer (`vbnav/<robot>/routes?chunk=K`, tar archives of
+    512 KiB, pushes on `cmd/route/<name>` in 36 KiB chunks, `route_received` events) that the robot does not
+    serve: its keys and chunk sizes are those of control/comms/route_transfer.py."""
+    from vbnav.control.comms import route_transfer as rt
+    text = (ROOT / "docs" / "telemetry.md").read_text()
+    section = text[text.index("## Routes"):text.index("## Live view")]
+    for name, key in rt.keys("<robot>").items():
+        if name != "all":
+            assert f"`{key}" in section, key
+    assert f"{rt.PULL_CHUNK // 1024} KiB" in section and f"{rt.PUSH_CHUNK // 1024} KiB" in section
+    assert "cmd/route" not in section and "route_received" not in text
+    fleet = (ROOT / "docs" / "fleet.md").read_text()
+    assert f"Pushed chunks are {rt.PUSH_CHUNK // 1024} KiB" in fleet and f"pulled chunks {rt.PULL_CHUNK // 1024} KiB" in fleet
+
