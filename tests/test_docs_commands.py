@@ -85,3 +85,26 @@ def test_telemetry_doc_names_the_route_keys_and_chunk_sizes_the_robot_serves():
     fleet = (ROOT / "docs" / "fleet.md").read_text()
     assert f"Pushed chunks are {rt.PUSH_CHUNK // 1024} KiB" in fleet and f"pulled chunks {rt.PULL_CHUNK // 1024} KiB" in fleet
 
+
+def _subparsers(parser, path=()):
+    """(command words, parser) of every command and subcommand."""
+    import argparse
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _subparsers(sub, path + (name,))
+
+
+def test_no_help_says_default_none_or_false():
+    """`vbnav vo --help` and `vbnav lines --help` printed '(default: None)' after the required --out and after
+    options that say their default in their own words ('--init ... (default: stereo if right images, ...)
+    (default: None)'), and '(default: False)' after flags."""
+    from vbnav.control.cli import build_parser
+    bad = []
+    for path, parser in _subparsers(build_parser()):
+        text = " ".join(parser.format_help().split())
+        for noise in ("(default: None)", "(default: False)"):
+            if noise in text:
+                bad.append(f"vbnav {' '.join(path)} --help: {noise}")
+    assert not bad, "\n".join(bad)

@@ -1,12 +1,12 @@
 """``vbnav vo``: monocular VSLAM (section 11.3) over a recorded dataset."""
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
 from pathlib import Path
 
+from vbnav.control.commands._common import DefaultsHelpFormatter
 from vbnav.drivers.atomic_file import atomic_output, write_atomic
 
 GROUND_TRUTH_FILE = {"kitti": "poses.txt", "tum": "groundtruth.txt"}
@@ -21,7 +21,7 @@ def register(subparsers) -> None:
                     "landmark set) and write the camera trajectory in TUM format "
                     "(timestamp tx ty tz qx qy qz qw, camera-to-world, one line per tracked frame). "
                     "With ground truth, prints ATE (SE(3) Umeyama alignment) and RPE.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=DefaultsHelpFormatter)
     p.add_argument("dataset", help="folder in KITTI odometry layout (image_l/, image_r/, calib.txt, poses.txt, "
                                    "times.txt) or TUM RGB-D layout (rgb.txt, depth.txt, groundtruth.txt)")
     p.add_argument("--out", required=True, metavar="FILE", help="trajectory output (TUM format)")
