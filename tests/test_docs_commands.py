@@ -108,3 +108,17 @@ def test_no_help_says_default_none_or_false():
             if noise in text:
                 bad.append(f"vbnav {' '.join(path)} --help: {noise}")
     assert not bad, "\n".join(bad)
+
+
+def test_every_argument_is_explained_in_its_help():
+    """`vbnav map plot --help` listed --out and MAP bare, `map view --help` hid its --port default (8765, the
+    one docs/line_map.md names), `calibrate stereo --help` its folders, --out and --quiet, `send mode --help`
+    the mode: every option and positional of every command says what it is."""
+    import argparse
+    from vbnav.control.cli import build_parser
+    bare = [f"vbnav {' '.join(path)}: {a.option_strings[0] if a.option_strings else a.dest}"
+            for path, parser in _subparsers(build_parser()) for a in parser._actions
+            if not a.help and not isinstance(a, argparse._SubParsersAction)]
+    assert not bare, "\n".join(bare)
+    view = next(p for path, p in _subparsers(build_parser()) if path == ("map", "view"))
+    assert "default 8765" in " ".join(view.format_help().split())

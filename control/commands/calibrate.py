@@ -60,12 +60,12 @@ def register(sub) -> None:
                                     "OUT/right_*.yaml, OUT/stereo_opencv.yaml (K1 D1 K2 D2 R T) and OUT/stereo.yaml "
                                     "(the rectified rig in vbnav's stereo format: a camera.calibration_file for "
                                     "rectified images). The baseline is in the unit of --square.")
-    s.add_argument("left", metavar="LEFT_DIR")
-    s.add_argument("right", metavar="RIGHT_DIR")
+    s.add_argument("left", metavar="LEFT_DIR", help="folder of the left camera's board views")
+    s.add_argument("right", metavar="RIGHT_DIR", help="folder of the right camera's views, paired by sorted name")
     _board_args(s)
-    s.add_argument("--out", required=True, metavar="DIR")
+    s.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
     add_overwrite_arg(s, "calibration files already in --out")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--quiet", action="store_true", help="no per-view lines on stderr")
     s.set_defaults(func=run_stereo)
 
     m = what.add_parser("mount", help="camera height, pitch and roll over the floor, into the config",

@@ -65,7 +65,9 @@ def register(sub) -> None:
     t.add_argument("--rate", type=positive, default=None, metavar="HZ",
                    help=f"send rate with --for (default {RATE_HZ:g})")
     m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route NAME")
-    m.add_argument("mode", choices=["idle", "teach", "repeat"])
+    m.add_argument("mode", choices=["idle", "teach", "repeat"],
+                   help="idle; teach (record a route while teleop drives) or repeat (patrol a route): both need "
+                        "--route")
     m.add_argument("--route", default=None, metavar="NAME",
                    help="route to repeat (or to teach into): a name in the robot's controller.routes_dir; "
                         "mode idle takes none")
