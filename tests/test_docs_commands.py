@@ -122,3 +122,20 @@ def test_every_argument_is_explained_in_its_help():
     assert not bare, "\n".join(bare)
     view = next(p for path, p in _subparsers(build_parser()) if path == ("map", "view"))
     assert "default 8765" in " ".join(view.format_help().split())
+
+
+def test_telemetry_doc_names_the_commands_whose_overwrite_is_for_the_recording_only():
+    """docs/telemetry.md said `map build --overwrite` without --record is refused, as in run, repeat and demo;
+    map build's --overwrite also replaces its --out map (as teach's the route), so it is accepted."""
+    from vbnav.control.cli import build_parser
+    record_only, also_more = set(), set()
+    for path, parser in _subparsers(build_parser()):
+        opts = {a.option_strings[0]: a for a in parser._actions if a.option_strings}
+        if "--record" in opts and "--overwrite" in opts:
+            only = opts["--overwrite"].help.startswith("replace an existing --record file")
+            (record_only if only else also_more).add(" ".join(path))
+    text = " ".join((ROOT / "docs" / "telemetry.md").read_text().split())
+    listed = re.search(r"Without `--record`, `--overwrite` is refused \(([^:]*):", text).group(1)
+    assert set(re.findall(r"`([a-z ]+)`", listed)) == record_only, (listed, record_only)
+    for command in also_more:
+        assert f"`{command} --overwrite` also replaces" in text, command
