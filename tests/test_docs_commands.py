@@ -139,3 +139,15 @@ def test_telemetry_doc_names_the_commands_whose_overwrite_is_for_the_recording_o
     assert set(re.findall(r"`([a-z ]+)`", listed)) == record_only, (listed, record_only)
     for command in also_more:
         assert f"`{command} --overwrite` also replaces" in text, command
+
+
+def test_telemetry_doc_names_every_cause_of_a_safety_warning():
+    """docs/telemetry.md's `safety_warning` row named only `drive_lost`; the runtime also warns
+    `stop_unconfirmed` (a motor that did not take a stop) and `scheduling` (a refused CPU set or priority)."""
+    causes = set()
+    for path in (ROOT / "control").rglob("*.py"):
+        causes |= set(re.findall(r'note\(\s*\w+,\s*"warning",\s*"(\w+)"', path.read_text()))
+    row = next(line for line in (ROOT / "docs" / "telemetry.md").read_text().splitlines()
+               if line.startswith("| `safety_warning`"))
+    assert causes >= {"drive_lost", "stop_unconfirmed", "scheduling"}, causes
+    assert all(f"`{c}`" in row for c in causes), (causes, row)
