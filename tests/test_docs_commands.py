@@ -151,3 +151,16 @@ def test_telemetry_doc_names_every_cause_of_a_safety_warning():
                if line.startswith("| `safety_warning`"))
     assert causes >= {"drive_lost", "stop_unconfirmed", "scheduling"}, causes
     assert all(f"`{c}`" in row for c in causes), (causes, row)
+
+
+def test_telemetry_doc_names_every_cause_of_a_safety_trip():
+    """docs/telemetry.md's `safety_trip` row left out the fatal `camera` (a camera that fails mid-run, exit 3;
+    docs/safety.md)."""
+    from vbnav.control.runtime.safety import FATAL
+    causes = set(FATAL)
+    for path in (ROOT / "control").rglob("*.py"):
+        causes |= set(re.findall(r'\.trip\(\s*\w+,\s*"(\w+)"', path.read_text()))
+    row = next(line for line in (ROOT / "docs" / "telemetry.md").read_text().splitlines()
+               if line.startswith("| `safety_trip`"))
+    assert {"estop", "stall", "drive_lost", "camera"} <= causes, causes
+    assert all(f"`{c}`" in row for c in causes), (causes, row)
