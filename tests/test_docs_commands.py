@@ -164,3 +164,14 @@ def test_telemetry_doc_names_every_cause_of_a_safety_trip():
                if line.startswith("| `safety_trip`"))
     assert {"estop", "stall", "drive_lost", "camera"} <= causes, causes
     assert all(f"`{c}`" in row for c in causes), (causes, row)
+
+
+def test_telemetry_doc_names_the_causes_of_a_safety_hold():
+    """docs/telemetry.md's `safety_hold` row said 'obstacles'; the cause a monitor or a script sees is
+    `obstacle`."""
+    row = next(line for line in (ROOT / "docs" / "telemetry.md").read_text().splitlines()
+               if line.startswith("| `safety_hold`"))
+    for cause in ("command_timeout", "camera_stale", "<kind>_stale", "obstacle"):
+        assert f"`{cause}`" in row, (cause, row)
+    src = (ROOT / "control" / "runtime" / "runtime.py").read_text()
+    assert '.hold(now, "obstacle",' in src and '.hold(now, "camera_stale",' in src
