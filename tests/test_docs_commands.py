@@ -175,3 +175,15 @@ def test_telemetry_doc_names_the_causes_of_a_safety_hold():
         assert f"`{cause}`" in row, (cause, row)
     src = (ROOT / "control" / "runtime" / "runtime.py").read_text()
     assert '.hold(now, "obstacle",' in src and '.hold(now, "camera_stale",' in src
+
+
+def test_cannot_connect_says_why_without_zenohs_source_paths(capsys):
+    """`vbnav send` (monitor, teleop, route) to an endpoint where nobody listens said 'cannot connect to
+    tcp/127.0.0.1:1: Unable to connect to any of [...]!  at /root/.cargo/git/checkouts/zenoh-.../
+    orchestrator.rs:447. (is `vbnav run` going ...)': the Rust source location is no help to an operator.
+    The robot's own 'cannot open the zenoh session' goes through the same open_session."""
+    from vbnav.control import cli
+    assert cli.main(["send", "estop", "--connect", "tcp/127.0.0.1:1", "--wait", "1"]) == 3
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vbnav send: cannot connect to tcp/127.0.0.1:1: ") and "Unable to connect" in err, err
+    assert ".rs:" not in err and ".cargo" not in err and len(err.splitlines()) == 1, err
