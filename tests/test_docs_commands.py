@@ -187,3 +187,13 @@ def test_cannot_connect_says_why_without_zenohs_source_paths(capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("vbnav send: cannot connect to tcp/127.0.0.1:1: ") and "Unable to connect" in err, err
     assert ".rs:" not in err and ".cargo" not in err and len(err.splitlines()) == 1, err
+
+
+def test_find_servos_on_a_port_that_is_not_there_prints_no_scan(capsys, tmp_path):
+    """`vbnav find servos --port NOPE` printed 'Scanning NOPE (broadcast ping at each rate):' on stdout and
+    then refused the port: a script reading stdout saw a scan begin. The port is checked first."""
+    from vbnav.control import cli
+    missing = tmp_path / "ttyNOPE"
+    assert cli.main(["find", "servos", "--port", str(missing)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and f"--port {missing}: no such device" in err and len(err.splitlines()) == 1, (out, err)
