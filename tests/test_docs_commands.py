@@ -197,3 +197,14 @@ def test_find_servos_on_a_port_that_is_not_there_prints_no_scan(capsys, tmp_path
     assert cli.main(["find", "servos", "--port", str(missing)]) == 2
     out, err = capsys.readouterr()
     assert out == "" and f"--port {missing}: no such device" in err and len(err.splitlines()) == 1, (out, err)
+
+
+def test_teach_help_says_what_ends_a_teach():
+    """`vbnav teach --help` said a teleop teach is stopped 'with Ctrl-C or vbnav send estop'; an estop latches
+    the wheels' stop and the teach goes on recording (the run ends on Ctrl-C, SIGTERM or --duration), so the
+    help now says that, as the README's bring-up does ('until Ctrl-C once the route is driven')."""
+    from vbnav.control.cli import build_parser
+    teach = next(p for path, p in _subparsers(build_parser()) if path == ("teach",))
+    text = " ".join(teach.format_help().split())
+    assert "stop with Ctrl-C or 'vbnav send estop'" not in text
+    assert "end it with Ctrl-C" in text and "'vbnav send estop' stops the wheels" in text, text
