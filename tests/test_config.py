@@ -198,3 +198,15 @@ def test_obstacles_on_a_distorted_camera_are_refused(camera, says):
     parse_config({**cfg, "obstacles": {"enabled": False}})           # the other stages use the distortion
     parse_config({"camera": {"options": {"stereo_baseline": 0.075}, "distortion": [0.0] * 5},
                   "obstacles": {"enabled": True}})
+
+
+def test_an_unknown_drive_driver_is_named_as_unknown_not_as_a_real_drive():
+    """configs/sim.yaml with `drive.driver: bogus` said "controller.teach 'room_loop' drives the simulated
+    room's loop; drive.driver 'bogus' is a real drive (use teach: teleop)": the misspelt driver was taken for
+    a real one, and the advice was to change an unrelated key. It is now 'unknown driver', as with teach:
+    teleop."""
+    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "sim.yaml").read_text())
+    assert data["controller"]["teach"] == "room_loop"
+    data["drive"]["driver"] = "bogus"
+    with pytest.raises(ConfigError, match=r"drive\.driver: unknown driver 'bogus'; expected one of .*sim"):
+        parse_config(data, "robot.yaml")
