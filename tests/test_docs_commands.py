@@ -208,3 +208,13 @@ def test_teach_help_says_what_ends_a_teach():
     text = " ".join(teach.format_help().split())
     assert "stop with Ctrl-C or 'vbnav send estop'" not in text
     assert "end it with Ctrl-C" in text and "'vbnav send estop' stops the wheels" in text, text
+
+
+def test_line_map_doc_gives_the_prediction_range_the_map_uses():
+    """docs/line_map.md said the map's prediction is clipped 'to 0.5-3 m' (the old min_range_m); LineMap.predict
+    clips at 0.1 m in front of the camera and at max_range_m in depth (min_range_m, 0.35 m, only limits what
+    is inserted)."""
+    from vbnav.vision.line_map import MapParams
+    text = " ".join((ROOT / "docs" / "line_map.md").read_text().split())
+    assert "0.5-3 m" not in text
+    assert f"to `max_range_m` ({MapParams().max_range_m:g} m) in depth" in text
