@@ -218,3 +218,18 @@ def test_line_map_doc_gives_the_prediction_range_the_map_uses():
     text = " ".join((ROOT / "docs" / "line_map.md").read_text().split())
     assert "0.5-3 m" not in text
     assert f"to `max_range_m` ({MapParams().max_range_m:g} m) in depth" in text
+
+
+def test_vo_refuses_a_bundle_adjustment_it_would_not_run(tmp_path, capsys):
+    """`vbnav vo KITTI --init stereo --ba-window 7` was accepted and changed nothing (ATE 0.1370 m with and
+    without): the window adjusts landmarks placed by the camera's own motion, and a stereo run measures
+    every landmark with the pair. The option is now refused there, before any tracking."""
+    from test_cli_errors import _sequence
+    from vbnav.control import cli
+    _sequence(tmp_path, "seq")
+    for init in (["--init", "stereo"], []):          # stereo is also the default with right images
+        code = cli.main(["vo", str(tmp_path / "seq"), "--out", str(tmp_path / "t.txt"), "--ba-window", "7",
+                         "--quiet", *init])
+        out, err = capsys.readouterr()
+        assert code == 2 and out == "" and "--ba-window 7" in err and "stereo" in err, (init, out, err)
+    assert not (tmp_path / "t.txt").exists()

@@ -40,7 +40,8 @@ def register(subparsers) -> None:
                    help="exit 1 when more than this fraction of the frames has no pose")
     p.add_argument("--ba-window", type=int, default=0, metavar="N",
                    help="monocular landmarks: windowed bundle adjustment of the last N frames (vslam.ba_window; "
-                        "0: off, the default; see docs/vslam.md)")
+                        "0: off, the default; refused with --init stereo, whose landmarks the pair measures; see "
+                        "docs/vslam.md)")
     p.add_argument("--quiet", action="store_true", help="no per-frame progress")
     p.set_defaults(func=run)
 
