@@ -210,3 +210,12 @@ def test_an_unknown_drive_driver_is_named_as_unknown_not_as_a_real_drive():
     data["drive"]["driver"] = "bogus"
     with pytest.raises(ConfigError, match=r"drive\.driver: unknown driver 'bogus'; expected one of .*sim"):
         parse_config(data, "robot.yaml")
+
+
+def test_a_bundle_adjustment_window_with_stereo_scale_is_refused():
+    """`vslam: {ba_window: 7}` on a stereo robot (metric_scale stereo, the default) was accepted and never
+    ran: the window adjusts landmarks placed by the camera's own motion, and the pair measures every
+    landmark of a stereo VSLAM. It is refused naming both keys; with metric_scale odometry it is taken."""
+    with pytest.raises(ConfigError, match=r"robot\.yaml: vslam: .*ba_window 7.*metric_scale stereo"):
+        parse_config({"vslam": {"ba_window": 7}}, "robot.yaml")
+    assert parse_config({"vslam": {"ba_window": 7, "metric_scale": "odometry"}}, "robot.yaml").vslam.ba_window == 7
