@@ -157,6 +157,11 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
     init = init or default_init(ds)
     if init not in INIT_MODES:
         raise VoError(f"unknown --init {init!r} (expected one of {', '.join(INIT_MODES)})")
+    if init == "stereo" and config is not None and config.ba_window > 0:
+        # every landmark of a stereo run is measured by the pair: none is placed by the camera's own motion
+        raise VoError(f"--ba-window {config.ba_window}: the bundle adjustment moves landmarks placed by the "
+                      f"camera's own motion; with --init stereo the pair measures every landmark, so it would "
+                      f"change nothing (leave it out, or --init essential for the left images alone)")
     say = progress or (lambda s: None)
     slam = Vslam(ds.camera, config, stereo_baseline=ds.stereo_baseline if init == "stereo" else None, seed=seed)
     traj = _Trajectory(ds)

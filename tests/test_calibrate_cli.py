@@ -376,3 +376,25 @@ def test_a_stereo_calibration_that_would_not_load_is_not_written(stereo_dirs, tm
     assert f"{out / 'stereo.yaml'}: not written (nor the other files of the calibration)" in captured.err
     assert "baseline" in captured.err and "wrote" not in captured.out
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_mount_dry_run_refuses_what_the_real_run_would(tmp_path, capsys):
+    """`calibrate mount --dry-run` printed a 50 deg roll and exited 0, while the same command without it
+    refuses that mount (camera.mount.roll_deg is at most 45): a dry run now checks the edit as the real run
+    does, and writes nothing either way."""
+    mount = CameraMount(height=0.32, forward=0.1, pitch=math.radians(40.0), roll=math.radians(50.0))
+    K = np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]])
+    cv2.imwrite(str(tmp_path / "floor.png"), render_floor_board(K, mount, ahead=0.5))
+    text = (CONFIG_DIR / "sim.yaml").read_text()
+    (tmp_path / "robot.yaml").write_text(text)
+    argv = ["calibrate", "mount", "-c", str(tmp_path / "robot.yaml"), "--image", str(tmp_path / "floor.png"),
+            "--square", "0.04"]
+    for extra in (["--dry-run"], []):
+        assert cli.main(argv + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert "camera.mount.roll_deg" in err and "45" in err, (extra, err)
+    assert (tmp_path / "robot.yaml").read_text() == text
+    cv2.imwrite(str(tmp_path / "floor.png"), render_floor_board(K, CameraMount(height=0.32, forward=0.1,
+                                                                               pitch=math.radians(25.0))))
+    assert cli.main(argv + ["--dry-run"]) == 0
+    assert "not written" in capsys.readouterr().out and (tmp_path / "robot.yaml").read_text() == text

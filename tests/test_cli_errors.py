@@ -198,7 +198,7 @@ CASES = [
     ("send-endpoint", "send estop --connect garbage", 2, "garbage"),
     ("send-mode", "send mode fly", 2, "fly"),
     ("send-mode-idle-route", "send mode idle --route hall", 2, "--route: mode idle takes no route"),
-    ("send-mode-teach-no-route", "send mode teach", 2, "mode 'teach' needs a route"),
+    ("send-mode-teach-no-route", "send mode teach", 2, "--route: mode teach needs a route (--route NAME"),
     ("send-rate-without-for", "send teleop 0.1 0 --rate 5", 2, "--rate is the rate of a --for S stream"),
     # network options that cannot work were 'cannot connect' (exit 3), a missing TLS file was not named, and
     # TLS options for a tcp/ endpoint were not used

@@ -230,3 +230,24 @@ def test_a_key_given_twice_is_refused_naming_both_lines(tmp_path, text, key, lin
         load_config(p)
     msg = str(err.value)
     assert str(p) in msg and f"line {line}" in msg and f"duplicate key '{key}'" in msg, msg
+
+
+def test_an_unknown_drive_driver_is_named_as_unknown_not_as_a_real_drive():
+    """configs/sim.yaml with `drive.driver: bogus` said "controller.teach 'room_loop' drives the simulated
+    room's loop; drive.driver 'bogus' is a real drive (use teach: teleop)": the misspelt driver was taken for
+    a real one, and the advice was to change an unrelated key. It is now 'unknown driver', as with teach:
+    teleop."""
+    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "sim.yaml").read_text())
+    assert data["controller"]["teach"] == "room_loop"
+    data["drive"]["driver"] = "bogus"
+    with pytest.raises(ConfigError, match=r"drive\.driver: unknown driver 'bogus'; expected one of .*sim"):
+        parse_config(data, "robot.yaml")
+
+
+def test_a_bundle_adjustment_window_with_stereo_scale_is_refused():
+    """`vslam: {ba_window: 7}` on a stereo robot (metric_scale stereo, the default) was accepted and never
+    ran: the window adjusts landmarks placed by the camera's own motion, and the pair measures every
+    landmark of a stereo VSLAM. It is refused naming both keys; with metric_scale odometry it is taken."""
+    with pytest.raises(ConfigError, match=r"robot\.yaml: vslam: .*ba_window 7.*metric_scale stereo"):
+        parse_config({"vslam": {"ba_window": 7}}, "robot.yaml")
+    assert parse_config({"vslam": {"ba_window": 7, "metric_scale": "odometry"}}, "robot.yaml").vslam.ba_window == 7

@@ -211,6 +211,21 @@ def test_process_and_loop_cpu_sets_apply_and_the_vision_thread_does_not_inherit_
     assert box["cpus"] == {cpus[0]} and os.sched_getaffinity(0) == every
 
 
+def test_a_refused_cpu_set_or_real_time_priority_is_told_as_it_happens():
+    """A loop CPU set the kernel refuses (or SCHED_FIFO refused) was only appended to the run's event list: the
+    console's event echo and the telemetry's events (the safety listeners) never heard of it, so a service ran
+    for weeks on normal scheduling with the 'scheduling' warning of docs/service.md unsaid until its end."""
+    clock = MonotonicClock()                                           # scheduling is the real clock's
+    cfg = Config.model_validate({"loop": {"cpu_affinity": [4000]}})    # no such CPU: the kernel refuses it
+    rt = Runtime(cfg, RecordingDrive(clock), IdleController(), clock)
+    heard = []
+    rt.safety.listeners.append(heard.append)
+    undo = rt._apply_scheduling()
+    undo()
+    assert [(e.kind, e.cause) for e in heard] == [("warning", "scheduling")], heard
+    assert "cpu_affinity" in heard[0].message and heard[0] in rt.safety.events
+
+
 # ---- install: the unit ---------------------------------------------------------------------------------
 
 def _robot_config(tmp_path: Path, **loop) -> Path:

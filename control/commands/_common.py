@@ -14,6 +14,16 @@ from typing import Optional
 from vbnav.drivers.errors import InputError
 
 
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults in the help, except None and False (a required option, a flag, or an option that says its
+    default in its own words)."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def add_config_arg(p: argparse.ArgumentParser, default: str | None = None) -> None:
     p.add_argument("--config", "-c", default=default, metavar="FILE",
                    help=f"robot configuration YAML (default: configs/{default or 'sim'}.yaml; a bare name like "

@@ -61,12 +61,12 @@ def register(sub) -> None:
                                     "OUT/right_*.yaml, OUT/stereo_opencv.yaml (K1 D1 K2 D2 R T) and OUT/stereo.yaml "
                                     "(the rectified rig in vbnav's stereo format: a camera.calibration_file for "
                                     "rectified images). The baseline is in the unit of --square.")
-    s.add_argument("left", metavar="LEFT_DIR")
-    s.add_argument("right", metavar="RIGHT_DIR")
+    s.add_argument("left", metavar="LEFT_DIR", help="folder of the left camera's board views")
+    s.add_argument("right", metavar="RIGHT_DIR", help="folder of the right camera's views, paired by sorted name")
     _board_args(s)
-    s.add_argument("--out", required=True, metavar="DIR")
+    s.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
     add_overwrite_arg(s, "calibration files already in --out")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--quiet", action="store_true", help="no per-view lines on stderr")
     s.set_defaults(func=run_stereo)
 
     m = what.add_parser("mount", help="camera height, pitch and roll over the floor, into the config",
@@ -84,7 +84,8 @@ def register(sub) -> None:
     _board_args(m)
     m.add_argument("--board-thickness", type=non_negative, default=None, metavar="M",
                    help="the board's top surface above the floor, m (added to the height; default 0)")
-    m.add_argument("--dry-run", action="store_true", help="print the mounting, do not write the config")
+    m.add_argument("--dry-run", action="store_true",
+                   help="print the mounting and check the edit, do not write the config")
     m.set_defaults(func=_device_errors(run_mount))
 
 
@@ -433,10 +434,11 @@ def run_mount(args) -> int:
     values = {"height": height, "pitch_deg": math.degrees(pose.pitch), "roll_deg": math.degrees(pose.roll)}
     print(f"camera mount from the {how}: height {height:.4f} m, pitch {values['pitch_deg']:.3f} deg (down), "
           f"roll {values['roll_deg']:.3f} deg")
-    if args.dry_run:
-        return 0
     path = resolve_config_path(args.config)
-    set_camera_mount(path, values)
+    set_camera_mount(path, values, write=not args.dry_run)     # a dry run is checked as the real edit is
+    if args.dry_run:
+        print(f"{path}: --dry-run: camera.mount not written (the edit would be valid)")
+        return 0
     print(f"{path}: camera.mount height, pitch_deg, roll_deg written (the rest of the file unchanged)")
     return 0
 

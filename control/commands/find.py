@@ -115,9 +115,9 @@ def run_servos(args) -> int:
             print(f"  {baud:>8} bit/s: id {s.dxl_id:<3} {s.model} (model number {s.model_number}), "
                   f"firmware {s.firmware}", flush=True)
 
-    print(f"Scanning {args.bus_port} (broadcast ping at each rate):", flush=True)
     try:
-        with DynamixelBusTool(args.bus_port) as bus:
+        with DynamixelBusTool(args.bus_port) as bus:       # refuses a --port that is no serial device
+            print(f"Scanning {args.bus_port} (broadcast ping at each rate):", flush=True)
             found = bus.scan(bauds, progress=say)
     except DriveError as exc:
         print(f"{COMMAND} servos: {exc}", file=sys.stderr)

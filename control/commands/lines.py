@@ -15,7 +15,7 @@ import time
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import distinct_files, output_file, positive
+from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, output_file, positive
 from vbnav.control.image_files import read_image, write_json, write_png
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
@@ -41,7 +41,7 @@ def register(subparsers) -> None:
                     "each match as a 3D segment with the covariance of its endpoints (docs/line_map.md). Segments "
                     "within --min-epipolar-angle of horizontal are not reconstructed: their disparity is "
                     "undetermined. Writes JSON; prints a one-line summary.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=DefaultsHelpFormatter)
     p.add_argument("--left", required=True, metavar="L", help="left image (rectified, or raw with an OpenCV "
                    "stereo rectification as --calib)")
     p.add_argument("--right", required=True, metavar="R", help="right image (as --left)")

@@ -36,11 +36,12 @@ def register(sub) -> None:
     add_telemetry_args(b, overwrite_help="an existing --out map")
     b.set_defaults(func=run_build)
     i = sp.add_parser("info", help="print a map's summary as JSON")
-    i.add_argument("map", metavar="MAP")
+    i.add_argument("map", metavar="MAP", help="map file (vbnav map build, goto --map-out)")
     i.set_defaults(func=run_info)
     pl = sp.add_parser("plot", help="top view and 3D view of a map as PNG")
-    pl.add_argument("map", metavar="MAP")
-    pl.add_argument("--out", required=True, metavar="PNG")
+    pl.add_argument("map", metavar="MAP", help="map file (vbnav map build, goto --map-out)")
+    pl.add_argument("--out", required=True, metavar="PNG", help="the PNG to write: top view and oblique 3D view, "
+                    "colour = height")
     pl.add_argument("--all", action="store_true", help="also draw unverified candidates (grey)")
     pl.set_defaults(func=run_plot)
     v = sp.add_parser("view", help="serve a map to the Foxglove app as a 3D scene until Ctrl-C",
@@ -49,10 +50,11 @@ def register(sub) -> None:
                                   "hypotheses) and its planning grid (/vbnav/map/grid: 100 mapped obstacle, 50 "
                                   "within the robot radius, 0 free), until Ctrl-C. In Foxglove: Open connection, "
                                   "Foxglove WebSocket, ws://127.0.0.1:PORT.")
-    v.add_argument("map", metavar="MAP")
-    v.add_argument("--port", type=_port, default=8765, metavar="P", help="WebSocket port (0: any free port)")
+    v.add_argument("map", metavar="MAP", help="map file (vbnav map build, goto --map-out)")
+    v.add_argument("--port", type=_port, default=8765, metavar="P",
+                   help="WebSocket port (default 8765; 0: any free port)")
     v.add_argument("--robot-radius", type=positive, default=0.2, metavar="M",
-                   help="robot radius the planning grid is grown by, m (as in vbnav goto --map)")
+                   help="robot radius the planning grid is grown by, m (default 0.2, as in vbnav goto --map)")
     v.add_argument("--duration", type=positive, default=None, metavar="S",
                    help="stop after S seconds (default: until Ctrl-C)")
     v.set_defaults(func=run_view)

@@ -16,7 +16,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import distinct_files, finite, non_negative, output_file, positive
+from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, finite, non_negative, output_file, positive
 from vbnav.control.image_files import read_image, write_png
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
@@ -58,13 +58,6 @@ def _degrees(limit: float):
     return angle
 
 
-class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Defaults in the help, except None: those options say their default in their own words."""
-
-    def _get_help_string(self, action):
-        return action.help if action.default is None else super()._get_help_string(action)
-
-
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "obstacles", help="find obstacles in a stereo pair by ground-plane suppression",
@@ -72,7 +65,7 @@ def register(subparsers) -> None:
                     "pixel ground / obstacle / negative obstacle / unknown with thresholds given in metres, and "
                     "report the nearest obstacle in the driving corridor. Input: a rectified pair (--left/--right, "
                     "disparity by OpenCV SGBM) or a disparity image (--disparity). Prints JSON.",
-        formatter_class=_HelpFormatter)
+        formatter_class=DefaultsHelpFormatter)
     src = p.add_argument_group("input")
     src.add_argument("--left", metavar="L", help="rectified left image")
     src.add_argument("--right", metavar="R", help="rectified right image")

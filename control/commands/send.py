@@ -65,7 +65,9 @@ def register(sub) -> None:
     t.add_argument("--rate", type=positive, default=None, metavar="HZ",
                    help=f"send rate with --for (default {RATE_HZ:g})")
     m = cmds.add_parser("mode", help="switch mode: idle, teach, repeat --route NAME")
-    m.add_argument("mode", choices=["idle", "teach", "repeat"])
+    m.add_argument("mode", choices=["idle", "teach", "repeat"],
+                   help="idle; teach (record a route while teleop drives) or repeat (patrol a route): both need "
+                        "--route")
     m.add_argument("--route", default=None, metavar="NAME",
                    help="route to repeat (or to teach into): a name in the robot's controller.routes_dir; "
                         "mode idle takes none")
@@ -85,6 +87,7 @@ def build_payload(args) -> tuple[str, dict]:
     ``ack`` comes first, so the robot can echo it even for a payload it refuses unparsed.
     """
     from vbnav.control.comms.operator_commands import ROUTE_MODES, CommandRejected, TeleopLimits, parse_command
+    from vbnav.control.route import RouteError, check_route_name
     # One session id per invocation: the robot tracks seq and the clock offset per (sender, session).
     body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
@@ -98,6 +101,14 @@ def build_payload(args) -> tuple[str, dict]:
     elif args.what == "mode":
         if args.route is not None and args.mode not in ROUTE_MODES:     # the robot would ignore it
             raise ValueError(f"--route: mode {args.mode} takes no route (only {' and '.join(ROUTE_MODES)} do)")
+        if args.route is None and args.mode in ROUTE_MODES:
+            raise ValueError(f"--route: mode {args.mode} needs a route (--route NAME, a route in the robot's "
+                             f"controller.routes_dir)")
+        if args.route is not None:
+            try:
+                check_route_name(args.route)
+            except RouteError as exc:
+                raise ValueError(f"--route: {exc}") from None
         body["mode"] = args.mode
         if args.route is not None:
             body["route"] = args.route

@@ -16,8 +16,9 @@ def register(sub) -> None:
                     "route is driven by a scripted driver along the simulated room's loop (20 m, four turns) "
                     "from sim.start_pose; on a robot you drive it by teleoperation "
                     "('vbnav send teleop V W' from another terminal, or any zenoh publisher on "
-                    "vbnav/<robot>/cmd/teleop) and stop with Ctrl-C or 'vbnav send estop'. Every keyframe is "
-                    "on disk (atomically) as soon as it is taken, so an interruption loses nothing recorded.")
+                    "vbnav/<robot>/cmd/teleop) and end it with Ctrl-C (or --duration); 'vbnav send estop' stops the "
+                    "wheels until 'vbnav send resume', the teach goes on. Every keyframe is on disk (atomically) "
+                    "as soon as it is taken, so an interruption loses nothing recorded.")
     add_config_arg(p)
     p.add_argument("--out", required=True, metavar="PATH", help="route directory to create")
     p.add_argument("--overwrite", action="store_true",

@@ -1,12 +1,12 @@
 """``vbnav vo``: monocular VSLAM (section 11.3) over a recorded dataset."""
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
 from pathlib import Path
 
+from vbnav.control.commands._common import DefaultsHelpFormatter
 from vbnav.drivers.atomic_file import atomic_output, write_atomic
 
 GROUND_TRUTH_FILE = {"kitti": "poses.txt", "tum": "groundtruth.txt"}
@@ -21,7 +21,7 @@ def register(subparsers) -> None:
                     "landmark set) and write the camera trajectory in TUM format "
                     "(timestamp tx ty tz qx qy qz qw, camera-to-world, one line per tracked frame). "
                     "With ground truth, prints ATE (SE(3) Umeyama alignment) and RPE.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=DefaultsHelpFormatter)
     p.add_argument("dataset", help="folder in KITTI odometry layout (image_l/, image_r/, calib.txt, poses.txt, "
                                    "times.txt) or TUM RGB-D layout (rgb.txt, depth.txt, groundtruth.txt)")
     p.add_argument("--out", required=True, metavar="FILE", help="trajectory output (TUM format)")
@@ -40,7 +40,8 @@ def register(subparsers) -> None:
                    help="exit 1 when more than this fraction of the frames has no pose")
     p.add_argument("--ba-window", type=int, default=0, metavar="N",
                    help="monocular landmarks: windowed bundle adjustment of the last N frames (vslam.ba_window; "
-                        "0: off, the default; see docs/vslam.md)")
+                        "0: off, the default; refused with --init stereo, whose landmarks the pair measures; see "
+                        "docs/vslam.md)")
     p.add_argument("--quiet", action="store_true", help="no per-frame progress")
     p.set_defaults(func=run)
 

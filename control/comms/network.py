@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any, Optional
 
@@ -119,10 +120,18 @@ def client_session_config(connect: list[str], user: Optional[str] = None, passwo
 
 
 
+#: where in zenoh's Rust sources an error was raised (" at /root/.cargo/.../orchestrator.rs:447."): no help to a user
+_RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
 def open_session(conf: dict[str, Any]):
-    """Open a zenoh session from a config dict (imports zenoh lazily: config checks need no zenoh)."""
+    """Open a zenoh session from a config dict (imports zenoh lazily: config checks need no zenoh).
+    Failing, raises ConnectionError with zenoh's reason, less the Rust source locations."""
     import zenoh
-    return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+    try:
+        return zenoh.open(zenoh.Config.from_json5(json.dumps(conf)))
+    except zenoh.ZError as exc:
+        raise ConnectionError(_RUST_LOCATION.sub("", str(exc)).strip()) from exc
 
 
 

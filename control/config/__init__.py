@@ -319,7 +319,8 @@ class Config(Strict):
     @model_validator(mode="after")
     def _scripted_teacher_only_in_simulation(self):
         # A scripted loop through a room the robot cannot see is never what real motors should drive.
-        if self.controller.teach == "room_loop" and self.drive.driver != "sim":
+        # (an unknown driver is not a real drive: validate_driver_options names it as unknown)
+        if self.controller.teach == "room_loop" and self.drive.driver != "sim" and self.drive.driver in registry.DRIVES:
             raise ValueError(f"controller.teach 'room_loop' drives the simulated room's loop; drive.driver "
                              f"{self.drive.driver!r} is a real drive (use teach: teleop)")
         if self.controller.teach == "room_loop" and self.sim.world not in ROOM_WORLDS:

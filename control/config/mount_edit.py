@@ -32,9 +32,10 @@ def _num(v) -> str:
     return repr(v) if isinstance(v, float) else yaml.safe_dump(v, default_flow_style=True).strip()
 
 
-def set_camera_mount(path, values: dict) -> str:
+def set_camera_mount(path, values: dict, write: bool = True) -> str:
     """Set ``camera.mount.<key>`` to ``values`` (e.g. height, pitch_deg, roll_deg) in the YAML file ``path``,
-    keeping every other line. Returns the new text (written atomically). Raises ConfigError naming the file."""
+    keeping every other line. Returns the new text (written atomically; with ``write`` False only checked, as
+    it would be written). Raises ConfigError naming the file."""
     from vbnav.control.config import parse_config
     p = Path(path)
     values = {k: round(float(v), 4) for k, v in values.items()}     # 0.1 mm, 1e-4 deg: far below what is measured
@@ -61,6 +62,8 @@ def set_camera_mount(path, values: dict) -> str:
         raise ConfigError(f"{p}: editing camera.mount in place would change other keys; set it by hand: "
                           f"camera: mount: {_flow(new_mount)}")
     parse_config(got, str(p))      # the result must be a valid configuration (the file is not written else)
+    if not write:
+        return new_text
     # A config that is a symbolic link (robot.yaml -> configs/robot-v2.yaml) stays one: the file it points to
     # is edited (renaming over the link would replace it with an edited copy, the linked file unchanged).
     write_atomic(Path(os.path.realpath(p)), new_text.replace("\n", newline))

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from vbnav.control.config.base import Strict
 from vbnav.vision.vslam import VslamConfig
 
@@ -79,3 +79,12 @@ class VslamNavConfig(VslamConfig, Strict):
     relocalise_max_hamming: int = Field(64, ge=0, le=256, description="relocalisation: a guided ORB match "
                                         "differs in at most this many of the 256 descriptor bits (a quarter, "
                                         "as for re-acquisition matches)")
+
+    @model_validator(mode="after")
+    def _bundle_adjustment_only_with_monocular_landmarks(self):
+        # the window moves landmarks placed by the camera's own motion; a stereo VSLAM measures every one
+        if self.ba_window > 0 and self.metric_scale == "stereo":
+            raise ValueError(f"ba_window {self.ba_window}: the bundle adjustment moves landmarks placed by the "
+                             f"camera's own motion; with metric_scale stereo the pair measures every landmark, so "
+                             f"it would change nothing (ba_window 0, or metric_scale odometry for one camera)")
+        return self

@@ -58,7 +58,7 @@ from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
 from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand, RefusalThrottle
 from vbnav.control.runtime.odometry import Odometry, OdometryHistory
 from vbnav.control.runtime.pipeline import VisionPipeline
-from vbnav.control.runtime.safety import SafetyEvent, SafetyMonitor
+from vbnav.control.runtime.safety import SafetyMonitor
 from vbnav.control.runtime.systemd_notify import SystemdNotifier
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.clock import Clock
@@ -691,7 +691,7 @@ class Runtime:
             try:
                 undo.append(_set_process_affinity(set(lc.process_cpu_affinity)))
             except OSError as exc:
-                self.safety.events.append(SafetyEvent(now, "warning", "scheduling", f"process_cpu_affinity: {exc}"))
+                self.safety.note(now, "warning", "scheduling", f"process_cpu_affinity: {exc}")
         if lc.cpu_affinity or lc.realtime_priority:
             undo.append(_new_threads_leave_the_loop_scheduling())
         if lc.cpu_affinity:
@@ -700,16 +700,15 @@ class Runtime:
                 os.sched_setaffinity(0, set(lc.cpu_affinity))
                 undo.append(lambda: os.sched_setaffinity(0, old_aff))
             except (OSError, AttributeError) as exc:
-                self.safety.events.append(SafetyEvent(now, "warning", "scheduling", f"cpu_affinity: {exc}"))
+                self.safety.note(now, "warning", "scheduling", f"cpu_affinity: {exc}")
         if lc.realtime_priority:
             try:
                 old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(lc.realtime_priority))
                 undo.append(lambda: os.sched_setscheduler(0, old_policy, old_param))
             except (OSError, AttributeError) as exc:
-                self.safety.events.append(SafetyEvent(
-                    now, "warning", "scheduling", f"SCHED_FIFO priority {lc.realtime_priority} refused ({exc}); "
-                    "running with normal scheduling"))
+                self.safety.note(now, "warning", "scheduling", f"SCHED_FIFO priority {lc.realtime_priority} "
+                                 f"refused ({exc}); running with normal scheduling")
 
         def restore():
             for fn in reversed(undo):
