@@ -86,7 +86,9 @@ def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
     from vbnav.control.controllers.manual import ScriptedController
     from vbnav.control.runtime.runtime import Runtime
 
-    cfg = load_config("sim_stereo", overrides={"sim": {"world": "corridor_step", "start_pose": [0.0, 0.0, 0.0]}})
+    # a scripted drive down the corridor: sim_stereo's room-loop teacher has no room there (refused at load)
+    cfg = load_config("sim_stereo", overrides={"sim": {"world": "corridor_step", "start_pose": [0.0, 0.0, 0.0]},
+                                               "controller": {"teach": "teleop"}})
     robot = make_robot(cfg, [make_obstacle_stage(cfg)])
     clock, drive, pipeline = robot.clock, robot.drive, robot.pipeline
     rt = Runtime(cfg, drive, ScriptedController([[0.3, 0.0, 14.0]]), clock, pipeline)
