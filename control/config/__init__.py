@@ -81,8 +81,11 @@ class CameraConfig(Strict):
                           "distortion, stereo baseline and a stereo YAML's mount (height, pitch, roll) replace the "
                           "inline values (a different inline width/height, baseline or mount is an error; a "
                           "disparity_scale is refused). A relative path is taken from the config file's folder")
-    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz (the replay camera plays at the "
-                                                             "recorded times or its options.rate_hz instead)")
+    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz (not used for files: the replay "
+                                                             "camera plays at the recorded times or its "
+                                                             "options.rate_hz, a v4l2 video file at its own rate "
+                                                             "or options.replay_rate_hz; rate_hz only for a file "
+                                                             "that gives no rate)")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
                                                         "is an image that has not changed for this long "
                                                         "while the wheels moved (a frozen camera)")
