@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from vbnav.control.cli import main
-from vbnav.control.route import Keyframe, RouteWriter
+from vbnav.control.route import Keyframe, RouteError, RouteWriter
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
 
@@ -235,3 +235,14 @@ def test_list_shows_a_manifest_key_given_twice_as_that_routes_error(tmp_path, ca
     twice = next(x for x in lines if x.split()[:1] == ["twice"])
     assert "duplicate key 'complete'" in twice and " yes " not in twice, twice
     assert " yes" in next(x for x in lines if x.split()[:1] == ["good"])
+
+
+def test_a_route_whose_manifest_gives_a_key_twice_is_not_offered_for_transfer(tmp_path):
+    """route_transfer.route_files (push, pull, the robot's file listing) read the manifest with plain json.loads:
+    a route every loader refuses (a key given twice) was listed and sent, to be refused only after the transfer."""
+    from vbnav.control.comms.route_transfer import route_files
+    route = write_route(tmp_path / "twice", n=2, complete=False)
+    text = (route / "manifest.json").read_text()
+    (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
+    with pytest.raises(RouteError, match="duplicate key 'complete'"):
+        route_files(route)
