@@ -300,3 +300,16 @@ def _wait(cond, deadline_s=10.0):
     while not cond():
         assert time.monotonic() < end, "timed out"
         time.sleep(0.01)
+
+
+def test_a_safety_warning_is_a_warning_in_the_foxglove_log():
+    """A safety_warning (a motor that did not take a stop, a drive lost again) was logged at Info level in
+    Foxglove's log panel, beside routine lines; it is a Warning, as a hold and a refused command are."""
+    from vbnav.control.comms.foxglove_channels import LogLevel, log_message
+
+    def level(m) -> str:                     # the Log message shows its fields only in its repr
+        return repr(log_message(1, m)).split("level=")[1].split(",")[0]
+    msg = {"kind": "safety_warning", "robot": "r1", "cause": "stop_unconfirmed",
+           "message": "dynamixel drive did not take the stop: servo 2 (right)"}
+    assert level(msg) == str(int(LogLevel.Warning))
+    assert level({**msg, "kind": "safety_stop_confirmed"}) == str(int(LogLevel.Info))
