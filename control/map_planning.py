@@ -59,27 +59,44 @@ def map_route_in_reference_frame(planned, start, goal):
     return [(p.x, p.z) for p in ref], start.between(goal)
 
 
+#: What to do instead when the camera cannot localise the start against a map.
+INSTEAD = "or leave out --localise and give the robot's pose in the map with --start"
+
+
+def localise_problem(cfg) -> str:
+    """Why the configured camera cannot localise against a line map, with what to do; "" when it can. The
+    localisation reads a rectified stereo pair, as the line map does."""
+    if not cfg.camera.stereo_baseline():
+        return (f"{cfg.source}: camera: localising against a line map needs a stereo camera, and neither "
+                f"camera.calibration_file nor camera.options.stereo_baseline gives a baseline: set one, {INSTEAD}")
+    distorted = cfg.camera.rectified_problem()
+    if distorted:
+        return (f"{cfg.source}: localising against a line map reads a rectified stereo pair (a pinhole camera "
+                f"without distortion), and {distorted} describes distorted images it would read as rectified: "
+                f"rectify the pair (a stereo calibration file), {INSTEAD}")
+    return ""
+
+
 def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3.0):
     """The robot's pose in the frame of the loaded map ``lmap`` (from ``map_path``) from one stereo frame of
-    ``camera`` (vision/line_localise.py), searched around ``guess``: (Localisation, message). The camera is
-    opened and closed again here (the run opens it for itself)."""
+    ``camera`` (vision/line_localise.py), searched around ``guess``: (Localisation, message); (None, why and
+    what to do) when it cannot localise at all. The camera is opened and closed again here (the run opens it
+    for itself)."""
     from vbnav.vision.line_localise import View, localise
     from vbnav.vision.line_segments import detect_segments
 
+    problem = localise_problem(cfg)
+    if problem:
+        return None, problem
     baseline = cfg.camera.stereo_baseline()
-    if not baseline:
-        return None, f"{cfg.source}: camera: localising against a line map needs a stereo camera (a baseline)"
-    distorted = cfg.camera.rectified_problem()
-    if distorted:
-        return None, (f"{cfg.source}: localising against a line map takes a rectified stereo pair (a pinhole camera "
-                      f"without distortion), and {distorted} describes distorted images it would read as rectified")
     camera.connect()
     try:
         frame = camera.read(timeout_s)
     finally:
         camera.disconnect()
     if frame is None:
-        return None, f"camera: no frame within {timeout_s:.0f} s to localise against {map_path}"
+        return None, (f"camera: no frame within {timeout_s:.0f} s to localise against {map_path}: check the camera "
+                      f"('vbnav doctor -c CONFIG'), {INSTEAD}")
     model = cfg.camera.to_model()
     view = View(model.fx, model.fy, model.cx, model.cy, model.width, model.height, baseline,
                 cfg.camera.mount.to_mount())

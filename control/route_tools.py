@@ -9,7 +9,6 @@ manifest with the files (sizes, landmark counts, poses).
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import struct
@@ -23,6 +22,7 @@ import numpy as np
 
 from vbnav.control.route import MANIFEST, RouteError, load_route, stray_route_dirs, stray_temp_files
 from vbnav.drivers.atomic_file import atomic_output
+from vbnav.drivers.plain_values import load_json
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _KF_FILE = ("kf_", (".png", ".npz"))
@@ -46,7 +46,7 @@ def summary(path) -> RouteSummary:
     path = Path(path)
     s = RouteSummary(path.name, path)
     try:
-        m = json.loads((path / MANIFEST).read_text())
+        m = load_json((path / MANIFEST).read_text())
         kfs = m["keyframes"]
         cam = m["camera"]
         s.keyframes = len(kfs)
@@ -76,7 +76,7 @@ def list_routes(folder) -> list[RouteSummary]:
 def describe(path) -> dict:
     """Everything ``vbnav route info`` prints, from a validated load (images not decoded)."""
     route = load_route(path, load_images=False)
-    manifest = json.loads((Path(path) / MANIFEST).read_text())
+    manifest = load_json((Path(path) / MANIFEST).read_text())
     n = np.array([len(k) for k in route.keyframes]) if route.keyframes else np.zeros(0, int)
     xz = np.array([(k.odom.x, k.odom.z) for k in route.keyframes]).reshape(-1, 2)
     cam = route.camera
@@ -200,7 +200,7 @@ def check(path) -> CheckReport:
         raise RouteError(f"{root / MANIFEST}: missing (not a vbnav route directory?)")
     report = CheckReport(root)
     try:
-        manifest = json.loads((root / MANIFEST).read_text())
+        manifest = load_json((root / MANIFEST).read_text())
         listed = manifest["keyframes"]
     except (ValueError, KeyError, TypeError, RecursionError) as exc:
         report.problems.append(f"{MANIFEST}: unreadable ({exc})")

@@ -275,6 +275,9 @@ class CameraCalibration:
     file: str
     sha256: str
     format: str          # opencv, ros, yaml, kitti, vbnav-stereo
+    # a vbnav stereo YAML's mount block: height m, pitch_deg, roll_deg (None: the file has none)
+    mount: Optional[tuple[float, float, float]] = None
+    disparity_scale: Optional[float] = None   # a vbnav stereo YAML's: px per unit of a stored disparity image
 
 
 def file_sha256(path) -> str:
@@ -303,7 +306,9 @@ def load_camera_calibration(path, width: Optional[int] = None, height: Optional[
             raise CalibrationError(f"{p}: {yaml_problem(e)}") from None
         if isinstance(doc, dict) and "baseline" in doc:
             st = load_stereo_calibration(p)
-            return CameraCalibration(st.camera(), st.baseline, str(p), file_sha256(p), "vbnav-stereo")
+            mount = None if st.mount_height is None else (st.mount_height, st.mount_pitch_deg, st.mount_roll_deg)
+            return CameraCalibration(st.camera(), st.baseline, str(p), file_sha256(p), "vbnav-stereo", mount,
+                                     st.disparity_scale)
         fmt = "ros" if isinstance(doc, dict) and isinstance(doc.get("camera_matrix"), dict) else "yaml"
     else:
         fmt = "opencv"

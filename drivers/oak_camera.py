@@ -151,7 +151,8 @@ class OakCamera(GrabbingCamera):
     class Options(PlainValues):
         model_config = ConfigDict(extra="forbid")
         device_id: Optional[str] = Field(None, description="device id (MxID) or IP; None: the only device attached")
-        stream: Literal["mono", "color"] = Field("mono", description="mono: rectified left camera; color: CAM_A")
+        stream: Literal["mono", "color"] = Field("mono", description="mono: the left mono camera (CAM_B), "
+                                                 "rectified with disparity on, its raw image without; color: CAM_A")
         disparity: bool = Field(True, description="on-device stereo disparity aligned with the stream")
         subpixel: bool = Field(False, description="subpixel disparity (finer depth far away)")
         subpixel_bits: int = Field(3, ge=3, le=5, description="fractional bits of subpixel disparity")

@@ -107,6 +107,38 @@ def test_stereo_yaml_gives_the_rig_and_a_conflicting_baseline_is_refused(tmp_pat
         load_config(config_with(tmp_path, "rig.yaml", options={"stereo_baseline": 0.06}))
 
 
+def test_a_stereo_yaml_mount_is_the_cameras_mount_and_a_different_camera_mount_is_refused(tmp_path):
+    """A vbnav stereo YAML's ``mount:`` block was accepted and ignored as camera.calibration_file (only the offline
+    'vbnav obstacles' read it): the stages used camera.mount's defaults. The file's mounting now replaces
+    camera.mount's height, pitch and roll, as its intrinsics replace the inline ones; a camera.mount that says
+    otherwise is refused naming both, as a conflicting baseline is."""
+    (tmp_path / "rig.yaml").write_text("width: 640\nheight: 480\nfx: 410\nfy: 410\ncx: 320\ncy: 240\n"
+                                       "baseline: 0.09\nmount: {height: 0.31, pitch_deg: 12.0, roll_deg: -1.5}\n")
+    data = yaml.safe_load(open(config_with(tmp_path, "rig.yaml")).read())
+    del data["camera"]["mount"]
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(data))
+    cfg = load_config(tmp_path / "robot.yaml")
+    m = cfg.camera.mount
+    assert (m.height, m.pitch_deg, m.roll_deg) == (0.31, 12.0, -1.5), m
+    from vbnav.control.stages.line_map import LineMapStage   # a stage takes the file's mounting
+    assert LineMapStage.from_config(cfg).mount.height == 0.31
+    same = config_with(tmp_path, "rig.yaml", mount={"height": 0.31, "forward": 0.2, "pitch_deg": 12.0,
+                                                    "roll_deg": -1.5})
+    assert load_config(same).camera.mount.forward == 0.2       # the rest of camera.mount stays the config's
+    with pytest.raises(ConfigError, match=r"rig.yaml gives mount height 0.31 m, pitch_deg 12, roll_deg -1.5; "
+                                          r"camera.mount says height 0.25 m, pitch_deg 0, roll_deg 0"):
+        load_config(config_with(tmp_path, "rig.yaml"))       # sim.yaml's camera.mount
+
+
+def test_a_stereo_yaml_disparity_scale_is_refused_as_the_camera_calibration(tmp_path):
+    """``disparity_scale`` (px per unit of a stored integer disparity image) was accepted and ignored: only the
+    offline 'vbnav obstacles --disparity' reads stored disparity images; a camera gives its disparity in px."""
+    (tmp_path / "rig.yaml").write_text("width: 640\nheight: 480\nfx: 410\nfy: 410\ncx: 320\ncy: 240\n"
+                                       "baseline: 0.09\ndisparity_scale: 0.0625\n")
+    with pytest.raises(ConfigError, match="disparity_scale 0.0625.*vbnav obstacles"):
+        load_config(config_with(tmp_path, "rig.yaml"))
+
+
 def test_sanity_checks_for_doctor(tmp_path, capsys):
     (tmp_path / "front.yaml").write_text(ROS_FX300)
     assert calibration_problems(load_camera_calibration(tmp_path / "front.yaml")) == []

@@ -114,3 +114,59 @@ def test_an_expired_device_watchdog_after_a_frozen_loop_is_rearmed_and_waits_for
     assert _events(result, "drive_reconnected") and _events(result, "reset", "drive_lost")
     reset = (_events(result, "reset", "drive_lost")[0].stamp_ns - rt._start_ns) * 1e-9
     assert any(moving for t, _, moving in samples if t >= reset + 0.5)
+
+
+def test_a_stop_a_motor_did_not_take_is_sent_again_until_it_is_taken(device):
+    """An estop whose stop one motor did not take (the Dynamixel servo heard the sync write, Goal Velocity 0
+    and the torque-off corrupted; the ODrive axis lost its 'v' and 'w' lines) was reported with 'only the
+    device's own watchdog stops it now', and never sent again. But the loop goes on reading the motors, and
+    a Dynamixel bus watchdog counts every packet: fed by the reads, it never trips, and the servo drove on.
+    The stop is now sent again until the motor takes it, and the report says when it did."""
+    marks = {}
+
+    def script(t, cycle):
+        with device.dev.lock:
+            if t >= 0.5 and "estop" not in marks:
+                if isinstance(device, Dxl):
+                    device.dev.servo(2).drops_stops = 3       # the stop's sync write, Goal Velocity 0, torque off
+                else:
+                    device.dev.axis(1).ignores_commands = True
+                marks["estop"] = t
+            elif "estop" in marks and "taken" not in marks and not isinstance(device, Dxl):
+                if _events_so_far(rt, "warning", "stop_unconfirmed"):
+                    device.dev.axis(1).ignores_commands = False   # the first stop is over: the next one is taken
+                    marks["taken"] = t
+        if marks.get("estop") == t:
+            rt.submit(OperatorCommand("estop", (), "test"))
+
+    def _events_so_far(r, kind, cause):
+        return [e for e in r.safety.events if e.kind == kind and e.cause == cause]
+
+    rt = None
+
+    def run():
+        nonlocal rt
+        clock = MonotonicClock()
+        cfg = _cfg(3.0, max_missed_streak=1000, stall_periods=1000)
+        rt = Runtime(cfg, device.drive(clock), Cruise(), clock)
+        stopped_at = []
+
+        def observe(r, ctx, twist, wheels):
+            t = (ctx.now_ns - r._start_ns) * 1e-9
+            script(t, ctx.cycle)
+            with device.dev.lock:
+                if "estop" in marks and device.stopped() and not device.powered() and not stopped_at:
+                    stopped_at.append(t)
+
+        rt.cycle_observers.append(observe)
+        return rt.run(duration_s=1.5), stopped_at
+
+    result, stopped_at = run()
+    assert result.reason == "duration", result.message
+    assert len(_events(result, "warning", "stop_unconfirmed")) == 1, result.events
+    warning, = _events(result, "warning", "stop_unconfirmed")
+    assert ("servo 2 (right)" if isinstance(device, Dxl) else "axis1 (right)") in warning.message, warning
+    assert "sending it again" in warning.message and "only the device's own watchdog" not in warning.message
+    confirmed, = _events(result, "stop_confirmed")
+    assert confirmed.stamp_ns > warning.stamp_ns and "is confirmed now" in confirmed.message, confirmed
+    assert stopped_at and stopped_at[0] < 1.5, "the motor was still moving or powered when the run ended"

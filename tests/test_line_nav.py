@@ -429,3 +429,34 @@ def test_the_line_map_refuses_a_distorted_camera():
     with pytest.raises(ValueError, match=r"rectified stereo pair .*camera.distortion \[-0.2, 0.05"):
         LineMapStage.from_config(cfg)
     LineMapStage.from_config(parse_config({"camera": {"options": {"stereo_baseline": 0.1}}}))
+
+
+@pytest.mark.parametrize("why", ["no-baseline", "distorted"])
+def test_goto_localise_refused_says_what_to_do_for_its_reason(tmp_path, capsys, why):
+    """`goto --localise` refused for a camera it cannot localise with (no stereo baseline) said "the map does not
+    confirm a start pose ...: give --start nearer the robot's pose", advice that cannot help; a distorted camera
+    was localised as if rectified. Each is refused before any device opens, naming the field and what to do."""
+    import yaml
+
+    from vbnav.control.cli import main
+    from vbnav.control.config import CONFIG_DIR
+    path = tmp_path / "room.json"
+    save_map(LineMap(), path)
+    cfg = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    if why == "no-baseline":
+        cfg["camera"]["options"].pop("stereo_baseline", None)
+        cfg.setdefault("vslam", {})["metric_scale"] = "odometry"
+    else:
+        cfg["camera"]["distortion"] = [0.1, 0.0, 0.0, 0.0, 0.0]
+        cfg.setdefault("obstacles", {})["enabled"] = False     # it refuses distortion too, for itself
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(cfg))
+    args = ["goto", "-c", str(tmp_path / "robot.yaml"), "--map", str(path), "--static-map", "--localise",
+            "--goal", "0", "1", "0", "--duration", "0.2"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "--start nearer" not in err and "does not confirm a start pose" not in err, err
+    if why == "no-baseline":
+        assert "stereo_baseline" in err and "calibration_file" in err, err
+    else:
+        assert "camera.distortion" in err and "rectified" in err, err
+    assert "leave out --localise" in err, err

@@ -255,6 +255,9 @@ def test_foxglove_teleop_takes_numbers_only():
     assert not submitted and len(refused) == 3, (submitted, refused)
     LiveView.on_message_data(view, client, 7, json.dumps({"linear": {"x": 0.3}, "angular": {"z": 1}}).encode())
     assert len(submitted) == 1 and json.loads(submitted[0])["angular"] == -1.0
+    # a key given twice (the zenoh path refuses it): JSON readers kept the last, 0.5 m/s or 0 unsaid
+    LiveView.on_message_data(view, client, 7, b'{"linear": {"x": 0.5, "x": 0.0}, "angular": {"z": 0}}')
+    assert len(submitted) == 1 and "duplicate key 'x'" in refused[-1], (submitted, refused)
 
 
 @pytest.mark.parametrize("how", ["close", "drop"])
@@ -297,3 +300,16 @@ def _wait(cond, deadline_s=10.0):
     while not cond():
         assert time.monotonic() < end, "timed out"
         time.sleep(0.01)
+
+
+def test_a_safety_warning_is_a_warning_in_the_foxglove_log():
+    """A safety_warning (a motor that did not take a stop, a drive lost again) was logged at Info level in
+    Foxglove's log panel, beside routine lines; it is a Warning, as a hold and a refused command are."""
+    from vbnav.control.comms.foxglove_channels import LogLevel, log_message
+
+    def level(m) -> str:                     # the Log message shows its fields only in its repr
+        return repr(log_message(1, m)).split("level=")[1].split(",")[0]
+    msg = {"kind": "safety_warning", "robot": "r1", "cause": "stop_unconfirmed",
+           "message": "dynamixel drive did not take the stop: servo 2 (right)"}
+    assert level(msg) == str(int(LogLevel.Warning))
+    assert level({**msg, "kind": "safety_stop_confirmed"}) == str(int(LogLevel.Info))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from vbnav.control.cli import main
-from vbnav.control.route import Keyframe, RouteWriter
+from vbnav.control.route import Keyframe, RouteError, RouteWriter
 from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2
 
@@ -221,3 +221,28 @@ def test_a_manifest_key_given_twice_is_refused(tmp_path, capsys):
     (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
     assert main(["repeat", "--path", str(route)]) == 2
     assert "manifest.json: not valid JSON (duplicate key 'complete')" in capsys.readouterr().err
+
+
+def test_list_shows_a_manifest_key_given_twice_as_that_routes_error(tmp_path, capsys):
+    """route list read manifests with plain json.loads: a "complete" given twice was listed with the last one
+    ("yes") while repeat, info and check refuse the route naming the duplicate key."""
+    route = write_route(tmp_path / "twice", n=2, complete=False)
+    text = (route / "manifest.json").read_text()
+    (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
+    write_route(tmp_path / "good", n=2)
+    assert main(["route", "list", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    twice = next(x for x in lines if x.split()[:1] == ["twice"])
+    assert "duplicate key 'complete'" in twice and " yes " not in twice, twice
+    assert " yes" in next(x for x in lines if x.split()[:1] == ["good"])
+
+
+def test_a_route_whose_manifest_gives_a_key_twice_is_not_offered_for_transfer(tmp_path):
+    """route_transfer.route_files (push, pull, the robot's file listing) read the manifest with plain json.loads:
+    a route every loader refuses (a key given twice) was listed and sent, to be refused only after the transfer."""
+    from vbnav.control.comms.route_transfer import route_files
+    route = write_route(tmp_path / "twice", n=2, complete=False)
+    text = (route / "manifest.json").read_text()
+    (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
+    with pytest.raises(RouteError, match="duplicate key 'complete'"):
+        route_files(route)

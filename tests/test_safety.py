@@ -971,8 +971,11 @@ def test_an_estop_a_motor_did_not_take_is_reported():
     from vbnav.drivers.clock import SimClock
 
     class Unconfirmed(RecordingDrive):
+        stops = 0
+
         def _stop_wheels(self):
             super()._stop_wheels()
+            self.stops += 1
             return "servo 1 (left): torque off not acknowledged (no answer)"
 
     def operator(r, ctx, twist, wheels):
@@ -985,8 +988,12 @@ def test_an_estop_a_motor_did_not_take_is_reported():
     rt.cycle_observers.append(operator)
     result = rt.run(duration_s=2)
     warnings = [e for e in result.events if e.kind == "warning" and e.cause == "stop_unconfirmed"]
-    assert len(warnings) == 1, result.events          # the estop's (at the end the drive was already disabled)
+    assert len(warnings) == 2, result.events          # the estop's, and the end's: still not taken
     assert warnings[0].stamp_ns == T0 + 1_000_000_000 + PERIOD_NS and "servo 1 (left)" in warnings[0].message
+    assert "sending it again every 10 cycles" in warnings[0].message, warnings[0]
+    assert "still did not take the stop when the run ended" in warnings[1].message, warnings[1]
+    # the estop's stop, then one every 10 cycles in the second that followed, then the end's disable and close
+    assert drive.stops == 1 + 10 + 2, drive.stops
 
 
 def test_a_drive_fault_whose_stop_another_motor_did_not_take_is_reported():

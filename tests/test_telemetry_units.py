@@ -140,6 +140,9 @@ def test_valid_commands_parse(kind, payload):
     ("mode", '{"mode": "repeat", "route": "a/b"}', "plain name"),
     ("mode", '{"mode": "repeat", "route": ".."}', "plain name"),
     ("mode", '{"mode": "repeat", "route": ".hidden"}', "plain name"),
+    # a key given twice: JSON readers keep the last one, so one of the two values was dropped unsaid
+    ("teleop", '{"linear": 0.5, "angular": 0, "linear": 0.0}', "duplicate key 'linear'"),
+    ("mode", '{"mode": "teach", "route": "hall", "route": "yard"}', "duplicate key 'route'"),
     ("launch", '{}', "unknown command"),
     ("estop", '{"reason": "' + "x" * 5000 + '"}', "exceeds"),
 ])

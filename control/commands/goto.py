@@ -6,7 +6,7 @@ import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
-from vbnav.control.map_planning import localise_start, map_route_in_reference_frame, plan_path
+from vbnav.control.map_planning import localise_problem, localise_start, map_route_in_reference_frame, plan_path
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -78,6 +78,11 @@ def run(args) -> int:
     if args.map_out and args.static_map:
         print("vbnav goto: --map-out needs the map to grow while driving (leave out --static-map)", file=sys.stderr)
         return 2
+    if args.localise:
+        problem = localise_problem(cfg)
+        if problem:        # before any device opens
+            print(f"vbnav goto: --localise: {problem}", file=sys.stderr)
+            return 2
     radius = args.robot_radius if args.robot_radius is not None else ROBOT_RADIUS_M
     if args.overwrite and not args.map_out and not args.record:
         print("vbnav goto: --overwrite replaces an existing --map-out or --record file; without --map-out or "
@@ -119,7 +124,11 @@ def run(args) -> int:
     if args.map:
         if args.localise:
             found, say = localise_start(cfg, robot.camera, lmap, args.map, start)
-            if found is None or not found.ok:
+            if found is None:               # not localised at all (no frame): the guess is not what failed
+                print(f"vbnav goto: --localise: {say}", file=sys.stderr)
+                robot.drive.close()
+                return 1
+            if not found.ok:
                 print(f"vbnav goto: the map does not confirm a start pose within 0.3 m / 12 deg of "
                       f"({start.x:+.2f}, {start.z:+.2f}, {math.degrees(start.theta):+.1f} deg): {say}; give --start "
                       f"nearer the robot's pose, or turn it toward a mapped view", file=sys.stderr)

@@ -46,6 +46,7 @@ from foxglove.websocket import Capability, ServerListener
 
 from vbnav.control.comms import foxglove_channels as fc
 from vbnav.control.comms.telemetry import Sink
+from vbnav.drivers.plain_values import load_json
 
 TELEOP_TOPIC = "/vbnav/teleop"
 TOKEN_PARAMETER = "vbnav.operator_token"
@@ -196,7 +197,7 @@ class LiveView(Sink, ServerListener):
             self._refuse("teleop", why, bytes(data[:200]))
             return
         try:
-            twist = json.loads(bytes(data))
+            twist = load_json(bytes(data))          # a key given twice is refused, as on the zenoh path
             x, z = twist["linear"]["x"], twist["angular"]["z"]
             # numbers as JSON gives them, never coerced (as the zenoh path): true is no 1 m/s, "0.3" no 0.3 m/s
             if not all(isinstance(n, (int, float)) and not isinstance(n, bool) for n in (x, z)):

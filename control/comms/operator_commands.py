@@ -33,7 +33,6 @@ send time.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -42,6 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from vbnav.control.route import check_route_name
 from vbnav.control.runtime.mailbox import OperatorCommand, RefusalThrottle
+from vbnav.drivers.plain_values import load_json
 
 MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
 REPORT_EVERY_NS = 1_000_000_000    # teleop refusals are reported at most this often per reason
@@ -127,8 +127,9 @@ def parse_command(kind: str, payload: bytes | str, limits: TeleopLimits) -> NetC
     if len(payload) > MAX_PAYLOAD:
         raise CommandRejected(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
     try:
-        data = json.loads(payload) if payload and str(payload).strip() else {}
-    except (ValueError, UnicodeDecodeError) as exc:
+        # a key given twice would keep its last value only, the other dropped unsaid: refused
+        data = load_json(payload) if payload and str(payload).strip() else {}
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
         raise CommandRejected(f"not JSON: {exc}") from None
     if not isinstance(data, dict):
         raise CommandRejected(f"expected a JSON object, got {type(data).__name__}")

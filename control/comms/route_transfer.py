@@ -46,6 +46,7 @@ from typing import Callable, Optional
 from vbnav.control.route import (MANIFEST, RouteError, check_route_name, describe_route_error, install_route_dir,
                                  load_route, resolve_route, staging_dir)
 from vbnav.drivers.atomic_file import fsync_file
+from vbnav.drivers.plain_values import load_json
 
 PUSH_CHUNK = 32 * 1024          # bytes per pushed chunk: well under the robot's 64 KiB receive limit
 PULL_CHUNK = 256 * 1024         # bytes per pulled chunk (the reply leaves the robot: no such limit)
@@ -93,7 +94,7 @@ def route_files(path) -> list[dict]:
     path = Path(path)
     mpath = path / MANIFEST
     try:
-        m = json.loads(mpath.read_bytes())
+        m = load_json(mpath.read_bytes())       # a key given twice: refused, as every route loader does
         names = [MANIFEST] + [str(kf[k]) for kf in m["keyframes"] for k in ("image", "landmarks")]
     except FileNotFoundError:
         raise RouteError(f"{mpath}: missing (not a vbnav route directory?)") from None

@@ -80,10 +80,14 @@ class CameraConfig(Strict):
     calibration_file: Optional[str] = Field(
         None, description="camera calibration: OpenCV YAML/XML, ROS camera_info YAML, vbnav stereo YAML or KITTI "
                           "calib.txt (docs/hardware.md); loaded with the config, its model, size, intrinsics, "
-                          "distortion and stereo baseline replace the inline values (a different inline width/"
-                          "height is an error). A relative path is taken from the config file's folder")
-    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz (the replay camera plays at the "
-                                                             "recorded times or its options.rate_hz instead)")
+                          "distortion, stereo baseline and a stereo YAML's mount (height, pitch, roll) replace the "
+                          "inline values (a different inline width/height, baseline or mount is an error; a "
+                          "disparity_scale is refused). A relative path is taken from the config file's folder")
+    rate_hz: float = Field(15.0, gt=0, le=1000, description="frame rate, Hz (not used for files: the replay "
+                                                             "camera plays at the recorded times or its "
+                                                             "options.rate_hz, a v4l2 video file at its own rate "
+                                                             "or options.replay_rate_hz; rate_hz only for a file "
+                                                             "that gives no rate)")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
                                                         "is an image that has not changed for this long "
                                                         "while the wheels moved (a frozen camera)")
@@ -416,10 +420,26 @@ def apply_calibration_file(cfg: Config, source: str) -> None:
         if cal.baseline and other and abs(float(other) - cal.baseline) > BASELINE_AGREEMENT * cal.baseline:
             raise ConfigError(f"{where}: {p} gives a stereo baseline of {cal.baseline:.4f} m, {name} says "
                               f"{float(other):.4f} m (remove {name}: the calibration is the rig)")
+    if cal.disparity_scale is not None:
+        raise ConfigError(f"{where}: {p} sets disparity_scale {cal.disparity_scale:g}, the scale of a stored integer "
+                          f"disparity image, which only the offline 'vbnav obstacles --disparity' reads; a camera gives "
+                          f"its disparity in px (remove it, or give vbnav obstacles a copy of the file with it)")
     data = c.model_dump()
     data.update(model="fisheye" if isinstance(cam, FisheyeCamera) else "pinhole", width=size[0], height=size[1],
                 fx=float(cam.fx), fy=float(cam.fy), cx=float(cam.cx), cy=float(cam.cy),
                 distortion=[float(d) for d in cam.dist])
+    if cal.mount is not None:
+        # the file's mounting replaces camera.mount's height, pitch and roll, as its intrinsics replace the inline
+        # ones; a camera.mount that gives other values is a second mounting for one camera
+        fields = ("height", "pitch_deg", "roll_deg")
+        given = c.mount.model_fields_set if "mount" in c.model_fields_set else set()
+        inline = [data["mount"][f] for f in fields]
+        if any(f in given and abs(a - b) > 1e-9 for f, a, b in zip(fields, inline, cal.mount)):
+            def say(values):
+                return f"height {values[0]:g} m, pitch_deg {values[1]:g}, roll_deg {values[2]:g}"
+            raise ConfigError(f"{where}: {p} gives mount {say(cal.mount)}; camera.mount says {say(inline)} (remove "
+                              f"one of them: the camera has one mounting)")
+        data["mount"] = {**data["mount"], **dict(zip(fields, cal.mount))}
     try:
         calibrated = CameraConfig.model_validate(data)
     except ValidationError as exc:

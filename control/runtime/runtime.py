@@ -134,6 +134,13 @@ STOP_SIGNALS = _FINISHING_STOP_SIGNALS
 IGNORED_SIGNALS = (signal.SIGTTOU, signal.SIGTTIN)
 #: Ends that are a device's failure, not the job's (the commands' exit code 3).
 DEVICE_FAULTS = ("drive", "camera")
+#: A stop a motor did not take is sent again this often while the loop runs (the loop keeps reading the
+#: motors, and a Dynamixel bus watchdog counts every packet: fed by the reads it never trips). Once a tenth of a
+#: second, the devices' own watchdog time (100 ms by default), so a motor that hears again stops about when its
+#: watchdog would have. A resend to motors that answer costs a few short packets, well inside a cycle beside the
+#: read (its answer window is half a period); one to a motor that does not answer costs an answer window per
+#: packet and may make that cycle late, but only one cycle in ten: never a missed-deadline streak.
+RESTOP_EVERY_S = 0.1
 
 
 def _failure_reason(exc: Exception) -> str:
@@ -207,6 +214,10 @@ class Runtime:
         self.cycle = 0
         self._signal: Optional[int] = None
         self._enabled = False
+        self._unstopped: Optional[str] = None    # what the last stop did not reach, until a resend is taken
+        self._unstopped_told_end = False         # its warning said the run ends with it (no resend follows)
+        self._restop_every = max(1, round(RESTOP_EVERY_S * cfg.loop.rate_hz))   # cycles between resends
+        self._restop_cycle = 0
         self._end: Optional[tuple[str, str]] = None
         self._last_now = 0
         self._start_ns = 0
@@ -254,6 +265,7 @@ class Runtime:
                 # a stop asked for while the devices came up (a camera's slow discovery): never powered
                 raise _StoppedDuringStartUp(signal.Signals(self._signal).name)
             self._enabled = True      # before enable(): what a failed enable armed is stopped and reported too
+            self._unstopped = None
             self.drive.enable()
             self._start_ns = self.clock.now_ns()
             self._deadline_ns = None if duration_s is None else self._start_ns + int(duration_s * 1e9)
@@ -299,7 +311,9 @@ class Runtime:
             self._make_safe()
             self._refuse_waiting_commands()
             try:
+                lost = self._bus_lost()
                 self.drive.close()
+                self._closed(lost)
             except Exception:
                 pass
             if self.pipeline is not None:
@@ -376,6 +390,7 @@ class Runtime:
                 twist = self.limiter.apply(Twist(twist.v * s, twist.w * s), dt)
                 if not self._enabled:
                     self._enabled = True      # before enable(): a failed enable's stop is reported by _make_safe
+                    self._unstopped = None    # driven again: the stop that was not taken is moot
                     self.drive.enable()
             else:
                 twist = self.limiter.stop()
@@ -383,7 +398,9 @@ class Runtime:
                     self.drive.write(0.0, 0.0)
                     self.drive.disable()
                     self._enabled = False
-                    self._unconfirmed_stop(now, self.drive.stop_failure)
+                    self._unconfirmed_stop(now, self.drive.stop_failure, ending=False)
+                elif self._unstopped and self._recovery is None and cycle >= self._restop_cycle:
+                    self._resend_stop(now)
             stage = "write"
             left, right = self.kin.wheels(twist)
             if self._enabled:
@@ -418,6 +435,7 @@ class Runtime:
         recovery, self._recovery = self._recovery, None
         lost_s = (now - recovery.since_ns) * 1e-9
         if outcome is Outcome.BACK:
+            self._restop_cycle = self.cycle      # a stop not taken before the loss: sent again at once
             self.odometry.rebase()   # a device that restarted counts from elsewhere: no jump in the pose
             self._resume_after = (now, "the drive came back")
             self.safety.note(now, "drive_reconnected", "drive_lost",
@@ -439,12 +457,11 @@ class Runtime:
 
     def _drive_failed(self, now: int, stage: str, exc: DriveError) -> bool:
         """A DriveError in this cycle: a lost bus starts the wait for the drive; anything else ends the run."""
-        faults = self.drive.faults
         window = self.cfg.drive.reconnect_window_s
-        lost = (self.drive.state is DriveState.ERROR and faults and all(f.kind.reconnectable for f in faults))
+        lost = self._bus_lost()
         if not lost or window <= 0 or not self.drive.can_reconnect or self._recovery is not None:
             return self._finish(now, "drive", f"{stage}: {exc}")
-        self._make_safe()
+        self._make_safe(ending=False)
         cause = f"{stage}: {exc}"
         message = (f"{cause}; waiting up to {window:g} s (drive.reconnect_window_s) for it to come back, then "
                    f"stopped until resume")
@@ -456,6 +473,11 @@ class Runtime:
         self._recovery = DriveRecovery(self.drive, cause, now, window,
                                        threaded=not self.clock.simulated)
         return True
+
+    def _bus_lost(self) -> bool:
+        """The drive faulted on a lost bus only (a device gone or silent: what a reconnect may bring back)."""
+        faults = self.drive.faults
+        return bool(self.drive.state is DriveState.ERROR and faults and all(f.kind.reconnectable for f in faults))
 
     def _end_recovery(self) -> None:
         if self._recovery is not None:
@@ -649,11 +671,12 @@ class Runtime:
         self._end = (reason, message)
         return False
 
-    def _make_safe(self) -> None:
+    def _make_safe(self, ending: bool = True) -> None:
         """Zero and disable the drive. What an enabled drive could not stop (``stop_failure``: a motor that did
         not answer) is a warning, also when the drive itself is what failed (its fault names the motor that
         failed, not the others its stop did not reach; a device gone entirely reports no stop_failure, its
-        fault says its watchdog stops it): only the device's watchdog stops that motor then."""
+        fault says its watchdog stops it). ``ending``: the run ends, the drive's close sends the stop once more
+        (``_closed``); else the drive is lost and waited for, and the stop is sent again once it is back."""
         self.wheel_command = (0.0, 0.0)
         self.limiter.stop()
         try:
@@ -666,14 +689,66 @@ class Runtime:
         except Exception as exc:  # a drive that breaks its never-raises contract
             failed = f"disable() raised {exc!r}"
         if self._enabled:
-            self._unconfirmed_stop(self.clock.now_ns(), failed)
+            self._unconfirmed_stop(self.clock.now_ns(), failed, ending)
         self._enabled = False
 
-    def _unconfirmed_stop(self, now: int, failed: Optional[str]) -> None:
-        """A stop the drive could not fully carry out (``stop_failure``) is a warning, not silence."""
-        if failed:
-            self.safety.note(now, "warning", "stop_unconfirmed", f"{self.drive.drive_name} did not take the stop: "
-                                                                  f"{failed}; only the device's own watchdog stops it now")
+    def _unconfirmed_stop(self, now: int, failed: Optional[str], ending: bool) -> None:
+        """A stop the drive could not fully carry out (``stop_failure``) is a warning, not silence. While the
+        loop runs it is sent again every ``_restop_every`` cycles until it is taken (``_resend_stop``)."""
+        if not failed:
+            return
+        self._unstopped = failed
+        self._restop_cycle = self.cycle + self._restop_every
+        self._unstopped_told_end = ending
+        again = (f"sending it again every {self._restop_every} cycles ({RESTOP_EVERY_S * 1e3:.0f} ms) until it is "
+                 f"taken (the loop's reads may keep the device's bus watchdog from stopping it)")
+        if ending:
+            then = ("the run ends: it is sent once more as the drive closes; if that is not taken either, only the "
+                    "device's own watchdog stops it")
+        elif self.drive.state is DriveState.ERROR:
+            then = f"the drive is waited for: once it is back, {again}; until then only the device's own watchdog " \
+                   f"stops it"
+        else:
+            then = again
+        self.safety.note(now, "warning", "stop_unconfirmed", f"{self.drive.drive_name} did not take the stop: "
+                                                              f"{failed}; {then}")
+
+    def _resend_stop(self, now: int) -> None:
+        """The stop a motor did not take, sent again (``disable`` stops what it reaches in any state)."""
+        self._restop_cycle = self.cycle + self._restop_every
+        try:
+            self.drive.disable()
+            failed = self.drive.stop_failure
+        except Exception as exc:  # a drive that breaks its never-raises contract
+            failed = f"disable() raised {exc!r}"
+        if not failed:
+            self._stop_confirmed(now, "sent again, the drive reports every motor stopped")
+        else:
+            self._unstopped = failed
+
+    def _stop_confirmed(self, now: int, how: str) -> None:
+        self.safety.note(now, "stop_confirmed", "stop_unconfirmed",
+                         f"{self.drive.drive_name}: the stop it had not taken ({self._unstopped}) is confirmed now: "
+                         f"{how}")
+        self._unstopped = None
+
+    def _closed(self, lost: bool) -> None:
+        """After the drive's close, which sent the stop once more: a stop taken then is said; one still not
+        taken too, unless the warning already said the run ends with it. ``lost``: the bus was lost before the
+        close, so it reached nothing, and its silence confirms nothing."""
+        if not self._unstopped:
+            return
+        now = self.clock.now_ns()
+        failed = self.drive.stop_failure or ("the device is lost, the stop sent as the drive closed reached nothing"
+                                             if lost else None)
+        if not failed:
+            self._stop_confirmed(now, "sent again as the drive closed, the drive reported every motor stopped")
+            return
+        if not self._unstopped_told_end:
+            self.safety.note(now, "warning", "stop_unconfirmed",
+                             f"{self.drive.drive_name} still did not take the stop when the run ended: {failed}; the "
+                             f"drive is closed, only the device's own watchdog stops it now")
+        self._unstopped = None
 
     # -- scheduling ----------------------------------------------------------
     def _apply_scheduling(self):

@@ -33,7 +33,10 @@ timeout). ``handle_bytes`` (no pty) has no rate: every servo hears it.
 Faults are injected per servo: ``no_answer`` (silent, as if unplugged from the
 bus), ``corrupt`` (answers with a broken CRC), ``garbled_rx`` (hears every packet
 corrupted: answers a unicast one with CRC Error and applies nothing, ignores its share of a
-sync packet), ``set_hardware_error(bits)``.
+sync packet), ``drops_stops`` (a count: that many of the next stop writes to the servo, a 0 to Goal
+Velocity or Torque Enable, arrive corrupted: a unicast one answered with CRC Error, its share of a sync
+write ignored; other packets are heard intact, so the reads keep feeding its bus watchdog),
+``set_hardware_error(bits)``.
 ``unplug()``/``replug()`` simulate the USB adapter going away and coming back
 (the stable device path is a symlink, as /dev/serial/by-id/... is).
 
@@ -125,6 +128,7 @@ class EmulatedServo:
         self._velocity = 0.0  # 0.229 rpm units, float
         self._pending: Optional[tuple[int, bytes]] = None
         self.last_comm = time.monotonic()
+        self.drops_stops = 0    # fault: this many of the next stop writes arrive corrupted (the rest intact)
         self.power_on()
 
     # -- injected faults (logged: what a test or an operator did to the bus) ---------------
@@ -423,6 +427,9 @@ class DynamixelBus(PtyDevice):
                 return [self._status(live[0], dp.ERR_CRC)]
             return []
         inst, p = pkt.inst, pkt.params
+        if inst in (dp.INST_WRITE, dp.INST_REG_WRITE) and pkt.dxl_id != dp.BROADCAST_ID and live \
+                and len(p) > 2 and self._drops_stop(live[0], p[0] | p[1] << 8, p[2:]):
+            return [self._status(live[0], dp.ERR_CRC)]
         for s in live:
             s.last_comm = now
         unicast = pkt.dxl_id != dp.BROADCAST_ID
@@ -458,7 +465,7 @@ class DynamixelBus(PtyDevice):
                 return out
             for k in range(0, len(body) - size, size + 1):
                 s = self._listener(body[k])
-                if s is None or s.no_answer or s.garbled_rx:
+                if s is None or s.no_answer or s.garbled_rx or self._drops_stop(s, addr, body[k + 1:k + 1 + size]):
                     continue
                 s.last_comm = now
                 value = bytes(body[k + 1:k + 1 + size])
@@ -485,6 +492,15 @@ class DynamixelBus(PtyDevice):
             return out
         # unknown instruction
         return [self._status(s, dp.ERR_INSTRUCTION) for s in live] if unicast else []
+
+    def _drops_stop(self, s: EmulatedServo, addr: int, value: bytes) -> bool:
+        """The ``drops_stops`` fault: True (and one fewer left) when this write is a stop (0 to Goal Velocity or
+        Torque Enable) that reaches the servo corrupted."""
+        if s.drops_stops <= 0 or addr not in (GOAL_VELOCITY.address, TORQUE_ENABLE.address) or any(value):
+            return False
+        s.drops_stops -= 1
+        log.info("servo %d: a stop arrived corrupted (fault injected; %d more to come)", s.dxl_id, s.drops_stops)
+        return True
 
     def _single(self, s: EmulatedServo, inst: int, p: bytes) -> tuple[int, bytes]:
         if inst == dp.INST_READ:
