@@ -86,6 +86,18 @@ def test_repeat_speed_factor_at_min_landmarks():
     assert repeat_command(start, n_agree=mid).v == pytest.approx((0.3 + 0.7 * share) * cfg.cruise_speed)
 
 
+def test_repeat_slows_to_the_blind_speed_once_the_last_fix_is_too_old():
+    """A fix older than vbc.max_estimate_age_s is not used: the robot then drives on odometry alone, at
+    blind_speed_factor, as with a failed fix. The old fix's landmark count kept it at full speed."""
+    cfg = VBCConfig()
+    ctl = RepeatController(_straight_route(), cfg, max_linear_speed=0.5, max_angular_speed=1.5)
+    est = Estimate(0, "vbc", True, VBCFix(0, Pose2(0.0, 0.1, 0.0), Pose2(), 100))
+    assert ctl.update(_ctx(Pose2(), "vbc", est)).v == pytest.approx(cfg.cruise_speed)      # fresh: full speed
+    old = int(cfg.max_estimate_age_s * 100) + 1                                            # cycles of 10 ms
+    v = ctl.update(_ctx(Pose2(0.0, 0.05, 0.0), "vbc", est, old)).v
+    assert v == pytest.approx(cfg.blind_speed_factor * cfg.cruise_speed)
+    assert ctl.status()["n_agree"] == 0
+
 # ---------------------------------------------------------------------------------------------- goto
 def goto_commands(fixes: list[Pose2], goal=Pose2(0.0, 3.0, 0.0), **settings):
     """One command per VSLAM fix (fix_gain 1: each fix is the pose), odometry standing still."""

@@ -86,7 +86,12 @@ class RepeatController(Controller):
         return self._pursue(self._fusion.predict(ctx.odom))
 
     def _absorb(self, est: Optional[Estimate]) -> None:
-        if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VBCFix):
+        if est is None:
+            # None younger than vbc.max_estimate_age_s: on odometry alone, at the blind speed, as after a
+            # failed fix (the old fix's landmark count kept the robot at full speed).
+            self._n_agree = 0
+            return
+        if est.stamp_ns == self._last_stamp or not isinstance(est.value, VBCFix):
             return
         self._last_stamp = est.stamp_ns
         fix: VBCFix = est.value
