@@ -114,10 +114,13 @@ Observer = Callable[..., None]       # (runtime, ctx, twist, wheel_command), eve
 
 def repeat_status(status: dict, index: int, n: int) -> str:
     """The repeat's progress text; while no camera fix has placed the robot on the route, says so and why
-    (a robot started away from the route's start otherwise stands still without a word)."""
+    (a robot started away from the route's start otherwise stands still without a word), and so when it
+    stopped after vbc.blind_distance_m without a trusted fix."""
     text = f"keyframe {index + 1}/{n}"
     if status.get("state") == "waiting":
         text += " (waiting for a first match with the route: start at its beginning, facing along it)"
+    elif status.get("state") == "blind":
+        text += f" ({status['reason']})"
     return text
 
 
