@@ -154,9 +154,12 @@ class Session:
             result = self._run(controller, teaching.stage, teaching.save, "teach", duration_s, observers,
                                lambda: f"{teaching.stage.n_keyframes} keyframes")
         except BaseException:
-            teaching.close(complete=False)
+            with finishing("closing the route"):
+                teaching.close(complete=False)
             raise
-        complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
+        # A second Ctrl-C must not cut the route short: its last keyframes, complete, the replacement swapped in.
+        with finishing("writing the route's last keyframes"):
+            complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
         return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
                            result.timing, complete, teaching.writer.directory, teaching.stage.end_note)
 

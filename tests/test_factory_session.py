@@ -77,6 +77,28 @@ def test_a_session_runs_once_and_needs_the_camera(tmp_path):
     assert not (tmp_path / "again").exists()
 
 
+def test_a_second_ctrl_c_while_the_taught_route_is_closed_does_not_cut_it_short(tmp_path, monkeypatch, capsys):
+    """The run ends (the first Ctrl-C, here its duration); a second Ctrl-C while the route is closed (the last
+    keyframes written, the manifest marked complete) raised KeyboardInterrupt there: the route stayed
+    incomplete without its last keyframe. It is held, as while the recording is closed."""
+    import os
+    import signal
+    from vbnav.control.route import load_route
+    from vbnav.control.stages.teach import TeachStage
+    finish = TeachStage.finish
+
+    def interrupted(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        return finish(self)
+    monkeypatch.setattr(TeachStage, "finish", interrupted)
+    cfg = load_config(None)
+    result = Session(cfg, make_robot(cfg, with_camera=True)).teach(teach_driver(cfg), tmp_path / "route",
+                                                                   duration_s=2.0)
+    assert result.complete and result.keyframes >= 2, result
+    assert "SIGINT: the robot is stopped" in capsys.readouterr().err
+    route = load_route(tmp_path / "route")
+    assert route.complete and len(route.keyframes) == result.keyframes
+
 def test_a_simulated_camera_on_a_real_drive_is_a_config_error_naming_the_file(tmp_path, capsys):
     """It renders from the simulated robot's pose: on a real drive it cannot work, and that is the
     configuration's fault (exit 2, the file named), not a traceback."""
