@@ -45,6 +45,7 @@ class Teaching:
         self.writer = RouteWriter(Path(route_dir), cfg.robot.name, model, mount, overwrite=overwrite,
                                   calibration=cfg.camera.calibration_record())
         self.stamps: list[int] = []      # stamp_ns of each keyframe written, in order
+        self.unwritten = ""              # why an interrupted teach's last keyframes were not written (close)
 
     def save(self, frame=None, results=None) -> None:
         """Write the keyframes the stage has emitted (a pipeline frame listener)."""
@@ -55,11 +56,19 @@ class Teaching:
     def close(self, complete: bool = True) -> bool:
         """End of teaching: the stage's last keyframes, then the route marked complete (or not). A route
         of fewer than MIN_ROUTE_KEYFRAMES is never complete (a replacement would put an unusable route in
-        the old one's place). True when the route was closed complete."""
-        if complete:
+        the old one's place). True when the route was closed complete.
+
+        An interrupted teach (a fault) keeps its last keyframes too, the one being pooled and the one at the
+        last frame: dropped, up to vbc.keyframe_distance_m of the route taught was lost. Only when writing
+        them fails again (the writer's own fault) is the route closed without them."""
+        try:
             self.stage.finish()
             self.save()
-            complete = len(self.stamps) >= MIN_ROUTE_KEYFRAMES
+        except Exception as exc:
+            if complete:
+                raise
+            self.unwritten = f"the last keyframes could not be written ({type(exc).__name__}: {exc})"
+        complete = complete and len(self.stamps) >= MIN_ROUTE_KEYFRAMES
         self.writer.close(complete=complete)
         return complete
 
@@ -94,7 +103,7 @@ class TeachResult:
     timing: object
     complete: bool = True        # closed complete: ended well with MIN_ROUTE_KEYFRAMES or more
     directory: Optional[Path] = None   # where the keyframes are (beside the route when a replacement failed)
-    note: Optional[str] = None   # why the route ends before the last frame (TeachStage.end_note)
+    note: Optional[str] = None   # why the route ends before the last frame (TeachStage.end_note, Teaching.unwritten)
 
 
 @dataclass
@@ -114,10 +123,13 @@ Observer = Callable[..., None]       # (runtime, ctx, twist, wheel_command), eve
 
 def repeat_status(status: dict, index: int, n: int) -> str:
     """The repeat's progress text; while no camera fix has placed the robot on the route, says so and why
-    (a robot started away from the route's start otherwise stands still without a word)."""
+    (a robot started away from the route's start otherwise stands still without a word), and so when it
+    stopped after vbc.blind_distance_m without a trusted fix."""
     text = f"keyframe {index + 1}/{n}"
     if status.get("state") == "waiting":
         text += " (waiting for a first match with the route: start at its beginning, facing along it)"
+    elif status.get("state") == "blind":
+        text += f" ({status['reason']})"
     return text
 
 
@@ -151,11 +163,15 @@ class Session:
             result = self._run(controller, teaching.stage, teaching.save, "teach", duration_s, observers,
                                lambda: f"{teaching.stage.n_keyframes} keyframes")
         except BaseException:
-            teaching.close(complete=False)
+            with finishing("closing the route"):
+                teaching.close(complete=False)
             raise
-        complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
+        # A second Ctrl-C must not cut the route short: its last keyframes, complete, the replacement swapped in.
+        with finishing("writing the route's last keyframes"):
+            complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
         return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
-                           result.timing, complete, teaching.writer.directory, teaching.stage.end_note)
+                           result.timing, complete, teaching.writer.directory,
+                           "; ".join(n for n in (teaching.stage.end_note, teaching.unwritten) if n) or None)
 
     def repeat(self, route: Route, duration_s: Optional[float] = None, observers: Sequence[Observer] = (),
                segment: str = "repeat") -> RepeatResult:

@@ -59,6 +59,21 @@ def test_a_repeat_without_a_fix_stands_still_and_says_why():
     assert repeat_status(ctl.status(), 0, 3) == "keyframe 1/3"                 # placed: no more waiting
 
 
+def test_a_repeat_stopped_blind_says_why():
+    """Fixes refused for longer than vbc.blind_distance_m: the robot stops, and the progress line says that
+    it drove that far without a trusted fix and the last fix's reason (it read 'keyframe 1/3' alone)."""
+    from vbnav.control.session import repeat_status
+    cfg = VBCConfig()
+    ctl = RepeatController(_straight_route(), cfg, max_linear_speed=0.5, max_angular_speed=1.5)
+    ctl.update(_ctx(Pose2(), "vbc", Estimate(0, "vbc", True, VBCFix(0, Pose2(0.0, -0.4, 0.0), Pose2(), 100))))
+    why = "repeat: fix 0.60 m / 1.0 deg from where odometry puts the robot (gate 0.15 m / 5.0 deg: vbc.fix_gate_m)"
+    refused = Estimate(1, "vbc", False, VBCFix(0, Pose2(0.0, -0.05, 0.0), Pose2(0.0, 0.35, 0.0), 80),
+                       {"reason": why})
+    assert ctl.update(_ctx(Pose2(0.0, 0.35, 0.0), "vbc", refused, 1)) == Twist(0.0, 0.0)
+    text = repeat_status(ctl.status(), 0, 3)
+    assert ctl.status()["state"] == "blind", ctl.status()
+    assert "0.35 m without a trusted camera fix (vbc.blind_distance_m 0.3)" in text and why in text, text
+
 def test_repeat_approach_gain_and_floor():
     near = Pose2(0.0, 0.9, 0.0)                                   # 0.1 m before the last keyframe
     assert repeat_command(near).v == pytest.approx(1.5 * 0.1)
@@ -85,6 +100,18 @@ def test_repeat_speed_factor_at_min_landmarks():
     share = (mid - cfg.min_landmarks) / (cfg.slow_landmarks - cfg.min_landmarks)
     assert repeat_command(start, n_agree=mid).v == pytest.approx((0.3 + 0.7 * share) * cfg.cruise_speed)
 
+
+def test_repeat_slows_to_the_blind_speed_once_the_last_fix_is_too_old():
+    """A fix older than vbc.max_estimate_age_s is not used: the robot then drives on odometry alone, at
+    blind_speed_factor, as with a failed fix. The old fix's landmark count kept it at full speed."""
+    cfg = VBCConfig()
+    ctl = RepeatController(_straight_route(), cfg, max_linear_speed=0.5, max_angular_speed=1.5)
+    est = Estimate(0, "vbc", True, VBCFix(0, Pose2(0.0, 0.1, 0.0), Pose2(), 100))
+    assert ctl.update(_ctx(Pose2(), "vbc", est)).v == pytest.approx(cfg.cruise_speed)      # fresh: full speed
+    old = int(cfg.max_estimate_age_s * 100) + 1                                            # cycles of 10 ms
+    v = ctl.update(_ctx(Pose2(0.0, 0.05, 0.0), "vbc", est, old)).v
+    assert v == pytest.approx(cfg.blind_speed_factor * cfg.cruise_speed)
+    assert ctl.status()["n_agree"] == 0
 
 # ---------------------------------------------------------------------------------------------- goto
 def goto_commands(fixes: list[Pose2], goal=Pose2(0.0, 3.0, 0.0), **settings):

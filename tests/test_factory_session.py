@@ -77,6 +77,72 @@ def test_a_session_runs_once_and_needs_the_camera(tmp_path):
     assert not (tmp_path / "again").exists()
 
 
+def test_a_second_ctrl_c_while_the_taught_route_is_closed_does_not_cut_it_short(tmp_path, monkeypatch, capsys):
+    """The run ends (the first Ctrl-C, here its duration); a second Ctrl-C while the route is closed (the last
+    keyframes written, the manifest marked complete) raised KeyboardInterrupt there: the route stayed
+    incomplete without its last keyframe. It is held, as while the recording is closed."""
+    import os
+    import signal
+    from vbnav.control.route import load_route
+    from vbnav.control.stages.teach import TeachStage
+    finish = TeachStage.finish
+
+    def interrupted(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        return finish(self)
+    monkeypatch.setattr(TeachStage, "finish", interrupted)
+    cfg = load_config(None)
+    result = Session(cfg, make_robot(cfg, with_camera=True)).teach(teach_driver(cfg), tmp_path / "route",
+                                                                   duration_s=2.0)
+    assert result.complete and result.keyframes >= 2, result
+    assert "SIGINT: the robot is stopped" in capsys.readouterr().err
+    route = load_route(tmp_path / "route")
+    assert route.complete and len(route.keyframes) == result.keyframes
+
+def test_a_teach_ended_by_a_fault_keeps_the_keyframes_it_has_taken(tmp_path):
+    """A teach that ends on a fault (a camera unplugged, a drive fault; here the driver's bug) closes its route
+    incomplete. The keyframe being pooled (it is written when the next one starts) and the one at the last
+    frame were dropped: up to vbc.keyframe_distance_m of the route taught was lost. They are written, the
+    route stays marked incomplete."""
+    from vbnav.control.route import load_route
+    from vbnav.drivers.camera import CameraError
+    cfg = load_config(None)
+    driver = teach_driver(cfg)
+    update = driver.update
+
+    def failing(ctx):
+        if ctx.odom.z > 1.0:
+            raise CameraError("sim: unplugged")
+        return update(ctx)
+    driver.update = failing
+    result = Session(cfg, make_robot(cfg, with_camera=True)).teach(driver, tmp_path / "route", duration_s=10.0)
+    assert result.reason == "camera" and not result.complete, result
+    route = load_route(tmp_path / "route")
+    assert not route.complete and len(route.keyframes) == result.keyframes >= 3
+    assert route.keyframes[-1].odom.z > 0.95, [kf.odom for kf in route.keyframes]   # where the fault came
+
+
+def test_last_keyframes_that_cannot_be_written_after_a_fault_are_said(tmp_path):
+    """Closing an interrupted teach writes its last keyframes; when that fails too, the route is closed
+    incomplete all the same and the teach's note says what was not written (complete, it raises)."""
+    import numpy as np
+    from vbnav.control.route import Keyframe, RouteError
+    from vbnav.control.session import Teaching
+    from vbnav.vision.geometry import Pose2
+    cfg = load_config(None)
+    empty = np.zeros(0)
+    bad = Keyframe(0, np.zeros((480, 640), np.uint8), np.zeros((0, 2), np.float32), empty, empty,
+                   np.zeros((0, 32), np.uint8), empty, empty, np.zeros(0, np.int64), Pose2(), float("nan"))
+    for complete in (False, True):
+        teaching = Teaching(cfg, tmp_path / f"route{complete}")
+        teaching.stage._ready.append(bad)
+        if complete:
+            with pytest.raises(RouteError, match="distance"):
+                teaching.close(complete=True)
+        else:
+            assert teaching.close(complete=False) is False
+            assert "the last keyframes could not be written (RouteError" in teaching.unwritten
+
 def test_a_simulated_camera_on_a_real_drive_is_a_config_error_naming_the_file(tmp_path, capsys):
     """It renders from the simulated robot's pose: on a real drive it cannot work, and that is the
     configuration's fault (exit 2, the file named), not a traceback."""

@@ -377,6 +377,39 @@ def test_a_stale_vbc_hold_of_a_repeat_ends_with_the_repeat(tmp_path, monkeypatch
     assert any(t > t0 + 4_600_000_000 and p and left > 0 for t, left, right, p in drive.log), "teleop never drove"
 
 
+def test_mode_repeat_of_an_incomplete_route_says_so_when_applied(tmp_path, monkeypatch):
+    """vbnav repeat warns that an incomplete route (its teach was interrupted) ends at its last keyframe;
+    'mode repeat' of it was answered applied without a word, and the repeat's 'finished' read as the whole
+    route patrolled. The answer now carries the note, naming the route (never its path)."""
+    from types import SimpleNamespace
+    from dataclasses import replace
+    from runtime_helpers import make_runtime
+    from test_controller_settings import _straight_route
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.repeat import RepeatController
+
+    cfg = Config.model_validate({"controller": {"routes_dir": str(tmp_path)}})
+    (tmp_path / "hall").mkdir()
+    answers = {}
+    for complete in (True, False):
+        route = replace(_straight_route(), complete=complete)
+        monkeypatch.setattr(operator_module, "load_route", lambda where: route)
+        monkeypatch.setattr(operator_module, "Repeating",
+                            lambda cfg, route: SimpleNamespace(stage=None, controller=RepeatController(route)))
+        rt, drive, clock = make_runtime(None, cfg=cfg)
+        ctl = OperatorController(cfg, rt.pipeline, cfg.safety.command_timeout_s)
+        rt.controller = ctl
+        ctl.attach(rt)
+        out = ctl.handle_command(OperatorCommand("mode", ("repeat", "hall"), "op"), clock.now_ns())
+        if out.pending:
+            ctl._worker.join(10.0)
+            out = ctl._apply_pending(clock.now_ns(), deferred=False)
+        answers[complete] = out
+    assert answers[True].applied and answers[True].reason == ""
+    note = answers[False].reason
+    assert answers[False].applied and note.startswith("mode repeat: route 'hall': the route is incomplete"), note
+    assert "3 keyframes over 1.00 m exist; a repeat ends at the last of them" in note and str(tmp_path) not in note
+
 def test_mode_idle_while_idle_is_acknowledged_as_unchanged(tmp_path):
     """'mode idle' in idle ran a whole switch (on the real clock: a worker, the robot held still meanwhile,
     teleop refused) and was answered as a switch; it is the mode already running: 'mode_unchanged'."""

@@ -72,6 +72,25 @@ def test_blind_distance_is_the_odometry_travel_since_the_last_trusted_fix():
     assert f.blind_distance(Pose2(1.3, 1.1, 0.0)) == pytest.approx(0.3)
 
 
+def test_blind_distance_along_a_curve_is_the_path_driven_not_the_chord():
+    """vbc/goto.blind_distance_m is the distance driven on odometry alone: the straight line from the last
+    fix let a robot driving blind round a tight bend (a U-turn of 0.1 m radius, 0.31 m of path) go on with
+    0.2 m counted, and round a full circle with none. Read noise of a standing robot (1 mm back and forth)
+    is no travel."""
+    f = PoseFusion(0.5)
+    f.correct(Pose2(), Pose2())
+    r = 0.1
+    for k in range(1, 201):                       # a full circle in 200 steps, one per control cycle
+        a = math.pi * k / 100
+        d = f.blind_distance(Pose2(r * (1 - math.cos(a)), r * math.sin(a), -a))
+        if k == 100:
+            assert d == pytest.approx(math.pi * r, rel=0.02)          # the U-turn: 0.31 m, not the chord 0.2
+    assert d == pytest.approx(2 * math.pi * r, rel=0.02)              # back where it started: 0.63 m, not 0
+    f.correct(Pose2(), Pose2())
+    for k in range(1000):
+        d = f.blind_distance(Pose2(0.001 * (k % 2), 0.0, 0.0))
+    assert d < 0.01
+
 def test_fusion_rejects_bad_gains_and_use_before_a_fix():
     for g in (0.0, -0.1, 1.5):
         with pytest.raises(ValueError, match="fix_gain"):

@@ -249,6 +249,24 @@ def test_an_unconfirmed_replacement_fix_does_not_pass_keyframes(scene):
     assert stage.index == 0 and stage.stats["switches"] == 0
 
 
+def test_the_same_knocked_frame_twice_does_not_confirm_itself(scene):
+    """A frame delivered twice (a driver re-queuing its buffer while the robot still stands: the frozen-camera
+    check lets it through) is no second view. Its fix agreed with itself and confirmed a first frame taken
+    while the camera was knocked; every right fix after it was refused and the robot stopped for good. Now
+    the right fixes replace it and are trusted."""
+    pts, cfg, route, truth = scene
+    stage = RepeatStage(route, cfg)
+    start = Pose2(0.0, -0.3, 0.0)
+    ids, px = observe(start.compose(Pose2(0.0, 0.0, 0.1)), pts, np.random.default_rng(60))   # knocked ~6 deg
+    assert stage.localise(ids, px, Pose2(), 0).ok                       # the first fix: nothing to check it
+    stage.localise(ids.copy(), px.copy(), Pose2(), 1)                   # the same frame again
+    oks = []
+    for i in range(2, 6):                                               # the camera is right again
+        ids, px = observe(start, pts, np.random.default_rng(60 + i))
+        est = stage.localise(ids, px, Pose2(), i)
+        oks.append(est.ok)
+    assert oks[-1] and abs(est.value.pose.theta) < 0.01 and abs(est.value.pose.z + 0.3) < 0.03, (oks, est.info)
+
 def test_repeat_skips_a_keyframe_whose_landmarks_cannot_be_found(scene):
     """A keyframe none of whose landmarks are found again (taught from a blurred frame: its image and
     descriptors match nothing sharp) gave no fix; the robot stopped after blind_distance_m (0.3 m),

@@ -19,6 +19,10 @@ from typing import Optional
 
 from vbnav.vision.geometry import Pose2
 
+#: m: blind travel is summed in straight steps of at least this (a bend is counted along it, to within a
+#: fraction of a percent; a standing robot's encoder read noise, back and forth, never adds up)
+BLIND_STEP_M = 0.01
+
 
 class PoseFusion:
     """Planar pose fused from odometry and trusted vision fixes taken at their frames' odometry."""
@@ -30,6 +34,8 @@ class PoseFusion:
         self._pose: Optional[Pose2] = None      # fused pose when odometry read self._anchor
         self._anchor: Optional[Pose2] = None
         self._trusted: Optional[Pose2] = None   # odometry at the last trusted fix
+        self._counted: Optional[Pose2] = None   # odometry up to which the blind travel is summed
+        self._driven = 0.0                      # blind travel summed up to it, m
 
     @property
     def initialised(self) -> bool:
@@ -42,7 +48,8 @@ class PoseFusion:
         The first fix is taken as it is; later ones move the pose predicted at the
         frame's odometry by ``fix_gain`` times the difference (in that pose's frame).
         """
-        self._trusted = odom_at_frame
+        self._trusted = self._counted = odom_at_frame
+        self._driven = 0.0
         if self._pose is None:
             self._pose, self._anchor = measured, odom_at_frame
             return
@@ -59,7 +66,14 @@ class PoseFusion:
         return self._pose.compose(self._anchor.between(odom))
 
     def blind_distance(self, odom: Pose2) -> float:
-        """Straight-line distance, m, driven on odometry alone since the last trusted fix's frame."""
+        """Distance, m, driven on odometry alone since the last trusted fix's frame: along the path (the
+        readings given here, every cycle), in steps of BLIND_STEP_M. The straight line let a robot go round
+        a bend blind, or a full circle, with less or nothing counted."""
         if self._trusted is None:
             raise RuntimeError("PoseFusion.blind_distance before the first fix")
-        return math.hypot(odom.x - self._trusted.x, odom.z - self._trusted.z)
+        step = math.hypot(odom.x - self._counted.x, odom.z - self._counted.z)
+        if step < BLIND_STEP_M:
+            return self._driven + step
+        self._driven += step
+        self._counted = odom
+        return self._driven

@@ -62,7 +62,7 @@ class OperatorController(Controller):
         self.route_path: Optional[str] = None
         self._base_stages = list(pipeline.stages) if pipeline is not None else []
         self._teaching = None                          # session.Teaching: the route being taught
-        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error, cmd)
+        self._pending: Optional[tuple] = None          # (mode, route, stages, controller, teaching, error, cmd, note)
         self._worker_cmd: Optional[OperatorCommand] = None  # the command the worker's switch answers
         self._switch_lock = threading.Lock()           # _pending posted vs. the run ending without it
         self._abandoned = False                        # the run ended while the worker was still at it
@@ -212,13 +212,16 @@ class OperatorController(Controller):
                 self._wait_for_the_vision_thread(frames_at_swap)
                 self._close_teach()
                 closed = f"; teaching {route!r} was closed, the robot is idle"
-            stages, controller, teaching = list(self._base_stages), None, None
+            stages, controller, teaching, note = list(self._base_stages), None, None, ""
             if target == "teach":
                 teaching = Teaching(self.cfg, where, overwrite=False)
                 stages = [teaching.stage] + stages
             elif target == "repeat":
-                repeating = Repeating(self.cfg, load_route(where))
+                loaded = load_route(where)
+                repeating = Repeating(self.cfg, loaded)
                 stages = [repeating.stage] + stages
+                if not loaded.complete:     # applied, with what vbnav repeat warns of
+                    note = f"mode repeat: route {route!r}: {loaded.incomplete_note()}"
                 controller = repeating.controller
         except Exception as exc:  # the mode stays as it was; the operator sees why (never a path outside)
             why = describe_route_error(exc, where, route) if where is not None else str(exc)
@@ -239,14 +242,14 @@ class OperatorController(Controller):
             self._post(("idle", None, list(self._base_stages), None, None,
                              f"mode {target}: closing the route being taught failed: {why}; the robot is idle", cmd))
             return
-        self._post((target, route, stages, controller, teaching, None, cmd))
+        self._post((target, route, stages, controller, teaching, None, cmd), note)
 
-    def _post(self, pending: tuple) -> None:
+    def _post(self, pending: tuple, note: str = "") -> None:
         """Worker: hand the prepared switch to the loop, unless the run ended without waiting for it
         (``close``): then what it opened is closed here, and its command was answered already."""
         with self._switch_lock:
             if not self._abandoned:
-                self._pending = pending
+                self._pending = (*pending, note)
                 return
         teaching = pending[4]
         if teaching is not None:
@@ -264,7 +267,7 @@ class OperatorController(Controller):
         deferred: the command was answered ``PENDING`` (worker thread): its answer goes to the runtime now.
         Otherwise it is returned (to ``handle_command``). A switch nobody asked for that fails is refused
         in the runtime's events."""
-        mode, route, stages, controller, teaching, error, cmd = self._pending
+        mode, route, stages, controller, teaching, error, cmd, note = self._pending
         self._pending = None
         self._worker = None
         self._worker_cmd = None
@@ -272,7 +275,7 @@ class OperatorController(Controller):
         rt = self._runtime
         if now_ns is None:
             now_ns = rt.clock.now_ns() if rt is not None else 0
-        outcome = CommandOutcome.refused(error) if error else APPLIED
+        outcome = CommandOutcome.refused(error) if error else CommandOutcome(True, note) if note else APPLIED
         if error:
             self.errors.append(error)
         if stages is None:   # failed, nothing closed: the mode stays, and what the switch detached goes back
@@ -328,7 +331,7 @@ class OperatorController(Controller):
             if pending is not None:
                 # The run ended before the loop took the switch: the route it opened is closed too, and
                 # the command that asked for it is refused (it never took effect).
-                mode, route, stages, controller, teaching, error, cmd = pending
+                mode, route, stages, controller, teaching, error, cmd, _ = pending
                 self._worker = None
                 if teaching is not None:
                     teaching.close()

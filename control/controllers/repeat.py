@@ -59,6 +59,7 @@ class RepeatController(Controller):
         self._last_stamp: Optional[int] = None
         self._n_agree = 0
         self._blind = 0.0
+        self._why = ""          # why the last estimate gave no trusted fix (the stage's reason)
         self._finished = False
         self._status: dict = {}
 
@@ -86,7 +87,13 @@ class RepeatController(Controller):
         return self._pursue(self._fusion.predict(ctx.odom))
 
     def _absorb(self, est: Optional[Estimate]) -> None:
-        if est is None or est.stamp_ns == self._last_stamp or not isinstance(est.value, VBCFix):
+        if est is None:
+            # None younger than vbc.max_estimate_age_s: on odometry alone, at the blind speed, as after a
+            # failed fix (the old fix's landmark count kept the robot at full speed).
+            self._n_agree = 0
+            self._why = f"no camera fix newer than vbc.max_estimate_age_s {self.cfg.max_estimate_age_s:g} s"
+            return
+        if est.stamp_ns == self._last_stamp or not isinstance(est.value, VBCFix):
             return
         self._last_stamp = est.stamp_ns
         fix: VBCFix = est.value
@@ -95,7 +102,9 @@ class RepeatController(Controller):
         if fix.finished:
             self._finished = True
         if not est.ok:
+            self._why = est.info.get("reason", "") or "the camera fix was not trusted"
             return
+        self._why = ""
         self._fusion.correct(self.kfs[fix.keyframe].odom.compose(fix.pose), fix.odom)
 
     def _pursue(self, P: Pose2) -> Twist:
@@ -117,9 +126,13 @@ class RepeatController(Controller):
             kappa = 2.0 * rel.x / max(L2, 1e-6)        # pure pursuit: the arc through the target point
             arc = keep_curvature(Twist(v, v * kappa), self.w_max)
             v, w = arc.v, arc.w
-        self._status = {"state": "driving" if v > 0 or w != 0 else "stopped", "keyframe": self._k,
-                        "lateral_m": lateral, "heading_err_deg": math.degrees(heading_err),
+        blind = self._blind >= c.blind_distance_m
+        self._status = {"state": "blind" if blind else "driving" if v > 0 or w != 0 else "stopped",
+                        "keyframe": self._k, "lateral_m": lateral, "heading_err_deg": math.degrees(heading_err),
                         "n_agree": self._n_agree, "blind_m": self._blind, "remaining_m": remaining}
+        if blind:
+            self._status["reason"] = (f"stopped: {self._blind:.2f} m without a trusted camera fix "
+                                      f"(vbc.blind_distance_m {c.blind_distance_m:g}): {self._why}")
         return Twist(v, w)
 
     def _confidence(self) -> float:

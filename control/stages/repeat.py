@@ -83,6 +83,8 @@ class RepeatStage(VisionStage):
         self._frame_start: Optional[tuple] = None        # the state before this frame (``_state``)
         self._last_ok = True
         self._confirmed = False                  # a fix has passed the gate against an earlier one
+        self._view: Optional[tuple] = None       # (ids, pixels) of the last localise (``_new_view``)
+        self._fresh_view = True                  # this frame's tracks differ from the last's
         # The camera's tilt (pitch, roll) on its mount since teaching (``_observe_tilt``): measured with
         # each fix, smoothed, and applied to the rays once it passes vbc.tilt_threshold_pitch_deg or _roll_deg.
         s0 = math.radians(self.cfg.tilt_sigma_deg)
@@ -263,6 +265,7 @@ class RepeatStage(VisionStage):
         if self._pose is not None:
             predicted = self._pose.compose(self._odom.between(odom))
         start = self._frame_start or self._state()
+        self._fresh_view = self._new_view(ids, pixels)
         res, n_agree = self._fix(self.index, ids, pixels, predicted)
         ok, why = self._accept(res, self.index, odom, start)
         if not ok and predicted is not None and self._trusted_odom is not None and self.index + 1 < len(self.kfs):
@@ -314,6 +317,17 @@ class RepeatStage(VisionStage):
             info["reason"] = why
         return Estimate(stamp_ns, self.kind, bool(ok), fix, info)
 
+    def _new_view(self, ids: np.ndarray, pixels: np.ndarray) -> bool:
+        """Whether these tracks are not those of the last localise: some landmark seen in both moved at all.
+        KLT on an image identical to the last gives every track its pixel again to the bit, where a
+        camera's read noise moves them; a frame delivered twice (a driver re-queuing its buffer while
+        the robot stands, which the frozen-camera check lets through) is no second view."""
+        before, self._view = self._view, (ids, pixels)
+        if before is None:
+            return True
+        _, i0, i1 = np.intersect1d(before[0], ids, return_indices=True)
+        return len(i0) == 0 or not np.array_equal(before[1][i0], pixels[i1])
+
     def _state(self) -> tuple:
         """(pose, its keyframe, odometry at it, odometry at the last trusted fix)."""
         return self._pose, self.index, self._odom, self._trusted_odom
@@ -351,7 +365,8 @@ class RepeatStage(VisionStage):
         gate_rad = math.radians(self.cfg.fix_gate_deg) + share * abs(moved.theta)
         if jump <= gate_m and turn <= gate_rad:
             self.stats["largest_jump_m"] = max(self.stats["largest_jump_m"], jump)
-            self._confirmed = True
+            # The same view again (a frame delivered twice, or fixed again) agrees with itself: no confirmation.
+            self._confirmed = self._confirmed or self._fresh_view
             return True, ""
         self.stats["gated"] += 1
         return False, (f"repeat: fix {jump:.2f} m / {math.degrees(turn):.1f} deg from where odometry puts "
