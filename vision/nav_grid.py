@@ -28,6 +28,9 @@ import cv2
 import numpy as np
 
 
+MAX_CELLS = 16_000_000   # 4000 x 4000 cells, 200 m square at 5 cm: about 100 MB to build, A* still in seconds
+
+
 @dataclass(frozen=True)
 class GridParams:
     resolution_m: float = 0.05
@@ -77,7 +80,8 @@ def obstacle_traces(P: np.ndarray, params: GridParams = GridParams()) -> np.ndar
 def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: Optional[np.ndarray] = None,
                polygons: Optional[list] = None) -> NavGrid:
     """The grid of the given world segments (K, 2, 3); ``extra_points`` (N, 2) x, z must lie inside it;
-    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles."""
+    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles.
+    ValueError when the grid would hold more than ``MAX_CELLS`` cells."""
     traces = obstacle_traces(P, params)
     polygons = [np.asarray(q, float).reshape(-1, 2) for q in (polygons or [])]
     pts = np.vstack([traces.reshape(-1, 2)] + polygons) if polygons else traces.reshape(-1, 2)
@@ -89,6 +93,9 @@ def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: O
     hi = pts.max(axis=0) + params.margin_m
     res = params.resolution_m
     W, H = int(math.ceil((hi[0] - lo[0]) / res)), int(math.ceil((hi[1] - lo[1]) / res))
+    if W * H > MAX_CELLS:
+        raise ValueError(f"the planning grid over x {lo[0]:+.1f}..{hi[0]:+.1f} m, z {lo[1]:+.1f}..{hi[1]:+.1f} m "
+                         f"would be {W} x {H} cells of {res} m, more than the {MAX_CELLS} cells planned on")
     occ = np.zeros((H, W), np.uint8)
     for (xa, za), (xb, zb) in traces:
         a = (int((xa - lo[0]) / res), int((za - lo[1]) / res))

@@ -137,7 +137,13 @@ def run(args) -> int:
             start = found.pose
             print(f"localised against the map: x={start.x:+.3f} z={start.z:+.3f} "
                   f"theta={math.degrees(start.theta):+.2f} deg ({say})")
-        planned = plan_path(lmap, meta, start, goal, radius)
+        try:
+            planned = plan_path(lmap, meta, start, goal, radius)
+        except ValueError as exc:           # the grid over the map, --start and --goal would not fit in memory
+            print(f"vbnav goto: {args.map}: --start ({start.x:+.2f}, {start.z:+.2f}), --goal ({goal.x:+.2f}, "
+                  f"{goal.z:+.2f}): {exc}; give a goal within reach of the map", file=sys.stderr)
+            robot.drive.close()
+            return 2
         if planned is None:
             print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
                   f"{goal.z:+.2f}) clear of the mapped walls and objects by {radius} m", file=sys.stderr)
