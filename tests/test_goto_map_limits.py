@@ -41,3 +41,23 @@ def test_map_view_refuses_a_map_too_large_for_its_planning_grid(tmp_path, capsys
     err = capsys.readouterr().err
     assert code == 2, err
     assert "wide.json" in err and "cells" in err and "bug" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("gap", [0.27, 0.2, 0.15, 0.1, 0.05])
+def test_a_start_deep_in_the_grown_margin_of_a_wall_still_plans_out_of_it(gap):
+    """The robot's centre ``gap`` m from a mapped wall (inside the radius + clearance band, 0.28 m): the
+    search left a blocked start only into a free neighbour, so from 0.15 m on there was no path at all
+    (goto --map exit 1, the re-planner holding the robot by the wall for good)."""
+    from vbnav.vision.nav_grid import plan
+
+    wall = np.array([[[-2.0, -0.3, 1.0], [2.0, -0.3, 1.0]]])         # along x at z = 1, 0.3 m high
+    start, goal = (0.0, 1.0 - gap), (0.0, -2.0)
+    grid = build_grid(wall, extra_points=np.array([start, goal]))
+    path = plan(grid, start, goal)
+    assert path is not None and path[0] == start and path[-1] == goal
+    assert all(z < 1.0 for _, z in path)                               # never through the wall
+    # a start beside a wall of a closed box is not a way into the box: walled in stays no path
+    box = np.array([[[-1, -0.3, -1], [1, -0.3, -1]], [[1, -0.3, -1], [1, -0.3, 1]],
+                    [[1, -0.3, 1], [-1, -0.3, 1]], [[-1, -0.3, 1], [-1, -0.3, -1]]], float)
+    grid = build_grid(box, extra_points=np.array([(0.0, 1.0 - gap), (0.0, 3.0)]))
+    assert plan(grid, (0.0, 1.0 - gap), (0.0, 3.0)) is None
