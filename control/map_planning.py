@@ -50,6 +50,20 @@ def plan_path(lmap, meta: dict, start, goal, robot_radius: float):
     return plan(grid, (start.x, start.z), (goal.x, goal.z))
 
 
+def no_path_reason(lmap, meta: dict, start, goal, robot_radius: float) -> str:
+    """Why ``plan_path`` found no path: the goal too near a wall or object, or walled off."""
+    import numpy as np
+
+    grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
+    keep = (f"{grid.grown_m:.2f} m (--robot-radius {robot_radius:g} m + {grid.grown_m - robot_radius:.2f} m "
+            f"clearance)")
+    if not grid.is_free(goal.x, goal.z):
+        return (f"the --goal ({goal.x:+.2f}, {goal.z:+.2f}) lies within {keep} of a mapped wall or object: "
+                f"give a goal farther from it")
+    return (f"no path from ({start.x:+.2f}, {start.z:+.2f}) to the --goal ({goal.x:+.2f}, {goal.z:+.2f}) keeps "
+            f"{keep} from the mapped walls and objects: the goal is walled off, or the way is too narrow")
+
+
 def map_route_in_reference_frame(planned, start, goal):
     """The planned path's intermediate waypoints and the goal, moved from the map's frame into the goto
     controller's reference frame (the robot's pose at the start, ``start`` in the map)."""

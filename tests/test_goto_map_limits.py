@@ -61,3 +61,20 @@ def test_a_start_deep_in_the_grown_margin_of_a_wall_still_plans_out_of_it(gap):
                     [[1, -0.3, 1], [-1, -0.3, 1]], [[-1, -0.3, 1], [-1, -0.3, -1]]], float)
     grid = build_grid(box, extra_points=np.array([(0.0, 1.0 - gap), (0.0, 3.0)]))
     assert plan(grid, (0.0, 1.0 - gap), (0.0, 3.0)) is None
+
+
+def test_goto_map_says_when_the_goal_itself_is_too_near_a_wall(tmp_path, capsys):
+    """A goal 0.25 m from a mapped wall with --robot-radius 0.2: refused as 'no path ... clear of the mapped
+    walls and objects by 0.2 m', untrue (it is 0.25 m clear) and silent on what to change. Now the goal is
+    named, with the distance the planner keeps (radius + clearance)."""
+    from vbnav.control.cli import main
+
+    lmap = LineMap()
+    P = np.array([[[-2.0, -0.3, 1.0], [2.0, -0.3, 1.0]]])
+    lmap._insert(P, np.broadcast_to(1e-4 * np.eye(3), (1, 2, 3, 3)).copy(), np.full(1, -1), np.zeros(4))
+    lmap.verified[:] = True
+    save_map(lmap, tmp_path / "wall.json")
+    code = main(["goto", "--map", str(tmp_path / "wall.json"), "--static-map", "--goal", "0", "0.75", "0"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "--goal" in err and "within 0.28 m" in err and "--robot-radius" in err, err

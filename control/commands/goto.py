@@ -6,7 +6,8 @@ import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
-from vbnav.control.map_planning import localise_problem, localise_start, map_route_in_reference_frame, plan_path
+from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
+                                        no_path_reason, plan_path)
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -145,8 +146,7 @@ def run(args) -> int:
             robot.drive.close()
             return 2
         if planned is None:
-            print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
-                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {radius} m", file=sys.stderr)
+            print(f"vbnav goto: {args.map}: {no_path_reason(lmap, meta, start, goal, radius)}", file=sys.stderr)
             robot.drive.close()
             return 1
         print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
