@@ -51,17 +51,21 @@ def plan_path(lmap, meta: dict, start, goal, robot_radius: float):
 
 
 def no_path_reason(lmap, meta: dict, start, goal, robot_radius: float) -> str:
-    """Why ``plan_path`` found no path: the goal too near a wall or object, or walled off."""
+    """Why ``plan_path`` found no path: the start on a wall or in an object, the goal too near one, or the
+    goal walled off."""
     import numpy as np
 
     grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
     keep = (f"{grid.grown_m:.2f} m (--robot-radius {robot_radius:g} m + {grid.grown_m - robot_radius:.2f} m "
             f"clearance)")
+    if grid.occupied[grid.cell(start.x, start.z)]:
+        return (f"the --start ({start.x:+.2f}, {start.z:+.2f}) lies on a mapped wall or inside a mapped object: "
+                f"give the robot's pose in the map")
     if not grid.is_free(goal.x, goal.z):
         return (f"the --goal ({goal.x:+.2f}, {goal.z:+.2f}) lies within {keep} of a mapped wall or object: "
                 f"give a goal farther from it")
     return (f"no path from ({start.x:+.2f}, {start.z:+.2f}) to the --goal ({goal.x:+.2f}, {goal.z:+.2f}) keeps "
-            f"{keep} from the mapped walls and objects: the goal is walled off, or the way is too narrow")
+            f"{keep} from the mapped walls and objects: walls stand between them, or the way is too narrow")
 
 
 def map_route_in_reference_frame(planned, start, goal):

@@ -78,3 +78,16 @@ def test_goto_map_says_when_the_goal_itself_is_too_near_a_wall(tmp_path, capsys)
     err = capsys.readouterr().err
     assert code == 1, err
     assert "--goal" in err and "within 0.28 m" in err and "--robot-radius" in err, err
+
+
+def test_goto_map_says_when_the_start_is_inside_a_mapped_object(tmp_path, capsys):
+    """--start inside a stored box footprint: 'the goal is walled off' blamed the goal."""
+    from vbnav.control.cli import main
+
+    box = [[-0.5, 1.5], [0.5, 1.5], [0.5, 2.5], [-0.5, 2.5]]
+    save_map(LineMap(), tmp_path / "box.json", {"objects": [{"footprint": box, "height": 0.5}]})
+    code = main(["goto", "--map", str(tmp_path / "box.json"), "--static-map", "--start", "0", "2", "0",
+                 "--goal", "0", "4", "0"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "--start (+0.00, +2.00) lies on a mapped wall or inside a mapped object" in err, err
