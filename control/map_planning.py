@@ -210,8 +210,11 @@ class Replanner:
             if self._held:
                 return None
             self._held = True
-            return self._say(f"{at}: the map closes every path to the goal ({self.goal.x:+.2f}, "
-                             f"{self.goal.z:+.2f}); holding until it opens one")
+            goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
+            if not grid.is_free(self.goal.x, self.goal.z):
+                return self._say(f"{at}: {goal} now lies within {grid.grown_m:.2f} m (robot radius + clearance) "
+                                 f"of what the map holds; holding until the map frees it")
+            return self._say(f"{at}: the map closes every path to {goal}; holding until it opens one")
         waypoints = [self.start.between(Pose2(x, z, 0.0)) for x, z in path[1:-1]]
         self.controller.replace_route([(w.x, w.z) for w in waypoints])
         self.controller.hold(None)
