@@ -50,6 +50,24 @@ def plan_path(lmap, meta: dict, start, goal, robot_radius: float):
     return plan(grid, (start.x, start.z), (goal.x, goal.z))
 
 
+def no_path_reason(lmap, meta: dict, start, goal, robot_radius: float) -> str:
+    """Why ``plan_path`` found no path: the start on a wall or in an object, the goal too near one, or the
+    goal walled off."""
+    import numpy as np
+
+    grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
+    keep = (f"{grid.grown_m:.2f} m (--robot-radius {robot_radius:g} m + {grid.grown_m - robot_radius:.2f} m "
+            f"clearance)")
+    if grid.occupied[grid.cell(start.x, start.z)]:
+        return (f"the --start ({start.x:+.2f}, {start.z:+.2f}) lies on a mapped wall or inside a mapped object: "
+                f"give the robot's pose in the map")
+    if not grid.is_free(goal.x, goal.z):
+        return (f"the --goal ({goal.x:+.2f}, {goal.z:+.2f}) lies within {keep} of a mapped wall or object: "
+                f"give a goal farther from it")
+    return (f"no path from ({start.x:+.2f}, {start.z:+.2f}) to the --goal ({goal.x:+.2f}, {goal.z:+.2f}) keeps "
+            f"{keep} from the mapped walls and objects: walls stand between them, or the way is too narrow")
+
+
 def map_route_in_reference_frame(planned, start, goal):
     """The planned path's intermediate waypoints and the goal, moved from the map's frame into the goto
     controller's reference frame (the robot's pose at the start, ``start`` in the map)."""
@@ -192,8 +210,11 @@ class Replanner:
             if self._held:
                 return None
             self._held = True
-            return self._say(f"{at}: the map closes every path to the goal ({self.goal.x:+.2f}, "
-                             f"{self.goal.z:+.2f}); holding until it opens one")
+            goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
+            if not grid.is_free(self.goal.x, self.goal.z):
+                return self._say(f"{at}: {goal} now lies within {grid.grown_m:.2f} m (robot radius + clearance) "
+                                 f"of what the map holds; holding until the map frees it")
+            return self._say(f"{at}: the map closes every path to {goal}; holding until it opens one")
         waypoints = [self.start.between(Pose2(x, z, 0.0)) for x, z in path[1:-1]]
         self.controller.replace_route([(w.x, w.z) for w in waypoints])
         self.controller.hold(None)

@@ -163,3 +163,18 @@ def test_localising_against_a_map_refuses_a_distorted_camera():
                         "vslam": {"metric_scale": "odometry"}}, "robot.yaml")
     found, say = localise_start(cfg, Unopened(), None, "map.npz", Pose2())
     assert found is None and "robot.yaml" in say and "camera.distortion [-0.2" in say and "rectified" in say
+
+
+def test_replanner_hold_says_when_the_goal_itself_is_now_too_near_what_the_map_holds():
+    """The grown map puts an object 0.1 m from the goal: the hold said 'the map closes every path to the
+    goal' (as for a walled-off goal), not that the goal itself is now within the planner's margin."""
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": [[-0.5, 1.6], [0.5, 1.6], [0.5, 2.0], [-0.5, 2.0]], "height": 1.0})
+    stage.revision += 1
+    msg = rp.step()
+    assert "holding" in msg and "goal (+0.00, +1.50) now lies within 0.28 m" in msg, msg

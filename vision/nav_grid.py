@@ -28,6 +28,9 @@ import cv2
 import numpy as np
 
 
+MAX_CELLS = 16_000_000   # 4000 x 4000 cells, 200 m square at 5 cm: about 100 MB to build, A* still in seconds
+
+
 @dataclass(frozen=True)
 class GridParams:
     resolution_m: float = 0.05
@@ -48,6 +51,7 @@ class NavGrid:
     res: float
     occupied: np.ndarray
     blocked: np.ndarray
+    grown_m: float = 0.0        # how far the obstacles were grown (robot radius + clearance)
 
     def cell(self, x: float, z: float) -> tuple[int, int]:
         return int(math.floor((z - self.z0) / self.res)), int(math.floor((x - self.x0) / self.res))
@@ -77,7 +81,8 @@ def obstacle_traces(P: np.ndarray, params: GridParams = GridParams()) -> np.ndar
 def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: Optional[np.ndarray] = None,
                polygons: Optional[list] = None) -> NavGrid:
     """The grid of the given world segments (K, 2, 3); ``extra_points`` (N, 2) x, z must lie inside it;
-    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles."""
+    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles.
+    ValueError when the grid would hold more than ``MAX_CELLS`` cells."""
     traces = obstacle_traces(P, params)
     polygons = [np.asarray(q, float).reshape(-1, 2) for q in (polygons or [])]
     pts = np.vstack([traces.reshape(-1, 2)] + polygons) if polygons else traces.reshape(-1, 2)
@@ -89,6 +94,9 @@ def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: O
     hi = pts.max(axis=0) + params.margin_m
     res = params.resolution_m
     W, H = int(math.ceil((hi[0] - lo[0]) / res)), int(math.ceil((hi[1] - lo[1]) / res))
+    if W * H > MAX_CELLS:
+        raise ValueError(f"the planning grid over x {lo[0]:+.1f}..{hi[0]:+.1f} m, z {lo[1]:+.1f}..{hi[1]:+.1f} m "
+                         f"would be {W} x {H} cells of {res} m, more than the {MAX_CELLS} cells planned on")
     occ = np.zeros((H, W), np.uint8)
     for (xa, za), (xb, zb) in traces:
         a = (int((xa - lo[0]) / res), int((za - lo[1]) / res))
@@ -103,7 +111,8 @@ def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: O
     free = (occ == 0).astype(np.uint8)
     dist = cv2.distanceTransform(free, cv2.DIST_L2, 5) * res
     blocked = dist <= params.robot_radius_m + params.clearance_m
-    return NavGrid(float(lo[0]), float(lo[1]), res, occ.astype(bool), blocked)
+    return NavGrid(float(lo[0]), float(lo[1]), res, occ.astype(bool), blocked,
+                   params.robot_radius_m + params.clearance_m)
 
 
 _STEPS = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
@@ -113,15 +122,22 @@ _STEPS = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
 def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]]:
     """Waypoints (x, z) from start to goal avoiding blocked cells, or None when there is no path.
 
-    The start cell may be blocked (the robot already stands close to something): the search leaves it.
+    The start cell may be blocked (the robot already stands close to something): the search leaves the
+    grown margin from there, through cells no mapped obstacle occupies, within ``grown_m`` of the start.
     """
     s, g = grid.cell(*start_xz), grid.cell(*goal_xz)
     if not grid.inside(*s) or not grid.inside(*g):
         return None
     if grid.blocked[g]:
         return None
-    blocked = grid.blocked
+    blocked, occupied = grid.blocked, grid.occupied
     H, W = blocked.shape
+    leave = grid.grown_m / grid.res + 1.0       # cells a blocked start goes through to leave the margin
+
+    def passable(cur, nr, nc) -> bool:
+        if not blocked[nr, nc]:
+            return True
+        return bool(blocked[cur]) and not occupied[nr, nc] and math.hypot(nr - s[0], nc - s[1]) <= leave
     best = {s: 0.0}
     came: dict = {}
     heap = [(math.hypot(s[0] - g[0], s[1] - g[1]), 0.0, s)]
@@ -133,9 +149,9 @@ def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]
             continue
         for dr, dc, step in _STEPS:
             nr, nc = cur[0] + dr, cur[1] + dc
-            if not (0 <= nr < H and 0 <= nc < W) or blocked[nr, nc]:
+            if not (0 <= nr < H and 0 <= nc < W) or not passable(cur, nr, nc):
                 continue
-            if dr and dc and (blocked[cur[0] + dr, cur[1]] or blocked[cur[0], cur[1] + dc]):
+            if dr and dc and not (passable(cur, cur[0] + dr, cur[1]) and passable(cur, cur[0], cur[1] + dc)):
                 continue                                  # no corner cutting
             nxt = (nr, nc)
             c2 = cost + step

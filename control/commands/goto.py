@@ -6,7 +6,8 @@ import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
-from vbnav.control.map_planning import localise_problem, localise_start, map_route_in_reference_frame, plan_path
+from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
+                                        no_path_reason, plan_path)
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -137,10 +138,15 @@ def run(args) -> int:
             start = found.pose
             print(f"localised against the map: x={start.x:+.3f} z={start.z:+.3f} "
                   f"theta={math.degrees(start.theta):+.2f} deg ({say})")
-        planned = plan_path(lmap, meta, start, goal, radius)
+        try:
+            planned = plan_path(lmap, meta, start, goal, radius)
+        except ValueError as exc:           # the grid over the map, --start and --goal would not fit in memory
+            print(f"vbnav goto: {args.map}: --start ({start.x:+.2f}, {start.z:+.2f}), --goal ({goal.x:+.2f}, "
+                  f"{goal.z:+.2f}): {exc}; give a goal within reach of the map", file=sys.stderr)
+            robot.drive.close()
+            return 2
         if planned is None:
-            print(f"vbnav goto: {args.map}: no path from ({start.x:+.2f}, {start.z:+.2f}) to ({goal.x:+.2f}, "
-                  f"{goal.z:+.2f}) clear of the mapped walls and objects by {radius} m", file=sys.stderr)
+            print(f"vbnav goto: {args.map}: {no_path_reason(lmap, meta, start, goal, radius)}", file=sys.stderr)
             robot.drive.close()
             return 1
         print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))

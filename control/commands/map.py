@@ -214,7 +214,10 @@ def run_view(args) -> int:
     except ImportError as exc:
         raise InputError(f"vbnav map view needs the foxglove-sdk package ({exc}); install vbnav's dependencies") \
             from None
-    grid = map_grid(lmap, meta, args.robot_radius)
+    try:
+        grid = map_grid(lmap, meta, args.robot_radius)
+    except ValueError as exc:       # a map wider than the grid planned on
+        raise InputError(f"vbnav map view: {args.map}: {exc}") from None
     cells = np.where(grid.occupied, 100, np.where(grid.blocked, 50, 0)).astype(np.uint8)
     try:
         server = SceneServer("vbnav map", ["/vbnav/map/lines", "/vbnav/map/grid"], port=args.port)

@@ -1,0 +1,93 @@
+"""vbnav goto --map and vbnav map view against hostile input: goals, starts and maps whose planning grid
+would not fit in memory are refused with a clear error, before the robot moves."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vbnav.control.line_map_file import save_map
+from vbnav.vision.line_map import LineMap
+from vbnav.vision.nav_grid import MAX_CELLS, build_grid
+
+
+def test_a_grid_too_large_to_plan_on_is_refused_not_allocated():
+    """A goal 10 000 km away asked for a 2e8 x 2e8 cell grid (35 PiB): numpy's MemoryError, a traceback."""
+    with pytest.raises(ValueError, match=r"planning grid .* cells"):
+        build_grid(np.zeros((0, 2, 3)), extra_points=np.array([[0.0, 0.0], [1e7, 1e7]]))
+    g = build_grid(np.zeros((0, 2, 3)), extra_points=np.array([[0.0, 0.0], [50.0, 50.0]]))
+    assert g.blocked.size <= MAX_CELLS                  # a 50 m goal still plans
+
+
+def test_goto_map_refuses_a_goal_too_far_for_the_grid(tmp_path, capsys):
+    from vbnav.control.cli import main
+
+    save_map(LineMap(), tmp_path / "empty.json")
+    code = main(["goto", "--map", str(tmp_path / "empty.json"), "--static-map", "--goal", "1e7", "1e7", "0",
+                 "--duration", "1"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "--goal" in err and "cells" in err and "bug" not in err and "Traceback" not in err
+
+
+def test_map_view_refuses_a_map_too_large_for_its_planning_grid(tmp_path, capsys):
+    """Two objects 100 km apart: the grid shown beside the segments would not fit; a traceback before."""
+    from vbnav.control.cli import main
+
+    box = [[0, 0], [0.5, 0], [0.5, 0.5]]
+    far = [[x + 1e5, z] for x, z in box]
+    save_map(LineMap(), tmp_path / "wide.json",
+             {"objects": [{"footprint": box, "height": 0.5}, {"footprint": far, "height": 0.5}]})
+    code = main(["map", "view", str(tmp_path / "wide.json"), "--port", "0", "--duration", "0.1"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "wide.json" in err and "cells" in err and "bug" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("gap", [0.27, 0.2, 0.15, 0.1, 0.05])
+def test_a_start_deep_in_the_grown_margin_of_a_wall_still_plans_out_of_it(gap):
+    """The robot's centre ``gap`` m from a mapped wall (inside the radius + clearance band, 0.28 m): the
+    search left a blocked start only into a free neighbour, so from 0.15 m on there was no path at all
+    (goto --map exit 1, the re-planner holding the robot by the wall for good)."""
+    from vbnav.vision.nav_grid import plan
+
+    wall = np.array([[[-2.0, -0.3, 1.0], [2.0, -0.3, 1.0]]])         # along x at z = 1, 0.3 m high
+    start, goal = (0.0, 1.0 - gap), (0.0, -2.0)
+    grid = build_grid(wall, extra_points=np.array([start, goal]))
+    path = plan(grid, start, goal)
+    assert path is not None and path[0] == start and path[-1] == goal
+    assert all(z < 1.0 for _, z in path)                               # never through the wall
+    # a start beside a wall of a closed box is not a way into the box: walled in stays no path
+    box = np.array([[[-1, -0.3, -1], [1, -0.3, -1]], [[1, -0.3, -1], [1, -0.3, 1]],
+                    [[1, -0.3, 1], [-1, -0.3, 1]], [[-1, -0.3, 1], [-1, -0.3, -1]]], float)
+    grid = build_grid(box, extra_points=np.array([(0.0, 1.0 - gap), (0.0, 3.0)]))
+    assert plan(grid, (0.0, 1.0 - gap), (0.0, 3.0)) is None
+
+
+def test_goto_map_says_when_the_goal_itself_is_too_near_a_wall(tmp_path, capsys):
+    """A goal 0.25 m from a mapped wall with --robot-radius 0.2: refused as 'no path ... clear of the mapped
+    walls and objects by 0.2 m', untrue (it is 0.25 m clear) and silent on what to change. Now the goal is
+    named, with the distance the planner keeps (radius + clearance)."""
+    from vbnav.control.cli import main
+
+    lmap = LineMap()
+    P = np.array([[[-2.0, -0.3, 1.0], [2.0, -0.3, 1.0]]])
+    lmap._insert(P, np.broadcast_to(1e-4 * np.eye(3), (1, 2, 3, 3)).copy(), np.full(1, -1), np.zeros(4))
+    lmap.verified[:] = True
+    save_map(lmap, tmp_path / "wall.json")
+    code = main(["goto", "--map", str(tmp_path / "wall.json"), "--static-map", "--goal", "0", "0.75", "0"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "--goal" in err and "within 0.28 m" in err and "--robot-radius" in err, err
+
+
+def test_goto_map_says_when_the_start_is_inside_a_mapped_object(tmp_path, capsys):
+    """--start inside a stored box footprint: 'the goal is walled off' blamed the goal."""
+    from vbnav.control.cli import main
+
+    box = [[-0.5, 1.5], [0.5, 1.5], [0.5, 2.5], [-0.5, 2.5]]
+    save_map(LineMap(), tmp_path / "box.json", {"objects": [{"footprint": box, "height": 0.5}]})
+    code = main(["goto", "--map", str(tmp_path / "box.json"), "--static-map", "--start", "0", "2", "0",
+                 "--goal", "0", "4", "0"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "--start (+0.00, +2.00) lies on a mapped wall or inside a mapped object" in err, err
