@@ -178,3 +178,34 @@ def test_replanner_hold_says_when_the_goal_itself_is_now_too_near_what_the_map_h
     stage.revision += 1
     msg = rp.step()
     assert "holding" in msg and "goal (+0.00, +1.50) now lies within 0.28 m" in msg, msg
+
+
+def test_a_second_ctrl_c_while_the_grown_map_is_saved_does_not_lose_it(tmp_path, monkeypatch, capsys):
+    """`goto --map-out` saved the grown map after the runtime had handed the signals back: a second Ctrl-C
+    (or a service manager's SIGTERM) in the save raised KeyboardInterrupt and left no map (the save is atomic,
+    so never a corrupt one, but lost). The save is now held like closing a recording: the signal is told
+    once and the map is written."""
+    import signal
+
+    from vbnav.control.cli import main
+    from vbnav.control.line_map_file import load_map
+    from vbnav.control.live_map import LiveMap
+
+    save = LiveMap.save
+    raised = []
+
+    def interrupted_save(self, path):
+        raised.append(True)
+        signal.raise_signal(signal.SIGINT)           # the second Ctrl-C, as the map is being written
+        save(self, path)
+
+    monkeypatch.setattr(LiveMap, "save", interrupted_save)
+    save_map(LineMap(), tmp_path / "empty.json")
+    out = tmp_path / "grown.json"
+    main(["goto", "--map", str(tmp_path / "empty.json"), "--goal", "0", "1", "0", "--duration", "0.2",
+          "--map-out", str(out)])
+    captured = capsys.readouterr()
+    assert raised, "the map was not saved at all"
+    assert out.exists(), captured
+    assert load_map(out)[1]["frames"] >= 0
+    assert "SIGINT: the robot is stopped; saving the map" in captured.err

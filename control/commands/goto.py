@@ -190,17 +190,20 @@ def run(args) -> int:
     try:
         result = rt.run(args.duration, progress, progress_every_s=every_s)
     finally:
-        if live is not None:
-            live.stop()
         with finishing():           # a second Ctrl-C must not cut the recording short
-            link.close(result)
+            try:
+                if live is not None:
+                    live.stop()
+            finally:
+                link.close(result)
     printer.done()
     if live is not None:
         for msg in live.new_events():
             print(f"goto: {msg}")
         print(live.summary())
         if args.map_out:
-            live.save(args.map_out)
+            with finishing("saving the map as grown while driving"):    # nor lose the grown map
+                live.save(args.map_out)
             print(f"map as grown while driving -> {args.map_out}")
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
