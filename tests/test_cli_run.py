@@ -30,6 +30,17 @@ def test_run_scripted_sim_clock(tmp_path):
     assert summary["timing"]["cycles"] > 700
 
 
+
+def test_run_json_counts_the_cycles_the_loop_ran_once(capsys):
+    """`run --json` reported "cycles": 50 beside "timing": {"cycles": 51} for a 0.5 s run at 100 Hz: the top one
+    was the index of the last cycle (cycles 0 to 50 ran; the one at 0.5 s drives too, then ends the run). Both
+    are now the count of cycles run, the same number."""
+    from vbnav.control.cli import main
+    assert main(["run", "--no-camera", "--json", "--duration", "0.5", "--no-telemetry"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["reason"] == "duration"
+    assert summary["cycles"] == summary["timing"]["cycles"] == 51
+
 # Real-clock runs on a shared 2-core machine: a scheduling hiccup of 50 ms would latch the loop-stall stop
 # (5 periods at 100 Hz) and the robot would sit still; stalls themselves are tested on the simulated clock.
 RELAXED_STALL = "loop:\n  stall_periods: 100\n"

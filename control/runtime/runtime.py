@@ -160,7 +160,6 @@ class RunResult:
     message: str
     timing: TimingSummary
     events: list = field(default_factory=list)   # the first and the last safety events (safety.EventLog)
-    cycles: int = 0
     events_dropped: int = 0           # events left out of ``events`` between the first and the last ones
     events_dropped_after: int = 0     # how many of ``events`` come before the ones left out
     event_counts: dict = field(default_factory=dict)   # (kind, cause) -> events over the whole run
@@ -169,6 +168,11 @@ class RunResult:
     @property
     def ok(self) -> bool:
         return self.reason in ("finished", "duration", "stopped")
+
+    @property
+    def cycles(self) -> int:
+        """The cycles the loop ran, the last one (which ended the run) included: ``timing.cycles``, one count."""
+        return self.timing.cycles
 
     def count(self, kind: str, cause: Optional[str] = None) -> int:
         """Safety events of ``kind`` (and ``cause``) over the whole run, those left out of ``events`` included."""
@@ -322,7 +326,7 @@ class Runtime:
             restore_scheduling()
         reason, message = self._end or ("stopped", "loop stopped")
         log = self.safety.events
-        return RunResult(reason, message, timing, list(log), self.cycle, log.dropped, log.dropped_after,
+        return RunResult(reason, message, timing, list(log), log.dropped, log.dropped_after,
                          dict(log.counts), log.gap_line())
 
     # -- one cycle -----------------------------------------------------------
