@@ -356,3 +356,29 @@ def test_a_pair_sgbm_cannot_match_is_blind(make, says):
     e = stage.process(Frame(bad_left, 0, 1, right=bad_right), Pose2())
     assert not e.ok and e.info["speed_scale"] == 0.0 and says in e.info["reason"], e.info["reason"]
     assert stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2()).ok
+
+
+@pytest.mark.parametrize("make", [
+    # 16-bit, a highlight (a lamp, a reflection) in the right image only: each image was stretched to 8 bits on
+    # its own, so the right one came out darker than the left and SGBM matched little ("covered lens, darkness")
+    lambda l, r: (l.astype(np.uint16) * 64, np.where(np.arange(r.shape[1]) < 8, 65535,
+                                                     r.astype(np.uint16) * 64).astype(np.uint16)),
+    # float 0-1 with NaN pixels: NORM_MINMAX over a NaN gave a black pair, blind as "darkness"
+    lambda l, r: (np.where(np.arange(l.shape[0])[:, None] == 0, np.nan, l / 255.0).astype(np.float32),
+                  (r / 255.0).astype(np.float32)),
+], ids=["uint16-highlight", "float-nan"])
+def test_a_pair_of_another_dtype_than_8_bits_is_refused_naming_it(make):
+    """The tracking stages refuse images that are not uint8 (no clearly right conversion); the obstacle stage
+    stretched each image of a 16-bit or float pair to 8 bits on its own, and stopped the robot for the wrong
+    reason ("covered lens, darkness") or slowed it for an obstacle that was not there. Such a pair is now an
+    unusable frame that holds the robot, its reason naming the dtype; the next 8-bit pair is judged."""
+    stage = ObstacleStage.from_config(_stage_cfg(source="sgbm"))
+    clear = ds.Scene(0.25, 0.0, boxes=(ds.Box(-30, 30, 12, 12.5, 8, texel=0.05),))
+    left, right, _ = ds.textured_pair(clear, stage.rig)
+    bad_left, bad_right = make(left, right)
+    e = stage.process(Frame(bad_left, 0, 1, right=bad_right), Pose2())
+    dtype = str(bad_left.dtype)
+    assert not e.ok and e.info["speed_scale"] == 0.0, e.info
+    assert f"is {dtype}, the stage takes 8-bit (uint8) images" in e.info["reason"], e.info["reason"]
+    assert "covered lens" not in e.info["reason"]
+    assert stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2()).ok

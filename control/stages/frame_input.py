@@ -11,6 +11,9 @@ next frame (a camera renegotiating its size after a reconnect delivers good fram
   frame is refused naming both sizes; no resize, which would silently need another calibration.
 - Another dtype than uint8 (a 16-bit or float stream): refused naming the dtype. There is no clearly
   right conversion (a 16-bit image may hold 10, 12 or 16 significant bits, a float one 0-1 or 0-255).
+  The obstacle stage refuses such a stereo pair the same way (``dtype_problem``): each image stretched
+  to 8 bits on its own, a highlight in one of them or a NaN pixel left SGBM matching two different
+  exposures, blind for the wrong reason or slowed for an obstacle that is not there.
 
 The frame's odometry (``odometry_problem``) is checked the same way: a pose with a NaN or infinite
 coordinate (a drive reporting a NaN encoder position) cannot place the frame, and a fix or keyframe
@@ -25,14 +28,22 @@ import numpy as np
 from vbnav.vision.features import to_grey
 
 
+def dtype_problem(image: np.ndarray, what: str = "image") -> str:
+    """"" when ``image`` is 8-bit (uint8), else why a stage does not take it (naming its dtype)."""
+    if image.dtype != np.uint8:
+        return f"the {what} is {image.dtype}, the stage takes 8-bit (uint8) images"
+    return ""
+
+
 def stage_image(image: Optional[np.ndarray], camera, what: str = "image") -> tuple[Optional[np.ndarray], str]:
     """(grey uint8 image, "") when ``image`` is usable with ``camera`` (its ``width`` x ``height``),
     else (None, the reason). ``what`` names the image in the reason ("image", "right image")."""
     if image is None:
         return None, f"the frame has no {what}"
     image = np.asarray(image)
-    if image.dtype != np.uint8:
-        return None, f"the {what} is {image.dtype}, the stage takes 8-bit (uint8) images"
+    why = dtype_problem(image, what)
+    if why:
+        return None, why
     if image.ndim == 3 and image.shape[2] == 1:
         image = np.ascontiguousarray(image[:, :, 0])
     elif image.ndim == 3 and image.shape[2] in (3, 4):

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 from vbnav.control.config.obstacles import ObstaclesConfig, ZoneConfig
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
-from vbnav.control.stages.frame_input import disparity_problem, frame_baseline
+from vbnav.control.stages.frame_input import disparity_problem, dtype_problem, frame_baseline
 from vbnav.drivers.calibration import CalibrationError, check_intrinsics
 from vbnav.drivers.camera import Frame
 from vbnav.vision.camera_model import PinholeCamera
@@ -336,8 +336,9 @@ class ObstacleStage(VisionStage):
 
     @staticmethod
     def _pair_problem(frame: Frame) -> str:
-        """Why SGBM cannot match this frame's pair ("" when it can): images of two sizes or dtypes (each
-        would be stretched to 8 bits on its own, or OpenCV refuses them), or not HxW grey / HxWx3 BGR / HxWx4."""
+        """Why SGBM cannot match this frame's pair ("" when it can): images of two sizes or dtypes, of
+        another dtype than uint8 (as the tracking stages, ``dtype_problem``: each image stretched to 8 bits
+        on its own matched two different exposures), or not HxW grey / HxWx3 BGR / HxWx4."""
         left, right = np.asarray(frame.image), np.asarray(frame.right)
         for what, im in (("left", left), ("right", right)):
             if not (im.ndim == 2 or (im.ndim == 3 and im.shape[2] in (1, 3, 4))):
@@ -347,7 +348,7 @@ class ObstacleStage(VisionStage):
             return f"the left image is {lw}x{lh}, the right one {rw}x{rh}"
         if left.dtype != right.dtype:
             return f"the left image is {left.dtype}, the right one {right.dtype}"
-        return ""
+        return dtype_problem(left, "left image")
 
     def disparity(self, frame: Frame) -> Optional[np.ndarray]:
         if self._sgbm_pair(frame):
