@@ -376,6 +376,38 @@ class ODriveDrive(SerialWheelDrive):
                 silent = silent or (missed[ax] or "").startswith("no answer")
         return "; ".join(f"{self._axis(ax)}: {m}" for ax, m in missed.items() if m) or None
 
+    def _stop_again(self) -> Optional[str]:
+        """The stop sent again from the loop (every 0.1 s while an axis has not taken it): the stop sent before
+        is read back first, one question per axis (it had the time to idle since), then this one is sent; its
+        own read-back would ask until 4 x reply_timeout_s had passed, a late cycle in every resend. A stop
+        taken is confirmed by the resend after it."""
+        if self.ser is None:
+            return None
+        t = self.opt.reply_timeout_s
+        missed, silent = {}, False   # a device that did not answer one axis answers no other: not waited for
+        for ax in self.axes:
+            if silent:
+                missed[ax] = "no answer to the stop's read-back"
+                continue
+            try:
+                state = self._query(f"r axis{ax}.current_state", t)
+            except Exception as exc:     # a device gone or a garbled answer: not known to have stopped
+                missed[ax], silent = f"the stop's read-back failed ({exc!r})", True
+                continue
+            if state is None:
+                missed[ax], silent = (f"no answer to 'r axis{ax}.current_state' within {t * 1000:.0f} ms: the "
+                                      "stop is unconfirmed"), True
+            elif _integer(state) != AXIS_STATE_IDLE:
+                missed[ax] = (f"did not take the stop sent before: current_state {state} (not IDLE "
+                              f"{AXIS_STATE_IDLE}); sent again")
+        for ax in self.axes:
+            try:
+                self._send(f"v {ax} 0")
+                self._send(f"w axis{ax}.requested_state {AXIS_STATE_IDLE}")
+            except Exception as exc:
+                missed[ax] = f"the stop could not be sent ({exc!r})"
+        return "; ".join(f"{self._axis(ax)}: {m}" for ax, m in sorted(missed.items()) if m) or None
+
     def _stop_not_taken(self, ax: int) -> Optional[str]:
         """Why axis ``ax`` is not known to have taken the stop (read back: IDLE), None when it has. The axis
         leaves closed loop within a control period or so: its state is read again until ``t`` has passed."""

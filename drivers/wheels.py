@@ -181,7 +181,10 @@ class WheelDrive(abc.ABC):
         with self._lock:
             if self._state in (DriveState.UNCONFIGURED, DriveState.FINALIZED):
                 return
-            self.stop_failure = self._stop_wheels()
+            if self._state is not DriveState.ACTIVE and self.stop_failure:
+                self.stop_failure = self._stop_again()      # the runtime's resend of a stop not taken
+            else:
+                self.stop_failure = self._stop_wheels()
             if self._state is DriveState.ACTIVE:
                 self._state = DriveState.INACTIVE
 
@@ -279,6 +282,12 @@ class WheelDrive(abc.ABC):
     def _stop_wheels(self) -> Optional[str]:
         """Command zero and remove power on whatever is still reachable; never raises. Returns what it could
         not stop, as a message naming the motor (None when every one took the stop)."""
+
+    def _stop_again(self) -> Optional[str]:
+        """A stop some motor did not take (``stop_failure`` set), sent again from the control loop: as
+        ``_stop_wheels``. A driver whose read-back waits (the ODrive's) reads back the stop sent before instead
+        and sends this one without waiting for it, so the loop's cycle is not made late."""
+        return self._stop_wheels()
 
     @abc.abstractmethod
     def _release(self) -> None:

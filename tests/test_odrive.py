@@ -323,3 +323,37 @@ def test_an_axis_that_reaches_idle_a_little_after_the_stop_has_taken_it(emu, dri
     drive.disable()
     assert drive.stop_failure is None, drive.stop_failure
     assert stopped_or_idle(emu)
+
+
+def test_a_stop_sent_again_does_not_wait_in_the_loop_for_its_read_back(emu, drive):
+    """The runtime sends a stop an axis did not take again every 0.1 s (disable() on a drive no longer ACTIVE
+    whose ``stop_failure`` is set). Each resend read its own stop back, asking until 4 x reply_timeout_s had
+    passed for an axis that does not idle: a late loop cycle in every ten. A resend now reads back the stop
+    sent before it (0.1 s ago: the axis has had its time to leave closed loop), one question per axis, then
+    sends the stop again; the stop taken is confirmed by the resend after it. The answer windows a resend
+    may wait, added up, stay within one reply_timeout_s per axis."""
+    drive_for(drive, 2.0, 2.0)
+    with emu.lock:
+        emu.axis(1).ignores_commands = True
+    drive.disable()                                  # the first stop: read back at once, as before
+    assert drive.stop_failure and "axis1 (right)" in drive.stop_failure, drive.stop_failure
+    windows = []
+    readline = drive._readline
+
+    def timed_readline(timeout_s):
+        windows.append(timeout_s)
+        return readline(timeout_s)
+
+    drive._readline = timed_readline
+    drive.disable()                                  # sent again: axis1 still drives on
+    assert drive.stop_failure and "axis1 (right)" in drive.stop_failure and "axis0" not in drive.stop_failure
+    assert f"current_state {oe.AXIS_STATE_CLOSED_LOOP}" in drive.stop_failure, drive.stop_failure
+    assert sum(windows) <= 2 * drive.opt.reply_timeout_s + 1e-9, windows
+    with emu.lock:
+        emu.axis(1).ignores_commands = False
+    windows.clear()
+    drive.disable()                                  # sent again, and taken: ...
+    assert sum(windows) <= 2 * drive.opt.reply_timeout_s + 1e-9, windows
+    assert wait_until(lambda: stopped_or_idle(emu))
+    drive.disable()                                  # ... confirmed by the next resend's read-back
+    assert drive.stop_failure is None and stopped_or_idle(emu)
