@@ -258,7 +258,7 @@ class OperatorController(Controller):
 
     def _close_teach(self) -> None:
         if self._teaching is not None:
-            self._teaching.close()
+            self._teaching.close(vision=self.pipeline)   # at the run's end, after its vision thread
         self._teaching = None
 
     def _apply_pending(self, now_ns: Optional[int] = None, deferred: bool = True) -> CommandOutcome:
