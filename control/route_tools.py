@@ -5,7 +5,8 @@
 ``plot`` draws the keyframes' odometry poses from above; ``check`` verifies
 every byte that carries a checksum (each PNG chunk's CRC-32, each ``.npz``
 member's CRC-32), decodes every image and landmark file, and compares the
-manifest with the files (sizes, landmark counts, poses).
+manifest with the files (sizes, landmark counts, poses) and each image with its landmarks' ORB
+descriptors (an image swapped with another keyframe's passes every checksum).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ import numpy as np
 from vbnav.control.route import MANIFEST, RouteError, load_route, stray_route_dirs, stray_temp_files
 from vbnav.drivers.atomic_file import atomic_output
 from vbnav.drivers.plain_values import load_json
+from vbnav.vision.features import describe as orb_descriptors
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _KF_FILE = ("kf_", (".png", ".npz"))
@@ -190,9 +192,24 @@ def _same(compare) -> bool:
         return False
 
 
+def image_problem(kf) -> Optional[str]:
+    """Whether ``kf``'s image is the one its landmarks were taken from: teach stores the ORB descriptors of
+    that image at the stored pixels (TeachStage._candidate, ``describe``), so recomputed they match to the bit.
+    An image swapped with another keyframe's, or edited, passes every checksum; this says how many differ."""
+    desc, idx = orb_descriptors(kf.image, kf.pixels)
+    stored = np.asarray(kf.descriptors, np.uint8)
+    differ = len(kf.pixels) - len(idx) + int(np.count_nonzero((desc != stored[idx]).any(axis=1)))
+    if not differ:
+        return None
+    return (f"the ORB descriptors at {differ} of its {len(kf.pixels)} landmarks' pixels differ from the stored "
+            f"ones: the image is not the one this keyframe was taught from (swapped with another keyframe's, "
+            f"or edited)")
+
+
 def check(path) -> CheckReport:
-    """Verify checksums, decode everything, compare manifest and files. RouteError only when ``path`` is
-    not a route at all (no directory, no manifest)."""
+    """Verify checksums, decode everything, compare manifest and files, and each keyframe's image with its
+    landmarks (``image_problem``). RouteError only when ``path`` is not a route at all (no directory, no
+    manifest)."""
     root = Path(path)
     if not root.is_dir():
         load_route(root)                       # raises the RouteError that says why (with stray siblings)
@@ -233,6 +250,9 @@ def check(path) -> CheckReport:
                                                                   abs_tol=1e-9)):
             report.problems.append(f"keyframes[{i}]: the manifest's distance {entry['distance']!r} differs from "
                                    f"{entry['landmarks']}'s {kf.distance}")
+        problem = image_problem(kf)
+        if problem:
+            report.problems.append(f"keyframes[{i}]: {entry['image']}: {problem}")
     unlisted = sorted(p.name for p in root.iterdir()
                       if p.name.startswith(_KF_FILE[0]) and p.suffix in _KF_FILE[1] and p.name not in files)
     if unlisted:
