@@ -192,18 +192,30 @@ def _same(compare) -> bool:
         return False
 
 
+# An ORB descriptor is 256 bits; two of unrelated patches differ in about half of them (128), one recomputed
+# from the same pixels by another OpenCV build in a few. A landmark whose recomputed descriptor is more than a
+# quarter of its bits (64) from the stored one is not the same patch; an image is not the keyframe's when most of
+# its landmarks are (a few may sit where a build's rounding moves the patch).
+ORB_SAME_PATCH_BITS = 64
+
+
 def image_problem(kf) -> Optional[str]:
     """Whether ``kf``'s image is the one its landmarks were taken from: teach stores the ORB descriptors of
-    that image at the stored pixels (TeachStage._candidate, ``describe``), so recomputed they match to the bit.
-    An image swapped with another keyframe's, or edited, passes every checksum; this says how many differ."""
+    that image at the stored pixels (TeachStage._candidate, ``describe``), so recomputed they match (to the bit
+    with the same OpenCV). An image swapped with another keyframe's, or edited, passes every checksum; this
+    says how many landmarks no longer match."""
+    n = len(kf.pixels)
+    if n == 0:
+        return None
     desc, idx = orb_descriptors(kf.image, kf.pixels)
     stored = np.asarray(kf.descriptors, np.uint8)
-    differ = len(kf.pixels) - len(idx) + int(np.count_nonzero((desc != stored[idx]).any(axis=1)))
-    if not differ:
+    bits = np.unpackbits(np.bitwise_xor(desc, stored[idx]), axis=1).sum(axis=1) if len(idx) else np.zeros(0)
+    differ = n - len(idx) + int(np.count_nonzero(bits > ORB_SAME_PATCH_BITS))
+    if 2 * differ <= n:
         return None
-    return (f"the ORB descriptors at {differ} of its {len(kf.pixels)} landmarks' pixels differ from the stored "
-            f"ones: the image is not the one this keyframe was taught from (swapped with another keyframe's, "
-            f"or edited)")
+    return (f"the ORB descriptors at {differ} of its {n} landmarks' pixels differ from the stored ones by more "
+            f"than {ORB_SAME_PATCH_BITS} of 256 bits: the image is not the one this keyframe was taught from "
+            f"(swapped with another keyframe's, or edited)")
 
 
 def check(path) -> CheckReport:

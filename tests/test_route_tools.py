@@ -5,6 +5,7 @@ import json
 import math
 import shutil
 import zipfile
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -265,3 +266,21 @@ def test_a_keyframe_image_swapped_with_another_keyframes_is_damage(tmp_path, cap
     out = capsys.readouterr().out
     assert "DAMAGED" in out and "keyframes[1]: kf_00001.png: the ORB descriptors at" in out, out
     assert "keyframes[3]: kf_00003.png" in out and "keyframes[2]" not in out and "keyframes[0]" not in out, out
+
+
+def test_descriptors_a_few_bits_off_are_the_same_patch(tmp_path):
+    """Another OpenCV build may compute an ORB descriptor a few bits differently from the one teach stored: that
+    is the same image, not damage (check must not call a route taught on the robot damaged on a laptop)."""
+    from vbnav.control.route import load_route
+    from vbnav.control.route_tools import ORB_SAME_PATCH_BITS, image_problem
+    route = load_route(write_route(tmp_path / "r"))
+    kf = route.keyframes[1]
+    assert image_problem(kf) is None
+    rng = np.random.default_rng(0)
+    near = kf.descriptors.copy()
+    for d in near:                                    # flip 8 of 256 bits of every descriptor
+        for bit in rng.choice(256, 8, replace=False):
+            d[bit // 8] ^= np.uint8(1 << (bit % 8))
+    assert image_problem(replace(kf, descriptors=near)) is None
+    far = rng.integers(0, 256, kf.descriptors.shape, dtype=np.uint8)  # unrelated patches: ~128 bits apart
+    assert ORB_SAME_PATCH_BITS < 100 and image_problem(replace(kf, descriptors=far)) is not None
