@@ -228,6 +228,41 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
                          f"with, or teach the route again")
 
 
+# A camera mount that moved since teaching moves every fix (docs/teach_repeat.md, "The camera's mount"): the
+# fix places the camera where the taught camera was, so a forward or lateral change of d shifts the robot by d,
+# and a height change of dh shifts a landmark seen at elevation beta by dh / tan(beta) in range. MOUNT_FIX_BUDGET_M
+# is what a mount change may add to the repeat's error: the settled lateral RMS bar (1.8 cm, README) less the
+# worst measured (0.75 cm), rounded down.
+MOUNT_FIX_BUDGET_M = 0.01
+
+
+def mount_tolerances(route: "Route") -> tuple[float, float]:
+    """(height, forward/lateral) change of the camera mount, m, that moves a fix by MOUNT_FIX_BUDGET_M on
+    ``route``: the height's from the median |tan(elevation)| of its landmarks."""
+    betas = np.concatenate([np.abs(np.asarray(kf.beta, float)) for kf in route.keyframes] or [np.zeros(0)])
+    betas = betas[np.isfinite(betas)]
+    slope = float(np.median(np.tan(np.minimum(betas, math.radians(80))))) if len(betas) else 1.0
+    return MOUNT_FIX_BUDGET_M * max(slope, 1e-3), MOUNT_FIX_BUDGET_M
+
+
+def check_route_mount(route: "Route", mount: CameraMount, config_source: str = "the configuration") -> None:
+    """Raise RouteError when ``mount`` (camera.mount) puts the camera elsewhere than where ``route`` was taught
+    from by more than ``mount_tolerances``: every fix would be biased by more than MOUNT_FIX_BUDGET_M."""
+    taught = route.mount
+    tol_h, tol_xy = mount_tolerances(route)
+    then, now = mount_to_dict(taught), mount_to_dict(mount)
+    off = [(k, then[k], now[k], tol) for k, tol in (("height", tol_h), ("forward", tol_xy), ("lateral", tol_xy))
+           if abs(now[k] - then[k]) > tol]
+    if off:
+        def describe(m):
+            return f"height {m.height:.3f} m, forward {m.forward:.3f} m, lateral {m.lateral:.3f} m"
+        what = "; ".join(f"{k} {1e3 * abs(b - a):.1f} mm off, beyond {1e3 * tol:.1f} mm" for k, a, b, tol in off)
+        raise RouteError(f"{route.path}: taught with the camera mounted at {describe(taught)}; {config_source} has "
+                         f"camera.mount {describe(mount)} ({what}: the change that moves a fix by "
+                         f"{100 * MOUNT_FIX_BUDGET_M:g} cm, docs/teach_repeat.md). Mount the camera as it was "
+                         f"taught and configure that, or teach the route again")
+
+
 def _distortion_bend(taught, camera) -> float:
     """The largest angle (rad) between the rays the two distortions give the same pixel of the image border
     (corners and edge midpoints), with the taught intrinsics for both: what the distortion alone changes."""

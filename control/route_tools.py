@@ -5,7 +5,8 @@
 ``plot`` draws the keyframes' odometry poses from above; ``check`` verifies
 every byte that carries a checksum (each PNG chunk's CRC-32, each ``.npz``
 member's CRC-32), decodes every image and landmark file, and compares the
-manifest with the files (sizes, landmark counts, poses).
+manifest with the files (sizes, landmark counts, poses) and each image with its landmarks' ORB
+descriptors (an image swapped with another keyframe's passes every checksum).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ import numpy as np
 from vbnav.control.route import MANIFEST, RouteError, load_route, stray_route_dirs, stray_temp_files
 from vbnav.drivers.atomic_file import atomic_output
 from vbnav.drivers.plain_values import load_json
+from vbnav.vision.features import describe as orb_descriptors
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _KF_FILE = ("kf_", (".png", ".npz"))
@@ -190,9 +192,36 @@ def _same(compare) -> bool:
         return False
 
 
+# An ORB descriptor is 256 bits; two of unrelated patches differ in about half of them (128), one recomputed
+# from the same pixels by another OpenCV build in a few. A landmark whose recomputed descriptor is more than a
+# quarter of its bits (64) from the stored one is not the same patch; an image is not the keyframe's when most of
+# its landmarks are (a few may sit where a build's rounding moves the patch).
+ORB_SAME_PATCH_BITS = 64
+
+
+def image_problem(kf) -> Optional[str]:
+    """Whether ``kf``'s image is the one its landmarks were taken from: teach stores the ORB descriptors of
+    that image at the stored pixels (TeachStage._candidate, ``describe``), so recomputed they match (to the bit
+    with the same OpenCV). An image swapped with another keyframe's, or edited, passes every checksum; this
+    says how many landmarks no longer match."""
+    n = len(kf.pixels)
+    if n == 0:
+        return None
+    desc, idx = orb_descriptors(kf.image, kf.pixels)
+    stored = np.asarray(kf.descriptors, np.uint8)
+    bits = np.unpackbits(np.bitwise_xor(desc, stored[idx]), axis=1).sum(axis=1) if len(idx) else np.zeros(0)
+    differ = n - len(idx) + int(np.count_nonzero(bits > ORB_SAME_PATCH_BITS))
+    if 2 * differ <= n:
+        return None
+    return (f"the ORB descriptors at {differ} of its {n} landmarks' pixels differ from the stored ones by more "
+            f"than {ORB_SAME_PATCH_BITS} of 256 bits: the image is not the one this keyframe was taught from "
+            f"(swapped with another keyframe's, or edited)")
+
+
 def check(path) -> CheckReport:
-    """Verify checksums, decode everything, compare manifest and files. RouteError only when ``path`` is
-    not a route at all (no directory, no manifest)."""
+    """Verify checksums, decode everything, compare manifest and files, and each keyframe's image with its
+    landmarks (``image_problem``). RouteError only when ``path`` is not a route at all (no directory, no
+    manifest)."""
     root = Path(path)
     if not root.is_dir():
         load_route(root)                       # raises the RouteError that says why (with stray siblings)
@@ -233,6 +262,9 @@ def check(path) -> CheckReport:
                                                                   abs_tol=1e-9)):
             report.problems.append(f"keyframes[{i}]: the manifest's distance {entry['distance']!r} differs from "
                                    f"{entry['landmarks']}'s {kf.distance}")
+        problem = image_problem(kf)
+        if problem:
+            report.problems.append(f"keyframes[{i}]: {entry['image']}: {problem}")
     unlisted = sorted(p.name for p in root.iterdir()
                       if p.name.startswith(_KF_FILE[0]) and p.suffix in _KF_FILE[1] and p.name not in files)
     if unlisted:

@@ -22,7 +22,7 @@ from vbnav.control.config import Config
 from vbnav.control.controllers.manual import TeleopController
 from vbnav.control.controllers.path import PathFollower, room_loop
 from vbnav.control.controllers.repeat import RepeatController
-from vbnav.control.route import Route, RouteWriter, check_route_camera
+from vbnav.control.route import Route, RouteWriter, check_route_camera, check_route_mount
 from vbnav.control.runtime.factory import Robot
 from vbnav.control.runtime.finishing import finishing
 from vbnav.control.runtime.interfaces import Controller
@@ -39,6 +39,8 @@ MIN_ROUTE_KEYFRAMES = 2          # a repeat steers from one keyframe towards the
 class Teaching:
     """A route being taught: the TeachStage, and the RouteWriter that stores each keyframe as it comes."""
 
+    vision_wait_s = 10.0     # how long close() waits for a stopped vision thread still inside a frame
+
     def __init__(self, cfg: Config, route_dir, overwrite: bool = False):
         model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
         self.stage = TeachStage(model, mount, cfg.vbc)
@@ -53,14 +55,28 @@ class Teaching:
             self.writer.append(kf)
             self.stamps.append(kf.stamp_ns)
 
-    def close(self, complete: bool = True) -> bool:
+    @property
+    def note(self) -> Optional[str]:
+        """Why the route ends before the last frame (TeachStage.end_note, ``unwritten``), or None."""
+        return "; ".join(n for n in (self.stage.end_note, self.unwritten) if n) or None
+
+    def close(self, complete: bool = True, vision=None) -> bool:
         """End of teaching: the stage's last keyframes, then the route marked complete (or not). A route
         of fewer than MIN_ROUTE_KEYFRAMES is never complete (a replacement would put an unusable route in
         the old one's place). True when the route was closed complete.
 
         An interrupted teach (a fault) keeps its last keyframes too, the one being pooled and the one at the
         last frame: dropped, up to vbc.keyframe_distance_m of the route taught was lost. Only when writing
-        them fails again (the writer's own fault) is the route closed without them."""
+        them fails again (the writer's own fault) is the route closed without them.
+
+        vision: the run's VisionPipeline, once stopped. Its thread may still be inside a frame (a slow fsync
+        of a keyframe): close() waits ``vision_wait_s`` for it, and if it still runs, leaves the route as
+        written (incomplete, loadable) rather than write it from two threads (two keyframes with one index)."""
+        if vision is not None and not vision.wait_stopped(self.vision_wait_s):
+            self.unwritten = (f"the vision thread had not stopped {self.vision_wait_s:g} s after the run ended "
+                              f"(a frame still being processed or written): the route was left as written, "
+                              f"incomplete, with {len(self.stamps)} keyframes and without its last ones")
+            return False
         try:
             self.stage.finish()
             self.save()
@@ -82,6 +98,7 @@ class Repeating:
         camera = cfg.camera.to_model()
         cal = cfg.camera.calibration
         check_route_camera(route, camera, cfg.source or "the configuration", cal.file if cal else None)
+        check_route_mount(route, cfg.camera.mount.to_mount(), cfg.source or "the configuration")
         self.stage = RepeatStage(route, vcfg, camera, cfg.camera.mount.to_mount())
         self.controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
 
@@ -164,14 +181,14 @@ class Session:
                                lambda: f"{teaching.stage.n_keyframes} keyframes")
         except BaseException:
             with finishing("closing the route"):
-                teaching.close(complete=False)
+                teaching.close(complete=False, vision=self.robot.pipeline)
             raise
         # A second Ctrl-C must not cut the route short: its last keyframes, complete, the replacement swapped in.
         with finishing("writing the route's last keyframes"):
-            complete = teaching.close(complete=result.reason in ENDED_WELL)   # a fault: interrupted
+            complete = teaching.close(complete=result.reason in ENDED_WELL,   # a fault: interrupted
+                                      vision=self.robot.pipeline)
         return TeachResult(len(teaching.stamps), list(teaching.stamps), result.reason, result.message,
-                           result.timing, complete, teaching.writer.directory,
-                           "; ".join(n for n in (teaching.stage.end_note, teaching.unwritten) if n) or None)
+                           result.timing, complete, teaching.writer.directory, teaching.note)
 
     def repeat(self, route: Route, duration_s: Optional[float] = None, observers: Sequence[Observer] = (),
                segment: str = "repeat") -> RepeatResult:

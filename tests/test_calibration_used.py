@@ -236,3 +236,33 @@ def test_repeat_refuses_a_route_taught_with_another_lens_distortion(tmp_path):
     msg = str(e.value)
     assert "another lens distortion" in msg and "distortion [-0.35, 0.12, 0.0, 0.0]" in msg and \
         "distortion none" in msg
+
+
+def test_repeat_refuses_a_camera_mount_moved_beyond_what_moves_a_fix_by_a_centimetre(tmp_path):
+    """The route stores its camera mount; a repeat used the configured one without comparing: a camera
+    mounted higher, further forward or to the side biases every fix. Refused beyond the change that moves a
+    fix by MOUNT_FIX_BUDGET_M (the height's from the landmarks' elevations), naming both mounts."""
+    import dataclasses
+    import math
+    from vbnav.control.route import MOUNT_FIX_BUDGET_M, check_route_mount, mount_tolerances
+    cfg = load_config("sim")
+    Teaching(cfg, tmp_path / "route").close(complete=False)
+    route = load_route(tmp_path / "route")
+    from test_route import make_kf      # landmarks all seen 0.25 rad below the horizon
+    kfs = [dataclasses.replace(make_kf(np.random.default_rng(i), i), beta=np.full(20, 0.25)) for i in range(2)]
+    route = dataclasses.replace(route, keyframes=kfs)
+    tol_h, tol_xy = mount_tolerances(route)
+    assert math.isclose(tol_h, MOUNT_FIX_BUDGET_M * math.tan(0.25)) and tol_xy == MOUNT_FIX_BUDGET_M == 0.01
+    m = cfg.camera.mount
+    check_route_mount(route, cfg.camera.mount.to_mount())            # the mount it was taught with
+    for change in ({"height": m.height + 0.002}, {"forward": m.forward + 0.009}):   # within: accepted
+        check_route_mount(route, load_config("sim", overrides={"camera": {"mount": change}}).camera.mount.to_mount())
+    high = load_config("sim", overrides={"camera": {"mount": {"height": m.height + 0.004}}})
+    with pytest.raises(RouteError) as e:
+        Repeating(high, route)
+    msg = str(e.value)
+    assert f"height {m.height:.3f} m" in msg and f"height {m.height + 0.004:.3f} m" in msg, msg
+    assert "height 4.0 mm off, beyond 2.6 mm" in msg and "camera.mount" in msg, msg
+    side = load_config("sim", overrides={"camera": {"mount": {"lateral": m.lateral - 0.012}}})
+    with pytest.raises(RouteError, match="lateral 12.0 mm off, beyond 10.0 mm"):
+        Repeating(side, route)

@@ -175,3 +175,43 @@ def test_a_drive_limit_below_robot_max_wheel_speed_is_refused(drive, says, fits)
     built = make_robot(load_config(None, overrides={"robot": robot, "drive": fitting, "controller": teleop}),
                        with_camera=False)
     built.drive.close()
+
+
+def test_a_vision_thread_still_inside_a_frame_never_writes_the_route_beside_the_close(tmp_path):
+    """A frame that takes longer than the pipeline's stop waits (a slow fsync on an SD card): the teach's close
+    waits for the vision thread, and while it still runs leaves the route as written (incomplete) instead of
+    finishing it from a second thread; once the thread has ended, the close finishes the route."""
+    import threading
+    import json
+    from vbnav.control.route import MANIFEST
+    from vbnav.control.runtime.pipeline import VisionPipeline
+    from vbnav.control.session import Teaching
+    from tests.runtime_helpers import TickCamera
+    entered, release = threading.Event(), threading.Event()
+
+    class Slow:      # a stage whose frame lasts until the test releases it
+        kind = "slow"
+
+        def process(self, frame, odom):
+            entered.set()
+            release.wait(60)
+
+    clock = SimClock()
+    pipeline = VisionPipeline(TickCamera(clock), [Slow()], clock, inline=False)
+    teaching = Teaching(load_config(None), tmp_path / "route")
+    teaching.vision_wait_s = 0.01
+    finished = []
+    teaching.stage.finish = lambda: finished.append(True)
+    pipeline.start()
+    try:
+        assert entered.wait(60)
+        assert pipeline.stop(timeout_s=0.01) is False and pipeline.still_running
+        assert teaching.close(complete=True, vision=pipeline) is False
+        assert finished == [] and "the vision thread had not stopped" in teaching.note
+        assert json.loads((tmp_path / "route" / MANIFEST).read_text())["complete"] is False
+    finally:
+        release.set()
+    assert pipeline.wait_stopped(60) and not pipeline.still_running
+    teaching.unwritten = ""
+    teaching.close(complete=True, vision=pipeline)
+    assert finished == [True]

@@ -459,3 +459,32 @@ def test_a_switch_whose_worker_fails_unexpectedly_is_answered_and_the_robot_is_i
     assert "No space left on device" in reason_b and "idle" in reason_b, reason_b
     assert ("command", "I") in acks, answers          # not 'a switch ... is still in progress'
     assert ctl.mode == "idle"
+
+
+def test_why_a_route_taught_in_operator_mode_ends_early_is_said(tmp_path):
+    """vbnav teach prints why the route ends before the last frame (TeachResult.note); the operator's teach
+    closed it without a word. The mode command that closes it now says it in its answer, and the run's end
+    in a warning event, naming the route."""
+    from runtime_helpers import make_runtime
+    from vbnav.control.config import Config
+
+    cfg = Config.model_validate({"controller": {"routes_dir": str(tmp_path)}})
+    why = "no keyframe at the last frame: it kept 3 tracks"
+    outs = []
+    for ending in ("mode", "run end"):
+        rt, drive, clock = make_runtime(None, cfg=cfg)
+        ctl = OperatorController(cfg, rt.pipeline, cfg.safety.command_timeout_s)
+        rt.controller = ctl
+        ctl.attach(rt)
+        name = f"hall{len(outs)}"
+        assert ctl.handle_command(OperatorCommand("mode", ("teach", name), "op"), clock.now_ns()).applied
+        ctl._teaching.stage.finish = lambda stage=ctl._teaching.stage: setattr(stage, "end_note", why)
+        if ending == "mode":
+            out = ctl.handle_command(OperatorCommand("mode", ("idle",), "op"), clock.now_ns())
+            assert out.applied and ctl.mode == "idle"
+            outs.append(out.reason)
+        else:
+            ctl.close()
+            outs.append(" ".join(e.message for e in rt.safety.events if e.kind == "warning" and e.cause == "teach"))
+    assert outs[0] == f"mode idle: route 'hall0' taught: {why}", outs
+    assert outs[1] == f"route 'hall1' taught: {why}", outs

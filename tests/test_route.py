@@ -11,6 +11,7 @@ import pytest
 from vbnav.control import route as route_mod
 from vbnav.control.route import Keyframe, RouteError, RouteWriter, load_route, stray_temp_files
 from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2
 
 CAM = PinholeCamera(64, 48, 40.0, 40.0, 31.5, 23.5, (0.01, -0.002, 0.0, 0.0))
@@ -18,8 +19,13 @@ MOUNT = CameraMount(0.25, 0.1, 0.0, 0.05, 0.0)
 
 
 def make_kf(rng, i, n=20):
-    return Keyframe(i, rng.integers(0, 255, (48, 64), dtype=np.uint8), rng.random((n, 2)).astype(np.float32) * 40,
-                    rng.normal(0, 0.3, n), rng.normal(0, 0.2, n), rng.integers(0, 255, (n, 32), dtype=np.uint8),
+    """As teach writes one: the landmarks' descriptors are the ORB descriptors of its image at their pixels."""
+    image = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+    pixels = rng.uniform((20, 20), (44, 28), (n, 2)).astype(np.float32)    # away from ORB's border
+    desc, described = describe(image, pixels)
+    assert list(described) == list(range(n))
+    return Keyframe(i, image, pixels,
+                    rng.normal(0, 0.3, n), rng.normal(0, 0.2, n), desc,
                     rng.normal(0, 1, n), rng.random(n), np.arange(n, dtype=np.int64) + 10 * i,
                     Pose2(0.5 * i, 0.1 * i, 0.05 * i), 0.5 * i, 1000 * i)
 

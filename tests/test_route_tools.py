@@ -5,6 +5,7 @@ import json
 import math
 import shutil
 import zipfile
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -13,16 +14,21 @@ import pytest
 from vbnav.control.cli import main
 from vbnav.control.route import Keyframe, RouteError, RouteWriter
 from vbnav.vision.camera_model import PinholeCamera
+from vbnav.vision.features import describe
 from vbnav.vision.geometry import CameraMount, Pose2
 
 W, H, N = 64, 48, 6
 
 
 def keyframe(i: int, rng) -> Keyframe:
+    """As teach writes one: the landmarks' descriptors are the ORB descriptors of its image at their pixels."""
     theta = 0.2 * i                                     # a gentle right turn
     image = rng.integers(0, 255, (H, W), dtype=np.uint8)
-    return Keyframe(i, image, rng.uniform(0, (W, H), (N, 2)).astype(np.float32), rng.normal(size=N),
-                    rng.normal(size=N), rng.integers(0, 255, (N, 32), dtype=np.uint8), np.full(N, 0.5),
+    pixels = rng.uniform((20, 20), (W - 20, H - 20), (N, 2)).astype(np.float32)   # away from ORB's border
+    desc, described = describe(image, pixels)
+    assert list(described) == list(range(N))
+    return Keyframe(i, image, pixels, rng.normal(size=N),
+                    rng.normal(size=N), desc, np.full(N, 0.5),
                     np.full(N, 0.01), np.arange(N, dtype=np.int64) + i, Pose2(math.sin(theta), math.cos(theta),
                                                                                  theta), 0.5 * i, 1000 * i)
 
@@ -246,3 +252,35 @@ def test_a_route_whose_manifest_gives_a_key_twice_is_not_offered_for_transfer(tm
     (route / "manifest.json").write_text(text.rstrip()[:-1] + ', "complete": true}')
     with pytest.raises(RouteError, match="duplicate key 'complete'"):
         route_files(route)
+
+
+def test_a_keyframe_image_swapped_with_another_keyframes_is_damage(tmp_path, capsys):
+    """Two keyframe images swapped pass every checksum and load; the descriptors recomputed at the stored
+    pixels no longer match the stored ones, and check names both keyframes."""
+    route = write_route(tmp_path / "r")
+    a, b = route / "kf_00001.png", route / "kf_00003.png"
+    data = a.read_bytes()
+    a.write_bytes(b.read_bytes())
+    b.write_bytes(data)
+    assert main(["route", "check", str(route)]) == 1
+    out = capsys.readouterr().out
+    assert "DAMAGED" in out and "keyframes[1]: kf_00001.png: the ORB descriptors at" in out, out
+    assert "keyframes[3]: kf_00003.png" in out and "keyframes[2]" not in out and "keyframes[0]" not in out, out
+
+
+def test_descriptors_a_few_bits_off_are_the_same_patch(tmp_path):
+    """Another OpenCV build may compute an ORB descriptor a few bits differently from the one teach stored: that
+    is the same image, not damage (check must not call a route taught on the robot damaged on a laptop)."""
+    from vbnav.control.route import load_route
+    from vbnav.control.route_tools import ORB_SAME_PATCH_BITS, image_problem
+    route = load_route(write_route(tmp_path / "r"))
+    kf = route.keyframes[1]
+    assert image_problem(kf) is None
+    rng = np.random.default_rng(0)
+    near = kf.descriptors.copy()
+    for d in near:                                    # flip 8 of 256 bits of every descriptor
+        for bit in rng.choice(256, 8, replace=False):
+            d[bit // 8] ^= np.uint8(1 << (bit % 8))
+    assert image_problem(replace(kf, descriptors=near)) is None
+    far = rng.integers(0, 256, kf.descriptors.shape, dtype=np.uint8)  # unrelated patches: ~128 bits apart
+    assert ORB_SAME_PATCH_BITS < 100 and image_problem(replace(kf, descriptors=far)) is not None

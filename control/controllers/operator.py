@@ -203,6 +203,7 @@ class OperatorController(Controller):
         its stages back), a route being taught included."""
         where = None     # the route's directory, once resolved
         closed = ""      # what the failed switch closed anyway
+        ended = ""       # why the route taught until now ends before its last frame (Teaching.note)
         try:
             if target in ("teach", "repeat"):   # a name inside controller.routes_dir, never a path
                 where = resolve_route(routes_root(self.cfg.controller.routes_dir, self.cfg.source), route,
@@ -210,8 +211,8 @@ class OperatorController(Controller):
             if target == "repeat" and self.mode == "teach" and route == self.route_path:
                 # Repeat what is being taught: its last keyframes are written when the teach closes.
                 self._wait_for_the_vision_thread(frames_at_swap)
-                self._close_teach()
-                closed = f"; teaching {route!r} was closed, the robot is idle"
+                ended = self._close_teach()
+                closed = f"; teaching {route!r} was closed, the robot is idle" + (f" ({ended})" if ended else "")
             stages, controller, teaching, note = list(self._base_stages), None, None, ""
             if target == "teach":
                 teaching = Teaching(self.cfg, where, overwrite=False)
@@ -233,7 +234,7 @@ class OperatorController(Controller):
             return
         try:
             self._wait_for_the_vision_thread(frames_at_swap)
-            self._close_teach()
+            ended = self._close_teach() or ended
         except Exception as exc:   # the route being taught could not be closed (a full disk)
             self._teaching = None
             if teaching is not None:
@@ -242,6 +243,8 @@ class OperatorController(Controller):
             self._post(("idle", None, list(self._base_stages), None, None,
                              f"mode {target}: closing the route being taught failed: {why}; the robot is idle", cmd))
             return
+        if ended:      # applied, with what vbnav teach prints of the route it closed
+            note = "; ".join(n for n in (f"mode {target}: {ended}", note) if n)
         self._post((target, route, stages, controller, teaching, None, cmd), note)
 
     def _post(self, pending: tuple, note: str = "") -> None:
@@ -256,10 +259,15 @@ class OperatorController(Controller):
             teaching.close()
         self._close_teach()     # the route being taught when the run ended: close() left it to this thread
 
-    def _close_teach(self) -> None:
-        if self._teaching is not None:
-            self._teaching.close()
+    def _close_teach(self) -> str:
+        """Close the route being taught; what ``vbnav teach`` would print of why it ends before the last frame
+        (Teaching.note, naming the route), else ''."""
+        teaching = self._teaching
+        if teaching is None:
+            return ""
+        teaching.close(vision=self.pipeline)   # at the run's end, after its vision thread
         self._teaching = None
+        return f"route {self.route_path!r} taught: {teaching.note}" if teaching.note else ""
 
     def _apply_pending(self, now_ns: Optional[int] = None, deferred: bool = True) -> CommandOutcome:
         """On the loop thread: take the result of the switch, and answer the command that asked for it.
@@ -340,4 +348,6 @@ class OperatorController(Controller):
                     rt.complete_command(cmd, CommandOutcome.refused(
                         f"mode {cmd.args[0]}: the run ended before the switch took effect"), rt.clock.now_ns())
         if not gone:      # else the worker closes the route being taught: one thread, never two at once
-            self._close_teach()
+            ended = self._close_teach()
+            if ended and rt is not None:     # no command to answer: the run's events say it
+                rt.safety.note(rt.clock.now_ns(), "warning", "teach", ended)

@@ -70,15 +70,28 @@ class VisionPipeline:
             self._thread = threading.Thread(target=self._run, name="vbnav-vision", daemon=True)
             self._thread.start()
 
-    def stop(self) -> None:
+    def stop(self, timeout_s: float = 2.0) -> bool:
+        """Stop the vision thread; False when it had not ended after ``timeout_s`` (a frame still in a stage,
+        a slow fsync): ``still_running`` then says so, and ``wait_stopped`` waits on for it."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+        stopped = self.wait_stopped(timeout_s)
         if self.camera is not None:
             try:
                 self.camera.disconnect()
             except Exception:
                 pass
+        return stopped
+
+    @property
+    def still_running(self) -> bool:
+        """Stopped (``stop``), but the vision thread has not ended yet: its stages and frame listeners may run."""
+        return self._stop.is_set() and self._thread is not None and self._thread.is_alive()
+
+    def wait_stopped(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for a stopped vision thread to end; True when no thread runs after ``stop``."""
+        if self._stop.is_set() and self._thread is not None:
+            self._thread.join(timeout=timeout_s)
+        return not self.still_running
 
     @property
     def last_frame_stamp(self) -> Optional[int]:
