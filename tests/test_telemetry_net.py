@@ -125,12 +125,13 @@ def test_state_arrives_at_the_configured_rate_without_gaps_for_10s(teleop_sessio
     assert len(window) >= 10.0 * 20 - 2
     stamps = [m["stamp_ns"] for _, m in window]
     gaps = [b - a for a, b in zip(stamps, stamps[1:])]
-    # Stamps are loop wake-up times, 5 loop periods apart give or take the wake-up jitter. A longer gap
-    # means the loop itself did not run (CPU starvation on a shared machine): allowed only when the
-    # robot's own loop statistics show overruns, and rare.
+    # Stamps are loop wake-up times, 5 loop periods apart give or take the wake-up jitter. A gap off that
+    # means the loop itself did not run on time (CPU starvation on a shared machine): allowed only as the
+    # robot's own loop statistics explain it, each overrun giving at most two (a long gap, then the short
+    # one of the catch-up). A fixed share of the gaps failed a run with 4 of 199 beside 15 overruns.
     rep = teleop_session["report"]
     late = [g for g in gaps if not STATE_PERIOD_NS - PERIOD_NS < g < 1.5 * STATE_PERIOD_NS]
-    assert not late or (rep["overruns"] > 0 and len(late) <= 0.02 * len(gaps)), (late, rep["overruns"])
+    assert len(late) <= 2 * rep["overruns"], (late, rep["overruns"])
     assert stamps[-1] - stamps[0] < (len(stamps) - 1) * STATE_PERIOD_NS * 1.03   # the rate, over 10 s
     rx = [t for t, _ in window]
     assert max(b - a for a, b in zip(rx, rx[1:])) < 1.0   # and none was held back for long in transit
