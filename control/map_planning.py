@@ -87,12 +87,9 @@ def localise_problem(cfg) -> str:
     if not cfg.camera.stereo_baseline():
         return (f"{cfg.source}: camera: localising against a line map needs a stereo camera, and neither "
                 f"camera.calibration_file nor camera.options.stereo_baseline gives a baseline: set one, {INSTEAD}")
-    distorted = cfg.camera.rectified_problem()
-    if distorted:
-        return (f"{cfg.source}: localising against a line map reads a rectified stereo pair (a pinhole camera "
-                f"without distortion), and {distorted} describes distorted images it would read as rectified: "
-                f"rectify the pair (a stereo calibration file), {INSTEAD}")
-    return ""
+    refusal = cfg.camera.rectified_refusal("localising against a line map",
+                                           f"rectify the pair with a stereo calibration file, {INSTEAD}")
+    return f"{cfg.source}: {refusal}" if refusal else ""
 
 
 def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3.0):

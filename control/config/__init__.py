@@ -118,6 +118,15 @@ class CameraConfig(Strict):
             return f"camera.distortion {list(self.distortion)}{src}"
         return ""
 
+    def rectified_refusal(self, who: str, remedy: str) -> str:
+        """"" when ``who`` (a stage reading a rectified stereo pair) can take this camera, else the one sentence
+        every such stage refuses it with: which field describes distorted images, and ``remedy``."""
+        distorted = self.rectified_problem()
+        if not distorted:
+            return ""
+        return (f"{who} takes a rectified stereo pair (a pinhole camera without distortion), and {distorted} "
+                f"describes distorted images it would read as rectified ({remedy})")
+
     def calibration_record(self) -> dict:
         """The calibration in use as a route manifest records it: the intrinsics every stage uses, and the
         file they came from with its hash (file None, format 'inline': the values in the config)."""
@@ -375,11 +384,10 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     cfg.source = source
     validate_driver_options(cfg, source)
     apply_calibration_file(cfg, source)
-    distorted = cfg.camera.rectified_problem() if cfg.obstacles.enabled else ""
-    if distorted:
-        raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage takes rectified stereo images (a pinhole "
-                          f"camera without distortion), and {distorted} describes distorted ones it would read as "
-                          "rectified (rectify the pair first, e.g. with a stereo calibration file)")
+    refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
+                                           "with a stereo calibration file") if cfg.obstacles.enabled else ""
+    if refusal:
+        raise ConfigError(f"{source}: {refusal}")
     return cfg
 
 

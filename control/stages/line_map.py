@@ -148,10 +148,10 @@ class LineMapStage(VisionStage):
     @classmethod
     def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
         cam = cfg.camera.to_model()
-        distorted = cfg.camera.rectified_problem()
-        if distorted:
-            raise ValueError(f"the line map takes a rectified stereo pair (a pinhole camera without distortion), "
-                             f"and {distorted} describes distorted images it would read as rectified")
+        refusal = cfg.camera.rectified_refusal("the line map", "rectify the pair, e.g. with a stereo calibration "
+                                               "file")
+        if refusal:
+            raise ValueError(refusal)
         baseline = cfg.camera.stereo_baseline()    # the calibration file's, else camera.options.stereo_baseline
         if not baseline:
             raise ValueError("the line map needs a stereo pair: neither camera.calibration_file nor "

@@ -511,10 +511,10 @@ BASELINE_FROM_DEVICE = ("oak",)
 
 
 def make_vslam_stage(cfg, baseline: Optional[float] = None) -> VslamStage:
-    distorted = cfg.camera.rectified_problem() if cfg.vslam.metric_scale == "stereo" else ""
-    if distorted:    # a monocular VSLAM's rays take the distortion; a stereo pair is rectified
-        raise ValueError(f"the stereo VSLAM takes a rectified stereo pair (a pinhole camera without distortion), "
-                         f"and {distorted} describes distorted images it would read as rectified (rectify the "
-                         f"pair, e.g. with a stereo calibration file, or set vslam.metric_scale: odometry)")
+    refusal = cfg.camera.rectified_refusal("the stereo VSLAM", "rectify the pair, e.g. with a stereo calibration "
+                                           "file, or set vslam.metric_scale: odometry") \
+        if cfg.vslam.metric_scale == "stereo" else ""
+    if refusal:      # a monocular VSLAM's rays take the distortion; a stereo pair is rectified
+        raise ValueError(refusal)
     return VslamStage(cfg.camera.to_model(), cfg.camera.mount.to_mount(), baseline or stereo_baseline_of(cfg),
                       cfg.vslam, baseline_from_frames=cfg.camera.driver in BASELINE_FROM_DEVICE)
