@@ -2,7 +2,7 @@
 
     {"format": "vbnav-line-map", "version": 1, "created": ..., "frames": N, "params": {...},
      "segments": [{"id", "p0", "p1", "cov0", "cov1", "support", "misses", "verified", "group",
-                   "hypothesis", "views": [[x, y, z, heading], ...]}, ...]}
+                   "hypothesis", "ambiguous", "views": [[x, y, z, heading], ...]}, ...]}
 
 Endpoints are world metres (x right, y down, z forward, floor y = 0). The information form is rebuilt
 from the covariances on load, so a loaded map keeps fusing.
@@ -41,7 +41,7 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
                      "cov0": lmap.cov[k, 0].round(10).tolist(), "cov1": lmap.cov[k, 1].round(10).tolist(),
                      "support": int(lmap.support[k]), "misses": int(lmap.misses[k]),
                      "verified": bool(lmap.verified[k]), "group": int(lmap.group[k]),
-                     "hypothesis": bool(lmap.hypothesis[k]),
+                     "hypothesis": bool(lmap.hypothesis[k]), "ambiguous": bool(lmap.ambiguous[k]),
                      "views": [np.round(v, 5).tolist() for v in lmap.views[k]]})
     data = {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "frames": int(lmap.frames), "params": dataclasses.asdict(lmap.params), "meta": meta or {},
@@ -123,8 +123,10 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         for k, s in enumerate(segs):    # np.array(..., bool) made "false" True; int arrays cut 2.5 to 2
             for name, low in (("support", 0), ("misses", 0), ("group", -1)):
                 _check_count(path, f"segments[{k}].{name}", s[name], low)
-            for name in ("verified", "hypothesis"):
-                if not isinstance(s[name], bool):
+            # "ambiguous" is newer than the format: a map written without it was built when only
+            # verify_views viewpoints verified, so its candidates keep that rule (true).
+            for name in ("verified", "hypothesis", "ambiguous"):
+                if not isinstance(s.get(name, True), bool):
                     raise MapFileError(f"{path}: segments[{k}].{name}: expected true or false, got {s[name]!r}")
         P = np.array([[s["p0"], s["p1"]] for s in segs], float).reshape(n, 2, 3)
         C = np.array([[s["cov0"], s["cov1"]] for s in segs], float).reshape(n, 2, 3, 3)
@@ -136,6 +138,7 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
             lmap.misses = np.array([s["misses"] for s in segs], int)
             lmap.verified = np.array([s["verified"] for s in segs], bool)
             lmap.hypothesis = np.array([s["hypothesis"] for s in segs], bool)
+            lmap.ambiguous = np.array([s.get("ambiguous", True) for s in segs], bool)
             lmap.views = [[np.array(v, float) for v in s["views"]] for s in segs]
             lmap.next_id = int(lmap.ids.max()) + 1
             lmap.next_group = int(max(lmap.group.max(), -1)) + 1

@@ -67,6 +67,40 @@ def test_rival_hypotheses_wait_for_another_viewpoint():
     assert np.abs(m.P[0] - true).max() < 0.02
 
 
+def test_two_viewpoints_that_would_move_a_false_match_out_of_the_gate_verify():
+    """A corner passed at 0.5 m is matched from 0.3 m of travel only (two viewpoints 0.15 m apart). A false
+    match 5 cm off along its ray would have moved 2.7 cm across the line between them, beyond the association
+    gate (2.3 cm at 4 mm sigma): three observations from the two verify it. Not when it was one of two rival
+    matches (a periodic texture's false matches lie on a lattice another viewpoint re-observes), nor when
+    the viewpoints lie along the line, nor at 3 m (a false match 5 cm off would move 5 mm)."""
+    corner = np.array([[0.0, -0.4, 0.5], [0.0, 0.1, 0.5]])
+    m = LineMap()
+    for x in (0.0, 0.05, 0.3):
+        R, t = at(x)
+        m.update(obs([corner - t], sigma=0.004), R, t)
+    assert len(m) == 1 and len(m.views[0]) == 2 and m.support[0] == 3
+    assert m.verified[0] and m.separating_views(0)
+    # The same corner as one of two rival matches of its left segment (a ghost at 0.4 m): waits for a third.
+    m = LineMap()
+    ghost = np.array([[0.0, -0.3, 0.4], [0.0, 0.1, 0.4]])
+    m.update(obs([corner, ghost], sigma=0.004, group=[5, 5]), *at(0.0))
+    for x in (0.05, 0.3):
+        R, t = at(x)
+        m.update(obs([corner - t], sigma=0.004), R, t)
+    k = int(np.argmin(np.abs(m.P[:, 0, 2] - 0.5)))
+    assert m.ambiguous[k] and m.support[k] == 3 and len(m.views[k]) == 2 and not m.verified.any()
+    R, t = at(0.6)
+    m.update(obs([corner - t], sigma=0.004), R, t)
+    assert len(m) == 1 and m.verified[0]          # the third viewpoint decides, as before
+    # A horizontal edge 0.5 m ahead passed along its own line, and a vertical one at 3 m: two views do not verify.
+    for edge in (np.array([[0.0, 0.1, 0.5], [0.4, 0.1, 0.5]]), corner + [0.0, 0.0, 2.5]):
+        m = LineMap()
+        for x in (0.0, 0.05, 0.3):
+            R, t = at(x)
+            m.update(obs([edge - t], sigma=0.004), R, t)
+        assert len(m) == 1 and len(m.views[0]) == 2 and m.support[0] == 3 and not m.verified[0]
+
+
 def test_collinear_pieces_of_one_edge_merge_and_verify_together():
     """LSD breaks a textured edge into different pieces in every frame: pieces on one line (covariance gate)
     that overlap or nearly meet are one edge, so their viewpoints add up to a verification."""

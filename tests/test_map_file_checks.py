@@ -29,6 +29,24 @@ def test_saved_map_loads(tmp_path):
     assert len(lmap) == 2
 
 
+def test_rival_flag_round_trips_and_an_older_map_keeps_three_viewpoints(tmp_path):
+    """A candidate that was one of several rival matches is never verified from two viewpoints (vision/line_map.py
+    separating_views): the flag is saved; a map written before it had none, so its candidates keep the rule
+    they were built under (three viewpoints), and a flag that is not true/false is refused."""
+    m = LineMap(MapParams())
+    P = np.array([[[0, -1, 2], [1, -1, 2]], [[0, -1, 3], [0, -0.2, 3]]], float)
+    m._insert(P, np.tile(np.eye(3) * 1e-4, (2, 2, 1, 1)), np.array([4, -1]), np.array([0, 0, 0, 0.0]))
+    assert m.ambiguous.tolist() == [True, False]
+    path = tmp_path / "map.json"
+    save_map(m, path)
+    assert load_map(path)[0].ambiguous.tolist() == [True, False]
+    _edit(path, lambda segs: [s.pop("ambiguous") for s in segs])
+    assert load_map(path)[0].ambiguous.tolist() == [True, True]
+    _edit(path, lambda segs: segs[1].__setitem__("ambiguous", "no"))
+    with pytest.raises(MapFileError, match=r"map\.json: segments\[1\]\.ambiguous: expected true or false, got 'no'"):
+        load_map(path)
+
+
 def test_zero_length_segment_is_refused(tmp_path):
     path = _saved(tmp_path)
     _edit(path, lambda s: s[1].__setitem__("p1", s[1]["p0"]))

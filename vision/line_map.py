@@ -27,7 +27,11 @@ Verification rule (the chapter: correct matches stay close to their true
 position from every viewpoint, false matches move with the viewpoint): a
 segment is *verified* once it has been re-observed from ``verify_views``
 distinct viewpoints (camera centres at least ``view_baseline_m`` apart, or
-headings ``view_angle_deg`` apart). Verifying one hypothesis deletes its rivals.
+headings ``view_angle_deg`` apart), or, when it was never one of several rival
+matches, re-observed ``verify_views`` times from two viewpoints whose rays to
+it differ enough that a false match ``ghost_error_m`` off along its ray would
+have left the association gate (``separating_views``). Verifying one
+hypothesis deletes its rivals.
 A candidate that the prediction says should be visible (in range, long enough
 in the image, steep enough to the epipolar lines to be reconstructed) but is
 not re-observed collects a miss; ``miss_limit`` misses before verification
@@ -197,6 +201,10 @@ class MapParams:
     predict_min_length_px: float = 25.0
     min_epipolar_angle_deg: float = 20.0
     prior_sigma_floor_px: float = 0.3
+    # Two viewpoints verify an unambiguous candidate (never one of several rival matches) re-observed
+    # verify_views times when a false match this far off along its ray would have moved out of the
+    # association gate between them (separating_views; 0: never). The false-segment distance of the scoring.
+    ghost_error_m: float = 0.05
 
 
 @dataclass
@@ -246,6 +254,10 @@ class LineMap:
     group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))       # rival hypotheses share one
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     hypothesis: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # inserted from an abstraction
+    # Inserted as one of several rival matches of a left segment, or merged with one: the false matches of a
+    # periodic texture lie on a lattice of ray crossings, which another viewpoint re-observes within the
+    # gate, so two viewpoints do not verify it (separating_views); it needs verify_views of them.
+    ambiguous: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
     next_id: int = 0
     next_group: int = 0
@@ -415,8 +427,8 @@ class LineMap:
             touched = np.concatenate((touched, np.arange(len(self) - len(new_P), len(self))))
         # Merging, verification and pruning each decide which rows go; they are removed once, together
         # (removing copies every array of the map).
-        st.merged, gone = self._merge_collinear(touched)
-        st.verified, st.rivals_dropped, drop = self._verify(gone)
+        st.merged, gone, grown = self._merge_collinear(touched)
+        st.verified, st.rivals_dropped, drop = self._verify(gone, np.concatenate((touched, grown)).astype(int))
         st.pruned = self._prune(drop)
         st.pairs = self._pairs
         return st
@@ -570,19 +582,19 @@ class LineMap:
         self._moved(j)
 
     # ------------------------------------------------------------ collinear merging
-    def _merge_collinear(self, touched: np.ndarray) -> tuple[int, np.ndarray]:
+    def _merge_collinear(self, touched: np.ndarray) -> tuple[int, np.ndarray, list]:
         """Fuse map segments that lie on one 3D line and overlap or nearly meet along it (LSD breaks a
         textured edge into pieces, differently in every frame): the pieces' observations are repeated
         observations of one edge, so their information, support and viewpoints add up, and the edge is
         verified from the viewpoints of all its pieces. Only pairs with a segment ``touched`` this frame are
-        tested (the others were tested when they last changed). Returns the number of merges and the
-        segments merged into others (to be removed)."""
+        tested (the others were tested when they last changed). Returns the number of merges, the
+        segments merged into others (to be removed) and those that absorbed one."""
         merged = 0
         alive = np.ones(len(self), bool)
         D, L = self.direction, self.length       # kept in step with the merges below
         touched = np.asarray(touched, int)
         if len(touched) == 0 or len(self) < 2:
-            return 0, ~alive
+            return 0, ~alive, []
         # Cheap vectorised prefilter: another segment parallel, its midpoint near the line and the extent.
         # Its pairs are among the segments the spatial hash finds within the reach below: the midpoint is
         # within MERGE_PERP_M across and 0.5 L + merge_gap_m along, so walking from it along the segment
@@ -635,7 +647,7 @@ class LineMap:
                 grown.append(keep)
             merged += 1
             queue.append(keep)                   # the grown segment may now reach another piece
-        return merged, ~alive
+        return merged, ~alive, grown
 
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
@@ -717,6 +729,7 @@ class LineMap:
         self.support[i] += self.support[j]
         self.misses[i] = min(self.misses[i], self.misses[j])
         self.hypothesis[i] &= self.hypothesis[j]
+        self.ambiguous[i] |= self.ambiguous[j]
         if self.group[i] != self.group[j]:
             self.group[i] = -1                   # the merged edge is no longer one left segment's alternative
         for v in self.views[j]:
@@ -751,6 +764,7 @@ class LineMap:
         new_ids = np.arange(self.next_id, self.next_id + n)
         self.ids = np.concatenate((self.ids, new_ids))
         self.hypothesis = np.concatenate((self.hypothesis, np.full(n, hypothesis)))
+        self.ambiguous = np.concatenate((self.ambiguous, group >= 0))
         self.next_id += n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
         if len(self.serial) == len(self) - n:
@@ -772,11 +786,19 @@ class LineMap:
         missed = idx[~seen[idx]]
         self.misses[missed] += 1
 
-    def _verify(self, gone: np.ndarray) -> tuple[int, int, np.ndarray]:
-        """Verify the segments (not ``gone``) seen from enough viewpoints; returns how many, how many rivals
-        that drops, and the rows to remove (``gone`` and the rivals)."""
+    def _verify(self, gone: np.ndarray, changed: np.ndarray) -> tuple[int, int, np.ndarray]:
+        """Verify the segments (not ``gone``) seen from enough viewpoints (two separating ones: tested for the
+        segments ``changed`` this frame, fused, inserted or grown by a merge, as only those can have become
+        separated); returns how many, how many rivals that drops, and the rows to remove (``gone`` and the
+        rivals)."""
+        p = self.params
         nviews = np.array([len(v) for v in self.views], int)
-        newly = (~self.verified) & (nviews >= self.params.verify_views) & ~gone
+        newly = (~self.verified) & (nviews >= p.verify_views) & ~gone
+        pair = np.zeros(len(self), bool)
+        pair[changed] = True
+        pair &= (~self.verified) & ~newly & ~gone & ~self.ambiguous & (nviews >= 2) & (self.support >= p.verify_views)
+        for k in np.nonzero(pair)[0]:
+            newly[k] = self.separating_views(int(k))
         self.verified |= newly
         # A verified hypothesis decides its group: its rivals go.
         drop = gone.copy()
@@ -784,6 +806,33 @@ class LineMap:
             if g >= 0:
                 drop |= (self.group == g) & ~self.verified
         return int(newly.sum()), int((drop & ~gone).sum()), drop
+
+    def separating_views(self, k: int) -> bool:
+        """Candidate k was re-observed, at its anchor, from two viewpoints between which a false match would
+        have moved out of the association gate.
+
+        A false match lies off the edge along its viewing ray; ``ghost_error_m`` off from viewpoints i and j
+        (unit rays r_i, r_j to the anchor's midpoint), the two lie e |(I - t t^T)(r_i - r_j)| apart across the
+        line (t its direction; moving along the line moves it little across). The association compares an
+        observation with the anchor under both covariances plus ``assoc_extra_m``: a gate of
+        sqrt(chi2_3,99 % (2 u^T C u + extra^2)) in that direction u (C: the anchor's covariance, for both).
+        A pair whose separation exceeds the gate has tested the candidate: a false match this far off would
+        have been inserted as a new candidate instead. Rivals of a periodic texture are exempt (``ambiguous``)."""
+        p = self.params
+        if len(self.views[k]) < 2:
+            return False
+        A = self.anchor[k]
+        t = (A[1] - A[0]) / max(float(np.linalg.norm(A[1] - A[0])), 1e-12)
+        r = A.mean(axis=0) - np.array([v[:3] for v in self.views[k]])
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        i, j = np.triu_indices(len(r), 1)
+        u = r[i] - r[j]
+        u -= np.outer(u @ t, t)
+        n = np.linalg.norm(u, axis=1)
+        u /= np.maximum(n, 1e-12)[:, None]
+        C = self.anchor_cov[k].mean(axis=0)
+        gate2 = CHI2_3_99 * (2.0 * np.einsum("ki,ij,kj->k", u, C, u) + p.assoc_extra_m ** 2)
+        return bool(((p.ghost_error_m * n) ** 2 >= gate2).any())
 
     def _prune(self, drop: np.ndarray) -> int:
         """Remove the rows ``drop`` and the segments missed too often; returns how many of the latter."""
@@ -802,7 +851,8 @@ class LineMap:
             self.serial = self.serial[keep]
         if indexed:
             self.grid.remove(keep)
-        for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis"):
+        for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis",
+                     "ambiguous"):
             setattr(self, name, getattr(self, name)[keep])
         self.views = [v for v, k in zip(self.views, keep) if k]
 
