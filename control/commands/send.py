@@ -9,8 +9,8 @@ import time
 import uuid
 
 from vbnav.control.commands._common import finite, non_negative, positive
-from vbnav.control.commands._net import (CommandPublisher, add_net_args, command_secret, open_client, robot_answers,
-                                         robot_name)
+from vbnav.control.commands._net import (CommandPublisher, StateWatch, add_net_args, command_secret, open_client,
+                                         resume_body, robot_answers, robot_name)
 
 # Generous local bounds: the robot checks against its own configured limits and rejects with an event.
 _LOCAL_LIMIT = 1e3
@@ -26,7 +26,8 @@ sending and waits for the robot's answer to that id:
 exit 0  the robot applied the command: prints the loop cycle it took effect in
 exit 1  the robot refused it: prints its reason (command_rejected event), or no answer came
         within --wait: the robot's access control drops commands from peers that are not
-        in telemetry.operators without a word
+        in telemetry.operators without a word; or (resume) no state came within --wait
+        to learn the newest stop from: nothing sent
 exit 2  bad arguments, refused locally (nothing sent), or an unusable --secret-file
 exit 3  cannot connect to the endpoint, or no robot with that name is listening there
 
@@ -45,11 +46,20 @@ def register(sub) -> None:
     cmds = p.add_subparsers(dest="what", metavar="COMMAND", required=True)
     e = cmds.add_parser("estop", help="latching stop: wheels to zero until `resume`")
     e.add_argument("--reason", default="", help="free text recorded in the event")
-    r = cmds.add_parser("resume", help="clear an estop latch")
-    r.add_argument("--latched-ns", type=int, default=None, metavar="T",
-                   help="the newest stop you have seen (the robot's state: safety.latched_ns, or its trip event's "
-                        "stamp_ns): a stop that began after it, another operator's estop, is not cleared and the "
-                        "robot refuses the resume (docs/telemetry.md)")
+    r = cmds.add_parser("resume", help="clear the estop latches this sender has seen",
+                        description="Clear the latched stops (estop, stall, lost drive once back) that began up to "
+                                    "the newest one the robot's state shows: vbnav send reads vbnav/<robot>/state "
+                                    "(within --wait) and names its safety.latched_ns, so another operator's estop "
+                                    "that began after it is not cleared (the robot refuses the resume and says "
+                                    "why). With no state within --wait nothing is sent (exit 1).")
+    seen = r.add_mutually_exclusive_group()
+    seen.add_argument("--latched-ns", type=int, default=None, metavar="T",
+                      help="name the newest stop you have seen yourself (the robot's state: safety.latched_ns, or "
+                           "its trip event's stamp_ns) instead of reading the state: a stop that began after it is "
+                           "not cleared and the robot refuses the resume (docs/telemetry.md)")
+    seen.add_argument("--clear-all", action="store_true",
+                      help="clear every latch, also stops you have not seen (another operator's estop a moment "
+                           "ago): no state is read")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
                                     "safety.command_timeout_s (and only a run with controller teleop or operator follows "
@@ -168,6 +178,8 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
+    learn = what == "resume" and args.latched_ns is None and not args.clear_all
+    watch = StateWatch(session, robot) if learn else None
     out = CommandPublisher(session, robot, body["sender"], secret)
     key, pub = out.key(what), out.publisher(what)
     deadline = time.monotonic() + args.wait
@@ -181,6 +193,16 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         print(f"vbnav send: robot {robot} is running but does not offer {key} to {_who(args)}: the robot may refuse "
               f"commands from {_who(args)} (telemetry.operators)", file=sys.stderr)
         return REFUSED
+
+    if watch is not None:     # a resume clears only the stops the robot's newest state shows
+        seen = resume_body(watch.wait(deadline - time.monotonic()))
+        if seen is None:
+            print(f"vbnav send: no state from robot {robot} on {watch.key} within {args.wait:g} s, so this "
+                  f"resume cannot know which stop it would clear (another operator's estop a moment ago?); "
+                  f"nothing sent. Give --latched-ns T (the safety.latched_ns you saw), --clear-all to clear every "
+                  f"latch, or a longer --wait (telemetry.state_rate_hz of the robot)", file=sys.stderr)
+            return REFUSED
+        body.update(seen)
 
     def put(seq: int, with_ack: bool) -> None:
         out.put(what, body if with_ack else {k: v for k, v in body.items() if k != "ack"})
