@@ -736,3 +736,40 @@ def test_vbnav_send_resume_names_the_stop_it_has_seen():
     assert what == "resume" and body["latched_ns"] == 1_510_000_000
     what, body = build_payload(build_parser().parse_args(["send", "resume", "--robot", "r1"]))
     assert "latched_ns" not in body
+
+
+def test_an_estop_stops_the_wheels_in_its_cycle_even_when_a_resume_and_a_teleop_come_in_the_same_drain():
+    """A flood from three operators: A's estop, B's resume without latched_ns (every latch), C's fresh teleop
+    arrive within one loop period. The estop was answered 'applied at cycle N' while the wheels of cycle N
+    were driven: B's resume cleared it in the same drain, before anyone could have seen it (the state that
+    shows it goes out after the cycle), and C's teleop drove. Such a resume is refused now, as one that
+    arrived before a stall was detected; a resume after the estop's cycle clears it."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    events = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: events.append(("applied", cmd.kind, now)))
+    rt.safety.listeners.append(lambda ev: events.append((ev.kind, ev.cause, ev.message)))
+    t_flood = T0 + 500_000_000
+    plan = [(T0 + k * 50_000_000, "teleop", teleop(k + 1, T0 + k * 50_000_000, sender="C")) for k in range(10)]
+    plan += [(t_flood, "estop", json.dumps({"sender": "A", "reason": "person ahead"})),
+             (t_flood, "resume", json.dumps({"sender": "B"})),
+             (t_flood, "teleop", teleop(11, t_flood, sender="C")),
+             (T0 + 800_000_000, "resume", json.dumps({"sender": "B"})),
+             (T0 + 800_000_000, "teleop", teleop(12, T0 + 800_000_000, sender="C"))]
+
+    def transport(r, ctx, twist, wheels):
+        while plan and plan[0][0] <= ctx.now_ns:
+            _, kind, payload = plan.pop(0)
+            clock.advance(1)           # each arrives a moment after the one before
+            inbox.submit(kind, payload)
+
+    rt.cycle_observers.append(transport)
+    rt.run(1.2)
+    (estop_cycle,) = [now for kind, what, now in events if (kind, what) == ("applied", "estop")]
+    assert drive.log and drive.stopped_since(estop_cycle) is False     # it drives again after the later resume
+    at_estop = [(l, r, p) for t, l, r, p in drive.log if estop_cycle <= t < estop_cycle + PERIOD_NS]
+    assert at_estop and all(not p or (l == 0 and r == 0) for l, r, p in at_estop), at_estop
+    refused = [m for kind, cause, m in events if (kind, cause) == ("rejected", "resume")]
+    assert len(refused) == 1 and "estop" in refused[0], [e for e in events if e[0] != "applied"]
+    moving = [t for t, l, r, p in drive.log if p and (l or r)]
+    assert not [t for t in moving if estop_cycle <= t < T0 + 800_000_000], "the estop did not hold"
+    assert [t for t in moving if t > T0 + 800_000_000], "the later resume and a fresh teleop drive"

@@ -232,8 +232,8 @@ class Runtime:
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
-        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back) was sent
-        # before anyone could know of it, and does not clear it
+        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back, an estop taken)
+        # was sent before anyone could know of it, and does not clear it
         self._resume_after: Optional[tuple[int, str]] = None
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
@@ -612,6 +612,9 @@ class Runtime:
         if cmd.kind == "estop":
             self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
             self._forget_teleop(now if cmd.arrival_ns is None else cmd.arrival_ns, "the estop")
+            # a resume drained with it arrived before anyone could see it (the state showing it goes out after
+            # this cycle): taken, it cleared the estop in the cycle it was applied, and the wheels drove on
+            self._resume_after = (now, f"the estop from {cmd.source} took effect")
             return APPLIED
         stale = self.mailbox.sent_before_stop(cmd)   # a teleop drained behind the estop, sent before it
         if stale:
