@@ -26,8 +26,9 @@ sending and waits for the robot's answer to that id:
 exit 0  the robot applied the command: prints the loop cycle it took effect in
 exit 1  the robot refused it: prints its reason (command_rejected event), or no answer came
         within --wait: the robot's access control drops commands from peers that are not
-        in telemetry.operators without a word; or (resume) no state came within --wait
-        to learn the newest stop from: nothing sent
+        in telemetry.operators without a word, or (mode) the robot took the switch and had
+        not finished it (command_pending event: it says so); or (resume) no state came
+        within --wait to learn the newest stop from: nothing sent
 exit 2  bad arguments, refused locally (nothing sent), or an unusable --secret-file
 exit 3  cannot connect to the endpoint, or no robot with that name is listening there
 
@@ -167,14 +168,19 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         return UNREACHABLE
     ack = body["ack"]
     answers: queue.SimpleQueue = queue.SimpleQueue()
+    pending: list = []       # the robot's command_pending: it took the command and finishes it later
 
     def on_event(sample) -> None:   # zenoh thread
         try:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
-        if isinstance(msg, dict) and msg.get("ack") == ack and msg.get("kind") in ("command", "command_rejected"):
+        if not isinstance(msg, dict) or msg.get("ack") != ack:
+            return
+        if msg.get("kind") in ("command", "command_rejected"):
             answers.put(msg)
+        elif msg.get("kind") == "command_pending":
+            pending.append(msg)
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
@@ -232,7 +238,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
-    return _report(args, robot, what, answer, sent, stopped)
+    return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None)
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
@@ -242,7 +248,12 @@ def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
         return None
 
 
-def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False) -> int:
+def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None) -> int:
+    if answer is None and pending is not None:
+        print(f"vbnav send: robot {robot} took {what} at cycle {pending.get('cycle', '?')} and had not finished it "
+              f"within {args.wait:g} s (a mode switch loads its route first): `vbnav monitor` shows the mode once "
+              f"it is done, a longer --wait waits for it", file=sys.stderr)
+        return REFUSED
     if answer is None:
         print(f"vbnav send: no acknowledgement within {args.wait:g} s: the robot may refuse commands from "
               f"{_who(args)} (telemetry.operators)", file=sys.stderr)

@@ -205,6 +205,7 @@ class TelemetryLink:
             link.routes = _route_server(session, cfg, verify, runtime)
         runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
+        runtime.pending_listeners.append(link._on_command_pending)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
         if runtime.pipeline is not None:
@@ -311,6 +312,16 @@ class TelemetryLink:
         if self.publisher.offer_foxglove(stamp, "/vbnav/map/lines", lambda t: fc.line_map_message(
                 t, scene.P, scene.verified, scene.hypothesis)):
             self._map_revision = scene.revision
+
+    def _on_command_pending(self, rt, cmd, now_ns: int) -> None:
+        """``command_pending``: the controller took the command and finishes it later (a mode switch loading
+        its route); its ``command`` or ``command_rejected`` follows."""
+        self._applying = None
+        fields = dict(command=cmd.kind, args=list(cmd.args), sender=cmd.source, cycle=rt.cycle,
+                      arrival_ns=cmd.arrival_ns)
+        if cmd.ack:
+            fields["ack"] = cmd.ack
+        self.publisher.event("command_pending", stamp_ns=now_ns, **fields)
 
     def _on_command_applied(self, rt, cmd, outcome, now_ns: int) -> None:
         """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: only a teleop that

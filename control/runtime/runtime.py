@@ -211,6 +211,9 @@ class Runtime:
         self.command_observers: list[Callable[["Runtime", OperatorCommand, int], None]] = []
         # called after a command took effect (not for refused ones): (runtime, command, outcome, now_ns)
         self.command_listeners: list[Callable[["Runtime", OperatorCommand, CommandOutcome, int], None]] = []
+        # called when the controller took a command to finish later (PENDING: a mode switch loading its route),
+        # before its answer: (runtime, command, now_ns)
+        self.pending_listeners: list[Callable[["Runtime", OperatorCommand, int], None]] = []
         self.wheel_command = (0.0, 0.0)
         self.last_twist = STOP
         self.wheels: Optional[WheelState] = None
@@ -587,6 +590,9 @@ class Runtime:
             self._in_hand = self._in_hand[1:]
             if not outcome.pending:
                 self._answer(cmd, outcome, now)
+            else:
+                for fn in self.pending_listeners:
+                    fn(self, cmd, now)
 
     def complete_command(self, cmd: OperatorCommand, outcome: CommandOutcome, now: int) -> None:
         """A command the controller answered ``PENDING`` is done (loop thread): applied, or refused with
