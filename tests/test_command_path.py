@@ -798,3 +798,34 @@ def test_an_estop_whose_payload_is_malformed_still_stops_the_robot(payload):
     assert drive.stopped_since(t_estop + PERIOD_NS), "the robot drove on after the estop"
     assert len(trips) == 1 and "estop" in trips[0] and "its payload" in trips[0], (trips, rejected)
     assert not rejected, rejected
+
+
+def test_vbnav_send_estop_goes_out_when_the_robot_takes_commands_but_its_event_history_is_slow():
+    """vbnav send asks the robot's event history (events/recent) whether it is there before sending: a robot
+    too busy to answer that query within --wait (a flood on its network) got no estop, 'no robot named sim is
+    listening', exit 3, while its command subscriber was there. An estop now goes out as soon as the robot's
+    command subscriber matches, whatever the query says; the answer is waited for as before."""
+    import subprocess
+    import sys
+
+    from vbnav.control.comms.network import open_session, robot_session_config
+    from vbnav.control.config.telemetry import TelemetryConfig
+    port = _free_port()
+    robot = open_session(robot_session_config(TelemetryConfig(listen=[f"tcp/127.0.0.1:{port}"]), "sim"))
+    got = []
+
+    def on_command(sample):
+        msg = json.loads(sample.payload.to_bytes())
+        got.append((str(sample.key_expr), msg))
+        robot.put("vbnav/sim/events", json.dumps({"kind": "command", "command": "estop", "ack": msg["ack"],
+                                                  "cycle": 7}))
+
+    sub = robot.declare_subscriber("vbnav/sim/cmd/**", on_command)     # no events/recent queryable answers
+    try:
+        r = subprocess.run([sys.executable, "-m", "vbnav.control.cli", "send", "estop", "--robot", "sim", "--wait",
+                            "1", "--connect", f"tcp/127.0.0.1:{port}"], capture_output=True, text=True, timeout=60)
+    finally:
+        sub.undeclare()
+        robot.close()
+    assert [k for k, _ in got] == ["vbnav/sim/cmd/estop"], (got, r.stderr)
+    assert r.returncode == 0 and "estop applied by robot sim at cycle 7" in r.stdout, (r.stdout, r.stderr)

@@ -189,13 +189,19 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     out = CommandPublisher(session, robot, body["sender"], secret)
     key, pub = out.key(what), out.publisher(what)
     deadline = time.monotonic() + args.wait
-    if not robot_answers(session, robot, max(0.1, args.wait)):
+
+    def matched() -> bool:
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return pub.matching_status.matching
+
+    if what == "estop" and matched():
+        pass    # a stop goes out once the robot's command subscriber is there, however slow its event history is
+    elif not robot_answers(session, robot, max(0.1, args.wait)):
         print(f"vbnav send: no robot named {robot} is listening on {key} at {args.connect} (is `vbnav run` going "
               f"with robot.name {robot}?)", file=sys.stderr)
         return UNREACHABLE
-    while not pub.matching_status.matching and time.monotonic() < deadline:
-        time.sleep(0.01)
-    if not pub.matching_status.matching:
+    if not matched():
         print(f"vbnav send: robot {robot} is running but does not offer {key} to {_who(args)}: the robot may refuse "
               f"commands from {_who(args)} (telemetry.operators)", file=sys.stderr)
         return REFUSED
