@@ -34,6 +34,7 @@ send time.
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -50,6 +51,19 @@ ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def _printable(v: Optional[str]) -> Optional[str]:
+    """Free text the robot prints (its console's event echo, the journal, vbnav monitor): a terminal escape or a
+    line break there could clear the screen or forge a line ('safety reset: estop')."""
+    if v is not None:
+        m = _CONTROL.search(v)
+        if m:
+            raise ValueError(f"control character {m.group()!r} at {m.start()}: printable text only")
+    return v
+
+
 class _Cmd(BaseModel):
     # strict: types as JSON gives them (an int is a number too), never coerced: "linear": true was taken as
     # 1.0 m/s and "0.3" as 0.3, a sender's bug driving the robot instead of a refusal
@@ -62,9 +76,13 @@ class _Cmd(BaseModel):
     ack: Optional[str] = Field(None, pattern=ACK_PATTERN, description="echoed in the command / command_rejected "
                                "event of this command")
 
+    _printable_text = field_validator("sender", "session")(_printable)
+
 
 class EstopCmd(_Cmd):
     reason: str = Field("", max_length=200)
+
+    _printable_reason = field_validator("reason")(_printable)
 
 
 class ResumeCmd(_Cmd):
