@@ -829,3 +829,19 @@ def test_vbnav_send_estop_goes_out_when_the_robot_takes_commands_but_its_event_h
         robot.close()
     assert [k for k, _ in got] == ["vbnav/sim/cmd/estop"], (got, r.stderr)
     assert r.returncode == 0 and "estop applied by robot sim at cycle 7" in r.stdout, (r.stdout, r.stderr)
+
+
+@pytest.mark.parametrize("reason", ["x" * 300, "door\nopen", "bell\x07"])
+def test_vbnav_send_estop_is_sent_whatever_its_reason(reason, capsys):
+    """`vbnav send estop --reason TEXT` checked the reason with the robot's model and refused it locally, exit 2,
+    no estop sent, for a reason over 200 characters or with a line break (a note pasted in an emergency).
+    The estop is sent; the reason is cut to 200 characters and its control characters escaped, and vbnav send
+    says so."""
+    from vbnav.control.cli import build_parser
+    from vbnav.control.commands.send import build_payload
+    from vbnav.control.comms.operator_commands import TeleopLimits, parse_command
+
+    what, body = build_payload(build_parser().parse_args(["send", "estop", "--reason", reason, "--robot", "r1"]))
+    assert what == "estop" and len(body["reason"]) <= 200 and body["reason"].isprintable(), body
+    parse_command("estop", json.dumps(body), TeleopLimits(1.0, 1.0))     # the robot takes it as it is
+    assert "--reason" in capsys.readouterr().err

@@ -46,7 +46,9 @@ def register(sub) -> None:
                        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     cmds = p.add_subparsers(dest="what", metavar="COMMAND", required=True)
     e = cmds.add_parser("estop", help="latching stop: wheels to zero until `resume`")
-    e.add_argument("--reason", default="", help="free text recorded in the event")
+    e.add_argument("--reason", default="", help="free text recorded in the event (printable, at most 200 characters: "
+                                                "longer is cut and control characters escaped, saying so; the "
+                                                "estop goes out regardless)")
     r = cmds.add_parser("resume", help="clear the estop latches this sender has seen",
                         description="Clear the latched stops (estop, stall, lost drive once back) that began up to "
                                     "the newest one the robot's state shows: vbnav send reads vbnav/<robot>/state "
@@ -102,7 +104,7 @@ def build_payload(args) -> tuple[str, dict]:
     # One session id per invocation: the robot tracks seq and the clock offset per (sender, session).
     body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
-        body["reason"] = args.reason
+        body["reason"] = _estop_reason(args.reason)
     elif args.what == "resume" and args.latched_ns is not None:
         body["latched_ns"] = args.latched_ns
     elif args.what == "teleop":
@@ -128,6 +130,19 @@ def build_payload(args) -> tuple[str, dict]:
     except CommandRejected as exc:
         raise ValueError(f"{args.what}: {exc}") from None
     return args.what, body
+
+
+def _estop_reason(text: str) -> str:
+    """The --reason as the robot takes it: control characters escaped, at most REASON_MAX_CHARS. An estop is
+    never refused for its reason (a note pasted in an emergency); what was changed is said."""
+    from vbnav.control.comms.operator_commands import CONTROL_CHARACTERS, REASON_MAX_CHARS
+    fixed = CONTROL_CHARACTERS.sub(lambda m: repr(m.group())[1:-1], text)
+    if len(fixed) > REASON_MAX_CHARS:
+        fixed = fixed[:REASON_MAX_CHARS - 3] + "..."
+    if fixed != text:
+        print(f"vbnav send: --reason sent as {fixed!r} (the robot takes printable text of at most "
+              f"{REASON_MAX_CHARS} characters); the estop goes out", file=sys.stderr)
+    return fixed
 
 
 def _who(args) -> str:

@@ -51,14 +51,15 @@ ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
 
-_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+REASON_MAX_CHARS = 200             # an estop's reason
 
 
 def _printable(v: Optional[str]) -> Optional[str]:
     """Free text the robot prints (its console's event echo, the journal, vbnav monitor): a terminal escape or a
     line break there could clear the screen or forge a line ('safety reset: estop')."""
     if v is not None:
-        m = _CONTROL.search(v)
+        m = CONTROL_CHARACTERS.search(v)
         if m:
             raise ValueError(f"control character {m.group()!r} at {m.start()}: printable text only")
     return v
@@ -80,7 +81,7 @@ class _Cmd(BaseModel):
 
 
 class EstopCmd(_Cmd):
-    reason: str = Field("", max_length=200)
+    reason: str = Field("", max_length=REASON_MAX_CHARS)
 
     _printable_reason = field_validator("reason")(_printable)
 
