@@ -220,6 +220,7 @@ class Runtime:
         self.ctx: Optional[ControlContext] = None
         self.cycle = 0
         self._signal: Optional[int] = None
+        self._end_asked: Optional[tuple[str, str]] = None    # end_run's (reason, message)
         self._enabled = False
         self._unstopped: Optional[str] = None    # what the last stop did not reach, until a resend is taken
         self._unstopped_told_end = False         # its warning said the run ends with it (no resend follows)
@@ -249,6 +250,10 @@ class Runtime:
 
     def request_stop(self, signum: int = signal.SIGTERM) -> None:
         self._signal = signum
+
+    def end_run(self, reason: str, message: str) -> None:
+        """Any thread: a fatal ``reason`` (a FATAL cause) ends the run at the next cycle, the wheels stopped."""
+        self._end_asked = (reason, message)
 
     # -- main --------------------------------------------------------------
     def run(self, duration_s: Optional[float] = None,
@@ -342,6 +347,8 @@ class Runtime:
             if self._signal is not None:
                 name = signal.Signals(self._signal).name
                 return self._finish(now, "signal", f"received {name}")
+            if self._end_asked is not None:
+                return self._finish(now, *self._end_asked)
             if self.loop.timing.streak >= self.cfg.loop.max_missed_streak:
                 return self._finish(now, "deadline",
                                     f"{self.loop.timing.streak} consecutive missed deadlines "
