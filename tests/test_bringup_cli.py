@@ -244,7 +244,7 @@ def _teleop_in_thread(fd, out, last_state=None):
     done = []
     last_state = [None] if last_state is None else last_state
     t = threading.Thread(target=lambda: done.append(_catch(lambda: _drive(fd, out, args, "r1", queue.SimpleQueue(),
-                                                                              last_state))),
+                                                                              lambda: last_state[0]))),
                          daemon=True)
     t.start()
     return t, done

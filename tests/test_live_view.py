@@ -258,6 +258,10 @@ def test_foxglove_teleop_takes_numbers_only():
     # a key given twice (the zenoh path refuses it): JSON readers kept the last, 0.5 m/s or 0 unsaid
     LiveView.on_message_data(view, client, 7, b'{"linear": {"x": 0.5, "x": 0.0}, "angular": {"z": 0}}')
     assert len(submitted) == 1 and "duplicate key 'x'" in refused[-1], (submitted, refused)
+    # an integer beyond a float (JSON has no bound): float() raised OverflowError into the Foxglove server's
+    # callback, the twist neither refused nor said; refused now, as a number out of range
+    LiveView.on_message_data(view, client, 7, b'{"linear": {"x": 1' + b"0" * 400 + b'}, "angular": {"z": 0}}')
+    assert len(submitted) == 1 and "too large" in refused[-1], (submitted, refused)
 
 
 @pytest.mark.parametrize("how", ["close", "drop"])

@@ -488,3 +488,38 @@ def test_why_a_route_taught_in_operator_mode_ends_early_is_said(tmp_path):
             outs.append(" ".join(e.message for e in rt.safety.events if e.kind == "warning" and e.cause == "teach"))
     assert outs[0] == f"mode idle: route 'hall0' taught: {why}", outs
     assert outs[1] == f"route 'hall1' taught: {why}", outs
+
+
+def test_a_switch_still_under_way_is_said_and_vbnav_send_does_not_blame_access_control(tmp_path, monkeypatch,
+                                                                                       capsys):
+    """A mode switch that loads its route on the worker is answered when it took effect, which may be after
+    vbnav send's --wait (a large route on a slow disk): vbnav send then said 'the robot may refuse commands
+    from unauthenticated clients (telemetry.operators)', untrue, the robot had taken it. The robot now says
+    it took the command and is finishing it (a command_pending event with its ack), and vbnav send says so."""
+    import argparse
+
+    from vbnav.control.commands.send import REFUSED, _report
+    gate = _Gate()
+    monkeypatch.setattr(operator_module, "Teaching", gate)
+    robot, ctl, rt, link, sink = _operator_session(
+        tmp_path, pipeline=lambda clock: VisionPipeline(None, [], clock, inline=False))   # the real-clock path
+
+    def let_it_finish(r):
+        gate.open.set()
+        if ctl._worker is not None:
+            ctl._worker.join(10.0)
+
+    _at_cycles(rt, {10: lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1")),
+                    30: let_it_finish})
+    result = rt.run(0.5)
+    ctl.close()
+    link.close(result)
+    events = [e for e in sink.events if e.get("ack") == "T1"]
+    assert [(e["kind"], e["cycle"]) for e in events] == [("command_pending", 11), ("command", 31)], events
+    assert events[0]["command"] == "mode" and events[0]["args"] == ["teach", "hall"]
+
+    args = argparse.Namespace(wait=3.0, user=None, tls_cert=None)
+    assert _report(args, "r1", "mode", None, 1, pending=events[0]) == REFUSED
+    err = capsys.readouterr().err
+    assert "robot r1 took mode at cycle 11 and had not finished it within 3 s" in err, err
+    assert "telemetry.operators" not in err

@@ -282,6 +282,56 @@ def test_shared_secret_signed_commands_only(tmp_path):
         op.close()
         finish(proc, stop=True)
     rep = json.loads(report.read_text())
-    assert [(c["kind"], c["args"]) for c in rep["received"]] == [("estop", ["signed"]), ("resume", [])]
+    assert [c["kind"] for c in rep["received"]] == ["estop", "resume"] and rep["received"][0]["args"] == ["signed"]
+    assert len(rep["received"][1]["args"]) == 1         # the latched_ns of the robot's state
     reasons = [e["reason"].split(":")[0] for e in events if e["kind"] == "command_rejected"]
     assert reasons == ["unsigned", "bad signature", "replayed", "unsigned"]
+
+
+def test_send_resume_names_the_newest_stop_in_the_robots_state(tmp_path):
+    """vbnav send resume without --latched-ns cleared every latch, another operator's estop this sender never
+    saw among them. It now reads the robot's state and names its safety.latched_ns (as teleop's r does); a
+    stop that began after it is not cleared."""
+    port = free_port()
+    report = tmp_path / "report.json"
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--report", report)
+    watcher = Operator(port)
+    try:
+        r = _send(port, "estop", "--reason", "first")
+        assert r.returncode == 0, r.stderr
+        r = _send(port, "resume")
+        assert r.returncode == 0 and "resume applied" in r.stdout, r.stderr
+        with watcher.lock:
+            states = list(watcher.states)
+    finally:
+        watcher.close()
+        finish(proc, stop=True)
+    rep = json.loads(report.read_text())
+    (resume,) = [c for c in rep["received"] if c["kind"] == "resume"]
+    latched = {s["safety"]["latched_ns"] for _, s in states if s["safety"]["state"] == "estop"}
+    assert len(resume["args"]) == 1 and resume["args"][0] in latched, (resume, latched)
+
+
+def test_send_resume_without_a_state_is_refused_unless_told_to_clear_every_latch(tmp_path):
+    """With no state from the robot within --wait (here its one state went out before vbnav send
+    subscribed: telemetry.state_rate_hz 0.001), vbnav send resume cannot know which stop it would clear: it
+    sends nothing and says so, naming the robot's state topic and the options; --clear-all clears every
+    latch knowingly."""
+    port = free_port()
+    report = tmp_path / "report.json"
+    proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--report", report,
+                       "--state-rate", 0.001)
+    try:
+        assert _send(port, "estop").returncode == 0
+        r = _send(port, "resume", "--wait", 1)
+        assert r.returncode == 1, (r.stdout, r.stderr)
+        assert "no state from robot sim on vbnav/sim/state within 1 s" in r.stderr, r.stderr
+        assert "--latched-ns" in r.stderr and "--clear-all" in r.stderr, r.stderr
+        r = _send(port, "resume", "--clear-all", "--latched-ns", 5)
+        assert r.returncode == 2 and "not allowed with argument" in r.stderr, r.stderr
+        r = _send(port, "resume", "--clear-all")
+        assert r.returncode == 0 and "resume applied" in r.stdout, r.stderr
+    finally:
+        finish(proc, stop=True)
+    rep = json.loads(report.read_text())
+    assert [(c["kind"], c["args"]) for c in rep["received"]] == [("estop", []), ("resume", [])]

@@ -404,3 +404,39 @@ def test_vbnav_run_in_real_time_publishes_and_obeys_an_estop(tmp_path):
         out, err = robot.communicate(timeout=30)
     summary = json.loads(out)
     assert any(e["cause"] == "estop" and e["kind"] == "trip" for e in summary["events"]), summary["events"]
+
+
+def test_a_robot_whose_zenoh_session_dies_stops_and_ends_the_run(tmp_path):
+    """The robot's zenoh session dying mid-run (closed under it: every put raises 'session closed') was only
+    counted in the publisher's sink errors: a repeat or a goto drove on with no network command (an estop)
+    able to reach it, and nothing said so. The run now ends with the wheels stopped, cause 'network', naming
+    the error (not a success: a service restarts it, with a new session)."""
+    from runtime_helpers import RecordingDrive
+    from test_safety import Cruise
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import MonotonicClock
+
+    port = free_port()
+    cfg = Config.model_validate({"telemetry": {"listen": [f"tcp/127.0.0.1:{port}"]},
+                                 "loop": {"stall_periods": 10 ** 6, "max_missed_streak": 10 ** 6}})
+    clock = MonotonicClock()
+    drive = RecordingDrive(clock)
+    rt = Runtime(cfg, drive, Cruise(), clock)
+    link = TelemetryLink.attach(rt, cfg, network=True)
+    died = []
+
+    def kill_the_session(r, ctx, twist, wheels):
+        if not died and ctx.now_ns - r._start_ns >= 300_000_000:
+            died.append(ctx.now_ns)
+            link.session.close()
+
+    rt.cycle_observers.append(kill_the_session)
+    result = rt.run(duration_s=10.0)
+    link.close(result)
+    assert died and result.reason == "network", (result.reason, result.message)
+    assert "session closed" in result.message and "estop" in result.message, result.message
+    assert not result.ok
+    assert drive.last_motion_ns() > rt._start_ns and drive.stopped_since(drive.last_motion_ns() + 1)
+    assert not drive.physics.powered

@@ -129,3 +129,34 @@ def test_a_failed_recording_over_an_old_one_names_the_file_that_holds_it(tmp_pat
     part = tmp_path / "run.mcap.part"
     assert out.read_bytes() == old and part.exists()
     assert f"what was written before is in {part}" in err, err
+
+
+def test_a_recording_whose_writer_blocks_is_said_and_the_run_exits_1(tmp_path, monkeypatch, capsys):
+    """A sink that blocks (a stalled network file system under --record): the loop never waits on it, and
+    at the end the telemetry thread is given telemetry.CLOSE_WAIT_S to finish; it was then left, the
+    recording unclosed (PATH.part), and the run exited 0 without a word. It is said now, naming the sink
+    the thread was stuck in, and the exit code is not success."""
+    import threading
+
+    from vbnav.control.cli import main
+    from vbnav.control.comms import recording, telemetry
+
+    release = threading.Event()
+    calls = [0]
+    real_write = recording.McapRecorder._write
+
+    def stalled_disk(self, topic, log_ns, data):
+        calls[0] += 1
+        if calls[0] > 50:
+            release.wait(30)
+        return real_write(self, topic, log_ns, data)
+    monkeypatch.setattr(recording.McapRecorder, "_write", stalled_disk)
+    monkeypatch.setattr(telemetry, "CLOSE_WAIT_S", 0.3)
+    out = tmp_path / "run.mcap"
+    try:
+        assert main(["run", "--no-camera", "--duration", "2", "--record", str(out)]) == 1
+    finally:
+        release.set()
+    err = capsys.readouterr().err
+    assert f"the recording {out} is incomplete" in err and "still in McapRecorder after 0.3 s" in err, err
+    assert not out.exists() and (tmp_path / "run.mcap.part").exists()

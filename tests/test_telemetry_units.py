@@ -514,3 +514,17 @@ def test_keyboard_teleop_refuses_speeds_the_configured_robot_refuses(argv, why, 
     from vbnav.control import cli
     assert cli.main(["teleop", "-c", "sim", *argv]) == 2
     assert f"vbnav teleop: {why} of " in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind, payload", [
+    ("estop", '{"reason": "\\u001b[2J\\u001b[H12:00:00 safety reset: estop"}'),
+    ("teleop", '{"linear": 0.1, "angular": 0, "sender": "op\\u001b[2K"}'),
+    ("resume", '{"session": "s\\r\\n12:00:00 safety reset"}'),
+    ("mode", '{"mode": "idle", "sender": "op\\u009b2J"}'),
+])
+def test_control_characters_in_free_text_command_fields_are_refused(kind, payload):
+    """An estop reason, a sender or a session is printed on the robot's console (the event echo), in the
+    journal and in vbnav monitor: one carrying terminal escapes or line breaks could clear the screen or
+    forge a line ('safety reset: estop') there. Control characters are refused, naming the field."""
+    with pytest.raises(CommandRejected, match="control character"):
+        parse_command(kind, payload, LIMITS)

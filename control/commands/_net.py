@@ -135,6 +135,44 @@ def open_robot(args, who: str):
         raise
 
 
+class StateWatch:
+    """The robot's newest state message (``vbnav/<robot>/state``), kept by a subscriber: what a resume
+    names (``resume_body``). ``state`` is None until one came."""
+
+    def __init__(self, session, robot: str):
+        import threading
+        self.key = f"vbnav/{robot}/state"
+        self.state: dict | None = None
+        self._came = threading.Event()
+        session.declare_subscriber(self.key, self._on_state)
+
+    def _on_state(self, sample) -> None:     # zenoh thread
+        import json
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+            latched = msg["safety"].get("latched_ns")
+            if isinstance(msg["stamp_ns"], int) and (latched is None or isinstance(latched, int)):
+                self.state = msg
+                self._came.set()
+        except (ValueError, KeyError, TypeError, AttributeError):
+            pass
+
+    def wait(self, timeout_s: float) -> dict | None:
+        """The newest state, waiting up to ``timeout_s`` for the first; None if none came."""
+        self._came.wait(max(0.0, timeout_s))
+        return self.state
+
+
+def resume_body(state: dict | None) -> dict | None:
+    """The resume that clears only what the robot's last ``state`` showed: its ``safety.latched_ns``, or, with
+    nothing latched then, the state's own ``stamp_ns`` (a stop that began after it was not seen). None before
+    any state: the sender cannot know which stop a resume would clear."""
+    if state is None:
+        return None
+    latched = state["safety"].get("latched_ns")
+    return {"latched_ns": state["stamp_ns"] if latched is None else latched}
+
+
 def command_secret(args) -> bytes | None:
     """The shared secret to sign commands with (--secret-file, else --config's
     telemetry.shared_secret_file), or None; raises ValueError naming the file."""

@@ -9,8 +9,8 @@ import time
 import uuid
 
 from vbnav.control.commands._common import finite, non_negative, positive
-from vbnav.control.commands._net import (CommandPublisher, add_net_args, command_secret, open_client, robot_answers,
-                                         robot_name)
+from vbnav.control.commands._net import (CommandPublisher, StateWatch, add_net_args, command_secret, open_client,
+                                         resume_body, robot_answers, robot_name)
 
 # Generous local bounds: the robot checks against its own configured limits and rejects with an event.
 _LOCAL_LIMIT = 1e3
@@ -26,7 +26,9 @@ sending and waits for the robot's answer to that id:
 exit 0  the robot applied the command: prints the loop cycle it took effect in
 exit 1  the robot refused it: prints its reason (command_rejected event), or no answer came
         within --wait: the robot's access control drops commands from peers that are not
-        in telemetry.operators without a word
+        in telemetry.operators without a word, or (mode) the robot took the switch and had
+        not finished it (command_pending event: it says so); or (resume) no state came
+        within --wait to learn the newest stop from: nothing sent
 exit 2  bad arguments, refused locally (nothing sent), or an unusable --secret-file
 exit 3  cannot connect to the endpoint, or no robot with that name is listening there
 
@@ -44,12 +46,23 @@ def register(sub) -> None:
                        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     cmds = p.add_subparsers(dest="what", metavar="COMMAND", required=True)
     e = cmds.add_parser("estop", help="latching stop: wheels to zero until `resume`")
-    e.add_argument("--reason", default="", help="free text recorded in the event")
-    r = cmds.add_parser("resume", help="clear an estop latch")
-    r.add_argument("--latched-ns", type=int, default=None, metavar="T",
-                   help="the newest stop you have seen (the robot's state: safety.latched_ns, or its trip event's "
-                        "stamp_ns): a stop that began after it, another operator's estop, is not cleared and the "
-                        "robot refuses the resume (docs/telemetry.md)")
+    e.add_argument("--reason", default="", help="free text recorded in the event (printable, at most 200 characters: "
+                                                "longer is cut and control characters escaped, saying so; the "
+                                                "estop goes out regardless)")
+    r = cmds.add_parser("resume", help="clear the estop latches this sender has seen",
+                        description="Clear the latched stops (estop, stall, lost drive once back) that began up to "
+                                    "the newest one the robot's state shows: vbnav send reads vbnav/<robot>/state "
+                                    "(within --wait) and names its safety.latched_ns, so another operator's estop "
+                                    "that began after it is not cleared (the robot refuses the resume and says "
+                                    "why). With no state within --wait nothing is sent (exit 1).")
+    seen = r.add_mutually_exclusive_group()
+    seen.add_argument("--latched-ns", type=int, default=None, metavar="T",
+                      help="name the newest stop you have seen yourself (the robot's state: safety.latched_ns, or "
+                           "its trip event's stamp_ns) instead of reading the state: a stop that began after it is "
+                           "not cleared and the robot refuses the resume (docs/telemetry.md)")
+    seen.add_argument("--clear-all", action="store_true",
+                      help="clear every latch, also stops you have not seen (another operator's estop a moment "
+                           "ago): no state is read")
     t = cmds.add_parser("teleop", help="drive with V m/s and W rad/s (positive turns right)",
                         description="Teleop must keep arriving: the robot stops when it is silent for "
                                     "safety.command_timeout_s (and only a run with controller teleop or operator follows "
@@ -91,7 +104,7 @@ def build_payload(args) -> tuple[str, dict]:
     # One session id per invocation: the robot tracks seq and the clock offset per (sender, session).
     body: dict = {"ack": uuid.uuid4().hex, "sender": "vbnav-send", "session": uuid.uuid4().hex[:16]}
     if args.what == "estop" and args.reason:
-        body["reason"] = args.reason
+        body["reason"] = _estop_reason(args.reason)
     elif args.what == "resume" and args.latched_ns is not None:
         body["latched_ns"] = args.latched_ns
     elif args.what == "teleop":
@@ -117,6 +130,19 @@ def build_payload(args) -> tuple[str, dict]:
     except CommandRejected as exc:
         raise ValueError(f"{args.what}: {exc}") from None
     return args.what, body
+
+
+def _estop_reason(text: str) -> str:
+    """The --reason as the robot takes it: control characters escaped, at most REASON_MAX_CHARS. An estop is
+    never refused for its reason (a note pasted in an emergency); what was changed is said."""
+    from vbnav.control.comms.operator_commands import CONTROL_CHARACTERS, REASON_MAX_CHARS
+    fixed = CONTROL_CHARACTERS.sub(lambda m: repr(m.group())[1:-1], text)
+    if len(fixed) > REASON_MAX_CHARS:
+        fixed = fixed[:REASON_MAX_CHARS - 3] + "..."
+    if fixed != text:
+        print(f"vbnav send: --reason sent as {fixed!r} (the robot takes printable text of at most "
+              f"{REASON_MAX_CHARS} characters); the estop goes out", file=sys.stderr)
+    return fixed
 
 
 def _who(args) -> str:
@@ -157,30 +183,53 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         return UNREACHABLE
     ack = body["ack"]
     answers: queue.SimpleQueue = queue.SimpleQueue()
+    pending: list = []       # the robot's command_pending: it took the command and finishes it later
 
     def on_event(sample) -> None:   # zenoh thread
         try:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
-        if isinstance(msg, dict) and msg.get("ack") == ack and msg.get("kind") in ("command", "command_rejected"):
+        if not isinstance(msg, dict) or msg.get("ack") != ack:
+            return
+        if msg.get("kind") in ("command", "command_rejected"):
             answers.put(msg)
+        elif msg.get("kind") == "command_pending":
+            pending.append(msg)
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
+    learn = what == "resume" and args.latched_ns is None and not args.clear_all
+    watch = StateWatch(session, robot) if learn else None
     out = CommandPublisher(session, robot, body["sender"], secret)
     key, pub = out.key(what), out.publisher(what)
     deadline = time.monotonic() + args.wait
-    if not robot_answers(session, robot, max(0.1, args.wait)):
+
+    def matched() -> bool:
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return pub.matching_status.matching
+
+    if what == "estop" and matched():
+        pass    # a stop goes out once the robot's command subscriber is there, however slow its event history is
+    elif not robot_answers(session, robot, max(0.1, args.wait)):
         print(f"vbnav send: no robot named {robot} is listening on {key} at {args.connect} (is `vbnav run` going "
               f"with robot.name {robot}?)", file=sys.stderr)
         return UNREACHABLE
-    while not pub.matching_status.matching and time.monotonic() < deadline:
-        time.sleep(0.01)
-    if not pub.matching_status.matching:
+    if not matched():
         print(f"vbnav send: robot {robot} is running but does not offer {key} to {_who(args)}: the robot may refuse "
               f"commands from {_who(args)} (telemetry.operators)", file=sys.stderr)
         return REFUSED
+
+    if watch is not None:     # a resume clears only the stops the robot's newest state shows
+        seen = resume_body(watch.wait(deadline - time.monotonic()))
+        if seen is None:
+            print(f"vbnav send: no state from robot {robot} on {watch.key} within {args.wait:g} s, so this "
+                  f"resume cannot know which stop it would clear (another operator's estop a moment ago?); "
+                  f"nothing sent. Give --latched-ns T (the safety.latched_ns you saw), --clear-all to clear every "
+                  f"latch, or a longer --wait (telemetry.state_rate_hz of the robot)", file=sys.stderr)
+            return REFUSED
+        body.update(seen)
 
     def put(seq: int, with_ack: bool) -> None:
         out.put(what, body if with_ack else {k: v for k, v in body.items() if k != "ack"})
@@ -210,7 +259,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
-    return _report(args, robot, what, answer, sent, stopped)
+    return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None)
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
@@ -220,7 +269,12 @@ def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
         return None
 
 
-def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False) -> int:
+def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None) -> int:
+    if answer is None and pending is not None:
+        print(f"vbnav send: robot {robot} took {what} at cycle {pending.get('cycle', '?')} and had not finished it "
+              f"within {args.wait:g} s (a mode switch loads its route first): `vbnav monitor` shows the mode once "
+              f"it is done, a longer --wait waits for it", file=sys.stderr)
+        return REFUSED
     if answer is None:
         print(f"vbnav send: no acknowledgement within {args.wait:g} s: the robot may refuse commands from "
               f"{_who(args)} (telemetry.operators)", file=sys.stderr)

@@ -23,9 +23,11 @@ import select
 import signal
 import sys
 import time
+from typing import Callable
 
 from vbnav.control.commands._common import positive
-from vbnav.control.commands._net import CommandPublisher, add_net_args, command_secret, open_robot, robot_answers
+from vbnav.control.commands._net import (CommandPublisher, StateWatch, add_net_args, command_secret, open_robot,
+                                         resume_body, robot_answers)
 from vbnav.drivers.errors import InputError
 
 #: key -> (forward, turn) direction; positive turn is to the right (vision/geometry.py)
@@ -78,16 +80,6 @@ def _check_speeds(args) -> None:
                              "refuse every command")
 
 
-def resume_body(state: dict | None) -> dict | None:
-    """The resume that clears only what the robot's last ``state`` showed: its ``safety.latched_ns``, or, with
-    nothing latched then, the state's own ``stamp_ns`` (a stop that began after it was not seen). None before
-    any state: this program cannot know which stop a resume would clear."""
-    if state is None:
-        return None
-    latched = state["safety"].get("latched_ns")
-    return {"latched_ns": state["stamp_ns"] if latched is None else latched}
-
-
 def run(args) -> int:
     import termios
     import tty
@@ -111,7 +103,6 @@ def run(args) -> int:
             return 3
         out = CommandPublisher(session, robot, "vbnav-teleop", secret)
         refusals: queue.SimpleQueue = queue.SimpleQueue()
-        last_state: list = [None]       # the robot's last state message (its safety.latched_ns: what r resumes)
 
         def on_event(sample) -> None:
             try:
@@ -122,22 +113,14 @@ def run(args) -> int:
                     msg.get("command") in ("teleop", "estop", "resume"):
                 refusals.put(f"robot {robot} refused {msg['command']}: {msg.get('reason', '?')}")
 
-        def on_state(sample) -> None:
-            try:
-                msg = json.loads(sample.payload.to_bytes())
-                if isinstance(msg, dict) and isinstance(msg["safety"], dict) and isinstance(msg["stamp_ns"], int):
-                    last_state[0] = msg
-            except (ValueError, KeyError, TypeError):
-                pass
-
         session.declare_subscriber(f"vbnav/{robot}/events", on_event)
-        session.declare_subscriber(f"vbnav/{robot}/state", on_state)
+        watch = StateWatch(session, robot)      # the robot's last state (its safety.latched_ns: what r resumes)
         saved = termios.tcgetattr(fd)
         # SIGTERM, and SIGHUP (the terminal or ssh session gone): the stream ends with a stop, the terminal restored
         old_handlers = {sig: signal.signal(sig, lambda *_: sys.exit(130)) for sig in (signal.SIGTERM, signal.SIGHUP)}
         try:
             tty.setraw(fd)
-            return _drive(fd, out, args, robot, refusals, last_state)
+            return _drive(fd, out, args, robot, refusals, lambda: watch.state)
         finally:
             termios.tcsetattr(fd, termios.TCSADRAIN, saved)
             for sig, handler in old_handlers.items():
@@ -147,7 +130,8 @@ def run(args) -> int:
         session.close()
 
 
-def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue, last_state: list) -> int:
+def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue,
+           last_state: Callable[[], dict | None]) -> int:
     def say(text: str) -> None:        # raw mode: no newline translation
         sys.stdout.write("\r\x1b[K" + text)
         sys.stdout.flush()
@@ -166,9 +150,9 @@ def _drive(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.Sim
 
 
 def _keys_to_teleop(fd: int, out: CommandPublisher, args, robot: str, refusals: queue.SimpleQueue,
-                    last_state: list, say, streaming_flag: list) -> int:
+                    last_state: Callable[[], dict | None], say, streaming_flag: list) -> int:
     """The key loop; ``streaming_flag[0]``: whether the last teleop sent drove the robot (the caller stops it);
-    ``last_state[0]``: the robot's last state message, or None."""
+    ``last_state()``: the robot's last state message, or None."""
     sys.stdout.write(HELP + f" (robot {robot})\r\n")
     period = 1.0 / args.rate
     twist, held_until, shown = (0.0, 0.0), 0.0, None
@@ -195,7 +179,7 @@ def _keys_to_teleop(fd: int, out: CommandPublisher, args, robot: str, refusals: 
                     out.put("estop", {"reason": "vbnav teleop"})
                     say("estop sent (r resumes)")
                 elif key == "r":
-                    body = resume_body(last_state[0])
+                    body = resume_body(last_state())
                     if body is None:
                         say(f"resume not sent: no state from robot {robot} yet, so this screen cannot know "
                             "which stop it would clear; press r again once it has")

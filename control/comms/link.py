@@ -136,6 +136,8 @@ class TelemetryLink:
         self._mode: Optional[str] = None
         self._applying = None            # the command the loop is applying (loop thread)
         self._closed = False
+        self._network_sink = None        # the ZenohSink: a put it raised means the session is gone
+        self._network_lost = False
         self.recording_error: Optional[str] = None   # the recording failed (set by close, said on stderr)
 
     # ---- construction ----------------------------------------------------------------------
@@ -150,7 +152,7 @@ class TelemetryLink:
         """
         tcfg = cfg.telemetry
         robot = cfg.robot.name
-        sinks, session = [], None
+        sinks, session, network_sink = [], None, None
         verify = _verifier(tcfg) if tcfg.enabled and network else None   # before anything is opened
         if recorder is not None:
             recorder.new_segment(segment)
@@ -173,7 +175,8 @@ class TelemetryLink:
                 raise ConnectionError(f"telemetry: cannot open the zenoh session listening on "
                                       f"{', '.join(tcfg.listen) or '(nothing)'}: {exc} (another vbnav run on the "
                                       f"same port? set telemetry.listen)") from None
-            sinks.append(ZenohSink(session, robot))
+            network_sink = ZenohSink(session, robot)
+            sinks.append(network_sink)
         clock = runtime.clock
         live_view, holder = None, {}
         if session is not None and tcfg.live_view.enabled:
@@ -196,6 +199,7 @@ class TelemetryLink:
                                        now_ns=clock.now_ns)
         link = cls(runtime, tcfg, publisher, session, recorder)
         link.live_view = live_view
+        link._network_sink = network_sink
         holder["link"] = link
         # The inbox also takes commands from local sources (tests, a future local console).
         link.inbox = CommandInbox(limits_from_config(cfg), deliver=lambda cmd: link.runtime.submit(cmd),
@@ -205,6 +209,7 @@ class TelemetryLink:
             link.routes = _route_server(session, cfg, verify, runtime)
         runtime.command_observers.insert(0, link._on_command_start)
         runtime.command_listeners.append(link._on_command_applied)
+        runtime.pending_listeners.append(link._on_command_pending)
         runtime.cycle_observers.append(link._on_cycle)
         runtime.safety.listeners.append(link._on_safety)
         if runtime.pipeline is not None:
@@ -218,6 +223,12 @@ class TelemetryLink:
     # ---- runtime hooks (loop thread) -------------------------------------------------------
     def _on_cycle(self, rt, ctx, twist, wheel_command) -> None:
         self._applying = None   # a command refused in this cycle: later refusals are not its answer
+        failed = self.publisher.sink_failures.get(self._network_sink) if self._network_sink is not None else None
+        if failed is not None and not self._network_lost:
+            # zenoh raises on a put only when the session is unusable (closed, broken); a peer gone is no error
+            self._network_lost = True
+            rt.end_run("network", f"telemetry: the zenoh session failed ({failed!r}): no network command, an "
+                                  f"estop included, can reach the robot any more")
         mode = rt.controller.name
         if mode != self._mode:
             self.publisher.event("mode_change", stamp_ns=ctx.now_ns, mode=mode, previous=self._mode)
@@ -311,6 +322,16 @@ class TelemetryLink:
         if self.publisher.offer_foxglove(stamp, "/vbnav/map/lines", lambda t: fc.line_map_message(
                 t, scene.P, scene.verified, scene.hypothesis)):
             self._map_revision = scene.revision
+
+    def _on_command_pending(self, rt, cmd, now_ns: int) -> None:
+        """``command_pending``: the controller took the command and finishes it later (a mode switch loading
+        its route); its ``command`` or ``command_rejected`` follows."""
+        self._applying = None
+        fields = dict(command=cmd.kind, args=list(cmd.args), sender=cmd.source, cycle=rt.cycle,
+                      arrival_ns=cmd.arrival_ns)
+        if cmd.ack:
+            fields["ack"] = cmd.ack
+        self.publisher.event("command_pending", stamp_ns=now_ns, **fields)
 
     def _on_command_applied(self, rt, cmd, outcome, now_ns: int) -> None:
         """``command``: published once the loop applied it. Teleop streams at 10-20 Hz: only a teleop that

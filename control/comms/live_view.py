@@ -203,7 +203,7 @@ class LiveView(Sink, ServerListener):
             if not all(isinstance(n, (int, float)) and not isinstance(n, bool) for n in (x, z)):
                 raise TypeError(f"linear.x and angular.z must be numbers, got {x!r} and {z!r}")
             linear, angular = float(x), -float(z)       # ROS/Foxglove: positive turns left; vbnav: right
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, OverflowError) as exc:   # Overflow: an int too large for a float
             self._refuse("teleop", f"Foxglove teleop: expected a JSON geometry_msgs/Twist ({exc!r})",
                          bytes(data[:200]))
             return

@@ -22,7 +22,8 @@ validates it (pydantic), and posts an ``OperatorCommand`` to ``Runtime.submit`` 
 ``CommandMailbox``): estop, resume and mode wait in a lane nothing evicts; teleop keeps only the
 newest message per sender. The loop drains the mailbox once per cycle, never blocking.
 Malformed, unknown, out-of-range, oversized, unsigned (with ``telemetry.shared_secret_file``),
-stale or out-of-order commands are refused with a ``command_rejected`` event (stale and
+stale or out-of-order commands are refused with a ``command_rejected`` event (but an estop whose body
+is malformed or oversized stops the robot all the same, its trip naming the fault: ``refuse_body``) (stale and
 out-of-order teleop without an ``ack`` at most once a second per reason, with a count): they
 never raise into zenoh or the loop and never move the robot. Unauthorised peers are stopped
 earlier, by zenoh's access control (see network.py): their messages never arrive.
@@ -33,6 +34,7 @@ send time.
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -49,6 +51,20 @@ ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
 
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+REASON_MAX_CHARS = 200             # an estop's reason
+
+
+def _printable(v: Optional[str]) -> Optional[str]:
+    """Free text the robot prints (its console's event echo, the journal, vbnav monitor): a terminal escape or a
+    line break there could clear the screen or forge a line ('safety reset: estop')."""
+    if v is not None:
+        m = CONTROL_CHARACTERS.search(v)
+        if m:
+            raise ValueError(f"control character {m.group()!r} at {m.start()}: printable text only")
+    return v
+
+
 class _Cmd(BaseModel):
     # strict: types as JSON gives them (an int is a number too), never coerced: "linear": true was taken as
     # 1.0 m/s and "0.3" as 0.3, a sender's bug driving the robot instead of a refusal
@@ -61,9 +77,13 @@ class _Cmd(BaseModel):
     ack: Optional[str] = Field(None, pattern=ACK_PATTERN, description="echoed in the command / command_rejected "
                                "event of this command")
 
+    _printable_text = field_validator("sender", "session")(_printable)
+
 
 class EstopCmd(_Cmd):
-    reason: str = Field("", max_length=200)
+    reason: str = Field("", max_length=REASON_MAX_CHARS)
+
+    _printable_reason = field_validator("reason")(_printable)
 
 
 class ResumeCmd(_Cmd):
@@ -193,10 +213,10 @@ class CommandInbox:
             cmd = parse_command(kind, payload, self.limits)
             reason = self._deliver(operator_command(cmd))
         except CommandRejected as exc:
-            self.refuse(kind, str(exc), payload)
+            self.refuse_body(kind, str(exc), payload)
             return None
         except Exception as exc:  # never let a command crash the zenoh callback thread
-            self.refuse(kind, f"internal error: {exc!r}", payload)
+            self.refuse_body(kind, f"internal error: {exc!r}", payload)
             return None
         if reason:
             # A teleop that asks for an answer (ack: vbnav send) gets one; a stream without acks is summarised.
@@ -204,6 +224,21 @@ class CommandInbox:
             return None
         self.accepted += 1
         return cmd
+
+    def refuse_body(self, kind: str, reason: str, payload) -> None:
+        """A payload that is not a valid command (``reason``): refused, except an estop's. A stop asked for on
+        cmd/estop by a peer allowed to command is taken whatever else its body says (a reason too long or
+        null, an unknown key, not JSON, too large to read): refused, the robot drove on. Its trip names what
+        was wrong with the body."""
+        if kind != "estop":
+            self.refuse(kind, reason, payload)
+            return
+        why = f"its payload was refused ({reason[:300]}), stopped all the same"
+        refused = self._deliver(OperatorCommand("estop", (why,), source="zenoh"))    # the mailbox never refuses
+        if refused:                                                                  # an estop but when closed
+            self.refuse(kind, refused, payload)
+        else:
+            self.accepted += 1
 
     def refuse(self, kind: str, reason: str, payload, stream: bool = False) -> None:
         """Count a refusal and report it (``payload``: the bytes, or b"" when it was not read).
@@ -249,7 +284,7 @@ class CommandSubscriber:
             kind = key[len(self._prefix):] if key.startswith(self._prefix) else key
             size = len(sample.payload)       # zenoh's buffer: nothing is copied into Python yet
             if size > MAX_PAYLOAD:
-                self._inbox.refuse(kind, f"payload of {size} bytes exceeds {MAX_PAYLOAD}; not read", b"")
+                self._inbox.refuse_body(kind, f"payload of {size} bytes exceeds {MAX_PAYLOAD}; not read", b"")
                 return
             payload = sample.payload.to_bytes()
             if self._verify is not None:

@@ -34,6 +34,7 @@ from vbnav.vision.geometry import Pose2
 STATE_SCHEMA, EVENT_SCHEMA, IMAGE_SCHEMA = "vbnav.state", "vbnav.event", "vbnav.image"
 SCHEMA_VERSION = 1
 QUEUE_LIMIT = 256
+CLOSE_WAIT_S = 10.0      # at the end of a run, how long the publisher thread may take to publish what is queued
 
 
 def keys(robot: str) -> dict[str, str]:
@@ -220,6 +221,7 @@ class TelemetryPublisher:
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._thread: Optional[threading.Thread] = None
         self._closed = False
+        self._busy: Optional[Sink] = None    # the sink the publisher thread is in (close names one that blocks)
         self.dropped = 0            # samples not queued because the queue was full
         self.sink_errors = 0
         self.sink_failures: dict = {}   # sink -> its first error (a full disk under a recording, say)
@@ -283,16 +285,22 @@ class TelemetryPublisher:
         self._thread.start()
         return self
 
-    def close(self, timeout_s: float = 10.0) -> None:
+    def close(self, timeout_s: Optional[float] = None) -> None:
         """Publish what is queued, stop the thread and close the sinks (idempotent)."""
         if self._closed:
             return
+        timeout_s = CLOSE_WAIT_S if timeout_s is None else timeout_s
         self._closed = True
         self._q.put(None)
         if self._thread is not None:
             self._thread.join(timeout_s)
             if self._thread.is_alive():  # a sink hangs: closing it under the thread's feet would corrupt it
                 self.sink_errors += 1
+                busy = self._busy
+                where = type(busy).__name__ if busy is not None else "a sink"
+                for s in self.sinks:     # none is closed: a recording stays PATH.part, which is said
+                    self._sink_failed(s, TimeoutError(f"not closed: the telemetry thread was still in {where} "
+                                                      f"after {timeout_s:g} s"))
                 return
         else:
             self._drain()
@@ -338,11 +346,7 @@ class TelemetryPublisher:
                 self._emit("event", stamp, msg)
             elif kind == "foxglove":
                 _, stamp, topic, build = item
-                for s in self.sinks:
-                    try:
-                        s.foxglove(stamp, topic, build)
-                    except Exception as exc:
-                        self._sink_failed(s, exc)
+                self._each_sink(lambda s: s.foxglove(stamp, topic, build))
             elif kind == "image":
                 _, stamp, seq, image, overlay = item
                 jpeg, w, h = encode_jpeg(image, self._image_width, self._jpeg_quality)
@@ -353,13 +357,19 @@ class TelemetryPublisher:
                 self._emit("image", stamp, msg, jpeg)
                 if overlay is not None:
                     scaled = overlay.scaled(w / image.shape[1])
-                    for s in self.sinks:
-                        try:
-                            s.annotations(stamp, scaled)
-                        except Exception as exc:
-                            self._sink_failed(s, exc)
+                    self._each_sink(lambda s: s.annotations(stamp, scaled))
         except Exception:  # a bad sample must never kill telemetry
             self.sink_errors += 1
+
+    def _each_sink(self, call: Callable[[Sink], None]) -> None:
+        """``call`` on every sink; one that raises is counted, one that blocks is named by ``close``."""
+        for s in self.sinks:
+            self._busy = s
+            try:
+                call(s)
+            except Exception as exc:
+                self._sink_failed(s, exc)
+        self._busy = None
 
     def _sink_failed(self, sink, exc: Exception) -> None:
         self.sink_errors += 1
@@ -371,16 +381,12 @@ class TelemetryPublisher:
 
     def _emit(self, kind: str, stamp: int, msg: dict, jpeg: bytes = b"") -> None:
         payload = json.dumps(msg, separators=(",", ":"), allow_nan=False, default=str).encode()
-        for s in self.sinks:
-            try:
-                if kind == "state":
-                    s.state(stamp, payload, msg)
-                elif kind == "event":
-                    s.event(stamp, payload, msg)
-                else:
-                    s.image(stamp, payload, msg, jpeg)
-            except Exception as exc:
-                self._sink_failed(s, exc)
+        if kind == "state":
+            self._each_sink(lambda s: s.state(stamp, payload, msg))
+        elif kind == "event":
+            self._each_sink(lambda s: s.event(stamp, payload, msg))
+        else:
+            self._each_sink(lambda s: s.image(stamp, payload, msg, jpeg))
         self.published[kind] += 1
 
 

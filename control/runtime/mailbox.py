@@ -45,6 +45,13 @@ sender's clock, not by when the loop gets to a message:
   message says) was stale for good. A stamp up to the window ahead is still taken: it cannot be
   told from a first message that was that long on the way, and it costs the sender at most that
   much of each later teleop's freshness (a new ``session`` starts afresh).
+- A first message sets the offset estimate alone: one stamped far ahead (a clock glitch, a peer copying the
+  sender and session) made every later teleop of that session stale for good. One monotonic clock numbered
+  in order (``vbnav send``, ``vbnav teleop``, the live view) never gives a higher ``seq`` a lower stamp: such
+  a message restarts the estimate from itself, as a new session would (no looser than one: a new session's
+  first message is taken as sent on arrival too). Without ``seq`` nothing tells that glitch from a steady
+  transport backlog the robot must refuse (both show every later message late by the same amount), so such
+  a sender stays stale until it starts a new ``session``.
 
 After a loop stall, an estop or a lost drive the runtime calls ``refuse_teleop_sent_before``:
 teleop sent before the stop began is stale, even if younger than the timeout (``sent_before_stop``
@@ -121,10 +128,11 @@ class _Entry:
 class _Sender:
     """What the mailbox knows about one teleop sender: ordering, clock offset, the waiting command."""
 
-    __slots__ = ("last_seq", "offset_ns", "offset_at", "last_arrival", "pending")
+    __slots__ = ("last_seq", "last_stamp", "offset_ns", "offset_at", "last_arrival", "pending")
 
     def __init__(self):
         self.last_seq: Optional[int] = None
+        self.last_stamp: Optional[int] = None    # the stamp of the message that set last_seq
         self.offset_ns: Optional[int] = None     # robot clock - sender clock, min-delay estimate
         self.offset_at = 0
         self.last_arrival = 0
@@ -138,6 +146,12 @@ class _Sender:
             rise = min(int((arrival_ns - self.offset_at) * DRIFT), DRIFT_CAP_NS)
             self.offset_ns = min(self.offset_ns + max(rise, 0), d)
         self.offset_at = arrival_ns
+
+    def two_clocks(self, seq: Optional[int], stamp_ns: int) -> bool:
+        """Whether a message numbered after the last one taken carries an earlier stamp: one monotonic clock
+        never reads so, so the stamps that set the offset estimate were not all this sender's clock."""
+        return seq is not None and self.last_seq is not None and self.last_stamp is not None and \
+            seq > self.last_seq and stamp_ns < self.last_stamp
 
     def impossible_stamp(self, arrival_ns: int, stamp_ns: int, window_ns: int, source: str) -> Optional[str]:
         """Why ``stamp_ns`` cannot be a reading of this sender's clock, else None."""
@@ -203,6 +217,8 @@ class CommandMailbox:
         if cmd.seq is not None and s.last_seq is not None and cmd.seq <= s.last_seq:
             return f"out of order: seq {cmd.seq} after {s.last_seq} from {cmd.source}"
         if cmd.stamp_ns is not None:
+            if s.two_clocks(cmd.seq, cmd.stamp_ns):
+                s.offset_ns = None     # tracked afresh from this message, as a new session would be
             impossible = s.impossible_stamp(arrival, cmd.stamp_ns, self.stale_after_ns, cmd.source)
             if impossible:
                 return impossible
@@ -211,7 +227,7 @@ class CommandMailbox:
         if reason:
             return reason
         if cmd.seq is not None:
-            s.last_seq = cmd.seq
+            s.last_seq, s.last_stamp = cmd.seq, cmd.stamp_ns
         s.last_arrival = arrival
         if s.pending is not None:
             self.coalesced += 1

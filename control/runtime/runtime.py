@@ -211,12 +211,16 @@ class Runtime:
         self.command_observers: list[Callable[["Runtime", OperatorCommand, int], None]] = []
         # called after a command took effect (not for refused ones): (runtime, command, outcome, now_ns)
         self.command_listeners: list[Callable[["Runtime", OperatorCommand, CommandOutcome, int], None]] = []
+        # called when the controller took a command to finish later (PENDING: a mode switch loading its route),
+        # before its answer: (runtime, command, now_ns)
+        self.pending_listeners: list[Callable[["Runtime", OperatorCommand, int], None]] = []
         self.wheel_command = (0.0, 0.0)
         self.last_twist = STOP
         self.wheels: Optional[WheelState] = None
         self.ctx: Optional[ControlContext] = None
         self.cycle = 0
         self._signal: Optional[int] = None
+        self._end_asked: Optional[tuple[str, str]] = None    # end_run's (reason, message)
         self._enabled = False
         self._unstopped: Optional[str] = None    # what the last stop did not reach, until a resend is taken
         self._unstopped_told_end = False         # its warning said the run ends with it (no resend follows)
@@ -232,8 +236,8 @@ class Runtime:
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
-        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back) was sent
-        # before anyone could know of it, and does not clear it
+        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back, an estop taken)
+        # was sent before anyone could know of it, and does not clear it
         self._resume_after: Optional[tuple[int, str]] = None
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
@@ -246,6 +250,10 @@ class Runtime:
 
     def request_stop(self, signum: int = signal.SIGTERM) -> None:
         self._signal = signum
+
+    def end_run(self, reason: str, message: str) -> None:
+        """Any thread: a fatal ``reason`` (a FATAL cause) ends the run at the next cycle, the wheels stopped."""
+        self._end_asked = (reason, message)
 
     # -- main --------------------------------------------------------------
     def run(self, duration_s: Optional[float] = None,
@@ -339,6 +347,8 @@ class Runtime:
             if self._signal is not None:
                 name = signal.Signals(self._signal).name
                 return self._finish(now, "signal", f"received {name}")
+            if self._end_asked is not None:
+                return self._finish(now, *self._end_asked)
             if self.loop.timing.streak >= self.cfg.loop.max_missed_streak:
                 return self._finish(now, "deadline",
                                     f"{self.loop.timing.streak} consecutive missed deadlines "
@@ -587,6 +597,9 @@ class Runtime:
             self._in_hand = self._in_hand[1:]
             if not outcome.pending:
                 self._answer(cmd, outcome, now)
+            else:
+                for fn in self.pending_listeners:
+                    fn(self, cmd, now)
 
     def complete_command(self, cmd: OperatorCommand, outcome: CommandOutcome, now: int) -> None:
         """A command the controller answered ``PENDING`` is done (loop thread): applied, or refused with
@@ -612,6 +625,9 @@ class Runtime:
         if cmd.kind == "estop":
             self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
             self._forget_teleop(now if cmd.arrival_ns is None else cmd.arrival_ns, "the estop")
+            # a resume drained with it arrived before anyone could see it (the state showing it goes out after
+            # this cycle): taken, it cleared the estop in the cycle it was applied, and the wheels drove on
+            self._resume_after = (now, f"the estop from {cmd.source} took effect")
             return APPLIED
         stale = self.mailbox.sent_before_stop(cmd)   # a teleop drained behind the estop, sent before it
         if stale:

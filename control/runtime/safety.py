@@ -28,7 +28,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterator
 
-FATAL = ("exception", "signal", "deadline", "drive", "camera")
+FATAL = ("exception", "signal", "deadline", "drive", "camera", "network")
 
 #: Held causes that release the cycle they clear, without the ``release_s`` debounce. A silent command
 #: stream (``command_timeout``) ends when a fresh command arrives: the command's own freshness (sent within
