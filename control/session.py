@@ -22,7 +22,7 @@ from vbnav.control.config import Config
 from vbnav.control.controllers.manual import TeleopController
 from vbnav.control.controllers.path import PathFollower, room_loop
 from vbnav.control.controllers.repeat import RepeatController
-from vbnav.control.route import Route, RouteWriter, check_route_camera, check_route_mount
+from vbnav.control.route import Route, RouteWriter, check_route_config
 from vbnav.control.runtime.factory import Robot
 from vbnav.control.runtime.finishing import finishing
 from vbnav.control.runtime.interfaces import Controller
@@ -95,11 +95,8 @@ class Repeating:
     def __init__(self, cfg: Config, route: Route):
         vcfg = cfg.vbc
         self.route = route
-        camera = cfg.camera.to_model()
-        cal = cfg.camera.calibration
-        check_route_camera(route, camera, cfg.source or "the configuration", cal.file if cal else None)
-        check_route_mount(route, cfg.camera.mount.to_mount(), cfg.source or "the configuration")
-        self.stage = RepeatStage(route, vcfg, camera, cfg.camera.mount.to_mount())
+        check_route_config(route, cfg)
+        self.stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
         self.controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
 
 
