@@ -197,14 +197,21 @@ def run(args) -> int:
             finally:
                 link.close(result)
     printer.done()
+    map_refused = None
     if live is not None:
         for msg in live.new_events():
             print(f"goto: {msg}")
         print(live.summary())
         if args.map_out:
-            with finishing("saving the map as grown while driving"):    # nor lose the grown map
-                live.save(args.map_out)
-            print(f"map as grown while driving -> {args.map_out}")
+            from vbnav.control.line_map_file import MapFileError
+            try:
+                with finishing("saving the map as grown while driving"):    # nor lose the grown map
+                    live.save(args.map_out)
+                print(f"map as grown while driving -> {args.map_out}")
+            except MapFileError as exc:     # the goto's own summary is still said
+                map_refused = exc
+                print(f"vbnav goto: --map-out: {exc}; the map as grown while driving was not saved",
+                      file=sys.stderr)
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
     if "x" in s:
@@ -227,5 +234,6 @@ def run(args) -> int:
         return 130
     if result.reason in DEVICE_FAULTS:     # a device failed or is not there
         return 3
-    return 0 if result.reason == "finished" and link.recording_error is None else 1   # a --record not made
+    # a --record or --map-out not made
+    return 0 if result.reason == "finished" and link.recording_error is None and map_refused is None else 1
 
