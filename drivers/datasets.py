@@ -348,7 +348,7 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
             raise CalibrationError(f"{path}: width/height: expected positive sizes, got "
                                    f"{args['width']}x{args['height']}")
         if data.get("baseline") is not None:
-            check_baseline(str(path), _number(data["baseline"]))
+            data["baseline"] = check_baseline(str(path), data["baseline"])
         if data.get("depth_scale") is not None and not _number(data["depth_scale"]) > 0:
             raise CalibrationError(f"{path}: depth_scale: expected metres per depth unit > 0, "
                                    f"got {data['depth_scale']!r}")
