@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import sys
 
-from vbnav.control.commands._common import add_config_arg, finite, positive
+from vbnav.control.commands._common import add_config_arg, finite, positive, refuse_unserved_live_view
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
                                         no_path_reason, plan_path)
@@ -61,6 +61,7 @@ def run(args) -> int:
     from vbnav.vision.geometry import Pose2
 
     cfg = load_config(args.config)
+    refuse_unserved_live_view(cfg, args.no_telemetry)
     nav = cfg.vslam
     if nav.metric_scale == "stereo" and stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "

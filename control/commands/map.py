@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import (add_config_arg, distinct_files, not_recorded_yet, output_file,
-                                           positive, record_target_error)
+                                           positive, record_target_error, refuse_unserved_live_view)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
 
@@ -93,6 +93,7 @@ def run_build(args) -> int:
         cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
+    refuse_unserved_live_view(cfg, args.no_telemetry, "add --realtime")
     try:
         stage = LineMapStage.from_config(cfg)
     except ValueError as exc:
