@@ -251,3 +251,16 @@ def test_a_bundle_adjustment_window_with_stereo_scale_is_refused():
     with pytest.raises(ConfigError, match=r"robot\.yaml: vslam: .*ba_window 7.*metric_scale stereo"):
         parse_config({"vslam": {"ba_window": 7}}, "robot.yaml")
     assert parse_config({"vslam": {"ba_window": 7, "metric_scale": "odometry"}}, "robot.yaml").vslam.ba_window == 7
+
+
+def test_an_obstacle_baseline_that_disagrees_with_the_cameras_is_refused():
+    """obstacles.baseline was compared with a calibration file's baseline only: beside the simulated camera's
+    camera.options.stereo_baseline it was taken as given, so one rig had two baselines in one run (the obstacle
+    stage used obstacles.baseline; the VSLAM of goto and the line map of map build, the camera's) and every
+    obstacle depth was off by their ratio. Refused beyond 1 % (BASELINE_AGREEMENT), naming both."""
+    from vbnav.control.config import ConfigError, load_config
+    with pytest.raises(ConfigError, match=r"obstacles\.baseline 0\.1 m.*camera\.options\.stereo_baseline "
+                                          r"0\.075 m"):
+        load_config("sim_stereo", overrides={"obstacles": {"baseline": 0.1}})
+    assert load_config("sim_stereo", overrides={"obstacles": {"baseline": 0.0752}}).obstacles.baseline == 0.0752
+    assert load_config("sim", overrides={"obstacles": {"baseline": 0.1}}).obstacles.baseline == 0.1

@@ -384,6 +384,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     cfg.source = source
     validate_driver_options(cfg, source)
     apply_calibration_file(cfg, source)
+    check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
                                            "with a stereo calibration file") if cfg.obstacles.enabled else ""
     if refusal:
@@ -404,6 +405,17 @@ def calibration_path(cfg: Config, source: str) -> Optional[Path]:
 
 # Two stereo baselines for one rig that differ by more than this share: two different rigs in one config.
 BASELINE_AGREEMENT = 0.01
+
+
+def check_obstacle_baseline(cfg: Config, source: str) -> None:
+    """Refuse ``obstacles.baseline`` beside another ``camera.options.stereo_baseline``: one rig, two baselines
+    (the obstacle stage would use the first, the VSLAM and the line map the second). A calibration file's
+    baseline is compared with both in ``apply_calibration_file``."""
+    mine, cam = cfg.obstacles.baseline, (cfg.camera.options or {}).get("stereo_baseline")
+    if mine and cam and abs(float(mine) - float(cam)) > BASELINE_AGREEMENT * float(cam):
+        raise ConfigError(f"{source}: obstacles.baseline {float(mine):g} m, camera.options.stereo_baseline "
+                          f"{float(cam):g} m: two stereo baselines for one rig (the obstacle stage would use the first, "
+                          f"the VSLAM and the line map the second); remove obstacles.baseline")
 
 
 def apply_calibration_file(cfg: Config, source: str) -> None:

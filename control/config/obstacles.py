@@ -49,7 +49,7 @@ class ObstaclesConfig(Strict):
     baseline: Optional[float] = Field(None, gt=0, description="m; default the camera's stereo baseline "
                                       "(camera.calibration_file's, else camera.options.stereo_baseline), else the "
                                       "frames' meta['baseline_m'] (OAK); given with a calibration file that has "
-                                      "one, the two must agree within 1 %")
+                                      "one, or with camera.options.stereo_baseline, the two must agree within 1 %")
     obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
     negative_depth: float = Field(0.03, gt=0, description="m below the floor that is a negative obstacle")
     noise_px: float = Field(0.4, ge=0, description="disparity noise floor, px")
