@@ -264,3 +264,14 @@ def test_an_obstacle_baseline_that_disagrees_with_the_cameras_is_refused():
         load_config("sim_stereo", overrides={"obstacles": {"baseline": 0.1}})
     assert load_config("sim_stereo", overrides={"obstacles": {"baseline": 0.0752}}).obstacles.baseline == 0.0752
     assert load_config("sim", overrides={"obstacles": {"baseline": 0.1}}).obstacles.baseline == 0.1
+
+
+def test_a_slow_scale_on_a_stop_zone_is_refused():
+    """obstacles.zones[].slow_scale is the speed factor of a slow zone: given on a stop zone (an edit that
+    meant 'slow down here' and forgot action: slow) it was accepted and the zone stopped the robot. Refused,
+    naming the zone and the field; a slow zone takes it."""
+    zone = {"name": "front", "distance": 0.8, "half_width": 0.25, "slow_scale": 0.5}
+    with pytest.raises(ConfigError, match=r"obstacles\.zones.*zone 'front': slow_scale 0\.5 .*action: stop"):
+        load_config("sim", overrides={"obstacles": {"zones": [zone]}})
+    cfg = load_config("sim", overrides={"obstacles": {"zones": [{**zone, "action": "slow"}]}})
+    assert cfg.obstacles.zones[0].slow_scale == 0.5

@@ -17,7 +17,8 @@ class ZoneConfig(Strict):
     half_width: Optional[float] = Field(None, gt=0, description="band: width either side of the centre line, m")
     polygon: Optional[list[tuple[float, float]]] = Field(None, description="instead of a band: at least 3 "
                                                                            "(x right, z forward) vertices, m")
-    slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers")
+    slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers (slow zones "
+                                                           "only: refused on a stop zone)")
     min_points: int = Field(8, ge=1, description="obstacle pixels inside that trigger the zone")
 
     @model_validator(mode="after")
@@ -31,6 +32,10 @@ class ZoneConfig(Strict):
             raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
         if self.polygon is not None and not all(math.isfinite(v) for vertex in self.polygon for v in vertex):
             raise ValueError(f"zone {self.name!r}: polygon vertices must be finite numbers, m")
+        if self.action == "stop" and "slow_scale" in self.model_fields_set:
+            raise ValueError(f"zone {self.name!r}: slow_scale {self.slow_scale:g} is the speed factor of a slow "
+                             f"zone, and this zone has action: stop (it stops the robot); set action: slow, or "
+                             f"remove slow_scale")
         return self
 
 
