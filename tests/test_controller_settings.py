@@ -6,6 +6,7 @@ Goto: one VSLAM fix near the goal. Safety: the held-stop release delay. Path fol
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -195,3 +196,15 @@ def test_out_of_range_gains_are_configuration_errors(section, key, bad):
     data = {section: {"goto": {key: bad}} if section == "vslam" else {key: bad}}
     with pytest.raises(ConfigError, match=key):
         parse_config(data, "test.yaml")
+
+
+@pytest.mark.parametrize("section, key", [({"vbc": {"cruise_speed": 0.25}}, "vbc.cruise_speed"),
+                                          ({"vslam": {"goto": {"cruise_speed": 0.3}}}, "vslam.goto.cruise_speed")])
+def test_a_cruise_speed_set_above_the_robots_limit_is_refused(section, key):
+    """vbc.cruise_speed (the repeat) and vslam.goto.cruise_speed (goto) set above robot.max_linear_speed were
+    accepted and cut to the limit without a word: the speed written was never driven. Refused, naming both;
+    the defaults (not written) stay at most the robot's limit, as documented."""
+    with pytest.raises(ConfigError, match=rf"{re.escape(key)} 0\.\d+ m/s is above robot\.max_linear_speed 0\.18"):
+        parse_config({"robot": {"max_linear_speed": 0.18}, **section})
+    cfg = parse_config({"robot": {"max_linear_speed": 0.18}})
+    assert cfg.vbc.cruise_speed == 0.25 and cfg.vslam.goto.cruise_speed == 0.3      # defaults: cut to 0.18

@@ -330,6 +330,17 @@ class Config(Strict):
         return self
 
     @model_validator(mode="after")
+    def _cruise_speeds_within_the_robots_limit(self):
+        # A cruise speed written above the robot's limit was cut to it without a word; the defaults (not
+        # written) are cut as documented ("at most robot.max_linear_speed").
+        v_max = self.robot.max_linear_speed
+        for key, section in (("vbc.cruise_speed", self.vbc), ("vslam.goto.cruise_speed", self.vslam.goto)):
+            if "cruise_speed" in section.model_fields_set and section.cruise_speed > v_max:
+                raise ValueError(f"{key} {section.cruise_speed:g} m/s is above robot.max_linear_speed {v_max:g} m/s: "
+                                 f"it would be cut to {v_max:g} m/s (lower {key}, or raise the robot's limit)")
+        return self
+
+    @model_validator(mode="after")
     def _scripted_teacher_only_in_simulation(self):
         # A scripted loop through a room the robot cannot see is never what real motors should drive.
         # (an unknown driver is not a real drive: validate_driver_options names it as unknown)

@@ -74,7 +74,8 @@ class VBCConfig(Strict):
                                 "not trusted, and the reason names the camera mount, deg: beyond a few "
                                 "degrees the mount itself has moved and needs fixing")
     pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
-    cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s (at most robot.max_linear_speed)")
+    cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s, at most robot.max_linear_speed (the "
+                                "default is cut to it; a value written above it is refused)")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new fix's correction applied at once")
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone (no fix, or only "

@@ -11,7 +11,8 @@ from vbnav.vision.vslam import VslamConfig
 class GotoConfig(Strict):
     """``vslam.goto``: the go-to controller's gains and tolerances."""
 
-    cruise_speed: float = Field(0.3, gt=0, description="top speed, m/s (at most robot.max_linear_speed)")
+    cruise_speed: float = Field(0.3, gt=0, description="top speed, m/s, at most robot.max_linear_speed (the "
+                                "default is cut to it; a value written above it is refused)")
     k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
     k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
     k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
