@@ -275,3 +275,15 @@ def test_a_slow_scale_on_a_stop_zone_is_refused():
         load_config("sim", overrides={"obstacles": {"zones": [zone]}})
     cfg = load_config("sim", overrides={"obstacles": {"zones": [{**zone, "action": "slow"}]}})
     assert cfg.obstacles.zones[0].slow_scale == 0.5
+
+
+@pytest.mark.parametrize("key, value", [("sgbm_block_size", 5), ("sgbm_near_margin", 0.7)])
+def test_sgbm_settings_with_the_frames_own_disparity_are_refused(key, value):
+    """obstacles.source: disparity takes the frames' own disparity (an OAK's) and never runs SGBM: an
+    obstacles.sgbm_* setting beside it was accepted and never used. Refused, naming both; with source sgbm or
+    auto (SGBM on frames without a disparity) it is taken."""
+    with pytest.raises(ConfigError, match=rf"obstacles.*{key} .*source: disparity"):
+        load_config("sim", overrides={"obstacles": {"source": "disparity", key: value}})
+    for source in ("sgbm", "auto"):
+        assert getattr(load_config("sim", overrides={"obstacles": {"source": source, key: value}}).obstacles,
+                       key) == value

@@ -94,6 +94,12 @@ class ObstaclesConfig(Strict):
             raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        unused = sorted({"sgbm_block_size", "sgbm_near_margin"} & self.model_fields_set)
+        if self.source == "disparity" and unused:
+            raise ValueError(f"{' and '.join(unused)} {'set' if len(unused) > 1 else 'sets'} the stereo matching "
+                             f"(SGBM), which source: disparity never "
+                             f"runs (it takes the frames' own disparity); remove {' and '.join(unused)}, or set "
+                             f"source: auto or sgbm")
         if not self.zones:
             raise ValueError("zones: at least one zone (the stage watches the floor of the stop zones; without "
                              "zones it could never slow or stop the robot)")
