@@ -89,3 +89,20 @@ class VslamNavConfig(VslamConfig, Strict):
                              f"camera's own motion; with metric_scale stereo the pair measures every landmark, so "
                              f"it would change nothing (ba_window 0, or metric_scale odometry for one camera)")
         return self
+
+    @model_validator(mode="after")
+    def _settings_that_apply(self):
+        # written where they do not apply, these were accepted and never read
+        given = self.model_fields_set
+        unused = [(k, "a single camera's scale (metric_scale odometry)") for k in sorted(given)
+                  if k.startswith("odometry_") and self.metric_scale == "stereo"]
+        if "stereo_max_depth_baselines" in given and self.metric_scale == "odometry":
+            unused.append(("stereo_max_depth_baselines", "a stereo pair's landmarks (metric_scale stereo)"))
+        unused += [(k, "the bundle adjustment (ba_window > 0)") for k in ("ba_history", "ba_outlier_sigmas")
+                   if k in given and self.ba_window == 0]
+        if unused:
+            k, what = unused[0]
+            raise ValueError(f"{k}: it sets {what}, which this configuration does not run (metric_scale "
+                             f"{self.metric_scale}, ba_window {self.ba_window}): remove it, or configure what it "
+                             f"applies to")
+        return self
