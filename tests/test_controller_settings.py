@@ -208,3 +208,11 @@ def test_a_cruise_speed_set_above_the_robots_limit_is_refused(section, key):
         parse_config({"robot": {"max_linear_speed": 0.18}, **section})
     cfg = parse_config({"robot": {"max_linear_speed": 0.18}})
     assert cfg.vbc.cruise_speed == 0.25 and cfg.vslam.goto.cruise_speed == 0.3      # defaults: cut to 0.18
+
+
+def test_slow_landmarks_below_min_landmarks_is_refused():
+    """vbc.slow_landmarks below vbc.min_landmarks was accepted: the repeat then never slowed for a weak fix (full
+    speed from slow_landmarks agreeing, min_landmarks_speed_factor never applied). Refused, naming both."""
+    with pytest.raises(ConfigError, match=r"vbc: slow_landmarks 10 is below min_landmarks 12"):
+        parse_config({"vbc": {"slow_landmarks": 10}})
+    assert parse_config({"vbc": {"slow_landmarks": 12}}).vbc.slow_landmarks == 12

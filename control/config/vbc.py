@@ -1,7 +1,7 @@
 """The ``vbc:`` section: teach-and-repeat by Vision-Based Control (tracking, keyframes, repeat)."""
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from vbnav.control.config.base import Strict
 
 
@@ -106,3 +106,11 @@ class VBCConfig(Strict):
                                     "the tracks kept while teaching (max_features), so most have a candidate")
     reacquire_inlier_sigmas: float = Field(2.0, gt=0, description="a re-acquired match must fit the epipolar "
                                            "geometry of the others within this many bearing_sigma_px")
+
+    @model_validator(mode="after")
+    def _slowing_between_min_and_slow_landmarks(self):
+        if self.slow_landmarks < self.min_landmarks:
+            raise ValueError(f"slow_landmarks {self.slow_landmarks} is below min_landmarks {self.min_landmarks}: the "
+                             f"repeat would never slow for a weak fix (min_landmarks_speed_factor never applied); "
+                             f"set slow_landmarks >= min_landmarks")
+        return self
