@@ -517,3 +517,13 @@ def test_vslam_settings_of_the_other_metric_scale_are_refused(vslam, key):
                "ba_history": {"metric_scale": "odometry", "ba_window": 5},
                "ba_outlier_sigmas": {"ba_window": 5}}[key]
     assert getattr(parse_config({"vslam": {**vslam, **applies}}).vslam, key) == vslam[key]
+
+
+def test_a_creep_speed_with_a_stereo_vslam_is_refused():
+    """vslam.goto.init_creep_speed drives the robot while a monocular VSLAM waits for parallax; a stereo one
+    never initialises that way, and the setting was accepted and never read. Refused, naming it."""
+    from vbnav.control.config import ConfigError, parse_config
+    with pytest.raises(ConfigError, match=r"vslam.*goto.init_creep_speed.*metric_scale odometry"):
+        parse_config({"vslam": {"goto": {"init_creep_speed": 0.05}}})
+    cfg = parse_config({"vslam": {"metric_scale": "odometry", "goto": {"init_creep_speed": 0.05}}})
+    assert cfg.vslam.goto.init_creep_speed == 0.05

@@ -100,6 +100,9 @@ class VslamNavConfig(VslamConfig, Strict):
             unused.append(("stereo_max_depth_baselines", "a stereo pair's landmarks (metric_scale stereo)"))
         unused += [(k, "the bundle adjustment (ba_window > 0)") for k in ("ba_history", "ba_outlier_sigmas")
                    if k in given and self.ba_window == 0]
+        if "init_creep_speed" in self.goto.model_fields_set and self.metric_scale == "stereo":
+            unused.append(("goto.init_creep_speed", "the drive while a single camera initialises (metric_scale "
+                                                    "odometry)"))
         if unused:
             k, what = unused[0]
             raise ValueError(f"{k}: it sets {what}, which this configuration does not run (metric_scale "
