@@ -273,6 +273,19 @@ def check_route_config(route: "Route", cfg) -> None:
     check_route_mount(route, cfg.camera.mount.to_mount(), source)
 
 
+def config_repeat_refusal(route: "Route", cfg) -> Optional[str]:
+    """Why a repeat of ``route`` with the configuration ``cfg`` is refused (``Route.repeat_refusal``, then
+    ``check_route_config``), without the route's path; None when it is not."""
+    why = route.repeat_refusal()
+    if why:
+        return why
+    try:
+        check_route_config(route, cfg)
+    except RouteError as exc:
+        return str(exc).removeprefix(f"{route.path}: ")
+    return None
+
+
 def _distortion_bend(taught, camera) -> float:
     """The largest angle (rad) between the rays the two distortions give the same pixel of the image border
     (corners and edge midpoints), with the taught intrinsics for both: what the distortion alone changes."""

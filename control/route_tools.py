@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from vbnav.control.route import MANIFEST, RouteError, check_route_config, load_route, stray_route_dirs, stray_temp_files
+from vbnav.control.route import MANIFEST, RouteError, config_repeat_refusal, load_route, stray_route_dirs, stray_temp_files
 from vbnav.drivers.atomic_file import atomic_output
 from vbnav.drivers.plain_values import load_json
 from vbnav.vision.features import describe as orb_descriptors
@@ -252,12 +252,8 @@ def check(path, cfg=None) -> CheckReport:
     except RouteError as exc:
         report.problems.append(str(exc).replace(f"{root}{os.sep}", ""))
         return report
-    report.keyframes, report.complete, report.repeat_refusal = len(route), route.complete, route.repeat_refusal()
-    if cfg is not None and report.repeat_refusal is None:
-        try:
-            check_route_config(route, cfg)
-        except RouteError as exc:
-            report.repeat_refusal = str(exc).removeprefix(f"{route.path}: ")
+    report.keyframes, report.complete = len(route), route.complete
+    report.repeat_refusal = route.repeat_refusal() if cfg is None else config_repeat_refusal(route, cfg)
     for i, (entry, kf) in enumerate(zip(listed, route.keyframes)):
         odom = entry.get("odom")
         if odom is not None and not _same(lambda: np.allclose(np.asarray(odom, float), kf.odom.as_array(),
