@@ -313,6 +313,10 @@ def _number(v) -> float:
         return float("nan")
 
 
+#: The keys of a dataset camera YAML (``load_camera_yaml``): intrinsics, then what the sequence needs.
+CAMERA_YAML_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "model", "dist", "depth_scale", "baseline", "tag_grid")
+
+
 def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, dict]:
     """Intrinsics YAML: fx, fy, cx, cy, width, height, optional model (pinhole|fisheye), dist,
     depth_scale (metres per depth unit), baseline (stereo, m), tag_grid (see vision/vslam_init.py).
@@ -329,6 +333,10 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
     if missing:
         raise DatasetError(f"{path}: missing key(s) {', '.join(missing)} (camera intrinsics)")
+    unknown = [str(k) for k in data if k not in CAMERA_YAML_KEYS]
+    if unknown:       # a misspelt depth_scale or baseline would be left out without a word
+        raise DatasetError(f"{path}: {', '.join(unknown)}: unknown key(s) (check the spelling); a camera YAML takes "
+                           f"{', '.join(CAMERA_YAML_KEYS)}")
     # YAML gives the types: int() would cut 32.5 to 32, float() read true as 1 and "16" as 16
     for k in ("width", "height"):
         if isinstance(data[k], bool) or not isinstance(data[k], int):

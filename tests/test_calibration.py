@@ -208,3 +208,17 @@ def test_a_dataset_camera_yaml_baseline_is_checked_as_a_frames(tmp_path, baselin
         check_baseline("the frame", yaml.safe_load(f"b: {baseline}")["b"], "meta['baseline_m']")
     p.write_text("fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\nbaseline: 0.12\n")
     assert load_camera_yaml(p)[1]["baseline"] == 0.12
+
+
+def test_a_dataset_camera_yaml_key_it_does_not_know_is_refused(tmp_path):
+    """drivers/datasets.load_camera_yaml passed every key it did not read on as an extra: a misspelt
+    'depth_scal: 0.0002' (vbnav vo --camera, the replay camera's camera_yaml) was accepted and the depth read at
+    the default scale, five times too far. Unknown keys are refused as in every other configuration file,
+    naming the key and the keys it takes."""
+    from vbnav.drivers.datasets import DatasetError, load_camera_yaml
+    p = tmp_path / "camera.yaml"
+    p.write_text("fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\ndepth_scal: 0.0002\n")
+    with pytest.raises(DatasetError, match=rf"{p}: depth_scal: unknown key.*depth_scale"):
+        load_camera_yaml(p)
+    p.write_text("fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\ndepth_scale: 0.0002\n")
+    assert load_camera_yaml(p)[1] == {"depth_scale": 0.0002}
