@@ -193,6 +193,17 @@ def _images_in(d: Path) -> list[Path]:
     return sorted(p for p in d.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".pgm", ".bmp"))
 
 
+def _refuse_unused_keys(yaml_path, extras: dict, depth: bool, right: bool, root: Path) -> None:
+    """A camera YAML's depth_scale without depth images, or its baseline without right images, would be accepted
+    and never read: DatasetError naming the file, the key and what the folder lacks."""
+    if "depth_scale" in extras and not depth:
+        raise DatasetError(f"{yaml_path}: depth_scale: {root} has no depth images (a KITTI folder has none; a TUM "
+                           f"folder lists them in depth.txt, and it has no depth.txt): remove depth_scale")
+    if "baseline" in extras and not right:
+        raise DatasetError(f"{yaml_path}: baseline: {root} has no right images (a KITTI folder's image_r/ or "
+                           f"image_1/; a TUM folder has none): remove baseline, or add the right images")
+
+
 def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     left_dir = _image_dir(root, ("image_l", "image_0"))
     if left_dir is None:
@@ -218,6 +229,8 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
         except CalibrationError as exc:
             raise DatasetError(str(exc)) from None
         camera, baseline, extras = calib.camera(w, h), calib.baseline, {}
+    if camera_yaml is not None:
+        _refuse_unused_keys(camera_yaml, extras, depth=False, right=right is not None, root=root)
     if right is not None and baseline is None:
         baseline = extras.get("baseline")
         if baseline is None:
@@ -284,6 +297,7 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     camera, extras = load_camera_yaml(yaml_path)
     depth = None
     depth_path = root / "depth.txt"
+    _refuse_unused_keys(yaml_path, extras, depth=depth_path.is_file(), right=False, root=root)
     if depth_path.is_file():
         d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
         depth = []
