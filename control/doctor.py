@@ -74,6 +74,7 @@ def check_drive(cfg, robot) -> list[Check]:
                                 f"permanent, see docs/hardware.md)"))
         else:
             checks.append(Check("serial latency timer", OK, f"{port}: {timer} ms"))
+    from vbnav.drivers.odrive import clear_errors_command
     from vbnav.drivers.wheels import DriveError
     try:
         drive.connect()
@@ -81,7 +82,7 @@ def check_drive(cfg, robot) -> list[Check]:
     except DriveError as exc:
         fix = {"dynamixel": f"'vbnav find servos --port {port}' shows which ids answer at which rate; "
                             f"'vbnav servo set-id/set-baud' changes them",
-               "odrive": "see the message ('vbnav odrive clear-errors -c CONFIG' clears latched errors)"}
+               "odrive": f"see the message ('{clear_errors_command(cfg.source)}' clears latched errors)"}
         checks.append(Check("drive", FAIL, f"{driver}: {exc}", fix.get(driver, "see the message")))
     finally:
         drive.close()

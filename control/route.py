@@ -263,6 +263,29 @@ def check_route_mount(route: "Route", mount: CameraMount, config_source: str = "
                          f"taught and configure that, or teach the route again")
 
 
+def check_route_config(route: "Route", cfg) -> None:
+    """Raise RouteError unless the configuration ``cfg`` (control.config.Config) repeats ``route`` with the camera
+    and mount it was taught with (``check_route_camera``, ``check_route_mount``): what a repeat refuses, said alike
+    by ``vbnav repeat`` and ``vbnav route check -c``."""
+    source = cfg.source or "the configuration"
+    cal = cfg.camera.calibration
+    check_route_camera(route, cfg.camera.to_model(), source, cal.file if cal else None)
+    check_route_mount(route, cfg.camera.mount.to_mount(), source)
+
+
+def config_repeat_refusal(route: "Route", cfg) -> Optional[str]:
+    """Why a repeat of ``route`` with the configuration ``cfg`` is refused (``Route.repeat_refusal``, then
+    ``check_route_config``), without the route's path; None when it is not."""
+    why = route.repeat_refusal()
+    if why:
+        return why
+    try:
+        check_route_config(route, cfg)
+    except RouteError as exc:
+        return str(exc).removeprefix(f"{route.path}: ")
+    return None
+
+
 def _distortion_bend(taught, camera) -> float:
     """The largest angle (rad) between the rays the two distortions give the same pixel of the image border
     (corners and edge midpoints), with the taught intrinsics for both: what the distortion alone changes."""

@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from vbnav.control.route import MANIFEST, RouteError, load_route, stray_route_dirs, stray_temp_files
+from vbnav.control.route import MANIFEST, RouteError, config_repeat_refusal, load_route, stray_route_dirs, stray_temp_files
 from vbnav.drivers.atomic_file import atomic_output
 from vbnav.drivers.plain_values import load_json
 from vbnav.vision.features import describe as orb_descriptors
@@ -218,10 +218,11 @@ def image_problem(kf) -> Optional[str]:
             f"(swapped with another keyframe's, or edited)")
 
 
-def check(path) -> CheckReport:
+def check(path, cfg=None) -> CheckReport:
     """Verify checksums, decode everything, compare manifest and files, and each keyframe's image with its
-    landmarks (``image_problem``). RouteError only when ``path`` is not a route at all (no directory, no
-    manifest)."""
+    landmarks (``image_problem``). With a configuration ``cfg``, an intact route that a repeat with it would
+    refuse (another camera or mount, ``check_route_config``) has that as its ``repeat_refusal``. RouteError only
+    when ``path`` is not a route at all (no directory, no manifest)."""
     root = Path(path)
     if not root.is_dir():
         load_route(root)                       # raises the RouteError that says why (with stray siblings)
@@ -251,7 +252,8 @@ def check(path) -> CheckReport:
     except RouteError as exc:
         report.problems.append(str(exc).replace(f"{root}{os.sep}", ""))
         return report
-    report.keyframes, report.complete, report.repeat_refusal = len(route), route.complete, route.repeat_refusal()
+    report.keyframes, report.complete = len(route), route.complete
+    report.repeat_refusal = route.repeat_refusal() if cfg is None else config_repeat_refusal(route, cfg)
     for i, (entry, kf) in enumerate(zip(listed, route.keyframes)):
         odom = entry.get("odom")
         if odom is not None and not _same(lambda: np.allclose(np.asarray(odom, float), kf.odom.as_array(),

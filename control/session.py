@@ -22,7 +22,7 @@ from vbnav.control.config import Config
 from vbnav.control.controllers.manual import TeleopController
 from vbnav.control.controllers.path import PathFollower, room_loop
 from vbnav.control.controllers.repeat import RepeatController
-from vbnav.control.route import Route, RouteWriter, check_route_camera, check_route_mount
+from vbnav.control.route import Route, RouteWriter, check_route_config
 from vbnav.control.runtime.factory import Robot
 from vbnav.control.runtime.finishing import finishing
 from vbnav.control.runtime.interfaces import Controller
@@ -39,7 +39,7 @@ MIN_ROUTE_KEYFRAMES = 2          # a repeat steers from one keyframe towards the
 class Teaching:
     """A route being taught: the TeachStage, and the RouteWriter that stores each keyframe as it comes."""
 
-    vision_wait_s = 10.0     # how long close() waits for a stopped vision thread still inside a frame
+    vision_wait_s = 10.0     # how long close() waits for the vision thread still inside a frame of teach
 
     def __init__(self, cfg: Config, route_dir, overwrite: bool = False):
         model, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
@@ -69,12 +69,14 @@ class Teaching:
         last frame: dropped, up to vbc.keyframe_distance_m of the route taught was lost. Only when writing
         them fails again (the writer's own fault) is the route closed without them.
 
-        vision: the run's VisionPipeline, once stopped. Its thread may still be inside a frame (a slow fsync
-        of a keyframe): close() waits ``vision_wait_s`` for it, and if it still runs, leaves the route as
-        written (incomplete, loadable) rather than write it from two threads (two keyframes with one index)."""
-        if vision is not None and not vision.wait_stopped(self.vision_wait_s):
-            self.unwritten = (f"the vision thread had not stopped {self.vision_wait_s:g} s after the run ended "
-                              f"(a frame still being processed or written): the route was left as written, "
+        vision: the run's VisionPipeline, once stopped (the run's end) or once the teach stage was taken out of
+        its stages (a switch of mode). Its thread may still be inside a frame of the teach stage (a slow fsync
+        of a keyframe): close() waits ``vision_wait_s`` for it (``wait_released``), and if it is still there,
+        leaves the route as written (incomplete, loadable) rather than write it from two threads (two keyframes
+        with one index)."""
+        if vision is not None and not vision.wait_released(self.vision_wait_s):
+            self.unwritten = (f"the vision thread was still inside a frame {self.vision_wait_s:g} s after teaching "
+                              f"ended (a frame still being processed or written): the route was left as written, "
                               f"incomplete, with {len(self.stamps)} keyframes and without its last ones")
             return False
         try:
@@ -95,11 +97,8 @@ class Repeating:
     def __init__(self, cfg: Config, route: Route):
         vcfg = cfg.vbc
         self.route = route
-        camera = cfg.camera.to_model()
-        cal = cfg.camera.calibration
-        check_route_camera(route, camera, cfg.source or "the configuration", cal.file if cal else None)
-        check_route_mount(route, cfg.camera.mount.to_mount(), cfg.source or "the configuration")
-        self.stage = RepeatStage(route, vcfg, camera, cfg.camera.mount.to_mount())
+        check_route_config(route, cfg)
+        self.stage = RepeatStage(route, vcfg, cfg.camera.to_model(), cfg.camera.mount.to_mount())
         self.controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
 
 

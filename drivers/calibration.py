@@ -66,12 +66,19 @@ def check_intrinsics(source: str, fx: float, fy: float, cx: float, cy: float, wi
                                    f"(0..{size}, the image {side})")
 
 
-def check_baseline(source: str, baseline, field: str = "baseline") -> None:
-    """Raise CalibrationError unless the stereo baseline is a finite distance > 0 m (right camera at
-    +baseline along the left camera's x): a zero baseline gives no depth at all."""
-    if not np.isfinite(baseline) or baseline <= 0:
+def check_baseline(source: str, baseline, field: str = "baseline") -> float:
+    """The stereo baseline as a float; CalibrationError unless it is a number (not text, not true/false) that is
+    a finite distance > 0 m (right camera at +baseline along the left camera's x): a zero baseline gives no
+    depth at all. The one check of a baseline: calibration files, dataset camera YAML, a frame's
+    meta['baseline_m'] (control/stages/frame_input.frame_baseline)."""
+    try:
+        b = math.nan if isinstance(baseline, (str, bytes, bool, np.bool_)) else float(baseline)
+    except (TypeError, ValueError):
+        b = math.nan
+    if not math.isfinite(b) or b <= 0:
         raise CalibrationError(f"{source}: {field}: expected a finite stereo baseline > 0 m (the right camera "
-                               f"at +baseline along the left camera's x), got {baseline}")
+                               f"at +baseline along the left camera's x), got {baseline!r}")
+    return b
 
 
 def load_calibration(path) -> PinholeCamera | FisheyeCamera:

@@ -193,6 +193,17 @@ def _images_in(d: Path) -> list[Path]:
     return sorted(p for p in d.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".pgm", ".bmp"))
 
 
+def _refuse_unused_keys(yaml_path, extras: dict, depth: bool, right: bool, root: Path) -> None:
+    """A camera YAML's depth_scale without depth images, or its baseline without right images, would be accepted
+    and never read: DatasetError naming the file, the key and what the folder lacks."""
+    if "depth_scale" in extras and not depth:
+        raise DatasetError(f"{yaml_path}: depth_scale: {root} has no depth images (a KITTI folder has none; a TUM "
+                           f"folder lists them in depth.txt, and it has no depth.txt): remove depth_scale")
+    if "baseline" in extras and not right:
+        raise DatasetError(f"{yaml_path}: baseline: {root} has no right images (a KITTI folder's image_r/ or "
+                           f"image_1/; a TUM folder has none): remove baseline, or add the right images")
+
+
 def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     left_dir = _image_dir(root, ("image_l", "image_0"))
     if left_dir is None:
@@ -218,6 +229,8 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
         except CalibrationError as exc:
             raise DatasetError(str(exc)) from None
         camera, baseline, extras = calib.camera(w, h), calib.baseline, {}
+    if camera_yaml is not None:
+        _refuse_unused_keys(camera_yaml, extras, depth=False, right=right is not None, root=root)
     if right is not None and baseline is None:
         baseline = extras.get("baseline")
         if baseline is None:
@@ -284,6 +297,7 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     camera, extras = load_camera_yaml(yaml_path)
     depth = None
     depth_path = root / "depth.txt"
+    _refuse_unused_keys(yaml_path, extras, depth=depth_path.is_file(), right=False, root=root)
     if depth_path.is_file():
         d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
         depth = []
@@ -313,6 +327,10 @@ def _number(v) -> float:
         return float("nan")
 
 
+#: The keys of a dataset camera YAML (``load_camera_yaml``): intrinsics, then what the sequence needs.
+CAMERA_YAML_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "model", "dist", "depth_scale", "baseline", "tag_grid")
+
+
 def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, dict]:
     """Intrinsics YAML: fx, fy, cx, cy, width, height, optional model (pinhole|fisheye), dist,
     depth_scale (metres per depth unit), baseline (stereo, m), tag_grid (see vision/vslam_init.py).
@@ -329,6 +347,10 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
     if missing:
         raise DatasetError(f"{path}: missing key(s) {', '.join(missing)} (camera intrinsics)")
+    unknown = [str(k) for k in data if k not in CAMERA_YAML_KEYS]
+    if unknown:       # a misspelt depth_scale or baseline would be left out without a word
+        raise DatasetError(f"{path}: {', '.join(unknown)}: unknown key(s) (check the spelling); a camera YAML takes "
+                           f"{', '.join(CAMERA_YAML_KEYS)}")
     # YAML gives the types: int() would cut 32.5 to 32, float() read true as 1 and "16" as 16
     for k in ("width", "height"):
         if isinstance(data[k], bool) or not isinstance(data[k], int):
@@ -348,7 +370,7 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
             raise CalibrationError(f"{path}: width/height: expected positive sizes, got "
                                    f"{args['width']}x{args['height']}")
         if data.get("baseline") is not None:
-            check_baseline(str(path), _number(data["baseline"]))
+            data["baseline"] = check_baseline(str(path), data["baseline"])
         if data.get("depth_scale") is not None and not _number(data["depth_scale"]) > 0:
             raise CalibrationError(f"{path}: depth_scale: expected metres per depth unit > 0, "
                                    f"got {data['depth_scale']!r}")

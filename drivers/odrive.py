@@ -55,6 +55,12 @@ ERROR_WORDS = (("error", AXIS_ERRORS), ("motor.error", MOTOR_ERRORS), ("encoder.
                ("controller.error", CONTROLLER_ERRORS))
 
 
+def clear_errors_command(config_source: Optional[str]) -> str:
+    """The command that clears the ODrive's latched errors, for the configuration the drive was built from
+    (``CONFIG`` where that is not known)."""
+    return f"vbnav odrive clear-errors -c {config_source or 'CONFIG'}"
+
+
 def decode_bits(value: int, table: dict[int, str]) -> list[str]:
     names = [name for bit, name in table.items() if value & bit]
     rest = value & ~sum(b for b in table if value & b)
@@ -159,9 +165,10 @@ class ODriveDrive(SerialWheelDrive):
                 for f in faults:
                     self._record_fault(f)
                 watchdog_only = all(f.kind is FaultKind.WATCHDOG for f in faults)
-                hint = ("the host went silent before (a crash?): clear with 'vbnav odrive clear-errors -c CONFIG', "
+                clear = f"'{clear_errors_command(self.config_source)}'"
+                hint = (f"the host went silent before (a crash?): clear with {clear}, "
                         "or set drive.options.clear_watchdog_error_at_start: true" if watchdog_only else
-                        "find the cause, then clear with 'vbnav odrive clear-errors -c CONFIG'")
+                        f"find the cause, then clear with {clear}")
                 raise DriveError("ODrive reports errors: " + "; ".join(map(str, faults)) + f" ({hint})")
             mode = INPUT_MODE_VEL_RAMP if self.opt.vel_ramp_rate > 0 else INPUT_MODE_PASSTHROUGH
             for ax in self.axes:

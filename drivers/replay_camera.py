@@ -43,7 +43,8 @@ class ReplayCamera(Camera):
         rate_hz: Optional[float] = Field(None, gt=0, description="fixed rate; None: the recorded times "
                                                                    "(folders without times: 10 Hz)")
         loop: bool = Field(False, description="start again after the last frame")
-        camera_yaml: Optional[str] = Field(None, description="TUM intrinsics if not camera.yaml in the folder")
+        camera_yaml: Optional[str] = Field(None, description="intrinsics of a TUM (or KITTI) recording instead of "
+                                           "its camera.yaml (calib.txt); refused for a folder of images")
         grey: bool = Field(True, description="single-channel images (the vision code works in grey)")
 
     def __init__(self, options: "ReplayCamera.Options | dict", clock=None, size: Optional[tuple[int, int]] = None):
@@ -144,6 +145,10 @@ class ReplayCamera(Camera):
             if layout == "folder":
                 if not root.is_dir():
                     raise DatasetError(f"{root}: not a folder of images")
+                if self.opt.camera_yaml is not None:
+                    raise DatasetError(f"camera_yaml {self.opt.camera_yaml}: {root} is a folder of images, whose "
+                                       f"intrinsics are camera.fx, fy, cx, cy (camera_yaml is read for a TUM or "
+                                       f"KITTI recording): remove camera_yaml")
                 self._files = _images_in(root)
                 if not self._files:
                     raise DatasetError(f"{root}: no images (.png/.jpg/.pgm/.bmp) found")

@@ -40,6 +40,9 @@ class SerialWheelDrive(WheelDrive):
                  invert_left: Optional[bool] = None, invert_right: Optional[bool] = None):
         super().__init__()
         drive_cfg = getattr(cfg, "drive", None)
+        # the configuration file the drive was built from (control.config.Config.source), for the commands a
+        # message tells the user to run; None when built from options alone
+        self.config_source: Optional[str] = getattr(cfg, "source", None)
         if options is None:
             options = self.Options.model_validate(drive_cfg.options if drive_cfg is not None else {})
         self.opt = options

@@ -336,3 +336,19 @@ def test_servo_tools_refuse_a_port_that_is_not_a_device(tmp_path, capsys, kind):
     assert f"--port {path}: is not a device" in capsys.readouterr().err
     assert main(["servo", "set-id", "--port", str(path), "--id", "1", "--new-id", "2", "--baud", "57600"]) == 2
     assert f"--port {path}: is not a device" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["run", "--no-camera", "--no-telemetry", "--duration", "0.2"], ["doctor"]])
+def test_the_odrive_refusal_names_the_configuration_given(crashed_odrive, tmp_path, capsys, command):
+    """The refusal of a latched watchdog error told the user to run 'vbnav odrive clear-errors -c CONFIG',
+    the placeholder, not the configuration the run was given: the command to copy is now whole."""
+    cfg = odrive_config(tmp_path, crashed_odrive.path)
+    data = yaml.safe_load(open(cfg))
+    data["robot"].update(max_wheel_speed=10.0, max_linear_speed=0.4)     # within the ODrive's vel_limit
+    with open(cfg, "w") as f:
+        yaml.safe_dump(data, f)
+    main([command[0], "-c", cfg, *command[1:]])
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert "WATCHDOG_TIMER_EXPIRED" in text, text
+    assert f"vbnav odrive clear-errors -c {cfg}'" in text and "-c CONFIG" not in text, text

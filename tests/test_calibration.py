@@ -189,3 +189,36 @@ def test_a_calibration_with_a_key_given_twice_is_refused(tmp_path):
     p.write_text(ROS.format(model="plumb_bob", n=5, d=D.tolist()) + "image_width: 320\n")
     with pytest.raises(CalibrationError, match=rf"{p}: line \d+, column 1: .*duplicate key 'image_width'"):
         load_calibration(p)
+
+
+@pytest.mark.parametrize("baseline", ["true", "'0.12'", ".nan", "-0.12"])
+def test_a_dataset_camera_yaml_baseline_is_checked_as_a_frames(tmp_path, baseline):
+    """The stereo baseline had two checks: check_baseline (calibration files, dataset camera YAML) and the
+    stages' frame_baseline. The dataset YAML's went through float(): 'baseline: true' was a 1 m baseline (and
+    a quoted '0.12' a number), where a frame's meta['baseline_m'] of either is refused. One check now,
+    check_baseline, refuses what is not a distance > 0 in both."""
+    import yaml
+    from vbnav.drivers.calibration import CalibrationError, check_baseline
+    from vbnav.drivers.datasets import DatasetError, load_camera_yaml
+    p = tmp_path / "camera.yaml"
+    p.write_text(f"fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\nbaseline: {baseline}\n")
+    with pytest.raises(DatasetError, match=f"{p}: baseline: expected a finite stereo baseline > 0 m"):
+        load_camera_yaml(p)
+    with pytest.raises(CalibrationError, match="meta\\['baseline_m'\\]: expected a finite stereo baseline"):
+        check_baseline("the frame", yaml.safe_load(f"b: {baseline}")["b"], "meta['baseline_m']")
+    p.write_text("fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\nbaseline: 0.12\n")
+    assert load_camera_yaml(p)[1]["baseline"] == 0.12
+
+
+def test_a_dataset_camera_yaml_key_it_does_not_know_is_refused(tmp_path):
+    """drivers/datasets.load_camera_yaml passed every key it did not read on as an extra: a misspelt
+    'depth_scal: 0.0002' (vbnav vo --camera, the replay camera's camera_yaml) was accepted and the depth read at
+    the default scale, five times too far. Unknown keys are refused as in every other configuration file,
+    naming the key and the keys it takes."""
+    from vbnav.drivers.datasets import DatasetError, load_camera_yaml
+    p = tmp_path / "camera.yaml"
+    p.write_text("fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\ndepth_scal: 0.0002\n")
+    with pytest.raises(DatasetError, match=rf"{p}: depth_scal: unknown key.*depth_scale"):
+        load_camera_yaml(p)
+    p.write_text("fx: 400\nfy: 400\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\ndepth_scale: 0.0002\n")
+    assert load_camera_yaml(p)[1] == {"depth_scale": 0.0002}

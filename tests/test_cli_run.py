@@ -145,3 +145,39 @@ def test_a_run_driven_from_the_network_without_the_network_is_refused(tmp_path, 
     assert main(["run", "--realtime", "--duration", "0.5", *[a.format(tmp=tmp_path) for a in argv]]) == 2
     err = capsys.readouterr().err
     assert f"--controller {argv[1]}: takes its commands over the network, which " in err, err
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["run", "--duration", "0.1"], "simulated clock"),
+    (["run", "--realtime", "--no-telemetry", "--duration", "0.1"], "--no-telemetry keeps closed"),
+    (["run", "--realtime", "-c", "{tmp}/closed.yaml", "--duration", "0.1"], "telemetry.enabled: false keeps closed"),
+    (["teach", "--out", "{tmp}/route", "--duration", "0.1"], "simulated clock"),
+    (["repeat", "--path", "{tmp}/none", "--duration", "0.1"], "simulated clock"),
+    (["goto", "-c", "{tmp}/stereo.yaml", "--goal", "0", "1", "0", "--duration", "0.1"], "simulated clock"),
+    (["map", "build", "-c", "{tmp}/stereo.yaml", "--out", "{tmp}/m.json", "--duration", "0.1"], "simulated clock"),
+])
+def test_a_configured_live_view_that_could_not_be_served_is_refused(tmp_path, capsys, argv, says):
+    """telemetry.live_view.enabled: true in the configuration was accepted and nothing was served where
+    --live-view is refused (the simulated clock, --no-telemetry, telemetry.enabled: false): teach, repeat,
+    goto and map build said nothing at all. Refused in every mode, naming the field and why, before any
+    device opens."""
+    import yaml
+    from pathlib import Path
+
+    from vbnav.control.cli import main
+    from vbnav.control.config import CONFIG_DIR
+    lv = {"live_view": {"enabled": True}}
+    sim = yaml.safe_load((CONFIG_DIR / "sim.yaml").read_text())
+    stereo = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    for name, base, telemetry in (("sim", sim, lv), ("closed", sim, {**lv, "enabled": False}),
+                                  ("stereo", stereo, lv)):
+        base = dict(base, telemetry={**base.get("telemetry", {}), **telemetry},
+                    controller={**base.get("controller", {}), "teach": "room_loop"})
+        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump(base))
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    if "-c" not in argv:
+        argv[1:1] = ["-c", str(tmp_path / "sim.yaml")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "telemetry.live_view.enabled" in err and says in err, err
+    assert not Path(tmp_path / "route").exists() and not Path(tmp_path / "m.json").exists()

@@ -251,3 +251,39 @@ def test_a_bundle_adjustment_window_with_stereo_scale_is_refused():
     with pytest.raises(ConfigError, match=r"robot\.yaml: vslam: .*ba_window 7.*metric_scale stereo"):
         parse_config({"vslam": {"ba_window": 7}}, "robot.yaml")
     assert parse_config({"vslam": {"ba_window": 7, "metric_scale": "odometry"}}, "robot.yaml").vslam.ba_window == 7
+
+
+def test_an_obstacle_baseline_that_disagrees_with_the_cameras_is_refused():
+    """obstacles.baseline was compared with a calibration file's baseline only: beside the simulated camera's
+    camera.options.stereo_baseline it was taken as given, so one rig had two baselines in one run (the obstacle
+    stage used obstacles.baseline; the VSLAM of goto and the line map of map build, the camera's) and every
+    obstacle depth was off by their ratio. Refused beyond 1 % (BASELINE_AGREEMENT), naming both."""
+    from vbnav.control.config import ConfigError, load_config
+    with pytest.raises(ConfigError, match=r"obstacles\.baseline 0\.1 m.*camera\.options\.stereo_baseline "
+                                          r"0\.075 m"):
+        load_config("sim_stereo", overrides={"obstacles": {"baseline": 0.1}})
+    assert load_config("sim_stereo", overrides={"obstacles": {"baseline": 0.0752}}).obstacles.baseline == 0.0752
+    assert load_config("sim", overrides={"obstacles": {"baseline": 0.1}}).obstacles.baseline == 0.1
+
+
+def test_a_slow_scale_on_a_stop_zone_is_refused():
+    """obstacles.zones[].slow_scale is the speed factor of a slow zone: given on a stop zone (an edit that
+    meant 'slow down here' and forgot action: slow) it was accepted and the zone stopped the robot. Refused,
+    naming the zone and the field; a slow zone takes it."""
+    zone = {"name": "front", "distance": 0.8, "half_width": 0.25, "slow_scale": 0.5}
+    with pytest.raises(ConfigError, match=r"obstacles\.zones.*zone 'front': slow_scale 0\.5 .*action: stop"):
+        load_config("sim", overrides={"obstacles": {"zones": [zone]}})
+    cfg = load_config("sim", overrides={"obstacles": {"zones": [{**zone, "action": "slow"}]}})
+    assert cfg.obstacles.zones[0].slow_scale == 0.5
+
+
+@pytest.mark.parametrize("key, value", [("sgbm_block_size", 5), ("sgbm_near_margin", 0.7)])
+def test_sgbm_settings_with_the_frames_own_disparity_are_refused(key, value):
+    """obstacles.source: disparity takes the frames' own disparity (an OAK's) and never runs SGBM: an
+    obstacles.sgbm_* setting beside it was accepted and never used. Refused, naming both; with source sgbm or
+    auto (SGBM on frames without a disparity) it is taken."""
+    with pytest.raises(ConfigError, match=rf"obstacles.*{key} .*source: disparity"):
+        load_config("sim", overrides={"obstacles": {"source": "disparity", key: value}})
+    for source in ("sgbm", "auto"):
+        assert getattr(load_config("sim", overrides={"obstacles": {"source": source, key: value}}).obstacles,
+                       key) == value

@@ -6,6 +6,7 @@ Goto: one VSLAM fix near the goal. Safety: the held-stop release delay. Path fol
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -195,3 +196,23 @@ def test_out_of_range_gains_are_configuration_errors(section, key, bad):
     data = {section: {"goto": {key: bad}} if section == "vslam" else {key: bad}}
     with pytest.raises(ConfigError, match=key):
         parse_config(data, "test.yaml")
+
+
+@pytest.mark.parametrize("section, key", [({"vbc": {"cruise_speed": 0.25}}, "vbc.cruise_speed"),
+                                          ({"vslam": {"goto": {"cruise_speed": 0.3}}}, "vslam.goto.cruise_speed")])
+def test_a_cruise_speed_set_above_the_robots_limit_is_refused(section, key):
+    """vbc.cruise_speed (the repeat) and vslam.goto.cruise_speed (goto) set above robot.max_linear_speed were
+    accepted and cut to the limit without a word: the speed written was never driven. Refused, naming both;
+    the defaults (not written) stay at most the robot's limit, as documented."""
+    with pytest.raises(ConfigError, match=rf"{re.escape(key)} 0\.\d+ m/s is above robot\.max_linear_speed 0\.18"):
+        parse_config({"robot": {"max_linear_speed": 0.18}, **section})
+    cfg = parse_config({"robot": {"max_linear_speed": 0.18}})
+    assert cfg.vbc.cruise_speed == 0.25 and cfg.vslam.goto.cruise_speed == 0.3      # defaults: cut to 0.18
+
+
+def test_slow_landmarks_below_min_landmarks_is_refused():
+    """vbc.slow_landmarks below vbc.min_landmarks was accepted: the repeat then never slowed for a weak fix (full
+    speed from slow_landmarks agreeing, min_landmarks_speed_factor never applied). Refused, naming both."""
+    with pytest.raises(ConfigError, match=r"vbc: slow_landmarks 10 is below min_landmarks 12"):
+        parse_config({"vbc": {"slow_landmarks": 10}})
+    assert parse_config({"vbc": {"slow_landmarks": 12}}).vbc.slow_landmarks == 12

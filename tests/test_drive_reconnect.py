@@ -362,3 +362,12 @@ def test_a_reconnect_attempt_that_raises_ends_the_run_with_what_it_raised():
     assert "_reconnect" in rt.fault_traceback and "Input/output error" in result.message
     lost, end = _events(result, "trip", "drive_lost")[0], _events(result, "trip", "drive")[0]
     assert (end.stamp_ns - lost.stamp_ns) * 1e-9 < 1.0
+
+
+def test_a_bus_return_without_a_bus_loss_is_refused():
+    """drive.options.lost_for_s (the simulated bus comes back after this long) without fail_after_s (no loss
+    is injected) was accepted and never read: a test of a reconnect that never happens. Refused, naming both."""
+    from vbnav.control.config import ConfigError, load_config
+    with pytest.raises(ConfigError, match=r"lost_for_s.*fail_after_s"):
+        load_config("sim", overrides={"drive": {"options": {"lost_for_s": 1.0}}})
+    assert load_config("sim", overrides={"drive": {"options": {"fail_after_s": 1.0, "lost_for_s": 1.0}}})

@@ -207,7 +207,7 @@ def test_a_vision_thread_still_inside_a_frame_never_writes_the_route_beside_the_
         assert entered.wait(60)
         assert pipeline.stop(timeout_s=0.01) is False and pipeline.still_running
         assert teaching.close(complete=True, vision=pipeline) is False
-        assert finished == [] and "the vision thread had not stopped" in teaching.note
+        assert finished == [] and "the vision thread was still inside a frame" in teaching.note
         assert json.loads((tmp_path / "route" / MANIFEST).read_text())["complete"] is False
     finally:
         release.set()

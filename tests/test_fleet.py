@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 
@@ -168,15 +169,31 @@ def test_the_router_configuration_in_docs_fleet_is_the_one_tested():
     assert [{k: v for k, v in s.items() if v is not None} for s in acl["subjects"]] == ref["subjects"]
 
 
-def test_a_robot_with_a_shared_secret_takes_only_signed_pushes(tmp_path):
-    from test_route import write_route
-    import numpy as np
+def write_sim_route(path: Path, n: int = 3) -> None:
+    """A route of ``n`` keyframes taught with the simulated robot's camera and mount (configs/sim.yaml): one
+    that robot's repeat takes (a pushed route its repeat refuses is not installed)."""
+    import dataclasses
 
+    import numpy as np
+    from test_route import make_kf
+    from vbnav.control.config import load_config
+    from vbnav.control.route import RouteWriter
+    cfg = load_config("sim")
+    rng = np.random.default_rng(0)
+    with RouteWriter(path, "sim", cfg.camera.to_model(), cfg.camera.mount.to_mount()) as w:
+        for i in range(n):
+            kf = make_kf(rng, i)
+            image = np.zeros((cfg.camera.height, cfg.camera.width), np.uint8)
+            image[:kf.image.shape[0], :kf.image.shape[1]] = kf.image
+            w.append(dataclasses.replace(kf, image=image))
+
+
+def test_a_robot_with_a_shared_secret_takes_only_signed_pushes(tmp_path):
     from vbnav.control.comms.command_auth import read_secret
     secret_path = tmp_path / "secret"
     secret_path.write_text("0123456789abcdef0123456789abcdef\n")
     secret_path.chmod(0o600)
-    write_route(tmp_path / "local" / "loop", np.random.default_rng(0), 3)
+    write_sim_route(tmp_path / "local" / "loop")
     port = free_port()
     proc = start_robot("--port", port, "--controller", "idle", "--duration", 60, "--name", "solo",
                        "--secret-file", secret_path, "--routes-dir", tmp_path / "robot", timeout_s=60)
@@ -313,3 +330,54 @@ def test_a_route_repeat_refuses_is_not_pushed_nor_installed(tmp_path):
     assert q.answer[0] == "err" and "the route has no keyframes" in q.answer[1], q.answer
     assert (tmp_path / "robot" / "loop" / "manifest.json").read_bytes() == before
     assert len(load_route(tmp_path / "robot" / "loop")) == 3 and not stray_route_dirs(tmp_path / "robot" / "loop")
+
+
+def _push(server, src: Path, name: str = "loop", robot: str = "r") -> tuple:
+    """Push the route folder ``src`` to ``server`` (of ``robot``) as ``name``, query by query; the commit's
+    answer."""
+    base = f"vbnav/{robot}/routes/push/{name}/0123456789abcdef"
+    files = rt.route_files(src)
+    for key, payload in [(f"{base}/begin", json.dumps({"bytes": sum(f["size"] for f in files)}).encode()),
+                         *[q for f in files for q in (
+                             (f"{base}/chunk/{f['name']}/0", (src / f["name"]).read_bytes()),
+                             (f"{base}/file/{f['name']}", json.dumps({"size": f["size"],
+                                                                       "sha256": f["sha256"]}).encode()))]]:
+        q = _Query(key, payload)
+        server._handle(q)
+        assert q.answer[0] == "ok", (key, q.answer)
+    q = _Query(f"{base}/commit", b"{}")
+    server._handle(q)
+    return q.answer
+
+
+def test_a_pushed_route_this_robots_repeat_refuses_for_its_camera_is_not_installed(tmp_path):
+    """The robot's commit checked only what a repeat refuses whatever the configuration (no keyframes): a route
+    taught with another camera or mount was installed, and the robot's `mode repeat` refused it afterwards.
+    The commit now refuses what this robot's repeat refuses (check_route_config with its configuration)."""
+    import math
+
+    import numpy as np
+    from test_route import CAM, MOUNT, write_route
+    from vbnav.control.comms.link import _route_server
+    from vbnav.control.config import load_config
+    write_route(tmp_path / "local" / "loop", np.random.default_rng(0), 3)
+    runtime = type("Runtime", (), {"controller": type("Controller", (), {"teaching_route": None})()})()
+    same = {"width": CAM.width, "height": CAM.height, "fx": CAM.fx, "fy": CAM.fy, "cx": CAM.cx, "cy": CAM.cy,
+            "distortion": list(CAM.dist), "mount": {"height": MOUNT.height, "forward": MOUNT.forward,
+                                                    "lateral": MOUNT.lateral,
+                                                    "pitch_deg": math.degrees(MOUNT.pitch)}}
+    for name, camera, routes in (("other", {}, tmp_path / "robot1"), ("same", same, tmp_path / "robot2")):
+        cfg = load_config("sim", overrides={"controller": {"routes_dir": str(routes)}, "camera": camera})
+        routes.mkdir()
+        server = _route_server(_Session(), cfg, None, runtime)
+        try:
+            answer = _push(server, tmp_path / "local" / "loop", robot=cfg.robot.name)
+        finally:
+            server.close()
+        if name == "other":
+            assert answer[0] == "err" and "this robot's repeat refuses it" in answer[1], answer
+            assert "another image size" in answer[1] and str(routes) not in answer[1], answer
+            assert not (routes / "loop").exists()
+        else:
+            assert answer[0] == "ok", answer
+            assert len(load_route(routes / "loop")) == 3

@@ -209,3 +209,23 @@ def test_a_second_ctrl_c_while_the_grown_map_is_saved_does_not_lose_it(tmp_path,
     assert out.exists(), captured
     assert load_map(out)[1]["frames"] >= 0
     assert "SIGINT: the robot is stopped; saving the map" in captured.err
+
+
+def test_a_grown_map_the_save_refuses_still_ends_with_the_goto_summary(tmp_path, monkeypatch, capsys):
+    """`goto --map-out` whose grown map save_map refused (it could not be loaded back) exited 2 with the error
+    alone: how the goto ended, the pose and the safety events were not printed. They are; the refusal says the
+    grown map was not saved and the exit is the job's failure (1)."""
+    from test_line_nav import _refuse_to_save
+    from vbnav.control.cli import main
+
+    save_map(LineMap(), tmp_path / "empty.json")
+    out = tmp_path / "grown.json"
+    _refuse_to_save(monkeypatch, out)
+    code = main(["goto", "--map", str(tmp_path / "empty.json"), "--goal", "0", "1", "0", "--duration", "0.2",
+                 "--map-out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 1, captured
+    assert "goto ended: " in captured.out and "map as grown while driving ->" not in captured.out, captured.out
+    assert f"--map-out: {out}: not saved, it could not be loaded back" in captured.err, captured.err
+    assert "the map as grown while driving was not saved" in captured.err, captured.err
+    assert not out.exists()

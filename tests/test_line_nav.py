@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -461,3 +462,30 @@ def test_goto_localise_refused_says_what_to_do_for_its_reason(tmp_path, capsys, 
     else:
         assert "camera.distortion" in err and "rectified" in err, err
     assert "leave out --localise" in err, err
+
+
+def _refuse_to_save(monkeypatch, out):
+    """save_map's load-back check refuses ``out`` (a map load_map would refuse), every other file loads."""
+    from vbnav.control import line_map_file
+    check = line_map_file.map_from_data
+
+    def refuse(path, data):
+        if Path(path) == Path(out):
+            raise MapFileError(f"{path}: segments[0]: p0 and p1 are the same point")
+        return check(path, data)
+    monkeypatch.setattr(line_map_file, "map_from_data", refuse)
+
+
+def test_a_map_build_whose_map_is_refused_still_prints_its_summary(tmp_path, monkeypatch, capsys):
+    """A map save_map refused (it could not be loaded back) ended map build with exit 2 and the error alone: the
+    run's summary (frames, segments, how it ended) was lost. It is printed, says the map was not saved, and the
+    exit is the job's failure (1)."""
+    from vbnav.control.cli import main
+    out = tmp_path / "m.json"
+    _refuse_to_save(monkeypatch, out)
+    assert main(["map", "build", "-c", "sim_stereo", "--out", str(out), "--duration", "0.4"]) == 1
+    captured = capsys.readouterr()
+    assert "map build ended: duration" in captured.out and "verified segments" in captured.out, captured
+    assert f"NOT SAVED to {out}" in captured.out, captured.out
+    assert f"{out}: not saved, it could not be loaded back" in captured.err, captured.err
+    assert not out.exists()

@@ -200,3 +200,23 @@ def test_infinite_disparity_is_unknown_not_ground(piecewise):
     ref = detect_obstacles(nan, RIG, PRIOR, ground=ground)
     np.testing.assert_array_equal(s.labels, ref.labels)
     assert len(s.obstacle_points) == len(ref.obstacle_points) == 0
+
+
+def test_a_16_bit_pair_is_matched_as_its_8_bit_original_by_one_grey_scale():
+    """sgbm_disparity stretched each image of a non-8-bit pair (vbnav obstacles --left/--right 16-bit PNGs) to
+    8 bits on its own: something bright that only the right camera sees darkened the whole right image, and
+    SGBM matched two different exposures. Both images now share one range: a 16-bit pair (an 8-bit one times
+    257) gives the 8-bit pair's very disparity, and its texture matches everywhere at the true shift."""
+    import cv2
+    rng = np.random.default_rng(3)
+    h, w, shift = 120, 200, 8
+    tex = cv2.GaussianBlur(rng.random((h, w + shift)), (0, 0), 3.0)
+    tex = np.rint(200 * (tex - tex.min()) / (tex.max() - tex.min())).astype(np.uint8)   # grey 0..200
+    tex[0, 100] = 0                     # a black speck both cameras see: the pair's range is 0..255
+    left8, right8 = tex[:, :w].copy(), tex[:, shift:].copy()     # a fronto-parallel wall 8 px away
+    right8[:, -20:] = 255               # a lamp at the right border, seen by the right camera only
+    d8 = sgbm_disparity(left8, right8)
+    d16 = sgbm_disparity(left8.astype(np.uint16) * 257, right8.astype(np.uint16) * 257)
+    assert np.array_equal(d16, d8, equal_nan=True)
+    wall = d16[10:-10, 80:-30]          # away from the borders and the lamp
+    assert np.mean(np.abs(wall - shift) < 0.5) > 0.99

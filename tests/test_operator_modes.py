@@ -523,3 +523,51 @@ def test_a_switch_still_under_way_is_said_and_vbnav_send_does_not_blame_access_c
     err = capsys.readouterr().err
     assert "robot r1 took mode at cycle 11 and had not finished it within 3 s" in err, err
     assert "telemetry.operators" not in err
+
+
+def test_a_switch_out_of_teach_waits_for_a_slow_vision_thread_before_closing_the_route(tmp_path):
+    """Leaving teach waited for the vision thread by a frame count with a 1 s deadline: a teach frame slower
+    than that (a slow fsync of a keyframe) was still inside the teach stage when the switch finished the route
+    from the worker thread (two writers of one route). The switch now waits for the thread as the run's end
+    does (Teaching.close, VisionPipeline.wait_released): the route is finished after the frame, never beside
+    it."""
+    from runtime_helpers import TickCamera
+    from vbnav.control.runtime.interfaces import PENDING
+    from vbnav.drivers.clock import MonotonicClock
+
+    cfg = load_config(None, overrides={"telemetry": {"enabled": False}, "controller": {"routes_dir": str(tmp_path)}})
+    clock = MonotonicClock()
+    pipeline = VisionPipeline(TickCamera(clock, rate_hz=50.0), [], clock, inline=False)
+    ctl = OperatorController(cfg, pipeline, cfg.safety.command_timeout_s)
+    order, gate, entered, release = [], threading.Event(), threading.Event(), threading.Event()
+
+    def switch(*args):
+        assert ctl.handle_command(OperatorCommand("mode", args, "op"), 0) is PENDING
+        ctl._worker.join(30.0)
+        assert not ctl._worker.is_alive()
+        ctl._apply_pending()
+
+    pipeline.start()
+    try:
+        switch("teach", "hall")
+        teaching = ctl._teaching
+
+        def slow_frame(frame, odom):        # a teach frame that lasts until the test releases it
+            if gate.is_set():
+                entered.set()
+                release.wait(30.0)
+                order.append("frame done")
+
+        teaching.stage.process = slow_frame
+        teaching.stage.finish = lambda: order.append("route finished")
+        gate.set()
+        assert entered.wait(30.0)
+        releaser = threading.Timer(1.5, release.set)     # longer than the old 1 s frame-count deadline
+        releaser.start()
+        switch("idle")
+        releaser.join()
+    finally:
+        release.set()
+        pipeline.stop()
+    assert ctl.mode == "idle" and order == ["frame done", "route finished"], order
+    assert load_route(tmp_path / "hall") is not None

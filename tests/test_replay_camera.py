@@ -174,3 +174,14 @@ def test_a_recording_of_another_lens_or_rig_than_the_configured_one_is_refused(t
     bad = load_config("sim", overrides={"camera": {**camera, **camera_extra}, **extra})
     with pytest.raises(RecordedCameraError, match=r"calib\.txt.*" + says):
         ReplayCamera.from_config(bad, SimClock())
+
+
+def test_a_camera_yaml_for_a_folder_of_images_is_refused(tmp_path, rng):
+    """camera.options.camera_yaml is the intrinsics file of a TUM or KITTI recording; beside a plain folder of
+    images (which takes its intrinsics from camera.*) it was accepted and never read. Refused, naming it."""
+    write_folder(tmp_path / "seq", 2, rng)
+    (tmp_path / "cam.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32\nheight: 24\n")
+    with pytest.raises(CameraError, match=r"camera_yaml .*cam.yaml.*folder of images.*camera\.fx"):
+        ReplayCamera({"path": str(tmp_path / "seq"), "camera_yaml": str(tmp_path / "cam.yaml")}, SimClock()).connect()
+    with ReplayCamera({"path": str(tmp_path / "seq")}, SimClock()) as cam:
+        assert cam.read() is not None

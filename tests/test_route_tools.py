@@ -6,6 +6,7 @@ import math
 import shutil
 import zipfile
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -284,3 +285,30 @@ def test_descriptors_a_few_bits_off_are_the_same_patch(tmp_path):
     assert image_problem(replace(kf, descriptors=near)) is None
     far = rng.integers(0, 256, kf.descriptors.shape, dtype=np.uint8)  # unrelated patches: ~128 bits apart
     assert ORB_SAME_PATCH_BITS < 100 and image_problem(replace(kf, descriptors=far)) is not None
+
+
+def test_check_with_a_configuration_refuses_what_repeat_with_it_refuses(tmp_path, capsys):
+    """route check took no -c: a route taught with another camera or mount than the robot's configuration was
+    called intact, and vbnav repeat -c with that configuration refused it. With -c, check says repeat's own
+    refusal (check_route_camera, check_route_mount) and exits 1; a configuration of the route's camera and mount
+    passes."""
+    import yaml
+    from vbnav.control.config import load_config
+    route = write_route(tmp_path / "patrol")
+    base = yaml.safe_load(Path(load_config("sim").source).read_text())
+    cam = {"model": "pinhole", "width": W, "height": H, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5,
+           "distortion": [], "mount": {"height": 0.2, "forward": 0.1, "lateral": 0.0,
+                                       "pitch_deg": math.degrees(0.05), "yaw_deg": 0.0}}
+    cases = {"same": (cam, None), "lens": ({**cam, "fx": 60.0, "fy": 60.0}, "other intrinsics"),
+             "mount": ({**cam, "mount": {**cam["mount"], "height": 0.25}}, "camera.mount")}
+    for name, (camera, why) in cases.items():
+        cfg = tmp_path / f"{name}.yaml"
+        cfg.write_text(yaml.safe_dump({**base, "camera": {**base["camera"], **camera}}))
+        code = main(["route", "check", "-c", str(cfg), str(route)])
+        out = capsys.readouterr().out
+        if why is None:
+            assert code == 0 and out.strip().endswith("intact, 5 keyframes, complete"), out
+            continue
+        assert code == 1 and f"vbnav repeat -c {cfg} refuses it" in out and why in out, out
+        assert main(["repeat", "-c", str(cfg), "--path", str(route)]) == 2          # the same refusal
+        assert why in capsys.readouterr().err

@@ -219,3 +219,32 @@ def test_kitti06_left_only_at_three_times_the_motion_keeps_its_klt_poses(shared_
         ok, g = ds.ground_truth_at(ds.stamps[r.frames])
         apes.append(ate_rmse(r.poses[ok], g[ok], with_scale=True)[0])
     assert np.median(apes) < 0.45, apes
+
+
+def test_camera_yaml_keys_the_layout_does_not_use_are_refused(tmp_path):
+    """A camera YAML's depth_scale beside a KITTI folder (no depth images) or without a TUM depth.txt, and its
+    baseline without right images, were accepted and never read (a stereo sequence whose right images sit in
+    another folder name ran monocular). Refused, naming the file, the key and what the folder lacks."""
+    import cv2
+    kitti = tmp_path / "kitti"
+    (kitti / "image_l").mkdir(parents=True)
+    for k in range(2):
+        cv2.imwrite(str(kitti / "image_l" / f"{k:06d}.png"), np.zeros((4, 4), np.uint8))
+    cam = tmp_path / "cam.yaml"
+    intrinsics = "fx: 500\nfy: 500\ncx: 1\ncy: 1\nwidth: 4\nheight: 4\n"
+    for extra, says in (("depth_scale: 0.001\n", "depth_scale: .*no depth images"),
+                        ("baseline: 0.12\n", "baseline: .*no right images")):
+        cam.write_text(intrinsics + extra)
+        with pytest.raises(DatasetError, match=rf"{cam}: {says}"):
+            open_dataset(kitti, cam)
+    tum = tmp_path / "tum"
+    tum.mkdir()
+    cv2.imwrite(str(tum / "a.png"), np.zeros((4, 4), np.uint8))
+    (tum / "rgb.txt").write_text("0.0 a.png\n")
+    for extra, says in (("depth_scale: 0.001\n", "depth_scale: .*no depth.txt"),
+                        ("baseline: 0.12\n", "baseline: .*no right images")):
+        (tum / "camera.yaml").write_text(intrinsics + extra)
+        with pytest.raises(DatasetError, match=rf"camera.yaml: {says}"):
+            open_dataset(tum)
+    (tum / "camera.yaml").write_text(intrinsics)
+    assert open_dataset(tum).camera.width == 4

@@ -495,3 +495,35 @@ def test_the_stereo_vslam_refuses_a_distorted_camera(camera, says):
     mono = parse_config({"camera": camera, "vslam": {"metric_scale": "odometry"}})
     assert make_vslam_stage(mono).monocular
     make_vslam_stage(parse_config({"camera": {"options": {"stereo_baseline": 0.1}, "distortion": [0.0] * 5}}))
+
+
+@pytest.mark.parametrize("vslam, key", [
+    ({"odometry_scale_gain": 0.3}, "odometry_scale_gain"),                    # stereo scale: never rescaled
+    ({"odometry_init_baseline_m": 0.3}, "odometry_init_baseline_m"),
+    ({"metric_scale": "odometry", "stereo_max_depth_baselines": 40.0}, "stereo_max_depth_baselines"),
+    ({"ba_history": 4}, "ba_history"),                                       # no bundle adjustment at all
+    ({"metric_scale": "odometry", "ba_outlier_sigmas": 2.0}, "ba_outlier_sigmas"),
+])
+def test_vslam_settings_of_the_other_metric_scale_are_refused(vslam, key):
+    """The vslam.odometry_* settings steer a single camera's scale (metric_scale odometry), stereo_max_depth_
+    baselines a stereo pair's landmarks, ba_history and ba_outlier_sigmas the bundle adjustment (ba_window > 0):
+    written where they do not apply they were accepted and never read (as ba_window with stereo is refused).
+    Refused, naming the setting; where they apply they are taken."""
+    from vbnav.control.config import ConfigError, parse_config
+    with pytest.raises(ConfigError, match=rf"vslam.*{key}"):
+        parse_config({"vslam": vslam})
+    applies = {"odometry_scale_gain": {"metric_scale": "odometry"}, "odometry_init_baseline_m":
+               {"metric_scale": "odometry"}, "stereo_max_depth_baselines": {"metric_scale": "stereo"},
+               "ba_history": {"metric_scale": "odometry", "ba_window": 5},
+               "ba_outlier_sigmas": {"ba_window": 5}}[key]
+    assert getattr(parse_config({"vslam": {**vslam, **applies}}).vslam, key) == vslam[key]
+
+
+def test_a_creep_speed_with_a_stereo_vslam_is_refused():
+    """vslam.goto.init_creep_speed drives the robot while a monocular VSLAM waits for parallax; a stereo one
+    never initialises that way, and the setting was accepted and never read. Refused, naming it."""
+    from vbnav.control.config import ConfigError, parse_config
+    with pytest.raises(ConfigError, match=r"vslam.*goto.init_creep_speed.*metric_scale odometry"):
+        parse_config({"vslam": {"goto": {"init_creep_speed": 0.05}}})
+    cfg = parse_config({"vslam": {"metric_scale": "odometry", "goto": {"init_creep_speed": 0.05}}})
+    assert cfg.vslam.goto.init_creep_speed == 0.05

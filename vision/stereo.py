@@ -123,15 +123,29 @@ def _grey(img: np.ndarray, name: str) -> np.ndarray:
     return img
 
 
+def _to_8bit_together(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A non-8-bit pair (16-bit, float) as 8 bits, both by one range (the pair's lowest to highest finite
+    value): stretched each on its own, a scene brighter in one view gave the two images different grey levels
+    for the same surface, and SGBM matched two different exposures. NaN is taken as the lowest value."""
+    both = np.concatenate([np.ravel(left), np.ravel(right)]).astype(np.float64)
+    finite = both[np.isfinite(both)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+    scale = 255.0 / (hi - lo) if hi > lo else 0.0
+
+    def to8(im):
+        x = np.nan_to_num(im.astype(np.float64), nan=lo, posinf=hi, neginf=lo)
+        return np.clip(np.rint((x - lo) * scale), 0, 255).astype(np.uint8)
+    return to8(left), to8(right)
+
+
 def sgbm_disparity(left: np.ndarray, right: np.ndarray, params: SgbmParams | None = None) -> np.ndarray:
     """Disparity of the left image (float32 px, NaN where unmatched) from a rectified pair."""
     if left.shape[:2] != right.shape[:2]:
         raise ValueError(f"left and right images differ in size: {left.shape[:2]} vs {right.shape[:2]}")
     p = params or SgbmParams()
     l8, r8 = _grey(left, "left"), _grey(right, "right")
-    if l8.dtype != np.uint8:
-        l8 = cv2.normalize(l8, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-        r8 = cv2.normalize(r8, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if l8.dtype != np.uint8 or r8.dtype != np.uint8:
+        l8, r8 = _to_8bit_together(l8, r8)
     raw = _matcher(p).compute(l8, r8)           # int16, 4 fractional bits, -16 where invalid
     disp = raw.astype(np.float32) * np.float32(1.0 / 16.0)
     disp[raw <= 0] = np.nan

@@ -152,19 +152,34 @@ def refuse_network_driver_without_network(cfg, what: str, no_telemetry: bool, co
                          f"({consequence})")
 
 
-def enable_live_view(cfg, no_telemetry: bool) -> None:
-    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more).
-    Refused where it could not be served: it rides on the telemetry session, which opens only on the wall
-    clock (call after applying --realtime)."""
-    from pydantic import ValidationError
-
+def live_view_refusal(cfg, no_telemetry: bool = False, remedy: str = "add --realtime") -> str:
+    """Why this run could not serve the live view ("" when it could): it rides on the telemetry session, which
+    --no-telemetry or telemetry.enabled: false keeps closed, and which opens only on the wall clock (call after
+    applying --realtime). ``remedy``: how this command runs the simulated robot on the wall clock."""
     from vbnav.control.runtime.factory import uses_sim_clock
     closed = network_closed(cfg, no_telemetry)
     if closed:
-        raise InputError(f"--live-view: it is served by the telemetry session, which {closed} keeps closed")
+        return f"it is served by the telemetry session, which {closed} keeps closed"
     if uses_sim_clock(cfg):
-        raise InputError("--live-view: the simulated robot runs on the simulated clock, faster than real time, "
-                         "where nothing is served: add --realtime")
+        return f"the simulated robot runs on the simulated clock, faster than real time, where nothing is served: {remedy}"
+    return ""
+
+
+def refuse_unserved_live_view(cfg, no_telemetry: bool = False, remedy: str = "set sim.realtime: true") -> None:
+    """Refuse ``telemetry.live_view.enabled: true`` in a run that could not serve it (``live_view_refusal``)."""
+    why = live_view_refusal(cfg, no_telemetry, remedy) if cfg.telemetry.live_view.enabled else ""
+    if why:
+        raise InputError(f"{cfg.source}: telemetry.live_view.enabled: true: {why}")
+
+
+def enable_live_view(cfg, no_telemetry: bool) -> None:
+    """Turn on ``telemetry.live_view``, checked like a loaded configuration (a non-loopback host needs more).
+    Refused where it could not be served (``live_view_refusal``; call after applying --realtime)."""
+    from pydantic import ValidationError
+
+    why = live_view_refusal(cfg, no_telemetry)
+    if why:
+        raise InputError(f"--live-view: {why}")
     t = cfg.telemetry.model_dump()
     t["live_view"]["enabled"] = True
     try:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import sys
 
-from vbnav.control.commands._common import add_config_arg, finite, positive
+from vbnav.control.commands._common import add_config_arg, finite, positive, refuse_unserved_live_view
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
                                         no_path_reason, plan_path)
@@ -61,6 +61,7 @@ def run(args) -> int:
     from vbnav.vision.geometry import Pose2
 
     cfg = load_config(args.config)
+    refuse_unserved_live_view(cfg, args.no_telemetry)
     nav = cfg.vslam
     if nav.metric_scale == "stereo" and stereo_baseline_of(cfg) is None and cfg.camera.driver == "sim":
         print(f"vbnav goto: {cfg.source}: camera.options.stereo_baseline is not set; the VSLAM needs the stereo "
@@ -197,14 +198,21 @@ def run(args) -> int:
             finally:
                 link.close(result)
     printer.done()
+    map_refused = None
     if live is not None:
         for msg in live.new_events():
             print(f"goto: {msg}")
         print(live.summary())
         if args.map_out:
-            with finishing("saving the map as grown while driving"):    # nor lose the grown map
-                live.save(args.map_out)
-            print(f"map as grown while driving -> {args.map_out}")
+            from vbnav.control.line_map_file import MapFileError
+            try:
+                with finishing("saving the map as grown while driving"):    # nor lose the grown map
+                    live.save(args.map_out)
+                print(f"map as grown while driving -> {args.map_out}")
+            except MapFileError as exc:     # the goto's own summary is still said
+                map_refused = exc
+                print(f"vbnav goto: --map-out: {exc}; the map as grown while driving was not saved",
+                      file=sys.stderr)
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
     if "x" in s:
@@ -227,5 +235,6 @@ def run(args) -> int:
         return 130
     if result.reason in DEVICE_FAULTS:     # a device failed or is not there
         return 3
-    return 0 if result.reason == "finished" and link.recording_error is None else 1   # a --record not made
+    # a --record or --map-out not made
+    return 0 if result.reason == "finished" and link.recording_error is None and map_refused is None else 1
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import (add_config_arg, distinct_files, not_recorded_yet, output_file,
-                                           positive, record_target_error)
+                                           positive, record_target_error, refuse_unserved_live_view)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
 
@@ -74,7 +74,7 @@ def _port(text: str) -> int:
 def run_build(args) -> int:
     from vbnav.control.controllers.manual import ScriptedController
     from vbnav.control.config import load_config
-    from vbnav.control.line_map_file import objects_meta, save_map
+    from vbnav.control.line_map_file import MapFileError, objects_meta, save_map
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.commands._common import enable_live_view
@@ -93,6 +93,7 @@ def run_build(args) -> int:
         cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
+    refuse_unserved_live_view(cfg, args.no_telemetry, "add --realtime")
     try:
         stage = LineMapStage.from_config(cfg)
     except ValueError as exc:
@@ -123,18 +124,25 @@ def run_build(args) -> int:
         stage.abstraction.step()        # a last abstraction pass on the final map
     meta = {"config": str(cfg.source), "frames": stage.stats["frames"],
             "objects": objects_meta(stage.abstraction.polygons)}
-    save_map(stage.map, args.out, meta)     # also after a fault: what was mapped is kept, and said so
+    try:
+        save_map(stage.map, args.out, meta)     # also after a fault: what was mapped is kept, and said so
+        refused = None
+    except MapFileError as exc:                 # the run's summary is still said, and that its map is not kept
+        refused = exc
     s = stage.map.summary()
     ended_well = result.reason in ENDED_WELL
     print(f"map build ended: {result.reason} ({result.message}); {stage.stats['frames']} frames, "
           f"{s['verified']} verified segments ({s['total_length_m']} m), {s['candidates']} candidates, "
-          f"{len(meta['objects'])} objects -> {args.out}" + ("" if ended_well else " (the map up to the fault)"))
+          f"{len(meta['objects'])} objects " + (f"NOT SAVED to {args.out}" if refused else f"-> {args.out}")
+          + ("" if ended_well else " (the map up to the fault)"))
+    if refused:
+        print(f"vbnav map build: --out: {refused}; the map of this run was not saved", file=sys.stderr)
     if stage.stats["unusable"]:
         print(f"map build: {stage.stats['unusable']} frames not mapped, the last because {stage.unusable_reason}",
               file=sys.stderr)
     if not ended_well:
         return 3 if result.reason in DEVICE_FAULTS else 1
-    return 0 if stage.stats["frames"] > 0 else 1
+    return 0 if stage.stats["frames"] > 0 and refused is None else 1
 
 
 def map_info(lmap, meta) -> dict:

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import sys
 
-from vbnav.control.commands._common import add_config_arg, add_record_overwrite_arg, output_file, positive, record_target_error
+from vbnav.control.commands._common import (add_config_arg, add_record_overwrite_arg, output_file, positive,
+                                           record_target_error, refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
 
 
@@ -31,6 +32,7 @@ def run(args) -> int:
     from vbnav.control.session import Session
 
     cfg = load_config(args.config)
+    refuse_unserved_live_view(cfg)
     output_file(args.record, "--record")
     why = record_target_error(args, overwrite_is_record_only=True)
     if why:

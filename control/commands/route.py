@@ -7,10 +7,12 @@
   taught with, keyframes, length, landmarks per keyframe, extent.
 - ``plot PATH [--out FILE.png]``: a top view of the taught path (odometry at the
   keyframes, headings, start and end); default file ``PATH.png`` beside the route.
-- ``check PATH``: every PNG chunk and ``.npz`` member against its CRC-32, every
-  file decoded, the manifest compared with the files. Exit 0 intact (complete or
+- ``check PATH [-c CONFIG]``: every PNG chunk and ``.npz`` member against its
+  CRC-32, every file decoded, the manifest compared with the files; with ``-c``,
+  the route's camera (intrinsics, distortion, size) and mount compared with the
+  configuration's as ``vbnav repeat -c CONFIG`` does. Exit 0 intact (complete or
   not: the verdict says which), 1 damaged or refused by ``vbnav repeat`` (no
-  keyframes), 2 not a route.
+  keyframes, or with ``-c`` another camera or mount), 2 not a route.
 - ``pull ROBOT NAME``, ``push ROBOT PATH``: copy a route from or to a robot over
   zenoh, checksummed (comms/route_transfer.py, docs/fleet.md). Exit codes as
   ``vbnav send``: 0 copied, 1 refused or failed, 2 bad input, 3 cannot connect or
@@ -42,6 +44,10 @@ def register(sub) -> None:
         a.add_argument("path", metavar="PATH", help="the route directory")
         if name == "plot":
             a.add_argument("--out", default=None, metavar="FILE", help="PNG to write (default PATH.png)")
+        if name == "check":
+            a.add_argument("--config", "-c", default=None, metavar="FILE",
+                           help="also refuse the route as 'vbnav repeat -c FILE' would: another camera (intrinsics, "
+                                "distortion, image size) or camera mount than this robot configuration's")
         a.set_defaults(func=fn)
     add_transfer_actions(act)       # pull, push: over zenoh
 
@@ -119,17 +125,22 @@ def run_plot(args) -> int:
 
 def run_check(args) -> int:
     from vbnav.control.route_tools import check
-    report = check(args.path)
+    cfg = None
+    if args.config is not None:
+        from vbnav.control.config import load_config
+        cfg = load_config(args.config)
+    report = check(args.path, cfg)
     for p in report.problems:
         print(f"  damaged: {p}")
     for n in report.notes:
         print(f"  note: {n}")
     if not report.intact:
         print(f"{report.path}: DAMAGED ({len(report.problems)} problem(s)); a repeat would refuse or misread it: "
-              f"teach it again (vbnav teach -c CONFIG --out {report.path} --overwrite)")
+              f"teach it again (vbnav teach -c {args.config or 'CONFIG'} --out {report.path} --overwrite)")
         return 1
     if report.repeat_refusal:
-        print(f"{report.path}: its files are whole, but vbnav repeat refuses it: {report.repeat_refusal}")
+        repeat = f"vbnav repeat -c {args.config}" if args.config else "vbnav repeat"
+        print(f"{report.path}: its files are whole, but {repeat} refuses it: {report.repeat_refusal}")
         return 1
     print(f"{report.path}: intact, {report.keyframes} keyframes, "
           f"{'complete' if report.complete else 'incomplete (teaching was interrupted)'}")

@@ -5,7 +5,8 @@ import json
 import sys
 
 from vbnav.control.commands._common import (add_config_arg, enable_live_view, output_file, positive,
-                                           record_target_error, refuse_network_driver_without_network)
+                                           record_target_error, refuse_network_driver_without_network,
+                                           refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 
@@ -78,6 +79,7 @@ def run(args) -> int:
         cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
+    refuse_unserved_live_view(cfg, args.no_telemetry, "add --realtime")
     kind = args.controller or cfg.controller.kind
     if kind in ("teleop", "operator"):
         refuse_network_driver_without_network(

@@ -5,7 +5,7 @@ import sys
 from pathlib import Path
 
 from vbnav.control.commands._common import (add_config_arg, output_file, positive, record_target_error,
-                                             refuse_network_driver_without_network)
+                                             refuse_network_driver_without_network, refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
 
 
@@ -38,6 +38,7 @@ def run(args) -> int:
     from vbnav.control.session import Session, teach_driver
 
     cfg = load_config(args.config)
+    refuse_unserved_live_view(cfg)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: is a file, expected a route directory (to create, or to replace with "

@@ -105,16 +105,17 @@ def _verifier(tcfg: TelemetryConfig):
 def _route_server(session, cfg, verify, runtime):
     """Serve ``controller.routes_dir`` to the network (pull by anyone admitted, push by operators only).
 
-    A push never replaces the route the operator controller is teaching (``send mode teach --route NAME``)."""
+    A push never replaces the route the operator controller is teaching (``send mode teach --route NAME``), and
+    never installs a route this robot's repeat refuses (its camera and mount, ``config_repeat_refusal``)."""
     from vbnav.control.comms.route_transfer import RouteServer
-    from vbnav.control.route import routes_root
+    from vbnav.control.route import config_repeat_refusal, routes_root
 
     def busy(name: str) -> Optional[str]:     # the route thread reads two strings the loop sets
         if runtime.controller.teaching_route == name:
             return f"route {name!r} is being taught on this robot; push it after `mode idle`"
         return None
     return RouteServer(session, cfg.robot.name, routes_root(cfg.controller.routes_dir, cfg.source), verify=verify,
-                       busy=busy)
+                       busy=busy, refusal=lambda route: config_repeat_refusal(route, cfg))
 
 
 class TelemetryLink:

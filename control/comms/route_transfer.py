@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
-from vbnav.control.route import (MANIFEST, RouteError, check_route_name, describe_route_error, install_route_dir,
-                                 load_route, resolve_route, staging_dir)
+from vbnav.control.route import (MANIFEST, Route, RouteError, check_route_name, describe_route_error,
+                                 install_route_dir, load_route, resolve_route, staging_dir)
 from vbnav.drivers.atomic_file import fsync_file
 from vbnav.drivers.plain_values import load_json
 
@@ -133,13 +133,17 @@ class RouteServer:
 
     verify: the shared-secret check of command samples (link.py ``_verifier``), applied to push queries.
     busy: the reason route NAME may not be replaced now (it is being taught), or None.
+    refusal: why this robot's repeat refuses a pushed route (default: whatever the configuration,
+    ``Route.repeat_refusal``; the robot's link adds its camera and mount, ``config_repeat_refusal``), or None.
     """
 
     def __init__(self, session, robot: str, root, verify: Optional[VerifyFn] = None,
                  busy: Callable[[str], Optional[str]] = lambda name: None,
-                 now_s: Callable[[], float] = time.monotonic):
+                 now_s: Callable[[], float] = time.monotonic,
+                 refusal: Callable[[Route], Optional[str]] = lambda route: route.repeat_refusal()):
         self.root = Path(root)
         self._busy = busy
+        self._refusal = refusal
         self._prefix = f"vbnav/{robot}/routes/"
         self._verify = verify
         self._now = now_s
@@ -299,8 +303,9 @@ class RouteServer:
             raise TransferError(f"push commit: {'missing ' + ', '.join(missing[:3]) if missing else ''}"
                                 f"{'; not in the manifest: ' + ', '.join(extra[:3]) if extra else ''}")
         route = load_route(inc.staging, load_images=False)
-        if route.repeat_refusal():          # it would replace a route that can be repeated by one that cannot
-            raise TransferError(f"push commit: route {inc.name!r}: a repeat refuses it: {route.repeat_refusal()}")
+        why = self._refusal(route)          # it would replace a route that can be repeated by one that cannot
+        if why:
+            raise TransferError(f"push commit: route {inc.name!r}: this robot's repeat refuses it: {why}")
         reason = self._busy(inc.name)      # teaching may have begun since the push did
         if reason:
             raise TransferError(reason)

@@ -330,6 +330,17 @@ class Config(Strict):
         return self
 
     @model_validator(mode="after")
+    def _cruise_speeds_within_the_robots_limit(self):
+        # A cruise speed written above the robot's limit was cut to it without a word; the defaults (not
+        # written) are cut as documented ("at most robot.max_linear_speed").
+        v_max = self.robot.max_linear_speed
+        for key, section in (("vbc.cruise_speed", self.vbc), ("vslam.goto.cruise_speed", self.vslam.goto)):
+            if "cruise_speed" in section.model_fields_set and section.cruise_speed > v_max:
+                raise ValueError(f"{key} {section.cruise_speed:g} m/s is above robot.max_linear_speed {v_max:g} m/s: "
+                                 f"it would be cut to {v_max:g} m/s (lower {key}, or raise the robot's limit)")
+        return self
+
+    @model_validator(mode="after")
     def _scripted_teacher_only_in_simulation(self):
         # A scripted loop through a room the robot cannot see is never what real motors should drive.
         # (an unknown driver is not a real drive: validate_driver_options names it as unknown)
@@ -384,6 +395,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     cfg.source = source
     validate_driver_options(cfg, source)
     apply_calibration_file(cfg, source)
+    check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
                                            "with a stereo calibration file") if cfg.obstacles.enabled else ""
     if refusal:
@@ -404,6 +416,17 @@ def calibration_path(cfg: Config, source: str) -> Optional[Path]:
 
 # Two stereo baselines for one rig that differ by more than this share: two different rigs in one config.
 BASELINE_AGREEMENT = 0.01
+
+
+def check_obstacle_baseline(cfg: Config, source: str) -> None:
+    """Refuse ``obstacles.baseline`` beside another ``camera.options.stereo_baseline``: one rig, two baselines
+    (the obstacle stage would use the first, the VSLAM and the line map the second). A calibration file's
+    baseline is compared with both in ``apply_calibration_file``."""
+    mine, cam = cfg.obstacles.baseline, (cfg.camera.options or {}).get("stereo_baseline")
+    if mine and cam and abs(float(mine) - float(cam)) > BASELINE_AGREEMENT * float(cam):
+        raise ConfigError(f"{source}: obstacles.baseline {float(mine):g} m, camera.options.stereo_baseline "
+                          f"{float(cam):g} m: two stereo baselines for one rig (the obstacle stage would use the first, "
+                          f"the VSLAM and the line map the second); remove obstacles.baseline")
 
 
 def apply_calibration_file(cfg: Config, source: str) -> None:

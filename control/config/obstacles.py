@@ -17,7 +17,8 @@ class ZoneConfig(Strict):
     half_width: Optional[float] = Field(None, gt=0, description="band: width either side of the centre line, m")
     polygon: Optional[list[tuple[float, float]]] = Field(None, description="instead of a band: at least 3 "
                                                                            "(x right, z forward) vertices, m")
-    slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers")
+    slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers (slow zones "
+                                                           "only: refused on a stop zone)")
     min_points: int = Field(8, ge=1, description="obstacle pixels inside that trigger the zone")
 
     @model_validator(mode="after")
@@ -31,6 +32,10 @@ class ZoneConfig(Strict):
             raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
         if self.polygon is not None and not all(math.isfinite(v) for vertex in self.polygon for v in vertex):
             raise ValueError(f"zone {self.name!r}: polygon vertices must be finite numbers, m")
+        if self.action == "stop" and "slow_scale" in self.model_fields_set:
+            raise ValueError(f"zone {self.name!r}: slow_scale {self.slow_scale:g} is the speed factor of a slow "
+                             f"zone, and this zone has action: stop (it stops the robot); set action: slow, or "
+                             f"remove slow_scale")
         return self
 
 
@@ -49,7 +54,7 @@ class ObstaclesConfig(Strict):
     baseline: Optional[float] = Field(None, gt=0, description="m; default the camera's stereo baseline "
                                       "(camera.calibration_file's, else camera.options.stereo_baseline), else the "
                                       "frames' meta['baseline_m'] (OAK); given with a calibration file that has "
-                                      "one, the two must agree within 1 %")
+                                      "one, or with camera.options.stereo_baseline, the two must agree within 1 %")
     obstacle_height: float = Field(0.02, gt=0, description="m above the floor that is an obstacle")
     negative_depth: float = Field(0.03, gt=0, description="m below the floor that is a negative obstacle")
     noise_px: float = Field(0.4, ge=0, description="disparity noise floor, px")
@@ -89,6 +94,12 @@ class ObstaclesConfig(Strict):
             raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
+        unused = sorted({"sgbm_block_size", "sgbm_near_margin"} & self.model_fields_set)
+        if self.source == "disparity" and unused:
+            raise ValueError(f"{' and '.join(unused)} {'set' if len(unused) > 1 else 'sets'} the stereo matching "
+                             f"(SGBM), which source: disparity never "
+                             f"runs (it takes the frames' own disparity); remove {' and '.join(unused)}, or set "
+                             f"source: auto or sgbm")
         if not self.zones:
             raise ValueError("zones: at least one zone (the stage watches the floor of the stop zones; without "
                              "zones it could never slow or stop the robot)")

@@ -71,7 +71,8 @@ class LiveViewConfig(Strict):
     """``telemetry.live_view``: the Foxglove WebSocket server (control/comms/live_view.py)."""
 
     enabled: bool = Field(False, description="serve the live view to the Foxglove app (ws://HOST:PORT); off by "
-                          "default. Opens with the zenoh session (real-time runs, not --no-telemetry)")
+                          "default. Opens with the zenoh session (real-time runs, not --no-telemetry); a run "
+                          "that could not serve it (simulated clock, telemetry closed) is refused")
     host: str = Field("127.0.0.1", description="address the WebSocket server binds to; beyond loopback only "
                       "when the telemetry section allows remote access (auth and operators) and with tls_* set")
     port: int = Field(8765, ge=0, le=65535, description="WebSocket port (0: any free port, printed at start)")

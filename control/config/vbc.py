@@ -1,7 +1,7 @@
 """The ``vbc:`` section: teach-and-repeat by Vision-Based Control (tracking, keyframes, repeat)."""
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from vbnav.control.config.base import Strict
 
 
@@ -74,7 +74,8 @@ class VBCConfig(Strict):
                                 "not trusted, and the reason names the camera mount, deg: beyond a few "
                                 "degrees the mount itself has moved and needs fixing")
     pass_margin_m: float = Field(0.0, description="keyframe k is passed when the robot is this far behind it (z)")
-    cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s (at most robot.max_linear_speed)")
+    cruise_speed: float = Field(0.25, gt=0, description="repeat speed, m/s, at most robot.max_linear_speed (the "
+                                "default is cut to it; a value written above it is refused)")
     lookahead_m: float = Field(0.25, gt=0, description="pure-pursuit lookahead along the taught path")
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new fix's correction applied at once")
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone (no fix, or only "
@@ -105,3 +106,11 @@ class VBCConfig(Strict):
                                     "the tracks kept while teaching (max_features), so most have a candidate")
     reacquire_inlier_sigmas: float = Field(2.0, gt=0, description="a re-acquired match must fit the epipolar "
                                            "geometry of the others within this many bearing_sigma_px")
+
+    @model_validator(mode="after")
+    def _slowing_between_min_and_slow_landmarks(self):
+        if self.slow_landmarks < self.min_landmarks:
+            raise ValueError(f"slow_landmarks {self.slow_landmarks} is below min_landmarks {self.min_landmarks}: the "
+                             f"repeat would never slow for a weak fix (min_landmarks_speed_factor never applied); "
+                             f"set slow_landmarks >= min_landmarks")
+        return self

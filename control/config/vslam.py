@@ -11,7 +11,8 @@ from vbnav.vision.vslam import VslamConfig
 class GotoConfig(Strict):
     """``vslam.goto``: the go-to controller's gains and tolerances."""
 
-    cruise_speed: float = Field(0.3, gt=0, description="top speed, m/s (at most robot.max_linear_speed)")
+    cruise_speed: float = Field(0.3, gt=0, description="top speed, m/s, at most robot.max_linear_speed (the "
+                                "default is cut to it; a value written above it is refused)")
     k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
     k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
     k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
@@ -87,4 +88,24 @@ class VslamNavConfig(VslamConfig, Strict):
             raise ValueError(f"ba_window {self.ba_window}: the bundle adjustment moves landmarks placed by the "
                              f"camera's own motion; with metric_scale stereo the pair measures every landmark, so "
                              f"it would change nothing (ba_window 0, or metric_scale odometry for one camera)")
+        return self
+
+    @model_validator(mode="after")
+    def _settings_that_apply(self):
+        # written where they do not apply, these were accepted and never read
+        given = self.model_fields_set
+        unused = [(k, "a single camera's scale (metric_scale odometry)") for k in sorted(given)
+                  if k.startswith("odometry_") and self.metric_scale == "stereo"]
+        if "stereo_max_depth_baselines" in given and self.metric_scale == "odometry":
+            unused.append(("stereo_max_depth_baselines", "a stereo pair's landmarks (metric_scale stereo)"))
+        unused += [(k, "the bundle adjustment (ba_window > 0)") for k in ("ba_history", "ba_outlier_sigmas")
+                   if k in given and self.ba_window == 0]
+        if "init_creep_speed" in self.goto.model_fields_set and self.metric_scale == "stereo":
+            unused.append(("goto.init_creep_speed", "the drive while a single camera initialises (metric_scale "
+                                                    "odometry)"))
+        if unused:
+            k, what = unused[0]
+            raise ValueError(f"{k}: it sets {what}, which this configuration does not run (metric_scale "
+                             f"{self.metric_scale}, ba_window {self.ba_window}): remove it, or configure what it "
+                             f"applies to")
         return self

@@ -31,7 +31,6 @@ The teach and repeat parts (stage, route writer, controller) are the ones
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from typing import TYPE_CHECKING, Optional
 
@@ -153,38 +152,28 @@ class OperatorController(Controller):
 
         cmd: the operator's command (None for the switch to idle at a repeat's end). Returns its answer:
         at once under the simulated clock, else ``PENDING`` (answered when the worker is done)."""
-        frames_at_swap = 0
         self._previous = (list(self.pipeline.stages) if self.pipeline is not None else None, self.active)
         if self.pipeline is not None:
             if self._drain_keyframes in self.pipeline.frame_listeners:
                 self.pipeline.frame_listeners.remove(self._drain_keyframes)
-            self.pipeline.stages = list(self._base_stages)
-            frames_at_swap = self.pipeline.frames
+            self.pipeline.stages = list(self._base_stages)   # the teach stage's last frame: Teaching.close waits
         self.active = None
         if self.pipeline is None or self.pipeline.inline:
             # Simulated clock: switch synchronously, so runs stay deterministic (time does not pass meanwhile).
-            self._prepare(target, route, frames_at_swap, cmd)
+            self._prepare(target, route, cmd)
             return self._apply_pending(now_ns, deferred=False)
         self._worker_cmd = cmd
-        self._worker = threading.Thread(target=self._prepare, args=(target, route, frames_at_swap, cmd),
+        self._worker = threading.Thread(target=self._prepare, args=(target, route, cmd),
                                         name=target, daemon=True)
         self._worker.start()
         return PENDING
 
-    def _wait_for_the_vision_thread(self, frames_at_swap: int) -> None:
-        if self._teaching is not None and self.pipeline is not None and not self.pipeline.inline:
-            # The vision thread may still be inside the teach stage with the last frame before the swap.
-            deadline = time.monotonic() + 1.0
-            while self.pipeline.frames <= frames_at_swap + 1 and time.monotonic() < deadline:
-                time.sleep(0.01)
-
-    def _prepare(self, target: str, route: Optional[str], frames_at_swap: int = 0,
-                 cmd: Optional[OperatorCommand] = None) -> None:
+    def _prepare(self, target: str, route: Optional[str], cmd: Optional[OperatorCommand] = None) -> None:
         """The switch (``_prepare_switch``), always answered: an error it did not expect (closing the new
         route failed too, on a full disk) would end the worker unseen, the command unanswered and every later
         switch refused as still in progress. Then the robot goes idle, saying why."""
         try:
-            self._prepare_switch(target, route, frames_at_swap, cmd)
+            self._prepare_switch(target, route, cmd)
         except Exception as exc:
             old, self._teaching = self._teaching, None
             if old is not None:
@@ -195,8 +184,7 @@ class OperatorController(Controller):
             self._post(("idle", None, list(self._base_stages), None, None,
                         f"mode {target}: the switch failed ({exc!r}); the robot is idle", cmd))
 
-    def _prepare_switch(self, target: str, route: Optional[str], frames_at_swap: int = 0,
-                        cmd: Optional[OperatorCommand] = None) -> None:
+    def _prepare_switch(self, target: str, route: Optional[str], cmd: Optional[OperatorCommand] = None) -> None:
         """Build what the target needs, then close what the current mode opened (off the loop thread).
 
         The target first: a switch that fails leaves the current mode as it was (``_apply_pending`` puts
@@ -210,7 +198,6 @@ class OperatorController(Controller):
                                       must_exist=target == "repeat")
             if target == "repeat" and self.mode == "teach" and route == self.route_path:
                 # Repeat what is being taught: its last keyframes are written when the teach closes.
-                self._wait_for_the_vision_thread(frames_at_swap)
                 ended = self._close_teach()
                 closed = f"; teaching {route!r} was closed, the robot is idle" + (f" ({ended})" if ended else "")
             stages, controller, teaching, note = list(self._base_stages), None, None, ""
@@ -233,7 +220,6 @@ class OperatorController(Controller):
                 self._post((self.mode, self.route_path, None, None, None, f"mode {target}: {why}", cmd))
             return
         try:
-            self._wait_for_the_vision_thread(frames_at_swap)
             ended = self._close_teach() or ended
         except Exception as exc:   # the route being taught could not be closed (a full disk)
             self._teaching = None
@@ -265,7 +251,7 @@ class OperatorController(Controller):
         teaching = self._teaching
         if teaching is None:
             return ""
-        teaching.close(vision=self.pipeline)   # at the run's end, after its vision thread
+        teaching.close(vision=self.pipeline)   # after the vision thread's frame in the teach stage, if any
         self._teaching = None
         return f"route {self.route_path!r} taught: {teaching.note}" if teaching.note else ""
 

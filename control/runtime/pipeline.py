@@ -60,6 +60,10 @@ class VisionPipeline:
         self._pending: deque = deque()      # inline mode: (release_ns, frame, estimates)
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
+        # frames the vision thread began and ended processing (stages and listeners): ``wait_released``
+        self._frame_done = threading.Condition()
+        self._frames_begun = 0
+        self._frames_ended = 0
         self.process_ms: deque = deque(maxlen=1000)
 
     # -- lifecycle ---------------------------------------------------------
@@ -93,6 +97,19 @@ class VisionPipeline:
             self._thread.join(timeout=timeout_s)
         return not self.still_running
 
+    def wait_released(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` until the vision thread no longer runs a stage it held at this call: once
+        stopped, until the thread has ended (``wait_stopped``); while it runs, until the frame it is processing
+        now is done (a stage taken out of ``stages`` before this call is then never called again). True when
+        released (also when no thread runs: inline, or no camera)."""
+        if self._stop.is_set():
+            return self.wait_stopped(timeout_s)
+        thread = self._thread
+        with self._frame_done:
+            begun = self._frames_begun
+            return self._frame_done.wait_for(lambda: self._frames_ended >= begun or thread is None
+                                             or not thread.is_alive(), timeout_s)
+
     @property
     def last_frame_stamp(self) -> Optional[int]:
         f = self.last_frame
@@ -124,6 +141,8 @@ class VisionPipeline:
             if frame is None:
                 time.sleep(0.001)
                 continue
+            with self._frame_done:
+                self._frames_begun += 1
             try:
                 fresh, results = self._process(frame)
                 self._publish(frame, fresh, results)
@@ -134,6 +153,10 @@ class VisionPipeline:
                 self.fault_traceback = traceback.format_exc()
                 self.fault = f"vision thread: {exc!r}"
                 return
+            finally:
+                with self._frame_done:
+                    self._frames_ended += 1
+                    self._frame_done.notify_all()
 
     def odometry_at(self, stamp_ns: int) -> Pose2:
         """The wheel odometry at ``stamp_ns`` (interpolated in the loop's history), else the newest pose."""

@@ -25,6 +25,7 @@ import math
 from typing import Optional
 
 import numpy as np
+from vbnav.drivers.calibration import CalibrationError, check_baseline
 from vbnav.vision.features import to_grey
 
 
@@ -80,12 +81,9 @@ def frame_baseline(frame) -> tuple[Optional[float], str]:
     if b is None:
         return None, "the frame carries no meta['baseline_m']"
     try:
-        ok = not isinstance(b, (str, bool)) and math.isfinite(float(b)) and float(b) > 0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
+        return check_baseline("the frame", b, "meta['baseline_m']"), ""
+    except CalibrationError:
         return None, f"the frame's meta['baseline_m'] is {b!r}, not a distance > 0"
-    return float(b), ""
 
 
 def odometry_problem(odom) -> str:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, model_validator
 from vbnav.drivers.plain_values import PlainValues
 
 from vbnav.drivers.wheels import DriveError, DriveFault, DriveState, FaultKind, WheelDrive, WheelState
@@ -119,6 +119,13 @@ class SimDiffDrive(WheelDrive):
         fail_after_s: Optional[float] = Field(None, gt=0, description="testing: lose the bus after this time")
         lost_for_s: Optional[float] = Field(None, gt=0, description="testing: with fail_after_s, the bus comes "
                                             "back after this long (None: never)")
+
+        @model_validator(mode="after")
+        def _a_return_needs_a_loss(self):
+            if self.lost_for_s is not None and self.fail_after_s is None:
+                raise ValueError(f"lost_for_s: {self.lost_for_s:g} (the bus comes back) takes effect only with "
+                                 f"fail_after_s (the bus is lost): set fail_after_s, or remove lost_for_s")
+            return self
 
     def __init__(self, params: BaseParams, clock, seed: int = 0, start: Pose2 = Pose2(),
                  options: Optional["SimDiffDrive.Options"] = None):
