@@ -4,7 +4,9 @@ The unit runs ``vbnav run -c CONFIG`` as ``Type=notify``: the control loop tells
 systemd when it runs (READY=1), pings the watchdog from its own cycles
 (WATCHDOG=1) and says when it stops (STOPPING=1), see
 ``runtime/systemd_notify.py``. A process whose loop stopped cycling is killed and
-started again; so is one that ended on a fault (``Restart=on-failure``).
+started again; so is one that ended on a fault (``Restart=on-failure``). An operator's estop outlives
+such a restart: systemd gives the service ``StateDirectory=vbnav`` (``$STATE_DIRECTORY``), where the run
+keeps it in a file until a resume (``runtime/estop_latch.py``).
 
 Watchdog timing (``watchdog_s``): the loop itself notices a stall of more than
 ``loop.stall_periods`` periods (50 ms at 100 Hz), stops the wheels and goes on;
@@ -33,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from vbnav.control.runtime.estop_latch import LATCH_NAME
 from vbnav.control.runtime.systemd_notify import PINGS_PER_WATCHDOG
 from vbnav.drivers.atomic_file import write_atomic_set
 from vbnav.drivers.discovery import UsbIdentity, usb_identity
@@ -50,6 +53,7 @@ START_TIMEOUT_S = 60         # imports on a small computer, drive bring-up, an O
 # publisher's flush (10 s), the event echo (4 s), a mode switch still on its worker (5 s) and the drive and
 # camera: past 15 s systemd killed it mid-close and the recording stayed a .part.
 STOP_TIMEOUT_S = 30
+STATE_DIRECTORY = "vbnav"     # StateDirectory=: where the estop latch file survives a restart (estop_latch.py)
 RESTART_S = 2                # a USB device that re-enumerates after a brown-out is back by then
 
 FTDI_VENDOR, U2D2_PRODUCT = "0403", "6014"
@@ -201,6 +205,9 @@ def unit_text(cfg, config_path: str, executable: str, user: str, pythonpath: str
         f"User={user}",
         "WorkingDirectory=~",
         "Environment=PYTHONUNBUFFERED=1",
+        f"# /var/lib/{STATE_DIRECTORY} for the user, as $STATE_DIRECTORY: an operator's estop is kept there "
+        f"({LATCH_NAME}, safety.latch_file) and holds across restarts until a resume",
+        f"StateDirectory={STATE_DIRECTORY}",
     ]
     if pythonpath:
         lines.append(f"Environment={_unit_arg('PYTHONPATH=' + pythonpath, 'PYTHONPATH')}")

@@ -261,7 +261,7 @@ def test_install_writes_a_unit_that_systemd_accepts(tmp_path, capsys):
     exe = Path(sys.executable).parent / "vbnav"
     assert f'ExecStart={exe} run -c "{config.resolve()}"' in unit
     for line in ("Type=notify", "NotifyAccess=main", "WatchdogSec=5", "Restart=on-failure",
-                 "RestartPreventExitStatus=2", "StartLimitIntervalSec=0", "SuccessExitStatus=130", "LimitRTPRIO=40", "CPUAffinity=0 1",
+                 "RestartPreventExitStatus=2", "StartLimitIntervalSec=0", "StateDirectory=vbnav", "SuccessExitStatus=130", "LimitRTPRIO=40", "CPUAffinity=0 1",
                  f"User={_user()}", "WantedBy=multi-user.target"):
         assert re.search(rf"^{re.escape(line)}$", unit, re.M), line
     analyze = shutil.which("systemd-analyze")

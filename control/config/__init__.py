@@ -215,6 +215,14 @@ class SafetyConfig(Strict):
                              "a flickering cause does not start and stop the wheels every cycle (a silent "
                              "command stream ends with the first fresh command; an obstacle stop after "
                              "obstacles.release_s, its stage's own debounce)")
+    latch_file: Optional[str] = Field(
+        None, min_length=1,
+        description="file that keeps an operator's estop across restarts of the process: written when an estop "
+                    "latches, removed by the resume that clears it; found at start-up it latches the run before "
+                    "the wheels are powered (unreadable or unparsable: latched all the same). ~ expanded, relative "
+                    "to the config file's folder. Default: $STATE_DIRECTORY/estop.json when systemd sets "
+                    "STATE_DIRECTORY (the unit 'vbnav service install' writes has StateDirectory=vbnav), else "
+                    "none: an estop then holds only until the process ends (docs/safety.md)")
 
 
 # The simulated worlds the room's loop (controller.teach room_loop, vbnav demo) runs in: the room's walls.

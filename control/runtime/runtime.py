@@ -27,7 +27,10 @@ cause. Any other drive fault ends the run at once.
 Started by systemd (``vbnav service install``), the loop is the service's
 heartbeat (systemd_notify.py): READY=1 after its first cycle, a WATCHDOG=1 ping
 from completed cycles (throttled, non-blocking), STOPPING=1 when it ends; a
-stalled loop stops the pings and systemd restarts the process.
+stalled loop stops the pings and systemd restarts the process. An operator's estop
+outlives that restart: it is kept in ``safety.latch_file`` (estop_latch.py, written
+off the loop thread), and a run that finds the file starts latched, the drive never
+enabled until a resume.
 
 Operator commands reach the loop through a ``CommandMailbox`` (mailbox.py):
 ``submit`` from any thread, drained once per cycle. The runtime applies
@@ -48,10 +51,12 @@ import sys
 import threading
 import traceback
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Optional
 
 from vbnav.control.runtime.finishing import STOP_SIGNALS as _FINISHING_STOP_SIGNALS
 from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
+from vbnav.control.runtime.estop_latch import LatchWriter, folder_problem, latch_path, latch_record, read_latch
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
@@ -242,6 +247,9 @@ class Runtime:
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
+        # an operator's estop kept across restarts (estop_latch.py): the file, and its writer while a run runs
+        self.latch_file: Optional[Path] = latch_path(cfg)
+        self._latch_writer: Optional[LatchWriter] = None
 
     # -- thread-safe inputs -------------------------------------------------
     def submit(self, cmd: OperatorCommand) -> Optional[str]:
@@ -266,6 +274,7 @@ class Runtime:
         next_progress = [0]
         looping = False      # the loop started: a failure from now on is no start-up failure
         self.mailbox.reopen()
+        self._open_latch()        # before the devices: under a kept estop the wheels are never powered
         try:
             self.drive.connect()
             if self.pipeline is not None:
@@ -276,9 +285,10 @@ class Runtime:
             if self._signal is not None:
                 # a stop asked for while the devices came up (a camera's slow discovery): never powered
                 raise _StoppedDuringStartUp(signal.Signals(self._signal).name)
-            self._enabled = True      # before enable(): what a failed enable armed is stopped and reported too
-            self._unstopped = None
-            self.drive.enable()
+            if not self.safety.latched:    # a kept estop (latch file): enabled by the cycle after the resume
+                self._enabled = True      # before enable(): what a failed enable armed is stopped and reported too
+                self._unstopped = None
+                self.drive.enable()
             self._start_ns = self.clock.now_ns()
             self._deadline_ns = None if duration_s is None else self._start_ns + int(duration_s * 1e9)
             next_progress[0] = self._start_ns
@@ -328,6 +338,7 @@ class Runtime:
                 self._closed(lost)
             except Exception:
                 pass
+            self._close_latch()      # the estop or resume of the last cycles on disk before the process ends
             if self.pipeline is not None:
                 self.pipeline.stop()
             self._restore_signal_handlers(handlers)
@@ -349,6 +360,8 @@ class Runtime:
                 return self._finish(now, "signal", f"received {name}")
             if self._end_asked is not None:
                 return self._finish(now, *self._end_asked)
+            if self._latch_writer is not None:
+                self._latch_warnings(now)
             if self.loop.timing.streak >= self.cfg.loop.max_missed_streak:
                 return self._finish(now, "deadline",
                                     f"{self.loop.timing.streak} consecutive missed deadlines "
@@ -434,6 +447,34 @@ class Runtime:
         except Exception as exc:
             self.fault_traceback = traceback.format_exc()
             return self._finish(now, _failure_reason(exc), f"exception in {stage}: {exc!r}")
+
+    # -- the estop kept across restarts ---------------------------------------
+    def _open_latch(self) -> None:
+        """Start-up: a latch file that is there (or cannot be read) latches the run; its writer starts."""
+        path = self.latch_file
+        if path is None:
+            return
+        now = self.clock.now_ns()
+        kept = read_latch(path)
+        if kept is not None:
+            print(f"vbnav: estop kept from before a restart: {kept}", file=sys.stderr, flush=True)
+            self.safety.trip(now, "estop", kept)
+        problem = folder_problem(path)
+        if problem:
+            self.safety.note(now, "warning", "latch_file", f"latch file {path} cannot be written: {problem}; an "
+                                                           f"estop will hold only until this process ends")
+        self._latch_writer = LatchWriter(path)
+
+    def _latch_warnings(self, now: int) -> None:
+        for message in self._latch_writer.errors():
+            self.safety.note(now, "warning", "latch_file", message)
+
+    def _close_latch(self) -> None:
+        if self._latch_writer is None:
+            return
+        self._latch_writer.close()
+        self._latch_warnings(self.clock.now_ns())
+        self._latch_writer = None
 
     # -- a lost drive ---------------------------------------------------------
     def _read_wheels(self, now: int) -> Optional[WheelState]:
@@ -628,6 +669,8 @@ class Runtime:
             # a resume drained with it arrived before anyone could see it (the state showing it goes out after
             # this cycle): taken, it cleared the estop in the cycle it was applied, and the wheels drove on
             self._resume_after = (now, f"the estop from {cmd.source} took effect")
+            if self._latch_writer is not None:     # kept across a restart; written off the loop thread
+                self._latch_writer.write(latch_record(self.safety.latched["estop"], now))
             return APPLIED
         stale = self.mailbox.sent_before_stop(cmd)   # a teleop drained behind the estop, sent before it
         if stale:
@@ -648,6 +691,8 @@ class Runtime:
                                               f"cleared; resume again naming latched_ns {self.safety.latched_ns}")
         if cmd.kind == "resume":
             cleared = self.safety.reset(now, f"resume from {cmd.source}")
+            if "estop" in cleared and self._latch_writer is not None:
+                self._latch_writer.remove()
             held = [c for c in self.safety.holds if c not in self._controller_holds]
             if cleared and not held:
                 return APPLIED

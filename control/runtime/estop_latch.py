@@ -1,0 +1,146 @@
+"""An operator's estop kept on disk, so it holds across restarts of the process.
+
+A run that ends on a fault (a camera, a bus, the network, an exception) while an operator's estop is
+latched is restarted by systemd a few seconds later (``vbnav service install``, ``Restart=on-failure``); a
+latch kept only in memory would be gone, and a service configured for repeat would drive off with nobody's
+resume. So the latch is also a file (``safety.latch_file``; by default ``$STATE_DIRECTORY/estop.json``, the
+folder systemd makes for ``StateDirectory=vbnav``, and none outside systemd):
+
+- an estop that latches writes it (``write_atomic``: temporary file, rename, folder fsync) on the writer's
+  own thread (``LatchWriter``): the loop only posts, it never waits on a disk;
+- the resume that clears the estop removes it, the same way;
+- at start-up, before the wheels are powered, a file that is there latches the run (``read_latch``), named
+  with the estop's reason and stamp; one that cannot be read or parsed latches it too (fail safe), saying why.
+
+A file that cannot be written or removed is a ``warning`` event (cause ``latch_file``) naming it and the
+error: the estop holds in memory all the same, but no longer across a restart.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Optional
+
+from vbnav.drivers.atomic_file import fsync_folder, write_atomic
+
+LATCH_NAME = "estop.json"
+#: How long the end of a run waits for a latch file still being written (a slow SD card's fsync).
+CLOSE_WAIT_S = 3.0
+
+
+def latch_path(cfg, environ=None) -> Optional[Path]:
+    """``safety.latch_file`` (~ expanded, relative to the config file's folder), else
+    ``$STATE_DIRECTORY/estop.json`` under systemd's ``StateDirectory=``, else None (no file)."""
+    environ = os.environ if environ is None else environ
+    f = cfg.safety.latch_file
+    if f:
+        p = Path(f).expanduser()
+        source = cfg.source or ""
+        if not p.is_absolute() and source and not source.startswith("<"):
+            p = Path(source).resolve().parent / p
+        return p
+    state = environ.get("STATE_DIRECTORY", "")
+    return Path(state.split(":")[0]) / LATCH_NAME if state else None     # systemd joins several with ':'
+
+
+def latch_record(message: str, latched_ns: int) -> str:
+    """What the file holds: the estop's message, its loop-clock stamp and the wall-clock time it latched."""
+    return json.dumps({"cause": "estop", "message": message, "latched_ns": latched_ns,
+                       "since": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "pid": os.getpid()}) + "\n"
+
+
+def read_latch(path: Path) -> Optional[str]:
+    """None when no latch file is there; else the message of the latched stop it stands for."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return (f"latch file {path} cannot be read ({exc.strerror or exc}): latched all the same (fail safe); "
+                f"resume to clear it")
+    try:
+        data = json.loads(raw)
+        message, since, stamp = data["message"], data["since"], data["latched_ns"]
+        if not (isinstance(message, str) and isinstance(since, str) and isinstance(stamp, int)):
+            raise TypeError("expected message and since as text, latched_ns as an integer")
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
+        why = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
+        return (f"latch file {path} cannot be parsed ({why}): latched all the same (fail safe); resume to "
+                f"clear it")
+    return (f"{message}; latched at {since} (latched_ns {stamp} of the run before), kept in {path} across a "
+            f"restart; resume to clear it")
+
+
+def folder_problem(path: Path) -> Optional[str]:
+    """Why the latch file could not be written (its folder missing or not writable), or None."""
+    folder = path.parent
+    if not folder.is_dir():
+        return f"its folder {folder} does not exist"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"its folder {folder} is not writable by this user"
+    return None
+
+
+class LatchWriter:
+    """Writes and removes the latch file on a thread of its own. ``write`` and ``remove`` only post (the
+    newest post wins: what counts is the latch's last state); ``errors`` hands the failures to the loop."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._cond = threading.Condition()
+        self._pending: Optional[str] = None    # the text to write, or "" to remove
+        self._closed = False
+        self._errors: deque = deque()
+        self._thread = threading.Thread(target=self._run, name="estop-latch-writer", daemon=True)
+        self._thread.start()
+
+    def write(self, text: str) -> None:
+        self._post(text)
+
+    def remove(self) -> None:
+        self._post("")
+
+    def errors(self) -> list[str]:
+        out = []
+        while self._errors:
+            out.append(self._errors.popleft())
+        return out
+
+    def close(self, wait_s: float = CLOSE_WAIT_S) -> None:
+        """Finish what was posted (up to ``wait_s``), then end the thread; what is left unfinished is an error."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        self._thread.join(wait_s)
+        if self._thread.is_alive():
+            self._errors.append(f"latch file {self.path} was still being written or removed {wait_s:g} s after "
+                                f"the run ended: the estop may not hold across a restart")
+
+    def _post(self, op: str) -> None:
+        with self._cond:
+            self._pending = op
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._closed:
+                    self._cond.wait()
+                op, self._pending = self._pending, None
+            if op is None:
+                return
+            try:
+                if op:
+                    write_atomic(self.path, op)
+                else:
+                    self.path.unlink(missing_ok=True)
+                    fsync_folder(self.path.parent)
+            except OSError as exc:
+                did = "written" if op else "removed"
+                self._errors.append(f"latch file {self.path} could not be {did} ({exc.strerror or exc}): the "
+                                    f"estop holds in memory but "
+                                    + ("not across a restart" if op else "a restart would latch it again"))

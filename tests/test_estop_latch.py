@@ -1,0 +1,159 @@
+"""An operator's estop holds across restarts of the process (control/runtime/estop_latch.py).
+
+Found by an audit: a robot estopped whose run then ended on a fault was restarted by systemd 2 s later without
+the latch, and a service configured for repeat drove off with nobody's resume. The estop is now kept in a file
+(safety.latch_file; under systemd $STATE_DIRECTORY/estop.json) written off the loop thread; a run that finds it
+starts latched, before the wheels are powered, until a resume. All on the simulated robot and clock."""
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import pytest
+
+from vbnav.control.cli import main
+from vbnav.control.config import load_config
+from vbnav.control.controllers.manual import ScriptedController
+from vbnav.control.runtime import estop_latch
+from vbnav.control.runtime.factory import make_robot
+from vbnav.control.runtime.mailbox import OperatorCommand
+from vbnav.control.runtime.runtime import Runtime
+
+S = 1_000_000_000
+
+
+def _config(tmp_path: Path, latch_file: str | None = None, fail_after_s: float | None = None) -> Path:
+    path = tmp_path / "robot.yaml"
+    drive = {"driver": "sim", "reconnect_window_s": 0}
+    if fail_after_s is not None:
+        drive["options"] = {"fail_after_s": fail_after_s}
+    data = {"drive": drive, "controller": {"kind": "scripted"}}
+    if latch_file is not None:
+        data["safety"] = {"latch_file": latch_file}
+    path.write_text(json.dumps(data))          # JSON is YAML
+    return path
+
+
+def _run(config: Path, duration_s: float, at: dict | None = None):
+    """One run of the simulated robot (no camera) with the configured scripted drive; ``at`` maps a time (ns
+    from the start) to a function(runtime) called in that cycle. Returns the result, the runtime and, per
+    cycle, (t, the drive powered, the commanded wheel speeds)."""
+    cfg = load_config(str(config))
+    robot = make_robot(cfg, with_camera=False)
+    rt = Runtime(cfg, robot.drive, ScriptedController(cfg.controller.script), robot.clock)
+    cycles = []
+    start = []
+
+    def observe(r, ctx, twist, wheels):
+        if not start:
+            start.append(ctx.now_ns)
+        t = ctx.now_ns - start[0]
+        cycles.append((t, robot.drive.physics.powered, wheels))
+        if at and t in at:
+            at[t](r)
+
+    rt.cycle_observers.append(observe)
+    return rt.run(duration_s), rt, cycles
+
+
+def _estop(reason: str):
+    return lambda r: r.submit(OperatorCommand("estop", (reason,), "test"))
+
+
+def _resume(r) -> None:
+    r.submit(OperatorCommand("resume", (r.safety.latched_ns,), "test"))
+
+
+def _moving(cycles, since: int = 0, until: int | None = None) -> list:
+    return [t for t, powered, (left, right) in cycles
+            if since <= t and (until is None or t < until) and powered and (left or right)]
+
+
+def test_an_estop_holds_across_a_fault_and_a_restart_until_a_resume(tmp_path, monkeypatch, capsys):
+    state = tmp_path / "state"          # what systemd makes for StateDirectory=vbnav
+    state.mkdir()
+    monkeypatch.setenv("STATE_DIRECTORY", str(state))
+    config = _config(tmp_path, fail_after_s=3.0)
+    latch = state / "estop.json"
+
+    first, _, cycles = _run(config, 10, {1 * S: _estop("person on the track")})
+    assert first.reason == "drive", first.message          # the fault ended it: systemd restarts it
+    assert _moving(cycles, until=1 * S) and not _moving(cycles, since=1 * S + 20_000_000)
+    assert "person on the track" in json.loads(latch.read_text())["message"]
+
+    # the restart, as the service does it: `vbnav run` with the same configuration, nobody resumes
+    assert main(["run", "-c", str(config), "--no-camera", "--duration", "2", "--json", "--no-telemetry"]) == 0
+    captured = capsys.readouterr()
+    assert "estop kept from before a restart" in captured.err and str(latch) in captured.err, captured.err
+    summary = json.loads(captured.out)
+    trip = summary["events"][0]
+    assert (trip["kind"], trip["cause"]) == ("trip", "estop"), summary["events"]
+    assert "person on the track" in trip["message"] and str(latch) in trip["message"] and "latched at" in trip["message"]
+    assert summary["final_odometry"] == [0.0, 0.0, 0.0]    # it never drove
+    assert latch.exists()
+
+    # the next restart: a resume naming the state's latched_ns clears it, and the robot drives again
+    third, rt, cycles = _run(config, 2, {1 * S: _resume})
+    assert not [c for c in cycles if c[0] < 1 * S and c[1]], "powered before the resume"
+    assert _moving(cycles, since=1 * S)
+    assert third.count("reset", "estop") == 1 and rt.safety.may_move
+    assert not latch.exists()
+
+
+def test_the_latch_file_is_written_off_the_loop_thread(tmp_path, monkeypatch):
+    """A writer blocked on the disk (a slow SD card) does not hold the loop: it cycles on meanwhile."""
+    config = _config(tmp_path, latch_file="estop.json")
+    entered, release = threading.Event(), threading.Event()
+    writers = []
+    real_write = estop_latch.write_atomic
+
+    def slow_write(path, data, mode=None):
+        writers.append(threading.current_thread())
+        entered.set()
+        release.wait(10)
+        return real_write(path, data, mode)
+
+    monkeypatch.setattr(estop_latch, "write_atomic", slow_write)
+    seen = {}
+
+    def while_blocked(r):
+        seen["writing"] = entered.is_set() and not release.is_set()
+        seen["file"] = (tmp_path / "estop.json").exists()
+        release.set()
+
+    result, _, _ = _run(config, 2, {1 * S: _estop("test"), 1 * S + 10_000_000: lambda r: entered.wait(10),
+                                    1 * S + 500_000_000: while_blocked})
+    assert writers and threading.main_thread() not in writers, writers
+    assert seen == {"writing": True, "file": False}, seen      # 49 cycles ran while the write was blocked
+    assert result.reason == "duration" and result.cycles == 201
+    assert json.loads((tmp_path / "estop.json").read_text())["message"] == "estop from test: test"
+
+
+@pytest.mark.parametrize("damage, says", [(b"{not json", "cannot be parsed"), (b"", "cannot be parsed"),
+                                          (b'{"message": "x"}', "cannot be parsed (no 'since')"),
+                                          (None, "cannot be read")])
+def test_a_latch_file_that_cannot_be_read_keeps_the_robot_latched(tmp_path, damage, says):
+    config = _config(tmp_path, latch_file="estop.json")
+    latch = tmp_path / "estop.json"
+    if damage is None:
+        latch.mkdir()                  # something there that is no file
+    else:
+        latch.write_bytes(damage)
+    result, rt, cycles = _run(config, 1)
+    trip = result.events[0]
+    assert (trip.kind, trip.cause) == ("trip", "estop") and says in trip.message and str(latch) in trip.message
+    assert not [c for c in cycles if c[1]], "powered while latched"
+    if damage is not None:             # a resume clears it and removes the file
+        _, _, cycles = _run(config, 2, {1 * S: _resume})
+        assert _moving(cycles, since=1 * S) and not latch.exists()
+
+
+def test_a_latch_file_that_cannot_be_written_is_said_and_the_estop_holds_in_memory(tmp_path):
+    config = _config(tmp_path, latch_file="missing/estop.json")
+    result, rt, cycles = _run(config, 2, {1 * S: _estop("test")})
+    warnings = [e.message for e in result.events if (e.kind, e.cause) == ("warning", "latch_file")]
+    assert len(warnings) == 2, warnings
+    assert "does not exist" in warnings[0] and "could not be written" in warnings[1], warnings
+    assert all(str(tmp_path / "missing/estop.json") in w for w in warnings)
+    assert not _moving(cycles, since=1 * S + 20_000_000) and "estop" in rt.safety.latched
