@@ -50,8 +50,9 @@ WATCHDOG_FLOOR_S = 5.0       # longer than a stall the loop reports and survives
 WATCHDOG_STALLS = 20         # times the loop's own stall limit (loop.stall_periods x period)
 START_TIMEOUT_S = 60         # imports on a small computer, drive bring-up, an OAK's boot and first frame
 # The loop ends (wheels stopped) within a cycle of SIGTERM; closing down may then take the telemetry
-# publisher's flush (10 s), the event echo (4 s), a mode switch still on its worker (5 s) and the drive and
-# camera: past 15 s systemd killed it mid-close and the recording stayed a .part.
+# publisher's flush (10 s), the event echo (4 s), a mode switch still on its worker (5 s), the estop latch
+# file's last write (3 s) and the drive and camera: past 15 s systemd killed it mid-close and the recording
+# stayed a .part.
 STOP_TIMEOUT_S = 30
 STATE_DIRECTORY = "vbnav"     # StateDirectory=: where the estop latch file survives a restart (estop_latch.py)
 RESTART_S = 2                # a USB device that re-enumerates after a brown-out is back by then
