@@ -234,33 +234,49 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
 # is what a mount change may add to the repeat's error: the settled lateral RMS bar (1.8 cm, README) less the
 # worst measured (0.75 cm), rounded down.
 MOUNT_FIX_BUDGET_M = 0.01
+# What a mount is measured to: a tape measure reads a height or an offset to 1 mm. The route's mount was measured
+# so too, so a configured value closer to it than this is the same mount measured again, not a change: no
+# tolerance is below it, though on a route of near-horizon landmarks 1 mm of height moves a fix by more than
+# the budget (a tape measure cannot hold such a route to it, at teaching either).
+MOUNT_MEASURE_M = 0.001
 
 
-def mount_tolerances(route: "Route") -> tuple[float, float]:
-    """(height, forward/lateral) change of the camera mount, m, that moves a fix by MOUNT_FIX_BUDGET_M on
-    ``route``: the height's from the median |tan(elevation)| of its landmarks."""
+@dataclass(frozen=True)
+class MountTolerances:
+    """How far camera.mount may differ from a route's mount (``mount_tolerances``)."""
+
+    height: float       # m
+    offset: float       # m, forward and lateral
+
+
+def mount_tolerances(route: "Route") -> MountTolerances:
+    """The changes of the camera mount that move a fix by MOUNT_FIX_BUDGET_M on ``route``, never below what a
+    mount is measured to (MOUNT_MEASURE_M): the height's the budget x the median |tan(elevation)| of its
+    landmarks; forward and lateral the budget."""
     betas = np.concatenate([np.abs(np.asarray(kf.beta, float)) for kf in route.keyframes] or [np.zeros(0)])
     betas = betas[np.isfinite(betas)]
     slope = float(np.median(np.tan(np.minimum(betas, math.radians(80))))) if len(betas) else 1.0
-    return MOUNT_FIX_BUDGET_M * max(slope, 1e-3), MOUNT_FIX_BUDGET_M
+    return MountTolerances(max(MOUNT_FIX_BUDGET_M * slope, MOUNT_MEASURE_M), MOUNT_FIX_BUDGET_M)
 
 
 def check_route_mount(route: "Route", mount: CameraMount, config_source: str = "the configuration") -> None:
     """Raise RouteError when ``mount`` (camera.mount) puts the camera elsewhere than where ``route`` was taught
     from by more than ``mount_tolerances``: every fix would be biased by more than MOUNT_FIX_BUDGET_M."""
     taught = route.mount
-    tol_h, tol_xy = mount_tolerances(route)
+    tol = mount_tolerances(route)
     then, now = mount_to_dict(taught), mount_to_dict(mount)
-    off = [(k, then[k], now[k], tol) for k, tol in (("height", tol_h), ("forward", tol_xy), ("lateral", tol_xy))
-           if abs(now[k] - then[k]) > tol]
+    off = [(k, then[k], now[k], t) for k, t in (("height", tol.height), ("forward", tol.offset),
+                                                ("lateral", tol.offset))
+           if abs(now[k] - then[k]) > t]
     if off:
         def describe(m):
             return f"height {m.height:.3f} m, forward {m.forward:.3f} m, lateral {m.lateral:.3f} m"
         what = "; ".join(f"{k} {1e3 * abs(b - a):.1f} mm off, beyond {1e3 * tol:.1f} mm" for k, a, b, tol in off)
         raise RouteError(f"{route.path}: taught with the camera mounted at {describe(taught)}; {config_source} has "
                          f"camera.mount {describe(mount)} ({what}: the change that moves a fix by "
-                         f"{100 * MOUNT_FIX_BUDGET_M:g} cm, docs/teach_repeat.md). Mount the camera as it was "
-                         f"taught and configure that, or teach the route again")
+                         f"{100 * MOUNT_FIX_BUDGET_M:g} cm, never below what a tape measure reads, "
+                         f"{1e3 * MOUNT_MEASURE_M:g} mm, docs/teach_repeat.md). Mount the camera as it was taught "
+                         f"and configure that, or teach the route again")
 
 
 def check_route_config(route: "Route", cfg) -> None:

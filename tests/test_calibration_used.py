@@ -251,8 +251,8 @@ def test_repeat_refuses_a_camera_mount_moved_beyond_what_moves_a_fix_by_a_centim
     from test_route import make_kf      # landmarks all seen 0.25 rad below the horizon
     kfs = [dataclasses.replace(make_kf(np.random.default_rng(i), i), beta=np.full(20, 0.25)) for i in range(2)]
     route = dataclasses.replace(route, keyframes=kfs)
-    tol_h, tol_xy = mount_tolerances(route)
-    assert math.isclose(tol_h, MOUNT_FIX_BUDGET_M * math.tan(0.25)) and tol_xy == MOUNT_FIX_BUDGET_M == 0.01
+    tol = mount_tolerances(route)
+    assert math.isclose(tol.height, MOUNT_FIX_BUDGET_M * math.tan(0.25)) and tol.offset == MOUNT_FIX_BUDGET_M == 0.01
     m = cfg.camera.mount
     check_route_mount(route, cfg.camera.mount.to_mount())            # the mount it was taught with
     for change in ({"height": m.height + 0.002}, {"forward": m.forward + 0.009}):   # within: accepted
@@ -266,3 +266,41 @@ def test_repeat_refuses_a_camera_mount_moved_beyond_what_moves_a_fix_by_a_centim
     side = load_config("sim", overrides={"camera": {"mount": {"lateral": m.lateral - 0.012}}})
     with pytest.raises(RouteError, match="lateral 12.0 mm off, beyond 10.0 mm"):
         Repeating(side, route)
+
+
+def _route_seen_at(tmp_path, cfg, beta, range_m=4.0):
+    """The route a teach with ``cfg`` starts, its landmarks all seen ``beta`` rad below the horizon at
+    ``range_m`` m in the plane (a known height, the one of that range)."""
+    import dataclasses
+    import math
+    from test_route import make_kf
+    Teaching(cfg, tmp_path / "route").close(complete=False)
+    route = load_route(tmp_path / "route")
+    w = 1.0 / (range_m * math.tan(beta))
+    kfs = [dataclasses.replace(make_kf(np.random.default_rng(i), i), beta=np.full(20, beta),
+                               inv_height=np.full(20, w), inv_height_var=np.full(20, 1e-4 * w * w))
+           for i in range(2)]
+    return dataclasses.replace(route, keyframes=kfs)
+
+
+def test_the_height_tolerance_of_a_near_horizon_route_is_never_below_what_a_tape_measure_reads(tmp_path):
+    """Landmarks near the horizon made the height tolerance 1 cm x tan(beta): 0.2 mm at 0.02 rad, so a height
+    measured again with a tape measure (1 mm) refused the route, though the taught height was measured to 1 mm
+    too. It is never below MOUNT_MEASURE_M; steeper routes keep 1 cm x tan(beta)."""
+    import math
+    from vbnav.control.route import MOUNT_MEASURE_M, check_route_mount, mount_tolerances
+    cfg = load_config("sim")
+    m = cfg.camera.mount
+
+    def mount(**change):
+        return load_config("sim", overrides={"camera": {"mount": change}}).camera.mount.to_mount()
+    flat = _route_seen_at(tmp_path / "flat", cfg, 0.02)
+    assert MOUNT_MEASURE_M == 0.001 and mount_tolerances(flat).height == MOUNT_MEASURE_M
+    check_route_mount(flat, mount(height=m.height + 0.0008))            # within a tape measure's reading
+    with pytest.raises(RouteError, match="height 1.5 mm off, beyond 1.0 mm"):
+        check_route_mount(flat, mount(height=m.height + 0.0015))
+    steep = _route_seen_at(tmp_path / "steep", cfg, 0.5)                # 1 cm x tan(0.5) = 5.5 mm
+    assert math.isclose(mount_tolerances(steep).height, 0.01 * math.tan(0.5))
+    check_route_mount(steep, mount(height=m.height + 0.005))
+    with pytest.raises(RouteError, match="height 6.0 mm off, beyond 5.5 mm"):
+        check_route_mount(steep, mount(height=m.height + 0.006))
