@@ -40,6 +40,7 @@ from vbnav.drivers.errors import InputError
 from vbnav.drivers.plain_values import load_json
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.vbc import inverse_range, known_range
 
 FORMAT = "vbnav-route"
 VERSION = 1
@@ -234,11 +235,13 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
 # is what a mount change may add to the repeat's error: the settled lateral RMS bar (1.8 cm, README) less the
 # worst measured (0.75 cm), rounded down.
 MOUNT_FIX_BUDGET_M = 0.01
-# What a mount is measured to: a tape measure reads a height or an offset to 1 mm. The route's mount was measured
-# so too, so a configured value closer to it than this is the same mount measured again, not a change: no
-# tolerance is below it, though on a route of near-horizon landmarks 1 mm of height moves a fix by more than
-# the budget (a tape measure cannot hold such a route to it, at teaching either).
+# What a mount is measured to: a tape measure reads a height or an offset to 1 mm, an inclinometer (or
+# ``vbnav calibrate mount``) an angle to 0.1 deg. The route's mount was measured so too, so a configured value
+# closer to it than this is the same mount measured again, not a change: no tolerance is below it, though on a
+# route of near-horizon or far landmarks that moves a fix by more than the budget (a tape measure cannot hold
+# such a route to it, at teaching either).
 MOUNT_MEASURE_M = 0.001
+MOUNT_MEASURE_RAD = math.radians(0.1)
 
 
 @dataclass(frozen=True)
@@ -247,36 +250,59 @@ class MountTolerances:
 
     height: float       # m
     offset: float       # m, forward and lateral
+    angle: float        # rad, pitch, yaw and roll
+    range: float        # m, the median in-plane range of the route's landmarks of known height (inf: none)
 
 
 def mount_tolerances(route: "Route") -> MountTolerances:
     """The changes of the camera mount that move a fix by MOUNT_FIX_BUDGET_M on ``route``, never below what a
-    mount is measured to (MOUNT_MEASURE_M): the height's the budget x the median |tan(elevation)| of its
-    landmarks; forward and lateral the budget."""
+    mount is measured to (MOUNT_MEASURE_M, MOUNT_MEASURE_RAD):
+
+    - height: the budget x the median |tan(elevation)| of its landmarks;
+    - forward, lateral: the budget;
+    - pitch, yaw, roll: a turn by a moves every landmark's image point by fx a px, and the budget moves the
+      image point of a landmark at range r by fx budget / r px: a = budget / the median range of the route's
+      landmarks of known height."""
     betas = np.concatenate([np.abs(np.asarray(kf.beta, float)) for kf in route.keyframes] or [np.zeros(0)])
     betas = betas[np.isfinite(betas)]
     slope = float(np.median(np.tan(np.minimum(betas, math.radians(80))))) if len(betas) else 1.0
-    return MountTolerances(max(MOUNT_FIX_BUDGET_M * slope, MOUNT_MEASURE_M), MOUNT_FIX_BUDGET_M)
+    rho = np.concatenate([np.abs(inverse_range(kf.beta, kf.inv_height))[known_range(kf.beta, kf.inv_height,
+                                                                                    kf.inv_height_var)]
+                          for kf in route.keyframes] or [np.zeros(0)])
+    rho = rho[np.isfinite(rho) & (rho > 0)]
+    reach = float(1.0 / np.median(rho)) if len(rho) else math.inf
+    return MountTolerances(max(MOUNT_FIX_BUDGET_M * slope, MOUNT_MEASURE_M), MOUNT_FIX_BUDGET_M,
+                           max(MOUNT_FIX_BUDGET_M / reach, MOUNT_MEASURE_RAD), reach)
 
 
 def check_route_mount(route: "Route", mount: CameraMount, config_source: str = "the configuration") -> None:
-    """Raise RouteError when ``mount`` (camera.mount) puts the camera elsewhere than where ``route`` was taught
-    from by more than ``mount_tolerances``: every fix would be biased by more than MOUNT_FIX_BUDGET_M."""
+    """Raise RouteError when ``mount`` (camera.mount) puts or turns the camera otherwise than ``route`` was taught
+    with by more than ``mount_tolerances``: every fix would be biased by more than MOUNT_FIX_BUDGET_M."""
     taught = route.mount
     tol = mount_tolerances(route)
     then, now = mount_to_dict(taught), mount_to_dict(mount)
-    off = [(k, then[k], now[k], t) for k, t in (("height", tol.height), ("forward", tol.offset),
-                                                ("lateral", tol.offset))
-           if abs(now[k] - then[k]) > t]
-    if off:
-        def describe(m):
-            return f"height {m.height:.3f} m, forward {m.forward:.3f} m, lateral {m.lateral:.3f} m"
-        what = "; ".join(f"{k} {1e3 * abs(b - a):.1f} mm off, beyond {1e3 * tol:.1f} mm" for k, a, b, tol in off)
-        raise RouteError(f"{route.path}: taught with the camera mounted at {describe(taught)}; {config_source} has "
-                         f"camera.mount {describe(mount)} ({what}: the change that moves a fix by "
-                         f"{100 * MOUNT_FIX_BUDGET_M:g} cm, never below what a tape measure reads, "
-                         f"{1e3 * MOUNT_MEASURE_M:g} mm, docs/teach_repeat.md). Mount the camera as it was taught "
-                         f"and configure that, or teach the route again")
+    moved = {k: abs(now[k] - then[k]) for k in ("height", "forward", "lateral")}
+    turned = {k: abs(math.remainder(now[k] - then[k], math.tau)) for k in ("pitch", "yaw", "roll")}
+    limit = {"height": tol.height, "forward": tol.offset, "lateral": tol.offset}
+    what = [f"{k} {1e3 * d:.1f} mm off, beyond {1e3 * limit[k]:.1f} mm" for k, d in moved.items() if d > limit[k]]
+    what += [f"{k} {math.degrees(d):.2f} deg off, beyond {math.degrees(tol.angle):.2f} deg"
+             for k, d in turned.items() if d > tol.angle]
+    if not what:
+        return
+
+    def describe(m):
+        return (f"height {m.height:.3f} m, forward {m.forward:.3f} m, lateral {m.lateral:.3f} m, pitch "
+                f"{math.degrees(m.pitch):.2f} deg, yaw {math.degrees(m.yaw):.2f} deg, roll {math.degrees(m.roll):.2f} deg")
+    why = f"the change that moves a fix by {100 * MOUNT_FIX_BUDGET_M:g} cm"
+    if any(d > tol.angle for d in turned.values()):
+        fx = float(route.camera.fx)
+        why += (f"; a turn that moves the image points as far as {100 * MOUNT_FIX_BUDGET_M:g} cm does at the "
+                f"landmarks' median range {tol.range:.1f} m, {fx * tol.angle:.1f} px at fx {fx:g}")
+    raise RouteError(f"{route.path}: taught with the camera mounted at {describe(taught)}; {config_source} has "
+                     f"camera.mount {describe(mount)} ({'; '.join(what)}: {why}; never below what a mount is "
+                     f"measured to, {1e3 * MOUNT_MEASURE_M:g} mm and {math.degrees(MOUNT_MEASURE_RAD):g} deg, "
+                     f"docs/teach_repeat.md). Mount the camera as it was taught and configure that, or teach "
+                     f"the route again")
 
 
 def check_route_config(route: "Route", cfg) -> None:

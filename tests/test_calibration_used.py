@@ -304,3 +304,37 @@ def test_the_height_tolerance_of_a_near_horizon_route_is_never_below_what_a_tape
     check_route_mount(steep, mount(height=m.height + 0.005))
     with pytest.raises(RouteError, match="height 6.0 mm off, beyond 5.5 mm"):
         check_route_mount(steep, mount(height=m.height + 0.006))
+
+
+def test_repeat_refuses_a_camera_mount_turned_beyond_what_moves_the_image_points_as_a_centimetre(tmp_path):
+    """check_route_mount compared height, forward and lateral only: a camera configured 5 deg further down, or
+    turned in yaw (which no repeat measures), than the route was taught with was accepted. A turn by a moves
+    every image point by fx a px, the 1 cm budget moves a landmark at range r by fx 0.01 / r px: beyond
+    a = 0.01 / the landmarks' median range (4 m here: 0.14 deg) the repeat is refused, naming both mounts and
+    the budget, by vbnav repeat and route check -c alike (config_repeat_refusal)."""
+    import math
+    from vbnav.control.route import MOUNT_MEASURE_RAD, check_route_mount, config_repeat_refusal, mount_tolerances
+    cfg = load_config("sim")
+    route = _route_seen_at(tmp_path, cfg, 0.25, range_m=4.0)
+    tol = mount_tolerances(route)
+    assert math.isclose(tol.range, 4.0) and math.isclose(tol.angle, 0.01 / 4.0)
+
+    def config(**change):
+        return load_config("sim", overrides={"camera": {"mount": change}})
+    for within in ({"pitch_deg": 0.1}, {"yaw_deg": -0.12}, {"roll_deg": 0.13}):
+        check_route_mount(route, config(**within).camera.mount.to_mount())
+    down = config(pitch_deg=5.0)
+    with pytest.raises(RouteError) as e:
+        Repeating(down, route)
+    msg = str(e.value)
+    assert "pitch 0.00 deg" in msg and "pitch 5.00 deg" in msg, msg                     # both mounts
+    assert "pitch 5.00 deg off, beyond 0.14 deg" in msg and "median range 4.0 m" in msg, msg
+    assert f"{400 * 0.0025:.1f} px at fx 400" in msg, msg
+    assert "pitch 5.00 deg off" in config_repeat_refusal(route, down)                   # route check -c
+    for k in ("yaw_deg", "roll_deg"):
+        assert f"{k[:-4]} 0.30 deg off, beyond 0.14 deg" in config_repeat_refusal(route, config(**{k: 0.3}))
+    # far landmarks: never below what an inclinometer reads
+    far = _route_seen_at(tmp_path / "far", cfg, 0.02, range_m=40.0)
+    assert mount_tolerances(far).angle == MOUNT_MEASURE_RAD == math.radians(0.1)
+    check_route_mount(far, config(pitch_deg=0.09).camera.mount.to_mount())
+    assert "pitch 0.15 deg off, beyond 0.10 deg" in config_repeat_refusal(far, config(pitch_deg=0.15))
