@@ -709,11 +709,18 @@ def is_step(distance_before: float, theta_before: float, distance: float, theta:
 
 
 def _check_step(mpath: Path, a: Keyframe, b: Keyframe) -> None:
-    if is_step(a.distance, a.odom.theta, b.distance, b.odom.theta):
-        return
-    what = "repeats" if b.distance == a.distance else "is less than"
-    raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
-                     f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
+    if not is_step(a.distance, a.odom.theta, b.distance, b.odom.theta):
+        what = "repeats" if b.distance == a.distance else "is less than"
+        raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
+                         f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
+    # Teach adds up the odometry it drives into the distance: a keyframe is never farther from the one before
+    # than the distance grew (a chord is no longer than its arc), up to rounding. The repeat drives to the
+    # keyframes' odometry poses, so one that says otherwise would take it elsewhere.
+    chord, arc = math.hypot(b.odom.x - a.odom.x, b.odom.z - a.odom.z), b.distance - a.distance
+    if chord > arc + 1e-9 * max(1.0, abs(b.distance)):
+        raise RouteError(f"{mpath}: keyframes[{b.index}]: odometry {chord:.3f} m from keyframes[{a.index}]'s, "
+                         f"beyond the {arc:.3f} m of along-route distance between them (teach drove that distance "
+                         f"between them: its odometry or distance is damaged, or from another route)")
 
 
 def stray_temp_files(path) -> list[Path]:
