@@ -667,6 +667,9 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
         raise RouteError(f"{path}: 'odom' must be 3 finite numbers (x, z, theta)")
     if not math.isfinite(float(data["distance"])):
         raise RouteError(f"{path}: 'distance' must be finite")
+    if n == 0:      # teach writes a keyframe only from a frame with vbc.min_keyframe_landmarks tracks
+        raise RouteError(f"{path}: {which} has no landmarks, expected those of the frame it was taught from (a "
+                         f"repeat takes its fixes from them): the file is damaged; teach the route again")
     for k in ("pixels", "alpha", "beta"):
         bad = ~np.isfinite(data[k]).reshape(n, -1).all(axis=1)
         if bad.any():

@@ -249,3 +249,26 @@ def test_a_keyframe_farther_from_the_one_before_than_the_distance_driven_between
         for k in ok:
             w.append(k)
     assert math.isclose(load_route(tmp_path / "ok").length, 1.0)
+
+
+def test_a_keyframe_without_landmarks_is_refused(tmp_path, rng):
+    """Teach writes a keyframe only from a frame with vbc.min_keyframe_landmarks tracks; one without any
+    landmark (a damaged file) was loaded and written, and the repeat drove past it blind (two in a row
+    stopped it). Refused at load and by the writer, naming the keyframe and the file."""
+    from dataclasses import replace
+    z = np.zeros(0)
+    empty = replace(make_kf(rng, 1), pixels=np.zeros((0, 2), np.float32), alpha=z, beta=z, inv_height=z,
+                    inv_height_var=z, descriptors=np.zeros((0, 32), np.uint8), track_ids=np.zeros(0, np.int64))
+    with pytest.raises(RouteError, match=r"kf_00001.npz: keyframes\[1\] has no landmarks"):
+        with RouteWriter(tmp_path / "w", "sim", CAM, MOUNT) as w:
+            for k in (make_kf(rng, 0), empty, make_kf(rng, 2)):
+                w.append(k)
+    write_route(tmp_path / "r", rng)
+    _edit_npz(tmp_path / "r" / "kf_00001.npz", **{k: getattr(empty, k) for k in
+                                                  ("pixels", "alpha", "beta", "inv_height", "inv_height_var",
+                                                   "descriptors", "track_ids")})
+    m = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    m["keyframes"][1]["n_landmarks"] = 0
+    (tmp_path / "r" / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(RouteError, match=r"kf_00001.npz: keyframes\[1\] has no landmarks"):
+        load_route(tmp_path / "r")
