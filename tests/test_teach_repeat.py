@@ -390,3 +390,15 @@ def test_repeat_starts_when_the_first_keyframe_gives_no_fix(scene, damage):
     assert ctl.finished and stage.index == len(kfs) - 1, trace[-1][4]
     assert stage.stats["skipped"] == 1
     assert max(lateral_error(truth, p) for _, p, _, _, _ in trace) < 0.05
+
+
+def test_the_keyframe_at_the_last_frame_has_that_frames_distance():
+    """A route's last keyframe is taken at the last frame kept (a last frame that lost most tracks, a blurred
+    one as the teach stopped, is set aside), but it was given the distance of the frame set aside: the route
+    said it was 2.5 cm longer than where its last keyframe stands. Straight ahead, distance = odometry z."""
+    stage, _, _, _ = teach_straight(40, keep=lambda i, ids, px: (ids[::3], px[::3]) if i == 39 else (ids, px))
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    assert stage.suspect_frames == 1 and kfs[-1].stamp_ns == 38
+    for kf in kfs:
+        assert math.isclose(kf.distance, kf.odom.z, abs_tol=1e-9), (kf.stamp_ns, kf.distance, kf.odom.z)
