@@ -40,6 +40,7 @@ from vbnav.drivers.errors import InputError
 from vbnav.drivers.plain_values import load_json
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import CameraMount, Pose2
+from vbnav.vision.vbc import inverse_range, known_range
 
 FORMAT = "vbnav-route"
 VERSION = 1
@@ -234,33 +235,74 @@ def check_route_camera(route: "Route", camera, config_source: str = "the configu
 # is what a mount change may add to the repeat's error: the settled lateral RMS bar (1.8 cm, README) less the
 # worst measured (0.75 cm), rounded down.
 MOUNT_FIX_BUDGET_M = 0.01
+# What a mount is measured to: a tape measure reads a height or an offset to 1 mm, an inclinometer (or
+# ``vbnav calibrate mount``) an angle to 0.1 deg. The route's mount was measured so too, so a configured value
+# closer to it than this is the same mount measured again, not a change: no tolerance is below it, though on a
+# route of near-horizon or far landmarks that moves a fix by more than the budget (a tape measure cannot hold
+# such a route to it, at teaching either).
+MOUNT_MEASURE_M = 0.001
+MOUNT_MEASURE_RAD = math.radians(0.1)
 
 
-def mount_tolerances(route: "Route") -> tuple[float, float]:
-    """(height, forward/lateral) change of the camera mount, m, that moves a fix by MOUNT_FIX_BUDGET_M on
-    ``route``: the height's from the median |tan(elevation)| of its landmarks."""
+@dataclass(frozen=True)
+class MountTolerances:
+    """How far camera.mount may differ from a route's mount (``mount_tolerances``)."""
+
+    height: float       # m
+    offset: float       # m, forward and lateral
+    angle: float        # rad, pitch, yaw and roll
+    range: float        # m, the median in-plane range of the route's landmarks of known height (inf: none)
+
+
+def mount_tolerances(route: "Route") -> MountTolerances:
+    """The changes of the camera mount that move a fix by MOUNT_FIX_BUDGET_M on ``route``, never below what a
+    mount is measured to (MOUNT_MEASURE_M, MOUNT_MEASURE_RAD):
+
+    - height: the budget x the median |tan(elevation)| of its landmarks;
+    - forward, lateral: the budget;
+    - pitch, yaw, roll: a turn by a moves every landmark's image point by fx a px, and the budget moves the
+      image point of a landmark at range r by fx budget / r px: a = budget / the median range of the route's
+      landmarks of known height."""
     betas = np.concatenate([np.abs(np.asarray(kf.beta, float)) for kf in route.keyframes] or [np.zeros(0)])
     betas = betas[np.isfinite(betas)]
     slope = float(np.median(np.tan(np.minimum(betas, math.radians(80))))) if len(betas) else 1.0
-    return MOUNT_FIX_BUDGET_M * max(slope, 1e-3), MOUNT_FIX_BUDGET_M
+    rho = np.concatenate([np.abs(inverse_range(kf.beta, kf.inv_height))[known_range(kf.beta, kf.inv_height,
+                                                                                    kf.inv_height_var)]
+                          for kf in route.keyframes] or [np.zeros(0)])
+    rho = rho[np.isfinite(rho) & (rho > 0)]
+    reach = float(1.0 / np.median(rho)) if len(rho) else math.inf
+    return MountTolerances(max(MOUNT_FIX_BUDGET_M * slope, MOUNT_MEASURE_M), MOUNT_FIX_BUDGET_M,
+                           max(MOUNT_FIX_BUDGET_M / reach, MOUNT_MEASURE_RAD), reach)
 
 
 def check_route_mount(route: "Route", mount: CameraMount, config_source: str = "the configuration") -> None:
-    """Raise RouteError when ``mount`` (camera.mount) puts the camera elsewhere than where ``route`` was taught
-    from by more than ``mount_tolerances``: every fix would be biased by more than MOUNT_FIX_BUDGET_M."""
+    """Raise RouteError when ``mount`` (camera.mount) puts or turns the camera otherwise than ``route`` was taught
+    with by more than ``mount_tolerances``: every fix would be biased by more than MOUNT_FIX_BUDGET_M."""
     taught = route.mount
-    tol_h, tol_xy = mount_tolerances(route)
+    tol = mount_tolerances(route)
     then, now = mount_to_dict(taught), mount_to_dict(mount)
-    off = [(k, then[k], now[k], tol) for k, tol in (("height", tol_h), ("forward", tol_xy), ("lateral", tol_xy))
-           if abs(now[k] - then[k]) > tol]
-    if off:
-        def describe(m):
-            return f"height {m.height:.3f} m, forward {m.forward:.3f} m, lateral {m.lateral:.3f} m"
-        what = "; ".join(f"{k} {1e3 * abs(b - a):.1f} mm off, beyond {1e3 * tol:.1f} mm" for k, a, b, tol in off)
-        raise RouteError(f"{route.path}: taught with the camera mounted at {describe(taught)}; {config_source} has "
-                         f"camera.mount {describe(mount)} ({what}: the change that moves a fix by "
-                         f"{100 * MOUNT_FIX_BUDGET_M:g} cm, docs/teach_repeat.md). Mount the camera as it was "
-                         f"taught and configure that, or teach the route again")
+    moved = {k: abs(now[k] - then[k]) for k in ("height", "forward", "lateral")}
+    turned = {k: abs(math.remainder(now[k] - then[k], math.tau)) for k in ("pitch", "yaw", "roll")}
+    limit = {"height": tol.height, "forward": tol.offset, "lateral": tol.offset}
+    what = [f"{k} {1e3 * d:.1f} mm off, beyond {1e3 * limit[k]:.1f} mm" for k, d in moved.items() if d > limit[k]]
+    what += [f"{k} {math.degrees(d):.2f} deg off, beyond {math.degrees(tol.angle):.2f} deg"
+             for k, d in turned.items() if d > tol.angle]
+    if not what:
+        return
+
+    def describe(m):
+        return (f"height {m.height:.3f} m, forward {m.forward:.3f} m, lateral {m.lateral:.3f} m, pitch "
+                f"{math.degrees(m.pitch):.2f} deg, yaw {math.degrees(m.yaw):.2f} deg, roll {math.degrees(m.roll):.2f} deg")
+    why = f"the change that moves a fix by {100 * MOUNT_FIX_BUDGET_M:g} cm"
+    if any(d > tol.angle for d in turned.values()):
+        fx = float(route.camera.fx)
+        why += (f"; a turn that moves the image points as far as {100 * MOUNT_FIX_BUDGET_M:g} cm does at the "
+                f"landmarks' median range {tol.range:.1f} m, {fx * tol.angle:.1f} px at fx {fx:g}")
+    raise RouteError(f"{route.path}: taught with the camera mounted at {describe(taught)}; {config_source} has "
+                     f"camera.mount {describe(mount)} ({'; '.join(what)}: {why}; never below what a mount is "
+                     f"measured to, {1e3 * MOUNT_MEASURE_M:g} mm and {math.degrees(MOUNT_MEASURE_RAD):g} deg, "
+                     f"docs/teach_repeat.md). Mount the camera as it was taught and configure that, or teach "
+                     f"the route again")
 
 
 def check_route_config(route: "Route", cfg) -> None:
@@ -625,6 +667,9 @@ def _check_landmarks(path: Path, data: dict, which: str) -> int:
         raise RouteError(f"{path}: 'odom' must be 3 finite numbers (x, z, theta)")
     if not math.isfinite(float(data["distance"])):
         raise RouteError(f"{path}: 'distance' must be finite")
+    if n == 0:      # teach writes a keyframe only from a frame with vbc.min_keyframe_landmarks tracks
+        raise RouteError(f"{path}: {which} has no landmarks, expected those of the frame it was taught from (a "
+                         f"repeat takes its fixes from them): the file is damaged; teach the route again")
     for k in ("pixels", "alpha", "beta"):
         bad = ~np.isfinite(data[k]).reshape(n, -1).all(axis=1)
         if bad.any():
@@ -667,11 +712,18 @@ def is_step(distance_before: float, theta_before: float, distance: float, theta:
 
 
 def _check_step(mpath: Path, a: Keyframe, b: Keyframe) -> None:
-    if is_step(a.distance, a.odom.theta, b.distance, b.odom.theta):
-        return
-    what = "repeats" if b.distance == a.distance else "is less than"
-    raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
-                     f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
+    if not is_step(a.distance, a.odom.theta, b.distance, b.odom.theta):
+        what = "repeats" if b.distance == a.distance else "is less than"
+        raise RouteError(f"{mpath}: keyframes[{b.index}]: along-route distance {b.distance:.3f} m {what} "
+                         f"keyframes[{a.index}]'s {a.distance:.3f} m (distance must increase along the route)")
+    # Teach adds up the odometry it drives into the distance: a keyframe is never farther from the one before
+    # than the distance grew (a chord is no longer than its arc), up to rounding. The repeat drives to the
+    # keyframes' odometry poses, so one that says otherwise would take it elsewhere.
+    chord, arc = math.hypot(b.odom.x - a.odom.x, b.odom.z - a.odom.z), b.distance - a.distance
+    if chord > arc + 1e-9 * max(1.0, abs(b.distance)):
+        raise RouteError(f"{mpath}: keyframes[{b.index}]: odometry {chord:.3f} m from keyframes[{a.index}]'s, "
+                         f"beyond the {arc:.3f} m of along-route distance between them (teach drove that distance "
+                         f"between them: its odometry or distance is damaged, or from another route)")
 
 
 def stray_temp_files(path) -> list[Path]:

@@ -251,8 +251,8 @@ def test_repeat_refuses_a_camera_mount_moved_beyond_what_moves_a_fix_by_a_centim
     from test_route import make_kf      # landmarks all seen 0.25 rad below the horizon
     kfs = [dataclasses.replace(make_kf(np.random.default_rng(i), i), beta=np.full(20, 0.25)) for i in range(2)]
     route = dataclasses.replace(route, keyframes=kfs)
-    tol_h, tol_xy = mount_tolerances(route)
-    assert math.isclose(tol_h, MOUNT_FIX_BUDGET_M * math.tan(0.25)) and tol_xy == MOUNT_FIX_BUDGET_M == 0.01
+    tol = mount_tolerances(route)
+    assert math.isclose(tol.height, MOUNT_FIX_BUDGET_M * math.tan(0.25)) and tol.offset == MOUNT_FIX_BUDGET_M == 0.01
     m = cfg.camera.mount
     check_route_mount(route, cfg.camera.mount.to_mount())            # the mount it was taught with
     for change in ({"height": m.height + 0.002}, {"forward": m.forward + 0.009}):   # within: accepted
@@ -266,3 +266,75 @@ def test_repeat_refuses_a_camera_mount_moved_beyond_what_moves_a_fix_by_a_centim
     side = load_config("sim", overrides={"camera": {"mount": {"lateral": m.lateral - 0.012}}})
     with pytest.raises(RouteError, match="lateral 12.0 mm off, beyond 10.0 mm"):
         Repeating(side, route)
+
+
+def _route_seen_at(tmp_path, cfg, beta, range_m=4.0):
+    """The route a teach with ``cfg`` starts, its landmarks all seen ``beta`` rad below the horizon at
+    ``range_m`` m in the plane (a known height, the one of that range)."""
+    import dataclasses
+    import math
+    from test_route import make_kf
+    Teaching(cfg, tmp_path / "route").close(complete=False)
+    route = load_route(tmp_path / "route")
+    w = 1.0 / (range_m * math.tan(beta))
+    kfs = [dataclasses.replace(make_kf(np.random.default_rng(i), i), beta=np.full(20, beta),
+                               inv_height=np.full(20, w), inv_height_var=np.full(20, 1e-4 * w * w))
+           for i in range(2)]
+    return dataclasses.replace(route, keyframes=kfs)
+
+
+def test_the_height_tolerance_of_a_near_horizon_route_is_never_below_what_a_tape_measure_reads(tmp_path):
+    """Landmarks near the horizon made the height tolerance 1 cm x tan(beta): 0.2 mm at 0.02 rad, so a height
+    measured again with a tape measure (1 mm) refused the route, though the taught height was measured to 1 mm
+    too. It is never below MOUNT_MEASURE_M; steeper routes keep 1 cm x tan(beta)."""
+    import math
+    from vbnav.control.route import MOUNT_MEASURE_M, check_route_mount, mount_tolerances
+    cfg = load_config("sim")
+    m = cfg.camera.mount
+
+    def mount(**change):
+        return load_config("sim", overrides={"camera": {"mount": change}}).camera.mount.to_mount()
+    flat = _route_seen_at(tmp_path / "flat", cfg, 0.02)
+    assert MOUNT_MEASURE_M == 0.001 and mount_tolerances(flat).height == MOUNT_MEASURE_M
+    check_route_mount(flat, mount(height=m.height + 0.0008))            # within a tape measure's reading
+    with pytest.raises(RouteError, match="height 1.5 mm off, beyond 1.0 mm"):
+        check_route_mount(flat, mount(height=m.height + 0.0015))
+    steep = _route_seen_at(tmp_path / "steep", cfg, 0.5)                # 1 cm x tan(0.5) = 5.5 mm
+    assert math.isclose(mount_tolerances(steep).height, 0.01 * math.tan(0.5))
+    check_route_mount(steep, mount(height=m.height + 0.005))
+    with pytest.raises(RouteError, match="height 6.0 mm off, beyond 5.5 mm"):
+        check_route_mount(steep, mount(height=m.height + 0.006))
+
+
+def test_repeat_refuses_a_camera_mount_turned_beyond_what_moves_the_image_points_as_a_centimetre(tmp_path):
+    """check_route_mount compared height, forward and lateral only: a camera configured 5 deg further down, or
+    turned in yaw (which no repeat measures), than the route was taught with was accepted. A turn by a moves
+    every image point by fx a px, the 1 cm budget moves a landmark at range r by fx 0.01 / r px: beyond
+    a = 0.01 / the landmarks' median range (4 m here: 0.14 deg) the repeat is refused, naming both mounts and
+    the budget, by vbnav repeat and route check -c alike (config_repeat_refusal)."""
+    import math
+    from vbnav.control.route import MOUNT_MEASURE_RAD, check_route_mount, config_repeat_refusal, mount_tolerances
+    cfg = load_config("sim")
+    route = _route_seen_at(tmp_path, cfg, 0.25, range_m=4.0)
+    tol = mount_tolerances(route)
+    assert math.isclose(tol.range, 4.0) and math.isclose(tol.angle, 0.01 / 4.0)
+
+    def config(**change):
+        return load_config("sim", overrides={"camera": {"mount": change}})
+    for within in ({"pitch_deg": 0.1}, {"yaw_deg": -0.12}, {"roll_deg": 0.13}):
+        check_route_mount(route, config(**within).camera.mount.to_mount())
+    down = config(pitch_deg=5.0)
+    with pytest.raises(RouteError) as e:
+        Repeating(down, route)
+    msg = str(e.value)
+    assert "pitch 0.00 deg" in msg and "pitch 5.00 deg" in msg, msg                     # both mounts
+    assert "pitch 5.00 deg off, beyond 0.14 deg" in msg and "median range 4.0 m" in msg, msg
+    assert f"{400 * 0.0025:.1f} px at fx 400" in msg, msg
+    assert "pitch 5.00 deg off" in config_repeat_refusal(route, down)                   # route check -c
+    for k in ("yaw_deg", "roll_deg"):
+        assert f"{k[:-4]} 0.30 deg off, beyond 0.14 deg" in config_repeat_refusal(route, config(**{k: 0.3}))
+    # far landmarks: never below what an inclinometer reads
+    far = _route_seen_at(tmp_path / "far", cfg, 0.02, range_m=40.0)
+    assert mount_tolerances(far).angle == MOUNT_MEASURE_RAD == math.radians(0.1)
+    check_route_mount(far, config(pitch_deg=0.09).camera.mount.to_mount())
+    assert "pitch 0.15 deg off, beyond 0.10 deg" in config_repeat_refusal(far, config(pitch_deg=0.15))

@@ -27,7 +27,7 @@ def make_kf(rng, i, n=20):
     return Keyframe(i, image, pixels,
                     rng.normal(0, 0.3, n), rng.normal(0, 0.2, n), desc,
                     rng.normal(0, 1, n), rng.random(n), np.arange(n, dtype=np.int64) + 10 * i,
-                    Pose2(0.5 * i, 0.1 * i, 0.05 * i), 0.5 * i, 1000 * i)
+                    Pose2(0.48 * i, 0.1 * i, 0.05 * i), 0.5 * i, 1000 * i)
 
 
 def write_route(path, rng, n=3):

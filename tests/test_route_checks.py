@@ -222,3 +222,53 @@ def test_a_keyframe_that_goes_back_or_lies_outside_the_image_is_refused_when_wri
             w.append(off)
         w.append(make_kf(rng, 2))
     assert len(load_route(tmp_path / "r")) == 3
+
+
+def test_a_keyframe_farther_from_the_one_before_than_the_distance_driven_between_them_is_refused(tmp_path, rng):
+    """A repeat follows the keyframes' odometry poses; teach adds up the odometry it drives into the along-route
+    distance, so one keyframe is never farther from the one before than that distance grew (a chord is no longer
+    than its arc). A keyframe whose odometry says otherwise (its landmark file from another route, a damaged
+    one) was loaded, and the repeat drove towards where it says. Refused at load, and by the writer."""
+    import math
+
+    from vbnav.vision.geometry import Pose2
+    kfs = [make_kf(rng, i) for i in range(4)]
+    kfs[2].odom = Pose2(5.0, 3.0, 0.1)                       # 5.37 m from keyframes[1], distance 0.5 m on
+    with pytest.raises(RouteError, match=r"keyframes\[2\]: odometry 5.370 m from keyframes\[1\]'s, beyond the "
+                                         r"0.500 m of along-route distance between them"):
+        with RouteWriter(tmp_path / "w", "sim", CAM, MOUNT) as w:
+            for k in kfs:
+                w.append(k)
+    _edit_npz(tmp_path / "w" / "kf_00001.npz", odom=np.array([5.0, 3.0, 0.1]))    # written, then damaged
+    with pytest.raises(RouteError, match=r"keyframes\[1\]: odometry 5.831 m from keyframes\[0\]'s"):
+        load_route(tmp_path / "w")
+    ok = [make_kf(rng, i) for i in range(3)]                 # chord == arc (a straight line) is a step
+    for i, k in enumerate(ok):
+        k.odom, k.distance = Pose2(0.3 * i, 0.4 * i, 0.0), 0.5 * i
+    with RouteWriter(tmp_path / "ok", "sim", CAM, MOUNT) as w:
+        for k in ok:
+            w.append(k)
+    assert math.isclose(load_route(tmp_path / "ok").length, 1.0)
+
+
+def test_a_keyframe_without_landmarks_is_refused(tmp_path, rng):
+    """Teach writes a keyframe only from a frame with vbc.min_keyframe_landmarks tracks; one without any
+    landmark (a damaged file) was loaded and written, and the repeat drove past it blind (two in a row
+    stopped it). Refused at load and by the writer, naming the keyframe and the file."""
+    from dataclasses import replace
+    z = np.zeros(0)
+    empty = replace(make_kf(rng, 1), pixels=np.zeros((0, 2), np.float32), alpha=z, beta=z, inv_height=z,
+                    inv_height_var=z, descriptors=np.zeros((0, 32), np.uint8), track_ids=np.zeros(0, np.int64))
+    with pytest.raises(RouteError, match=r"kf_00001.npz: keyframes\[1\] has no landmarks"):
+        with RouteWriter(tmp_path / "w", "sim", CAM, MOUNT) as w:
+            for k in (make_kf(rng, 0), empty, make_kf(rng, 2)):
+                w.append(k)
+    write_route(tmp_path / "r", rng)
+    _edit_npz(tmp_path / "r" / "kf_00001.npz", **{k: getattr(empty, k) for k in
+                                                  ("pixels", "alpha", "beta", "inv_height", "inv_height_var",
+                                                   "descriptors", "track_ids")})
+    m = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    m["keyframes"][1]["n_landmarks"] = 0
+    (tmp_path / "r" / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(RouteError, match=r"kf_00001.npz: keyframes\[1\] has no landmarks"):
+        load_route(tmp_path / "r")

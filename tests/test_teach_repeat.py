@@ -367,3 +367,38 @@ def test_route_does_not_end_on_a_last_frame_below_the_keyframe_minimum():
     assert [kf.stamp_ns for kf in kfs] == [0, 16]          # by distance; none on the 5 tracks of frame 31
     assert all(len(kf.track_ids) >= cfg.min_keyframe_landmarks for kf in kfs)
     assert "5 tracks" in stage.end_note and f"min_keyframe_landmarks {cfg.min_keyframe_landmarks}" in stage.end_note
+
+
+@pytest.mark.parametrize("damage", ["no heights", "no landmarks"])
+def test_repeat_starts_when_the_first_keyframe_gives_no_fix(scene, damage):
+    """A route whose first keyframe gives no fix (taught from a blurred frame: no landmark has a height; or
+    damaged: none at all) never started: keyframes are skipped only from a trusted fix on, so the robot
+    waited for a first match, its status asking to start at the route's beginning, where it stood. Before
+    the first fix, the keyframe after the first is now tried where it was taught."""
+    from dataclasses import replace
+    pts, cfg, route, truth = scene
+    kfs = list(route.keyframes)
+    n = len(kfs[0])
+    if damage == "no heights":
+        kfs[0] = replace(kfs[0], inv_height=np.full(n, np.nan), inv_height_var=np.full(n, np.inf))
+    else:
+        z = np.zeros(0)
+        kfs[0] = replace(kfs[0], pixels=np.zeros((0, 2), np.float32), alpha=z, beta=z, inv_height=z,
+                         inv_height_var=z, descriptors=np.zeros((0, 32), np.uint8), track_ids=np.zeros(0, np.int64))
+    broken = Route(None, "sim", "now", CAM, MOUNT, True, kfs)
+    ctl, stage, trace = repeat(np.random.default_rng(5), pts, broken, cfg, Pose2(), max_time=40.0)
+    assert ctl.finished and stage.index == len(kfs) - 1, trace[-1][4]
+    assert stage.stats["skipped"] == 1
+    assert max(lateral_error(truth, p) for _, p, _, _, _ in trace) < 0.05
+
+
+def test_the_keyframe_at_the_last_frame_has_that_frames_distance():
+    """A route's last keyframe is taken at the last frame kept (a last frame that lost most tracks, a blurred
+    one as the teach stopped, is set aside), but it was given the distance of the frame set aside: the route
+    said it was 2.5 cm longer than where its last keyframe stands. Straight ahead, distance = odometry z."""
+    stage, _, _, _ = teach_straight(40, keep=lambda i, ids, px: (ids[::3], px[::3]) if i == 39 else (ids, px))
+    stage.finish()
+    kfs = stage.pop_keyframes()
+    assert stage.suspect_frames == 1 and kfs[-1].stamp_ns == 38
+    for kf in kfs:
+        assert math.isclose(kf.distance, kf.odom.z, abs_tol=1e-9), (kf.stamp_ns, kf.distance, kf.odom.z)

@@ -268,10 +268,13 @@ class RepeatStage(VisionStage):
         self._fresh_view = self._new_view(ids, pixels)
         res, n_agree = self._fix(self.index, ids, pixels, predicted)
         ok, why = self._accept(res, self.index, odom, start)
-        if not ok and predicted is not None and self._trusted_odom is not None and self.index + 1 < len(self.kfs):
-            # Skip a keyframe that gives no fix when the next one does where odometry expects it.
+        first = self._pose is None          # no fix yet: the robot is where the route starts, at keyframe 0
+        if not ok and (first or self._trusted_odom is not None) and self.index + 1 < len(self.kfs):
+            # Skip a keyframe that gives no fix when the next one does where odometry expects it (or, before
+            # any fix, where it was taught after the first: a route whose first keyframe was taught from a
+            # blurred frame never started, the robot waiting for a first match where none could come).
             step = self.kfs[self.index].odom.between(self.kfs[self.index + 1].odom)
-            ahead = step.inverse().compose(predicted)
+            ahead = step.inverse().compose(Pose2() if first else predicted)
             res2, n2 = self._fix(self.index + 1, ids, pixels, ahead)
             if self._accept(res2, self.index + 1, odom, start)[0]:
                 self.index += 1

@@ -106,10 +106,12 @@ class TeachStage(VisionStage):
         self.heights.observe(ids, alpha, beta, odom)
         self._refresh_pending_heights()
         emitted = None
-        self._last_frame = (ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors)
+        # with its distance: a last frame set aside (``_suspect``) after it must not lengthen the route's end
+        self._last_frame = (ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors, self._distance)
         if self._keyframe_due(ids, odom) and len(ids) >= self.cfg.min_keyframe_landmarks:
             emitted = self._finalise_pending()
-            self._pending = self._candidate(ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors)
+            self._pending = self._candidate(ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors,
+                                            self._distance)
             self._last_frame = None
             # Its tracks already have heights: a keyframe taken at the last frame must not be left without.
             self._refresh_pending_heights()
@@ -177,7 +179,7 @@ class TeachStage(VisionStage):
         overlap = np.isin(p["track_ids"], ids).mean() if len(p["track_ids"]) else 0.0
         return overlap < self.cfg.keyframe_min_overlap and dist >= self.cfg.keyframe_min_spacing_m
 
-    def _candidate(self, ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors) -> dict:
+    def _candidate(self, ids, pixels, alpha, beta, odom, stamp_ns, image, descriptors, distance: float) -> dict:
         if image is not None and descriptors is None:
             desc, idx = describe(image, pixels)
         else:
@@ -186,7 +188,7 @@ class TeachStage(VisionStage):
                     else np.zeros((len(ids), 32), np.uint8))
         n = len(idx)
         return {"track_ids": ids[idx], "pixels": pixels[idx].astype(np.float32), "alpha": alpha[idx],
-                "beta": beta[idx], "descriptors": desc, "odom": odom, "distance": self._distance,
+                "beta": beta[idx], "descriptors": desc, "odom": odom, "distance": distance,
                 "stamp_ns": int(stamp_ns), "image": image if image is not None else np.zeros((1, 1), np.uint8),
                 "w": np.full(n, np.nan), "var": np.full(n, np.inf)}
 
