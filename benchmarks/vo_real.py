@@ -14,9 +14,11 @@ vbnav / peer of APE and of time. The peer of the desk's tag-grid run is the dept
 ``--stride N`` keeps every N-th frame: N times the motion between frames on the same footage (kitti03 at
 stride 3: up to 10 degrees of turn and 0.7-2.2 m between frames).
 
-``--seeds N`` runs vbnav and the peer again with seeds 1..N-1 and prints the spread of their APE and
-the ratio of the medians: a monocular run's figure is one draw (the peer's kitti06 left-only APE
-ranges over 0.04-0.19 m with the seed). A missing sequence folder is an error under CI (CI=true) and a warning elsewhere.
+``--seeds N`` (default 3) runs vbnav and the peer again with seeds 1..N-1 and prints the spread of their APE
+and the ratio of the medians: a monocular run's figure is one draw (the peer's kitti06 left-only APE ranges
+over 0.040-0.211 m over seeds 0-7, median 0.098 m; vbnav's over 0.041-0.049 m). The closing verdict, issue 13's
+acceptance, compares the medians over the seeds, not one draw of each: a comparison of seed 0 alone is a
+comparison of two random draws (on kitti06 left only the peer's seed 0 is its best of eight). A missing sequence folder is an error under CI (CI=true) and a warning elsewhere.
 
 Sequences (those of the data folder that have ground truth): kitti06_stereo (stereo, and its
 left images alone, monocular), vo_turns_kitti03 (monocular), desk_rgbd (tag grid, and depth of
@@ -61,6 +63,9 @@ def sequences(data: Path, tmp: Path):
         yield "room_rgbd5 depth", room_view(data / "room_rgbd5", tmp / "room"), "depth", "depth"
 
 
+KITTI03_BOUND_M = 0.30     # issue 13: vo_turns_kitti03 at most 0.30 m (the peer's 0.31 m when it was filed)
+
+
 def missing_folders(data: Path) -> list[Path]:
     """The sequence folders this benchmark needs that are not in ``data``."""
     return [data / f for f in SEQUENCE_FOLDERS if not (data / f).is_dir()]
@@ -93,13 +98,16 @@ def main(argv=None) -> int:
                     help="use every N-th frame of each sequence (N times the motion between frames: the "
                          "'large inter-frame motion' of issue 13 on the same footage); sequences left with "
                          "fewer than 10 frames are skipped")
-    ap.add_argument("--seeds", type=int, default=1, metavar="N",
+    ap.add_argument("--seeds", type=int, default=3, metavar="N",
                     help="also run vbnav and the peer with seeds 1..N-1 (RANSAC draws) and print the spread of "
-                         "their APE (monocular runs depend on the draws: one figure is one draw)")
+                         "their APE (monocular runs depend on the draws: one figure is one draw); the verdict "
+                         "compares the medians over the seeds (default 3; 1: seed 0 alone)")
     args = ap.parse_args(argv)
     args.data = args.data.resolve()   # the desk and room views link to its files from a temporary folder
     if args.stride < 1:
         ap.error(f"--stride {args.stride}: expected a whole number >= 1")
+    if args.seeds < 1:
+        ap.error(f"--seeds {args.seeds}: expected a whole number >= 1")
     missing = missing_folders(args.data)
     if missing:
         msg = "sequence folder(s) missing: " + ", ".join(str(m) for m in missing) + \
@@ -113,6 +121,7 @@ def main(argv=None) -> int:
           "ms/fr over all frames; ratios vbnav / peer" + (f"; one frame in {args.stride}" if args.stride > 1 else ""))
     print(f"{'sequence':<19} {'fr':>4} | {'vbnav: posed':>9} {'APE m':>7} {'':<4} {'ms/fr':>5} | "
           f"{'peer: posed':>9} {'APE m':>7} {'':<4} {'ms/fr':>5} | {'APE':>7} {'time':>7}")
+    verdicts = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, root, init, mode in sequences(args.data, Path(tmp)):
             if args.only and not any(o in name for o in args.only):
@@ -133,15 +142,28 @@ def main(argv=None) -> int:
             ape_peer = _ape(ds, pf, pp, mode == "mono")
             print(_row(name, len(ds), len(res.frames), ape_ours, "SE3" if res.scale_known else "Sim3", t_ours,
                        len(pf), ape_peer, "Sim3" if mode == "mono" else "SE3", t_peer), flush=True)
+            ours, peer = [ape_ours], [ape_peer]
             if args.seeds > 1:
-                ours, peer = [ape_ours], [ape_peer]
                 for seed in range(1, args.seeds):
                     r = run_vo(ds, init, seed=seed)
                     ours.append(_ape(ds, r.frames, r.poses, not r.scale_known))
                     peer.append(_ape(ds, *PeerVo(ds, mode, seed=seed).run(), mode == "mono"))
                 print(f"{'':<19} {_spread('vbnav', ours)}; {_spread('peer', peer)}; "
                       f"ratio of the medians {np.median(ours) / np.median(peer):.2f}x", flush=True)
+            verdicts.append(_verdict(name, len(res.frames) / len(ds), ours, peer))
+    print(f"issue 13 acceptance (frames posed >= 97 %, APE median over seeds 0-{args.seeds - 1} <= the peer's):")
+    for line in verdicts:
+        print("  " + line)
     return 0
+
+
+def _verdict(name: str, posed: float, ours: list[float], peer: list[float]) -> str:
+    """One sequence against issue 13's acceptance, by the medians over the seeds (NaN: not met)."""
+    mo, mp = float(np.median(ours)), float(np.median(peer))
+    bound = KITTI03_BOUND_M if name.startswith("vo_turns_kitti03") else float("inf")
+    met = posed >= 0.97 and mo <= mp and mo <= bound
+    return (f"{name:<19} {'met' if met else 'NOT MET'}: posed {100 * posed:.0f} %, APE {mo:.4f} m vs peer "
+            f"{mp:.4f} m ({mo / mp:.2f}x)" + (f", bound {bound:.2f} m" if bound < float("inf") else ""))
 
 
 if __name__ == "__main__":
