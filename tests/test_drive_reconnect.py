@@ -165,9 +165,9 @@ class Dxl:
     def __init__(self, tmp_path):
         self.dev = de.DynamixelBus([1, 2], "XL430-W250", link=tmp_path / "ttyDXL")
 
-    def drive(self, clock):
+    def drive(self, clock, watchdog_s: float = WATCHDOG_S):
         return DynamixelDrive(clock=clock, options=DynamixelDrive.Options(
-            port=self.dev.path, bus_watchdog_s=WATCHDOG_S, margin_ms=8.0, reconnect_interval_s=0.1,
+            port=self.dev.path, bus_watchdog_s=watchdog_s, margin_ms=8.0, reconnect_interval_s=0.1,
             velocity_limit_rad_s=4.0), invert_right=True)
 
     def moving(self) -> bool:
@@ -192,9 +192,9 @@ class ODrv:
     def __init__(self, tmp_path):
         self.dev = oe.ODriveEmulator(link=tmp_path / "ttyODRV")
 
-    def drive(self, clock):
+    def drive(self, clock, watchdog_s: float = WATCHDOG_S):
         return ODriveDrive(clock=clock, options=ODriveDrive.Options(
-            port=self.dev.path, watchdog_s=WATCHDOG_S, reply_timeout_s=0.02, reconnect_interval_s=0.1,
+            port=self.dev.path, watchdog_s=watchdog_s, reply_timeout_s=0.02, reconnect_interval_s=0.1,
             error_poll_every=5), invert_right=True)
 
     def moving(self) -> bool:
