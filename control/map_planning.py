@@ -3,10 +3,14 @@ that path in the goto controller's frame. Shared by ``vbnav goto --map`` and ``v
 from __future__ import annotations
 
 import collections
+import math
 import threading
 from typing import Optional
 
 EVENTS_KEPT = 100   # re-planner lines kept for the command to print (a weeks-long goto re-plans without end)
+# How far the re-planner may move a goal that the grown map's noise put inside the planner's margin (no mapped
+# obstacle on it): the line map's endpoint error acceptance, 95 % (docs/line_map.md, measured 2.5 cm).
+GOAL_TOLERANCE_M = 0.05
 
 
 def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
@@ -176,6 +180,7 @@ class Replanner:
         self.said = 0
         self._events_lock = threading.Lock()
         self._held = False
+        self.goal_moved_m: Optional[float] = None   # how far the current plan ends from the goal (None: at it)
         self._stop = None
         self._thread = None
 
@@ -198,27 +203,37 @@ class Replanner:
         ab = self.stage.abstraction       # its last pass's polygons: abstracting again here would repeat it
         grid = grid_of(self.stage.verified_snapshot(), ab.polygons if ab is not None else [], self.meta,
                        self.robot_radius, extra_points=np.array([(here.x, here.z)] + route))
-        if not self._held and route_is_clear(grid, (here.x, here.z), route, self.skip_m):
+        goal_free = grid.is_free(self.goal.x, self.goal.z)
+        back_to_goal = self.goal_moved_m is not None and goal_free
+        if not self._held and not back_to_goal and route_is_clear(grid, (here.x, here.z), route, self.skip_m):
             return None
-        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z))
+        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z), GOAL_TOLERANCE_M)
         at = f"map revision {revision}, robot at ({here.x:+.2f}, {here.z:+.2f})"
+        goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
+        margin = f"{grid.grown_m:.2f} m (robot radius + clearance) of what the map holds"
         if path is None:
             self.controller.hold("no path")
             if self._held:
                 return None
             self._held = True
-            goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
-            if not grid.is_free(self.goal.x, self.goal.z):
-                return self._say(f"{at}: {goal} now lies within {grid.grown_m:.2f} m (robot radius + clearance) "
-                                 f"of what the map holds; holding until the map frees it")
+            if not goal_free:
+                return self._say(f"{at}: {goal} now lies within {margin}, more than {GOAL_TOLERANCE_M:.2f} m "
+                                 f"inside it or on it; holding until the map frees it")
             return self._say(f"{at}: the map closes every path to {goal}; holding until it opens one")
+        end = self.start.between(Pose2(*path[-1], 0.0))
         waypoints = [self.start.between(Pose2(x, z, 0.0)) for x, z in path[1:-1]]
-        self.controller.replace_route([(w.x, w.z) for w in waypoints])
+        self.controller.replace_route([(w.x, w.z) for w in waypoints], (end.x, end.z))
         self.controller.hold(None)
         self._held = False
         self.replans += 1
-        return self._say(f"{at}: the route ahead crosses what the map now holds; re-planned: "
-                         + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
+        moved = math.hypot(path[-1][0] - self.goal.x, path[-1][1] - self.goal.z)
+        self.goal_moved_m = moved if moved > 0.0 else None
+        why = ("the route ahead crosses what the map now holds" if not back_to_goal else
+               f"the map frees {goal} again")
+        if self.goal_moved_m is not None:
+            why = (f"{goal} now lies within {margin} (no mapped obstacle on it: the map's noise); the route "
+                   f"ends at the nearest free point, {moved:.3f} m from it (tolerance {GOAL_TOLERANCE_M:.2f} m)")
+        return self._say(f"{at}: {why}; re-planned: " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
 
     def _say(self, msg: str) -> str:
         with self._events_lock:

@@ -229,3 +229,56 @@ def test_a_grown_map_the_save_refuses_still_ends_with_the_goto_summary(tmp_path,
     assert f"--map-out: {out}: not saved, it could not be loaded back" in captured.err, captured.err
     assert "the map as grown while driving was not saved" in captured.err, captured.err
     assert not out.exists()
+
+
+def test_replanner_goes_to_the_nearest_free_cell_when_map_noise_puts_the_goal_in_the_margin():
+    """The grown map puts an object 0.27 m from the goal, 1 cm inside the planner's 0.28 m margin (what the map's
+    endpoint noise does to a goal chosen just outside it): the re-planner held the robot until --duration. It now
+    plans to the nearest free cell within GOAL_TOLERANCE_M of the goal, says so and by how much; an object deep
+    over the goal still holds it, and a map that frees the goal again sends the robot back to the goal itself."""
+    from vbnav.control.map_planning import GOAL_TOLERANCE_M
+
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": [[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]], "height": 1.0})
+    stage.revision += 1
+    msg = rp.step()
+    assert msg and "holding" not in msg and "re-planned" in msg, msg
+    assert "goal (+0.00, +1.50)" in msg and f"tolerance {GOAL_TOLERANCE_M:.2f} m" in msg, msg
+    _tick(ctrl, 2, Pose2())
+    gx, gz = ctrl.route()[-1]                       # reference frame: the map's goal is (0, 3) there
+    moved = np.hypot(gx - 0.0, gz - 3.0)
+    assert 0.0 < moved <= GOAL_TOLERANCE_M + 0.05 * np.sqrt(0.5) and rp.goal_moved_m == pytest.approx(moved)
+    assert 1.77 - (gz - 1.5) > 0.28                 # the new goal keeps the margin from the object
+    assert f"{moved:.3f} m" in msg and ctrl.status()["state"] != "held"
+    from vbnav.control.live_map import LiveMap
+    live = LiveMap(stage, meta)
+    live.replanner = rp
+    assert f"the route ended at the nearest free point, {moved:.3f} m from it" in live.summary()
+    # The map frees the goal again: back to the goal itself.
+    meta["objects"].pop()
+    stage.revision += 1
+    assert "re-planned" in rp.step()
+    _tick(ctrl, 3, Pose2())
+    assert ctrl.route()[-1] == pytest.approx((0.0, 3.0)) and rp.goal_moved_m is None
+    # An object on the goal itself is never planned around: the robot holds.
+    meta["objects"].append({"footprint": [[-0.5, 1.4], [0.5, 1.4], [0.5, 1.8], [-0.5, 1.8]], "height": 1.0})
+    stage.revision += 1
+    assert "holding" in rp.step()
+    assert _tick(ctrl, 4, Pose2()).v == 0.0 and ctrl.status()["state"] == "held"
+
+
+def test_plan_with_a_goal_tolerance_never_ends_on_a_mapped_obstacle():
+    from vbnav.vision.nav_grid import plan
+
+    fp = np.array([[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]])
+    grid = build_grid(np.zeros((0, 2, 3)), GridParams(), extra_points=np.array([[0, -1.5], [0, 1.5]]), polygons=[fp])
+    assert plan(grid, (0.0, -1.5), (0.0, 1.5)) is None                     # strict: the goal is in the margin
+    path = plan(grid, (0.0, -1.5), (0.0, 1.5), goal_tolerance_m=0.05)
+    assert path is not None and grid.is_free(*path[-1]) and 0 < np.hypot(path[-1][0], path[-1][1] - 1.5) < 0.09
+    assert plan(grid, (0.0, -1.5), (0.0, 1.9), goal_tolerance_m=0.05) is None   # on the object
+    assert plan(grid, (0.0, -1.5), (0.0, 1.65), goal_tolerance_m=0.05) is None  # 12 cm inside the margin

@@ -119,17 +119,45 @@ _STEPS = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
           (-1, -1, math.sqrt(2)), (-1, 1, math.sqrt(2)), (1, -1, math.sqrt(2)), (1, 1, math.sqrt(2))]
 
 
-def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]]:
+def goal_cells(grid: NavGrid, goal_xz, tolerance_m: float = 0.0) -> list[tuple[int, int]]:
+    """The cells a path to ``goal_xz`` may end in: the goal's own when it is free; when only the grown margin
+    blocks it (no mapped obstacle in its cell), the free cells whose nearest point lies within ``tolerance_m``
+    of the goal, nearest first; none when the goal is on a mapped obstacle or outside the grid."""
+    g = grid.cell(*goal_xz)
+    if not grid.inside(*g) or grid.occupied[g]:
+        return []
+    if not grid.blocked[g]:
+        return [g]
+    if tolerance_m <= 0.0:
+        return []
+    n = int(math.ceil(tolerance_m / grid.res)) + 1
+    near = []
+    for r in range(g[0] - n, g[0] + n + 1):
+        for c in range(g[1] - n, g[1] + n + 1):
+            if not grid.inside(r, c) or grid.blocked[r, c]:
+                continue
+            x, z = grid.centre(r, c)
+            dx, dz = abs(x - goal_xz[0]), abs(z - goal_xz[1])
+            edge = math.hypot(max(dx - grid.res / 2, 0.0), max(dz - grid.res / 2, 0.0))
+            if edge <= tolerance_m:
+                near.append((edge, math.hypot(dx, dz), (r, c)))
+    return [cell for *_, cell in sorted(near)]
+
+
+def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0) -> Optional[list[tuple[float, float]]]:
     """Waypoints (x, z) from start to goal avoiding blocked cells, or None when there is no path.
 
     The start cell may be blocked (the robot already stands close to something): the search leaves the
     grown margin from there, through cells no mapped obstacle occupies, within ``grown_m`` of the start.
+    A goal in the grown margin but on no mapped obstacle is replaced, with ``goal_tolerance_m``, by the centre
+    of the nearest reachable free cell within that distance of it (``goal_cells``): the path's last point is
+    then that centre, not ``goal_xz``.
     """
-    s, g = grid.cell(*start_xz), grid.cell(*goal_xz)
-    if not grid.inside(*s) or not grid.inside(*g):
+    s = grid.cell(*start_xz)
+    targets = goal_cells(grid, goal_xz, goal_tolerance_m)
+    if not grid.inside(*s) or not targets:
         return None
-    if grid.blocked[g]:
-        return None
+    g = targets[0]
     blocked, occupied = grid.blocked, grid.occupied
     H, W = blocked.shape
     leave = grid.grown_m / grid.res + 1.0       # cells a blocked start goes through to leave the margin
@@ -160,13 +188,17 @@ def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]
                 came[nxt] = cur
                 heapq.heappush(heap, (c2 + math.hypot(nr - g[0], nc - g[1]), c2, nxt))
     if g not in came and g != s:
-        return None
+        # The search ran out: every cell reachable from the start is in ``came``; the nearest such target.
+        g = next((t for t in targets[1:] if t in came or t == s), None)
+        if g is None:
+            return None
     cells = [g]
     while cells[-1] != s:
         cells.append(came[cells[-1]])
     cells.reverse()
     keep = _thin(grid, cells)
-    path = [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [tuple(goal_xz)]
+    end = tuple(goal_xz) if g == grid.cell(*goal_xz) else grid.centre(*g)
+    path = [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [end]
     return path
 
 
