@@ -81,6 +81,28 @@ def map_route_in_reference_frame(planned, start, goal):
     return [(p.x, p.z) for p in ref], start.between(goal)
 
 
+def sim_start_problem(cfg, meta: dict, map_path: str, start) -> str:
+    """On the simulated robot, why ``start`` (--start) is not its pose in the map's frame, with what to give; ""
+    when it is, or when the map does not say where its frame lies in the simulated world (``meta.sim_start_pose``,
+    the robot's world pose when ``vbnav map build`` started; a map from elsewhere). Planning from a wrong start
+    drives the wrong way, and the simulator's ground truth, taken from the robot's own start, does not show it."""
+    import math
+
+    from vbnav.vision.geometry import Pose2
+
+    if cfg.drive.driver != "sim" or "sim_start_pose" not in meta:
+        return ""
+    x, z, th = meta["sim_start_pose"]
+    true = Pose2(x, z, math.radians(th)).between(cfg.sim.start())
+    off = math.degrees(abs(math.remainder(true.theta - start.theta, math.tau)))
+    if math.hypot(true.x - start.x, true.z - start.z) <= 0.01 and off <= 0.5:
+        return ""
+    return (f"--start ({start.x:+.2f}, {start.z:+.2f}, {math.degrees(start.theta):+.1f} deg) is not where the "
+            f"simulated robot stands in the map's frame: {cfg.source}: sim.start_pose {list(cfg.sim.start_pose)} in "
+            f"the world, and {map_path} was built from meta.sim_start_pose {list(meta['sim_start_pose'])}: give "
+            f"--start {true.x:.3f} {true.z:.3f} {math.degrees(true.theta):.1f}")
+
+
 #: What to do instead when the camera cannot localise the start against a map.
 INSTEAD = "or leave out --localise and give the robot's pose in the map with --start"
 

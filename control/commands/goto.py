@@ -7,7 +7,7 @@ import sys
 from vbnav.control.commands._common import add_config_arg, finite, positive, refuse_unserved_live_view
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
-                                        no_path_reason, plan_path)
+                                        no_path_reason, plan_path, sim_start_problem)
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -113,6 +113,10 @@ def run(args) -> int:
         from vbnav.control.line_map_file import load_map
         from vbnav.control.live_map import LiveMap
         lmap, meta = load_map(args.map)
+        wrong = "" if args.localise else sim_start_problem(cfg, meta, args.map, start)
+        if wrong:
+            print(f"vbnav goto: {wrong}", file=sys.stderr)
+            return 2
         if not args.static_map:
             live, why = LiveMap.for_goto(cfg, lmap, meta, stage, lambda: start)
             if live is None:
