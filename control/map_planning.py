@@ -25,15 +25,25 @@ def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
 def grid_of(verified, polygons, meta: dict, robot_radius: float, extra_points=None):
     """The grid of verified segments (K, 2, 3), object ``polygons`` (with ``footprint``) and the objects
     stored in a map file's ``meta``, grown by ``robot_radius``."""
+    from vbnav.vision.nav_grid import build_grid
+
+    return build_grid(verified, grid_params(robot_radius), extra_points=extra_points,
+                      polygons=footprints(polygons, meta))
+
+
+def grid_params(robot_radius: float):
     import dataclasses
 
+    from vbnav.vision.nav_grid import GridParams
+
+    return dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
+
+
+def footprints(polygons, meta: dict) -> list:
+    """The footprints (N, 2) of object ``polygons`` and of the objects stored in a map file's ``meta``."""
     import numpy as np
 
-    from vbnav.vision.nav_grid import GridParams, build_grid
-
-    polys = [p.footprint for p in polygons] + [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
-    params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
-    return build_grid(verified, params, extra_points=extra_points, polygons=polys)
+    return [p.footprint for p in polygons] + [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
 
 
 def plan_on_map(path: str, start, goal, robot_radius: float):
@@ -172,9 +182,9 @@ def route_is_clear(grid, here, route, skip_m: float) -> bool:
 class Replanner:
     """The mission loop on a map that grows while the robot drives (section 11.2.1.1: the DLM is the
     centre of navigation). Each ``step`` (its own thread, every ``period_s``; or inline on a simulated
-    clock) looks at the line map only when it changed since the last look: it builds the traversability
-    grid of the map as it is now (verified segments, the slow loop's object polygons and those stored
-    with the map file), checks that the route still ahead of the robot is clear, and when the grown map
+    clock) looks at the line map only when it changed since the last look: it brings the traversability
+    grid up to date with the map as it is now (verified segments, the slow loop's object polygons and those
+    stored with the map file; only what changed is redrawn, ``nav_grid.IncrementalGrid``), checks that the route still ahead of the robot is clear, and when the grown map
     blocks it plans again from the robot's pose and hands the controller the new waypoints. With no path
     at all the controller holds (stopped) until the map opens one again; the obstacle stop stays in force
     whatever the plan says.
@@ -185,7 +195,7 @@ class Replanner:
 
     def __init__(self, stage, meta: dict, start, goal, robot_radius: float, controller, robot_pose,
                  period_s: float = 0.5):
-        from vbnav.vision.nav_grid import GridParams
+        from vbnav.vision.nav_grid import GridParams, IncrementalGrid
 
         self.stage, self.meta = stage, meta
         self.start, self.goal = start, goal
@@ -194,6 +204,7 @@ class Replanner:
         self.skip_m = self.robot_radius + GridParams().clearance_m
         self.controller, self.robot_pose = controller, robot_pose
         self.period_s = float(period_s)
+        self.grid = IncrementalGrid(grid_params(self.robot_radius))   # redrawn where the map changed
         self.looked_at = -1            # map revision of the last check
         self.checks = 0
         self.replans = 0
@@ -223,8 +234,8 @@ class Replanner:
         route = [self.start.compose(Pose2(x, z, 0.0)) for x, z in self.controller.route()]
         route = [(p.x, p.z) for p in route]
         ab = self.stage.abstraction       # its last pass's polygons: abstracting again here would repeat it
-        grid = grid_of(self.stage.verified_snapshot(), ab.polygons if ab is not None else [], self.meta,
-                       self.robot_radius, extra_points=np.array([(here.x, here.z)] + route))
+        grid = self.grid.update(self.stage.verified_snapshot(), np.array([(here.x, here.z)] + route),
+                                footprints(ab.polygons if ab is not None else [], self.meta))
         goal_free = grid.is_free(self.goal.x, self.goal.z)
         back_to_goal = self.goal_moved_m is not None and goal_free
         if not self._held and not back_to_goal and route_is_clear(grid, (here.x, here.z), route, self.skip_m):

@@ -282,3 +282,57 @@ def test_plan_with_a_goal_tolerance_never_ends_on_a_mapped_obstacle():
     assert path is not None and grid.is_free(*path[-1]) and 0 < np.hypot(path[-1][0], path[-1][1] - 1.5) < 0.09
     assert plan(grid, (0.0, -1.5), (0.0, 1.9), goal_tolerance_m=0.05) is None   # on the object
     assert plan(grid, (0.0, -1.5), (0.0, 1.65), goal_tolerance_m=0.05) is None  # 12 cm inside the margin
+
+
+def test_the_incremental_grid_equals_the_full_build_after_a_series_of_map_changes():
+    """The re-planner rebuilt the whole grid at every look at a changed map (about 1 s near the 16 M-cell cap);
+    it now redraws only the segments and polygons whose cells changed (nav_grid.IncrementalGrid), and the grid
+    is the full build's, cell for cell, on a random map that grows, loses segments, moves some and swaps an
+    object, and when the extent changes."""
+    from vbnav.vision.nav_grid import IncrementalGrid
+
+    rng = np.random.default_rng(7)
+
+    def segments(k):
+        a = rng.uniform(-4, 4, (k, 2))
+        b = a + rng.normal(0, 0.6, (k, 2))
+        P = np.zeros((k, 2, 3))
+        P[:, 0, [0, 2]], P[:, 1, [0, 2]] = a, b
+        P[:, 0, 1], P[:, 1, 1] = -rng.uniform(0, 0.3, k), -rng.uniform(0, 0.8, k)   # some on the floor
+        return P
+
+    def box():
+        return rng.uniform(-3, 3, 2) + rng.uniform(-0.4, 0.4, (4, 2))
+
+    params = GridParams(robot_radius_m=0.25)
+    inc = IncrementalGrid(params)
+    P, polys, ends = segments(200), [box() for _ in range(3)], np.array([[-6.0, -6.0], [6.0, 6.0]])
+    for step in range(30):
+        if step % 3 == 0:
+            P = np.concatenate([P, segments(int(rng.integers(1, 10)))])
+        if step % 4 == 1:
+            P = np.delete(P, rng.choice(len(P), 5, replace=False), axis=0)
+        if step % 5 == 2:
+            P[rng.choice(len(P), 8)] += rng.normal(0, 0.02, (8, 2, 3))
+        if step % 7 == 3:
+            polys = polys[1:] + [box()]
+        if step == 20:
+            ends = ends * 1.2                       # a new extent: built whole again
+        full = build_grid(P, params, extra_points=ends, polygons=polys)
+        grid = inc.update(P, extra_points=ends, polygons=polys)
+        assert (grid.x0, grid.z0, grid.res, grid.grown_m) == (full.x0, full.z0, full.res, full.grown_m)
+        assert np.array_equal(grid.occupied, full.occupied) and np.array_equal(grid.blocked, full.blocked), step
+        assert step in (0, 20) or inc.redrawn <= 20          # only what changed was drawn again
+
+
+def test_the_replanner_redraws_only_what_changed_in_the_map():
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": [{"footprint": [[x, 0.0], [x + 0.1, 0.0], [x + 0.1, 0.1]], "height": 0.5}
+                        for x in (-2.5, 2.4)]}          # beyond the box: its extent stays
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": BOX.tolist(), "height": 0.5})
+    stage.revision += 1
+    assert "re-planned" in rp.step() and rp.grid.redrawn == 1
