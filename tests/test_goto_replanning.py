@@ -127,6 +127,11 @@ def test_goto_map_replans_around_a_box_the_map_did_not_hold(tmp_path, capsys):
     err_cm = float(out.split("position error ")[1].split(" cm")[0])
     closest = float(out.split("closest approach of the robot centre to a wall or box ")[1].split(" m")[0])
     assert err_cm < 2.0 and closest > 0.25, out          # measured 0.9 cm, 0.338 m
+    # The poses and the goal are said in the frame the goal was given in (the map's), not the robot's start
+    # frame: the goal was printed as (+0.000, +4.000), which the user never typed.
+    assert "goal x=+1.400 z=+1.400 theta=+0.00 (map frame)" in out, out
+    true_z = float(out.split("simulator ground truth: x=")[1].split("z=")[1].split()[0])
+    assert abs(true_z - 1.4) < 0.02, out                  # the start frame's was +4.0
     grown, meta = load_map(tmp_path / "grown.json")
     assert grown.verified.sum() >= 100 and meta["frames"] > 50    # measured 337 verified, 117 frames
 
