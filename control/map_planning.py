@@ -222,7 +222,7 @@ class Replanner:
         import numpy as np
 
         from vbnav.vision.geometry import Pose2
-        from vbnav.vision.nav_grid import plan
+        from vbnav.vision.nav_grid import goal_cells, plan
 
         revision = self.stage.revision
         pose_ref = self.robot_pose()
@@ -249,10 +249,11 @@ class Replanner:
             if self._held:
                 return None
             self._held = True
-            if not goal_free:
+            if not goal_cells(grid, (self.goal.x, self.goal.z), GOAL_TOLERANCE_M):
                 return self._say(f"{at}: {goal} now lies within {margin}, more than {GOAL_TOLERANCE_M:.2f} m "
                                  f"inside it or on it; holding until the map frees it")
-            return self._say(f"{at}: the map closes every path to {goal}; holding until it opens one")
+            near = "" if goal_free else f" and to the free points within {GOAL_TOLERANCE_M:.2f} m of it"
+            return self._say(f"{at}: the map closes every path to {goal}{near}; holding until it opens one")
         end = self.start.between(Pose2(*path[-1], 0.0))
         waypoints = [self.start.between(Pose2(x, z, 0.0)) for x, z in path[1:-1]]
         self.controller.replace_route([(w.x, w.z) for w in waypoints], (end.x, end.z))

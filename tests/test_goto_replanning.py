@@ -341,3 +341,20 @@ def test_the_replanner_redraws_only_what_changed_in_the_map():
     meta["objects"].append({"footprint": BOX.tolist(), "height": 0.5})
     stage.revision += 1
     assert "re-planned" in rp.step() and rp.grid.redrawn == 1
+
+
+def test_replanner_hold_does_not_blame_the_margin_when_the_near_free_points_are_walled_off():
+    """The goal 1 cm inside the margin has free points within the tolerance, but walls close every path to
+    them: the hold said the goal lay more than the tolerance inside the margin or on an obstacle."""
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    sq = [(-0.6, 0.9), (0.6, 0.9), (0.6, 2.2), (-0.6, 2.2)]
+    meta["objects"] += [{"footprint": [a, b], "height": 1.0} for a, b in zip(sq, sq[1:] + sq[:1])]
+    meta["objects"].append({"footprint": [[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]], "height": 1.0})
+    stage.revision += 1
+    msg = rp.step()
+    assert "holding" in msg and "closes every path" in msg and "more than" not in msg, msg
