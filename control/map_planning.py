@@ -246,6 +246,7 @@ class Replanner:
         margin = f"{grid.grown_m:.2f} m (robot radius + clearance) of what the map holds"
         if path is None:
             self.controller.hold("no path")
+            self.goal_moved_m = None        # no route: none ends near the goal
             if self._held:
                 return None
             self._held = True

@@ -358,3 +358,25 @@ def test_replanner_hold_does_not_blame_the_margin_when_the_near_free_points_are_
     stage.revision += 1
     msg = rp.step()
     assert "holding" in msg and "closes every path" in msg and "more than" not in msg, msg
+
+
+def test_the_summary_does_not_say_the_goal_was_moved_once_the_robot_holds():
+    """A route moved to the nearest free point, then a hold (an object over the goal): the summary still said
+    the route ended at that point, for a robot that stopped short of it."""
+    from vbnav.control.live_map import LiveMap
+
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    live = LiveMap(stage, meta)
+    live.replanner = rp
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": [[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]], "height": 1.0})
+    stage.revision += 1
+    assert "nearest free point" in rp.step() and "nearest free point" in live.summary()
+    meta["objects"].append({"footprint": [[-0.5, 1.4], [0.5, 1.4], [0.5, 1.8], [-0.5, 1.8]], "height": 1.0})
+    stage.revision += 1
+    assert "holding" in rp.step()
+    assert rp.goal_moved_m is None and "nearest free point" not in live.summary()
