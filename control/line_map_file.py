@@ -96,8 +96,7 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         raise MapFileError(f"{path}: params: expected an object of map parameters, got {type(given).__name__}")
     for f in dataclasses.fields(MapParams):     # a word here was taken, and failed the first mapping frame
         v = given.get(f.name, 0)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or \
-                (f.type == "int" and not float(v).is_integer()):
+        if not _finite(v) or (f.type == "int" and not float(v).is_integer()):
             raise MapFileError(f"{path}: params: {f.name}: expected a finite {'integer' if f.type == 'int' else 'number'}"
                                f", got {v!r}")
     meta = data.get("meta", {})
@@ -105,6 +104,10 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         raise MapFileError(f"{path}: meta: expected an object with a list 'objects', got {meta!r:.60}")
     if "frames" in meta:        # goto --map-out adds its own frames to it
         _check_count(path, "meta.frames", meta["frames"], 0)
+    pose = meta.get("sim_start_pose", [0.0, 0.0, 0.0])     # map build on the simulator: its frame's world pose
+    if not (isinstance(pose, list) and len(pose) == 3 and all(_finite(v) for v in pose)):
+        raise MapFileError(f"{path}: meta.sim_start_pose: expected [x, z, heading_deg], finite numbers, got "
+                           f"{pose!r:.60}")
     for k, o in enumerate(meta.get("objects", [])):
         try:
             fp = np.asarray(o["footprint"], float)
@@ -151,6 +154,11 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         if any(v.shape != (4,) or not np.isfinite(v).all() for v in views):
             raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
     return lmap, meta
+
+
+def _finite(v) -> bool:
+    """A JSON number (not true/false) and finite."""
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and bool(np.isfinite(v))
 
 
 def _check_count(path: Path, field: str, v, low: int) -> None:

@@ -91,7 +91,14 @@ class LiveMap:
         return (f"map while driving: {self.line_stage.stats['frames']} frames, {s['verified']} verified segments, "
                 f"{self.replanner.checks} checks of the route, {self.replanner.replans} re-plans; the map's fast "
                 f"loop {np.median(ms):.0f} ms median, {np.percentile(ms, 95):.0f} ms p95, {ms.max():.0f} ms max "
-                f"per frame (detection and update, {where})")
+                f"per frame (detection and update, {where})" + self._goal_moved())
+
+    def _goal_moved(self) -> str:
+        moved = self.replanner.goal_moved_m
+        if moved is None:
+            return ""
+        return (f"; the goal lay within the planner's margin of what the map holds (map noise), so the route "
+                f"ended at the nearest free point, {moved:.3f} m from it (the pose and errors below are against the goal as given)")
 
     def save(self, path: str) -> None:
         """Write the grown map; its objects abstracted again from the whole map (as ``map build`` does), not

@@ -3,10 +3,14 @@ that path in the goto controller's frame. Shared by ``vbnav goto --map`` and ``v
 from __future__ import annotations
 
 import collections
+import math
 import threading
 from typing import Optional
 
 EVENTS_KEPT = 100   # re-planner lines kept for the command to print (a weeks-long goto re-plans without end)
+# How far the re-planner may move a goal that the grown map's noise put inside the planner's margin (no mapped
+# obstacle on it): the line map's endpoint error acceptance, 95 % (docs/line_map.md, measured 2.5 cm).
+GOAL_TOLERANCE_M = 0.05
 
 
 def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
@@ -21,15 +25,25 @@ def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
 def grid_of(verified, polygons, meta: dict, robot_radius: float, extra_points=None):
     """The grid of verified segments (K, 2, 3), object ``polygons`` (with ``footprint``) and the objects
     stored in a map file's ``meta``, grown by ``robot_radius``."""
+    from vbnav.vision.nav_grid import build_grid
+
+    return build_grid(verified, grid_params(robot_radius), extra_points=extra_points,
+                      polygons=footprints(polygons, meta))
+
+
+def grid_params(robot_radius: float):
     import dataclasses
 
+    from vbnav.vision.nav_grid import GridParams
+
+    return dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
+
+
+def footprints(polygons, meta: dict) -> list:
+    """The footprints (N, 2) of object ``polygons`` and of the objects stored in a map file's ``meta``."""
     import numpy as np
 
-    from vbnav.vision.nav_grid import GridParams, build_grid
-
-    polys = [p.footprint for p in polygons] + [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
-    params = dataclasses.replace(GridParams(), robot_radius_m=robot_radius)
-    return build_grid(verified, params, extra_points=extra_points, polygons=polys)
+    return [p.footprint for p in polygons] + [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
 
 
 def plan_on_map(path: str, start, goal, robot_radius: float):
@@ -75,6 +89,28 @@ def map_route_in_reference_frame(planned, start, goal):
 
     ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
     return [(p.x, p.z) for p in ref], start.between(goal)
+
+
+def sim_start_problem(cfg, meta: dict, map_path: str, start) -> str:
+    """On the simulated robot, why ``start`` (--start) is not its pose in the map's frame, with what to give; ""
+    when it is, or when the map does not say where its frame lies in the simulated world (``meta.sim_start_pose``,
+    the robot's world pose when ``vbnav map build`` started; a map from elsewhere). Planning from a wrong start
+    drives the wrong way, and the simulator's ground truth, taken from the robot's own start, does not show it."""
+    import math
+
+    from vbnav.vision.geometry import Pose2
+
+    if cfg.drive.driver != "sim" or "sim_start_pose" not in meta:
+        return ""
+    x, z, th = meta["sim_start_pose"]
+    true = Pose2(x, z, math.radians(th)).between(cfg.sim.start())
+    off = math.degrees(abs(math.remainder(true.theta - start.theta, math.tau)))
+    if math.hypot(true.x - start.x, true.z - start.z) <= 0.01 and off <= 0.5:
+        return ""
+    return (f"--start ({start.x:+.2f}, {start.z:+.2f}, {math.degrees(start.theta):+.1f} deg) is not where the "
+            f"simulated robot stands in the map's frame: {cfg.source}: sim.start_pose {list(cfg.sim.start_pose)} in "
+            f"the world, and {map_path} was built from meta.sim_start_pose {list(meta['sim_start_pose'])}: give "
+            f"--start {true.x:.3f} {true.z:.3f} {math.degrees(true.theta):.1f}")
 
 
 #: What to do instead when the camera cannot localise the start against a map.
@@ -146,9 +182,9 @@ def route_is_clear(grid, here, route, skip_m: float) -> bool:
 class Replanner:
     """The mission loop on a map that grows while the robot drives (section 11.2.1.1: the DLM is the
     centre of navigation). Each ``step`` (its own thread, every ``period_s``; or inline on a simulated
-    clock) looks at the line map only when it changed since the last look: it builds the traversability
-    grid of the map as it is now (verified segments, the slow loop's object polygons and those stored
-    with the map file), checks that the route still ahead of the robot is clear, and when the grown map
+    clock) looks at the line map only when it changed since the last look: it brings the traversability
+    grid up to date with the map as it is now (verified segments, the slow loop's object polygons and those
+    stored with the map file; only what changed is redrawn, ``nav_grid.IncrementalGrid``), checks that the route still ahead of the robot is clear, and when the grown map
     blocks it plans again from the robot's pose and hands the controller the new waypoints. With no path
     at all the controller holds (stopped) until the map opens one again; the obstacle stop stays in force
     whatever the plan says.
@@ -159,7 +195,7 @@ class Replanner:
 
     def __init__(self, stage, meta: dict, start, goal, robot_radius: float, controller, robot_pose,
                  period_s: float = 0.5):
-        from vbnav.vision.nav_grid import GridParams
+        from vbnav.vision.nav_grid import GridParams, IncrementalGrid
 
         self.stage, self.meta = stage, meta
         self.start, self.goal = start, goal
@@ -168,6 +204,7 @@ class Replanner:
         self.skip_m = self.robot_radius + GridParams().clearance_m
         self.controller, self.robot_pose = controller, robot_pose
         self.period_s = float(period_s)
+        self.grid = IncrementalGrid(grid_params(self.robot_radius))   # redrawn where the map changed
         self.looked_at = -1            # map revision of the last check
         self.checks = 0
         self.replans = 0
@@ -176,6 +213,7 @@ class Replanner:
         self.said = 0
         self._events_lock = threading.Lock()
         self._held = False
+        self.goal_moved_m: Optional[float] = None   # how far the current plan ends from the goal (None: at it)
         self._stop = None
         self._thread = None
 
@@ -184,7 +222,7 @@ class Replanner:
         import numpy as np
 
         from vbnav.vision.geometry import Pose2
-        from vbnav.vision.nav_grid import plan
+        from vbnav.vision.nav_grid import goal_cells, plan
 
         revision = self.stage.revision
         pose_ref = self.robot_pose()
@@ -196,29 +234,41 @@ class Replanner:
         route = [self.start.compose(Pose2(x, z, 0.0)) for x, z in self.controller.route()]
         route = [(p.x, p.z) for p in route]
         ab = self.stage.abstraction       # its last pass's polygons: abstracting again here would repeat it
-        grid = grid_of(self.stage.verified_snapshot(), ab.polygons if ab is not None else [], self.meta,
-                       self.robot_radius, extra_points=np.array([(here.x, here.z)] + route))
-        if not self._held and route_is_clear(grid, (here.x, here.z), route, self.skip_m):
+        grid = self.grid.update(self.stage.verified_snapshot(), np.array([(here.x, here.z)] + route),
+                                footprints(ab.polygons if ab is not None else [], self.meta))
+        goal_free = grid.is_free(self.goal.x, self.goal.z)
+        back_to_goal = self.goal_moved_m is not None and goal_free
+        if not self._held and not back_to_goal and route_is_clear(grid, (here.x, here.z), route, self.skip_m):
             return None
-        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z))
+        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z), GOAL_TOLERANCE_M)
         at = f"map revision {revision}, robot at ({here.x:+.2f}, {here.z:+.2f})"
+        goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
+        margin = f"{grid.grown_m:.2f} m (robot radius + clearance) of what the map holds"
         if path is None:
             self.controller.hold("no path")
+            self.goal_moved_m = None        # no route: none ends near the goal
             if self._held:
                 return None
             self._held = True
-            goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
-            if not grid.is_free(self.goal.x, self.goal.z):
-                return self._say(f"{at}: {goal} now lies within {grid.grown_m:.2f} m (robot radius + clearance) "
-                                 f"of what the map holds; holding until the map frees it")
-            return self._say(f"{at}: the map closes every path to {goal}; holding until it opens one")
+            if not goal_cells(grid, (self.goal.x, self.goal.z), GOAL_TOLERANCE_M):
+                return self._say(f"{at}: {goal} now lies within {margin}, more than {GOAL_TOLERANCE_M:.2f} m "
+                                 f"inside it or on it; holding until the map frees it")
+            near = "" if goal_free else f" and to the free points within {GOAL_TOLERANCE_M:.2f} m of it"
+            return self._say(f"{at}: the map closes every path to {goal}{near}; holding until it opens one")
+        end = self.start.between(Pose2(*path[-1], 0.0))
         waypoints = [self.start.between(Pose2(x, z, 0.0)) for x, z in path[1:-1]]
-        self.controller.replace_route([(w.x, w.z) for w in waypoints])
+        self.controller.replace_route([(w.x, w.z) for w in waypoints], (end.x, end.z))
         self.controller.hold(None)
         self._held = False
         self.replans += 1
-        return self._say(f"{at}: the route ahead crosses what the map now holds; re-planned: "
-                         + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
+        moved = math.hypot(path[-1][0] - self.goal.x, path[-1][1] - self.goal.z)
+        self.goal_moved_m = moved if moved > 0.0 else None
+        why = ("the route ahead crosses what the map now holds" if not back_to_goal else
+               f"the map frees {goal} again")
+        if self.goal_moved_m is not None:
+            why = (f"{goal} now lies within {margin} (no mapped obstacle on it: the map's noise); the route "
+                   f"ends at the nearest free point, {moved:.3f} m from it (tolerance {GOAL_TOLERANCE_M:.2f} m)")
+        return self._say(f"{at}: {why}; re-planned: " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
 
     def _say(self, msg: str) -> str:
         with self._events_lock:

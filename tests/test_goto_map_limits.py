@@ -2,6 +2,9 @@
 would not fit in memory are refused with a clear error, before the robot moves."""
 from __future__ import annotations
 
+import json
+import math
+
 import numpy as np
 import pytest
 
@@ -91,3 +94,35 @@ def test_goto_map_says_when_the_start_is_inside_a_mapped_object(tmp_path, capsys
     err = capsys.readouterr().err
     assert code == 1, err
     assert "--start (+0.00, +2.00) lies on a mapped wall or inside a mapped object" in err, err
+
+
+def test_goto_map_on_the_simulator_refuses_a_start_that_disagrees_with_sim_start_pose(tmp_path, capsys):
+    """The map's frame is the simulated robot's start when the map was built (recorded by `map build` as
+    meta.sim_start_pose): a --start (default 0 0 0) that is not sim.start_pose seen from there planned from the
+    wrong place, and the ground-truth error, measured from the robot's own start, did not show it."""
+    import yaml
+
+    from vbnav.control.cli import main
+    from vbnav.control.config import CONFIG_DIR
+
+    path = tmp_path / "m.json"
+    save_map(LineMap(), path, {"sim_start_pose": [0.5, 0.0, 0.0]})
+    cfg = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    cfg["sim"] = dict(cfg.get("sim", {}), start_pose=[1.5, 0.5, 30.0])
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(cfg))
+    rc = main(["goto", "-c", str(tmp_path / "robot.yaml"), "--map", str(path), "--goal", "0", "2", "0"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--start (+0.00, +0.00, +0.0 deg)" in err and "sim.start_pose [1.5, 0.5, 30.0]" in err, err
+    assert "meta.sim_start_pose [0.5, 0.0, 0.0]" in err and "--start 1.000 0.500 30.0" in err, err
+    from vbnav.control.config import load_config
+    from vbnav.control.map_planning import sim_start_problem
+    from vbnav.vision.geometry import Pose2
+    meta = {"sim_start_pose": [0.5, 0.0, 0.0]}
+    assert sim_start_problem(load_config(str(tmp_path / "robot.yaml")), meta, "m.json",
+                             Pose2(1.0, 0.5, math.radians(30.0))) == ""
+    assert sim_start_problem(load_config(str(tmp_path / "robot.yaml")), {}, "m.json", Pose2()) == ""   # not known
+    data = json.loads(path.read_text())
+    data["meta"]["sim_start_pose"] = [0.5, "x", 0.0]
+    path.write_text(json.dumps(data))
+    assert main(["goto", "-c", str(tmp_path / "robot.yaml"), "--map", str(path), "--goal", "0", "2", "0"]) == 2
+    assert "meta.sim_start_pose" in capsys.readouterr().err

@@ -127,6 +127,11 @@ def test_goto_map_replans_around_a_box_the_map_did_not_hold(tmp_path, capsys):
     err_cm = float(out.split("position error ")[1].split(" cm")[0])
     closest = float(out.split("closest approach of the robot centre to a wall or box ")[1].split(" m")[0])
     assert err_cm < 2.0 and closest > 0.25, out          # measured 0.9 cm, 0.338 m
+    # The poses and the goal are said in the frame the goal was given in (the map's), not the robot's start
+    # frame: the goal was printed as (+0.000, +4.000), which the user never typed.
+    assert "goal x=+1.400 z=+1.400 theta=+0.00 (map frame)" in out, out
+    true_z = float(out.split("simulator ground truth: x=")[1].split("z=")[1].split()[0])
+    assert abs(true_z - 1.4) < 0.02, out                  # the start frame's was +4.0
     grown, meta = load_map(tmp_path / "grown.json")
     assert grown.verified.sum() >= 100 and meta["frames"] > 50    # measured 337 verified, 117 frames
 
@@ -229,3 +234,149 @@ def test_a_grown_map_the_save_refuses_still_ends_with_the_goto_summary(tmp_path,
     assert f"--map-out: {out}: not saved, it could not be loaded back" in captured.err, captured.err
     assert "the map as grown while driving was not saved" in captured.err, captured.err
     assert not out.exists()
+
+
+def test_replanner_goes_to_the_nearest_free_cell_when_map_noise_puts_the_goal_in_the_margin():
+    """The grown map puts an object 0.27 m from the goal, 1 cm inside the planner's 0.28 m margin (what the map's
+    endpoint noise does to a goal chosen just outside it): the re-planner held the robot until --duration. It now
+    plans to the nearest free cell within GOAL_TOLERANCE_M of the goal, says so and by how much; an object deep
+    over the goal still holds it, and a map that frees the goal again sends the robot back to the goal itself."""
+    from vbnav.control.map_planning import GOAL_TOLERANCE_M
+
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": [[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]], "height": 1.0})
+    stage.revision += 1
+    msg = rp.step()
+    assert msg and "holding" not in msg and "re-planned" in msg, msg
+    assert "goal (+0.00, +1.50)" in msg and f"tolerance {GOAL_TOLERANCE_M:.2f} m" in msg, msg
+    _tick(ctrl, 2, Pose2())
+    gx, gz = ctrl.route()[-1]                       # reference frame: the map's goal is (0, 3) there
+    moved = np.hypot(gx - 0.0, gz - 3.0)
+    assert 0.0 < moved <= GOAL_TOLERANCE_M + 0.05 * np.sqrt(0.5) and rp.goal_moved_m == pytest.approx(moved)
+    assert 1.77 - (gz - 1.5) > 0.28                 # the new goal keeps the margin from the object
+    assert f"{moved:.3f} m" in msg and ctrl.status()["state"] != "held"
+    from vbnav.control.live_map import LiveMap
+    live = LiveMap(stage, meta)
+    live.replanner = rp
+    assert f"the route ended at the nearest free point, {moved:.3f} m from it" in live.summary()
+    # The map frees the goal again: back to the goal itself.
+    meta["objects"].pop()
+    stage.revision += 1
+    assert "re-planned" in rp.step()
+    _tick(ctrl, 3, Pose2())
+    assert ctrl.route()[-1] == pytest.approx((0.0, 3.0)) and rp.goal_moved_m is None
+    # An object on the goal itself is never planned around: the robot holds.
+    meta["objects"].append({"footprint": [[-0.5, 1.4], [0.5, 1.4], [0.5, 1.8], [-0.5, 1.8]], "height": 1.0})
+    stage.revision += 1
+    assert "holding" in rp.step()
+    assert _tick(ctrl, 4, Pose2()).v == 0.0 and ctrl.status()["state"] == "held"
+
+
+def test_plan_with_a_goal_tolerance_never_ends_on_a_mapped_obstacle():
+    from vbnav.vision.nav_grid import plan
+
+    fp = np.array([[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]])
+    grid = build_grid(np.zeros((0, 2, 3)), GridParams(), extra_points=np.array([[0, -1.5], [0, 1.5]]), polygons=[fp])
+    assert plan(grid, (0.0, -1.5), (0.0, 1.5)) is None                     # strict: the goal is in the margin
+    path = plan(grid, (0.0, -1.5), (0.0, 1.5), goal_tolerance_m=0.05)
+    assert path is not None and grid.is_free(*path[-1]) and 0 < np.hypot(path[-1][0], path[-1][1] - 1.5) < 0.09
+    assert plan(grid, (0.0, -1.5), (0.0, 1.9), goal_tolerance_m=0.05) is None   # on the object
+    assert plan(grid, (0.0, -1.5), (0.0, 1.65), goal_tolerance_m=0.05) is None  # 12 cm inside the margin
+
+
+def test_the_incremental_grid_equals_the_full_build_after_a_series_of_map_changes():
+    """The re-planner rebuilt the whole grid at every look at a changed map (about 1 s near the 16 M-cell cap);
+    it now redraws only the segments and polygons whose cells changed (nav_grid.IncrementalGrid), and the grid
+    is the full build's, cell for cell, on a random map that grows, loses segments, moves some and swaps an
+    object, and when the extent changes."""
+    from vbnav.vision.nav_grid import IncrementalGrid
+
+    rng = np.random.default_rng(7)
+
+    def segments(k):
+        a = rng.uniform(-4, 4, (k, 2))
+        b = a + rng.normal(0, 0.6, (k, 2))
+        P = np.zeros((k, 2, 3))
+        P[:, 0, [0, 2]], P[:, 1, [0, 2]] = a, b
+        P[:, 0, 1], P[:, 1, 1] = -rng.uniform(0, 0.3, k), -rng.uniform(0, 0.8, k)   # some on the floor
+        return P
+
+    def box():
+        return rng.uniform(-3, 3, 2) + rng.uniform(-0.4, 0.4, (4, 2))
+
+    params = GridParams(robot_radius_m=0.25)
+    inc = IncrementalGrid(params)
+    P, polys, ends = segments(200), [box() for _ in range(3)], np.array([[-6.0, -6.0], [6.0, 6.0]])
+    for step in range(30):
+        if step % 3 == 0:
+            P = np.concatenate([P, segments(int(rng.integers(1, 10)))])
+        if step % 4 == 1:
+            P = np.delete(P, rng.choice(len(P), 5, replace=False), axis=0)
+        if step % 5 == 2:
+            P[rng.choice(len(P), 8)] += rng.normal(0, 0.02, (8, 2, 3))
+        if step % 7 == 3:
+            polys = polys[1:] + [box()]
+        if step == 20:
+            ends = ends * 1.2                       # a new extent: built whole again
+        full = build_grid(P, params, extra_points=ends, polygons=polys)
+        grid = inc.update(P, extra_points=ends, polygons=polys)
+        assert (grid.x0, grid.z0, grid.res, grid.grown_m) == (full.x0, full.z0, full.res, full.grown_m)
+        assert np.array_equal(grid.occupied, full.occupied) and np.array_equal(grid.blocked, full.blocked), step
+        assert step in (0, 20) or inc.redrawn <= 20          # only what changed was drawn again
+
+
+def test_the_replanner_redraws_only_what_changed_in_the_map():
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": [{"footprint": [[x, 0.0], [x + 0.1, 0.0], [x + 0.1, 0.1]], "height": 0.5}
+                        for x in (-2.5, 2.4)]}          # beyond the box: its extent stays
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": BOX.tolist(), "height": 0.5})
+    stage.revision += 1
+    assert "re-planned" in rp.step() and rp.grid.redrawn == 1
+
+
+def test_replanner_hold_does_not_blame_the_margin_when_the_near_free_points_are_walled_off():
+    """The goal 1 cm inside the margin has free points within the tolerance, but walls close every path to
+    them: the hold said the goal lay more than the tolerance inside the margin or on an obstacle."""
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    sq = [(-0.6, 0.9), (0.6, 0.9), (0.6, 2.2), (-0.6, 2.2)]
+    meta["objects"] += [{"footprint": [a, b], "height": 1.0} for a, b in zip(sq, sq[1:] + sq[:1])]
+    meta["objects"].append({"footprint": [[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]], "height": 1.0})
+    stage.revision += 1
+    msg = rp.step()
+    assert "holding" in msg and "closes every path" in msg and "more than" not in msg, msg
+
+
+def test_the_summary_does_not_say_the_goal_was_moved_once_the_robot_holds():
+    """A route moved to the nearest free point, then a hold (an object over the goal): the summary still said
+    the route ended at that point, for a robot that stopped short of it."""
+    from vbnav.control.live_map import LiveMap
+
+    ctrl = GotoController(Pose2(0.0, 3.0, 0.0), GotoConfig())
+    meta = {"objects": []}
+    stage = _stage()
+    rp = Replanner(stage, meta, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, ctrl, lambda: ctrl.pose)
+    live = LiveMap(stage, meta)
+    live.replanner = rp
+    _tick(ctrl, 1, Pose2())
+    assert rp.step() is None
+    meta["objects"].append({"footprint": [[-0.5, 1.77], [0.5, 1.77], [0.5, 2.1], [-0.5, 2.1]], "height": 1.0})
+    stage.revision += 1
+    assert "nearest free point" in rp.step() and "nearest free point" in live.summary()
+    meta["objects"].append({"footprint": [[-0.5, 1.4], [0.5, 1.4], [0.5, 1.8], [-0.5, 1.8]], "height": 1.0})
+    stage.revision += 1
+    assert "holding" in rp.step()
+    assert rp.goal_moved_m is None and "nearest free point" not in live.summary()

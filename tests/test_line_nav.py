@@ -270,6 +270,8 @@ def test_map_build_info_plot_commands(tmp_path, capsys):
     out, png = tmp_path / "m.json", tmp_path / "m.png"
     assert main(["map", "build", "-c", "sim_stereo", "--out", str(out), "--duration", "0.4"]) == 0
     assert "verified segments" in capsys.readouterr().out
+    from vbnav.control.config import load_config
+    assert json.loads(out.read_text())["meta"]["sim_start_pose"] == load_config("sim_stereo").sim.start_pose
     assert main(["map", "info", str(out)]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["frames"] >= 4 and info["segments"] > 0

@@ -78,13 +78,8 @@ def obstacle_traces(P: np.ndarray, params: GridParams = GridParams()) -> np.ndar
     return P[blocks][..., [0, 2]]
 
 
-def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: Optional[np.ndarray] = None,
-               polygons: Optional[list] = None) -> NavGrid:
-    """The grid of the given world segments (K, 2, 3); ``extra_points`` (N, 2) x, z must lie inside it;
-    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles.
-    ValueError when the grid would hold more than ``MAX_CELLS`` cells."""
-    traces = obstacle_traces(P, params)
-    polygons = [np.asarray(q, float).reshape(-1, 2) for q in (polygons or [])]
+def _extent(traces: np.ndarray, polygons: list, extra_points, params: GridParams):
+    """(lo (x, z), W, H) of the grid over the traces, polygons and extra points plus ``margin_m``."""
     pts = np.vstack([traces.reshape(-1, 2)] + polygons) if polygons else traces.reshape(-1, 2)
     if extra_points is not None:
         pts = np.vstack((pts, np.asarray(extra_points, float).reshape(-1, 2)))
@@ -97,17 +92,52 @@ def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: O
     if W * H > MAX_CELLS:
         raise ValueError(f"the planning grid over x {lo[0]:+.1f}..{hi[0]:+.1f} m, z {lo[1]:+.1f}..{hi[1]:+.1f} m "
                          f"would be {W} x {H} cells of {res} m, more than the {MAX_CELLS} cells planned on")
-    occ = np.zeros((H, W), np.uint8)
+    return lo, W, H
+
+
+def _items(traces: np.ndarray, polygons: list, lo, res: float) -> list[tuple]:
+    """What is drawn into the grid, in cells: ("line", a, b) per trace, ("poly", cells) per polygon."""
+    out = []
     for (xa, za), (xb, zb) in traces:
-        a = (int((xa - lo[0]) / res), int((za - lo[1]) / res))
-        b = (int((xb - lo[0]) / res), int((zb - lo[1]) / res))
-        cv2.line(occ, a, b, 1, 1)
+        out.append(("line", (int((xa - lo[0]) / res), int((za - lo[1]) / res)),
+                    (int((xb - lo[0]) / res), int((zb - lo[1]) / res))))
     for q in polygons:
-        cells = np.round((q - lo) / res).astype(np.int32)
-        if len(cells) >= 3:
-            cv2.fillConvexPoly(occ, cells, 1)
-        else:
-            cv2.line(occ, tuple(map(int, cells[0])), tuple(map(int, cells[-1])), 1, 1)
+        out.append(("poly", tuple(map(tuple, np.round((q - lo) / res).astype(np.int32).tolist()))))
+    return out
+
+
+def _draw(img: np.ndarray, item: tuple, off=(0, 0)) -> None:
+    """Draw one ``_items`` item into ``img`` (its cell (0, 0) at cell ``off`` of the grid)."""
+    ox, oz = off
+    if item[0] == "line":
+        (xa, za), (xb, zb) = item[1], item[2]
+        cv2.line(img, (xa - ox, za - oz), (xb - ox, zb - oz), 1, 1)
+        return
+    cells = np.array(item[1], np.int32) - np.array([ox, oz], np.int32)
+    if len(cells) >= 3:
+        cv2.fillConvexPoly(img, cells, 1)
+    else:
+        cv2.line(img, tuple(map(int, cells[0])), tuple(map(int, cells[-1])), 1, 1)
+
+
+def _bbox(item: tuple) -> tuple[int, int, int, int]:
+    """(x0, z0, x1, z1) cells, inclusive, that ``_draw`` may touch."""
+    pts = np.array([item[1], item[2]] if item[0] == "line" else item[1]).reshape(-1, 2)
+    return int(pts[:, 0].min()), int(pts[:, 1].min()), int(pts[:, 0].max()), int(pts[:, 1].max())
+
+
+def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: Optional[np.ndarray] = None,
+               polygons: Optional[list] = None) -> NavGrid:
+    """The grid of the given world segments (K, 2, 3); ``extra_points`` (N, 2) x, z must lie inside it;
+    ``polygons``: object footprints ((N, 2) x, z, from vision/line_abstraction.py) filled as obstacles.
+    ValueError when the grid would hold more than ``MAX_CELLS`` cells."""
+    traces = obstacle_traces(P, params)
+    polygons = [np.asarray(q, float).reshape(-1, 2) for q in (polygons or [])]
+    lo, W, H = _extent(traces, polygons, extra_points, params)
+    res = params.resolution_m
+    occ = np.zeros((H, W), np.uint8)
+    for item in _items(traces, polygons, lo, res):
+        _draw(occ, item)
     free = (occ == 0).astype(np.uint8)
     dist = cv2.distanceTransform(free, cv2.DIST_L2, 5) * res
     blocked = dist <= params.robot_radius_m + params.clearance_m
@@ -115,21 +145,124 @@ def build_grid(P: np.ndarray, params: GridParams = GridParams(), extra_points: O
                    params.robot_radius_m + params.clearance_m)
 
 
+class IncrementalGrid:
+    """``build_grid`` kept up to date as the map changes: ``update`` takes the same arguments and returns a
+    grid equal to ``build_grid``'s, redrawing only the segments and polygons whose cells changed since the
+    last call, and the grown margin around them. A change of the grid's extent (the map, the robot or its
+    route reaching a new edge) builds it whole again.
+
+    The margin: ``build_grid`` marks the cells whose distance transform (OpenCV's 5x5 chamfer, a minimum
+    over paths of fixed steps, so the same for every obstacle cell) is within the radius; that is the
+    obstacle cells dilated by the stamp of one obstacle cell, which is exact in any window padded by it."""
+
+    def __init__(self, params: GridParams = GridParams()):
+        self.params = params
+        grown = params.robot_radius_m + params.clearance_m
+        n = int(math.ceil(grown / params.resolution_m)) + 2
+        one = np.ones((2 * n + 1, 2 * n + 1), np.uint8)
+        one[n, n] = 0
+        self._stamp = (cv2.distanceTransform(one, cv2.DIST_L2, 5) * params.resolution_m <= grown).astype(np.uint8)
+        self._n = n
+        self._extent = None
+        self._items: dict = {}              # item -> how many times it is drawn
+        self._count: Optional[np.ndarray] = None    # per cell: how many items cover it
+        self.grid: Optional[NavGrid] = None
+        self.redrawn = 0                    # items drawn or taken out by the last update (a whole build: all)
+
+    def update(self, P: np.ndarray, extra_points: Optional[np.ndarray] = None,
+               polygons: Optional[list] = None) -> NavGrid:
+        params = self.params
+        traces = obstacle_traces(P, params)
+        polygons = [np.asarray(q, float).reshape(-1, 2) for q in (polygons or [])]
+        lo, W, H = _extent(traces, polygons, extra_points, params)
+        items: dict = {}
+        for item in _items(traces, polygons, lo, params.resolution_m):
+            items[item] = items.get(item, 0) + 1
+        extent = (float(lo[0]), float(lo[1]), W, H)
+        if extent != self._extent:
+            self._extent, self._items = extent, {}
+            self._count = np.zeros((H, W), np.uint16)
+            occ = np.zeros((H, W), np.uint8)
+            self.grid = NavGrid(extent[0], extent[1], params.resolution_m, occ.astype(bool), occ.astype(bool),
+                                params.robot_radius_m + params.clearance_m)
+        changed = [(it, items.get(it, 0) - self._items.get(it, 0))
+                   for it in set(items) | set(self._items) if items.get(it, 0) != self._items.get(it, 0)]
+        self._items = items
+        self.redrawn = len(changed)
+        if len(changed) > 64:           # most of the grid: the whole of it at once
+            occ = np.zeros((H, W), np.uint8)
+            self._count[:] = 0
+            for item, k in items.items():
+                x0, z0, x1, z1 = _bbox(item)
+                mask = np.zeros((z1 - z0 + 1, x1 - x0 + 1), np.uint8)
+                _draw(mask, item, (x0, z0))
+                self._count[z0:z1 + 1, x0:x1 + 1] += mask * np.uint16(k)
+            self._window(0, 0, W - 1, H - 1)
+            return self.grid
+        for item, k in changed:
+            x0, z0, x1, z1 = _bbox(item)
+            mask = np.zeros((z1 - z0 + 1, x1 - x0 + 1), np.uint8)
+            _draw(mask, item, (x0, z0))
+            cnt = self._count[z0:z1 + 1, x0:x1 + 1].astype(np.int32) + mask.astype(np.int32) * k
+            self._count[z0:z1 + 1, x0:x1 + 1] = cnt
+            self._window(x0, z0, x1, z1)
+        return self.grid
+
+    def _window(self, x0: int, z0: int, x1: int, z1: int) -> None:
+        """Occupied and blocked again over the cells (x0..x1, z0..z1) and the margin around them."""
+        g, n = self.grid, self._n
+        H, W = g.blocked.shape
+        g.occupied[z0:z1 + 1, x0:x1 + 1] = self._count[z0:z1 + 1, x0:x1 + 1] > 0
+        bx0, bz0, bx1, bz1 = max(x0 - n, 0), max(z0 - n, 0), min(x1 + n, W - 1), min(z1 + n, H - 1)
+        px0, pz0, px1, pz1 = max(bx0 - n, 0), max(bz0 - n, 0), min(bx1 + n, W - 1), min(bz1 + n, H - 1)
+        occ = g.occupied[pz0:pz1 + 1, px0:px1 + 1].astype(np.uint8)
+        grown = cv2.dilate(occ, self._stamp, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        g.blocked[bz0:bz1 + 1, bx0:bx1 + 1] = grown[bz0 - pz0:bz1 - pz0 + 1, bx0 - px0:bx1 - px0 + 1] > 0
+
+
 _STEPS = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
           (-1, -1, math.sqrt(2)), (-1, 1, math.sqrt(2)), (1, -1, math.sqrt(2)), (1, 1, math.sqrt(2))]
 
 
-def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]]:
+def goal_cells(grid: NavGrid, goal_xz, tolerance_m: float = 0.0) -> list[tuple[int, int]]:
+    """The cells a path to ``goal_xz`` may end in: the goal's own when it is free; when only the grown margin
+    blocks it (no mapped obstacle in its cell), the free cells whose nearest point lies within ``tolerance_m``
+    of the goal, nearest first; none when the goal is on a mapped obstacle or outside the grid."""
+    g = grid.cell(*goal_xz)
+    if not grid.inside(*g) or grid.occupied[g]:
+        return []
+    if not grid.blocked[g]:
+        return [g]
+    if tolerance_m <= 0.0:
+        return []
+    n = int(math.ceil(tolerance_m / grid.res)) + 1
+    near = []
+    for r in range(g[0] - n, g[0] + n + 1):
+        for c in range(g[1] - n, g[1] + n + 1):
+            if not grid.inside(r, c) or grid.blocked[r, c]:
+                continue
+            x, z = grid.centre(r, c)
+            dx, dz = abs(x - goal_xz[0]), abs(z - goal_xz[1])
+            edge = math.hypot(max(dx - grid.res / 2, 0.0), max(dz - grid.res / 2, 0.0))
+            if edge <= tolerance_m:
+                near.append((edge, math.hypot(dx, dz), (r, c)))
+    return [cell for *_, cell in sorted(near)]
+
+
+def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0) -> Optional[list[tuple[float, float]]]:
     """Waypoints (x, z) from start to goal avoiding blocked cells, or None when there is no path.
 
     The start cell may be blocked (the robot already stands close to something): the search leaves the
     grown margin from there, through cells no mapped obstacle occupies, within ``grown_m`` of the start.
+    A goal in the grown margin but on no mapped obstacle is replaced, with ``goal_tolerance_m``, by the centre
+    of the nearest reachable free cell within that distance of it (``goal_cells``): the path's last point is
+    then that centre, not ``goal_xz``.
     """
-    s, g = grid.cell(*start_xz), grid.cell(*goal_xz)
-    if not grid.inside(*s) or not grid.inside(*g):
+    s = grid.cell(*start_xz)
+    targets = goal_cells(grid, goal_xz, goal_tolerance_m)
+    if not grid.inside(*s) or not targets:
         return None
-    if grid.blocked[g]:
-        return None
+    g = targets[0]
     blocked, occupied = grid.blocked, grid.occupied
     H, W = blocked.shape
     leave = grid.grown_m / grid.res + 1.0       # cells a blocked start goes through to leave the margin
@@ -160,13 +293,17 @@ def plan(grid: NavGrid, start_xz, goal_xz) -> Optional[list[tuple[float, float]]
                 came[nxt] = cur
                 heapq.heappush(heap, (c2 + math.hypot(nr - g[0], nc - g[1]), c2, nxt))
     if g not in came and g != s:
-        return None
+        # The search ran out: every cell reachable from the start is in ``came``; the nearest such target.
+        g = next((t for t in targets[1:] if t in came or t == s), None)
+        if g is None:
+            return None
     cells = [g]
     while cells[-1] != s:
         cells.append(came[cells[-1]])
     cells.reverse()
     keep = _thin(grid, cells)
-    path = [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [tuple(goal_xz)]
+    end = tuple(goal_xz) if g == grid.cell(*goal_xz) else grid.centre(*g)
+    path = [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [end]
     return path
 
 

@@ -7,7 +7,7 @@ import sys
 from vbnav.control.commands._common import add_config_arg, finite, positive, refuse_unserved_live_view
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
-                                        no_path_reason, plan_path)
+                                        no_path_reason, plan_path, sim_start_problem)
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -113,6 +113,10 @@ def run(args) -> int:
         from vbnav.control.line_map_file import load_map
         from vbnav.control.live_map import LiveMap
         lmap, meta = load_map(args.map)
+        wrong = "" if args.localise else sim_start_problem(cfg, meta, args.map, start)
+        if wrong:
+            print(f"vbnav goto: {wrong}", file=sys.stderr)
+            return 2
         if not args.static_map:
             live, why = LiveMap.for_goto(cfg, lmap, meta, stage, lambda: start)
             if live is None:
@@ -167,6 +171,12 @@ def run(args) -> int:
     every_s = 0.05 if world is not None else 1.0
     closest = [math.inf]
     ticks = [0]
+    # Poses are said in the frame the goal was given in: the map's with --map (the controller's is the start's).
+    in_goal_frame = start.compose if args.map else (lambda p: p)
+    frame = " (map frame)" if args.map else ""
+
+    def estimate(s: dict) -> Pose2:
+        return in_goal_frame(Pose2(s["x"], s["z"], math.radians(s["theta_deg"])))
 
     def progress(r: Runtime) -> None:
         if world is not None:
@@ -180,8 +190,9 @@ def run(args) -> int:
         if ticks[0] % round(1.0 / every_s):
             return
         s = controller.status()
-        where = (f"at x={s['x']:+.2f} z={s['z']:+.2f} th={s['theta_deg']:+.1f}  {s['distance_m']:.2f} m to go"
-                 if "x" in s else "waiting for the first VSLAM pose")
+        p = estimate(s) if "x" in s else None
+        where = (f"at x={p.x:+.2f} z={p.z:+.2f} th={math.degrees(p.theta):+.1f}{frame}  "
+                 f"{s['distance_m']:.2f} m to go" if p is not None else "waiting for the first VSLAM pose")
         printer(f"goto: {s.get('state')}  {where}  references {stage.stats['handoffs'] + 1}  "
                 f"{'ok' if r.safety.may_move else 'STOP ' + ', '.join(r.safety.reasons())}")
 
@@ -215,13 +226,16 @@ def run(args) -> int:
                       file=sys.stderr)
     s = controller.status()
     print(f"goto ended: {result.reason} ({result.message})")
+    shown_goal = in_goal_frame(goal)
     if "x" in s:
-        print(f"estimated pose: x={s['x']:+.3f} m z={s['z']:+.3f} m theta={s['theta_deg']:+.2f} deg; "
-              f"goal x={goal.x:+.3f} z={goal.z:+.3f} theta={math.degrees(goal.theta):+.2f}")
+        p = estimate(s)
+        print(f"estimated pose: x={p.x:+.3f} m z={p.z:+.3f} m theta={math.degrees(p.theta):+.2f} deg; "
+              f"goal x={shown_goal.x:+.3f} z={shown_goal.z:+.3f} theta={math.degrees(shown_goal.theta):+.2f}{frame}")
     true = robot.true_pose()           # the simulator's ground truth, on the simulated robot only
     if true is not None:
         err = math.hypot(true.x - goal.x, true.z - goal.z)
-        print(f"simulator ground truth: x={true.x:+.3f} z={true.z:+.3f} theta={math.degrees(true.theta):+.2f} deg "
+        t = in_goal_frame(true)
+        print(f"simulator ground truth: x={t.x:+.3f} z={t.z:+.3f} theta={math.degrees(t.theta):+.2f} deg{frame} "
               f"(position error {err * 100:.1f} cm, heading error "
               f"{math.degrees(abs(math.remainder(true.theta - goal.theta, math.tau))):.2f} deg)")
         if math.isfinite(closest[0]):

@@ -124,6 +124,8 @@ def run_build(args) -> int:
         stage.abstraction.step()        # a last abstraction pass on the final map
     meta = {"config": str(cfg.source), "frames": stage.stats["frames"],
             "objects": objects_meta(stage.abstraction.polygons)}
+    if cfg.drive.driver == "sim":       # where the map's frame lies in the simulated world (goto checks --start)
+        meta["sim_start_pose"] = [float(v) for v in cfg.sim.start_pose]
     try:
         save_map(stage.map, args.out, meta)     # also after a fault: what was mapped is kept, and said so
         refused = None

@@ -98,16 +98,20 @@ class GotoController(Controller):
         route if one was posted and not yet taken)."""
         with self._route_lock:
             pending = self._new_route
-            ahead = list(pending) if pending is not None else list(self.waypoints)
-        return ahead + [(self.final_goal.x, self.final_goal.z)]
+            if pending is None:
+                return list(self.waypoints) + [(self.final_goal.x, self.final_goal.z)]
+        route, goal = pending
+        return list(route) + [goal if goal is not None else (self.final_goal.x, self.final_goal.z)]
 
-    def replace_route(self, waypoints: list) -> None:
+    def replace_route(self, waypoints: list, goal_xz=None) -> None:
         """New waypoints (x, z) in the reference frame to the same goal, e.g. a path re-planned around what
-        the map now holds. Safe to call from another thread: the control loop takes them at its next
-        update."""
+        the map now holds; with ``goal_xz`` to that position instead (the goal heading kept: the re-planner's
+        nearest free point to a goal the map's noise put in the planner's margin). Safe to call from another
+        thread: the control loop takes them at its next update."""
         route = [tuple(map(float, w)) for w in waypoints]
+        goal = None if goal_xz is None else tuple(map(float, goal_xz))
         with self._route_lock:
-            self._new_route = route
+            self._new_route = (route, goal)
 
     def hold(self, reason: Optional[str]) -> None:
         """Stop and stay stopped while ``reason`` (e.g. "no path": the grown map closed the way to the goal);
@@ -116,13 +120,16 @@ class GotoController(Controller):
 
     def _take_new_route(self) -> None:
         with self._route_lock:
-            route, self._new_route = self._new_route, None
-        if route is None:
+            pending, self._new_route = self._new_route, None
+        if pending is None:
             return
-        self.waypoints = route
+        self.waypoints, goal = pending
+        moved = goal is not None and goal != (self.final_goal.x, self.final_goal.z)
+        if moved:
+            self.final_goal = Pose2(goal[0], goal[1], self.final_goal.theta)
         self.goal = self._next_target(self.final_goal)
         self.route_changes += 1
-        if self.waypoints and self._phase in ("turn", "settle"):
+        if (self.waypoints or moved) and self._phase in ("turn", "settle"):
             self._phase, self._settled_ns = "drive", None
 
     def update(self, ctx: ControlContext) -> Twist:
