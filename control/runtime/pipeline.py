@@ -13,8 +13,14 @@ its exposure while turning would otherwise pair its image with where the robot i
 now. Without a history (a pipeline driven by hand) the newest pose stands in.
 
 Each frame is also checked for a frozen camera (``frozen_image``): a frozen frame goes to no stage, and
-``last_fresh_stamp`` is the stamp of the last frame that showed a new image (or the same one while the
-robot stood still), from which the loop's stale-camera check counts.
+``last_fresh_ns`` is when the last frame that showed a new image (or the same one while the robot stood
+still) was taken, from which the loop's stale-camera check counts: its stamp, or when the pipeline received
+it on the robot's own clock if that is earlier. Staleness does not rest on the device's stamps alone.
+
+A frame stamped more than ``FUTURE_STAMP_TOLERANCE_S`` after the robot's clock at its reception is refused
+before any check or stage (``refused`` says why): an image is exposed before it is received, on the same
+clock, so such a stamp is another clock's (a device clock not synced to the host's, a driver's bug), and an
+hour ahead it made the age negative and the camera never stale.
 
 A stage exception is captured as ``fault`` (the loop turns it into a safety
 trip), and so is any other exception in the vision thread (the frozen-image
@@ -37,6 +43,12 @@ from vbnav.control.runtime.odometry import OdometryHistory
 from vbnav.drivers.camera import Camera, CameraError, Frame
 from vbnav.vision.geometry import Pose2
 
+#: How far a frame's stamp may be after the robot's clock when the pipeline receives it. Exposure comes before
+#: reception on the same clock (V4L2 and the simulated cameras stamp with the robot's clock, an OAK's stamps
+#: are the host's steady clock, synced by depthai to well under a millisecond); 50 ms leaves room for that
+#: sync and for reading the clock after the read returned, and none for a camera on another clock.
+FUTURE_STAMP_TOLERANCE_S = 0.05
+
 
 class VisionPipeline:
     def __init__(self, camera: Optional[Camera], stages: list[VisionStage], clock, inline: bool,
@@ -48,7 +60,9 @@ class VisionPipeline:
         self.latency_ns = int(latency_s * 1e9)
         self.latest: dict[str, Estimate] = {}
         self.last_frame: Optional[Frame] = None
-        self.last_fresh_stamp: Optional[int] = None   # of the last frame that was not frozen
+        self.last_fresh_ns: Optional[int] = None   # the last frame not frozen: min(stamp, reception)
+        self.refused: Optional[str] = None         # why the newest frame was refused, None once one is taken
+        self.refused_frames = 0
         self.frozen = FrozenImageWatch()
         self.frames = 0
         self.fault: Optional[str] = None
@@ -122,12 +136,12 @@ class VisionPipeline:
         if not self.inline or self.camera is None:
             return
         frame = self.camera.read(0.0)
-        if frame is not None:
+        if frame is not None and self._take(frame, now_ns):
             fresh, results = self._process(frame)
-            self._pending.append((frame.stamp_ns + self.latency_ns, frame, fresh, results))
+            self._pending.append((frame.stamp_ns + self.latency_ns, frame, fresh, results, now_ns))
         while self._pending and self._pending[0][0] <= now_ns:
-            _, frame, fresh, results = self._pending.popleft()
-            self._publish(frame, fresh, results)
+            _, frame, fresh, results, received_ns = self._pending.popleft()
+            self._publish(frame, fresh, results, received_ns)
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -144,8 +158,10 @@ class VisionPipeline:
             with self._frame_done:
                 self._frames_begun += 1
             try:
-                fresh, results = self._process(frame)
-                self._publish(frame, fresh, results)
+                received_ns = self.clock.now_ns()
+                if self._take(frame, received_ns):
+                    fresh, results = self._process(frame)
+                    self._publish(frame, fresh, results, received_ns)
             except Exception as exc:
                 # Beyond the stages (the frozen-image check, the odometry at the frame's stamp): uncaught, it
                 # would end this thread with a line on stderr only, and the robot would wait for the
@@ -162,6 +178,19 @@ class VisionPipeline:
         """The wheel odometry at ``stamp_ns`` (interpolated in the loop's history), else the newest pose."""
         pose = self.history.at(stamp_ns) if self.history is not None else None
         return self.odom if pose is None else pose
+
+    def _take(self, frame: Frame, received_ns: int) -> bool:
+        """Whether ``frame``, received at ``received_ns`` on the robot's clock, may be used; else ``refused``
+        says why (the stale-camera hold names it)."""
+        ahead_s = (frame.stamp_ns - received_ns) * 1e-9
+        if ahead_s > FUTURE_STAMP_TOLERANCE_S:
+            why = (f"frame {frame.seq} stamped {ahead_s:.3f} s in the future of the robot's clock (more than "
+                   f"{FUTURE_STAMP_TOLERANCE_S:g} s): refused")
+        else:
+            return True
+        self.refused = why
+        self.refused_frames += 1
+        return False
 
     def _process(self, frame: Frame) -> tuple[bool, dict]:
         """(whether the frame is fresh, the stages' estimates)."""
@@ -185,11 +214,12 @@ class VisionPipeline:
         self.process_ms.append((time.perf_counter() - t0) * 1e3)
         return fresh, out
 
-    def _publish(self, frame: Frame, fresh: bool, results: dict) -> None:
+    def _publish(self, frame: Frame, fresh: bool, results: dict, received_ns: int) -> None:
         self.latest.update(results)
         self.last_frame = frame
+        self.refused = None
         if fresh:
-            self.last_fresh_stamp = frame.stamp_ns
+            self.last_fresh_ns = min(frame.stamp_ns, received_ns)
         self.frames += 1
         for fn in self.frame_listeners:
             try:

@@ -572,19 +572,22 @@ class Runtime:
         if cam is None:
             return
         limit = self.cfg.camera.stale_after_s
-        # From the last fresh frame: a frozen camera's frames come on time with the image it froze on.
-        stamp = self.pipeline.last_fresh_stamp
-        if stamp is None:  # grace period at start-up: the camera may take a moment
+        # From the last fresh frame (a frozen camera's frames come on time with the image it froze on), by
+        # its stamp or its reception on this clock, whichever is earlier (a stamp ahead of the clock).
+        since = self.pipeline.last_fresh_ns
+        if since is None:  # grace period at start-up: the camera may take a moment
             stale = now - self._start_ns > (limit + 2.0) * 1e9
             age = (now - self._start_ns) * 1e-9
         else:
-            age = (now - stamp) * 1e-9
+            age = (now - since) * 1e-9
             stale = age > limit
         if self.pipeline.frozen.frozen:
-            why = (f"camera frozen: the same image for {age:.2f} s while the wheels moved "
+            why = (f"camera {cam.name} frozen: the same image for {age:.2f} s while the wheels moved "
                    f"(limit {limit:g} s, camera.stale_after_s)")
         else:
-            why = f"last frame {age:.2f} s old (limit {limit:g} s)"
+            why = f"camera {cam.name}: last frame {age:.2f} s old (limit {limit:g} s)"
+        if stale and self.pipeline.refused:     # frames came, and were refused
+            why += f"; {self.pipeline.refused} ({self.pipeline.refused_frames} refused in all)"
         if stale and cam.error:                 # what the driver knows of why (unplugged, its thread failed)
             why += f": {cam.error}"
         self.safety.hold(now, "camera_stale", stale, why)

@@ -1,0 +1,93 @@
+"""A camera that misbehaves stops the robot, on the vision thread (real clock) as in the loop's own read
+(simulated clock), and the stop says why and which camera: frame stamps ahead of the robot's clock, stamps
+that go backwards or repeat, frames without an image."""
+import threading
+
+import pytest
+
+from runtime_helpers import PERIOD_NS, RecordingDrive, TickCamera
+from vbnav.control.config import Config
+from vbnav.control.runtime.interfaces import ControlContext, Controller, Twist
+from vbnav.control.runtime.pipeline import VisionPipeline
+from vbnav.control.runtime.runtime import Runtime
+from vbnav.drivers.clock import SimClock
+
+T0 = 1_000_000_000      # SimClock start
+BAD_AT = T0 + 1_000_000_000
+HOUR_NS = 3600 * 1_000_000_000
+
+
+class Cruise(Controller):
+    def __init__(self, hook=None):
+        self.hook = hook
+
+    def update(self, ctx: ControlContext) -> Twist:
+        if self.hook:
+            self.hook(ctx)
+        return Twist(0.3, 0.0)
+
+
+class BadCamera(TickCamera):
+    """TickCamera whose frames due from ``BAD_AT`` on are rewritten by ``spoil(frame)``; it counts the frames
+    it returned and when it was last read, so the loop can wait for the vision thread (lockstep)."""
+
+    def __init__(self, clock, spoil):
+        super().__init__(clock)
+        self.spoil = spoil
+        self.returned = 0
+        self.read_ns = -1
+
+    def read(self, timeout_s=0.0):
+        frame = super().read(timeout_s)
+        if frame is not None and frame.stamp_ns >= BAD_AT:
+            frame = self.spoil(frame)
+        if frame is not None:
+            self.returned += 1
+        self.read_ns = self.clock.now_ns()
+        return frame
+
+
+def run(spoil, inline, duration_s=3.0):
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    cam = BadCamera(clock, spoil)
+    pipeline = VisionPipeline(cam, [], clock, inline=inline)
+
+    def lockstep(ctx):
+        # the vision thread has read the camera at this cycle's time and handled every frame it got
+        for _ in range(2000):
+            if inline or pipeline.fault or (cam.read_ns >= ctx.now_ns and pipeline._frames_ended >= cam.returned):
+                return
+            threading.Event().wait(0.001)
+        raise AssertionError("the vision thread did not keep up")
+
+    rt = Runtime(Config(), drive, Cruise(lockstep), clock, pipeline)
+    result = rt.run(duration_s=duration_s)
+    return rt, result, drive
+
+
+def assert_camera_stop(rt, result, drive, words):
+    limit_ns = int(rt.cfg.camera.stale_after_s * 1e9)
+    holds = [e for e in result.events if e.kind == "hold" and e.cause == "camera_stale"]
+    assert holds, [e.as_dict() for e in result.events]
+    hold = holds[0]
+    # the last good frame came at most one camera period (15 Hz) before BAD_AT
+    assert BAD_AT - int(1e9 / 15) + limit_ns < hold.stamp_ns <= BAD_AT + limit_ns + PERIOD_NS, hold
+    assert "camera tick" in hold.message and all(w in hold.message for w in words), hold.message
+    assert drive.last_motion_ns() > BAD_AT                              # it drove until then
+    assert drive.stopped_since(hold.stamp_ns + 2 * PERIOD_NS)
+
+
+@pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
+def test_frames_stamped_ahead_of_the_robots_clock_are_refused_and_stop_the_robot(inline):
+    """A camera whose stamps ran ahead of the loop's clock was never stale on the vision thread (the age,
+    now - stamp, was negative for an hour): the robot drove on whatever it saw. A frame stamped more than
+    ``FUTURE_STAMP_TOLERANCE_S`` after the robot's clock at its reception is refused, and the stale-camera
+    check counts from when the last good frame was received on the robot's own clock too."""
+    def ahead(frame):
+        frame.stamp_ns += HOUR_NS
+        return frame
+
+    rt, result, drive = run(ahead, inline)
+    assert result.reason == "duration", result
+    assert_camera_stop(rt, result, drive, ["in the future"])
