@@ -3,11 +3,12 @@
 that go backwards or repeat, frames without an image."""
 import threading
 
+import numpy as np
 import pytest
 
 from runtime_helpers import PERIOD_NS, RecordingDrive, TickCamera
 from vbnav.control.config import Config
-from vbnav.control.runtime.interfaces import ControlContext, Controller, Twist
+from vbnav.control.runtime.interfaces import ControlContext, Controller, Twist, VisionStage
 from vbnav.control.runtime.pipeline import VisionPipeline
 from vbnav.control.runtime.runtime import Runtime
 from vbnav.drivers.clock import SimClock
@@ -47,11 +48,24 @@ class BadCamera(TickCamera):
         return frame
 
 
-def run(spoil, inline, duration_s=3.0):
+class Seen(VisionStage):
+    """Keeps the stamp and image of every frame it was given."""
+
+    kind = "seen"
+
+    def __init__(self):
+        self.frames = []
+
+    def process(self, frame, odom):
+        self.frames.append((frame.stamp_ns, frame.image))
+        return None
+
+
+def run(spoil, inline, duration_s=3.0, stage=None):
     clock = SimClock()
     drive = RecordingDrive(clock)
     cam = BadCamera(clock, spoil)
-    pipeline = VisionPipeline(cam, [], clock, inline=inline)
+    pipeline = VisionPipeline(cam, [stage] if stage else [], clock, inline=inline)
 
     def lockstep(ctx):
         # the vision thread has read the camera at this cycle's time and handled every frame it got
@@ -91,3 +105,43 @@ def test_frames_stamped_ahead_of_the_robots_clock_are_refused_and_stop_the_robot
     rt, result, drive = run(ahead, inline)
     assert result.reason == "duration", result
     assert_camera_stop(rt, result, drive, ["in the future"])
+
+
+def repeat_stamp(frame):
+    frame.stamp_ns = BAD_AT - 1       # after the last good frame's (BAD_AT - 10 ns), then again and again
+    return frame
+
+
+def backwards(frame):
+    frame.stamp_ns = 2 * BAD_AT - frame.stamp_ns
+    return frame
+
+
+def no_image(frame):
+    frame.image = None
+    return frame
+
+
+def empty_image(frame):
+    frame.image = np.zeros((0, 0), np.uint8)
+    return frame
+
+
+@pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
+@pytest.mark.parametrize("spoil,words", [(repeat_stamp, ["not after the last frame's"]),
+                                         (backwards, ["not after the last frame's"]),
+                                         (no_image, ["no image"]), (empty_image, ["no image"])],
+                         ids=["repeated-stamps", "stamps-going-back", "none-image", "empty-image"])
+def test_frames_whose_stamps_do_not_increase_or_without_an_image_go_to_no_stage_and_stop_the_robot(
+        spoil, words, inline):
+    """Frames whose stamps repeat or go backwards went to the stages (odometry from the past paired with a
+    new image, a time step of zero), and the stop that followed, if any, said the last frame was old while
+    frames kept coming; a frame without an image ended the run as a bug in the frozen-image check. Each is
+    refused before any check or stage, the robot stops as for a stale camera, and the hold says why."""
+    stage = Seen()
+    rt, result, drive = run(spoil, inline, stage=stage)
+    assert result.reason == "duration", result
+    assert_camera_stop(rt, result, drive, words)
+    stamps = [t for t, _ in stage.frames]
+    assert stamps == sorted(set(stamps)), "a stage got a frame whose stamp did not increase"
+    assert all(img is not None and img.size for _, img in stage.frames)

@@ -17,10 +17,12 @@ Each frame is also checked for a frozen camera (``frozen_image``): a frozen fram
 still) was taken, from which the loop's stale-camera check counts: its stamp, or when the pipeline received
 it on the robot's own clock if that is earlier. Staleness does not rest on the device's stamps alone.
 
-A frame stamped more than ``FUTURE_STAMP_TOLERANCE_S`` after the robot's clock at its reception is refused
-before any check or stage (``refused`` says why): an image is exposed before it is received, on the same
-clock, so such a stamp is another clock's (a device clock not synced to the host's, a driver's bug), and an
-hour ahead it made the age negative and the camera never stale.
+Before any check or stage a frame is refused (``refused`` says why; it counts as no frame, so the stale-camera
+hold stops the robot if it goes on) when it has no image (None, or an empty array), when its stamp is more than
+``FUTURE_STAMP_TOLERANCE_S`` after the robot's clock at its reception (an image is exposed before it is
+received, on the same clock: such a stamp is another clock's, and an hour ahead it made the age negative and
+the camera never stale), or when its stamp is not after the last frame taken (repeated or going back: the
+stages would pair a new image with odometry from the past, or take a time step of zero).
 
 A stage exception is captured as ``fault`` (the loop turns it into a safety
 trip), and so is any other exception in the vision thread (the frozen-image
@@ -36,6 +38,8 @@ import time
 import traceback
 from collections import deque
 from typing import Callable, Optional
+
+import numpy as np
 
 from vbnav.control.runtime.frozen_image import FrozenImageWatch
 from vbnav.control.runtime.interfaces import Estimate, VisionStage
@@ -63,6 +67,7 @@ class VisionPipeline:
         self.last_fresh_ns: Optional[int] = None   # the last frame not frozen: min(stamp, reception)
         self.refused: Optional[str] = None         # why the newest frame was refused, None once one is taken
         self.refused_frames = 0
+        self._taken_stamp: Optional[int] = None    # of the newest frame taken: stamps must increase
         self.frozen = FrozenImageWatch()
         self.frames = 0
         self.fault: Optional[str] = None
@@ -183,10 +188,19 @@ class VisionPipeline:
         """Whether ``frame``, received at ``received_ns`` on the robot's clock, may be used; else ``refused``
         says why (the stale-camera hold names it)."""
         ahead_s = (frame.stamp_ns - received_ns) * 1e-9
-        if ahead_s > FUTURE_STAMP_TOLERANCE_S:
+        image = frame.image
+        if not isinstance(image, np.ndarray):
+            why = f"frame {frame.seq} has no image ({type(image).__name__} instead of an array): refused"
+        elif image.size == 0:
+            why = f"frame {frame.seq} has no image (an empty array of shape {image.shape}): refused"
+        elif ahead_s > FUTURE_STAMP_TOLERANCE_S:
             why = (f"frame {frame.seq} stamped {ahead_s:.3f} s in the future of the robot's clock (more than "
                    f"{FUTURE_STAMP_TOLERANCE_S:g} s): refused")
+        elif self._taken_stamp is not None and frame.stamp_ns <= self._taken_stamp:
+            why = (f"frame {frame.seq} stamped {frame.stamp_ns} ns, not after the last frame's "
+                   f"{self._taken_stamp} ns (stamps must increase): refused")
         else:
+            self._taken_stamp = frame.stamp_ns
             return True
         self.refused = why
         self.refused_frames += 1
