@@ -2,7 +2,7 @@
 refills one buffer, is not."""
 import numpy as np
 
-from vbnav.control.runtime.frozen_image import MIN_TRAVEL_M, MIN_TURN_RAD, FrozenImageWatch
+from vbnav.control.runtime.frozen_image import MIN_TRAVEL_M, MIN_TURN_RAD, RECENT_IMAGES, FrozenImageWatch
 from vbnav.vision.geometry import Pose2
 
 
@@ -85,3 +85,27 @@ def test_frozen_frames_do_not_reach_the_stages():
     assert len(seen[seen < freeze]) >= 14 and len(seen[seen >= thaw]) >= 14
     inside = seen[(seen >= freeze) & (seen < thaw)]
     assert len(inside) <= 2 and np.all(inside <= freeze + travel_ns + frame_ns), (inside - freeze) / 1e6
+
+
+def test_a_driver_that_cycles_its_last_buffers_is_frozen():
+    """A hung V4L2 driver re-queues the buffers it holds (OpenCV's backend queues 4), so the frames cycle
+    A, B, C, D, A, ...: each differs from the one before, and comparing with the last image only called
+    them fresh for ever while the robot drove. An image seen among the last ``RECENT_IMAGES`` counts as
+    the same image, frozen once the wheels moved since it was first seen."""
+    for n in (2, RECENT_IMAGES):
+        w = FrozenImageWatch()
+        bufs = [image(k) for k in range(n)]
+        fresh = [w.fresh(bufs[k % n].copy(), Pose2(0.0, 0.004 * k, 0.0)) for k in range(4 * n)]
+        assert all(fresh[:n]), (n, fresh)              # each buffer is a new image the first time
+        assert not any(fresh[-n:]), (n, fresh)         # driven 4 cm and more since: frozen
+        assert w.frozen
+        assert w.fresh(image(99), Pose2(0.0, 1.0, 0.0)) and not w.frozen   # a new image thaws it
+
+
+def test_a_still_robot_among_recent_images_is_not_frozen():
+    """The same few images while the wheels stand still (a noise-free scene flickering between two renders)
+    stay fresh."""
+    w = FrozenImageWatch()
+    a, b = image(0), image(1)
+    assert all(w.fresh(x.copy(), Pose2()) for x in (a, b, a, b, a, b))
+    assert not w.frozen

@@ -14,6 +14,12 @@ wheels have moved far enough since the image last changed that a live camera wou
   points shift more.
 - ``MIN_TURN_RAD`` 5 mrad (0.29 deg): every point shifts by f * 0.005 = 2.5 px at f = 500 px.
 
+A hung driver may re-queue the few buffers it holds rather than one, so the frames cycle A, B, C, D, A...:
+each differs from the one before. An image equal to any of the last ``RECENT_IMAGES`` distinct images counts
+as that image seen again, frozen once the wheels moved the distances above since it was first seen.
+``RECENT_IMAGES`` 4 is the number of buffers OpenCV's V4L2 backend queues by default (``DEFAULT_V4L_BUFFERS``);
+the driver sets ``CAP_PROP_BUFFERSIZE`` 1, which a device may round up to its own minimum, so 4 covers both.
+
 A frozen frame is not *fresh*: it goes to no vision stage (an old image paired with new odometry would
 pull teach's landmark heights towards far and start keyframes whose image is not at their pose), and
 the runtime's stale-camera check counts from the last fresh frame, so the robot stops
@@ -24,7 +30,7 @@ moves, which is the same answer: nothing can be seen.
 from __future__ import annotations
 
 import math
-from typing import Optional
+from collections import deque
 
 import numpy as np
 
@@ -32,34 +38,39 @@ from vbnav.vision.geometry import Pose2
 
 MIN_TRAVEL_M = 0.02
 MIN_TURN_RAD = 0.005
+RECENT_IMAGES = 4
 
 
 class FrozenImageWatch:
-    """Says whether each frame is fresh: a new image, or the same one while the robot stood still."""
+    """Says whether each frame is fresh: a new image, or one of the last ``recent`` images while the robot
+    stood still since that image was first seen."""
 
-    def __init__(self, min_travel_m: float = MIN_TRAVEL_M, min_turn_rad: float = MIN_TURN_RAD):
+    def __init__(self, min_travel_m: float = MIN_TRAVEL_M, min_turn_rad: float = MIN_TURN_RAD,
+                 recent: int = RECENT_IMAGES):
         self.min_travel_m = min_travel_m
         self.min_turn_rad = min_turn_rad
-        self._last: Optional[np.ndarray] = None      # a copy of the last image that changed
-        self._pose_at_change: Optional[Pose2] = None
+        # copies of the last ``recent`` distinct images, newest last, each with the pose it was first seen at
+        self._recent: deque[tuple[np.ndarray, Pose2]] = deque(maxlen=recent)
         self.frozen = False
 
     def fresh(self, image: np.ndarray, odom: Pose2) -> bool:
-        last = self._last
-        if last is None or last.shape != image.shape or last.dtype != image.dtype \
-                or not np.array_equal(last, image):
+        seen = next((pose for old, pose in self._recent
+                     if old.shape == image.shape and old.dtype == image.dtype and np.array_equal(old, image)),
+                    None)
+        if seen is None:
             self._remember(image, odom)
             return True
-        moved = self._pose_at_change.between(odom)
+        moved = seen.between(odom)
         self.frozen = (math.hypot(moved.x, moved.z) >= self.min_travel_m
                        or abs(moved.theta) >= self.min_turn_rad)
         return not self.frozen
 
     def _remember(self, image: np.ndarray, odom: Pose2) -> None:
         # A copy: a driver may hand out the same buffer again, filled anew (comparing it with itself
-        # would call every frame frozen).
-        if self._last is None or self._last.shape != image.shape or self._last.dtype != image.dtype:
-            self._last = np.empty_like(image)
-        np.copyto(self._last, image)
-        self._pose_at_change = odom
+        # would call every frame frozen). The oldest copy's memory is reused when it has the same format.
+        spare = self._recent[0][0] if len(self._recent) == self._recent.maxlen else None
+        copy = spare if spare is not None and spare.shape == image.shape and spare.dtype == image.dtype \
+            else np.empty_like(image)
+        np.copyto(copy, image)
+        self._recent.append((copy, odom))
         self.frozen = False
