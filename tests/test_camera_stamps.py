@@ -145,3 +145,39 @@ def test_frames_whose_stamps_do_not_increase_or_without_an_image_go_to_no_stage_
     stamps = [t for t, _ in stage.frames]
     assert stamps == sorted(set(stamps)), "a stage got a frame whose stamp did not increase"
     assert all(img is not None and img.size for _, img in stage.frames)
+
+
+def test_a_camera_read_that_blocks_for_ever_stops_the_robot_within_the_stated_time():
+    """A driver whose read never returns (a hung USB transfer) holds the vision thread, not the loop: no
+    frame is received after it, and the stale-camera hold stops the wheels camera.stale_after_s + P after
+    the last frame, naming the camera; the run still ends (the blocked thread is left behind)."""
+    release = threading.Event()
+    blocked = threading.Event()
+
+    class Hung(BadCamera):
+        def read(self, timeout_s=0.0):
+            if self.clock.now_ns() >= BAD_AT:
+                blocked.set()
+                release.wait()              # for ever, until the test lets it go
+                return None
+            return super().read(timeout_s)
+
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    cam = Hung(clock, lambda f: f)
+    pipeline = VisionPipeline(cam, [], clock, inline=False)
+
+    def lockstep(ctx):
+        for _ in range(2000):
+            if blocked.is_set() or (cam.read_ns >= ctx.now_ns and pipeline._frames_ended >= cam.returned):
+                return
+            threading.Event().wait(0.001)
+        raise AssertionError("the vision thread did not keep up")
+
+    rt = Runtime(Config(), drive, Cruise(lockstep), clock, pipeline)
+    try:
+        result = rt.run(duration_s=3.0)
+    finally:
+        release.set()
+    assert blocked.is_set() and result.reason == "duration", result
+    assert_camera_stop(rt, result, drive, ["old"])
