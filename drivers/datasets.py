@@ -2,7 +2,7 @@
 
 KITTI odometry layout (a folder):
     image_l/*.png            left images (``image_0/`` is accepted too), sorted by name
-    image_r/*.png            optional right images (``image_1/``), same count
+    image_r/*.png            optional right images (``image_1/``), the same names (a pair is one name)
     calib.txt                P0 and P1 3x4 projection matrices, one per line
                              (with or without the ``P0:`` labels; read by
                              ``stereo_calib.read_kitti_calib``)
@@ -215,6 +215,12 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     right = _images_in(right_dir) if right_dir is not None else None
     if right is not None and len(right) != len(left):
         raise DatasetError(f"{right_dir}: {len(right)} right images but {len(left)} left images in {left_dir}")
+    # A pair is one name in both folders: paired by place, a right folder that lost a frame and holds one
+    # more gives every later left image the right image of another exposure.
+    unpaired = next(((l, r) for l, r in zip(left, right or []) if l.stem != r.stem), None)
+    if unpaired is not None:
+        raise DatasetError(f"{right_dir}: the right image of {unpaired[0]} is {unpaired[1].name}, another frame's: "
+                           f"left and right images pair by name (image_l/NAME with image_r/NAME)")
     first = _read_image(left[0], True)
     h, w = first.shape[:2]
     calib_path = root / "calib.txt"

@@ -64,6 +64,20 @@ def test_kitti_replay_at_recorded_rate_gives_stereo_pairs(tmp_path, rng):
     assert frames[2].stamp_ns - frames[0].stamp_ns == S // 2
 
 
+def test_a_kitti_recording_whose_right_images_lag_the_left_is_refused(tmp_path, rng):
+    """Left and right images were paired by their place in the sorted folders, counted but never named: a
+    right folder that lost frame 2 and holds one more at the end (000000, 000001, 000003, 000004, 000005)
+    gave every frame from 2 on the right image of a later exposure, and the obstacle stage matched a stereo
+    pair taken at two moments (a false floor, a missed obstacle). A pair is one name in both folders."""
+    root = tmp_path / "kitti"
+    write_folder(root / "image_l", 5, rng)
+    write_folder(root / "image_r", 6, rng)
+    (root / "image_r" / "000002.png").unlink()
+    (root / "calib.txt").write_text("P0: 500 0 16 0 0 500 12 0 0 0 1 0\nP1: 500 0 16 -250 0 500 12 0 0 0 1 0\n")
+    with pytest.raises(CameraError, match=r"000002\.png.*000003\.png"):
+        ReplayCamera({"path": str(root)}, SimClock()).connect()
+
+
 def test_tum_replay_delivers_depth_in_metres(tmp_path, rng):
     root = tmp_path / "tum"
     write_folder(root / "rgb", 2, rng)
