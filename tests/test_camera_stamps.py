@@ -181,3 +181,25 @@ def test_a_camera_read_that_blocks_for_ever_stops_the_robot_within_the_stated_ti
         release.set()
     assert blocked.is_set() and result.reason == "duration", result
     assert_camera_stop(rt, result, drive, ["old"])
+
+
+@pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
+def test_frames_refused_now_and_then_are_said_not_dropped_silently(inline):
+    """Every other frame without an image: the frames between keep the camera fresh (no stop is due), but
+    the refused ones were dropped without a word. A warning names the camera, how many and why, at most
+    every REFUSED_WARN_EVERY_S."""
+    from vbnav.control.runtime.runtime import REFUSED_WARN_EVERY_S
+
+    def every_other(frame):
+        return no_image(frame) if frame.seq % 2 else frame
+
+    rt, result, drive = run(every_other, inline, duration_s=3.0 + REFUSED_WARN_EVERY_S)
+    assert result.reason == "duration", result
+    assert not [e for e in result.events if e.kind == "hold"], "a camera at half its rate is not stale"
+    warnings = [e for e in result.events if e.kind == "warning" and e.cause == "camera_frames_refused"]
+    assert len(warnings) == 2, [e.as_dict() for e in result.events]
+    first, second = warnings
+    assert BAD_AT <= first.stamp_ns <= BAD_AT + 2 * int(1e9 / 15) + PERIOD_NS
+    assert second.stamp_ns - first.stamp_ns >= REFUSED_WARN_EVERY_S * 1e9
+    assert all("camera tick" in w.message and "no image" in w.message for w in warnings), warnings
+    assert "1 frame refused" in first.message and "frames refused" in second.message, warnings

@@ -67,6 +67,7 @@ class VisionPipeline:
         self.last_fresh_ns: Optional[int] = None   # the last frame not frozen: min(stamp, reception)
         self.refused: Optional[str] = None         # why the newest frame was refused, None once one is taken
         self.refused_frames = 0
+        self.last_refusal: Optional[str] = None    # why the last refused frame was (kept after a good one)
         self._taken_stamp: Optional[int] = None    # of the newest frame taken: stamps must increase
         self.frozen = FrozenImageWatch()
         self.frames = 0
@@ -202,7 +203,7 @@ class VisionPipeline:
         else:
             self._taken_stamp = frame.stamp_ns
             return True
-        self.refused = why
+        self.refused = self.last_refusal = why
         self.refused_frames += 1
         return False
 

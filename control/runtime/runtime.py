@@ -146,6 +146,11 @@ DEVICE_FAULTS = ("drive", "camera")
 #: read (its answer window is half a period); one to a motor that does not answer costs an answer window per
 #: packet and may make that cycle late, but only one cycle in ten: never a missed-deadline streak.
 RESTOP_EVERY_S = 0.1
+#: Frames the pipeline refuses (no image, a stamp ahead of the clock or not after the last one) are said in a
+#: ``warning`` ``camera_frames_refused``: at the first, then at most this often with how many since (a camera
+#: refusing every other frame would otherwise say so 7 times a second). Refused on, they stop the robot as a
+#: stale camera, whose hold says why.
+REFUSED_WARN_EVERY_S = 5.0
 
 
 def _failure_reason(exc: Exception) -> str:
@@ -239,6 +244,8 @@ class Runtime:
         self._teleop_reports = RefusalThrottle()          # refused teleop without ack: once a second per reason
         self._in_hand: list[OperatorCommand] = []          # drained commands not yet answered
         self._holds_seen: set[str] = set()               # holds other than the controller's, last cycle
+        self._refused_told = 0                           # the pipeline's refused frames said in a warning
+        self._refused_told_ns: Optional[int] = None      # when the last camera_frames_refused warning was
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
         # (time, what): a resume that arrived before this time (a stall detected, the lost drive back, an estop taken)
@@ -591,6 +598,20 @@ class Runtime:
         if stale and cam.error:                 # what the driver knows of why (unplugged, its thread failed)
             why += f": {cam.error}"
         self.safety.hold(now, "camera_stale", stale, why)
+        self._warn_refused(now, cam.name)
+
+    def _warn_refused(self, now: int, camera: str) -> None:
+        """A ``warning`` for frames the pipeline refused since the last one, at most every REFUSED_WARN_EVERY_S."""
+        n = self.pipeline.refused_frames - self._refused_told
+        told = self._refused_told_ns
+        if n <= 0 or (told is not None and now - told < REFUSED_WARN_EVERY_S * 1e9):
+            return
+        since = "since the start" if told is None else f"in the last {(now - told) * 1e-9:.1f} s"
+        self.safety.note(now, "warning", "camera_frames_refused",
+                         f"camera {camera}: {n} frame{'s' if n > 1 else ''} refused {since}; the last: "
+                         f"{self.pipeline.last_refusal}")
+        self._refused_told += n
+        self._refused_told_ns = now
 
     def _apply_speed_scales(self, now: int, estimates: dict) -> None:
         """Estimates may carry ``info['speed_scale']`` in [0, 1] (obstacle zones): the smallest applies,
