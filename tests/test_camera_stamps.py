@@ -117,6 +117,11 @@ def backwards(frame):
     return frame
 
 
+def nan_stamp(frame):
+    frame.stamp_ns = float("nan")     # a driver that turned a missing device stamp into a float
+    return frame
+
+
 def no_image(frame):
     frame.image = None
     return frame
@@ -130,13 +135,15 @@ def empty_image(frame):
 @pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
 @pytest.mark.parametrize("spoil,words", [(repeat_stamp, ["not after the last frame's"]),
                                          (backwards, ["not after the last frame's"]),
+                                         (nan_stamp, ["not integer nanoseconds"]),
                                          (no_image, ["no image"]), (empty_image, ["no image"])],
-                         ids=["repeated-stamps", "stamps-going-back", "none-image", "empty-image"])
+                         ids=["repeated-stamps", "stamps-going-back", "nan-stamp", "none-image", "empty-image"])
 def test_frames_whose_stamps_do_not_increase_or_without_an_image_go_to_no_stage_and_stop_the_robot(
         spoil, words, inline):
     """Frames whose stamps repeat or go backwards went to the stages (odometry from the past paired with a
     new image, a time step of zero), and the stop that followed, if any, said the last frame was old while
-    frames kept coming; a frame without an image ended the run as a bug in the frozen-image check. Each is
+    frames kept coming; a NaN stamp made the camera's age NaN, never above the limit: never stale on the
+    vision thread; a frame without an image ended the run as a bug in the frozen-image check. Each is
     refused before any check or stage, the robot stops as for a stale camera, and the hold says why."""
     stage = Seen()
     rt, result, drive = run(spoil, inline, stage=stage)

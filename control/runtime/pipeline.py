@@ -18,7 +18,8 @@ still) was taken, from which the loop's stale-camera check counts: its stamp, or
 it on the robot's own clock if that is earlier. Staleness does not rest on the device's stamps alone.
 
 Before any check or stage a frame is refused (``refused`` says why; it counts as no frame, so the stale-camera
-hold stops the robot if it goes on) when it has no image (None, or an empty array), when its stamp is more than
+hold stops the robot if it goes on) when its stamp is not integer nanoseconds (a NaN made the age NaN, never
+above the limit), when it has no image (None, or an empty array), when its stamp is more than
 ``FUTURE_STAMP_TOLERANCE_S`` after the robot's clock at its reception (an image is exposed before it is
 received, on the same clock: such a stamp is another clock's, and an hour ahead it made the age negative and
 the camera never stale), or when its stamp is not after the last frame taken (repeated or going back: the
@@ -188,20 +189,21 @@ class VisionPipeline:
     def _take(self, frame: Frame, received_ns: int) -> bool:
         """Whether ``frame``, received at ``received_ns`` on the robot's clock, may be used; else ``refused``
         says why (the stale-camera hold names it)."""
-        ahead_s = (frame.stamp_ns - received_ns) * 1e-9
-        image = frame.image
-        if not isinstance(image, np.ndarray):
+        stamp, image = frame.stamp_ns, frame.image
+        if not isinstance(stamp, (int, np.integer)):
+            why = f"frame {frame.seq} stamped {stamp!r} ({type(stamp).__name__}), not integer nanoseconds: refused"
+        elif not isinstance(image, np.ndarray):
             why = f"frame {frame.seq} has no image ({type(image).__name__} instead of an array): refused"
         elif image.size == 0:
             why = f"frame {frame.seq} has no image (an empty array of shape {image.shape}): refused"
-        elif ahead_s > FUTURE_STAMP_TOLERANCE_S:
+        elif (ahead_s := (stamp - received_ns) * 1e-9) > FUTURE_STAMP_TOLERANCE_S:
             why = (f"frame {frame.seq} stamped {ahead_s:.3f} s in the future of the robot's clock (more than "
                    f"{FUTURE_STAMP_TOLERANCE_S:g} s): refused")
-        elif self._taken_stamp is not None and frame.stamp_ns <= self._taken_stamp:
-            why = (f"frame {frame.seq} stamped {frame.stamp_ns} ns, not after the last frame's "
+        elif self._taken_stamp is not None and stamp <= self._taken_stamp:
+            why = (f"frame {frame.seq} stamped {stamp} ns, not after the last frame's "
                    f"{self._taken_stamp} ns (stamps must increase): refused")
         else:
-            self._taken_stamp = frame.stamp_ns
+            self._taken_stamp = stamp
             return True
         self.refused = self.last_refusal = why
         self.refused_frames += 1
