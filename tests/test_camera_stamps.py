@@ -210,3 +210,20 @@ def test_frames_refused_now_and_then_are_said_not_dropped_silently(inline):
     assert second.stamp_ns - first.stamp_ns >= REFUSED_WARN_EVERY_S * 1e9
     assert all("camera tick" in w.message and "no image" in w.message for w in warnings), warnings
     assert "1 frame refused" in first.message and "frames refused" in second.message, warnings
+
+
+@pytest.mark.parametrize("inline", [False, True], ids=["vision-thread", "loop-thread"])
+def test_a_camera_read_that_raises_ends_the_run_naming_the_camera_with_its_traceback(inline):
+    """A read that raised something other than CameraError (a driver's bug, an OSError) ended the run as
+    'exception in vision: OSError(...)' in the loop's own read, naming no camera, and on the vision thread
+    without the traceback the run result keeps for an exception. Both paths now say the same: the camera,
+    what was raised, and its traceback."""
+    def unplugged(frame):
+        raise OSError(19, "No such device")
+
+    rt, result, drive = run(unplugged, inline)
+    assert result.reason == "exception", result
+    assert result.message.startswith("camera tick: ") and "No such device" in result.message, result.message
+    assert rt.fault_traceback and "OSError" in rt.fault_traceback
+    assert drive.last_motion_ns() > BAD_AT - 5 * PERIOD_NS
+    assert drive.stopped_since(BAD_AT + int(1e9 / 15) + 2 * PERIOD_NS) and drive.log[-1][3] is False

@@ -73,7 +73,7 @@ class VisionPipeline:
         self.frozen = FrozenImageWatch()
         self.frames = 0
         self.fault: Optional[str] = None
-        self.fault_traceback: Optional[str] = None   # of a stage exception (None for a camera fault)
+        self.fault_traceback: Optional[str] = None   # of an exception (None for a CameraError)
         self.fault_reason = "exception"              # the run's end for ``fault``: "camera" or "exception"
         self.frame_listeners: list[Callable[[Frame, dict], None]] = []
         self.odom: Pose2 = Pose2()          # the newest pose, written by the loop every cycle
@@ -142,7 +142,11 @@ class VisionPipeline:
         self.odom = odom
         if not self.inline or self.camera is None:
             return
-        frame = self.camera.read(0.0)
+        try:
+            frame = self.camera.read(0.0)
+        except Exception as exc:
+            self._read_failed(exc)
+            return
         if frame is not None and self._take(frame, now_ns):
             fresh, results = self._process(frame)
             self._pending.append((frame.stamp_ns + self.latency_ns, frame, fresh, results, now_ns))
@@ -155,9 +159,7 @@ class VisionPipeline:
             try:
                 frame = self.camera.read(0.05)
             except Exception as exc:
-                if isinstance(exc, CameraError):
-                    self.fault_reason = "camera"
-                self.fault = f"camera {self.camera.name}: {exc!r}"
+                self._read_failed(exc)
                 return
             if frame is None:
                 time.sleep(0.001)
@@ -180,6 +182,15 @@ class VisionPipeline:
                 with self._frame_done:
                     self._frames_ended += 1
                     self._frame_done.notify_all()
+
+    def _read_failed(self, exc: Exception) -> None:
+        """The camera's read raised (on either path): the fault names the camera; a ``CameraError`` is the
+        device's failure, anything else a bug whose traceback the run result keeps."""
+        if isinstance(exc, CameraError):
+            self.fault_reason = "camera"
+        else:
+            self.fault_traceback = traceback.format_exc()
+        self.fault = f"camera {self.camera.name}: {exc!r}"
 
     def odometry_at(self, stamp_ns: int) -> Pose2:
         """The wheel odometry at ``stamp_ns`` (interpolated in the loop's history), else the newest pose."""
