@@ -1,6 +1,7 @@
 """A camera that misbehaves stops the robot, on the vision thread (real clock) as in the loop's own read
 (simulated clock), and the stop says why and which camera: frame stamps ahead of the robot's clock, stamps
 that go backwards or repeat, frames without an image."""
+import re
 import threading
 
 import numpy as np
@@ -32,15 +33,16 @@ class BadCamera(TickCamera):
     """TickCamera whose frames due from ``BAD_AT`` on are rewritten by ``spoil(frame)``; it counts the frames
     it returned and when it was last read, so the loop can wait for the vision thread (lockstep)."""
 
-    def __init__(self, clock, spoil):
+    def __init__(self, clock, spoil, bad_at=BAD_AT):
         super().__init__(clock)
         self.spoil = spoil
+        self.bad_at = bad_at
         self.returned = 0
         self.read_ns = -1
 
     def read(self, timeout_s=0.0):
         frame = super().read(timeout_s)
-        if frame is not None and frame.stamp_ns >= BAD_AT:
+        if frame is not None and frame.stamp_ns >= self.bad_at:
             frame = self.spoil(frame)
         if frame is not None:
             self.returned += 1
@@ -61,10 +63,10 @@ class Seen(VisionStage):
         return None
 
 
-def run(spoil, inline, duration_s=3.0, stage=None):
+def run(spoil, inline, duration_s=3.0, stage=None, bad_at=BAD_AT):
     clock = SimClock()
     drive = RecordingDrive(clock)
-    cam = BadCamera(clock, spoil)
+    cam = BadCamera(clock, spoil, bad_at)
     pipeline = VisionPipeline(cam, [stage] if stage else [], clock, inline=inline)
 
     def lockstep(ctx):
@@ -227,3 +229,22 @@ def test_a_camera_read_that_raises_ends_the_run_naming_the_camera_with_its_trace
     assert rt.fault_traceback and "OSError" in rt.fault_traceback
     assert drive.last_motion_ns() > BAD_AT - 5 * PERIOD_NS
     assert drive.stopped_since(BAD_AT + int(1e9 / 15) + 2 * PERIOD_NS) and drive.log[-1][3] is False
+
+
+@pytest.mark.parametrize("lag_s", [0.6, 3600.0], ids=["latency-above-the-limit", "an-hour-behind"])
+def test_frames_that_keep_coming_with_old_stamps_are_stale_and_the_hold_says_they_arrive(lag_s):
+    """Frames delivered later than camera.stale_after_s after their exposure, or stamped an hour behind the
+    robot's clock (a device clock not synced to the host's): the camera is stale by their stamps and the
+    robot stops at once, but the hold said only 'last frame 0.60 s old', as if no frame had come. It now says
+    that the frames arrive, and how far behind the robot's clock their stamps are."""
+    def behind(frame):
+        frame.stamp_ns -= int(lag_s * 1e9)
+        return frame
+
+    rt, result, drive = run(behind, inline=False, bad_at=0)
+    assert result.reason == "duration", result
+    hold = next(e for e in result.events if e.kind == "hold" and e.cause == "camera_stale")
+    assert hold.stamp_ns <= T0 + 2 * PERIOD_NS, hold     # the first frame is already too old
+    assert "camera tick" in hold.message and re.search(rf"received 0\.0\d s ago, stamped {lag_s:.2f} s behind the "
+                                                       r"robot's clock", hold.message), hold.message
+    assert drive.stopped_since(hold.stamp_ns + 2 * PERIOD_NS)

@@ -66,6 +66,7 @@ class VisionPipeline:
         self.latest: dict[str, Estimate] = {}
         self.last_frame: Optional[Frame] = None
         self.last_fresh_ns: Optional[int] = None   # the last frame not frozen: min(stamp, reception)
+        self.last_fresh_received_ns: Optional[int] = None   # ... when it was received, on the robot's clock
         self.refused: Optional[str] = None         # why the newest frame was refused, None once one is taken
         self.refused_frames = 0
         self.last_refusal: Optional[str] = None    # why the last refused frame was (kept after a good one)
@@ -248,6 +249,7 @@ class VisionPipeline:
         self.refused = None
         if fresh:
             self.last_fresh_ns = min(frame.stamp_ns, received_ns)
+            self.last_fresh_received_ns = received_ns
         self.frames += 1
         for fn in self.frame_listeners:
             try:

@@ -593,6 +593,11 @@ class Runtime:
                    f"(limit {limit:g} s, camera.stale_after_s)")
         else:
             why = f"camera {cam.name}: last frame {age:.2f} s old (limit {limit:g} s)"
+        received = self.pipeline.last_fresh_received_ns
+        if stale and received is not None and (now - received) * 1e-9 <= limit:
+            # frames arrive, but stamped too long before: a latency above the limit, or another clock
+            why += (f"; it was received {(now - received) * 1e-9:.2f} s ago, stamped {(received - since) * 1e-9:.2f} "
+                    f"s behind the robot's clock (a camera latency above the limit, or a camera on another clock)")
         if stale and self.pipeline.refused:     # frames came, and were refused
             why += f"; {self.pipeline.refused} ({self.pipeline.refused_frames} refused in all)"
         if stale and cam.error:                 # what the driver knows of why (unplugged, its thread failed)
