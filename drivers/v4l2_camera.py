@@ -193,6 +193,10 @@ class V4L2Camera(GrabbingCamera):
                 if time.monotonic() - last_frame > self.opt.stall_timeout_s or not os.path.exists(self.opt.device):
                     self.error = f"camera {self.opt.device} stopped delivering frames (unplugged?); reconnecting"
                     self._release()
+                # A read that fails at once (a device gone answers ENODEV) is not tried again in a busy loop
+                # beside the control loop: no frame is due within half a period.
+                elif self._stop.wait(0.5 / self.fps):
+                    return
                 continue
             last_frame = time.monotonic()
             stamp = self.clock.now_ns()

@@ -171,3 +171,45 @@ def test_options_of_the_other_source_are_refused(video, opts, says):
         camera(opts.pop("device", video), **opts)
     camera(video, fourcc="MJPG", loop=True, replay_rate_hz=0)
     camera("/dev/video99", fourcc="YUYV", loop=False)
+
+
+def test_a_live_source_that_stops_delivering_is_not_read_in_a_busy_loop(video, tmp_path):
+    """A live device whose reads fail at once (unplugged: the ioctl answers ENODEV) was read again without a
+    pause until stall_timeout_s had passed: tens of thousands of reads in 0.3 s here, a core spinning on a
+    two-core robot beside the control loop. A failed read now waits half a frame period before the next (no
+    frame is due sooner)."""
+    reads = []
+
+    class Counting:                              # the real capture, its reads counted
+        def __init__(self, cap):
+            self.cap = cap
+
+        def read(self):
+            ok, img = self.cap.read()
+            reads.append(ok)
+            return ok, img
+
+        def __getattr__(self, name):
+            return getattr(self.cap, name)
+
+    class Counted(V4L2Camera):
+        def _open(self):
+            return Counting(super()._open())
+
+    link = tmp_path / "video-by-id"
+    link.symlink_to(video)            # a live source (OpenCV picks the backend): the clip's end is the stall
+    stall_s = 0.3
+    cam = Counted(options=V4L2Camera.Options(device=str(link), source="device", backend="any",
+                                             stall_timeout_s=stall_s, reconnect_interval_s=30.0),
+                  width=W, height=H, fps=30.0)
+    cam.connect()
+    try:
+        deadline = time.monotonic() + 10.0
+        while cam.error is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.error and "stopped delivering" in cam.error
+    finally:
+        cam.disconnect()
+    failed = reads.count(False)
+    # one failed read every half frame period for stall_timeout_s at most (a slower machine reads fewer)
+    assert 1 <= failed <= stall_s * 30.0 * 2 + 2, f"{failed} failed reads in {stall_s} s"
