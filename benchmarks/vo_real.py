@@ -160,7 +160,7 @@ def main(argv=None) -> int:
 def _verdict(name: str, posed: float, ours: list[float], peer: list[float]) -> str:
     """One sequence against issue 13's acceptance, by the medians over the seeds (NaN: not met)."""
     mo, mp = float(np.median(ours)), float(np.median(peer))
-    bound = KITTI03_BOUND_M if name.startswith("vo_turns_kitti03") else float("inf")
+    bound = KITTI03_BOUND_M if name.startswith("kitti03") else float("inf")
     met = posed >= 0.97 and mo <= mp and mo <= bound
     return (f"{name:<19} {'met' if met else 'NOT MET'}: posed {100 * posed:.0f} %, APE {mo:.4f} m vs peer "
             f"{mp:.4f} m ({mo / mp:.2f}x)" + (f", bound {bound:.2f} m" if bound < float("inf") else ""))
