@@ -99,6 +99,10 @@ class Dataset:
             raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if raw is None:
                 raise DatasetError(f"{p}: cannot read depth image")
+        if raw.ndim != 2 or raw.dtype.itemsize < 2:   # an 8-bit export would read as depths of a few cm
+            raise DatasetError(f"{p}: the depth image is {raw.dtype.itemsize * 8}-bit with "
+                               f"{1 if raw.ndim == 2 else raw.shape[2]} channel(s), expected one channel of "
+                               f"16-bit depth units ({self.depth_scale:g} m each)")
         return raw.astype(np.float32) * float(self.depth_scale)
 
     def ground_truth_at(self, stamps: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,39 @@
+"""Recorded sequences damaged the way real copies are: each is read correctly or refused naming the file and
+what was expected (never a silent wrong answer)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vbnav.drivers.datasets import DatasetError, open_dataset
+
+sys.path.insert(0, str(Path(__file__).parent))
+from room_view import room_view  # noqa: E402
+
+
+def _room(shared_data: Path, tmp_path: Path) -> Path:
+    """A TUM view of room_rgbd5 whose depth files are copies (not links) that a test may damage."""
+    view = room_view(shared_data / "room_rgbd5", tmp_path / "room")
+    for p in view.glob("depth_*.pgm"):
+        data = p.read_bytes()
+        p.unlink()
+        p.write_bytes(data)
+    return view
+
+
+def test_an_8_bit_depth_image_is_refused_not_read_as_centimetres(shared_data, tmp_path):
+    """A depth image saved 8-bit (a viewer's export) was scaled like the 16-bit millimetres: depths of at most
+    25 cm, silently. Refused, naming the file and the 16-bit depth expected."""
+    view = _room(shared_data, tmp_path)
+    d = cv2.imread(str(view / "depth_2.pgm"), cv2.IMREAD_UNCHANGED)
+    assert d.dtype == np.uint16
+    cv2.imwrite(str(view / "depth_2.pgm"), (d // 256).astype(np.uint8))
+    ds = open_dataset(view)
+    assert ds.depth_image(0).max() > 5.0            # the good frames read as before (metres)
+    with pytest.raises(DatasetError, match=r"depth_2.pgm: .*8-bit.*expected .*16-bit"):
+        ds.depth_image(1)
+
