@@ -103,6 +103,10 @@ class Dataset:
             raise DatasetError(f"{p}: the depth image is {raw.dtype.itemsize * 8}-bit with "
                                f"{1 if raw.ndim == 2 else raw.shape[2]} channel(s), expected one channel of "
                                f"16-bit depth units ({self.depth_scale:g} m each)")
+        h, w = raw.shape
+        if (w, h) != (self.camera.width, self.camera.height):   # depth is looked up at the colour pixels
+            raise DatasetError(f"{p}: the depth image is {w}x{h}, expected the colour images' "
+                               f"{self.camera.width}x{self.camera.height} (depth registered to colour)")
         return raw.astype(np.float32) * float(self.depth_scale)
 
     def ground_truth_at(self, stamps: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:

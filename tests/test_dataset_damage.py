@@ -37,3 +37,13 @@ def test_an_8_bit_depth_image_is_refused_not_read_as_centimetres(shared_data, tm
     with pytest.raises(DatasetError, match=r"depth_2.pgm: .*8-bit.*expected .*16-bit"):
         ds.depth_image(1)
 
+
+def test_a_depth_image_of_another_size_than_the_colour_image_is_refused(shared_data, tmp_path):
+    """Depth is looked up at the colour image's pixels: a depth image of another size put every depth at the
+    wrong pixel (or raised IndexError). Refused, naming the file and both sizes."""
+    view = _room(shared_data, tmp_path)
+    d = cv2.imread(str(view / "depth_3.pgm"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(view / "depth_3.pgm"), d[:240, :320])
+    ds = open_dataset(view)
+    with pytest.raises(DatasetError, match=r"depth_3.pgm: the depth image is 320x240, .*640x480"):
+        ds.depth_image(2)
