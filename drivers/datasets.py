@@ -223,6 +223,12 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     right = _images_in(right_dir) if right_dir is not None else None
     if right is not None and len(right) != len(left):
         raise DatasetError(f"{right_dir}: {len(right)} right images but {len(left)} left images in {left_dir}")
+    if right is not None:   # a pair is two images of one name: by position, a frame missing on each side mispairs
+        lonely = sorted({p.name for p in left} ^ {p.name for p in right})
+        if lonely:
+            has, lacks = (left_dir, right_dir) if (left_dir / lonely[0]) in left else (right_dir, left_dir)
+            raise DatasetError(f"{lacks / lonely[0]}: missing, {has} has it (expected a left and a right image "
+                               f"of each name; {len(lonely)} image(s) without their partner)")
     first = _read_image(left[0], True)
     h, w = first.shape[:2]
     calib_path = root / "calib.txt"

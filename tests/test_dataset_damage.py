@@ -47,3 +47,26 @@ def test_a_depth_image_of_another_size_than_the_colour_image_is_refused(shared_d
     ds = open_dataset(view)
     with pytest.raises(DatasetError, match=r"depth_3.pgm: the depth image is 320x240, .*640x480"):
         ds.depth_image(2)
+
+
+def _kitti(shared_data: Path, tmp_path: Path, files=("calib.txt", "poses.txt")) -> Path:
+    """A KITTI view of kitti06_stereo: links to the images (a test may delete links), copies of the text files."""
+    src, view = shared_data / "kitti06_stereo", tmp_path / "kitti06"
+    for sub in ("image_l", "image_r"):
+        (view / sub).mkdir(parents=True)
+        for p in sorted((src / sub).glob("*.png")):
+            (view / sub / p.name).symlink_to(p)
+    for name in files:
+        (view / name).write_text((src / name).read_text())
+    return view
+
+
+def test_left_and_right_images_missing_different_frames_are_not_paired_by_position(shared_data, tmp_path):
+    """Left frame 10 and right frame 20 missing: as many left as right images, and pairs 10-19 were the left
+    image of frame k + 1 with the right of frame k (a wrong disparity for every point). Refused, naming the
+    image that has no partner."""
+    view = _kitti(shared_data, tmp_path, files=("calib.txt",))
+    (view / "image_l" / "000010.png").unlink()
+    (view / "image_r" / "000020.png").unlink()
+    with pytest.raises(DatasetError, match=r"image_l/000010.png: missing, .*image_r has it .*2 image\(s\) without"):
+        open_dataset(view)
