@@ -10,13 +10,20 @@ import cv2
 import numpy as np
 
 from vbnav.drivers.atomic_file import write_atomic
+from vbnav.drivers.datasets import JPEG_CUT_SHORT, jpeg_cut_short
 
 
 def read_image(path: str, what: str) -> np.ndarray:
     """The image at ``path`` as OpenCV reads it; FileNotFoundError / ValueError name ``what`` and the path."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"{what} {path}: file not found")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{what} {path}: cannot read: {exc.strerror or exc}") from None
+    if jpeg_cut_short(data):
+        raise ValueError(f"{what} {path}: {JPEG_CUT_SHORT}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None:
         raise ValueError(f"{what} {path}: not an image OpenCV can read")
     return img

@@ -124,10 +124,29 @@ class Dataset:
 
 
 def _read_image(path: Path, grey: bool) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        data = b""
+    if jpeg_cut_short(data):
+        raise DatasetError(f"{path}: {JPEG_CUT_SHORT}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR) \
+        if data else None
     if img is None:
         raise DatasetError(f"{path}: missing or not a readable image")
     return img
+
+
+JPEG_CUT_SHORT = "the JPEG is cut short (no end-of-image marker after its last scan): a truncated copy"
+
+
+def jpeg_cut_short(data: bytes) -> bool:
+    """A JPEG file that ends before its end-of-image marker: OpenCV decodes it with a warning and grey where the
+    data ended. The marker follows the last scan (an EXIF thumbnail's own marker comes before it; scan data
+    cannot hold the marker's bytes); bytes after it are allowed."""
+    if not data.startswith(b"\xff\xd8"):
+        return False
+    return data.find(b"\xff\xd9", data.rfind(b"\xff\xda")) < 0
 
 
 def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:

@@ -2,6 +2,7 @@
 what was expected (never a silent wrong answer)."""
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -70,3 +71,40 @@ def test_left_and_right_images_missing_different_frames_are_not_paired_by_positi
     (view / "image_r" / "000020.png").unlink()
     with pytest.raises(DatasetError, match=r"image_l/000010.png: missing, .*image_r has it .*2 image\(s\) without"):
         open_dataset(view)
+
+
+def _truncated_jpeg(src: Path, dst: Path) -> None:
+    ok, buf = cv2.imencode(".jpg", cv2.imread(str(src), cv2.IMREAD_GRAYSCALE))
+    assert ok
+    dst.write_bytes(buf.tobytes()[: len(buf) // 2])      # a copy cut short: the bottom half never arrived
+
+
+def test_a_truncated_jpeg_is_refused_not_read_with_a_grey_bottom_half(shared_data, tmp_path):
+    """OpenCV decodes a JPEG cut short with a warning on stderr and grey where the data ended: a frame half
+    made up was tracked, replayed and measured. Refused, naming the file, by the dataset, the replay camera
+    and the commands that read one image (vbnav lines, obstacles)."""
+    from vbnav.control.image_files import read_image
+    from vbnav.drivers.camera import CameraError
+    from vbnav.drivers.replay_camera import ReplayCamera
+    from vbnav.drivers.clock import SimClock
+
+    src = shared_data / "kitti06_stereo"
+    view = tmp_path / "seq with spaces é"
+    (view / "image_l").mkdir(parents=True)
+    (view / "calib.txt").write_text((src / "calib.txt").read_text().splitlines()[0] + "\n")
+    for k in range(3):
+        img = cv2.imread(str(src / "image_l" / f"{k:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(view / "image_l" / f"{k:06d}.jpg"), img)
+    _truncated_jpeg(src / "image_l" / "000001.png", view / "image_l" / "000001.jpg")
+    bad = view / "image_l" / "000001.jpg"
+    ds = open_dataset(view)
+    assert ds.image(0).shape == (370, 1226) and ds.image(2).shape == (370, 1226)   # whole files read as before
+    with pytest.raises(DatasetError, match=re.escape(str(bad)) + ": .*cut short"):
+        ds.image(1)
+    with pytest.raises(ValueError, match=re.escape(f"left image {bad}: ") + ".*cut short"):
+        read_image(str(bad), "left image")
+    cam = ReplayCamera({"path": str(view / "image_l"), "layout": "folder", "rate_hz": 10.0}, SimClock())
+    cam.connect()
+    assert cam.read(1.0).image.shape == (370, 1226)
+    with pytest.raises(CameraError, match=re.escape(str(bad)) + ": .*cut short"):
+        cam.read(1.0)
