@@ -108,3 +108,36 @@ def test_a_truncated_jpeg_is_refused_not_read_with_a_grey_bottom_half(shared_dat
     assert cam.read(1.0).image.shape == (370, 1226)
     with pytest.raises(CameraError, match=re.escape(str(bad)) + ": .*cut short"):
         cam.read(1.0)
+
+
+def test_vo_says_which_frames_have_no_ground_truth_and_rpe_pairs_only_neighbours(shared_data, tmp_path, capsys):
+    """A ground-truth file without frame 3: the ATE left it out without a word, and the 'RPE (1 frame)' took
+    frames 2 and 4 as one pair (two frames of motion). The output says how many frames with a pose have no
+    ground truth, and the RPE is over neighbouring frames only, with the number of pairs."""
+    import re as _re
+
+    from vbnav.control.cli import main
+    from vbnav.vision.geometry import matrix_from_quat
+
+    view = _room(shared_data, tmp_path)
+    gt_lines = (view / "groundtruth.txt").read_text().splitlines()
+    (view / "groundtruth.txt").write_text("\r\n".join(x for x in gt_lines if not x.startswith("3.0")) + "\r\n")
+    out = tmp_path / "traj.txt"
+    assert main(["vo", str(view), "--init", "depth", "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "1 of 5 frames with a pose have no ground truth within 0.02 s (frame 3): left out of ATE and RPE" in text
+    m = _re.search(r"RPE \(1 frame, (\d+) pairs\) ([0-9.]+) m", text)
+    assert m, text
+    rows = np.loadtxt(out)
+    stamps, est = rows[:, 0], np.tile(np.eye(4), (len(rows), 1, 1))
+    for k, r in enumerate(rows):
+        est[k, :3, :3], est[k, :3, 3] = matrix_from_quat(r[4:8]), r[1:4]
+    ds = open_dataset(view)
+    ok, gt = ds.ground_truth_at(stamps)
+    assert list(np.flatnonzero(~ok)) == [3]
+    errs = []
+    for a, b in ((0, 1), (1, 2)):                   # the neighbouring pairs that both have ground truth
+        D = np.linalg.inv(np.linalg.inv(gt[a]) @ gt[b]) @ (np.linalg.inv(est[a]) @ est[b])
+        errs.append(np.linalg.norm(D[:3, 3]))
+    assert int(m.group(1)) == 2
+    assert float(m.group(2)) == pytest.approx(np.sqrt(np.mean(np.square(errs))), abs=1e-4)
