@@ -231,6 +231,23 @@ def _refuse_unused_keys(yaml_path, extras: dict, depth: bool, right: bool, root:
                            f"image_1/; a TUM folder has none): remove baseline, or add the right images")
 
 
+def _check_numbered(folder: Path, images: list[Path]) -> None:
+    """KITTI images are numbered frames (000000.png, ...), paired with times.txt and poses.txt by position: a
+    frame left out would give every later image the time and pose of the frame before it. DatasetError names
+    the first missing (or doubled) frame's file; images not named by numbers are taken in name order."""
+    stems = [p.stem for p in images]
+    if not all(s.isdigit() for s in stems):
+        return
+    for prev, p in zip(images, images[1:]):
+        a, b = int(prev.stem), int(p.stem)
+        if b == a:
+            raise DatasetError(f"{p}: frame {a} again ({prev.name}); expected one image per frame number")
+        if b != a + 1:
+            name = f"{a + 1:0{len(prev.stem)}d}{prev.suffix}"
+            raise DatasetError(f"{folder / name}: missing (expected the frames {stems[0]} to {stems[-1]} without "
+                               f"a gap; {b - a - 1} missing before {p.name})")
+
+
 def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     left_dir = _image_dir(root, ("image_l", "image_0"))
     if left_dir is None:
@@ -248,6 +265,7 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
             has, lacks = (left_dir, right_dir) if (left_dir / lonely[0]) in left else (right_dir, left_dir)
             raise DatasetError(f"{lacks / lonely[0]}: missing, {has} has it (expected a left and a right image "
                                f"of each name; {len(lonely)} image(s) without their partner)")
+    _check_numbered(left_dir, left)
     first = _read_image(left[0], True)
     h, w = first.shape[:2]
     calib_path = root / "calib.txt"

@@ -141,3 +141,15 @@ def test_vo_says_which_frames_have_no_ground_truth_and_rpe_pairs_only_neighbours
         errs.append(np.linalg.norm(D[:3, 3]))
     assert int(m.group(1)) == 2
     assert float(m.group(2)) == pytest.approx(np.sqrt(np.mean(np.square(errs))), abs=1e-4)
+
+
+@pytest.mark.parametrize("files", [("calib.txt",), ("calib.txt", "poses.txt")])
+def test_a_kitti_frame_missing_in_the_middle_is_named(shared_data, tmp_path, files):
+    """Frame 10 missing on both sides: without times.txt every later frame took the time (and the poses.txt
+    line) of the frame before it, silently; with poses.txt the refusal counted lines but named no file.
+    Refused, naming the missing frame's file."""
+    view = _kitti(shared_data, tmp_path, files=files)
+    for side in ("image_l", "image_r"):
+        (view / side / "000010.png").unlink()
+    with pytest.raises(DatasetError, match=re.escape(str(view / "image_l" / "000010.png")) + r": missing"):
+        open_dataset(view)
