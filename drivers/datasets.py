@@ -149,12 +149,20 @@ def jpeg_cut_short(data: bytes) -> bool:
     return data.find(b"\xff\xd9", data.rfind(b"\xff\xda")) < 0
 
 
+def _text(path: Path, what: str) -> str:
+    """The text of a dataset's text file; DatasetError naming it if it cannot be read or is not UTF-8."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}), expected {what} as plain "
+                           f"text (saved as UTF-16?)") from None
+
+
 def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
     rows = []
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
+    text = _text(path, what)
     for k, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -312,7 +320,7 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
 
 def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
     stamps, names = [], []
-    for k, line in enumerate(path.read_text().splitlines(), 1):
+    for k, line in enumerate(_text(path, f"'timestamp {what}' lines").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -388,9 +396,7 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     Returns the camera model and the remaining keys."""
     path = Path(path)
     try:
-        data = load_yaml(path.read_text())
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read camera YAML: {exc.strerror or exc}") from None
+        data = load_yaml(_text(path, "a camera YAML"))
     except yaml.YAMLError as exc:
         raise DatasetError(f"{path}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):

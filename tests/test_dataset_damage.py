@@ -153,3 +153,16 @@ def test_a_kitti_frame_missing_in_the_middle_is_named(shared_data, tmp_path, fil
         (view / side / "000010.png").unlink()
     with pytest.raises(DatasetError, match=re.escape(str(view / "image_l" / "000010.png")) + r": missing"):
         open_dataset(view)
+
+
+@pytest.mark.parametrize("name", ["times.txt", "poses.txt", "calib.txt"])
+def test_a_text_file_that_is_not_utf8_is_named(shared_data, tmp_path, name):
+    """A times.txt saved in UTF-16 (or with a stray byte) raised UnicodeDecodeError: 'vbnav vo' printed
+    "'utf-8' codec can't decode byte 0xff" without the file, and the replay camera let it out as a traceback.
+    Refused as a DatasetError naming the file."""
+    view = _kitti(shared_data, tmp_path)
+    if name == "times.txt":
+        (view / name).write_text("".join(f"{k / 10}\n" for k in range(51)))
+    (view / name).write_bytes((view / name).read_text().encode("utf-16"))
+    with pytest.raises(DatasetError, match=re.escape(str(view / name)) + r": .*UTF-8"):
+        open_dataset(view)
