@@ -166,3 +166,24 @@ def test_a_text_file_that_is_not_utf8_is_named(shared_data, tmp_path, name):
     (view / name).write_bytes((view / name).read_text().encode("utf-16"))
     with pytest.raises(DatasetError, match=re.escape(str(view / name)) + r": .*UTF-8"):
         open_dataset(view)
+
+
+def test_the_replay_camera_refuses_a_right_image_of_another_size(tmp_path, rng):
+    """The replay camera checked the left image's size only: a right image of another size mid-sequence
+    reached the stereo stages (disparity of mismatched rows, or a traceback in OpenCV). Refused, naming it."""
+    from vbnav.drivers.camera import CameraError
+    from vbnav.drivers.clock import SimClock
+    from vbnav.drivers.replay_camera import ReplayCamera
+
+    root = tmp_path / "kitti"
+    for side in ("image_l", "image_r"):
+        (root / side).mkdir(parents=True)
+        for i in range(3):
+            size = (12, 16) if (side, i) == ("image_r", 1) else (24, 32)
+            cv2.imwrite(str(root / side / f"{i:06d}.png"), rng.integers(0, 255, size, dtype=np.uint8))
+    (root / "calib.txt").write_text("P0: 500 0 16 0 0 500 12 0 0 0 1 0\nP1: 500 0 16 -250 0 500 12 0 0 0 1 0\n")
+    cam = ReplayCamera({"path": str(root)}, SimClock(), size=(32, 24))
+    cam.connect()
+    assert cam.read(1.0).right.shape == (24, 32)
+    with pytest.raises(CameraError, match=re.escape(str(root / "image_r" / "000001.png")) + r".* 16x12"):
+        cam.read(1.0)
