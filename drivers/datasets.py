@@ -339,16 +339,22 @@ def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
     return np.array(stamps), names
 
 
+def _listed(root: Path, names: list[str], list_path: Path) -> list[Path]:
+    """The files a TUM list names (relative to ``root``); DatasetError naming the first one missing."""
+    paths = [root / n for n in names]
+    for p in paths:
+        if not p.is_file():
+            raise DatasetError(f"{p}: listed in {list_path} but missing")
+    return paths
+
+
 def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     rgb_path = root / "rgb.txt"
     if not rgb_path.is_file():
         raise DatasetError(f"{rgb_path}: missing (TUM layout needs rgb.txt)")
     stamps, names = _tum_list(rgb_path, "path/to/image.png")
     _check_increasing(rgb_path, stamps)
-    left = [root / n for n in names]
-    for p in left:
-        if not p.is_file():
-            raise DatasetError(f"{p}: listed in {rgb_path} but missing")
+    left = _listed(root, names, rgb_path)
     yaml_path = Path(camera_yaml) if camera_yaml is not None else root / "camera.yaml"
     if not yaml_path.is_file():
         raise DatasetError(f"{yaml_path}: missing (TUM layout needs intrinsics: pass --camera FILE "
@@ -359,10 +365,11 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     _refuse_unused_keys(yaml_path, extras, depth=depth_path.is_file(), right=False, root=root)
     if depth_path.is_file():
         d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
+        d_paths = _listed(root, d_names, depth_path)
         depth = []
         for t in stamps:  # nearest depth image within 20 ms of each colour image
             k = int(np.argmin(np.abs(d_stamps - t)))
-            depth.append(root / d_names[k] if abs(d_stamps[k] - t) <= 0.02 else None)
+            depth.append(d_paths[k] if abs(d_stamps[k] - t) <= 0.02 else None)
     gt_stamps = gt_poses = None
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():

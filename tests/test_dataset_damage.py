@@ -187,3 +187,17 @@ def test_the_replay_camera_refuses_a_right_image_of_another_size(tmp_path, rng):
     assert cam.read(1.0).right.shape == (24, 32)
     with pytest.raises(CameraError, match=re.escape(str(root / "image_r" / "000001.png")) + r".* 16x12"):
         cam.read(1.0)
+
+
+def test_a_depth_image_listed_but_missing_is_refused_when_the_dataset_opens(shared_data, tmp_path, capsys):
+    """depth.txt listing a file that is not there was found only when tracking reached it: vbnav vo tracked
+    the frames before it and then exited without a trajectory. Refused at once, naming the file and the list."""
+    from vbnav.control.cli import main
+
+    view = _room(shared_data, tmp_path)
+    (view / "depth_4.pgm").unlink()
+    with pytest.raises(DatasetError, match=re.escape(str(view / "depth_4.pgm")) + r": listed in .*depth.txt.* missing"):
+        open_dataset(view)
+    assert main(["vo", str(view), "--out", str(tmp_path / "t.txt"), "--quiet"]) == 2
+    cap = capsys.readouterr()
+    assert "depth_4.pgm: listed in" in cap.err and "pose for" not in cap.out
