@@ -374,8 +374,14 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
         rows = _numbers(gt_path, 8, "timestamp tx ty tz qx qy qz qw")
-        order = np.argsort(rows[:, 0])
-        rows = rows[order]
+        order = np.argsort(rows[:, 0], kind="stable")       # out of order is fine: sorted
+        same = np.flatnonzero(np.diff(rows[order, 0]) == 0)
+        for k in same:                                      # a line repeated is fine; two poses at one time not
+            i, j = sorted((int(order[k]), int(order[k + 1])))
+            if not np.array_equal(rows[i], rows[j]):
+                raise DatasetError(f"{gt_path}: entries {i + 1} and {j + 1} are both at {rows[i, 0]:g} s with "
+                                   f"different poses: expected one pose per time")
+        rows = np.delete(rows[order], same + 1, axis=0)
         gt_stamps = rows[:, 0]
         gt_poses = np.tile(np.eye(4), (len(rows), 1, 1))
         for k, r in enumerate(rows):

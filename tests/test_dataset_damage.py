@@ -201,3 +201,20 @@ def test_a_depth_image_listed_but_missing_is_refused_when_the_dataset_opens(shar
     assert main(["vo", str(view), "--out", str(tmp_path / "t.txt"), "--quiet"]) == 2
     cap = capsys.readouterr()
     assert "depth_4.pgm: listed in" in cap.err and "pose for" not in cap.out
+
+
+def test_two_ground_truth_poses_at_one_time_are_refused(shared_data, tmp_path):
+    """groundtruth.txt with two different poses at one time (two exports concatenated): the lookup took
+    whichever the sort put nearest, silently. Refused, naming the file and both entries; a line repeated with
+    the same pose, and lines out of order (which are sorted), are read as before."""
+    view = _room(shared_data, tmp_path)
+    gt = view / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    before = open_dataset(view).gt_poses
+    gt.write_text("\n".join([lines[0], lines[3], lines[1], lines[2], lines[2]] + lines[4:]) + "\n")
+    np.testing.assert_allclose(open_dataset(view).gt_poses, before)
+    moved = lines[2].split()
+    moved[1] = str(float(moved[1]) + 0.5)
+    gt.write_text("\n".join(lines + [" ".join(moved)]) + "\n")
+    with pytest.raises(DatasetError, match=re.escape(str(gt)) + r": entries 2 and 6 .*1 s.*different poses"):
+        open_dataset(view)
