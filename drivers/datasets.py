@@ -35,6 +35,8 @@ from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distor
 from vbnav.vision.geometry import matrix_from_quat
 
 KITTI_RATE_HZ = 10.0
+#: A TUM colour frame's depth image is the nearest in depth.txt within this many seconds (else it has none).
+DEPTH_MAX_DT_S = 0.02
 
 
 class DatasetError(InputError):
@@ -367,9 +369,9 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
         d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
         d_paths = _listed(root, d_names, depth_path)
         depth = []
-        for t in stamps:  # nearest depth image within 20 ms of each colour image
+        for t in stamps:  # nearest depth image within DEPTH_MAX_DT_S of each colour image
             k = int(np.argmin(np.abs(d_stamps - t)))
-            depth.append(d_paths[k] if abs(d_stamps[k] - t) <= 0.02 else None)
+            depth.append(d_paths[k] if abs(d_stamps[k] - t) <= DEPTH_MAX_DT_S else None)
     gt_stamps = gt_poses = None
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():

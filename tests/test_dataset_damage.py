@@ -218,3 +218,19 @@ def test_two_ground_truth_poses_at_one_time_are_refused(shared_data, tmp_path):
     gt.write_text("\n".join(lines + [" ".join(moved)]) + "\n")
     with pytest.raises(DatasetError, match=re.escape(str(gt)) + r": entries 2 and 6 .*1 s.*different poses"):
         open_dataset(view)
+
+
+def test_vo_says_which_frames_have_no_depth_image(shared_data, tmp_path, capsys):
+    """A depth.txt whose entry for frame 2 is 0.5 s off: frame 2 got no depth (nearest within 20 ms) and was
+    tracked without it, without a word. vbnav vo says which frames have no depth image and how it took them."""
+    from vbnav.control.cli import main
+
+    view = _room(shared_data, tmp_path)
+    dl = (view / "depth.txt").read_text().replace("2.000000 depth_3.pgm", "2.500000 depth_3.pgm")
+    (view / "depth.txt").write_text(dl)
+    ds = open_dataset(view)
+    assert [d is None for d in ds.depth] == [False, False, True, False, False]
+    assert main(["vo", str(view), "--init", "depth", "--out", str(tmp_path / "t.txt"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert ("1 of 5 frames have no depth image within 0.02 s in " + str(view / "depth.txt") + " (frame 2): "
+            "tracked without depth") in out

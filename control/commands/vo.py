@@ -53,7 +53,7 @@ def run(args) -> int:
 
     from vbnav.control.trajectory_metrics import ate_rmse, rpe, rpe_pairs, scale_to, write_tum
     from vbnav.control.vo import VoError, run_vo
-    from vbnav.drivers.datasets import DatasetError, open_dataset
+    from vbnav.drivers.datasets import DEPTH_MAX_DT_S, DatasetError, open_dataset
     from vbnav.vision.vslam import VslamConfig
 
     from vbnav.control.commands._common import distinct_files, output_file
@@ -95,6 +95,11 @@ def run(args) -> int:
     write_tum(args.out, res.stamps, res.poses)
     if args.status_out:
         _write_status(args.status_out, res.status)
+    no_depth = [i for i, d in enumerate(ds.depth or []) if d is None] if res.init == "depth" else []
+    if no_depth:
+        print(f"{len(no_depth)} of {len(ds)} frames have no depth image within {DEPTH_MAX_DT_S:g} s in "
+              f"{ds.root / 'depth.txt'} (frame{'s' if len(no_depth) > 1 else ''} {_ranges(no_depth)}): "
+              f"tracked without depth")
     lost = res.count("lost")
     print(f"pose for {len(res.stamps)}/{len(ds)} frames in {dt:.1f} s ({len(ds) / max(dt, 1e-9):.1f} fps): "
           f"{res.count('init')} initialisation, {res.count('tracked')} tracked, {res.count('reinit')} "
