@@ -29,6 +29,18 @@ def read_image(path: str, what: str) -> np.ndarray:
     return img
 
 
+def pair_problem(left: np.ndarray, right: np.ndarray, left_path, right_path) -> str:
+    """"" when the two images of a stereo pair can be matched, else why not: another size, or another bit depth
+    (an 8-bit image put on a 16-bit one's range comes out black, and matches nothing, silently)."""
+    if left.shape[:2] != right.shape[:2]:
+        return (f"left {left_path} is {left.shape[1]}x{left.shape[0]} but right {right_path} is "
+                f"{right.shape[1]}x{right.shape[0]}")
+    if left.dtype != right.dtype:
+        return (f"left {left_path} is {left.dtype} but right {right_path} is {right.dtype}: expected one bit depth "
+                f"for both images of a pair")
+    return ""
+
+
 def write_png(path: str, img: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", img)
     if not ok:

@@ -234,3 +234,28 @@ def test_vo_says_which_frames_have_no_depth_image(shared_data, tmp_path, capsys)
     out = capsys.readouterr().out
     assert ("1 of 5 frames have no depth image within 0.02 s in " + str(view / "depth.txt") + " (frame 2): "
             "tracked without depth") in out
+
+
+@pytest.mark.parametrize("command", ["obstacles", "lines"])
+def test_a_pair_of_an_8_bit_and_a_16_bit_image_is_refused(shared_data, tmp_path, capsys, command):
+    """An 8-bit left image with a 16-bit right one (one side re-exported): both were put on the pair's common
+    16-bit range, the left image came out black, and vbnav obstacles reported an obstacle at 4 m (exit 0) where
+    there is a road; vbnav lines reconstructed a third of the segments. Refused (exit 2), naming both files and
+    their bit depths."""
+    from vbnav.control.cli import main
+
+    if command == "obstacles":
+        src = shared_data / "kitti06_stereo"
+        left, right, calib = src / "image_l" / "000025.png", src / "image_r" / "000025.png", src / "calib.txt"
+        extra = ["--camera-height", "1.65"]
+    else:
+        src = shared_data / "indoor_stereo" / "euroc_v101"
+        left = sorted((src / "cam0").glob("*.png"))[0]
+        right, calib = src / "cam1" / left.name, src / "stereo_rectify.yaml"
+        extra = ["--out", str(tmp_path / "lines.json")]
+    right16 = tmp_path / "right16.png"
+    cv2.imwrite(str(right16), cv2.imread(str(right), cv2.IMREAD_GRAYSCALE).astype(np.uint16) * 256)
+    code = main([command, "--left", str(left), "--right", str(right16), "--calib", str(calib)] + extra)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"left {left} is uint8 but right {right16} is uint16" in err
