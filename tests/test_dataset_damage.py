@@ -259,3 +259,23 @@ def test_a_pair_of_an_8_bit_and_a_16_bit_image_is_refused(shared_data, tmp_path,
     err = capsys.readouterr().err
     assert code == 2, err
     assert f"left {left} is uint8 but right {right16} is uint16" in err
+
+
+def test_calibrate_stereo_refuses_pairs_whose_numbers_do_not_match(shared_data, tmp_path, capsys):
+    """left03 and right07 missing from OpenCV's stereo samples: 12 images on each side, paired by sorted
+    position, so left04 was calibrated with right03 and so on (a wrong extrinsic, written without a word).
+    Refused, naming the image without a partner."""
+    from vbnav.control.cli import main
+
+    src = shared_data / "calib_chessboard" / "stereo"
+    for side, gone in (("left", "left03.jpg"), ("right", "right07.jpg")):
+        (tmp_path / side).mkdir()
+        for f in sorted(src.glob(f"{side}*.jpg")):
+            if f.name != gone:
+                (tmp_path / side / f.name).symlink_to(f)
+    code = main(["calibrate", "stereo", str(tmp_path / "left"), str(tmp_path / "right"), "--square", "1",
+                 "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"{tmp_path / 'right' / 'right03.jpg'}: no left image numbered 03 in {tmp_path / 'left'}" in err
+    assert not (tmp_path / "out").exists()
