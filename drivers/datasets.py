@@ -162,8 +162,9 @@ def _text(path: Path, what: str) -> str:
                            f"text (saved as UTF-16?)") from None
 
 
-def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
-    rows = []
+def _numbers(path: Path, per_line: int, what: str) -> tuple[np.ndarray, list[int]]:
+    """The numbers of each line (comments and blank lines skipped) and the line numbers they are on."""
+    rows, lines = [], []
     text = _text(path, what)
     for k, line in enumerate(text.splitlines(), 1):
         line = line.strip()
@@ -178,18 +179,20 @@ def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
         if not all(np.isfinite(vals)):       # float() takes 'nan' and 'inf'; a pose or time cannot be either
             raise DatasetError(f"{path}:{k}: expected finite numbers ({what}), got {line[:60]!r}")
         rows.append(vals)
+        lines.append(k)
     if not rows:
         raise DatasetError(f"{path}: empty, expected {what}")
-    return np.array(rows)
+    return np.array(rows), lines
 
 
-def _check_increasing(path: Path, stamps: np.ndarray) -> None:
-    """Frame times must increase: the replay camera plays them in order and the velocities divide by them."""
+def _check_increasing(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
+    """Frame times must increase: the replay camera plays them in order and the velocities divide by them.
+    ``lines``: the line of each time in ``path``, for the error."""
     bad = np.flatnonzero(np.diff(stamps) <= 0)
     if len(bad):
         k = int(bad[0])
-        raise DatasetError(f"{path}: entry {k + 2} ({stamps[k + 1]:g} s) is not after entry {k + 1} "
-                           f"({stamps[k]:g} s): expected increasing times")
+        raise DatasetError(f"{path}:{lines[k + 1]}: {stamps[k + 1]:g} s is not after line {lines[k]}'s "
+                           f"{stamps[k]:g} s: expected increasing times")
 
 
 def detect_layout(root: Path, fallback: Optional[str] = None) -> str:
@@ -301,16 +304,17 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
                            f"{camera.width}x{camera.height}")
     times_path = root / "times.txt"
     if times_path.is_file():
-        stamps = _numbers(times_path, 1, "one time in seconds per line").ravel()
+        stamps, lines = _numbers(times_path, 1, "one time in seconds per line")
+        stamps = stamps.ravel()
         if len(stamps) != len(left):
             raise DatasetError(f"{times_path}: {len(stamps)} times but {len(left)} images")
-        _check_increasing(times_path, stamps)
+        _check_increasing(times_path, stamps, lines)
     else:
         stamps = np.arange(len(left)) / KITTI_RATE_HZ
     gt_stamps = gt_poses = None
     poses_path = root / "poses.txt"
     if poses_path.is_file():
-        rows = _numbers(poses_path, 12, "a row-major 3x4 camera-to-world matrix per line")
+        rows, _ = _numbers(poses_path, 12, "a row-major 3x4 camera-to-world matrix per line")
         if len(rows) != len(left):
             raise DatasetError(f"{poses_path}: {len(rows)} poses but {len(left)} images")
         gt_poses = np.tile(np.eye(4), (len(rows), 1, 1))
@@ -320,8 +324,9 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
                    extras=extras)
 
 
-def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
-    stamps, names = [], []
+def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str], list[int]]:
+    """Times, names and the line of each entry of a TUM list (comments and blank lines skipped)."""
+    stamps, names, lines = [], [], []
     for k, line in enumerate(_text(path, f"'timestamp {what}' lines").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -336,9 +341,10 @@ def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
         if len(parts) < 2:
             raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}")
         names.append(parts[1])
+        lines.append(k)
     if not stamps:
         raise DatasetError(f"{path}: no entries (expected 'timestamp {what}' lines)")
-    return np.array(stamps), names
+    return np.array(stamps), names, lines
 
 
 def _listed(root: Path, names: list[str], list_path: Path) -> list[Path]:
@@ -354,8 +360,8 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     rgb_path = root / "rgb.txt"
     if not rgb_path.is_file():
         raise DatasetError(f"{rgb_path}: missing (TUM layout needs rgb.txt)")
-    stamps, names = _tum_list(rgb_path, "path/to/image.png")
-    _check_increasing(rgb_path, stamps)
+    stamps, names, lines = _tum_list(rgb_path, "path/to/image.png")
+    _check_increasing(rgb_path, stamps, lines)
     left = _listed(root, names, rgb_path)
     yaml_path = Path(camera_yaml) if camera_yaml is not None else root / "camera.yaml"
     if not yaml_path.is_file():
@@ -366,7 +372,7 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     depth_path = root / "depth.txt"
     _refuse_unused_keys(yaml_path, extras, depth=depth_path.is_file(), right=False, root=root)
     if depth_path.is_file():
-        d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
+        d_stamps, d_names, _ = _tum_list(depth_path, "path/to/depth.png")
         d_paths = _listed(root, d_names, depth_path)
         depth = []
         for t in stamps:  # nearest depth image within DEPTH_MAX_DT_S of each colour image
@@ -375,13 +381,13 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     gt_stamps = gt_poses = None
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
-        rows = _numbers(gt_path, 8, "timestamp tx ty tz qx qy qz qw")
+        rows, lines = _numbers(gt_path, 8, "timestamp tx ty tz qx qy qz qw")
         order = np.argsort(rows[:, 0], kind="stable")       # out of order is fine: sorted
         same = np.flatnonzero(np.diff(rows[order, 0]) == 0)
         for k in same:                                      # a line repeated is fine; two poses at one time not
             i, j = sorted((int(order[k]), int(order[k + 1])))
             if not np.array_equal(rows[i], rows[j]):
-                raise DatasetError(f"{gt_path}: entries {i + 1} and {j + 1} are both at {rows[i, 0]:g} s with "
+                raise DatasetError(f"{gt_path}: lines {lines[i]} and {lines[j]} are both at {rows[i, 0]:g} s with "
                                    f"different poses: expected one pose per time")
         rows = np.delete(rows[order], same + 1, axis=0)
         gt_stamps = rows[:, 0]

@@ -216,7 +216,7 @@ def test_two_ground_truth_poses_at_one_time_are_refused(shared_data, tmp_path):
     moved = lines[2].split()
     moved[1] = str(float(moved[1]) + 0.5)
     gt.write_text("\n".join(lines + [" ".join(moved)]) + "\n")
-    with pytest.raises(DatasetError, match=re.escape(str(gt)) + r": entries 2 and 6 .*1 s.*different poses"):
+    with pytest.raises(DatasetError, match=re.escape(str(gt)) + r": lines 3 and 7 .*1 s.*different poses"):
         open_dataset(view)
 
 
@@ -279,3 +279,20 @@ def test_calibrate_stereo_refuses_pairs_whose_numbers_do_not_match(shared_data, 
     assert code == 2, err
     assert f"{tmp_path / 'right' / 'right03.jpg'}: no left image numbered 03 in {tmp_path / 'left'}" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_time_that_does_not_increase_is_named_by_its_line(shared_data, tmp_path):
+    """times.txt with a comment header, blank lines and CRLF endings is read as before; a time repeated on line
+    7 was reported as 'entry 4', which is not the line an editor shows. The refusal names the lines."""
+    view = _kitti(shared_data, tmp_path)
+    times = [f"{k / 10:.1f}" for k in range(51)]
+    (view / "times.txt").write_bytes(("# t [s]\r\n\r\n" + "\r\n\r\n".join(times[:2]) + "\r\n" + "\r\n".join(times[2:])
+                                      + "\r\n").encode())
+    np.testing.assert_allclose(open_dataset(view).stamps, np.arange(51) / 10)
+    times[3] = times[2]
+    text = "# t [s]\n\n" + "\n\n".join(times[:2]) + "\n" + "\n".join(times[2:]) + "\n"
+    (view / "times.txt").write_text(text)
+    assert text.splitlines()[6 - 1] == "0.2" and text.splitlines()[7 - 1] == "0.2"
+    with pytest.raises(DatasetError, match=re.escape(str(view / "times.txt")) + r":7: 0.2 s is not after line 6's "
+                                                                                  r"0.2 s: expected increasing times"):
+        open_dataset(view)
