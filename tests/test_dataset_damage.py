@@ -296,3 +296,23 @@ def test_a_time_that_does_not_increase_is_named_by_its_line(shared_data, tmp_pat
     with pytest.raises(DatasetError, match=re.escape(str(view / "times.txt")) + r":7: 0.2 s is not after line 6's "
                                                                                   r"0.2 s: expected increasing times"):
         open_dataset(view)
+
+
+def test_calibrate_refuses_a_truncated_jpeg_view(shared_data, tmp_path, capsys):
+    """A board view cut short (80 % of left01.jpg) was decoded with a grey bottom, its corners found in the part
+    that arrived, and calibrated from without a word. Refused like every other reader, naming the file."""
+    from vbnav.control.cli import main
+
+    src = shared_data / "calib_chessboard" / "stereo"
+    (tmp_path / "left").mkdir()
+    for f in sorted(src.glob("left*.jpg")):
+        (tmp_path / "left" / f.name).symlink_to(f)
+    bad = tmp_path / "left" / "left01.jpg"
+    bad.unlink()
+    bad.write_bytes((src / "left01.jpg").read_bytes()[: int(0.8 * (src / "left01.jpg").stat().st_size)])
+    code = main(["calibrate", "intrinsics", "--images", str(tmp_path / "left"), "--square", "1",
+                 "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"{bad}: the JPEG is cut short" in err
+    assert not (tmp_path / "out").exists()

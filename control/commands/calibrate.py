@@ -202,10 +202,9 @@ def _out_folder(text: str) -> Path:
 
 
 def _grey(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise InputError(f"{path}: not a readable image")
-    return img
+    """The view in grey; InputError naming the file if it is unreadable or cut short (datasets' reader)."""
+    from vbnav.drivers.datasets import _read_image
+    return _read_image(path, True)
 
 
 def _min_sharpness(args) -> float:
