@@ -10,16 +10,35 @@ import cv2
 import numpy as np
 
 from vbnav.drivers.atomic_file import write_atomic
+from vbnav.drivers.datasets import JPEG_CUT_SHORT, jpeg_cut_short
 
 
 def read_image(path: str, what: str) -> np.ndarray:
     """The image at ``path`` as OpenCV reads it; FileNotFoundError / ValueError name ``what`` and the path."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"{what} {path}: file not found")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{what} {path}: cannot read: {exc.strerror or exc}") from None
+    if jpeg_cut_short(data):
+        raise ValueError(f"{what} {path}: {JPEG_CUT_SHORT}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if img is None:
         raise ValueError(f"{what} {path}: not an image OpenCV can read")
     return img
+
+
+def pair_problem(left: np.ndarray, right: np.ndarray, left_path, right_path) -> str:
+    """"" when the two images of a stereo pair can be matched, else why not: another size, or another bit depth
+    (an 8-bit image put on a 16-bit one's range comes out black, and matches nothing, silently)."""
+    if left.shape[:2] != right.shape[:2]:
+        return (f"left {left_path} is {left.shape[1]}x{left.shape[0]} but right {right_path} is "
+                f"{right.shape[1]}x{right.shape[0]}")
+    if left.dtype != right.dtype:
+        return (f"left {left_path} is {left.dtype} but right {right_path} is {right.dtype}: expected one bit depth "
+                f"for both images of a pair")
+    return ""
 
 
 def write_png(path: str, img: np.ndarray) -> None:

@@ -34,18 +34,27 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple
     return float(np.sqrt(np.mean(np.sum((aligned - gt[:, :3, 3]) ** 2, axis=1)))), aligned
 
 
-def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> tuple[float, float]:
-    """Relative pose error over ``delta`` frames: (translation RMSE m, rotation RMSE deg)."""
+def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1, frames=None) -> tuple[float, float]:
+    """Relative pose error over ``delta`` frames: (translation RMSE m, rotation RMSE deg). ``frames``: the
+    frame number of each pose (default 0, 1, 2, ...); only pairs ``delta`` frames apart count (a frame with no
+    pose or no ground truth between two others does not make them neighbours)."""
     te, re = [], []
-    for i in range(len(est) - delta):
-        E = np.linalg.inv(est[i]) @ est[i + delta]
-        G = np.linalg.inv(gt[i]) @ gt[i + delta]
+    for i, j in rpe_pairs(len(est), delta, frames):
+        E = np.linalg.inv(est[i]) @ est[j]
+        G = np.linalg.inv(gt[i]) @ gt[j]
         D = np.linalg.inv(G) @ E
         te.append(np.linalg.norm(D[:3, 3]))
         re.append(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
     if not te:
         return float("nan"), float("nan")
     return float(np.sqrt(np.mean(np.square(te)))), float(np.sqrt(np.mean(np.square(re))))
+
+
+def rpe_pairs(n: int, delta: int = 1, frames=None) -> list[tuple[int, int]]:
+    """Index pairs (i, j) of the poses whose frames are ``delta`` apart (``rpe``)."""
+    frames = range(n) if frames is None else [int(f) for f in frames]
+    at = {f: k for k, f in enumerate(frames)}
+    return [(k, at[f + delta]) for k, f in enumerate(frames) if f + delta in at]
 
 
 def scale_to(est: np.ndarray, gt: np.ndarray) -> np.ndarray:

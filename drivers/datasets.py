@@ -35,6 +35,8 @@ from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distor
 from vbnav.vision.geometry import matrix_from_quat
 
 KITTI_RATE_HZ = 10.0
+#: A TUM colour frame's depth image is the nearest in depth.txt within this many seconds (else it has none).
+DEPTH_MAX_DT_S = 0.02
 
 
 class DatasetError(InputError):
@@ -99,6 +101,14 @@ class Dataset:
             raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if raw is None:
                 raise DatasetError(f"{p}: cannot read depth image")
+        if raw.ndim != 2 or raw.dtype.itemsize < 2:   # an 8-bit export would read as depths of a few cm
+            raise DatasetError(f"{p}: the depth image is {raw.dtype.itemsize * 8}-bit with "
+                               f"{1 if raw.ndim == 2 else raw.shape[2]} channel(s), expected one channel of "
+                               f"16-bit depth units ({self.depth_scale:g} m each)")
+        h, w = raw.shape
+        if (w, h) != (self.camera.width, self.camera.height):   # depth is looked up at the colour pixels
+            raise DatasetError(f"{p}: the depth image is {w}x{h}, expected the colour images' "
+                               f"{self.camera.width}x{self.camera.height} (depth registered to colour)")
         return raw.astype(np.float32) * float(self.depth_scale)
 
     def ground_truth_at(self, stamps: np.ndarray, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -116,18 +126,46 @@ class Dataset:
 
 
 def _read_image(path: Path, grey: bool) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        data = b""
+    if jpeg_cut_short(data):
+        raise DatasetError(f"{path}: {JPEG_CUT_SHORT}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR) \
+        if data else None
     if img is None:
         raise DatasetError(f"{path}: missing or not a readable image")
     return img
 
 
-def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
-    rows = []
+JPEG_CUT_SHORT = "the JPEG is cut short (no end-of-image marker after its last scan): a truncated copy"
+
+
+def jpeg_cut_short(data: bytes) -> bool:
+    """A JPEG file that ends before its end-of-image marker: OpenCV decodes it with a warning and grey where the
+    data ended. The marker follows the last scan (an EXIF thumbnail's own marker comes before it; scan data
+    cannot hold the marker's bytes); bytes after it are allowed."""
+    if not data.startswith(b"\xff\xd8"):
+        return False
+    return data.find(b"\xff\xd9", data.rfind(b"\xff\xda")) < 0
+
+
+def _text(path: Path, what: str) -> str:
+    """The text of a dataset's text file; DatasetError naming it if it cannot be read or is not UTF-8."""
     try:
-        text = path.read_text()
+        return path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
+        raise DatasetError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}), expected {what} as plain "
+                           f"text (saved as UTF-16?)") from None
+
+
+def _numbers(path: Path, per_line: int, what: str) -> tuple[np.ndarray, list[int]]:
+    """The numbers of each line (comments and blank lines skipped) and the line numbers they are on."""
+    rows, lines = [], []
+    text = _text(path, what)
     for k, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -141,18 +179,20 @@ def _numbers(path: Path, per_line: int, what: str) -> np.ndarray:
         if not all(np.isfinite(vals)):       # float() takes 'nan' and 'inf'; a pose or time cannot be either
             raise DatasetError(f"{path}:{k}: expected finite numbers ({what}), got {line[:60]!r}")
         rows.append(vals)
+        lines.append(k)
     if not rows:
         raise DatasetError(f"{path}: empty, expected {what}")
-    return np.array(rows)
+    return np.array(rows), lines
 
 
-def _check_increasing(path: Path, stamps: np.ndarray) -> None:
-    """Frame times must increase: the replay camera plays them in order and the velocities divide by them."""
+def _check_increasing(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
+    """Frame times must increase: the replay camera plays them in order and the velocities divide by them.
+    ``lines``: the line of each time in ``path``, for the error."""
     bad = np.flatnonzero(np.diff(stamps) <= 0)
     if len(bad):
         k = int(bad[0])
-        raise DatasetError(f"{path}: entry {k + 2} ({stamps[k + 1]:g} s) is not after entry {k + 1} "
-                           f"({stamps[k]:g} s): expected increasing times")
+        raise DatasetError(f"{path}:{lines[k + 1]}: {stamps[k + 1]:g} s is not after line {lines[k]}'s "
+                           f"{stamps[k]:g} s: expected increasing times")
 
 
 def detect_layout(root: Path, fallback: Optional[str] = None) -> str:
@@ -204,6 +244,23 @@ def _refuse_unused_keys(yaml_path, extras: dict, depth: bool, right: bool, root:
                            f"image_1/; a TUM folder has none): remove baseline, or add the right images")
 
 
+def _check_numbered(folder: Path, images: list[Path]) -> None:
+    """KITTI images are numbered frames (000000.png, ...), paired with times.txt and poses.txt by position: a
+    frame left out would give every later image the time and pose of the frame before it. DatasetError names
+    the first missing (or doubled) frame's file; images not named by numbers are taken in name order."""
+    stems = [p.stem for p in images]
+    if not all(s.isdigit() for s in stems):
+        return
+    for prev, p in zip(images, images[1:]):
+        a, b = int(prev.stem), int(p.stem)
+        if b == a:
+            raise DatasetError(f"{p}: frame {a} again ({prev.name}); expected one image per frame number")
+        if b != a + 1:
+            name = f"{a + 1:0{len(prev.stem)}d}{prev.suffix}"
+            raise DatasetError(f"{folder / name}: missing (expected the frames {stems[0]} to {stems[-1]} without "
+                               f"a gap; {b - a - 1} missing before {p.name})")
+
+
 def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     left_dir = _image_dir(root, ("image_l", "image_0"))
     if left_dir is None:
@@ -215,12 +272,13 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     right = _images_in(right_dir) if right_dir is not None else None
     if right is not None and len(right) != len(left):
         raise DatasetError(f"{right_dir}: {len(right)} right images but {len(left)} left images in {left_dir}")
-    # A pair is one name in both folders: paired by place, a right folder that lost a frame and holds one
-    # more gives every later left image the right image of another exposure.
-    unpaired = next(((l, r) for l, r in zip(left, right or []) if l.stem != r.stem), None)
-    if unpaired is not None:
-        raise DatasetError(f"{right_dir}: the right image of {unpaired[0]} is {unpaired[1].name}, another frame's: "
-                           f"left and right images pair by name (image_l/NAME with image_r/NAME)")
+    if right is not None:   # a pair is two images of one name: by position, a frame missing on each side mispairs
+        lonely = sorted({p.name for p in left} ^ {p.name for p in right})
+        if lonely:
+            has, lacks = (left_dir, right_dir) if (left_dir / lonely[0]) in left else (right_dir, left_dir)
+            raise DatasetError(f"{lacks / lonely[0]}: missing, {has} has it (expected a left and a right image "
+                               f"of each name; {len(lonely)} image(s) without their partner)")
+    _check_numbered(left_dir, left)
     first = _read_image(left[0], True)
     h, w = first.shape[:2]
     calib_path = root / "calib.txt"
@@ -246,16 +304,17 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
                            f"{camera.width}x{camera.height}")
     times_path = root / "times.txt"
     if times_path.is_file():
-        stamps = _numbers(times_path, 1, "one time in seconds per line").ravel()
+        stamps, lines = _numbers(times_path, 1, "one time in seconds per line")
+        stamps = stamps.ravel()
         if len(stamps) != len(left):
             raise DatasetError(f"{times_path}: {len(stamps)} times but {len(left)} images")
-        _check_increasing(times_path, stamps)
+        _check_increasing(times_path, stamps, lines)
     else:
         stamps = np.arange(len(left)) / KITTI_RATE_HZ
     gt_stamps = gt_poses = None
     poses_path = root / "poses.txt"
     if poses_path.is_file():
-        rows = _numbers(poses_path, 12, "a row-major 3x4 camera-to-world matrix per line")
+        rows, _ = _numbers(poses_path, 12, "a row-major 3x4 camera-to-world matrix per line")
         if len(rows) != len(left):
             raise DatasetError(f"{poses_path}: {len(rows)} poses but {len(left)} images")
         gt_poses = np.tile(np.eye(4), (len(rows), 1, 1))
@@ -265,9 +324,10 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
                    extras=extras)
 
 
-def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
-    stamps, names = [], []
-    for k, line in enumerate(path.read_text().splitlines(), 1):
+def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str], list[int]]:
+    """Times, names and the line of each entry of a TUM list (comments and blank lines skipped)."""
+    stamps, names, lines = [], [], []
+    for k, line in enumerate(_text(path, f"'timestamp {what}' lines").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -281,21 +341,28 @@ def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str]]:
         if len(parts) < 2:
             raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}")
         names.append(parts[1])
+        lines.append(k)
     if not stamps:
         raise DatasetError(f"{path}: no entries (expected 'timestamp {what}' lines)")
-    return np.array(stamps), names
+    return np.array(stamps), names, lines
+
+
+def _listed(root: Path, names: list[str], list_path: Path) -> list[Path]:
+    """The files a TUM list names (relative to ``root``); DatasetError naming the first one missing."""
+    paths = [root / n for n in names]
+    for p in paths:
+        if not p.is_file():
+            raise DatasetError(f"{p}: listed in {list_path} but missing")
+    return paths
 
 
 def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     rgb_path = root / "rgb.txt"
     if not rgb_path.is_file():
         raise DatasetError(f"{rgb_path}: missing (TUM layout needs rgb.txt)")
-    stamps, names = _tum_list(rgb_path, "path/to/image.png")
-    _check_increasing(rgb_path, stamps)
-    left = [root / n for n in names]
-    for p in left:
-        if not p.is_file():
-            raise DatasetError(f"{p}: listed in {rgb_path} but missing")
+    stamps, names, lines = _tum_list(rgb_path, "path/to/image.png")
+    _check_increasing(rgb_path, stamps, lines)
+    left = _listed(root, names, rgb_path)
     yaml_path = Path(camera_yaml) if camera_yaml is not None else root / "camera.yaml"
     if not yaml_path.is_file():
         raise DatasetError(f"{yaml_path}: missing (TUM layout needs intrinsics: pass --camera FILE "
@@ -305,17 +372,24 @@ def open_tum(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     depth_path = root / "depth.txt"
     _refuse_unused_keys(yaml_path, extras, depth=depth_path.is_file(), right=False, root=root)
     if depth_path.is_file():
-        d_stamps, d_names = _tum_list(depth_path, "path/to/depth.png")
+        d_stamps, d_names, _ = _tum_list(depth_path, "path/to/depth.png")
+        d_paths = _listed(root, d_names, depth_path)
         depth = []
-        for t in stamps:  # nearest depth image within 20 ms of each colour image
+        for t in stamps:  # nearest depth image within DEPTH_MAX_DT_S of each colour image
             k = int(np.argmin(np.abs(d_stamps - t)))
-            depth.append(root / d_names[k] if abs(d_stamps[k] - t) <= 0.02 else None)
+            depth.append(d_paths[k] if abs(d_stamps[k] - t) <= DEPTH_MAX_DT_S else None)
     gt_stamps = gt_poses = None
     gt_path = root / "groundtruth.txt"
     if gt_path.is_file():
-        rows = _numbers(gt_path, 8, "timestamp tx ty tz qx qy qz qw")
-        order = np.argsort(rows[:, 0])
-        rows = rows[order]
+        rows, lines = _numbers(gt_path, 8, "timestamp tx ty tz qx qy qz qw")
+        order = np.argsort(rows[:, 0], kind="stable")       # out of order is fine: sorted
+        same = np.flatnonzero(np.diff(rows[order, 0]) == 0)
+        for k in same:                                      # a line repeated is fine; two poses at one time not
+            i, j = sorted((int(order[k]), int(order[k + 1])))
+            if not np.array_equal(rows[i], rows[j]):
+                raise DatasetError(f"{gt_path}: lines {lines[i]} and {lines[j]} are both at {rows[i, 0]:g} s with "
+                                   f"different poses: expected one pose per time")
+        rows = np.delete(rows[order], same + 1, axis=0)
         gt_stamps = rows[:, 0]
         gt_poses = np.tile(np.eye(4), (len(rows), 1, 1))
         for k, r in enumerate(rows):
@@ -343,9 +417,7 @@ def load_camera_yaml(path: str | Path) -> tuple[PinholeCamera | FisheyeCamera, d
     Returns the camera model and the remaining keys."""
     path = Path(path)
     try:
-        data = load_yaml(path.read_text())
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read camera YAML: {exc.strerror or exc}") from None
+        data = load_yaml(_text(path, "a camera YAML"))
     except yaml.YAMLError as exc:
         raise DatasetError(f"{path}: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):

@@ -227,8 +227,10 @@ class ReplayCamera(Camera):
         self._next, self._lap = k + 1, lap
         self._seq += 1
         try:
-            image = self._check_size(_read_image(self._files[k], self.opt.grey), self._files[k])
-            right = _read_image(self._right[k], True) if self._right is not None else None
+            ds = self._dataset   # a recording's own images are of its calibration's size, both sides
+            image = self._check_size(ds.image(k, self.opt.grey) if ds is not None
+                                     else _read_image(self._files[k], self.opt.grey), self._files[k])
+            right = self._check_size(ds.right_image(k), self._right[k]) if self._right is not None else None
             meta = {"index": k, "lap": lap, "path": str(self._files[k]), "dropped": int(skipped),
                     "dataset_stamp_s": float(self._stamps[k])}
             if self._depth is not None and self._dataset is not None:

@@ -258,9 +258,12 @@ def read_kitti_calib(path: str | Path, need_right: bool = True) -> StereoCalibra
     """
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise CalibrationError(f"{p}: cannot read: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"{p}: not UTF-8 text (byte {exc.start}: {exc.reason}), expected P0 and P1 lines "
+                               f"as plain text (saved as UTF-16?)") from None
     mats: dict[str, tuple[int, np.ndarray]] = {}
     bare: list[tuple[int, np.ndarray]] = []
     for n, line in enumerate(text.splitlines(), 1):

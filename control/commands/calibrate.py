@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import functools
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -62,7 +63,8 @@ def register(sub) -> None:
                                     "(the rectified rig in vbnav's stereo format: a camera.calibration_file for "
                                     "rectified images). The baseline is in the unit of --square.")
     s.add_argument("left", metavar="LEFT_DIR", help="folder of the left camera's board views")
-    s.add_argument("right", metavar="RIGHT_DIR", help="folder of the right camera's views, paired by sorted name")
+    s.add_argument("right", metavar="RIGHT_DIR", help="folder of the right camera's views, paired by sorted name "
+                   "(numbered images by their number; an image without its partner is refused)")
     _board_args(s)
     s.add_argument("--out", required=True, metavar="DIR", help="folder for the calibration files (created)")
     add_overwrite_arg(s, "calibration files already in --out")
@@ -167,6 +169,27 @@ def _images(folder: str, what: str) -> list[Path]:
     return files
 
 
+def _pair_number(p: Path) -> str | None:
+    """The number in an image's name (left03.jpg -> "03"), None if it has none or several."""
+    found = re.findall(r"\d+", p.stem)
+    return found[0] if len(found) == 1 else None
+
+
+def _check_pair_numbers(left: list[Path], right: list[Path], left_dir: Path, right_dir: Path) -> None:
+    """Stereo views are paired by sorted name; when every image is numbered (left03.jpg, right03.jpg), a pair
+    must be of one number: with a view missing on each side, pairing by position calibrated left04 with
+    right03 and so on. InputError names the first image without a partner."""
+    nl, nr = [_pair_number(p) for p in left], [_pair_number(p) for p in right]
+    if None in nl + nr or len(set(nl)) != len(nl) or len(set(nr)) != len(nr):
+        return                                          # not numbered views: by sorted name, as documented
+    for (files, nums, side), (other, other_dir) in (((right, nr, "left"), (set(nl), left_dir)),
+                                                    ((left, nl, "right"), (set(nr), right_dir))):
+        for f, n in zip(files, nums):
+            if n not in other:
+                raise InputError(f"{f}: no {side} image numbered {n} in {other_dir} (a stereo view is a left and "
+                                 f"a right image of one number)")
+
+
 def _out_folder(text: str) -> Path:
     """--out: a folder to create (or one that exists), checked before any view is examined."""
     out = Path(text)
@@ -179,10 +202,9 @@ def _out_folder(text: str) -> Path:
 
 
 def _grey(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise InputError(f"{path}: not a readable image")
-    return img
+    """The view in grey; InputError naming the file if it is unreadable or cut short (datasets' reader)."""
+    from vbnav.drivers.datasets import _read_image
+    return _read_image(path, True)
 
 
 def _min_sharpness(args) -> float:
@@ -344,6 +366,7 @@ def run_stereo(args) -> int:
                      + [out / "stereo_opencv.yaml", out / "stereo.yaml"], f"--out {out}", args.overwrite,
                      "a calibration is")
     left, right = _images(args.left, "LEFT_DIR"), _images(args.right, "RIGHT_DIR")
+    _check_pair_numbers(left, right, Path(args.left), Path(args.right))
     if len(left) != len(right):
         raise InputError(f"{args.left} has {len(left)} images, {args.right} has {len(right)}: expected pairs "
                          f"(matched by sorted name)")

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, output_file, positive
-from vbnav.control.image_files import read_image, write_json, write_png
+from vbnav.control.image_files import pair_problem, read_image, write_json, write_png
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
 
@@ -91,9 +91,9 @@ def run(args) -> int:
         calib = load_stereo_calibration(args.calib, raw_images=True)
         left = read_image(args.left, "left image")
         right = read_image(args.right, "right image")
-        if left.shape[:2] != right.shape[:2]:
-            return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
-                        f"{right.shape[1]}x{right.shape[0]}")
+        why = pair_problem(left, right, args.left, args.right)
+        if why:
+            return _bad(why)
         left, right = calib.rectify(left, right)
         h, w = left.shape[:2]
         rig = calib.rig(w, h)

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, finite, non_negative, output_file, positive
-from vbnav.control.image_files import read_image, write_png
+from vbnav.control.image_files import pair_problem, read_image, write_png
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.ground_model import GroundModelParams
@@ -240,9 +240,9 @@ def run(args) -> int:
         else:
             left = read_image(args.left, "left image")
             right = read_image(args.right, "right image")
-            if left.shape[:2] != right.shape[:2]:
-                return _bad(f"left {args.left} is {left.shape[1]}x{left.shape[0]} but right {args.right} is "
-                            f"{right.shape[1]}x{right.shape[0]}")
+            why = pair_problem(left, right, args.left, args.right)
+            if why:
+                return _bad(why)
             image, disp, source = left, None, "sgbm"
         h, w = (disp.shape if disp is not None else image.shape[:2])
         if image is not None and image.shape[:2] != (h, w):

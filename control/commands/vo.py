@@ -11,6 +11,8 @@ from vbnav.drivers.atomic_file import atomic_output, write_atomic
 
 GROUND_TRUTH_FILE = {"kitti": "poses.txt", "tum": "groundtruth.txt"}
 #: The files of a dataset folder besides its images (drivers/datasets.py): never an output.
+#: How far (s) a ground-truth pose may be from a frame's time to be its ground truth.
+GT_MAX_DT_S = 0.02
 DATASET_FILES = ("calib.txt", "times.txt", "poses.txt", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml")
 
 
@@ -47,9 +49,11 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from vbnav.control.trajectory_metrics import ate_rmse, rpe, scale_to, write_tum
+    import numpy as np
+
+    from vbnav.control.trajectory_metrics import ate_rmse, rpe, rpe_pairs, scale_to, write_tum
     from vbnav.control.vo import VoError, run_vo
-    from vbnav.drivers.datasets import DatasetError, open_dataset
+    from vbnav.drivers.datasets import DEPTH_MAX_DT_S, DatasetError, open_dataset
     from vbnav.vision.vslam import VslamConfig
 
     from vbnav.control.commands._common import distinct_files, output_file
@@ -91,20 +95,30 @@ def run(args) -> int:
     write_tum(args.out, res.stamps, res.poses)
     if args.status_out:
         _write_status(args.status_out, res.status)
+    no_depth = [i for i, d in enumerate(ds.depth or []) if d is None] if res.init == "depth" else []
+    if no_depth:
+        print(f"{len(no_depth)} of {len(ds)} frames have no depth image within {DEPTH_MAX_DT_S:g} s in "
+              f"{ds.root / 'depth.txt'} (frame{'s' if len(no_depth) > 1 else ''} {_ranges(no_depth)}): "
+              f"tracked without depth")
     lost = res.count("lost")
     print(f"pose for {len(res.stamps)}/{len(ds)} frames in {dt:.1f} s ({len(ds) / max(dt, 1e-9):.1f} fps): "
           f"{res.count('init')} initialisation, {res.count('tracked')} tracked, {res.count('reinit')} "
           f"re-initialised, {lost} lost; {res.references} reference frame(s); trajectory written to {args.out}")
     if ds.gt_poses is not None:
-        ok, gt = ds.ground_truth_at(res.stamps)
+        ok, gt = ds.ground_truth_at(res.stamps, GT_MAX_DT_S)
+        if not ok.all():
+            missing = [res.frames[k] for k in np.flatnonzero(~ok)]
+            print(f"{len(missing)} of {len(ok)} frames with a pose have no ground truth within {GT_MAX_DT_S:g} s "
+                  f"(frame{'s' if len(missing) > 1 else ''} {_ranges(missing)}): left out of ATE and RPE")
         if ok.sum() >= 3:
             est, gt = res.poses[ok], gt[ok]
+            frames = np.asarray(res.frames)[ok]
             ate, aligned = ate_rmse(est, gt, with_scale=not res.scale_known)
-            t_rpe, r_rpe = rpe(est if res.scale_known else scale_to(est, gt), gt)
+            t_rpe, r_rpe = rpe(est if res.scale_known else scale_to(est, gt), gt, frames=frames)
             kind = "SE(3)" if res.scale_known else "Sim(3) (monocular, scale unknown)"
             print(f"ATE RMSE {ate:.4f} m ({kind} alignment, {int(ok.sum())} poses); "
-                  f"RPE (1 frame{'' if res.scale_known else ', after the Sim(3) scale'}) {t_rpe:.4f} m, "
-                  f"{r_rpe:.3f} deg")
+                  f"RPE (1 frame, {len(rpe_pairs(len(frames), 1, frames))} pairs"
+                  f"{'' if res.scale_known else ', after the Sim(3) scale'}) {t_rpe:.4f} m, {r_rpe:.3f} deg")
             if args.plot:
                 _plot_trajectory(args.plot, aligned, gt[:, :3, 3], f"{ds.root.name}: ATE {ate:.3f} m")
         else:
@@ -115,6 +129,17 @@ def run(args) -> int:
               f"--max-lost {args.max_lost:g}", file=sys.stderr)
         return 1
     return 0
+
+
+def _ranges(frames: list[int]) -> str:
+    """Frame numbers as ranges: 3, 7-9, 12."""
+    out, start = [], None
+    for k, f in enumerate(frames):
+        start = f if start is None else start
+        if k + 1 == len(frames) or frames[k + 1] != f + 1:
+            out.append(f"{start}" if start == f else f"{start}-{f}")
+            start = None
+    return ", ".join(out)
 
 
 def _write_status(path: str, status) -> None:
