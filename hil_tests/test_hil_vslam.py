@@ -40,8 +40,10 @@ def test_loop_return_against_reference_set_beats_chaining_fivefold():
     # up to the end of the run.
     assert i >= len(r.stamps) - 3, (i, len(r.stamps))
     # measured 0.077 cm against chained 6.97 cm (ratio 0.011; the issue asked for 0.2) and 0.031 deg
-    # on 2026-11-30, bars 2x
-    assert e["vslam_m"] <= 0.025 * e["chained_m"], e
+    # on 2026-11-30, bars 2x; since the robot waits for the camera's first frame (30 ms of simulated vision
+    # latency), 0.14 cm against 5.17 cm (ratio 0.027) and 0.066 deg: the frames sample the lap 30 ms later,
+    # and millimetre errors move that much with it. Ratio bar 2x of that.
+    assert e["vslam_m"] <= 0.055 * e["chained_m"], e
     assert e["vslam_deg"] <= 0.07
 
 

@@ -204,7 +204,11 @@ def test_frames_refused_now_and_then_are_said_not_dropped_silently(inline):
 
     rt, result, drive = run(every_other, inline, duration_s=3.0 + REFUSED_WARN_EVERY_S)
     assert result.reason == "duration", result
-    assert not [e for e in result.events if e.kind == "hold"], "a camera at half its rate is not stale"
+    # the vision thread's first frame may reach the loop a cycle or two after the start: held until then (the
+    # robot does not move before the camera's first frame), and released at it
+    assert not [e for e in result.events if e.kind == "hold" and e.cause != "camera_waiting"], \
+        "a camera at half its rate is not stale"
+    assert all(e.stamp_ns < BAD_AT for e in result.events if e.cause == "camera_waiting")
     warnings = [e for e in result.events if e.kind == "warning" and e.cause == "camera_frames_refused"]
     assert len(warnings) == 2, [e.as_dict() for e in result.events]
     first, second = warnings

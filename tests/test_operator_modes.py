@@ -116,7 +116,8 @@ def test_a_refused_mode_command_is_never_acknowledged_and_the_teach_goes_on(tmp_
     def teleop(r):
         r.submit(OperatorCommand("teleop", (0.3, 0.0), "op"))
 
-    actions = {c: teleop for c in range(0, 400, 10)}
+    # teleop from cycle 10: before the camera's first frame (the simulated vision latency) it is refused
+    actions = {c: teleop for c in range(10, 400, 10)}
     actions[5] = lambda r: r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T1"))
     actions[150] = lambda r: (r.submit(OperatorCommand("mode", ("repeat", "missing"), "op", ack="R1")),
                               r.submit(OperatorCommand("mode", ("teach", "hall"), "op", ack="T2")))

@@ -582,12 +582,15 @@ class Runtime:
         # From the last fresh frame (a frozen camera's frames come on time with the image it froze on), by
         # its stamp or its reception on this clock, whichever is earlier (a stamp ahead of the clock).
         since = self.pipeline.last_fresh_ns
-        if since is None:  # grace period at start-up: the camera may take a moment
-            stale = now - self._start_ns > (limit + 2.0) * 1e9
+        if since is None:  # no frame yet: held from the first cycle, said stale once the camera had time to start
             age = (now - self._start_ns) * 1e-9
+            stale = self._started_too_long_ago(now, limit)
+            self.safety.hold(now, "camera_waiting", not stale, f"camera {cam.name}: waiting for its first frame "
+                                                               f"(the wheels are held until it comes)")
         else:
             age = (now - since) * 1e-9
             stale = age > limit
+            self.safety.hold(now, "camera_waiting", False)
         if self.pipeline.frozen.frozen:
             why = (f"camera {cam.name} frozen: the same image for {age:.2f} s while the wheels moved "
                    f"(limit {limit:g} s, camera.stale_after_s)")
@@ -604,6 +607,11 @@ class Runtime:
             why += f": {cam.error}"
         self.safety.hold(now, "camera_stale", stale, why)
         self._warn_refused(now, cam.name)
+
+    def _started_too_long_ago(self, now: int, limit_s: float) -> bool:
+        """No frame (or estimate) since the start and ``limit_s`` + 2 s have passed: what waited for it (the
+        ``*_waiting`` hold, from the first cycle) is now said as stale. The 2 s are the device's start-up."""
+        return now - self._start_ns > (limit_s + 2.0) * 1e9
 
     def _warn_refused(self, now: int, camera: str) -> None:
         """A ``warning`` for frames the pipeline refused since the last one, at most every REFUSED_WARN_EVERY_S."""
@@ -633,19 +641,23 @@ class Runtime:
     def _check_estimates(self, ctx: ControlContext) -> None:
         """Stages the controller needs, and safety-critical stages (obstacles), must stay fresh."""
         limit = self.cfg.safety.estimate_timeout_s
-        kinds = list(self.controller.requires)
-        if self.pipeline is not None:
-            kinds += [s.kind for s in self.pipeline.stages if s.safety_critical]
+        critical = [s.kind for s in self.pipeline.stages if s.safety_critical] if self.pipeline is not None else []
+        kinds = list(self.controller.requires) + critical
         for kind in kinds:
             e = ctx.estimates.get(kind)
-            stale = e is None and ctx.now_ns - self._start_ns > (limit + 2.0) * 1e9 \
+            stale = e is None and self._started_too_long_ago(ctx.now_ns, limit) \
                 or (e is not None and e.age_s(ctx.now_ns) > limit)
             self.safety.hold(ctx.now_ns, f"{kind}_stale", stale, f"no {kind} estimate newer than {limit:g} s")
+            if kind in critical:    # the robot does not move before a safety-critical stage's first estimate
+                self.safety.hold(ctx.now_ns, f"{kind}_waiting", e is None and not stale,
+                                 f"waiting for the first {kind} estimate (stage {kind}; the wheels are held "
+                                 f"until it comes)")
         # A kind no longer needed (the operator left repeat, which needs vbc): its hold is cleared, not kept
         # for good with nothing left to release it.
         gone = self._estimate_kinds - set(kinds)
         for kind in list(gone):
             self.safety.hold(ctx.now_ns, f"{kind}_stale", False)
+            self.safety.hold(ctx.now_ns, f"{kind}_waiting", False)
             if f"{kind}_stale" not in self.safety.holds:
                 gone.discard(kind)
         self._estimate_kinds = set(kinds) | gone

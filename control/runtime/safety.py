@@ -12,7 +12,8 @@ Two kinds of stop:
   by itself once it has been clear for ``release_s`` (debounce): a stale camera
   frame, a stale vision estimate, a silent command stream, an obstacle. The
   silent command stream and the obstacle (debounced by its stage) release at once
-  (``RELEASE_AT_ONCE``).
+  (``RELEASE_AT_ONCE``), and so do the start-up holds that wait for the camera's
+  first frame or a safety-critical stage's first estimate (``*_waiting``).
 
 Every change is an event (time, kind, cause, message), told to the listeners
 (telemetry, the console) as it happens and kept for the run report in an
@@ -37,6 +38,10 @@ FATAL = ("exception", "signal", "deadline", "drive", "camera", "network")
 #: The obstacle stop is debounced by the obstacle stage itself (``obstacles.release_s``, after its k-of-n
 #: persistence): a second debounce here would make the configured release time the sum of both.
 RELEASE_AT_ONCE = ("command_timeout", "obstacle")
+#: Held causes named ``<what>_waiting`` (``camera_waiting``, ``obstacles_waiting``) hold the robot at start-up until
+#: the camera's first fresh frame, or a safety-critical stage's first estimate, comes. They release at once too: the
+#: first frame is the news they wait for, not a stream that may flicker (which ``release_s`` debounces).
+WAITING = "_waiting"
 
 
 @dataclass
@@ -151,11 +156,14 @@ class SafetyMonitor:
         if cause not in self.holds:
             return
         since = self._clear_since.setdefault(cause, now_ns)
-        release_s = 0.0 if cause in RELEASE_AT_ONCE else self.release_s
+        waiting = cause.endswith(WAITING)
+        release_s = 0.0 if cause in RELEASE_AT_ONCE or waiting else self.release_s
         if now_ns - since >= release_s * 1e9:
             del self.holds[cause]
             del self._clear_since[cause]
-            self._emit(SafetyEvent(now_ns, "release", cause, f"{cause} clear for {release_s:g} s"))
+            # a wait ends with what it waited for, or with the stale hold that takes over (its own event)
+            self._emit(SafetyEvent(now_ns, "release", cause, f"{cause} ended" if waiting
+                                   else f"{cause} clear for {release_s:g} s"))
 
     def reset(self, now_ns: int, message: str = "operator resume") -> list[str]:
         """Clear the non-fatal latched stops (estop). Fatal ones need a restart."""
