@@ -38,7 +38,19 @@ def run(args) -> int:
                              "and reads no file (--config goes with check and show)")
         print(reference_markdown(Config))
         return 0
-    cfg = load_config(args.config)
+    if args.action == "show":
+        # depthai prints its import warnings on stdout (the OAK options are checked against it): they go to
+        # stderr, so what show prints is the configuration alone and can be saved and loaded back
+        sys.stdout.flush()
+        saved = os.dup(1)
+        os.dup2(2, 1)
+        try:
+            cfg = load_config(args.config)
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+    else:
+        cfg = load_config(args.config)
     if args.action == "show":
         import yaml
         print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))

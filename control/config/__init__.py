@@ -343,9 +343,14 @@ class Config(Strict):
         # written) are cut as documented ("at most robot.max_linear_speed").
         v_max = self.robot.max_linear_speed
         for key, section in (("vbc.cruise_speed", self.vbc), ("vslam.goto.cruise_speed", self.vslam.goto)):
-            if "cruise_speed" in section.model_fields_set and section.cruise_speed > v_max:
+            if section.cruise_speed <= v_max:
+                continue
+            if "cruise_speed" in section.model_fields_set:
                 raise ValueError(f"{key} {section.cruise_speed:g} m/s is above robot.max_linear_speed {v_max:g} m/s: "
                                  f"it would be cut to {v_max:g} m/s (lower {key}, or raise the robot's limit)")
+            # the default, cut here rather than at use: 'vbnav config show' prints the speed driven, and what
+            # it prints loads back
+            section.cruise_speed = v_max
         return self
 
     @model_validator(mode="after")

@@ -26,6 +26,16 @@ class Strict(PlainValues):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+def written(model, name: str) -> bool:
+    """Whether a configuration wrote ``name`` with a value other than its default. The refusals of settings
+    written where they do not apply use it: ``vbnav config show`` prints every field, defaults included, and
+    what it prints must load back (a default is what the setting does anyway, wherever it is written)."""
+    if name not in model.model_fields_set:
+        return False
+    value = model.model_dump(include={name})[name]        # a field by name, not a probe of a capability
+    return value != type(model).model_fields[name].get_default(call_default_factory=True)
+
+
 def format_loc(loc) -> str:
     """A pydantic error location as a key path: ('vbc', 'max_features') -> 'vbc.max_features'."""
     return ".".join(str(p) for p in loc) or "<top level>"

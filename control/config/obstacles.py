@@ -5,7 +5,7 @@ import math
 from typing import Literal, Optional
 
 from pydantic import Field, model_validator
-from vbnav.control.config.base import Strict
+from vbnav.control.config.base import Strict, written
 
 
 class ZoneConfig(Strict):
@@ -32,7 +32,7 @@ class ZoneConfig(Strict):
             raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
         if self.polygon is not None and not all(math.isfinite(v) for vertex in self.polygon for v in vertex):
             raise ValueError(f"zone {self.name!r}: polygon vertices must be finite numbers, m")
-        if self.action == "stop" and "slow_scale" in self.model_fields_set:
+        if self.action == "stop" and written(self, "slow_scale"):
             raise ValueError(f"zone {self.name!r}: slow_scale {self.slow_scale:g} is the speed factor of a slow "
                              f"zone, and this zone has action: stop (it stops the robot); set action: slow, or "
                              f"remove slow_scale")
@@ -94,7 +94,7 @@ class ObstaclesConfig(Strict):
             raise ValueError(f"persist_k ({self.persist_k}) must be <= persist_n ({self.persist_n})")
         if self.sgbm_block_size % 2 == 0:
             raise ValueError(f"sgbm_block_size must be odd, got {self.sgbm_block_size}")
-        unused = sorted({"sgbm_block_size", "sgbm_near_margin"} & self.model_fields_set)
+        unused = [k for k in ("sgbm_block_size", "sgbm_near_margin") if written(self, k)]
         if self.source == "disparity" and unused:
             raise ValueError(f"{' and '.join(unused)} {'set' if len(unused) > 1 else 'sets'} the stereo matching "
                              f"(SGBM), which source: disparity never "

@@ -4,7 +4,7 @@ from __future__ import annotations
 from typing import Literal
 
 from pydantic import Field, model_validator
-from vbnav.control.config.base import Strict
+from vbnav.control.config.base import Strict, written
 from vbnav.vision.vslam import VslamConfig
 
 
@@ -93,14 +93,14 @@ class VslamNavConfig(VslamConfig, Strict):
     @model_validator(mode="after")
     def _settings_that_apply(self):
         # written where they do not apply, these were accepted and never read
-        given = self.model_fields_set
+        given = [k for k in self.model_fields_set if written(self, k)]
         unused = [(k, "a single camera's scale (metric_scale odometry)") for k in sorted(given)
                   if k.startswith("odometry_") and self.metric_scale == "stereo"]
         if "stereo_max_depth_baselines" in given and self.metric_scale == "odometry":
             unused.append(("stereo_max_depth_baselines", "a stereo pair's landmarks (metric_scale stereo)"))
         unused += [(k, "the bundle adjustment (ba_window > 0)") for k in ("ba_history", "ba_outlier_sigmas")
                    if k in given and self.ba_window == 0]
-        if "init_creep_speed" in self.goto.model_fields_set and self.metric_scale == "stereo":
+        if written(self.goto, "init_creep_speed") and self.metric_scale == "stereo":
             unused.append(("goto.init_creep_speed", "the drive while a single camera initialises (metric_scale "
                                                     "odometry)"))
         if unused:
