@@ -190,23 +190,23 @@ class IncrementalGrid:
         self._items = items
         self.redrawn = len(changed)
         if len(changed) > 64:           # most of the grid: the whole of it at once
-            occ = np.zeros((H, W), np.uint8)
             self._count[:] = 0
             for item, k in items.items():
-                x0, z0, x1, z1 = _bbox(item)
-                mask = np.zeros((z1 - z0 + 1, x1 - x0 + 1), np.uint8)
-                _draw(mask, item, (x0, z0))
-                self._count[z0:z1 + 1, x0:x1 + 1] += mask * np.uint16(k)
+                self._add(item, k)
             self._window(0, 0, W - 1, H - 1)
             return self.grid
         for item, k in changed:
-            x0, z0, x1, z1 = _bbox(item)
-            mask = np.zeros((z1 - z0 + 1, x1 - x0 + 1), np.uint8)
-            _draw(mask, item, (x0, z0))
-            cnt = self._count[z0:z1 + 1, x0:x1 + 1].astype(np.int32) + mask.astype(np.int32) * k
-            self._count[z0:z1 + 1, x0:x1 + 1] = cnt
-            self._window(x0, z0, x1, z1)
+            self._window(*self._add(item, k))
         return self.grid
+
+    def _add(self, item: tuple, k: int) -> tuple[int, int, int, int]:
+        """Count ``item`` k more times (k < 0: fewer) in the cells it covers; returns its cells' box."""
+        x0, z0, x1, z1 = _bbox(item)
+        mask = np.zeros((z1 - z0 + 1, x1 - x0 + 1), np.uint8)
+        _draw(mask, item, (x0, z0))
+        cnt = self._count[z0:z1 + 1, x0:x1 + 1].astype(np.int32) + mask.astype(np.int32) * k
+        self._count[z0:z1 + 1, x0:x1 + 1] = cnt
+        return x0, z0, x1, z1
 
     def _window(self, x0: int, z0: int, x1: int, z1: int) -> None:
         """Occupied and blocked again over the cells (x0..x1, z0..z1) and the margin around them."""
