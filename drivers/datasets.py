@@ -10,7 +10,8 @@ KITTI odometry layout (a folder):
     times.txt                optional: one time in seconds per frame; 10 Hz otherwise
 
 TUM RGB-D layout (a folder):
-    rgb.txt                  ``timestamp path`` per line, ``#`` comments
+    rgb.txt                  ``timestamp path`` per line, ``#`` comments (a path with spaces is read whole;
+                             any other third column is refused)
     depth.txt                optional, same format (16-bit PNG, or .npz with key ``data``)
     groundtruth.txt          optional: ``timestamp tx ty tz qx qy qz qw`` camera-to-world
     camera.yaml              intrinsics (or a file given explicitly), see ``load_camera_yaml``
@@ -340,7 +341,11 @@ def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str], list[int]]:
             raise DatasetError(f"{path}:{k}: expected a finite timestamp, got {line[:60]!r}")
         if len(parts) < 2:
             raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}")
-        names.append(parts[1])
+        name = line[len(parts[0]):].strip()
+        if len(parts) > 2 and not (path.parent / name).is_file():   # a name with spaces is read whole if it is one
+            raise DatasetError(f"{path}:{k}: expected 'timestamp filename', got {len(parts)} columns "
+                               f"({line[:60]!r}), and {name!r} is not a file in {path.parent}")
+        names.append(name)
         lines.append(k)
     if not stamps:
         raise DatasetError(f"{path}: no entries (expected 'timestamp {what}' lines)")
