@@ -339,3 +339,22 @@ def test_vo_writes_the_trajectory_so_far_when_an_image_mid_run_cannot_be_read(sh
     states = [line.split()[1] for line in status.read_text().splitlines()[1:]]
     assert states[:3] == ["init", "tracked", "tracked"] and states[3:] == ["lost", "lost"]
     assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == ["status.txt", "traj.txt"]  # no temp left
+
+
+def test_left_and_right_image_folders_swapped_are_refused(shared_data, tmp_path):
+    """image_l/ holding the right camera's images and image_r/ the left's (a copy mislabelled): every disparity
+    had the wrong sign, stereo depth behind the camera, and the dataset opened without a word. The first pair
+    is checked: most matched features must lie further right in the left image; refused naming both folders."""
+    src, view = shared_data / "kitti06_stereo", tmp_path / "swapped"
+    for sub, other in (("image_l", "image_r"), ("image_r", "image_l")):
+        (view / sub).mkdir(parents=True)
+        for p in sorted((src / other).glob("*.png"))[:3]:
+            (view / sub / p.name).symlink_to(p)
+    (view / "calib.txt").write_text((src / "calib.txt").read_text())
+    with pytest.raises(DatasetError, match=re.escape(f"{view / 'image_l'} and {view / 'image_r'}") +
+                       r": .*swapped"):
+        open_dataset(view)
+    (view / "image_l").rename(view / "tmp")
+    (view / "image_r").rename(view / "image_l")
+    (view / "tmp").rename(view / "image_r")
+    assert len(open_dataset(view)) == 3                     # the right way round opens as before
