@@ -46,12 +46,15 @@ class LiveMap:
         except ValueError as exc:
             return None, str(exc)
 
-    def attach(self, controller, simulated_clock: bool, start: Pose2, goal_map: Pose2, robot_radius: float) -> None:
+    def attach(self, controller, simulated_clock: bool, start: Pose2, goal_map: Pose2, robot_radius: float,
+               goal_moved_m: float | None = None) -> None:
         """Once the robot and the controller exist: the clock decides inline or threads; the re-planner
-        steers ``controller`` from ``start`` (the robot's start pose in the map) to ``goal_map``."""
+        steers ``controller`` from ``start`` (the robot's start pose in the map) to ``goal_map``;
+        ``goal_moved_m``: how far the start plan ended from it (a goal in the planner's margin), None at it."""
         self.stage.inline = simulated_clock
         self.replanner = Replanner(self.line_stage, self.meta, start, goal_map, robot_radius, controller,
                                    lambda: controller.pose)
+        self.replanner.goal_moved_m = goal_moved_m     # the map freeing the goal sends the robot to it
 
     @property
     def inline(self) -> bool:

@@ -61,7 +61,14 @@ def plan_path(lmap, meta: dict, start, goal, robot_radius: float):
     from vbnav.vision.nav_grid import plan
 
     grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
-    return plan(grid, (start.x, start.z), (goal.x, goal.z))
+    return plan(grid, (start.x, start.z), (goal.x, goal.z), GOAL_TOLERANCE_M)   # the re-planner's rule too
+
+
+def goal_moved_note(goal, moved: float, margin: str, what: str = "the goal") -> str:
+    """What the planner did with a goal in its margin, ``moved`` m from the path's end (the start plan and the
+    re-planner say it alike)."""
+    return (f"{what} ({goal.x:+.2f}, {goal.z:+.2f}) lies within {margin} (no mapped obstacle on it); the route "
+            f"ends at the nearest free point, {moved:.3f} m from it (tolerance {GOAL_TOLERANCE_M:.2f} m)")
 
 
 def no_path_reason(lmap, meta: dict, start, goal, robot_radius: float) -> str:
@@ -69,26 +76,29 @@ def no_path_reason(lmap, meta: dict, start, goal, robot_radius: float) -> str:
     goal walled off."""
     import numpy as np
 
+    from vbnav.vision.nav_grid import goal_cells
+
     grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
     keep = (f"{grid.grown_m:.2f} m (--robot-radius {robot_radius:g} m + {grid.grown_m - robot_radius:.2f} m "
             f"clearance)")
     if grid.occupied[grid.cell(start.x, start.z)]:
         return (f"the --start ({start.x:+.2f}, {start.z:+.2f}) lies on a mapped wall or inside a mapped object: "
                 f"give the robot's pose in the map")
-    if not grid.is_free(goal.x, goal.z):
-        return (f"the --goal ({goal.x:+.2f}, {goal.z:+.2f}) lies within {keep} of a mapped wall or object: "
-                f"give a goal farther from it")
+    if not goal_cells(grid, (goal.x, goal.z), GOAL_TOLERANCE_M):
+        return (f"the --goal ({goal.x:+.2f}, {goal.z:+.2f}) lies within {keep} of a mapped wall or object, more "
+                f"than {GOAL_TOLERANCE_M:.2f} m inside that margin (or on the wall): give a goal farther from it")
     return (f"no path from ({start.x:+.2f}, {start.z:+.2f}) to the --goal ({goal.x:+.2f}, {goal.z:+.2f}) keeps "
             f"{keep} from the mapped walls and objects: walls stand between them, or the way is too narrow")
 
 
 def map_route_in_reference_frame(planned, start, goal):
-    """The planned path's intermediate waypoints and the goal, moved from the map's frame into the goto
+    """The planned path's intermediate waypoints and its end with the goal's heading (the goal itself, or the
+    nearest free point of a goal in the planner's margin), moved from the map's frame into the goto
     controller's reference frame (the robot's pose at the start, ``start`` in the map)."""
     from vbnav.vision.geometry import Pose2
 
     ref = [start.between(Pose2(x, z, 0.0)) for x, z in planned[1:-1]]
-    return [(p.x, p.z) for p in ref], start.between(goal)
+    return [(p.x, p.z) for p in ref], start.between(Pose2(*planned[-1], goal.theta))
 
 
 def sim_start_problem(cfg, meta: dict, map_path: str, start) -> str:
@@ -266,8 +276,7 @@ class Replanner:
         why = ("the route ahead crosses what the map now holds" if not back_to_goal else
                f"the map frees {goal} again")
         if self.goal_moved_m is not None:
-            why = (f"{goal} now lies within {margin} (no mapped obstacle on it: the map's noise); the route "
-                   f"ends at the nearest free point, {moved:.3f} m from it (tolerance {GOAL_TOLERANCE_M:.2f} m)")
+            why = goal_moved_note(self.goal, moved, margin).replace(" lies within", " now lies within", 1)
         return self._say(f"{at}: {why}; re-planned: " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
 
     def _say(self, msg: str) -> str:

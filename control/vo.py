@@ -10,7 +10,7 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
-from vbnav.drivers.datasets import Dataset
+from vbnav.drivers.datasets import Dataset, DatasetError
 from vbnav.drivers.errors import InputError
 from vbnav.vision.geometry import similarity_moved
 from vbnav.vision.motion import recover_motion_robust
@@ -37,6 +37,15 @@ RELOCALISE_MIN_INLIERS = 20
 
 class VoError(InputError):
     """The dataset cannot be processed with the chosen initialisation."""
+
+
+class VoStopped(VoError):
+    """A frame could not be read mid-run: the message names its file; ``result`` is the trajectory up to it
+    (the frames from it on have no pose)."""
+
+    def __init__(self, message: str, result: "VoResult"):
+        super().__init__(message)
+        self.result = result
 
 
 @dataclass
@@ -198,35 +207,39 @@ def run_vo(ds: Dataset, init: Optional[str] = None, config: Optional[VslamConfig
     restarted_at = None  # first frame of the current run while it is not yet relocalised
     last_seen = slam.world_landmarks()
     i = start
-    while i < len(ds):
-        r = slam.process(ds.image(i), ds.right_image(i) if init == "stereo" else None,
-                         ds.depth_image(i) if init == "depth" else None)
-        results.append(r)
-        if r.ok:
-            traj.put(i, "tracked", r.pose_wc, r.tracked, r.inliers)
-            traj.adjust(slam, i)
-            last_seen = slam.world_landmarks()  # what to relocalise against should this run be lost
-            if restarted_at is not None and _relocalise(ds, slam, i, restarted_at, kept_w, kept_desc, traj, say,
-                                                         scale_known):
-                restarted_at = None
-        if i % 10 == 0 or i == len(ds) - 1 or not r.ok:
-            say(f"frame {i}/{len(ds) - 1}: {'ok' if r.ok else 'LOST'} landmarks {r.tracked} inliers {r.inliers} "
-                f"iterations {r.iterations} residual {r.residual_px:.2f} px references "
-                f"{earlier_refs + len(slam.references)}")
-        i += 1
-        if r.ok:
-            continue
-        refs = len(slam.references)
-        w, d = last_seen
-        kept_w, kept_desc = np.vstack((kept_w, w))[-MAX_KEPT:], np.vstack((kept_desc, d))[-MAX_KEPT:]
-        last_seen = (np.zeros((0, 3)), np.zeros((0, 32), np.uint8))  # kept once, not once per lost frame
-        nxt = _restart(ds, slam, init, i - 1, traj, essential_frames, say)
-        if nxt is None:
-            traj.put(i - 1, "lost", None, r.tracked, r.inliers)
-        else:
-            earlier_refs += refs
-            restarted_at = i - 1
-            i = nxt
+    try:
+        while i < len(ds):
+            r = slam.process(ds.image(i), ds.right_image(i) if init == "stereo" else None,
+                             ds.depth_image(i) if init == "depth" else None)
+            results.append(r)
+            if r.ok:
+                traj.put(i, "tracked", r.pose_wc, r.tracked, r.inliers)
+                traj.adjust(slam, i)
+                last_seen = slam.world_landmarks()  # what to relocalise against should this run be lost
+                if restarted_at is not None and _relocalise(ds, slam, i, restarted_at, kept_w, kept_desc, traj,
+                                                             say, scale_known):
+                    restarted_at = None
+            if i % 10 == 0 or i == len(ds) - 1 or not r.ok:
+                say(f"frame {i}/{len(ds) - 1}: {'ok' if r.ok else 'LOST'} landmarks {r.tracked} "
+                    f"inliers {r.inliers} iterations {r.iterations} residual {r.residual_px:.2f} px references "
+                    f"{earlier_refs + len(slam.references)}")
+            i += 1
+            if r.ok:
+                continue
+            refs = len(slam.references)
+            w, d = last_seen
+            kept_w, kept_desc = np.vstack((kept_w, w))[-MAX_KEPT:], np.vstack((kept_desc, d))[-MAX_KEPT:]
+            last_seen = (np.zeros((0, 3)), np.zeros((0, 32), np.uint8))  # kept once, not once per lost frame
+            nxt = _restart(ds, slam, init, i - 1, traj, essential_frames, say)
+            if nxt is None:
+                traj.put(i - 1, "lost", None, r.tracked, r.inliers)
+            else:
+                earlier_refs += refs
+                restarted_at = i - 1
+                i = nxt
+    except DatasetError as exc:      # an unreadable frame: what was tracked before it is kept
+        raise VoStopped(str(exc), traj.result(init, scale_known, earlier_refs + len(slam.references),
+                                              results)) from None
     return traj.result(init, scale_known, earlier_refs + len(slam.references), results)
 
 

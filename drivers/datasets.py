@@ -2,7 +2,9 @@
 
 KITTI odometry layout (a folder):
     image_l/*.png            left images (``image_0/`` is accepted too), sorted by name
-    image_r/*.png            optional right images (``image_1/``), the same names (a pair is one name)
+    image_r/*.png            optional right images (``image_1/``), the same names (a pair is one name); the
+                             first pair's matched features must mostly have a positive disparity (left
+                             minus right): folders swapped are refused
     calib.txt                P0 and P1 3x4 projection matrices, one per line
                              (with or without the ``P0:`` labels; read by
                              ``stereo_calib.read_kitti_calib``)
@@ -10,7 +12,8 @@ KITTI odometry layout (a folder):
     times.txt                optional: one time in seconds per frame; 10 Hz otherwise
 
 TUM RGB-D layout (a folder):
-    rgb.txt                  ``timestamp path`` per line, ``#`` comments
+    rgb.txt                  ``timestamp path`` per line, ``#`` comments (a path with spaces is read whole;
+                             any other third column is refused)
     depth.txt                optional, same format (16-bit PNG, or .npz with key ``data``)
     groundtruth.txt          optional: ``timestamp tx ty tz qx qy qz qw`` camera-to-world
     camera.yaml              intrinsics (or a file given explicitly), see ``load_camera_yaml``
@@ -33,6 +36,7 @@ from vbnav.drivers.plain_values import load_yaml
 from vbnav.drivers.stereo_calib import read_kitti_calib
 from vbnav.vision.camera_model import FisheyeCamera, PinholeCamera, check_distortion
 from vbnav.vision.geometry import matrix_from_quat
+from vbnav.vision.stereo import PAIR_ORDER_MIN_MATCHES, pair_disparity_signs
 
 KITTI_RATE_HZ = 10.0
 #: A TUM colour frame's depth image is the nearest in depth.txt within this many seconds (else it has none).
@@ -261,6 +265,16 @@ def _check_numbered(folder: Path, images: list[Path]) -> None:
                                f"a gap; {b - a - 1} missing before {p.name})")
 
 
+def _check_pair_order(left: np.ndarray, right: np.ndarray, left_dir: Path, right_dir: Path, name: str) -> None:
+    """The first pair's matched features must lie further right in the left image (positive disparity): a copy
+    with the two folders swapped puts every point behind the camera. DatasetError naming both folders."""
+    positive, negative = pair_disparity_signs(left, right)
+    if positive + negative >= PAIR_ORDER_MIN_MATCHES and negative > positive:
+        raise DatasetError(f"{left_dir} and {right_dir}: in the first pair ({name}) {negative} of "
+                           f"{positive + negative} matched features have a negative disparity (left minus right): "
+                           f"the left and right images are swapped (expected the left camera's in {left_dir.name}/)")
+
+
 def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
     left_dir = _image_dir(root, ("image_l", "image_0"))
     if left_dir is None:
@@ -280,6 +294,8 @@ def open_kitti(root: Path, camera_yaml: str | Path | None = None) -> Dataset:
                                f"of each name; {len(lonely)} image(s) without their partner)")
     _check_numbered(left_dir, left)
     first = _read_image(left[0], True)
+    if right is not None:
+        _check_pair_order(first, _read_image(right[0], True), left_dir, right_dir, left[0].name)
     h, w = first.shape[:2]
     calib_path = root / "calib.txt"
     baseline = None
@@ -340,7 +356,11 @@ def _tum_list(path: Path, what: str) -> tuple[np.ndarray, list[str], list[int]]:
             raise DatasetError(f"{path}:{k}: expected a finite timestamp, got {line[:60]!r}")
         if len(parts) < 2:
             raise DatasetError(f"{path}:{k}: expected 'timestamp {what}', got {line[:60]!r}")
-        names.append(parts[1])
+        name = line[len(parts[0]):].strip()
+        if len(parts) > 2 and not (path.parent / name).is_file():   # a name with spaces is read whole if it is one
+            raise DatasetError(f"{path}:{k}: expected 'timestamp filename', got {len(parts)} columns "
+                               f"({line[:60]!r}), and {name!r} is not a file in {path.parent}")
+        names.append(name)
         lines.append(k)
     if not stamps:
         raise DatasetError(f"{path}: no entries (expected 'timestamp {what}' lines)")

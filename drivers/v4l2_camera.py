@@ -83,6 +83,24 @@ class V4L2Camera(GrabbingCamera):
         self.reconnects = 0
         self.finished = False
         self._cap = None
+        self._read_began: Optional[float] = None   # when the grabbing thread's current read began (monotonic)
+        self._monotonic = time.monotonic
+
+    @property
+    def error(self) -> Optional[str]:
+        """What the driver knows of why no frame comes: a read that has not returned for longer than
+        ``stall_timeout_s`` (a hung driver or device: the thread never gets to its own stall check), else
+        what the thread said."""
+        began = self._read_began
+        waited = self._monotonic() - began if began is not None else 0.0
+        if waited > self.opt.stall_timeout_s:
+            return (f"camera {self.opt.device}: its read has not returned for {waited:.1f} s "
+                    f"(a hung driver or device; camera.options.stall_timeout_s {self.opt.stall_timeout_s:g} s)")
+        return self._error
+
+    @error.setter
+    def error(self, value: Optional[str]) -> None:
+        self._error = value
 
     @staticmethod
     def find() -> list[str]:
@@ -182,7 +200,11 @@ class V4L2Camera(GrabbingCamera):
                 if delay > 0 and self._stop.wait(delay):
                     return
                 next_due = max(next_due + self._replay_period, time.monotonic() - self._replay_period)
-            ok, img = self._cap.read()
+            self._read_began = self._monotonic()
+            try:
+                ok, img = self._cap.read()
+            finally:
+                self._read_began = None
             if not ok or img is None:
                 if self.is_file:
                     if self.opt.loop:

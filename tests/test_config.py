@@ -299,3 +299,20 @@ def test_config_show_prints_a_configuration_that_loads_back_as_the_same(name, tm
     shown = tmp_path / f"{name}.yaml"
     shown.write_text(capfd.readouterr().out)
     assert load_config(shown).model_dump() == load_config(name).model_dump()
+
+
+@pytest.mark.parametrize("camera,says", [
+    ({"driver": "sim"}, "the simulated camera renders a right image only with a stereo baseline"),
+    ({"driver": "v4l2", "options": {"device": "/dev/video0"}}, "camera.driver v4l2 gives one image per frame"),
+])
+def test_sgbm_obstacles_on_a_camera_without_a_right_image_are_refused_at_load(camera, says):
+    """obstacles.source: sgbm matches the frame's stereo pair; on a camera that gives no right image the config
+    loaded (`vbnav config check` said it was fine) and every frame of the run was blind: the robot held for good.
+    Refused at load, naming the field and the camera; a stereo simulated camera loads."""
+    cfg = {"camera": camera, "obstacles": {"enabled": True, "source": "sgbm", "baseline": 0.075}}
+    with pytest.raises(ConfigError, match=re.escape(says)) as err:
+        parse_config(cfg, "robot.yaml")
+    assert "robot.yaml: obstacles.source: sgbm" in str(err.value), err.value
+    parse_config({**cfg, "obstacles": {"enabled": False, "source": "sgbm"}})       # no stage, nothing to match
+    parse_config({"camera": {"driver": "sim", "options": {"stereo_baseline": 0.075}},
+                  "obstacles": {"enabled": True, "source": "sgbm"}})

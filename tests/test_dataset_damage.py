@@ -316,3 +316,45 @@ def test_calibrate_refuses_a_truncated_jpeg_view(shared_data, tmp_path, capsys):
     assert code == 2, err
     assert f"{bad}: the JPEG is cut short" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_vo_writes_the_trajectory_so_far_when_an_image_mid_run_cannot_be_read(shared_data, tmp_path, capsys):
+    """Frame 3's colour image unreadable: vo ended with the error and no trajectory, the minutes of tracking
+    before it lost. The poses of the frames before it are written (and the status file), the error names the
+    file, and the exit is non-zero."""
+    from vbnav.control.cli import main
+
+    view = _room(shared_data, tmp_path)
+    bad = view / "color_4.png"
+    bad.unlink()
+    bad.write_bytes(b"not an image")
+    out, status = tmp_path / "traj.txt", tmp_path / "status.txt"
+    assert main(["vo", str(view), "--init", "depth", "--out", str(out), "--status-out", str(status),
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert re.search(re.escape(str(bad)) + r": missing or not a readable image", err), err
+    assert f"3 frame(s) with a pose (frames 0-2) written to {out}" in err, err
+    rows = np.loadtxt(out)
+    assert list(rows[:, 0]) == [0.0, 1.0, 2.0]             # the frames tracked before it
+    states = [line.split()[1] for line in status.read_text().splitlines()[1:]]
+    assert states[:3] == ["init", "tracked", "tracked"] and states[3:] == ["lost", "lost"]
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == ["status.txt", "traj.txt"]  # no temp left
+
+
+def test_left_and_right_image_folders_swapped_are_refused(shared_data, tmp_path):
+    """image_l/ holding the right camera's images and image_r/ the left's (a copy mislabelled): every disparity
+    had the wrong sign, stereo depth behind the camera, and the dataset opened without a word. The first pair
+    is checked: most matched features must lie further right in the left image; refused naming both folders."""
+    src, view = shared_data / "kitti06_stereo", tmp_path / "swapped"
+    for sub, other in (("image_l", "image_r"), ("image_r", "image_l")):
+        (view / sub).mkdir(parents=True)
+        for p in sorted((src / other).glob("*.png"))[:3]:
+            (view / sub / p.name).symlink_to(p)
+    (view / "calib.txt").write_text((src / "calib.txt").read_text())
+    with pytest.raises(DatasetError, match=re.escape(f"{view / 'image_l'} and {view / 'image_r'}") +
+                       r": .*swapped"):
+        open_dataset(view)
+    (view / "image_l").rename(view / "tmp")
+    (view / "image_r").rename(view / "image_l")
+    (view / "tmp").rename(view / "image_r")
+    assert len(open_dataset(view)) == 3                     # the right way round opens as before

@@ -109,3 +109,22 @@ def test_a_still_robot_among_recent_images_is_not_frozen():
     a, b = image(0), image(1)
     assert all(w.fresh(x.copy(), Pose2()) for x in (a, b, a, b, a, b))
     assert not w.frozen
+
+
+def test_the_thresholds_follow_the_configured_cameras_focal_length():
+    """The travel and turn that make an unchanged image frozen were derived for f = 500 px whatever the camera:
+    a wide lens (f = 250 px, where 2 cm of travel shifts the edge point by 0.5 px) was called frozen by a still
+    scene, a long one (f = 1000 px) was let run twice as far frozen. The pipeline's watch now takes the
+    configured camera's fx: 1 px at the edge 5 m away, 2.5 px of turn."""
+    from vbnav.control.config import parse_config
+    from vbnav.control.runtime.factory import make_pipeline
+    from vbnav.drivers.clock import SimClock
+
+    for fx, travel, turn in ((250.0, 0.04, 0.01), (500.0, 0.02, 0.005), (1000.0, 0.01, 0.0025)):
+        cfg = parse_config({"camera": {"fx": fx, "fy": fx}})
+        w = make_pipeline(cfg, SimClock(), None, []).frozen
+        img = image(0)
+        assert w.fresh(img, Pose2())
+        assert w.fresh(img, Pose2(0.0, 0.99 * travel, 0.99 * turn)), fx          # below both: still fresh
+        assert not w.fresh(img, Pose2(0.0, 1.01 * travel, 0.0)), fx              # drove far enough: frozen
+        assert w.fresh(image(1), Pose2()) and not w.fresh(image(1), Pose2(0.0, 0.0, 1.01 * turn)), fx

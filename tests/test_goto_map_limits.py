@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -66,21 +67,55 @@ def test_a_start_deep_in_the_grown_margin_of_a_wall_still_plans_out_of_it(gap):
     assert plan(grid, (0.0, 1.0 - gap), (0.0, 3.0)) is None
 
 
-def test_goto_map_says_when_the_goal_itself_is_too_near_a_wall(tmp_path, capsys):
-    """A goal 0.25 m from a mapped wall with --robot-radius 0.2: refused as 'no path ... clear of the mapped
-    walls and objects by 0.2 m', untrue (it is 0.25 m clear) and silent on what to change. Now the goal is
-    named, with the distance the planner keeps (radius + clearance)."""
-    from vbnav.control.cli import main
-
+def _wall_map(path):
     lmap = LineMap()
     P = np.array([[[-2.0, -0.3, 1.0], [2.0, -0.3, 1.0]]])
     lmap._insert(P, np.broadcast_to(1e-4 * np.eye(3), (1, 2, 3, 3)).copy(), np.full(1, -1), np.zeros(4))
     lmap.verified[:] = True
-    save_map(lmap, tmp_path / "wall.json")
-    code = main(["goto", "--map", str(tmp_path / "wall.json"), "--static-map", "--goal", "0", "0.75", "0"])
+    save_map(lmap, path)
+    return path
+
+
+def test_goto_map_says_when_the_goal_itself_is_too_near_a_wall(tmp_path, capsys):
+    """A goal 0.15 m from a mapped wall with --robot-radius 0.2: refused as 'no path ... clear of the mapped
+    walls and objects by 0.2 m', untrue (it is 0.15 m clear) and silent on what to change. Now the goal is
+    named, with the distance the planner keeps (radius + clearance) and how far it may move a goal."""
+    from vbnav.control.cli import main
+
+    path = _wall_map(tmp_path / "wall.json")
+    code = main(["goto", "--map", str(path), "--static-map", "--goal", "0", "0.85", "0"])
     err = capsys.readouterr().err
     assert code == 1, err
     assert "--goal" in err and "within 0.28 m" in err and "--robot-radius" in err, err
+    assert "more than 0.05 m inside" in err, err
+
+
+def test_goto_map_start_plan_moves_a_goal_just_inside_the_margin_as_the_replanner_does(tmp_path, capsys):
+    """A goal 0.25 m from a mapped wall, 3 cm inside the 0.28 m margin: the start plan refused it (exit 1) while
+    the re-planner moves such a goal to the nearest free cell within GOAL_TOLERANCE_M. One rule for both: the
+    start plan ends at that cell, says so and by how much, and the controller drives there."""
+    from vbnav.control.cli import main
+    from vbnav.control.map_planning import GOAL_TOLERANCE_M, map_grid, plan_path
+    from vbnav.control.line_map_file import load_map
+    from vbnav.vision.geometry import Pose2
+
+    path = _wall_map(tmp_path / "wall.json")
+    lmap, meta = load_map(path)
+    planned = plan_path(lmap, meta, Pose2(0.0, 0.0, 0.0), Pose2(0.0, 0.75, 0.0), 0.2)
+    assert planned is not None
+    moved = math.hypot(planned[-1][0], planned[-1][1] - 0.75)
+    assert 0.0 < moved <= GOAL_TOLERANCE_M + 0.05 * math.sqrt(0.5)
+    grid = map_grid(lmap, meta, 0.2, extra_points=np.array([[0.0, 0.0], [0.0, 0.75]]))
+    assert not grid.is_free(0.0, 0.75) and grid.is_free(*planned[-1])      # the end keeps the margin
+    code = main(["goto", "--map", str(path), "--static-map", "--goal", "0", "0.75", "0", "--duration", "20"])
+    out, err = capsys.readouterr()
+    assert "no path" not in err and "within 0.28 m" in out, (out, err)
+    assert f"ends at the nearest free point, {moved:.3f} m from it (tolerance 0.05 m)" in out, out
+    assert f"({planned[-1][0]:+.2f}, {planned[-1][1]:+.2f})" in out.split("planned path")[1].splitlines()[0], out
+    assert code == 0 and "goto ended: finished" in out, out     # driven to the path's end, not held
+    m = re.search(r"simulator ground truth: x=([-+0-9.]+) z=([-+0-9.]+)", out)
+    end = math.hypot(float(m.group(1)) - planned[-1][0], float(m.group(2)) - planned[-1][1])
+    assert end < 0.02 and end < math.hypot(float(m.group(1)), float(m.group(2)) - 0.75), out
 
 
 def test_goto_map_says_when_the_start_is_inside_a_mapped_object(tmp_path, capsys):

@@ -380,3 +380,20 @@ def test_the_summary_does_not_say_the_goal_was_moved_once_the_robot_holds():
     stage.revision += 1
     assert "holding" in rp.step()
     assert rp.goal_moved_m is None and "nearest free point" not in live.summary()
+
+
+def test_a_goal_the_start_plan_moved_is_driven_to_once_the_map_frees_it():
+    """goto --map's start plan moves a goal in the margin to the nearest free cell (as the re-planner does) and
+    tells the re-planner how far (LiveMap.attach): once the growing map frees the goal, the route goes back to it."""
+    from vbnav.control.live_map import LiveMap
+
+    ctrl = GotoController(Pose2(0.0, 2.965, 0.0), GotoConfig())   # the start plan's end, 3.5 cm short of the goal
+    stage = _stage()
+    live = LiveMap(stage, {"objects": []})
+    live.attach(ctrl, True, Pose2(0.0, -1.5, 0.0), Pose2(0.0, 1.5, 0.0), 0.2, 0.035)
+    _tick(ctrl, 1, Pose2())
+    stage.revision += 1
+    msg = live.replanner.step()                      # the map (empty now) frees the goal: back to it
+    assert msg and "frees the goal (+0.00, +1.50) again" in msg, msg
+    _tick(ctrl, 2, Pose2())
+    assert ctrl.route()[-1] == pytest.approx((0.0, 3.0)) and live.replanner.goal_moved_m is None

@@ -213,3 +213,55 @@ def test_a_live_source_that_stops_delivering_is_not_read_in_a_busy_loop(video, t
     failed = reads.count(False)
     # one failed read every half frame period for stall_timeout_s at most (a slower machine reads fewer)
     assert 1 <= failed <= stall_s * 30.0 * 2 + 2, f"{failed} failed reads in {stall_s} s"
+
+
+def test_a_read_that_never_returns_is_named_in_the_cameras_error(video, tmp_path):
+    """A hung V4L2 read (a driver stuck in its ioctl) never returns to the grabbing thread: no error was set
+    (the stall check runs only after a read fails), so the stale-camera hold said only 'last frame 3.00 s old'.
+    The camera's error now says its read has not returned for how long, naming the device, once that passes
+    stall_timeout_s, and clears when the read returns. Time is the driver's own clock, stepped here."""
+    import threading
+
+    entered, release, done = threading.Event(), threading.Event(), threading.Event()
+    now = [100.0]
+
+    class Hanging:
+        def __init__(self, cap):
+            self.cap = cap
+
+        def read(self):
+            entered.set()
+            if not done.is_set():
+                release.wait(10.0)
+                release.clear()
+            return self.cap.read()
+
+        def __getattr__(self, name):
+            return getattr(self.cap, name)
+
+    class Hung(V4L2Camera):
+        def _open(self):
+            return Hanging(super()._open())
+
+    link = tmp_path / "video-by-id"
+    link.symlink_to(video)
+    cam = Hung(options=V4L2Camera.Options(device=str(link), source="device", backend="any", stall_timeout_s=1.0),
+               width=W, height=H, fps=30.0)
+    cam._monotonic = lambda: now[0]
+    cam.connect()
+    try:
+        assert entered.wait(5.0)                       # the thread is inside the read
+        assert cam.error is None
+        now[0] += 0.9
+        assert cam.error is None                       # within stall_timeout_s: a slow frame, not a hung read
+        now[0] += 2.1
+        assert cam.error == (f"camera {link}: its read has not returned for 3.0 s (a hung driver or device; "
+                             f"camera.options.stall_timeout_s 1 s)")
+        entered.clear()
+        release.set()                                  # the read returns a frame
+        assert cam.read(timeout_s=5.0) is not None and entered.wait(5.0)
+        assert cam.error is None
+    finally:
+        done.set()
+        release.set()
+        cam.disconnect()

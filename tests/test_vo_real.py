@@ -248,3 +248,27 @@ def test_camera_yaml_keys_the_layout_does_not_use_are_refused(tmp_path):
             open_dataset(tum)
     (tum / "camera.yaml").write_text(intrinsics)
     assert open_dataset(tum).camera.width == 4
+
+
+def test_tum_lists_with_spaces_in_names_or_extra_columns_are_read_as_written_or_refused(tmp_path):
+    """rgb.txt / depth.txt took the second whitespace-separated word as the file: a name with a space ('my
+    image.png') was looked up as 'my', and a line with a third column (an associate.py output, a note) was read
+    without a word about the rest. A name with spaces that exists is read whole; any other extra column is
+    refused naming the file and line."""
+    tum = tmp_path / "tum"
+    tum.mkdir()
+    import cv2
+    for name in ("my image.png", "b.png", "d 1.png"):
+        cv2.imwrite(str(tum / name), np.zeros((4, 4), np.uint8))
+    (tum / "camera.yaml").write_text("fx: 500\nfy: 500\ncx: 1\ncy: 1\nwidth: 4\nheight: 4\n")
+    (tum / "rgb.txt").write_text("# timestamp filename\n0.0 my image.png\n0.1\tb.png\n")
+    (tum / "depth.txt").write_text("0.0 d 1.png\n")
+    ds = open_dataset(tum)
+    assert [p.name for p in ds.left] == ["my image.png", "b.png"] and ds.depth[0].name == "d 1.png"
+    (tum / "rgb.txt").write_text("0.0 my image.png\n0.1 b.png 0.1 d 1.png\n")
+    with pytest.raises(DatasetError, match=r"rgb.txt:2: expected 'timestamp filename', got 5 columns"):
+        open_dataset(tum)
+    (tum / "rgb.txt").write_text("0.0 b.png\n")
+    (tum / "depth.txt").write_text("# depth\n0.0 d.png extra\n")
+    with pytest.raises(DatasetError, match=r"depth.txt:2: expected 'timestamp filename', got 3 columns"):
+        open_dataset(tum)

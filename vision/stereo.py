@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from vbnav.vision.camera_model import PinholeCamera
-from vbnav.vision.features import to_grey
+from vbnav.vision.features import orb_matches, to_grey
 
 
 @dataclass(frozen=True)
@@ -164,3 +164,19 @@ def as_disparity(disparity: np.ndarray, invalid_at_or_below: float = 0.0) -> np.
     out = d.copy()
     out[~(out > invalid_at_or_below)] = np.nan
     return out
+
+
+#: A pair's order is judged from at least this many matches off zero disparity (fewer: a blank view, no verdict).
+PAIR_ORDER_MIN_MATCHES = 20
+
+
+def pair_disparity_signs(left: np.ndarray, right: np.ndarray, row_tol_px: float = 2.0,
+                         min_px: float = 1.0) -> tuple[int, int]:
+    """(positive, negative): ORB matches of a rectified pair on the same row (within ``row_tol_px``) whose
+    disparity left-minus-right is above ``min_px`` and below ``-min_px``. A pair the right way round has
+    nearly all positive (nothing is behind the camera); swapped images, nearly all negative."""
+    pl, pr = orb_matches(left, right)
+    same_row = np.abs(pl[:, 1] - pr[:, 1]) <= row_tol_px
+    d = (pl[:, 0] - pr[:, 0])[same_row]
+    return int(np.sum(d > min_px)), int(np.sum(d < -min_px))
+

@@ -6,8 +6,8 @@ import sys
 
 from vbnav.control.commands._common import add_config_arg, finite, positive, refuse_unserved_live_view
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
-from vbnav.control.map_planning import (localise_problem, localise_start, map_route_in_reference_frame,
-                                        no_path_reason, plan_path, sim_start_problem)
+from vbnav.control.map_planning import (goal_moved_note, grid_params, localise_problem, localise_start,
+                                        map_route_in_reference_frame, no_path_reason, plan_path, sim_start_problem)
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -155,8 +155,14 @@ def run(args) -> int:
             robot.drive.close()
             return 1
         print("planned path (map frame): " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in planned))
-        waypoints, goal = map_route_in_reference_frame(planned, start, goal)
-    controller = GotoController(goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
+        moved = math.hypot(planned[-1][0] - goal.x, planned[-1][1] - goal.z)
+        if moved > 0.0:
+            margin = f"{radius + grid_params(radius).clearance_m:.2f} m (--robot-radius + clearance) of a mapped wall or object"
+            print(f"goto: {goal_moved_note(goal, moved, margin, 'the --goal')}")
+        goal_map = goal
+        waypoints, end = map_route_in_reference_frame(planned, start, goal)
+        goal = start.between(goal)          # reported against the goal as given; driven to the path's end
+    controller = GotoController(end if args.map else goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
                                 waypoints=waypoints)
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     link = attach_telemetry(rt, cfg, args)     # state, network commands and the live view; --record
@@ -164,7 +170,7 @@ def run(args) -> int:
         robot.drive.close()         # never enabled: released as it was opened
         return 3
     if live is not None:                # on a simulated clock the slow loops run inline, on simulated time
-        live.attach(controller, robot.clock.simulated, start, start.compose(goal), radius)
+        live.attach(controller, robot.clock.simulated, start, goal_map, radius, moved or None)
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
     world = robot.world if args.map else None

@@ -52,7 +52,7 @@ def run(args) -> int:
     import numpy as np
 
     from vbnav.control.trajectory_metrics import ate_rmse, rpe, rpe_pairs, scale_to, write_tum
-    from vbnav.control.vo import VoError, run_vo
+    from vbnav.control.vo import VoError, VoStopped, run_vo
     from vbnav.drivers.datasets import DEPTH_MAX_DT_S, DatasetError, open_dataset
     from vbnav.vision.vslam import VslamConfig
 
@@ -89,6 +89,17 @@ def run(args) -> int:
         t0 = time.perf_counter()
         res = run_vo(ds, args.init, VslamConfig(ba_window=args.ba_window), progress=say)
         dt = time.perf_counter() - t0
+    except VoStopped as exc:            # the frames tracked before the unreadable one are kept
+        res = exc.result
+        if len(res.stamps):
+            write_tum(args.out, res.stamps, res.poses)
+        if args.status_out:
+            _write_status(args.status_out, res.status)
+        print(f"vbnav vo: {exc}; stopped there: "
+              + (f"the trajectory of the {len(res.stamps)} frame(s) with a pose (frames 0-{res.frames[-1]}) "
+                 f"written to {args.out}" if len(res.stamps) else f"no frame had a pose, {args.out} not written")
+              + (f", the frames' states to {args.status_out}" if args.status_out else ""), file=sys.stderr)
+        return 2
     except (DatasetError, VoError, ValueError) as exc:
         print(f"vbnav vo: {exc}", file=sys.stderr)
         return 2

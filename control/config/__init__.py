@@ -413,7 +413,27 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
                                            "with a stereo calibration file") if cfg.obstacles.enabled else ""
     if refusal:
         raise ConfigError(f"{source}: {refusal}")
+    no_pair = no_right_image(cfg) if cfg.obstacles.enabled and cfg.obstacles.source == "sgbm" else ""
+    if no_pair:
+        raise ConfigError(f"{source}: obstacles.source: sgbm matches the frames' stereo pair, and {no_pair}: "
+                          f"set source: auto or disparity for a camera's own disparity, or use a stereo camera")
     return cfg
+
+
+#: Camera drivers whose frames never carry a right image (the OAK's carry its own disparity instead).
+ONE_IMAGE_CAMERAS = ("v4l2", "oak")
+
+
+def no_right_image(cfg: Config) -> str:
+    """Why the configured camera's frames carry no right image of a stereo pair, "" when they do or may (a
+    replayed recording has one when its folder does)."""
+    c = cfg.camera
+    if c.driver in ONE_IMAGE_CAMERAS:
+        return f"camera.driver {c.driver} gives one image per frame, no right image"
+    if c.driver == "sim" and not c.stereo_baseline():
+        return ("the simulated camera renders a right image only with a stereo baseline (camera.options."
+                "stereo_baseline or a stereo camera.calibration_file), and it has none")
+    return ""
 
 
 def calibration_path(cfg: Config, source: str) -> Optional[Path]:

@@ -49,8 +49,8 @@ def _default_zones() -> list[ZoneConfig]:
 class ObstaclesConfig(Strict):
     enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
     source: Literal["auto", "disparity", "sgbm"] = Field(
-        "auto", description="disparity: the frames' own (OAK); sgbm: computed from the stereo pair; auto: the "
-                            "frames' own if present, else sgbm")
+        "auto", description="disparity: the frames' own (OAK); sgbm: computed from the stereo pair (refused for a "
+                            "camera whose frames have no right image); auto: the frames' own if present, else sgbm")
     baseline: Optional[float] = Field(None, gt=0, description="m; default the camera's stereo baseline "
                                       "(camera.calibration_file's, else camera.options.stereo_baseline), else the "
                                       "frames' meta['baseline_m'] (OAK); given with a calibration file that has "

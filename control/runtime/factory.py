@@ -92,7 +92,7 @@ def make_pipeline(cfg: Config, clock, camera, stages) -> VisionPipeline:
             stages.append(obstacle_stage)
     inline = clock.simulated
     return VisionPipeline(camera, stages, clock, inline=inline,
-                          latency_s=cfg.sim.vision_latency_s if inline else 0.0)
+                          latency_s=cfg.sim.vision_latency_s if inline else 0.0, focal_px=cfg.camera.fx)
 
 
 def check_wheel_speed_limit(cfg: Config, drive) -> None:

@@ -9,10 +9,13 @@ A live sensor never gives two byte-identical frames: shot and read noise change 
 frame. A still scene in a noise-free simulation does, so an unchanged image counts as frozen only once the
 wheels have moved far enough since the image last changed that a live camera would have seen the change:
 
-- ``MIN_TRAVEL_M`` 2 cm: a point at the image's edge (x/z = 0.5) at 5 m shifts by f * 0.5 * 0.02 / 5 =
-  1 px at f = 500 px (640-pixel-wide lens of ~65 deg) when the robot drives 2 cm towards it; nearer
-  points shift more.
-- ``MIN_TURN_RAD`` 5 mrad (0.29 deg): every point shifts by f * 0.005 = 2.5 px at f = 500 px.
+- travel: a point at the image's edge (x/z = 0.5) at 5 m shifts by f * 0.5 * d / 5 when the robot drives d
+  towards it; ``TRAVEL_SHIFT_PX`` 1 px of it: d = 10 / f, 2 cm at f = 500 px (``MIN_TRAVEL_M``, a
+  640-pixel-wide lens of ~65 deg); nearer points shift more.
+- turn: every point shifts by f * a; ``TURN_SHIFT_PX`` 2.5 px of it: a = 2.5 / f, 5 mrad (0.29 deg) at
+  f = 500 px (``MIN_TURN_RAD``).
+
+The pipeline takes f from the configured camera (``camera.fx``): a wide lens needs more motion to show it.
 
 A hung driver may re-queue the few buffers it holds rather than one, so the frames cycle A, B, C, D, A...:
 each differs from the one before. An image equal to any of the last ``RECENT_IMAGES`` distinct images counts
@@ -36,9 +39,18 @@ import numpy as np
 
 from vbnav.vision.geometry import Pose2
 
-MIN_TRAVEL_M = 0.02
-MIN_TURN_RAD = 0.005
+TRAVEL_SHIFT_PX = 1.0      # at the image's edge (x/z = EDGE), DEPTH_M away
+TURN_SHIFT_PX = 2.5
+EDGE, DEPTH_M = 0.5, 5.0
 RECENT_IMAGES = 4
+
+
+def thresholds(focal_px: float) -> tuple[float, float]:
+    """(travel m, turn rad) after which an unchanged image is frozen, for a camera of focal length ``focal_px``."""
+    return TRAVEL_SHIFT_PX * DEPTH_M / (EDGE * focal_px), TURN_SHIFT_PX / focal_px
+
+
+MIN_TRAVEL_M, MIN_TURN_RAD = thresholds(500.0)   # the default (a camera of f = 500 px): 2 cm, 5 mrad
 
 
 class FrozenImageWatch:
@@ -52,6 +64,11 @@ class FrozenImageWatch:
         # copies of the last ``recent`` distinct images, newest last, each with the pose it was first seen at
         self._recent: deque[tuple[np.ndarray, Pose2]] = deque(maxlen=recent)
         self.frozen = False
+
+    @classmethod
+    def for_focal(cls, focal_px: float) -> "FrozenImageWatch":
+        """The watch for a camera of focal length ``focal_px`` (``thresholds``)."""
+        return cls(*thresholds(focal_px))
 
     def fresh(self, image: np.ndarray, odom: Pose2) -> bool:
         seen = next((pose for old, pose in self._recent

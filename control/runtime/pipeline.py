@@ -57,7 +57,8 @@ FUTURE_STAMP_TOLERANCE_S = 0.05
 
 class VisionPipeline:
     def __init__(self, camera: Optional[Camera], stages: list[VisionStage], clock, inline: bool,
-                 latency_s: float = 0.0):
+                 latency_s: float = 0.0, focal_px: Optional[float] = None):
+        """``focal_px``: the camera's focal length, for the frozen-image watch's thresholds (None: 500 px)."""
         self.camera = camera
         self.stages = list(stages)
         self.clock = clock
@@ -71,7 +72,7 @@ class VisionPipeline:
         self.refused_frames = 0
         self.last_refusal: Optional[str] = None    # why the last refused frame was (kept after a good one)
         self._taken_stamp: Optional[int] = None    # of the newest frame taken: stamps must increase
-        self.frozen = FrozenImageWatch()
+        self.frozen = FrozenImageWatch() if focal_px is None else FrozenImageWatch.for_focal(focal_px)
         self.frames = 0
         self.fault: Optional[str] = None
         self.fault_traceback: Optional[str] = None   # of an exception (None for a CameraError)
