@@ -491,3 +491,33 @@ def test_a_map_build_whose_map_is_refused_still_prints_its_summary(tmp_path, mon
     assert f"NOT SAVED to {out}" in captured.out, captured.out
     assert f"{out}: not saved, it could not be loaded back" in captured.err, captured.err
     assert not out.exists()
+
+
+def test_map_build_on_the_simulated_clock_runs_the_slow_loop_on_simulated_time(tmp_path, monkeypatch):
+    """On the simulated clock (faster than real time) map build ran the abstraction in a thread woken every
+    second of wall time: how many passes the map got, and after which frames its hypotheses came, depended
+    on the machine's load. Now it runs inline on the frames' simulated time, every ``period_s`` (15 frames
+    at 15 Hz), and no thread starts."""
+    from vbnav.control.cli import main
+    from vbnav.control.stages import line_map as stage_module
+    passes, threads, stages = [], [], []
+    step, from_config = stage_module.AbstractionThread.step, stage_module.LineMapStage.from_config
+
+    def counted(self):
+        passes.append(stages[0].stats["frames"])      # the frames mapped when the pass ran
+        return step(self)
+
+    def built(cfg, **kw):
+        stages.append(from_config(cfg, **kw))
+        return stages[-1]
+
+    monkeypatch.setattr(stage_module.LineMapStage, "from_config", built)
+    monkeypatch.setattr(stage_module.AbstractionThread, "step", counted)
+    monkeypatch.setattr(stage_module.AbstractionThread, "start", lambda self: threads.append(self))
+    out = tmp_path / "m.json"
+    assert main(["map", "build", "-c", "sim_stereo", "--out", str(out), "--duration", "2.5"]) == 0
+    frames = json.loads(out.read_text())["meta"]["frames"]
+    assert frames >= 36
+    assert threads == []
+    # 1 s and 2 s of simulated time after the first frame (frames 16 and 31 at 15 Hz), then the final pass.
+    assert passes == [16, 31, frames]
