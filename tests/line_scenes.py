@@ -223,7 +223,7 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
     key = None                       # (left segments, R, c) of the last keyframe, for motion triangulation
     for n, (f, (R, c)) in enumerate(zip(drive.frames, drive.cams)):
         while slow is not None and not slow.hypotheses.empty():
-            lmap.add_hypotheses(slow.hypotheses.get_nowait())
+            lmap.add_hypotheses(slow.hypotheses.get_nowait(), camera=(CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height))
         pred_v = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         prior_fn = (lambda segs: lmap.prior_for(segs, pred_v)) if guided else None
         res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, params, prior_fn)

@@ -271,7 +271,10 @@ class LineMapStage(VisionStage):
                 hyp = self.abstraction.hypotheses.get_nowait()
             except queue.Empty:
                 break
-            self.map.add_hypotheses(hyp)
+            fx, fy, cx, cy = self.cam
+            # A top edge is first measured in the recent keyframes (it comes when its box's corners were
+            # verified, often as the box leaves the view).
+            self.map.add_hypotheses(hyp, camera=(fx, fy, cx, cy, self.baseline, *self.size))
             n += len(hyp)
         self.stats["hypotheses_in"] += n
         return n
