@@ -15,7 +15,9 @@ the parts nested in it:
 - floor lines: ``floor_segments`` (vision/line_floor.py);
 - update: ``predict`` of all segments (miss counting) and ``LineMap.update`` (association, fusion, misses,
   collinear merging, verification, pruning); merging is also shown on its own;
-- other: what ``process`` does besides (pose, locks, the hypotheses drain, concatenation, the summary).
+- hypotheses: ``LineMap.add_hypotheses`` in the hypotheses drain, with the top edges measured in the
+  keyframes (its ``predict`` calls); only in the frames after a slow-loop pass that posted some;
+- other: what ``process`` does besides (pose, locks, concatenation, the summary).
 
 If the stage stops calling one of these, the benchmark fails instead of printing zero for it.
 
@@ -65,6 +67,7 @@ ABSTRACTION_EVERY = int(FRAME_RATE_HZ * 1.0)       # the stage's slow loop perio
 PEER_PARAMS = replace(LineParams(), detect_scale=0.8, lsd_angle_deg=22.5, refine_radius_px=0.0)
 # The stage's parts, the calls each makes per frame (so a call the stage no longer makes fails the run).
 PARTS = {"detect": 2, "predict": 2, "guided_match": 1, "floor": 1, "update": 2, "merge": 1}
+VARIABLE = ("hypotheses",)      # parts called only in some frames (after a slow-loop pass posted hypotheses)
 
 
 class Spans:
@@ -73,7 +76,7 @@ class Spans:
     def __init__(self):
         self.wall: dict = {}
         self.cpu: dict = {}
-        self.calls = dict.fromkeys(PARTS, 0)
+        self.calls = dict.fromkeys((*PARTS, *VARIABLE), 0)
         self._frame: dict = {}
         self._stack: list = []
 
@@ -100,7 +103,7 @@ class Spans:
     def frame(self, total_wall_s: float, total_cpu_s: float) -> None:
         """Close one frame: the parts' times, 'other' (the rest of process) and the total."""
         for d, i, total in ((self.wall, 0, total_wall_s), (self.cpu, 1, total_cpu_s)):
-            parts = {k: self._frame.get(k, [0.0, 0.0])[i] for k in PARTS}
+            parts = {k: self._frame.get(k, [0.0, 0.0])[i] for k in (*PARTS, *VARIABLE)}
             parts["update"] += parts["merge"]                       # the update including merging
             parts["other"] = total - sum(v for k, v in parts.items() if k != "merge")
             parts["fast_loop"] = total
@@ -146,9 +149,22 @@ def instrument(spans: Spans, last: dict) -> None:
 
 def instrument_map(spans: Spans, stage: LineMapStage) -> None:
     """The stage's map: predict of the verified segments and the prior are prediction; predict of all
-    segments (``which=``), update and merging are the update."""
+    segments (``which=``), update and merging are the update; adding the slow loop's hypotheses (with its
+    predictions of them in the keyframes) is the hypotheses part."""
     m = stage.map
-    m.predict = spans.wrap(lambda args, kw: "update" if "which" in kw else "predict", m.predict)
+    adding = [False]
+    add_hypotheses = m.add_hypotheses
+
+    def add(*args, **kw):
+        adding[0] = True
+        try:
+            return add_hypotheses(*args, **kw)
+        finally:
+            adding[0] = False
+
+    m.add_hypotheses = spans.wrap("hypotheses", add)
+    m.predict = spans.wrap(lambda args, kw: "hypotheses" if adding[0] else "update" if "which" in kw else "predict",
+                           m.predict)
     m.prior_for = spans.wrap("predict", m.prior_for)
     m.update = spans.wrap("update", m.update)
     m._merge_collinear = spans.wrap("merge", m._merge_collinear)
@@ -274,7 +290,7 @@ def main() -> int:
           f"segments/frame of which {out['floor_per_frame']:.0f} floor lines")
     labels = {"detect": "detection (both images)", "predict": "prediction + prior", "guided_match":
               "guided matching + 3D", "floor": "floor lines", "update": "update incl. merging",
-              "merge": "  of which merging", "other": "rest of process()", "fast_loop": "FAST LOOP total",
+              "merge": "  of which merging", "hypotheses": "hypotheses (top edges)", "other": "rest of process()", "fast_loop": "FAST LOOP total",
               "peer": "peer (OpenCV LSD, unguided)", "no_map": "same detection, no map",
               "slow_loop": "slow loop (per 1 s pass)"}
     print(f"  {'per frame (ms)':30s} {'cpu median':>10s} {'p95':>7s}   {'wall median':>11s} {'p95':>7s}")

@@ -208,13 +208,22 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
 
 
 def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapParams = MapParams(),
-              guided: bool = True, compare: bool = False, motion: bool = False, floor: bool = False):
+              guided: bool = True, compare: bool = False, motion: bool = False, floor: bool = False,
+              abstraction_every: int = 0):
     """Run the DLM's fast loop over the drive (true poses). With ``compare`` every frame is also matched
-    without prediction and both best-match false rates are returned (true disparity decides)."""
+    without prediction and both best-match false rates are returned (true disparity decides).
+    ``abstraction_every`` k > 0: the slow loop (``AbstractionThread.step``) runs inline after every k-th
+    frame and its hypotheses are inserted before the next, as ``LineMapStage`` does."""
     lmap = LineMap(map_params)
+    slow = None
+    if abstraction_every:
+        from vbnav.control.stages.line_map import AbstractionThread
+        slow = AbstractionThread(lambda: lmap.P[lmap.verified].copy())
     counts = {"guided": [0, 0], "unguided": [0, 0]}
     key = None                       # (left segments, R, c) of the last keyframe, for motion triangulation
-    for f, (R, c) in zip(drive.frames, drive.cams):
+    for n, (f, (R, c)) in enumerate(zip(drive.frames, drive.cams)):
+        while slow is not None and not slow.hypotheses.empty():
+            lmap.add_hypotheses(slow.hypotheses.get_nowait(), camera=(CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height))
         pred_v = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         prior_fn = (lambda segs: lmap.prior_for(segs, pred_v)) if guided else None
         res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, params, prior_fn)
@@ -240,6 +249,8 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
         pred_all = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
                                 which=np.ones(len(lmap), bool))
         lmap.update(segs3d, R, c, pred_all, res.left)
+        if slow is not None and (n + 1) % abstraction_every == 0:
+            slow.step()
     return lmap, counts
 
 

@@ -53,6 +53,8 @@ import numpy as np
 from vbnav.vision.line_segments import Segments2D, Segments3D
 
 CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
+CHI2_1_99 = 6.63         # ... with 1 (a height)
+CHI2_2_99 = 9.21         # ... with 2 (an image line's position)
 ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no information about the line
 ASSOC_PERP_M = 0.5       # association's coarse gate: both endpoints of an observation within this of the map line
 MERGE_PERP_M = 0.2       # merging's coarse gate: both endpoints of the other piece within this of the line
@@ -205,6 +207,10 @@ class MapParams:
     # verify_views times when a false match this far off along its ray would have moved out of the
     # association gate between them (separating_views; 0: never). The false-segment distance of the scoring.
     ghost_error_m: float = 0.05
+    # A horizontal hypothesis (a box's top edge) is looked for in the left segments of the recent keyframes
+    # (``recent``), its height measured on its corners' vertical lines (``_sight_top``), with this sigma of
+    # an image line across itself (LineParams.sigma_perp_px; 0: never).
+    sight_sigma_px: float = 0.3
 
 
 @dataclass
@@ -259,6 +265,9 @@ class LineMap:
     # gate, so two viewpoints do not verify it (separating_views); it needs verify_views of them.
     ambiguous: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
+    # Keyframes: the left segments (xy (N, 4)) and camera pose (R_wc, t_wc) of frames a distinct viewpoint
+    # apart (``_add_view``'s rule), while their camera lies within ``max_range_m`` of the current one.
+    recent: list = field(default_factory=list, repr=False)
     next_id: int = 0
     next_group: int = 0
     frames: int = 0
@@ -393,6 +402,8 @@ class LineMap:
         """
         st = UpdateStats()
         self.frames += 1
+        if left is not None and self.params.sight_sigma_px > 0:
+            self._remember(left, R_wc, t_wc)
         self._pairs = 0
         p = self.params
         if len(obs):
@@ -918,9 +929,11 @@ class LineMap:
             self.grid.grow(idx, self.serial[idx], *self._bbox(idx))
 
     # --------------------------------------------------------- abstraction input
-    def add_hypotheses(self, P: np.ndarray, sigma_m: float = 0.05) -> np.ndarray:
+    def add_hypotheses(self, P: np.ndarray, sigma_m: float = 0.05, camera: Optional[tuple] = None) -> np.ndarray:
         """Insert missing-line hypotheses from the abstraction module (world frame, (K, 2, 3)): candidates
-        with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. Returns ids."""
+        with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. camera: (fx, fy,
+        cx, cy, baseline, width, height) of the left image: a horizontal one (a top edge) is first looked for
+        in the recent frames (``_sight_top``). Returns ids."""
         P = np.asarray(P, float).reshape(-1, 2, 3)
         if len(P) == 0:
             return np.zeros(0, int)
@@ -929,7 +942,103 @@ class LineMap:
         for k in range(len(self) - len(P), len(self)):
             self.views[k] = []
             self.support[k] = 0
+            if camera is not None and self.params.sight_sigma_px > 0 and abs(self.P[k, 0, 1] - self.P[k, 1, 1]) < 1e-9:
+                self._sight_top(k, sigma_m, camera)
         return ids
+
+    def _remember(self, left: Segments2D, R_wc: np.ndarray, t_wc: np.ndarray) -> None:
+        """Keep this frame's left segments as a keyframe when its viewpoint is distinct from the last kept
+        one; forget the keyframes farther than ``max_range_m`` from the camera (what they saw in range of them
+        and is still in range of here lies within 2 ``max_range_m``; a hypothesis comes from what was just
+        verified near the robot)."""
+        p = self.params
+        heading = math.atan2(R_wc[0, 2], R_wc[2, 2])
+        if self.recent:
+            _, R0, t0 = self.recent[-1]
+            if (np.linalg.norm(t_wc - t0) < p.view_baseline_m
+                    and abs(math.remainder(heading - math.atan2(R0[0, 2], R0[2, 2]), math.tau))
+                    < math.radians(p.view_angle_deg)):
+                return
+        self.recent = [f for f in self.recent if np.linalg.norm(f[2] - t_wc) <= p.max_range_m]
+        self.recent.append((left.xy.copy(), R_wc.copy(), t_wc.copy()))
+
+    def _sight_top(self, k: int, sigma_m: float, camera: tuple) -> bool:
+        """Measure a top-edge hypothesis k in the recent keyframes: in each, the nearest left segment along its
+        prediction (direction ``predict_angle_deg``, midpoint within the prediction and within
+        sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``) spans a plane with
+        the camera centre; where it meets the vertical lines of the edge's two corners (their x, z: verified
+        vertical edges) are the edge's ends' heights, each with the sigma s z / (fx |n_y|) and
+        ``assoc_extra_m``. A horizontal line seen while driving spans one plane with every camera centre (the
+        camera's height is fixed), so its height cannot be triangulated; its corners' lines fix where it is.
+        Verified when seen from ``verify_views`` distinct viewpoints and every frame's heights lie within
+        the chi-square gate (1 dof, 99 %) of their weighted mean: the mean becomes its height."""
+        p = self.params
+        fx, fy, cx, cy, baseline, width, height = camera
+        Kinv = np.linalg.inv(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+        only = np.zeros(len(self), bool)
+        only[k] = True
+        A = self.P[k]
+        ys, ws, views = [], [], []
+        for xy, R, t in self.recent:
+            pr = self.predict(R, t, fx, fy, cx, cy, baseline, width, height, which=only)
+            if len(pr) == 0 or len(xy) == 0:
+                continue
+            a, b = pr.xy[0, :2], pr.xy[0, 2:]
+            L = float(np.linalg.norm(b - a))
+            u = (b - a) / L
+            mid = 0.5 * (xy[:, :2] + xy[:, 2:])
+            along = (mid - a) @ u / L
+            dist = np.abs((mid - a) @ np.array([u[1], -u[0]]))
+            d = xy[:, 2:] - xy[:, :2]
+            cos = np.abs(d @ u) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+            z = float((A.mean(axis=0) - t) @ R[:, 2])
+            gate = math.sqrt(CHI2_2_99) * math.hypot(p.sight_sigma_px, fx * sigma_m / max(z, 0.1))
+            ok = (dist <= gate) & (along >= 0) & (along <= 1) & (cos >= math.cos(math.radians(p.predict_angle_deg)))
+            if not ok.any():
+                continue
+            j = np.nonzero(ok)[0][np.argmin(dist[ok])]
+            n = np.cross(R @ (Kinv @ np.r_[xy[j, :2], 1.0]), R @ (Kinv @ np.r_[xy[j, 2:], 1.0]))
+            n /= max(float(np.linalg.norm(n)), 1e-12)
+            if abs(n[1]) < 1e-6:
+                continue
+            ys.append([(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)])
+            ze = np.maximum((A - t) @ R[:, 2], 0.1)
+            ws.append(1.0 / ((p.sight_sigma_px * ze / (fx * abs(n[1]))) ** 2 + p.assoc_extra_m ** 2))
+            views.append(np.array([t[0], t[1], t[2], math.atan2(R[0, 2], R[2, 2])]))
+        if len(ys) < p.verify_views:
+            return False
+        # The frames' heights outside the gate of the others' weighted mean go, the farthest first (another
+        # line near the prediction in that frame).
+        ys, ws, keep = np.array(ys), np.array(ws), np.ones(len(ys), bool)
+        while keep.sum() >= p.verify_views:
+            y = (ws[keep] * ys[keep]).sum(axis=0) / ws[keep].sum(axis=0)
+            chi = np.where(keep, (ws * (ys - y) ** 2).max(axis=1), -1.0)
+            if chi.max() <= CHI2_1_99:
+                break
+            keep[int(chi.argmax())] = False
+        distinct: list = []
+        for v in (v for v, kept in zip(views, keep) if kept):
+            if all(np.linalg.norm(v[:3] - w[:3]) >= p.view_baseline_m
+                   or abs(math.remainder(v[3] - w[3], math.tau)) >= math.radians(p.view_angle_deg) for w in distinct):
+                distinct.append(v)
+        if len(distinct) < p.verify_views:
+            return False
+        ys, ws = ys[keep], ws[keep]
+        self.P[k, :, 1] = y
+        self.anchor[k] = self.P[k]
+        var = np.array([p.assoc_extra_m ** 2, 0.0, p.assoc_extra_m ** 2])
+        cov = np.zeros((2, 3, 3))
+        for e in range(2):
+            cov[e] = np.diag(var + np.array([0.0, 1.0 / ws[:, e].sum(), 0.0]))
+        self.cov[k] = self.anchor_cov[k] = cov
+        t_dir = _directions(self.P[k:k + 1])[0]
+        self.info[k] = np.linalg.inv(cov + ALONG_VAR * np.outer(t_dir, t_dir)[None])
+        self.info_vec[k] = np.einsum("eij,ej->ei", self.info[k], self.P[k])
+        self.support[k] = len(ys)
+        self.views[k] = distinct
+        self.verified[k] = True
+        self._moved(np.array([k]))
+        return True
 
     def summary(self) -> dict:
         return {"segments": int(len(self)), "verified": int(self.verified.sum()),

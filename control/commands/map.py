@@ -100,6 +100,9 @@ def run_build(args) -> int:
         raise InputError(f"{cfg.source}: {exc}") from None
     controller = ScriptedController(cfg.controller.script)
     robot = make_robot(cfg, [stage])
+    # On the simulated clock (faster than real time) the slow loop runs on the frames' time, not in a thread
+    # woken by the wall clock: the map is then the same on any machine.
+    stage.abstraction_inline = robot.clock.simulated
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     link = attach_telemetry(rt, cfg, args)
     if link is None:

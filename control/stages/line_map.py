@@ -6,7 +6,9 @@
   count misses, verify and prune. First it inserts the hypotheses the slow loop posted since the last frame.
 - ``AbstractionThread``: the slow loop, in its own thread every ``period_s``: takes a snapshot of the
   verified segments, abstracts them to vertical edges and object polygons (vision/line_abstraction.py) and
-  posts missing-line hypotheses back through a queue; it never touches the map itself.
+  posts missing-line hypotheses back through a queue; it never touches the map itself. On a simulated
+  clock (``LineMapStage.abstraction_inline``) the stage steps it itself, after the first frame whose stamp
+  is ``period_s`` past the last pass: the map then does not depend on how fast the machine ran the drive.
 - The mission loop (map-based goto, control/controllers/goto.py) reads the stage's object polygons and
   verified segments to plan on a traversability grid (vision/nav_grid.py).
 
@@ -142,6 +144,8 @@ class LineMapStage(VisionStage):
         self.unusable_reason = ""     # why the last frame the stage could not use was refused
         self._scene: Optional[MapScene] = None
         self.abstraction = None
+        self.abstraction_inline = False     # step the slow loop on the frames' time (a simulated clock)
+        self._last_pass_ns: Optional[int] = None
         if abstraction_period_s is not None:
             self.abstraction = AbstractionThread(self.verified_snapshot, abstraction_period_s)
 
@@ -174,7 +178,7 @@ class LineMapStage(VisionStage):
             return self._scene
 
     def start(self) -> None:
-        if self.abstraction is not None:
+        if self.abstraction is not None and not self.abstraction_inline:
             self.abstraction.start()
 
     def stop(self) -> None:
@@ -227,6 +231,7 @@ class LineMapStage(VisionStage):
             summary = self.map.summary()
         t2 = time.perf_counter()
         self.stats["frames"] += 1
+        self._step_inline(frame.stamp_ns)
         self.stats["detect_ms"] = (t1 - t0) * 1e3
         self.stats["update_ms"] = (t2 - t1) * 1e3
         self.frame_ms.append((t2 - t0) * 1e3)
@@ -234,6 +239,17 @@ class LineMapStage(VisionStage):
                         {"segments": len(res.left), "reconstructed": len(segs), "fused": st.fused,
                          "inserted": st.inserted, "verified_now": st.verified, "pruned": st.pruned,
                          "predicted": len(pred)})
+
+    def _step_inline(self, stamp_ns: int) -> None:
+        """On a simulated clock: the slow loop's pass once ``period_s`` of frame time has passed since the
+        last (or since the first frame); its hypotheses are inserted before the next frame."""
+        if self.abstraction is None or not self.abstraction_inline:
+            return
+        if self._last_pass_ns is None:
+            self._last_pass_ns = stamp_ns
+        elif stamp_ns - self._last_pass_ns >= self.abstraction.period_s * 1e9 - 1e3:
+            self._last_pass_ns = stamp_ns
+            self.abstraction.step()
 
     def _images(self, frame: Frame) -> tuple[Optional[np.ndarray], Optional[np.ndarray], str]:
         """(left, right, "") as the line map takes them (``stage_image``: HxW grey uint8 of the camera's size;
@@ -255,7 +271,10 @@ class LineMapStage(VisionStage):
                 hyp = self.abstraction.hypotheses.get_nowait()
             except queue.Empty:
                 break
-            self.map.add_hypotheses(hyp)
+            fx, fy, cx, cy = self.cam
+            # A top edge is first measured in the recent keyframes (it comes when its box's corners were
+            # verified, often as the box leaves the view).
+            self.map.add_hypotheses(hyp, camera=(fx, fy, cx, cy, self.baseline, *self.size))
             n += len(hyp)
         self.stats["hypotheses_in"] += n
         return n
