@@ -28,6 +28,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from line_scenes import build_map, loop_poses, render_drive  # noqa: E402
+from test_line_nav import ABSTRACTION_EVERY  # noqa: E402
 
 from vbnav.control.cli import main as vbnav  # noqa: E402
 from vbnav.control.config import CONFIG_DIR  # noqa: E402
@@ -84,7 +85,9 @@ def main(argv=None) -> int:
                 print(_row("box_b, empty map", "static" if static else "re-plan", r), flush=True)
         if args.only in (None, "box_a"):
             print("building the 60-frame loop map ...", flush=True)
-            lmap, _ = build_map(render_drive(World.room(0), loop_poses(60)), floor=True)
+            # The map the room test scores: the slow loop runs inline as in `vbnav map build` (tests/test_line_nav.py).
+            lmap, _ = build_map(render_drive(World.room(0), loop_poses(60)), floor=True,
+                                abstraction_every=ABSTRACTION_EVERY)
             save_map(lmap, tmp / "loop60.json")
             for start in BOX_A_STARTS:
                 for static in (True, False):
