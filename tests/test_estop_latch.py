@@ -157,3 +157,14 @@ def test_a_latch_file_that_cannot_be_written_is_said_and_the_estop_holds_in_memo
     assert "does not exist" in warnings[0] and "could not be written" in warnings[1], warnings
     assert all(str(tmp_path / "missing/estop.json") in w for w in warnings)
     assert not _moving(cycles, since=1 * S + 20_000_000) and "estop" in rt.safety.latched
+
+
+def test_a_kept_estop_is_announced_once_on_the_console_of_a_real_clock_run(tmp_path, capsys):
+    """Found by an audit: on the wall clock the runtime printed 'estop kept from before a restart' and the console's
+    event echo printed the same estop's trip again. Now the echo says it, once."""
+    config = _config(tmp_path, latch_file="estop.json")
+    (tmp_path / "estop.json").write_text(estop_latch.latch_record("estop from test: person on the track", 5))
+    assert main(["run", "-c", str(config), "--no-camera", "--duration", "0.2", "--no-telemetry", "--realtime"]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "person on the track" in line and "safety=" not in line]
+    assert len(said) == 1 and "estop kept from before a restart" in said[0], err

@@ -71,7 +71,7 @@ def read_latch(path: Path) -> Optional[str]:
         why = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
         return (f"latch file {path} cannot be parsed ({why}): latched all the same (fail safe); resume to "
                 f"clear it")
-    return (f"{message}; latched at {since} (latched_ns {stamp} of the run before), kept in {path} across a "
+    return (f"estop kept from before a restart: {message}; latched at {since} (latched_ns {stamp} of the run before), kept in {path} across a "
             f"restart; resume to clear it")
 
 

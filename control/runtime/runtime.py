@@ -224,6 +224,9 @@ class Runtime:
         # called when the controller took a command to finish later (PENDING: a mode switch loading its route),
         # before its answer: (runtime, command, now_ns)
         self.pending_listeners: list[Callable[["Runtime", OperatorCommand, int], None]] = []
+        # a listener prints safety events on the console as they happen (progress.EventEcho.attach): what the
+        # start-up says as a safety event is not printed a second time
+        self.safety_on_console = False
         self.wheel_command = (0.0, 0.0)
         self.last_twist = STOP
         self.wheels: Optional[WheelState] = None
@@ -464,7 +467,8 @@ class Runtime:
         now = self.clock.now_ns()
         kept = read_latch(path)
         if kept is not None:
-            print(f"vbnav: estop kept from before a restart: {kept}", file=sys.stderr, flush=True)
+            if not self.safety_on_console:      # else its trip, just below, is the console's line
+                print(f"vbnav: {kept}", file=sys.stderr, flush=True)
             self.safety.trip(now, "estop", kept)
         problem = folder_problem(path)
         if problem:
