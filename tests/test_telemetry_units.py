@@ -14,7 +14,7 @@ from vbnav.control.config.telemetry import DEFAULT_ENDPOINT, TelemetryConfig, is
 from vbnav.control.comms.network import robot_session_config
 from vbnav.control.comms.recording import McapRecorder, format_summary, iter_recording, read_recording
 from vbnav.control.runtime.runtime import Runtime
-from vbnav.control.comms.telemetry import QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
+from vbnav.control.comms.telemetry import EVENT_RESERVE, QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
 from vbnav.control.comms.link import TelemetryLink
 from vbnav.drivers.clock import SimClock
 
@@ -233,6 +233,39 @@ def test_offer_never_blocks_and_drops_when_the_queue_is_full():
     queued = sum(pub.offer_state(_sample(k * 1_000_000, k)) for k in range(QUEUE_LIMIT + 50))
     assert queued == QUEUE_LIMIT and pub.dropped == 50
     pub.close()
+
+
+def test_a_blocked_sink_never_drops_a_command_answer_for_routine_telemetry_and_says_what_it_dropped():
+    """Found by an audit: with the publisher thread stuck in a sink, states filled the 256 places of the queue and
+    the answer of an applied command (and a safety trip) was dropped with them, unsaid: its sender waited for
+    nothing. Events now have places of their own beyond the routine ones, and events dropped beyond those are
+    counted and announced (an events_dropped event) once the publisher runs again."""
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], state_rate_hz=1000, loop_rate_hz=1000)  # thread not started: stuck
+    assert sum(pub.offer_state(_sample(k * 1_000_000, k)) for k in range(QUEUE_LIMIT + 10)) == QUEUE_LIMIT
+    assert pub.event("command", stamp_ns=1, command="resume", ack="a1")
+    assert pub.event("safety_trip", stamp_ns=2, cause="estop", message="estop from test")
+    flood = sum(pub.event("command_rejected", stamp_ns=3, command="mode", reason="bad") for _ in range(EVENT_RESERVE))
+    assert flood == EVENT_RESERVE - 2
+    assert not pub.event("command", stamp_ns=4, command="estop", ack="a2")
+    pub.close()
+    kinds = [e["kind"] for e in sink.events if e["kind"] != "events_dropped"]
+    assert kinds[:2] == ["command", "safety_trip"] and len(kinds) == EVENT_RESERVE, kinds[:3]
+    assert [e["ack"] for e in sink.events if e["kind"] == "command"] == ["a1"]
+    said = [e for e in sink.events if e["kind"] == "events_dropped"]
+    assert len(said) == 1 and said[0]["count"] == 3 and said[0]["kinds"] == {"command_rejected": 2, "command": 1}
+    assert "command" in said[0]["message"] and "3 events" in said[0]["message"], said[0]
+
+
+def test_vbnav_send_without_an_answer_says_the_robot_dropped_events_rather_than_blaming_the_operators(capsys):
+    import argparse
+
+    from vbnav.control.commands.send import REFUSED, _report
+    dropped = {"kind": "events_dropped", "count": 3, "message": "3 events were not published (command x3): ..."}
+    args = argparse.Namespace(wait=2.0, user=None, tls_cert=None)
+    assert _report(args, "r1", "resume", None, 1, dropped=dropped) == REFUSED
+    err = capsys.readouterr().err
+    assert "3 events were not published" in err and "vbnav monitor" in err and "telemetry.operators" not in err, err
 
 
 def test_a_failing_sink_does_not_stop_the_others():

@@ -184,6 +184,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     ack = body["ack"]
     answers: queue.SimpleQueue = queue.SimpleQueue()
     pending: list = []       # the robot's command_pending: it took the command and finishes it later
+    dropped: list = []       # the robot's events_dropped: its telemetry queue was full, an answer may be lost
 
     def on_event(sample) -> None:   # zenoh thread
         try:
@@ -196,6 +197,8 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             answers.put(msg)
         elif msg.get("kind") == "command_pending":
             pending.append(msg)
+        elif msg.get("kind") == "events_dropped" and answers.empty():
+            dropped.append(msg)
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
@@ -259,7 +262,8 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
-    return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None)
+    return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None,
+                   dropped[-1] if dropped else None)
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
@@ -269,11 +273,17 @@ def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
         return None
 
 
-def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None) -> int:
+def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None,
+            dropped=None) -> int:
     if answer is None and pending is not None:
         print(f"vbnav send: robot {robot} took {what} at cycle {pending.get('cycle', '?')} and had not finished it "
               f"within {args.wait:g} s (a mode switch loads its route first): `vbnav monitor` shows the mode once "
               f"it is done, a longer --wait waits for it", file=sys.stderr)
+        return REFUSED
+    if answer is None and dropped is not None:
+        print(f"vbnav send: no acknowledgement within {args.wait:g} s, and robot {robot} said "
+              f"{dropped.get('message', 'it dropped events')!r}: the answer may be among them; `vbnav monitor` "
+              f"shows whether the {what} took effect", file=sys.stderr)
         return REFUSED
     if answer is None:
         print(f"vbnav send: no acknowledgement within {args.wait:g} s: the robot may refuse commands from "
