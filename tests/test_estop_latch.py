@@ -168,3 +168,32 @@ def test_a_kept_estop_is_announced_once_on_the_console_of_a_real_clock_run(tmp_p
     err = capsys.readouterr().err
     said = [line for line in err.splitlines() if "person on the track" in line and "safety=" not in line]
     assert len(said) == 1 and "estop kept from before a restart" in said[0], err
+
+
+def test_a_kept_estop_is_cleared_by_hand_logged_and_refused_while_a_robot_runs_with_it(tmp_path, capsys):
+    """Found by an audit: a run by hand with safety.latch_file and no network could not be resumed; the docs said
+    to delete the file (unlogged, and a robot still running with it stayed latched in memory while the next
+    restart would not be). `vbnav estop clear` refuses while a run holds the file, else removes it and logs who
+    cleared it."""
+    config = _config(tmp_path, latch_file="estop.json")
+    latch = tmp_path / "estop.json"
+    _run(config, 1, {500_000_000: _estop("person on the track")})
+    assert latch.exists()
+
+    refused = []
+    _, _, cycles = _run(config, 1, {500_000_000: lambda r: refused.append(
+        main(["estop", "clear", "-c", str(config), "--reason", "test"]))})
+    err = capsys.readouterr().err
+    assert refused == [1] and "a robot process (pid" in err and "vbnav send resume" in err, err
+    assert latch.exists() and not _moving(cycles)
+
+    assert main(["estop", "clear", "--latch-file", str(latch), "--reason", "track checked"]) == 0
+    out = capsys.readouterr().out
+    assert "person on the track" in out and not latch.exists(), out
+    log = [json.loads(line) for line in (tmp_path / "estop.json.cleared.log").read_text().splitlines()]
+    assert len(log) == 1 and log[0]["reason"] == "track checked" and log[0]["by"] and "person on the track" in \
+        log[0]["estop"], log
+    _, _, cycles = _run(config, 1)
+    assert _moving(cycles), "still latched after the clear"
+    assert main(["estop", "clear", "--latch-file", str(latch)]) == 0
+    assert "nothing to clear" in capsys.readouterr().out

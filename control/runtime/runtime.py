@@ -56,7 +56,8 @@ from typing import Callable, Optional
 
 from vbnav.control.runtime.finishing import STOP_SIGNALS as _FINISHING_STOP_SIGNALS
 from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
-from vbnav.control.runtime.estop_latch import LatchWriter, folder_problem, latch_path, latch_record, read_latch
+from vbnav.control.runtime.estop_latch import (LatchHold, LatchWriter, folder_problem, latch_path, latch_record,
+                                              read_latch)
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
@@ -260,6 +261,7 @@ class Runtime:
         # an operator's estop kept across restarts (estop_latch.py): the file, and its writer while a run runs
         self.latch_file: Optional[Path] = latch_path(cfg)
         self._latch_writer: Optional[LatchWriter] = None
+        self._latch_hold: Optional[LatchHold] = None    # while a run runs: `vbnav estop clear` refuses
 
     # -- thread-safe inputs -------------------------------------------------
     def submit(self, cmd: OperatorCommand) -> Optional[str]:
@@ -465,6 +467,7 @@ class Runtime:
         if path is None:
             return
         now = self.clock.now_ns()
+        self._latch_hold = LatchHold(path)     # before reading: a clear by hand is done, or waits for the run's end
         kept = read_latch(path)
         if kept is not None:
             if not self.safety_on_console:      # else its trip, just below, is the console's line
@@ -486,6 +489,8 @@ class Runtime:
         self._latch_writer.close()
         self._latch_warnings(self.clock.now_ns())
         self._latch_writer = None
+        self._latch_hold.release()
+        self._latch_hold = None
 
     # -- a lost drive ---------------------------------------------------------
     def _read_wheels(self, now: int) -> Optional[WheelState]:
