@@ -179,6 +179,30 @@ def test_a_far_future_stamp_on_a_senders_first_teleop_does_not_make_its_later_te
     assert reason is not None and reason.startswith("stale: sent 600 ms ago"), reason
 
 
+def test_a_huge_first_seq_does_not_make_its_senders_later_teleop_out_of_order_for_good():
+    """Found by an audit: a sender's first teleop numbered 10**12 (a bug, a peer copying its sender and session)
+    made every later teleop of that session 'out of order' while it kept sending. A message numbered lower but
+    stamped later than the last one taken cannot be a reordered one (one monotonic clock numbers and stamps in
+    order): its numbering restarted, and it is taken. Reordered messages (lower seq, lower stamp) are still
+    refused."""
+    box, clock = _box()
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=10 ** 12, session="x", stamp_ns=clock.now_ns())) \
+        is None
+    box.drain(clock.now_ns())
+    for seq in (1, 2, 3):
+        clock.advance(50_000_000)
+        assert box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=seq, session="x", stamp_ns=clock.now_ns())) \
+            is None, seq
+        applied, refused = box.drain(clock.now_ns())
+        assert [c.seq for c in applied] == [seq] and not refused, (applied, refused)
+    stamp = clock.now_ns()
+    clock.advance(10_000_000)
+    reason = box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=2, session="x", stamp_ns=stamp - 1))
+    assert reason is not None and reason.startswith("out of order"), reason
+    assert box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=3, session="x", stamp_ns=stamp)).startswith(
+        "out of order")                                                     # a duplicate
+
+
 def test_a_teleop_that_waited_too_long_for_the_loop_is_refused_when_taken():
     box, clock = _box()
     box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=5))
