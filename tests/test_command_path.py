@@ -203,6 +203,29 @@ def test_a_huge_first_seq_does_not_make_its_senders_later_teleop_out_of_order_fo
         "out of order")                                                     # a duplicate
 
 
+def test_a_signed_teleop_stamped_ahead_of_the_shared_clock_is_refused_rather_than_locking_its_session():
+    """Found by an audit: without seq, a first teleop stamped an hour ahead set its sender's clock offset and
+    every later teleop of that session was stale until a new session. Signed commands come from this machine
+    (command_auth.py): sender and robot read one monotonic clock, and a stamp more than FUTURE_SLACK_NS (100 ms)
+    ahead of it is no reading of it: refused, saying so, and the offset is not moved. (Unsigned senders may be
+    on another machine, any offset: no bound on a first stamp exists there.)"""
+    box, clock = _box()
+    rejected = []
+    inbox = CommandInbox(limits_from_config(Config()), deliver=box.post, now_ns=clock.now_ns,
+                         on_reject=lambda k, r, p: rejected.append(r), shared_clock=clock.now_ns)
+    hour = 3_600_000_000_000
+    body = {"linear": 0.1, "angular": 0.0, "sender": "op", "session": "x"}
+    assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() + hour})) is None
+    assert len(rejected) == 1 and "ahead of this machine's monotonic clock" in rejected[0], rejected
+    for _ in range(3):
+        clock.advance(50_000_000)
+        assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() - 1_000_000})) is not None
+        applied, refused = box.drain(clock.now_ns())
+        assert len(applied) == 1 and not refused, (applied, refused)
+    assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() + 50_000_000})) is not None
+    assert len(rejected) == 1
+
+
 def test_a_teleop_that_waited_too_long_for_the_loop_is_refused_when_taken():
     box, clock = _box()
     box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=1, stamp_ns=5))

@@ -204,7 +204,8 @@ class TelemetryLink:
         holder["link"] = link
         # The inbox also takes commands from local sources (tests, a future local console).
         link.inbox = CommandInbox(limits_from_config(cfg), deliver=lambda cmd: link.runtime.submit(cmd),
-                                  on_reject=link._on_reject, now_ns=clock.now_ns)
+                                  on_reject=link._on_reject, now_ns=clock.now_ns,
+                                  shared_clock=None if verify is None else time.monotonic_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
             link.routes = _route_server(session, cfg, verify, runtime)

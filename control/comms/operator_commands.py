@@ -41,6 +41,7 @@ from typing import Callable, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from vbnav.control.comms.command_auth import FUTURE_SLACK_NS
 from vbnav.control.route import check_route_name
 from vbnav.control.runtime.mailbox import OperatorCommand, RefusalThrottle
 from vbnav.drivers.plain_values import load_json
@@ -198,8 +199,12 @@ class CommandInbox:
     """
 
     def __init__(self, limits: TeleopLimits, deliver: Callable[[OperatorCommand], Optional[str]],
-                 on_reject: Optional[RejectFn] = None, now_ns: Callable[[], int] = time.monotonic_ns):
+                 on_reject: Optional[RejectFn] = None, now_ns: Callable[[], int] = time.monotonic_ns,
+                 shared_clock: Optional[Callable[[], int]] = None):
         self.limits = limits
+        # the monotonic clock senders stamp by when it is this machine's (signed commands: command_auth.py); a
+        # stamp_ns ahead of it by more than FUTURE_SLACK_NS is no reading of it
+        self._shared_clock = shared_clock
         self._deliver = deliver
         self._on_reject = on_reject
         self._now = now_ns
@@ -211,6 +216,7 @@ class CommandInbox:
         """The command if the loop's mailbox took it, else None (and a refusal report)."""
         try:
             cmd = parse_command(kind, payload, self.limits)
+            self._check_shared_clock(cmd)
             reason = self._deliver(operator_command(cmd))
         except CommandRejected as exc:
             self.refuse_body(kind, str(exc), payload)
@@ -224,6 +230,18 @@ class CommandInbox:
             return None
         self.accepted += 1
         return cmd
+
+    def _check_shared_clock(self, cmd: NetCommand) -> None:
+        """CommandRejected when the sender shares this machine's clock and its stamp_ns lies ahead of it: taken, a
+        first teleop so stamped set its sender's clock offset, and every later teleop of the session was stale."""
+        stamp = cmd.body.stamp_ns
+        if self._shared_clock is None or stamp is None:
+            return
+        ahead = stamp - self._shared_clock()
+        if ahead > FUTURE_SLACK_NS:
+            raise CommandRejected(f"stamp_ns is {ahead * 1e-6:.0f} ms ahead of this machine's monotonic clock, which "
+                                  f"a sender of signed commands shares (telemetry.shared_secret_file): more than "
+                                  f"{FUTURE_SLACK_NS * 1e-6:.0f} ms, no reading of it")
 
     def refuse_body(self, kind: str, reason: str, payload) -> None:
         """A payload that is not a valid command (``reason``): refused, except an estop's. A stop asked for on

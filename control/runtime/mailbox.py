@@ -51,7 +51,9 @@ sender's clock, not by when the loop gets to a message:
   a message restarts the estimate from itself, as a new session would (no looser than one: a new session's
   first message is taken as sent on arrival too). Without ``seq`` nothing tells that glitch from a steady
   transport backlog the robot must refuse (both show every later message late by the same amount), so such
-  a sender stays stale until it starts a new ``session``.
+  a sender stays stale until it starts a new ``session``. (Signed commands come from this machine and read its
+  clock: comms/operator_commands.py refuses their stamps ahead of it before they reach the mailbox. Unsigned
+  senders may be anywhere, any offset: no bound on a first stamp exists.)
 - A first ``seq`` far ahead (10**12: a bug, a peer copying the sender and session) made every later teleop of that
   session out of order while it kept sending. A message numbered at or below the last one taken but stamped
   after it cannot be a reordered or repeated one: the numbering restarted, and it is taken (``renumbered``).
