@@ -892,3 +892,24 @@ def test_vbnav_send_estop_is_sent_whatever_its_reason(reason, capsys):
     assert what == "estop" and len(body["reason"]) <= 200 and body["reason"].isprintable(), body
     parse_command("estop", json.dumps(body), TeleopLimits(1.0, 1.0))     # the robot takes it as it is
     assert "--reason" in capsys.readouterr().err
+
+
+def test_a_resume_naming_a_latched_ns_ahead_of_the_robots_clock_clears_nothing():
+    """Found by an audit: a resume naming latched_ns T clears only the stops that began up to T, so one naming a
+    T ahead of the robot's clock (another robot's state: each robot's monotonic clock counts from its own boot,
+    or a sender's bug) cleared every latched stop, though the robot never showed such a T. Refused now, saying
+    why; the estop holds."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    t_estop, t_resume = T0 + 200_000_000, T0 + 400_000_000
+
+    def transport(r, ctx, twist, wheels):
+        if ctx.now_ns == t_estop:
+            inbox.submit("estop", json.dumps({"sender": "A"}))
+        if ctx.now_ns == t_resume:
+            inbox.submit("resume", json.dumps({"sender": "B", "latched_ns": ctx.now_ns + 3_600_000_000_000}))
+
+    rt.cycle_observers.append(transport)
+    rt.run(0.6)
+    assert "estop" in rt.safety.latched, "a resume naming a latched_ns the robot never showed cleared the estop"
+    refused = [e.message for e in rt.safety.events if (e.kind, e.cause) == ("rejected", "resume")]
+    assert len(refused) == 1 and "ahead of this robot's clock" in refused[0], refused

@@ -733,6 +733,13 @@ class Runtime:
             t, what = self._resume_after
             return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
                                           f"{what}, so it was not meant to clear it; resume again")
+        if cmd.kind == "resume" and cmd.args and cmd.args[0] > now:
+            # it would clear every stop, though this robot never showed such a time: each robot's clock counts
+            # from its own start, so another robot's state names times this one has not reached
+            return CommandOutcome.refused(f"this resume names latched_ns {cmd.args[0]}, "
+                                          f"{(cmd.args[0] - now) * 1e-9:.3f} s ahead of this robot's clock: no "
+                                          f"stop it showed began then (another robot's state?); resume again "
+                                          f"naming latched_ns {self.safety.latched_ns} (this robot's state)")
         if cmd.kind == "resume" and cmd.args:
             unseen = self.safety.latched_after(cmd.args[0])
             if unseen:
