@@ -38,7 +38,7 @@ def sim_teleop_runtime(cfg=None, clock=None):
     rt = Runtime(cfg, drive, TeleopController(cfg.safety.command_timeout_s), clock)
     rejected = []
     inbox = CommandInbox(limits_from_config(cfg), deliver=rt.submit, now_ns=clock.now_ns,
-                         on_reject=lambda k, r, p: rejected.append((k, r)))
+                         on_reject=lambda k, r, p, v: rejected.append((k, r)))
     return rt, drive, clock, inbox, rejected
 
 
@@ -86,7 +86,7 @@ def test_out_of_order_seq_is_refused_and_a_new_session_or_silence_starts_afresh(
 def test_refused_teleop_is_answered_each_time_it_carries_an_ack_and_summarised_otherwise():
     rt, drive, clock, inbox, rejected = sim_teleop_runtime()
     excerpts = []
-    inbox._on_reject = lambda k, r, p: (rejected.append((k, r)), excerpts.append(p))
+    inbox._on_reject = lambda k, r, p, v: (rejected.append((k, r)), excerpts.append(p))
     assert inbox.submit("teleop", teleop(5, clock.now_ns())) is not None
     for seq in (3, 4):                                      # out of order, no ack: one report a second
         assert inbox.submit("teleop", teleop(seq, clock.now_ns())) is None
@@ -212,7 +212,7 @@ def test_a_signed_teleop_stamped_ahead_of_the_shared_clock_is_refused_rather_tha
     box, clock = _box()
     rejected = []
     inbox = CommandInbox(limits_from_config(Config()), deliver=box.post, now_ns=clock.now_ns,
-                         on_reject=lambda k, r, p: rejected.append(r), shared_clock=clock.now_ns)
+                         on_reject=lambda k, r, p, v: rejected.append(r), shared_clock=clock.now_ns)
     hour = 3_600_000_000_000
     body = {"linear": 0.1, "angular": 0.0, "sender": "op", "session": "x"}
     assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() + hour})) is None
@@ -564,7 +564,7 @@ def test_oversized_payload_is_refused_unread_and_never_reaches_the_loop():
     box, clock = _box()
     rejected = []
     inbox = CommandInbox(limits_from_config(Config()), deliver=box.post,
-                         on_reject=lambda k, r, p: rejected.append((k, r, p)))
+                         on_reject=lambda k, r, p, v: rejected.append((k, r, p)))
     session = _Session()
     CommandSubscriber(session, "sim", inbox)
     session.callback(_Sample("vbnav/sim/cmd/teleop", _Payload(100_000_000)))
@@ -583,7 +583,7 @@ def test_zenoh_drops_large_messages_and_the_subscriber_refuses_oversized_ones_on
     box, clock = _box()
     rejected = []
     inbox = CommandInbox(limits_from_config(Config()), deliver=box.post,
-                         on_reject=lambda k, r, p: rejected.append((k, r)))
+                         on_reject=lambda k, r, p, v: rejected.append((k, r)))
     sub = CommandSubscriber(robot, "sim", inbox)
     op = open_session(client_session_config([f"tcp/127.0.0.1:{port}"]))
     try:

@@ -156,7 +156,7 @@ def test_inbox_rejects_with_events_and_the_safety_lane_refuses_loudly_but_never_
     clock = SimClock()
     mailbox = CommandMailbox(clock.now_ns, 500_000_000)
     rejected = []
-    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p: rejected.append((k, r)))
+    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p, v: rejected.append((k, r)))
     assert inbox.submit("teleop", b'{"linear": 5, "angular": 0}') is None
     assert inbox.submit("teleop", b"\xff\xfe") is None
     assert [k for k, _ in rejected] == ["teleop", "teleop"] and mailbox.drain(clock.now_ns()) == ([], [])

@@ -185,13 +185,22 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     answers: queue.SimpleQueue = queue.SimpleQueue()
     pending: list = []       # the robot's command_pending: it took the command and finishes it later
     dropped: list = []       # the robot's events_dropped: its telemetry queue was full, an answer may be lost
+    unverified: list = []    # refusals of a payload carrying this ack whose signature failed (no answer: a copy?)
 
     def on_event(sample) -> None:   # zenoh thread
         try:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
-        if not isinstance(msg, dict) or msg.get("ack") != ack:
+        if not isinstance(msg, dict):
+            return
+        if msg.get("unverified_ack") == ack:     # refused unsigned or replayed: this one, or a copy of it
+            # unsigned, this command is refused whoever else sent it too: the answer; signed, it may be a copy's
+            if secret is None:
+                answers.put(msg)
+            else:
+                unverified.append(msg)
+        if msg.get("ack") != ack:
             return
         if msg.get("kind") in ("command", "command_rejected"):
             answers.put(msg)
@@ -263,7 +272,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     if answer is None:
         answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
     return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None,
-                   dropped[-1] if dropped else None)
+                   dropped[-1] if dropped else None, unverified[0] if unverified else None)
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
@@ -274,11 +283,16 @@ def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
 
 
 def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None,
-            dropped=None) -> int:
+            dropped=None, unverified=None) -> int:
     if answer is None and pending is not None:
         print(f"vbnav send: robot {robot} took {what} at cycle {pending.get('cycle', '?')} and had not finished it "
               f"within {args.wait:g} s (a mode switch loads its route first): `vbnav monitor` shows the mode once "
               f"it is done, a longer --wait waits for it", file=sys.stderr)
+        return REFUSED
+    if answer is None and unverified is not None:
+        print(f"vbnav send: no acknowledgement within {args.wait:g} s; robot {robot} refused a {what} carrying this "
+              f"command's ack whose signature failed ({unverified.get('reason', '?')}): if it was this one, sign "
+              f"it (--secret-file, or -c CONFIG with telemetry.shared_secret_file)", file=sys.stderr)
         return REFUSED
     if answer is None and dropped is not None:
         print(f"vbnav send: no acknowledgement within {args.wait:g} s, and robot {robot} said "

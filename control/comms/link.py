@@ -352,11 +352,11 @@ class TelemetryLink:
         self.publisher.event("command", stamp_ns=now_ns, **fields)
 
     # ---- network command thread ------------------------------------------------------------
-    def _on_reject(self, kind: str, reason: str, excerpt: str) -> None:
+    def _on_reject(self, kind: str, reason: str, excerpt: str, verified: bool = True) -> None:
         fields = dict(command=kind, reason=reason, payload=excerpt)
         m = _ACK_IN_PAYLOAD.search(excerpt)
-        if m:
-            fields["ack"] = m.group(1)
+        if m:       # a payload whose signature failed may be a copy of an operator's: its ack is no answer to it
+            fields["ack" if verified else "unverified_ack"] = m.group(1)
         self.publisher.event("command_rejected", **fields)
 
     # ---- end -------------------------------------------------------------------------------

@@ -185,7 +185,9 @@ def operator_command(cmd: NetCommand) -> OperatorCommand:
                            stamp_ns=b.stamp_ns, session=b.session or "", ack=b.ack or "")
 
 
-RejectFn = Callable[[str, str, str], None]   # (command kind, reason, payload excerpt)
+# (command kind, reason, payload excerpt, verified: False when the payload failed its signature check, so the ack
+# it carries may be anyone's and is no answer to its sender)
+RejectFn = Callable[[str, str, str, bool], None]
 
 
 class CommandInbox:
@@ -258,8 +260,11 @@ class CommandInbox:
         else:
             self.accepted += 1
 
-    def refuse(self, kind: str, reason: str, payload, stream: bool = False) -> None:
+    def refuse(self, kind: str, reason: str, payload, stream: bool = False, verified: bool = True) -> None:
         """Count a refusal and report it (``payload``: the bytes, or b"" when it was not read).
+
+        verified: False for a payload whose signature failed (unsigned, replayed, changed): anyone may have sent
+        it, a copy of an operator's command among them, so its ack is reported as not its sender's answer.
 
         stream: a teleop the mailbox refused (stale, out of order, too many senders), which a flood
         repeats thousands of times: reported at most once a second per reason."""
@@ -274,7 +279,7 @@ class CommandInbox:
                 return
         excerpt = payload[:200] if isinstance(payload, str) else bytes(payload[:200]).decode("utf-8", "replace")
         try:
-            self._on_reject(kind, reason, excerpt)
+            self._on_reject(kind, reason, excerpt, verified)
         except Exception:
             pass
 
@@ -309,7 +314,7 @@ class CommandSubscriber:
                 attachment = sample.attachment
                 refused = self._verify(key, payload, None if attachment is None else attachment.to_bytes())
                 if refused:
-                    self._inbox.refuse(kind, refused, payload)
+                    self._inbox.refuse(kind, refused, payload, verified=False)
                     return
             self._inbox.submit(kind, payload)
         except Exception as exc:  # pragma: no cover - submit already never raises
