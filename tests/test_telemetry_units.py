@@ -268,6 +268,19 @@ def test_vbnav_send_without_an_answer_says_the_robot_dropped_events_rather_than_
     assert "3 events were not published" in err and "vbnav monitor" in err and "telemetry.operators" not in err, err
 
 
+def test_vbnav_send_hears_an_events_dropped_that_carries_no_ack():
+    """vbnav send read the robot's events_dropped only after its filter on its own ack, which that event never
+    carries: an answer lost with it was still called 'the robot may refuse commands from ...'."""
+    from vbnav.control.commands.send import _Heard
+    heard = _Heard("A1", signed=False)
+    for msg in ({"kind": "events_dropped", "count": 3, "message": "3 events were not published"},
+                {"kind": "command", "ack": "B2"}, {"kind": "command_pending", "ack": "A1"}):
+        heard.take(msg)
+    assert [m["count"] for m in heard.dropped] == [3] and heard.answers.empty() and len(heard.pending) == 1
+    heard.take({"kind": "command_rejected", "ack": "A1", "reason": "x"})
+    assert heard.answers.get_nowait()["reason"] == "x"
+
+
 def test_a_failing_sink_does_not_stop_the_others():
     class Broken(Sink):
         def state(self, *a):

@@ -181,33 +181,15 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     except LookupError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
         return UNREACHABLE
-    ack = body["ack"]
-    answers: queue.SimpleQueue = queue.SimpleQueue()
-    pending: list = []       # the robot's command_pending: it took the command and finishes it later
-    dropped: list = []       # the robot's events_dropped: its telemetry queue was full, an answer may be lost
-    unverified: list = []    # refusals of a payload carrying this ack whose signature failed (no answer: a copy?)
+    heard = _Heard(body["ack"], signed=secret is not None)
 
     def on_event(sample) -> None:   # zenoh thread
         try:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
-        if not isinstance(msg, dict):
-            return
-        if msg.get("unverified_ack") == ack:     # refused unsigned or replayed: this one, or a copy of it
-            # unsigned, this command is refused whoever else sent it too: the answer; signed, it may be a copy's
-            if secret is None:
-                answers.put(msg)
-            else:
-                unverified.append(msg)
-        if msg.get("ack") != ack:
-            return
-        if msg.get("kind") in ("command", "command_rejected"):
-            answers.put(msg)
-        elif msg.get("kind") == "command_pending":
-            pending.append(msg)
-        elif msg.get("kind") == "events_dropped" and answers.empty():
-            dropped.append(msg)
+        if isinstance(msg, dict):
+            heard.take(msg)
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
@@ -256,7 +238,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             put(i, with_ack=answer is None)   # ack until answered: a coalesced or lost one cannot hide the answer
             sent += 1
             if answer is None:
-                answer = _poll(answers)
+                answer = _poll(heard.answers)
             if answer is not None and answer["kind"] == "command_rejected":
                 break
             if answer is None and time.monotonic() - first > args.wait:
@@ -270,9 +252,37 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         if stopped:
             out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
-        answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
-    return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None,
-                   dropped[-1] if dropped else None, unverified[0] if unverified else None)
+        answer = _poll(heard.answers, max(0.0, first + args.wait - time.monotonic()))
+    return _report(args, robot, what, answer, sent, stopped, heard.pending[0] if heard.pending else None,
+                   heard.dropped[-1] if heard.dropped else None, heard.unverified[0] if heard.unverified else None)
+
+
+class _Heard:
+    """What the robot's events say of one command (its ``ack``): the zenoh thread ``take``s each event."""
+
+    def __init__(self, ack: str, signed: bool):
+        self.ack, self.signed = ack, signed
+        self.answers: queue.SimpleQueue = queue.SimpleQueue()   # command / command_rejected with its ack
+        self.pending: list = []      # command_pending: the robot took the command and finishes it later
+        self.dropped: list = []      # events_dropped: the robot's telemetry queue was full, an answer may be lost
+        self.unverified: list = []   # refusals of a payload with this ack whose signature failed (a copy's?)
+
+    def take(self, msg: dict) -> None:
+        kind = msg.get("kind")
+        if kind == "events_dropped":             # carries no ack: any command's answer may be among them
+            self.dropped.append(msg)
+        elif msg.get("unverified_ack") == self.ack:
+            # unsigned, this command is refused whoever else sent it too: the answer; signed, it may be a copy's
+            if self.signed:
+                self.unverified.append(msg)
+            else:
+                self.answers.put(msg)
+        elif msg.get("ack") != self.ack:
+            return
+        elif kind in ("command", "command_rejected"):
+            self.answers.put(msg)
+        elif kind == "command_pending":
+            self.pending.append(msg)
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
