@@ -281,6 +281,25 @@ def test_vbnav_send_hears_an_events_dropped_that_carries_no_ack():
     assert heard.answers.get_nowait()["reason"] == "x"
 
 
+def test_vbnav_send_finds_an_answer_the_network_dropped_in_the_robots_event_history():
+    """The robot publishes its events with congestion control DROP: an answer zenoh dropped on the way left vbnav
+    send saying 'no acknowledgement: the robot may refuse commands from ...', untrue, though the robot's event
+    history (events/recent) held it. vbnav send asks the history before it says no answer came."""
+    from types import SimpleNamespace
+
+    from vbnav.control.commands.send import _Heard
+    history = {"schema": "vbnav.events.recent", "events": [{"kind": "command", "ack": "B2", "cycle": 3},
+                                                           {"kind": "command", "ack": "A1", "cycle": 7}]}
+    reply = SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: json.dumps(history).encode())))
+    asked = []
+    session = SimpleNamespace(get=lambda key, timeout: asked.append(key) or [reply])
+    heard = _Heard("A1", signed=False)
+    heard.recall(session, "r1")
+    assert asked == ["vbnav/r1/events/recent"] and heard.answers.get_nowait()["cycle"] == 7
+    heard.recall(SimpleNamespace(get=lambda key, timeout: [SimpleNamespace(ok=None)]), "r1")     # no history
+    assert heard.answers.empty()
+
+
 def test_a_failing_sink_does_not_stop_the_others():
     class Broken(Sink):
         def state(self, *a):

@@ -253,6 +253,9 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
         answer = _poll(heard.answers, max(0.0, first + args.wait - time.monotonic()))
+    if answer is None:      # an answer the network dropped (congestion control DROP) is in the robot's history
+        heard.recall(session, robot)
+        answer = _poll(heard.answers)
     return _report(args, robot, what, answer, sent, stopped, heard.pending[0] if heard.pending else None,
                    heard.dropped[-1] if heard.dropped else None, heard.unverified[0] if heard.unverified else None)
 
@@ -283,6 +286,20 @@ class _Heard:
             self.answers.put(msg)
         elif kind == "command_pending":
             self.pending.append(msg)
+
+    def recall(self, session, robot: str, timeout_s: float = 1.0) -> None:
+        """``take`` the robot's recent events (``vbnav/<robot>/events/recent``, the last 20 its telemetry sent):
+        an answer zenoh dropped on the way (its events go with congestion control DROP) is among them."""
+        try:
+            for reply in session.get(f"vbnav/{robot}/events/recent", timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                events = json.loads(reply.ok.payload.to_bytes()).get("events", [])
+                for msg in events if isinstance(events, list) else []:
+                    if isinstance(msg, dict):
+                        self.take(msg)
+        except Exception:       # no history: the report says no answer came
+            pass
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
