@@ -847,6 +847,18 @@ def test_an_estop_whose_payload_is_malformed_still_stops_the_robot(payload):
     assert not rejected, rejected
 
 
+def test_an_estop_taken_despite_a_malformed_payload_is_answered_with_its_ack():
+    """An estop whose body failed validation stops the robot all the same, but its answer lost the sender's ack:
+    a sender waiting for it (vbnav send, another tool) heard nothing and said the robot did not answer, of a stop
+    that took effect. The ack, when the payload carries one, is kept."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    answered = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: answered.append((cmd.kind, cmd.ack)))
+    inbox.submit("estop", '{"ack": "E1", "reason": 5}')
+    rt.run(0.05)
+    assert answered == [("estop", "E1")] and "estop" in rt.safety.latched, answered
+
+
 def test_vbnav_send_estop_goes_out_when_the_robot_takes_commands_but_its_event_history_is_slow():
     """vbnav send asks the robot's event history (events/recent) whether it is there before sending: a robot
     too busy to answer that query within --wait (a flood on its network) got no estop, 'no robot named sim is

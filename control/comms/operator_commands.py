@@ -23,7 +23,8 @@ validates it (pydantic), and posts an ``OperatorCommand`` to ``Runtime.submit`` 
 newest message per sender. The loop drains the mailbox once per cycle, never blocking.
 Malformed, unknown, out-of-range, oversized, unsigned (with ``telemetry.shared_secret_file``),
 stale or out-of-order commands are refused with a ``command_rejected`` event (but an estop whose body
-is malformed or oversized stops the robot all the same, its trip naming the fault: ``refuse_body``) (stale and
+is malformed or oversized stops the robot all the same, its trip naming the fault and its answer carrying the
+payload's ``ack`` when one is there: ``refuse_body``) (stale and
 out-of-order teleop without an ``ack`` at most once a second per reason, with a count): they
 never raise into zenoh or the loop and never move the robot. Unauthorised peers are stopped
 earlier, by zenoh's access control (see network.py): their messages never arrive.
@@ -52,6 +53,8 @@ ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
 
+#: the ack of a payload that may not parse (a refusal repeats it; a malformed estop's answer too)
+ACK_IN_PAYLOAD = re.compile(r'"ack"\s*:\s*"(' + ACK_PATTERN.strip("^$") + ')"')
 CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f]")
 REASON_MAX_CHARS = 200             # an estop's reason
 
@@ -254,8 +257,12 @@ class CommandInbox:
             self.refuse(kind, reason, payload)
             return
         why = f"its payload was refused ({reason[:300]}), stopped all the same"
-        refused = self._deliver(OperatorCommand("estop", (why,), source="zenoh"))    # the mailbox never refuses
-        if refused:                                                                  # an estop but when closed
+        text = payload[:MAX_PAYLOAD] if isinstance(payload, str) else bytes(payload[:MAX_PAYLOAD]).decode("utf-8",
+                                                                                                     "replace")
+        m = ACK_IN_PAYLOAD.search(text)          # its answer goes to the sender waiting for it
+        refused = self._deliver(OperatorCommand("estop", (why,), source="zenoh", ack=m.group(1) if m else ""))
+        # the mailbox never refuses an estop but when the run ended
+        if refused:
             self.refuse(kind, refused, payload)
         else:
             self.accepted += 1
