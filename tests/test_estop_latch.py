@@ -197,3 +197,24 @@ def test_a_kept_estop_is_cleared_by_hand_logged_and_refused_while_a_robot_runs_w
     assert _moving(cycles), "still latched after the clear"
     assert main(["estop", "clear", "--latch-file", str(latch)]) == 0
     assert "nothing to clear" in capsys.readouterr().out
+
+
+def test_an_estop_accepted_as_the_run_ends_on_a_fault_is_kept_across_the_restart(tmp_path):
+    """Found by an audit: an estop the mailbox had accepted but the loop had not applied when a fault ended the run
+    was answered 'refused: the run ended' and never written to the latch file; systemd restarted the service 2 s
+    later and a robot configured for repeat drove off, the operator's estop forgotten. An accepted estop is
+    applied: it is latched, kept in the file and answered applied, however the run ends."""
+    config = _config(tmp_path, latch_file="estop.json")
+    answered = []
+
+    def fault_with_an_estop_waiting(r):
+        r.end_run("network", "the zenoh session died")       # a fatal cause: the run ends at the next cycle
+        r.command_listeners.append(lambda rt, cmd, outcome, now: answered.append((cmd.kind, outcome.applied)))
+        r.submit(OperatorCommand("estop", ("person on the track",), "test", ack="E1"))
+
+    result, rt, _ = _run(config, 2, {500_000_000: fault_with_an_estop_waiting})
+    assert result.reason == "network", result.message
+    assert answered == [("estop", True)], (answered, [e.message for e in result.events])
+    assert "person on the track" in json.loads((tmp_path / "estop.json").read_text())["message"]
+    _, _, cycles = _run(config, 1)            # the restart
+    assert not _moving(cycles), "the restarted run drove: the estop was forgotten"

@@ -774,7 +774,9 @@ class Runtime:
 
     def _refuse_waiting_commands(self) -> None:
         """Commands that arrived in the last cycle or after it are answered, not left unanswered; later
-        ones are refused by the mailbox with the same reason."""
+        ones are refused by the mailbox with the same reason. An estop among them was accepted, so it is
+        applied: latched and kept in the latch file (its writer is still open), or a service restarted after
+        this fault would drive off with the operator's estop forgotten."""
         reason, message = self._end or ("stopped", "loop stopped")
         why = f"the run ended ({reason}: {message}) before the loop took this command"
         now = self.clock.now_ns()
@@ -783,7 +785,8 @@ class Runtime:
         for cmd, because in [(c, taken) for c in in_hand] + [(c, why) for c in self.mailbox.close(why)]:
             for fn in self.command_observers:      # they tell the answer which command (and ack) it is for
                 fn(self, cmd, now)
-            self._answer(cmd, CommandOutcome.refused(because), now)
+            outcome = self._apply_command(cmd, now) if cmd.kind == "estop" else CommandOutcome.refused(because)
+            self._answer(cmd, outcome, now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):
