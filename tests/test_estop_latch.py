@@ -218,3 +218,17 @@ def test_an_estop_accepted_as_the_run_ends_on_a_fault_is_kept_across_the_restart
     assert "person on the track" in json.loads((tmp_path / "estop.json").read_text())["message"]
     _, _, cycles = _run(config, 1)            # the restart
     assert not _moving(cycles), "the restarted run drove: the estop was forgotten"
+
+
+def test_an_estop_that_comes_after_the_run_ended_is_kept_for_the_next_run(tmp_path):
+    """Found by an audit: an estop that arrived after a fault ended the run, while the process was still closing
+    (a mode switch's worker, the telemetry flush: seconds), was refused 'the run ended' and kept nowhere: the
+    service restarted 2 s later and drove. It is still refused (the loop is over), but kept in the latch file,
+    and its refusal says so; the next run starts latched."""
+    config = _config(tmp_path, latch_file="estop.json")
+    result, rt, _ = _run(config, 0.5)
+    reason = rt.submit(OperatorCommand("estop", ("person on the track",), "zenoh:op"))
+    assert reason is not None and "the run ended" in reason and "kept in" in reason and "starts latched" in reason
+    assert "person on the track" in json.loads((tmp_path / "estop.json").read_text())["message"]
+    _, _, cycles = _run(config, 1)
+    assert not _moving(cycles), "the next run drove: the estop was forgotten"

@@ -58,6 +58,7 @@ from vbnav.control.runtime.finishing import STOP_SIGNALS as _FINISHING_STOP_SIGN
 from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
 from vbnav.control.runtime.estop_latch import (LatchHold, LatchWriter, folder_problem, latch_path, latch_record,
                                               read_latch)
+from vbnav.drivers.atomic_file import write_atomic
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
@@ -262,11 +263,32 @@ class Runtime:
         self.latch_file: Optional[Path] = latch_path(cfg)
         self._latch_writer: Optional[LatchWriter] = None
         self._latch_hold: Optional[LatchHold] = None    # while a run runs: `vbnav estop clear` refuses
+        self._latch_lock = threading.Lock()    # the writer's end against an estop kept after the run ended
 
     # -- thread-safe inputs -------------------------------------------------
     def submit(self, cmd: OperatorCommand) -> Optional[str]:
         """Hand an operator command to the loop from any thread: None if accepted, else the refusal reason."""
-        return self.mailbox.post(cmd)
+        refused = self.mailbox.post(cmd)
+        if refused and cmd.kind == "estop" and self.latch_file is not None:   # the mailbox refuses an estop only
+            refused += self._keep_late_estop(cmd)                             # once the run ended
+        return refused
+
+    def _keep_late_estop(self, cmd: OperatorCommand) -> str:
+        """Any thread, after the run ended (the process still closing, a restart to come): the estop is kept in
+        the latch file, through the run's writer while it still writes (the newest post wins), else at once.
+        Returns what the refusal adds."""
+        path = self.latch_file
+        record = latch_record(f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else "") +
+                              " (after the run ended)", self.clock.now_ns())
+        with self._latch_lock:
+            try:
+                if self._latch_writer is not None:
+                    self._latch_writer.write(record)
+                else:
+                    write_atomic(path, record)
+            except OSError as exc:
+                return f"; it could not be kept in {path} ({exc.strerror or exc}): the next run does not start latched"
+        return f"; the estop is kept in {path}: the next run starts latched until a resume"
 
     def request_stop(self, signum: int = signal.SIGTERM) -> None:
         self._signal = signum
@@ -486,9 +508,13 @@ class Runtime:
     def _close_latch(self) -> None:
         if self._latch_writer is None:
             return
-        self._latch_writer.close()
-        self._latch_warnings(self.clock.now_ns())
-        self._latch_writer = None
+        writer = self._latch_writer
+        with self._latch_lock:      # an estop kept after the run ended posts before this or writes after it
+            writer.close()
+            self._latch_writer = None
+        now = self.clock.now_ns()
+        for message in writer.errors():
+            self.safety.note(now, "warning", "latch_file", message)
         self._latch_hold.release()
         self._latch_hold = None
 
