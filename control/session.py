@@ -214,8 +214,7 @@ class Session:
         echo = None
         if not robot.clock.simulated and self.progress is not None:   # a console run in real time
             from vbnav.control.runtime.progress import EventEcho
-            echo = EventEcho()
-            rt.safety.listeners.append(echo)
+            echo = EventEcho().attach(rt)
         result = None
         try:
             result = rt.run(duration_s, self._progress_fn(segment.split()[0], status))

@@ -38,7 +38,7 @@ def sim_teleop_runtime(cfg=None, clock=None):
     rt = Runtime(cfg, drive, TeleopController(cfg.safety.command_timeout_s), clock)
     rejected = []
     inbox = CommandInbox(limits_from_config(cfg), deliver=rt.submit, now_ns=clock.now_ns,
-                         on_reject=lambda k, r, p: rejected.append((k, r)))
+                         on_reject=lambda k, r, p, v: rejected.append((k, r)))
     return rt, drive, clock, inbox, rejected
 
 
@@ -86,7 +86,7 @@ def test_out_of_order_seq_is_refused_and_a_new_session_or_silence_starts_afresh(
 def test_refused_teleop_is_answered_each_time_it_carries_an_ack_and_summarised_otherwise():
     rt, drive, clock, inbox, rejected = sim_teleop_runtime()
     excerpts = []
-    inbox._on_reject = lambda k, r, p: (rejected.append((k, r)), excerpts.append(p))
+    inbox._on_reject = lambda k, r, p, v: (rejected.append((k, r)), excerpts.append(p))
     assert inbox.submit("teleop", teleop(5, clock.now_ns())) is not None
     for seq in (3, 4):                                      # out of order, no ack: one report a second
         assert inbox.submit("teleop", teleop(seq, clock.now_ns())) is None
@@ -177,6 +177,53 @@ def test_a_far_future_stamp_on_a_senders_first_teleop_does_not_make_its_later_te
     clock.advance(640_000_000)
     reason = box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=5, session="x", stamp_ns=clock.now_ns() - 600_000_000))
     assert reason is not None and reason.startswith("stale: sent 600 ms ago"), reason
+
+
+def test_a_huge_first_seq_does_not_make_its_senders_later_teleop_out_of_order_for_good():
+    """Found by an audit: a sender's first teleop numbered 10**12 (a bug, a peer copying its sender and session)
+    made every later teleop of that session 'out of order' while it kept sending. A message numbered lower but
+    stamped later than the last one taken cannot be a reordered one (one monotonic clock numbers and stamps in
+    order): its numbering restarted, and it is taken. Reordered messages (lower seq, lower stamp) are still
+    refused."""
+    box, clock = _box()
+    assert box.post(OperatorCommand("teleop", (0.1, 0), "A", seq=10 ** 12, session="x", stamp_ns=clock.now_ns())) \
+        is None
+    box.drain(clock.now_ns())
+    for seq in (1, 2, 3):
+        clock.advance(50_000_000)
+        assert box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=seq, session="x", stamp_ns=clock.now_ns())) \
+            is None, seq
+        applied, refused = box.drain(clock.now_ns())
+        assert [c.seq for c in applied] == [seq] and not refused, (applied, refused)
+    stamp = clock.now_ns()
+    clock.advance(10_000_000)
+    reason = box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=2, session="x", stamp_ns=stamp - 1))
+    assert reason is not None and reason.startswith("out of order"), reason
+    assert box.post(OperatorCommand("teleop", (0.2, 0), "A", seq=3, session="x", stamp_ns=stamp)).startswith(
+        "out of order")                                                     # a duplicate
+
+
+def test_a_signed_teleop_stamped_ahead_of_the_shared_clock_is_refused_rather_than_locking_its_session():
+    """Found by an audit: without seq, a first teleop stamped an hour ahead set its sender's clock offset and
+    every later teleop of that session was stale until a new session. Signed commands come from this machine
+    (command_auth.py): sender and robot read one monotonic clock, and a stamp more than FUTURE_SLACK_NS (100 ms)
+    ahead of it is no reading of it: refused, saying so, and the offset is not moved. (Unsigned senders may be
+    on another machine, any offset: no bound on a first stamp exists there.)"""
+    box, clock = _box()
+    rejected = []
+    inbox = CommandInbox(limits_from_config(Config()), deliver=box.post, now_ns=clock.now_ns,
+                         on_reject=lambda k, r, p, v: rejected.append(r), shared_clock=clock.now_ns)
+    hour = 3_600_000_000_000
+    body = {"linear": 0.1, "angular": 0.0, "sender": "op", "session": "x"}
+    assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() + hour})) is None
+    assert len(rejected) == 1 and "ahead of this machine's monotonic clock" in rejected[0], rejected
+    for _ in range(3):
+        clock.advance(50_000_000)
+        assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() - 1_000_000})) is not None
+        applied, refused = box.drain(clock.now_ns())
+        assert len(applied) == 1 and not refused, (applied, refused)
+    assert inbox.submit("teleop", json.dumps({**body, "stamp_ns": clock.now_ns() + 50_000_000})) is not None
+    assert len(rejected) == 1
 
 
 def test_a_teleop_that_waited_too_long_for_the_loop_is_refused_when_taken():
@@ -517,7 +564,7 @@ def test_oversized_payload_is_refused_unread_and_never_reaches_the_loop():
     box, clock = _box()
     rejected = []
     inbox = CommandInbox(limits_from_config(Config()), deliver=box.post,
-                         on_reject=lambda k, r, p: rejected.append((k, r, p)))
+                         on_reject=lambda k, r, p, v: rejected.append((k, r, p)))
     session = _Session()
     CommandSubscriber(session, "sim", inbox)
     session.callback(_Sample("vbnav/sim/cmd/teleop", _Payload(100_000_000)))
@@ -536,7 +583,7 @@ def test_zenoh_drops_large_messages_and_the_subscriber_refuses_oversized_ones_on
     box, clock = _box()
     rejected = []
     inbox = CommandInbox(limits_from_config(Config()), deliver=box.post,
-                         on_reject=lambda k, r, p: rejected.append((k, r)))
+                         on_reject=lambda k, r, p, v: rejected.append((k, r)))
     sub = CommandSubscriber(robot, "sim", inbox)
     op = open_session(client_session_config([f"tcp/127.0.0.1:{port}"]))
     try:
@@ -800,6 +847,18 @@ def test_an_estop_whose_payload_is_malformed_still_stops_the_robot(payload):
     assert not rejected, rejected
 
 
+def test_an_estop_taken_despite_a_malformed_payload_is_answered_with_its_ack():
+    """An estop whose body failed validation stops the robot all the same, but its answer lost the sender's ack:
+    a sender waiting for it (vbnav send, another tool) heard nothing and said the robot did not answer, of a stop
+    that took effect. The ack, when the payload carries one, is kept."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    answered = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: answered.append((cmd.kind, cmd.ack)))
+    inbox.submit("estop", '{"ack": "E1", "reason": 5}')
+    rt.run(0.05)
+    assert answered == [("estop", "E1")] and "estop" in rt.safety.latched, answered
+
+
 def test_vbnav_send_estop_goes_out_when_the_robot_takes_commands_but_its_event_history_is_slow():
     """vbnav send asks the robot's event history (events/recent) whether it is there before sending: a robot
     too busy to answer that query within --wait (a flood on its network) got no estop, 'no robot named sim is
@@ -845,3 +904,24 @@ def test_vbnav_send_estop_is_sent_whatever_its_reason(reason, capsys):
     assert what == "estop" and len(body["reason"]) <= 200 and body["reason"].isprintable(), body
     parse_command("estop", json.dumps(body), TeleopLimits(1.0, 1.0))     # the robot takes it as it is
     assert "--reason" in capsys.readouterr().err
+
+
+def test_a_resume_naming_a_latched_ns_ahead_of_the_robots_clock_clears_nothing():
+    """Found by an audit: a resume naming latched_ns T clears only the stops that began up to T, so one naming a
+    T ahead of the robot's clock (another robot's state: each robot's monotonic clock counts from its own boot,
+    or a sender's bug) cleared every latched stop, though the robot never showed such a T. Refused now, saying
+    why; the estop holds."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    t_estop, t_resume = T0 + 200_000_000, T0 + 400_000_000
+
+    def transport(r, ctx, twist, wheels):
+        if ctx.now_ns == t_estop:
+            inbox.submit("estop", json.dumps({"sender": "A"}))
+        if ctx.now_ns == t_resume:
+            inbox.submit("resume", json.dumps({"sender": "B", "latched_ns": ctx.now_ns + 3_600_000_000_000}))
+
+    rt.cycle_observers.append(transport)
+    rt.run(0.6)
+    assert "estop" in rt.safety.latched, "a resume naming a latched_ns the robot never showed cleared the estop"
+    refused = [e.message for e in rt.safety.events if (e.kind, e.cause) == ("rejected", "resume")]
+    assert len(refused) == 1 and "ahead of this robot's clock" in refused[0], refused

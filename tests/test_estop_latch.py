@@ -157,3 +157,78 @@ def test_a_latch_file_that_cannot_be_written_is_said_and_the_estop_holds_in_memo
     assert "does not exist" in warnings[0] and "could not be written" in warnings[1], warnings
     assert all(str(tmp_path / "missing/estop.json") in w for w in warnings)
     assert not _moving(cycles, since=1 * S + 20_000_000) and "estop" in rt.safety.latched
+
+
+def test_a_kept_estop_is_announced_once_on_the_console_of_a_real_clock_run(tmp_path, capsys):
+    """Found by an audit: on the wall clock the runtime printed 'estop kept from before a restart' and the console's
+    event echo printed the same estop's trip again. Now the echo says it, once."""
+    config = _config(tmp_path, latch_file="estop.json")
+    (tmp_path / "estop.json").write_text(estop_latch.latch_record("estop from test: person on the track", 5))
+    assert main(["run", "-c", str(config), "--no-camera", "--duration", "0.2", "--no-telemetry", "--realtime"]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "person on the track" in line and "safety=" not in line]
+    assert len(said) == 1 and "estop kept from before a restart" in said[0], err
+
+
+def test_a_kept_estop_is_cleared_by_hand_logged_and_refused_while_a_robot_runs_with_it(tmp_path, capsys):
+    """Found by an audit: a run by hand with safety.latch_file and no network could not be resumed; the docs said
+    to delete the file (unlogged, and a robot still running with it stayed latched in memory while the next
+    restart would not be). `vbnav estop clear` refuses while a run holds the file, else removes it and logs who
+    cleared it."""
+    config = _config(tmp_path, latch_file="estop.json")
+    latch = tmp_path / "estop.json"
+    _run(config, 1, {500_000_000: _estop("person on the track")})
+    assert latch.exists()
+
+    refused = []
+    _, _, cycles = _run(config, 1, {500_000_000: lambda r: refused.append(
+        main(["estop", "clear", "-c", str(config), "--reason", "test"]))})
+    err = capsys.readouterr().err
+    assert refused == [1] and "a robot process (pid" in err and "vbnav send resume" in err, err
+    assert latch.exists() and not _moving(cycles)
+
+    assert main(["estop", "clear", "--latch-file", str(latch), "--reason", "track checked"]) == 0
+    out = capsys.readouterr().out
+    assert "person on the track" in out and not latch.exists(), out
+    log = [json.loads(line) for line in (tmp_path / "estop.json.cleared.log").read_text().splitlines()]
+    assert len(log) == 1 and log[0]["reason"] == "track checked" and log[0]["by"] and "person on the track" in \
+        log[0]["estop"], log
+    _, _, cycles = _run(config, 1)
+    assert _moving(cycles), "still latched after the clear"
+    assert main(["estop", "clear", "--latch-file", str(latch)]) == 0
+    assert "nothing to clear" in capsys.readouterr().out
+
+
+def test_an_estop_accepted_as_the_run_ends_on_a_fault_is_kept_across_the_restart(tmp_path):
+    """Found by an audit: an estop the mailbox had accepted but the loop had not applied when a fault ended the run
+    was answered 'refused: the run ended' and never written to the latch file; systemd restarted the service 2 s
+    later and a robot configured for repeat drove off, the operator's estop forgotten. An accepted estop is
+    applied: it is latched, kept in the file and answered applied, however the run ends."""
+    config = _config(tmp_path, latch_file="estop.json")
+    answered = []
+
+    def fault_with_an_estop_waiting(r):
+        r.end_run("network", "the zenoh session died")       # a fatal cause: the run ends at the next cycle
+        r.command_listeners.append(lambda rt, cmd, outcome, now: answered.append((cmd.kind, outcome.applied)))
+        r.submit(OperatorCommand("estop", ("person on the track",), "test", ack="E1"))
+
+    result, rt, _ = _run(config, 2, {500_000_000: fault_with_an_estop_waiting})
+    assert result.reason == "network", result.message
+    assert answered == [("estop", True)], (answered, [e.message for e in result.events])
+    assert "person on the track" in json.loads((tmp_path / "estop.json").read_text())["message"]
+    _, _, cycles = _run(config, 1)            # the restart
+    assert not _moving(cycles), "the restarted run drove: the estop was forgotten"
+
+
+def test_an_estop_that_comes_after_the_run_ended_is_kept_for_the_next_run(tmp_path):
+    """Found by an audit: an estop that arrived after a fault ended the run, while the process was still closing
+    (a mode switch's worker, the telemetry flush: seconds), was refused 'the run ended' and kept nowhere: the
+    service restarted 2 s later and drove. It is still refused (the loop is over), but kept in the latch file,
+    and its refusal says so; the next run starts latched."""
+    config = _config(tmp_path, latch_file="estop.json")
+    result, rt, _ = _run(config, 0.5)
+    reason = rt.submit(OperatorCommand("estop", ("person on the track",), "zenoh:op"))
+    assert reason is not None and "the run ended" in reason and "kept in" in reason and "starts latched" in reason
+    assert "person on the track" in json.loads((tmp_path / "estop.json").read_text())["message"]
+    _, _, cycles = _run(config, 1)
+    assert not _moving(cycles), "the next run drove: the estop was forgotten"

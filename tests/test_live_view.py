@@ -264,6 +264,25 @@ def test_foxglove_teleop_takes_numbers_only():
     assert len(submitted) == 1 and "too large" in refused[-1], (submitted, refused)
 
 
+@pytest.mark.parametrize("data, says", [(b"[" * 4000, "nested too deep"),
+                                         (b'{"linear": {"x": 0.3}, "angular": {"z": 0}, "pad": "' + b"x" * 5000 + b'"}',
+                                          "exceeds 4096")])
+def test_a_foxglove_teleop_nested_too_deep_or_too_large_is_refused_and_said(data, says):
+    """Found by an audit: a Twist nested 4,000 deep raised RecursionError out of the Foxglove server's callback:
+    the message was neither applied nor refused, unsaid; and a Twist of any size was parsed on the server's
+    thread where the zenoh path refuses one beyond MAX_PAYLOAD unread. Both are refused with a command_rejected."""
+    import threading
+    from types import SimpleNamespace
+    from vbnav.control.comms.live_view import LiveView
+    submitted, refused = [], []
+    view = SimpleNamespace(_lock=threading.Lock(), _teleop_channels={(1, 7)}, is_operator=lambda cid: True,
+                           _refuse=lambda k, why, p: refused.append(why), _submit=lambda k, p: submitted.append(p),
+                           _seq=0, _session="s", _driving=set())
+    view._submit_twist = lambda *a: LiveView._submit_twist(view, *a)
+    LiveView.on_message_data(view, SimpleNamespace(id=1), 7, data)
+    assert not submitted and len(refused) == 1 and says in refused[0], (submitted, refused)
+
+
 @pytest.mark.parametrize("how", ["close", "drop"])
 def test_a_foxglove_client_that_goes_while_driving_stops_the_robot_at_once(how):
     """A Foxglove teleop client that disconnected while driving sent no stop: the robot drove on its last twist

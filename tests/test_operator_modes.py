@@ -243,7 +243,9 @@ def test_commands_the_run_ended_before_are_answered_and_later_ones_refused(tmp_p
     assert sorted(a for _, a, _ in answers) == sorted(sent), answers
     final = max(int(a.lstrip("teleopmdsi")) for a in sent)      # the last cycle that posted
     ended = {a[1] for a in answers if a[0] == "command_rejected" and "the run ended (duration" in a[2]}
-    assert ended == {f"teleop{final}", f"mode{final}", f"estop{final}"}, answers
+    assert ended == {f"teleop{final}", f"mode{final}"}, answers
+    # an estop accepted is applied, however the run ends (latched, kept in a latch file: test_estop_latch.py)
+    assert ("command", f"estop{final}", "") in answers, answers
     assert late is not None and "the run ended (duration" in late
 
 
@@ -572,3 +574,31 @@ def test_a_switch_out_of_teach_waits_for_a_slow_vision_thread_before_closing_the
         pipeline.stop()
     assert ctl.mode == "idle" and order == ["frame done", "route finished"], order
     assert load_route(tmp_path / "hall") is not None
+
+
+def test_the_operator_sessions_teleop_stream_going_silent_stops_the_wheels_within_the_timeout():
+    """Every failure path stops the motors: in the operator session (idle and teach: the operator drives) a teleop
+    stream that goes silent (a lost network) stops the wheels within safety.command_timeout_s + 2 periods of the
+    last message sent, and they stay stopped. (The teleop controller's own test is test_safety's; the operator
+    session wraps it.)"""
+    from runtime_helpers import PERIOD_NS, make_runtime
+    from vbnav.control.config import Config
+    cfg = Config.model_validate({"safety": {"command_timeout_s": 0.5}})
+    ctl = OperatorController(cfg, None, cfg.safety.command_timeout_s)
+    rt, drive, clock = make_runtime(ctl, camera=False, cfg=cfg)
+    ctl.attach(rt)
+    t0 = clock.now_ns()
+    last = []
+
+    def operator(r, ctx, twist, wheels):
+        k = (ctx.now_ns - t0) // PERIOD_NS
+        if 10 <= k <= 60 and k % 5 == 0:         # a 20 Hz stream until 0.6 s, then the network is gone
+            r.submit(OperatorCommand("teleop", (0.2, 0.0), "op", seq=int(k), stamp_ns=ctx.now_ns))
+            last[:] = [ctx.now_ns]
+
+    rt.cycle_observers.append(operator)
+    result = rt.run(2.0)
+    assert ctl.name == "idle" and result.reason == "duration"
+    assert drive.last_motion_ns() > t0 + 500_000_000, "the stream never drove"
+    assert drive.stopped_since(last[0] + 500_000_000 + 2 * PERIOD_NS), "the wheels drove on after the timeout"
+    assert "command_timeout" in rt.safety.holds

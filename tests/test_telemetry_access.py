@@ -134,6 +134,60 @@ def test_signed_commands_unsigned_wrong_stale_and_replayed_are_refused():
     assert v.verify(key, payload, att).startswith("stale")
 
 
+def test_a_refusal_of_a_command_whose_signature_failed_never_answers_the_ack_it_carries():
+    """Found by an audit: the robot echoed the ack of every refused payload in its command_rejected event, also of
+    a payload whose signature failed. Any local user who saw an operator's signed resume on cmd/** could replay
+    it (or send it unsigned) at once: the refusal ('replayed', 'unsigned') went out on the zenoh thread before
+    the loop applied the genuine one, and `vbnav send`, which takes the first answer carrying its ack, said
+    'robot refused resume' of a resume that was applied. The ack of an unverified payload is now reported as
+    unverified_ack, which no sender takes for its answer."""
+    from types import SimpleNamespace
+
+    from test_telemetry_units import ListSink
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, TeleopLimits
+    from vbnav.control.comms.telemetry import TelemetryPublisher
+    from vbnav.control.runtime.mailbox import CommandMailbox
+
+    secret, key = b"0123456789abcdef-secret", "vbnav/sim/cmd/resume"
+    now = [10_000_000_000]
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], now_ns=lambda: now[0])
+    link = SimpleNamespace(publisher=pub)
+    box = CommandMailbox(lambda: now[0], 500_000_000)
+    inbox = CommandInbox(TeleopLimits(0.5, 1.5), deliver=box.post,
+                         on_reject=lambda *a: TelemetryLink._on_reject(link, *a), now_ns=lambda: now[0])
+    subscribed = []
+    session = SimpleNamespace(declare_subscriber=lambda k, cb: subscribed.append(cb))
+    CommandSubscriber(session, "sim", inbox, verify=CommandVerifier(secret, now_ns=lambda: now[0]).verify)
+
+    def sample(payload: bytes, attachment):
+        return SimpleNamespace(key_expr=key, payload=type("P", (), {"__len__": lambda s: len(payload),
+                                                                     "to_bytes": lambda s: payload})(),
+                               attachment=None if attachment is None else SimpleNamespace(to_bytes=lambda: attachment))
+
+    payload = json.dumps({"ack": "R1", "sender": "op", "latched_ns": 5}).encode()
+    att = sign(secret, key, payload, stamp_ns=now[0])
+    for args in ((payload, att), (payload, att), (payload, None)):     # the genuine one, a replay, unsigned
+        subscribed[0](sample(*args))
+    pub.close()
+    assert inbox.accepted == 1 and inbox.rejected == 2
+    refusals = [e for e in sink.events if e["kind"] == "command_rejected"]
+    assert len(refusals) == 2 and [e.get("ack") for e in refusals] == [None, None], refusals
+    assert [e.get("unverified_ack") for e in refusals] == ["R1", "R1"], refusals
+
+
+def test_vbnav_send_unanswered_names_a_refusal_of_its_ack_whose_signature_failed(capsys):
+    import argparse
+
+    from vbnav.control.commands.send import REFUSED, _report
+    refusal = {"kind": "command_rejected", "unverified_ack": "R1", "reason": "unsigned: this robot accepts only ..."}
+    assert _report(argparse.Namespace(wait=2.0, user=None, tls_cert=None), "r1", "resume", None, 1,
+                   unverified=refusal) == REFUSED
+    err = capsys.readouterr().err
+    assert "signature failed (unsigned: " in err and "--secret-file" in err, err
+
+
 def test_an_estop_is_verified_even_when_a_flood_filled_the_replay_cache(monkeypatch):
     """The replay cache is bounded: once full, new signed commands were refused, an estop too. An estop is
     never dropped whatever floods the inbox; it is still checked (signature, age, replay)."""

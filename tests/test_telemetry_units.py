@@ -14,7 +14,7 @@ from vbnav.control.config.telemetry import DEFAULT_ENDPOINT, TelemetryConfig, is
 from vbnav.control.comms.network import robot_session_config
 from vbnav.control.comms.recording import McapRecorder, format_summary, iter_recording, read_recording
 from vbnav.control.runtime.runtime import Runtime
-from vbnav.control.comms.telemetry import QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
+from vbnav.control.comms.telemetry import EVENT_RESERVE, QUEUE_LIMIT, Sink, StateSample, TelemetryPublisher, decode
 from vbnav.control.comms.link import TelemetryLink
 from vbnav.drivers.clock import SimClock
 
@@ -156,7 +156,7 @@ def test_inbox_rejects_with_events_and_the_safety_lane_refuses_loudly_but_never_
     clock = SimClock()
     mailbox = CommandMailbox(clock.now_ns, 500_000_000)
     rejected = []
-    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p: rejected.append((k, r)))
+    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p, v: rejected.append((k, r)))
     assert inbox.submit("teleop", b'{"linear": 5, "angular": 0}') is None
     assert inbox.submit("teleop", b"\xff\xfe") is None
     assert [k for k, _ in rejected] == ["teleop", "teleop"] and mailbox.drain(clock.now_ns()) == ([], [])
@@ -233,6 +233,71 @@ def test_offer_never_blocks_and_drops_when_the_queue_is_full():
     queued = sum(pub.offer_state(_sample(k * 1_000_000, k)) for k in range(QUEUE_LIMIT + 50))
     assert queued == QUEUE_LIMIT and pub.dropped == 50
     pub.close()
+
+
+def test_a_blocked_sink_never_drops_a_command_answer_for_routine_telemetry_and_says_what_it_dropped():
+    """Found by an audit: with the publisher thread stuck in a sink, states filled the 256 places of the queue and
+    the answer of an applied command (and a safety trip) was dropped with them, unsaid: its sender waited for
+    nothing. Events now have places of their own beyond the routine ones, and events dropped beyond those are
+    counted and announced (an events_dropped event) once the publisher runs again."""
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], state_rate_hz=1000, loop_rate_hz=1000)  # thread not started: stuck
+    assert sum(pub.offer_state(_sample(k * 1_000_000, k)) for k in range(QUEUE_LIMIT + 10)) == QUEUE_LIMIT
+    assert pub.event("command", stamp_ns=1, command="resume", ack="a1")
+    assert pub.event("safety_trip", stamp_ns=2, cause="estop", message="estop from test")
+    flood = sum(pub.event("command_rejected", stamp_ns=3, command="mode", reason="bad") for _ in range(EVENT_RESERVE))
+    assert flood == EVENT_RESERVE - 2
+    assert not pub.event("command", stamp_ns=4, command="estop", ack="a2")
+    pub.close()
+    kinds = [e["kind"] for e in sink.events if e["kind"] != "events_dropped"]
+    assert kinds[:2] == ["command", "safety_trip"] and len(kinds) == EVENT_RESERVE, kinds[:3]
+    assert [e["ack"] for e in sink.events if e["kind"] == "command"] == ["a1"]
+    said = [e for e in sink.events if e["kind"] == "events_dropped"]
+    assert len(said) == 1 and said[0]["count"] == 3 and said[0]["kinds"] == {"command_rejected": 2, "command": 1}
+    assert "command" in said[0]["message"] and "3 events" in said[0]["message"], said[0]
+
+
+def test_vbnav_send_without_an_answer_says_the_robot_dropped_events_rather_than_blaming_the_operators(capsys):
+    import argparse
+
+    from vbnav.control.commands.send import REFUSED, _report
+    dropped = {"kind": "events_dropped", "count": 3, "message": "3 events were not published (command x3): ..."}
+    args = argparse.Namespace(wait=2.0, user=None, tls_cert=None)
+    assert _report(args, "r1", "resume", None, 1, dropped=dropped) == REFUSED
+    err = capsys.readouterr().err
+    assert "3 events were not published" in err and "vbnav monitor" in err and "telemetry.operators" not in err, err
+
+
+def test_vbnav_send_hears_an_events_dropped_that_carries_no_ack():
+    """vbnav send read the robot's events_dropped only after its filter on its own ack, which that event never
+    carries: an answer lost with it was still called 'the robot may refuse commands from ...'."""
+    from vbnav.control.commands.send import _Heard
+    heard = _Heard("A1", signed=False)
+    for msg in ({"kind": "events_dropped", "count": 3, "message": "3 events were not published"},
+                {"kind": "command", "ack": "B2"}, {"kind": "command_pending", "ack": "A1"}):
+        heard.take(msg)
+    assert [m["count"] for m in heard.dropped] == [3] and heard.answers.empty() and len(heard.pending) == 1
+    heard.take({"kind": "command_rejected", "ack": "A1", "reason": "x"})
+    assert heard.answers.get_nowait()["reason"] == "x"
+
+
+def test_vbnav_send_finds_an_answer_the_network_dropped_in_the_robots_event_history():
+    """The robot publishes its events with congestion control DROP: an answer zenoh dropped on the way left vbnav
+    send saying 'no acknowledgement: the robot may refuse commands from ...', untrue, though the robot's event
+    history (events/recent) held it. vbnav send asks the history before it says no answer came."""
+    from types import SimpleNamespace
+
+    from vbnav.control.commands.send import _Heard
+    history = {"schema": "vbnav.events.recent", "events": [{"kind": "command", "ack": "B2", "cycle": 3},
+                                                           {"kind": "command", "ack": "A1", "cycle": 7}]}
+    reply = SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: json.dumps(history).encode())))
+    asked = []
+    session = SimpleNamespace(get=lambda key, timeout: asked.append(key) or [reply])
+    heard = _Heard("A1", signed=False)
+    heard.recall(session, "r1")
+    assert asked == ["vbnav/r1/events/recent"] and heard.answers.get_nowait()["cycle"] == 7
+    heard.recall(SimpleNamespace(get=lambda key, timeout: [SimpleNamespace(ok=None)]), "r1")     # no history
+    assert heard.answers.empty()
 
 
 def test_a_failing_sink_does_not_stop_the_others():

@@ -107,9 +107,7 @@ def run(args) -> int:
         print("vbnav run: simulated clock (faster than real time): telemetry, network commands and the live "
               "view are not opened; add --realtime to watch and command the simulated robot", file=sys.stderr)
     printer = ProgressPrinter()
-    echo = None if clock.simulated else EventEcho()   # a simulated run is over before anyone could read them
-    if echo is not None:
-        rt.safety.listeners.append(echo)
+    echo = None if clock.simulated else EventEcho().attach(rt)   # a simulated run is over before anyone could read them
 
     def progress(r: Runtime) -> None:
         t = (r.clock.now_ns() - r._start_ns) * 1e-9

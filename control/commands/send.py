@@ -181,21 +181,15 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     except LookupError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
         return UNREACHABLE
-    ack = body["ack"]
-    answers: queue.SimpleQueue = queue.SimpleQueue()
-    pending: list = []       # the robot's command_pending: it took the command and finishes it later
+    heard = _Heard(body["ack"], signed=secret is not None)
 
     def on_event(sample) -> None:   # zenoh thread
         try:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
-        if not isinstance(msg, dict) or msg.get("ack") != ack:
-            return
-        if msg.get("kind") in ("command", "command_rejected"):
-            answers.put(msg)
-        elif msg.get("kind") == "command_pending":
-            pending.append(msg)
+        if isinstance(msg, dict):
+            heard.take(msg)
 
     # Subscribe first: the answer may come before put() returns.
     session.declare_subscriber(f"vbnav/{robot}/events", on_event)
@@ -244,7 +238,7 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
             put(i, with_ack=answer is None)   # ack until answered: a coalesced or lost one cannot hide the answer
             sent += 1
             if answer is None:
-                answer = _poll(answers)
+                answer = _poll(heard.answers)
             if answer is not None and answer["kind"] == "command_rejected":
                 break
             if answer is None and time.monotonic() - first > args.wait:
@@ -258,8 +252,54 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         if stopped:
             out.put(what, {"linear": 0.0, "angular": 0.0})
     if answer is None:
-        answer = _poll(answers, max(0.0, first + args.wait - time.monotonic()))
-    return _report(args, robot, what, answer, sent, stopped, pending[0] if pending else None)
+        answer = _poll(heard.answers, max(0.0, first + args.wait - time.monotonic()))
+    if answer is None:      # an answer the network dropped (congestion control DROP) is in the robot's history
+        heard.recall(session, robot)
+        answer = _poll(heard.answers)
+    return _report(args, robot, what, answer, sent, stopped, heard.pending[0] if heard.pending else None,
+                   heard.dropped[-1] if heard.dropped else None, heard.unverified[0] if heard.unverified else None)
+
+
+class _Heard:
+    """What the robot's events say of one command (its ``ack``): the zenoh thread ``take``s each event."""
+
+    def __init__(self, ack: str, signed: bool):
+        self.ack, self.signed = ack, signed
+        self.answers: queue.SimpleQueue = queue.SimpleQueue()   # command / command_rejected with its ack
+        self.pending: list = []      # command_pending: the robot took the command and finishes it later
+        self.dropped: list = []      # events_dropped: the robot's telemetry queue was full, an answer may be lost
+        self.unverified: list = []   # refusals of a payload with this ack whose signature failed (a copy's?)
+
+    def take(self, msg: dict) -> None:
+        kind = msg.get("kind")
+        if kind == "events_dropped":             # carries no ack: any command's answer may be among them
+            self.dropped.append(msg)
+        elif msg.get("unverified_ack") == self.ack:
+            # unsigned, this command is refused whoever else sent it too: the answer; signed, it may be a copy's
+            if self.signed:
+                self.unverified.append(msg)
+            else:
+                self.answers.put(msg)
+        elif msg.get("ack") != self.ack:
+            return
+        elif kind in ("command", "command_rejected"):
+            self.answers.put(msg)
+        elif kind == "command_pending":
+            self.pending.append(msg)
+
+    def recall(self, session, robot: str, timeout_s: float = 1.0) -> None:
+        """``take`` the robot's recent events (``vbnav/<robot>/events/recent``, the last 20 its telemetry sent):
+        an answer zenoh dropped on the way (its events go with congestion control DROP) is among them."""
+        try:
+            for reply in session.get(f"vbnav/{robot}/events/recent", timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                events = json.loads(reply.ok.payload.to_bytes()).get("events", [])
+                for msg in events if isinstance(events, list) else []:
+                    if isinstance(msg, dict):
+                        self.take(msg)
+        except Exception:       # no history: the report says no answer came
+            pass
 
 
 def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
@@ -269,11 +309,22 @@ def _poll(answers: queue.SimpleQueue, timeout_s: float = 0.0):
         return None
 
 
-def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None) -> int:
+def _report(args, robot: str, what: str, answer, sent: int, stopped: bool = False, pending=None,
+            dropped=None, unverified=None) -> int:
     if answer is None and pending is not None:
         print(f"vbnav send: robot {robot} took {what} at cycle {pending.get('cycle', '?')} and had not finished it "
               f"within {args.wait:g} s (a mode switch loads its route first): `vbnav monitor` shows the mode once "
               f"it is done, a longer --wait waits for it", file=sys.stderr)
+        return REFUSED
+    if answer is None and unverified is not None:
+        print(f"vbnav send: no acknowledgement within {args.wait:g} s; robot {robot} refused a {what} carrying this "
+              f"command's ack whose signature failed ({unverified.get('reason', '?')}): if it was this one, sign "
+              f"it (--secret-file, or -c CONFIG with telemetry.shared_secret_file)", file=sys.stderr)
+        return REFUSED
+    if answer is None and dropped is not None:
+        print(f"vbnav send: no acknowledgement within {args.wait:g} s, and robot {robot} said "
+              f"{dropped.get('message', 'it dropped events')!r}: the answer may be among them; `vbnav monitor` "
+              f"shows whether the {what} took effect", file=sys.stderr)
         return REFUSED
     if answer is None:
         print(f"vbnav send: no acknowledgement within {args.wait:g} s: the robot may refuse commands from "

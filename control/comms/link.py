@@ -30,13 +30,12 @@ the recording and closes the session.
 """
 from __future__ import annotations
 
-import re
 import sys
 import time
 import weakref
 from typing import Optional
 
-from vbnav.control.comms.operator_commands import ACK_PATTERN, CommandInbox, CommandSubscriber, limits_from_config
+from vbnav.control.comms.operator_commands import ACK_IN_PAYLOAD, CommandInbox, CommandSubscriber, limits_from_config
 from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.comms.network import open_session, robot_session_config
 from vbnav.control.comms.telemetry import StateSample, TelemetryPublisher, ZenohSink
@@ -46,7 +45,6 @@ from vbnav.vision.geometry import Pose2
 
 # The ack id of a payload the robot refused before parsing it (vbnav send puts "ack" first, so it is in the
 # excerpt even when the payload is long).
-_ACK_IN_PAYLOAD = re.compile(r'"ack"\s*:\s*"(' + ACK_PATTERN.strip("^$") + ')"')
 
 
 class _Borrowed:
@@ -204,7 +202,8 @@ class TelemetryLink:
         holder["link"] = link
         # The inbox also takes commands from local sources (tests, a future local console).
         link.inbox = CommandInbox(limits_from_config(cfg), deliver=lambda cmd: link.runtime.submit(cmd),
-                                  on_reject=link._on_reject, now_ns=clock.now_ns)
+                                  on_reject=link._on_reject, now_ns=clock.now_ns,
+                                  shared_clock=None if verify is None else time.monotonic_ns)
         if session is not None:
             link.commands = CommandSubscriber(session, robot, link.inbox, verify=verify)
             link.routes = _route_server(session, cfg, verify, runtime)
@@ -351,11 +350,11 @@ class TelemetryLink:
         self.publisher.event("command", stamp_ns=now_ns, **fields)
 
     # ---- network command thread ------------------------------------------------------------
-    def _on_reject(self, kind: str, reason: str, excerpt: str) -> None:
+    def _on_reject(self, kind: str, reason: str, excerpt: str, verified: bool = True) -> None:
         fields = dict(command=kind, reason=reason, payload=excerpt)
-        m = _ACK_IN_PAYLOAD.search(excerpt)
-        if m:
-            fields["ack"] = m.group(1)
+        m = ACK_IN_PAYLOAD.search(excerpt)
+        if m:       # a payload whose signature failed may be a copy of an operator's: its ack is no answer to it
+            fields["ack" if verified else "unverified_ack"] = m.group(1)
         self.publisher.event("command_rejected", **fields)
 
     # ---- end -------------------------------------------------------------------------------

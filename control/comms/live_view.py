@@ -45,6 +45,7 @@ import foxglove
 from foxglove.websocket import Capability, ServerListener
 
 from vbnav.control.comms import foxglove_channels as fc
+from vbnav.control.comms.operator_commands import MAX_PAYLOAD
 from vbnav.control.comms.telemetry import Sink
 from vbnav.drivers.plain_values import load_json
 
@@ -196,6 +197,9 @@ class LiveView(Sink, ServerListener):
                                        f"{TOKEN_PARAMETER} to the content of telemetry.live_view.operator_token_file)")
             self._refuse("teleop", why, bytes(data[:200]))
             return
+        if len(data) > MAX_PAYLOAD:                 # as on the zenoh path: refused unread
+            self._refuse("teleop", f"Foxglove teleop: payload of {len(data)} bytes exceeds {MAX_PAYLOAD}; not read", b"")
+            return
         try:
             twist = load_json(bytes(data))          # a key given twice is refused, as on the zenoh path
             x, z = twist["linear"]["x"], twist["angular"]["z"]
@@ -205,6 +209,10 @@ class LiveView(Sink, ServerListener):
             linear, angular = float(x), -float(z)       # ROS/Foxglove: positive turns left; vbnav: right
         except (ValueError, KeyError, TypeError, OverflowError) as exc:   # Overflow: an int too large for a float
             self._refuse("teleop", f"Foxglove teleop: expected a JSON geometry_msgs/Twist ({exc!r})",
+                         bytes(data[:200]))
+            return
+        except RecursionError:                      # raised into the server's callback, the twist was unanswered
+            self._refuse("teleop", "Foxglove teleop: expected a JSON geometry_msgs/Twist (nested too deep)",
                          bytes(data[:200]))
             return
         key = (client.id, client_channel_id)

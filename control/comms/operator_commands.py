@@ -23,7 +23,8 @@ validates it (pydantic), and posts an ``OperatorCommand`` to ``Runtime.submit`` 
 newest message per sender. The loop drains the mailbox once per cycle, never blocking.
 Malformed, unknown, out-of-range, oversized, unsigned (with ``telemetry.shared_secret_file``),
 stale or out-of-order commands are refused with a ``command_rejected`` event (but an estop whose body
-is malformed or oversized stops the robot all the same, its trip naming the fault: ``refuse_body``) (stale and
+is malformed or oversized stops the robot all the same, its trip naming the fault and its answer carrying the
+payload's ``ack`` when one is there: ``refuse_body``) (stale and
 out-of-order teleop without an ``ack`` at most once a second per reason, with a count): they
 never raise into zenoh or the loop and never move the robot. Unauthorised peers are stopped
 earlier, by zenoh's access control (see network.py): their messages never arrive.
@@ -41,6 +42,7 @@ from typing import Callable, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from vbnav.control.comms.command_auth import FUTURE_SLACK_NS
 from vbnav.control.route import check_route_name
 from vbnav.control.runtime.mailbox import OperatorCommand, RefusalThrottle
 from vbnav.drivers.plain_values import load_json
@@ -51,6 +53,8 @@ ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
 
+#: the ack of a payload that may not parse (a refusal repeats it; a malformed estop's answer too)
+ACK_IN_PAYLOAD = re.compile(r'"ack"\s*:\s*"(' + ACK_PATTERN.strip("^$") + ')"')
 CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f]")
 REASON_MAX_CHARS = 200             # an estop's reason
 
@@ -184,7 +188,9 @@ def operator_command(cmd: NetCommand) -> OperatorCommand:
                            stamp_ns=b.stamp_ns, session=b.session or "", ack=b.ack or "")
 
 
-RejectFn = Callable[[str, str, str], None]   # (command kind, reason, payload excerpt)
+# (command kind, reason, payload excerpt, verified: False when the payload failed its signature check, so the ack
+# it carries may be anyone's and is no answer to its sender)
+RejectFn = Callable[[str, str, str, bool], None]
 
 
 class CommandInbox:
@@ -198,8 +204,12 @@ class CommandInbox:
     """
 
     def __init__(self, limits: TeleopLimits, deliver: Callable[[OperatorCommand], Optional[str]],
-                 on_reject: Optional[RejectFn] = None, now_ns: Callable[[], int] = time.monotonic_ns):
+                 on_reject: Optional[RejectFn] = None, now_ns: Callable[[], int] = time.monotonic_ns,
+                 shared_clock: Optional[Callable[[], int]] = None):
         self.limits = limits
+        # the monotonic clock senders stamp by when it is this machine's (signed commands: command_auth.py); a
+        # stamp_ns ahead of it by more than FUTURE_SLACK_NS is no reading of it
+        self._shared_clock = shared_clock
         self._deliver = deliver
         self._on_reject = on_reject
         self._now = now_ns
@@ -211,6 +221,7 @@ class CommandInbox:
         """The command if the loop's mailbox took it, else None (and a refusal report)."""
         try:
             cmd = parse_command(kind, payload, self.limits)
+            self._check_shared_clock(cmd)
             reason = self._deliver(operator_command(cmd))
         except CommandRejected as exc:
             self.refuse_body(kind, str(exc), payload)
@@ -225,6 +236,18 @@ class CommandInbox:
         self.accepted += 1
         return cmd
 
+    def _check_shared_clock(self, cmd: NetCommand) -> None:
+        """CommandRejected when the sender shares this machine's clock and its stamp_ns lies ahead of it: taken, a
+        first teleop so stamped set its sender's clock offset, and every later teleop of the session was stale."""
+        stamp = cmd.body.stamp_ns
+        if self._shared_clock is None or stamp is None:
+            return
+        ahead = stamp - self._shared_clock()
+        if ahead > FUTURE_SLACK_NS:
+            raise CommandRejected(f"stamp_ns is {ahead * 1e-6:.0f} ms ahead of this machine's monotonic clock, which "
+                                  f"a sender of signed commands shares (telemetry.shared_secret_file): more than "
+                                  f"{FUTURE_SLACK_NS * 1e-6:.0f} ms, no reading of it")
+
     def refuse_body(self, kind: str, reason: str, payload) -> None:
         """A payload that is not a valid command (``reason``): refused, except an estop's. A stop asked for on
         cmd/estop by a peer allowed to command is taken whatever else its body says (a reason too long or
@@ -234,14 +257,21 @@ class CommandInbox:
             self.refuse(kind, reason, payload)
             return
         why = f"its payload was refused ({reason[:300]}), stopped all the same"
-        refused = self._deliver(OperatorCommand("estop", (why,), source="zenoh"))    # the mailbox never refuses
-        if refused:                                                                  # an estop but when closed
+        text = payload[:MAX_PAYLOAD] if isinstance(payload, str) else bytes(payload[:MAX_PAYLOAD]).decode("utf-8",
+                                                                                                     "replace")
+        m = ACK_IN_PAYLOAD.search(text)          # its answer goes to the sender waiting for it
+        refused = self._deliver(OperatorCommand("estop", (why,), source="zenoh", ack=m.group(1) if m else ""))
+        # the mailbox never refuses an estop but when the run ended
+        if refused:
             self.refuse(kind, refused, payload)
         else:
             self.accepted += 1
 
-    def refuse(self, kind: str, reason: str, payload, stream: bool = False) -> None:
+    def refuse(self, kind: str, reason: str, payload, stream: bool = False, verified: bool = True) -> None:
         """Count a refusal and report it (``payload``: the bytes, or b"" when it was not read).
+
+        verified: False for a payload whose signature failed (unsigned, replayed, changed): anyone may have sent
+        it, a copy of an operator's command among them, so its ack is reported as not its sender's answer.
 
         stream: a teleop the mailbox refused (stale, out of order, too many senders), which a flood
         repeats thousands of times: reported at most once a second per reason."""
@@ -256,7 +286,7 @@ class CommandInbox:
                 return
         excerpt = payload[:200] if isinstance(payload, str) else bytes(payload[:200]).decode("utf-8", "replace")
         try:
-            self._on_reject(kind, reason, excerpt)
+            self._on_reject(kind, reason, excerpt, verified)
         except Exception:
             pass
 
@@ -291,7 +321,7 @@ class CommandSubscriber:
                 attachment = sample.attachment
                 refused = self._verify(key, payload, None if attachment is None else attachment.to_bytes())
                 if refused:
-                    self._inbox.refuse(kind, refused, payload)
+                    self._inbox.refuse(kind, refused, payload, verified=False)
                     return
             self._inbox.submit(kind, payload)
         except Exception as exc:  # pragma: no cover - submit already never raises

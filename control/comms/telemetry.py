@@ -4,7 +4,10 @@ The loop thread's whole cost per cycle is ``offer_state(sample)``: one integer
 comparison on most cycles and, when a state message is due, a bounded
 ``SimpleQueue.put`` of the already-built tuple. No JSON, no network, no lock held
 across I/O, never a wait: when the queue is full (the publisher thread is stuck)
-the sample is dropped and counted. A slow or absent subscriber cannot delay a
+the sample is dropped and counted. Events (command answers, safety changes) have
+``EVENT_RESERVE`` places beyond the routine ones, so states and images never crowd
+them out; an event dropped beyond those is counted by kind and announced by an
+``events_dropped`` event as soon as the publisher thread runs again. A slow or absent subscriber cannot delay a
 cycle because every zenoh publisher here uses congestion control DROP.
 
 State messages are decimated by the *sample's* stamp (the loop's scheduled
@@ -34,6 +37,7 @@ from vbnav.vision.geometry import Pose2
 STATE_SCHEMA, EVENT_SCHEMA, IMAGE_SCHEMA = "vbnav.state", "vbnav.event", "vbnav.image"
 SCHEMA_VERSION = 1
 QUEUE_LIMIT = 256
+EVENT_RESERVE = 1024     # places beyond QUEUE_LIMIT only events may take: routine telemetry never crowds them out
 CLOSE_WAIT_S = 10.0      # at the end of a run, how long the publisher thread may take to publish what is queued
 
 
@@ -223,6 +227,8 @@ class TelemetryPublisher:
         self._closed = False
         self._busy: Optional[Sink] = None    # the sink the publisher thread is in (close names one that blocks)
         self.dropped = 0            # samples not queued because the queue was full
+        self._lock = threading.Lock()
+        self._events_unsaid: collections.Counter = collections.Counter()   # events dropped, by kind, not yet said
         self.sink_errors = 0
         self.sink_failures: dict = {}   # sink -> its first error (a full disk under a recording, say)
         self.published = {"state": 0, "event": 0, "image": 0}
@@ -273,8 +279,12 @@ class TelemetryPublisher:
         return self._put(("foxglove", stamp_ns, topic, build))
 
     def _put(self, item) -> bool:
-        if self._closed or self._q.qsize() >= QUEUE_LIMIT:
+        event = item[0] == "event"
+        if self._closed or self._q.qsize() >= QUEUE_LIMIT + (EVENT_RESERVE if event else 0):
             self.dropped += 1
+            if event and not self._closed:
+                with self._lock:
+                    self._events_unsaid[item[2]] += 1
             return False
         self._q.put(item)
         return True
@@ -323,6 +333,7 @@ class TelemetryPublisher:
             if item is None:
                 return
             self._handle(item)
+            self._say_dropped_events()
 
     def _drain(self) -> None:
         while True:
@@ -332,6 +343,7 @@ class TelemetryPublisher:
                 return
             if item is not None:
                 self._handle(item)
+                self._say_dropped_events()
 
     def _handle(self, item) -> None:
         try:
@@ -359,6 +371,23 @@ class TelemetryPublisher:
                     scaled = overlay.scaled(w / image.shape[1])
                     self._each_sink(lambda s: s.annotations(stamp, scaled))
         except Exception:  # a bad sample must never kill telemetry
+            self.sink_errors += 1
+
+    def _say_dropped_events(self) -> None:
+        """Publisher thread: the events dropped for a full queue since the last time, announced."""
+        if not self._events_unsaid:
+            return
+        with self._lock:
+            unsaid, self._events_unsaid = self._events_unsaid, collections.Counter()
+        n = sum(unsaid.values())
+        listed = ", ".join(f"{k} x{c}" for k, c in unsaid.most_common())
+        message = (f"{n} events were not published ({listed}): the telemetry queue was full (a sink blocked); a "
+                   f"sender waiting for the answer of a command may wait in vain")
+        stamp = self._now_ns()
+        try:
+            self._emit("event", stamp, event_message(self.robot, self._next_seq("event"), stamp, "events_dropped",
+                                                     {"count": n, "kinds": dict(unsaid), "message": message}))
+        except Exception:
             self.sink_errors += 1
 
     def _each_sink(self, call: Callable[[Sink], None]) -> None:

@@ -14,11 +14,19 @@ folder systemd makes for ``StateDirectory=vbnav``, and none outside systemd):
 
 A file that cannot be written or removed is a ``warning`` event (cause ``latch_file``) naming it and the
 error: the estop holds in memory all the same, but no longer across a restart.
+
+A run holds an exclusive ``flock`` on ``<latch>.lock`` beside the file while it runs (``LatchHold``), so
+``vbnav estop clear`` (``clear_latch``: the local way to clear a kept estop without a network) refuses while a
+robot process uses the file: that process's estop is in its memory, and only a ``resume`` clears it. The clear
+removes the file under that lock and appends who cleared it, when and why to ``<latch>.cleared.log``.
 """
 from __future__ import annotations
 
+import fcntl
+import getpass
 import json
 import os
+import socket
 import threading
 import time
 from collections import deque
@@ -71,8 +79,86 @@ def read_latch(path: Path) -> Optional[str]:
         why = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
         return (f"latch file {path} cannot be parsed ({why}): latched all the same (fail safe); resume to "
                 f"clear it")
-    return (f"{message}; latched at {since} (latched_ns {stamp} of the run before), kept in {path} across a "
+    return (f"estop kept from before a restart: {message}; latched at {since} (latched_ns {stamp} of the run before), kept in {path} across a "
             f"restart; resume to clear it")
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(path.name + ".lock")
+
+
+def cleared_log(path: Path) -> Path:
+    """Where ``clear_latch`` records who cleared the kept estop of ``path``."""
+    return path.with_name(path.name + ".cleared.log")
+
+
+class LatchHold:
+    """A run's exclusive lock on ``<latch>.lock`` (its pid written in it) while the run uses the latch file;
+    nothing held when the lock cannot be made (a folder not writable: said as ``folder_problem``)."""
+
+    def __init__(self, path: Path):
+        self._fd: Optional[int] = None
+        try:
+            fd = os.open(_lock_path(path), os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError:            # another process holds it (two runs on one latch file) or the write failed
+            os.close(fd)
+            return
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)     # closing the descriptor releases the lock
+            self._fd = None
+
+
+class LatchBusy(RuntimeError):
+    """A robot process holds the latch file: its estop is in its memory, cleared only by a resume."""
+
+
+def clear_latch(path: Path, reason: str = "") -> Optional[str]:
+    """Remove the kept estop ``path`` by hand, under the runs' lock, and log who did it.
+
+    Returns the message of the estop cleared (as a run would have latched it), or None when there was none.
+    Raises LatchBusy while a run holds the file, OSError when it cannot be removed or logged."""
+    lock = _lock_path(path)
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        if not path.exists():
+            return None
+        raise OSError(exc.errno, f"cannot open the lock {lock} ({exc.strerror}) to check that no robot runs "
+                                 f"with {path}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+            raise LatchBusy(f"a robot process (pid {pid}) runs with {path}: its estop is latched in its memory and "
+                            f"a removed file would not clear it; clear it with `vbnav send resume`, or stop that "
+                            f"process first") from None
+        kept = read_latch(path)
+        if kept is None:
+            return None
+        if path.is_dir():
+            raise OSError(f"{path} is a folder, not a latch file: remove it yourself if it is not needed")
+        record = {"cleared": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "by": getpass.getuser(),
+                  "uid": os.getuid(), "host": socket.gethostname(), "pid": os.getpid(), "reason": reason,
+                  "estop": kept}
+        with open(cleared_log(path), "a", encoding="utf-8") as log:   # first: a clear is never unrecorded
+            log.write(json.dumps(record) + "\n")
+            log.flush()
+            os.fsync(log.fileno())
+        path.unlink()
+        fsync_folder(path.parent)
+        return kept
+    finally:
+        os.close(fd)
 
 
 def folder_problem(path: Path) -> Optional[str]:

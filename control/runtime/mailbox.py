@@ -51,7 +51,15 @@ sender's clock, not by when the loop gets to a message:
   a message restarts the estimate from itself, as a new session would (no looser than one: a new session's
   first message is taken as sent on arrival too). Without ``seq`` nothing tells that glitch from a steady
   transport backlog the robot must refuse (both show every later message late by the same amount), so such
-  a sender stays stale until it starts a new ``session``.
+  a sender stays stale until it starts a new ``session``. (Signed commands come from this machine and read its
+  clock: comms/operator_commands.py refuses their stamps ahead of it before they reach the mailbox. Unsigned
+  senders may be anywhere, any offset: no bound on a first stamp exists.)
+- A first ``seq`` far ahead (10**12: a bug, a peer copying the sender and session) made every later teleop of that
+  session out of order while it kept sending. A message numbered at or below the last one taken but stamped
+  after it cannot be a reordered or repeated one: the numbering restarted, and it is taken (``renumbered``).
+  Reordered messages (a lower seq and an earlier stamp) are still refused; without ``stamp_ns`` nothing tells a
+  restarted numbering from a reordering, and such a sender needs a new ``session`` (or a silence longer than the
+  timeout).
 
 After a loop stall, an estop or a lost drive the runtime calls ``refuse_teleop_sent_before``:
 teleop sent before the stop began is stale, even if younger than the timeout (``sent_before_stop``
@@ -153,6 +161,12 @@ class _Sender:
         return seq is not None and self.last_seq is not None and self.last_stamp is not None and \
             seq > self.last_seq and stamp_ns < self.last_stamp
 
+    def renumbered(self, stamp_ns: Optional[int]) -> bool:
+        """Whether a message numbered at or below the last one taken carries a later stamp: a reordered or
+        repeated message never does (one clock numbers and stamps in order), so the numbering restarted (the
+        last seq was a glitch, or the sender counts anew): taken, its seq the new last."""
+        return stamp_ns is not None and self.last_stamp is not None and stamp_ns > self.last_stamp
+
     def impossible_stamp(self, arrival_ns: int, stamp_ns: int, window_ns: int, source: str) -> Optional[str]:
         """Why ``stamp_ns`` cannot be a reading of this sender's clock, else None."""
         if not INT64[0] <= stamp_ns <= INT64[1]:
@@ -214,7 +228,8 @@ class CommandMailbox:
             s = self._senders[key] = _Sender()
         elif arrival - s.last_arrival > self.stale_after_ns:
             s.last_seq = None          # silent for longer than the timeout: a restarted sender may count anew
-        if cmd.seq is not None and s.last_seq is not None and cmd.seq <= s.last_seq:
+        if cmd.seq is not None and s.last_seq is not None and cmd.seq <= s.last_seq and \
+                not s.renumbered(cmd.stamp_ns):
             return f"out of order: seq {cmd.seq} after {s.last_seq} from {cmd.source}"
         if cmd.stamp_ns is not None:
             if s.two_clocks(cmd.seq, cmd.stamp_ns):

@@ -126,6 +126,12 @@ class EventEcho:
         self._thread = threading.Thread(target=self._write, name="vbnav-event-echo", daemon=True)
         self._thread.start()
 
+    def attach(self, rt) -> "EventEcho":
+        """Echo the safety events of runtime ``rt``, which then prints none of them itself."""
+        rt.safety.listeners.append(self)
+        rt.safety_on_console = True
+        return self
+
     def __call__(self, event) -> None:
         try:
             self._queue.put_nowait(event)

@@ -56,7 +56,9 @@ from typing import Callable, Optional
 
 from vbnav.control.runtime.finishing import STOP_SIGNALS as _FINISHING_STOP_SIGNALS
 from vbnav.control.runtime.drive_recovery import DriveRecovery, Outcome
-from vbnav.control.runtime.estop_latch import LatchWriter, folder_problem, latch_path, latch_record, read_latch
+from vbnav.control.runtime.estop_latch import (LatchHold, LatchWriter, folder_problem, latch_path, latch_record,
+                                              read_latch)
+from vbnav.drivers.atomic_file import write_atomic
 from vbnav.control.runtime.interfaces import APPLIED, STOP, CommandOutcome, ControlContext, Controller, Twist
 from vbnav.control.runtime.kinematics import TwistLimiter
 from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
@@ -224,6 +226,9 @@ class Runtime:
         # called when the controller took a command to finish later (PENDING: a mode switch loading its route),
         # before its answer: (runtime, command, now_ns)
         self.pending_listeners: list[Callable[["Runtime", OperatorCommand, int], None]] = []
+        # a listener prints safety events on the console as they happen (progress.EventEcho.attach): what the
+        # start-up says as a safety event is not printed a second time
+        self.safety_on_console = False
         self.wheel_command = (0.0, 0.0)
         self.last_twist = STOP
         self.wheels: Optional[WheelState] = None
@@ -257,11 +262,33 @@ class Runtime:
         # an operator's estop kept across restarts (estop_latch.py): the file, and its writer while a run runs
         self.latch_file: Optional[Path] = latch_path(cfg)
         self._latch_writer: Optional[LatchWriter] = None
+        self._latch_hold: Optional[LatchHold] = None    # while a run runs: `vbnav estop clear` refuses
+        self._latch_lock = threading.Lock()    # the writer's end against an estop kept after the run ended
 
     # -- thread-safe inputs -------------------------------------------------
     def submit(self, cmd: OperatorCommand) -> Optional[str]:
         """Hand an operator command to the loop from any thread: None if accepted, else the refusal reason."""
-        return self.mailbox.post(cmd)
+        refused = self.mailbox.post(cmd)
+        if refused and cmd.kind == "estop" and self.latch_file is not None:   # the mailbox refuses an estop only
+            refused += self._keep_late_estop(cmd)                             # once the run ended
+        return refused
+
+    def _keep_late_estop(self, cmd: OperatorCommand) -> str:
+        """Any thread, after the run ended (the process still closing, a restart to come): the estop is kept in
+        the latch file, through the run's writer while it still writes (the newest post wins), else at once.
+        Returns what the refusal adds."""
+        path = self.latch_file
+        record = latch_record(f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else "") +
+                              " (after the run ended)", self.clock.now_ns())
+        with self._latch_lock:
+            try:
+                if self._latch_writer is not None:
+                    self._latch_writer.write(record)
+                else:
+                    write_atomic(path, record)
+            except OSError as exc:
+                return f"; it could not be kept in {path} ({exc.strerror or exc}): the next run does not start latched"
+        return f"; the estop is kept in {path}: the next run starts latched until a resume"
 
     def request_stop(self, signum: int = signal.SIGTERM) -> None:
         self._signal = signum
@@ -462,9 +489,11 @@ class Runtime:
         if path is None:
             return
         now = self.clock.now_ns()
+        self._latch_hold = LatchHold(path)     # before reading: a clear by hand is done, or waits for the run's end
         kept = read_latch(path)
         if kept is not None:
-            print(f"vbnav: estop kept from before a restart: {kept}", file=sys.stderr, flush=True)
+            if not self.safety_on_console:      # else its trip, just below, is the console's line
+                print(f"vbnav: {kept}", file=sys.stderr, flush=True)
             self.safety.trip(now, "estop", kept)
         problem = folder_problem(path)
         if problem:
@@ -479,9 +508,15 @@ class Runtime:
     def _close_latch(self) -> None:
         if self._latch_writer is None:
             return
-        self._latch_writer.close()
-        self._latch_warnings(self.clock.now_ns())
-        self._latch_writer = None
+        writer = self._latch_writer
+        with self._latch_lock:      # an estop kept after the run ended posts before this or writes after it
+            writer.close()
+            self._latch_writer = None
+        now = self.clock.now_ns()
+        for message in writer.errors():
+            self.safety.note(now, "warning", "latch_file", message)
+        self._latch_hold.release()
+        self._latch_hold = None
 
     # -- a lost drive ---------------------------------------------------------
     def _read_wheels(self, now: int) -> Optional[WheelState]:
@@ -724,6 +759,13 @@ class Runtime:
             t, what = self._resume_after
             return CommandOutcome.refused(f"stale: this resume arrived {(t - cmd.arrival_ns) * 1e-6:.0f} ms before "
                                           f"{what}, so it was not meant to clear it; resume again")
+        if cmd.kind == "resume" and cmd.args and cmd.args[0] > now:
+            # it would clear every stop, though this robot never showed such a time: each robot's clock counts
+            # from its own start, so another robot's state names times this one has not reached
+            return CommandOutcome.refused(f"this resume names latched_ns {cmd.args[0]}, "
+                                          f"{(cmd.args[0] - now) * 1e-9:.3f} s ahead of this robot's clock: no "
+                                          f"stop it showed began then (another robot's state?); resume again "
+                                          f"naming latched_ns {self.safety.latched_ns} (this robot's state)")
         if cmd.kind == "resume" and cmd.args:
             unseen = self.safety.latched_after(cmd.args[0])
             if unseen:
@@ -758,7 +800,9 @@ class Runtime:
 
     def _refuse_waiting_commands(self) -> None:
         """Commands that arrived in the last cycle or after it are answered, not left unanswered; later
-        ones are refused by the mailbox with the same reason."""
+        ones are refused by the mailbox with the same reason. An estop among them was accepted, so it is
+        applied: latched and kept in the latch file (its writer is still open), or a service restarted after
+        this fault would drive off with the operator's estop forgotten."""
         reason, message = self._end or ("stopped", "loop stopped")
         why = f"the run ended ({reason}: {message}) before the loop took this command"
         now = self.clock.now_ns()
@@ -767,7 +811,8 @@ class Runtime:
         for cmd, because in [(c, taken) for c in in_hand] + [(c, why) for c in self.mailbox.close(why)]:
             for fn in self.command_observers:      # they tell the answer which command (and ack) it is for
                 fn(self, cmd, now)
-            self._answer(cmd, CommandOutcome.refused(because), now)
+            outcome = self._apply_command(cmd, now) if cmd.kind == "estop" else CommandOutcome.refused(because)
+            self._answer(cmd, outcome, now)
 
     def _finish(self, now: int, reason: str, message: str) -> bool:
         if reason not in ("finished", "duration"):
