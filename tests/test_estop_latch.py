@@ -232,3 +232,13 @@ def test_an_estop_that_comes_after_the_run_ended_is_kept_for_the_next_run(tmp_pa
     assert "person on the track" in json.loads((tmp_path / "estop.json").read_text())["message"]
     _, _, cycles = _run(config, 1)
     assert not _moving(cycles), "the next run drove: the estop was forgotten"
+
+
+def test_estop_clear_without_a_latch_file_names_where_the_service_keeps_it(tmp_path, monkeypatch, capsys):
+    """The operator's shell has no $STATE_DIRECTORY, so a config without safety.latch_file names no file; the
+    refusal points at the file the installed service's runs keep (/var/lib/vbnav/estop.json)."""
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    config = _config(tmp_path)
+    assert main(["estop", "clear", "-c", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "no safety.latch_file" in err and "--latch-file /var/lib/vbnav/estop.json" in err, err

@@ -40,8 +40,13 @@ def run_clear(args) -> int:
         cfg = load_config(args.config)
         path = latch_path(cfg)
         if path is None:
-            raise InputError(f"{cfg.source}: no safety.latch_file (and no $STATE_DIRECTORY): no estop is kept on "
-                             f"disk; give --latch-file PATH")
+            # The operator's shell has no $STATE_DIRECTORY; the service's run keeps its estop where systemd
+            # points it (service.py's StateDirectory).
+            from vbnav.control.service import STATE_DIRECTORY
+            service_file = f"/var/lib/{STATE_DIRECTORY}/estop.json"
+            raise InputError(f"{cfg.source}: no safety.latch_file (and no $STATE_DIRECTORY in this shell): this run "
+                             f"keeps no estop on disk; a robot run by 'vbnav service install' keeps it in "
+                             f"{service_file}: give --latch-file {service_file}")
     try:
         kept = clear_latch(path, args.reason)
     except LatchBusy as exc:
