@@ -355,6 +355,9 @@ def test_send_resume_names_the_newest_stop_in_the_robots_state(tmp_path):
         assert r.returncode == 0, r.stderr
         r = _send(port, "resume")
         assert r.returncode == 0 and "resume applied" in r.stdout, r.stderr
+        # It says what it clears (the stop's reason, from the state), so an operator sees another's stop in it.
+        assert "this resume clears what robot sim's newest state shows: safety estop" in r.stderr, r.stderr
+        assert "first" in r.stderr.split("this resume clears")[1], r.stderr
         with watcher.lock:
             states = list(watcher.states)
     finally:

@@ -216,7 +216,8 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
         return REFUSED
 
     if watch is not None:     # a resume clears only the stops the robot's newest state shows
-        seen = resume_body(watch.wait(deadline - time.monotonic()))
+        state = watch.wait(deadline - time.monotonic())
+        seen = resume_body(state)
         if seen is None:
             print(f"vbnav send: no state from robot {robot} on {watch.key} within {args.wait:g} s, so this "
                   f"resume cannot know which stop it would clear (another operator's estop a moment ago?); "
@@ -224,6 +225,10 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
                   f"latch, or a longer --wait (telemetry.state_rate_hz of the robot)", file=sys.stderr)
             return REFUSED
         body.update(seen)
+        # Say what it clears: another operator's stop that landed before that state is cleared with it.
+        faults = "; ".join(map(str, state["safety"].get("faults") or [])) or "no fault"
+        print(f"vbnav send: this resume clears what robot {robot}'s newest state shows: safety "
+              f"{state['safety'].get('state')} ({faults}), latched_ns {seen['latched_ns']}", file=sys.stderr)
 
     def put(seq: int, with_ack: bool) -> None:
         out.put(what, body if with_ack else {k: v for k, v in body.items() if k != "ack"})
