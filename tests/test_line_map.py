@@ -122,6 +122,40 @@ def test_collinear_pieces_of_one_edge_merge_and_verify_together():
     assert len(m2) == 3 and not m2.verified.any()
 
 
+def test_an_extent_is_what_the_observations_reach_on_the_line_as_it_is_now():
+    """box_b's far corner (1.02, 0.18), its top at y = -0.5, as the 120-frame room loop observed it at
+    0.5-0.6 m (world frame): the pieces of frames 41 and 43 end a few cm apart along the edge, and with
+    them the fused line tilts by ~45 deg for a frame. The extent was the union of the previous extent and
+    each observation, each time on the line of that moment, so the tilted frame put the top 8-9 cm past the
+    corner and beyond every observation, and it stayed there once frame 44 had set the line right. Now it
+    is where the observed endpoints reach along the current line: within the observations."""
+    # Per frame: both endpoints (m) and their covariances (mm^2) as triangulated (nearly singular: the
+    # depth sigma along the ray is 12 mm, across it 1 mm, so they are given to 0.001 mm^2).
+    seen = [
+        ([[1.018599, -0.431162, 0.196472], [1.018351, -0.503625, 0.19464]],     # frame 40
+         [[[6.904, -5.711, 30.326], [-5.711, 23.214, -25.921], [30.326, -25.921, 139.691]],
+          [[6.864, -7.946, 30.127], [-7.946, 27.75, -36.106], [30.127, -36.106, 138.678]]]),
+        ([[1.015743, -0.400824, 0.180821], [1.016137, -0.456761, 0.182191]],     # frame 41
+         [[[8.59, -5.284, 31.853], [-5.284, 21.639, -20.242], [31.853, -20.242, 123.259]],
+          [[8.644, -7.274, 32.051], [-7.274, 24.643, -27.879], [32.051, -27.879, 124.004]]]),
+        ([[1.013176, -0.353722, 0.172251], [1.014059, -0.431431, 0.175323]],     # frame 43
+         [[[13.407, -4.505, 36.193], [-4.505, 19.875, -12.633], [36.193, -12.633, 100.998]],
+          [[13.58, -7.991, 36.694], [-7.991, 23.284, -22.315], [36.694, -22.315, 102.471]]]),
+        ([[1.014386, -0.388316, 0.178015], [1.01322, -0.494704, 0.175266]],     # frame 44
+         [[[16.84, -6.821, 39.249], [-6.821, 21.212, -16.272], [39.249, -16.272, 94.143]],
+          [[16.61, -11.945, 38.709], [-11.945, 27.021, -28.491], [38.709, -28.491, 92.854]]]),
+    ]
+    m = LineMap()
+    t = np.array([0.0, 0.0, -0.4])            # the camera 0.5-0.6 m from the edge (min_range_m 0.35)
+    for P, cov in seen:
+        m.update(Segments3D(np.array(P)[None] - t, 1e-6 * np.array(cov)[None], np.zeros((1, 4)),
+                            np.zeros((1, 4)), np.ones(1), np.zeros(1, int), np.ones(1, bool)), I3, t)
+    assert len(m) == 1 and m.support[0] == 4
+    ys = np.array([P for P, _ in seen])[..., 1]
+    assert ys.min() - 1e-3 <= m.P[0, :, 1].min() and m.P[0, :, 1].max() <= ys.max() + 1e-3, m.P[0]
+    assert np.abs(m.P[0][:, [0, 2]] - [1.015, 0.18]).max() < 0.01     # and on the edge
+
+
 def test_unconfirmed_candidate_is_pruned_after_misses():
     p = MapParams(miss_limit=3)
     m = LineMap(p)

@@ -44,7 +44,7 @@ def room_map(room_drive):
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
     Measured: 9 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 4/7, box lower and upper edges 4/8),
-    endpoints 2.5 mm median / 2.5 cm 95 %, 2.0 % of 358 verified segments false (8 of 16 before box_b's top
+    endpoints 2.5 mm median / 2.5 cm 95 %, 2.0 % of 356 verified segments false (8 of 16 before box_b's top
     hypothesis was measured on its corners' lines in the recent keyframes, 7 before two separating viewpoints
     verified an unambiguous candidate). Built as `map build` builds it, with the slow loop's hypotheses. The
     acceptance (90 %, 2 / 5 cm, 5 %) is not met: docs/line_map.md "Not met"."""

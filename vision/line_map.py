@@ -14,10 +14,11 @@ camera pose (VSLAM, odometry or the map's own localisation):
 3. ``update``: the reconstructed segments, moved into the world frame, are
    associated with map segments (direction, and the Mahalanobis distance of
    both endpoints across the line under both covariances), fused
-   (information-weighted: the covariance-weighted mean of the line, the union
-   of the extents along it), or inserted as new candidates. Rival stereo
-   hypotheses of one left segment are inserted together under one ``group``
-   and wait for another viewpoint to decide (Fig. 11.4).
+   (information-weighted: the covariance-weighted mean of the line; the extent
+   is where the observed endpoints reach along the line as it is now), or
+   inserted as new candidates. Rival stereo hypotheses of one left segment
+   are inserted together under one ``group`` and wait for another viewpoint
+   to decide (Fig. 11.4).
    Association and collinear merging look only at the map segments near
    what they update (``SegmentGrid``, a 3-D grid hash, once the map is large
    enough for it to pay), so their work is bounded by what is in view, not
@@ -265,6 +266,10 @@ class LineMap:
     # gate, so two viewpoints do not verify it (separating_views); it needs verify_views of them.
     ambiguous: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
+    # Per segment: the endpoints of every observation fused or merged into it ((N, 2, 3), world frame; a
+    # hypothesis's or a loaded map's extent counts as one). Its extent is where they reach along its
+    # current line (``_extent``), not the union of its earlier estimates.
+    ends: list = field(default_factory=list, repr=False)
     # Keyframes: the left segments (xy (N, 4)) and camera pose (R_wc, t_wc) of frames a distinct viewpoint
     # apart (``_add_view``'s rule), while their camera lies within ``max_range_m`` of the current one.
     recent: list = field(default_factory=list, repr=False)
@@ -579,15 +584,15 @@ class LineMap:
         W = np.linalg.inv(Cw + ALONG_VAR * np.einsum("ki,kj->kij", t, t)[:, None])       # (K, 2, 3, 3)
         self.info[j] += W
         self.info_vec[j] += np.einsum("keij,kej->kei", W, Pw)
-        # Fused line (information-weighted), extent = union of what was seen along it.
+        # Fused line (information-weighted), extent = what was seen along it.
         self.cov[j] = np.linalg.inv(self.info[j])
         q = np.einsum("keij,kej->kei", self.cov[j], self.info_vec[j])                  # (K, 2, 3)
         tq = q[:, 1] - q[:, 0]
         tq = tq / np.maximum(np.linalg.norm(tq, axis=1), 1e-12)[:, None]
-        pts = np.concatenate((self.P[j], Pw), axis=1)                                  # (K, 4, 3)
-        s = np.einsum("kpi,ki->kp", pts - q[:, :1], tq)
-        self.P[j, 0] = q[:, 0] + s.min(axis=1)[:, None] * tq
-        self.P[j, 1] = q[:, 0] + s.max(axis=1)[:, None] * tq
+        self._ends_in_step()
+        for k, jj in enumerate(j.tolist()):
+            self.ends[jj] = np.concatenate((self.ends[jj], Pw[k:k + 1]))
+        self.P[j] = self._extent(j, q[:, 0], tq)
         self.support[j] += 1
         self.misses[j] = np.maximum(0, self.misses[j] - 1)
         self._moved(j)
@@ -729,9 +734,9 @@ class LineMap:
         q = np.einsum("eij,ej->ei", self.cov[i], self.info_vec[i])
         tq = q[1] - q[0]
         tq = tq / max(np.linalg.norm(tq), 1e-12)
-        s = [float((x - q[0]) @ tq) for x in (self.P[i, 0], self.P[i, 1], Pj[0], Pj[1])]
-        self.P[i, 0] = q[0] + min(s) * tq
-        self.P[i, 1] = q[0] + max(s) * tq
+        self._ends_in_step()
+        self.ends[i] = np.concatenate((self.ends[i], self.ends[j]))
+        self.P[i] = self._extent(np.array([i]), q[None, 0], tq[None])[0]
         if not self.verified[i]:
             # A candidate's anchor (where it is re-observed) becomes the merged estimate.
             self.anchor[i] = self.P[i]
@@ -745,6 +750,30 @@ class LineMap:
             self.group[i] = -1                   # the merged edge is no longer one left segment's alternative
         for v in self.views[j]:
             self._add_view(i, v)
+
+    def _ends_in_step(self) -> None:
+        """One list of observed endpoints per segment; a map whose arrays were replaced from outside (a test)
+        starts from its segments' extents."""
+        if len(self.ends) != len(self):
+            self.ends = [self.P[k:k + 1].copy() for k in range(len(self))]
+
+    def _extent(self, j: np.ndarray, q0: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K, 2, 3): segments j's endpoints on their lines (points q0 (K, 3), unit directions t (K, 3)): the
+        farthest any observed endpoint reaches along each line, both ways.
+
+        Each end is taken from the observations themselves, projected on the line as it is now. The union of
+        the previous extent and the new observation (before) kept an extent computed on a line that was
+        still poorly determined: two short pieces of a vertical edge at 0.5 m, their endpoints a few cm
+        apart along it and ~1 cm apart in depth, tilt the fused line by tens of degrees for a frame, the
+        projection there put an end 9 cm past box_b's top corner, 8.6 cm beyond every observation, and the
+        union kept it for good after the line had settled (issue 16, 120 frames)."""
+        E = [self.ends[i] for i in j.tolist()]
+        n = np.array([len(e) for e in E])
+        owner = np.repeat(np.arange(len(E)), n)
+        s = np.einsum("mei,mi->me", np.concatenate(E) - q0[owner, None], t[owner])    # (M, 2) along
+        start = np.r_[0, np.cumsum(n)[:-1]]
+        lo, hi = np.minimum.reduceat(s.min(axis=1), start), np.maximum.reduceat(s.max(axis=1), start)
+        return np.stack((q0 + lo[:, None] * t, q0 + hi[:, None] * t), axis=1)
 
     def _add_view(self, j: int, view: np.ndarray) -> None:
         p = self.params
@@ -778,6 +807,8 @@ class LineMap:
         self.ambiguous = np.concatenate((self.ambiguous, group >= 0))
         self.next_id += n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
+        if len(self.ends) == len(self) - n:
+            self.ends.extend(Pw[k:k + 1].copy() for k in range(n))
         if len(self.serial) == len(self) - n:
             serial = np.arange(self.next_serial, self.next_serial + n)
             self.serial = np.concatenate((self.serial, serial))
@@ -866,6 +897,8 @@ class LineMap:
                      "ambiguous"):
             setattr(self, name, getattr(self, name)[keep])
         self.views = [v for v, k in zip(self.views, keep) if k]
+        if len(self.ends) == len(keep):
+            self.ends = [v for v, k in zip(self.ends, keep) if k]
 
     # ------------------------------------------------------------- spatial hash
     def _near(self, lo: np.ndarray, hi: np.ndarray, reach: float, qdir: np.ndarray, ref_dirs) -> tuple:
@@ -1026,6 +1059,8 @@ class LineMap:
         ys, ws = ys[keep], ws[keep]
         self.P[k, :, 1] = y
         self.anchor[k] = self.P[k]
+        self._ends_in_step()
+        self.ends[k] = self.P[k:k + 1].copy()
         var = np.array([p.assoc_extra_m ** 2, 0.0, p.assoc_extra_m ** 2])
         cov = np.zeros((2, 3, 3))
         for e in range(2):
