@@ -146,6 +146,22 @@ def test_abstraction_closes_a_box_seen_at_two_corners_and_its_foot():
     assert len(hyp) == 2 + 4                                            # two unseen corners, four top edges
 
 
+def test_a_lower_edge_ending_at_a_corner_keeps_the_corners_right_angle():
+    """A box's lower edge (a floor line) ending 1.5 cm from a corner, a few mm outside the hull of the
+    corners (the room loop's box_b at 120 frames): its end is that corner, not a hull vertex of its own, so
+    the corner's right angle still sets the footprint's axes (it was skipped as a side under
+    ``min_side_m``, and the smallest rectangle took the hypotenuse of the three corners as a side)."""
+    corners = [(0.0, 0.0), (0.8, 0.0), (0.8, 0.6)]
+    P = np.array([[[x, 0.0, z], [x, -0.9, z]] for x, z in corners]
+                 + [[[0.785, 0.0, -0.003], [0.3, 0.0, -0.003]]])     # the foot of face (0,0)-(0.8,0)
+    polys = object_polygons(P)
+    assert len(polys) == 1
+    fp = polys[0].footprint
+    assert len(fp) == 4 and np.isclose(abs(_area(fp)), 0.8 * 0.603, atol=0.01)
+    assert np.abs(np.sort(fp[:, 0]) - [0.0, 0.0, 0.8, 0.8]).max() < 0.02, fp     # sides along the faces
+    assert np.abs(np.sort(fp[:, 1]) - [-0.003, -0.003, 0.6, 0.6]).max() < 0.02, fp
+
+
 def test_planner_goes_around_a_mapped_box():
     # A box footprint between start and goal: the path keeps the robot radius from it.
     poly = np.array([[-0.4, -0.3], [0.4, -0.3], [0.4, 0.3], [-0.4, 0.3]])
