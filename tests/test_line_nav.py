@@ -43,8 +43,9 @@ def room_map(room_drive):
 
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
-    Measured: 9 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 4/7, box lower and upper edges 4/8),
-    endpoints 2.5 mm median / 2.5 cm 95 %, 2.0 % of 358 verified segments false (8 of 16 before box_b's top
+    Measured: 10 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 5/7, box lower and upper edges 4/8),
+    endpoints 2.6 mm median / 2.5 cm 95 %, 2.0 % of 358 verified segments false (9 of 16 and 4/7 box vertical
+    before the vertical lines of vision/line_vertical.py gave box_b's far corner, 8 of 16 before box_b's top
     hypothesis was measured on its corners' lines in the recent keyframes, 7 before two separating viewpoints
     verified an unambiguous candidate). Built as `map build` builds it, with the slow loop's hypotheses. The
     acceptance (90 %, 2 / 5 cm, 5 %) is not met: docs/line_map.md "Not met"."""
@@ -53,9 +54,9 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     assert lmap.hypothesis.any()
     sc = score_map(lmap, world, drive)
     assert sc.in_view >= 12 and sum(v[0] for v in sc.by_class.values()) == sc.in_view
-    assert sc.mapped >= 9, sc.missing
+    assert sc.mapped >= 10, sc.missing
     assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 4   # floor lines, box_b's top
-    assert sc.by_class["box_vertical"][1] >= 4, sc.by_class
+    assert sc.by_class["box_vertical"][1] >= 5, sc.by_class        # box_b's far corner: vertical lines
     assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.05
     assert sc.false_fraction <= 0.045
 
