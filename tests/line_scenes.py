@@ -226,7 +226,8 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
             lmap.add_hypotheses(slow.hypotheses.get_nowait(), camera=(CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height))
         pred_v = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         prior_fn = (lambda segs: lmap.prior_for(segs, pred_v)) if guided else None
-        res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, params, prior_fn)
+        res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, params, prior_fn,
+                               vertical=R[1])
         if compare:
             from vbnav.vision.line_segments import match_stereo
             un = match_stereo(res.left, res.right, params, None)

@@ -274,7 +274,7 @@ def striped_run():
         R, c = camera_pose(pose, mount)
         pred = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE,
-                               prior_fn=lambda s: lmap.prior_for(s, pred))
+                               prior_fn=lambda s: lmap.prior_for(s, pred), vertical=R[1])    # as the stage
         unguided = match_stereo(res.left, res.right, LineParams(), None)   # the same segments, no prediction
         rates.append((len(pred), false_matches(res.left, res.matches, f.disparity),
                        false_matches(res.left, unguided, f.disparity)))
@@ -328,7 +328,8 @@ def test_kitti_verified_segments_reproject_within_1_5_px(shared_data):
         args = (cal.fx, cal.fy, cal.cx, cal.cy, cal.baseline, L.shape[1], L.shape[0])
         pred = lmap.predict(Rw, tw, *args)
         res = reconstruct_pair(L, R, cal.fx, cal.fy, cal.cx, cal.cy, cal.baseline, lp,
-                               prior_fn=lambda s: lmap.prior_for(s, pred))
+                               prior_fn=lambda s: lmap.prior_for(s, pred),
+                               vertical=Rw[1])           # the first camera's y: down on a level car
         lmap.update(res.segments, Rw, tw, lmap.predict(Rw, tw, *args, which=np.ones(len(lmap), bool)), res.left)
         left[i] = (res.left, args)
     assert lmap.verified.sum() >= 15                     # measured 23

@@ -120,7 +120,12 @@ def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParam
             on = dist <= params.foot_on_m
             lower = (on.sum(axis=0) >= 2) | _square_to_a_face(feet, seen, on, params)
             lower &= np.linalg.norm(ab, axis=1) <= params.box_max_m
-            pts.append(feet[lower].reshape(-1, 2))
+            # A lower edge's end within foot_on_m of a corner is that corner: as a hull vertex of its own
+            # (a few mm outside) it made the corner's sides shorter than min_side_m, so its right angle
+            # was skipped and the smallest rectangle could take the hypotenuse of three corners as a side.
+            ends = feet[lower].reshape(-1, 2)
+            away = np.linalg.norm(ends[:, None] - seen[None], axis=2).min(axis=1) > params.foot_on_m
+            pts.append(ends[away])
         pts = np.vstack(pts)
         if len(members) < 2 and len(pts) < 3:
             continue

@@ -70,6 +70,12 @@ class LineParams:
     band_px: tuple = (2.0, 4.0, 6.0)    # side band offsets (beyond LSD's ~2 px support, as the floor test's)
     band_max_diff: float = 12.0         # grey levels: mean |left - right| of a side band on one surface (noise ~2)
     edge_refit_px: float = 1.0          # the right line's re-fit may move it this far from the searched disparity
+    # Vertical 3D lines along the pencil through the vertical vanishing point (``vision/line_vertical.py``;
+    # used when ``reconstruct_pair`` is given the world's vertical in the camera frame).
+    vertical_search: bool = True
+    vertical_k_sigma: float = 3.0       # ridge of |gradient across| above this x the Sobel's noise sigma
+    vertical_tol_px: float = 0.75       # a ridge supports the pencil lines (columns) within this of it
+    vertical_gap_px: int = 4            # unsupported rows bridged in a run (a sign change: the Sobel's 3 rows and 1)
 
 
 @dataclass
@@ -525,16 +531,21 @@ class StereoLines:
 
 def reconstruct_pair(left_image: np.ndarray, right_image: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                      baseline: float, params: LineParams = LineParams(), prior_fn=None,
-                     doffs: float = 0.0) -> StereoLines:
+                     doffs: float = 0.0, vertical: Optional[np.ndarray] = None) -> StereoLines:
     """Detect, match and triangulate one rectified pair.
 
     prior_fn(left_segments) -> (N, 2) prediction for guided matching (see ``match_stereo``), or None.
+    vertical: the world's vertical (3,) in the left camera frame, when the camera's orientation is known;
+    with ``params.vertical_search`` the vertical lines of ``vision/line_vertical.py`` are added.
     """
     ls, rs = detect_segments(left_image, params), detect_segments(right_image, params)
     prior = prior_fn(ls) if prior_fn is not None else None
     m = match_stereo(ls, rs, params, prior)
     if params.edge_search:
         rs, m = _add_edge_matches(left_image, right_image, ls, rs, m, params)
+    if vertical is not None and params.vertical_search:
+        from vbnav.vision.line_vertical import add_vertical_matches
+        ls, rs, m = add_vertical_matches(left_image, right_image, ls, rs, m, vertical, fx, fy, cx, cy, params)
     return StereoLines(ls, rs, m, triangulate(ls, rs, m, fx, fy, cx, cy, baseline, params, doffs))
 
 

@@ -209,7 +209,9 @@ class LineMapStage(VisionStage):
                 self.revision += 1
             pred = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H)
         prior_fn = (lambda segs: self.map.prior_for(segs, pred)) if self.guided else None
-        res = reconstruct_pair(left, right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn)
+        # The world's vertical in the camera frame (R: camera to world) for the vertical lines' pencil.
+        res = reconstruct_pair(left, right, fx, fy, cx, cy, self.baseline, self.line_params, prior_fn,
+                               vertical=R[1])
         segs = res.segments
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         if self.floor:

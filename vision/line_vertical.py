@@ -1,0 +1,301 @@
+"""Vertical 3D lines found along the pencil through the vertical vanishing point (issue 16).
+
+A box corner in front of a textured wall is an occluding boundary: the wall behind it crosses the box
+face's grey every few tens of rows, so the contrast across the edge changes sign there and LSD keeps
+short pieces of it (or none far away). A ground robot knows which way is up (the mount and the pose), so
+every vertical 3D line passes through the vertical vanishing point in the image; for a level camera that
+is at infinity along the columns. Along each line of that pencil the gradient across it is looked at in
+MAGNITUDE (either sign), so a sign change breaks the edge only over the Sobel's 3 rows.
+
+Per image (``pencil_runs``):
+
+1. the image is resampled so that the pencil's lines are its columns, rows kept (``pencil_map``;
+   the identity for a level camera; a rectified pair's rows stay rows, so one resampling serves both);
+2. ``M`` = |3x3 Sobel across the columns| / 8; the image noise sigma is estimated from the median
+   absolute Laplacian-like residual (Immerkaer's mask, robust to edges; the left image's, once per pair),
+   and the Sobel's noise is sigma x sqrt(12) / 8; a pixel supports a column when it is a local maximum of
+   ``M`` along its row, above ``vertical_k_sigma`` of that noise, with a gradient pointing across the
+   columns (within 45 deg; also halves the work on texture), with its parabola-interpolated position
+   within ``vertical_tol_px`` of the column (a 1-D Hough over the pencil, two bins per ridge at most);
+3. along each column, supported rows with gaps of at most ``vertical_gap_px`` (a contrast sign change
+   leaves the Sobel's 3 rows and the ridge's own row weak; a closing, so rounded up to even) form runs;
+   a run at least ``min_length_px`` long with at least half its rows supported, whose ridges' fitted line
+   stays vertical within 3 sigma of its slope (``sigma_perp_px`` per ridge), is a line; its sub-pixel
+   column is the magnitude-weighted mean of its ridges' positions (the least-squares line with the
+   direction fixed by the vanishing point); of two runs within a pixel of each other on overlapping rows
+   the stronger is kept; a run that is one step of a slanted LSD segment is dropped (``slanted``).
+
+Matching (``match_vertical``): a left and a right run on the same rows (overlap >= ``min_overlap`` of the
+shorter) with a disparity in range are a candidate when one side band (``band_px`` off the line) matches
+between the images (mean |left - right| <= ``band_max_diff``: the near surface, which owns the
+boundary, is the same in both; the edge search's test), better there than a pixel to either side (at a
+wrong disparity the match is another structure's) and 2x better than 3 px to either side (the floor
+test's rule: a weakly textured side proves nothing), while the other side does not match (an
+occluding boundary: the background behind it shifts by another disparity; a line whose both sides match
+lies on a surface, where its contrast does not change sign and LSD has it); a left run with more than one
+candidate (periodic texture) gets none. ``add_vertical_matches`` appends them to the pair's matches.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from vbnav.vision.line_segments import LineParams, Segments2D, StereoMatches, _sample, _x_at, grey, side_means
+
+SOBEL_NOISE_GAIN = math.sqrt(12.0) / 8.0      # 3x3 Sobel / 8 of iid noise: sigma x sqrt(1+4+1+1+4+1) / 8
+
+
+def noise_sigma(image: np.ndarray) -> float:
+    """Robust image noise sigma (Immerkaer's mask [1 -2 1; -2 4 -2; 1 -2 1], norm 6, whose response to
+    planar intensity is zero; the median of its absolute response / 0.6745 ignores edges and texture)."""
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    r = cv2.filter2D(image.astype(np.float32), cv2.CV_32F, k)[1:-1:4, 1:-1:4]      # every 16th pixel: enough
+    return float(np.median(np.abs(r)) / 0.6745 / 6.0)
+
+
+def pencil_map(vertical: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int):
+    """Maps (x, y) for ``cv2.remap`` that make the lines through the vertical vanishing point columns (rows
+    kept), or None for a level camera. ``vertical``: the world's vertical in the camera frame.
+    A pencil line with column c runs through (c, cy) and the vanishing point K v:
+    x(y) = c (1 - (y - cy) vz / (fy vy)) + (y - cy) (fx vx + cx vz) / (fy vy)."""
+    vx, vy, vz = (float(a) for a in vertical)
+    if abs(vx) < 1e-9 * abs(vy) and abs(vz) < 1e-9 * abs(vy):
+        return None
+    c = np.arange(width, dtype=np.float32)[None, :]
+    dy = (np.arange(height, dtype=np.float32) - cy)[:, None]
+    mx = c * (1.0 - dy * vz / (fy * vy)) + dy * (fx * vx + cx * vz) / (fy * vy)
+    my = np.broadcast_to(np.arange(height, dtype=np.float32)[:, None], mx.shape)
+    return mx.astype(np.float32), np.ascontiguousarray(my, np.float32)
+
+
+def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Optional[float] = None) -> np.ndarray:
+    """Runs along the columns of a (pencil-resampled) grey image: (K, 4) column (sub-pixel), first row,
+    last row, strength (mean magnitude across the line over the supported rows). ``noise``: the image
+    noise sigma (default: ``noise_sigma`` of this image)."""
+    g = image.astype(np.float32)
+    H, W = g.shape
+    M = np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125))
+    thr = params.vertical_k_sigma * SOBEL_NOISE_GAIN * (noise_sigma(g) if noise is None else noise)
+    # Local maxima along the rows, above the noise, where the gradient points across the columns (within
+    # 45 deg: the edge itself runs within 45 deg of the pencil's line).
+    ridge = (M >= cv2.dilate(M, np.ones((1, 3), np.uint8))) & (M > thr)
+    ridge &= np.abs(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)) < M
+    ridge[:, :2] = ridge[:, -2:] = False                                         # the Sobel's border columns
+    yy, xx = np.nonzero(ridge)
+    if len(yy) == 0:
+        return np.zeros((0, 4))
+    flat = yy * W + xx
+    Mf = M.ravel()
+    am, bm, cm = Mf[flat - 1], Mf[flat], Mf[flat + 1]
+    curv = am - 2.0 * bm + cm
+    o = np.where(curv < 0, 0.5 * (am - cm) / np.where(curv < 0, curv, -1.0), 0.0)     # sub-pixel offset
+    # A ridge at column x + o supports each column within vertical_tol_px of it: x itself (|o| <= 0.5), and
+    # x + 1 or x - 1 when o is within tol of it. Support S, weight (|gradient|) and weighted position sums.
+    tol = params.vertical_tol_px
+    right, left = o >= 1.0 - tol, o <= tol - 1.0
+    idx = np.concatenate((flat, flat[right] + 1, flat[left] - 1))
+    w = np.concatenate((bm, bm[right], bm[left]))
+    pos = np.concatenate((xx + o, (xx + o)[right], (xx + o)[left]))
+    S = np.bincount(idx, minlength=H * W).reshape(H, W).astype(np.uint8)
+    Wt = np.bincount(idx, w, minlength=H * W).reshape(H, W)
+    Wp = np.bincount(idx, w * pos, minlength=H * W).reshape(H, W)
+    # Runs: supported rows with gaps of at most vertical_gap_px (a morphological closing along the columns).
+    gap = int(params.vertical_gap_px)
+    B = (S > 0).astype(np.uint8)
+    C = cv2.morphologyEx(B, cv2.MORPH_CLOSE, np.ones((2 * ((gap + 1) // 2) + 1, 1), np.uint8)) if gap > 0 else B
+    L = int(math.ceil(params.min_length_px))
+    long = cv2.erode(C, np.ones((2 * (L // 2) + 1, 1), np.uint8))                 # rows amid a run of >= L
+    cand = np.nonzero(long.any(axis=0))[0]                                        # columns holding a run
+    if len(cand) == 0:
+        return np.zeros((0, 4))
+    d = np.diff(np.pad(C[:, cand], ((1, 1), (0, 0))).astype(np.int8), axis=0).T  # (cols, H + 1)
+    k0, r0 = np.nonzero(d == 1)                                                  # sorted by column, then row
+    _, r1 = np.nonzero(d == -1)
+    r1 = r1 - 1
+    keep = (r1 - r0 + 1) >= params.min_length_px
+    cs, r0, r1 = cand[k0[keep]], r0[keep], r1[keep]
+    if len(cs) == 0:
+        return np.zeros((0, 4))
+    cols, ci = np.unique(cs, return_inverse=True)
+    rows = np.arange(H, dtype=np.float64)[:, None]
+    Sc, Wc, Pc = S[:, cols].astype(np.float64), Wt[:, cols].astype(np.float64), Wp[:, cols].astype(np.float64)
+
+    def span(img):                                   # sums over each run's rows [r0, r1]
+        cum = np.vstack((np.zeros((1, img.shape[1])), np.cumsum(img, axis=0)))
+        return cum[r1 + 1, ci] - cum[r0, ci]
+
+    n, sw, swp = span(Sc), span(Wc), span(Pc)
+    swr, swrr, swrp = span(Wc * rows), span(Wc * rows * rows), span(Pc * rows)
+    length = r1 - r0 + 1
+    ok = 2 * n >= length
+    sw = np.maximum(sw, 1e-9)
+    rbar, pbar = swr / sw, swp / sw
+    # The ridges' weighted least-squares line p = a + b (row - mean row): a line of the pencil has b = 0
+    # within its noise; a texture line a few degrees off vertical crosses the tolerance band in pieces.
+    # Across the run the fitted line may move 3 sigma of its slope's estimate from n ridges of sigma_perp:
+    # sigma_perp sqrt(12 / n) end to end.
+    slope = (swrp - rbar * swp) / np.maximum(swrr - rbar * swr, 1e-9)
+    ok &= np.abs(slope) * length <= 3.0 * params.sigma_perp_px * np.sqrt(12.0 / np.maximum(n, 1))
+    if not ok.any():
+        return np.zeros((0, 4))
+    runs = np.column_stack((pbar, r0, r1, sw / np.maximum(n, 1)))[ok]
+    # Of two runs within a pixel on overlapping rows (a ridge supports two columns) keep the stronger.
+    near = (np.abs(runs[:, None, 0] - runs[None, :, 0]) <= 1.0) & \
+        (np.minimum(runs[:, None, 2], runs[None, :, 2]) >= np.maximum(runs[:, None, 1], runs[None, :, 1]))
+    total = runs[:, 3] * (runs[:, 2] - runs[:, 1] + 1)
+    idx = np.arange(len(runs))
+    beaten = near & ((total[None, :] > total[:, None]) | ((total[None, :] == total[:, None]) & (idx[None, :] < idx[:, None])))
+    return runs[~beaten.any(axis=1)]
+
+
+def _to_image(runs: np.ndarray, maps) -> np.ndarray:
+    """(K, 4) image segments x0, y0, x1, y1 (top to bottom) of runs in the resampled image."""
+    y0, y1 = runs[:, 1], runs[:, 2]
+    if maps is None:
+        return np.column_stack((runs[:, 0], y0, runs[:, 0], y1))
+    mx = maps[0]
+    W = mx.shape[1]
+
+    def x_of(c, y):
+        yi = y.astype(int)
+        c0 = np.clip(np.floor(c).astype(int), 0, W - 2)
+        f = c - c0
+        return mx[yi, c0] * (1 - f) + mx[yi, c0 + 1] * f
+
+    return np.column_stack((x_of(runs[:, 0], y0), y0, x_of(runs[:, 0], y1), y1))
+
+
+def vertical_lines(left_image: np.ndarray, right_image: np.ndarray, vertical: np.ndarray, fx: float, fy: float,
+                   cx: float, cy: float, params: LineParams = LineParams(),
+                   left_xy: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Matched vertical lines of a rectified pair: left and right image segments (K, 4) on the same rows.
+    ``left_xy``: the left image's LSD segments; a run that is a step of one of them is dropped (``slanted``)."""
+    L, R = grey(left_image).astype(np.float32), grey(right_image).astype(np.float32)
+    H, W = L.shape
+    maps = pencil_map(vertical, fx, fy, cx, cy, W, H)
+    if maps is not None:
+        L = cv2.remap(L, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        R = cv2.remap(R, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    noise = noise_sigma(L)                       # one camera pair: one noise level
+    lr, rr = pencil_runs(L, params, noise), pencil_runs(R, params, noise)
+    if left_xy is not None and len(lr) and len(left_xy):
+        lr = lr[~slanted(_to_image(lr, maps), left_xy, params)]
+    none = np.zeros((0, 4)), np.zeros((0, 4))
+    if len(lr) == 0 or len(rr) == 0:
+        return none
+    li, ri = match_vertical(L, R, lr, rr, params)
+    if len(li) == 0:
+        return none
+    lo = np.maximum(lr[li, 1], rr[ri, 1])
+    hi = np.minimum(lr[li, 2], rr[ri, 2])
+    lseg = np.column_stack((lr[li, 0], lo, hi))
+    rseg = np.column_stack((rr[ri, 0], lo, hi))
+    lxy = _to_image(np.column_stack((lseg, np.zeros(len(li)))), maps)
+    rxy = _to_image(np.column_stack((rseg, np.zeros(len(ri)))), maps)
+    return lxy, rxy
+
+
+def slanted(run_xy: np.ndarray, seg_xy: np.ndarray, params: LineParams = LineParams()) -> np.ndarray:
+    """(K,) bool: runs that are one step of a longer slanted line. A line a few degrees off the pencil
+    rendered (or sampled) in whole-pixel steps is a staircase of exactly vertical pieces, each as long as
+    ``min_length_px`` when the slope is under 1 / 25; LSD (15 deg tolerance) sees the whole line. A run is a
+    step when an LSD segment passes within 1 px of its middle and within its band (2 ``vertical_tol_px``)
+    at its ends, shares at least half its rows, and leaves its line by more than 2 px (a staircase's step:
+    more than the run's own band) within its own extent."""
+    ym = 0.5 * (run_xy[:, 1] + run_xy[:, 3])                                     # (K,)
+    xr = lambda y: _x_at(run_xy[:, None, :], y)                                   # noqa: E731
+    xs = lambda y: _x_at(seg_xy[None, :, :], y)                                   # noqa: E731
+    steep = np.abs(seg_xy[:, 3] - seg_xy[:, 1]) > np.abs(seg_xy[:, 2] - seg_xy[:, 0])
+    through = np.abs(xs(ym[:, None]) - xr(ym[:, None])) <= 1.0                   # (K, S)
+    for y in (run_xy[:, 1], run_xy[:, 3]):            # and stays in the run's band over the run's rows
+        through &= np.abs(xs(y[:, None]) - xr(y[:, None])) <= 2.0 * params.vertical_tol_px
+    lo = np.maximum(run_xy[:, None, 1], np.minimum(seg_xy[None, :, 1], seg_xy[None, :, 3]))
+    hi = np.minimum(run_xy[:, None, 3], np.maximum(seg_xy[None, :, 1], seg_xy[None, :, 3]))
+    shared = (hi - lo) >= 0.5 * (run_xy[:, None, 3] - run_xy[:, None, 1])
+    leave = np.maximum(np.abs(xs(seg_xy[None, :, 1]) - xr(seg_xy[None, :, 1])),
+                       np.abs(xs(seg_xy[None, :, 3]) - xr(seg_xy[None, :, 3]))) > 2.0
+    return (steep[None, :] & through & shared & leave).any(axis=1)
+
+
+def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
+                   params: LineParams = LineParams()) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (left run, right run) of the unique candidates (see the module docstring), in the resampled
+    images (columns are the pencil's lines, so a column shift is the disparity up to the row's scale)."""
+    lo = np.maximum(lr[:, None, 1], rr[None, :, 1])
+    hi = np.minimum(lr[:, None, 2], rr[None, :, 2])
+    shorter = np.minimum(lr[:, None, 2] - lr[:, None, 1], rr[None, :, 2] - rr[None, :, 1])
+    overlap = np.clip(hi - lo, 0, None) / np.maximum(shorter, 1e-9)
+    disp = lr[:, None, 0] - rr[None, :, 0]
+    cand = (overlap >= params.min_overlap) & (disp >= params.min_disparity_px) & (disp <= params.max_disparity_px)
+    # Every band sample (up to 3 px of disparity shift beyond the outer band) inside both images.
+    reach = max(params.band_px) + 4.0
+    W = L.shape[1]
+    cand &= (lr[:, None, 0] - reach >= 0) & (lr[:, None, 0] + reach <= W - 1) \
+        & (rr[None, :, 0] - reach >= 0) & (rr[None, :, 0] + reach <= W - 1)
+    a, b = np.nonzero(cand)
+    if len(a) == 0:
+        return a, b
+    k = params.edge_samples
+    t = (np.arange(k) + 0.5) / k
+    ys = lo[a, b][:, None] + (hi[a, b] - lo[a, b])[:, None] * t[None]               # (C, k)
+    xl = np.broadcast_to(lr[a, 0][:, None], ys.shape)
+    d = disp[a, b][:, None, None]
+    off = np.asarray(params.band_px, float)[None, None, :]
+    shifts = (-3.0, -1.0, 0.0, 1.0, 3.0)
+    cost = np.zeros((len(shifts), 2, len(a)))        # (disparity d + shift; side; candidate)
+    for j, sign in enumerate((1.0, -1.0)):
+        bx = xl[..., None] + sign * off
+        by = np.broadcast_to(ys[..., None], bx.shape)
+        lv = _sample(L, bx, by)
+        for i, dd in enumerate(shifts):
+            cost[i, j] = np.abs(lv - _sample(R, bx - d - dd, by)).mean(axis=(1, 2))
+    # The near side matches at the lines' disparity, better than a pixel either way (at a wrong disparity
+    # the match is another structure's), and at least 2x better than 3 px either way (the floor test's
+    # rule: an untextured or weakly textured side proves nothing).
+    c0 = cost[2]
+    side_ok = ((c0 <= params.band_max_diff) & (c0 < cost[1]) & (c0 < cost[3])
+               & (2.0 * c0 <= np.minimum(cost[0], cost[4])))
+    # An occluding boundary: the far side (the background, shifted by another disparity) differs. A line
+    # whose both sides match lies on a surface (texture), where LSD's contrast does not change sign.
+    far_differs = c0[::-1] > params.band_max_diff
+    good = (side_ok & far_differs).any(axis=0)
+    a, b = a[good], b[good]
+    one = np.bincount(a, minlength=len(lr))[a] == 1
+    return a[one], b[one]
+
+
+def add_vertical_matches(left_image: np.ndarray, right_image: np.ndarray, ls: Segments2D, rs: Segments2D,
+                         m: StereoMatches, vertical: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                         params: LineParams) -> tuple[Segments2D, Segments2D, StereoMatches]:
+    """Both images' segments and the matches with the matched vertical lines appended (each its own left
+    segment's only, best candidate; score: its appearance, as the edge search's). A match already found
+    for a left segment lying along a vertical line (1 px at both ends, within its rows) with the same
+    disparity (1 px) is the same edge, seen shorter: it is dropped."""
+    lxy, rxy = vertical_lines(left_image, right_image, vertical, fx, fy, cx, cy, params, ls.xy)
+    if len(lxy) == 0:
+        return ls, rs, m
+    gl, gr = grey(left_image), grey(right_image)
+    lsides, rsides = side_means(gl, lxy, params), side_means(gr, rxy, params)
+    app = np.exp(-0.5 * (np.abs(lsides - rsides).min(axis=1) / params.appearance_sigma) ** 2)
+    if len(m):
+        E = ls.xy[m.left]                                                    # (K, 4)
+        ey = E[:, [1, 3]]                                                    # (K, 2)
+        vx = _x_at(lxy[None, :, :], ey[:, :, None])                          # (K, 2, V)
+        along = (np.abs(vx - E[:, [0, 2], None]) <= 1.0).all(axis=1)
+        g = params.vertical_gap_px
+        inside = ((ey.min(axis=1)[:, None] >= lxy[None, :, 1] - g) & (ey.max(axis=1)[:, None] <= lxy[None, :, 3] + g))
+        vd = vx - _x_at(rxy[None, :, :], ey[:, :, None])                     # vertical line's disparity at those rows
+        same = (np.abs(vd - m.disparity[:, :, None]) <= 1.0).all(axis=1)
+        m = m.subset(~(along & inside & same).any(axis=1))
+    li = len(ls) + np.arange(len(lxy))
+    ri = len(rs) + np.arange(len(rxy))
+    disp = np.column_stack((lxy[:, 0] - rxy[:, 0], lxy[:, 2] - rxy[:, 2]))
+    cat = np.concatenate
+    ls = Segments2D(cat((ls.xy, lxy)), cat((ls.sides, lsides)))
+    rs = Segments2D(cat((rs.xy, rxy)), cat((rs.sides, rsides)))
+    m = StereoMatches(cat((m.left, li)), cat((m.right, ri)), cat((m.score, app)), cat((m.disparity, disp)),
+                      cat((m.best, np.ones(len(li), bool))), cat((m.predicted, np.zeros(len(li), bool))))
+    return ls, rs, m
