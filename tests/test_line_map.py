@@ -122,6 +122,41 @@ def test_collinear_pieces_of_one_edge_merge_and_verify_together():
     assert len(m2) == 3 and not m2.verified.any()
 
 
+def test_a_segment_takes_one_of_two_parallel_lines_of_one_image():
+    """The south wall's foot at 2.8 m and a floor-texture line 12 cm in front of it (the 120-frame room
+    loop: 8-12 cm at 2.7-3 m), floor lines with the floor-line covariance of a camera 0.25 m high. Seen
+    from 1.5 m (where their gates part) the foot is verified from three viewpoints and the texture line is a
+    candidate from two. From 2.8 m the 3 mm of camera height common to both puts the texture line inside
+    the foot's association gate, and the verified segment was preferred: the foot took both lines and moved
+    8 mm towards the texture, which stayed unverified. In the image they are two parallel lines 1.6 px apart
+    over the same columns (the gate of two lines' difference: 1.1 px), so the foot takes only its own line;
+    the texture line goes to its own segment. A piece of the foot that does not overlap the other (LSD
+    breaking the edge) still fuses."""
+    from vbnav.vision.line_floor import FloorParams, _covariance, _floor_hit
+    K = np.array([[CAM.fx, 0.0, CAM.cx], [0.0, CAM.fy, CAM.cy], [0.0, 0.0, 1.0]])
+
+    def floor_lines(t, lines):
+        """Segments3D of floor lines (depth z, x from x0 to x1) seen from camera centre t (R_wc = I)."""
+        P = np.array([[[x0, 0.0, z], [x1, 0.0, z]] for z, x0, x1 in lines]) - t
+        xy = (P[..., :2] / P[..., 2:] * CAM.fx + [CAM.cx, CAM.cy]).reshape(-1, 4)
+        Pc = _floor_hit(xy.reshape(-1, 2), np.linalg.inv(K), I3, t).reshape(-1, 2, 3) - t
+        n = len(xy)
+        return Segments3D(Pc, _covariance(xy, Pc, np.linalg.inv(K), I3, t, FloorParams()), xy,
+                          np.full((n, 4), np.nan), np.ones(n), np.arange(n), np.ones(n, bool))
+
+    foot, texture, piece = (2.8, -0.6, 0.6), (2.68, -0.5, 0.4), (2.8, 0.7, 1.2)
+    m = LineMap()
+    for (x, z), lines in (((-0.2, 1.3), [foot, texture]), ((0.0, 1.3), [foot, texture]), ((0.2, 1.3), [foot]),
+                          ((0.0, 0.0), [foot, texture, piece])):
+        t = np.array([x, -0.25, z])
+        m.update(floor_lines(t, lines), I3, t)
+    assert len(m) == 2
+    f, w = (0, 1) if m.P[0, 0, 2] > m.P[1, 0, 2] else (1, 0)
+    assert m.verified[f] and m.support[f] == 5            # three views from 1.5 m, the far line and the piece
+    assert np.abs(m.P[f, :, 2] - 2.8).max() < 1e-3 and np.allclose(sorted(m.P[f, :, 0]), [-0.6, 1.2], atol=1e-3)
+    assert m.support[w] == 3 and np.abs(m.P[w, :, 2] - 2.68).max() < 1e-3
+
+
 def test_an_extent_is_what_the_observations_reach_on_the_line_as_it_is_now():
     """box_b's far corner (1.02, 0.18), its top at y = -0.5, as the 120-frame room loop observed it at
     0.5-0.6 m (world frame): the pieces of frames 41 and 43 end a few cm apart along the edge, and with

@@ -18,7 +18,9 @@ camera pose (VSLAM, odometry or the map's own localisation):
    is where the observed endpoints reach along the line as it is now), or
    inserted as new candidates. Rival stereo hypotheses of one left segment
    are inserted together under one ``group`` and wait for another viewpoint
-   to decide (Fig. 11.4).
+   to decide (Fig. 11.4). A segment takes at most one of several observations
+   whose left-image lines are distinct parallel lines of the frame
+   (``_exclusive``): two lines apart in one image are two 3D lines.
    Association and collinear merging look only at the map segments near
    what they update (``SegmentGrid``, a 3-D grid hash, once the map is large
    enough for it to pay), so their work is bounded by what is in view, not
@@ -212,6 +214,11 @@ class MapParams:
     # (``recent``), its height measured on its corners' vertical lines (``_sight_top``), with this sigma of
     # an image line across itself (LineParams.sigma_perp_px; 0: never).
     sight_sigma_px: float = 0.3
+    # Two observations of one frame whose left-image lines are parallel (``assoc_angle_deg``), overlap along
+    # the line and lie apart across it by more than the 1-dof 99 % gate of the difference of two image
+    # lines, sqrt(chi2_1,99 %) sqrt(2) x this sigma (LineParams.sigma_perp_px: 1.1 px), are two distinct
+    # lines, whatever the 3D gates say: a map segment takes at most one of them (``_exclusive``; 0: off).
+    line_sigma_px: float = 0.3
 
 
 @dataclass
@@ -427,7 +434,7 @@ class LineMap:
         new_gid = np.full(len(gid), -1)
         new_gid[rival] = self.next_group + np.arange(rival.sum())
         self.next_group += int(rival.sum())
-        j = self._associate_and_fuse(Pw, Cw, view)
+        j = self._associate_and_fuse(Pw, Cw, view, obs.left_xy)
         fused = j >= 0
         seen[j[fused]] = True
         st.fused = int(fused.sum())
@@ -449,9 +456,13 @@ class LineMap:
         st.pairs = self._pairs
         return st
 
-    def _associate_and_fuse(self, Pw: np.ndarray, Cw: np.ndarray, view: np.ndarray) -> np.ndarray:
+    def _associate_and_fuse(self, Pw: np.ndarray, Cw: np.ndarray, view: np.ndarray,
+                            xy: Optional[np.ndarray] = None) -> np.ndarray:
         """Associate and fuse a frame's observations one after the other, each seeing the map as the
         previous ones left it; returns (K,) the segment each was fused into, or -1.
+
+        xy: the observations' left-image lines (K, 4): a segment takes at most one of several that are
+        distinct lines of this image (``_exclusive``).
 
         The gates are first evaluated for all (observation, segment) pairs against the map as it stood
         before the frame, in one batch. That stays right for every pair but those with a verified segment
@@ -465,7 +476,12 @@ class LineMap:
         if len(self) == 0 or len(Pw) == 0:
             return out
         k_all, c_all, score_all = self._gate_pairs(Pw, Cw)
+        distinct = self._exclusive(xy)
+        if distinct is not None:
+            keep = self._resolve_exclusive(k_all, c_all, score_all, distinct)
+            k_all, c_all, score_all = k_all[keep], c_all[keep], score_all[keep]
         bounds = np.searchsorted(k_all, np.arange(len(Pw) + 1))
+        taken: dict = {}                        # segment -> the observations given it this frame
         t_obs, lo, hi = _directions(Pw), Pw.min(axis=1), Pw.max(axis=1)
         dirty = np.zeros(len(self), bool)       # verified segments fused this frame: their scores are stale
         pending: list = [{} for _ in range(len(Pw))]   # per observation: such a segment -> its new score
@@ -480,9 +496,14 @@ class LineMap:
             for j, sc in pending[k].items():
                 if best is None or (sc, j) < best:
                     best = (sc, j)
+            if distinct is not None and best is not None and distinct[k, taken.get(best[1], [])].any():
+                # A re-gated verified segment that a distinct line of this image already took: the next best.
+                alts = sorted(list(zip(score.tolist(), c.tolist())) + [(sc, j) for j, sc in pending[k].items()])
+                best = next((b for b in alts if not distinct[k, taken.get(b[1], [])].any()), None)
             if best is None:
                 continue
             j = out[k] = best[1]
+            taken.setdefault(j, []).append(k)
             if not self.verified[j]:
                 deferred.append(k)
                 continue
@@ -503,6 +524,54 @@ class LineMap:
         for j in out[out >= 0]:
             self._add_view(int(j), view)
         return out
+
+    def _exclusive(self, xy: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        """(K, K) bool: observations' left-image lines xy (K, 4) that are two distinct lines of this image
+        (``_distinct_lines`` either way round), apart by more than sqrt(chi2_1,99 % x 2) ``line_sigma_px``
+        (1.1 px): the 99 % gate of the difference of two image lines' positions, each with that sigma across.
+        None when off (no image lines, or ``line_sigma_px`` 0). Rivals of one left segment share its line
+        (0 px apart): not distinct, their group decides between them."""
+        p = self.params
+        if xy is None or p.line_sigma_px <= 0 or len(xy) < 2:
+            return None
+        a, b = np.triu_indices(len(xy), 1)
+        d = xy[:, 2:] - xy[:, :2]
+        d = d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+        with np.errstate(invalid="ignore"):
+            par = np.abs(np.einsum("ki,ki->k", d[a], d[b])) >= math.cos(math.radians(p.assoc_angle_deg))
+        a, b = a[par], b[par]
+        gate = math.sqrt(CHI2_1_99 * 2.0) * p.line_sigma_px
+        ok = _distinct_lines(xy[a], xy[b], p.assoc_angle_deg, gate) | \
+            _distinct_lines(xy[b], xy[a], p.assoc_angle_deg, gate)
+        out = np.zeros((len(xy), len(xy)), bool)
+        out[a[ok], b[ok]] = out[b[ok], a[ok]] = True
+        return out
+
+    @staticmethod
+    def _resolve_exclusive(k_all: np.ndarray, c_all: np.ndarray, score_all: np.ndarray,
+                           distinct: np.ndarray) -> np.ndarray:
+        """(E,) bool: the gated pairs (sorted by observation, score) that stay when a segment takes at most one
+        of several observations that are distinct lines of one image, the best by Mahalanobis distance; the
+        others lose that segment and take their next best (or become candidates). Two parallel lines a few
+        px apart are two 3D lines: at 3 m the floor-line covariance (3 mm of camera height common to every
+        floor line of the frame) puts a line 10 cm off inside the 3D gate."""
+        keep = np.ones(len(k_all), bool)
+        while True:
+            idx = np.nonzero(keep)[0]
+            kk = k_all[idx]
+            first = idx[np.r_[True, kk[1:] != kk[:-1]]] if len(idx) else idx     # each observation's best
+            first = first[np.lexsort((score_all[first], c_all[first]))]          # by segment, then score
+            bounds = np.r_[0, np.nonzero(np.diff(c_all[first]))[0] + 1, len(first)]
+            lost = False
+            for a in np.nonzero(np.diff(bounds) >= 2)[0].tolist():
+                accepted: list = []
+                for e in first[bounds[a]:bounds[a + 1]].tolist():
+                    if accepted and distinct[k_all[e], k_all[accepted]].any():
+                        keep[e], lost = False, True
+                    else:
+                        accepted.append(e)
+            if not lost:
+                return keep
 
     def _may_pair(self, j: int, t_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """(K,) bool: observations (unit directions, boxes) that can pass the association's direction and
@@ -1085,6 +1154,27 @@ class LineMap:
 def _sorted_unique(a: np.ndarray) -> np.ndarray:
     a = np.sort(a)
     return a[np.r_[True, a[1:] != a[:-1]]] if len(a) else a
+
+
+def _distinct_lines(A: np.ndarray, B: np.ndarray, angle_deg: float, gate_px: float) -> np.ndarray:
+    """(P,) bool: image segments A[p] and B[p] ((P, 4): x0 y0 x1 y1) are two distinct lines: parallel within
+    ``angle_deg``, overlapping along A's line, and B on one side of A's line farther than ``gate_px`` all
+    along the overlap (lines that cross are one where they cross). Pieces of one edge that do not overlap
+    (LSD breaking it) are not distinct; rows with NaN never are."""
+    a0, d = A[:, :2], A[:, 2:] - A[:, :2]
+    L = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(L, 1e-12)[:, None]
+    n = np.column_stack((-u[:, 1], u[:, 0]))
+    e = B.reshape(-1, 2, 2) - a0[:, None]
+    s, h = np.einsum("pei,pi->pe", e, u), np.einsum("pei,pi->pe", e, n)     # B's ends along and across A
+    db = B[:, 2:] - B[:, :2]
+    cos = np.abs(np.einsum("pi,pi->p", db, u)) / np.maximum(np.linalg.norm(db, axis=1), 1e-12)
+    lo, hi = np.maximum(s.min(axis=1), 0.0), np.minimum(s.max(axis=1), L)
+    slope = (h[:, 1] - h[:, 0]) / np.where(np.abs(s[:, 1] - s[:, 0]) > 1e-9, s[:, 1] - s[:, 0], np.inf)
+    h_lo, h_hi = h[:, 0] + slope * (lo - s[:, 0]), h[:, 0] + slope * (hi - s[:, 0])
+    with np.errstate(invalid="ignore"):
+        return ((cos >= math.cos(math.radians(angle_deg))) & (hi > lo) & (h_lo * h_hi > 0)
+                & (np.minimum(np.abs(h_lo), np.abs(h_hi)) > gate_px))
 
 
 def _directions(P: np.ndarray) -> np.ndarray:
