@@ -316,3 +316,17 @@ def test_sgbm_obstacles_on_a_camera_without_a_right_image_are_refused_at_load(ca
     parse_config({**cfg, "obstacles": {"enabled": False, "source": "sgbm"}})       # no stage, nothing to match
     parse_config({"camera": {"driver": "sim", "options": {"stereo_baseline": 0.075}},
                   "obstacles": {"enabled": True, "source": "sgbm"}})
+
+
+@pytest.mark.parametrize("camera, instead", [
+    ({"driver": "replay", "rate_hz": 30.0, "options": {"path": "rec"}}, "camera.options.rate_hz"),
+    ({"driver": "oak", "rate_hz": 30.0, "options": {"replay_file": "rec.mp4"}}, "camera.options.replay_fps"),
+])
+def test_a_camera_rate_the_recording_camera_never_reads_is_refused(camera, instead):
+    """camera.rate_hz written for the replay camera (it plays at the recorded times, its options.rate_hz or 10 Hz)
+    or the OAK's host-only replay_file (its options.replay_fps) was accepted and never read: a folder of images
+    played at 10 Hz beside rate_hz: 30. Refused at load, naming the field and the one that sets the rate."""
+    with pytest.raises(ConfigError, match=rf"camera\.rate_hz 30 .*{re.escape(instead)}"):
+        parse_config({"camera": camera})
+    camera = dict(camera, rate_hz=15.0)         # the default, as 'vbnav config show' writes it: loads
+    assert parse_config({"camera": camera}).camera.rate_hz == 15.0

@@ -23,7 +23,7 @@ from pydantic import Field, PrivateAttr, ValidationError, field_validator, model
 from vbnav.drivers.calibration import CalibrationError, CameraCalibration, load_camera_calibration
 from vbnav.drivers.errors import yaml_problem
 from vbnav.drivers.plain_values import load_yaml
-from vbnav.control.config.base import ConfigError, Strict, format_errors
+from vbnav.control.config.base import ConfigError, Strict, format_errors, written
 from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.config.vbc import VBCConfig
@@ -87,7 +87,8 @@ class CameraConfig(Strict):
                                                              "camera plays at the recorded times or its "
                                                              "options.rate_hz, a v4l2 video file at its own rate "
                                                              "or options.replay_rate_hz; rate_hz only for a file "
-                                                             "that gives no rate)")
+                                                             "that gives no rate). Written for the replay camera "
+                                                             "or an OAK replay_file, which never read it: refused")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
                                                         "is an image that has not changed for this long "
                                                         "while the wheels moved (a frozen camera)")
@@ -406,7 +407,9 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     except ValidationError as exc:
         raise ConfigError(format_errors(source, exc)) from None
     cfg.source = source
-    validate_driver_options(cfg, source)
+    idle_rate = camera_rate_not_read(cfg, validate_driver_options(cfg, source)["camera"])
+    if idle_rate:
+        raise ConfigError(f"{source}: {idle_rate}")
     apply_calibration_file(cfg, source)
     check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
@@ -418,6 +421,23 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(f"{source}: obstacles.source: sgbm matches the frames' stereo pair, and {no_pair}: "
                           f"set source: auto or disparity for a camera's own disparity, or use a stereo camera")
     return cfg
+
+
+def camera_rate_not_read(cfg: Config, options) -> str:
+    """Why ``camera.rate_hz`` written (other than its default) is never read by the configured camera, "" when
+    it is: the replay camera plays at the recorded times (or its options.rate_hz, a folder without times at
+    10 Hz), the OAK's host-only replay at its options.replay_fps."""
+    c = cfg.camera
+    if not written(c, "rate_hz"):
+        return ""
+    if c.driver == "replay":
+        instead = "camera.options.rate_hz (default: the recorded times, a folder of images 10 Hz)"
+    elif c.driver == "oak" and options.replay_file is not None:
+        instead = "camera.options.replay_fps"
+    else:
+        return ""
+    return (f"camera.rate_hz {c.rate_hz:g} Hz: the {c.driver} camera does not read it (a recording plays at its "
+            f"own rate); set the rate with {instead}, and remove camera.rate_hz")
 
 
 #: Camera drivers whose frames never carry a right image (the OAK's carry its own disparity instead).
