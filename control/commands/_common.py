@@ -164,6 +164,10 @@ def apply_realtime(cfg, realtime: bool) -> None:
         raise InputError(f"--realtime: {cfg.source}: {' and '.join(real)} run on the wall clock anyway (only a robot whose "
                          f"drive and camera are both simulated has a simulated clock); leave it out")
     cfg.sim.realtime = True
+    from vbnav.control.config import simulated_latency_not_read
+    why = simulated_latency_not_read(cfg)
+    if why:
+        raise InputError(f"--realtime: {cfg.source}: {why}")
 
 
 def live_view_refusal(cfg, no_telemetry: bool = False, remedy: str = "add --realtime") -> str:

@@ -240,7 +240,9 @@ class SimConfig(Strict):
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
     encoder_ticks_per_rev: int = Field(4096, gt=0, description="encoder resolution, ticks per wheel turn")
     slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
-    vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
+    vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate, on the "
+                                      "simulated clock (on the wall clock the vision's own time is the latency: "
+                                      "written there, refused)")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
     start_pose: list[float] = Field(
         default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
@@ -410,6 +412,9 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     idle_rate = camera_rate_not_read(cfg, validate_driver_options(cfg, source)["camera"])
     if idle_rate:
         raise ConfigError(f"{source}: {idle_rate}")
+    idle_latency = simulated_latency_not_read(cfg)
+    if idle_latency:
+        raise ConfigError(f"{source}: {idle_latency}")
     apply_calibration_file(cfg, source)
     check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
@@ -438,6 +443,25 @@ def camera_rate_not_read(cfg: Config, options) -> str:
         return ""
     return (f"camera.rate_hz {c.rate_hz:g} Hz: the {c.driver} camera does not read it (a recording plays at its "
             f"own rate); set the rate with {instead}, and remove camera.rate_hz")
+
+
+def simulated_latency_not_read(cfg: Config) -> str:
+    """Why ``sim.vision_latency_s`` written (other than its default) is never read, "" when it is: the simulated
+    latency is added to the estimates on the simulated clock only; on the wall clock (sim.realtime, or a camera
+    that is not simulated) the vision thread's own time is the latency. With a real drive the simulator is off
+    and its section kept, unread, as a feature switched off."""
+    s = cfg.sim
+    if cfg.drive.driver != "sim" or not written(s, "vision_latency_s"):
+        return ""
+    if cfg.camera.driver != "sim":
+        why = f"camera.driver {cfg.camera.driver}"
+    elif s.realtime:
+        why = "sim.realtime: true"
+    else:
+        return ""
+    return (f"sim.vision_latency_s {s.vision_latency_s:g} s: the simulated latency is added on the simulated clock "
+            f"only, and {why} runs the robot on the wall clock, where the vision thread's own time is the latency "
+            f"(remove sim.vision_latency_s)")
 
 
 #: Camera drivers whose frames never carry a right image (the OAK's carry its own disparity instead).
