@@ -160,3 +160,29 @@ def test_a_recording_whose_writer_blocks_is_said_and_the_run_exits_1(tmp_path, m
     err = capsys.readouterr().err
     assert f"the recording {out} is incomplete" in err and "still in McapRecorder after 0.3 s" in err, err
     assert not out.exists() and (tmp_path / "run.mcap.part").exists()
+
+
+@pytest.mark.parametrize("argv", [["teach", "--out", "{tmp}/route", "--duration", "3"],
+                                  ["map", "build", "-c", "sim_stereo", "--out", "{tmp}/m.json", "--duration", "1.5"]])
+def test_a_recording_that_fails_makes_teach_and_map_build_exit_1_as_run(tmp_path, monkeypatch, capsys, argv):
+    """teach and map build said a failed --record on stderr and exited 0 (run and goto exit 1: a --record asked
+    for and not made); they exit 1 now, their route or map still written."""
+    import errno
+
+    from vbnav.control.cli import main
+    from vbnav.control.comms import recording
+
+    calls = [0]
+    real_write = recording.McapRecorder._write
+
+    def full_disk(self, topic, log_ns, data):
+        calls[0] += 1
+        if calls[0] > 50:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, topic, log_ns, data)
+    monkeypatch.setattr(recording.McapRecorder, "_write", full_disk)
+    out = tmp_path / "run.mcap"
+    assert main([a.format(tmp=tmp_path) for a in argv] + ["--record", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"the recording {out} is incomplete" in err, err
+    assert (tmp_path / "route").is_dir() or (tmp_path / "m.json").is_file()

@@ -147,7 +147,8 @@ def run_build(args) -> int:
               file=sys.stderr)
     if not ended_well:
         return 3 if result.reason in DEVICE_FAULTS else 1
-    return 0 if stage.stats["frames"] > 0 and refused is None else 1
+    # a --record asked for and not made, as run
+    return 0 if stage.stats["frames"] > 0 and refused is None and link.recording_error is None else 1
 
 
 def map_info(lmap, meta) -> dict:
