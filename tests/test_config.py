@@ -330,3 +330,23 @@ def test_a_camera_rate_the_recording_camera_never_reads_is_refused(camera, inste
         parse_config({"camera": camera})
     camera = dict(camera, rate_hz=15.0)         # the default, as 'vbnav config show' writes it: loads
     assert parse_config({"camera": camera}).camera.rate_hz == 15.0
+
+
+@pytest.mark.parametrize("camera,says", [
+    ({"driver": "sim"}, "the simulated camera renders a right image only with a stereo baseline"),
+    ({"driver": "v4l2", "options": {"device": "/dev/video0"}}, "camera.driver v4l2 gives one image per frame"),
+    ({"driver": "oak", "options": {"disparity": False}}, "camera.options.disparity: false"),
+    ({"driver": "oak", "options": {"replay_file": "rec.mp4"}}, "camera.options.replay_file replays images only"),
+])
+@pytest.mark.parametrize("source", ["auto", "disparity"])
+def test_obstacles_on_a_camera_without_disparity_or_a_pair_are_refused_at_load(camera, says, source):
+    """obstacles.enabled (source auto or disparity) on a camera whose frames carry neither a disparity nor a
+    right image loaded, and every frame of the run was blind ('frame has no disparity'): the robot held for
+    good. Refused at load, naming the field and the camera, as source: sgbm already was; stereo cameras load."""
+    with pytest.raises(ConfigError, match=re.escape(says)) as err:
+        parse_config({"camera": camera, "obstacles": {"enabled": True, "source": source}}, "robot.yaml")
+    assert "robot.yaml: obstacles.enabled" in str(err.value), err.value
+    parse_config({"camera": camera, "obstacles": {"enabled": False, "source": source}})   # no stage: kept
+    parse_config({"camera": {"driver": "sim", "options": {"stereo_baseline": 0.075}},
+                  "obstacles": {"enabled": True, "source": source}})
+    parse_config({"camera": {"driver": "oak"}, "obstacles": {"enabled": True, "source": source}})

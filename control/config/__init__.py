@@ -409,7 +409,8 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     except ValidationError as exc:
         raise ConfigError(format_errors(source, exc)) from None
     cfg.source = source
-    idle_rate = camera_rate_not_read(cfg, validate_driver_options(cfg, source)["camera"])
+    camera_options = validate_driver_options(cfg, source)["camera"]
+    idle_rate = camera_rate_not_read(cfg, camera_options)
     if idle_rate:
         raise ConfigError(f"{source}: {idle_rate}")
     idle_latency = simulated_latency_not_read(cfg)
@@ -425,6 +426,11 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     if no_pair:
         raise ConfigError(f"{source}: obstacles.source: sgbm matches the frames' stereo pair, and {no_pair}: "
                           f"set source: auto or disparity for a camera's own disparity, or use a stereo camera")
+    blind = no_disparity(cfg, camera_options) if cfg.obstacles.enabled and cfg.obstacles.source != "sgbm" else ""
+    if blind:
+        raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage (source {cfg.obstacles.source}) needs a "
+                          f"disparity or a stereo pair in every frame, and {blind}: every frame would be blind and the "
+                          f"robot held for good (use a stereo camera, or set obstacles.enabled: false)")
     return cfg
 
 
@@ -478,6 +484,17 @@ def no_right_image(cfg: Config) -> str:
         return ("the simulated camera renders a right image only with a stereo baseline (camera.options."
                 "stereo_baseline or a stereo camera.calibration_file), and it has none")
     return ""
+
+
+def no_disparity(cfg: Config, options) -> str:
+    """Why the configured camera's frames carry neither a disparity nor a right image, "" when they do or may
+    (a replayed recording has a right image when its folder does). ``options``: the camera's validated options."""
+    c = cfg.camera
+    if c.driver == "oak" and options.replay_file is not None:
+        return "camera.options.replay_file replays images only (no disparity, no right image)"
+    if c.driver == "oak" and not options.disparity:
+        return "camera.options.disparity: false turns the OAK's disparity off (and it gives no right image)"
+    return no_right_image(cfg) if c.driver != "oak" else ""
 
 
 def calibration_path(cfg: Config, source: str) -> Optional[Path]:
