@@ -350,3 +350,25 @@ def test_obstacles_on_a_camera_without_disparity_or_a_pair_are_refused_at_load(c
     parse_config({"camera": {"driver": "sim", "options": {"stereo_baseline": 0.075}},
                   "obstacles": {"enabled": True, "source": source}})
     parse_config({"camera": {"driver": "oak"}, "obstacles": {"enabled": True, "source": source}})
+
+
+@pytest.mark.parametrize("base, edit, says", [
+    ("sentry-dynamixel", ("velocity_limit_rad_s: 6.0", "velocity_limit_rad_s: 3.0"),
+     "robot.max_wheel_speed 6 rad/s is above what the drive lets a wheel turn"),
+    ("sim", ("  model: pinhole\n", "  model: fisheye\n"), "the simulated camera renders pinhole cameras"),
+])
+def test_config_check_says_valid_only_for_a_configuration_a_run_takes(tmp_path, capsys, base, edit, says):
+    """'vbnav config check' said "valid" for a configuration every run refused before a device opened (the
+    refusals of the drive and camera as they are built: a wheel speed above the drive's own limit, a fisheye
+    lens on the simulated camera). It now builds them as a run does (nothing is opened) and refuses the same."""
+    from vbnav.control.config import CONFIG_DIR
+    text = (CONFIG_DIR / f"{base}.yaml").read_text()
+    assert text.count(edit[0]) == 1
+    path = tmp_path / "robot.yaml"
+    path.write_text(text.replace(*edit))
+    assert main(["config", "check", "-c", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert says in err and str(path) in err, err
+    assert main(["run", "-c", str(path), "--camera", "--duration", "0.1", "--no-telemetry"]) == 2   # as a run
+    assert says in capsys.readouterr().err
+    assert main(["config", "check", "-c", base]) == 0

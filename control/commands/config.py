@@ -50,7 +50,9 @@ def run(args) -> int:
             os.dup2(saved, 1)
             os.close(saved)
     else:
+        from vbnav.control.runtime.factory import check_devices
         cfg = load_config(args.config)
+        check_devices(cfg)          # "valid": what a run takes, its drive and camera built (nothing opened)
     if args.action == "show":
         import yaml
         print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))

@@ -107,6 +107,17 @@ def check_wheel_speed_limit(cfg: Config, drive) -> None:
                           f"max_linear_speed) or raise the drive's limit")
 
 
+def check_devices(cfg: Config) -> None:
+    """Raise what ``make_robot`` raises of this configuration before any device opens: the drive and the camera
+    built from it (not connected: nothing is opened or moved) refuse their settings, and the drive's own wheel
+    speed limit is checked. What 'vbnav config check' calls "valid" is what a run takes."""
+    clock = make_clock(cfg)
+    opts = validate_driver_options(cfg, cfg.source or "<config>")
+    drive = make_drive(cfg, clock, opts["drive"])
+    make_camera(cfg, clock, drive, opts["camera"])
+    check_wheel_speed_limit(cfg, drive)
+
+
 def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, run: int = 0) -> Robot:
     """The robot of a configuration, with a pipeline running ``stages`` (plus the enabled safety stages).
 
