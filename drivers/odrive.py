@@ -119,6 +119,7 @@ class ODriveDrive(SerialWheelDrive):
         self._cycle = 0
         self._rx = b""
         self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
+        self.cleared_watchdogs: list[DriveFault] = []   # expired axis watchdogs the last bring-up cleared
 
     @property
     def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
@@ -130,6 +131,7 @@ class ODriveDrive(SerialWheelDrive):
         self._connect(clear_errors=False)
 
     def _connect(self, clear_errors: bool) -> None:
+        self.cleared_watchdogs = []
         if not os.path.exists(self.opt.port):
             raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
         try:
@@ -158,6 +160,7 @@ class ODriveDrive(SerialWheelDrive):
                 # a fault of their own. During a run this process went silent itself: the bring-up clears
                 # it, as the Dynamixel bring-up clears a latched Bus Watchdog. At start-up only when the
                 # configuration says so; any other error stays for clear_faults.
+                self.cleared_watchdogs = self._faults_in(words)
                 self._send("sc")
                 words = self._error_words(t)
             faults = self._faults_in(words)
