@@ -528,3 +528,15 @@ def test_control_characters_in_free_text_command_fields_are_refused(kind, payloa
     forge a line ('safety reset: estop') there. Control characters are refused, naming the field."""
     with pytest.raises(CommandRejected, match="control character"):
         parse_command(kind, payload, LIMITS)
+
+
+def test_a_state_rate_above_the_loop_rate_is_refused_at_load():
+    """telemetry.state_rate_hz above loop.rate_hz was accepted and the state came once a cycle, at the loop's
+    rate (a state is published from a cycle): 200 Hz asked, 100 Hz sent. Refused at load naming both; the
+    default is cut to the loop's rate (what is sent), as config show prints it."""
+    with pytest.raises(ConfigError, match=r"robot.yaml: .*telemetry.state_rate_hz 200 Hz is above loop.rate_hz 100"):
+        parse_config({"telemetry": {"state_rate_hz": 200}}, "robot.yaml")
+    assert parse_config({"telemetry": {"state_rate_hz": 100}}).telemetry.state_rate_hz == 100
+    slow = parse_config({"loop": {"rate_hz": 10}})
+    assert slow.telemetry.state_rate_hz == 10
+    assert parse_config(slow.model_dump(mode="json")).telemetry.state_rate_hz == 10     # loads back

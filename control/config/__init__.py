@@ -357,6 +357,18 @@ class Config(Strict):
         return self
 
     @model_validator(mode="after")
+    def _state_rate_within_the_loop_rate(self):
+        # A state is published from a loop cycle: at most one per cycle. A rate written above the loop's was sent
+        # at the loop's rate without a word; the default is cut to it (what is sent, and what show prints).
+        t, loop_hz = self.telemetry, self.loop.rate_hz
+        if t.state_rate_hz > loop_hz:
+            if "state_rate_hz" in t.model_fields_set:
+                raise ValueError(f"telemetry.state_rate_hz {t.state_rate_hz:g} Hz is above loop.rate_hz {loop_hz:g} Hz: "
+                                 f"a state is sent from a cycle, at most one per cycle (lower telemetry.state_rate_hz)")
+            t.state_rate_hz = loop_hz
+        return self
+
+    @model_validator(mode="after")
     def _scripted_teacher_only_in_simulation(self):
         # A scripted loop through a room the robot cannot see is never what real motors should drive.
         # (an unknown driver is not a real drive: validate_driver_options names it as unknown)
