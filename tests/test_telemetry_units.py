@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import math
 
 import pytest
@@ -540,3 +541,24 @@ def test_a_state_rate_above_the_loop_rate_is_refused_at_load():
     slow = parse_config({"loop": {"rate_hz": 10}})
     assert slow.telemetry.state_rate_hz == 10
     assert parse_config(slow.model_dump(mode="json")).telemetry.state_rate_hz == 10     # loads back
+
+
+@pytest.mark.parametrize("camera, rate, field", [
+    ({"driver": "sim", "rate_hz": 15.0}, 15, "camera.rate_hz"),
+    ({"driver": "oak", "options": {"replay_file": "rec.mp4", "replay_fps": 10.0}}, 10, "camera.options.replay_fps"),
+    ({"driver": "v4l2", "rate_hz": 20.0, "options": {"device": "/dev/video0", "source": "device"}}, 20,
+     "camera.rate_hz"),
+])
+def test_an_image_rate_above_the_cameras_frame_rate_is_refused_at_load(camera, rate, field):
+    """telemetry.image_rate_hz above the camera's frame rate was accepted and an image went out once a frame (the
+    simulated camera at 15 Hz with image_rate_hz 30: 15 images a second recorded). Refused at load naming both
+    where the configuration gives the frame rate; the default is cut to it; a replayed recording (its own rate)
+    is not known at load."""
+    with pytest.raises(ConfigError, match=rf"robot.yaml: telemetry.image_rate_hz 30 Hz is above {re.escape(field)} "
+                                          rf"{rate} Hz"):
+        parse_config({"camera": camera, "telemetry": {"image_rate_hz": 30}}, "robot.yaml")
+    assert parse_config({"camera": camera, "telemetry": {"image_rate_hz": rate}}).telemetry.image_rate_hz == rate
+    slow = parse_config({"camera": {"driver": "sim", "rate_hz": 1.0}})
+    assert slow.telemetry.image_rate_hz == 1.0
+    assert parse_config(slow.model_dump(mode="json")).telemetry.image_rate_hz == 1.0     # loads back
+    parse_config({"camera": {"driver": "replay", "options": {"path": "rec"}}, "telemetry": {"image_rate_hz": 30}})

@@ -428,6 +428,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     idle_latency = simulated_latency_not_read(cfg)
     if idle_latency:
         raise ConfigError(f"{source}: {idle_latency}")
+    check_image_rate(cfg, camera_options, source)
     apply_calibration_file(cfg, source)
     check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
@@ -461,6 +462,31 @@ def camera_rate_not_read(cfg: Config, options) -> str:
         return ""
     return (f"camera.rate_hz {c.rate_hz:g} Hz: the {c.driver} camera does not read it (a recording plays at its "
             f"own rate); set the rate with {instead}, and remove camera.rate_hz")
+
+
+def camera_frame_rate(cfg: Config, options) -> Optional[tuple[float, str]]:
+    """(frames per second, the setting that gives it) of the configured camera, or None where only the
+    recording knows its rate (the replay camera, a V4L2 video file). ``options``: the camera's validated ones."""
+    c = cfg.camera
+    if c.driver == "oak" and options.replay_file is not None:
+        return options.replay_fps, "camera.options.replay_fps"
+    if c.driver in ("sim", "oak") or (c.driver == "v4l2" and not options.plays_a_file()):
+        return c.rate_hz, "camera.rate_hz"
+    return None
+
+
+def check_image_rate(cfg: Config, options, source: str) -> None:
+    """An image is sent from a camera frame, at most one a frame: telemetry.image_rate_hz written above the
+    camera's frame rate is refused (it was sent at the frame rate without a word); the default is cut to it
+    (what is sent, and what 'vbnav config show' prints)."""
+    t, known = cfg.telemetry, camera_frame_rate(cfg, options)
+    if known is None or t.image_rate_hz <= known[0]:
+        return
+    rate, field = known
+    if "image_rate_hz" in t.model_fields_set:
+        raise ConfigError(f"{source}: telemetry.image_rate_hz {t.image_rate_hz:g} Hz is above {field} {rate:g} Hz: "
+                          f"an image is sent from a camera frame, at most one a frame (lower telemetry.image_rate_hz)")
+    t.image_rate_hz = rate
 
 
 def simulated_latency_not_read(cfg: Config) -> str:
