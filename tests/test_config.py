@@ -372,3 +372,23 @@ def test_config_check_says_valid_only_for_a_configuration_a_run_takes(tmp_path, 
     assert main(["run", "-c", str(path), "--camera", "--duration", "0.1", "--no-telemetry"]) == 2   # as a run
     assert says in capsys.readouterr().err
     assert main(["config", "check", "-c", base]) == 0
+
+
+def test_a_turn_rate_the_wheels_cannot_reach_is_refused_at_load():
+    """robot.max_angular_speed above what the wheels can turn the robot at (on the spot: 2 * max_wheel_speed *
+    wheel_radius / wheel_separation) was accepted and the limiter cut every faster turn to the wheels' limit,
+    as robot.max_linear_speed above max_wheel_speed * wheel_radius is refused. Refused at load, naming both."""
+    from vbnav.control.runtime.interfaces import Twist
+    from vbnav.control.runtime.kinematics import TwistLimiter
+    with pytest.raises(ConfigError, match=r"robot.yaml: .*robot.max_angular_speed 10 rad/s exceeds what the wheels "
+                                          r"can do \(2 \* max_wheel_speed \* wheel_radius / wheel_separation = "
+                                          r"6.667 rad/s\)"):
+        parse_config({"robot": {"max_angular_speed": 10.0}}, "robot.yaml")
+    reach = 2 * 20.0 * 0.05 / 0.3
+    cfg = parse_config({"robot": {"max_angular_speed": reach}})
+    limiter = TwistLimiter.from_config(cfg.robot)
+    limiter.max_dw = 1e9
+    assert limiter.apply(Twist(0.0, 100.0), 0.01).w == pytest.approx(reach)     # the limit is reached
+    small = parse_config({"robot": {"wheel_radius": 0.033, "max_wheel_speed": 6.0, "max_linear_speed": 0.18}})
+    assert small.robot.max_angular_speed == pytest.approx(2 * 6.0 * 0.033 / 0.3)   # the default, cut
+    assert parse_config(small.model_dump(mode="json")).robot.max_angular_speed == small.robot.max_angular_speed

@@ -44,7 +44,9 @@ class RobotConfig(Strict):
                                    "gear_ratio x 2 pi), which clips one wheel alone")
     max_linear_speed: float = Field(0.5, gt=0, description="forward speed limit, m/s; at most "
                                     "max_wheel_speed * wheel_radius")
-    max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s")
+    max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s; at most "
+                                     "2 * max_wheel_speed * wheel_radius / wheel_separation (on the spot: the "
+                                     "default is cut to it, a value written above it is refused)")
     max_linear_accel: float = Field(1.0, gt=0, description="forward acceleration limit, m/s^2")
     max_angular_accel: float = Field(4.0, gt=0, description="angular acceleration limit, rad/s^2")
 
@@ -328,6 +330,12 @@ class Config(Strict):
         if r.max_linear_speed > r.max_wheel_speed * r.wheel_radius + 1e-9:
             raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
                              f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
+        turn = 2 * r.max_wheel_speed * r.wheel_radius / r.wheel_separation      # on the spot, wheels opposed
+        if r.max_angular_speed > turn + 1e-9:
+            if "max_angular_speed" in r.model_fields_set:
+                raise ValueError(f"robot.max_angular_speed {r.max_angular_speed:g} rad/s exceeds what the wheels can "
+                                 f"do (2 * max_wheel_speed * wheel_radius / wheel_separation = {turn:.3f} rad/s)")
+            r.max_angular_speed = turn      # the default, cut to what is driven (and what config show prints)
         return self
 
     @model_validator(mode="after")
