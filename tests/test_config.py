@@ -392,3 +392,21 @@ def test_a_turn_rate_the_wheels_cannot_reach_is_refused_at_load():
     small = parse_config({"robot": {"wheel_radius": 0.033, "max_wheel_speed": 6.0, "max_linear_speed": 0.18}})
     assert small.robot.max_angular_speed == pytest.approx(2 * 6.0 * 0.033 / 0.3)   # the default, cut
     assert parse_config(small.model_dump(mode="json")).robot.max_angular_speed == small.robot.max_angular_speed
+
+
+@pytest.mark.parametrize("section, says", [
+    ({"vslam": {"goto": {"final_turn_speed": 2.0}}},
+     "vslam.goto.final_turn_speed 2 rad/s is above robot.max_angular_speed 1.5 rad/s"),
+    ({"vslam": {"metric_scale": "odometry", "goto": {"init_creep_speed": 0.6}}},
+     "vslam.goto.init_creep_speed 0.6 m/s is above robot.max_linear_speed 0.5 m/s"),
+])
+def test_goto_speeds_above_the_robots_limits_are_refused_at_load(section, says):
+    """vslam.goto.final_turn_speed above robot.max_angular_speed, or init_creep_speed above max_linear_speed,
+    was accepted and the limiter cut the command to the robot's limit without a word (as the cruise speeds
+    were before they were refused). Refused at load naming both; the defaults are cut."""
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        parse_config(section, "robot.yaml")
+    slow = parse_config({"robot": {"max_angular_speed": 0.3, "max_linear_speed": 0.05},
+                         "vslam": {"metric_scale": "odometry"}})
+    assert slow.vslam.goto.final_turn_speed == 0.3 and slow.vslam.goto.init_creep_speed == 0.05
+    assert parse_config(slow.model_dump(mode="json")).vslam.goto.final_turn_speed == 0.3    # loads back

@@ -349,19 +349,26 @@ class Config(Strict):
         return self
 
     @model_validator(mode="after")
-    def _cruise_speeds_within_the_robots_limit(self):
-        # A cruise speed written above the robot's limit was cut to it without a word; the defaults (not
-        # written) are cut as documented ("at most robot.max_linear_speed").
-        v_max = self.robot.max_linear_speed
-        for key, section in (("vbc.cruise_speed", self.vbc), ("vslam.goto.cruise_speed", self.vslam.goto)):
-            if section.cruise_speed <= v_max:
+    def _speeds_within_the_robots_limits(self):
+        # A controller's speed written above the robot's limit was cut to it by the limiter without a word; the
+        # defaults (not written) are cut as documented ("at most robot.max_linear_speed / max_angular_speed").
+        r, goto = self.robot, self.vslam.goto
+        limited = [("vbc", self.vbc, "cruise_speed", "max_linear_speed", "m/s"),
+                   ("vslam.goto", goto, "cruise_speed", "max_linear_speed", "m/s"),
+                   ("vslam.goto", goto, "final_turn_speed", "max_angular_speed", "rad/s")]
+        if self.vslam.metric_scale == "odometry":       # the only scale that creeps (else refused when written)
+            limited.append(("vslam.goto", goto, "init_creep_speed", "max_linear_speed", "m/s"))
+        for where, section, name, limit_name, unit in limited:
+            speed, limit = section.model_dump(include={name})[name], r.model_dump(include={limit_name})[limit_name]
+            if speed <= limit:
                 continue
-            if "cruise_speed" in section.model_fields_set:
-                raise ValueError(f"{key} {section.cruise_speed:g} m/s is above robot.max_linear_speed {v_max:g} m/s: "
-                                 f"it would be cut to {v_max:g} m/s (lower {key}, or raise the robot's limit)")
+            key = f"{where}.{name}"
+            if name in section.model_fields_set:
+                raise ValueError(f"{key} {speed:g} {unit} is above robot.{limit_name} {limit:g} {unit}: it would be "
+                                 f"cut to {limit:g} {unit} (lower {key}, or raise the robot's limit)")
             # the default, cut here rather than at use: 'vbnav config show' prints the speed driven, and what
             # it prints loads back
-            section.cruise_speed = v_max
+            setattr(section, name, limit)
         return self
 
     @model_validator(mode="after")
