@@ -562,3 +562,19 @@ def test_an_image_rate_above_the_cameras_frame_rate_is_refused_at_load(camera, r
     assert slow.telemetry.image_rate_hz == 1.0
     assert parse_config(slow.model_dump(mode="json")).telemetry.image_rate_hz == 1.0     # loads back
     parse_config({"camera": {"driver": "replay", "options": {"path": "rec"}}, "telemetry": {"image_rate_hz": 30}})
+
+
+def test_an_image_width_above_the_cameras_is_refused_at_load():
+    """telemetry.image_width is the width JPEG frames are scaled down to; above the camera's width the frames
+    were sent at the camera's width (never scaled up) while the configuration said otherwise. Refused at load
+    naming both; the default is cut to a narrower camera's width."""
+    import numpy as np
+
+    from vbnav.control.comms.telemetry import encode_jpeg
+    assert encode_jpeg(np.zeros((480, 640), np.uint8), 1280, 70)[1:] == (640, 480)     # never scaled up
+    with pytest.raises(ConfigError, match=r"robot.yaml: telemetry.image_width 1280 px is above camera.width 640 px"):
+        parse_config({"telemetry": {"image_width": 1280}}, "robot.yaml")
+    assert parse_config({"telemetry": {"image_width": 640}}).telemetry.image_width == 640
+    small = parse_config({"camera": {"width": 160, "height": 120, "cx": 79.5, "cy": 59.5}})
+    assert small.telemetry.image_width == 160
+    assert parse_config(small.model_dump(mode="json")).telemetry.image_width == 160     # loads back

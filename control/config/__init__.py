@@ -445,6 +445,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(f"{source}: {idle_latency}")
     check_image_rate(cfg, camera_options, source)
     apply_calibration_file(cfg, source)
+    check_image_width(cfg, source)
     check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
                                            "with a stereo calibration file") if cfg.obstacles.enabled else ""
@@ -502,6 +503,18 @@ def check_image_rate(cfg: Config, options, source: str) -> None:
         raise ConfigError(f"{source}: telemetry.image_rate_hz {t.image_rate_hz:g} Hz is above {field} {rate:g} Hz: "
                           f"an image is sent from a camera frame, at most one a frame (lower telemetry.image_rate_hz)")
     t.image_rate_hz = rate
+
+
+def check_image_width(cfg: Config, source: str) -> None:
+    """JPEG frames are scaled down to telemetry.image_width, never up: one written above the camera's width (its
+    calibration file's, when it has one) is refused; the default is cut to a narrower camera's width."""
+    t, width = cfg.telemetry, cfg.camera.width
+    if t.image_width <= width:
+        return
+    if "image_width" in t.model_fields_set:
+        raise ConfigError(f"{source}: telemetry.image_width {t.image_width} px is above camera.width {width} px: "
+                          f"images are scaled down to it, never up (lower telemetry.image_width)")
+    t.image_width = width
 
 
 def simulated_latency_not_read(cfg: Config) -> str:

@@ -97,7 +97,9 @@ class TelemetryConfig(Strict):
                                                                 "recordings); 0 = off; at most the camera's frame "
                                                                 "rate (one a frame: the default is cut to it, a "
                                                                 "value written above it is refused)")
-    image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled to this width, px")
+    image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled down to this width, px, at most "
+                             "camera.width (never up: the default is cut to it, a value written above it is "
+                             "refused)")
     jpeg_quality: int = Field(70, ge=10, le=100, description="JPEG quality of those images")
     listen: list[str] = Field(default_factory=lambda: [DEFAULT_ENDPOINT], max_length=8,
                               description="zenoh endpoints the robot listens on")
