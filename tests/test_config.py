@@ -410,3 +410,23 @@ def test_goto_speeds_above_the_robots_limits_are_refused_at_load(section, says):
                          "vslam": {"metric_scale": "odometry"}})
     assert slow.vslam.goto.final_turn_speed == 0.3 and slow.vslam.goto.init_creep_speed == 0.05
     assert parse_config(slow.model_dump(mode="json")).vslam.goto.final_turn_speed == 0.3    # loads back
+
+
+@pytest.mark.parametrize("camera, says", [
+    ({"stale_after_s": 0.08},
+     "camera.stale_after_s 0.08 s is not above the time a frame may age before the next one comes, 0.097 s "
+     "(the frame period 0.067 s at camera.rate_hz 15 Hz, plus sim.vision_latency_s 0.03 s)"),
+    ({"rate_hz": 1.0}, "camera.stale_after_s 0.5 s is not above the time a frame may age before the next one "
+                       "comes, 1.03 s"),
+    ({"driver": "v4l2", "rate_hz": 30.0, "stale_after_s": 0.03, "options": {"source": "device"}},
+     "0.033 s (the frame period 0.033 s at camera.rate_hz 30 Hz)"),
+])
+def test_a_stale_limit_every_frame_outlives_is_refused_at_load(camera, says):
+    """camera.stale_after_s at or below the time between two frames (plus the simulated vision latency) was
+    accepted, and every frame went stale before the next came: the simulated robot at 15 Hz with 0.08 s stood
+    held for the whole run (camera_stale, never released). Refused at load naming the field, the frame rate and
+    its setting; a limit above it loads."""
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        parse_config({"camera": camera}, "robot.yaml")
+    parse_config({"camera": {"stale_after_s": 0.1}})
+    parse_config({"camera": {"stale_after_s": 0.08, "driver": "replay", "options": {"path": "rec"}}})  # rate unknown

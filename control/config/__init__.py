@@ -93,7 +93,9 @@ class CameraConfig(Strict):
                                                              "or an OAK replay_file, which never read it: refused")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
                                                         "is an image that has not changed for this long "
-                                                        "while the wheels moved (a frozen camera)")
+                                                        "while the wheels moved (a frozen camera); above the "
+                                                        "frame period (plus the simulated vision latency): a "
+                                                        "limit every frame outlives is refused")
     mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
 
@@ -444,6 +446,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     if idle_latency:
         raise ConfigError(f"{source}: {idle_latency}")
     check_image_rate(cfg, camera_options, source)
+    check_stale_limit(cfg, camera_options, source)
     apply_calibration_file(cfg, source)
     check_image_width(cfg, source)
     check_obstacle_baseline(cfg, source)
@@ -503,6 +506,30 @@ def check_image_rate(cfg: Config, options, source: str) -> None:
         raise ConfigError(f"{source}: telemetry.image_rate_hz {t.image_rate_hz:g} Hz is above {field} {rate:g} Hz: "
                           f"an image is sent from a camera frame, at most one a frame (lower telemetry.image_rate_hz)")
     t.image_rate_hz = rate
+
+
+def check_stale_limit(cfg: Config, options, source: str) -> None:
+    """camera.stale_after_s at or below the time a frame may age before the next one comes (the frame period, plus
+    the simulated vision latency on the simulated clock) makes every frame stale before the next: the robot would
+    be held for good. Refused where the configuration gives the frame rate."""
+    known = camera_frame_rate(cfg, options)
+    if known is None:
+        return
+    rate, field = known
+    c, s = cfg.camera, cfg.sim
+    simulated = cfg.drive.driver == "sim" and c.driver == "sim" and not s.realtime    # the latency is added
+    latency = s.vision_latency_s if simulated else 0.0
+    bound = 1.0 / rate + latency
+    if c.stale_after_s > bound:
+        return
+
+    def secs(x: float) -> str:
+        return f"{x:.3f}".rstrip("0").rstrip(".")
+    raise ConfigError(f"{source}: camera.stale_after_s {c.stale_after_s:g} s is not above the time a frame may age "
+                      f"before the next one comes, {secs(bound)} s (the frame period {secs(1.0 / rate)} s at {field} "
+                      f"{rate:g} Hz" + (f", plus sim.vision_latency_s {latency:g} s" if latency else "") + "): "
+                      f"every frame would go stale before the next and the robot be held for good (raise "
+                      f"camera.stale_after_s)")
 
 
 def check_image_width(cfg: Config, source: str) -> None:
