@@ -430,3 +430,14 @@ def test_a_stale_limit_every_frame_outlives_is_refused_at_load(camera, says):
         parse_config({"camera": camera}, "robot.yaml")
     parse_config({"camera": {"stale_after_s": 0.1}})
     parse_config({"camera": {"stale_after_s": 0.08, "driver": "replay", "options": {"path": "rec"}}})  # rate unknown
+
+
+def test_an_estimate_timeout_every_estimate_outlives_is_refused_at_load():
+    """safety.estimate_timeout_s at or below the time between two frames (the stages' estimates come one a frame,
+    plus the simulated vision latency) was accepted, and every estimate went stale before the next: sim_stereo's
+    obstacle stop with 0.08 s held the robot for the whole run (obstacles_stale). Refused at load, naming it."""
+    with pytest.raises(ConfigError, match=re.escape(
+            "safety.estimate_timeout_s 0.08 s is not above the time a frame may age before the next one comes, "
+            "0.097 s")):
+        parse_config({"safety": {"estimate_timeout_s": 0.08}}, "robot.yaml")
+    parse_config({"safety": {"estimate_timeout_s": 0.1}})

@@ -558,7 +558,8 @@ def test_an_image_rate_above_the_cameras_frame_rate_is_refused_at_load(camera, r
                                           rf"{rate} Hz"):
         parse_config({"camera": camera, "telemetry": {"image_rate_hz": 30}}, "robot.yaml")
     assert parse_config({"camera": camera, "telemetry": {"image_rate_hz": rate}}).telemetry.image_rate_hz == rate
-    slow = parse_config({"camera": {"driver": "sim", "rate_hz": 1.0, "stale_after_s": 2.0}})
+    slow = parse_config({"camera": {"driver": "sim", "rate_hz": 1.0, "stale_after_s": 2.0},
+                         "safety": {"estimate_timeout_s": 2.0}})
     assert slow.telemetry.image_rate_hz == 1.0
     assert parse_config(slow.model_dump(mode="json")).telemetry.image_rate_hz == 1.0     # loads back
     parse_config({"camera": {"driver": "replay", "options": {"path": "rec"}}, "telemetry": {"image_rate_hz": 30}})

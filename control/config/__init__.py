@@ -214,7 +214,9 @@ class LoopConfig(Strict):
 
 class SafetyConfig(Strict):
     command_timeout_s: float = Field(0.5, gt=0, description="teleop/network command silence that stops the robot")
-    estimate_timeout_s: float = Field(1.0, gt=0, description="vision estimate age that stops a vision controller")
+    estimate_timeout_s: float = Field(1.0, gt=0, description="vision estimate age that stops a vision controller; "
+                                      "above the frame period (plus the simulated vision latency): a limit every "
+                                      "estimate outlives is refused")
     release_s: float = Field(0.5, ge=0, le=10, description="s: a held stop (stale frame or "
                              "estimate) ends after its cause has been clear this long: a debounce, so "
                              "a flickering cause does not start and stop the wheels every cycle (a silent "
@@ -509,9 +511,10 @@ def check_image_rate(cfg: Config, options, source: str) -> None:
 
 
 def check_stale_limit(cfg: Config, options, source: str) -> None:
-    """camera.stale_after_s at or below the time a frame may age before the next one comes (the frame period, plus
-    the simulated vision latency on the simulated clock) makes every frame stale before the next: the robot would
-    be held for good. Refused where the configuration gives the frame rate."""
+    """camera.stale_after_s or safety.estimate_timeout_s at or below the time a frame (and the estimates the stages
+    make of it, one a frame) may age before the next one comes (the frame period, plus the simulated vision latency
+    on the simulated clock) makes every frame or estimate stale before the next: the robot would be held for
+    good. Refused where the configuration gives the frame rate."""
     known = camera_frame_rate(cfg, options)
     if known is None:
         return
@@ -520,16 +523,17 @@ def check_stale_limit(cfg: Config, options, source: str) -> None:
     simulated = cfg.drive.driver == "sim" and c.driver == "sim" and not s.realtime    # the latency is added
     latency = s.vision_latency_s if simulated else 0.0
     bound = 1.0 / rate + latency
-    if c.stale_after_s > bound:
-        return
 
     def secs(x: float) -> str:
         return f"{x:.3f}".rstrip("0").rstrip(".")
-    raise ConfigError(f"{source}: camera.stale_after_s {c.stale_after_s:g} s is not above the time a frame may age "
-                      f"before the next one comes, {secs(bound)} s (the frame period {secs(1.0 / rate)} s at {field} "
-                      f"{rate:g} Hz" + (f", plus sim.vision_latency_s {latency:g} s" if latency else "") + "): "
-                      f"every frame would go stale before the next and the robot be held for good (raise "
-                      f"camera.stale_after_s)")
+    for key, limit, what in (("camera.stale_after_s", c.stale_after_s, "frame"),
+                             ("safety.estimate_timeout_s", cfg.safety.estimate_timeout_s, "estimate")):
+        if limit > bound:
+            continue
+        raise ConfigError(f"{source}: {key} {limit:g} s is not above the time a frame may age before the next one "
+                          f"comes, {secs(bound)} s (the frame period {secs(1.0 / rate)} s at {field} {rate:g} Hz"
+                          + (f", plus sim.vision_latency_s {latency:g} s" if latency else "") + f"): every {what} "
+                          f"would go stale before the next and the robot be held for good (raise {key})")
 
 
 def check_image_width(cfg: Config, source: str) -> None:
