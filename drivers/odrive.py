@@ -90,7 +90,8 @@ class ODriveDrive(SerialWheelDrive):
         gear_ratio: float = Field(1.0, gt=0, description="motor turns per wheel turn")
         vel_limit_turns_s: float = Field(2.0, gt=0, description="axisN.controller.config.vel_limit")
         vel_ramp_rate: float = Field(0.0, ge=0, description="turns/s^2 (input_mode VEL_RAMP); 0 = passthrough")
-        watchdog_s: float = Field(0.1, gt=0, description="axis watchdog: the axis disarms after this silence")
+        watchdog_s: float = Field(0.1, gt=0, description="axis watchdog: the axis disarms after this silence; "
+                                  "at least two loop periods (the loop writes once a cycle; refused below)")
         checksum: bool = Field(False, description="append *<xor> to every line and check answers")
         reply_timeout_s: float = Field(0.005, gt=0, le=0.5, description="wait for one answer line in the loop")
         setup_timeout_s: float = Field(0.1, gt=0, le=2.0, description="wait for an answer during setup")
@@ -120,6 +121,10 @@ class ODriveDrive(SerialWheelDrive):
         self._rx = b""
         self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
         self.cleared_watchdogs: list[DriveFault] = []   # expired axis watchdogs the last bring-up cleared
+
+    @property
+    def watchdog(self) -> Optional[tuple[float, str]]:
+        return self.opt.watchdog_s, "drive.options.watchdog_s"
 
     @property
     def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
