@@ -441,3 +441,22 @@ def test_an_estimate_timeout_every_estimate_outlives_is_refused_at_load():
             "0.097 s")):
         parse_config({"safety": {"estimate_timeout_s": 0.08}}, "robot.yaml")
     parse_config({"safety": {"estimate_timeout_s": 0.1}})
+
+
+@pytest.mark.parametrize("section, says", [
+    ({"vbc": {"approach_min_speed": 0.3}},
+     "vbc.approach_min_speed 0.3 is not below vbc.cruise_speed 0.25: vbc.approach_gain would never apply"),
+    ({"vslam": {"goto": {"min_drive_speed": 0.3}}},
+     "vslam.goto.min_drive_speed 0.3 is not below vslam.goto.cruise_speed 0.3: vslam.goto.k_rho would never apply"),
+    ({"vslam": {"goto": {"final_turn_min_speed": 0.5}}}, "vslam.goto.final_turn_min_speed 0.5 is not below "
+     "vslam.goto.final_turn_speed 0.4: vslam.goto.final_turn_gain would never apply"),
+])
+def test_a_speed_floor_at_or_above_its_ceiling_is_refused_at_load(section, says):
+    """The controllers' proportional speeds are held between a floor and a ceiling (kinematics.saturate: the
+    ceiling wins where they cross). A floor written at or above its ceiling made the speed the ceiling all along:
+    the repeat never slowed into the end of its route (approach_gain unused), the goto never slowed to its goal
+    (k_rho) nor its final turn (final_turn_gain). Refused at load naming the floor, the ceiling and the gain."""
+    from vbnav.control.runtime.kinematics import saturate
+    assert saturate(1.5 * 0.01, 0.3, 0.25) == 0.25         # 1 cm from the end, still at cruise speed
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        parse_config(section, "robot.yaml")

@@ -373,6 +373,21 @@ class Config(Strict):
             # the default, cut here rather than at use: 'vbnav config show' prints the speed driven, and what
             # it prints loads back
             setattr(section, name, limit)
+        # A proportional speed is held between a floor and a ceiling (kinematics.saturate, the ceiling wins): a
+        # floor at or above its ceiling makes the speed the ceiling all along, and the gain never applies.
+        # Crossed by a value written: the floor, or a ceiling other than the robot's limit (a default cut to the
+        # limit, which 'config show' then prints, is no choice of the user's).
+        for where, section, floor, ceiling, gain, limit in (
+                ("vbc", self.vbc, "approach_min_speed", "cruise_speed", "approach_gain", r.max_linear_speed),
+                ("vslam.goto", goto, "min_drive_speed", "cruise_speed", "k_rho", r.max_linear_speed),
+                ("vslam.goto", goto, "final_turn_min_speed", "final_turn_speed", "final_turn_gain",
+                 r.max_angular_speed)):
+            values = section.model_dump(include={floor, ceiling})
+            low, high = values[floor], values[ceiling]
+            chosen = written(section, floor) or (written(section, ceiling) and high != limit)
+            if low >= high and chosen:
+                raise ValueError(f"{where}.{floor} {low:g} is not below {where}.{ceiling} {high:g}: {where}.{gain} "
+                                 f"would never apply (the speed held at {ceiling} all along); lower {where}.{floor}")
         return self
 
     @model_validator(mode="after")
