@@ -202,7 +202,8 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
     start = cfg.sim.start()
     robot = make_robot(cfg, with_camera=True, run=0)
     trace, truth = RunTrace(), KeyframeTruth(robot.drive)
-    teach = Session(cfg, robot, recorder=recorder, progress=say).teach(
+    sessions = [Session(cfg, robot, recorder=recorder, progress=say)]
+    teach = sessions[0].teach(
         PathFollower(path, scenario.speed, start=start), out_dir / "route", overwrite=True,
         observers=[trace.observer(robot.drive), truth])
     taught_xz = trace.array()
@@ -229,8 +230,8 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
         events = _scenario_events(scenario, i, robot_i)
         if events is not None:
             observers.append(events)
-        rep = Session(cfg_i, robot_i, recorder=recorder, progress=say).repeat(
-            route, scenario.max_repeat_s, observers, segment=f"repeat {i + 1}")
+        sessions.append(Session(cfg_i, robot_i, recorder=recorder, progress=say))
+        rep = sessions[-1].repeat(route, scenario.max_repeat_s, observers, segment=f"repeat {i + 1}")
         errs = summarise_errors(trace_i, taught_xz, scenario.settle_m)
         repeats.append({"index": i + 1, "completed": rep.completed, "end": rep.reason, "message": rep.message,
                         "keyframe_reached": rep.keyframe_reached + 1, "start_offset": offset.as_array().tolist(),
@@ -256,6 +257,8 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
         "repeats": [{k: v for k, v in r.items() if not k.startswith("_")} for r in repeats],
         "wall_time_s": time.perf_counter() - t_wall,
     }
+    if recorder is not None:      # the first write of the --record that failed (said on stderr), or None
+        metrics["recording_error"] = next((s.recording_error for s in sessions if s.recording_error), None)
     write_json_atomic(out_dir / "metrics.json", metrics)
     plot_paths(out_dir / "paths.png", taught_xz, [r["_trace"] for r in repeats],
                truth.at(teach.keyframe_stamps), robot.world,

@@ -169,6 +169,7 @@ class Session:
         self.recorder = recorder
         self.progress = progress
         self._spent = False
+        self.recording_error: Optional[str] = None     # the recording asked for failed (said on stderr)
 
     def teach(self, controller: Controller, route_dir, overwrite: bool = False, duration_s: Optional[float] = None,
               observers: Sequence[Observer] = ()) -> TeachResult:
@@ -222,6 +223,7 @@ class Session:
             with finishing():       # a second Ctrl-C must not cut the recording short
                 if link is not None:
                     link.close(result)
+                    self.recording_error = link.recording_error
                 if echo is not None:
                     echo.close()
         return result

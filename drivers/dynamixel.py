@@ -119,7 +119,8 @@ class DynamixelDrive(SerialWheelDrive):
         profile_acceleration_rad_s2: float = Field(0.0, ge=0, description="Profile Acceleration (108), in its "
                                                    f"{ACCEL_UNIT_RAD_S2:.4f} rad/s^2 units (a smaller positive value "
                                                    "is one unit); 0 = none")
-        bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence")
+        bus_watchdog_s: float = Field(0.1, ge=0.02, le=2.54, description="servo stops after this bus silence; at least "
+                                      "two loop periods (the loop writes once a cycle; refused below)")
         latency_ms: float = Field(1.0, gt=0, le=16, description="adapter latency timer (FTDI), ms")
         margin_ms: float = Field(3.0, ge=0, le=20, description="extra wait for an answer, ms: the answer window "
                                  "2 x latency_ms + margin_ms stays within half of a 100 Hz period (docs/safety.md, "
@@ -158,6 +159,10 @@ class DynamixelDrive(SerialWheelDrive):
         self._last_write_ns: Optional[int] = None
         self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
+
+    @property
+    def watchdog(self) -> Optional[tuple[float, str]]:
+        return self._watchdog_units * WATCHDOG_UNIT_S, "drive.options.bus_watchdog_s"
 
     @property
     def wheel_speed_limit(self) -> Optional[tuple[float, str]]:

@@ -90,7 +90,8 @@ class ODriveDrive(SerialWheelDrive):
         gear_ratio: float = Field(1.0, gt=0, description="motor turns per wheel turn")
         vel_limit_turns_s: float = Field(2.0, gt=0, description="axisN.controller.config.vel_limit")
         vel_ramp_rate: float = Field(0.0, ge=0, description="turns/s^2 (input_mode VEL_RAMP); 0 = passthrough")
-        watchdog_s: float = Field(0.1, gt=0, description="axis watchdog: the axis disarms after this silence")
+        watchdog_s: float = Field(0.1, gt=0, description="axis watchdog: the axis disarms after this silence; "
+                                  "at least two loop periods (the loop writes once a cycle; refused below)")
         checksum: bool = Field(False, description="append *<xor> to every line and check answers")
         reply_timeout_s: float = Field(0.005, gt=0, le=0.5, description="wait for one answer line in the loop")
         setup_timeout_s: float = Field(0.1, gt=0, le=2.0, description="wait for an answer during setup")
@@ -119,6 +120,11 @@ class ODriveDrive(SerialWheelDrive):
         self._cycle = 0
         self._rx = b""
         self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
+        self.cleared_watchdogs: list[DriveFault] = []   # expired axis watchdogs the last bring-up cleared
+
+    @property
+    def watchdog(self) -> Optional[tuple[float, str]]:
+        return self.opt.watchdog_s, "drive.options.watchdog_s"
 
     @property
     def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
@@ -130,6 +136,7 @@ class ODriveDrive(SerialWheelDrive):
         self._connect(clear_errors=False)
 
     def _connect(self, clear_errors: bool) -> None:
+        self.cleared_watchdogs = []
         if not os.path.exists(self.opt.port):
             raise DriveError(f"ODrive {self.opt.port} not found (is it plugged in? see /dev/serial/by-id/)")
         try:
@@ -158,6 +165,7 @@ class ODriveDrive(SerialWheelDrive):
                 # a fault of their own. During a run this process went silent itself: the bring-up clears
                 # it, as the Dynamixel bring-up clears a latched Bus Watchdog. At start-up only when the
                 # configuration says so; any other error stays for clear_faults.
+                self.cleared_watchdogs = self._faults_in(words)
                 self._send("sc")
                 words = self._error_words(t)
             faults = self._faults_in(words)

@@ -60,6 +60,10 @@ class V4L2Camera(GrabbingCamera):
             "v4l2", description="OpenCV capture backend for live devices (any: OpenCV chooses, e.g. for "
                                 "GStreamer/FFmpeg URLs)")
 
+        def plays_a_file(self) -> bool:
+            """Whether ``device`` is a video file that is replayed (else a live device)."""
+            return self.source == "file" or (self.source == "auto" and os.path.isfile(self.device))
+
         @field_validator("fourcc")
         @classmethod
         def _four_chars(cls, v: str) -> str:
@@ -71,7 +75,7 @@ class V4L2Camera(GrabbingCamera):
                  width: Optional[int] = None, height: Optional[int] = None, fps: Optional[float] = None):
         super().__init__(cfg, clock, options=options, width=width, height=height, fps=fps)
         options = self.opt
-        self.is_file = options.source == "file" or (options.source == "auto" and os.path.isfile(options.device))
+        self.is_file = options.plays_a_file()
         # An option of the other kind of source is never read: refuse it rather than ignore it.
         values = options.model_dump()
         changed = {n for n in options.model_fields_set if values[n] != type(options).model_fields[n].default}

@@ -146,6 +146,12 @@ class WheelDrive(abc.ABC):
         return None
 
     @property
+    def watchdog(self) -> Optional[tuple[float, str]]:
+        """(s, the setting that gives it): how long the device runs without a packet before it stops the wheels
+        on its own, or None when it has no such watchdog. The loop feeds it once a cycle."""
+        return None
+
+    @property
     def wheel_speed_limit(self) -> Optional[tuple[float, str]]:
         """(rad/s, the setting that gives it): the speed at which the drive clips each wheel's command on its
         own, or None when it clips none (the runtime's kinematics keep within robot.max_wheel_speed)."""

@@ -157,6 +157,7 @@ def stand_in_camera_and_test_settings(config: Path, camera: str, frames: Path, p
     text = config.read_text()
     assert f"device: {camera} " in text, "the README's sed did not put $CAMERA into camera.options.device"
     text = replace_once(text, "driver: v4l2", "driver: replay")
+    text = replace_once(text, "\n  rate_hz: 30\n", "\n")   # the replay camera plays the folder at 10 Hz
     text = re.sub(r"    device: .*\n    fourcc: MJPG\n", f"    path: {frames}\n    loop: true\n", text)
     assert f"path: {frames}" in text, "myrobot.yaml: the V4L2 camera options are not where they were"
     text = replace_once(text, "realtime_priority: 50", "realtime_priority: 0")

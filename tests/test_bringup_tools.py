@@ -352,3 +352,17 @@ def test_the_odrive_refusal_names_the_configuration_given(crashed_odrive, tmp_pa
     text = captured.out + captured.err
     assert "WATCHDOG_TIMER_EXPIRED" in text, text
     assert f"vbnav odrive clear-errors -c {cfg}'" in text and "-c CONFIG" not in text, text
+
+
+def test_clear_errors_says_the_watchdog_error_the_bring_up_cleared(crashed_odrive, tmp_path, capsys):
+    """With drive.options.clear_watchdog_error_at_start the bring-up clears an expired axis watchdog by itself,
+    and 'vbnav odrive clear-errors' then printed "no errors" for a device that had one on each axis: it prints
+    the error words it found and that they were cleared, as without the option."""
+    cfg = odrive_config(tmp_path, crashed_odrive.path, clear_watchdog_error_at_start=True)
+    assert main(["odrive", "clear-errors", "-c", cfg]) == 0
+    out = capsys.readouterr().out
+    assert "no errors" not in out, out
+    assert "axis0 (left): error=WATCHDOG_TIMER_EXPIRED" in out and "errors cleared" in out, out
+    assert not any(ax.any_error() for ax in crashed_odrive.axes)
+    assert main(["odrive", "clear-errors", "-c", cfg]) == 0
+    assert "no errors" in capsys.readouterr().out

@@ -181,3 +181,17 @@ def test_a_configured_live_view_that_could_not_be_served_is_refused(tmp_path, ca
     err = capsys.readouterr().err
     assert "telemetry.live_view.enabled" in err and says in err, err
     assert not Path(tmp_path / "route").exists() and not Path(tmp_path / "m.json").exists()
+
+
+@pytest.mark.parametrize("argv", [["run", "-c", "sentry-dynamixel", "--realtime", "--no-telemetry", "--duration", "0.1"],
+                                  ["map", "build", "-c", "sentry-dynamixel", "--realtime", "--no-telemetry",
+                                   "--duration", "0.1", "--out", "{tmp}/m.json"]])
+def test_realtime_on_a_robot_already_on_the_wall_clock_is_refused(tmp_path, capsys, argv):
+    """--realtime (simulated robot: the wall clock instead of the simulated one) on a configuration with real
+    drivers was accepted and changed nothing (hardware always runs on the wall clock); it is refused, naming
+    the option and the drivers, before any device opens."""
+    from vbnav.control.cli import main
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert "--realtime" in err and "drive.driver dynamixel" in err, err
+    assert not (tmp_path / "m.json").exists()

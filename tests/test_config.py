@@ -316,3 +316,147 @@ def test_sgbm_obstacles_on_a_camera_without_a_right_image_are_refused_at_load(ca
     parse_config({**cfg, "obstacles": {"enabled": False, "source": "sgbm"}})       # no stage, nothing to match
     parse_config({"camera": {"driver": "sim", "options": {"stereo_baseline": 0.075}},
                   "obstacles": {"enabled": True, "source": "sgbm"}})
+
+
+@pytest.mark.parametrize("camera, instead", [
+    ({"driver": "replay", "rate_hz": 30.0, "options": {"path": "rec"}}, "camera.options.rate_hz"),
+    ({"driver": "oak", "rate_hz": 30.0, "options": {"replay_file": "rec.mp4"}}, "camera.options.replay_fps"),
+])
+def test_a_camera_rate_the_recording_camera_never_reads_is_refused(camera, instead):
+    """camera.rate_hz written for the replay camera (it plays at the recorded times, its options.rate_hz or 10 Hz)
+    or the OAK's host-only replay_file (its options.replay_fps) was accepted and never read: a folder of images
+    played at 10 Hz beside rate_hz: 30. Refused at load, naming the field and the one that sets the rate."""
+    with pytest.raises(ConfigError, match=rf"camera\.rate_hz 30 .*{re.escape(instead)}"):
+        parse_config({"camera": camera})
+    camera = dict(camera, rate_hz=15.0)         # the default, as 'vbnav config show' writes it: loads
+    assert parse_config({"camera": camera}).camera.rate_hz == 15.0
+
+
+@pytest.mark.parametrize("camera,says", [
+    ({"driver": "sim"}, "the simulated camera renders a right image only with a stereo baseline"),
+    ({"driver": "v4l2", "options": {"device": "/dev/video0"}}, "camera.driver v4l2 gives one image per frame"),
+    ({"driver": "oak", "options": {"disparity": False}}, "camera.options.disparity: false"),
+    ({"driver": "oak", "options": {"replay_file": "rec.mp4"}}, "camera.options.replay_file replays images only"),
+])
+@pytest.mark.parametrize("source", ["auto", "disparity"])
+def test_obstacles_on_a_camera_without_disparity_or_a_pair_are_refused_at_load(camera, says, source):
+    """obstacles.enabled (source auto or disparity) on a camera whose frames carry neither a disparity nor a
+    right image loaded, and every frame of the run was blind ('frame has no disparity'): the robot held for
+    good. Refused at load, naming the field and the camera, as source: sgbm already was; stereo cameras load."""
+    with pytest.raises(ConfigError, match=re.escape(says)) as err:
+        parse_config({"camera": camera, "obstacles": {"enabled": True, "source": source}}, "robot.yaml")
+    assert "robot.yaml: obstacles.enabled" in str(err.value), err.value
+    parse_config({"camera": camera, "obstacles": {"enabled": False, "source": source}})   # no stage: kept
+    parse_config({"camera": {"driver": "sim", "options": {"stereo_baseline": 0.075}},
+                  "obstacles": {"enabled": True, "source": source}})
+    parse_config({"camera": {"driver": "oak"}, "obstacles": {"enabled": True, "source": source}})
+
+
+@pytest.mark.parametrize("base, edit, says", [
+    ("sentry-dynamixel", ("velocity_limit_rad_s: 6.0", "velocity_limit_rad_s: 3.0"),
+     "robot.max_wheel_speed 6 rad/s is above what the drive lets a wheel turn"),
+    ("sim", ("  model: pinhole\n", "  model: fisheye\n"), "the simulated camera renders pinhole cameras"),
+])
+def test_config_check_says_valid_only_for_a_configuration_a_run_takes(tmp_path, capsys, base, edit, says):
+    """'vbnav config check' said "valid" for a configuration every run refused before a device opened (the
+    refusals of the drive and camera as they are built: a wheel speed above the drive's own limit, a fisheye
+    lens on the simulated camera). It now builds them as a run does (nothing is opened) and refuses the same."""
+    from vbnav.control.config import CONFIG_DIR
+    text = (CONFIG_DIR / f"{base}.yaml").read_text()
+    assert text.count(edit[0]) == 1
+    path = tmp_path / "robot.yaml"
+    path.write_text(text.replace(*edit))
+    assert main(["config", "check", "-c", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert says in err and str(path) in err, err
+    assert main(["run", "-c", str(path), "--camera", "--duration", "0.1", "--no-telemetry"]) == 2   # as a run
+    assert says in capsys.readouterr().err
+    assert main(["config", "check", "-c", base]) == 0
+
+
+def test_a_turn_rate_the_wheels_cannot_reach_is_refused_at_load():
+    """robot.max_angular_speed above what the wheels can turn the robot at (on the spot: 2 * max_wheel_speed *
+    wheel_radius / wheel_separation) was accepted and the limiter cut every faster turn to the wheels' limit,
+    as robot.max_linear_speed above max_wheel_speed * wheel_radius is refused. Refused at load, naming both."""
+    from vbnav.control.runtime.interfaces import Twist
+    from vbnav.control.runtime.kinematics import TwistLimiter
+    with pytest.raises(ConfigError, match=r"robot.yaml: .*robot.max_angular_speed 10 rad/s exceeds what the wheels "
+                                          r"can do \(2 \* max_wheel_speed \* wheel_radius / wheel_separation = "
+                                          r"6.667 rad/s\)"):
+        parse_config({"robot": {"max_angular_speed": 10.0}}, "robot.yaml")
+    reach = 2 * 20.0 * 0.05 / 0.3
+    cfg = parse_config({"robot": {"max_angular_speed": reach}})
+    limiter = TwistLimiter.from_config(cfg.robot)
+    limiter.max_dw = 1e9
+    assert limiter.apply(Twist(0.0, 100.0), 0.01).w == pytest.approx(reach)     # the limit is reached
+    small = parse_config({"robot": {"wheel_radius": 0.033, "max_wheel_speed": 6.0, "max_linear_speed": 0.18}})
+    assert small.robot.max_angular_speed == pytest.approx(2 * 6.0 * 0.033 / 0.3)   # the default, cut
+    assert parse_config(small.model_dump(mode="json")).robot.max_angular_speed == small.robot.max_angular_speed
+
+
+@pytest.mark.parametrize("section, says", [
+    ({"vslam": {"goto": {"final_turn_speed": 2.0}}},
+     "vslam.goto.final_turn_speed 2 rad/s is above robot.max_angular_speed 1.5 rad/s"),
+    ({"vslam": {"metric_scale": "odometry", "goto": {"init_creep_speed": 0.6}}},
+     "vslam.goto.init_creep_speed 0.6 m/s is above robot.max_linear_speed 0.5 m/s"),
+])
+def test_goto_speeds_above_the_robots_limits_are_refused_at_load(section, says):
+    """vslam.goto.final_turn_speed above robot.max_angular_speed, or init_creep_speed above max_linear_speed,
+    was accepted and the limiter cut the command to the robot's limit without a word (as the cruise speeds
+    were before they were refused). Refused at load naming both; the defaults are cut."""
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        parse_config(section, "robot.yaml")
+    slow = parse_config({"robot": {"max_angular_speed": 0.3, "max_linear_speed": 0.05},
+                         "vslam": {"metric_scale": "odometry"}})
+    assert slow.vslam.goto.final_turn_speed == 0.3 and slow.vslam.goto.init_creep_speed == 0.05
+    assert parse_config(slow.model_dump(mode="json")).vslam.goto.final_turn_speed == 0.3    # loads back
+
+
+@pytest.mark.parametrize("camera, says", [
+    ({"stale_after_s": 0.08},
+     "camera.stale_after_s 0.08 s is not above the time a frame may age before the next one comes, 0.097 s "
+     "(the frame period 0.067 s at camera.rate_hz 15 Hz, plus sim.vision_latency_s 0.03 s)"),
+    ({"rate_hz": 1.0}, "camera.stale_after_s 0.5 s is not above the time a frame may age before the next one "
+                       "comes, 1.03 s"),
+    ({"driver": "v4l2", "rate_hz": 30.0, "stale_after_s": 0.03, "options": {"source": "device"}},
+     "0.033 s (the frame period 0.033 s at camera.rate_hz 30 Hz)"),
+])
+def test_a_stale_limit_every_frame_outlives_is_refused_at_load(camera, says):
+    """camera.stale_after_s at or below the time between two frames (plus the simulated vision latency) was
+    accepted, and every frame went stale before the next came: the simulated robot at 15 Hz with 0.08 s stood
+    held for the whole run (camera_stale, never released). Refused at load naming the field, the frame rate and
+    its setting; a limit above it loads."""
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        parse_config({"camera": camera}, "robot.yaml")
+    parse_config({"camera": {"stale_after_s": 0.1}})
+    parse_config({"camera": {"stale_after_s": 0.08, "driver": "replay", "options": {"path": "rec"}}})  # rate unknown
+
+
+def test_an_estimate_timeout_every_estimate_outlives_is_refused_at_load():
+    """safety.estimate_timeout_s at or below the time between two frames (the stages' estimates come one a frame,
+    plus the simulated vision latency) was accepted, and every estimate went stale before the next: sim_stereo's
+    obstacle stop with 0.08 s held the robot for the whole run (obstacles_stale). Refused at load, naming it."""
+    with pytest.raises(ConfigError, match=re.escape(
+            "safety.estimate_timeout_s 0.08 s is not above the time a frame may age before the next one comes, "
+            "0.097 s")):
+        parse_config({"safety": {"estimate_timeout_s": 0.08}}, "robot.yaml")
+    parse_config({"safety": {"estimate_timeout_s": 0.1}})
+
+
+@pytest.mark.parametrize("section, says", [
+    ({"vbc": {"approach_min_speed": 0.3}},
+     "vbc.approach_min_speed 0.3 is not below vbc.cruise_speed 0.25: vbc.approach_gain would never apply"),
+    ({"vslam": {"goto": {"min_drive_speed": 0.3}}},
+     "vslam.goto.min_drive_speed 0.3 is not below vslam.goto.cruise_speed 0.3: vslam.goto.k_rho would never apply"),
+    ({"vslam": {"goto": {"final_turn_min_speed": 0.5}}}, "vslam.goto.final_turn_min_speed 0.5 is not below "
+     "vslam.goto.final_turn_speed 0.4: vslam.goto.final_turn_gain would never apply"),
+])
+def test_a_speed_floor_at_or_above_its_ceiling_is_refused_at_load(section, says):
+    """The controllers' proportional speeds are held between a floor and a ceiling (kinematics.saturate: the
+    ceiling wins where they cross). A floor written at or above its ceiling made the speed the ceiling all along:
+    the repeat never slowed into the end of its route (approach_gain unused), the goto never slowed to its goal
+    (k_rho) nor its final turn (final_turn_gain). Refused at load naming the floor, the ceiling and the gain."""
+    from vbnav.control.runtime.kinematics import saturate
+    assert saturate(1.5 * 0.01, 0.3, 0.25) == 0.25         # 1 cm from the end, still at cruise speed
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        parse_config(section, "robot.yaml")

@@ -1,6 +1,7 @@
 """The robot factory and the teach/repeat session: start pose from the configuration, one run per robot."""
 from __future__ import annotations
 
+import re
 import math
 
 import pytest
@@ -215,3 +216,24 @@ def test_a_vision_thread_still_inside_a_frame_never_writes_the_route_beside_the_
     teaching.unwritten = ""
     teaching.close(complete=True, vision=pipeline)
     assert finished == [True]
+
+
+@pytest.mark.parametrize("drive, says", [
+    ({"driver": "dynamixel", "options": {"port": "/dev/ttyNOPE", "bus_watchdog_s": 0.1}},
+     "drive.options.bus_watchdog_s 0.1 s is below two loop periods, 0.4 s (loop.rate_hz 5 Hz)"),
+    ({"driver": "odrive", "options": {"port": "/dev/ttyNOPE", "watchdog_s": 0.1}},
+     "drive.options.watchdog_s 0.1 s is below two loop periods, 0.4 s (loop.rate_hz 5 Hz)"),
+])
+def test_a_drive_watchdog_the_loop_cannot_feed_is_refused(drive, says):
+    """The serial drives' own watchdog (Dynamixel Bus Watchdog, ODrive axis watchdog) stops the wheels after
+    that long without a packet; the loop writes once a cycle. With it at or below a loop period (a 5 Hz loop, the
+    100 ms default: on the emulated bus the first cycle tripped it, drive_lost, held until resume) the robot
+    could never drive. make_robot (and config check) refuse it, naming both, with room for one late cycle."""
+    from vbnav.control.runtime.factory import make_robot
+    robot = {"max_wheel_speed": 6.0, "max_linear_speed": 0.3}
+    over = {"robot": robot, "drive": drive, "controller": {"teach": "teleop"},
+            "loop": {"rate_hz": 5.0}, "telemetry": {"state_rate_hz": 5.0}}
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        make_robot(load_config(None, overrides=over), with_camera=False)
+    over["loop"]["rate_hz"] = 20.0          # 2 x 50 ms = 0.1 s: fed in time, with a late cycle to spare
+    make_robot(load_config(None, overrides=over), with_camera=False).drive.close()

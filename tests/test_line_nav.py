@@ -484,7 +484,7 @@ def test_goto_localise_refused_says_what_to_do_for_its_reason(tmp_path, capsys, 
         cfg.setdefault("vslam", {})["metric_scale"] = "odometry"
     else:
         cfg["camera"]["distortion"] = [0.1, 0.0, 0.0, 0.0, 0.0]
-        cfg.setdefault("obstacles", {})["enabled"] = False     # it refuses distortion too, for itself
+    cfg.setdefault("obstacles", {})["enabled"] = False     # it refuses a single camera and distortion too, for itself
     (tmp_path / "robot.yaml").write_text(yaml.safe_dump(cfg))
     args = ["goto", "-c", str(tmp_path / "robot.yaml"), "--map", str(path), "--static-map", "--localise",
             "--goal", "0", "1", "0", "--duration", "0.2"]

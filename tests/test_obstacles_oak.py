@@ -43,7 +43,8 @@ def oak_frame(scene: ds.Scene, seq: int):
 
 
 def test_oak_disparity_frames_drive_the_stop_zone():
-    cfg = parse_config({"obstacles": {"enabled": True, "obstacle_height": 0.01, "noise_px": 0.15,
+    cfg = parse_config({"camera": {"driver": "oak"},
+                        "obstacles": {"enabled": True, "obstacle_height": 0.01, "noise_px": 0.15,
                                       "persist_k": 2, "persist_n": 3}})
     stage = make_obstacle_stage(cfg)            # no baseline in the config: it comes with the frames
     far = ds.Scene(0.25, 0.0, boxes=(ds.Box(-0.15, 0.15, 3.0, 3.15, 0.02),))      # 2 cm box 3 m ahead

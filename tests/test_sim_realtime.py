@@ -52,3 +52,27 @@ def test_simulated_clock_run_says_the_network_is_not_opened():
                        timeout=120)
     assert r.returncode == 0, r.stderr
     assert "add --realtime to watch and command the simulated robot" in r.stderr
+
+
+def test_a_simulated_vision_latency_on_the_wall_clock_is_refused(tmp_path, capsys):
+    """sim.vision_latency_s is added to the estimates on the simulated clock only; with sim.realtime: true (or
+    run --realtime) the vision thread's own time is the latency, and a written value was accepted and never
+    read. Refused, naming it, at load and by --realtime; on the simulated clock it loads and is used."""
+    import pytest
+
+    from vbnav.control.cli import main
+    from vbnav.control.config import ConfigError, parse_config
+    from vbnav.control.runtime.factory import make_pipeline, make_robot
+    with pytest.raises(ConfigError, match=r"sim\.vision_latency_s 0\.2 s.*sim\.realtime"):
+        parse_config({"sim": {"realtime": True, "vision_latency_s": 0.2}})
+    cfg = tmp_path / "late.yaml"
+    cfg.write_text("sim: {vision_latency_s: 0.2}\n")
+    assert main(["run", "-c", str(cfg), "--realtime", "--no-telemetry", "--no-camera", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "--realtime" in err and "sim.vision_latency_s 0.2 s" in err, err
+    sim = parse_config({"sim": {"vision_latency_s": 0.2}})          # the simulated clock: used
+    robot = make_robot(sim, with_camera=True)
+    assert make_pipeline(sim, robot.clock, robot.camera, []).latency_ns == 200_000_000
+    # the simulated section of a robot with real drivers is kept, unused (the simulator is off)
+    parse_config({"sim": {"realtime": True, "vision_latency_s": 0.2},
+                  "drive": {"driver": "dynamixel"}, "camera": {"driver": "v4l2"}})

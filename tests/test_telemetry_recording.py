@@ -160,3 +160,71 @@ def test_a_recording_whose_writer_blocks_is_said_and_the_run_exits_1(tmp_path, m
     err = capsys.readouterr().err
     assert f"the recording {out} is incomplete" in err and "still in McapRecorder after 0.3 s" in err, err
     assert not out.exists() and (tmp_path / "run.mcap.part").exists()
+
+
+@pytest.mark.parametrize("argv", [["teach", "--out", "{tmp}/route", "--duration", "3"],
+                                  ["map", "build", "-c", "sim_stereo", "--out", "{tmp}/m.json", "--duration", "1.5"]])
+def test_a_recording_that_fails_makes_teach_and_map_build_exit_1_as_run(tmp_path, monkeypatch, capsys, argv):
+    """teach and map build said a failed --record on stderr and exited 0 (run and goto exit 1: a --record asked
+    for and not made); they exit 1 now, their route or map still written."""
+    import errno
+
+    from vbnav.control.cli import main
+    from vbnav.control.comms import recording
+
+    calls = [0]
+    real_write = recording.McapRecorder._write
+
+    def full_disk(self, topic, log_ns, data):
+        calls[0] += 1
+        if calls[0] > 50:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, topic, log_ns, data)
+    monkeypatch.setattr(recording.McapRecorder, "_write", full_disk)
+    out = tmp_path / "run.mcap"
+    assert main([a.format(tmp=tmp_path) for a in argv] + ["--record", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"the recording {out} is incomplete" in err, err
+    assert (tmp_path / "route").is_dir() or (tmp_path / "m.json").is_file()
+
+
+def test_a_shared_recording_that_fails_is_said_and_the_demo_exits_1(tmp_path, monkeypatch, capsys):
+    """The demo's runs write one recording shared by its teach and repeats (a borrowed recorder): a write that
+    failed there (a full disk) was counted and never said, and vbnav demo printed its results and exited 0. The
+    run that failed says it as a recording of its own does, the session keeps it, and the demo exits 1."""
+    import errno
+
+    from vbnav.control import demo
+    from vbnav.control.cli import main
+    from vbnav.control.comms import recording
+    from vbnav.control.controllers.path import PathFollower
+    from vbnav.control.runtime.factory import make_robot
+    from vbnav.control.session import Session
+
+    calls = [0]
+    real_write = recording.McapRecorder._write
+
+    def full_disk(self, topic, log_ns, data):
+        calls[0] += 1
+        if calls[0] > 50:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, topic, log_ns, data)
+    cfg = demo.demo_config(0)
+    rec = McapRecorder(tmp_path / "demo.mcap", cfg.robot.name)
+    monkeypatch.setattr(recording.McapRecorder, "_write", full_disk)
+    try:
+        session = Session(cfg, make_robot(cfg, with_camera=True), recorder=rec)
+        session.teach(PathFollower(demo.demo_route(), 0.4, start=cfg.sim.start()), tmp_path / "route",
+                      overwrite=True, duration_s=3.0)
+    finally:
+        monkeypatch.setattr(recording.McapRecorder, "_write", real_write)
+        rec.close()
+    err = capsys.readouterr().err
+    assert f"the recording {tmp_path / 'demo.mcap'} is incomplete" in err and "No space left" in err, err
+    assert "No space left on device" in session.recording_error
+
+    def failed_demo(out, scenario, cfg, **kw):
+        return {"completed": True, "rms_lateral_error_m": 0.0, "max_lateral_error_m": 0.0,
+                "recording_error": session.recording_error}
+    monkeypatch.setattr(demo, "run_demo", failed_demo)
+    assert main(["demo", "--out", str(tmp_path / "d"), "--record", str(tmp_path / "d.mcap")]) == 1

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import math
 
 import pytest
@@ -593,3 +594,53 @@ def test_control_characters_in_free_text_command_fields_are_refused(kind, payloa
     forge a line ('safety reset: estop') there. Control characters are refused, naming the field."""
     with pytest.raises(CommandRejected, match="control character"):
         parse_command(kind, payload, LIMITS)
+
+
+def test_a_state_rate_above_the_loop_rate_is_refused_at_load():
+    """telemetry.state_rate_hz above loop.rate_hz was accepted and the state came once a cycle, at the loop's
+    rate (a state is published from a cycle): 200 Hz asked, 100 Hz sent. Refused at load naming both; the
+    default is cut to the loop's rate (what is sent), as config show prints it."""
+    with pytest.raises(ConfigError, match=r"robot.yaml: .*telemetry.state_rate_hz 200 Hz is above loop.rate_hz 100"):
+        parse_config({"telemetry": {"state_rate_hz": 200}}, "robot.yaml")
+    assert parse_config({"telemetry": {"state_rate_hz": 100}}).telemetry.state_rate_hz == 100
+    slow = parse_config({"loop": {"rate_hz": 10}})
+    assert slow.telemetry.state_rate_hz == 10
+    assert parse_config(slow.model_dump(mode="json")).telemetry.state_rate_hz == 10     # loads back
+
+
+@pytest.mark.parametrize("camera, rate, field", [
+    ({"driver": "sim", "rate_hz": 15.0}, 15, "camera.rate_hz"),
+    ({"driver": "oak", "options": {"replay_file": "rec.mp4", "replay_fps": 10.0}}, 10, "camera.options.replay_fps"),
+    ({"driver": "v4l2", "rate_hz": 20.0, "options": {"device": "/dev/video0", "source": "device"}}, 20,
+     "camera.rate_hz"),
+])
+def test_an_image_rate_above_the_cameras_frame_rate_is_refused_at_load(camera, rate, field):
+    """telemetry.image_rate_hz above the camera's frame rate was accepted and an image went out once a frame (the
+    simulated camera at 15 Hz with image_rate_hz 30: 15 images a second recorded). Refused at load naming both
+    where the configuration gives the frame rate; the default is cut to it; a replayed recording (its own rate)
+    is not known at load."""
+    with pytest.raises(ConfigError, match=rf"robot.yaml: telemetry.image_rate_hz 30 Hz is above {re.escape(field)} "
+                                          rf"{rate} Hz"):
+        parse_config({"camera": camera, "telemetry": {"image_rate_hz": 30}}, "robot.yaml")
+    assert parse_config({"camera": camera, "telemetry": {"image_rate_hz": rate}}).telemetry.image_rate_hz == rate
+    slow = parse_config({"camera": {"driver": "sim", "rate_hz": 1.0, "stale_after_s": 2.0},
+                         "safety": {"estimate_timeout_s": 2.0}})
+    assert slow.telemetry.image_rate_hz == 1.0
+    assert parse_config(slow.model_dump(mode="json")).telemetry.image_rate_hz == 1.0     # loads back
+    parse_config({"camera": {"driver": "replay", "options": {"path": "rec"}}, "telemetry": {"image_rate_hz": 30}})
+
+
+def test_an_image_width_above_the_cameras_is_refused_at_load():
+    """telemetry.image_width is the width JPEG frames are scaled down to; above the camera's width the frames
+    were sent at the camera's width (never scaled up) while the configuration said otherwise. Refused at load
+    naming both; the default is cut to a narrower camera's width."""
+    import numpy as np
+
+    from vbnav.control.comms.telemetry import encode_jpeg
+    assert encode_jpeg(np.zeros((480, 640), np.uint8), 1280, 70)[1:] == (640, 480)     # never scaled up
+    with pytest.raises(ConfigError, match=r"robot.yaml: telemetry.image_width 1280 px is above camera.width 640 px"):
+        parse_config({"telemetry": {"image_width": 1280}}, "robot.yaml")
+    assert parse_config({"telemetry": {"image_width": 640}}).telemetry.image_width == 640
+    small = parse_config({"camera": {"width": 160, "height": 120, "cx": 79.5, "cy": 59.5}})
+    assert small.telemetry.image_width == 160
+    assert parse_config(small.model_dump(mode="json")).telemetry.image_width == 160     # loads back

@@ -152,6 +152,24 @@ def refuse_network_driver_without_network(cfg, what: str, no_telemetry: bool, co
                          f"({consequence})")
 
 
+def apply_realtime(cfg, realtime: bool) -> None:
+    """--realtime: run the simulated robot on the wall clock (sim.realtime: true). Refused on a configuration
+    that is not on the simulated clock anyway (a real drive or camera: always the wall clock), where it would
+    change nothing."""
+    if not realtime:
+        return
+    from vbnav.control.runtime.factory import uses_sim_clock
+    if not uses_sim_clock(cfg) and not cfg.sim.realtime:
+        real = [f"{k}.driver {d}" for k, d in (("drive", cfg.drive.driver), ("camera", cfg.camera.driver)) if d != "sim"]
+        raise InputError(f"--realtime: {cfg.source}: {' and '.join(real)} run on the wall clock anyway (only a robot whose "
+                         f"drive and camera are both simulated has a simulated clock); leave it out")
+    cfg.sim.realtime = True
+    from vbnav.control.config import simulated_latency_not_read
+    why = simulated_latency_not_read(cfg)
+    if why:
+        raise InputError(f"--realtime: {cfg.source}: {why}")
+
+
 def live_view_refusal(cfg, no_telemetry: bool = False, remedy: str = "add --realtime") -> str:
     """Why this run could not serve the live view ("" when it could): it rides on the telemetry session, which
     --no-telemetry or telemetry.enabled: false keeps closed, and which opens only on the wall clock (call after

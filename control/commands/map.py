@@ -8,8 +8,8 @@ import sys
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import (add_config_arg, distinct_files, not_recorded_yet, output_file,
-                                           positive, record_target_error, refuse_unserved_live_view)
+from vbnav.control.commands._common import (add_config_arg, apply_realtime, distinct_files, not_recorded_yet,
+                                           output_file, positive, record_target_error, refuse_unserved_live_view)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
 
@@ -29,7 +29,8 @@ def register(sub) -> None:
                    help="stop after S seconds (default: the script's length)")
     b.add_argument("--realtime", action="store_true",
                    help="simulated robot: run on the wall clock (sim.realtime: true) so telemetry and the live view "
-                        "open; without it the simulated robot runs faster than real time and only records")
+                        "open; without it the simulated robot runs faster than real time and only records (refused with a "
+                        "real drive or camera: always on the wall clock)")
     b.add_argument("--live-view", action="store_true",
                    help="serve the live view to the Foxglove app (telemetry.live_view.enabled: true), the map "
                         "growing as a 3D scene on /vbnav/map/lines")
@@ -89,8 +90,7 @@ def run_build(args) -> int:
     if why:
         raise InputError(why)
     cfg = load_config(args.config)
-    if args.realtime:
-        cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
+    apply_realtime(cfg, args.realtime)
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
     refuse_unserved_live_view(cfg, args.no_telemetry, "add --realtime")
@@ -147,7 +147,8 @@ def run_build(args) -> int:
               file=sys.stderr)
     if not ended_well:
         return 3 if result.reason in DEVICE_FAULTS else 1
-    return 0 if stage.stats["frames"] > 0 and refused is None else 1
+    # a --record asked for and not made, as run
+    return 0 if stage.stats["frames"] > 0 and refused is None and link.recording_error is None else 1
 
 
 def map_info(lmap, meta) -> dict:

@@ -41,7 +41,11 @@ def run_clear(args) -> int:
     try:
         try:
             drive.connect()
-            print(f"ODrive on {drive.opt.port}: no errors")
+            for fault in drive.cleared_watchdogs:       # cleared by the bring-up itself (the option)
+                print(f"ODrive on {drive.opt.port}: {fault}")
+            print(f"ODrive on {drive.opt.port}: " + ("errors cleared by the bring-up (drive.options."
+                                                     "clear_watchdog_error_at_start), axes idle; 'vbnav run' can start"
+                                                     if drive.cleared_watchdogs else "no errors"))
             return 0
         except DriveError as exc:
             if not drive.faults:            # not an error word: the device is missing or silent

@@ -43,9 +43,9 @@ def run(args) -> int:
     if not route.complete:
         print(f"vbnav repeat: warning: {args.path}: {route.incomplete_note()}", file=sys.stderr)
     printer = ProgressPrinter()
-    result = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer,
-                     record_overwrite=args.overwrite).repeat(
-        route, args.duration)
+    session = Session(cfg, make_robot(cfg, with_camera=True), record=args.record, progress=printer,
+                      record_overwrite=args.overwrite)
+    result = session.repeat(route, args.duration)
     printer.done()
     print(f"repeat ended: {result.reason} ({result.message}); reached keyframe {result.keyframe_reached + 1} of "
           f"{result.keyframes}")
@@ -54,4 +54,4 @@ def run(args) -> int:
         return 130
     if result.reason in DEVICE_FAULTS:     # the hardware failed, not the patrol (vbnav's exit codes)
         return 3
-    return 0 if result.reason == "finished" else 1
+    return 0 if result.reason == "finished" and session.recording_error is None else 1   # a --record not made

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from vbnav.control.commands._common import (add_config_arg, enable_live_view, output_file, positive,
+from vbnav.control.commands._common import (add_config_arg, apply_realtime, enable_live_view, output_file, positive,
                                            record_target_error, refuse_network_driver_without_network,
                                            refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
@@ -35,7 +35,8 @@ def register(sub) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="simulated robot: run on the wall clock (sim.realtime: true) so telemetry opens and "
                         "'vbnav monitor', 'vbnav send' and the Foxglove live view work; without it the "
-                        "simulated robot runs faster than real time and only records")
+                        "simulated robot runs faster than real time and only records (refused with a real drive or camera: "
+                        "always on the wall clock)")
     p.add_argument("--live-view", action="store_true",
                    help="serve the live view to the Foxglove app (telemetry.live_view.enabled: true; "
                         "ws://127.0.0.1:8765 by default, docs/telemetry.md)")
@@ -75,8 +76,7 @@ def run(args) -> int:
     why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)
-    if args.realtime:
-        cfg.sim.realtime = True     # only the simulated drivers read it: hardware is always on the wall clock
+    apply_realtime(cfg, args.realtime)
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
     refuse_unserved_live_view(cfg, args.no_telemetry, "add --realtime")

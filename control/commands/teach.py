@@ -64,14 +64,14 @@ def run(args) -> int:
               f"recorded keyframes; delete it when it is not needed)", file=sys.stderr)
     robot = make_robot(cfg, with_camera=True)
     printer = ProgressPrinter()
-    result = Session(cfg, robot, record=args.record, progress=printer, record_overwrite=args.overwrite).teach(
-        teach_driver(cfg), out, overwrite=args.overwrite, duration_s=args.duration)
+    session = Session(cfg, robot, record=args.record, progress=printer, record_overwrite=args.overwrite)
+    result = session.teach(teach_driver(cfg), out, overwrite=args.overwrite, duration_s=args.duration)
     printer.done()
     if result.note:
         print(f"vbnav teach: note: {result.note}", file=sys.stderr)
     if result.complete:
         print(f"teach ended: {result.reason} ({result.message}); {result.keyframes} keyframes in {out}")
-        return 0
+        return 0 if session.recording_error is None else 1     # a --record asked for and not made
     where = (f"the route at {out} is unchanged; the {result.keyframes} keyframes recorded are in "
              f"{result.directory}" if result.directory != out else
              f"{out} holds {result.keyframes} keyframes, marked incomplete (teach again with --overwrite to "

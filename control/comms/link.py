@@ -137,6 +137,7 @@ class TelemetryLink:
         self._closed = False
         self._network_sink = None        # the ZenohSink: a put it raised means the session is gone
         self._network_lost = False
+        self._borrowed: Optional[_Borrowed] = None   # the recording shared with other runs (not closed here)
         self.recording_error: Optional[str] = None   # the recording failed (set by close, said on stderr)
 
     # ---- construction ----------------------------------------------------------------------
@@ -153,9 +154,11 @@ class TelemetryLink:
         robot = cfg.robot.name
         sinks, session, network_sink = [], None, None
         verify = _verifier(tcfg) if tcfg.enabled and network else None   # before anything is opened
+        borrowed = None
         if recorder is not None:
             recorder.new_segment(segment)
-            sinks.append(_Borrowed(recorder))
+            borrowed = _Borrowed(recorder)
+            sinks.append(borrowed)
             recorder = None
         elif record:  # first: a bad path fails before any network resource is opened
             from vbnav.control.comms.recording import McapRecorder
@@ -197,6 +200,7 @@ class TelemetryLink:
                                        image_width=tcfg.image_width, jpeg_quality=tcfg.jpeg_quality,
                                        now_ns=clock.now_ns)
         link = cls(runtime, tcfg, publisher, session, recorder)
+        link._borrowed = borrowed
         link.live_view = live_view
         link._network_sink = network_sink
         holder["link"] = link
@@ -388,6 +392,13 @@ class TelemetryLink:
         nothing about it, and its file is incomplete or left as PATH.part."""
         rec = self.recorder
         exc = self.publisher.sink_failures.get(rec) if rec is not None else None
+        if exc is None and self._borrowed is not None:      # a recording shared with other runs (the demo's)
+            exc = self.publisher.sink_failures.get(self._borrowed)
+            if exc is not None:
+                self.recording_error = repr(exc)
+                print(f"vbnav: the recording {self._borrowed._sink.path} is incomplete: writing this run's segment "
+                      f"failed ({exc}); it stays open for the runs that share it", file=sys.stderr)
+            return
         if exc is None:
             return
         # PATH.part while the recording was not closed; PATH only once it was renamed (with --overwrite, a PATH

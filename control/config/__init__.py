@@ -23,7 +23,7 @@ from pydantic import Field, PrivateAttr, ValidationError, field_validator, model
 from vbnav.drivers.calibration import CalibrationError, CameraCalibration, load_camera_calibration
 from vbnav.drivers.errors import yaml_problem
 from vbnav.drivers.plain_values import load_yaml
-from vbnav.control.config.base import ConfigError, Strict, format_errors
+from vbnav.control.config.base import ConfigError, Strict, format_errors, written
 from vbnav.control.config.obstacles import ObstaclesConfig
 from vbnav.control.config.telemetry import TelemetryConfig
 from vbnav.control.config.vbc import VBCConfig
@@ -44,7 +44,9 @@ class RobotConfig(Strict):
                                    "gear_ratio x 2 pi), which clips one wheel alone")
     max_linear_speed: float = Field(0.5, gt=0, description="forward speed limit, m/s; at most "
                                     "max_wheel_speed * wheel_radius")
-    max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s")
+    max_angular_speed: float = Field(1.5, gt=0, description="turn rate limit, rad/s; at most "
+                                     "2 * max_wheel_speed * wheel_radius / wheel_separation (on the spot: the "
+                                     "default is cut to it, a value written above it is refused)")
     max_linear_accel: float = Field(1.0, gt=0, description="forward acceleration limit, m/s^2")
     max_angular_accel: float = Field(4.0, gt=0, description="angular acceleration limit, rad/s^2")
 
@@ -87,10 +89,13 @@ class CameraConfig(Strict):
                                                              "camera plays at the recorded times or its "
                                                              "options.rate_hz, a v4l2 video file at its own rate "
                                                              "or options.replay_rate_hz; rate_hz only for a file "
-                                                             "that gives no rate)")
+                                                             "that gives no rate). Written for the replay camera "
+                                                             "or an OAK replay_file, which never read it: refused")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
                                                         "is an image that has not changed for this long "
-                                                        "while the wheels moved (a frozen camera)")
+                                                        "while the wheels moved (a frozen camera); above the "
+                                                        "frame period (plus the simulated vision latency): a "
+                                                        "limit every frame outlives is refused")
     mount: MountConfig = Field(default_factory=MountConfig, description="where the camera sits on the robot")
     options: dict[str, Any] = Field(default_factory=dict, description="driver-specific, see the driver's Options")
 
@@ -209,7 +214,9 @@ class LoopConfig(Strict):
 
 class SafetyConfig(Strict):
     command_timeout_s: float = Field(0.5, gt=0, description="teleop/network command silence that stops the robot")
-    estimate_timeout_s: float = Field(1.0, gt=0, description="vision estimate age that stops a vision controller")
+    estimate_timeout_s: float = Field(1.0, gt=0, description="vision estimate age that stops a vision controller; "
+                                      "above the frame period (plus the simulated vision latency): a limit every "
+                                      "estimate outlives is refused")
     release_s: float = Field(0.5, ge=0, le=10, description="s: a held stop (stale frame or "
                              "estimate) ends after its cause has been clear this long: a debounce, so "
                              "a flickering cause does not start and stop the wheels every cycle (a silent "
@@ -239,7 +246,9 @@ class SimConfig(Strict):
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
     encoder_ticks_per_rev: int = Field(4096, gt=0, description="encoder resolution, ticks per wheel turn")
     slip_std: float = Field(0.002, ge=0, description="wheel slip noise, m per sqrt(m) of wheel travel (random walk)")
-    vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate")
+    vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate, on the "
+                                      "simulated clock (on the wall clock the vision's own time is the latency: "
+                                      "written there, refused)")
     image_noise_std: float = Field(2.0, ge=0, description="grey levels")
     start_pose: list[float] = Field(
         default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
@@ -325,6 +334,12 @@ class Config(Strict):
         if r.max_linear_speed > r.max_wheel_speed * r.wheel_radius + 1e-9:
             raise ValueError(f"robot.max_linear_speed {r.max_linear_speed} m/s exceeds what the wheels can do "
                              f"(max_wheel_speed * wheel_radius = {r.max_wheel_speed * r.wheel_radius:.3f} m/s)")
+        turn = 2 * r.max_wheel_speed * r.wheel_radius / r.wheel_separation      # on the spot, wheels opposed
+        if r.max_angular_speed > turn + 1e-9:
+            if "max_angular_speed" in r.model_fields_set:
+                raise ValueError(f"robot.max_angular_speed {r.max_angular_speed:g} rad/s exceeds what the wheels can "
+                                 f"do (2 * max_wheel_speed * wheel_radius / wheel_separation = {turn:.3f} rad/s)")
+            r.max_angular_speed = turn      # the default, cut to what is driven (and what config show prints)
         return self
 
     @model_validator(mode="after")
@@ -338,19 +353,53 @@ class Config(Strict):
         return self
 
     @model_validator(mode="after")
-    def _cruise_speeds_within_the_robots_limit(self):
-        # A cruise speed written above the robot's limit was cut to it without a word; the defaults (not
-        # written) are cut as documented ("at most robot.max_linear_speed").
-        v_max = self.robot.max_linear_speed
-        for key, section in (("vbc.cruise_speed", self.vbc), ("vslam.goto.cruise_speed", self.vslam.goto)):
-            if section.cruise_speed <= v_max:
+    def _speeds_within_the_robots_limits(self):
+        # A controller's speed written above the robot's limit was cut to it by the limiter without a word; the
+        # defaults (not written) are cut as documented ("at most robot.max_linear_speed / max_angular_speed").
+        r, goto = self.robot, self.vslam.goto
+        limited = [("vbc", self.vbc, "cruise_speed", "max_linear_speed", "m/s"),
+                   ("vslam.goto", goto, "cruise_speed", "max_linear_speed", "m/s"),
+                   ("vslam.goto", goto, "final_turn_speed", "max_angular_speed", "rad/s")]
+        if self.vslam.metric_scale == "odometry":       # the only scale that creeps (else refused when written)
+            limited.append(("vslam.goto", goto, "init_creep_speed", "max_linear_speed", "m/s"))
+        for where, section, name, limit_name, unit in limited:
+            speed, limit = section.model_dump(include={name})[name], r.model_dump(include={limit_name})[limit_name]
+            if speed <= limit:
                 continue
-            if "cruise_speed" in section.model_fields_set:
-                raise ValueError(f"{key} {section.cruise_speed:g} m/s is above robot.max_linear_speed {v_max:g} m/s: "
-                                 f"it would be cut to {v_max:g} m/s (lower {key}, or raise the robot's limit)")
+            key = f"{where}.{name}"
+            if name in section.model_fields_set:
+                raise ValueError(f"{key} {speed:g} {unit} is above robot.{limit_name} {limit:g} {unit}: it would be "
+                                 f"cut to {limit:g} {unit} (lower {key}, or raise the robot's limit)")
             # the default, cut here rather than at use: 'vbnav config show' prints the speed driven, and what
             # it prints loads back
-            section.cruise_speed = v_max
+            setattr(section, name, limit)
+        # A proportional speed is held between a floor and a ceiling (kinematics.saturate, the ceiling wins): a
+        # floor at or above its ceiling makes the speed the ceiling all along, and the gain never applies.
+        # Crossed by a value written: the floor, or a ceiling other than the robot's limit (a default cut to the
+        # limit, which 'config show' then prints, is no choice of the user's).
+        for where, section, floor, ceiling, gain, limit in (
+                ("vbc", self.vbc, "approach_min_speed", "cruise_speed", "approach_gain", r.max_linear_speed),
+                ("vslam.goto", goto, "min_drive_speed", "cruise_speed", "k_rho", r.max_linear_speed),
+                ("vslam.goto", goto, "final_turn_min_speed", "final_turn_speed", "final_turn_gain",
+                 r.max_angular_speed)):
+            values = section.model_dump(include={floor, ceiling})
+            low, high = values[floor], values[ceiling]
+            chosen = written(section, floor) or (written(section, ceiling) and high != limit)
+            if low >= high and chosen:
+                raise ValueError(f"{where}.{floor} {low:g} is not below {where}.{ceiling} {high:g}: {where}.{gain} "
+                                 f"would never apply (the speed held at {ceiling} all along); lower {where}.{floor}")
+        return self
+
+    @model_validator(mode="after")
+    def _state_rate_within_the_loop_rate(self):
+        # A state is published from a loop cycle: at most one per cycle. A rate written above the loop's was sent
+        # at the loop's rate without a word; the default is cut to it (what is sent, and what show prints).
+        t, loop_hz = self.telemetry, self.loop.rate_hz
+        if t.state_rate_hz > loop_hz:
+            if "state_rate_hz" in t.model_fields_set:
+                raise ValueError(f"telemetry.state_rate_hz {t.state_rate_hz:g} Hz is above loop.rate_hz {loop_hz:g} Hz: "
+                                 f"a state is sent from a cycle, at most one per cycle (lower telemetry.state_rate_hz)")
+            t.state_rate_hz = loop_hz
         return self
 
     @model_validator(mode="after")
@@ -406,8 +455,17 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     except ValidationError as exc:
         raise ConfigError(format_errors(source, exc)) from None
     cfg.source = source
-    validate_driver_options(cfg, source)
+    camera_options = validate_driver_options(cfg, source)["camera"]
+    idle_rate = camera_rate_not_read(cfg, camera_options)
+    if idle_rate:
+        raise ConfigError(f"{source}: {idle_rate}")
+    idle_latency = simulated_latency_not_read(cfg)
+    if idle_latency:
+        raise ConfigError(f"{source}: {idle_latency}")
+    check_image_rate(cfg, camera_options, source)
+    check_stale_limit(cfg, camera_options, source)
     apply_calibration_file(cfg, source)
+    check_image_width(cfg, source)
     check_obstacle_baseline(cfg, source)
     refusal = cfg.camera.rectified_refusal("obstacles.enabled: the obstacle stage", "rectify the pair first, e.g. "
                                            "with a stereo calibration file") if cfg.obstacles.enabled else ""
@@ -417,7 +475,111 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     if no_pair:
         raise ConfigError(f"{source}: obstacles.source: sgbm matches the frames' stereo pair, and {no_pair}: "
                           f"set source: auto or disparity for a camera's own disparity, or use a stereo camera")
+    blind = no_disparity(cfg, camera_options) if cfg.obstacles.enabled and cfg.obstacles.source != "sgbm" else ""
+    if blind:
+        raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage (source {cfg.obstacles.source}) needs a "
+                          f"disparity or a stereo pair in every frame, and {blind}: every frame would be blind and the "
+                          f"robot held for good (use a stereo camera, or set obstacles.enabled: false)")
     return cfg
+
+
+def camera_rate_not_read(cfg: Config, options) -> str:
+    """Why ``camera.rate_hz`` written (other than its default) is never read by the configured camera, "" when
+    it is: the replay camera plays at the recorded times (or its options.rate_hz, a folder without times at
+    10 Hz), the OAK's host-only replay at its options.replay_fps."""
+    c = cfg.camera
+    if not written(c, "rate_hz"):
+        return ""
+    if c.driver == "replay":
+        instead = "camera.options.rate_hz (default: the recorded times, a folder of images 10 Hz)"
+    elif c.driver == "oak" and options.replay_file is not None:
+        instead = "camera.options.replay_fps"
+    else:
+        return ""
+    return (f"camera.rate_hz {c.rate_hz:g} Hz: the {c.driver} camera does not read it (a recording plays at its "
+            f"own rate); set the rate with {instead}, and remove camera.rate_hz")
+
+
+def camera_frame_rate(cfg: Config, options) -> Optional[tuple[float, str]]:
+    """(frames per second, the setting that gives it) of the configured camera, or None where only the
+    recording knows its rate (the replay camera, a V4L2 video file). ``options``: the camera's validated ones."""
+    c = cfg.camera
+    if c.driver == "oak" and options.replay_file is not None:
+        return options.replay_fps, "camera.options.replay_fps"
+    if c.driver in ("sim", "oak") or (c.driver == "v4l2" and not options.plays_a_file()):
+        return c.rate_hz, "camera.rate_hz"
+    return None
+
+
+def check_image_rate(cfg: Config, options, source: str) -> None:
+    """An image is sent from a camera frame, at most one a frame: telemetry.image_rate_hz written above the
+    camera's frame rate is refused (it was sent at the frame rate without a word); the default is cut to it
+    (what is sent, and what 'vbnav config show' prints)."""
+    t, known = cfg.telemetry, camera_frame_rate(cfg, options)
+    if known is None or t.image_rate_hz <= known[0]:
+        return
+    rate, field = known
+    if "image_rate_hz" in t.model_fields_set:
+        raise ConfigError(f"{source}: telemetry.image_rate_hz {t.image_rate_hz:g} Hz is above {field} {rate:g} Hz: "
+                          f"an image is sent from a camera frame, at most one a frame (lower telemetry.image_rate_hz)")
+    t.image_rate_hz = rate
+
+
+def check_stale_limit(cfg: Config, options, source: str) -> None:
+    """camera.stale_after_s or safety.estimate_timeout_s at or below the time a frame (and the estimates the stages
+    make of it, one a frame) may age before the next one comes (the frame period, plus the simulated vision latency
+    on the simulated clock) makes every frame or estimate stale before the next: the robot would be held for
+    good. Refused where the configuration gives the frame rate."""
+    known = camera_frame_rate(cfg, options)
+    if known is None:
+        return
+    rate, field = known
+    c, s = cfg.camera, cfg.sim
+    simulated = cfg.drive.driver == "sim" and c.driver == "sim" and not s.realtime    # the latency is added
+    latency = s.vision_latency_s if simulated else 0.0
+    bound = 1.0 / rate + latency
+
+    def secs(x: float) -> str:
+        return f"{x:.3f}".rstrip("0").rstrip(".")
+    for key, limit, what in (("camera.stale_after_s", c.stale_after_s, "frame"),
+                             ("safety.estimate_timeout_s", cfg.safety.estimate_timeout_s, "estimate")):
+        if limit > bound:
+            continue
+        raise ConfigError(f"{source}: {key} {limit:g} s is not above the time a frame may age before the next one "
+                          f"comes, {secs(bound)} s (the frame period {secs(1.0 / rate)} s at {field} {rate:g} Hz"
+                          + (f", plus sim.vision_latency_s {latency:g} s" if latency else "") + f"): every {what} "
+                          f"would go stale before the next and the robot be held for good (raise {key})")
+
+
+def check_image_width(cfg: Config, source: str) -> None:
+    """JPEG frames are scaled down to telemetry.image_width, never up: one written above the camera's width (its
+    calibration file's, when it has one) is refused; the default is cut to a narrower camera's width."""
+    t, width = cfg.telemetry, cfg.camera.width
+    if t.image_width <= width:
+        return
+    if "image_width" in t.model_fields_set:
+        raise ConfigError(f"{source}: telemetry.image_width {t.image_width} px is above camera.width {width} px: "
+                          f"images are scaled down to it, never up (lower telemetry.image_width)")
+    t.image_width = width
+
+
+def simulated_latency_not_read(cfg: Config) -> str:
+    """Why ``sim.vision_latency_s`` written (other than its default) is never read, "" when it is: the simulated
+    latency is added to the estimates on the simulated clock only; on the wall clock (sim.realtime, or a camera
+    that is not simulated) the vision thread's own time is the latency. With a real drive the simulator is off
+    and its section kept, unread, as a feature switched off."""
+    s = cfg.sim
+    if cfg.drive.driver != "sim" or not written(s, "vision_latency_s"):
+        return ""
+    if cfg.camera.driver != "sim":
+        why = f"camera.driver {cfg.camera.driver}"
+    elif s.realtime:
+        why = "sim.realtime: true"
+    else:
+        return ""
+    return (f"sim.vision_latency_s {s.vision_latency_s:g} s: the simulated latency is added on the simulated clock "
+            f"only, and {why} runs the robot on the wall clock, where the vision thread's own time is the latency "
+            f"(remove sim.vision_latency_s)")
 
 
 #: Camera drivers whose frames never carry a right image (the OAK's carry its own disparity instead).
@@ -434,6 +596,17 @@ def no_right_image(cfg: Config) -> str:
         return ("the simulated camera renders a right image only with a stereo baseline (camera.options."
                 "stereo_baseline or a stereo camera.calibration_file), and it has none")
     return ""
+
+
+def no_disparity(cfg: Config, options) -> str:
+    """Why the configured camera's frames carry neither a disparity nor a right image, "" when they do or may
+    (a replayed recording has a right image when its folder does). ``options``: the camera's validated options."""
+    c = cfg.camera
+    if c.driver == "oak" and options.replay_file is not None:
+        return "camera.options.replay_file replays images only (no disparity, no right image)"
+    if c.driver == "oak" and not options.disparity:
+        return "camera.options.disparity: false turns the OAK's disparity off (and it gives no right image)"
+    return no_right_image(cfg) if c.driver != "oak" else ""
 
 
 def calibration_path(cfg: Config, source: str) -> Optional[Path]:

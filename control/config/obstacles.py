@@ -47,7 +47,8 @@ def _default_zones() -> list[ZoneConfig]:
 
 
 class ObstaclesConfig(Strict):
-    enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera)")
+    enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera: refused at load for "
+                                               "one whose frames carry neither a disparity nor a right image)")
     source: Literal["auto", "disparity", "sgbm"] = Field(
         "auto", description="disparity: the frames' own (OAK); sgbm: computed from the stereo pair (refused for a "
                             "camera whose frames have no right image); auto: the frames' own if present, else sgbm")

@@ -91,10 +91,15 @@ class TelemetryConfig(Strict):
     """The ``telemetry:`` section of a robot configuration."""
 
     enabled: bool = Field(True, description="open a zenoh session, publish telemetry, accept commands")
-    state_rate_hz: float = Field(20.0, gt=0, le=1000, description="rate of vbnav/<robot>/state")
+    state_rate_hz: float = Field(20.0, gt=0, le=1000, description="rate of vbnav/<robot>/state, at most loop.rate_hz "
+                                 "(one a cycle: the default is cut to it, a value written above it is refused)")
     image_rate_hz: float = Field(2.0, ge=0, le=60, description="rate of vbnav/<robot>/image JPEGs (and in "
-                                                                "recordings); 0 = off")
-    image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled to this width, px")
+                                                                "recordings); 0 = off; at most the camera's frame "
+                                                                "rate (one a frame: the default is cut to it, a "
+                                                                "value written above it is refused)")
+    image_width: int = Field(320, ge=16, le=4096, description="JPEG frames are scaled down to this width, px, at most "
+                             "camera.width (never up: the default is cut to it, a value written above it is "
+                             "refused)")
     jpeg_quality: int = Field(70, ge=10, le=100, description="JPEG quality of those images")
     listen: list[str] = Field(default_factory=lambda: [DEFAULT_ENDPOINT], max_length=8,
                               description="zenoh endpoints the robot listens on")

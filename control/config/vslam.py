@@ -19,13 +19,17 @@ class GotoConfig(Strict):
     position_tolerance_m: float = Field(0.01, gt=0, description="goal reached within this distance (estimate)")
     heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
     approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
-    final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot")
+    final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot, at "
+                                    "most robot.max_angular_speed (the default is cut to it; a value written "
+                                    "above it is refused)")
     settle_s: float = Field(0.3, ge=0, description="stopped this long within tolerance before finishing")
     fix_gain: float = Field(0.5, gt=0, le=1, description="share of a new VSLAM pose's correction applied at once")
     max_estimate_age_s: float = Field(0.5, gt=0, description="older VSLAM poses are not used by the controller")
     blind_distance_m: float = Field(0.3, ge=0, description="distance driven on odometry alone before stopping")
     init_creep_speed: float = Field(0.1, ge=0, description="m/s straight ahead while a monocular VSLAM waits for "
-                                                           "the parallax to initialise (at most blind_distance_m)")
+                                                           "the parallax to initialise (at most blind_distance_m), "
+                                                           "at most robot.max_linear_speed (the default is cut "
+                                                           "to it; a value written above it is refused)")
     min_drive_speed: float = Field(0.04, gt=0, description="m/s: floor of the drive speed k_rho * distance, so "
                                    "the last centimetres do not take forever (0.6/s reaches it at 6.7 cm)")
     redrive_factor: float = Field(2.0, ge=1, description="turning or settling, the robot drives again when "

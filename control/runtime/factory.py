@@ -107,6 +107,31 @@ def check_wheel_speed_limit(cfg: Config, drive) -> None:
                           f"max_linear_speed) or raise the drive's limit")
 
 
+def check_drive_watchdog(cfg: Config, drive) -> None:
+    """Raise ConfigError when the drive's own watchdog (it stops the wheels after that long without a packet) is
+    shorter than two loop periods: the loop writes once a cycle, so it would expire between two cycles, or at
+    the first late one, and hold the robot (drive_lost) for good."""
+    own = drive.watchdog
+    period = 1.0 / cfg.loop.rate_hz
+    if own is not None and own[0] < 2 * period - 1e-9:
+        raise ConfigError(f"{cfg.source or '<config>'}: {own[1]} {own[0]:g} s is below two loop periods, "
+                          f"{2 * period:g} s (loop.rate_hz {cfg.loop.rate_hz:g} Hz): the loop writes once a cycle, "
+                          f"and the drive would stop the wheels between two cycles or at the first late one (raise "
+                          f"{own[1]}, or loop.rate_hz)")
+
+
+def check_devices(cfg: Config) -> None:
+    """Raise what ``make_robot`` raises of this configuration before any device opens: the drive and the camera
+    built from it (not connected: nothing is opened or moved) refuse their settings, and the drive's own wheel
+    speed limit is checked. What 'vbnav config check' calls "valid" is what a run takes."""
+    clock = make_clock(cfg)
+    opts = validate_driver_options(cfg, cfg.source or "<config>")
+    drive = make_drive(cfg, clock, opts["drive"])
+    make_camera(cfg, clock, drive, opts["camera"])
+    check_wheel_speed_limit(cfg, drive)
+    check_drive_watchdog(cfg, drive)
+
+
 def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, run: int = 0) -> Robot:
     """The robot of a configuration, with a pipeline running ``stages`` (plus the enabled safety stages).
 
@@ -122,4 +147,5 @@ def make_robot(cfg: Config, stages=(), with_camera: Optional[bool] = None, run: 
     camera = make_camera(cfg, clock, drive, opts["camera"], world, run) if want_camera else None
     pipeline = make_pipeline(cfg, clock, camera, list(stages)) if camera is not None else None
     check_wheel_speed_limit(cfg, drive)
+    check_drive_watchdog(cfg, drive)
     return Robot(clock, drive, camera, pipeline, world, cfg.sim.start() if simulated else None)
