@@ -161,3 +161,15 @@ def test_the_right_image_is_searched_only_when_a_left_run_remains(monkeypatch):
     lxy, rxy = vertical_lines(left, right, up, F, F, 319.5, 239.5, LineParams(), left_xy=np.zeros((1, 4)))
     assert len(lxy) == 0 and len(rxy) == 0
     assert len(calls) == 1
+
+
+def test_each_image_of_a_pair_has_its_gradient_computed_once(monkeypatch):
+    # The re-fit of both images' LSD segments, the edge search (both images, and its right re-fit) and the
+    # vertical lines (both images) read the same 3x3 Sobel gradients: one x and one y per image.
+    left, right = _corner_pair()
+    calls = []
+    sobel = cv2.Sobel
+    monkeypatch.setattr(cv2, "Sobel", lambda *a, **kw: calls.append(a[2:4]) or sobel(*a, **kw))
+    res = reconstruct_pair(left, right, F, F, 319.5, 239.5, B, LineParams(), vertical=np.array([0.0, 1.0, 0.0]))
+    assert _corner_rows(res) >= 400                    # the vertical lines and the edge search ran
+    assert sorted(calls) == [(0, 1), (0, 1), (1, 0), (1, 0)]
