@@ -5,7 +5,8 @@ import cv2
 import numpy as np
 
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
-from vbnav.vision.line_vertical import pencil_map
+import vbnav.vision.line_vertical as line_vertical
+from vbnav.vision.line_vertical import pencil_map, pencil_runs, vertical_lines
 
 F, B = 400.0, 0.1
 D_BOX, D_WALL, EDGE_X = 40, 10, 300         # disparities (px) and the box corner's column in the left image
@@ -74,3 +75,101 @@ def test_a_pitched_camera_resamples_the_pencil_to_columns():
         cross = d[:, 0] * d[0, 1] - d[:, 1] * d[0, 0]
         assert np.abs(cross / np.linalg.norm(d, axis=1) / np.linalg.norm(d[0])).max() < 1e-4
     assert pencil_map(np.array([0.0, 1.0, 0.0]), F, F, 319.5, 239.5, 640, 480) is None
+
+
+def _runs_by_bincount(image: np.ndarray, params: LineParams, noise: float) -> np.ndarray:
+    """pencil_runs as first written (full-image float64 bincounts of the ridges' support, weight and
+    position sums; every column's runs): the reference the faster version must reproduce bit for bit."""
+    g = image.astype(np.float32)
+    H, W = g.shape
+    M = np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125))
+    thr = params.vertical_k_sigma * line_vertical.SOBEL_NOISE_GAIN * noise
+    ridge = (M >= cv2.dilate(M, np.ones((1, 3), np.uint8))) & (M > thr)
+    ridge &= np.abs(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)) < M
+    ridge[:, :2] = ridge[:, -2:] = False
+    yy, xx = np.nonzero(ridge)
+    flat = yy * W + xx
+    Mf = M.ravel()
+    am, bm, cm = Mf[flat - 1], Mf[flat], Mf[flat + 1]
+    curv = am - 2.0 * bm + cm
+    o = np.where(curv < 0, 0.5 * (am - cm) / np.where(curv < 0, curv, -1.0), 0.0)
+    tol = params.vertical_tol_px
+    right, left = o >= 1.0 - tol, o <= tol - 1.0
+    idx = np.concatenate((flat, flat[right] + 1, flat[left] - 1))
+    w = np.concatenate((bm, bm[right], bm[left]))
+    pos = np.concatenate((xx + o, (xx + o)[right], (xx + o)[left]))
+    S = np.bincount(idx, minlength=H * W).reshape(H, W).astype(np.uint8)
+    Wt = np.bincount(idx, w, minlength=H * W).reshape(H, W)
+    Wp = np.bincount(idx, w * pos, minlength=H * W).reshape(H, W)
+    gap = int(params.vertical_gap_px)
+    C = cv2.morphologyEx((S > 0).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((2 * ((gap + 1) // 2) + 1, 1), np.uint8))
+    L = int(np.ceil(params.min_length_px))
+    cand = np.nonzero(cv2.erode(C, np.ones((2 * (L // 2) + 1, 1), np.uint8)).any(axis=0))[0]
+    d = np.diff(np.pad(C[:, cand], ((1, 1), (0, 0))).astype(np.int8), axis=0).T
+    k0, r0 = np.nonzero(d == 1)
+    _, r1 = np.nonzero(d == -1)
+    r1 = r1 - 1
+    keep = (r1 - r0 + 1) >= params.min_length_px
+    cs, r0, r1 = cand[k0[keep]], r0[keep], r1[keep]
+    cols, ci = np.unique(cs, return_inverse=True)
+    rows = np.arange(H, dtype=np.float64)[:, None]
+    Sc, Wc, Pc = S[:, cols].astype(np.float64), Wt[:, cols].astype(np.float64), Wp[:, cols].astype(np.float64)
+
+    def span(img):
+        cum = np.vstack((np.zeros((1, img.shape[1])), np.cumsum(img, axis=0)))
+        return cum[r1 + 1, ci] - cum[r0, ci]
+
+    n, sw, swp = span(Sc), span(Wc), span(Pc)
+    swr, swrr, swrp = span(Wc * rows), span(Wc * rows * rows), span(Pc * rows)
+    length = r1 - r0 + 1
+    ok = 2 * n >= length
+    sw = np.maximum(sw, 1e-9)
+    rbar, pbar = swr / sw, swp / sw
+    slope = (swrp - rbar * swp) / np.maximum(swrr - rbar * swr, 1e-9)
+    ok &= np.abs(slope) * length <= 3.0 * params.sigma_perp_px * np.sqrt(12.0 / np.maximum(n, 1))
+    runs = np.column_stack((pbar, r0, r1, sw / np.maximum(n, 1)))[ok]
+    near = (np.abs(runs[:, None, 0] - runs[None, :, 0]) <= 1.0) & \
+        (np.minimum(runs[:, None, 2], runs[None, :, 2]) >= np.maximum(runs[:, None, 1], runs[None, :, 1]))
+    total = runs[:, 3] * (runs[:, 2] - runs[:, 1] + 1)
+    i = np.arange(len(runs))
+    beaten = near & ((total[None, :] > total[:, None]) | ((total[None, :] == total[:, None]) & (i[None, :] < i[:, None])))
+    return runs[~beaten.any(axis=1)]
+
+
+def test_the_runs_are_those_of_the_full_image_bincounts_bit_for_bit():
+    # The scatters that replaced the full-image float64 bincounts add the same terms in the same order.
+    params = LineParams()
+    left, right = _corner_pair()
+    p = np.radians(10.0)
+    maps = pencil_map(np.array([0.0, np.cos(p), np.sin(p)]), F, F, 319.5, 239.5, 640, 480)
+    pitched = cv2.remap(left.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    for im in (left.astype(np.float32), right.astype(np.float32), pitched):   # whole and sub-grey levels
+        noise = line_vertical.noise_sigma(im)
+        got, want = pencil_runs(im, params, noise), _runs_by_bincount(im, params, noise)
+        assert len(want) > 0 and np.array_equal(got, want)
+
+
+def test_the_right_image_is_searched_only_when_a_left_run_remains(monkeypatch):
+    # Every left run is a step of a slanted LSD segment: nothing can be matched, so the right image's runs
+    # (half the cost) are not computed.
+    left, right = _corner_pair()
+    calls = []
+    runs = line_vertical.pencil_runs
+    monkeypatch.setattr(line_vertical, "pencil_runs", lambda im, *a: calls.append(1) or runs(im, *a))
+    monkeypatch.setattr(line_vertical, "slanted", lambda run_xy, seg_xy, params: np.ones(len(run_xy), bool))
+    up = np.array([0.0, 1.0, 0.0])
+    lxy, rxy = vertical_lines(left, right, up, F, F, 319.5, 239.5, LineParams(), left_xy=np.zeros((1, 4)))
+    assert len(lxy) == 0 and len(rxy) == 0
+    assert len(calls) == 1
+
+
+def test_each_image_of_a_pair_has_its_gradient_computed_once(monkeypatch):
+    # The re-fit of both images' LSD segments, the edge search (both images, and its right re-fit) and the
+    # vertical lines (both images) read the same 3x3 Sobel gradients: one x and one y per image.
+    left, right = _corner_pair()
+    calls = []
+    sobel = cv2.Sobel
+    monkeypatch.setattr(cv2, "Sobel", lambda *a, **kw: calls.append(a[2:4]) or sobel(*a, **kw))
+    res = reconstruct_pair(left, right, F, F, 319.5, 239.5, B, LineParams(), vertical=np.array([0.0, 1.0, 0.0]))
+    assert _corner_rows(res) >= 400                    # the vertical lines and the edge search ran
+    assert sorted(calls) == [(0, 1), (0, 1), (1, 0), (1, 0)]

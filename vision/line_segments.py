@@ -186,13 +186,13 @@ def grey(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def detect_segments(image: np.ndarray, params: LineParams = LineParams()) -> Segments2D:
+def detect_segments(image: np.ndarray, params: LineParams = LineParams(), grad: Optional[tuple] = None) -> Segments2D:
     """LSD segments at least ``min_length_px`` long, their lines re-fitted at full resolution, with their
     side grey levels.
 
     LSD's cost grows with the pixels it visits, so it runs on the image scaled by ``detect_scale``; that
     costs its across-line accuracy (Middlebury median 0.22 -> 0.36 px at 0.5), which ``refine_lines``
-    restores from the full-resolution gradient.
+    restores from the full-resolution gradient. ``grad``: ``gradients(grey(image))``, if the caller has them.
     """
     g = grey(image)
     found = _detector(params.detect_scale, params.lsd_angle_deg).detect(g)[0]
@@ -200,17 +200,18 @@ def detect_segments(image: np.ndarray, params: LineParams = LineParams()) -> Seg
     length = np.hypot(xy[:, 2] - xy[:, 0], xy[:, 3] - xy[:, 1])
     xy = xy[length >= params.min_length_px]
     if params.refine_radius_px > 0:
-        xy = refine_lines(g, xy, params)
+        xy = refine_lines(g, xy, params, grad)
     return Segments2D(xy, side_means(g, xy, params))
 
 
-def refine_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams()) -> np.ndarray:
+def refine_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams(),
+                 grad: Optional[tuple] = None) -> np.ndarray:
     """See ``refit_lines``: the refined segments (a segment without enough gradient peaks keeps LSD's line)."""
-    return refit_lines(image, xy, params)[0]
+    return refit_lines(image, xy, params, grad=grad)[0]
 
 
 def refit_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams(), radius_px: float = None,
-                either_polarity: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                either_polarity: bool = False, grad: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray]:
     """Each segment moved across itself onto the full-resolution edge (endpoints stay where they are along it).
 
     At ``refine_samples`` points spread along the segment the gradient across the line (3x3 Sobel,
@@ -219,14 +220,13 @@ def refit_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LinePara
     peaks (weighted by their strength, peaks more than 0.5 px off the first fit dropped) moves the endpoints.
     A segment with fewer than a quarter of its samples on a peak keeps LSD's line. ``either_polarity``:
     the gradient's magnitude across the line is fitted (an occluding boundary's contrast changes sign where
-    the background changes). Returns the segments and (N,) bool: re-fitted.
+    the background changes). ``grad``: ``gradients(image)``, if the caller has them. Returns the segments
+    and (N,) bool: re-fitted.
     """
     n_seg = len(xy)
     if n_seg == 0:
         return xy, np.zeros(0, bool)
-    g = image.astype(np.float32)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    gx, gy = gradients(image) if grad is None else grad
     k = params.refine_samples
     r = int(round(params.refine_radius_px if radius_px is None else radius_px))
     t = (np.arange(k) + 0.5) / k                                       # (k,) along the segment
@@ -289,10 +289,10 @@ def side_means(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParam
     d = (xy[:, 2:4] - xy[:, 0:2])
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     nrm = np.column_stack((d[:, 1], -d[:, 0]))[:, None, :]        # left of travel in image coords (y down)
-    out = []
+    out, g = [], np.asarray(image, np.float32)
     for sign in (1.0, -1.0):
         q = (pts + sign * params.side_offset_px * nrm).astype(np.float32)
-        vals = cv2.remap(image.astype(np.float32), q[..., 0], q[..., 1], cv2.INTER_LINEAR,
+        vals = cv2.remap(g, q[..., 0], q[..., 1], cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)
         out.append(vals.mean(axis=1))
     return np.column_stack(out).astype(np.float64)
@@ -391,13 +391,15 @@ def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out.ravel()[:n].reshape(x.shape)
 
 
-def _across_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    g = image.astype(np.float32)
+def gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The image's gradient (3x3 Sobel / 8, float32) along x and y: computed once per image of a pair and
+    given to the steps that read it (re-fit, edge search, vertical lines)."""
+    g = np.asarray(image, np.float32)
     return (cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125))
 
 
 def match_edges(left_image: np.ndarray, right_image: np.ndarray, left: Segments2D, todo: np.ndarray,
-                params: LineParams = LineParams()) -> tuple[np.ndarray, np.ndarray]:
+                params: LineParams = LineParams(), grads: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray]:
     """Partners in the right image for the left segments ``todo`` (indices) that LSD found none for.
 
     At an occluding boundary the background differs between the two images, so the edge's contrast changes
@@ -412,7 +414,8 @@ def match_edges(left_image: np.ndarray, right_image: np.ndarray, left: Segments2
     line is then re-fitted to the gradient's magnitude (``refit_lines``, 2 px either side) and kept if it
     moved at most ``edge_refit_px`` from the searched disparity at both ends.
 
-    Returns the right segments' ``xy`` (K, 4) and the left index of each (K,).
+    ``grads``: ``gradients`` of both images' grey levels, if the caller has them. Returns the right
+    segments' ``xy`` (K, 4) and the left index of each (K,).
     """
     todo = np.asarray(todo, int)
     none = np.zeros((0, 4)), np.zeros(0, int)
@@ -426,8 +429,7 @@ def match_edges(left_image: np.ndarray, right_image: np.ndarray, left: Segments2
     k = params.edge_samples
     t = (np.arange(k) + 0.5) / k
     q = xy[:, None, 0:2] + (xy[:, None, 2:4] - xy[:, None, 0:2]) * t[None, :, None]      # (N, k, 2)
-    lgx, lgy = _across_gradient(L)
-    rgx, rgy = _across_gradient(R)
+    (lgx, lgy), (rgx, rgy) = (gradients(L), gradients(R)) if grads is None else grads
     strength = np.abs(_sample(lgx, q[..., 0], q[..., 1]) * nrm[:, None, 0]
                       + _sample(lgy, q[..., 0], q[..., 1]) * nrm[:, None, 1]).mean(axis=1)   # (N,)
     D = np.arange(math.ceil(params.min_disparity_px), math.floor(params.max_disparity_px) + 1, dtype=np.float64)
@@ -455,7 +457,7 @@ def match_edges(left_image: np.ndarray, right_image: np.ndarray, left: Segments2
     if len(n_idx) == 0:
         return none
     shifted = xy[n_idx] - D[d_idx][:, None] * np.array([1.0, 0.0, 1.0, 0.0])
-    fit, ok = refit_lines(R, shifted, params, radius_px=2.0, either_polarity=True)
+    fit, ok = refit_lines(R, shifted, params, radius_px=2.0, either_polarity=True, grad=(rgx, rgy))
     moved = np.abs(fit - shifted)[:, [0, 2]].max(axis=1)
     keep = ok & (moved <= params.edge_refit_px)
     return fit[keep], todo[n_idx[keep]]
@@ -538,25 +540,27 @@ def reconstruct_pair(left_image: np.ndarray, right_image: np.ndarray, fx: float,
     vertical: the world's vertical (3,) in the left camera frame, when the camera's orientation is known;
     with ``params.vertical_search`` the vertical lines of ``vision/line_vertical.py`` are added.
     """
-    ls, rs = detect_segments(left_image, params), detect_segments(right_image, params)
+    grads = gradients(grey(left_image)), gradients(grey(right_image))     # each step reads the same ones
+    ls, rs = detect_segments(left_image, params, grads[0]), detect_segments(right_image, params, grads[1])
     prior = prior_fn(ls) if prior_fn is not None else None
     m = match_stereo(ls, rs, params, prior)
     if params.edge_search:
-        rs, m = _add_edge_matches(left_image, right_image, ls, rs, m, params)
+        rs, m = _add_edge_matches(left_image, right_image, ls, rs, m, params, grads)
     if vertical is not None and params.vertical_search:
         from vbnav.vision.line_vertical import add_vertical_matches
-        ls, rs, m = add_vertical_matches(left_image, right_image, ls, rs, m, vertical, fx, fy, cx, cy, params)
+        ls, rs, m = add_vertical_matches(left_image, right_image, ls, rs, m, vertical, fx, fy, cx, cy, params,
+                                         grads)
     return StereoLines(ls, rs, m, triangulate(ls, rs, m, fx, fy, cx, cy, baseline, params, doffs))
 
 
 def _add_edge_matches(left_image: np.ndarray, right_image: np.ndarray, ls: Segments2D, rs: Segments2D,
-                      m: StereoMatches, params: LineParams) -> tuple[Segments2D, StereoMatches]:
+                      m: StereoMatches, params: LineParams, grads: Optional[tuple] = None) -> tuple[Segments2D, StereoMatches]:
     """The right segments and matches with ``match_edges``' partners of the steep left segments LSD left
     unmatched appended (each its left segment's only, best candidate; score: its appearance as in
     ``match_stereo``)."""
     steep = np.abs(ls.direction[:, 1]) >= math.sin(math.radians(params.min_epipolar_angle_deg))
     todo = np.nonzero(steep & ~np.isin(np.arange(len(ls)), m.left))[0]
-    rxy, li = match_edges(left_image, right_image, ls, todo, params)
+    rxy, li = match_edges(left_image, right_image, ls, todo, params, grads)
     if len(li) == 0:
         return rs, m
     sides = side_means(grey(right_image), rxy, params)

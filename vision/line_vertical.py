@@ -43,7 +43,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from vbnav.vision.line_segments import LineParams, Segments2D, StereoMatches, _sample, _x_at, grey, side_means
+from vbnav.vision.line_segments import LineParams, Segments2D, StereoMatches, _sample, _x_at, gradients, grey, side_means
 
 SOBEL_NOISE_GAIN = math.sqrt(12.0) / 8.0      # 3x3 Sobel / 8 of iid noise: sigma x sqrt(1+4+1+1+4+1) / 8
 
@@ -71,37 +71,44 @@ def pencil_map(vertical: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     return mx.astype(np.float32), np.ascontiguousarray(my, np.float32)
 
 
-def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Optional[float] = None) -> np.ndarray:
+def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Optional[float] = None,
+                grad: Optional[tuple] = None) -> np.ndarray:
     """Runs along the columns of a (pencil-resampled) grey image: (K, 4) column (sub-pixel), first row,
     last row, strength (mean magnitude across the line over the supported rows). ``noise``: the image
-    noise sigma (default: ``noise_sigma`` of this image)."""
-    g = image.astype(np.float32)
+    noise sigma (default: ``noise_sigma`` of this image); ``grad``: its ``gradients``, if the caller has them."""
+    g = np.asarray(image, np.float32)
     H, W = g.shape
-    M = np.abs(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=0.125))
+    gx, gy = gradients(g) if grad is None else grad
+    M = np.abs(gx)
     thr = params.vertical_k_sigma * SOBEL_NOISE_GAIN * (noise_sigma(g) if noise is None else noise)
     # Local maxima along the rows, above the noise, where the gradient points across the columns (within
     # 45 deg: the edge itself runs within 45 deg of the pencil's line).
     ridge = (M >= cv2.dilate(M, np.ones((1, 3), np.uint8))) & (M > thr)
-    ridge &= np.abs(cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)) < M
+    ridge &= np.abs(gy) < M
     ridge[:, :2] = ridge[:, -2:] = False                                         # the Sobel's border columns
-    yy, xx = np.nonzero(ridge)
-    if len(yy) == 0:
+    flat = np.flatnonzero(ridge)
+    if len(flat) == 0:
         return np.zeros((0, 4))
-    flat = yy * W + xx
     Mf = M.ravel()
     am, bm, cm = Mf[flat - 1], Mf[flat], Mf[flat + 1]
     curv = am - 2.0 * bm + cm
     o = np.where(curv < 0, 0.5 * (am - cm) / np.where(curv < 0, curv, -1.0), 0.0)     # sub-pixel offset
     # A ridge at column x + o supports each column within vertical_tol_px of it: x itself (|o| <= 0.5), and
-    # x + 1 or x - 1 when o is within tol of it. Support S, weight (|gradient|) and weighted position sums.
+    # x + 1 or x - 1 when o is within tol of it. Support S, weight (|gradient|) and weighted position sums
+    # (a ridge's own column first, then its neighbours': each pixel holds one ridge, so the scatters below
+    # add no index twice).
     tol = params.vertical_tol_px
     right, left = o >= 1.0 - tol, o <= tol - 1.0
-    idx = np.concatenate((flat, flat[right] + 1, flat[left] - 1))
-    w = np.concatenate((bm, bm[right], bm[left]))
-    pos = np.concatenate((xx + o, (xx + o)[right], (xx + o)[left]))
-    S = np.bincount(idx, minlength=H * W).reshape(H, W).astype(np.uint8)
-    Wt = np.bincount(idx, w, minlength=H * W).reshape(H, W)
-    Wp = np.bincount(idx, w * pos, minlength=H * W).reshape(H, W)
+    pos = (flat % W) + o
+    bw = bm.astype(np.float64)
+    S, Wt, Wp = np.zeros(H * W, np.uint8), np.zeros(H * W), np.zeros(H * W)
+    S[flat], Wt[flat], Wp[flat] = 1, bw, bw * pos
+    for side, step in ((right, 1), (left, -1)):
+        k = flat[side] + step
+        S[k] += 1
+        Wt[k] += bw[side]
+        Wp[k] += bw[side] * pos[side]
+    S, Wt, Wp = S.reshape(H, W), Wt.reshape(H, W), Wp.reshape(H, W)
     # Runs: supported rows with gaps of at most vertical_gap_px (a morphological closing along the columns).
     gap = int(params.vertical_gap_px)
     B = (S > 0).astype(np.uint8)
@@ -111,7 +118,9 @@ def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Opt
     cand = np.nonzero(long.any(axis=0))[0]                                        # columns holding a run
     if len(cand) == 0:
         return np.zeros((0, 4))
-    d = np.diff(np.pad(C[:, cand], ((1, 1), (0, 0))).astype(np.int8), axis=0).T  # (cols, H + 1)
+    D = np.zeros((len(cand), H + 2), np.int8)                                     # the columns, padded
+    D[:, 1:-1] = cv2.transpose(C)[cand]
+    d = D[:, 1:] - D[:, :-1]                                                      # (cols, H + 1)
     k0, r0 = np.nonzero(d == 1)                                                  # sorted by column, then row
     _, r1 = np.nonzero(d == -1)
     r1 = r1 - 1
@@ -121,10 +130,11 @@ def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Opt
         return np.zeros((0, 4))
     cols, ci = np.unique(cs, return_inverse=True)
     rows = np.arange(H, dtype=np.float64)[:, None]
-    Sc, Wc, Pc = S[:, cols].astype(np.float64), Wt[:, cols].astype(np.float64), Wp[:, cols].astype(np.float64)
+    Sc, Wc, Pc = S[:, cols].astype(np.float64), Wt[:, cols], Wp[:, cols]
+    cum = np.zeros((H + 1, len(cols)))
 
     def span(img):                                   # sums over each run's rows [r0, r1]
-        cum = np.vstack((np.zeros((1, img.shape[1])), np.cumsum(img, axis=0)))
+        np.cumsum(img, axis=0, out=cum[1:])
         return cum[r1 + 1, ci] - cum[r0, ci]
 
     n, sw, swp = span(Sc), span(Wc), span(Pc)
@@ -170,21 +180,27 @@ def _to_image(runs: np.ndarray, maps) -> np.ndarray:
 
 def vertical_lines(left_image: np.ndarray, right_image: np.ndarray, vertical: np.ndarray, fx: float, fy: float,
                    cx: float, cy: float, params: LineParams = LineParams(),
-                   left_xy: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+                   left_xy: Optional[np.ndarray] = None, grads: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray]:
     """Matched vertical lines of a rectified pair: left and right image segments (K, 4) on the same rows.
-    ``left_xy``: the left image's LSD segments; a run that is a step of one of them is dropped (``slanted``)."""
+    ``left_xy``: the left image's LSD segments; a run that is a step of one of them is dropped (``slanted``).
+    ``grads``: ``gradients`` of both images' grey levels, if the caller has them (used for a level camera,
+    whose pencil is the columns: no resampling)."""
     L, R = grey(left_image).astype(np.float32), grey(right_image).astype(np.float32)
     H, W = L.shape
     maps = pencil_map(vertical, fx, fy, cx, cy, W, H)
     if maps is not None:
+        grads = None                             # the resampled images' gradients are not the images'
         L = cv2.remap(L, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         R = cv2.remap(R, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     noise = noise_sigma(L)                       # one camera pair: one noise level
-    lr, rr = pencil_runs(L, params, noise), pencil_runs(R, params, noise)
+    lr = pencil_runs(L, params, noise, grads and grads[0])
     if left_xy is not None and len(lr) and len(left_xy):
         lr = lr[~slanted(_to_image(lr, maps), left_xy, params)]
     none = np.zeros((0, 4)), np.zeros((0, 4))
-    if len(lr) == 0 or len(rr) == 0:
+    if len(lr) == 0:                             # nothing to match: the right image's runs are not needed
+        return none
+    rr = pencil_runs(R, params, noise, grads and grads[1])
+    if len(rr) == 0:
         return none
     li, ri = match_vertical(L, R, lr, rr, params)
     if len(li) == 0:
@@ -269,12 +285,12 @@ def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
 
 def add_vertical_matches(left_image: np.ndarray, right_image: np.ndarray, ls: Segments2D, rs: Segments2D,
                          m: StereoMatches, vertical: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                         params: LineParams) -> tuple[Segments2D, Segments2D, StereoMatches]:
+                         params: LineParams, grads: Optional[tuple] = None) -> tuple[Segments2D, Segments2D, StereoMatches]:
     """Both images' segments and the matches with the matched vertical lines appended (each its own left
     segment's only, best candidate; score: its appearance, as the edge search's). A match already found
     for a left segment lying along a vertical line (1 px at both ends, within its rows) with the same
     disparity (1 px) is the same edge, seen shorter: it is dropped."""
-    lxy, rxy = vertical_lines(left_image, right_image, vertical, fx, fy, cx, cy, params, ls.xy)
+    lxy, rxy = vertical_lines(left_image, right_image, vertical, fx, fy, cx, cy, params, ls.xy, grads)
     if len(lxy) == 0:
         return ls, rs, m
     gl, gr = grey(left_image), grey(right_image)
