@@ -283,7 +283,8 @@ class ControllerConfig(Strict):
     teach: Literal["teleop", "room_loop"] = Field(
         "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
                               "room_loop (simulated drive and room only: a scripted teacher once around the simulated "
-                              "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
+                              "room's 20.6 m loop at 0.4 m/s, or robot.max_linear_speed when lower, from "
+                              "sim.start_pose)")
     routes_dir: str = Field(
         "~/.local/share/vbnav/routes", min_length=1, max_length=1024,
         description="where the operator controller's cmd/mode teach and repeat find routes: a route there is "
