@@ -186,20 +186,35 @@ def add_transfer_actions(act) -> None:
                 a.help = argparse.SUPPRESS
             elif a.dest == "config":       # -c: where routes are taken from / put, and the push's secret
                 a.help = ("a configuration: its controller.routes_dir is the local routes folder (pull), its "
-                          "telemetry.shared_secret_file signs a push")
+                          "telemetry.shared_secret_file signs a push (one without it is refused)")
         sp.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                         help="wait up to S seconds for each answer of the robot (default 5)")
 
 
 def _refuse_unused(args) -> None:
     """The shared network options the transfer actions do not take: --robot (ROBOT is the positional
-    argument here), and for a pull -c with --to (-c only says where the route goes)."""
+    argument here), for a pull -c with --to (-c only says where the route goes), for a push -c with
+    --secret-file or without a telemetry.shared_secret_file (-c only gives the secret)."""
     if args.robot is not None:
         raise InputError(f"--robot {args.robot}: route {args.action} names the robot as its first argument "
                          f"({args.target})")
     if args.action == "pull" and args.to is not None and args.config is not None:
         raise InputError(f"--config {args.config}: with --to {args.to} a pull reads nothing from it (it only gives "
                          f"the routes folder); give one or the other")
+    if args.action == "push" and args.config is not None:
+        # -c gives a push the secret it signs with, nothing else (ROBOT names the robot)
+        if args.secret_file is not None:
+            raise InputError(f"--config {args.config}: with --secret-file {args.secret_file} a push reads nothing "
+                             f"from it (it only gives the secret); give one or the other")
+        from vbnav.control.config import ConfigError, load_config
+        try:
+            cfg = load_config(args.config)
+        except ConfigError as exc:
+            raise InputError(str(exc)) from None
+        if cfg.telemetry.shared_secret_file is None:
+            raise InputError(f"--config {args.config}: {cfg.source} sets no telemetry.shared_secret_file, the one "
+                             f"thing a push reads from it: the push would go unsigned (leave -c out to push "
+                             f"unsigned to a robot without a secret)")
 
 
 def _dest_root(args) -> Path:
