@@ -24,7 +24,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg, output_file, positive
+from vbnav.control.commands._common import output_file, positive
 from vbnav.control.commands._net import add_net_args, open_client
 from vbnav.drivers.errors import InputError
 
@@ -35,8 +35,10 @@ def register(sub) -> None:
     act = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     ls = act.add_parser("list", help="the routes in a folder")
     ls.add_argument("dir", nargs="?", default=None, metavar="DIR",
-                    help="folder of routes (default: controller.routes_dir of --config)")
-    add_config_arg(ls)
+                    help="folder of routes (default: controller.routes_dir of --config; one of the two is needed)")
+    ls.add_argument("--config", "-c", default=None, metavar="FILE",
+                    help="a robot configuration YAML whose controller.routes_dir is listed, instead of DIR (a bare "
+                         "name like 'sim' is looked up in configs/)")
     ls.set_defaults(func=run_list)
     for name, fn, help_ in (("info", run_info, "one route in full"), ("plot", run_plot, "top view PNG"),
                             ("check", run_check, "verify checksums and manifest")):
