@@ -22,7 +22,7 @@ import numpy as np
 from vbnav.control.config import Config, load_config
 from vbnav.control.controllers.path import PathFollower, lateral_errors, path_length, room_loop
 from vbnav.control.runtime.factory import Robot, make_robot
-from vbnav.control.session import Session
+from vbnav.control.session import Session, teach_loop_speed
 from vbnav.control.image_files import write_json
 from vbnav.drivers.atomic_file import atomic_output
 from vbnav.vision.geometry import Pose2
@@ -204,7 +204,7 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
     trace, truth = RunTrace(), KeyframeTruth(robot.drive)
     sessions = [Session(cfg, robot, recorder=recorder, progress=say)]
     teach = sessions[0].teach(
-        PathFollower(path, scenario.speed, start=start), out_dir / "route", overwrite=True,
+        PathFollower(path, teach_loop_speed(cfg, scenario.speed), start=start), out_dir / "route", overwrite=True,
         observers=[trace.observer(robot.drive), truth])
     taught_xz = trace.array()
     if not teach.complete:      # an earlier demo's route may still be at out_dir/route: never repeat that one

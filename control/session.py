@@ -102,11 +102,17 @@ class Repeating:
         self.controller = RepeatController(route, vcfg, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed)
 
 
+def teach_loop_speed(cfg: Config, speed: float = TEACH_LOOP_SPEED) -> float:
+    """The scripted teacher's speed: ``speed``, or robot.max_linear_speed when that is lower (clipped by the
+    limiter alone, the turn rate kept, it would drive a tighter arc than the one it chose)."""
+    return min(speed, cfg.robot.max_linear_speed)
+
+
 def teach_driver(cfg: Config) -> Controller:
     """Who drives while a route is taught (``controller.teach``): the operator by teleop, or on the
     simulated robot the scripted teacher once around the room's loop from ``sim.start_pose``."""
     if cfg.controller.teach == "room_loop":
-        return PathFollower(room_loop(), TEACH_LOOP_SPEED, start=cfg.sim.start())
+        return PathFollower(room_loop(), teach_loop_speed(cfg), start=cfg.sim.start())
     return TeleopController(cfg.safety.command_timeout_s)
 
 

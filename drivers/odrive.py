@@ -166,6 +166,10 @@ class ODriveDrive(SerialWheelDrive):
                 # it, as the Dynamixel bring-up clears a latched Bus Watchdog. At start-up only when the
                 # configuration says so; any other error stays for clear_faults.
                 self.cleared_watchdogs = self._faults_in(words)
+                if not self._was_up:
+                    self.watchdogs_cleared_at_start = [
+                        f"ODrive {self.opt.port} {f} found at start-up (the host went silent before: a crash?) and "
+                        f"cleared (drive.options.clear_watchdog_error_at_start)" for f in self.cleared_watchdogs]
                 self._send("sc")
                 words = self._error_words(t)
             faults = self._faults_in(words)

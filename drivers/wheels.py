@@ -125,6 +125,10 @@ class WheelDrive(abc.ABC):
         # what the last disable() or close() could not stop (a motor that did not answer), None when it stopped
         # all: they never raise, so this is where the caller learns that only the device's watchdog is left
         self.stop_failure: Optional[str] = None
+        # errors the bring-up at start-up found and cleared on its own (an ODrive's expired axis watchdog with
+        # drive.options.clear_watchdog_error_at_start), one sentence each naming the device, the error and the
+        # setting that allowed it: a run says each in an event
+        self.watchdogs_cleared_at_start: list[str] = []
 
     # -- what a drive is in --------------------------------------------------------------
     @property

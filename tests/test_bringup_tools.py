@@ -205,6 +205,37 @@ def test_the_config_may_allow_clearing_a_watchdog_error_at_start(crashed_odrive)
     assert not any(ax.any_error() for ax in crashed_odrive.axes)
 
 
+def test_a_run_says_which_watchdog_error_its_start_up_cleared(crashed_odrive):
+    """With drive.options.clear_watchdog_error_at_start a run's bring-up cleared an expired axis watchdog (the
+    last run crashed) and started without a word: nobody learned the previous run had died driving. A warning
+    event, echoed on the console, names each axis, its error and that it was cleared."""
+    import io
+
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.manual import IdleController
+    from vbnav.control.runtime.progress import EventEcho
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import MonotonicClock
+    clock = MonotonicClock()
+    drive = ODriveDrive(clock=clock, options=ODriveDrive.Options(port=crashed_odrive.path, reply_timeout_s=0.02,
+                                                                 clear_watchdog_error_at_start=True))
+    # timing is not under test: a loaded machine must not end the run on missed deadlines
+    rt = Runtime(Config.model_validate({"loop": {"max_missed_streak": 1000, "stall_periods": 1000}}), drive,
+                 IdleController(), clock)
+    console = io.StringIO()
+    echo = EventEcho(console).attach(rt)
+    result = rt.run(duration_s=0.2)
+    echo.close()
+    assert result.reason == "duration", result.message
+    cleared = [e for e in result.events if e.kind == "warning" and e.cause == "drive_watchdog_cleared"]
+    assert [e.message for e in cleared] == [
+        f"ODrive {crashed_odrive.path} axis{ax} ({side}): error=WATCHDOG_TIMER_EXPIRED found at start-up (the "
+        f"host went silent before: a crash?) and cleared (drive.options.clear_watchdog_error_at_start)"
+        for ax, side in ((0, "left"), (1, "right"))], result.events
+    assert console.getvalue().count("safety warning: drive_watchdog_cleared: ") == 2, console.getvalue()
+    assert not any(ax.any_error() for ax in crashed_odrive.axes)
+
+
 def test_a_hardware_fault_is_never_cleared_at_start_and_clear_errors_reports_it(crashed_odrive, tmp_path, capsys):
     crashed_odrive.axis(1).inject(motor=0x1000)
     drive = ODriveDrive(options=ODriveDrive.Options(port=crashed_odrive.path, reply_timeout_s=0.02,

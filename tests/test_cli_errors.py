@@ -165,6 +165,11 @@ CASES = [
     # route pull / push: options they would not use
     ("route-pull-to-and-config", "route pull r1 loop --to {d}/empty -c sim", 2, "a pull reads nothing from it"),
     ("route-push-robot", "route push r1 {d}/empty --robot r2", 2, "--robot r2: route push names the robot"),
+    # -c gives a push its secret only: a configuration without one was read for nothing, the push unsigned
+    ("route-push-config-no-secret", "route push r1 {d}/empty -c sim", 2,
+     "sets no telemetry.shared_secret_file, the one thing a push reads from it"),
+    ("route-push-config-and-secret-file", "route push r1 {d}/empty -c sim --secret-file {d}/afile.txt", 2,
+     "with --secret-file"),
     # run
     ("run-config-missing", "run -c {d}/nope.yaml", 2, "nope.yaml"),
     ("run-config-dir", "run -c {d}/empty", 2, "empty"),

@@ -460,3 +460,18 @@ def test_a_speed_floor_at_or_above_its_ceiling_is_refused_at_load(section, says)
     assert saturate(1.5 * 0.01, 0.3, 0.25) == 0.25         # 1 cm from the end, still at cruise speed
     with pytest.raises(ConfigError, match=re.escape(says)):
         parse_config(section, "robot.yaml")
+
+
+def test_a_camera_rate_above_the_loop_rate_on_the_simulated_clock_is_refused():
+    """On the simulated clock the loop reads the simulated camera once a cycle (read(0)), and the newest due
+    frame wins: camera.rate_hz 30 with loop.rate_hz 20 rendered 20 frames a second and dropped the others
+    without a word. Refused at load naming both; the default is cut to the loop's rate (what is rendered), as
+    config show prints it. In real time the vision thread reads every frame: accepted there."""
+    with pytest.raises(ConfigError, match=r"robot.yaml: .*camera.rate_hz 30 Hz is above loop.rate_hz 20 Hz"):
+        parse_config({"loop": {"rate_hz": 20}, "camera": {"rate_hz": 30}}, "robot.yaml")
+    assert parse_config({"loop": {"rate_hz": 20}, "camera": {"rate_hz": 20}}).camera.rate_hz == 20
+    assert parse_config({"loop": {"rate_hz": 20}, "camera": {"rate_hz": 30},
+                         "sim": {"realtime": True}}).camera.rate_hz == 30
+    slow = parse_config({"loop": {"rate_hz": 10}})
+    assert slow.camera.rate_hz == 10
+    assert parse_config(slow.model_dump(mode="json")).camera.rate_hz == 10       # loads back

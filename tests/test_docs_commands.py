@@ -233,3 +233,26 @@ def test_vo_refuses_a_bundle_adjustment_it_would_not_run(tmp_path, capsys):
         out, err = capsys.readouterr()
         assert code == 2 and out == "" and "--ba-window 7" in err and "stereo" in err, (init, out, err)
     assert not (tmp_path / "t.txt").exists()
+
+
+def test_each_help_says_what_its_command_does_with_the_option():
+    """Helps that did not say what the code does: `route list --help` gave -c a default (configs/sim.yaml) while
+    `route list` without DIR or -c is refused; `send resume` was 'clear the estop latches this sender has seen'
+    while it clears every latched stop (estop, stall, lost drive) the robot's state showed, or all of them with
+    --clear-all; `goto` said a single camera creeps 'up to 0.3 m' (vslam.goto.blind_distance_m, 0.3 m by
+    default only); every -c promised that 'send' signs, also monitor's (it sends nothing) and not teleop's, which
+    signs as send does."""
+    from vbnav.control.cli import build_parser, main
+    parsers = dict(_subparsers(build_parser()))
+
+    def option_help(path, option):
+        return " ".join(next(a.help for a in parsers[path]._actions if option in a.option_strings).split())
+    assert "default" not in option_help(("route", "list"), "--config")
+    assert main(["route", "list"]) == 2          # no DIR, no -c: refused, as the help now says
+    resume = next(a for a in parsers[("send",)]._actions if a.dest == "what")._choices_actions
+    said = " ".join(next(c.help for c in resume if c.dest == "resume").split())
+    assert "latched stops" in said and "--clear-all" in said, said
+    assert "vslam.goto.blind_distance_m" in " ".join(parsers[("goto",)].description.split())
+    assert "sign" not in option_help(("monitor",), "--config")
+    for path in (("teleop",), ("send", "estop")):
+        assert "signed with its telemetry.shared_secret_file" in option_help(path, "--config"), path

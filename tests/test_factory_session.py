@@ -237,3 +237,21 @@ def test_a_drive_watchdog_the_loop_cannot_feed_is_refused(drive, says):
         make_robot(load_config(None, overrides=over), with_camera=False)
     over["loop"]["rate_hz"] = 20.0          # 2 x 50 ms = 0.1 s: fed in time, with a late cycle to spare
     make_robot(load_config(None, overrides=over), with_camera=False).drive.close()
+
+
+def test_the_scripted_teacher_drives_within_the_robots_speed_limit():
+    """controller.teach room_loop was said to drive at 0.4 m/s, and with a lower robot.max_linear_speed its
+    0.4 m/s was clipped by the limiter alone, the turn rate kept: a tighter arc than the one the teacher chose
+    (and not the speed said). The teacher now drives at the robot's limit when that is lower (the reference
+    says so): what it commands is what the limiter lets through."""
+    from vbnav.control.runtime.interfaces import ControlContext
+    from vbnav.control.runtime.kinematics import TwistLimiter
+    from vbnav.drivers.wheels import WheelState
+    cfg = load_config(None, overrides={"controller": {"teach": "room_loop"},
+                                       "robot": {"max_linear_speed": 0.25}})
+    still = ControlContext(0, 0.01, Pose2(), WheelState(0, (0.0, 0.0), (0.0, 0.0)), {})     # at the start
+    twist = teach_driver(cfg).update(still)
+    assert twist.v == pytest.approx(0.25)
+    assert TwistLimiter.from_config(cfg.robot).apply(twist, 10.0) == twist       # driven as commanded
+    fast = teach_driver(load_config(None, overrides={"controller": {"teach": "room_loop"}}))
+    assert fast.update(still).v == pytest.approx(0.4)

@@ -502,21 +502,36 @@ def test_the_stereo_vslam_refuses_a_distorted_camera(camera, says):
     ({"odometry_init_baseline_m": 0.3}, "odometry_init_baseline_m"),
     ({"metric_scale": "odometry", "stereo_max_depth_baselines": 40.0}, "stereo_max_depth_baselines"),
     ({"ba_history": 4}, "ba_history"),                                       # no bundle adjustment at all
-    ({"metric_scale": "odometry", "ba_outlier_sigmas": 2.0}, "ba_outlier_sigmas"),
+    ({"ba_outlier_sigmas": 2.0}, "ba_outlier_sigmas"),
 ])
 def test_vslam_settings_of_the_other_metric_scale_are_refused(vslam, key):
     """The vslam.odometry_* settings steer a single camera's scale (metric_scale odometry), stereo_max_depth_
-    baselines a stereo pair's landmarks, ba_history and ba_outlier_sigmas the bundle adjustment (ba_window > 0):
-    written where they do not apply they were accepted and never read (as ba_window with stereo is refused).
-    Refused, naming the setting; where they apply they are taken."""
+    baselines a stereo pair's landmarks, ba_history and ba_outlier_sigmas the bundle adjustment (a single
+    camera's, ba_window > 0): written where they do not apply they were accepted and never read (as ba_window
+    with stereo is refused). Refused, naming the setting; where they apply they are taken."""
     from vbnav.control.config import ConfigError, parse_config
     with pytest.raises(ConfigError, match=rf"vslam.*{key}"):
         parse_config({"vslam": vslam})
     applies = {"odometry_scale_gain": {"metric_scale": "odometry"}, "odometry_init_baseline_m":
                {"metric_scale": "odometry"}, "stereo_max_depth_baselines": {"metric_scale": "stereo"},
                "ba_history": {"metric_scale": "odometry", "ba_window": 5},
-               "ba_outlier_sigmas": {"ba_window": 5}}[key]
+               "ba_outlier_sigmas": {"metric_scale": "odometry", "ba_window": 5}}[key]
     assert getattr(parse_config({"vslam": {**vslam, **applies}}).vslam, key) == vslam[key]
+
+
+def test_bundle_adjustment_settings_are_kept_while_it_is_switched_off():
+    """ba_window 0 switches a single camera's bundle adjustment off; its ba_history and ba_outlier_sigmas were
+    refused then, against the documented rule that a feature switched off keeps its settings unread (so that
+    it can be switched on again without writing them anew; docs/configuration.md). Kept now, listed there, and
+    taken once ba_window switches it on; with metric_scale stereo there is none to switch on: still refused."""
+    from vbnav.control.commands.config import HEADER
+    from vbnav.control.config import parse_config
+    off = {"metric_scale": "odometry", "ba_window": 0, "ba_history": 4, "ba_outlier_sigmas": 2.0}
+    kept = parse_config({"vslam": off}).vslam
+    assert (kept.ba_history, kept.ba_outlier_sigmas) == (4, 2.0)
+    on = parse_config({"vslam": {**off, "ba_window": 5}}).vslam
+    assert (on.ba_window, on.ba_history, on.ba_outlier_sigmas) == (5, 4, 2.0)
+    assert "`vslam.ba_history` and `ba_outlier_sigmas` with `vslam.ba_window` 0" in HEADER
 
 
 def test_a_creep_speed_with_a_stereo_vslam_is_refused():

@@ -25,13 +25,14 @@ def endpoint(text: str) -> str:
     return text
 
 
-def add_net_args(p: argparse.ArgumentParser) -> None:
+def add_net_args(p: argparse.ArgumentParser, signs: bool = False) -> None:
+    """The options that reach a robot; ``signs``: the command sends commands, signed with -c's secret."""
     p.add_argument("--robot", default=None, metavar="NAME",
                    help="robot name (robot.name in its config); default: from --config, else the only robot "
                         "answering on the network")
     p.add_argument("--config", "-c", default=None, metavar="FILE",
-                   help="the robot's configuration: its robot.name names the robot (and send signs with its "
-                        "telemetry.shared_secret_file)")
+                   help="the robot's configuration: its robot.name names the robot" + (
+                       " (and the commands are signed with its telemetry.shared_secret_file)" if signs else ""))
     p.add_argument("--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT", type=endpoint,
                    help=f"zenoh endpoint of the robot or a router (default {DEFAULT_ENDPOINT})")
     p.add_argument("--user", default=None, help="zenoh user name, when the robot requires authentication")

@@ -22,8 +22,9 @@ def register(sub) -> None:
                     "spot to the goal heading. Metric scale comes from a stereo camera (the default "
                     "configs/sim_stereo.yaml on the simulated robot, which starts at its sim.start_pose in the "
                     "simulated room) or, with 'vslam: {metric_scale: odometry}' in the configuration, from the "
-                    "wheels for a single camera (the robot first creeps ahead up to 0.3 m to initialise). Exit code 0 when the "
-                    "goal is reached, 1 when not (duration, lost).")
+                    "wheels for a single camera (the robot first creeps ahead, up to vslam.goto.blind_distance_m, "
+                    "0.3 m by default, to initialise). Exit code 0 when the goal is reached, 1 when not (duration, "
+                    "lost).")
     add_config_arg(p, default="sim_stereo")
     p.add_argument("--goal", required=True, nargs=3, type=finite, metavar=("X", "Z", "THETA_DEG"),
                    help="goal pose in the reference frame: x (m, right), z (m, forward), heading (degrees)")

@@ -24,7 +24,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_config_arg, output_file, positive
+from vbnav.control.commands._common import output_file, positive
 from vbnav.control.commands._net import add_net_args, open_client
 from vbnav.drivers.errors import InputError
 
@@ -35,8 +35,10 @@ def register(sub) -> None:
     act = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     ls = act.add_parser("list", help="the routes in a folder")
     ls.add_argument("dir", nargs="?", default=None, metavar="DIR",
-                    help="folder of routes (default: controller.routes_dir of --config)")
-    add_config_arg(ls)
+                    help="folder of routes (default: controller.routes_dir of --config; one of the two is needed)")
+    ls.add_argument("--config", "-c", default=None, metavar="FILE",
+                    help="a robot configuration YAML whose controller.routes_dir is listed, instead of DIR (a bare "
+                         "name like 'sim' is looked up in configs/)")
     ls.set_defaults(func=run_list)
     for name, fn, help_ in (("info", run_info, "one route in full"), ("plot", run_plot, "top view PNG"),
                             ("check", run_check, "verify checksums and manifest")):
@@ -186,20 +188,35 @@ def add_transfer_actions(act) -> None:
                 a.help = argparse.SUPPRESS
             elif a.dest == "config":       # -c: where routes are taken from / put, and the push's secret
                 a.help = ("a configuration: its controller.routes_dir is the local routes folder (pull), its "
-                          "telemetry.shared_secret_file signs a push")
+                          "telemetry.shared_secret_file signs a push (one without it is refused)")
         sp.add_argument("--timeout", type=positive, default=5.0, metavar="S",
                         help="wait up to S seconds for each answer of the robot (default 5)")
 
 
 def _refuse_unused(args) -> None:
     """The shared network options the transfer actions do not take: --robot (ROBOT is the positional
-    argument here), and for a pull -c with --to (-c only says where the route goes)."""
+    argument here), for a pull -c with --to (-c only says where the route goes), for a push -c with
+    --secret-file or without a telemetry.shared_secret_file (-c only gives the secret)."""
     if args.robot is not None:
         raise InputError(f"--robot {args.robot}: route {args.action} names the robot as its first argument "
                          f"({args.target})")
     if args.action == "pull" and args.to is not None and args.config is not None:
         raise InputError(f"--config {args.config}: with --to {args.to} a pull reads nothing from it (it only gives "
                          f"the routes folder); give one or the other")
+    if args.action == "push" and args.config is not None:
+        # -c gives a push the secret it signs with, nothing else (ROBOT names the robot)
+        if args.secret_file is not None:
+            raise InputError(f"--config {args.config}: with --secret-file {args.secret_file} a push reads nothing "
+                             f"from it (it only gives the secret); give one or the other")
+        from vbnav.control.config import ConfigError, load_config
+        try:
+            cfg = load_config(args.config)
+        except ConfigError as exc:
+            raise InputError(str(exc)) from None
+        if cfg.telemetry.shared_secret_file is None:
+            raise InputError(f"--config {args.config}: {cfg.source} sets no telemetry.shared_secret_file, the one "
+                             f"thing a push reads from it: the push would go unsigned (leave -c out to push "
+                             f"unsigned to a robot without a secret)")
 
 
 def _dest_root(args) -> Path:

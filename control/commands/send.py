@@ -49,7 +49,8 @@ def register(sub) -> None:
     e.add_argument("--reason", default="", help="free text recorded in the event (printable, at most 200 characters: "
                                                 "longer is cut and control characters escaped, saying so; the "
                                                 "estop goes out regardless)")
-    r = cmds.add_parser("resume", help="clear the estop latches this sender has seen",
+    r = cmds.add_parser("resume", help="clear the latched stops the robot's state shows (--latched-ns: the ones "
+                                       "you saw; --clear-all: every one)",
                         description="Clear the latched stops (estop, stall, lost drive once back) that began up to "
                                     "the newest one the robot's state shows: vbnav send reads vbnav/<robot>/state "
                                     "(within --wait) and names its safety.latched_ns, so another operator's estop "
@@ -86,7 +87,7 @@ def register(sub) -> None:
                         "mode idle takes none")
     for sp in (e, r, t, m):
         sp.epilog, sp.formatter_class = _EPILOG, argparse.RawDescriptionHelpFormatter
-        add_net_args(sp)
+        add_net_args(sp, signs=True)
         sp.add_argument("--wait", type=positive, default=3.0, metavar="S",
                         help="wait up to S seconds for the robot, then for its answer (default 3)")
         sp.add_argument("--secret-file", default=None, metavar="FILE",

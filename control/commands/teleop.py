@@ -42,7 +42,7 @@ def register(sub) -> None:
     p = sub.add_parser("teleop", help="drive a robot from the keyboard (teleop at 20 Hz while a key is held)",
                        description=HELP + ". Needs a run that takes teleop: `vbnav run -c CONFIG --controller "
                                           "teleop` (or operator).")
-    add_net_args(p)
+    add_net_args(p, signs=True)
     p.add_argument("--speed", type=positive, default=0.1, metavar="V", help="m/s while w/s is held (default 0.1)")
     p.add_argument("--turn", type=positive, default=0.5, metavar="W", help="rad/s while a/d is held (default 0.5)")
     p.add_argument("--rate", type=positive, default=20.0, metavar="HZ", help="send rate while driving (default 20)")

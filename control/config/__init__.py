@@ -90,7 +90,10 @@ class CameraConfig(Strict):
                                                              "options.rate_hz, a v4l2 video file at its own rate "
                                                              "or options.replay_rate_hz; rate_hz only for a file "
                                                              "that gives no rate). Written for the replay camera "
-                                                             "or an OAK replay_file, which never read it: refused")
+                                                             "or an OAK replay_file, which never read it: refused. "
+                                                             "On the simulated clock at most loop.rate_hz (read "
+                                                             "once a cycle: the default is cut to it, a value "
+                                                             "written above it is refused)")
     stale_after_s: float = Field(0.5, gt=0, description="a frame older than this, s, is a safety stop; so "
                                                         "is an image that has not changed for this long "
                                                         "while the wheels moved (a frozen camera); above the "
@@ -280,7 +283,8 @@ class ControllerConfig(Strict):
     teach: Literal["teleop", "room_loop"] = Field(
         "teleop", description="who drives while 'vbnav teach' records: teleop (the operator, cmd/teleop) or "
                               "room_loop (simulated drive and room only: a scripted teacher once around the simulated "
-                              "room's 20.6 m loop at 0.4 m/s, from sim.start_pose)")
+                              "room's 20.6 m loop at 0.4 m/s, or robot.max_linear_speed when lower, from "
+                              "sim.start_pose)")
     routes_dir: str = Field(
         "~/.local/share/vbnav/routes", min_length=1, max_length=1024,
         description="where the operator controller's cmd/mode teach and repeat find routes: a route there is "
@@ -401,6 +405,24 @@ class Config(Strict):
                                  f"a state is sent from a cycle, at most one per cycle (lower telemetry.state_rate_hz)")
             t.state_rate_hz = loop_hz
         return self
+
+    @model_validator(mode="after")
+    def _camera_rate_within_the_loop_rate(self):
+        # On the simulated clock the loop reads the camera once a cycle and the newest due frame wins: a rate
+        # written above the loop's dropped the frames in between without a word; the default is cut to it (what
+        # is rendered, and what show prints). In real time the vision thread reads every frame.
+        c, loop_hz = self.camera, self.loop.rate_hz
+        if self.on_simulated_clock() and c.rate_hz > loop_hz:
+            if "rate_hz" in c.model_fields_set:
+                raise ValueError(f"camera.rate_hz {c.rate_hz:g} Hz is above loop.rate_hz {loop_hz:g} Hz on the "
+                                 f"simulated clock: the loop reads the simulated camera once a cycle, the frames in "
+                                 f"between would be dropped (lower camera.rate_hz, or raise loop.rate_hz)")
+            c.rate_hz = loop_hz
+        return self
+
+    def on_simulated_clock(self) -> bool:
+        """The simulated clock runs when everything is simulated and real time is not asked for."""
+        return self.drive.driver == "sim" and self.camera.driver == "sim" and not self.sim.realtime
 
     @model_validator(mode="after")
     def _scripted_teacher_only_in_simulation(self):
@@ -535,8 +557,7 @@ def check_stale_limit(cfg: Config, options, source: str) -> None:
         return
     rate, field = known
     c, s = cfg.camera, cfg.sim
-    simulated = cfg.drive.driver == "sim" and c.driver == "sim" and not s.realtime    # the latency is added
-    latency = s.vision_latency_s if simulated else 0.0
+    latency = s.vision_latency_s if cfg.on_simulated_clock() else 0.0        # the latency is added there
     bound = 1.0 / rate + latency
 
     def secs(x: float) -> str:

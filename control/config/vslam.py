@@ -102,8 +102,10 @@ class VslamNavConfig(VslamConfig, Strict):
                   if k.startswith("odometry_") and self.metric_scale == "stereo"]
         if "stereo_max_depth_baselines" in given and self.metric_scale == "odometry":
             unused.append(("stereo_max_depth_baselines", "a stereo pair's landmarks (metric_scale stereo)"))
-        unused += [(k, "the bundle adjustment (ba_window > 0)") for k in ("ba_history", "ba_outlier_sigmas")
-                   if k in given and self.ba_window == 0]
+        # a single camera's bundle adjustment switched off (ba_window 0) keeps them, as a section switched off
+        # does (docs/configuration.md); a stereo VSLAM has none to switch on
+        unused += [(k, "a single camera's bundle adjustment (metric_scale odometry, ba_window > 0)")
+                   for k in ("ba_history", "ba_outlier_sigmas") if k in given and self.metric_scale == "stereo"]
         if written(self.goto, "init_creep_speed") and self.metric_scale == "stereo":
             unused.append(("goto.init_creep_speed", "the drive while a single camera initialises (metric_scale "
                                                     "odometry)"))

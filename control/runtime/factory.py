@@ -37,7 +37,7 @@ class Robot:
 
 def uses_sim_clock(cfg: Config) -> bool:
     """The simulated clock runs when everything is simulated and real time is not asked for."""
-    return cfg.drive.driver == "sim" and cfg.camera.driver == "sim" and not cfg.sim.realtime
+    return cfg.on_simulated_clock()
 
 
 def noise_seed(cfg: Config, run: int = 0) -> int:

@@ -311,6 +311,8 @@ class Runtime:
         self._open_latch()        # before the devices: under a kept estop the wheels are never powered
         try:
             self.drive.connect()
+            for cleared in self.drive.watchdogs_cleared_at_start:    # the last run died driving: say so
+                self.safety.note(self.clock.now_ns(), "warning", "drive_watchdog_cleared", cleared)
             if self.pipeline is not None:
                 self.pipeline.start()
             # after the pipeline's threads started: threads inherit their creator's CPU set and policy, and
