@@ -398,3 +398,16 @@ def test_mount_dry_run_refuses_what_the_real_run_would(tmp_path, capsys):
                                                                                pitch=math.radians(25.0))))
     assert cli.main(argv + ["--dry-run"]) == 0
     assert "not written" in capsys.readouterr().out and (tmp_path / "robot.yaml").read_text() == text
+
+
+def test_mount_without_a_config_writes_nothing_into_the_shipped_example(tmp_path, capsys):
+    """calibrate mount edits the config in place; without -c it wrote into the checkout's configs/sim.yaml."""
+    args = render_floor_pair(tmp_path, 15.0, 2.0)
+    shipped = (CONFIG_DIR / "sim.yaml").read_bytes()
+    without_config = args[args.index("--stereo"):]
+    code = cli.main(["calibrate", "mount", *without_config])
+    err = capsys.readouterr().err
+    assert code == 2 and "give -c CONFIG" in err, err
+    assert (CONFIG_DIR / "sim.yaml").read_bytes() == shipped
+    cli.main(["calibrate", "mount", *without_config, "--dry-run"])       # a look needs no file of its own
+    assert "give -c CONFIG" not in capsys.readouterr().err

@@ -77,7 +77,8 @@ def register(sub) -> None:
                                     "rectified pair of an empty stretch of floor, with the config's stereo "
                                     "calibration). The intrinsics are the config's (camera.calibration_file). "
                                     "Writes camera.mount.height, pitch_deg and roll_deg into the config file in "
-                                    "place, keeping its comments (unless --dry-run).")
+                                    "place, keeping its comments (unless --dry-run). -c CONFIG is required "
+                                    "unless --dry-run: there is no default file to write into.")
     add_config_arg(m)
     msrc = m.add_mutually_exclusive_group(required=True)
     msrc.add_argument("--image", metavar="FILE", help="an image of the board lying on the floor")
@@ -417,6 +418,10 @@ def run_stereo(args) -> int:
 def run_mount(args) -> int:
     from vbnav.control.config import load_config, resolve_config_path
     from vbnav.control.config.mount_edit import set_camera_mount
+    if args.config is None and not args.dry_run:
+        # It edits the file in place: without -c that was the shipped example configs/sim.yaml of the checkout.
+        raise InputError("calibrate mount writes camera.mount into the configuration file in place: give "
+                         "-c CONFIG (the robot's own file; there is no default to write into), or --dry-run")
     if args.stereo and (given := _given(args, (*BOARD_FIELDS, "min_sharpness", "board_thickness"))):
         raise InputError(f"{', '.join(given)}: board options, and --stereo uses no board (it fits the floor "
                          f"plane of the pair); leave them out")
