@@ -157,6 +157,7 @@ class DynamixelDrive(SerialWheelDrive):
         self._last_raw: dict[int, Optional[int]] = {i: None for i in self.ids}
         self._ticks = {i: 0 for i in self.ids}
         self._last_write_ns: Optional[int] = None
+        self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
         self._limit_units = min(rad_s_to_units(options.velocity_limit_rad_s), 1023)
         self._watchdog_units = max(1, min(127, int(round(options.bus_watchdog_s / WATCHDOG_UNIT_S))))
 
@@ -296,6 +297,10 @@ class DynamixelDrive(SerialWheelDrive):
                 fault = self._hardware_fault(i, decode_hardware_error(bits))
                 self._record_fault(fault)
                 raise DriveError(fault.message)
+        if not self._was_up:    # an expired watchdog found at start-up: the last run died driving, say so
+            self.watchdogs_cleared_at_start = [
+                f"servo {i} ({self.sides[i]}) on {self.opt.port}: Bus Watchdog expired (0xFF) found at start-up "
+                f"(the host went silent before: a crash?) and cleared" for i in self.ids if self._watchdog_expired(i)]
         accel_units = int(round(self.opt.profile_acceleration_rad_s2 / ACCEL_UNIT_RAD_S2))
         if self.opt.profile_acceleration_rad_s2 > 0:
             accel_units = max(1, accel_units)   # 0 is "no limit": a gentle setting is the gentlest limit
@@ -311,6 +316,11 @@ class DynamixelDrive(SerialWheelDrive):
                 self._write_register(i, register, value)
         self._last_raw = {i: None for i in self.ids}
         self._measured = WheelState(self.clock.now_ns(), self._positions(), (0.0, 0.0))
+        self._was_up = True
+
+    def _watchdog_expired(self, i: int) -> bool:
+        v, res, _ = self._guard_io(lambda: self.ph.read1ByteTxRx(self.port, i, reg.BUS_WATCHDOG.address))
+        return res == sdk.COMM_SUCCESS and v == 0xFF
 
     def _hardware_fault(self, i: int, detail: str) -> DriveFault:
         return DriveFault(FaultKind.HARDWARE_ERROR, f"servo {i} ({self.sides[i]})",
@@ -393,8 +403,7 @@ class DynamixelDrive(SerialWheelDrive):
 
     def _check_watchdog(self, now: int) -> None:
         for i in self.ids:
-            v, res, _ = self.ph.read1ByteTxRx(self.port, i, reg.BUS_WATCHDOG.address)
-            if res == sdk.COMM_SUCCESS and v == 0xFF:
+            if self._watchdog_expired(i):
                 gap = (now - self._last_write_ns) * 1e-9
                 self._fault(DriveFault(
                     FaultKind.WATCHDOG, f"servo {i} ({self.sides[i]})",

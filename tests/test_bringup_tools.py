@@ -397,3 +397,23 @@ def test_clear_errors_says_the_watchdog_error_the_bring_up_cleared(crashed_odriv
     assert not any(ax.any_error() for ax in crashed_odrive.axes)
     assert main(["odrive", "clear-errors", "-c", cfg]) == 0
     assert "no errors" in capsys.readouterr().out
+
+
+def test_clear_errors_says_axes_idle_only_when_they_are(crashed_odrive, tmp_path, capsys):
+    """clear-errors printed 'errors cleared, axes idle' after sending IDLE, never reading it back: an axis still
+    in closed loop (its state machine slow to leave it) was called idle, exit 0. The state is read back first;
+    an axis not idle is named, exit 3."""
+    ax = crashed_odrive.axis(1)
+    with crashed_odrive.lock:
+        ax.error = 0                                  # the other axis: no error, still driving
+        ax.current_state, ax.idle_after_s = oe.AXIS_STATE_CLOSED_LOOP, 30.0
+    assert main(["odrive", "clear-errors", "-c", odrive_config(tmp_path, crashed_odrive.path)]) == 3
+    out, err = capsys.readouterr()
+    assert "axes idle" not in out, out
+    assert f"axis1 (right): did not take the stop: current_state {oe.AXIS_STATE_CLOSED_LOOP}" in err, err
+    with crashed_odrive.lock:
+        ax.idle_after_s = 0.0
+        for a in crashed_odrive.axes:
+            a.error |= oe.AXIS_ERROR_WATCHDOG_EXPIRED
+    assert main(["odrive", "clear-errors", "-c", odrive_config(tmp_path, crashed_odrive.path)]) == 0
+    assert "errors cleared, axes idle" in capsys.readouterr().out

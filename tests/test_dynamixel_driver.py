@@ -347,3 +347,32 @@ def test_an_adapter_slower_than_latency_ms_is_refused_at_bring_up(bus, monkeypat
     d = make_drive(bus)
     d.connect()
     d.close()
+
+
+def test_a_run_says_which_servo_watchdog_its_start_up_cleared(bus):
+    """A run that died driving leaves a servo's Bus Watchdog expired (0xFF, goals locked); the bring-up cleared it
+    without a word, so nobody learned the last run had died. A drive_watchdog_cleared warning event names each
+    servo it cleared, and only those."""
+    import io
+
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.manual import IdleController
+    from vbnav.control.runtime.progress import EventEcho
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import MonotonicClock
+    bus.servo(2).put(dt.BUS_WATCHDOG, -1)   # what the servo's own watchdog leaves after the host went silent
+    drive = DynamixelDrive(clock=MonotonicClock(), options=DynamixelDrive.Options(
+        port=bus.path, bus_watchdog_s=WATCHDOG_S, margin_ms=8.0), invert_right=True)
+    # timing is not under test: a loaded machine must not end the run on missed deadlines
+    rt = Runtime(Config.model_validate({"loop": {"max_missed_streak": 1000, "stall_periods": 1000}}), drive,
+                 IdleController(), drive.clock)
+    console = io.StringIO()
+    echo = EventEcho(console).attach(rt)
+    result = rt.run(duration_s=0.2)
+    echo.close()
+    assert result.reason == "duration", result.message
+    cleared = [e.message for e in result.events if e.kind == "warning" and e.cause == "drive_watchdog_cleared"]
+    assert cleared == [f"servo 2 (right) on {bus.path}: Bus Watchdog expired (0xFF) found at start-up (the host "
+                       f"went silent before: a crash?) and cleared"], result.events
+    assert console.getvalue().count("safety warning: drive_watchdog_cleared: ") == 1, console.getvalue()
+    assert bus.servo(2).get(dt.BUS_WATCHDOG) == round(WATCHDOG_S / dt.WATCHDOG_UNIT_S)

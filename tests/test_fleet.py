@@ -381,3 +381,41 @@ def test_a_pushed_route_this_robots_repeat_refuses_for_its_camera_is_not_install
         else:
             assert answer[0] == "ok", answer
             assert len(load_route(routes / "loop")) == 3
+
+
+def test_a_push_signed_with_another_robots_configuration_says_whose(tmp_path, monkeypatch, capsys):
+    """route push -c CONFIG ROBOT signed with CONFIG's secret whatever robot.name CONFIG named: a push to r2
+    signed with r1's configuration said nothing of r1, on success or refusal. A fleet may share one secret, so
+    it is not refused: both the success line and the refusal name the configuration's robot."""
+    import yaml
+
+    from vbnav.control.cli import main
+    from vbnav.control.commands import route as route_cmd
+    secret = tmp_path / "secret"
+    secret.write_text("0123456789abcdef0123456789abcdef\n")
+    secret.chmod(0o600)
+    cfg = tmp_path / "r1.yaml"
+    cfg.write_text(yaml.safe_dump({"robot": {"name": "r1"}, "telemetry": {"shared_secret_file": str(secret)}}))
+    write_sim_route(tmp_path / "local" / "loop")
+    session = type("Session", (), {"close": lambda self: None})()
+    monkeypatch.setattr(route_cmd, "open_client", lambda args: session)     # the transfer itself is not under test
+    answers = iter([{"keyframes": 3}, rt.TransferError("push refused: bad signature")])
+
+    def push(session, robot, path, secret=None, **kw):
+        assert secret is not None        # signed with r1's secret
+        answer = next(answers)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+    monkeypatch.setattr(rt, "push", push)
+    whose = f"signed with the secret of robot r1's configuration {cfg} (-c), not r2's"
+    assert main(["route", "push", "r2", str(tmp_path / "local" / "loop"), "-c", str(cfg)]) == 0
+    assert whose in capsys.readouterr().out
+    assert main(["route", "push", "r2", str(tmp_path / "local" / "loop"), "-c", str(cfg)]) == 1
+    err = capsys.readouterr().err
+    assert "push refused: bad signature" in err and whose in err, err
+    # the configuration of the robot pushed to: no note
+    cfg.write_text(yaml.safe_dump({"robot": {"name": "r2"}, "telemetry": {"shared_secret_file": str(secret)}}))
+    answers = iter([{"keyframes": 3}])
+    assert main(["route", "push", "r2", str(tmp_path / "local" / "loop"), "-c", str(cfg)]) == 0
+    assert "signed with the secret of" not in capsys.readouterr().out

@@ -5,8 +5,9 @@ expired and WATCHDOG_TIMER_EXPIRED stays latched: the next run refuses to start
 until it is cleared (unless ``drive.options.clear_watchdog_error_at_start`` is
 true). This command connects to the ODrive of the configuration, prints what
 each axis reports, sends ``sc`` (clear errors) and repeats the safe bring-up;
-the axes stay idle. Exit 0 when the ODrive is clear, 3 when errors remain (a
-hardware fault whose cause is still there) or the device does not answer.
+the axes stay idle (read back: an axis not idle is named). Exit 0 when the ODrive
+is clear, 3 when errors remain (a hardware fault whose cause is still there), an
+axis is not idle after clearing, or the device does not answer.
 """
 from __future__ import annotations
 
@@ -43,10 +44,10 @@ def run_clear(args) -> int:
             drive.connect()
             for fault in drive.cleared_watchdogs:       # cleared by the bring-up itself (the option)
                 print(f"ODrive on {drive.opt.port}: {fault}")
-            print(f"ODrive on {drive.opt.port}: " + ("errors cleared by the bring-up (drive.options."
-                                                     "clear_watchdog_error_at_start), axes idle; 'vbnav run' can start"
-                                                     if drive.cleared_watchdogs else "no errors"))
-            return 0
+            if not drive.cleared_watchdogs:
+                print(f"ODrive on {drive.opt.port}: no errors")
+                return 0
+            return _say_idle(drive, "errors cleared by the bring-up (drive.options.clear_watchdog_error_at_start)")
         except DriveError as exc:
             if not drive.faults:            # not an error word: the device is missing or silent
                 print(f"{COMMAND} clear-errors: {exc}", file=sys.stderr)
@@ -58,7 +59,18 @@ def run_clear(args) -> int:
         except DriveError as exc:       # an error word that 'sc' did not clear, or the device went silent
             print(f"{COMMAND} clear-errors: clearing did not succeed: {exc}", file=sys.stderr)
             return 3
-        print(f"ODrive on {drive.opt.port}: errors cleared, axes idle; 'vbnav run' can start")
-        return 0
+        return _say_idle(drive, "errors cleared")
     finally:
         drive.close()
+
+
+def _say_idle(drive, cleared: str) -> int:
+    """'axes idle' once each axis's state is read back IDLE (the bring-up only asks for it); else the axis
+    that is not, exit 3."""
+    drive.disable()        # the stop sent again, each axis's current_state read back
+    if drive.stop_failure:
+        print(f"{COMMAND} clear-errors: {cleared}, but not every axis is idle: {drive.stop_failure}",
+              file=sys.stderr)
+        return 3
+    print(f"ODrive on {drive.opt.port}: {cleared}, axes idle; 'vbnav run' can start")
+    return 0

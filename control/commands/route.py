@@ -193,10 +193,11 @@ def add_transfer_actions(act) -> None:
                         help="wait up to S seconds for each answer of the robot (default 5)")
 
 
-def _refuse_unused(args) -> None:
+def _refuse_unused(args) -> str:
     """The shared network options the transfer actions do not take: --robot (ROBOT is the positional
     argument here), for a pull -c with --to (-c only says where the route goes), for a push -c with
-    --secret-file or without a telemetry.shared_secret_file (-c only gives the secret)."""
+    --secret-file or without a telemetry.shared_secret_file (-c only gives the secret). Returns, for a push
+    -c whose robot.name is not ROBOT, whose secret signs it (a fleet may share one secret: not refused, said)."""
     if args.robot is not None:
         raise InputError(f"--robot {args.robot}: route {args.action} names the robot as its first argument "
                          f"({args.target})")
@@ -217,6 +218,10 @@ def _refuse_unused(args) -> None:
             raise InputError(f"--config {args.config}: {cfg.source} sets no telemetry.shared_secret_file, the one "
                              f"thing a push reads from it: the push would go unsigned (leave -c out to push "
                              f"unsigned to a robot without a secret)")
+        if cfg.robot.name != args.target:
+            return (f"signed with the secret of robot {cfg.robot.name}'s configuration {args.config} (-c), not "
+                    f"{args.target}'s: {args.target} takes it only if it shares that secret")
+    return ""
 
 
 def _dest_root(args) -> Path:
@@ -239,7 +244,7 @@ def _secret(args) -> bytes | None:
         raise InputError(str(exc)) from None
 
 
-def _transfer(args, what: str, fn) -> int:
+def _transfer(args, what: str, fn, note: str = "") -> int:
     from vbnav.control.comms.route_transfer import NoAnswer, NoRobot, TransferError
     try:
         session = open_client(args)
@@ -252,7 +257,7 @@ def _transfer(args, what: str, fn) -> int:
         print(f"vbnav route {what}: {exc}", file=sys.stderr)
         return UNREACHABLE if isinstance(exc, NoRobot) else REFUSED
     except TransferError as exc:
-        print(f"vbnav route {what}: robot {args.target}: {exc}", file=sys.stderr)
+        print(f"vbnav route {what}: robot {args.target}: {exc}" + (f" ({note})" if note else ""), file=sys.stderr)
         return REFUSED
     finally:
         session.close()
@@ -272,7 +277,7 @@ def run_pull(args) -> int:
 
 def run_push(args) -> int:
     from vbnav.control.comms.route_transfer import push
-    _refuse_unused(args)
+    whose = _refuse_unused(args)
     secret = _secret(args)
 
     def go(session) -> int:
@@ -280,6 +285,6 @@ def run_push(args) -> int:
                       timeout_s=args.timeout)
         name = args.name or Path(args.path).name
         print(f"pushed route {name} to robot {args.target}: {answer.get('keyframes')} keyframes "
-              f"(checksums verified by the robot)")
+              f"(checksums verified by the robot" + (f"; {whose})" if whose else ")"))
         return OK
-    return _transfer(args, "push", go)
+    return _transfer(args, "push", go, whose)
