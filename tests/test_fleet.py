@@ -419,3 +419,24 @@ def test_a_push_signed_with_another_robots_configuration_says_whose(tmp_path, mo
     answers = iter([{"keyframes": 3}])
     assert main(["route", "push", "r2", str(tmp_path / "local" / "loop"), "-c", str(cfg)]) == 0
     assert "signed with the secret of" not in capsys.readouterr().out
+
+
+def test_a_command_signed_with_another_robots_configuration_says_whose(tmp_path, monkeypatch, capsys):
+    """vbnav send --robot r2 -c r1.yaml signed with r1's secret and said nothing of it (as route push did)."""
+    import yaml
+
+    from vbnav.control.cli import main
+    from vbnav.control.commands import send as send_cmd
+    secret = tmp_path / "secret"
+    secret.write_text("0123456789abcdef0123456789abcdef\n")
+    secret.chmod(0o600)
+    cfg = tmp_path / "r1.yaml"
+    cfg.write_text(yaml.safe_dump({"robot": {"name": "r1"}, "telemetry": {"shared_secret_file": str(secret)}}))
+
+    def unreachable(args):                  # the network is not under test: what is said before it is
+        raise ConnectionError("cannot connect (test)")
+    monkeypatch.setattr(send_cmd, "open_client", unreachable)
+    main(["send", "estop", "--robot", "r2", "-c", str(cfg)])
+    assert f"signed with the secret of robot r1's configuration {cfg} (-c), not r2's" in capsys.readouterr().err
+    main(["send", "estop", "--robot", "r1", "-c", str(cfg)])
+    assert "signed with the secret of robot" not in capsys.readouterr().err

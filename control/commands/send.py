@@ -161,6 +161,13 @@ def _run(args) -> int:
     except ValueError as exc:
         print(f"vbnav send: {exc}", file=sys.stderr)
         return BAD_INPUT
+    if secret is not None and args.config and args.robot and args.secret_file is None:
+        # A fleet may share one secret, so not refused; but the sender should know whose secret signs it.
+        from vbnav.control.config import load_config
+        named = load_config(args.config).robot.name
+        if named != args.robot:
+            print(f"vbnav send: signed with the secret of robot {named}'s configuration {args.config} (-c), not "
+                  f"{args.robot}'s: {args.robot} takes it only if it shares that secret", file=sys.stderr)
     try:
         session = open_client(args)
     except ConnectionError as exc:
