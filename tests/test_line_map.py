@@ -531,3 +531,29 @@ def test_the_line_map_benchmark_times_the_hypotheses_drain_apart():
     stage._drain_hypotheses()
     assert stage.map.verified[0]
     assert spans.calls["hypotheses"] == 4 and spans.calls["update"] == 0 and spans.calls["predict"] == 0
+
+
+def test_fusions_into_verified_segments_are_regated_together_and_as_one_at_a_time():
+    """A frame's observations fuse one after the other; a verified segment fused earlier in the frame is
+    gated again with the observations still to come. Three verified edges each take a piece before the
+    pieces that may pair with them again come: their re-gating is one batch when the first of those comes
+    (not one per fusion), and the result is that of fusing the observations one at a time."""
+    import copy
+    edges = np.array([[[x, 0.0, 2.0], [x, 1.0, 2.0]] for x in (0.0, 1.2, 2.4)])
+    m = LineMap(MapParams())
+    m._insert(edges, np.broadcast_to(1e-4 * I3, (3, 2, 3, 3)).copy(), np.full(3, -1), np.zeros(4))
+    m.verified[:] = True
+    pieces = [[[x + 0.002, 0.05, 2.0], [x + 0.002, 0.5, 2.0]] for x in (0.0, 1.2, 2.4)] + \
+        [[[x - 0.002, 0.5, 2.0], [x - 0.002, 0.95, 2.0]] for x in (0.0, 1.2, 2.4)]
+    Pw = np.array(pieces)
+    Cw = np.broadcast_to(1e-4 * I3, (6, 2, 3, 3)).copy()
+    ref = copy.deepcopy(m)
+    calls = []
+    gate = m._gate_pairs
+    m._gate_pairs = lambda *a: calls.append(len(a)) or gate(*a)
+    out = m._associate_and_fuse(Pw, Cw, np.zeros(4))
+    ref_out = np.concatenate([ref._associate_and_fuse(Pw[k:k + 1], Cw[k:k + 1], np.zeros(4)) for k in range(6)])
+    assert out.tolist() == ref_out.tolist() == [0, 1, 2, 0, 1, 2]
+    for name in ("P", "info", "info_vec", "cov", "support"):
+        assert np.array_equal(getattr(m, name), getattr(ref, name)), name
+    assert len(calls) == 2          # the frame's gating, then one re-gating of the three fused edges
