@@ -191,6 +191,30 @@ def test_an_extent_is_what_the_observations_reach_on_the_line_as_it_is_now():
     assert np.abs(m.P[0][:, [0, 2]] - [1.015, 0.18]).max() < 0.01     # and on the edge
 
 
+def test_a_segment_seen_every_frame_of_a_long_drive_keeps_a_bounded_record_of_its_ends():
+    """Every observation fused into a segment was kept for its extent: one seen at 15 Hz for an hour would hold
+    54,000 and project them all at every fusion. At most ENDS_KEPT are kept (those that reach farthest each
+    way), and the extent is still the farthest reach of all."""
+    from vbnav.vision.line_map import ENDS_KEPT
+    rng = np.random.default_rng(3)
+    m = LineMap()
+    t = np.array([0.0, 0.0, -0.4])
+    cov = 1e-6 * np.array([np.diag([1.0, 4.0, 16.0])] * 2)
+    reach = [np.inf, -np.inf]
+    for k in range(3 * ENDS_KEPT):
+        y0, y1 = -0.45 + rng.uniform(-0.02, 0.02), -0.05 + rng.uniform(-0.02, 0.02)
+        if k == ENDS_KEPT:                      # the farthest both ways, early: kept all the same
+            y0, y1 = -0.49, -0.01
+        reach = [min(reach[0], y0), max(reach[1], y1)]
+        P = np.array([[[1.0, y0, 0.2], [1.0, y1, 0.2]]])
+        m.update(Segments3D(P - t, cov[None], np.zeros((1, 4)), np.zeros((1, 4)), np.ones(1), np.zeros(1, int),
+                            np.ones(1, bool)), I3, t)
+    assert len(m) == 1 and m.support[0] == 3 * ENDS_KEPT
+    assert len(m.ends[0]) <= ENDS_KEPT
+    ys = np.sort(m.P[0, :, 1])
+    assert abs(ys[0] - reach[0]) < 1e-3 and abs(ys[1] - reach[1]) < 1e-3, (ys, reach)
+
+
 def test_unconfirmed_candidate_is_pruned_after_misses():
     p = MapParams(miss_limit=3)
     m = LineMap(p)

@@ -58,6 +58,7 @@ from vbnav.vision.line_segments import Segments2D, Segments3D
 CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
 CHI2_1_99 = 6.63         # ... with 1 (a height)
 CHI2_2_99 = 9.21         # ... with 2 (an image line's position)
+ENDS_KEPT = 64           # observations' endpoints kept per segment for its extent (_bound_ends)
 ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no information about the line
 ASSOC_PERP_M = 0.5       # association's coarse gate: both endpoints of an observation within this of the map line
 MERGE_PERP_M = 0.2       # merging's coarse gate: both endpoints of the other piece within this of the line
@@ -855,7 +856,9 @@ class LineMap:
         projection there put an end 9 cm past box_b's top corner, 8.6 cm beyond every observation, and the
         union kept it for good after the line had settled (issue 16, 120 frames)."""
         if len(j) == 1:                          # one segment (a fusion, an absorption): no grouping
-            s = np.einsum("mei,i->me", self.ends[int(j[0])] - q0[0], t[0])
+            i = int(j[0])
+            s = np.einsum("mei,i->me", self.ends[i] - q0[0], t[0])
+            self._bound_ends(i, s)
             return np.stack((q0 + s.min() * t, q0 + s.max() * t), axis=1)
         E = [self.ends[i] for i in j.tolist()]
         n = np.array([len(e) for e in E])
@@ -863,7 +866,24 @@ class LineMap:
         s = np.einsum("mei,mi->me", np.concatenate(E) - q0[owner, None], t[owner])    # (M, 2) along
         start = np.concatenate(([0], np.cumsum(n)[:-1]))
         lo, hi = np.minimum.reduceat(s.min(axis=1), start), np.maximum.reduceat(s.max(axis=1), start)
+        for k in np.nonzero(n > ENDS_KEPT)[0]:
+            self._bound_ends(int(j[k]), s[start[k]:start[k] + n[k]])
         return np.stack((q0 + lo[:, None] * t, q0 + hi[:, None] * t), axis=1)
+
+    def _bound_ends(self, i: int, s: np.ndarray) -> None:
+        """Keep at most ENDS_KEPT observations of segment i (s: (N, 2), their ends along its current line): the
+        half that reach farthest each way. A segment seen every frame of a long drive would otherwise keep
+        (and project, at every fusion) every observation it ever had: memory and time growing without
+        bound. The extent is the farthest reach along the line; an observation amid the others can only
+        become the farthest if the line turns far enough to carry it past every kept one."""
+        if len(s) <= ENDS_KEPT:
+            return
+        half = ENDS_KEPT // 2
+        lo, hi = np.argsort(s.min(axis=1), kind="stable"), np.argsort(-s.max(axis=1), kind="stable")
+        keep = np.zeros(len(s), bool)
+        keep[lo[:half]] = True
+        keep[hi[:ENDS_KEPT - half]] = True
+        self.ends[i] = self.ends[i][keep]
 
     def _add_view(self, j: int, view: np.ndarray) -> None:
         p = self.params
