@@ -215,6 +215,19 @@ def test_a_segment_seen_every_frame_of_a_long_drive_keeps_a_bounded_record_of_it
     assert abs(ys[0] - reach[0]) < 1e-3 and abs(ys[1] - reach[1]) < 1e-3, (ys, reach)
 
 
+def test_a_robot_turning_in_place_keeps_a_bounded_number_of_keyframes():
+    """The keyframes for the top edges were forgotten only beyond max_range_m: a robot turning on the spot
+    kept one more every view_angle_deg for as long as it turned. At most 2 max_range_m / view_baseline_m."""
+    from vbnav.vision.geometry import rot_y
+    from vbnav.vision.line_segments import Segments2D
+    m = LineMap()
+    left = Segments2D(np.array([[10.0, 10.0, 10.0, 100.0]]), np.zeros((1, 2)))
+    for k in range(200):                     # 11 deg a frame: every frame a distinct viewpoint
+        m.update(obs(np.zeros((0, 2, 3))), rot_y(math.radians(11.0 * k)), np.zeros(3), None, left)
+    p = m.params
+    assert 3 <= len(m.recent) <= math.ceil(2 * p.max_range_m / p.view_baseline_m), len(m.recent)
+
+
 def test_unconfirmed_candidate_is_pruned_after_misses():
     p = MapParams(miss_limit=3)
     m = LineMap(p)

@@ -1094,7 +1094,7 @@ class LineMap:
         """Keep this frame's left segments as a keyframe when its viewpoint is distinct from the last kept
         one; forget the keyframes farther than ``max_range_m`` from the camera (what they saw in range of them
         and is still in range of here lies within 2 ``max_range_m``; a hypothesis comes from what was just
-        verified near the robot)."""
+        verified near the robot), and all but the newest 2 ``max_range_m`` / ``view_baseline_m`` (40)."""
         p = self.params
         heading = math.atan2(R_wc[0, 2], R_wc[2, 2])
         if self.recent:
@@ -1105,6 +1105,9 @@ class LineMap:
                 return
         self.recent = [f for f in self.recent if np.linalg.norm(f[2] - t_wc) <= p.max_range_m]
         self.recent.append((left.xy.copy(), R_wc.copy(), t_wc.copy()))
+        # A robot that circles or turns in place within max_range_m would keep one more every view step for
+        # ever: the newest as many as a straight drive across the range keeps (2 max_range_m / view_baseline_m).
+        del self.recent[:-max(int(math.ceil(2 * p.max_range_m / p.view_baseline_m)), p.verify_views)]
 
     def _sight_top(self, k: int, sigma_m: float, camera: tuple) -> bool:
         """Measure a top-edge hypothesis k in the recent keyframes: in each, the nearest left segment along its
