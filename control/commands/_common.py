@@ -158,8 +158,7 @@ def apply_realtime(cfg, realtime: bool) -> None:
     change nothing."""
     if not realtime:
         return
-    from vbnav.control.runtime.factory import uses_sim_clock
-    if not uses_sim_clock(cfg) and not cfg.sim.realtime:
+    if not cfg.on_simulated_clock() and not cfg.sim.realtime:
         real = [f"{k}.driver {d}" for k, d in (("drive", cfg.drive.driver), ("camera", cfg.camera.driver)) if d != "sim"]
         raise InputError(f"--realtime: {cfg.source}: {' and '.join(real)} run on the wall clock anyway (only a robot whose "
                          f"drive and camera are both simulated has a simulated clock); leave it out")
@@ -174,11 +173,10 @@ def live_view_refusal(cfg, no_telemetry: bool = False, remedy: str = "add --real
     """Why this run could not serve the live view ("" when it could): it rides on the telemetry session, which
     --no-telemetry or telemetry.enabled: false keeps closed, and which opens only on the wall clock (call after
     applying --realtime). ``remedy``: how this command runs the simulated robot on the wall clock."""
-    from vbnav.control.runtime.factory import uses_sim_clock
     closed = network_closed(cfg, no_telemetry)
     if closed:
         return f"it is served by the telemetry session, which {closed} keeps closed"
-    if uses_sim_clock(cfg):
+    if cfg.on_simulated_clock():
         return f"the simulated robot runs on the simulated clock, faster than real time, where nothing is served: {remedy}"
     return ""
 

@@ -32,7 +32,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from vbnav.control.config import load_config
     from vbnav.control.route import stray_route_dirs
-    from vbnav.control.runtime.factory import make_robot, uses_sim_clock
+    from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.progress import ProgressPrinter
     from vbnav.control.runtime.runtime import DEVICE_FAULTS
     from vbnav.control.session import Session, teach_driver
@@ -52,7 +52,7 @@ def run(args) -> int:
     why = record_target_error(args)
     if why:
         raise InputError(why)
-    if cfg.controller.teach == "teleop" and uses_sim_clock(cfg):   # on stdout: tests/test_factory_session.py
+    if cfg.controller.teach == "teleop" and cfg.on_simulated_clock():   # on stdout: tests/test_factory_session.py
         print(f"vbnav teach: {cfg.source}: controller.teach 'teleop' on the simulated clock: nobody can drive a "
               "run faster than real time (set controller.teach: room_loop, or sim.realtime: true)")
         return 2

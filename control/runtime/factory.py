@@ -35,11 +35,6 @@ class Robot:
         return self.start.between(self.drive.true_pose)
 
 
-def uses_sim_clock(cfg: Config) -> bool:
-    """The simulated clock runs when everything is simulated and real time is not asked for."""
-    return cfg.on_simulated_clock()
-
-
 def noise_seed(cfg: Config, run: int = 0) -> int:
     """Seed of the simulated motor and image noise of run ``run`` on seed ``sim.seed``: every run of a
     scenario (the demo's teach and each repeat) draws its own noise, and each is reproducible."""
@@ -47,7 +42,7 @@ def noise_seed(cfg: Config, run: int = 0) -> int:
 
 
 def make_clock(cfg: Config) -> Clock:
-    if uses_sim_clock(cfg):
+    if cfg.on_simulated_clock():
         return SimClock()
     return MonotonicClock(spin_ns=cfg.loop.spin_us * 1000)
 
