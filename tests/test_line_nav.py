@@ -43,13 +43,15 @@ def room_map(room_drive):
 
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
-    Measured: 10 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 5/7, box lower and upper edges 4/8),
-    endpoints 2.6 mm median / 2.5 cm 95 %, 1.7 % of 357 verified segments false (2.0 % before a segment took at
+    Measured: 11 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 4/8),
+    endpoints 2.9 mm median / 2.5 cm 95 %, 1.7 % of 358 verified segments false (10 of 16 and 5/7 box vertical
+    before the vertical lines' side bands were compared on slanted planes: box_a's far corner; on the room's
+    seeds 1-3, 10, 12 and 9 of 16, were 10, 9 and 8: benchmarks/line_room.py; 2.0 % before a segment took at
     most one of two parallel lines of one image; 9 of 16 and 4/7 box vertical before the vertical lines of
     vision/line_vertical.py gave box_b's far corner, 8 of 16 before box_b's top hypothesis was measured on its
     corners' lines in the recent keyframes, 7 before two separating viewpoints verified an unambiguous
     candidate). Built as `map build` builds it, with the slow loop's hypotheses. On the denser 120-frame loop (a
-    frame every 5 cm, nearer a real robot's 2 cm): 13 of 20, 2.1 mm / 1.8 cm, 2.2 % of 550 false (7.0 cm 95 %
+    frame every 5 cm, nearer a real robot's 2 cm): 13 of 20, 1.6 mm / 1.9 cm, 2.2 % of 549 false (7.0 cm 95 %
     before: floor texture 8-12 cm in front of the south wall fused into its foot). The acceptance (90 % of the
     edges) is not met: docs/line_map.md "Not met"."""
     world, lmap, drive = room_drive
@@ -57,9 +59,9 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     assert lmap.hypothesis.any()
     sc = score_map(lmap, world, drive)
     assert sc.in_view >= 12 and sum(v[0] for v in sc.by_class.values()) == sc.in_view
-    assert sc.mapped >= 10, sc.missing
+    assert sc.mapped >= 11, sc.missing
     assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 4   # floor lines, box_b's top
-    assert sc.by_class["box_vertical"][1] >= 5, sc.by_class        # box_b's far corner: vertical lines
+    assert sc.by_class["box_vertical"][1] >= 6, sc.by_class        # box_b's and box_a's far corners: vertical lines
     assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.05
     assert sc.false_fraction <= 0.035
     drive = render_drive(world, loop_poses(2 * LOOP_FRAMES))

@@ -32,8 +32,9 @@ boundary, is the same in both; the edge search's test), better there than a pixe
 wrong disparity the match is another structure's) and 2x better than 3 px to either side (the floor
 test's rule: a weakly textured side proves nothing), while the other side does not match (an
 occluding boundary: the background behind it shifts by another disparity; a line whose both sides match
-lies on a surface, where its contrast does not change sign and LSD has it); a left run with more than one
-candidate (periodic texture) gets none. ``add_vertical_matches`` appends them to the pair's matches.
+lies on a surface, where its contrast does not change sign and LSD has it); a left run with candidates at
+disparities more than a pixel apart (periodic texture) gets none, and of candidates within a pixel of one
+disparity (the right image's run broken into pieces) the one sharing most rows is kept. ``add_vertical_matches`` appends them to the pair's matches.
 """
 from __future__ import annotations
 
@@ -202,11 +203,9 @@ def vertical_lines(left_image: np.ndarray, right_image: np.ndarray, vertical: np
     rr = pencil_runs(R, params, noise, grads and grads[1])
     if len(rr) == 0:
         return none
-    li, ri = match_vertical(L, R, lr, rr, params)
+    li, ri, lo, hi = match_vertical(L, R, lr, rr, params)
     if len(li) == 0:
         return none
-    lo = np.maximum(lr[li, 1], rr[ri, 1])
-    hi = np.minimum(lr[li, 2], rr[ri, 2])
     lseg = np.column_stack((lr[li, 0], lo, hi))
     rseg = np.column_stack((rr[ri, 0], lo, hi))
     lxy = _to_image(np.column_stack((lseg, np.zeros(len(li)))), maps)
@@ -237,9 +236,10 @@ def slanted(run_xy: np.ndarray, seg_xy: np.ndarray, params: LineParams = LinePar
 
 
 def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
-                   params: LineParams = LineParams()) -> tuple[np.ndarray, np.ndarray]:
+                   params: LineParams = LineParams()) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Indices (left run, right run) of the unique candidates (see the module docstring), in the resampled
-    images (columns are the pencil's lines, so a column shift is the disparity up to the row's scale)."""
+    images (columns are the pencil's lines, so a column shift is the disparity up to the row's scale), and
+    each one's first and last matched row."""
     lo = np.maximum(lr[:, None, 1], rr[None, :, 1])
     hi = np.minimum(lr[:, None, 2], rr[None, :, 2])
     shorter = np.minimum(lr[:, None, 2] - lr[:, None, 1], rr[None, :, 2] - rr[None, :, 1])
@@ -253,34 +253,79 @@ def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
         & (rr[None, :, 0] - reach >= 0) & (rr[None, :, 0] + reach <= W - 1)
     a, b = np.nonzero(cand)
     if len(a) == 0:
-        return a, b
+        return a, b, np.zeros(0), np.zeros(0)
     k = params.edge_samples
     t = (np.arange(k) + 0.5) / k
     ys = lo[a, b][:, None] + (hi[a, b] - lo[a, b])[:, None] * t[None]               # (C, k)
     xl = np.broadcast_to(lr[a, 0][:, None], ys.shape)
     d = disp[a, b][:, None, None]
     off = np.asarray(params.band_px, float)[None, None, :]
+    slants = band_slants(params)
     shifts = (-3.0, -1.0, 0.0, 1.0, 3.0)
-    cost = np.zeros((len(shifts), 2, len(a)))        # (disparity d + shift; side; candidate)
+    # cost[j, g, s, c]: side j (+1: right of the line, -1: left) of candidate c, its band sampled in the right
+    # image at the disparity d + shift s + slant g x the band offset (the near surface is a plane through the
+    # line, not fronto-parallel: a box face seen obliquely changes disparity by up to 2/3 px per px).
+    cost = np.zeros((2, len(slants), len(shifts), len(a)))
+    sh = np.asarray(shifts)[None, :, None, None, None]
+    sl = slants[:, None, None, None, None] * off[None, None]                      # (G, 1, 1, 1, 3)
     for j, sign in enumerate((1.0, -1.0)):
         bx = xl[..., None] + sign * off
         by = np.broadcast_to(ys[..., None], bx.shape)
         lv = _sample(L, bx, by)
-        for i, dd in enumerate(shifts):
-            cost[i, j] = np.abs(lv - _sample(R, bx - d - dd, by)).mean(axis=(1, 2))
-    # The near side matches at the lines' disparity, better than a pixel either way (at a wrong disparity
-    # the match is another structure's), and at least 2x better than 3 px either way (the floor test's
-    # rule: an untextured or weakly textured side proves nothing).
-    c0 = cost[2]
-    side_ok = ((c0 <= params.band_max_diff) & (c0 < cost[1]) & (c0 < cost[3])
-               & (2.0 * c0 <= np.minimum(cost[0], cost[4])))
-    # An occluding boundary: the far side (the background, shifted by another disparity) differs. A line
-    # whose both sides match lies on a surface (texture), where LSD's contrast does not change sign.
-    far_differs = c0[::-1] > params.band_max_diff
+        rx = bx[None, None] - d[None, None] - sh - sl                               # (G, S, C, k, 3)
+        rv = _sample(R, rx, np.broadcast_to(by[None, None], rx.shape))
+        cost[j] = np.abs(lv[None, None] - rv).mean(axis=(3, 4))
+    # Per side, the cost profile over the disparity at the line, each at its best plane through the line
+    # (slant). The near side matches at the line's disparity, better than at a pixel either way with any
+    # slant (at a wrong disparity the match is another structure's; a slanted plane through a wrong
+    # disparity can imitate the right one over the band, so every slant competes), and at least 2x better
+    # than 3 px either way (the floor test's rule: an untextured or weakly textured side proves nothing).
+    ci = np.arange(len(a))
+    prof = cost.min(axis=1)                                                       # (2, shifts, C)
+    best = cost[:, :, 2].argmin(axis=1)                                           # (2, C)
+    c0 = prof[:, 2]
+    side_ok = ((c0 <= params.band_max_diff) & (c0 < prof[:, 1]) & (c0 < prof[:, 3])
+               & (2.0 * c0 <= np.minimum(prof[:, 0], prof[:, 4])))
+    # An occluding boundary: the far side differs from the near side's plane continued across the line
+    # (slant -g on the other side; the background is shifted by another disparity). A line whose both sides
+    # lie on one plane is on a surface (texture), where LSD's contrast does not change sign.
+    flip = len(slants) - 1 - best                                                 # slant -g (symmetric grid)
+    far_differs = cost[np.array([1, 0])[:, None], flip, 2, ci[None, :]] > params.band_max_diff
     good = (side_ok & far_differs).any(axis=0)
     a, b = a[good], b[good]
-    one = np.bincount(a, minlength=len(lr))[a] == 1
-    return a[one], b[one]
+    # Periodic texture gives a left run candidates at several disparities: it gets none. Candidates within a
+    # pixel of one disparity are one line that the right image's run broke into pieces (a contrast sign
+    # change): the one sharing most rows with the left run is kept.
+    dg = disp[a, b]
+    n = len(lr)
+    spread = np.full(n, -np.inf)
+    np.maximum.at(spread, a, dg)
+    low = np.full(n, np.inf)
+    np.minimum.at(low, a, dg)
+    one = (spread - low)[a] <= 1.0
+    rows = (hi - lo)[a, b]
+    order = np.lexsort((-rows, a))                                # per left run, the most shared rows first
+    first = np.ones(len(order), bool)
+    first[1:] = a[order][1:] != a[order][:-1]
+    keep = np.zeros(len(a), bool)
+    keep[order[first]] = True
+    keep &= one
+    # The matched rows: the left run's rows that the agreeing right pieces span (their gaps are sign changes).
+    top = np.full(n, np.inf)
+    np.minimum.at(top, a, lo[a, b])
+    bottom = np.full(n, -np.inf)
+    np.maximum.at(bottom, a, hi[a, b])
+    a, b = a[keep], b[keep]
+    return a, b, top[a], bottom[a]
+
+
+def band_slants(params: LineParams = LineParams()) -> np.ndarray:
+    """Disparity slants (px of disparity per px across the line) tried for a side band: up to the disparity
+    gradient limit (Pollard, Mayhew and Frisby: 1 in cyclopean terms, 2/3 px per left-image px), in steps that
+    move the outer band by at most half a pixel."""
+    lim = 2.0 / 3.0
+    n = int(math.ceil(lim * max(params.band_px) / 0.5))
+    return np.linspace(-lim, lim, 2 * n + 1)
 
 
 def add_vertical_matches(left_image: np.ndarray, right_image: np.ndarray, ls: Segments2D, rs: Segments2D,
