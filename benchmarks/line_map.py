@@ -15,7 +15,7 @@ the parts nested in it:
 - floor lines: ``floor_segments`` (vision/line_floor.py);
 - update: ``predict`` of all segments (miss counting) and ``LineMap.update`` (association, fusion, misses,
   collinear merging, verification, pruning); merging is also shown on its own;
-- hypotheses: ``LineMap.add_hypotheses`` in the hypotheses drain, with the top edges measured in the
+- hypotheses: ``LineMap.add_hypotheses`` in the hypotheses drain, with the top and lower edges measured in the
   keyframes (its ``predict`` calls); only in the frames after a slow-loop pass that posted some;
 - other: what ``process`` does besides (pose, locks, concatenation, the summary).
 
@@ -290,7 +290,7 @@ def main() -> int:
           f"segments/frame of which {out['floor_per_frame']:.0f} floor lines")
     labels = {"detect": "detection (both images)", "predict": "prediction + prior", "guided_match":
               "guided matching + 3D", "floor": "floor lines", "update": "update incl. merging",
-              "merge": "  of which merging", "hypotheses": "hypotheses (top edges)", "other": "rest of process()", "fast_loop": "FAST LOOP total",
+              "merge": "  of which merging", "hypotheses": "hypotheses (box edges)", "other": "rest of process()", "fast_loop": "FAST LOOP total",
               "peer": "peer (OpenCV LSD, unguided)", "no_map": "same detection, no map",
               "slow_loop": "slow loop (per 1 s pass)"}
     print(f"  {'per frame (ms)':30s} {'cpu median':>10s} {'p95':>7s}   {'wall median':>11s} {'p95':>7s}")

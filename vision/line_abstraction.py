@@ -15,9 +15,11 @@ it starts at one of them at right angles (``foot_angle_deg``) to a face between 
   an object seen at two faces (three corners, or two corners and a lower edge) is closed on the side the
   robot has not seen: the hypothesised corner is part of the footprint the grid marks as occupied
   (two points give the face between them);
-- ``missing_lines``: the vertical edges at the footprint's corners where no vertical edge was seen, and the
-  top edges, are hypotheses. The sensor loop verifies or prunes them like any candidate
-  (``LineMap.add_hypotheses``).
+- ``missing_lines``: the vertical edges at the footprint's corners where no vertical edge was seen, the
+  top edges and the lower edges, are hypotheses. The sensor loop verifies or prunes them like any candidate
+  (``LineMap.add_hypotheses``). A lower edge is posted too: a face whose contrast with the floor changes
+  sign along it leaves LSD pieces too short to verify (box_b's far face in the room test), while the
+  footprint from its verified corners says where the whole edge is.
 - ``object_polygons``: all of it from the map's verified segments.
 
 ``control/stages/line_abstraction.py`` runs this in its own thread, slower than the frame loop.
@@ -193,7 +195,8 @@ def object_polygons(P: np.ndarray, params: AbstractionParams = AbstractionParams
 
 def missing_lines(poly: ObjectPolygon, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
     """(K, 2, 3) hypothesised segments of a box whose footprint is a rectangle: the vertical edges at its
-    corners where none was seen (first), then its four top edges (world frame, y = -height at the top).
+    corners where none was seen (first), then its four top edges (world frame, y = -height at the top), then
+    its four lower edges (y = 0).
     Nothing for a face (a footprint thinner than ``min_side_m``)."""
     fp = poly.footprint
     if len(fp) != 4:
@@ -209,4 +212,6 @@ def missing_lines(poly: ObjectPolygon, params: AbstractionParams = AbstractionPa
             out.append([[c[0], 0.0, c[1]], [c[0], -h, c[1]]])
     for a, b in zip(fp, np.roll(fp, -1, axis=0)):
         out.append([[a[0], -h, a[1]], [b[0], -h, b[1]]])
+    for a, b in zip(fp, np.roll(fp, -1, axis=0)):
+        out.append([[a[0], 0.0, a[1]], [b[0], 0.0, b[1]]])
     return np.array(out, float)

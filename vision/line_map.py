@@ -211,8 +211,8 @@ class MapParams:
     # verify_views times when a false match this far off along its ray would have moved out of the
     # association gate between them (separating_views; 0: never). The false-segment distance of the scoring.
     ghost_error_m: float = 0.05
-    # A horizontal hypothesis (a box's top edge) is looked for in the left segments of the recent keyframes
-    # (``recent``), its height measured on its corners' vertical lines (``_sight_top``), with this sigma of
+    # A horizontal hypothesis (a box's top or lower edge) is looked for in the left segments of the recent
+    # keyframes (``recent``), its height measured on its corners' vertical lines (``_sight_horizontal``), with this sigma of
     # an image line across itself (LineParams.sigma_perp_px; 0: never).
     sight_sigma_px: float = 0.3
     # Two observations of one frame whose left-image lines are parallel (``assoc_angle_deg``), overlap along
@@ -1076,8 +1076,8 @@ class LineMap:
     def add_hypotheses(self, P: np.ndarray, sigma_m: float = 0.05, camera: Optional[tuple] = None) -> np.ndarray:
         """Insert missing-line hypotheses from the abstraction module (world frame, (K, 2, 3)): candidates
         with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. camera: (fx, fy,
-        cx, cy, baseline, width, height) of the left image: a horizontal one (a top edge) is first looked for
-        in the recent frames (``_sight_top``). Returns ids."""
+        cx, cy, baseline, width, height) of the left image: a horizontal one (a box's top or lower edge) is
+        first looked for in the recent frames (``_sight_horizontal``). Returns ids."""
         P = np.asarray(P, float).reshape(-1, 2, 3)
         if len(P) == 0:
             return np.zeros(0, int)
@@ -1087,7 +1087,7 @@ class LineMap:
             self.views[k] = []
             self.support[k] = 0
             if camera is not None and self.params.sight_sigma_px > 0 and abs(self.P[k, 0, 1] - self.P[k, 1, 1]) < 1e-9:
-                self._sight_top(k, sigma_m, camera)
+                self._sight_horizontal(k, sigma_m, camera)
         return ids
 
     def _remember(self, left: Segments2D, R_wc: np.ndarray, t_wc: np.ndarray) -> None:
@@ -1109,8 +1109,9 @@ class LineMap:
         # ever: the newest as many as a straight drive across the range keeps (2 max_range_m / view_baseline_m).
         del self.recent[:-max(int(math.ceil(2 * p.max_range_m / p.view_baseline_m)), p.verify_views)]
 
-    def _sight_top(self, k: int, sigma_m: float, camera: tuple) -> bool:
-        """Measure a top-edge hypothesis k in the recent keyframes: in each, the nearest left segment along its
+    def _sight_horizontal(self, k: int, sigma_m: float, camera: tuple) -> bool:
+        """Measure a horizontal hypothesis k (a box's top or lower edge) in the recent keyframes: in each, the
+        nearest left segment along its
         prediction (direction ``predict_angle_deg``, midpoint within the prediction and within
         sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``) spans a plane with
         the camera centre; where it meets the vertical lines of the edge's two corners (their x, z: verified
@@ -1118,7 +1119,8 @@ class LineMap:
         ``assoc_extra_m``. A horizontal line seen while driving spans one plane with every camera centre (the
         camera's height is fixed), so its height cannot be triangulated; its corners' lines fix where it is.
         Verified when seen from ``verify_views`` distinct viewpoints and every frame's heights lie within
-        the chi-square gate (1 dof, 99 %) of their weighted mean: the mean becomes its height."""
+        the chi-square gate (1 dof, 99 %) of their weighted mean: the mean becomes its height. A lower edge
+        lies on the floor; measuring its height all the same is the check that the lines found agree."""
         p = self.params
         fx, fy, cx, cy, baseline, width, height = camera
         Kinv = np.linalg.inv(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))

@@ -274,7 +274,7 @@ class LineMapStage(VisionStage):
             except queue.Empty:
                 break
             fx, fy, cx, cy = self.cam
-            # A top edge is first measured in the recent keyframes (it comes when its box's corners were
+            # A top or lower edge is first measured in the recent keyframes (it comes when its box's corners were
             # verified, often as the box leaves the view).
             self.map.add_hypotheses(hyp, camera=(fx, fy, cx, cy, self.baseline, *self.size))
             n += len(hyp)
