@@ -1086,7 +1086,9 @@ class LineMap:
         for k in range(len(self) - len(P), len(self)):
             self.views[k] = []
             self.support[k] = 0
-            if camera is not None and self.params.sight_sigma_px > 0 and abs(self.P[k, 0, 1] - self.P[k, 1, 1]) < 1e-9:
+            if camera is None or self.params.sight_sigma_px <= 0:
+                continue
+            if abs(self.P[k, 0, 1] - self.P[k, 1, 1]) < 1e-9:
                 self._sight_horizontal(k, sigma_m, camera)
         return ids
 
@@ -1109,25 +1111,18 @@ class LineMap:
         # ever: the newest as many as a straight drive across the range keeps (2 max_range_m / view_baseline_m).
         del self.recent[:-max(int(math.ceil(2 * p.max_range_m / p.view_baseline_m)), p.verify_views)]
 
-    def _sight_horizontal(self, k: int, sigma_m: float, camera: tuple) -> bool:
-        """Measure a horizontal hypothesis k (a box's top or lower edge) in the recent keyframes: in each, the
-        nearest left segment along its
-        prediction (direction ``predict_angle_deg``, midpoint within the prediction and within
-        sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``) spans a plane with
-        the camera centre; where it meets the vertical lines of the edge's two corners (their x, z: verified
-        vertical edges) are the edge's ends' heights, each with the sigma s z / (fx |n_y|) and
-        ``assoc_extra_m``. A horizontal line seen while driving spans one plane with every camera centre (the
-        camera's height is fixed), so its height cannot be triangulated; its corners' lines fix where it is.
-        Verified when seen from ``verify_views`` distinct viewpoints and every frame's heights lie within
-        the chi-square gate (1 dof, 99 %) of their weighted mean: the mean becomes its height. A lower edge
-        lies on the floor; measuring its height all the same is the check that the lines found agree."""
+    def _sightings(self, k: int, sigma_m: float, camera: tuple) -> list:
+        """Hypothesis k in the recent keyframes: in each where it is predicted in view, the nearest left segment
+        along its prediction (direction ``predict_angle_deg``, midpoint within the prediction and within
+        sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``). Returns a list of
+        (n, R, t): the unit normal (world frame) of the plane that segment spans with the camera centre t."""
         p = self.params
         fx, fy, cx, cy, baseline, width, height = camera
         Kinv = np.linalg.inv(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
         only = np.zeros(len(self), bool)
         only[k] = True
         A = self.P[k]
-        ys, ws, views = [], [], []
+        out = []
         for xy, R, t in self.recent:
             pr = self.predict(R, t, fx, fy, cx, cy, baseline, width, height, which=only)
             if len(pr) == 0 or len(xy) == 0:
@@ -1148,6 +1143,34 @@ class LineMap:
             j = np.nonzero(ok)[0][np.argmin(dist[ok])]
             n = np.cross(R @ (Kinv @ np.r_[xy[j, :2], 1.0]), R @ (Kinv @ np.r_[xy[j, 2:], 1.0]))
             n /= max(float(np.linalg.norm(n)), 1e-12)
+            out.append((n, R, t))
+        return out
+
+    def _distinct_views(self, views: list) -> list:
+        """The viewpoints (x, y, z, heading) of ``views`` a ``view_baseline_m`` or ``view_angle_deg`` apart from
+        every one kept before them (``_add_view``'s rule)."""
+        p = self.params
+        distinct: list = []
+        for v in views:
+            if all(np.linalg.norm(v[:3] - w[:3]) >= p.view_baseline_m
+                   or abs(math.remainder(v[3] - w[3], math.tau)) >= math.radians(p.view_angle_deg) for w in distinct):
+                distinct.append(v)
+        return distinct
+
+    def _sight_horizontal(self, k: int, sigma_m: float, camera: tuple) -> bool:
+        """Measure a horizontal hypothesis k (a box's top or lower edge) in the recent keyframes: each sighting's
+        plane (``_sightings``) meets the vertical lines of the edge's two corners (their x, z: verified
+        vertical edges) at the edge's ends' heights, each with the sigma s z / (fx |n_y|) and
+        ``assoc_extra_m``. A horizontal line seen while driving spans one plane with every camera centre (the
+        camera's height is fixed), so its height cannot be triangulated; its corners' lines fix where it is.
+        Verified when seen from ``verify_views`` distinct viewpoints and every frame's heights lie within
+        the chi-square gate (1 dof, 99 %) of their weighted mean: the mean becomes its height. A lower edge
+        lies on the floor; measuring its height all the same is the check that the lines found agree."""
+        p = self.params
+        fx = camera[0]
+        A = self.P[k]
+        ys, ws, views = [], [], []
+        for n, R, t in self._sightings(k, sigma_m, camera):
             if abs(n[1]) < 1e-6:
                 continue
             ys.append([(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)])
@@ -1165,11 +1188,7 @@ class LineMap:
             if chi.max() <= CHI2_1_99:
                 break
             keep[int(chi.argmax())] = False
-        distinct: list = []
-        for v in (v for v, kept in zip(views, keep) if kept):
-            if all(np.linalg.norm(v[:3] - w[:3]) >= p.view_baseline_m
-                   or abs(math.remainder(v[3] - w[3], math.tau)) >= math.radians(p.view_angle_deg) for w in distinct):
-                distinct.append(v)
+        distinct = self._distinct_views([v for v, kept in zip(views, keep) if kept])
         if len(distinct) < p.verify_views:
             return False
         ys, ws = ys[keep], ws[keep]
