@@ -249,7 +249,7 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
             segs3d = Segments3D.concat([segs3d, floor_segments(res.left, f.image, f.right, CAM.K, BASELINE, R, c)])
         pred_all = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height,
                                 which=np.ones(len(lmap), bool))
-        lmap.update(segs3d, R, c, pred_all, res.left)
+        lmap.update(segs3d, R, c, pred_all, res.left, f.image)
         if slow is not None and (n + 1) % abstraction_every == 0:
             slow.step()
     return lmap, counts

@@ -51,10 +51,13 @@ from dataclasses import dataclass, field
 from itertools import chain
 from typing import Optional
 
+import cv2
 import numpy as np
 
-from vbnav.vision.line_segments import Segments2D, Segments3D
+from vbnav.vision.line_segments import Segments2D, Segments3D, gradients, grey
+from vbnav.vision.line_vertical import SOBEL_NOISE_GAIN, noise_sigma
 
+RIDGE_SAMPLES = 64       # points of a hypothesis's line whose median gradient is its ridge response
 CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
 CHI2_1_99 = 6.63         # ... with 1 (a height)
 CHI2_2_99 = 9.21         # ... with 2 (an image line's position)
@@ -215,6 +218,11 @@ class MapParams:
     # keyframes (``recent``), its height measured on its corners' vertical lines (``_sight_horizontal``), with this sigma of
     # an image line across itself (LineParams.sigma_perp_px; 0: never).
     sight_sigma_px: float = 0.3
+    # A box's top may lie this far above its hypothesis (the corners' LSD pieces end early: the abstraction's
+    # height_tol_m), searched in a keyframe's image (``_ridge_sighting``), whose ridge must stand this many
+    # sigma of the gradient's noise (LineParams.vertical_k_sigma).
+    sight_up_m: float = 0.3
+    ridge_k_sigma: float = 3.0
     # Two observations of one frame whose left-image lines are parallel (``assoc_angle_deg``), overlap along
     # the line and lie apart across it by more than the 1-dof 99 % gate of the difference of two image
     # lines, sqrt(chi2_1,99 %) sqrt(2) x this sigma (LineParams.sigma_perp_px: 1.1 px), are two distinct
@@ -405,18 +413,20 @@ class LineMap:
 
     # -------------------------------------------------------------------- update
     def update(self, obs: Segments3D, R_wc: np.ndarray, t_wc: np.ndarray, pred: Optional[Prediction] = None,
-               left: Optional[Segments2D] = None) -> UpdateStats:
+               left: Optional[Segments2D] = None, image: Optional[np.ndarray] = None) -> UpdateStats:
         """Fuse one frame's 3D segments (left camera frame) seen from camera pose (R_wc, t_wc).
 
         pred: this frame's prediction of ALL map segments (``predict(..., which=all)``), used to count
         misses; None skips the miss bookkeeping. left: the frame's left-image segments; a predicted segment
         that some detected segment lies along is not missed even if stereo did not reconstruct it this time
-        (LSD breaks textured edges into different pieces from frame to frame).
+        (LSD breaks textured edges into different pieces from frame to frame). image: the frame's left image,
+        kept with a keyframe so a box's top or lower edge hypothesis can be looked for in its gradient
+        (``_ridge_sighting``).
         """
         st = UpdateStats()
         self.frames += 1
         if left is not None and self.params.sight_sigma_px > 0:
-            self._remember(left, R_wc, t_wc)
+            self._remember(left, R_wc, t_wc, image)
         self._pairs = 0
         p = self.params
         if len(obs):
@@ -1077,7 +1087,10 @@ class LineMap:
         """Insert missing-line hypotheses from the abstraction module (world frame, (K, 2, 3)): candidates
         with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. camera: (fx, fy,
         cx, cy, baseline, width, height) of the left image: a horizontal one (a box's top or lower edge) is
-        first looked for in the recent frames (``_sight_horizontal``). Returns ids."""
+        first looked for in the recent frames (``_sight_horizontal``) at once: a box's eight cost 40-100 ms in
+        the frame after the slow loop posted them (looked for in later frames instead, one or three a frame,
+        some were merged into a stereo candidate or pruned before their turn: room seed 2 13 -> 12 of 16).
+        Returns ids."""
         P = np.asarray(P, float).reshape(-1, 2, 3)
         if len(P) == 0:
             return np.zeros(0, int)
@@ -1092,7 +1105,8 @@ class LineMap:
                 self._sight_horizontal(k, sigma_m, camera)
         return ids
 
-    def _remember(self, left: Segments2D, R_wc: np.ndarray, t_wc: np.ndarray) -> None:
+    def _remember(self, left: Segments2D, R_wc: np.ndarray, t_wc: np.ndarray,
+                  image: Optional[np.ndarray] = None) -> None:
         """Keep this frame's left segments as a keyframe when its viewpoint is distinct from the last kept
         one; forget the keyframes farther than ``max_range_m`` from the camera (what they saw in range of them
         and is still in range of here lies within 2 ``max_range_m``; a hypothesis comes from what was just
@@ -1100,13 +1114,15 @@ class LineMap:
         p = self.params
         heading = math.atan2(R_wc[0, 2], R_wc[2, 2])
         if self.recent:
-            _, R0, t0 = self.recent[-1]
+            _, R0, t0, _ = self.recent[-1]
             if (np.linalg.norm(t_wc - t0) < p.view_baseline_m
                     and abs(math.remainder(heading - math.atan2(R0[0, 2], R0[2, 2]), math.tau))
                     < math.radians(p.view_angle_deg)):
                 return
         self.recent = [f for f in self.recent if np.linalg.norm(f[2] - t_wc) <= p.max_range_m]
-        self.recent.append((left.xy.copy(), R_wc.copy(), t_wc.copy()))
+        # The image's grey levels (its gradient is computed when a hypothesis is first looked for in it).
+        img = None if image is None else [grey(image).copy(), None]
+        self.recent.append((left.xy.copy(), R_wc.copy(), t_wc.copy(), img))
         # A robot that circles or turns in place within max_range_m would keep one more every view step for
         # ever: the newest as many as a straight drive across the range keeps (2 max_range_m / view_baseline_m).
         del self.recent[:-max(int(math.ceil(2 * p.max_range_m / p.view_baseline_m)), p.verify_views)]
@@ -1114,8 +1130,10 @@ class LineMap:
     def _sightings(self, k: int, sigma_m: float, camera: tuple) -> list:
         """Hypothesis k in the recent keyframes: in each where it is predicted in view, the nearest left segment
         along its prediction (direction ``predict_angle_deg``, midpoint within the prediction and within
-        sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``). Returns a list of
-        (n, R, t): the unit normal (world frame) of the plane that segment spans with the camera centre t."""
+        sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``); in a keyframe that
+        kept its image, a horizontal hypothesis is looked for in the image's gradient (``_ridge_sighting``).
+        Returns a list of (n, R, t): the unit normal (world frame) of the plane that line spans with the camera
+        centre t."""
         p = self.params
         fx, fy, cx, cy, baseline, width, height = camera
         Kinv = np.linalg.inv(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
@@ -1123,7 +1141,12 @@ class LineMap:
         only[k] = True
         A = self.P[k]
         out = []
-        for xy, R, t in self.recent:
+        for xy, R, t, img in self.recent:
+            if img is not None and abs(A[0, 1] - A[1, 1]) < 1e-9:
+                n = self._ridge_sighting(k, img, R, t, sigma_m, camera)
+                if n is not None:
+                    out.append((n, R, t))
+                continue
             pr = self.predict(R, t, fx, fy, cx, cy, baseline, width, height, which=only)
             if len(pr) == 0 or len(xy) == 0:
                 continue
@@ -1145,6 +1168,93 @@ class LineMap:
             n /= max(float(np.linalg.norm(n)), 1e-12)
             out.append((n, R, t))
         return out
+
+    def _ridge_sighting(self, k: int, img: list, R: np.ndarray, t: np.ndarray, sigma_m: float,
+                        camera: tuple) -> Optional[np.ndarray]:
+        """A horizontal hypothesis k (a box's top or lower edge between its corners' vertical lines) in one
+        keyframe's image: the height at which the line between the corners, projected, runs along a ridge of
+        the gradient across it, in MAGNITUDE (either sign: a box's top against a textured wall changes
+        contrast sign every few tens of pixels, and LSD keeps pieces too short to be found or none). Heights
+        from ``sight_up_m`` above the hypothesis (a top; its corners' LSD pieces end early) to 3 sigma_m below
+        it (3 sigma_m either way for a lower edge), in steps moving the line 1 px (the peak refined by a
+        parabola); the response at a height is the median of |gradient . normal| (3x3 Sobel / 8) over
+        ``RIDGE_SAMPLES`` points of the line, at least half of them in the image. A sighting when the best response is above ``ridge_k_sigma`` (3) sigma of the Sobel's
+        noise and 1.5 x the best one more than 3 px from it (a unique ridge), and for a lower edge within 3
+        ``assoc_extra_m`` of the floor. Returns the unit normal of the plane through the camera centre and the
+        line at that height, or None."""
+        p = self.params
+        fx, fy, cx, cy, _, width, height = camera
+        A = self.P[k]
+        y0 = float(A[0, 1])
+        lower = abs(y0) < 1e-9
+        T = RIDGE_SAMPLES
+        s_ = (np.arange(T) + 0.5) / T
+        base = A[0] + (A[1] - A[0]) * s_[:, None]                                   # (T, 3) at the hypothesis height
+        zc = (base - t) @ R[:, 2]
+        if (zc > 0.1).sum() < T // 2:
+            return None
+        step = max(float(zc[zc > 0.1].min()), 0.1) / fy           # 1 px at the nearest point (the peak: a parabola)
+        lo, hi = y0 - (3.0 * sigma_m if lower else p.sight_up_m), y0 + 3.0 * sigma_m
+        # Cull: the face between the corners' lines over the searched heights is a convex quadrilateral; when
+        # its four corners lie in front of the camera and beyond one side of the image, so does all of it.
+        quad = np.array([[A[e, 0], y, A[e, 2]] for e in range(2) for y in (lo, hi)])
+        qc = (quad - t) @ R
+        if (qc[:, 2] > 0.1).all():
+            qu, qv = fx * qc[:, 0] / qc[:, 2] + cx, fy * qc[:, 1] / qc[:, 2] + cy
+            if (qu < 1).all() or (qu > width - 2).all() or (qv < 1).all() or (qv > height - 2).all():
+                return None
+        ys = np.arange(lo, hi + 0.5 * step, step)
+        if img[1] is None:                             # the keyframe's gradient, once, when first looked in
+            img[1] = (gradients(img[0]), noise_sigma(img[0]))
+        (gx, gy), noise = img[1]
+        pts = np.broadcast_to(base, (len(ys), T, 3)).copy()
+        pts[..., 1] = ys[:, None]
+        pc = (pts - t) @ R                                                            # (Y, T, 3) camera frame
+        z = pc[..., 2]
+        ok = z > 0.1
+        zs = np.where(ok, z, 1.0)
+        u = fx * pc[..., 0] / zs + cx
+        v = fy * pc[..., 1] / zs + cy
+        ok &= (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
+        # The image line's normal at each height (from its two ends' projections; the line is straight).
+        du, dv = u[:, -1] - u[:, 0], v[:, -1] - v[:, 0]
+        ln = np.maximum(np.hypot(du, dv), 1e-9)
+        nx, ny = -dv / ln, du / ln
+        mx, my = u.astype(np.float32), v.astype(np.float32)
+        sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        mag = np.abs(sx * nx[:, None] + sy * ny[:, None])
+        enough = ok.sum(axis=1) >= T // 2
+        if not enough.any():
+            return None
+        # Each height's median over its points in the image (the others sorted first as -1).
+        srt = np.sort(np.where(ok, mag, -1.0), axis=1)
+        nv = ok.sum(axis=1)
+        med = srt[np.arange(len(ys)), T - nv + (nv - 1) // 2]
+        resp = np.where(enough, med, -1.0)
+        best = int(np.argmax(resp))
+        if resp[best] < p.ridge_k_sigma * SOBEL_NOISE_GAIN * noise:
+            return None
+        # The line's offset from the best one, across it, at the middle point.
+        mid = T // 2
+        off = np.abs((u[:, mid] - u[best, mid]) * nx[best] + (v[:, mid] - v[best, mid]) * ny[best])
+        far = enough & (off > 3.0)
+        if far.any() and resp[best] < 1.5 * resp[far].max():
+            return None
+        # A lower edge is on the floor: a ridge found higher is a line on the face (its search range is the
+        # hypothesis's, only to test that the floor's ridge is the unique one).
+        if lower and abs(float(ys[best])) > 3.0 * p.assoc_extra_m:
+            return None
+        y = float(ys[best])
+        if 0 < best < len(ys) - 1 and resp[best - 1] >= 0 and resp[best + 1] >= 0:      # the ridge's parabola
+            a_, b_, c_ = resp[best - 1], resp[best], resp[best + 1]
+            curv = a_ - 2.0 * b_ + c_
+            if curv < 0:
+                y += step * 0.5 * (a_ - c_) / curv
+        P0 = np.r_[A[0, 0], y, A[0, 2]]
+        P1 = np.r_[A[1, 0], y, A[1, 2]]
+        n = np.cross(P0 - t, P1 - t)
+        return n / max(float(np.linalg.norm(n)), 1e-12)
 
     def _distinct_views(self, views: list) -> list:
         """The viewpoints (x, y, z, heading) of ``views`` a ``view_baseline_m`` or ``view_angle_deg`` apart from

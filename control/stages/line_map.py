@@ -227,7 +227,7 @@ class LineMapStage(VisionStage):
         with self.lock:
             everything = self.map.predict(R, t, fx, fy, cx, cy, self.baseline, W, H,
                                           which=np.ones(len(self.map), bool))
-            st = self.map.update(segs, R, t, everything, res.left)
+            st = self.map.update(segs, R, t, everything, res.left, left)   # left: kept with a keyframe
             if st.fused or st.inserted or st.verified or st.pruned or st.rivals_dropped:
                 self.revision += 1
             summary = self.map.summary()
