@@ -153,6 +153,25 @@ def _square_to_a_face(feet: np.ndarray, seen: np.ndarray, on: np.ndarray, params
     return out
 
 
+def _on_faces_dropped(hull: np.ndarray, tol: float) -> np.ndarray:
+    """The hull without the vertices that lie on a face: within ``tol`` of the line between their two
+    neighbours, the nearest first, while more than 3 remain. A vertical texture line on a box face is a
+    verified vertical edge too, a few cm off the face's line (the corners' own error); as a hull vertex it
+    split the face in two, hid the corner's right angle and let the smallest rectangle turn 45 deg
+    (room seed 3: box_b's footprint across its diagonal)."""
+    hull = hull.copy()
+    while len(hull) > 3:
+        prev, nxt = np.roll(hull, 1, axis=0), np.roll(hull, -1, axis=0)
+        chord = nxt - prev
+        n = np.linalg.norm(chord, axis=1)
+        d = np.abs(chord[:, 0] * (hull - prev)[:, 1] - chord[:, 1] * (hull - prev)[:, 0]) / np.maximum(n, 1e-12)
+        k = int(np.argmin(d))
+        if d[k] > tol:
+            break
+        hull = np.delete(hull, k, axis=0)
+    return hull
+
+
 def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
     """The rectangle (4, 2) around the points (boxes are rectangular), or their hull when they are (nearly)
     collinear or fewer than 3. Its sides follow the hull's corner nearest to a right angle (two faces of a
@@ -164,6 +183,7 @@ def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams())
         return hull.astype(float)
     # The hull's vertices, at full precision: the input points nearest to them.
     hull = pts[np.argmin(np.linalg.norm(pts[None] - hull[:, None].astype(float), axis=2), axis=1)]
+    hull = _on_faces_dropped(hull, params.foot_on_m)
     best_cos, axis = math.sin(math.radians(params.right_angle_tol_deg)), None
     for k in range(len(hull)):
         a, b = hull[k - 1] - hull[k], hull[(k + 1) % len(hull)] - hull[k]
