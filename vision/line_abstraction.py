@@ -227,11 +227,16 @@ def missing_lines(poly: ObjectPolygon, params: AbstractionParams = AbstractionPa
     h = poly.height
     seen = np.zeros((0, 2)) if poly.seen_xz is None else poly.seen_xz
     out = []
-    for c in fp:
+    # The top and lower edges run between the corners' vertical lines: a seen corner's where it was seen
+    # (the footprint is a rectangle fitted to all of them, a few cm off each), else the footprint's.
+    at = fp.astype(float).copy()
+    for i, c in enumerate(fp):
         if len(seen) == 0 or np.linalg.norm(seen - c, axis=1).min() > params.corner_seen_m:
             out.append([[c[0], 0.0, c[1]], [c[0], -h, c[1]]])
-    for a, b in zip(fp, np.roll(fp, -1, axis=0)):
+        else:
+            at[i] = seen[int(np.argmin(np.linalg.norm(seen - c, axis=1)))]
+    for a, b in zip(at, np.roll(at, -1, axis=0)):
         out.append([[a[0], -h, a[1]], [b[0], -h, b[1]]])
-    for a, b in zip(fp, np.roll(fp, -1, axis=0)):
+    for a, b in zip(at, np.roll(at, -1, axis=0)):
         out.append([[a[0], 0.0, a[1]], [b[0], 0.0, b[1]]])
     return np.array(out, float)
