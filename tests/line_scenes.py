@@ -4,7 +4,8 @@ frames, building the DLM along it and scoring a map against the world.
 Scoring (docs/line_map.md):
 - true edges: the 12 edges of every box and the edges of the walls (floor line, ceiling line, corners);
 - an edge is *in view* when at least 0.3 m of it was seen unoccluded within the map's range
-  (``MapParams.max_range_m``) in some frame of the drive (checked against the true disparity);
+  (``MapParams.max_range_m``) in some frame of the drive (checked against the true disparity); *verifiable*
+  when at least 0.3 m of it was, in at least ``verify_views`` (3) frames each (``in_view_verifiable``);
 - a verified map segment *belongs* to an edge when it is parallel (6 deg) and both endpoints are within
   10 cm of the edge's line (twice the false-segment distance, so the endpoint errors are not truncated at
   the 5 cm the acceptance asks of their 95th percentile); an edge is *mapped* when segments belonging to it cover at least half of its
@@ -118,12 +119,13 @@ def render_drive(world: World, poses: list[Pose2], noise: float = 2.0) -> Drive:
     return Drive(poses, frames, [camera_pose(p, MOUNT) for p in poses])
 
 
-def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30) -> np.ndarray:
-    """(E, n) bool: edge sample points seen unoccluded within max_range in some frame."""
+def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30, counts: bool = False) -> np.ndarray:
+    """(E, n) bool: edge sample points seen unoccluded within max_range in some frame (with ``counts``: (E, n)
+    int, in how many frames)."""
     t = (np.arange(n) + 0.5) / n
     pts = edges[:, None, 0] + (edges[:, None, 1] - edges[:, None, 0]) * t[None, :, None]   # (E, n, 3)
     flat = pts.reshape(-1, 3)
-    seen = np.zeros(len(flat), bool)
+    seen = np.zeros(len(flat), int)
     fb = CAM.fx * BASELINE
     for f, (R, c) in zip(drive.frames, drive.cams):
         pc = (flat - c) @ R
@@ -141,8 +143,9 @@ def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30)
                 dd = f.disparity[np.clip(vi + dv, 0, CAM.height - 1), np.clip(ui + du, 0, CAM.width - 1)]
                 best = np.minimum(best, np.abs(np.nan_to_num(dd, nan=-1e9) - d_pt) / d_pt)
         idx = np.nonzero(ok)[0]
-        seen[idx[best < 0.03]] = True
-    return seen.reshape(len(edges), n)
+        seen[idx[best < 0.03]] += 1
+    seen = seen.reshape(len(edges), n)
+    return seen if counts else seen > 0
 
 
 @dataclass
@@ -154,6 +157,11 @@ class MapScore:
     verified: int
     missing: list
     by_class: dict        # class -> [in view, mapped]
+    # Edges in view from at least ``verify_views`` frames (>= min_len of them; the chapter's verification
+    # needs that many viewpoints, so an edge glimpsed in one or two frames cannot be in a verified map), and
+    # how many of them are mapped.
+    in_view_verifiable: int = 0
+    mapped_verifiable: int = 0
 
     @property
     def coverage(self) -> float:
@@ -167,10 +175,13 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
     classes = [edge_class(e, kinds[nm]) for e, nm in zip(edges, names)]
     by_class: dict = {}
     n = 30
-    seen = seen_samples(edges, drive, lmap.params.max_range_m, n)
+    count = seen_samples(edges, drive, lmap.params.max_range_m, n, counts=True)
+    seen = count > 0
     seg_len = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
     seen_len = seen.mean(axis=1) * seg_len
     in_view = np.nonzero(seen_len >= min_len)[0]
+    verifiable = (count >= lmap.params.verify_views).mean(axis=1) * seg_len >= min_len
+    mapped_verifiable = 0
     V = lmap.P[lmap.verified]
     t = (np.arange(n) + 0.5) / n
     mapped, errs, missing = 0, [], []
@@ -197,6 +208,7 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
         if covered >= min(min_len, 0.5 * seen_len[e]):
             mapped += 1
             counts[1] += 1
+            mapped_verifiable += int(verifiable[e])
         else:
             missing.append(f"{names[e]}:{classes[e]}")
     if len(V):
@@ -204,7 +216,8 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
         false_fraction = float(far.mean())
     else:
         false_fraction = 0.0
-    return MapScore(len(in_view), mapped, np.array(errs), false_fraction, len(V), missing, by_class)
+    return MapScore(len(in_view), mapped, np.array(errs), false_fraction, len(V), missing, by_class,
+                    int(verifiable[in_view].sum()), mapped_verifiable)
 
 
 def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapParams = MapParams(),

@@ -44,27 +44,31 @@ def room_map(room_drive):
 
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
-    Measured: 12 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 5/8),
-    endpoints 2.5 mm median / 2.4 cm 95 %, 1.7 % of 361 verified segments false; of the four missing, three
-    (box_d's corner, box_e's two edges) are seen from fewer than the 3 frames verification needs. 11 of 16
+    Measured: 13 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 6/8),
+    endpoints 2.9 mm median / 2.4 cm 95 %, 1.7 % of 362 verified segments false; the three missing (box_d's
+    corner, box_e's two edges) are seen from fewer than the 3 frames verification needs: 13 of the 13 seen
+    from >= 3 frames are mapped (12 of 16 before the top and lower edges ran between the seen corners and
+    were found as ridges in the keyframes' images: box_b's far top). 11 of 16
     before the slow loop posted the footprints' lower edges too (box_b's far face's foot), 10 of 16 and 5/7
     box vertical before the vertical lines' side bands were compared on slanted planes (box_a's far corner);
-    on the room's seeds 1-3: 12, 13 and 10 of 16 (with the tops found as ridges in the keyframes' images),
-    were 10, 9 and 8 at the start of the day (benchmarks/line_room.py); 2.0 % before a segment took at
+    on the room's seeds 1-3: 12, 12 and 11 of 16, were 10, 9 and 8 at the start of 2026-12-02
+    (benchmarks/line_room.py); 2.0 % before a segment took at
     most one of two parallel lines of one image; 9 of 16 and 4/7 box vertical before the vertical lines of
     vision/line_vertical.py gave box_b's far corner, 8 of 16 before box_b's top hypothesis was measured on its
     corners' lines in the recent keyframes, 7 before two separating viewpoints verified an unambiguous
     candidate). Built as `map build` builds it, with the slow loop's hypotheses. On the denser 120-frame loop (a
-    frame every 5 cm, nearer a real robot's 2 cm): 13 of 20, 1.9 mm / 1.9 cm, 2.2 % of 551 false (7.0 cm 95 %
+    frame every 5 cm, nearer a real robot's 2 cm): 13 of 20 (13 of the 14 seen from >= 3 frames), 1.7 mm / 1.9 cm,
+    2.2 % of 551 false (7.0 cm 95 %
     before: floor texture 8-12 cm in front of the south wall fused into its foot). The acceptance (90 % of the
-    edges) is not met: docs/line_map.md "Not met"."""
+    edges in view) is met for the edges seen from >= 3 frames, not for all in view: docs/line_map.md "Not met"."""
     world, lmap, drive = room_drive
     # The map `map build` makes: the slow loop's hypotheses inserted while it drove (none verified here).
     assert lmap.hypothesis.any()
     sc = score_map(lmap, world, drive)
     assert sc.in_view >= 12 and sum(v[0] for v in sc.by_class.values()) == sc.in_view
-    assert sc.mapped >= 12, sc.missing
-    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 5   # floor lines, box_b's top and foot
+    assert sc.mapped >= 13, sc.missing
+    assert sc.in_view_verifiable >= 12 and sc.mapped_verifiable >= 0.9 * sc.in_view_verifiable, sc.missing
+    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 6   # floor lines, box_b's tops and feet
     assert sc.by_class["box_vertical"][1] >= 6, sc.by_class        # box_b's and box_a's far corners: vertical lines
     assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.05
     assert sc.false_fraction <= 0.035
@@ -72,6 +76,7 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     lmap, _ = build_map(drive, floor=True, abstraction_every=2 * ABSTRACTION_EVERY)
     sc = score_map(lmap, world, drive)
     assert sc.mapped >= 13, sc.missing
+    assert sc.mapped_verifiable >= 0.9 * sc.in_view_verifiable, sc.missing
     assert np.median(sc.endpoint_err) <= 0.004 and np.percentile(sc.endpoint_err, 95) <= 0.04    # 2x; acceptance 5 cm
     assert sc.false_fraction <= 0.045
 
@@ -161,6 +166,21 @@ def test_abstraction_closes_a_box_seen_at_two_corners_and_its_foot():
     assert np.allclose(sorted(map(tuple, fp.round(6))), [(0.0, 0.0), (0.0, 0.6), (0.8, 0.0), (0.8, 0.6)])
     hyp = missing_lines(polys[0])
     assert len(hyp) == 2 + 4 + 4                                        # two unseen corners, four top and lower edges
+
+
+def test_top_and_lower_edge_hypotheses_run_between_the_seen_corners():
+    """The footprint is a rectangle fitted to the seen corners, a few cm off each; a top or lower edge
+    hypothesis ran between the rectangle's vertices, so its line in a keyframe lay up to 20 px off the edge
+    at 0.6 m and its ridge was not found (room seed 0: box_b's far top; seed 3). Its ends are now the seen
+    corners' (the unseen corner's the rectangle's): room seeds 0-3 46 -> 48 of 64 edges."""
+    corners = [(0.0, 0.0), (0.81, 0.03), (0.8, 0.6)]          # one corner 3 cm off the others' rectangle
+    P = np.array([[[x, 0.0, z], [x, -0.9, z]] for x, z in corners])
+    poly = object_polygons(P)[0]
+    hyp = missing_lines(poly)
+    ends = hyp[1:].reshape(-1, 3)[:, [0, 2]]                  # the tops' and lower edges' ends
+    for c in corners:
+        assert np.linalg.norm(ends - c, axis=1).min() < 1e-9, c
+    assert len(hyp) == 9 and np.linalg.norm(hyp[0, 0, [0, 2]] - [0.0, 0.6]) < 0.05    # the unseen corner
 
 
 def test_vertical_texture_lines_on_a_face_do_not_turn_the_footprint():
