@@ -183,6 +183,22 @@ def test_top_and_lower_edge_hypotheses_run_between_the_seen_corners():
     assert len(hyp) == 9 and np.linalg.norm(hyp[0, 0, [0, 2]] - [0.0, 0.6]) < 0.05    # the unseen corner
 
 
+def test_a_narrow_footprint_gives_no_edge_of_zero_length():
+    """Two corners of a footprint 12 cm wide lie within corner_seen_m (15 cm) of one seen corner: both were
+    moved onto it, and the edge between them had zero length. `goto --map-out` then refused to save the
+    grown map (it could not be loaded back: segments[1106] p0 == p1; the full simulated robot behind box_b).
+    A seen corner moves only its nearest footprint corner, and the map takes no hypothesis shorter than
+    min_length_m."""
+    corners = [(0.0, 0.0), (0.8, 0.0), (0.8, 0.12)]
+    P = np.array([[[x, 0.0, z], [x, -0.5, z]] for x, z in corners])
+    hyp = missing_lines(object_polygons(P)[0])
+    lengths = np.linalg.norm(hyp[:, 1] - hyp[:, 0], axis=1)
+    assert lengths.min() >= 0.1, np.round(hyp, 3)
+    lmap = LineMap()
+    ids = lmap.add_hypotheses(np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]]))
+    assert len(ids) == 1 and len(lmap) == 1
+
+
 def test_vertical_texture_lines_on_a_face_do_not_turn_the_footprint():
     """Room seed 3: box_b's verified vertical edges were its three seen corners (one 3 cm off) and two
     texture lines on its faces (2-3 cm off the faces' lines). As hull vertices they split each face in two,

@@ -233,8 +233,12 @@ def missing_lines(poly: ObjectPolygon, params: AbstractionParams = AbstractionPa
     for i, c in enumerate(fp):
         if len(seen) == 0 or np.linalg.norm(seen - c, axis=1).min() > params.corner_seen_m:
             out.append([[c[0], 0.0, c[1]], [c[0], -h, c[1]]])
-        else:
-            at[i] = seen[int(np.argmin(np.linalg.norm(seen - c, axis=1)))]
+            continue
+        # A seen corner moves only the footprint corner nearest to it: two corners of a narrow footprint
+        # within corner_seen_m of one seen corner made an edge of zero length (a map that cannot be saved).
+        j = int(np.argmin(np.linalg.norm(seen - c, axis=1)))
+        if int(np.argmin(np.linalg.norm(fp - seen[j], axis=1))) == i:
+            at[i] = seen[j]
     for a, b in zip(at, np.roll(at, -1, axis=0)):
         out.append([[a[0], -h, a[1]], [b[0], -h, b[1]]])
     for a, b in zip(at, np.roll(at, -1, axis=0)):

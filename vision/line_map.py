@@ -1090,8 +1090,11 @@ class LineMap:
         first looked for in the recent frames (``_sight_horizontal``) at once: a box's eight cost 40-100 ms in
         the frame after the slow loop posted them (looked for in later frames instead, one or three a frame,
         some were merged into a stereo candidate or pruned before their turn: room seed 2 13 -> 12 of 16).
-        Returns ids."""
+        Hypotheses shorter than ``min_length_m`` are not inserted. Returns the inserted ones' ids."""
         P = np.asarray(P, float).reshape(-1, 2, 3)
+        # Shorter than the map takes from stereo is no line (a degenerate footprint side; zero length would
+        # also make a map file that cannot be loaded back).
+        P = P[_norms(P[:, 1] - P[:, 0], axis=1) >= self.params.min_length_m]
         if len(P) == 0:
             return np.zeros(0, int)
         C = np.broadcast_to(sigma_m ** 2 * np.eye(3), (len(P), 2, 3, 3)).copy()
