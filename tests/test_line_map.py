@@ -587,6 +587,32 @@ def test_a_top_edge_whose_contrast_changes_sign_is_found_in_the_keyframes_images
     assert not foot.verified[0]
 
 
+def test_a_top_edge_running_behind_the_camera_is_found_along_its_visible_part():
+    """A top edge along the drive whose far corner is behind the camera (the robot beside a long box) is
+    found along the part of it in the image. Its line's normal there comes from the first and last points in
+    the image: an end behind the camera has no projection (it was taken at depth 1, which on this edge, parallel
+    to the optical axis, happens to lie on the line, so this test passed before that change too)."""
+    from vbnav.vision.line_segments import Segments2D
+    x_edge, y_top = 0.3, -0.5
+    cam = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
+    lmap = LineMap()
+    rng = np.random.default_rng(3)
+    cols, rows = np.arange(CAM.width)[None, :], np.arange(CAM.height)[:, None]
+    for z0 in (0.0, 0.2, 0.4):
+        t = np.array([0.0, -0.25, z0])
+        # The edge recedes to the vanishing point (cx, cy): at column u its row is cy + (y_top + 0.25) / x_edge (u - cx).
+        v_line = CAM.cy + (y_top - t[1]) / x_edge * (cols - CAM.cx)
+        face = (cols > CAM.cx + 2) & (rows > v_line)
+        wall = np.where(((rows + cols) // 30) % 2 == 0, 60.0, 200.0)
+        img = np.where(face, 128.0, wall) + rng.normal(0.0, 2.0, (CAM.height, CAM.width))
+        lmap._remember(Segments2D(np.zeros((0, 4)), np.zeros((0, 2))), np.eye(3), t,
+                       np.clip(img, 0, 255).astype(np.uint8))
+    hyp = np.array([[[x_edge, y_top + 0.05, 3.0], [x_edge, y_top + 0.05, -1.0]]])   # 5 cm low; one end behind
+    lmap.add_hypotheses(hyp, camera=cam)
+    assert lmap.verified[0], lmap.P[0]
+    assert np.abs(lmap.P[0, :, 1] - y_top).max() <= 0.005, lmap.P[0]
+
+
 def test_a_top_edge_hypothesis_is_measured_on_its_corners_lines_in_the_recent_keyframes():
     """A box's top edge runs parallel to the drive: every camera centre spans one plane with it, so neither
     stereo nor motion gives its height, and the slow loop's hypothesis (its height the tops of the corners'

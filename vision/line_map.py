@@ -1181,9 +1181,9 @@ class LineMap:
         from ``sight_up_m`` above the hypothesis (a top; its corners' LSD pieces end early) to 3 sigma_m below
         it (3 sigma_m either way for a lower edge), in steps moving the line 1 px (the peak refined by a
         parabola); the response at a height is the median of |gradient . normal| (3x3 Sobel / 8) over
-        ``RIDGE_SAMPLES`` points of the line, at least half of them in the image. A sighting when the best response is above ``ridge_k_sigma`` (3) sigma of the Sobel's
-        noise and 1.5 x the best one more than 3 px from it (a unique ridge), and for a lower edge within 3
-        ``assoc_extra_m`` of the floor. Returns the unit normal of the plane through the camera centre and the
+        ``RIDGE_SAMPLES`` points of the line, at least half of them in the image. A sighting when the best
+        response is above ``ridge_k_sigma`` (3) sigma of the Sobel's noise and 1.5 x the best one more than
+        3 px from it (a unique ridge), and for a lower edge within 3 ``assoc_extra_m`` of the floor. Returns the unit normal of the plane through the camera centre and the
         line at that height, or None."""
         p = self.params
         fx, fy, cx, cy, _, width, height = camera
@@ -1219,8 +1219,11 @@ class LineMap:
         u = fx * pc[..., 0] / zs + cx
         v = fy * pc[..., 1] / zs + cy
         ok &= (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
-        # The image line's normal at each height (from its two ends' projections; the line is straight).
-        du, dv = u[:, -1] - u[:, 0], v[:, -1] - v[:, 0]
+        # The image line's normal at each height, from its first and last points in the image (the line is
+        # straight; an end behind the camera has no projection).
+        rows = np.arange(len(ys))
+        first, last = np.argmax(ok, axis=1), T - 1 - np.argmax(ok[:, ::-1], axis=1)
+        du, dv = u[rows, last] - u[rows, first], v[rows, last] - v[rows, first]
         ln = np.maximum(np.hypot(du, dv), 1e-9)
         nx, ny = -dv / ln, du / ln
         mx, my = u.astype(np.float32), v.astype(np.float32)
@@ -1233,7 +1236,7 @@ class LineMap:
         # Each height's median over its points in the image (the others sorted first as -1).
         srt = np.sort(np.where(ok, mag, -1.0), axis=1)
         nv = ok.sum(axis=1)
-        med = srt[np.arange(len(ys)), T - nv + (nv - 1) // 2]
+        med = srt[rows, T - nv + (nv - 1) // 2]
         resp = np.where(enough, med, -1.0)
         best = int(np.argmax(resp))
         if resp[best] < p.ridge_k_sigma * SOBEL_NOISE_GAIN * noise:
