@@ -36,9 +36,7 @@ from line_scenes import build_map, loop_poses, render_drive, score_map  # noqa: 
 from vbnav.drivers.sim.world import World  # noqa: E402
 
 
-def measure(seed: int, frames: int, guided: bool) -> dict:
-    world = World.room(seed)
-    drive = render_drive(world, loop_poses(frames))
+def measure(world: World, drive, seed: int, frames: int, guided: bool) -> dict:
     t = time.perf_counter()
     lmap, _ = build_map(drive, floor=True, guided=guided, abstraction_every=3 * frames // 60)
     sc = score_map(lmap, world, drive)
@@ -75,8 +73,10 @@ def main(argv=None) -> int:
     out = []
     for f in frames:
         for s in seeds:
+            world = World.room(s)
+            drive = render_drive(world, loop_poses(f))             # one rendering for ours and the peer
             for guided in ((True,) if a.no_peer else (True, False)):
-                r = measure(s, f, guided)
+                r = measure(world, drive, s, f, guided)
                 out.append(r)
                 print(line(r), flush=True)
         ours = [r for r in out if r["frames"] == f and r["guided"]]

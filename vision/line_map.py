@@ -435,8 +435,7 @@ class LineMap:
             obs = obs.subset(keep)
         Pw = obs.P @ R_wc.T + t_wc
         Cw = np.einsum("ij,kejl,ml->keim", R_wc, obs.cov, R_wc)
-        heading = math.atan2(R_wc[0, 2], R_wc[2, 2])
-        view = np.array([t_wc[0], t_wc[1], t_wc[2], heading])
+        view = _viewpoint(R_wc, t_wc)
         st.observed = len(obs)
         seen = np.zeros(len(self), bool)
         # Rival hypotheses of one left segment: one group id per left segment with > 1 candidate.
@@ -895,14 +894,17 @@ class LineMap:
         keep[hi[:ENDS_KEPT - half]] = True
         self.ends[i] = self.ends[i][keep]
 
-    def _add_view(self, j: int, view: np.ndarray) -> None:
+    def _same_viewpoint(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """Viewpoints (x, y, z, heading) nearer than ``view_baseline_m`` and ``view_angle_deg`` are one: the
+        rule for a segment's views, the keyframes and a hypothesis's sightings."""
         p = self.params
-        for v in self.views[j]:
-            d = v[:3] - view[:3]
-            if (math.sqrt(d.dot(d)) < p.view_baseline_m
-                    and abs(math.remainder(v[3] - view[3], math.tau)) < math.radians(p.view_angle_deg)):
-                return
-        self.views[j].append(view.copy())
+        d = a[:3] - b[:3]
+        return (math.sqrt(d.dot(d)) < p.view_baseline_m
+                and abs(math.remainder(a[3] - b[3], math.tau)) < math.radians(p.view_angle_deg))
+
+    def _add_view(self, j: int, view: np.ndarray) -> None:
+        if not any(self._same_viewpoint(v, view) for v in self.views[j]):
+            self.views[j].append(view.copy())
 
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
                 hypothesis: bool = False) -> np.ndarray:
@@ -1115,12 +1117,9 @@ class LineMap:
         and is still in range of here lies within 2 ``max_range_m``; a hypothesis comes from what was just
         verified near the robot), and all but the newest 2 ``max_range_m`` / ``view_baseline_m`` (40)."""
         p = self.params
-        heading = math.atan2(R_wc[0, 2], R_wc[2, 2])
         if self.recent:
             _, R0, t0, _ = self.recent[-1]
-            if (np.linalg.norm(t_wc - t0) < p.view_baseline_m
-                    and abs(math.remainder(heading - math.atan2(R0[0, 2], R0[2, 2]), math.tau))
-                    < math.radians(p.view_angle_deg)):
+            if self._same_viewpoint(_viewpoint(R0, t0), _viewpoint(R_wc, t_wc)):
                 return
         self.recent = [f for f in self.recent if np.linalg.norm(f[2] - t_wc) <= p.max_range_m]
         # The image's grey levels (its gradient is computed when a hypothesis is first looked for in it).
@@ -1265,11 +1264,9 @@ class LineMap:
     def _distinct_views(self, views: list) -> list:
         """The viewpoints (x, y, z, heading) of ``views`` a ``view_baseline_m`` or ``view_angle_deg`` apart from
         every one kept before them (``_add_view``'s rule)."""
-        p = self.params
         distinct: list = []
         for v in views:
-            if all(np.linalg.norm(v[:3] - w[:3]) >= p.view_baseline_m
-                   or abs(math.remainder(v[3] - w[3], math.tau)) >= math.radians(p.view_angle_deg) for w in distinct):
+            if not any(self._same_viewpoint(v, w) for w in distinct):
                 distinct.append(v)
         return distinct
 
@@ -1292,7 +1289,7 @@ class LineMap:
             ys.append([(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)])
             ze = np.maximum((A - t) @ R[:, 2], 0.1)
             ws.append(1.0 / ((p.sight_sigma_px * ze / (fx * abs(n[1]))) ** 2 + p.assoc_extra_m ** 2))
-            views.append(np.array([t[0], t[1], t[2], math.atan2(R[0, 2], R[2, 2])]))
+            views.append(_viewpoint(R, t))
         if len(ys) < p.verify_views:
             return False
         # The frames' heights outside the gate of the others' weighted mean go, the farthest first (another
@@ -1331,6 +1328,11 @@ class LineMap:
                 "candidates": int((~self.verified).sum()), "hypotheses": int(self.hypothesis.sum()),
                 "frames": int(self.frames),
                 "total_length_m": round(float(self.length[self.verified].sum()), 3) if len(self) else 0.0}
+
+
+def _viewpoint(R_wc: np.ndarray, t_wc: np.ndarray) -> np.ndarray:
+    """(x, y, z, heading) of a camera pose: the camera centre and the heading of its optical axis."""
+    return np.array([t_wc[0], t_wc[1], t_wc[2], math.atan2(R_wc[0, 2], R_wc[2, 2])])
 
 
 def _sorted_unique(a: np.ndarray) -> np.ndarray:
