@@ -31,6 +31,7 @@ from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_map import LineMap, MapParams
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
+from vbnav.vision.line_sighting import sight_hypotheses
 
 CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 # The mapping head looks out of the loop (yaw 70 deg to the right of travel on a counter-clockwise loop), so
@@ -231,12 +232,15 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
     slow = None
     if abstraction_every:
         from vbnav.control.stages.line_map import AbstractionThread
-        slow = AbstractionThread(lambda: lmap.P[lmap.verified].copy())
+        camera = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
+        slow = AbstractionThread(lambda: lmap.P[lmap.verified].copy(),
+                                 sight=lambda hyp: sight_hypotheses(hyp, list(lmap.keyframes), camera, lmap.params))
     counts = {"guided": [0, 0], "unguided": [0, 0]}
     key = None                       # (left segments, R, c) of the last keyframe, for motion triangulation
     for n, (f, (R, c)) in enumerate(zip(drive.frames, drive.cams)):
         while slow is not None and not slow.hypotheses.empty():
-            lmap.add_hypotheses(slow.hypotheses.get_nowait(), camera=(CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height))
+            hyp, fixes = slow.hypotheses.get_nowait()
+            lmap.add_hypotheses(hyp, fixes=fixes)
         pred_v = lmap.predict(R, c, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         prior_fn = (lambda segs: lmap.prior_for(segs, pred_v)) if guided else None
         res = reconstruct_pair(f.image, f.right, CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, params, prior_fn,

@@ -513,7 +513,7 @@ def test_line_map_stage_takes_a_grey_plane_like_the_other_stages():
                 f = Frame(f.image[:, :, None], f.stamp_ns, f.seq, right=f.right[:, :, None], meta=f.meta)
             assert stage.process(f, p).ok
         # The keyframes keep the left image's grey plane, for the top and lower edges' ridges.
-        assert stage.map.recent and all(kf[3][0].shape == (CAM.height, CAM.width) for kf in stage.map.recent)
+        assert stage.map.keyframes and all(kf.image.shape == (CAM.height, CAM.width) for kf in stage.map.keyframes)
         maps.append(stage.map.P.copy())
     np.testing.assert_array_equal(maps[0], maps[1])
 

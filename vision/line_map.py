@@ -51,16 +51,15 @@ from dataclasses import dataclass, field
 from itertools import chain
 from typing import Optional
 
-import cv2
 import numpy as np
 
-from vbnav.vision.line_segments import Segments2D, Segments3D, gradients, grey
-from vbnav.vision.line_vertical import SOBEL_NOISE_GAIN, noise_sigma
+from vbnav.vision.line_projection import in_view_reach, project_segments
+from vbnav.vision.line_segments import Segments2D, Segments3D, grey
+from vbnav.vision.line_sighting import (HYPOTHESIS_SIGMA_M, HorizontalFix, Keyframe, same_viewpoint,
+                                        sight_hypotheses, viewpoint)
 
-RIDGE_SAMPLES = 64       # points of a hypothesis's line whose median gradient is its ridge response
 CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
 CHI2_1_99 = 6.63         # ... with 1 (a height)
-CHI2_2_99 = 9.21         # ... with 2 (an image line's position)
 ENDS_KEPT = 64           # observations' endpoints kept per segment for its extent (_bound_ends)
 ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no information about the line
 ASSOC_PERP_M = 0.5       # association's coarse gate: both endpoints of an observation within this of the map line
@@ -214,12 +213,12 @@ class MapParams:
     # verify_views times when a false match this far off along its ray would have moved out of the
     # association gate between them (separating_views; 0: never). The false-segment distance of the scoring.
     ghost_error_m: float = 0.05
-    # A horizontal hypothesis (a box's top or lower edge) is looked for in the left segments of the recent
-    # keyframes (``recent``), its height measured on its corners' vertical lines (``_sight_horizontal``), with this sigma of
+    # A horizontal hypothesis (a box's top or lower edge) is looked for in the left segments of the
+    # keyframes (``keyframes``), its height measured on its corners' vertical lines (vision/line_sighting.py), with this sigma of
     # an image line across itself (LineParams.sigma_perp_px; 0: never).
     sight_sigma_px: float = 0.3
     # A box's top may lie this far above its hypothesis (the corners' LSD pieces end early: the abstraction's
-    # height_tol_m), searched in a keyframe's image (``_ridge_sighting``), whose ridge must stand this many
+    # height_tol_m), searched in a keyframe's image (``line_sighting.ridge_sighting``), whose ridge must stand this many
     # sigma of the gradient's noise (LineParams.vertical_k_sigma).
     sight_up_m: float = 0.3
     ridge_k_sigma: float = 3.0
@@ -288,7 +287,7 @@ class LineMap:
     ends: list = field(default_factory=list, repr=False)
     # Keyframes: the left segments (xy (N, 4)) and camera pose (R_wc, t_wc) of frames a distinct viewpoint
     # apart (``_add_view``'s rule), while their camera lies within ``max_range_m`` of the current one.
-    recent: list = field(default_factory=list, repr=False)
+    keyframes: list = field(default_factory=list, repr=False)     # of line_sighting.Keyframe
     next_id: int = 0
     next_group: int = 0
     frames: int = 0
@@ -329,47 +328,24 @@ class LineMap:
         # A point in the image and within max_range_m in depth is within max_range_m sqrt(1 + a^2 + b^2) of
         # the camera (a, b: the image's half-extents over the focal lengths): segments whose boxes lie
         # farther cannot be predicted, and are not projected (what a long drive left behind).
-        a, b = max(cx, width - 1.0 - cx) / fx, max(cy, height - 1.0 - cy) / fy
-        reach = self.params.max_range_m * math.sqrt(1.0 + a * a + b * b) + 1e-6
+        reach = in_view_reach(fx, fy, cx, cy, width, height, self.params.max_range_m)
         P0, P1 = self.P[idx, 0], self.P[idx, 1]
         gap = np.maximum(np.maximum(np.minimum(P0, P1) - t_wc, t_wc - np.maximum(P0, P1)), 0.0)
         idx = idx[np.einsum("ki,ki->k", gap, gap) <= reach ** 2]
         empty = Prediction(np.zeros(0, int), np.zeros((0, 4)), np.zeros((0, 2)), np.zeros(0))
         if len(idx) == 0:
             return empty
-        Pc = (self.P[idx] - t_wc) @ R_wc                     # camera frame (K, 2, 3)
-        z = Pc[..., 2]
-        near = 0.1
-        # Clip in 3D to z >= near (parametric), then project and clip to the image.
-        t0, t1 = np.zeros(len(idx)), np.ones(len(idx))
-        dz = z[:, 1] - z[:, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tz = (near - z[:, 0]) / dz
-        t0 = np.where((z[:, 0] < near) & (dz > 0), np.maximum(t0, tz), t0)
-        t1 = np.where((z[:, 1] < near) & (dz < 0), np.minimum(t1, tz), t1)
-        alive = (t1 > t0) & ((z[:, 0] >= near) | (z[:, 1] >= near))
-        A = Pc[:, 0] + (Pc[:, 1] - Pc[:, 0]) * t0[:, None]
-        B = Pc[:, 0] + (Pc[:, 1] - Pc[:, 0]) * t1[:, None]
-        ua = np.column_stack((fx * A[:, 0] / A[:, 2] + cx, fy * A[:, 1] / A[:, 2] + cy))
-        ub = np.column_stack((fx * B[:, 0] / B[:, 2] + cx, fy * B[:, 1] / B[:, 2] + cy))
-        wa, wb = 1.0 / A[:, 2], 1.0 / B[:, 2]                 # inverse depth: affine along the image segment
-        s0, s1 = _clip_to_rect(ua, ub, width, height)
-        alive &= s1 > s0
-        pa = ua + (ub - ua) * s0[:, None]
-        pb = ua + (ub - ua) * s1[:, None]
-        w0 = wa + (wb - wa) * s0
-        w1 = wa + (wb - wa) * s1
-        in_range = (np.minimum(w0, w1) >= 1.0 / self.params.max_range_m)
-        long_enough = np.hypot(*(pb - pa).T) >= self.params.predict_min_length_px
-        keep = alive & in_range & long_enough
+        pr = project_segments(self.P[idx], R_wc, t_wc, fx, fy, cx, cy, width, height, self.params.max_range_m,
+                              self.params.predict_min_length_px)
+        keep = pr.keep
         fb = fx * baseline
-        disp = np.column_stack((w0, w1))[keep] * fb
+        disp = pr.inv_depth * fb
         # Sigma of the predicted disparity from the map's covariance along the viewing direction.
         cov = self.covariance()[idx[keep]]                         # (K, 2, 3, 3) world
         ray = np.einsum("ij,kj->ki", R_wc, np.column_stack((np.zeros((keep.sum(), 2)), np.ones(keep.sum()))))
         var_ray = np.einsum("ki,keij,kj->ke", ray, cov, ray).max(axis=1)
         sig = np.maximum(disp.max(axis=1) ** 2 / fb * np.sqrt(var_ray), self.params.prior_sigma_floor_px)
-        return Prediction(idx[keep], np.column_stack((pa, pb))[keep], disp, sig)
+        return Prediction(idx[keep], pr.xy, disp, sig)
 
     def prior_for(self, segs: Segments2D, pred: Prediction) -> np.ndarray:
         """(N, 2): predicted disparity at each detected left segment's midpoint and its sigma (NaN: none)."""
@@ -421,7 +397,7 @@ class LineMap:
         that some detected segment lies along is not missed even if stereo did not reconstruct it this time
         (LSD breaks textured edges into different pieces from frame to frame). image: the frame's left image,
         kept with a keyframe so a box's top or lower edge hypothesis can be looked for in its gradient
-        (``_ridge_sighting``).
+        (vision/line_sighting.py).
         """
         st = UpdateStats()
         self.frames += 1
@@ -435,7 +411,7 @@ class LineMap:
             obs = obs.subset(keep)
         Pw = obs.P @ R_wc.T + t_wc
         Cw = np.einsum("ij,kejl,ml->keim", R_wc, obs.cov, R_wc)
-        view = _viewpoint(R_wc, t_wc)
+        view = viewpoint(R_wc, t_wc)
         st.observed = len(obs)
         seen = np.zeros(len(self), bool)
         # Rival hypotheses of one left segment: one group id per left segment with > 1 candidate.
@@ -894,16 +870,8 @@ class LineMap:
         keep[hi[:ENDS_KEPT - half]] = True
         self.ends[i] = self.ends[i][keep]
 
-    def _same_viewpoint(self, a: np.ndarray, b: np.ndarray) -> bool:
-        """Viewpoints (x, y, z, heading) nearer than ``view_baseline_m`` and ``view_angle_deg`` are one: the
-        rule for a segment's views, the keyframes and a hypothesis's sightings."""
-        p = self.params
-        d = a[:3] - b[:3]
-        return (math.sqrt(d.dot(d)) < p.view_baseline_m
-                and abs(math.remainder(a[3] - b[3], math.tau)) < math.radians(p.view_angle_deg))
-
     def _add_view(self, j: int, view: np.ndarray) -> None:
-        if not any(self._same_viewpoint(v, view) for v in self.views[j]):
+        if not any(same_viewpoint(v, view, self.params) for v in self.views[j]):
             self.views[j].append(view.copy())
 
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
@@ -1085,254 +1053,82 @@ class LineMap:
             self.grid.grow(idx, self.serial[idx], *self._bbox(idx))
 
     # --------------------------------------------------------- abstraction input
-    def add_hypotheses(self, P: np.ndarray, sigma_m: float = 0.05, camera: Optional[tuple] = None) -> np.ndarray:
+    def add_hypotheses(self, P: np.ndarray, sigma_m: float = HYPOTHESIS_SIGMA_M, camera: Optional[tuple] = None,
+                       fixes: Optional[list] = None) -> np.ndarray:
         """Insert missing-line hypotheses from the abstraction module (world frame, (K, 2, 3)): candidates
-        with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. camera: (fx, fy,
-        cx, cy, baseline, width, height) of the left image: a horizontal one (a box's top or lower edge) is
-        first looked for in the recent frames (``_sight_horizontal``) at once: a box's eight cost 40-100 ms in
-        the frame after the slow loop posted them (looked for in later frames instead, one or three a frame,
-        some were merged into a stereo candidate or pruned before their turn: room seed 2 13 -> 12 of 16).
-        Hypotheses shorter than ``min_length_m`` are not inserted. Returns the inserted ones' ids."""
+        with no viewpoint yet, verified or pruned by the sensor loop like stereo candidates. fixes: one
+        ``HorizontalFix`` or None per hypothesis, measured by the slow loop in a snapshot of the keyframes
+        (``sight_hypotheses``, vision/line_sighting.py): a fixed one is inserted at the fix's heights,
+        verified. Without fixes and with camera ((fx, fy, cx, cy, baseline, width, height) of the left
+        image), they are measured here, now (40-100 ms for a box's eight: the slow loop's work; a test or a
+        caller without a slow loop). Hypotheses shorter than ``min_length_m`` are not inserted. Returns the
+        inserted ones' ids."""
         P = np.asarray(P, float).reshape(-1, 2, 3)
+        if fixes is None:
+            fixes = (sight_hypotheses(P, self.keyframes, camera, self.params, sigma_m) if camera is not None
+                     else [None] * len(P))
+        if len(fixes) != len(P):
+            raise ValueError(f"add_hypotheses: {len(fixes)} fixes for {len(P)} hypotheses")
         # Shorter than the map takes from stereo is no line (a degenerate footprint side; zero length would
         # also make a map file that cannot be loaded back).
-        P = P[_norms(P[:, 1] - P[:, 0], axis=1) >= self.params.min_length_m]
+        long_enough = _norms(P[:, 1] - P[:, 0], axis=1) >= self.params.min_length_m
+        P, fixes = P[long_enough], [f for f, ok in zip(fixes, long_enough) if ok]
         if len(P) == 0:
             return np.zeros(0, int)
         C = np.broadcast_to(sigma_m ** 2 * np.eye(3), (len(P), 2, 3, 3)).copy()
         ids = self._insert(P, C, np.full(len(P), -1), None, hypothesis=True)
-        for k in range(len(self) - len(P), len(self)):
+        for k, fix in zip(range(len(self) - len(P), len(self)), fixes):
             self.views[k] = []
             self.support[k] = 0
-            if camera is None or self.params.sight_sigma_px <= 0:
-                continue
-            if abs(self.P[k, 0, 1] - self.P[k, 1, 1]) < 1e-9:
-                self._sight_horizontal(k, sigma_m, camera)
+            if fix is not None:
+                self._apply_fix(k, fix)
         return ids
 
     def _remember(self, left: Segments2D, R_wc: np.ndarray, t_wc: np.ndarray,
                   image: Optional[np.ndarray] = None) -> None:
-        """Keep this frame's left segments as a keyframe when its viewpoint is distinct from the last kept
-        one; forget the keyframes farther than ``max_range_m`` from the camera (what they saw in range of them
-        and is still in range of here lies within 2 ``max_range_m``; a hypothesis comes from what was just
-        verified near the robot), and all but the newest 2 ``max_range_m`` / ``view_baseline_m`` (40)."""
+        """Keep this frame's left segments (and grey image) as a keyframe when its viewpoint is distinct from
+        the last kept one; forget the keyframes farther than ``max_range_m`` from the camera (what they saw in
+        range of them and is still in range of here lies within 2 ``max_range_m``; a hypothesis comes from
+        what was just verified near the robot), and all but the newest 2 ``max_range_m`` / ``view_baseline_m``
+        (40). The list is replaced, never changed in place: a snapshot (``list(keyframes)``) taken by the slow
+        loop stays as it was."""
         p = self.params
-        if self.recent:
-            _, R0, t0, _ = self.recent[-1]
-            if self._same_viewpoint(_viewpoint(R0, t0), _viewpoint(R_wc, t_wc)):
+        if self.keyframes:
+            last = self.keyframes[-1]
+            if same_viewpoint(viewpoint(last.R, last.t), viewpoint(R_wc, t_wc), p):
                 return
-        self.recent = [f for f in self.recent if np.linalg.norm(f[2] - t_wc) <= p.max_range_m]
-        # The image's grey levels (its gradient is computed when a hypothesis is first looked for in it).
-        img = None if image is None else [grey(image).copy(), None]
-        self.recent.append((left.xy.copy(), R_wc.copy(), t_wc.copy(), img))
+        kept = [f for f in self.keyframes if np.linalg.norm(f.t - t_wc) <= p.max_range_m]
+        kept.append(Keyframe(left.xy.copy(), R_wc.copy(), t_wc.copy(), None if image is None else grey(image).copy()))
         # A robot that circles or turns in place within max_range_m would keep one more every view step for
         # ever: the newest as many as a straight drive across the range keeps (2 max_range_m / view_baseline_m).
-        del self.recent[:-max(int(math.ceil(2 * p.max_range_m / p.view_baseline_m)), p.verify_views)]
+        self.keyframes = kept[-max(int(math.ceil(2 * p.max_range_m / p.view_baseline_m)), p.verify_views):]
 
-    def _sightings(self, k: int, sigma_m: float, camera: tuple) -> list:
-        """Hypothesis k in the recent keyframes: in each where it is predicted in view, the nearest left segment
-        along its prediction (direction ``predict_angle_deg``, midpoint within the prediction and within
-        sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s = ``sight_sigma_px``); in a keyframe that
-        kept its image, a horizontal hypothesis is looked for in the image's gradient (``_ridge_sighting``).
-        Returns a list of (n, R, t): the unit normal (world frame) of the plane that line spans with the camera
-        centre t."""
+    def _apply_fix(self, k: int, fix: HorizontalFix) -> None:
+        """Hypothesis k measured in the keyframes (vision/line_sighting.py): its ends at the fix's heights,
+        across-line sigma ``assoc_extra_m`` horizontally and the fix's along y, verified from its views."""
         p = self.params
-        fx, fy, cx, cy, baseline, width, height = camera
-        Kinv = np.linalg.inv(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
-        only = np.zeros(len(self), bool)
-        only[k] = True
-        A = self.P[k]
-        out = []
-        for xy, R, t, img in self.recent:
-            if img is not None and abs(A[0, 1] - A[1, 1]) < 1e-9:
-                n = self._ridge_sighting(k, img, R, t, sigma_m, camera)
-                if n is not None:
-                    out.append((n, R, t))
-                continue
-            pr = self.predict(R, t, fx, fy, cx, cy, baseline, width, height, which=only)
-            if len(pr) == 0 or len(xy) == 0:
-                continue
-            a, b = pr.xy[0, :2], pr.xy[0, 2:]
-            L = float(np.linalg.norm(b - a))
-            u = (b - a) / L
-            mid = 0.5 * (xy[:, :2] + xy[:, 2:])
-            along = (mid - a) @ u / L
-            dist = np.abs((mid - a) @ np.array([u[1], -u[0]]))
-            d = xy[:, 2:] - xy[:, :2]
-            cos = np.abs(d @ u) / np.maximum(_norms(d, axis=1), 1e-12)
-            z = float((A.mean(axis=0) - t) @ R[:, 2])
-            gate = math.sqrt(CHI2_2_99) * math.hypot(p.sight_sigma_px, fx * sigma_m / max(z, 0.1))
-            ok = (dist <= gate) & (along >= 0) & (along <= 1) & (cos >= math.cos(math.radians(p.predict_angle_deg)))
-            if not ok.any():
-                continue
-            j = np.nonzero(ok)[0][np.argmin(dist[ok])]
-            n = np.cross(R @ (Kinv @ np.r_[xy[j, :2], 1.0]), R @ (Kinv @ np.r_[xy[j, 2:], 1.0]))
-            n /= max(float(np.linalg.norm(n)), 1e-12)
-            out.append((n, R, t))
-        return out
-
-    def _ridge_sighting(self, k: int, img: list, R: np.ndarray, t: np.ndarray, sigma_m: float,
-                        camera: tuple) -> Optional[np.ndarray]:
-        """A horizontal hypothesis k (a box's top or lower edge between its corners' vertical lines) in one
-        keyframe's image: the height at which the line between the corners, projected, runs along a ridge of
-        the gradient across it, in MAGNITUDE (either sign: a box's top against a textured wall changes
-        contrast sign every few tens of pixels, and LSD keeps pieces too short to be found or none). Heights
-        from ``sight_up_m`` above the hypothesis (a top; its corners' LSD pieces end early) to 3 sigma_m below
-        it (3 sigma_m either way for a lower edge), in steps moving the line 1 px (the peak refined by a
-        parabola); the response at a height is the median of |gradient . normal| (3x3 Sobel / 8) over
-        ``RIDGE_SAMPLES`` points of the line, at least half of them in the image. A sighting when the best
-        response is above ``ridge_k_sigma`` (3) sigma of the Sobel's noise and 1.5 x the best one more than
-        3 px from it (a unique ridge), and for a lower edge within 3 ``assoc_extra_m`` of the floor. Returns the unit normal of the plane through the camera centre and the
-        line at that height, or None."""
-        p = self.params
-        fx, fy, cx, cy, _, width, height = camera
-        A = self.P[k]
-        y0 = float(A[0, 1])
-        lower = abs(y0) < 1e-9
-        T = RIDGE_SAMPLES
-        s_ = (np.arange(T) + 0.5) / T
-        base = A[0] + (A[1] - A[0]) * s_[:, None]                                   # (T, 3) at the hypothesis height
-        zc = (base - t) @ R[:, 2]
-        if (zc > 0.1).sum() < T // 2:
-            return None
-        step = max(float(zc[zc > 0.1].min()), 0.1) / fy           # 1 px at the nearest point (the peak: a parabola)
-        lo, hi = y0 - (3.0 * sigma_m if lower else p.sight_up_m), y0 + 3.0 * sigma_m
-        # Cull: the face between the corners' lines over the searched heights is a convex quadrilateral; when
-        # its four corners lie in front of the camera and beyond one side of the image, so does all of it.
-        quad = np.array([[A[e, 0], y, A[e, 2]] for e in range(2) for y in (lo, hi)])
-        qc = (quad - t) @ R
-        if (qc[:, 2] > 0.1).all():
-            qu, qv = fx * qc[:, 0] / qc[:, 2] + cx, fy * qc[:, 1] / qc[:, 2] + cy
-            if (qu < 1).all() or (qu > width - 2).all() or (qv < 1).all() or (qv > height - 2).all():
-                return None
-        ys = np.arange(lo, hi + 0.5 * step, step)
-        if img[1] is None:                             # the keyframe's gradient, once, when first looked in
-            img[1] = (gradients(img[0]), noise_sigma(img[0]))
-        (gx, gy), noise = img[1]
-        pts = np.broadcast_to(base, (len(ys), T, 3)).copy()
-        pts[..., 1] = ys[:, None]
-        pc = (pts - t) @ R                                                            # (Y, T, 3) camera frame
-        z = pc[..., 2]
-        ok = z > 0.1
-        zs = np.where(ok, z, 1.0)
-        u = fx * pc[..., 0] / zs + cx
-        v = fy * pc[..., 1] / zs + cy
-        ok &= (u >= 1) & (u <= width - 2) & (v >= 1) & (v <= height - 2)
-        # The image line's normal at each height, from its first and last points in the image (the line is
-        # straight; an end behind the camera has no projection).
-        rows = np.arange(len(ys))
-        first, last = np.argmax(ok, axis=1), T - 1 - np.argmax(ok[:, ::-1], axis=1)
-        du, dv = u[rows, last] - u[rows, first], v[rows, last] - v[rows, first]
-        ln = np.maximum(np.hypot(du, dv), 1e-9)
-        nx, ny = -dv / ln, du / ln
-        mx, my = u.astype(np.float32), v.astype(np.float32)
-        sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        mag = np.abs(sx * nx[:, None] + sy * ny[:, None])
-        enough = ok.sum(axis=1) >= T // 2
-        if not enough.any():
-            return None
-        # Each height's median over its points in the image (the others sorted first as -1).
-        srt = np.sort(np.where(ok, mag, -1.0), axis=1)
-        nv = ok.sum(axis=1)
-        med = srt[rows, T - nv + (nv - 1) // 2]
-        resp = np.where(enough, med, -1.0)
-        best = int(np.argmax(resp))
-        if resp[best] < p.ridge_k_sigma * SOBEL_NOISE_GAIN * noise:
-            return None
-        # The line's offset from the best one, across it, at the middle point.
-        mid = T // 2
-        off = np.abs((u[:, mid] - u[best, mid]) * nx[best] + (v[:, mid] - v[best, mid]) * ny[best])
-        far = enough & (off > 3.0)
-        if far.any() and resp[best] < 1.5 * resp[far].max():
-            return None
-        # A lower edge is on the floor: a ridge found higher is a line on the face (its search range is the
-        # hypothesis's, only to test that the floor's ridge is the unique one).
-        if lower and abs(float(ys[best])) > 3.0 * p.assoc_extra_m:
-            return None
-        y = float(ys[best])
-        if 0 < best < len(ys) - 1 and resp[best - 1] >= 0 and resp[best + 1] >= 0:      # the ridge's parabola
-            a_, b_, c_ = resp[best - 1], resp[best], resp[best + 1]
-            curv = a_ - 2.0 * b_ + c_
-            if curv < 0:
-                y += step * 0.5 * (a_ - c_) / curv
-        P0 = np.r_[A[0, 0], y, A[0, 2]]
-        P1 = np.r_[A[1, 0], y, A[1, 2]]
-        n = np.cross(P0 - t, P1 - t)
-        return n / max(float(np.linalg.norm(n)), 1e-12)
-
-    def _distinct_views(self, views: list) -> list:
-        """The viewpoints (x, y, z, heading) of ``views`` a ``view_baseline_m`` or ``view_angle_deg`` apart from
-        every one kept before them (``_add_view``'s rule)."""
-        distinct: list = []
-        for v in views:
-            if not any(self._same_viewpoint(v, w) for w in distinct):
-                distinct.append(v)
-        return distinct
-
-    def _sight_horizontal(self, k: int, sigma_m: float, camera: tuple) -> bool:
-        """Measure a horizontal hypothesis k (a box's top or lower edge) in the recent keyframes: each sighting's
-        plane (``_sightings``) meets the vertical lines of the edge's two corners (their x, z: verified
-        vertical edges) at the edge's ends' heights, each with the sigma s z / (fx |n_y|) and
-        ``assoc_extra_m``. A horizontal line seen while driving spans one plane with every camera centre (the
-        camera's height is fixed), so its height cannot be triangulated; its corners' lines fix where it is.
-        Verified when seen from ``verify_views`` distinct viewpoints and every frame's heights lie within
-        the chi-square gate (1 dof, 99 %) of their weighted mean: the mean becomes its height. A lower edge
-        lies on the floor; measuring its height all the same is the check that the lines found agree."""
-        p = self.params
-        fx = camera[0]
-        A = self.P[k]
-        ys, ws, views = [], [], []
-        for n, R, t in self._sightings(k, sigma_m, camera):
-            if abs(n[1]) < 1e-6:
-                continue
-            ys.append([(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)])
-            ze = np.maximum((A - t) @ R[:, 2], 0.1)
-            ws.append(1.0 / ((p.sight_sigma_px * ze / (fx * abs(n[1]))) ** 2 + p.assoc_extra_m ** 2))
-            views.append(_viewpoint(R, t))
-        if len(ys) < p.verify_views:
-            return False
-        # The frames' heights outside the gate of the others' weighted mean go, the farthest first (another
-        # line near the prediction in that frame).
-        ys, ws, keep = np.array(ys), np.array(ws), np.ones(len(ys), bool)
-        while keep.sum() >= p.verify_views:
-            y = (ws[keep] * ys[keep]).sum(axis=0) / ws[keep].sum(axis=0)
-            chi = np.where(keep, (ws * (ys - y) ** 2).max(axis=1), -1.0)
-            if chi.max() <= CHI2_1_99:
-                break
-            keep[int(chi.argmax())] = False
-        distinct = self._distinct_views([v for v, kept in zip(views, keep) if kept])
-        if len(distinct) < p.verify_views:
-            return False
-        ys, ws = ys[keep], ws[keep]
-        self.P[k, :, 1] = y
+        self.P[k, :, 1] = fix.y
         self.anchor[k] = self.P[k]
         self._ends_in_step()
         self.ends[k] = self.P[k:k + 1].copy()
         var = np.array([p.assoc_extra_m ** 2, 0.0, p.assoc_extra_m ** 2])
         cov = np.zeros((2, 3, 3))
         for e in range(2):
-            cov[e] = np.diag(var + np.array([0.0, 1.0 / ws[:, e].sum(), 0.0]))
+            cov[e] = np.diag(var + np.array([0.0, fix.var_y[e], 0.0]))
         self.cov[k] = self.anchor_cov[k] = cov
         t_dir = _directions(self.P[k:k + 1])[0]
         self.info[k] = np.linalg.inv(cov + ALONG_VAR * np.outer(t_dir, t_dir)[None])
         self.info_vec[k] = np.einsum("eij,ej->ei", self.info[k], self.P[k])
-        self.support[k] = len(ys)
-        self.views[k] = distinct
+        self.support[k] = fix.support
+        self.views[k] = [v.copy() for v in fix.views]
         self.verified[k] = True
         self._moved(np.array([k]))
-        return True
 
     def summary(self) -> dict:
         return {"segments": int(len(self)), "verified": int(self.verified.sum()),
                 "candidates": int((~self.verified).sum()), "hypotheses": int(self.hypothesis.sum()),
                 "frames": int(self.frames),
                 "total_length_m": round(float(self.length[self.verified].sum()), 3) if len(self) else 0.0}
-
-
-def _viewpoint(R_wc: np.ndarray, t_wc: np.ndarray) -> np.ndarray:
-    """(x, y, z, heading) of a camera pose: the camera centre and the heading of its optical axis."""
-    return np.array([t_wc[0], t_wc[1], t_wc[2], math.atan2(R_wc[0, 2], R_wc[2, 2])])
 
 
 def _sorted_unique(a: np.ndarray) -> np.ndarray:
@@ -1373,18 +1169,3 @@ def _directions(P: np.ndarray) -> np.ndarray:
     """Unit directions (K, 3) of segments (K, 2, 3)."""
     d = P[:, 1] - P[:, 0]
     return d / np.maximum(_norms(d, axis=1, keepdims=True), 1e-12)
-
-
-def _clip_to_rect(a: np.ndarray, b: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Liang-Barsky: parameter range [s0, s1] of segments a->b inside [0, W-1] x [0, H-1] (s1 < s0: outside)."""
-    d = b - a
-    s0, s1 = np.zeros(len(a)), np.ones(len(a))
-    for axis, lim in ((0, width - 1.0), (1, height - 1.0)):
-        for p, q in ((-d[:, axis], a[:, axis]), (d[:, axis], lim - a[:, axis])):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                r = q / p
-            par = np.abs(p) < 1e-12
-            s0 = np.where(~par & (p < 0), np.maximum(s0, r), s0)
-            s1 = np.where(~par & (p > 0), np.minimum(s1, r), s1)
-            s1 = np.where(par & (q < 0), -1.0, s1)
-    return s0, s1

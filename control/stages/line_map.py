@@ -5,8 +5,10 @@
   the prediction as a prior (guided matching), fuse the 3D segments into the DLM (vision/line_map.py),
   count misses, verify and prune. First it inserts the hypotheses the slow loop posted since the last frame.
 - ``AbstractionThread``: the slow loop, in its own thread every ``period_s``: takes a snapshot of the
-  verified segments, abstracts them to vertical edges and object polygons (vision/line_abstraction.py) and
-  posts missing-line hypotheses back through a queue; it never touches the map itself. On a simulated
+  verified segments, abstracts them to vertical edges and object polygons (vision/line_abstraction.py),
+  measures a box's top and lower edges in a snapshot of the map's keyframes (vision/line_sighting.py) and
+  posts the hypotheses with their measurements back through a queue; it never touches the map itself. The
+  fast loop inserts them: a box's measurement (40-100 ms) is the slow loop's work, not a frame's. On a simulated
   clock (``LineMapStage.abstraction_inline``) the stage steps it itself, after the first frame whose stamp
   is ``period_s`` past the last pass: the map then does not depend on how fast the machine ran the drive.
 - The mission loop (map-based goto, control/controllers/goto.py) reads the stage's object polygons and
@@ -39,6 +41,7 @@ from vbnav.vision.line_map import LineMap, MapParams
 from vbnav.vision.line_floor import floor_segments
 from vbnav.vision.line_motion import motion_segments
 from vbnav.vision.line_segments import LineParams, Segments3D, reconstruct_pair
+from vbnav.vision.line_sighting import sight_hypotheses
 
 KEYFRAME_BASELINE_M = 0.15     # motion triangulation pairs the frame with a keyframe at least this far back
 
@@ -61,8 +64,12 @@ class AbstractionThread:
     """The slow loop: polygons and missing-line hypotheses from snapshots of the map, posted to a queue."""
 
     def __init__(self, snapshot: Callable[[], np.ndarray], period_s: float = 1.0,
-                 params: AbstractionParams = AbstractionParams()):
+                 params: AbstractionParams = AbstractionParams(),
+                 sight: Optional[Callable[[np.ndarray], list]] = None):
+        """snapshot: the map's verified segments (a copy). sight: the hypotheses' measurements in the map's
+        keyframes (one ``HorizontalFix`` or None each; ``LineMapStage.sight``); None posts them unmeasured."""
         self.snapshot = snapshot
+        self.sight = sight
         self.period_s = float(period_s)
         self.params = params
         self.hypotheses: queue.Queue = queue.Queue()
@@ -81,7 +88,8 @@ class AbstractionThread:
             raise RuntimeError(f"line-map abstraction thread failed: {self.error}") from self._exc
 
     def step(self) -> int:
-        """One abstraction pass (also callable inline, e.g. on a simulated clock). Returns hypotheses posted."""
+        """One abstraction pass (also callable inline, e.g. on a simulated clock): posts (hypotheses (K, 2, 3),
+        their fixes or None) per object not posted before. Returns the hypotheses posted."""
         P = self.snapshot()
         polys = object_polygons(P, self.params)
         self.polygons = polys
@@ -94,7 +102,7 @@ class AbstractionThread:
             if key in self._posted:
                 continue
             self._posted.add(key)
-            self.hypotheses.put(hyp)
+            self.hypotheses.put((hyp, self.sight(hyp) if self.sight is not None else None))
             posted += len(hyp)
         self.runs += 1
         return posted
@@ -147,7 +155,7 @@ class LineMapStage(VisionStage):
         self.abstraction_inline = False     # step the slow loop on the frames' time (a simulated clock)
         self._last_pass_ns: Optional[int] = None
         if abstraction_period_s is not None:
-            self.abstraction = AbstractionThread(self.verified_snapshot, abstraction_period_s)
+            self.abstraction = AbstractionThread(self.verified_snapshot, abstraction_period_s, sight=self.sight)
 
     @classmethod
     def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
@@ -166,6 +174,15 @@ class LineMapStage(VisionStage):
     def verified_snapshot(self) -> np.ndarray:
         with self.lock:
             return self.map.P[self.map.verified].copy()
+
+    def sight(self, hyp: np.ndarray) -> list:
+        """The slow loop's measurements of hypotheses hyp (K, 2, 3) in a snapshot of the map's keyframes
+        (taken under the lock; the map replaces its keyframe list, never changes it in place)."""
+        with self.lock:
+            keyframes = list(self.map.keyframes)
+            params = self.map.params
+        fx, fy, cx, cy = self.cam
+        return sight_hypotheses(hyp, keyframes, (fx, fy, cx, cy, self.baseline, *self.size), params)
 
     def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
         """The map's segments, copied once per revision (the link publishes them at the scene rate)."""
@@ -270,13 +287,12 @@ class LineMapStage(VisionStage):
         n = 0
         while self.abstraction is not None:
             try:
-                hyp = self.abstraction.hypotheses.get_nowait()
+                hyp, fixes = self.abstraction.hypotheses.get_nowait()
             except queue.Empty:
                 break
-            fx, fy, cx, cy = self.cam
-            # A top or lower edge is first measured in the recent keyframes (it comes when its box's corners were
-            # verified, often as the box leaves the view).
-            self.map.add_hypotheses(hyp, camera=(fx, fy, cx, cy, self.baseline, *self.size))
+            # A top or lower edge comes measured in the keyframes by the slow loop (it comes when its box's
+            # corners were verified, often as the box leaves the view).
+            self.map.add_hypotheses(hyp, fixes=fixes)
             n += len(hyp)
         self.stats["hypotheses_in"] += n
         return n
