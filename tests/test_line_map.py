@@ -651,6 +651,41 @@ def test_a_top_edge_hypothesis_is_measured_on_its_corners_lines_in_the_recent_ke
     assert not plain.verified[0]
 
 
+def test_a_box_posted_again_adds_no_second_copy_of_its_lines():
+    """The slow loop posts a box's hypotheses again when its footprint changes (rounded to 0.1 m); most of
+    them are the lines it posted before, and the map took them twice (room seeds 1-3: 2-3 pairs each,
+    some verified twice). A re-posted line of the same kind within the hypothesis's 5 cm (x, z) is the same
+    line: a verified top is kept whatever height its new hypothesis has (the corners' pieces' tops), an
+    unverified one takes a re-post's measurement, and a line 10 cm away or of another kind is new."""
+    true = np.array([[-0.3, -0.5, 2.0], [0.7, -0.5, 2.0]])
+    cam = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
+    hyp = true.copy()
+    hyp[:, 1] = -0.48
+    corner = np.array([[-0.3, 0.0, 2.0], [-0.3, -0.48, 2.0]])
+    lmap = LineMap()
+    _top_edge_keyframes(lmap, true, [0.0, 0.2, 0.4], jitter_px=0.3)
+    lmap.add_hypotheses(np.stack((hyp, corner)), camera=cam)
+    assert len(lmap) == 2 and lmap.verified[0] and not lmap.verified[1]
+    again = hyp.copy()
+    again[:, 1] = -0.40                                  # the corners' pieces reach less high this time
+    again[:, 0] += 0.03
+    shifted_corner = corner + [0.02, 0.0, -0.03]
+    lower = true.copy()
+    lower[:, 1] = 0.0                                    # another kind on the same x, z: a new line
+    far = hyp + [0.0, 0.0, 0.10]
+    ids = lmap.add_hypotheses(np.stack((again, shifted_corner, lower, far)))
+    assert len(ids) == 2 and len(lmap) == 4
+    assert np.abs(lmap.P[0, :, 1] - true[:, 1]).max() <= 0.002        # the verified top kept its height
+    np.testing.assert_allclose(lmap.P[3], far)
+    # An unverified earlier line takes a re-post's measurement instead of a second row.
+    late = LineMap()
+    late.add_hypotheses(hyp[None])
+    assert not late.verified[0]
+    _top_edge_keyframes(late, true, [0.0, 0.2, 0.4], jitter_px=0.3)
+    assert len(late.add_hypotheses(again[None], camera=cam)) == 0
+    assert len(late) == 1 and late.verified[0] and np.abs(late.P[0, :, 1] - true[:, 1]).max() <= 0.002
+
+
 def test_the_slow_loop_measures_the_hypotheses_and_the_fast_loop_only_inserts_them(monkeypatch):
     """A box's top and lower edges are measured in the keyframes by the slow loop (``LineMapStage.sight`` on a
     snapshot of them), not in the frame that inserts them: on the fast loop's thread that took 85 ms, and the

@@ -1073,6 +1073,7 @@ class LineMap:
         # also make a map file that cannot be loaded back).
         long_enough = _norms(P[:, 1] - P[:, 0], axis=1) >= self.params.min_length_m
         P, fixes = P[long_enough], [f for f, ok in zip(fixes, long_enough) if ok]
+        P, fixes = self._new_hypotheses(P, fixes, sigma_m)
         if len(P) == 0:
             return np.zeros(0, int)
         C = np.broadcast_to(sigma_m ** 2 * np.eye(3), (len(P), 2, 3, 3)).copy()
@@ -1083,6 +1084,31 @@ class LineMap:
             if fix is not None:
                 self._apply_fix(k, fix)
         return ids
+
+    def _new_hypotheses(self, P: np.ndarray, fixes: list, sigma_m: float) -> tuple[np.ndarray, list]:
+        """The hypotheses P (K, 2, 3) (and their fixes) that are not already in the map. The slow loop posts an
+        object's hypotheses again when its footprint changes (rounded to 0.1 m), and most of its lines are
+        the same lines (room seeds 1-3, 60 frames: 2-3 pairs each, some verified twice): one of the same kind
+        (a corner, a lower edge, a top: ``_hypothesis_kind``) as an earlier hypothesis whose ends' x and z
+        both lie within ``sigma_m`` (the hypothesis's sigma, per axis) of its ends', either way round, is that
+        line (a top's height is where it was measured, not compared). It is dropped, unless it comes measured
+        (a fix) and the earlier one is not verified yet: then the earlier one takes its place and its
+        measurement."""
+        old = np.nonzero(self.hypothesis)[0]
+        if len(old) == 0 or len(P) == 0:
+            return P, fixes
+        Q, H = P[..., [0, 2]], self.P[old][..., [0, 2]]                          # (K, 2, 2), (M, 2, 2)
+        same = np.minimum(np.abs(Q[:, None] - H[None]).max(axis=(2, 3)),
+                          np.abs(Q[:, None] - H[None, :, ::-1]).max(axis=(2, 3))) <= sigma_m      # (K, M)
+        same &= _hypothesis_kind(P, sigma_m)[:, None] == _hypothesis_kind(self.P[old], sigma_m)[None]
+        keep = np.ones(len(P), bool)
+        for q in np.nonzero(same.any(axis=1))[0]:
+            keep[q] = False
+            k = int(old[np.argmax(same[q])])
+            if fixes[q] is not None and not self.verified[k]:
+                self.P[k] = P[q]
+                self._apply_fix(k, fixes[q])
+        return P[keep], [f for f, ok in zip(fixes, keep) if ok]
 
     def _remember(self, left: Segments2D, R_wc: np.ndarray, t_wc: np.ndarray,
                   image: Optional[np.ndarray] = None) -> None:
@@ -1129,6 +1155,14 @@ class LineMap:
                 "candidates": int((~self.verified).sum()), "hypotheses": int(self.hypothesis.sum()),
                 "frames": int(self.frames),
                 "total_length_m": round(float(self.length[self.verified].sum()), 3) if len(self) else 0.0}
+
+
+def _hypothesis_kind(P: np.ndarray, tol_m: float) -> np.ndarray:
+    """(K,) of hypotheses P (K, 2, 3): 0 a corner (vertical: its ends' x, z within tol_m), 1 a lower edge (on
+    the floor: both ends within tol_m of y = 0), 2 a top."""
+    vertical = np.abs(P[:, 0, [0, 2]] - P[:, 1, [0, 2]]).max(axis=1) <= tol_m
+    lower = np.abs(P[..., 1]).max(axis=1) <= tol_m
+    return np.where(vertical, 0, np.where(lower, 1, 2))
 
 
 def _sorted_unique(a: np.ndarray) -> np.ndarray:
