@@ -60,7 +60,7 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     frame every 5 cm, nearer a real robot's 2 cm): 13 of 20 (13 of the 14 seen from >= 3 frames), 1.7 mm / 1.9 cm,
     2.2 % of 551 false (7.0 cm 95 %
     before: floor texture 8-12 cm in front of the south wall fused into its foot). The acceptance (90 % of the
-    edges in view) is met for the edges seen from >= 3 frames, not for all in view: docs/line_map.md "Not met"."""
+    edges in view) is met for the edges seen from >= 3 frames, not for all in view: docs/line_map.md, "Current figures and acceptance"."""
     world, lmap, drive = room_drive
     # The map `map build` makes: the slow loop's hypotheses inserted while it drove (none verified here).
     assert lmap.hypothesis.any()
