@@ -234,7 +234,8 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
         from vbnav.control.stages.line_map import AbstractionThread
         camera = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
         slow = AbstractionThread(lambda: lmap.P[lmap.verified].copy(),
-                                 sight=lambda hyp: sight_hypotheses(hyp, list(lmap.keyframes), camera, lmap.params))
+                                 sight=lambda hyp, pinned: sight_hypotheses(hyp, list(lmap.keyframes), camera,
+                                                                            lmap.params, pinned=pinned))
     counts = {"guided": [0, 0], "unguided": [0, 0]}
     key = None                       # (left segments, R, c) of the last keyframe, for motion triangulation
     for n, (f, (R, c)) in enumerate(zip(drive.frames, drive.cams)):

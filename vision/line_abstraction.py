@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -127,47 +128,24 @@ def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParam
             # was skipped and the smallest rectangle could take the hypotenuse of three corners as a side.
             ends = feet[lower].reshape(-1, 2)
             away = np.linalg.norm(ends[:, None] - seen[None], axis=2).min(axis=1) > params.foot_on_m
-            away &= ~_past_a_right_angle(feet[lower], seen, params).reshape(-1)
             pts.append(ends[away])
         pts = np.vstack(pts)
         if len(members) < 2 and len(pts) < 3:
             continue
-        out.append(ObjectPolygon(_rectangle(pts, params), float(edges[members, 2].mean()), len(members), seen.copy()))
+        out.append(ObjectPolygon(_rectangle(pts, params, seen), float(edges[members, 2].mean()), len(members), seen.copy()))
     return out
 
 
-def _past_a_right_angle(feet: np.ndarray, seen: np.ndarray, params: AbstractionParams) -> np.ndarray:
-    """(K, 2) bool: the lower edges' (K, 2, 2) ends that lie past a corner where two faces meet at a right
-    angle (``_right_angles``) on their line (within ``foot_on_m``): beyond it by more than ``foot_on_m``,
-    away from the face along the edge. A box's foot ends at such a corner; a floor line running on past it
-    (LSD joining the foot to the floor's texture) put its end into the footprint, hid the right angle and
-    turned the rectangle (room seed 2, 120 frames: box_a's east foot 0.2 m past its corner, IoU 0.62).
-    Past a corner that is no right angle (a texture line on a face) the foot goes on to the corner not
-    seen."""
-    out = np.zeros((len(feet), 2), bool)
-    for c, sides in _right_angles(seen, params):
-        rel = feet - c                                                  # (K, 2, 2) the ends from the corner
-        u = feet[:, 1] - feet[:, 0]
-        L = np.maximum(np.linalg.norm(u, axis=1), 1e-12)
-        u = u / L[:, None]
-        a = c - feet[:, 0]
-        on = (np.abs(a[:, 0] * u[:, 1] - a[:, 1] * u[:, 0]) <= params.foot_on_m) \
-            & ((a * u).sum(-1) >= -params.foot_on_m) & ((a * u).sum(-1) <= L + params.foot_on_m)
-        side = sides[np.argmax(np.abs(u @ sides.T), axis=1)]           # (K, 2) the face along the edge
-        out |= on[:, None] & ((rel * side[:, None]).sum(-1) < -params.foot_on_m)
-    return out
-
-
-def _right_angles(seen: np.ndarray, params: AbstractionParams) -> list:
-    """[(corner (2,), its two sides' unit directions (2, 2))] of the seen corners where two faces meet at a
-    right angle: vertices of their hull (``_face_hull``) within ``right_angle_tol_deg`` of 90 deg, both
-    sides at least ``min_side_m``."""
-    hull = _face_hull(seen, params) if len(seen) >= 3 else np.zeros((0, 2))
-    if len(hull) < 3:
-        return []
-    sin_tol = math.sin(math.radians(params.right_angle_tol_deg))
-    return [(hull[k].astype(float), np.array([a, b])) for k, cos, a, b, _, _ in _hull_angles(hull, params)
-            if cos <= sin_tol]
+def _right_angle_axis(pts: np.ndarray, params: AbstractionParams):
+    """The unit direction of the longer side at the hull corner of pts nearest to a right angle (within
+    ``right_angle_tol_deg``, both sides at least ``min_side_m``), or None (and the hull)."""
+    hull = _face_hull(pts, params)
+    best_cos, axis = math.sin(math.radians(params.right_angle_tol_deg)), None
+    if len(hull) >= 3:
+        for _, c, a, b, na, nb in _hull_angles(hull, params):
+            if c <= best_cos:
+                best_cos, axis = c, (a if na >= nb else b)
+    return axis, hull
 
 
 def _face_hull(pts: np.ndarray, params: AbstractionParams) -> np.ndarray:
@@ -240,19 +218,24 @@ def _on_faces_dropped(hull: np.ndarray, tol: float) -> np.ndarray:
     return hull
 
 
-def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams()) -> np.ndarray:
+def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams(),
+               corners: Optional[np.ndarray] = None) -> np.ndarray:
     """The rectangle (4, 2) around the points (boxes are rectangular), or their hull when they are (nearly)
     collinear or fewer than 3. Its sides follow the hull's corner nearest to a right angle (two faces of a
     box, or a face and a lower edge, within ``right_angle_tol_deg``): the smallest rectangle alone cannot
     tell a right triangle's legs from its hypotenuse (same area); failing such a corner, the smallest one
-    (a side of it along a side of the hull)."""
-    hull = _face_hull(pts, params)
+    (a side of it along a side of the hull). ``corners``: the seen vertical edges among pts; when their own
+    hull has such a corner it sets the sides: a lower edge's end is a floor line's, which LSD may run on past
+    the corner into the floor's texture, and as a hull vertex it hid the corners' right angle and turned the
+    rectangle (room seed 2, 120 frames: box_a's east foot 0.2 m past its corner, IoU 0.62). Every point
+    stays inside the rectangle."""
+    axis, hull = _right_angle_axis(corners, params) if corners is not None else (None, None)
+    if axis is None:
+        axis, hull = _right_angle_axis(pts, params)
+    else:
+        hull = _face_hull(pts, params)
     if len(hull) < 3:
         return hull
-    best_cos, axis = math.sin(math.radians(params.right_angle_tol_deg)), None
-    for _, c, a, b, na, nb in _hull_angles(hull, params):
-        if c <= best_cos:
-            best_cos, axis = c, (a if na >= nb else b)
     axes = [axis] if axis is not None else [(b - a) / max(np.linalg.norm(b - a), 1e-12)
                                              for a, b in zip(hull, np.roll(hull, -1, axis=0))]
     best = None
@@ -271,6 +254,16 @@ def _rectangle(pts: np.ndarray, params: AbstractionParams = AbstractionParams())
 def object_polygons(P: np.ndarray, params: AbstractionParams = AbstractionParams()) -> list[ObjectPolygon]:
     """Objects standing on the floor, from the map's verified segments (world frame)."""
     return box_polygons(vertical_edges(P, params), params, floor_lines(P, params))
+
+
+def pinned_ends(hyp: np.ndarray, poly: ObjectPolygon) -> np.ndarray:
+    """(K, 2) bool: the ends of ``missing_lines(poly)`` that stand at a seen corner (``poly.seen_xz``; the
+    others are footprint corners, where the rectangle says the box ends)."""
+    seen = np.zeros((0, 2)) if poly.seen_xz is None else poly.seen_xz
+    xz = np.asarray(hyp, float).reshape(-1, 2, 3)[..., [0, 2]]
+    if len(seen) == 0:
+        return np.zeros(xz.shape[:2], bool)
+    return (np.abs(xz[:, :, None] - seen[None, None]).max(axis=3) <= 1e-9).any(axis=2)
 
 
 def missing_lines(poly: ObjectPolygon, params: AbstractionParams = AbstractionParams()) -> np.ndarray:

@@ -94,18 +94,21 @@ def is_horizontal(A: np.ndarray) -> bool:
 
 
 def sight_hypotheses(P: np.ndarray, keyframes: list, camera: tuple, params: "MapParams",
-                     sigma_m: float = HYPOTHESIS_SIGMA_M) -> list:
+                     sigma_m: float = HYPOTHESIS_SIGMA_M, pinned: Optional[np.ndarray] = None) -> list:
     """Per hypothesis of P (K, 2, 3): its ``HorizontalFix`` in the keyframes (``measure_horizontal``), or None
     (not horizontal, not seen from enough viewpoints, or sightings that disagree). camera: (fx, fy, cx, cy,
-    baseline, width, height) of the left image."""
+    baseline, width, height) of the left image. pinned (K, 2) bool: the ends that are seen corners (the
+    others, footprint corners, are checked to reach the edge: ``ridge_sighting``); None: all."""
     if params.sight_sigma_px <= 0:
         return [None] * len(P)
-    return [measure_horizontal(A, keyframes, camera, params, sigma_m) if is_horizontal(A) else None
-            for A in np.asarray(P, float).reshape(-1, 2, 3)]
+    P = np.asarray(P, float).reshape(-1, 2, 3)
+    pinned = np.ones((len(P), 2), bool) if pinned is None else np.asarray(pinned, bool).reshape(-1, 2)
+    return [measure_horizontal(A, keyframes, camera, params, sigma_m, tuple(pin)) if is_horizontal(A) else None
+            for A, pin in zip(P, pinned)]
 
 
 def measure_horizontal(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams",
-                       sigma_m: float = HYPOTHESIS_SIGMA_M) -> Optional[HorizontalFix]:
+                       sigma_m: float = HYPOTHESIS_SIGMA_M, pinned: tuple = (True, True)) -> Optional[HorizontalFix]:
     """A horizontal hypothesis A (2, 3) (a box's top or lower edge) in the keyframes: each sighting's plane
     (``sightings``) meets the vertical lines of the edge's two corners (their x, z: verified vertical edges)
     at the edge's ends' heights, each with the sigma s z / (fx |n_y|) and ``assoc_extra_m``. A horizontal line
@@ -117,7 +120,7 @@ def measure_horizontal(A: np.ndarray, keyframes: list, camera: tuple, params: "M
     p = params
     fx = camera[0]
     ys, ws, views = [], [], []
-    for n, R, t in sightings(A, keyframes, camera, params, sigma_m):
+    for n, R, t in sightings(A, keyframes, camera, params, sigma_m, pinned):
         if abs(n[1]) < 1e-6:
             continue
         ys.append([(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)])
@@ -142,7 +145,7 @@ def measure_horizontal(A: np.ndarray, keyframes: list, camera: tuple, params: "M
 
 
 def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams",
-              sigma_m: float = HYPOTHESIS_SIGMA_M) -> list:
+              sigma_m: float = HYPOTHESIS_SIGMA_M, pinned: tuple = (True, True)) -> list:
     """Hypothesis A (2, 3) in the keyframes: in a keyframe that kept its image, a horizontal hypothesis is
     looked for in the image's gradient (``ridge_sighting``); in the others, where it is predicted in view,
     the nearest left segment along its prediction (direction ``predict_angle_deg``, midpoint within the
@@ -156,7 +159,7 @@ def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams"
     for kf in keyframes:
         R, t, xy = kf.R, kf.t, kf.xy
         if kf.image is not None and is_horizontal(A):
-            n = ridge_sighting(A, kf, camera, params, sigma_m)
+            n = ridge_sighting(A, kf, camera, params, sigma_m, pinned)
             if n is not None:
                 out.append((n, R, t))
             continue
@@ -185,7 +188,7 @@ def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams"
 
 
 def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParams",
-                   sigma_m: float = HYPOTHESIS_SIGMA_M) -> Optional[np.ndarray]:
+                   sigma_m: float = HYPOTHESIS_SIGMA_M, pinned: tuple = (True, True)) -> Optional[np.ndarray]:
     """A horizontal hypothesis A (2, 3) (a box's top or lower edge between its corners' vertical lines) in
     one keyframe's image: the height at which the line between the corners, projected, runs along a ridge of
     the gradient across it, in MAGNITUDE (either sign: a box's top against a textured wall changes contrast
@@ -196,8 +199,8 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     points of the line, at least half of them in the image. A sighting when the best response is above
     ``ridge_k_sigma`` (3) sigma of the Sobel's noise and 1.5 x the best one more than 3 px from it (a unique
     ridge; both chosen, not derived: docs/line_map.md), and for a lower edge within 3 ``assoc_extra_m`` of
-    the floor. Returns the unit normal of the plane through the camera centre and the line at that height,
-    or None."""
+    the floor; an end that is not a seen corner (``pinned``) must be reached by the edge (below). Returns the
+    unit normal of the plane through the camera centre and the line at that height, or None."""
     p = params
     fx, fy, cx, cy, _, width, height = camera
     R, t = kf.R, kf.t
@@ -250,8 +253,20 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     med = srt[rows, T - nv + (nv - 1) // 2]
     resp = np.where(enough, med, -1.0)
     best = int(np.argmax(resp))
-    if resp[best] < p.ridge_k_sigma * SOBEL_NOISE_GAIN * noise:
+    floor_resp = p.ridge_k_sigma * SOBEL_NOISE_GAIN * noise
+    if resp[best] < floor_resp:
         return None
+    # An end that is a footprint corner, not a seen corner, is where the rectangle says the box ends: the
+    # edge must reach it (the median of that end quarter's points, when half of them are in the image, above
+    # the noise too). The median over the whole line finds an edge the hypothesis overshoots by a third, and
+    # a lower edge 0.2 m past box_a's corner was verified that way (room seed 2, 120 frames, from a footprint
+    # a floor line had stretched). A seen corner's end is where the corner's line is: not checked (near a
+    # corner the foot's contrast often fades, room seed 3).
+    q = T // 4
+    for end, part in zip(pinned, (slice(0, q), slice(T - q, T))):
+        inside = ok[best, part]
+        if not end and inside.sum() >= q // 2 and np.median(mag[best, part][inside]) < floor_resp:
+            return None
     # The line's offset from the best one, across it, at the middle point.
     mid = T // 2
     off = np.abs((u[:, mid] - u[best, mid]) * nx[best] + (v[:, mid] - v[best, mid]) * ny[best])

@@ -36,7 +36,7 @@ from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
-from vbnav.vision.line_abstraction import AbstractionParams, missing_lines, object_polygons
+from vbnav.vision.line_abstraction import AbstractionParams, missing_lines, object_polygons, pinned_ends
 from vbnav.vision.line_map import LineMap, MapParams
 from vbnav.vision.line_floor import floor_segments
 from vbnav.vision.line_motion import motion_segments
@@ -65,9 +65,10 @@ class AbstractionThread:
 
     def __init__(self, snapshot: Callable[[], np.ndarray], period_s: float = 1.0,
                  params: AbstractionParams = AbstractionParams(),
-                 sight: Optional[Callable[[np.ndarray], list]] = None):
-        """snapshot: the map's verified segments (a copy). sight: the hypotheses' measurements in the map's
-        keyframes (one ``HorizontalFix`` or None each; ``LineMapStage.sight``); None posts them unmeasured."""
+                 sight: Optional[Callable[[np.ndarray, np.ndarray], list]] = None):
+        """snapshot: the map's verified segments (a copy). sight(hypotheses, pinned ends): their measurements
+        in the map's keyframes (one ``HorizontalFix`` or None each; ``LineMapStage.sight``); None posts them
+        unmeasured."""
         self.snapshot = snapshot
         self.sight = sight
         self.period_s = float(period_s)
@@ -102,7 +103,7 @@ class AbstractionThread:
             if key in self._posted:
                 continue
             self._posted.add(key)
-            self.hypotheses.put((hyp, self.sight(hyp) if self.sight is not None else None))
+            self.hypotheses.put((hyp, self.sight(hyp, pinned_ends(hyp, poly)) if self.sight is not None else None))
             posted += len(hyp)
         self.runs += 1
         return posted
@@ -175,14 +176,15 @@ class LineMapStage(VisionStage):
         with self.lock:
             return self.map.P[self.map.verified].copy()
 
-    def sight(self, hyp: np.ndarray) -> list:
+    def sight(self, hyp: np.ndarray, pinned: Optional[np.ndarray] = None) -> list:
         """The slow loop's measurements of hypotheses hyp (K, 2, 3) in a snapshot of the map's keyframes
-        (taken under the lock; the map replaces its keyframe list, never changes it in place)."""
+        (taken under the lock; the map replaces its keyframe list, never changes it in place). pinned (K, 2):
+        the ends at seen corners (``pinned_ends``; None: all)."""
         with self.lock:
             keyframes = list(self.map.keyframes)
             params = self.map.params
         fx, fy, cx, cy = self.cam
-        return sight_hypotheses(hyp, keyframes, (fx, fy, cx, cy, self.baseline, *self.size), params)
+        return sight_hypotheses(hyp, keyframes, (fx, fy, cx, cy, self.baseline, *self.size), params, pinned=pinned)
 
     def overlay(self, estimate: Optional[Estimate]) -> StageOverlay:
         """The map's segments, copied once per revision (the link publishes them at the scene rate)."""
