@@ -713,6 +713,12 @@ class LineMap:
         pieces = dict(zip(i[first].tolist(), np.split(m, first[1:])))
         changed = np.zeros(len(self), bool)
         grown: list = []
+        # The pieces that pass every test of _merge_partner against the map as it stands now, in one batch:
+        # most segments of a frame have none (on the loop's closing frames ~85 queued, ~20 merges), and a
+        # segment unchanged since then can only pair with what grew since (a changed piece either grew or
+        # was absorbed), so its own search is skipped when nothing grew.
+        fits = self._partners_now(i, m, D, L)
+        hopeful = set(i[fits].tolist())
         while queue:
             i = queue.pop()
             if i >= len(alive) or not alive[i]:
@@ -720,6 +726,11 @@ class LineMap:
             cand = None
             if i in pieces and not changed[i]:
                 cand = _sorted_unique(np.concatenate((pieces[i], grown))) if grown else pieces[i]
+                if i not in hopeful:
+                    self._pairs += len(cand) - len(grown)
+                    if not grown:
+                        continue
+                    cand = _sorted_unique(np.asarray(grown))
             j = self._merge_partner(i, alive, D, L, cand)
             if j is None:
                 continue
@@ -735,6 +746,29 @@ class LineMap:
             merged += 1
             queue.append(keep)                   # the grown segment may now reach another piece
         return merged, ~alive, grown
+
+    def _partners_now(self, i: np.ndarray, m: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        """(K,) bool: segment m[k] passes every test ``_merge_partner`` makes of a partner of segment i[k]
+        (all segments alive): direction, not a rival, within the gap along i's line, both endpoints within
+        ``MERGE_PERP_M`` across it and within the chi-square gate of both covariances."""
+        p = self.params
+        if len(i) == 0:
+            return np.zeros(0, bool)
+        ok = (np.abs(np.einsum("ki,ki->k", t[m], t[i])) >= math.cos(math.radians(p.assoc_angle_deg))) & (m != i)
+        ok &= (self.group[i] < 0) | (self.group[m] != self.group[i])
+        a, d, L = self.P[i, 0], t[i], lengths[i]
+        s = np.einsum("kei,ki->ke", self.P[m] - a[:, None], d)                       # (K, 2) along i
+        ok &= np.maximum(s.min(axis=1) - L, -s.max(axis=1)) <= p.merge_gap_m
+        r = self.P[m] - (a[:, None] + s[..., None] * d[:, None])                     # (K, 2, 3) across i
+        ok &= _norms(r, axis=2).max(axis=1) < MERGE_PERP_M
+        k = np.nonzero(ok)[0]
+        if len(k):
+            Ci = (self.cov[i[k], 0] + self.cov[i[k], 1]) / 2
+            S = (Ci[:, None] + self.cov[m[k]] + p.assoc_extra_m ** 2 * np.eye(3)
+                 + ALONG_VAR * np.einsum("ki,kj->kij", d[k], d[k])[:, None])
+            m2 = np.einsum("kei,keij,kej->ke", r[k], np.linalg.inv(S), r[k])
+            ok[k] = (m2 <= CHI2_3_99).all(axis=1)
+        return ok
 
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
