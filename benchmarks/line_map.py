@@ -34,8 +34,10 @@ matched without a prior (no map), to show what the DLM costs on top of detection
 Times are CPU time of the thread (time.thread_time: what the loop costs one core, unaffected by other
 processes waiting for the CPU) and wall time (what it took under the machine's load, printed with the load
 average), median / 95th percentile per frame; the verdict is whether the fast loop's CPU median and p95 fit
-15 Hz (66.7 ms). One warm-up frame runs first on a throw-away stage (OpenCV's detector set-up and numpy's
-lazy imports are not per-frame costs). Then scores the map against the world's true edges.
+15 Hz (66.7 ms), and whether the mean frame plus the slow loop's share of the core does (keeping up is
+throughput: a frame over 66.7 ms delays the next, the mean says whether the loop falls behind). One
+warm-up frame runs first on a throw-away stage (OpenCV's detector set-up and numpy's lazy imports are not
+per-frame costs). Then scores the map against the world's true edges.
 With ``--far N`` the stage's map starts with N candidate segments 40-60 m away (what a long drive leaves
 behind; never in view, so never verified or pruned): the update's work should not grow with them.
 Usage: python benchmarks/line_map.py [--frames 60] [--far 0] [--json]
@@ -200,7 +202,8 @@ def peer(f) -> None:
 
 def stats(ms: list) -> dict:
     a = np.asarray(ms)
-    return {"median_ms": round(float(np.median(a)), 2), "p95_ms": round(float(np.percentile(a, 95)), 2)}
+    return {"median_ms": round(float(np.median(a)), 2), "p95_ms": round(float(np.percentile(a, 95)), 2),
+            "mean_ms": round(float(np.mean(a)), 2)}
 
 
 def main() -> int:
@@ -254,7 +257,10 @@ def main() -> int:
                         "ratio_fast_loop_to_no_map": round(float(fast / np.median(d["no_map"])), 3),
                         "keeps_up_with_15_hz": bool(fast <= BUDGET_MS),
                         "p95_within_15_hz": bool(np.percentile(d["fast_loop"], 95) <= BUDGET_MS),
-                        "with_slow_loop_within_15_hz": bool(fast + share <= BUDGET_MS)}
+                        "with_slow_loop_within_15_hz": bool(fast + share <= BUDGET_MS),
+                        # Keeping up is throughput: the mean frame and the slow loop's share of one core.
+                        "mean_with_slow_loop_ms": round(float(np.mean(d["fast_loop"])) + share, 2),
+                        "mean_with_slow_loop_within_15_hz": bool(np.mean(d["fast_loop"]) + share <= BUDGET_MS)}
     out = {
         "frames": args.frames, "far_segments": args.far, "image": f"{CAM.width}x{CAM.height}", "cpu": cpu,
         "load_average_1_5_15": {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in load1]},
@@ -313,7 +319,9 @@ def main() -> int:
               f"x{t['ratio_fast_loop_to_no_map']} the same detection without the map; 15 Hz (66.7 ms): "
               f"{ok[t['keeps_up_with_15_hz']]} (median), {ok[t['p95_within_15_hz']]} (p95), "
               f"{ok[t['with_slow_loop_within_15_hz']]} (median + the slow loop's "
-              f"{t['slow_loop_share_per_frame_ms']} ms/frame)")
+              f"{t['slow_loop_share_per_frame_ms']} ms/frame); throughput: mean {t['fast_loop']['mean_ms']:.1f} ms + "
+              f"the slow loop's share = {t['mean_with_slow_loop_ms']:.1f} ms a frame: "
+              f"{ok[t['mean_with_slow_loop_within_15_hz']]}")
     print(f"  map: {json.dumps(out['map'])}")
     return 0
 
