@@ -10,8 +10,9 @@ Pure functions of the map's verified segments (world frame, y down, floor y = 0)
 - ``floor_lines``: horizontal segments lying on the floor (the feet of boxes and walls, vision/line_floor.py);
 - ``box_polygons``: vertical edges of similar height within ``box_max_m`` of each other are the corners of
   one object, and a floor line is its lower edge when two of them stand on it (within ``foot_on_m``), or when
-it starts at one of them at right angles (``foot_angle_deg``) to a face between two of them. Boxes
-  are rectangular: the footprint is the smallest rectangle around the corners and the lower edges' ends, so
+  it starts at the end of a face between two of them at right angles to it (``foot_angle_deg``). Boxes
+  are rectangular: the footprint is the rectangle around the corners and the lower edges' ends whose sides
+  follow the corners' right angle (else the points' right angle, else the smallest such rectangle), so
   an object seen at two faces (three corners, or two corners and a lower edge) is closed on the side the
   robot has not seen: the hypothesised corner is part of the footprint the grid marks as occupied
   (two points give the face between them);
@@ -22,7 +23,8 @@ it starts at one of them at right angles (``foot_angle_deg``) to a face between 
   footprint from its verified corners says where the whole edge is.
 - ``object_polygons``: all of it from the map's verified segments.
 
-``control/stages/line_abstraction.py`` runs this in its own thread, slower than the frame loop.
+``AbstractionThread`` (control/stages/line_map.py) runs this in its own thread, slower than the frame loop;
+``pinned_ends`` tells it which ends of a box's hypotheses stand at seen corners.
 """
 from __future__ import annotations
 
