@@ -30,11 +30,10 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from line_scenes import build_map, loop_poses, render_drive, score_map  # noqa: E402
+from line_scenes import build_map, footprint_overlap, loop_poses, render_drive, score_map  # noqa: E402
 
 from vbnav.drivers.sim.world import World  # noqa: E402
 from vbnav.vision.line_abstraction import object_polygons  # noqa: E402
@@ -43,56 +42,15 @@ from vbnav.vision.line_abstraction import object_polygons  # noqa: E402
 def footprint_scores(lmap, world: World) -> dict:
     """Per box that a map footprint overlaps: (IoU with its true footprint, the fraction of the box inside the
     map's footprint) of the best-overlapping object polygon (the goto grid's obstacle: IoU says how well it
-    fits, the fraction whether the box is all inside, the safe side)."""
-    polys = [_ccw(p.footprint) for p in object_polygons(lmap.P[lmap.verified]) if len(p.footprint) >= 3]
+    fits, the fraction whether the box is all inside, the safe side; ``footprint_overlap``)."""
+    polys = [p.footprint for p in object_polygons(lmap.P[lmap.verified]) if len(p.footprint) >= 3]
     out = {}
     for name, kind, xz in world.footprints():
         if kind != "box":
             continue
-        true = _ccw(np.asarray(xz, float))
-        area = _area(true)
-        best = (0.0, 0.0)
-        for fp in polys:
-            inter = _area(_clip(true, fp))
-            if inter > 0:
-                best = max(best, (inter / (area + _area(fp) - inter), inter / area))
+        best = max([footprint_overlap(fp, np.asarray(xz, float)) for fp in polys], default=(0.0, 0.0))
         if best[0] > 0:
             out[name] = (round(float(best[0]), 3), round(float(best[1]), 3))
-    return out
-
-
-def _ccw(poly: np.ndarray) -> np.ndarray:
-    """The convex hull of poly (N, 2), counter-clockwise."""
-    hull = cv2.convexHull(np.asarray(poly, np.float32)).reshape(-1, 2).astype(float)
-    return hull if len(hull) < 3 or _signed_area(hull) > 0 else hull[::-1]
-
-
-def _signed_area(poly: np.ndarray) -> float:
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
-
-
-def _area(poly: np.ndarray) -> float:
-    return abs(_signed_area(poly)) if len(poly) >= 3 else 0.0
-
-
-def _clip(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
-    """Sutherland-Hodgman: convex polygon ``subject`` clipped to convex ``clip`` (both counter-clockwise).
-    (cv2.intersectConvexConvex returned 0 for two nearly coinciding boxes: seed 1's box_b at 120 frames.)"""
-    out = subject
-    for a, b in zip(clip, np.roll(clip, -1, axis=0)):
-        if len(out) == 0:
-            break
-        e = b - a
-        side = e[0] * (out[:, 1] - a[1]) - e[1] * (out[:, 0] - a[0])          # >= 0: inside (left of a->b)
-        nxt = []
-        for k in range(len(out)):
-            p, q, sp, sq = out[k], out[(k + 1) % len(out)], side[k], side[(k + 1) % len(out)]
-            if sp >= 0:
-                nxt.append(p)
-            if (sp >= 0) != (sq >= 0):
-                nxt.append(p + (q - p) * (sp / (sp - sq)))
-        out = np.array(nxt).reshape(-1, 2)
     return out
 
 

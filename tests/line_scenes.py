@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from vbnav.drivers.sim.camera import SimCamera
@@ -290,3 +291,48 @@ def false_matches(left, matches, true_disp: np.ndarray, tol_px: float = 1.0) -> 
         if not np.isfinite(win).any() or np.nanmin(np.abs(win - dd)) > tol_px:
             wrong += 1
     return wrong, int(b.sum())
+
+
+def footprint_overlap(fp: np.ndarray, true: np.ndarray) -> tuple[float, float]:
+    """(IoU, the fraction of ``true`` inside ``fp``) of two footprints (N, 2) x, z, each taken as its convex
+    hull; its own convex clipping (Sutherland-Hodgman): cv2.intersectConvexConvex returned 0 for a map
+    footprint nearly coinciding with the truth (room seed 1's box_b at 120 frames, IoU 0.996)."""
+    a, b = _ccw(true), _ccw(fp)
+    area_a, area_b = _polygon_area(a), _polygon_area(b)
+    if area_a <= 0:
+        return 0.0, 0.0
+    inter = _polygon_area(_clip_convex(a, b))
+    return inter / (area_a + area_b - inter), inter / area_a
+
+
+def _ccw(poly: np.ndarray) -> np.ndarray:
+    hull = cv2.convexHull(np.asarray(poly, np.float32)).reshape(-1, 2).astype(float)
+    return hull if len(hull) < 3 or _signed_area(hull) > 0 else hull[::-1]
+
+
+def _signed_area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+
+
+def _polygon_area(poly: np.ndarray) -> float:
+    return abs(_signed_area(poly)) if len(poly) >= 3 else 0.0
+
+
+def _clip_convex(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
+    """Convex polygon ``subject`` clipped to convex ``clip`` (both counter-clockwise)."""
+    out = subject
+    for a, b in zip(clip, np.roll(clip, -1, axis=0)):
+        if len(out) == 0:
+            break
+        e = b - a
+        side = e[0] * (out[:, 1] - a[1]) - e[1] * (out[:, 0] - a[0])          # >= 0: inside (left of a->b)
+        nxt = []
+        for k in range(len(out)):
+            p, q, sp, sq = out[k], out[(k + 1) % len(out)], side[k], side[(k + 1) % len(out)]
+            if sp >= 0:
+                nxt.append(p)
+            if (sp >= 0) != (sq >= 0):
+                nxt.append(p + (q - p) * (sp / (sp - sq)))
+        out = np.array(nxt).reshape(-1, 2)
+    return out
