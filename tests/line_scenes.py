@@ -307,16 +307,17 @@ def footprint_overlap(fp: np.ndarray, true: np.ndarray) -> tuple[float, float]:
 
 def _ccw(poly: np.ndarray) -> np.ndarray:
     hull = cv2.convexHull(np.asarray(poly, np.float32)).reshape(-1, 2).astype(float)
-    return hull if len(hull) < 3 or _signed_area(hull) > 0 else hull[::-1]
+    return hull if len(hull) < 3 or signed_area(hull) > 0 else hull[::-1]
 
 
-def _signed_area(poly: np.ndarray) -> float:
+def signed_area(poly: np.ndarray) -> float:
+    """Signed area of a polygon (N, 2) (the shoelace formula; positive counter-clockwise)."""
     x, y = poly[:, 0], poly[:, 1]
     return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
 
 
 def _polygon_area(poly: np.ndarray) -> float:
-    return abs(_signed_area(poly)) if len(poly) >= 3 else 0.0
+    return abs(signed_area(poly)) if len(poly) >= 3 else 0.0
 
 
 def _clip_convex(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:

@@ -717,7 +717,7 @@ class LineMap:
         # most segments of a frame have none (on the loop's closing frames ~85 queued, ~20 merges), and a
         # segment unchanged since then can only pair with what grew since (a changed piece either grew or
         # was absorbed), so its own search is skipped when nothing grew.
-        fits = self._partners_now(i, m, D, L)
+        fits = np.isfinite(self._partner_scores(i, m, D, L))
         hopeful = set(i[fits].tolist())
         while queue:
             i = queue.pop()
@@ -747,15 +747,17 @@ class LineMap:
             queue.append(keep)                   # the grown segment may now reach another piece
         return merged, ~alive, grown
 
-    def _partners_now(self, i: np.ndarray, m: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-        """(K,) bool: segment m[k] passes every test ``_merge_partner`` makes of a partner of segment i[k]
-        (all segments alive): direction, not a rival, within the gap along i's line, both endpoints within
-        ``MERGE_PERP_M`` across it and within the chi-square gate of both covariances."""
+    def _partner_scores(self, i: np.ndarray, m: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        """(K,) of segment pairs (i[k], m[k]): m's Mahalanobis distances across i's line (both endpoints,
+        summed) when m may be merged into i: direction within ``assoc_angle_deg``, not a rival of one left
+        segment, overlapping i or ending within ``merge_gap_m`` of it along its line, both endpoints within
+        ``MERGE_PERP_M`` across it and within the chi-square gate of both covariances; inf when not."""
         p = self.params
+        out = np.full(len(i), np.inf)
         if len(i) == 0:
-            return np.zeros(0, bool)
+            return out
         ok = (np.abs(np.einsum("ki,ki->k", t[m], t[i])) >= math.cos(math.radians(p.assoc_angle_deg))) & (m != i)
-        ok &= (self.group[i] < 0) | (self.group[m] != self.group[i])
+        ok &= (self.group[i] < 0) | (self.group[m] != self.group[i])        # rivals are alternatives, not pieces
         a, d, L = self.P[i, 0], t[i], lengths[i]
         s = np.einsum("kei,ki->ke", self.P[m] - a[:, None], d)                       # (K, 2) along i
         ok &= np.maximum(s.min(axis=1) - L, -s.max(axis=1)) <= p.merge_gap_m
@@ -763,12 +765,12 @@ class LineMap:
         ok &= _norms(r, axis=2).max(axis=1) < MERGE_PERP_M
         k = np.nonzero(ok)[0]
         if len(k):
-            Ci = (self.cov[i[k], 0] + self.cov[i[k], 1]) / 2
+            Ci = (self.cov[i[k], 0] + self.cov[i[k], 1]) / 2          # the mean of i's two ends' covariances
             S = (Ci[:, None] + self.cov[m[k]] + p.assoc_extra_m ** 2 * np.eye(3)
                  + ALONG_VAR * np.einsum("ki,kj->kij", d[k], d[k])[:, None])
             m2 = np.einsum("kei,keij,kej->ke", r[k], np.linalg.inv(S), r[k])
-            ok[k] = (m2 <= CHI2_3_99).all(axis=1)
-        return ok
+            out[k] = np.where((m2 <= CHI2_3_99).all(axis=1), m2.sum(axis=1), np.inf)
+        return out
 
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
@@ -796,31 +798,11 @@ class LineMap:
         else:
             cand = np.nonzero(alive & (np.abs(t @ t[i]) >= cos))[0]
             self._pairs += len(cand)
-        cand = cand[cand != i]
-        # Rivals of one left segment are alternatives, not pieces of one edge.
-        if self.group[i] >= 0:
-            cand = cand[self.group[cand] != self.group[i]]
         if len(cand) == 0:
             return None
-        a, d, L = self.P[i, 0], t[i], lengths[i]
-        Pc = self.P[cand]
-        s = (Pc - a) @ d                                                             # (K, 2) along i
-        # Within the gap along i first (most of the parallel segments of a scan are not), then across.
-        near = np.maximum(np.minimum(s[:, 0], s[:, 1]) - L, -np.maximum(s[:, 0], s[:, 1])) <= p.merge_gap_m
-        cand, Pc, s = cand[near], Pc[near], s[near]
-        r = Pc - (a + s[..., None] * d)                                              # (K, 2, 3) across i
-        near = _norms(r, axis=2).max(axis=1) < MERGE_PERP_M
-        cand, r = cand[near], r[near]
-        if len(cand) == 0:
-            return None
-        extra = p.assoc_extra_m ** 2 * np.eye(3)
-        Ci = (self.cov[i, 0] + self.cov[i, 1]) / 2            # the mean of its two ends' covariances
-        S = Ci[None, None] + self.cov[cand] + extra + ALONG_VAR * np.outer(d, d)
-        m2 = np.einsum("kei,keij,kej->ke", r, np.linalg.inv(S), r)
-        ok = (m2 <= CHI2_3_99).all(axis=1)
-        if not ok.any():
-            return None
-        return int(cand[ok][np.argmin(m2[ok].sum(axis=1))])
+        score = self._partner_scores(np.full(len(cand), i), cand, t, lengths)
+        best = int(np.argmin(score))
+        return int(cand[best]) if np.isfinite(score[best]) else None
 
     def _absorb(self, i: int, j: int) -> None:
         """Segment j's information, extent, support and viewpoints into segment i (j is then removed)."""
