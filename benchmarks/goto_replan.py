@@ -10,7 +10,10 @@ Scenarios (docs/line_map.md, "Re-planning as the map grows"):
 Printed per scenario and mode: the exit code, the ground-truth distance to the goal, the closest approach of
 the robot's centre to a wall or box (radius 0.2 m), re-plans, and the map's fast loop per frame.
 
-    .venv/bin/python benchmarks/goto_replan.py [--only box_a|box_b] [--rate HZ]
+``--seed`` drives another room (``World.room(seed)``: the same boxes and walls, other textures) with the map
+built in it; seed 0 is the room the map was developed in (benchmarks/line_room.py scores the others).
+
+    .venv/bin/python benchmarks/goto_replan.py [--only box_a|box_b] [--rate HZ] [--seed N]
 """
 from __future__ import annotations
 
@@ -71,11 +74,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", choices=("box_a", "box_b"), default=None)
     ap.add_argument("--rate", type=float, default=15.0, help="camera rate, Hz (default 15)")
+    ap.add_argument("--seed", type=int, default=0, help="World.room seed of the simulator and the map (default 0)")
     args = ap.parse_args(argv)
     cfg = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    if cfg["sim"].get("world") != "room":
+        ap.error(f"configs/sim_stereo.yaml: sim.world must be 'room' for these scenarios, got {cfg['sim'].get('world')!r}")
     cfg["camera"]["rate_hz"] = args.rate
-    print("goal error and closest approach from the simulator's ground truth; fast loop: the line map's "
-          "detection + update per frame, median / p95")
+    cfg["sim"]["seed"] = args.seed
+    print(f"World.room({args.seed}); goal error and closest approach from the simulator's ground truth; fast loop: "
+          "the line map's detection + update per frame, median / p95")
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         if args.only in (None, "box_b"):
@@ -86,7 +93,7 @@ def main(argv=None) -> int:
         if args.only in (None, "box_a"):
             print("building the 60-frame loop map ...", flush=True)
             # The map the room test scores: the slow loop runs inline as in `vbnav map build` (tests/test_line_nav.py).
-            lmap, _ = build_map(render_drive(World.room(0), loop_poses(60)), floor=True,
+            lmap, _ = build_map(render_drive(World.room(args.seed), loop_poses(60)), floor=True,
                                 abstraction_every=ABSTRACTION_EVERY)
             save_map(lmap, tmp / "loop60.json")
             for start in BOX_A_STARTS:
