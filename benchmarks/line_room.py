@@ -14,11 +14,12 @@ rendered room it is none (measured: the same maps to the digit): the prior only 
 matches of one segment, which the room's textures rarely give; tests/test_line_map.py's repetitive texture
 is where it lowers the false-match rate.
 
-An edge seen from fewer than ``verify_views`` (3) frames cannot be verified by the chapter's rule (a segment
-not re-observed from other positions is a false match), whatever the mapper does: ``score_map`` also counts
-the edges in view seen within range from at least that many frames and how many of them are mapped
-(``in_view_verifiable``, ``mapped_verifiable``), to show how much of the gap to 90 % is edges glimpsed once
-or twice at the edge of the map's 3 m range.
+An edge seen from fewer than ``verify_views`` (3) distinct viewpoints (0.15 m or 10 deg apart, the map's own
+rule) cannot be verified by the chapter's rule (a segment not re-observed from other positions is a false
+match), whatever the mapper does: ``score_map`` also counts the edges in view seen within range from at least
+that many viewpoints and how many of them are mapped (``in_view_verifiable``, ``mapped_verifiable``), to show
+how much of the gap to 90 % is edges glimpsed from one or two places at the edge of the map's 3 m range.
+Unlike the count of every edge glimpsed, it does not grow with the frame rate.
 
 Seeds and frames. Seeds 0-3 are the rooms the map was developed on; 4-7 were first measured on 2026-12-02
 (docs/line_map_history.md), so the default runs all eight: a change judged on 0-3 alone is fitted to them.
@@ -79,7 +80,7 @@ def measure(world: World, drive, seed: int, frames: int, guided: bool) -> dict:
 def line(r: dict) -> str:
     return (f"seed {r['seed']} {r['frames']:4d} frames {'guided' if r['guided'] else 'peer  '}: "
             f"{r['mapped']:2d} of {r['in_view']:2d} edges in view ({100 * r['mapped'] / max(r['in_view'], 1):5.1f} %; "
-            f"{r['mapped_verifiable']} of the {r['verifiable']} seen from >= 3 frames), endpoints {r['endpoint_median_mm']} mm / {r['endpoint_p95_cm']} cm, "
+            f"{r['mapped_verifiable']} of the {r['verifiable']} seen from >= 3 viewpoints), endpoints {r['endpoint_median_mm']} mm / {r['endpoint_p95_cm']} cm, "
             f"{r['false_pct']} % of {r['verified']} false; footprints (IoU, box inside) "
             f"{', '.join(f'{k} {v[0]:.2f} {v[1]:.2f}' for k, v in sorted(r['footprints'].items())) or 'none'}"
             f"  [{r['build_s']} s]")
@@ -125,7 +126,7 @@ def main(argv=None) -> int:
         ours = [r for r in out if r["frames"] == f and r["guided"]]
         m, v, mv, vf = (sum(r[k] for r in ours) for k in ("mapped", "in_view", "mapped_verifiable", "verifiable"))
         text = f"{f} frames, seeds {a.seeds}: ours {m} of {v} edges ({100 * m / v:.1f} %; acceptance 90 %)"
-        text += f"; of the {vf} seen from >= 3 frames {mv} ({100 * mv / max(vf, 1):.1f} %)"
+        text += f"; of the {vf} seen from >= 3 viewpoints {mv} ({100 * mv / max(vf, 1):.1f} %)"
         text += "; " + pooled(ours)
         peer = [r for r in out if r["frames"] == f and not r["guided"]]
         if peer:

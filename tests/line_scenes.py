@@ -5,7 +5,10 @@ Scoring (docs/line_map.md):
 - true edges: the 12 edges of every box and the edges of the walls (floor line, ceiling line, corners);
 - an edge is *in view* when at least 0.3 m of it was seen unoccluded within the map's range
   (``MapParams.max_range_m``) in some frame of the drive (checked against the true disparity); *verifiable*
-  when at least 0.3 m of it was, in at least ``verify_views`` (3) frames each (``in_view_verifiable``);
+  when at least 0.3 m of it was, each point from at least ``verify_views`` (3) distinct viewpoints, the map's
+  own rule (``same_viewpoint``: 0.15 m or 10 deg apart; ``in_view_verifiable``). Until 2026-12-02 it counted
+  3 frames, which depends on the frame spacing: 3 frames of the sim robot's own 180-frame loop (3.3 cm
+  apart) are one viewpoint;
 - a verified map segment *belongs* to an edge when it is parallel (6 deg) and both endpoints are within
   10 cm of the edge's line (twice the false-segment distance, so the endpoint errors are not truncated at
   the 5 cm the acceptance asks of their 95th percentile); an edge is *mapped* when segments belonging to it cover at least half of its
@@ -32,7 +35,7 @@ from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_map import LineMap, MapParams
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
-from vbnav.vision.line_sighting import sight_hypotheses
+from vbnav.vision.line_sighting import same_viewpoint, sight_hypotheses, viewpoint
 
 CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 # The mapping head looks out of the loop (yaw 70 deg to the right of travel on a counter-clockwise loop), so
@@ -121,15 +124,15 @@ def render_drive(world: World, poses: list[Pose2], noise: float = 2.0) -> Drive:
     return Drive(poses, frames, [camera_pose(p, MOUNT) for p in poses])
 
 
-def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30, counts: bool = False) -> np.ndarray:
-    """(E, n) bool: edge sample points seen unoccluded within max_range in some frame (with ``counts``: (E, n)
-    int, in how many frames)."""
+def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30, per_frame: bool = False) -> np.ndarray:
+    """(E, n) bool: edge sample points seen unoccluded within max_range in some frame (with ``per_frame``:
+    (F, E, n) bool, in each frame)."""
     t = (np.arange(n) + 0.5) / n
     pts = edges[:, None, 0] + (edges[:, None, 1] - edges[:, None, 0]) * t[None, :, None]   # (E, n, 3)
     flat = pts.reshape(-1, 3)
-    seen = np.zeros(len(flat), int)
+    seen = np.zeros((len(drive.frames), len(flat)), bool)
     fb = CAM.fx * BASELINE
-    for f, (R, c) in zip(drive.frames, drive.cams):
+    for k, (f, (R, c)) in enumerate(zip(drive.frames, drive.cams)):
         pc = (flat - c) @ R
         z = pc[:, 2]
         ok = (z > 0.1) & (z <= max_range)
@@ -145,9 +148,30 @@ def seen_samples(edges: np.ndarray, drive: Drive, max_range: float, n: int = 30,
                 dd = f.disparity[np.clip(vi + dv, 0, CAM.height - 1), np.clip(ui + du, 0, CAM.width - 1)]
                 best = np.minimum(best, np.abs(np.nan_to_num(dd, nan=-1e9) - d_pt) / d_pt)
         idx = np.nonzero(ok)[0]
-        seen[idx[best < 0.03]] += 1
-    seen = seen.reshape(len(edges), n)
-    return seen if counts else seen > 0
+        seen[k, idx[best < 0.03]] = True
+    seen = seen.reshape(len(drive.frames), len(edges), n)
+    return seen if per_frame else seen.any(axis=0)
+
+
+def distinct_viewpoints(seen: np.ndarray, drive: Drive, params: MapParams) -> np.ndarray:
+    """(E, n) int: from how many distinct viewpoints (the map's own rule, ``same_viewpoint``: 0.15 m or 10 deg
+    apart) each edge sample was seen; seen (F, E, n) from ``seen_samples(..., per_frame=True)``, counted
+    greedily in the drive's order as the map counts a segment's views."""
+    views = [viewpoint(R, c) for R, c in drive.cams]
+    F = len(views)
+    same = np.array([[same_viewpoint(views[a], views[b], params) for b in range(F)] for a in range(F)], bool)
+    out = np.zeros(seen.shape[1:], int)
+    memo: dict = {}
+    for e, i in zip(*np.nonzero(seen.any(axis=0))):
+        frames = tuple(np.nonzero(seen[:, e, i])[0].tolist())
+        if frames not in memo:
+            kept: list = []
+            for f in frames:
+                if not same[f, kept].any():
+                    kept.append(f)
+            memo[frames] = len(kept)
+        out[e, i] = memo[frames]
+    return out
 
 
 @dataclass
@@ -159,8 +183,8 @@ class MapScore:
     verified: int
     missing: list
     by_class: dict        # class -> [in view, mapped]
-    # Edges in view from at least ``verify_views`` frames (>= min_len of them; the chapter's verification
-    # needs that many viewpoints, so an edge glimpsed in one or two frames cannot be in a verified map), and
+    # Edges in view from at least ``verify_views`` distinct viewpoints (>= min_len of them; the chapter's
+    # verification needs that many, so an edge glimpsed from one or two cannot be in a verified map), and
     # how many of them are mapped.
     in_view_verifiable: int = 0
     mapped_verifiable: int = 0
@@ -177,8 +201,9 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
     classes = [edge_class(e, kinds[nm]) for e, nm in zip(edges, names)]
     by_class: dict = {}
     n = 30
-    count = seen_samples(edges, drive, lmap.params.max_range_m, n, counts=True)
-    seen = count > 0
+    per_frame = seen_samples(edges, drive, lmap.params.max_range_m, n, per_frame=True)
+    seen = per_frame.any(axis=0)
+    count = distinct_viewpoints(per_frame, drive, lmap.params)
     seg_len = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
     seen_len = seen.mean(axis=1) * seg_len
     in_view = np.nonzero(seen_len >= min_len)[0]
