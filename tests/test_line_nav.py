@@ -247,6 +247,25 @@ def test_a_floor_line_leaving_the_line_between_two_texture_lines_is_not_a_foot()
     assert len(polys) == 1 and _footprint_iou(polys[0].footprint, BOX_B) >= 0.95, polys[0].footprint
 
 
+def test_a_floor_line_touching_one_corner_twice_is_not_a_foot():
+    """The map grown in `goto --map` (seed 0, from (-0.9, -1.5)) held box_a's north-east corner as two
+    vertical edges 7 cm apart (more than merge_m), and a floor texture line from that corner, 26 deg off
+    the face, passed within foot_on_m of both: counted as a foot between two corners, its far end ran the
+    footprint 0.86 m off the box to within 0.23 m of the goal, and the route was held for good. A foot's
+    corners must stand min_side_m apart along it."""
+    corners = [(-1.64, 0.09), (-0.83, 0.45), (-1.07, -0.09), (-1.01, -0.11), (-0.83, 0.38)]
+    heights = [0.93, 0.91, 0.88, 0.88, 0.63]
+    P = np.array([[[x, 0.0, z], [x, -h, z]] for (x, z), h in zip(corners, heights)]
+                 + [[[0.03, 0.0, 0.54], [-0.83, 0.0, 0.41]],        # the texture line, touching the corner
+                    [[-0.82, 0.0, 0.49], [-1.0, 0.0, -0.11]],       # box_a's east foot, corner to corner
+                    [[-1.76, 0.0, 0.12], [-1.01, 0.0, -0.1]]])      # its south foot
+    polys = object_polygons(P)
+    assert len(polys) == 1
+    fp = polys[0].footprint
+    assert fp[:, 0].max() < -0.75, fp                                # was 0.03: the texture line's end
+    assert footprint_overlap(fp, BOX_A)[1] >= 0.95 and _footprint_iou(fp, BOX_A) >= 0.85, fp
+
+
 def test_a_foot_running_past_a_corner_does_not_turn_the_footprint():
     """Room seed 2, 120 frames: box_a's three seen corners meet at a right angle at (-1.01, -0.1), and its
     east face's foot ran on 0.2 m past that corner (LSD joining it to the floor's texture). The end, a hull

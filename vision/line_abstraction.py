@@ -123,7 +123,13 @@ def box_polygons(edges: np.ndarray, params: AbstractionParams = AbstractionParam
             t = np.clip(((seen[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab ** 2).sum(-1), 1e-12), 0, 1)
             dist = np.linalg.norm(seen[:, None] - (a[None] + t[..., None] * ab[None]), axis=2)    # (corners, K)
             on = dist <= params.foot_on_m
-            lower = (on.sum(axis=0) >= 2) | _square_to_a_face(feet, seen, on, params)
+            # A foot between two corners: the corners it passes stand at least min_side_m apart along it. Two
+            # vertical edges of one corner (merge_m apart or a little more) are not two corners: a floor
+            # texture line touching box_a's corner there, at 26 deg to its face, ran its footprint 0.86 m
+            # off the box in `goto --map`'s grown map (seed 0 from (-0.9, -1.5); the route was held for good).
+            s = t * np.linalg.norm(ab, axis=1)[None]                                    # (corners, K) along
+            spans = np.where(on, s, -np.inf).max(axis=0) - np.where(on, s, np.inf).min(axis=0) >= params.min_side_m
+            lower = spans | _square_to_a_face(feet, seen, on, params)
             lower &= np.linalg.norm(ab, axis=1) <= params.box_max_m
             # A lower edge's end within foot_on_m of a corner is that corner: as a hull vertex of its own
             # (a few mm outside) it made the corner's sides shorter than min_side_m, so its right angle
