@@ -164,7 +164,7 @@ def run(args) -> int:
         waypoints, end = map_route_in_reference_frame(planned, start, goal)
         goal = start.between(goal)          # reported against the goal as given; driven to the path's end
     controller = GotoController(end if args.map else goal, nav.goto, cfg.robot.max_linear_speed, cfg.robot.max_angular_speed,
-                                waypoints=waypoints)
+                                waypoints=waypoints, follow_route=bool(args.map))
     rt = Runtime(cfg, robot.drive, controller, robot.clock, robot.pipeline)
     link = attach_telemetry(rt, cfg, args)     # state, network commands and the live view; --record
     if link is None:

@@ -54,12 +54,19 @@ class GotoController(Controller):
 
     def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float | None = None,
                  max_angular_speed: float | None = None, waypoints: Optional[list] = None,
-                 waypoint_tolerance_m: float = 0.15):
+                 waypoint_tolerance_m: float = 0.15, follow_route: bool = False):
         """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's).
 
         waypoints: (x, z) points in the reference frame to pass on the way to ``goal`` (a path planned on the
         line map's grid, vision/nav_grid.py); each counts as passed within ``waypoint_tolerance_m``.
+        follow_route: the route was planned around obstacles (``goto --map``): its last leg is driven
+        straight to the goal's position and the goal heading is taken by turning on the spot there. The
+        polar law's heading term would swing the robot off the planned leg to arrive along the goal
+        heading, where the planner never checked the clearance: on seeds 5 and 7 of the room that swing
+        turned the robot's nose to a box 0.55 m beyond the goal, inside the obstacle stop's 0.8 m zone, and
+        the stop held it 0.3-0.6 m short until the time ran out (benchmarks/goto_replan.py --seed).
         """
+        self.follow_route = bool(follow_route)
         self.final_goal = goal
         self.waypoints = [tuple(w) for w in (waypoints or [])]
         self.waypoint_tolerance_m = float(waypoint_tolerance_m)
@@ -184,6 +191,8 @@ class GotoController(Controller):
             # centimetres do not take forever; zero while the goal is off to the side.
             v = saturate(c.k_rho * rho, c.min_drive_speed, self.v_max) * max(math.cos(alpha), 0.0)
             fade = min(1.0, rho / c.approach_radius_m)      # beta is ill-defined at the goal itself
+            if self.follow_route and not self.waypoints:
+                fade = 0.0                                  # the planned leg, then the turn on the spot
             w = c.k_alpha * alpha + c.k_beta * beta * fade
             return keep_curvature(Twist(v, w), self.w_max)
         if abs(dth) > tol_th:
