@@ -35,7 +35,7 @@ from vbnav.vision.camera_model import PinholeCamera
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
 from vbnav.vision.line_map import LineMap, MapParams
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
-from vbnav.vision.line_sighting import same_viewpoint, sight_hypotheses, viewpoint
+from vbnav.vision.line_sighting import distinct_views, sight_hypotheses, viewpoint
 
 CAM = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5)
 # The mapping head looks out of the loop (yaw 70 deg to the right of travel on a counter-clockwise loop), so
@@ -158,18 +158,12 @@ def distinct_viewpoints(seen: np.ndarray, drive: Drive, params: MapParams) -> np
     apart) each edge sample was seen; seen (F, E, n) from ``seen_samples(..., per_frame=True)``, counted
     greedily in the drive's order as the map counts a segment's views."""
     views = [viewpoint(R, c) for R, c in drive.cams]
-    F = len(views)
-    same = np.array([[same_viewpoint(views[a], views[b], params) for b in range(F)] for a in range(F)], bool)
     out = np.zeros(seen.shape[1:], int)
-    memo: dict = {}
+    memo: dict = {}                          # neighbouring samples of an edge are mostly seen by the same frames
     for e, i in zip(*np.nonzero(seen.any(axis=0))):
         frames = tuple(np.nonzero(seen[:, e, i])[0].tolist())
         if frames not in memo:
-            kept: list = []
-            for f in frames:
-                if not same[f, kept].any():
-                    kept.append(f)
-            memo[frames] = len(kept)
+            memo[frames] = len(distinct_views([views[f] for f in frames], params))
         out[e, i] = memo[frames]
     return out
 
