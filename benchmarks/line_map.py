@@ -40,7 +40,10 @@ warm-up frame runs first on a throw-away stage (OpenCV's detector set-up and num
 per-frame costs). Then scores the map against the world's true edges.
 With ``--far N`` the stage's map starts with N candidate segments 40-60 m away (what a long drive leaves
 behind; never in view, so never verified or pruned): the update's work should not grow with them.
-Usage: python benchmarks/line_map.py [--frames 60] [--far 0] [--json]
+With ``--laps N`` the robot drives the loop N times (a patrol: from the second lap on, most of a frame's
+observations fuse into verified segments, the update's steady state); each lap's fast loop, update and map
+size are printed, and the verdict is given for the last lap as well as for the whole run.
+Usage: python benchmarks/line_map.py [--frames 60] [--laps 1] [--far 0] [--json]
 """
 from __future__ import annotations
 
@@ -206,17 +209,29 @@ def stats(ms: list) -> dict:
             "mean_ms": round(float(np.mean(a)), 2)}
 
 
+def lap_summary(cpu: dict, a: int, b: int, summary: dict) -> dict:
+    """One lap's (frames a..b-1) fast loop, update and merging CPU median / p95 and the map after it."""
+    def mp(name):
+        x = np.asarray(cpu[name][a:b])
+        return [round(float(np.median(x)), 2), round(float(np.percentile(x, 95)), 2)]
+    return {"fast_loop_ms": mp("fast_loop"), "update_ms": mp("update"), "merge_ms": mp("merge"), "map": summary}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--far", type=int, default=0, help="candidate segments 40-60 m away in the map at the start")
+    ap.add_argument("--laps", type=int, default=1, help="drive the loop this many times (the patrol's steady state)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    if args.frames < 2 or args.laps < 1:
+        ap.error(f"--frames must be >= 2 and --laps >= 1 (got {args.frames}, {args.laps})")
     cpu = sorted(os.sched_getaffinity(0))[0]
     os.sched_setaffinity(0, {cpu})          # one core
     cv2.setNumThreads(1)
     world = World.room(0)
-    drive = render_drive(world, loop_poses(args.frames))
+    drive = render_drive(world, loop_poses(args.frames) * args.laps)
+    total = args.frames * args.laps
     spans, last, clock = Spans(), {}, Clock()
     instrument(spans, last)
     run_frame(make_stage(spans), drive.frames[0], drive.poses[0], spans)       # warm-up
@@ -226,7 +241,7 @@ def main() -> int:
     add_far_segments(stage.map, args.far)
     params = stage.line_params
     load0 = os.getloadavg()
-    nseg, nrec, nfloor, posted = [], [], [], []
+    nseg, nrec, nfloor, posted, laps = [], [], [], [], []
     for k, (f, pose) in enumerate(zip(drive.frames, drive.poses)):
         est = run_frame(stage, f, pose, spans)
         nseg.append(est.info["segments"])
@@ -236,8 +251,10 @@ def main() -> int:
         clock.time("peer", peer, f)
         if k % ABSTRACTION_EVERY == ABSTRACTION_EVERY - 1:
             posted.append(clock.time("slow_loop", stage.abstraction.step))
+        if k % args.frames == args.frames - 1:
+            laps.append(lap_summary(spans.cpu, k + 1 - args.frames, k + 1, stage.map.summary()))
     load1 = os.getloadavg()
-    short = {k: n for k, n in PARTS.items() if spans.calls[k] != n * args.frames}
+    short = {k: n for k, n in PARTS.items() if spans.calls[k] != n * total}
     if short:
         raise SystemExit(f"the stage no longer calls these as timed ({spans.calls}): update this benchmark")
     for d, c in ((spans.wall, clock.wall), (spans.cpu, clock.cpu)):
@@ -249,7 +266,7 @@ def main() -> int:
     timing = {}
     for kind, d in (("cpu", spans.cpu), ("wall", spans.wall)):
         fast, peer_ms = np.median(d["fast_loop"]), np.median(d["peer"])
-        share = float(np.sum(d["slow_loop"])) / args.frames
+        share = float(np.sum(d["slow_loop"])) / total
         timing[kind] = {**{k: stats(v) for k, v in d.items()},
                         "slow_loop_share_per_frame_ms": round(share, 2),
                         "fast_loop_hz": round(1000.0 / fast, 1),
@@ -262,7 +279,7 @@ def main() -> int:
                         "mean_with_slow_loop_ms": round(float(np.mean(d["fast_loop"])) + share, 2),
                         "mean_with_slow_loop_within_15_hz": bool(np.mean(d["fast_loop"]) + share <= BUDGET_MS)}
     out = {
-        "frames": args.frames, "far_segments": args.far, "image": f"{CAM.width}x{CAM.height}", "cpu": cpu,
+        "frames": args.frames, "laps_driven": args.laps, "far_segments": args.far, "image": f"{CAM.width}x{CAM.height}", "cpu": cpu,
         "load_average_1_5_15": {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in load1]},
         "segments_per_frame": float(np.median(nseg)), "reconstructed_per_frame": float(np.median(nrec)),
         "floor_per_frame": float(np.median(nfloor)),
@@ -271,7 +288,7 @@ def main() -> int:
                   "slow_loop_runs": stage.abstraction.runs, "hypotheses_in": stage.stats["hypotheses_in"]},
         "detector": {"detect_scale": params.detect_scale, "lsd_angle_deg": params.lsd_angle_deg,
                      "refine_radius_px": params.refine_radius_px},
-        "time": timing,
+        "time": timing, "laps": laps,
         "map": {**stage.map.summary(), "edges_in_view": score.in_view, "edges_mapped": score.mapped,
                 "coverage": round(score.coverage, 3),
                 "endpoint_err_median_m": round(float(np.median(e)), 4) if len(e) else None,
@@ -281,7 +298,7 @@ def main() -> int:
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
-    print(f"{args.frames} frames {CAM.width}x{CAM.height}, {args.far} far segments in the map at the start, on cpu {cpu} (one core, cv2 1 thread), load average "
+    print(f"{args.frames} frames x {args.laps} lap(s) {CAM.width}x{CAM.height}, {args.far} far segments in the map at the start, on cpu {cpu} (one core, cv2 1 thread), load average "
           f"{load0[0]:.2f} at start, {load1[0]:.2f} at end; LineMapStage defaults (guided, floor lines, merging): "
           f"{out['segments_per_frame']:.0f} segments/frame (left), {out['reconstructed_per_frame']:.0f} 3D "
           f"segments/frame of which {out['floor_per_frame']:.0f} floor lines")
@@ -300,7 +317,7 @@ def main() -> int:
     busy = np.nonzero(hyp > 0.0)[0]
     if len(busy):
         fast = np.asarray(spans.cpu["fast_loop"])[busy]
-        print(f"  frames with hypotheses added: {len(busy)} of {args.frames}; there inserting them took "
+        print(f"  frames with hypotheses added: {len(busy)} of {total}; there inserting them took "
               f"{', '.join(f'{x:.2f}' for x in hyp[busy])} ms CPU and the fast loop {', '.join(f'{x:.1f}' for x in fast)} ms")
     slow = np.asarray(spans.cpu["slow_loop"])
     busy_passes = [k for k, n in enumerate(posted) if n]
@@ -311,9 +328,9 @@ def main() -> int:
               f"{', '.join(f'{slow[k]:.1f}' for k in busy_passes)} ms CPU (polygons and the edges' measurement in "
               f"the keyframes); one core's second with the worst of them and 15 median frames: {one_s:.0f} ms "
               f"({'fits' if one_s <= 1000.0 else 'does NOT fit'})")
+    ok = {True: "met", False: "NOT met"}
     for kind in ("cpu", "wall"):
         t = timing[kind]
-        ok = {True: "met", False: "NOT met"}
         print(f"  {kind}: fast loop {t['fast_loop']['median_ms']:.1f} ms median / {t['fast_loop']['p95_ms']:.1f} ms "
               f"p95 = {t['fast_loop_hz']} Hz, x{t['ratio_fast_loop_to_peer']} the peer, "
               f"x{t['ratio_fast_loop_to_no_map']} the same detection without the map; 15 Hz (66.7 ms): "
@@ -322,6 +339,13 @@ def main() -> int:
               f"{t['slow_loop_share_per_frame_ms']} ms/frame); throughput: mean {t['fast_loop']['mean_ms']:.1f} ms + "
               f"the slow loop's share = {t['mean_with_slow_loop_ms']:.1f} ms a frame: "
               f"{ok[t['mean_with_slow_loop_within_15_hz']]}")
+    if args.laps > 1:
+        for n, lap in enumerate(laps):
+            print(f"  lap {n + 1}: fast loop {lap['fast_loop_ms'][0]:.1f} / {lap['fast_loop_ms'][1]:.1f} ms CPU median / p95 "
+                  f"(15 Hz: {ok[lap['fast_loop_ms'][0] <= BUDGET_MS]} median, {ok[lap['fast_loop_ms'][1] <= BUDGET_MS]} p95), "
+                  f"update {lap['update_ms'][0]:.1f} / {lap['update_ms'][1]:.1f} ms (merging {lap['merge_ms'][0]:.1f} / "
+                  f"{lap['merge_ms'][1]:.1f}); map after it: {lap['map']['segments']} segments, "
+                  f"{lap['map']['verified']} verified, {lap['map']['candidates']} candidates")
     print(f"  map: {json.dumps(out['map'])}")
     return 0
 
