@@ -182,7 +182,8 @@ def _lens_cap_run(box: bool, covered=(10, 40), frames=60):
     cfg = load_config("sim_stereo")
     world = World.by_name(cfg.sim.world, cfg.sim.seed)
     if box:
-        world.add_box("obstacle", (-1.5, -1.55), (0.3, 0.3, 0.3))      # its face 0.75 m ahead: the stop zone
+        # Its face 0.3 m ahead: within the stop band's min_distance (0.35 m), a held stop.
+        world.add_box("obstacle", (-1.5, -2.05), (0.3, 0.3, 0.3))
     cam = SimCamera(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn=lambda: Pose2(), clock=None,
                     rate_hz=15, noise_std=2.0, seed=4, stereo_baseline=0.075)
     stage = make_obstacle_stage(cfg)
@@ -382,3 +383,87 @@ def test_a_pair_of_another_dtype_than_8_bits_is_refused_naming_it(make):
     assert f"is {dtype}, the stage takes 8-bit (uint8) images" in e.info["reason"], e.info["reason"]
     assert "covered lens" not in e.info["reason"]
     assert stage.process(Frame(left, FRAME_NS, 2, right=right), Pose2()).ok
+
+
+def _speed_band(min_distance=0.35, **kw):
+    return ObstaclesConfig(zones=[ZoneConfig(name="stop", action="stop", distance=0.8, half_width=0.25,
+                                             min_distance=min_distance)], **kw)
+
+
+def test_a_stop_band_with_min_distance_scales_the_speed_with_the_obstacles_distance():
+    m = ObstacleMonitor(_speed_band(persist_k=1, persist_n=1, release_s=0.0))
+    t = iter(range(0, 100 * FRAME_NS, FRAME_NS))
+    assert m.update(next(t), _pts(0.79)).scale == pytest.approx((0.79 - 0.35) / 0.45)
+    assert m.update(next(t), _pts(0.575)).scale == pytest.approx(0.5)
+    assert "0.57 m ahead: speed x0.50" in m.reason
+    assert m.update(next(t), _pts(0.35)).scale == 0.0 and "within 0.35 m" in m.reason    # a held stop
+    assert m.update(next(t), _pts(0.2)).scale == 0.0
+    assert m.update(next(t), _pts(0.85)).scale == 1.0                                     # beyond the band
+    # Fewer pixels than the zone needs do not set the distance: 5 noise pixels at 0.4 m, 20 at 0.6 m.
+    assert m.update(next(t), np.vstack([_pts(0.4, n=5), _pts(0.6)])).scale == pytest.approx(0.25 / 0.45)
+    # Without min_distance the same band stops the robot for any obstacle in it.
+    fixed = ObstacleMonitor(ObstaclesConfig(persist_k=1, persist_n=1, release_s=0.0))
+    assert fixed.update(0, _pts(0.79)).scale == 0.0
+
+
+def test_a_stop_band_following_the_speed_keeps_the_k_of_n_and_the_release_debounce():
+    m = ObstacleMonitor(_speed_band(persist_k=2, persist_n=3, release_s=0.5))
+    t = 0
+    scales = []
+    for pts in [_pts(0.5), NONE, NONE, _pts(0.5), _pts(0.4), NONE]:
+        scales.append(m.update(t, pts).scale)
+        t += FRAME_NS
+    assert scales[:4] == [1.0, 1.0, 1.0, 1.0]                     # one frame is noise
+    assert scales[4] == pytest.approx(0.05 / 0.45)                # triggered: this frame's 0.4 m
+    assert scales[5] == pytest.approx(0.05 / 0.45)                # 2 of 3 still: the last distance seen
+    # Farther again: less caution only after release_s.
+    out = []
+    for _ in range(12):
+        out.append((t, m.update(t, _pts(0.7)).scale))
+        t += FRAME_NS
+    rise = next(tt for tt, s in out if s > 0.2)
+    assert rise - out[0][0] >= 0.5e9
+    assert out[-1][1] == pytest.approx(0.35 / 0.45)
+
+
+def _closest_approach(d0: float, min_distance, v_max=0.5, decel=1.0, latency=0.03, rate=15.0, T=6.0):
+    """A robot at full speed towards an obstacle that appears d0 m ahead (1-D, 2 ms steps): the camera's
+    frames at ``rate`` with ``latency``, the monitor's scale on the commanded speed, the speed changing at
+    most ``decel``. Returns how near it came."""
+    m = ObstacleMonitor(_speed_band(min_distance))
+    dt, x, v, scale, next_frame, past = 0.002, 0.0, v_max, 1.0, 0.0, []
+    for i in range(int(T / dt)):
+        t = i * dt
+        past.append(x)
+        if t >= next_frame:
+            seen = past[max(0, len(past) - 1 - round(latency / dt))]
+            scale = m.update(round(t * 1e9), _pts(d0 - seen)).scale
+            next_frame += 1.0 / rate
+        target = v_max * scale
+        v = max(target, v - decel * dt) if target < v else min(target, v + decel * dt)
+        x += v * dt
+    return d0 - x
+
+
+def test_the_band_following_the_speed_never_brings_the_robot_nearer_than_the_fixed_band_or_min_distance():
+    """The closed loop (docs/obstacles.md, 'A stop band that follows the speed'): from full speed, an obstacle
+    appearing anywhere up to the band's full length ends no nearer than the fixed 0.8 m band stops the robot
+    (a sudden obstacle: both brake at once) or than min_distance (one approached: the speed falls with the
+    distance and the robot comes to rest there)."""
+    for d0 in np.arange(0.40, 0.90, 0.04):
+        fixed, following = _closest_approach(d0, None), _closest_approach(d0, 0.35)
+        assert following >= min(fixed, 0.35) - 0.005, (d0, fixed, following)
+        assert following <= 0.35 + 0.01 or following >= fixed - 0.005, (d0, fixed, following)
+    # Approached from afar it comes to rest at min_distance, where the fixed band stops it 0.6 m off.
+    assert _closest_approach(2.0, 0.35, T=20.0) == pytest.approx(0.35, abs=0.01)
+    assert _closest_approach(2.0, None) == pytest.approx(0.61, abs=0.02)
+
+
+@pytest.mark.parametrize("zone, says", [
+    ({"name": "s", "action": "slow", "distance": 1.5, "half_width": 0.3, "min_distance": 0.3}, "a slow zone"),
+    ({"name": "p", "polygon": [[-0.3, 0], [0.3, 0], [0, 1]], "min_distance": 0.3}, "a polygon"),
+    ({"name": "b", "distance": 0.8, "half_width": 0.25, "min_distance": 0.8}, "shorter than the band's distance"),
+])
+def test_min_distance_is_refused_where_it_cannot_be_used(zone, says):
+    with pytest.raises(ConfigError, match=rf"robot.yaml: obstacles\.zones\.0: .*min_distance.*{says}"):
+        parse_config({"obstacles": {"zones": [zone]}}, "robot.yaml")

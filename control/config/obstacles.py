@@ -20,6 +20,12 @@ class ZoneConfig(Strict):
     slow_scale: float = Field(0.4, ge=0, le=1, description="speed factor while a slow zone triggers (slow zones "
                                                            "only: refused on a stop zone)")
     min_points: int = Field(8, ge=1, description="obstacle pixels inside that trigger the zone")
+    min_distance: Optional[float] = Field(
+        None, gt=0, description="stop bands only: m ahead of the axle centre where the robot stands still; with it "
+                                "the band is a protective field whose length follows the speed (an obstacle at d "
+                                "in the band scales the speed by (d - min_distance) / (distance - min_distance), "
+                                "0 at min_distance: a held stop); without it any obstacle in the band stops the "
+                                "robot (docs/obstacles.md, 'A stop band that follows the speed')")
 
     @model_validator(mode="after")
     def _shape(self):
@@ -32,6 +38,14 @@ class ZoneConfig(Strict):
             raise ValueError(f"zone {self.name!r}: polygon needs at least 3 vertices")
         if self.polygon is not None and not all(math.isfinite(v) for vertex in self.polygon for v in vertex):
             raise ValueError(f"zone {self.name!r}: polygon vertices must be finite numbers, m")
+        if self.min_distance is not None:
+            if self.action != "stop" or self.polygon is not None:
+                raise ValueError(f"zone {self.name!r}: min_distance {self.min_distance:g} shortens a stop band "
+                                 f"with the speed, and this zone is {'a polygon' if self.polygon is not None else 'a slow zone'}; "
+                                 f"use it on a band (distance, half_width) with action: stop, or remove it")
+            if not self.min_distance < self.distance:
+                raise ValueError(f"zone {self.name!r}: min_distance {self.min_distance:g} m must be shorter than the "
+                                 f"band's distance {self.distance:g} m (its length at full speed)")
         if self.action == "stop" and written(self, "slow_scale"):
             raise ValueError(f"zone {self.name!r}: slow_scale {self.slow_scale:g} is the speed factor of a slow "
                              f"zone, and this zone has action: stop (it stops the robot); set action: slow, or "

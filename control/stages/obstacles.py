@@ -89,8 +89,34 @@ def zone_counts(zone: ZoneConfig, pts: np.ndarray) -> int:
         return 0
     if zone.polygon is not None:
         return int(np.count_nonzero(points_in_polygon(pts, np.asarray(zone.polygon, dtype=np.float64))))
+    return len(_in_band(zone, pts))
+
+
+def _in_band(zone: ZoneConfig, pts: np.ndarray) -> np.ndarray:
+    """The forward distances z of the points inside a band zone."""
     x, z = pts[:, 0], pts[:, 1]
-    return int(np.count_nonzero((z > 0) & (z <= zone.distance) & (np.abs(x) <= zone.half_width)))
+    return z[(z > 0) & (z <= zone.distance) & (np.abs(x) <= zone.half_width)]
+
+
+def band_reach(zone: ZoneConfig, pts: np.ndarray) -> float:
+    """How far ahead a band holds ``min_points`` of the points (the min_points-th nearest: fewer noise
+    pixels than a zone needs to trigger do not set the distance either), inf when it holds fewer."""
+    z = _in_band(zone, pts) if len(pts) else np.zeros(0)
+    if len(z) < zone.min_points:
+        return math.inf
+    return float(np.partition(z, zone.min_points - 1)[zone.min_points - 1])
+
+
+def approach_scale(zone: ZoneConfig, reach: float) -> float:
+    """The speed scale of a stop band with ``min_distance`` for an obstacle ``reach`` m ahead.
+
+    The band's length at full speed (``distance``) covers the stopping distance from full speed; at a
+    fraction s of it the robot needs less: reaction time x speed + speed^2 / (2 deceleration), which is
+    convex in the speed and so never longer than the straight line from ``min_distance`` at standstill to
+    ``distance`` at full speed. Holding the speed to that line's s at an obstacle ``reach`` ahead keeps it
+    able to stop before it, the way a safety laser scanner switches its protective field with the speed."""
+    s = (reach - zone.min_distance) / (zone.distance - zone.min_distance)
+    return min(1.0, max(0.0, s))
 
 
 
@@ -108,6 +134,7 @@ class ObstacleMonitor:
     def __init__(self, cfg: ObstaclesConfig):
         self.cfg = cfg
         self._filters = {z.name: KOfN(cfg.persist_k, cfg.persist_n) for z in cfg.zones}
+        self._reach = {z.name: math.inf for z in cfg.zones}     # a speed-following band's last obstacle, m
         self.scale = 1.0
         self.reason = ""
         self._raise_since: Optional[int] = None
@@ -122,9 +149,17 @@ class ObstacleMonitor:
             n = zone_counts(z, pts)
             counts[z.name] = n
             if self._filters[z.name].update(n >= z.min_points):
-                s = 0.0 if z.action == "stop" else z.slow_scale
+                s, why_z = (0.0 if z.action == "stop" else z.slow_scale), f"obstacle in zone {z.name!r} ({n} px)"
+                if z.min_distance is not None:
+                    # The band follows the speed: this frame's obstacle, or (a frame of the k-of-n without
+                    # enough pixels) the last one seen.
+                    reach = band_reach(z, pts)
+                    self._reach[z.name] = reach = reach if math.isfinite(reach) else self._reach[z.name]
+                    s = approach_scale(z, reach)
+                    why_z += (f" {reach:.2f} m ahead, within {z.min_distance:g} m" if s <= 0.0 else
+                              f" {reach:.2f} m ahead: speed x{s:.2f}")
                 if s < target:
-                    target, why = s, f"obstacle in zone {z.name!r} ({n} px)"
+                    target, why = s, why_z
         if target < self.scale:                      # more caution: at once
             self.scale, self.reason, self._raise_since = target, why, None
         elif target > self.scale:                    # less caution: only after release_s clear
@@ -147,6 +182,7 @@ class ObstacleMonitor:
     def reset(self) -> None:
         for f in self._filters.values():
             f.reset()
+        self._reach = dict.fromkeys(self._reach, math.inf)
         self.scale, self.reason, self._raise_since = 1.0, "", None
 
 
