@@ -98,8 +98,8 @@ def test_a_failing_replanner_thread_holds_the_robot():
 def test_goto_map_replans_around_a_box_the_map_did_not_hold(tmp_path, capsys):
     """The full simulated robot (stereo camera, VSLAM, obstacle stop) with a map that holds nothing yet: the
     planned path runs straight through box_b to a goal behind it. Planned once (--static-map), the obstacle
-    stop halts the robot before the box and the goal is never reached (measured: at rest with its centre
-    0.38 m from the box, where the stop band that follows the speed ends, min_distance 0.35 m; exit 1). Mapping while it drives, the route is re-planned as the box appears in the map (measured 8
+    stop halts the robot before the box and the goal is never reached (measured: stopped 0.79 m from it,
+    exit 1). Mapping while it drives, the route is re-planned as the box appears in the map (measured 8
     re-plans, the first 0.5 m after the start) and the robot arrives (0.9 cm off, closest approach of its
     centre to the box 0.338 m; radius 0.2 m). The grown map is written with --map-out."""
     import yaml

@@ -182,8 +182,7 @@ def _lens_cap_run(box: bool, covered=(10, 40), frames=60):
     cfg = load_config("sim_stereo")
     world = World.by_name(cfg.sim.world, cfg.sim.seed)
     if box:
-        # Its face 0.3 m ahead: within the stop band's min_distance (0.35 m), a held stop.
-        world.add_box("obstacle", (-1.5, -2.05), (0.3, 0.3, 0.3))
+        world.add_box("obstacle", (-1.5, -1.55), (0.3, 0.3, 0.3))      # its face 0.75 m ahead: the stop zone
     cam = SimCamera(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn=lambda: Pose2(), clock=None,
                     rate_hz=15, noise_std=2.0, seed=4, stereo_baseline=0.075)
     stage = make_obstacle_stage(cfg)
@@ -467,3 +466,25 @@ def test_the_band_following_the_speed_never_brings_the_robot_nearer_than_the_fix
 def test_min_distance_is_refused_where_it_cannot_be_used(zone, says):
     with pytest.raises(ConfigError, match=rf"robot.yaml: obstacles\.zones\.0: .*min_distance.*{says}"):
         parse_config({"obstacles": {"zones": [zone]}}, "robot.yaml")
+
+
+def test_a_band_standing_still_nearer_than_the_camera_sees_the_floor_is_refused_at_load():
+    """A step down or a low obstacle nearer than where the camera's view of the floor begins is out of view,
+    and the band would read its distance from what lies beyond: min_distance must not be nearer."""
+    from vbnav.control.stages.obstacles import nearest_floor_ahead
+    base = {"camera": {"width": 640, "height": 480, "fx": 400.0, "fy": 400.0, "cx": 319.5, "cy": 239.5,
+                       "options": {"stereo_baseline": 0.075},
+                       "mount": {"height": 0.25, "forward": 0.10, "pitch_deg": 0.0}},
+            "obstacles": {"enabled": True, "zones": [{"name": "stop", "distance": 0.8, "half_width": 0.25,
+                                                      "min_distance": 0.35}]}}
+    cfg_level = parse_config({**base, "obstacles": {"enabled": False}}, "robot.yaml")
+    # Level camera: the lowest row is (479 - 239.5) / 400 down, the floor 0.25 m below: 0.4175 m + 0.10 m.
+    seen = nearest_floor_ahead(cfg_level.camera.to_model(), cfg_level.camera.mount.to_mount(), 0.25)
+    assert seen == pytest.approx(0.10 + 0.25 * 400 / 239.5, abs=1e-6)
+    with pytest.raises(ConfigError, match=r"robot.yaml: obstacles\.zones\.0: min_distance 0\.35 m is nearer than "
+                                          r"the camera's view of the floor under the band, which begins 0\.518 m"):
+        parse_config(base, "robot.yaml")
+    # Pitched 20 deg down it sees the floor from 0.10 + 0.25 / tan(30.9 + 20 deg) = 0.30 m: accepted.
+    pitched = {**base, "camera": {**base["camera"], "mount": {"height": 0.25, "forward": 0.10, "pitch_deg": 20.0}}}
+    assert parse_config(pitched, "robot.yaml").obstacles.zones[0].min_distance == 0.35
+    assert parse_config({**base, "obstacles": {**base["obstacles"], "enabled": False}}, "robot.yaml")   # kept unread

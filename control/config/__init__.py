@@ -502,6 +502,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage (source {cfg.obstacles.source}) needs a "
                           f"disparity or a stereo pair in every frame, and {blind}: every frame would be blind and the "
                           f"robot held for good (use a stereo camera, or set obstacles.enabled: false)")
+    check_stand_still(cfg, source)
     return cfg
 
 
@@ -654,6 +655,26 @@ def check_obstacle_baseline(cfg: Config, source: str) -> None:
         raise ConfigError(f"{source}: obstacles.baseline {float(mine):g} m, camera.options.stereo_baseline "
                           f"{float(cam):g} m: two stereo baselines for one rig (the obstacle stage would use the first, "
                           f"the VSLAM and the line map the second); remove obstacles.baseline")
+
+
+def check_stand_still(cfg: Config, source: str) -> None:
+    """Refuse a stop band whose ``min_distance`` lies nearer than where the camera's view of the floor under
+    the band begins: the speed falls with the nearest obstacle seen in the band, and a step down or a low
+    obstacle passes out of view there, its distance then read from what lies beyond it; the robot would drive
+    on into it (docs/obstacles.md, 'A stop band that follows the speed')."""
+    if not cfg.obstacles.enabled or not any(z.min_distance is not None for z in cfg.obstacles.zones):
+        return
+    from vbnav.control.stages.obstacles import nearest_floor_ahead
+    camera, mount = cfg.camera.to_model(), cfg.camera.mount.to_mount()
+    for i, z in enumerate(cfg.obstacles.zones):
+        if z.min_distance is None:
+            continue
+        seen_from = nearest_floor_ahead(camera, mount, z.half_width)
+        if z.min_distance < seen_from:
+            raise ConfigError(f"{source}: obstacles.zones.{i}: min_distance {z.min_distance:g} m is nearer than the "
+                              f"camera's view of the floor under the band, which begins {seen_from:.3f} m ahead of the "
+                              f"axle (camera.mount height, pitch and forward, the image's lowest row); a step down or a "
+                              f"low obstacle nearer than that is out of view: set min_distance >= {seen_from:.2f}")
 
 
 def apply_calibration_file(cfg: Config, source: str) -> None:

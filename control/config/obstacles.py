@@ -24,7 +24,8 @@ class ZoneConfig(Strict):
         None, gt=0, description="stop bands only: m ahead of the axle centre where the robot stands still; with it "
                                 "the band is a protective field whose length follows the speed (an obstacle at d "
                                 "in the band scales the speed by (d - min_distance) / (distance - min_distance), "
-                                "0 at min_distance: a held stop); without it any obstacle in the band stops the "
+                                "0 at min_distance: a held stop; refused nearer than where the camera's view of the "
+                                "floor under the band begins); without it any obstacle in the band stops the "
                                 "robot (docs/obstacles.md, 'A stop band that follows the speed')")
 
     @model_validator(mode="after")

@@ -230,6 +230,22 @@ def stop_zone_outline(camera, mount, half_width: float, max_range: float, near: 
     return np.column_stack([u, v])
 
 
+def nearest_floor_ahead(camera, mount, half_width: float) -> float:
+    """How far ahead of the axle (robot frame z, m) the camera's view of the floor begins across a band
+    |x| <= half_width: the farthest of the floor points its lowest image row sees there (a camera that does
+    not see the floor under the band at all: inf). Nearer than that an object lower than the camera's view
+    (a step down, a low obstacle) is not seen."""
+    u = np.linspace(0.0, camera.width - 1.0, 129)
+    rays = np.column_stack([(u - camera.cx) / camera.fx, np.full_like(u, (camera.height - 1 - camera.cy) / camera.fy),
+                            np.ones_like(u)]) @ mount.rotation().T                 # robot frame, y down
+    t = mount.translation()
+    down = rays[:, 1] > 1e-9
+    lam = -t[1] / rays[down, 1]
+    x, z = t[0] + lam * rays[down, 0], t[2] + lam * rays[down, 2]
+    inside = np.abs(x) <= half_width
+    return float(z[inside].max()) if inside.any() else math.inf
+
+
 #: A "clear" verdict needs at least this share of the stop zones' floor to have a disparity. Measured
 #: share in normal use: 0.91-1.00 (simulated room and corridor, frames' own disparity and SGBM, 60-frame
 #: loop) and 0.96-1.00 on a real road (kitti06, SGBM, rows 250-370); a covered lens, a dark scene or
