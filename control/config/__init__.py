@@ -670,10 +670,14 @@ def check_stand_still(cfg: Config, source: str) -> None:
         if z.min_distance is None:
             continue
         seen_from = nearest_floor_ahead(camera, mount, z.half_width)
+        if not math.isfinite(seen_from):
+            raise ConfigError(f"{source}: obstacles.zones.{i}: min_distance {z.min_distance:g} m: the camera does not "
+                              f"see the floor under the whole band (|x| <= {z.half_width:g} m) within 5 m, so no "
+                              f"stand-still distance can be checked against its view; remove min_distance")
         if z.min_distance < seen_from:
             raise ConfigError(f"{source}: obstacles.zones.{i}: min_distance {z.min_distance:g} m is nearer than the "
                               f"camera's view of the floor under the band, which begins {seen_from:.3f} m ahead of the "
-                              f"axle (camera.mount height, pitch and forward, the image's lowest row); a step down or a "
+                              f"axle (the camera's intrinsics and camera.mount); a step down or a "
                               f"low obstacle nearer than that is out of view: set min_distance >= {seen_from:.2f}")
 
 

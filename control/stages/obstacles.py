@@ -230,20 +230,23 @@ def stop_zone_outline(camera, mount, half_width: float, max_range: float, near: 
     return np.column_stack([u, v])
 
 
-def nearest_floor_ahead(camera, mount, half_width: float) -> float:
+def nearest_floor_ahead(camera, mount, half_width: float, max_range: float = 5.0, step: float = 0.005) -> float:
     """How far ahead of the axle (robot frame z, m) the camera's view of the floor begins across a band
-    |x| <= half_width: the farthest of the floor points its lowest image row sees there (a camera that does
-    not see the floor under the band at all: inf). Nearer than that an object lower than the camera's view
-    (a step down, a low obstacle) is not seen."""
-    u = np.linspace(0.0, camera.width - 1.0, 129)
-    rays = np.column_stack([(u - camera.cx) / camera.fx, np.full_like(u, (camera.height - 1 - camera.cy) / camera.fy),
-                            np.ones_like(u)]) @ mount.rotation().T                 # robot frame, y down
-    t = mount.translation()
-    down = rays[:, 1] > 1e-9
-    lam = -t[1] / rays[down, 1]
-    x, z = t[0] + lam * rays[down, 0], t[2] + lam * rays[down, 2]
-    inside = np.abs(x) <= half_width
-    return float(z[inside].max()) if inside.any() else math.inf
+    |x| <= half_width: for each lateral offset the nearest floor point that projects into the image, the
+    farthest of those (sampled every ``step``; a lateral offset the camera does not see within ``max_range``:
+    inf). Nearer than that an object lower than the camera's view (a step down, a low obstacle) is not seen."""
+    x = np.linspace(-half_width, half_width, 51)
+    z = np.arange(step, max_range + step, step)
+    X, Z = np.meshgrid(x, z)                                                        # (nz, nx)
+    floor = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], axis=1)
+    pc = (floor - mount.translation()) @ mount.rotation()                          # R^T (p - t), row-wise
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = camera.fx * pc[:, 0] / pc[:, 2] + camera.cx
+        v = camera.fy * pc[:, 1] / pc[:, 2] + camera.cy
+    seen = ((pc[:, 2] > 1e-6) & (u >= 0) & (u <= camera.width - 1) & (v >= 0) & (v <= camera.height - 1)).reshape(X.shape)
+    if not seen.any(axis=0).all():
+        return math.inf
+    return float(z[seen.argmax(axis=0)].max())
 
 
 #: A "clear" verdict needs at least this share of the stop zones' floor to have a disparity. Measured
