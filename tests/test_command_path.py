@@ -671,9 +671,19 @@ def test_vbnav_send_teleop_stream_cut_short_ends_with_a_stop(sig):
     recent = robot.declare_queryable("vbnav/sim/events/recent",
                                      lambda q: q.reply("vbnav/sim/events/recent", json.dumps({"events": []})))
     try:
+        # Started as a terminal starts a foreground command: SIGINT at its default (Python then installs its
+        # KeyboardInterrupt handler) and no signal blocked. A child inherits an ignored SIGINT, and a suite
+        # started as a background job of a shell without job control (`make test &` in a script) has SIGINT
+        # ignored (POSIX): the child then ran its whole 30 s stream and the test failed for how the suite was
+        # started, not for what `vbnav send` does (seen twice at 6893338 and 912eefb; reproduced with
+        # `(trap '' INT; pytest ...)`).
+        def as_in_a_terminal():
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            signal.pthread_sigmask(signal.SIG_SETMASK, [])
+
         p = subprocess.Popen([sys.executable, "-m", "vbnav.control.cli", "send", "teleop", "0.1", "0", "--for", "30",
                               "--rate", "20", "--connect", f"tcp/127.0.0.1:{port}"], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+                             stderr=subprocess.PIPE, text=True, preexec_fn=as_in_a_terminal)
         for _ in range(3000):
             if len(got) >= 3 or p.poll() is not None:
                 break
