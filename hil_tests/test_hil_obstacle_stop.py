@@ -101,3 +101,58 @@ def test_step_down_ahead_stops_a_scripted_drive_before_the_edge():
     print(f"step: front bumper stopped at z = {max(front):.2f} m (edge at 3.0 m)")
     assert max(front) < 3.0 - 0.3                       # stopped with margin, never over the edge
     assert max(front) > 1.5                             # but it did drive toward it
+
+
+def _held_facing_a_box(turn_when_held: bool, script, duration_s: float):
+    """sim_stereo, a round robot (footprint 0.2 m) standing at the room's start with a 30 cm box whose face is
+    0.5 m ahead of the axle, inside the 0.8 m stop band; the scripted controller asks to drive and turn."""
+    from vbnav.control.controllers.manual import ScriptedController
+    from vbnav.control.runtime.runtime import Runtime
+
+    cfg = load_config("sim_stereo", overrides={"robot": {"footprint_radius": 0.2},
+                                               "obstacles": {"turn_when_held": turn_when_held},
+                                               "controller": {"teach": "teleop"}})
+    robot = make_robot(cfg, [make_obstacle_stage(cfg)])
+    start = cfg.sim.start()
+    robot.world.add_box("box", (start.x, start.z + 0.65), (0.3, 0.3, 0.3))
+    rt = Runtime(cfg, robot.drive, ScriptedController(script), robot.clock, robot.pipeline)
+    track = []      # (held by the obstacle, turn on the spot allowed, true pose, time s)
+    rt.cycle_observers.append(lambda r, ctx, twist, wheels: track.append(
+        ("obstacle" in r.safety.holds, r.safety.may_turn, robot.drive.true_pose, ctx.now_ns * 1e-9)))
+    result = rt.run(duration_s)
+    assert result.ok, result.message
+    return result, track, robot.world, start
+
+
+def test_a_round_robot_held_by_a_box_turns_away_on_the_spot_and_drives_on():
+    """obstacles.turn_when_held on the full simulated robot (stereo camera, obstacle stage, runtime): held by
+    the box, the robot turns on the spot without moving its centre, and once the stop band is clear it
+    drives off; without the setting it stands still, the turn held too."""
+    script = [[0.2, 0.8, 8.0]]
+    result, track, world, start = _held_facing_a_box(True, script, 8.0)
+    held = [(p, turn) for h, turn, p, _ in track if h]
+    assert held and all(turn for _, turn in held), "the box held the robot and the turn was let through"
+    moved = max(math.hypot(p.x - start.x, p.z - start.z) for p, _ in held)
+    turned = max(abs(p.theta - start.theta) for p, _ in held)
+    ends = [p for h, _, p, _ in track]
+    travel = math.hypot(ends[-1].x - start.x, ends[-1].z - start.z)
+    closest = min(world.clearance(p.x, p.z) for _, _, p, _ in track) - 0.2
+    print(f"turn when held: centre moved {moved * 100:.2f} cm while held, turned {math.degrees(turned):.0f} deg, "
+          f"then {travel:.2f} m from the start; closest {closest:.2f} m to the box's edge")
+    assert moved < 0.006, "the centre travelled while the stop held the robot"   # 3.2 mm: the coast from 0.2 m/s
+    assert math.degrees(turned) > 30.0
+    assert not track[-1][0] and travel > 0.3, "the robot never drove off after turning away"
+    assert closest > 0.1
+    messages = [e.message for e in result.events if e.cause == "obstacle" and e.kind == "hold"]
+    assert messages and "turning on the spot allowed" in messages[0]
+
+    # Without it: once the motors have stopped (0.5 s after the hold began) nothing moves, the turn included.
+    result, track, _, start = _held_facing_a_box(False, script, 4.0)
+    assert track[-1][0], "without turn_when_held the box holds the robot for good"
+    began = next(t for h, _, _, t in track if h)
+    held = [p for h, _, p, t in track if h and t >= began + 0.5]
+    first, end = held[0], held[-1]
+    print(f"without: {math.hypot(end.x - first.x, end.z - first.z) * 1000:.3f} mm, "
+          f"{math.degrees(abs(end.theta - first.theta)):.3f} deg in the last {len(held) / 100:.1f} s held")
+    assert len(held) > 200
+    assert math.hypot(end.x - first.x, end.z - first.z) < 1e-4 and abs(end.theta - first.theta) < math.radians(0.01)

@@ -90,6 +90,26 @@ def test_goto_map_says_when_the_goal_itself_is_too_near_a_wall(tmp_path, capsys)
     assert "more than 0.05 m inside" in err, err
 
 
+def test_goto_map_plans_with_the_configured_footprint_radius_unless_robot_radius_is_given(tmp_path, capsys):
+    """robot.footprint_radius (a round robot) is the planning radius of goto --map when --robot-radius is not
+    given: the same goal 0.35 m from the wall, free for a 0.2 m robot, is refused for a 0.4 m one."""
+    import yaml
+    from vbnav.control.cli import main
+    from vbnav.control.config import CONFIG_DIR
+
+    path = _wall_map(tmp_path / "wall.json")
+    cfg = yaml.safe_load((CONFIG_DIR / "sim_stereo.yaml").read_text())
+    cfg["robot"]["footprint_radius"] = 0.4
+    (tmp_path / "round.yaml").write_text(yaml.safe_dump(cfg))
+    args = ["goto", "--map", str(path), "--static-map", "--goal", "0", "0.65", "0", "--duration", "0.1"]
+    code = main(args + ["-c", str(tmp_path / "round.yaml")])
+    out = "".join(capsys.readouterr())
+    assert code == 1 and "within 0.48 m" in out and "planned path" not in out, out   # 0.4 m + 0.08 m clearance
+    main(args + ["-c", str(tmp_path / "round.yaml"), "--robot-radius", "0.2"])
+    out = "".join(capsys.readouterr())
+    assert "planned path" in out and "within 0.48 m" not in out, out
+
+
 def test_goto_map_start_plan_moves_a_goal_just_inside_the_margin_as_the_replanner_does(tmp_path, capsys):
     """A goal 0.25 m from a mapped wall, 3 cm inside the 0.28 m margin: the start plan refused it (exit 1) while
     the re-planner moves such a goal to the nearest free cell within GOAL_TOLERANCE_M. One rule for both: the

@@ -494,3 +494,36 @@ def test_a_band_standing_still_nearer_than_the_camera_sees_the_floor_is_refused_
     with pytest.raises(ConfigError, match=r"obstacles\.zones\.0: min_distance 0\.7 m: the camera does not see the floor "
                                           r"under the whole band"):
         parse_config(wide, "robot.yaml")
+
+
+def test_turn_when_held_lets_a_turn_through_only_for_an_obstacle_seen_in_a_stop_zone():
+    """``turn_ok`` (obstacles.turn_when_held) marks a held stop that an obstacle seen in a stop zone holds; a
+    blind frame, and the release debounce after it, hold without it; a slow zone or no zone never carries it;
+    without the setting it is never set."""
+    cfg = ObstaclesConfig(persist_k=1, persist_n=1, release_s=0.2, turn_when_held=True)
+    m = ObstacleMonitor(cfg)
+    t = iter(range(0, 10**12, FRAME_NS))
+    v = m.update(next(t), _pts(1.2))
+    assert (v.scale, v.turn_ok) == (pytest.approx(0.4), False)       # slowed, not held
+    v = m.update(next(t), _pts(0.5))
+    assert (v.scale, v.turn_ok) == (0.0, True)                      # the box in the stop band
+    v = m.blind("obstacles: blind: covered lens")
+    assert (v.scale, v.turn_ok) == (0.0, False)
+    v = m.update(next(t), NONE)
+    assert (v.scale, v.turn_ok) == (0.0, False)                     # seen clear, but within release_s of blindness
+    v = m.update(next(t), _pts(0.6))
+    assert (v.scale, v.turn_ok) == (0.0, True)                      # an obstacle seen again holds it now
+    out = [m.update(next(t), NONE) for _ in range(6)]
+    assert out[-1].scale == 1.0 and not out[-1].turn_ok
+    off = ObstacleMonitor(ObstaclesConfig(persist_k=1, persist_n=1))
+    assert off.update(0, _pts(0.5)).turn_ok is False
+
+
+def test_turn_when_held_needs_a_round_robot():
+    base = {"obstacles": {"enabled": True, "turn_when_held": True},
+            "camera": {"options": {"stereo_baseline": 0.075}}}
+    with pytest.raises(ConfigError, match=r"obstacles\.turn_when_held .*set robot\.footprint_radius"):
+        parse_config(base, "robot.yaml")
+    cfg = parse_config({**base, "robot": {"footprint_radius": 0.2}}, "robot.yaml")
+    assert cfg.obstacles.turn_when_held and cfg.robot.footprint_radius == 0.2
+

@@ -632,6 +632,47 @@ def test_obstacle_speed_scale_slows_and_stops():
     assert at(3.25)[0] > 0.3 * full         # accelerating again (with the double debounce: still 0 until 3.5 s)
 
 
+def test_a_turn_only_obstacle_hold_stops_the_travel_at_once_and_lets_the_turn_through():
+    """An obstacle hold that lets a turn on the spot through (``turn_ok``, obstacles.turn_when_held): the forward
+    speed is zero from the first cycle of the hold (no deceleration ramp), the turn keeps going with the drive
+    powered; a second zero scale without ``turn_ok`` (a blind stage) stops both and powers the drive down."""
+    from vbnav.control.runtime.interfaces import Estimate
+
+    class Zone(VisionStage):
+        """kind ``obstacles``: held, turn allowed, from 1 to 3 s; kind ``blind``: held, no turn, 2 to 2.5 s."""
+
+        def __init__(self, kind, start, end, turn_ok):
+            self.kind, self.start, self.end, self.turn_ok = kind, start, end, turn_ok
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            held = self.start <= t < self.end
+            info = {"speed_scale": 0.0 if held else 1.0, "reason": f"{self.kind} ahead"}
+            if self.turn_ok:
+                info["turn_ok"] = held
+            return Estimate(frame.stamp_ns, self.kind, True, None, info)
+
+    rt, drive, clock = make_runtime(ScriptedController([[0.3, 0.5, 5.0]]),
+                                    stages=[Zone("obstacles", 1.0, 3.0, True), Zone("blind", 2.0, 2.5, False)])
+    rt.run()
+    log = [(t, l, r, p) for t, l, r, p in drive.log]
+    at = lambda s: [e for e in log if e[0] <= T0 + int(s * 1e9)][-1]      # the drive's state at s
+    wheel_v = lambda e: (e[1] + e[2]) / 2          # forward speed in wheel rad/s
+    assert wheel_v(at(0.9)) > 0.29 / 0.05 * 0.99                         # driving before the hold
+    began = next(e.stamp_ns for e in rt.safety.events if e.cause == "obstacle" and e.kind == "hold")
+    first_held = next(e for e in log if e[0] >= began)
+    assert wheel_v(first_held) == pytest.approx(0.0, abs=1e-9) and first_held[3]     # the cycle the hold began
+    for s in (1.5, 1.9, 2.7):
+        e = at(s)
+        assert e[3] and e[1] == pytest.approx(-e[2]) and abs(e[1]) > 1.0, (s, e)   # turning on the spot, powered
+    assert at(2.25)[1:] == (0.0, 0.0, False)                             # blind too: everything stops
+    assert wheel_v(at(4.5)) > 0.29 / 0.05 * 0.99                         # released: driving again
+    holds = [(e.kind, e.message) for e in rt.safety.events if e.cause == "obstacle"]
+    assert holds[0] == ("hold", "obstacles ahead; turning on the spot allowed (obstacles.turn_when_held, a round robot)")
+    assert ("hold", "blind ahead") in holds                               # the hold changed to a full stop, and said so
+    assert holds[-1][0] == "release"
+
+
 def test_exception_in_the_progress_callback_stops_the_robot_and_says_where():
     rt, drive, clock = make_runtime(Cruise())
 

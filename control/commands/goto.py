@@ -45,7 +45,8 @@ def register(sub) -> None:
                    help="with --map: write the map as it grew while driving to FILE at the end (atomically)")
     add_telemetry_args(p, overwrite_help="an existing --map-out map")
     p.add_argument("--robot-radius", type=positive, default=None, metavar="M",
-                   help=f"with --map: the robot's radius for planning, m (default {ROBOT_RADIUS_M})")
+                   help=f"with --map: the robot's radius for planning, m (default robot.footprint_radius, or "
+                        f"{ROBOT_RADIUS_M} without it)")
     p.add_argument("--duration", type=positive, default=120.0, metavar="S",
                    help="give up after S seconds (default 120; simulated seconds on the simulated clock)")
     p.set_defaults(func=run)
@@ -86,7 +87,7 @@ def run(args) -> int:
         if problem:        # before any device opens
             print(f"vbnav goto: --localise: {problem}", file=sys.stderr)
             return 2
-    radius = args.robot_radius if args.robot_radius is not None else ROBOT_RADIUS_M
+    radius = next(r for r in (args.robot_radius, cfg.robot.footprint_radius, ROBOT_RADIUS_M) if r is not None)
     if args.overwrite and not args.map_out and not args.record:
         print("vbnav goto: --overwrite replaces an existing --map-out or --record file; without --map-out or "
               "--record it has nothing to replace", file=sys.stderr)

@@ -49,6 +49,11 @@ class RobotConfig(Strict):
                                      "default is cut to it, a value written above it is refused)")
     max_linear_accel: float = Field(1.0, gt=0, description="forward acceleration limit, m/s^2")
     max_angular_accel: float = Field(4.0, gt=0, description="angular acceleration limit, rad/s^2")
+    footprint_radius: Optional[float] = Field(
+        None, gt=0, le=5.0, description="a round robot: its whole outline lies within this radius of the axle centre, "
+                                        "m; it then turns on the spot without sweeping floor it does not already "
+                                        "cover (obstacles.turn_when_held needs it), and vbnav goto --map plans with it "
+                                        "as the robot's radius (unless --robot-radius is given)")
 
 
 class MountConfig(Strict):
@@ -503,6 +508,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
                           f"disparity or a stereo pair in every frame, and {blind}: every frame would be blind and the "
                           f"robot held for good (use a stereo camera, or set obstacles.enabled: false)")
     check_stand_still(cfg, source)
+    check_turn_when_held(cfg, source)
     return cfg
 
 
@@ -679,6 +685,16 @@ def check_stand_still(cfg: Config, source: str) -> None:
                               f"camera's view of the floor under the band, which begins {seen_from:.3f} m ahead of the "
                               f"axle (the camera's intrinsics and camera.mount); a step down or a "
                               f"low obstacle nearer than that is out of view: set min_distance >= {seen_from:.2f}")
+
+
+def check_turn_when_held(cfg: Config, source: str) -> None:
+    """Refuse ``obstacles.turn_when_held`` for a robot not declared round: turning on the spot, a robot sweeps
+    the circle through its farthest point about the axle centre, and the stop zones watch only the floor ahead;
+    a round robot's circle is its own footprint (docs/obstacles.md, 'Turning on the spot while held')."""
+    if cfg.obstacles.enabled and cfg.obstacles.turn_when_held and cfg.robot.footprint_radius is None:
+        raise ConfigError(f"{source}: obstacles.turn_when_held lets a robot held by an obstacle turn on the spot, "
+                          f"which sweeps no new floor only for a round robot; set robot.footprint_radius (m: its "
+                          f"outline lies within it about the axle centre) or remove turn_when_held")
 
 
 def apply_calibration_file(cfg: Config, source: str) -> None:

@@ -98,6 +98,11 @@ class ObstaclesConfig(Strict):
     persist_k: int = Field(2, ge=1, description="a zone must trigger in k of the last n frames")
     persist_n: int = Field(3, ge=1, description="n of k-of-n (n >= persist_k)")
     release_s: float = Field(0.5, ge=0, description="clear this long before the speed rises again")
+    turn_when_held: bool = Field(False, description="while an obstacle seen in a stop zone holds the robot, let "
+                                 "the controller turn on the spot (forward speed held at 0; the drive stays "
+                                 "enabled): a round robot (robot.footprint_radius, refused without it) sweeps no "
+                                 "floor outside its footprint, and a goal or route that turns away from the obstacle "
+                                 "is no longer a deadlock; a blind or stale stage still stops both")
     zones: list[ZoneConfig] = Field(default_factory=_default_zones, description="stop and slow zones on the "
                                     "floor, in the robot frame")
     sgbm_near_margin: float = Field(0.85, gt=0, le=1, description="stereo matching covers depths down to this "

@@ -76,6 +76,12 @@ class TwistLimiter:
         self.last = Twist(0.0, 0.0)
         return self.last
 
+    def turn_only(self, w: float, dt: float) -> Twist:
+        """A stop of the travel that lets a turn on the spot through: v is zero at once, as ``stop()`` makes
+        it, and w keeps the speed, acceleration and wheel limits."""
+        self.last = Twist(0.0, self.last.w)
+        return self.apply(Twist(0.0, w), dt)
+
 
 def keep_curvature(twist: Twist, max_w: float) -> Twist:
     """Limit |w| to ``max_w`` by scaling v and w together: the same arc (v / w), driven slower."""

@@ -448,9 +448,12 @@ class Runtime:
                 self.safety.hold(now, cause, active, message)
             self._forget_teleop_on_new_hold(now)
             stage = "safety"
-            if self.safety.may_move:
-                s = self.safety.speed_scale
-                twist = self.limiter.apply(Twist(twist.v * s, twist.w * s), dt)
+            if self.safety.may_move or self.safety.may_turn:
+                if self.safety.may_move:
+                    s = self.safety.speed_scale
+                    twist = self.limiter.apply(Twist(twist.v * s, twist.w * s), dt)
+                else:                         # held by an obstacle ahead, a round robot: only the turn
+                    twist = self.limiter.turn_only(twist.w, dt)
                 if not self._enabled:
                     self._enabled = True      # before enable(): a failed enable's stop is reported by _make_safe
                     self._unstopped = None    # driven again: the stop that was not taken is moot
@@ -668,12 +671,20 @@ class Runtime:
         and 0 is a held stop until the zone has been clear for the release time."""
         scale = 1.0
         why = ""
+        turn_ok = True      # every held stop says it lets a turn on the spot through (obstacles.turn_when_held)
         for e in estimates.values():
             s = e.info.get("speed_scale") if e is not None else None
+            if s is not None and s <= 0.0 and turn_ok and e.info.get("turn_ok") is not True:
+                turn_ok, why = False, e.info.get("reason", e.kind)      # the stop that holds the turn too
+                scale = float(s)
             if s is not None and s < scale:
                 scale, why = float(s), e.info.get("reason", e.kind)
         self.safety.speed_scale = max(0.0, scale)
-        self.safety.hold(now, "obstacle", scale <= 0.0, why or "obstacle in the stop zone")
+        held = scale <= 0.0
+        why = why or "obstacle in the stop zone"
+        if held and turn_ok:
+            why += "; turning on the spot allowed (obstacles.turn_when_held, a round robot)"
+        self.safety.hold(now, "obstacle", held, why, turn_only=held and turn_ok)
 
     def _check_estimates(self, ctx: ControlContext) -> None:
         """Stages the controller needs, and safety-critical stages (obstacles), must stay fresh."""

@@ -21,7 +21,9 @@ Every change is an event (time, kind, cause, message), told to the listeners
 someone walks past, so the log keeps the first ``EVENTS_FIRST`` and the last
 ``EVENTS_LAST`` events in full, a count of every (kind, cause) since the start,
 and says how many it left out between them. The runtime commands zero and
-disables the drive the same cycle a stop starts.
+disables the drive the same cycle a stop starts. One kind of hold is milder: a ``turn_only`` hold (an obstacle
+seen in a stop zone, for a round robot with ``obstacles.turn_when_held``) stops the travel the same cycle but
+lets a turn on the spot through (``may_turn``) while no other hold or latched stop is active.
 """
 from __future__ import annotations
 
@@ -131,6 +133,7 @@ class SafetyMonitor:
     _clear_since: dict = field(default_factory=dict)   # cause -> ns when it went clear
     events: EventLog = field(default_factory=EventLog)   # bounded: first and last events, counts
     speed_scale: float = 1.0                           # from obstacle zones, in [0, 1]
+    turn_only: set = field(default_factory=set)        # active held causes that let a turn on the spot through
     listeners: list = field(default_factory=list)      # callables(SafetyEvent)
 
     # -- inputs ------------------------------------------------------------
@@ -145,12 +148,15 @@ class SafetyMonitor:
         self.latched_at[cause] = now_ns
         self._emit(SafetyEvent(now_ns, "trip", cause, message))
 
-    def hold(self, now_ns: int, cause: str, active: bool, message: str = "") -> None:
-        """Report the state of a held condition every cycle."""
+    def hold(self, now_ns: int, cause: str, active: bool, message: str = "", turn_only: bool = False) -> None:
+        """Report the state of a held condition every cycle. ``turn_only``: it holds the robot's travel but
+        lets a turn on the spot through (``may_turn``), e.g. a round robot held by an obstacle ahead; a hold
+        that changes between the two is a new hold event with the new message."""
         if active:
             self._clear_since.pop(cause, None)
-            if cause not in self.holds:
+            if cause not in self.holds or turn_only != (cause in self.turn_only):
                 self.holds[cause] = message
+                (self.turn_only.add if turn_only else self.turn_only.discard)(cause)
                 self._emit(SafetyEvent(now_ns, "hold", cause, message))
             return
         if cause not in self.holds:
@@ -161,6 +167,7 @@ class SafetyMonitor:
         if now_ns - since >= release_s * 1e9:
             del self.holds[cause]
             del self._clear_since[cause]
+            self.turn_only.discard(cause)
             # a wait ends with what it waited for, or with the stale hold that takes over (its own event)
             self._emit(SafetyEvent(now_ns, "release", cause, f"{cause} ended" if waiting
                                    else f"{cause} clear for {release_s:g} s"))
@@ -196,6 +203,12 @@ class SafetyMonitor:
     @property
     def may_move(self) -> bool:
         return not self.latched and not self.holds
+
+    @property
+    def may_turn(self) -> bool:
+        """Held, but only by holds that let a turn on the spot through (forward speed 0): no latched stop, and
+        every active hold ``turn_only``. False when ``may_move`` (nothing holds the robot at all)."""
+        return not self.latched and bool(self.holds) and all(c in self.turn_only for c in self.holds)
 
     @property
     def fatal(self) -> str | None:

@@ -125,6 +125,7 @@ class ZoneVerdict:
     scale: float
     reason: str
     counts: dict
+    turn_ok: bool = False       # a held stop (scale 0) that lets a turn on the spot through (turn_when_held)
 
 
 
@@ -137,6 +138,7 @@ class ObstacleMonitor:
         self._reach = {z.name: math.inf for z in cfg.zones}     # a speed-following band's last obstacle, m
         self.scale = 1.0
         self.reason = ""
+        self.seen = False           # the held stop came from an obstacle seen in a stop zone, not from blindness
         self._raise_since: Optional[int] = None
 
     def update(self, stamp_ns: int, points: np.ndarray, negative_points: Optional[np.ndarray] = None) -> ZoneVerdict:
@@ -162,21 +164,30 @@ class ObstacleMonitor:
                     target, why = s, why_z
         if target < self.scale:                      # more caution: at once
             self.scale, self.reason, self._raise_since = target, why, None
+            self.seen = True
         elif target > self.scale:                    # less caution: only after release_s clear
             if self._raise_since is None:
                 self._raise_since = stamp_ns
             if stamp_ns - self._raise_since >= self.cfg.release_s * 1e9:
                 self.scale, self.reason, self._raise_since = target, why, None
+                self.seen = True
         else:
             self._raise_since = None
             if target < 1.0:
                 self.reason = why
-        return ZoneVerdict(self.scale, self.reason, counts)
+                self.seen = True        # an obstacle seen now holds it, not a blind frame before
+        return ZoneVerdict(self.scale, self.reason, counts, self.turn_ok)
+
+    @property
+    def turn_ok(self) -> bool:
+        """A held stop that lets a turn on the spot through: held by an obstacle seen, with turn_when_held."""
+        return self.scale <= 0.0 and self.seen and self.cfg.turn_when_held
 
     def blind(self, reason: str) -> ZoneVerdict:
         """A frame on which the zones could not be seen: stop at once, and rise again only after
         ``release_s`` of frames that show them clear (a first clear frame is not enough)."""
         self.scale, self.reason, self._raise_since = 0.0, reason, None
+        self.seen = False           # nothing seen: no turn either, until frames show the zones again
         return ZoneVerdict(0.0, reason, {})
 
     def reset(self) -> None:
@@ -184,6 +195,7 @@ class ObstacleMonitor:
             f.reset()
         self._reach = dict.fromkeys(self._reach, math.inf)
         self.scale, self.reason, self._raise_since = 1.0, "", None
+        self.seen = False
 
 
 
@@ -460,5 +472,6 @@ class ObstacleStage(VisionStage):
                                 verdict.counts, scene.fractions, fl.height, fl.pitch, scene.fit.ok,
                                 scene.labels if self.keep_labels else None)
         info = {"speed_scale": verdict.scale, "reason": f"obstacles: {verdict.reason}" if verdict.reason else "",
-                "nearest_m": report.nearest[0] if report.nearest else None, "zones": verdict.counts}
+                "nearest_m": report.nearest[0] if report.nearest else None, "zones": verdict.counts,
+                "turn_ok": verdict.turn_ok}
         return Estimate(frame.stamp_ns, self.kind, True, report, info)
