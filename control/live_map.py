@@ -29,6 +29,7 @@ class LiveMap:
         self.replanner: Optional[Replanner] = None
         self.told = 0                      # re-planner events already printed
         self.ticks = 0                     # calls of ``tick``
+        self.pose_in_map: Callable[[Pose2], Pose2] = lambda odom: odom   # odometry -> the robot in the map
 
     @classmethod
     def for_goto(cls, cfg, lmap, meta: dict, vslam_stage, start: Callable[[], Pose2]
@@ -42,19 +43,34 @@ class LiveMap:
             return start().compose(odom if p is None else p)
 
         try:
-            return cls(LineMapStage.from_config(cfg, lmap=lmap, pose_fn=pose_in_map), meta), ""
+            live = cls(LineMapStage.from_config(cfg, lmap=lmap, pose_fn=pose_in_map), meta)
+            live.pose_in_map = pose_in_map
+            return live, ""
         except ValueError as exc:
             return None, str(exc)
 
     def attach(self, controller, simulated_clock: bool, start: Pose2, goal_map: Pose2, robot_radius: float,
-               goal_moved_m: float | None = None) -> None:
+               goal_moved_m: float | None = None, approach=None, obstacle_stage=None) -> None:
         """Once the robot and the controller exist: the clock decides inline or threads; the re-planner
         steers ``controller`` from ``start`` (the robot's start pose in the map) to ``goal_map``;
-        ``goal_moved_m``: how far the start plan ended from it (a goal in the planner's margin), None at it."""
+        ``goal_moved_m``: how far the start plan ended from it (a goal in the planner's margin), None at it;
+        ``approach``: the obstacle stop's band (``map_planning.stop_approach``) the routes' last legs must clear;
+        ``obstacle_stage``: its sighting of what holds the robot is drawn into the planner's grid."""
         self.stage.inline = simulated_clock
         self.replanner = Replanner(self.line_stage, self.meta, start, goal_map, robot_radius, controller,
-                                   lambda: controller.pose)
+                                   lambda: controller.pose, approach=approach,
+                                   sightings=None if obstacle_stage is None else lambda: self._sighting(obstacle_stage))
         self.replanner.goal_moved_m = goal_moved_m     # the map freeing the goal sends the robot to it
+
+    def _sighting(self, obstacle_stage) -> Optional[np.ndarray]:
+        """The obstacle stage's sighting (robot frame, at its frame's odometry) in the map's frame."""
+        seen = obstacle_stage.sighting
+        if seen is None:
+            return None
+        odom, pts = seen
+        p = self.pose_in_map(odom)
+        c, s = np.cos(p.theta), np.sin(p.theta)
+        return np.column_stack([p.x + c * pts[:, 0] + s * pts[:, 1], p.z - s * pts[:, 0] + c * pts[:, 1]])
 
     @property
     def inline(self) -> bool:

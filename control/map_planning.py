@@ -46,6 +46,25 @@ def footprints(polygons, meta: dict) -> list:
     return [p.footprint for p in polygons] + [np.asarray(o["footprint"], float) for o in meta.get("objects", [])]
 
 
+#: A robot this near its goal has no leg left to drive (its final turn on the spot is the controller's): the
+#: re-planner does not re-plan its approach (it once sent a robot 1 cm from its goal off on a new one).
+ARRIVED_M = 0.05
+
+
+def stop_approach(cfg):
+    """The obstacle stop's band as the planner's ``Approach`` (vision/nav_grid.py), None when the obstacle stage
+    is off: a route whose last leg faces a mapped obstacle nearer the goal than the stop's reach would be held
+    short of the goal for good (docs/line_map.md, 'The approach to the goal')."""
+    if not cfg.obstacles.enabled:
+        return None
+    from vbnav.control.controllers.goto import WAYPOINT_TOLERANCE_M
+    from vbnav.control.stages.obstacles import stop_half_width, stop_reach
+    from vbnav.vision.nav_grid import Approach
+
+    zones = cfg.obstacles.zones
+    return Approach(stop_reach(zones), stop_half_width(zones), tolerance_m=WAYPOINT_TOLERANCE_M)
+
+
 def plan_on_map(path: str, start, goal, robot_radius: float):
     """Waypoints (x, z) in the map's frame from ``start`` to ``goal`` around the walls and objects of the map
     file ``path``."""
@@ -54,14 +73,14 @@ def plan_on_map(path: str, start, goal, robot_radius: float):
     return plan_path(*load_map(path), start, goal, robot_radius)
 
 
-def plan_path(lmap, meta: dict, start, goal, robot_radius: float):
-    """``plan_on_map`` on a loaded map."""
+def plan_path(lmap, meta: dict, start, goal, robot_radius: float, approach=None):
+    """``plan_on_map`` on a loaded map; ``approach``: the obstacle stop's band (``stop_approach``)."""
     import numpy as np
 
     from vbnav.vision.nav_grid import plan
 
     grid = map_grid(lmap, meta, robot_radius, extra_points=np.array([[start.x, start.z], [goal.x, goal.z]]))
-    return plan(grid, (start.x, start.z), (goal.x, goal.z), GOAL_TOLERANCE_M)   # the re-planner's rule too
+    return plan(grid, (start.x, start.z), (goal.x, goal.z), GOAL_TOLERANCE_M, approach)   # the re-planner's rules too
 
 
 def goal_moved_note(goal, moved: float, margin: str, what: str = "the goal") -> str:
@@ -167,6 +186,15 @@ def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3
     return r, say
 
 
+def sighting_squares(points, size: float) -> list:
+    """The obstacle stop's sighting (``(N, 2)`` x, z or None) as one small square footprint per point."""
+    if points is None or not len(points):
+        return []
+    h = size / 2
+    corners = [(-h, -h), (h, -h), (h, h), (-h, h)]
+    return [[(float(x) + dx, float(z) + dz) for dx, dz in corners] for x, z in points]
+
+
 def route_is_clear(grid, here, route, skip_m: float) -> bool:
     """True when the polyline from ``here`` (x, z) through ``route`` [(x, z), ...] crosses no blocked cell of
     ``grid``, sampled every half cell. Blocked samples within ``skip_m`` of ``here`` at the very start are
@@ -204,12 +232,17 @@ class Replanner:
     ``goal``: in the map's frame; ``robot_pose``: () -> the robot's pose in the reference frame, or None."""
 
     def __init__(self, stage, meta: dict, start, goal, robot_radius: float, controller, robot_pose,
-                 period_s: float = 0.5):
+                 period_s: float = 0.5, approach=None, sightings=None):
         from vbnav.vision.nav_grid import GridParams, IncrementalGrid
 
         self.stage, self.meta = stage, meta
         self.start, self.goal = start, goal
         self.robot_radius = float(robot_radius)
+        self.approach = approach        # the obstacle stop's band: a last leg facing a mapped obstacle is re-planned
+        # () -> (N, 2) x, z in the map's frame of what the obstacle stop sees holding the robot, or None: drawn
+        # into the grid as obstacles while it holds (the map may lack the part of a box the stop faces)
+        self.sightings = sightings
+        self._seen_key = None
         # Blocked samples this near the robot at the start of its route are its own grown margin.
         self.skip_m = self.robot_radius + GridParams().clearance_m
         self.controller, self.robot_pose = controller, robot_pose
@@ -236,21 +269,29 @@ class Replanner:
 
         revision = self.stage.revision
         pose_ref = self.robot_pose()
-        if revision == self.looked_at or pose_ref is None:
+        seen = self.sightings() if self.sightings is not None else None
+        seen_key = None if seen is None or not len(seen) else np.round(seen, 3).tobytes()
+        if (revision == self.looked_at and seen_key == self._seen_key) or pose_ref is None:
             return None
-        self.looked_at = revision
+        self.looked_at, self._seen_key = revision, seen_key
         self.checks += 1
         here = self.start.compose(pose_ref)
         route = [self.start.compose(Pose2(x, z, 0.0)) for x, z in self.controller.route()]
         route = [(p.x, p.z) for p in route]
         ab = self.stage.abstraction       # its last pass's polygons: abstracting again here would repeat it
         grid = self.grid.update(self.stage.verified_snapshot(), np.array([(here.x, here.z)] + route),
-                                footprints(ab.polygons if ab is not None else [], self.meta))
+                                footprints(ab.polygons if ab is not None else [], self.meta)
+                                + sighting_squares(seen, self.grid.params.resolution_m))
         goal_free = grid.is_free(self.goal.x, self.goal.z)
         back_to_goal = self.goal_moved_m is not None and goal_free
-        if not self._held and not back_to_goal and route_is_clear(grid, (here.x, here.z), route, self.skip_m):
+        faced = self._faces_an_obstacle(grid, (here.x, here.z), route)
+        clear = route_is_clear(grid, (here.x, here.z), route, self.skip_m)
+        if not self._held and not back_to_goal and not faced and clear:
             return None
-        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z), GOAL_TOLERANCE_M)
+        path = plan(grid, (here.x, here.z), (self.goal.x, self.goal.z), GOAL_TOLERANCE_M, self.approach)
+        if (not self._held and not back_to_goal and clear and path is not None
+                and self._faces_an_obstacle(grid, (here.x, here.z), path[1:])):
+            return None     # only the approach was wrong, and no other clears it: keep the route (no churn)
         at = f"map revision {revision}, robot at ({here.x:+.2f}, {here.z:+.2f})"
         goal = f"the goal ({self.goal.x:+.2f}, {self.goal.z:+.2f})"
         margin = f"{grid.grown_m:.2f} m (robot radius + clearance) of what the map holds"
@@ -273,11 +314,29 @@ class Replanner:
         self.replans += 1
         moved = math.hypot(path[-1][0] - self.goal.x, path[-1][1] - self.goal.z)
         self.goal_moved_m = moved if moved > 0.0 else None
-        why = ("the route ahead crosses what the map now holds" if not back_to_goal else
-               f"the map frees {goal} again")
+        holds = "what the map now holds" + (" and the obstacle stop sees" if seen_key is not None else "")
+        why = (f"the map frees {goal} again" if back_to_goal else
+               f"the route's last leg faces {holds} within the obstacle stop's reach of the goal" if faced and clear
+               else f"the route ahead crosses {holds}")
         if self.goal_moved_m is not None:
             why = goal_moved_note(self.goal, moved, margin).replace(" lies within", " now lies within", 1)
         return self._say(f"{at}: {why}; re-planned: " + " -> ".join(f"({x:+.2f}, {z:+.2f})" for x, z in path))
+
+    def _faces_an_obstacle(self, grid, here, route) -> bool:
+        """The route's last leg has a mapped obstacle in the obstacle stop's band (``nav_grid.band_clear``). A
+        robot already on its last leg drives it from where it is (no waypoint to pass: no turn of the leg), and
+        one at the goal (within ``ARRIVED_M``) has no leg left: its turn there is the controller's."""
+        if self.approach is None or not route:
+            return False
+        import dataclasses
+
+        from vbnav.vision.nav_grid import band_clear
+
+        if len(route) > 1:
+            return not band_clear(grid, route[-2], route[-1], self.approach)
+        if math.hypot(route[-1][0] - here[0], route[-1][1] - here[1]) <= ARRIVED_M:
+            return False
+        return not band_clear(grid, here, route[-1], dataclasses.replace(self.approach, tolerance_m=0.0))
 
     def _say(self, msg: str) -> str:
         with self._events_lock:

@@ -181,3 +181,36 @@ def test_goto_map_on_the_simulator_refuses_a_start_that_disagrees_with_sim_start
     path.write_text(json.dumps(data))
     assert main(["goto", "-c", str(tmp_path / "robot.yaml"), "--map", str(path), "--goal", "0", "2", "0"]) == 2
     assert "meta.sim_start_pose" in capsys.readouterr().err
+
+
+def test_a_goal_just_before_an_obstacle_is_approached_from_a_side_the_stop_band_leaves_clear():
+    """A goal 0.5 m before a mapped box face, straight ahead of the start: the shortest route's last leg faces
+    the box, which the obstacle stop's 0.8 m band reaches from 0.3 m short of the goal on (held there for good).
+    With the stop's band (``Approach``) the route comes in along a straight 0.6 m leg whose band is clear, at
+    little extra length; without it the route is the straight one."""
+    import math
+
+    from vbnav.vision.nav_grid import Approach, band_clear, path_length, plan
+
+    def outline(x0, z0, x1, z1):        # a box's four top edges, 0.3 m above the floor (y down)
+        c = [(x0, z0), (x1, z0), (x1, z1), (x0, z1)]
+        return [[[x, -0.3, z], [xx, -0.3, zz]] for (x, z), (xx, zz) in zip(c, c[1:] + c[:1])]
+
+    box = outline(-0.5, 2.5, 0.5, 3.0)
+    grid = build_grid(np.array(box, float), extra_points=np.array([(0.0, 0.0), (0.0, 2.0)]))
+    band = Approach(reach_m=0.8, half_width_m=0.25)
+    start, goal = (0.0, 0.0), (0.0, 2.0)
+    straight = plan(grid, start, goal)
+    assert len(straight) == 2 and not band_clear(grid, straight[-2], straight[-1], band)
+    path = plan(grid, start, goal, approach=band)
+    assert path[0] == start and path[-1] == goal
+    last = math.hypot(path[-1][0] - path[-2][0], path[-1][1] - path[-2][1])
+    assert last == pytest.approx(0.6, abs=0.05) and band_clear(grid, path[-2], path[-1], band)
+    heading = math.degrees(math.atan2(path[-1][0] - path[-2][0], path[-1][1] - path[-2][1]))
+    assert 45.0 <= abs(heading) <= 135.0, heading                  # from a side, not toward the box
+    assert path_length(path) < path_length(straight) + 0.8, path_length(path)
+    # no clear approach at all (walls 1.2 m either side: a 2 m band reaches one from every side): the route
+    # stays the straight one
+    walled = build_grid(np.array(box + outline(-1.3, -1.0, -1.2, 4.0) + outline(1.2, -1.0, 1.3, 4.0), float),
+                        extra_points=np.array([(0.0, 0.0), (0.0, 2.0)]))
+    assert plan(walled, start, goal, approach=Approach(reach_m=2.0, half_width_m=0.25)) == plan(walled, start, goal)

@@ -527,3 +527,34 @@ def test_turn_when_held_needs_a_round_robot():
     cfg = parse_config({**base, "robot": {"footprint_radius": 0.2}}, "robot.yaml")
     assert cfg.obstacles.turn_when_held and cfg.robot.footprint_radius == 0.2
 
+
+def test_the_stage_keeps_the_sighting_that_holds_the_robot_and_drops_it_when_nothing_does():
+    """``ObstacleStage.sighting``: while an obstacle seen in the stop band holds the robot, the obstacle points
+    there (robot frame, one per 5 cm cell, with the frame's odometry), for the planner's grid; none before the
+    k-of-n holds, none while the lens is covered (blind: nothing seen), none once the hold ends."""
+    from vbnav.control.config import load_config
+    from vbnav.drivers.sim.camera import SimCamera
+    from vbnav.drivers.sim.world import World
+    cfg = load_config("sim_stereo")
+    world = World.by_name(cfg.sim.world, cfg.sim.seed)
+    world.add_box("obstacle", (-1.5, -1.55), (0.3, 0.3, 0.3))          # its face 0.8 m ahead: the stop band
+    cam = SimCamera(world, cfg.camera.to_model(), cfg.camera.mount.to_mount(), pose_fn=lambda: Pose2(), clock=None,
+                    rate_hz=15, noise_std=2.0, seed=4, stereo_baseline=0.075)
+    stage = make_obstacle_stage(cfg)
+    seen = []
+    for i in range(40):
+        cam.occluded = 10 <= i < 14
+        if i == 20:
+            world.remove("obstacle")
+        odom = Pose2(0.0, 0.01 * i, 0.0)
+        e = stage.process(cam.render_frame(cfg.sim.start(), int(i * 1e9 / 15), i), odom)
+        seen.append((e.info["speed_scale"], stage.sighting))
+    assert seen[0][1] is None                                           # k-of-n: one frame is not a hold yet
+    held = [s for scale, s in seen[2:10] if scale == 0.0]
+    assert held and all(s is not None for s in held)
+    odom, pts = held[-1]
+    assert odom == Pose2(0.0, 0.09, 0.0)                                # the frame's own odometry
+    assert len(pts) >= 5 and np.all(np.abs(pts[:, 0]) <= 0.25 + 0.025)
+    assert np.all((pts[:, 1] >= 0.75) & (pts[:, 1] <= 0.80)), pts[:, 1]   # the face, 0.8 m from the axle
+    assert all(s is None for _, s in seen[10:14])                       # blind
+    assert seen[-1] == (1.0, None)                                      # removed, released: nothing holds it

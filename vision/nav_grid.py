@@ -19,6 +19,7 @@ thinned to waypoints where it turns (line of sight on the grown grid).
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import math
 from dataclasses import dataclass
@@ -249,7 +250,55 @@ def goal_cells(grid: NavGrid, goal_xz, tolerance_m: float = 0.0) -> list[tuple[i
     return [cell for *_, cell in sorted(near)]
 
 
-def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0) -> Optional[list[tuple[float, float]]]:
+@dataclass(frozen=True)
+class Approach:
+    """The obstacle stop's band, for the planner. Driving a route's last leg the robot watches a band reaching
+    ``reach_m`` ahead of its axle, ``half_width_m`` either side; a mapped obstacle there holds it short of the
+    goal for good (the goal lies nearer an obstacle than the stop's reach, along the leg). ``legs_m``: the
+    lengths of the straight last leg the planner adds to come in from another side, tried in turn (a longer
+    one needs more free floor, and turns less); ``tolerance_m``: how far from the leg's first point the
+    controller may pass it (its waypoint tolerance), which turns the leg by up to asin(tolerance / length)
+    about the goal."""
+
+    reach_m: float
+    half_width_m: float
+    legs_m: tuple = (0.6, 0.9, 1.2)
+    tolerance_m: float = 0.15
+    headings: int = 16          # the directions of approach tried, evenly spaced
+
+
+def band_clear(grid: NavGrid, a, g, approach: Approach) -> bool:
+    """No mapped obstacle (``grid.occupied``) in the band the obstacle stop watches while the robot drives the
+    straight leg ``a`` -> ``g`` (x, z): from ``a`` to ``reach_m`` beyond ``g``, ``half_width_m`` either side,
+    for the leg as planned and turned about ``g`` either way by what passing ``a`` within ``tolerance_m``
+    allows. Only the last ``max(legs_m)`` of a longer leg counts: there the goal's surroundings hold the robot."""
+    a, g = np.asarray(a, float), np.asarray(g, float)
+    length = float(np.hypot(*(g - a)))
+    if length < 1e-9:
+        return True
+    length = min(length, max(approach.legs_m))
+    spread = math.asin(min(1.0, approach.tolerance_m / length))
+    base = math.atan2(*(g - a))                          # heading: atan2(dx, dz)
+    step = grid.res / 2
+    along = np.arange(-length, approach.reach_m + step, step)
+    across = np.arange(-approach.half_width_m, approach.half_width_m + step / 2, step)
+    u, v = np.meshgrid(along, across)
+    H, W = grid.occupied.shape
+    for phi in (base - spread, base, base + spread):
+        d = np.array([math.sin(phi), math.cos(phi)])
+        n = np.array([d[1], -d[0]])
+        x = g[0] + u * d[0] + v * n[0]
+        z = g[1] + u * d[1] + v * n[1]
+        r = np.floor((z - grid.z0) / grid.res).astype(int)
+        c = np.floor((x - grid.x0) / grid.res).astype(int)
+        inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+        if grid.occupied[r[inside], c[inside]].any():
+            return False
+    return True
+
+
+def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0,
+         approach: Optional[Approach] = None) -> Optional[list[tuple[float, float]]]:
     """Waypoints (x, z) from start to goal avoiding blocked cells, or None when there is no path.
 
     The start cell may be blocked (the robot already stands close to something): the search leaves the
@@ -257,12 +306,57 @@ def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0) -> Opt
     A goal in the grown margin but on no mapped obstacle is replaced, with ``goal_tolerance_m``, by the centre
     of the nearest reachable free cell within that distance of it (``goal_cells``): the path's last point is
     then that centre, not ``goal_xz``.
+
+    With ``approach`` (the obstacle stop's band): when a mapped obstacle lies in the band of the path's last
+    leg (``band_clear``), the path comes in instead along one of ``approach.headings`` straight last legs, of
+    the first length in ``approach.legs_m`` that has any whose band is clear and whose line is free, the one
+    reached first; when none is, the path stays as it was (the stop may hold the robot short of the goal
+    there, as any mapped obstacle that near would).
     """
     s = grid.cell(*start_xz)
     targets = goal_cells(grid, goal_xz, goal_tolerance_m)
     if not grid.inside(*s) or not targets:
         return None
-    g = targets[0]
+    came, g = _search(grid, s, set(targets[:1]), targets[0], 0.0)
+    if g is None:
+        # The search ran out: every cell reachable from the start is in ``came``; the nearest such target.
+        g = next((t for t in targets[1:] if t in came or t == s), None)
+        if g is None:
+            return None
+    end = tuple(goal_xz) if g == grid.cell(*goal_xz) else grid.centre(*g)
+    path = _waypoints(grid, start_xz, came, s, g, end)
+    if approach is None:
+        return path
+    # straight from the start: no waypoint is passed on the way, so the leg is not turned
+    first = dataclasses.replace(approach, tolerance_m=0.0) if len(path) == 2 else approach
+    if band_clear(grid, path[-2], path[-1], first):
+        return path
+    return _plan_approach(grid, start_xz, s, end, approach) or path
+
+
+def _plan_approach(grid: NavGrid, start_xz, s, end, approach: Approach):
+    """The shortest path to ``end`` whose last leg is straight, free and band-clear (``plan``)."""
+    for length in approach.legs_m:
+        legs = {}
+        for k in range(approach.headings):
+            phi = 2.0 * math.pi * k / approach.headings
+            a = (end[0] - length * math.sin(phi), end[1] - length * math.cos(phi))
+            cell = grid.cell(*a)
+            if (grid.inside(*cell) and not grid.blocked[cell] and _line_free(grid, cell, grid.cell(*end))
+                    and band_clear(grid, a, end, approach)):
+                legs.setdefault(cell, a)
+        if not legs:
+            continue
+        came, hit = _search(grid, s, set(legs), grid.cell(*end), length / grid.res)
+        if hit is not None:
+            return _waypoints(grid, start_xz, came, s, hit, legs[hit]) + [tuple(end)]
+    return None
+
+
+def _search(grid: NavGrid, s, targets: set, toward, near: float):
+    """A* from cell ``s`` to the nearest of ``targets`` (cells); the heuristic is the distance to ``toward`` less
+    ``near`` cells (every target lies that far from it, so it never overestimates). Returns (came, the target
+    reached or None)."""
     blocked, occupied = grid.blocked, grid.occupied
     H, W = blocked.shape
     leave = grid.grown_m / grid.res + 1.0       # cells a blocked start goes through to leave the margin
@@ -271,13 +365,16 @@ def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0) -> Opt
         if not blocked[nr, nc]:
             return True
         return bool(blocked[cur]) and not occupied[nr, nc] and math.hypot(nr - s[0], nc - s[1]) <= leave
+
+    def h(r, c) -> float:
+        return max(0.0, math.hypot(r - toward[0], c - toward[1]) - near)
     best = {s: 0.0}
     came: dict = {}
-    heap = [(math.hypot(s[0] - g[0], s[1] - g[1]), 0.0, s)]
+    heap = [(h(*s), 0.0, s)]
     while heap:
         _, cost, cur = heapq.heappop(heap)
-        if cur == g:
-            break
+        if cur in targets:
+            return came, cur
         if cost > best.get(cur, math.inf):
             continue
         for dr, dc, step in _STEPS:
@@ -291,20 +388,18 @@ def plan(grid: NavGrid, start_xz, goal_xz, goal_tolerance_m: float = 0.0) -> Opt
             if c2 < best.get(nxt, math.inf):
                 best[nxt] = c2
                 came[nxt] = cur
-                heapq.heappush(heap, (c2 + math.hypot(nr - g[0], nc - g[1]), c2, nxt))
-    if g not in came and g != s:
-        # The search ran out: every cell reachable from the start is in ``came``; the nearest such target.
-        g = next((t for t in targets[1:] if t in came or t == s), None)
-        if g is None:
-            return None
+                heapq.heappush(heap, (c2 + h(nr, nc), c2, nxt))
+    return came, None
+
+
+def _waypoints(grid: NavGrid, start_xz, came: dict, s, g, end) -> list:
+    """The searched cells from ``s`` to ``g`` thinned to waypoints, from ``start_xz`` to ``end``."""
     cells = [g]
     while cells[-1] != s:
         cells.append(came[cells[-1]])
     cells.reverse()
     keep = _thin(grid, cells)
-    end = tuple(goal_xz) if g == grid.cell(*goal_xz) else grid.centre(*g)
-    path = [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [end]
-    return path
+    return [tuple(start_xz)] + [grid.centre(*c) for c in keep[1:-1]] + [tuple(end)]
 
 
 def _line_free(grid: NavGrid, a, b) -> bool:

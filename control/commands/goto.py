@@ -7,7 +7,8 @@ import sys
 from vbnav.control.commands._common import add_config_arg, finite, positive, refuse_unserved_live_view
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.control.map_planning import (goal_moved_note, grid_params, localise_problem, localise_start,
-                                        map_route_in_reference_frame, no_path_reason, plan_path, sim_start_problem)
+                                        map_route_in_reference_frame, no_path_reason, plan_path, sim_start_problem,
+                                        stop_approach)
 
 ROBOT_RADIUS_M = 0.2    # --robot-radius when not given (it defaults to None: without --map it is refused)
 
@@ -146,7 +147,7 @@ def run(args) -> int:
             print(f"localised against the map: x={start.x:+.3f} z={start.z:+.3f} "
                   f"theta={math.degrees(start.theta):+.2f} deg ({say})")
         try:
-            planned = plan_path(lmap, meta, start, goal, radius)
+            planned = plan_path(lmap, meta, start, goal, radius, stop_approach(cfg))
         except ValueError as exc:           # the grid over the map, --start and --goal would not fit in memory
             print(f"vbnav goto: {args.map}: --start ({start.x:+.2f}, {start.z:+.2f}), --goal ({goal.x:+.2f}, "
                   f"{goal.z:+.2f}): {exc}; give a goal within reach of the map", file=sys.stderr)
@@ -172,7 +173,8 @@ def run(args) -> int:
         robot.drive.close()         # never enabled: released as it was opened
         return 3
     if live is not None:                # on a simulated clock the slow loops run inline, on simulated time
-        live.attach(controller, robot.clock.simulated, start, goal_map, radius, moved or None)
+        live.attach(controller, robot.clock.simulated, start, goal_map, radius, moved or None, stop_approach(cfg),
+                    next((s for s in robot.pipeline.stages if s.kind == "obstacles"), None))
     printer = ProgressPrinter()
     # With --map on the simulator, the ground truth's nearest approach to a wall or box is sampled at 20 Hz.
     world = robot.world if args.map else None

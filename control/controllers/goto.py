@@ -20,6 +20,10 @@ from vbnav.control.stages.vslam import VslamFix
 from vbnav.vision.geometry import Pose2, wrap_angle
 
 
+#: A route's waypoint counts as passed this near (m); the planner's ``Approach`` allows for it.
+WAYPOINT_TOLERANCE_M = 0.15
+
+
 # ---------------------------------------------------------------------------------- controller
 def polar_coordinates(pose: Pose2, goal: Pose2) -> tuple[float, float, float]:
     """(rho, alpha, beta) of Astolfi's go-to-pose law, in this package's conventions.
@@ -54,7 +58,7 @@ class GotoController(Controller):
 
     def __init__(self, goal: Pose2, cfg: GotoConfig | None = None, max_linear_speed: float | None = None,
                  max_angular_speed: float | None = None, waypoints: Optional[list] = None,
-                 waypoint_tolerance_m: float = 0.15, follow_route: bool = False):
+                 waypoint_tolerance_m: float = WAYPOINT_TOLERANCE_M, follow_route: bool = False):
         """``max_linear_speed``, ``max_angular_speed``: the robot's limits (default: the robot section's).
 
         waypoints: (x, z) points in the reference frame to pass on the way to ``goal`` (a path planned on the

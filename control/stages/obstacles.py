@@ -57,6 +57,10 @@ from vbnav.vision.obstacles import (
 from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
 
 
+#: The stop's sighting of what holds the robot, one point per cell this wide (m): the planner's grid cell.
+SIGHTING_CELL_M = 0.05
+
+
 def make_obstacle_stage(cfg) -> Optional["ObstacleStage"]:
     """The obstacle stage for a vbnav Config, or None when ``obstacles.enabled`` is false."""
     return ObstacleStage.from_config(cfg) if cfg.obstacles.enabled else None
@@ -279,6 +283,13 @@ def stop_half_width(zones) -> float:
     return max((z.half_width if z.polygon is None else max(abs(x) for x, _ in z.polygon)) for z in _stop_zones(zones))
 
 
+def stop_reach(zones) -> float:
+    """How far ahead of the axle an obstacle holds the robot for good, m: a stop band's ``distance`` (its
+    ``min_distance`` when its length follows the speed: it crawls on to there), a polygon's farthest z."""
+    return max((z.polygon is None and (z.min_distance or z.distance)) or max(zz for _, zz in z.polygon)
+               for z in _stop_zones(zones))
+
+
 def watched_floor(camera, mount, zones) -> Optional[np.ndarray]:
     """(H, W) bool: the pixels that see the floor under the stop zones (the corridor of their widest
     half-width out to their farthest point, from 0.3 m), None if none of it is in view."""
@@ -328,6 +339,9 @@ class ObstacleStage(VisionStage):
         self.monitor = ObstacleMonitor(self.cfg)
         self.keep_labels = keep_labels
         self._stop_half_width = stop_half_width(self.cfg.zones)
+        # What holds the robot: (odometry at its frame, (N, 2) robot-frame x, z of the obstacle points in the
+        # stop zones, one per 5 cm cell), or None while nothing does (``held_sighting``).
+        self.sighting: Optional[tuple] = None
         self._camera = camera
         self.watched: Optional[np.ndarray] = None   # the stop zones' floor in the image (with the rig)
         self.rig: Optional[StereoRig] = None
@@ -392,6 +406,7 @@ class ObstacleStage(VisionStage):
     def _blind(self, frame: Frame, why: str) -> Estimate:
         """A frame on which the zones cannot be judged: not ok, stop (and the release debounce after it)."""
         self.monitor.blind(why)
+        self.sighting = None
         return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": why})
 
     def _sgbm_pair(self, frame: Frame) -> bool:
@@ -431,6 +446,23 @@ class ObstacleStage(VisionStage):
         report = estimate.value if estimate is not None else None
         return StageOverlay(stop_zone=zone, obstacle_labels=None if report is None else report.labels)
 
+    def _keep_sighting(self, verdict: ZoneVerdict, pts: np.ndarray, neg: np.ndarray, odom: Pose2) -> None:
+        """While an obstacle seen in a stop zone holds the robot, the points there (a held frame of the k-of-n or
+        of the release debounce that shows none keeps the last ones); none once the hold ends."""
+        if verdict.scale > 0.0 or not self.monitor.seen:
+            self.sighting = None
+            return
+        both = np.vstack([pts, neg]) if len(neg) and self.cfg.negative_stops else pts
+        inside = np.zeros(len(both), bool)
+        for z in _stop_zones(self.cfg.zones):
+            if z.polygon is not None:
+                inside |= points_in_polygon(both, np.asarray(z.polygon, dtype=np.float64))
+            else:
+                inside |= (both[:, 1] > 0) & (both[:, 1] <= z.distance) & (np.abs(both[:, 0]) <= z.half_width)
+        if inside.any():
+            cells = np.unique(np.round(both[inside] / SIGHTING_CELL_M).astype(np.int64), axis=0)
+            self.sighting = (odom, cells * SIGHTING_CELL_M)
+
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         rig, got = self._rig_for(frame)
         if rig is None:
@@ -464,6 +496,7 @@ class ObstacleStage(VisionStage):
         pts = to_robot_frame(scene.obstacle_points, self.mount)
         neg = to_robot_frame(scene.negative_points, self.mount)
         verdict = self.monitor.update(frame.stamp_ns, pts, neg)
+        self._keep_sighting(verdict, pts, neg, odom)
         near = nearest_in_corridor(pts, self._stop_half_width, self.cfg.max_range)
         near_neg = nearest_in_corridor(neg, self._stop_half_width, self.cfg.max_range)
         fl = scene.fit.floor
