@@ -558,3 +558,14 @@ def test_the_stage_keeps_the_sighting_that_holds_the_robot_and_drops_it_when_not
     assert np.all((pts[:, 1] >= 0.75) & (pts[:, 1] <= 0.80)), pts[:, 1]   # the face, 0.8 m from the axle
     assert all(s is None for _, s in seen[10:14])                       # blind
     assert seen[-1] == (1.0, None)                                      # removed, released: nothing holds it
+
+
+def test_stop_reach_is_where_an_obstacle_holds_the_robot_for_good():
+    """The planner's Approach reach: a fixed band's distance, a speed-following band's min_distance (it crawls on
+    to there), a polygon's farthest point; slow zones do not hold."""
+    from vbnav.control.stages.obstacles import stop_reach
+    assert stop_reach(ObstaclesConfig().zones) == 0.8
+    band = ZoneConfig(name="stop", distance=0.8, half_width=0.25, min_distance=0.55)
+    assert stop_reach([band, ZoneConfig(name="slow", action="slow", distance=1.5, half_width=0.35)]) == 0.55
+    poly = ZoneConfig(name="p", polygon=[(-0.3, 0.0), (0.3, 0.0), (0.2, 0.9), (-0.2, 0.7)])
+    assert stop_reach([poly]) == 0.9

@@ -286,8 +286,11 @@ def stop_half_width(zones) -> float:
 def stop_reach(zones) -> float:
     """How far ahead of the axle an obstacle holds the robot for good, m: a stop band's ``distance`` (its
     ``min_distance`` when its length follows the speed: it crawls on to there), a polygon's farthest z."""
-    return max((z.polygon is None and (z.min_distance or z.distance)) or max(zz for _, zz in z.polygon)
-               for z in _stop_zones(zones))
+    def reach(z) -> float:
+        if z.polygon is not None:
+            return max(zz for _, zz in z.polygon)
+        return z.min_distance if z.min_distance is not None else z.distance
+    return max(reach(z) for z in _stop_zones(zones))
 
 
 def watched_floor(camera, mount, zones) -> Optional[np.ndarray]:
@@ -466,6 +469,7 @@ class ObstacleStage(VisionStage):
     def process(self, frame: Frame, odom: Pose2) -> Optional[Estimate]:
         rig, got = self._rig_for(frame)
         if rig is None:
+            self.sighting = None
             return Estimate(frame.stamp_ns, self.kind, False, None, {"speed_scale": 0.0, "reason": f"obstacles: {got}"})
         why = self._pair_problem(frame) if self._sgbm_pair(frame) else ""
         if why:
