@@ -47,8 +47,9 @@ def footprints(polygons, meta: dict) -> list:
 
 
 #: A robot this near its goal has no leg left to drive (its final turn on the spot is the controller's): the
-#: re-planner does not re-plan its approach (it once sent a robot 1 cm from its goal off on a new one).
-ARRIVED_M = 0.05
+#: re-planner does not re-plan its approach (it once sent a robot 1 cm from its goal off on a new one). The map's
+#: own 95 % endpoint error, as for the goal (GOAL_TOLERANCE_M): nearer than that a leg says nothing.
+ARRIVED_M = GOAL_TOLERANCE_M
 
 
 def stop_approach(cfg):
@@ -328,15 +329,13 @@ class Replanner:
         one at the goal (within ``ARRIVED_M``) has no leg left: its turn there is the controller's."""
         if self.approach is None or not route:
             return False
-        import dataclasses
-
         from vbnav.vision.nav_grid import band_clear
 
         if len(route) > 1:
             return not band_clear(grid, route[-2], route[-1], self.approach)
         if math.hypot(route[-1][0] - here[0], route[-1][1] - here[1]) <= ARRIVED_M:
             return False
-        return not band_clear(grid, here, route[-1], dataclasses.replace(self.approach, tolerance_m=0.0))
+        return not band_clear(grid, here, route[-1], self.approach, turned=False)
 
     def _say(self, msg: str) -> str:
         with self._events_lock:

@@ -88,18 +88,23 @@ def points_in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
 
 
 
-def zone_counts(zone: ZoneConfig, pts: np.ndarray) -> int:
+def in_zone(zone: ZoneConfig, pts: np.ndarray) -> np.ndarray:
+    """Which of the (N, 2) x, z points lie inside the zone (a band or a polygon)."""
     if len(pts) == 0:
-        return 0
+        return np.zeros(0, bool)
     if zone.polygon is not None:
-        return int(np.count_nonzero(points_in_polygon(pts, np.asarray(zone.polygon, dtype=np.float64))))
-    return len(_in_band(zone, pts))
+        return points_in_polygon(pts, np.asarray(zone.polygon, dtype=np.float64))
+    x, z = pts[:, 0], pts[:, 1]
+    return (z > 0) & (z <= zone.distance) & (np.abs(x) <= zone.half_width)
+
+
+def zone_counts(zone: ZoneConfig, pts: np.ndarray) -> int:
+    return int(np.count_nonzero(in_zone(zone, pts)))
 
 
 def _in_band(zone: ZoneConfig, pts: np.ndarray) -> np.ndarray:
     """The forward distances z of the points inside a band zone."""
-    x, z = pts[:, 0], pts[:, 1]
-    return z[(z > 0) & (z <= zone.distance) & (np.abs(x) <= zone.half_width)]
+    return pts[in_zone(zone, pts), 1]
 
 
 def band_reach(zone: ZoneConfig, pts: np.ndarray) -> float:
@@ -458,10 +463,7 @@ class ObstacleStage(VisionStage):
         both = np.vstack([pts, neg]) if len(neg) and self.cfg.negative_stops else pts
         inside = np.zeros(len(both), bool)
         for z in _stop_zones(self.cfg.zones):
-            if z.polygon is not None:
-                inside |= points_in_polygon(both, np.asarray(z.polygon, dtype=np.float64))
-            else:
-                inside |= (both[:, 1] > 0) & (both[:, 1] <= z.distance) & (np.abs(both[:, 0]) <= z.half_width)
+            inside |= in_zone(z, both)
         if inside.any():
             cells = np.unique(np.round(both[inside] / SIGHTING_CELL_M).astype(np.int64), axis=0)
             self.sighting = (odom, cells * SIGHTING_CELL_M)
