@@ -52,7 +52,7 @@ def footprint_scores(lmap, world: World) -> dict:
     """Per box that a map footprint overlaps: (IoU with its true footprint, the fraction of the box inside the
     map's footprint) of the best-overlapping object polygon (the goto grid's obstacle: IoU says how well it
     fits, the fraction whether the box is all inside, the safe side; ``footprint_overlap``)."""
-    polys = [p.footprint for p in object_polygons(lmap.P[lmap.verified]) if len(p.footprint) >= 3]
+    polys = [p.footprint for p in object_polygons(lmap.structure()) if len(p.footprint) >= 3]
     out = {}
     for name, kind, xz in world.footprints():
         if kind != "box":

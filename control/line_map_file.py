@@ -2,9 +2,12 @@
 
     {"format": "vbnav-line-map", "version": 1, "created": ..., "frames": N, "params": {...},
      "segments": [{"id", "p0", "p1", "cov0", "cov1", "support", "misses", "verified", "group",
-                   "hypothesis", "ambiguous", "views": [[x, y, z, heading], ...]}, ...]}
+                   "hypothesis", "ambiguous", "stance": [standing, flat],
+                   "views": [[x, y, z, heading], ...]}, ...]}
 
-Endpoints are world metres (x right, y down, z forward, floor y = 0). The information form is rebuilt
+Endpoints are world metres (x right, y down, z forward, floor y = 0). ``stance`` counts a floor line's
+observations that had a face rising from them and those with floor beyond (``LineMap.stance_votes``); a
+map written without it loads with none, as the map had none when it was built. The information form is rebuilt
 from the covariances on load, so a loaded map keeps fusing.
 """
 from __future__ import annotations
@@ -42,6 +45,7 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
                      "support": int(lmap.support[k]), "misses": int(lmap.misses[k]),
                      "verified": bool(lmap.verified[k]), "group": int(lmap.group[k]),
                      "hypothesis": bool(lmap.hypothesis[k]), "ambiguous": bool(lmap.ambiguous[k]),
+                     "stance": lmap.stance_votes[k].tolist(),
                      "views": [np.round(v, 5).tolist() for v in lmap.views[k]]})
     data = {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "frames": int(lmap.frames), "params": dataclasses.asdict(lmap.params), "meta": meta or {},
@@ -131,6 +135,11 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
             for name in ("verified", "hypothesis", "ambiguous"):
                 if not isinstance(s.get(name, True), bool):
                     raise MapFileError(f"{path}: segments[{k}].{name}: expected true or false, got {s[name]!r}")
+            stance = s.get("stance", [0, 0])
+            if not (isinstance(stance, list) and len(stance) == 2):
+                raise MapFileError(f"{path}: segments[{k}].stance: expected [standing, flat] counts, got {stance!r}")
+            for e, name in enumerate(("standing", "flat")):
+                _check_count(path, f"segments[{k}].stance[{e}] ({name})", stance[e], 0)
         P = np.array([[s["p0"], s["p1"]] for s in segs], float).reshape(n, 2, 3)
         C = np.array([[s["cov0"], s["cov1"]] for s in segs], float).reshape(n, 2, 3, 3)
         _check_segments(path, P, C, [s["id"] for s in segs])
@@ -142,6 +151,7 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
             lmap.verified = np.array([s["verified"] for s in segs], bool)
             lmap.hypothesis = np.array([s["hypothesis"] for s in segs], bool)
             lmap.ambiguous = np.array([s.get("ambiguous", True) for s in segs], bool)
+            lmap.stance_votes = np.array([s.get("stance", [0, 0]) for s in segs], int).reshape(n, 2)
             lmap.views = [[np.array(v, float) for v in s["views"]] for s in segs]
             lmap.next_id = int(lmap.ids.max()) + 1
             lmap.next_group = int(max(lmap.group.max(), -1)) + 1

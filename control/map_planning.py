@@ -18,8 +18,7 @@ def map_grid(lmap, meta: dict, robot_radius: float, extra_points=None):
     footprints abstracted from them or stored with the map; ``extra_points`` (N, 2) x, z lie inside it."""
     from vbnav.vision.line_abstraction import object_polygons
 
-    V = lmap.P[lmap.verified]
-    return grid_of(V, object_polygons(V), meta, robot_radius, extra_points)
+    return grid_of(lmap.P[lmap.verified], object_polygons(lmap.structure()), meta, robot_radius, extra_points)
 
 
 def grid_of(verified, polygons, meta: dict, robot_radius: float, extra_points=None):

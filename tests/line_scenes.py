@@ -253,7 +253,7 @@ def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapPa
     if abstraction_every:
         from vbnav.control.stages.line_map import AbstractionThread
         camera = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
-        slow = AbstractionThread(lambda: lmap.P[lmap.verified].copy(),
+        slow = AbstractionThread(lambda: lmap.structure().copy(),
                                  sight=lambda hyp, pinned: sight_hypotheses(hyp, list(lmap.keyframes), camera,
                                                                             lmap.params, pinned=pinned))
     counts = {"guided": [0, 0], "unguided": [0, 0]}

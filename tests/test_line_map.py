@@ -17,13 +17,13 @@ from vbnav.vision.line_segments import LineParams, Segments3D, match_stereo, rec
 I3 = np.eye(3)
 
 
-def obs(P, sigma=0.01, group=None):
+def obs(P, sigma=0.01, group=None, stance=None):
     """Segments3D in the camera frame from (K, 2, 3) endpoints with isotropic covariance."""
     P = np.asarray(P, float).reshape(-1, 2, 3)
     k = len(P)
     return Segments3D(P, np.broadcast_to(sigma ** 2 * I3, (k, 2, 3, 3)).copy(), np.zeros((k, 4)),
                       np.zeros((k, 4)), np.ones(k), np.arange(k) if group is None else np.asarray(group),
-                      np.ones(k, bool))
+                      np.ones(k, bool), stance=None if stance is None else np.asarray(stance, np.int8))
 
 
 def at(x, z=0.0):
@@ -123,21 +123,23 @@ def test_collinear_pieces_of_one_edge_merge_and_verify_together():
     assert len(m2) == 3 and not m2.verified.any()
 
 
-def _foot_and_a_floor_line_beyond_its_corner(corner_seen: bool) -> LineMap:
+def _foot_and_a_floor_line_beyond_its_corner(corner_seen: bool, stances=(0, 0), beyond_x=(-0.25, -0.08)) -> LineMap:
     """A box's foot on the floor (y = 0) from x = 0 to 0.6 m at z = 2 m, its corner's vertical edge standing at
     x = 0 (when ``corner_seen``), and a floor texture line on the foot's own line beyond the corner, from
     x = -0.25 to -0.08 m (8 cm before the corner: within the gaps that join LSD's broken pieces), all seen
-    from three viewpoints."""
+    from three viewpoints. ``stances``: the foot's and the texture line's observed stance."""
     m = LineMap(MapParams(view_baseline_m=0.1))
     foot = np.array([[0.0, 0.0, 2.0], [0.6, 0.0, 2.0]])
     corner = np.array([[0.0, -0.5, 2.0], [0.0, 0.0, 2.0]])
-    beyond = np.array([[-0.25, 0.0, 2.0], [-0.08, 0.0, 2.0]])
+    beyond = np.array([[beyond_x[0], 0.0, 2.0], [beyond_x[1], 0.0, 2.0]])
     for k in range(3):
         R, t = at(0.2 * k)
-        m.update(obs([foot - t] + ([corner - t] if corner_seen else []), sigma=0.005), R, t)
+        m.update(obs([foot - t] + ([corner - t] if corner_seen else []), sigma=0.005,
+                     stance=[stances[0]] + ([0] if corner_seen else [])), R, t)
     for k in range(3, 6):
         R, t = at(0.2 * k)
-        m.update(obs([beyond - t, foot - t] + ([corner - t] if corner_seen else []), sigma=0.005), R, t)
+        m.update(obs([beyond - t, foot - t] + ([corner - t] if corner_seen else []), sigma=0.005,
+                     stance=list(stances[::-1]) + ([0] if corner_seen else [])), R, t)
     return m
 
 
@@ -152,6 +154,54 @@ def test_a_floor_line_does_not_run_on_past_a_corner_standing_on_it():
     # The same line without the corner seen: the pieces 8 cm apart are one edge (the test is not vacuous).
     m = _foot_and_a_floor_line_beyond_its_corner(corner_seen=False)
     assert len(m) == 1 and np.allclose(sorted(m.P[0, :, 0]), [-0.25, 0.6], atol=1e-6)
+
+
+def test_a_foot_and_a_flat_floor_line_are_never_one_segment():
+    """What stands on a floor line (vision/line_floor.py) keeps a box's foot and a texture line on its line
+    apart, corner seen or not: a standing observation never fuses or merges with a flat segment, nor a flat
+    one with a standing segment. A piece whose stance is unknown joins a known one only where they overlap:
+    across a gap it may be the other kind (World.room seed 2, 180 frames: a foot of unknown stance, 9 cm past
+    a flat texture line's end, ran the segment 1.5 m along the floor)."""
+    from vbnav.vision.line_segments import FLAT, STANDING
+    ends = lambda m: sorted((round(float(m.P[k, :, 0].min()), 3), round(float(m.P[k, :, 0].max()), 3))  # noqa: E731
+                            for k in range(len(m)))
+    m = _foot_and_a_floor_line_beyond_its_corner(corner_seen=False, stances=(STANDING, FLAT))
+    assert ends(m) == [(-0.25, -0.08), (0.0, 0.6)]
+    assert m.stance([0, 1]).tolist() in ([STANDING, FLAT], [FLAT, STANDING]) and m.verified.all()
+    assert m.structure().shape == (1, 2, 3) and m.structure()[0, :, 0].tolist() == [0.0, 0.6]
+    m = _foot_and_a_floor_line_beyond_its_corner(corner_seen=False, stances=(STANDING, 0))
+    assert ends(m) == [(-0.25, -0.08), (0.0, 0.6)]
+    # Overlapping the foot, a piece of unknown stance is the foot seen again; two unknown pieces across a gap
+    # are one edge as before (the test of the corner above).
+    m = _foot_and_a_floor_line_beyond_its_corner(corner_seen=False, stances=(STANDING, 0), beyond_x=(-0.25, 0.2))
+    assert ends(m) == [(-0.25, 0.6)] and m.stance(0) == STANDING and m.support[0] == 9
+    m = _foot_and_a_floor_line_beyond_its_corner(corner_seen=False, stances=(0, 0))
+    assert ends(m) == [(-0.25, 0.6)]
+
+
+def test_floor_lines_say_what_stands_on_them():
+    """The band over a floor line matches the right image with the disparity of a face standing on the line
+    (a box's or a wall's foot) or with the floor's going on beyond it (a texture line). On the room loop
+    (World.room(0), 60 frames) 77 % of the observations on a true foot stood and none was flat; 75 % of
+    those more than 8 cm from every foot were flat and 0.25 % stood (measured; asserted within about 2x)."""
+    from line_scenes import loop_poses, point_segment_distance, render_drive, true_edges
+    from vbnav.vision.line_floor import floor_segments
+    from vbnav.vision.line_segments import FLAT, STANDING, detect_segments
+    world = World.room(0)
+    edges, _ = true_edges(world)
+    feet = np.array([e for e in edges if np.abs(e[:, 1]).max() < 1e-9])
+    drive = render_drive(world, loop_poses(60))
+    near, stance = [], []
+    for f, (R, c) in zip(drive.frames, drive.cams):
+        fl = floor_segments(detect_segments(f.image), f.image, f.right, CAM.K, BASELINE, R, c)
+        Pw = (fl.P @ R.T + c).reshape(-1, 3)
+        near.extend(point_segment_distance(Pw, feet[:, 0], feet[:, 1]).reshape(-1, 2, len(feet)).max(axis=1).min(axis=1))
+        stance.extend(fl.stance)
+    near, stance = np.array(near), np.array(stance)
+    foot, texture = stance[near < 0.03], stance[near > 0.08]
+    assert len(foot) >= 30 and len(texture) >= 1000, (len(foot), len(texture))
+    assert np.mean(foot == STANDING) >= 0.4 and np.mean(foot == FLAT) <= 0.02, np.bincount(foot + 1)
+    assert np.mean(texture == FLAT) >= 0.4 and np.mean(texture == STANDING) <= 0.01, np.bincount(texture + 1)
 
 
 def test_a_segment_takes_one_of_two_parallel_lines_of_one_image():

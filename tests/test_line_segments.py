@@ -108,6 +108,33 @@ def test_refine_lines_moves_a_coarse_segment_onto_the_edge(flip):
     assert np.allclose((out[0].reshape(2, 2) - seg[0].reshape(2, 2)) @ d, 0.0, atol=0.05)
 
 
+def test_a_refit_segment_running_on_into_another_edge_is_trimmed_where_it_leaves_its_own():
+    """A floor line's refit (``refit_lines(..., trim=True)``, vision/line_floor.py) cuts back an end whose
+    gradient peaks leave the fitted line: LSD joins two edges meeting at a small image angle (a box's two
+    feet at a corner, seen low and far), and the floor back-projects the other edge's part as the first
+    one's continuation (World.room seed 4, 180 frames: box_b's foot 45 cm past its corner). An edge bending
+    by 3 deg at x = 300 px, the segment given straight over both parts: untrimmed it keeps its end at
+    x = 420, trimmed it ends within two samples (24 px each) past the bend."""
+    import cv2
+    from vbnav.vision.line_segments import refit_lines
+    img = np.full((480, 640), 200, np.uint8)
+    bend = (420.0, 200.0 + 120.0 * math.tan(math.radians(3.0)))
+    region = np.array([[40, 200], [300, 200], bend, (bend[0], 479), (40, 479)])
+    cv2.fillPoly(img, [np.round(region * 16).astype(np.int32)], 60, lineType=cv2.LINE_AA, shift=4)
+    img = np.clip(img + np.random.default_rng(0).normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    seg = np.array([[40.0, 200.0, 420.0, 202.0]])
+    kept, ok = refit_lines(img, seg)
+    trimmed, ok_t = refit_lines(img, seg, trim=True)
+    assert ok[0] and ok_t[0] and abs(kept[0, 2] - 420.0) < 0.1
+    assert 300.0 < trimmed[0, 2] <= 300.0 + 2.5 * 24, trimmed          # measured 348.8
+    assert abs(trimmed[0, 0] - 40.0) < 0.1                             # the other end stays
+    # An edge without a bend keeps both ends.
+    straight = np.full((480, 640), 200, np.uint8)
+    cv2.rectangle(straight, (40, 200), (420, 479), 60, -1)
+    whole, _ = refit_lines(straight, np.array([[40.0, 200.0, 420.0, 200.0]]), trim=True)
+    assert abs(whole[0, 0] - 40.0) < 0.1 and abs(whole[0, 2] - 420.0) < 0.1
+
+
 def test_near_horizontal_segments_are_not_matched():
     from vbnav.vision.line_segments import Segments2D
     L = Segments2D(np.array([[100.0, 200.0, 300.0, 205.0], [100.0, 100.0, 110.0, 200.0]]), np.full((2, 2), 100.0))

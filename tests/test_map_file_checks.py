@@ -47,6 +47,29 @@ def test_rival_flag_round_trips_and_an_older_map_keeps_three_viewpoints(tmp_path
         load_map(path)
 
 
+def test_stance_votes_round_trip_and_an_older_map_has_none(tmp_path):
+    """What stood on a floor line (``LineMap.stance_votes``) is saved: a loaded map keeps a flat texture line
+    out of the objects its abstraction makes (``LineMap.structure``). A map written before it had none; a
+    count that is not one is refused, naming the segment."""
+    m = LineMap(MapParams())
+    P = np.array([[[0, 0, 2], [1, 0, 2]], [[0, 0, 3], [1, 0, 3]]], float)
+    m._insert(P, np.tile(np.eye(3) * 1e-4, (2, 2, 1, 1)), np.array([-1, -1]), np.array([0, 0, 0, 0.0]),
+              stance=np.array([1, -1], np.int8))
+    m.verified[:] = True
+    m.stance_votes[1] += [1, 4]
+    path = tmp_path / "map.json"
+    save_map(m, path)
+    back = load_map(path)[0]
+    assert back.stance_votes.tolist() == [[1, 0], [1, 5]] and back.structure().tolist() == [P[0].tolist()]
+    _edit(path, lambda segs: [s.pop("stance") for s in segs])
+    assert load_map(path)[0].stance_votes.tolist() == [[0, 0], [0, 0]]
+    for bad, why in (([1], r": expected \[standing, flat\] counts, got \[1\]"),
+                     ([1, -2], r"\[1\] \(flat\): expected an integer >= 0, got -2")):
+        _edit(path, lambda segs: segs[1].__setitem__("stance", bad))
+        with pytest.raises(MapFileError, match=r"map\.json: segments\[1\]\.stance" + why):
+            load_map(path)
+
+
 def test_zero_length_segment_is_refused(tmp_path):
     path = _saved(tmp_path)
     _edit(path, lambda s: s[1].__setitem__("p1", s[1]["p0"]))

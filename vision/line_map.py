@@ -54,7 +54,7 @@ from typing import Optional
 import numpy as np
 
 from vbnav.vision.line_projection import in_view_reach, project_segments
-from vbnav.vision.line_segments import Segments2D, Segments3D, grey
+from vbnav.vision.line_segments import FLAT, STANDING, Segments2D, Segments3D, grey
 from vbnav.vision.line_sighting import (HYPOTHESIS_SIGMA_M, HorizontalFix, Keyframe, same_viewpoint,
                                         sight_hypotheses, viewpoint)
 
@@ -280,6 +280,9 @@ class LineMap:
     # periodic texture lie on a lattice of ray crossings, which another viewpoint re-observes within the
     # gate, so two viewpoints do not verify it (separating_views); it needs verify_views of them.
     ambiguous: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    # Per segment: how many of its floor-line observations stood (a face rising from the line) and how many
+    # were flat (floor beyond it), vision/line_floor.py. A foot and a texture line are never one segment.
+    stance_votes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
     # Per segment: the endpoints of every observation fused or merged into it ((N, 2, 3), world frame; a
     # hypothesis's or a loaded map's extent counts as one). Its extent is where they reach along its
@@ -318,6 +321,12 @@ class LineMap:
 
     def verified_segments(self) -> np.ndarray:
         return self.P[self.verified]
+
+    def structure(self) -> np.ndarray:
+        """(K, 2, 3) the verified segments objects are made of (vision/line_abstraction.py): all but the floor
+        lines seen flat, with floor beyond them too (a texture line or a marking, not a box's foot: World.room
+        seed 5's box_b footprint ran 0.46 m past its corner along a flat texture line 5 cm off its foot)."""
+        return self.P[self.verified & (self.stance(slice(None)) != FLAT)]
 
     # ---------------------------------------------------------------- prediction
     def predict(self, R_wc: np.ndarray, t_wc: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -422,18 +431,20 @@ class LineMap:
         new_gid[rival] = self.next_group + np.arange(rival.sum())
         self.next_group += int(rival.sum())
         self._stops = self._corner_feet()
-        j = self._associate_and_fuse(Pw, Cw, view, obs.left_xy)
+        j = self._associate_and_fuse(Pw, Cw, view, obs.left_xy, obs.stance)
         fused = j >= 0
         seen[j[fused]] = True
+        self._vote(j[fused], obs.stance[fused])
         st.fused = int(fused.sum())
         new_P, new_C, new_group = Pw[~fused], Cw[~fused], new_gid[ginv.reshape(-1)][~fused]
+        new_stance = obs.stance[~fused]
         if pred is not None:
             if left is not None and len(pred):
                 seen[pred.index[self.supported(pred, left)]] = True
             self._count_misses(pred, seen)
         touched = np.nonzero(seen)[0]
         if len(new_P):
-            self._insert(new_P, new_C, new_group, view)
+            self._insert(new_P, new_C, new_group, view, stance=new_stance)
             st.inserted = len(new_P)
             touched = np.concatenate((touched, np.arange(len(self) - len(new_P), len(self))))
         # Merging, verification and pruning each decide which rows go; they are removed once, together
@@ -445,12 +456,12 @@ class LineMap:
         return st
 
     def _associate_and_fuse(self, Pw: np.ndarray, Cw: np.ndarray, view: np.ndarray,
-                            xy: Optional[np.ndarray] = None) -> np.ndarray:
+                            xy: Optional[np.ndarray] = None, stance: Optional[np.ndarray] = None) -> np.ndarray:
         """Associate and fuse a frame's observations one after the other, each seeing the map as the
         previous ones left it; returns (K,) the segment each was fused into, or -1.
 
         xy: the observations' left-image lines (K, 4): a segment takes at most one of several that are
-        distinct lines of this image (``_exclusive``).
+        distinct lines of this image (``_exclusive``). stance: the observations' (K,) (``_gate_pairs``).
 
         The gates are first evaluated for all (observation, segment) pairs against the map as it stood
         before the frame, in one batch. That stays right for every pair but those with a verified segment
@@ -465,7 +476,8 @@ class LineMap:
         out = np.full(len(Pw), -1)
         if len(self) == 0 or len(Pw) == 0:
             return out
-        k_all, c_all, score_all = self._gate_pairs(Pw, Cw)
+        stance = np.zeros(len(Pw), np.int8) if stance is None else stance
+        k_all, c_all, score_all = self._gate_pairs(Pw, Cw, None, stance)
         distinct = self._exclusive(xy)
         if distinct is not None:
             keep = self._resolve_exclusive(k_all, c_all, score_all, distinct)
@@ -485,7 +497,7 @@ class LineMap:
                 # came is re-gated once, from its latest line).
                 rows = np.concatenate(list(waiting.values()))
                 segs = np.repeat(list(waiting), [len(w) for w in waiting.values()])
-                kk, cc, sc = self._gate_pairs(Pw, Cw, (rows, segs))
+                kk, cc, sc = self._gate_pairs(Pw, Cw, (rows, segs), stance)
                 for o, j, v in zip(kk.tolist(), cc.tolist(), sc.tolist()):
                     pending[o][j] = v
                     given[j].append(o)
@@ -584,7 +596,8 @@ class LineMap:
         return ((np.abs(t_obs @ d) >= math.cos(math.radians(p.assoc_angle_deg)) - 1e-9)
                 & (_norms(gap, axis=1) <= math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6))
 
-    def _gate_pairs(self, Pw: np.ndarray, Cw: np.ndarray, pairs: Optional[tuple] = None):
+    def _gate_pairs(self, Pw: np.ndarray, Cw: np.ndarray, pairs: Optional[tuple] = None,
+                    stance: Optional[np.ndarray] = None):
         """The (observation, map segment) pairs that pass association, against the map as it is now.
 
         Gates: direction within ``assoc_angle_deg``; overlap along the line (``overlap_margin_m``) and both
@@ -592,7 +605,9 @@ class LineMap:
         both covariances (chi-square, 3 dof, 99 %), evaluated only for the pairs that pass the cheap gates.
         pairs: the (observation, map segment) pairs to consider, (K,) each (default: those the spatial hash
         finds within the coarse gate's reach of each observation, hypot(``overlap_margin_m``, 0.5 m): a pair
-        that passes the coarse gate has a point of the observation that near the map segment). Returns
+        that passes the coarse gate has a point of the observation that near the map segment). stance: the
+        observations' (K,): a foot's observation never pairs with a flat segment, nor a flat one with a
+        foot (``stance``; unknown pairs with either). Returns
         (k, c, score) sorted by observation, score, segment (the score prefers verified segments, then the smaller distance).
         """
         p = self.params
@@ -612,12 +627,17 @@ class LineMap:
         lengths = _norms(dirs, axis=1)
         dirs = dirs / np.maximum(lengths, 1e-12)[:, None]
         par = np.abs(np.einsum("ki,ki->k", t_obs[k], dirs)) >= math.cos(math.radians(p.assoc_angle_deg))
+        if stance is not None:
+            par &= stance[k] * self.stance(c) >= 0
         k, c, ref, dirs, lengths = k[par], c[par], ref[par], dirs[par], lengths[par]
         # Coarse gate: overlap along the map line and both endpoints within 0.5 m of it.
         a, d, ext = ref[:, 0], dirs, lengths
         s_obs = np.einsum("kei,ki->ke", Pw[k] - a[:, None], d)                        # (P, 2) along the line
         lo, hi = s_obs.min(axis=1, initial=np.inf), s_obs.max(axis=1, initial=-np.inf)
-        overlap = (hi >= -p.overlap_margin_m) & (lo <= ext + p.overlap_margin_m)
+        margin = np.full(len(k), p.overlap_margin_m)
+        if stance is not None:
+            margin[_one_stance_unknown(stance[k], self.stance(c))] = 0.0
+        overlap = (hi >= -margin) & (lo <= ext + margin)
         r = Pw[k] - (a[:, None] + s_obs[..., None] * d[:, None])                       # (P, 2, 3)
         coarse = overlap & (_norms(r, axis=2).max(axis=1, initial=0.0) < ASSOC_PERP_M)
         k, c, r, d = k[coarse], c[coarse], r[coarse], d[coarse]
@@ -763,9 +783,11 @@ class LineMap:
             return out
         ok = (np.abs(np.einsum("ki,ki->k", t[m], t[i])) >= math.cos(math.radians(p.assoc_angle_deg))) & (m != i)
         ok &= (self.group[i] < 0) | (self.group[m] != self.group[i])        # rivals are alternatives, not pieces
+        ok &= self.stance(i) * self.stance(m) >= 0                           # a foot and a texture line
         a, d, L = self.P[i, 0], t[i], lengths[i]
         s = np.einsum("kei,ki->ke", self.P[m] - a[:, None], d)                       # (K, 2) along i
-        ok &= np.maximum(s.min(axis=1) - L, -s.max(axis=1)) <= p.merge_gap_m
+        gap = np.where(_one_stance_unknown(self.stance(i), self.stance(m)), 0.0, p.merge_gap_m)
+        ok &= np.maximum(s.min(axis=1) - L, -s.max(axis=1)) <= gap
         r = self.P[m] - (a[:, None] + s[..., None] * d[:, None])                     # (K, 2, 3) across i
         ok &= _norms(r, axis=2).max(axis=1) < MERGE_PERP_M
         if ok.any() and len(self._stops):
@@ -888,6 +910,7 @@ class LineMap:
             self.anchor_cov[i] = self.cov[i]
         self._moved(np.array([i]))
         self.support[i] += self.support[j]
+        self.stance_votes[i] += self.stance_votes[j]
         self.misses[i] = min(self.misses[i], self.misses[j])
         self.hypothesis[i] &= self.hypothesis[j]
         self.ambiguous[i] |= self.ambiguous[j]
@@ -942,13 +965,26 @@ class LineMap:
         keep[hi[:ENDS_KEPT - half]] = True
         self.ends[i] = self.ends[i][keep]
 
+    def stance(self, idx) -> np.ndarray:
+        """STANDING, FLAT or 0 for segments idx: what most of their floor-line observations had above them
+        (a face rising from the line, or floor beyond it; vision/line_floor.py); 0 on a tie or none."""
+        v = self.stance_votes[idx]
+        return np.sign(v[..., 0] - v[..., 1]).astype(np.int8)
+
+    def _vote(self, j: np.ndarray, stance: np.ndarray) -> None:
+        np.add.at(self.stance_votes, (j[stance == STANDING], 0), 1)
+        np.add.at(self.stance_votes, (j[stance == FLAT], 1), 1)
+
     def _add_view(self, j: int, view: np.ndarray) -> None:
         if not any(same_viewpoint(v, view, self.params) for v in self.views[j]):
             self.views[j].append(view.copy())
 
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
-                hypothesis: bool = False) -> np.ndarray:
+                hypothesis: bool = False, stance: Optional[np.ndarray] = None) -> np.ndarray:
         n = len(Pw)
+        votes = np.zeros((n, 2), int)
+        if stance is not None:
+            votes[:, 0], votes[:, 1] = stance == STANDING, stance == FLAT
         indexed = self._indexed()
         t = Pw[:, 1] - Pw[:, 0]
         t = t / np.maximum(_norms(t, axis=1), 1e-12)[:, None]
@@ -968,6 +1004,7 @@ class LineMap:
         self.ids = np.concatenate((self.ids, new_ids))
         self.hypothesis = np.concatenate((self.hypothesis, np.full(n, hypothesis)))
         self.ambiguous = np.concatenate((self.ambiguous, group >= 0))
+        self.stance_votes = np.concatenate((self.stance_votes, votes))
         self.next_id += n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
         if len(self.ends) == len(self) - n:
@@ -1057,7 +1094,7 @@ class LineMap:
         if indexed:
             self.grid.remove(keep)
         for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis",
-                     "ambiguous"):
+                     "ambiguous", "stance_votes"):
             setattr(self, name, getattr(self, name)[keep])
         self.views = [v for v, k in zip(self.views, keep) if k]
         if len(self.ends) == len(keep):
@@ -1235,6 +1272,15 @@ def _hypothesis_kind(P: np.ndarray, tol_m: float) -> np.ndarray:
     vertical = np.abs(P[:, 0, [0, 2]] - P[:, 1, [0, 2]]).max(axis=1) <= tol_m
     lower = np.abs(P[..., 1]).max(axis=1) <= tol_m
     return np.where(vertical, 0, np.where(lower, 1, 2))
+
+
+def _one_stance_unknown(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K,) bool: of two floor lines' stances, one known (STANDING or FLAT) and the other not. Such pieces
+    are one line only where they overlap: across a gap the unknown one may be the other kind, as a box's
+    foot is beyond the corner where a texture line on its line ends (World.room seed 2, 180 frames: a foot
+    seen once, of unknown stance, joined a flat texture line 0.09 m past box_a's corner, and the segment ran
+    1.5 m along the floor beyond it)."""
+    return (a != b) & (a * b == 0)
 
 
 def _sorted_unique(a: np.ndarray) -> np.ndarray:

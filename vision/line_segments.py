@@ -123,11 +123,18 @@ class StereoMatches:
                              self.best[keep], self.predicted[keep])
 
 
+# A floor line's stance (Segments3D.stance, LineMap.stance): what the stereo pair shows above it.
+STANDING = 1      # a surface rises from it (a box's or a wall's foot)
+FLAT = -1         # floor on both sides (a texture line, a marking)
+
+
 @dataclass
 class Segments3D:
     """K 3D segments in the left camera frame: ``P`` (K, 2, 3) m, ``cov`` (K, 2, 3, 3) m^2,
     with the image segments they came from (``left_xy``, ``right_xy`` (K, 4)), the match ``score`` and
-    ``group`` / ``best`` from the matcher (rival hypotheses share a group)."""
+    ``group`` / ``best`` from the matcher (rival hypotheses share a group). ``stance`` (K,) says what a
+    floor line has above it (vision/line_floor.py): STANDING (a surface rises from it: a box's or a wall's
+    foot), FLAT (floor on both sides: a texture line or a marking) or 0 (not known, or not a floor line)."""
 
     P: np.ndarray
     cov: np.ndarray
@@ -137,6 +144,11 @@ class Segments3D:
     group: np.ndarray
     best: np.ndarray
     extra: dict = field(default_factory=dict)
+    stance: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        if self.stance is None:
+            self.stance = np.zeros(len(self.P), np.int8)
 
     def __len__(self) -> int:
         return len(self.P)
@@ -144,7 +156,7 @@ class Segments3D:
     def subset(self, keep) -> "Segments3D":
         return Segments3D(self.P[keep], self.cov[keep], self.left_xy[keep], self.right_xy[keep],
                           self.score[keep], self.group[keep], self.best[keep],
-                          {k: v[keep] for k, v in self.extra.items()})
+                          {k: v[keep] for k, v in self.extra.items()}, self.stance[keep])
 
     @staticmethod
     def concat(parts: list) -> "Segments3D":
@@ -157,7 +169,7 @@ class Segments3D:
         return Segments3D(cat([p.P for p in parts]), cat([p.cov for p in parts]), cat([p.left_xy for p in parts]),
                           cat([p.right_xy for p in parts]), cat([p.score for p in parts]),
                           cat([p.group for p in parts]), cat([p.best for p in parts]),
-                          {k: cat([p.extra[k] for p in parts]) for k in keys})
+                          {k: cat([p.extra[k] for p in parts]) for k in keys}, cat([p.stance for p in parts]))
 
     @staticmethod
     def empty() -> "Segments3D":
@@ -211,13 +223,18 @@ def refine_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LinePar
 
 
 def refit_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LineParams(), radius_px: float = None,
-                either_polarity: bool = False, grad: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray]:
+                either_polarity: bool = False, grad: Optional[tuple] = None,
+                trim: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Each segment moved across itself onto the full-resolution edge (endpoints stay where they are along it).
 
     At ``refine_samples`` points spread along the segment the gradient across the line (3x3 Sobel,
     bilinear) is sampled at whole-pixel offsets up to ``refine_radius_px`` either side; its peak, with the
     segment's own polarity, is located to sub-pixel by a parabola. A line offset(t) = a + b t fitted to the
     peaks (weighted by their strength, peaks more than 0.5 px off the first fit dropped) moves the endpoints.
+    ``trim``: an end whose samples include at least two peaks off the fitted line (more than 0.5 px), and
+    none on it, is cut back to the last sample on it (half a sample spacing beyond): LSD's angle tolerance
+    joins two edges meeting at a small image angle into one segment (a box's two feet at a corner, seen from
+    low and far), whose straight part is one edge and whose end is the other.
     A segment with fewer than a quarter of its samples on a peak keeps LSD's line. ``either_polarity``:
     the gradient's magnitude across the line is fitted (an occluding boundary's contrast changes sign where
     the background changes). ``grad``: ``gradients(image)``, if the caller has them. Returns the segments
@@ -262,6 +279,16 @@ def refit_lines(image: np.ndarray, xy: np.ndarray, params: LineParams = LinePara
     out = xy.copy()
     out[ok, 0:2] += a[ok, None] * nrm[ok]
     out[ok, 2:4] += (a + b)[ok, None] * nrm[ok]
+    if trim:
+        on = peak & (np.abs(o - (a[:, None] + b[:, None] * t[None])) <= 0.5)
+        off = peak & ~on
+        first, last = on.argmax(axis=1), k - 1 - on[:, ::-1].argmax(axis=1)
+        idx = np.arange(k)[None]
+        lo = np.where(ok & ((off & (idx < first[:, None])).sum(axis=1) >= 2), t[first] - 0.5 / k, 0.0)
+        hi = np.where(ok & ((off & (idx > last[:, None])).sum(axis=1) >= 2), t[last] + 0.5 / k, 1.0)
+        q0, q1 = out[:, 0:2].copy(), out[:, 2:4].copy()
+        out[:, 0:2] = q0 + lo[:, None] * (q1 - q0)
+        out[:, 2:4] = q0 + hi[:, None] * (q1 - q0)
     return out, ok
 
 

@@ -156,7 +156,7 @@ class LineMapStage(VisionStage):
         self.abstraction_inline = False     # step the slow loop on the frames' time (a simulated clock)
         self._last_pass_ns: Optional[int] = None
         if abstraction_period_s is not None:
-            self.abstraction = AbstractionThread(self.verified_snapshot, abstraction_period_s, sight=self.sight)
+            self.abstraction = AbstractionThread(self.structure_snapshot, abstraction_period_s, sight=self.sight)
 
     @classmethod
     def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
@@ -175,6 +175,11 @@ class LineMapStage(VisionStage):
     def verified_snapshot(self) -> np.ndarray:
         with self.lock:
             return self.map.P[self.map.verified].copy()
+
+    def structure_snapshot(self) -> np.ndarray:
+        """The verified segments objects are abstracted from (``LineMap.structure``)."""
+        with self.lock:
+            return self.map.structure().copy()
 
     def sight(self, hyp: np.ndarray, pinned: Optional[np.ndarray] = None) -> list:
         """The slow loop's measurements of hypotheses hyp (K, 2, 3) in a snapshot of the map's keyframes
