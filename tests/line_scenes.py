@@ -11,7 +11,11 @@ Scoring (docs/line_map.md):
   apart) are one viewpoint;
 - a verified map segment *belongs* to an edge when it is parallel (6 deg) and both endpoints are within
   10 cm of the edge's line (twice the false-segment distance, so the endpoint errors are not truncated at
-  the 5 cm the acceptance asks of their 95th percentile); an edge is *mapped* when segments belonging to it cover at least half of its
+  the 5 cm the acceptance asks of their 95th percentile), and it is not a floor line the map saw flat
+  (``LineMap.structure``: floor beyond it too, so by the map's own evidence a texture line or a marking,
+  not a box's or a wall's foot; the 10 cm tube of a foot holds 10 cm of open floor, whose texture lines
+  are the floor's, not errors of the foot). Since 2026-12-02 (fifth session); before, every verified
+  segment could belong; an edge is *mapped* when segments belonging to it cover at least half of its
   seen length (or 0.3 m);
 - endpoint error: distance of each endpoint of a belonging segment to the true edge (a segment, so an
   endpoint running past the corner counts);
@@ -203,7 +207,7 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
     in_view = np.nonzero(seen_len >= min_len)[0]
     verifiable = (count >= lmap.params.verify_views).mean(axis=1) * seg_len >= min_len
     mapped_verifiable = 0
-    V = lmap.P[lmap.verified]
+    V = lmap.structure()
     t = (np.arange(n) + 0.5) / n
     mapped, errs, missing = 0, [], []
     for e in in_view:
@@ -232,12 +236,13 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
             mapped_verifiable += int(verifiable[e])
         else:
             missing.append(f"{names[e]}:{classes[e]}")
-    if len(V):
-        far = point_quad_distance(V.reshape(-1, 3), world).reshape(-1, 2).max(axis=1) > false_m
+    every = lmap.P[lmap.verified]                # false or not: every verified segment, flat floor lines too
+    if len(every):
+        far = point_quad_distance(every.reshape(-1, 3), world).reshape(-1, 2).max(axis=1) > false_m
         false_fraction = float(far.mean())
     else:
         false_fraction = 0.0
-    return MapScore(len(in_view), mapped, np.array(errs), false_fraction, len(V), missing, by_class,
+    return MapScore(len(in_view), mapped, np.array(errs), false_fraction, len(every), missing, by_class,
                     int(verifiable[in_view].sum()), mapped_verifiable)
 
 

@@ -46,7 +46,8 @@ def room_map(room_drive):
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
     Measured: 13 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 6/8),
-    endpoints 2.9 mm median / 2.4 cm 95 %, 1.7 % of 362 verified segments false; the three missing (box_d's
+    endpoints 2.5 mm median / 1.9 cm 95 %, 1.9 % of 363 verified segments false (2.9 mm / 2.4 cm, 1.7 % of
+    362 before floor lines said what stands on them, vision/line_floor.py); the three missing (box_d's
     corner, box_e's two edges) are seen from fewer than the 3 distinct viewpoints verification needs: 12 of
     the 12 seen from >= 3 viewpoints are mapped (13 of 13 when 3 frames counted as 3 viewpoints) (12 of 16 before the top and lower edges ran between the seen corners and
     were found as ridges in the keyframes' images: box_b's far top). 11 of 16
@@ -58,8 +59,8 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     vision/line_vertical.py gave box_b's far corner, 8 of 16 before box_b's top hypothesis was measured on its
     corners' lines in the recent keyframes, 7 before two separating viewpoints verified an unambiguous
     candidate). Built as `map build` builds it, with the slow loop's hypotheses. On the denser 120-frame loop (a
-    frame every 5 cm, nearer a real robot's 2 cm): 13 of 20 (13 of the 13 seen from >= 3 viewpoints), 1.7 mm /
-    1.9 cm, 2.4 % of 550 false (7.0 cm 95 %
+    frame every 5 cm, nearer a real robot's 2 cm): 13 of 20 (13 of the 13 seen from >= 3 viewpoints), 1.6 mm /
+    2.7 cm, 1.8 % of 548 false (1.7 mm / 1.9 cm, 2.4 % before the floor lines' stance; 7.0 cm 95 %
     before: floor texture 8-12 cm in front of the south wall fused into its foot). The acceptance (90 % of the
     edges in view) is met for the edges seen from >= 3 viewpoints in this room, not for all in view, and not
     on every room (benchmarks/line_room.py, seeds 0-7): docs/line_map.md, "Current figures and acceptance"."""
@@ -72,7 +73,7 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     assert sc.in_view_verifiable >= 12 and sc.mapped_verifiable >= 0.9 * sc.in_view_verifiable, sc.missing
     assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 6   # floor lines, box_b's tops and feet
     assert sc.by_class["box_vertical"][1] >= 6, sc.by_class        # box_b's and box_a's far corners: vertical lines
-    assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.05
+    assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.04
     assert sc.false_fraction <= 0.035
     drive = render_drive(world, loop_poses(2 * LOOP_FRAMES))
     lmap, _ = build_map(drive, floor=True, abstraction_every=2 * ABSTRACTION_EVERY)
@@ -87,8 +88,9 @@ def test_rooms_the_map_was_not_developed_on():
     """World.room seeds 4-7 (the same boxes and walls, other textures; first measured 2026-12-02, after every
     threshold had been set on seeds 0-3), built and scored as the room test's: so a change fitted to seed 0
     fails here. Measured together (benchmarks/line_room.py prints each room): 37 of the 48 edges seen from
-    >= 3 viewpoints mapped, endpoints 2.9 mm median / 5.7 cm 95 % (the acceptance asks 2 cm / 5 cm), 20 of
-    1462 verified segments false (1.4 %); asserted within about 2x."""
+    >= 3 viewpoints mapped, endpoints 2.8 mm median / 2.1 cm 95 % (the acceptance asks 2 cm / 5 cm), 11 of
+    1392 verified segments false (0.8 %); asserted within about 2x. Before floor lines said what stands on
+    them (vision/line_floor.py): 37 of 48, 2.9 mm / 5.7 cm, 20 of 1462 false."""
     mapped = verifiable = false = verified = 0
     errs = []
     for seed in (4, 5, 6, 7):
@@ -101,8 +103,8 @@ def test_rooms_the_map_was_not_developed_on():
         errs.append(sc.endpoint_err)
     err = np.concatenate(errs)
     assert verifiable >= 44 and mapped >= 30, (mapped, verifiable)
-    assert np.median(err) <= 0.006 and np.percentile(err, 95) <= 0.11, (np.median(err), np.percentile(err, 95))
-    assert false <= 0.03 * verified, (false, verified)
+    assert np.median(err) <= 0.006 and np.percentile(err, 95) <= 0.045, (np.median(err), np.percentile(err, 95))
+    assert false <= 0.02 * verified, (false, verified)
 
 
 VIEW = View(CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.width, CAM.height, BASELINE, MOUNT)
