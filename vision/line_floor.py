@@ -159,10 +159,10 @@ def _floor_band_matches(xy: np.ndarray, L: np.ndarray, R: np.ndarray, K: np.ndar
 
 def _stance(xy: np.ndarray, Pc: np.ndarray, L: np.ndarray, R: np.ndarray, K: np.ndarray, K_inv: np.ndarray,
             baseline: float, R_wc: np.ndarray, t_wc: np.ndarray, params: FloorParams) -> np.ndarray:
-    """(N,) int8 STANDING, FLAT or 0 for floor lines xy (N, 4) at Pc (N, 2, 3) (camera frame; float32 images
-    L, R): whether the
-    band over each matches the right image better with the disparity of a face standing on the line (the
-    vertical plane through it) or with the floor's, going on beyond it (module docstring)."""
+    """(N,) int8 STANDING, FLAT or 0 for floor lines xy (N, 4) at Pc (N, 2, 3) (camera frame) in the float32
+    images L, R: whether the band over each matches the right image better with the disparity of a face
+    standing on the line (the vertical plane through it) or with the floor's, going on beyond it (module
+    docstring)."""
     band = _band(xy, params.above_px, params.samples, down=False)
     floor = _floor_disparity(band, K[0, 0], baseline, K_inv, R_wc, t_wc)
     vertical = R_wc.T @ np.array([0.0, 1.0, 0.0])                       # the world's vertical, camera frame
