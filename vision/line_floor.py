@@ -80,7 +80,7 @@ def floor_segments(left: Segments2D, left_image: np.ndarray, right_image: np.nda
     K_inv = np.linalg.inv(K)
     L, R = grey(left_image).astype(np.float32), grey(right_image).astype(np.float32)
     xy = left.xy[idx]
-    ok = _in_range(xy, K_inv, R_wc, t_wc, params)
+    ok = _floor_points(xy, K_inv, R_wc, t_wc, params)[1]
     idx, xy = idx[ok], xy[ok]
     if len(idx) == 0:
         return Segments3D.empty()
@@ -89,12 +89,11 @@ def floor_segments(left: Segments2D, left_image: np.ndarray, right_image: np.nda
     # other edge's part as this line's continuation.
     xy = refit_lines(L, xy[on], trim=True)[0]
     idx = idx[on]
-    ok = (np.linalg.norm(xy[:, 2:4] - xy[:, 0:2], axis=1) >= params.min_length_px) \
-        & _in_range(xy, K_inv, R_wc, t_wc, params)
-    idx, xy = idx[ok], xy[ok]
+    Pc, ok = _floor_points(xy, K_inv, R_wc, t_wc, params)
+    ok &= np.linalg.norm(xy[:, 2:4] - xy[:, 0:2], axis=1) >= params.min_length_px
+    idx, xy, Pc = idx[ok], xy[ok], Pc[ok]
     if len(idx) == 0:
         return Segments3D.empty()
-    Pc = (_floor_hit(xy.reshape(-1, 2), K_inv, R_wc, t_wc).reshape(-1, 2, 3) - t_wc) @ R_wc     # camera frame
     cov = _covariance(xy, Pc, K_inv, R_wc, t_wc, params)
     stance = _stance(xy, Pc, L, R, K, K_inv, baseline, R_wc, t_wc, params)
     n = len(idx)
@@ -102,12 +101,15 @@ def floor_segments(left: Segments2D, left_image: np.ndarray, right_image: np.nda
                       np.ones(n, bool), stance=stance)
 
 
-def _in_range(xy: np.ndarray, K_inv: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
-              params: FloorParams) -> np.ndarray:
-    """(N,) bool: both ends of the image lines xy (N, 4) meet the floor in front of the camera, within range."""
+def _floor_points(xy: np.ndarray, K_inv: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
+                  params: FloorParams) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2, 3) the floor points of the image lines' ends xy (N, 4), camera frame, and (N,) bool: both in
+    front of the camera, within range."""
     Pc = (_floor_hit(xy.reshape(-1, 2), K_inv, R_wc, t_wc).reshape(-1, 2, 3) - t_wc) @ R_wc
-    return np.isfinite(Pc).all(axis=(1, 2)) & (Pc[..., 2] > 0.1).all(axis=1) \
-        & (Pc[..., 2] <= params.max_range_m).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(Pc).all(axis=(1, 2)) & (Pc[..., 2] > 0.1).all(axis=1) \
+            & (Pc[..., 2] <= params.max_range_m).all(axis=1)
+    return Pc, ok
 
 
 def _band(xy: np.ndarray, offsets: tuple, samples: int, down: bool) -> np.ndarray:
