@@ -837,12 +837,12 @@ def test_the_slow_loop_takes_a_snapshot_of_the_keyframes_the_fast_loop_does_not_
     assert m.keyframes[-1].t[0] == xs[45] and m.keyframes[0].t[0] > snap[0].t[0]
 
 
-def test_fusions_into_verified_segments_are_regated_together_and_as_one_at_a_time():
-    """A frame's observations fuse one after the other; a verified segment fused earlier in the frame is
-    gated again with the observations still to come. Three verified edges each take a piece before the
-    pieces that may pair with them again come: their re-gating is one batch when the first of those comes
-    (not one per fusion), and the result is that of fusing the observations one at a time."""
+def test_a_frames_observations_are_associated_with_the_map_before_the_frame():
+    """A frame's observations are gated in one batch against the map as it stood before the frame (they
+    are the same instant's view; one observation does not move a segment before the next is gated), then
+    fused: two pieces of one verified edge both fuse into it, its information growing by theirs."""
     import copy
+    from vbnav.vision.line_map import ALONG_VAR
     edges = np.array([[[x, 0.0, 2.0], [x, 1.0, 2.0]] for x in (0.0, 1.2, 2.4)])
     m = LineMap(MapParams())
     m._insert(edges, np.broadcast_to(1e-4 * I3, (3, 2, 3, 3)).copy(), np.full(3, -1), np.zeros(4))
@@ -851,13 +851,15 @@ def test_fusions_into_verified_segments_are_regated_together_and_as_one_at_a_tim
         [[[x - 0.002, 0.5, 2.0], [x - 0.002, 0.95, 2.0]] for x in (0.0, 1.2, 2.4)]
     Pw = np.array(pieces)
     Cw = np.broadcast_to(1e-4 * I3, (6, 2, 3, 3)).copy()
-    ref = copy.deepcopy(m)
+    before = copy.deepcopy(m)
     calls = []
     gate = m._gate_pairs
     m._gate_pairs = lambda *a: calls.append(len(a)) or gate(*a)
     out = m._associate_and_fuse(Pw, Cw, np.zeros(4))
-    ref_out = np.concatenate([ref._associate_and_fuse(Pw[k:k + 1], Cw[k:k + 1], np.zeros(4)) for k in range(6)])
-    assert out.tolist() == ref_out.tolist() == [0, 1, 2, 0, 1, 2]
-    for name in ("P", "info", "info_vec", "cov", "support"):
-        assert np.array_equal(getattr(m, name), getattr(ref, name)), name
-    assert len(calls) == 2          # the frame's gating, then one re-gating of the three fused edges
+    assert out.tolist() == [0, 1, 2, 0, 1, 2] and len(calls) == 1
+    for k in range(6):                  # each observation's best segment in the map before the frame
+        assert before._gate_pairs(Pw[k:k + 1], Cw[k:k + 1])[1][0] == out[k]
+    W = np.linalg.inv(1e-4 * I3 + ALONG_VAR * np.diag([0.0, 1.0, 0.0]))
+    assert np.allclose(m.info - before.info, 2 * W)
+    assert m.support.tolist() == (before.support + 2).tolist()
+    assert np.abs(m.P[:, :, 0] - edges[:, :, 0]).max() < 1e-3      # the pieces 2 mm either side

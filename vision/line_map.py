@@ -457,85 +457,30 @@ class LineMap:
 
     def _associate_and_fuse(self, Pw: np.ndarray, Cw: np.ndarray, view: np.ndarray,
                             xy: Optional[np.ndarray] = None, stance: Optional[np.ndarray] = None) -> np.ndarray:
-        """Associate and fuse a frame's observations one after the other, each seeing the map as the
-        previous ones left it; returns (K,) the segment each was fused into, or -1.
+        """Associate a frame's observations with the map as it stood before the frame, then fuse them;
+        returns (K,) the segment each was fused into, or -1.
 
         xy: the observations' left-image lines (K, 4): a segment takes at most one of several that are
         distinct lines of this image (``_exclusive``). stance: the observations' (K,) (``_gate_pairs``).
-
-        The gates are first evaluated for all (observation, segment) pairs against the map as it stood
-        before the frame, in one batch. That stays right for every pair but those with a verified segment
-        fused earlier in the frame: association reads a verified segment's fused line and covariance (a
-        candidate's anchor never changes). So a fusion into a verified segment happens at once and that
-        segment's pairs with the observations still to come that can pass the gates are evaluated again,
-        when the first of those observations comes: one batch for all the segments fused by then (on the
-        loop's closing frames ~30 fusions a frame, re-gated in about half as many batches); fusions into
-        candidates happen after the loop, in the same order. The result is the same as
-        associating and fusing one observation at a time, at a fraction of the cost.
+        Each observation takes its best gated segment; several observations of one segment (LSD's pieces of
+        one edge) fuse into it one after the other, in their order (``_fuse_all``).
         """
         out = np.full(len(Pw), -1)
         if len(self) == 0 or len(Pw) == 0:
             return out
         stance = np.zeros(len(Pw), np.int8) if stance is None else stance
-        k_all, c_all, score_all = self._gate_pairs(Pw, Cw, None, stance)
+        k_all, c_all, score_all = self._gate_pairs(Pw, Cw, stance)
         distinct = self._exclusive(xy)
         if distinct is not None:
             keep = self._resolve_exclusive(k_all, c_all, score_all, distinct)
-            k_all, c_all, score_all = k_all[keep], c_all[keep], score_all[keep]
-        bounds = np.searchsorted(k_all, np.arange(len(Pw) + 1))
-        taken: dict = {}                        # segment -> the observations given it this frame
-        t_obs, lo, hi = _directions(Pw), Pw.min(axis=1), Pw.max(axis=1)
-        dirty = np.zeros(len(self), bool)       # verified segments fused this frame: their scores are stale
-        pending: list = [{} for _ in range(len(Pw))]   # per observation: such a segment -> its new score
-        given: dict = {}                        # such a segment -> the observations it has a new score for
-        waiting: dict = {}                      # such a segment -> the observations to re-gate it with
-        deferred = []
-        for k in range(len(Pw)):
-            if waiting and min(w[0] for w in waiting.values()) <= k:
-                # An observation that may pair with a segment fused since the last re-gating: all such
-                # pairs are gated now, in one batch (a segment fused again before any of its observations
-                # came is re-gated once, from its latest line).
-                rows = np.concatenate(list(waiting.values()))
-                segs = np.repeat(list(waiting), [len(w) for w in waiting.values()])
-                kk, cc, sc = self._gate_pairs(Pw, Cw, (rows, segs), stance)
-                for o, j, v in zip(kk.tolist(), cc.tolist(), sc.tolist()):
-                    pending[o][j] = v
-                    given[j].append(o)
-                waiting.clear()
-            c, score = c_all[bounds[k]:bounds[k + 1]], score_all[bounds[k]:bounds[k + 1]]   # by score, index
-            if given:
-                keep = ~dirty[c]
-                c, score = c[keep], score[keep]
-            best = (score[0], c[0]) if len(c) else None
-            for j, sc in pending[k].items():
-                if best is None or (sc, j) < best:
-                    best = (sc, j)
-            if distinct is not None and best is not None and distinct[k, taken.get(best[1], [])].any():
-                # A re-gated verified segment that a distinct line of this image already took: the next best.
-                alts = sorted(list(zip(score.tolist(), c.tolist())) + [(sc, j) for j, sc in pending[k].items()])
-                best = next((b for b in alts if not distinct[k, taken.get(b[1], [])].any()), None)
-            if best is None:
-                continue
-            j = out[k] = best[1]
-            taken.setdefault(j, []).append(k)
-            if not self.verified[j]:
-                deferred.append(k)
-                continue
-            self._fuse_distinct(out[k:k + 1], Pw[k:k + 1], Cw[k:k + 1])
-            dirty[j] = True
-            for o in given.pop(j, ()):
-                pending[o].pop(j, None)
-            # Its pairs with the observations still to come, among those that can pass the gates: roughly
-            # parallel and with a point within the coarse gate's reach (bounding boxes); gated when the
-            # first of them comes.
-            rest = k + 1 + np.nonzero(self._may_pair(j, t_obs[k + 1:], lo[k + 1:], hi[k + 1:]))[0]
-            given[j] = []
-            waiting.pop(j, None)
-            if len(rest):
-                waiting[j] = rest
-        self._fuse_all(out[deferred], Pw[deferred], Cw[deferred])
-        for j in out[out >= 0]:
-            self._add_view(int(j), view)
+            k_all, c_all = k_all[keep], c_all[keep]
+        if len(k_all):
+            best = np.r_[True, k_all[1:] != k_all[:-1]]           # sorted by observation, then score
+            out[k_all[best]] = c_all[best]
+        fused = np.nonzero(out >= 0)[0]
+        self._fuse_all(out[fused], Pw[fused], Cw[fused])
+        for j in out[fused].tolist():
+            self._add_view(j, view)
         return out
 
     def _exclusive(self, xy: Optional[np.ndarray]) -> Optional[np.ndarray]:
@@ -586,41 +531,25 @@ class LineMap:
             if not lost:
                 return keep
 
-    def _may_pair(self, j: int, t_obs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """(K,) bool: observations (unit directions, boxes) that can pass the association's direction and
-        coarse gates with verified segment j (a superset: the gates decide)."""
-        p = self.params
-        d = self.P[j, 1] - self.P[j, 0]
-        d = d / max(float(np.linalg.norm(d)), 1e-12)
-        gap = np.maximum(np.maximum(lo - self.P[j].max(axis=0), self.P[j].min(axis=0) - hi), 0.0)
-        return ((np.abs(t_obs @ d) >= math.cos(math.radians(p.assoc_angle_deg)) - 1e-9)
-                & (_norms(gap, axis=1) <= math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6))
-
-    def _gate_pairs(self, Pw: np.ndarray, Cw: np.ndarray, pairs: Optional[tuple] = None,
-                    stance: Optional[np.ndarray] = None):
+    def _gate_pairs(self, Pw: np.ndarray, Cw: np.ndarray, stance: Optional[np.ndarray] = None):
         """The (observation, map segment) pairs that pass association, against the map as it is now.
 
         Gates: direction within ``assoc_angle_deg``; overlap along the line (``overlap_margin_m``) and both
         endpoints within 0.5 m of it; then the Mahalanobis distance of both endpoints across the line under
         both covariances (chi-square, 3 dof, 99 %), evaluated only for the pairs that pass the cheap gates.
-        pairs: the (observation, map segment) pairs to consider, (K,) each (default: those the spatial hash
-        finds within the coarse gate's reach of each observation, hypot(``overlap_margin_m``, 0.5 m): a pair
-        that passes the coarse gate has a point of the observation that near the map segment). stance: the
-        observations' (K,): a foot's observation never pairs with a flat segment, nor a flat one with a
-        foot (``stance``; unknown pairs with either). Returns
-        (k, c, score) sorted by observation, score, segment (the score prefers verified segments, then the smaller distance).
+        The pairs considered are those the spatial hash finds within the coarse gate's reach of each
+        observation, hypot(``overlap_margin_m``, 0.5 m): a pair that passes the coarse gate has a point of
+        the observation that near the map segment. stance: the observations' (K,): a foot's observation
+        never pairs with a flat segment, nor a flat one with a foot (``stance``; unknown pairs with either).
+        Returns (k, c, score) sorted by observation, score, segment (the score prefers verified segments,
+        then the smaller distance).
         """
         p = self.params
         none = np.zeros(0, int)
-        if pairs is None:
-            reach = math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6
-            k, c = self._near(Pw.min(axis=1), Pw.max(axis=1), reach, _directions(Pw),
-                              lambda i: _directions(np.where(self.verified[i, None, None], self.P[i], self.anchor[i])))
-            t_obs = _directions(Pw)
-        else:
-            k, c = pairs
-            t_obs = np.zeros((len(Pw), 3))
-            t_obs[k] = _directions(Pw[k])
+        reach = math.hypot(p.overlap_margin_m, ASSOC_PERP_M) + 1e-6
+        t_obs = _directions(Pw)
+        k, c = self._near(Pw.min(axis=1), Pw.max(axis=1), reach, t_obs,
+                          lambda i: _directions(np.where(self.verified[i, None, None], self.P[i], self.anchor[i])))
         self._pairs += len(k)
         ref = np.where(self.verified[c, None, None], self.P[c], self.anchor[c])
         dirs = ref[:, 1] - ref[:, 0]
