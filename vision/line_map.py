@@ -284,6 +284,10 @@ class LineMap:
     # were flat (floor beyond it), vision/line_floor.py. A foot and a texture line are never one segment.
     stance_votes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
+    # Per segment: every viewpoint it was observed from, [(frame, x, y, z, heading), ...] in time order; its
+    # distinct views (``views``) are those apart from every earlier distinct one in that order, so they do
+    # not depend on which of two merged pieces survives (``_merge_views``). Frame -1: unknown (a map file).
+    view_log: list = field(default_factory=list, repr=False)
     # Per segment: the endpoints of every observation fused or merged into it ((N, 2, 3), world frame; a
     # hypothesis's or a loaded map's extent counts as one). Its extent is where they reach along its
     # current line (``_extent``), not the union of its earlier estimates.
@@ -845,8 +849,7 @@ class LineMap:
         self.ambiguous[i] |= self.ambiguous[j]
         if self.group[i] != self.group[j]:
             self.group[i] = -1                   # the merged edge is no longer one left segment's alternative
-        for v in self.views[j]:
-            self._add_view(i, v)
+        self._merge_views(i, j)
 
     def _ends_in_step(self) -> None:
         """One list of observed endpoints per segment; a map whose arrays were replaced from outside (a test)
@@ -905,8 +908,28 @@ class LineMap:
         np.add.at(self.stance_votes, (j[stance == FLAT], 1), 1)
 
     def _add_view(self, j: int, view: np.ndarray) -> None:
+        """Segment j observed from ``view`` (x, y, z, heading) in this frame."""
+        self._log_in_step()
+        self.view_log[j].append((float(self.frames), *view.tolist()))
         if not any(same_viewpoint(v, view, self.params) for v in self.views[j]):
             self.views[j].append(view.copy())
+
+    def _merge_views(self, i: int, j: int) -> None:
+        """Segment j's viewpoints into segment i's: both logs in time order, and the distinct views counted
+        again on it. Adding j's distinct views to i's would count the views from where the survivor was
+        seen first: of pieces seen from 0.1 m apart, the older one keeps the views 0.15 m on from it that
+        the newer one's first view hides (seed 6, box_a's corner: 3 views or 2 from one drive)."""
+        self._log_in_step()
+        log = sorted(self.view_log[i] + self.view_log[j], key=lambda v: v[0])      # stable: i's first
+        self.view_log[i] = log
+        views = np.array(log, float).reshape(-1, 5)[:, 1:]
+        self.views[i] = [views[k].copy() for k in _distinct_in_order(views, self.params)]
+
+    def _log_in_step(self) -> None:
+        """A map whose arrays were replaced from outside (a map file, a test) starts each segment's log from
+        its distinct views, time unknown."""
+        if len(self.view_log) != len(self):
+            self.view_log = [[(-1.0, *v.tolist()) for v in vs] for vs in self.views]
 
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
                 hypothesis: bool = False, stance: Optional[np.ndarray] = None) -> np.ndarray:
@@ -935,7 +958,11 @@ class LineMap:
         self.ambiguous = np.concatenate((self.ambiguous, group >= 0))
         self.stance_votes = np.concatenate((self.stance_votes, votes))
         self.next_id += n
+        logged = len(self.view_log) == len(self) - n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
+        if logged:
+            first = [(float(self.frames), *view.tolist())] if view is not None else []
+            self.view_log.extend(list(first) for _ in range(n))
         if len(self.ends) == len(self) - n:
             self.ends.extend(Pw[k:k + 1].copy() for k in range(n))
         if len(self.serial) == len(self) - n:
@@ -1025,6 +1052,8 @@ class LineMap:
         for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis",
                      "ambiguous", "stance_votes"):
             setattr(self, name, getattr(self, name)[keep])
+        if len(self.view_log) == len(self.views):
+            self.view_log = [v for v, k in zip(self.view_log, keep) if k]
         self.views = [v for v, k in zip(self.views, keep) if k]
         if len(self.ends) == len(keep):
             self.ends = [v for v, k in zip(self.ends, keep) if k]
@@ -1118,6 +1147,8 @@ class LineMap:
         ids = self._insert(P, C, np.full(len(P), -1), None, hypothesis=True)
         for k, fix in zip(range(len(self) - len(P), len(self)), fixes):
             self.views[k] = []
+            if len(self.view_log) == len(self):
+                self.view_log[k] = []
             self.support[k] = 0
             if fix is not None:
                 self._apply_fix(k, fix)
@@ -1185,6 +1216,8 @@ class LineMap:
         self.info_vec[k] = np.einsum("eij,ej->ei", self.info[k], self.P[k])
         self.support[k] = fix.support
         self.views[k] = [v.copy() for v in fix.views]
+        if len(self.view_log) == len(self):
+            self.view_log[k] = [(-1.0, *np.asarray(v, float).tolist()) for v in fix.views]
         self.verified[k] = True
         self._moved(np.array([k]))
 
@@ -1244,6 +1277,22 @@ def _norms(x: np.ndarray, axis: int, keepdims: bool = False) -> np.ndarray:
     """Euclidean norms along ``axis``: what ``np.linalg.norm(x, axis=axis)`` computes for a real array (the
     same sum of squares, so the same bits) without its argument handling (~5 us a call, thousands a frame)."""
     return np.sqrt(np.add.reduce(x * x, axis=axis, keepdims=keepdims))
+
+
+def _distinct_in_order(views: np.ndarray, params: MapParams) -> list:
+    """Indices of the viewpoints (n, 4) [x, y, z, heading] apart (``same_viewpoint``) from every one kept
+    before them, in their order (vectorised: one pass over the views marked by each kept one)."""
+    covered = np.zeros(len(views), bool)
+    kept = []
+    angle = math.radians(params.view_angle_deg)
+    for k in range(len(views)):
+        if covered[k]:
+            continue
+        kept.append(k)
+        d = views[:, :3] - views[k, :3]
+        turn = np.abs(np.remainder(views[:, 3] - views[k, 3] + math.pi, math.tau) - math.pi)
+        covered |= (np.sqrt(np.einsum("ki,ki->k", d, d)) < params.view_baseline_m) & (turn < angle)
+    return kept
 
 
 def _directions(P: np.ndarray) -> np.ndarray:
