@@ -894,3 +894,21 @@ def test_distinct_viewpoints_do_not_depend_on_which_merged_piece_survives():
         counted[keep] = [round(v[0], 3) for v in mm.views[keep]]
         assert [f for f, *_ in mm.view_log[keep]] == [1.0, 2.0, 3.0, 4.0, 5.0]
     assert counted[0] == counted[1] == [0.0, 0.17, 0.34]
+
+
+def test_a_candidates_view_log_is_bounded_and_a_verified_segments_dropped():
+    """The view log a candidate keeps to count its distinct viewpoints stops growing when the robot stands
+    still (a parked sentry sees the same candidate at 15 Hz for hours): past VIEW_LOG_EXACT views, one from a
+    logged viewpoint is not logged. A verified segment's log is dropped (its count no longer decides)."""
+    from vbnav.vision.line_map import VIEW_LOG_EXACT
+    m = LineMap()
+    seg = np.array([[[0.0, -0.5, 2.0], [0.0, 0.5, 2.0]]])
+    for _ in range(VIEW_LOG_EXACT + 50):
+        m.update(obs(seg), *at(0.0))
+    assert len(m) == 1 and not m.verified[0] and len(m.view_log[0]) == VIEW_LOG_EXACT
+    R, t = at(0.5)
+    m.update(obs(seg - t), R, t)                          # a new viewpoint is still logged
+    assert len(m) == 1 and len(m.view_log[0]) == VIEW_LOG_EXACT + 1 and len(m.views[0]) == 2
+    R, t = at(1.0)
+    m.update(obs(seg - t), R, t)
+    assert len(m) == 1 and m.verified[0] and len(m.view_log[0]) == 0 and len(m.views[0]) == 3

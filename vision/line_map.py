@@ -64,6 +64,10 @@ ENDS_KEPT = 64           # observations' endpoints kept per segment for its exte
 ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no information about the line
 ASSOC_PERP_M = 0.5       # association's coarse gate: both endpoints of an observation within this of the map line
 MERGE_PERP_M = 0.2       # merging's coarse gate: both endpoints of the other piece within this of the line
+# A candidate's view log is exact for its first VIEW_LOG_EXACT views (a candidate is verified or pruned long
+# before: 3 distinct viewpoints 0.15 m apart are ~14 frames at 0.5 m/s and 15 Hz); past them a view the same
+# viewpoint as a logged one is not logged, so a parked robot's log stops growing.
+VIEW_LOG_EXACT = 64
 GRID_CELL_M = 0.6        # the spatial hash's cell: about the association reach (hypot(0.3, 0.5) m)
 GRID_MIN_SEGMENTS = 10000  # below this the update scans the map (boxes, then directions): cheaper (see _near)
 _CELL_OFFSET = 1 << 19   # cell coordinates are packed as 20-bit fields (+-300 km at 0.6 m), then 2 bits of class
@@ -284,9 +288,12 @@ class LineMap:
     # were flat (floor beyond it), vision/line_floor.py. A foot and a texture line are never one segment.
     stance_votes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     views: list = field(default_factory=list)        # per segment: list of (x, y, z, heading) viewpoints
-    # Per segment: every viewpoint it was observed from, [(frame, x, y, z, heading), ...] in time order; its
-    # distinct views (``views``) are those apart from every earlier distinct one in that order, so they do
-    # not depend on which of two merged pieces survives (``_merge_views``). Frame -1: unknown (a map file).
+    # Per unverified segment: the viewpoints it was observed from, (n, 5) [frame, x, y, z, heading] in time
+    # order; its distinct views (``views``) are those apart from every earlier distinct one in that order, so
+    # they do not depend on which of two merged pieces survives (``_merge_views``). Past VIEW_LOG_EXACT
+    # views, one the same viewpoint as a logged one is not logged (a parked robot: the log is bounded by
+    # where the segment was seen from, not by how long); a verified segment's log is dropped. Frame -1:
+    # unknown (a map file).
     view_log: list = field(default_factory=list, repr=False)
     # Per segment: the endpoints of every observation fused or merged into it ((N, 2, 3), world frame; a
     # hypothesis's or a loaded map's extent counts as one). Its extent is where they reach along its
@@ -910,7 +917,10 @@ class LineMap:
     def _add_view(self, j: int, view: np.ndarray) -> None:
         """Segment j observed from ``view`` (x, y, z, heading) in this frame."""
         self._log_in_step()
-        self.view_log[j].append((float(self.frames), *view.tolist()))
+        if not self.verified[j]:
+            log = self.view_log[j]
+            if len(log) < VIEW_LOG_EXACT or not _near_views(log[:, 1:], view, self.params).any():
+                self.view_log[j] = np.concatenate((log, np.r_[self.frames, view][None]))
         if not any(same_viewpoint(v, view, self.params) for v in self.views[j]):
             self.views[j].append(view.copy())
 
@@ -918,18 +928,24 @@ class LineMap:
         """Segment j's viewpoints into segment i's: both logs in time order, and the distinct views counted
         again on it. Adding j's distinct views to i's would count the views from where the survivor was
         seen first: of pieces seen from 0.1 m apart, the older one keeps the views 0.15 m on from it that
-        the newer one's first view hides (seed 6, box_a's corner: 3 views or 2 from one drive)."""
+        the newer one's first view hides (seed 6, box_a's corner: 3 views or 2 from one drive). A verified
+        survivor (the survivor is verified when either was) only adds j's distinct views: it is verified."""
         self._log_in_step()
-        log = sorted(self.view_log[i] + self.view_log[j], key=lambda v: v[0])      # stable: i's first
+        if self.verified[i]:
+            for v in self.views[j]:
+                if not any(same_viewpoint(w, v, self.params) for w in self.views[i]):
+                    self.views[i].append(v.copy())
+            return
+        log = np.concatenate((self.view_log[i], self.view_log[j]))
+        log = log[np.argsort(log[:, 0], kind="stable")]                 # stable: i's first
         self.view_log[i] = log
-        views = np.array(log, float).reshape(-1, 5)[:, 1:]
-        self.views[i] = [views[k].copy() for k in _distinct_in_order(views, self.params)]
+        self.views[i] = [log[k, 1:].copy() for k in _distinct_in_order(log[:, 1:], self.params)]
 
     def _log_in_step(self) -> None:
         """A map whose arrays were replaced from outside (a map file, a test) starts each segment's log from
         its distinct views, time unknown."""
         if len(self.view_log) != len(self):
-            self.view_log = [[(-1.0, *v.tolist()) for v in vs] for vs in self.views]
+            self.view_log = [_logged(vs) for vs in self.views]
 
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
                 hypothesis: bool = False, stance: Optional[np.ndarray] = None) -> np.ndarray:
@@ -961,8 +977,8 @@ class LineMap:
         logged = len(self.view_log) == len(self) - n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
         if logged:
-            first = [(float(self.frames), *view.tolist())] if view is not None else []
-            self.view_log.extend(list(first) for _ in range(n))
+            first = np.r_[self.frames, view][None] if view is not None else np.zeros((0, 5))
+            self.view_log.extend(first.copy() for _ in range(n))
         if len(self.ends) == len(self) - n:
             self.ends.extend(Pw[k:k + 1].copy() for k in range(n))
         if len(self.serial) == len(self) - n:
@@ -998,6 +1014,9 @@ class LineMap:
         for k in np.nonzero(pair)[0]:
             newly[k] = self.separating_views(int(k))
         self.verified |= newly
+        if len(self.view_log) == len(self):
+            for k in np.nonzero(newly)[0].tolist():
+                self.view_log[k] = np.zeros((0, 5))         # verified: the count no longer matters
         # A verified hypothesis decides its group: its rivals go.
         drop = gone.copy()
         for g in np.unique(self.group[newly]):
@@ -1148,7 +1167,7 @@ class LineMap:
         for k, fix in zip(range(len(self) - len(P), len(self)), fixes):
             self.views[k] = []
             if len(self.view_log) == len(self):
-                self.view_log[k] = []
+                self.view_log[k] = np.zeros((0, 5))
             self.support[k] = 0
             if fix is not None:
                 self._apply_fix(k, fix)
@@ -1217,7 +1236,7 @@ class LineMap:
         self.support[k] = fix.support
         self.views[k] = [v.copy() for v in fix.views]
         if len(self.view_log) == len(self):
-            self.view_log[k] = [(-1.0, *np.asarray(v, float).tolist()) for v in fix.views]
+            self.view_log[k] = np.zeros((0, 5))             # verified: its log is not kept
         self.verified[k] = True
         self._moved(np.array([k]))
 
@@ -1279,20 +1298,30 @@ def _norms(x: np.ndarray, axis: int, keepdims: bool = False) -> np.ndarray:
     return np.sqrt(np.add.reduce(x * x, axis=axis, keepdims=keepdims))
 
 
+def _near_views(views: np.ndarray, view: np.ndarray, params: MapParams) -> np.ndarray:
+    """(n,) bool: viewpoints (n, 4) [x, y, z, heading] the same viewpoint as ``view`` (``same_viewpoint``,
+    vectorised)."""
+    d = views[:, :3] - view[:3]
+    turn = np.abs(np.remainder(views[:, 3] - view[3] + math.pi, math.tau) - math.pi)
+    return ((np.sqrt(np.einsum("ki,ki->k", d, d)) < params.view_baseline_m)
+            & (turn < math.radians(params.view_angle_deg)))
+
+
 def _distinct_in_order(views: np.ndarray, params: MapParams) -> list:
     """Indices of the viewpoints (n, 4) [x, y, z, heading] apart (``same_viewpoint``) from every one kept
     before them, in their order (vectorised: one pass over the views marked by each kept one)."""
     covered = np.zeros(len(views), bool)
     kept = []
-    angle = math.radians(params.view_angle_deg)
     for k in range(len(views)):
-        if covered[k]:
-            continue
-        kept.append(k)
-        d = views[:, :3] - views[k, :3]
-        turn = np.abs(np.remainder(views[:, 3] - views[k, 3] + math.pi, math.tau) - math.pi)
-        covered |= (np.sqrt(np.einsum("ki,ki->k", d, d)) < params.view_baseline_m) & (turn < angle)
+        if not covered[k]:
+            kept.append(k)
+            covered |= _near_views(views, views[k], params)
     return kept
+
+
+def _logged(views: list) -> np.ndarray:
+    """A view log (n, 5) of distinct views whose time is unknown (frame -1)."""
+    return np.array([np.r_[-1.0, v] for v in views], float).reshape(-1, 5)
 
 
 def _directions(P: np.ndarray) -> np.ndarray:
