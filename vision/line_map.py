@@ -65,8 +65,8 @@ ALONG_VAR = 1.0          # m^2 added along a line: positions along it carry no i
 ASSOC_PERP_M = 0.5       # association's coarse gate: both endpoints of an observation within this of the map line
 MERGE_PERP_M = 0.2       # merging's coarse gate: both endpoints of the other piece within this of the line
 # A candidate's view log is exact for its first VIEW_LOG_EXACT views (a candidate is verified or pruned long
-# before: 3 distinct viewpoints 0.15 m apart are ~14 frames at 0.5 m/s and 15 Hz); past them a view the same
-# viewpoint as a logged one is not logged, so a parked robot's log stops growing.
+# before: 3 distinct viewpoints 0.15 m apart are 0.3 m of driving, 9 frames at 0.5 m/s and 15 Hz); past them
+# a view the same viewpoint as a logged one is not logged, so a parked robot's log stops growing.
 VIEW_LOG_EXACT = 64
 GRID_CELL_M = 0.6        # the spatial hash's cell: about the association reach (hypot(0.3, 0.5) m)
 GRID_MIN_SEGMENTS = 10000  # below this the update scans the map (boxes, then directions): cheaper (see _near)
@@ -942,10 +942,10 @@ class LineMap:
         self.views[i] = [log[k, 1:].copy() for k in _distinct_in_order(log[:, 1:], self.params)]
 
     def _log_in_step(self) -> None:
-        """A map whose arrays were replaced from outside (a map file, a test) starts each segment's log from
+        """A map whose arrays were replaced from outside (a map file, a test) starts each candidate's log from
         its distinct views, time unknown."""
         if len(self.view_log) != len(self):
-            self.view_log = [_logged(vs) for vs in self.views]
+            self.view_log = [np.zeros((0, 5)) if v else _logged(vs) for vs, v in zip(self.views, self.verified)]
 
     def _insert(self, Pw: np.ndarray, Cw: np.ndarray, group: np.ndarray, view: np.ndarray,
                 hypothesis: bool = False, stance: Optional[np.ndarray] = None) -> np.ndarray:
