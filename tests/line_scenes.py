@@ -15,8 +15,11 @@ Scoring (docs/line_map.md):
   (``LineMap.structure``: floor beyond it too, so by the map's own evidence a texture line or a marking,
   not a box's or a wall's foot; the 10 cm tube of a foot holds 10 cm of open floor, whose texture lines
   are the floor's, not errors of the foot). Since 2026-12-02 (fifth session); before, every verified
-  segment could belong; an edge is *mapped* when segments belonging to it cover at least half of its
-  seen length (or 0.3 m);
+  segment could belong. Nor is it a line painted on a face (``painted_lines``: on a face's plane, 2 cm
+  inside its border, along an edge of the face's own texture), which is correct map content, the map of no
+  edge: a 6 cm texture vertical 5.9 cm from a box's corner on its face lies in the corner's 10 cm tube.
+  Since 2026-12-03 (``score_map(exclude_painted=False)`` scores the old way); an edge is *mapped* when
+  segments belonging to it cover at least half of its seen length (or 0.3 m);
 - endpoint error: distance of each endpoint of a belonging segment to the true edge (a segment, so an
   endpoint running past the corner counts);
 - a verified segment is *false* when an endpoint is more than 5 cm from every surface of the world.
@@ -115,6 +118,47 @@ def point_quad_distance(p: np.ndarray, world: World) -> np.ndarray:
     return best
 
 
+# A texture line on a face: both ends within PAINT_PLANE_M of the face's plane, PAINT_MARGIN_M inside its
+# border (so the band sampled across it stays on the face, off the face's own edge), and the face's texture
+# differs across it by PAINT_CONTRAST grey levels (the median over its length, sampled PAINT_BAND_TEXELS
+# either side): the texture's grain is sigma ~4 grey levels after its 1-texel blur (14 x 1 / (2 sqrt(pi))),
+# its painted shapes' edges tens of grey levels.
+PAINT_PLANE_M = 0.02
+PAINT_MARGIN_M = 0.02
+PAINT_BAND_TEXELS = 2.0
+PAINT_CONTRAST = 24.0
+
+
+def painted_lines(V: np.ndarray, world: World) -> np.ndarray:
+    """(K,) bool: segments V (K, 2, 3) that lie along a line painted on a face of the world (an edge of its
+    texture, not of its geometry): correct map content, the map of no edge however near one it lies."""
+    out = np.zeros(len(V), bool)
+    s = (np.arange(9) + 0.5) / 9
+    for q in world.polygons:
+        n = q.normal / np.linalg.norm(q.normal)
+        d = V - q.origin
+        a, b, off = d @ q.u, d @ q.v, d @ n                                   # (K, 2) each
+        m = PAINT_MARGIN_M
+        on = ((np.abs(off) <= PAINT_PLANE_M) & (a >= m) & (a <= q.width - m) & (b >= m)
+              & (b <= q.height - m)).all(axis=1) & ~out
+        for k in np.nonzero(on)[0]:
+            ta, tb = a[k, 1] - a[k, 0], b[k, 1] - b[k, 0]
+            length = math.hypot(ta, tb)
+            if length < 1e-6:
+                continue
+            na, nb = -tb / length, ta / length
+            ca, cb = a[k, 0] + s * ta, b[k, 0] + s * tb                        # along the segment, metres
+            h = PAINT_BAND_TEXELS / q.ppm
+            sides = []
+            for sign in (-1.0, 1.0):
+                col = ((ca + sign * h * na) * q.ppm - 0.5).astype(np.float32)
+                row = ((cb + sign * h * nb) * q.ppm - 0.5).astype(np.float32)
+                sides.append(cv2.remap(q.texture, col[None], row[None], cv2.INTER_LINEAR,
+                                       borderMode=cv2.BORDER_REPLICATE)[0].astype(float))
+            out[k] = np.median(np.abs(sides[1] - sides[0])) >= PAINT_CONTRAST
+    return out
+
+
 @dataclass
 class Drive:
     poses: list
@@ -193,7 +237,7 @@ class MapScore:
 
 
 def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, tol: float = 0.10,
-              angle_deg: float = 6.0, false_m: float = 0.05) -> MapScore:
+              angle_deg: float = 6.0, false_m: float = 0.05, exclude_painted: bool = True) -> MapScore:
     edges, names = true_edges(world)
     kinds = {q.name: q.kind for q in world.polygons}
     classes = [edge_class(e, kinds[nm]) for e, nm in zip(edges, names)]
@@ -208,6 +252,7 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
     verifiable = (count >= lmap.params.verify_views).mean(axis=1) * seg_len >= min_len
     mapped_verifiable = 0
     V = lmap.structure()
+    painted = painted_lines(V, world) if exclude_painted else np.zeros(len(V), bool)
     t = (np.arange(n) + 0.5) / n
     mapped, errs, missing = 0, [], []
     for e in in_view:
@@ -223,7 +268,7 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
         par = np.abs(sd @ d) >= math.cos(math.radians(angle_deg))
         s = ((V - a) @ d)                                       # (K, 2) along the edge
         perp = np.linalg.norm(V - a - s[..., None] * d, axis=2).max(axis=1)
-        own = par & (perp <= tol) & (s.max(axis=1) >= 0) & (s.min(axis=1) <= seg_len[e])
+        own = par & (perp <= tol) & (s.max(axis=1) >= 0) & (s.min(axis=1) <= seg_len[e]) & ~painted
         cover = np.zeros(n, bool)
         for k in np.nonzero(own)[0]:
             lo, hi = s[k].min() / seg_len[e], s[k].max() / seg_len[e]

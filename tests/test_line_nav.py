@@ -89,7 +89,8 @@ def test_rooms_the_map_was_not_developed_on():
     """World.room seeds 4-7 (the same boxes and walls, other textures; first measured 2026-12-02, after every
     threshold had been set on seeds 0-3), built and scored as the room test's: so a change fitted to seed 0
     fails here. Measured together (benchmarks/line_room.py prints each room): 37 of the 48 edges seen from
-    >= 3 viewpoints mapped, endpoints 2.7 mm median / 2.1 cm 95 % (the acceptance asks 2 cm / 5 cm), 13 of
+    >= 3 viewpoints mapped, endpoints 2.6 mm median / 1.7 cm 95 % (the acceptance asks 2 cm / 5 cm; 2.7 mm /
+    2.1 cm with a line painted on seed 5's box_a 5.5 cm from its corner counted as the corner's), 13 of
     1416 verified segments false (0.9 %; 11 of 1392 before the distinct viewpoints were counted in time
     order on every view); asserted within about 2x. Before floor lines said what stands on
     them (vision/line_floor.py): 37 of 48, 2.9 mm / 5.7 cm, 20 of 1462 false."""
@@ -105,7 +106,7 @@ def test_rooms_the_map_was_not_developed_on():
         errs.append(sc.endpoint_err)
     err = np.concatenate(errs)
     assert verifiable >= 44 and mapped >= 30, (mapped, verifiable)
-    assert np.median(err) <= 0.006 and np.percentile(err, 95) <= 0.045, (np.median(err), np.percentile(err, 95))
+    assert np.median(err) <= 0.005 and np.percentile(err, 95) <= 0.035, (np.median(err), np.percentile(err, 95))
     assert false <= 0.02 * verified, (false, verified)
 
 
@@ -718,3 +719,22 @@ def test_map_build_on_the_simulated_clock_runs_the_slow_loop_on_simulated_time(t
     assert threads == []
     # 1 s and 2 s of simulated time after the first frame (frames 16 and 31 at 15 Hz), then the final pass.
     assert passes == [16, 31, frames]
+
+
+def test_a_line_painted_on_a_face_belongs_to_no_edge():
+    """The scorer's ``painted_lines``: a segment along an edge of a face's texture (a grey step 6 cm from
+    the face's side) is a painted line, correct map content and the map of no edge; the face's own side
+    (its border), a segment off the face's plane, and one across uniform texture are not."""
+    from line_scenes import painted_lines
+    world = World(seed=0)
+    tex = np.full((256, 256), 60, np.uint8)                 # a 1 m x 1 m face at 256 texels per metre
+    tex[:, 15:] = 180                                       # the step at a = 15 / 256 m = 5.9 cm
+    tex.flags.writeable = False
+    world.add_quad("face", "box", origin=[0.0, -1.0, 2.0], u=[1.0, 0.0, 0.0], v=[0.0, 1.0, 0.0],
+                   width=1.0, height=1.0, texture=tex)
+    x = 15 / 256
+    segs = np.array([[[x, -0.8, 2.0], [x, -0.3, 2.0]],                # along the step
+                     [[0.0, -0.8, 2.0], [0.0, -0.3, 2.0]],            # the face's side
+                     [[x, -0.8, 2.1], [x, -0.3, 2.1]],                # 10 cm off the plane
+                     [[0.5, -0.8, 2.0], [0.5, -0.3, 2.0]]])           # across uniform grey
+    assert painted_lines(segs, world).tolist() == [True, False, False, False]
