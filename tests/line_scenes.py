@@ -15,9 +15,10 @@ Scoring (docs/line_map.md):
   (``LineMap.structure``: floor beyond it too, so by the map's own evidence a texture line or a marking,
   not a box's or a wall's foot; the 10 cm tube of a foot holds 10 cm of open floor, whose texture lines
   are the floor's, not errors of the foot). Since 2026-12-02 (fifth session); before, every verified
-  segment could belong. Nor is it a line painted on a face (``painted_lines``: on a face's plane, 2 cm
-  inside its border, along an edge of the face's own texture), which is correct map content, the map of no
-  edge: a 6 cm texture vertical 5.9 cm from a box's corner on its face lies in the corner's 10 cm tube.
+  segment could belong. Nor is it a line painted on a wall's or a box's face (``painted_lines``: on its
+  plane, 2 cm inside its border, along an edge of the face's own texture), which is correct map content,
+  the map of no edge: a 6 cm texture vertical 5.9 cm from a box's corner on its face lies in the corner's
+  10 cm tube.
   Since 2026-12-03 (``score_map(exclude_painted=False)`` scores the old way); an edge is *mapped* when
   segments belonging to it cover at least half of its seen length (or 0.3 m);
 - endpoint error: distance of each endpoint of a belonging segment to the true edge (a segment, so an
@@ -130,11 +131,14 @@ PAINT_CONTRAST = 24.0
 
 
 def painted_lines(V: np.ndarray, world: World) -> np.ndarray:
-    """(K,) bool: segments V (K, 2, 3) that lie along a line painted on a face of the world (an edge of its
-    texture, not of its geometry): correct map content, the map of no edge however near one it lies."""
+    """(K,) bool: segments V (K, 2, 3) that lie along a line painted on a face of a wall or a box (an edge of
+    its texture, not of its geometry): correct map content, the map of no edge however near one it lies.
+    Not the floor's: under a box's foot the floor's texture, hidden in the images, may have an edge too."""
     out = np.zeros(len(V), bool)
     s = (np.arange(9) + 0.5) / 9
     for q in world.polygons:
+        if q.kind not in ("wall", "box"):
+            continue
         n = q.normal / np.linalg.norm(q.normal)
         d = V - q.origin
         a, b, off = d @ q.u, d @ q.v, d @ n                                   # (K, 2) each
