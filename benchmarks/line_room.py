@@ -71,7 +71,6 @@ def measure(world: World, drive, seed: int, frames: int, guided: bool) -> dict:
     lmap, _ = build_map(drive, floor=True, guided=guided, abstraction_every=3 * frames // 60)
     sc = score_map(lmap, world, drive)
     err = sc.endpoint_err
-    with_painted = score_map(lmap, world, drive, exclude_painted=False).endpoint_err
     return {"seed": seed, "frames": frames, "guided": guided, "in_view": sc.in_view, "mapped": sc.mapped,
             "verifiable": sc.in_view_verifiable, "mapped_verifiable": sc.mapped_verifiable,
             "endpoint_median_mm": round(float(np.median(err)) * 1000, 1) if len(err) else None,
@@ -79,7 +78,7 @@ def measure(world: World, drive, seed: int, frames: int, guided: bool) -> dict:
             "false_pct": round(sc.false_fraction * 100, 1), "verified": sc.verified, "missing": sc.missing,
             "footprints": footprint_scores(lmap, world), "build_s": round(time.perf_counter() - t, 1),
             "false": int(round(sc.false_fraction * sc.verified)), "endpoint_err_m": [round(float(e), 4) for e in err],
-            "endpoint_err_with_painted_m": [round(float(e), 4) for e in with_painted]}
+            "endpoint_err_painted_m": [round(float(e), 4) for e in sc.painted_err]}
 
 
 def line(r: dict) -> str:
@@ -99,10 +98,11 @@ def pooled(rows: list) -> str:
     if len(err) == 0:
         return "no endpoints"
     worst = max((r["endpoint_p95_cm"] for r in rows if r["endpoint_p95_cm"] is not None), default=None)
-    painted = np.concatenate([np.asarray(r["endpoint_err_with_painted_m"], float) for r in rows])
+    painted = np.concatenate([np.asarray(r["endpoint_err_painted_m"], float) for r in rows])
+    with_painted = np.concatenate((err, painted))
     return (f"pooled endpoints {np.median(err) * 1000:.1f} mm / {np.percentile(err, 95) * 100:.2f} cm 95 % "
-            f"({len(err)} ends; worst room {worst} cm; {np.percentile(painted, 95) * 100:.2f} cm with the "
-            f"{len(painted) - len(err)} ends of lines painted on a face near an edge counted as the edge's), "
+            f"({len(err)} ends; worst room {worst} cm; {np.percentile(with_painted, 95) * 100:.2f} cm with the "
+            f"{len(painted)} ends of lines painted on a face near an edge counted as the edge's), "
             f"{false} of {verified} false ({100 * false / max(verified, 1):.1f} %)")
 
 

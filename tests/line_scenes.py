@@ -19,7 +19,7 @@ Scoring (docs/line_map.md):
   plane, 2 cm inside its border, along an edge of the face's own texture), which is correct map content,
   the map of no edge: a 6 cm texture vertical 5.9 cm from a box's corner on its face lies in the corner's
   10 cm tube.
-  Since 2026-12-03 (``score_map(exclude_painted=False)`` scores the old way); an edge is *mapped* when
+  Since 2026-12-03 (``MapScore.painted_err`` holds their endpoint errors); an edge is *mapped* when
   segments belonging to it cover at least half of its seen length (or 0.3 m);
 - endpoint error: distance of each endpoint of a belonging segment to the true edge (a segment, so an
   endpoint running past the corner counts);
@@ -32,7 +32,7 @@ Edge classes (``edge_class``): ``box_vertical`` (box corners), ``box_horizontal`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -234,6 +234,9 @@ class MapScore:
     # how many of them are mapped.
     in_view_verifiable: int = 0
     mapped_verifiable: int = 0
+    # The endpoint errors of the lines painted on a face within an edge's tube (``painted_lines``), which
+    # belong to no edge: endpoint_err plus these is the score of every segment in the tube (before 2026-12-03).
+    painted_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def coverage(self) -> float:
@@ -241,7 +244,7 @@ class MapScore:
 
 
 def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, tol: float = 0.10,
-              angle_deg: float = 6.0, false_m: float = 0.05, exclude_painted: bool = True) -> MapScore:
+              angle_deg: float = 6.0, false_m: float = 0.05) -> MapScore:
     edges, names = true_edges(world)
     kinds = {q.name: q.kind for q in world.polygons}
     classes = [edge_class(e, kinds[nm]) for e, nm in zip(edges, names)]
@@ -256,9 +259,9 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
     verifiable = (count >= lmap.params.verify_views).mean(axis=1) * seg_len >= min_len
     mapped_verifiable = 0
     V = lmap.structure()
-    painted = painted_lines(V, world) if exclude_painted else np.zeros(len(V), bool)
+    painted = painted_lines(V, world)
     t = (np.arange(n) + 0.5) / n
-    mapped, errs, missing = 0, [], []
+    mapped, errs, painted_errs, missing = 0, [], [], []
     for e in in_view:
         a, b = edges[e]
         d = (b - a) / seg_len[e]
@@ -272,7 +275,10 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
         par = np.abs(sd @ d) >= math.cos(math.radians(angle_deg))
         s = ((V - a) @ d)                                       # (K, 2) along the edge
         perp = np.linalg.norm(V - a - s[..., None] * d, axis=2).max(axis=1)
-        own = par & (perp <= tol) & (s.max(axis=1) >= 0) & (s.min(axis=1) <= seg_len[e]) & ~painted
+        tube = par & (perp <= tol) & (s.max(axis=1) >= 0) & (s.min(axis=1) <= seg_len[e])
+        own = tube & ~painted
+        for k in np.nonzero(tube & painted)[0]:
+            painted_errs.extend(point_segment_distance(V[k], a[None], b[None])[:, 0])
         cover = np.zeros(n, bool)
         for k in np.nonzero(own)[0]:
             lo, hi = s[k].min() / seg_len[e], s[k].max() / seg_len[e]
@@ -292,7 +298,7 @@ def score_map(lmap: LineMap, world: World, drive: Drive, min_len: float = 0.3, t
     else:
         false_fraction = 0.0
     return MapScore(len(in_view), mapped, np.array(errs), false_fraction, len(every), missing, by_class,
-                    int(verifiable[in_view].sum()), mapped_verifiable)
+                    int(verifiable[in_view].sum()), mapped_verifiable, np.array(painted_errs))
 
 
 def build_map(drive: Drive, params: LineParams = LineParams(), map_params: MapParams = MapParams(),

@@ -55,8 +55,8 @@ import numpy as np
 
 from vbnav.vision.line_projection import in_view_reach, project_segments
 from vbnav.vision.line_segments import FLAT, STANDING, Segments2D, Segments3D, grey
-from vbnav.vision.line_sighting import (HYPOTHESIS_SIGMA_M, HorizontalFix, Keyframe, same_viewpoint,
-                                        sight_hypotheses, viewpoint)
+from vbnav.vision.line_sighting import (HYPOTHESIS_SIGMA_M, HorizontalFix, Keyframe, distinct_views,
+                                        same_viewpoint, sight_hypotheses, viewpoint)
 
 CHI2_3_99 = 11.34        # 99 % quantile of chi-square with 3 degrees of freedom
 CHI2_1_99 = 6.63         # ... with 1 (a height)
@@ -919,7 +919,7 @@ class LineMap:
         self._log_in_step()
         if not self.verified[j]:
             log = self.view_log[j]
-            if len(log) < VIEW_LOG_EXACT or not _near_views(log[:, 1:], view, self.params).any():
+            if len(log) < VIEW_LOG_EXACT or not any(same_viewpoint(v, view, self.params) for v in log[:, 1:]):
                 self.view_log[j] = np.concatenate((log, np.r_[self.frames, view][None]))
         if not any(same_viewpoint(v, view, self.params) for v in self.views[j]):
             self.views[j].append(view.copy())
@@ -932,14 +932,12 @@ class LineMap:
         survivor (the survivor is verified when either was) only adds j's distinct views: it is verified."""
         self._log_in_step()
         if self.verified[i]:
-            for v in self.views[j]:
-                if not any(same_viewpoint(w, v, self.params) for w in self.views[i]):
-                    self.views[i].append(v.copy())
+            self.views[i] = distinct_views(self.views[i] + self.views[j], self.params)
             return
         log = np.concatenate((self.view_log[i], self.view_log[j]))
         log = log[np.argsort(log[:, 0], kind="stable")]                 # stable: i's first
         self.view_log[i] = log
-        self.views[i] = [log[k, 1:].copy() for k in _distinct_in_order(log[:, 1:], self.params)]
+        self.views[i] = [v.copy() for v in distinct_views(list(log[:, 1:]), self.params)]
 
     def _log_in_step(self) -> None:
         """A map whose arrays were replaced from outside (a map file, a test) starts each candidate's log from
@@ -1296,27 +1294,6 @@ def _norms(x: np.ndarray, axis: int, keepdims: bool = False) -> np.ndarray:
     """Euclidean norms along ``axis``: what ``np.linalg.norm(x, axis=axis)`` computes for a real array (the
     same sum of squares, so the same bits) without its argument handling (~5 us a call, thousands a frame)."""
     return np.sqrt(np.add.reduce(x * x, axis=axis, keepdims=keepdims))
-
-
-def _near_views(views: np.ndarray, view: np.ndarray, params: MapParams) -> np.ndarray:
-    """(n,) bool: viewpoints (n, 4) [x, y, z, heading] the same viewpoint as ``view`` (``same_viewpoint``,
-    vectorised)."""
-    d = views[:, :3] - view[:3]
-    turn = np.abs(np.remainder(views[:, 3] - view[3] + math.pi, math.tau) - math.pi)
-    return ((np.sqrt(np.einsum("ki,ki->k", d, d)) < params.view_baseline_m)
-            & (turn < math.radians(params.view_angle_deg)))
-
-
-def _distinct_in_order(views: np.ndarray, params: MapParams) -> list:
-    """Indices of the viewpoints (n, 4) [x, y, z, heading] apart (``same_viewpoint``) from every one kept
-    before them, in their order (vectorised: one pass over the views marked by each kept one)."""
-    covered = np.zeros(len(views), bool)
-    kept = []
-    for k in range(len(views)):
-        if not covered[k]:
-            kept.append(k)
-            covered |= _near_views(views, views[k], params)
-    return kept
 
 
 def _logged(views: list) -> np.ndarray:
