@@ -123,6 +123,22 @@ def test_collinear_pieces_of_one_edge_merge_and_verify_together():
     assert len(m2) == 3 and not m2.verified.any()
 
 
+def test_a_chain_of_pieces_merges_in_a_few_batched_rounds():
+    """Merging scores every pair that may merge in one batch a round (``_merge_collinear``): eight pieces of
+    one edge inserted in one frame, each 5 cm from the next (within merge_gap_m), become one segment with
+    all their support in three rounds (measured; the search per segment it replaced scored pairs once per
+    segment tested, 8 and more times here), the extent where the end pieces reach."""
+    m = LineMap(MapParams(view_baseline_m=0.1))
+    pieces = [np.array([[0.0, y, 2.0], [0.0, y + 0.1, 2.0]]) for y in np.arange(8) * 0.15 - 0.9]
+    batches = []
+    scores = m._partner_scores
+    m._partner_scores = lambda *a: batches.append(len(a[0])) or scores(*a)
+    st = m.update(obs(pieces, sigma=0.005), *at(0.0))
+    assert len(m) == 1 and st.merged == 7 and m.support[0] == 8
+    assert np.allclose(sorted(m.P[0, :, 1]), [-0.9, 0.25], atol=1e-6)
+    assert 2 <= len(batches) <= 4, batches
+
+
 def _foot_and_a_floor_line_beyond_its_corner(corner_seen: bool, stances=(0, 0), beyond_x=(-0.25, -0.08)) -> LineMap:
     """A box's foot on the floor (y = 0) from x = 0 to 0.6 m at z = 2 m, its corner's vertical edge standing at
     x = 0 (when ``corner_seen``), and a floor texture line on the foot's own line beyond the corner, from

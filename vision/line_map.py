@@ -640,77 +640,79 @@ class LineMap:
         observations of one edge, so their information, support and viewpoints add up, and the edge is
         verified from the viewpoints of all its pieces. Only pairs with a segment ``touched`` this frame are
         tested (the others were tested when they last changed). Returns the number of merges, the
-        segments merged into others (to be removed) and those that absorbed one."""
+        segments merged into others (to be removed) and those that absorbed one.
+
+        In rounds, as the sequential rule it batches (the newest segment first takes its best partner):
+        every pair that may merge is scored in one batch (``_partner_scores``); then, newest segment first
+        (the highest row: this frame's pieces are inserted last), each segment takes its best partner
+        unless one of the two merged already in this round, in which case it waits for the next; the
+        segments that grew are paired with what is near them, both ways round, for the next round, until
+        no pair merges. One batch a round instead of a search per segment: on the patrol's closing frames
+        (~85 segments with a possible piece, ~20 merges) merging went from 17-19 ms at p95 to ~7."""
         merged = 0
         alive = np.ones(len(self), bool)
         D, L = self.direction, self.length       # kept in step with the merges below
         touched = np.asarray(touched, int)
+        grown: list = []
         if len(touched) == 0 or len(self) < 2:
-            return 0, ~alive, []
-        # Cheap vectorised prefilter: another segment parallel, its midpoint near the line and the extent.
-        # Its pairs are among the segments the spatial hash finds within the reach below: the midpoint is
-        # within MERGE_PERP_M across and 0.5 L + merge_gap_m along, so walking from it along the segment
-        # (at most assoc_angle_deg off) reaches a point within merge_gap_m + MERGE_PERP_M of the touched
-        # segment plus the segment's own margin (the hash lists it in a box widened by that, see _bbox).
+            return 0, ~alive, grown
+        i, m = self._merge_pairs(touched, alive, D, L)
+        while len(i):
+            score = self._partner_scores(i, m, D, L)
+            ok = np.isfinite(score)
+            if not ok.any():
+                break
+            i, m, score = i[ok], m[ok], score[ok]
+            used = np.zeros(len(self), bool)
+            kept: list = []
+            tried: set = set()
+            for k in np.lexsort((m, score, -i)).tolist():       # newest first, then best first
+                a, b = int(i[k]), int(m[k])
+                if a in tried:
+                    continue
+                tried.add(a)                                     # its best partner: taken, or it waits
+                if used[a] or used[b]:
+                    continue
+                used[a] = used[b] = True
+                keep, gone = (a, b) if self._rank(a) >= self._rank(b) else (b, a)
+                self._absorb(keep, gone)
+                d = self.P[keep, 1] - self.P[keep, 0]
+                L[keep] = np.linalg.norm(d)
+                D[keep] = d / max(L[keep], 1e-12)
+                alive[gone] = False
+                kept.append(keep)
+                merged += 1
+            grown.extend(k for k in kept if k not in grown)
+            q, r = self._merge_pairs(np.array(kept), alive, D, L)    # a grown segment may reach another
+            i, m = np.concatenate((q, r)), np.concatenate((r, q))
+        return merged, ~alive, [k for k in grown if alive[k]]
+
+    def _merge_pairs(self, idx: np.ndarray, alive: np.ndarray, D: np.ndarray, L: np.ndarray) -> tuple:
+        """(i, m): segments idx paired with the alive segments that may be their pieces in merging, by a
+        cheap vectorised prefilter: parallel, the midpoint near i's line and within its extent widened by
+        the gap. Every pair ``_partner_scores`` accepts passes it (both endpoints near i's line put the
+        midpoint there; overlapping or within the gap puts it within the extent), and is among the
+        segments the spatial hash finds within the reach below: the midpoint is within MERGE_PERP_M
+        across and 0.5 L + merge_gap_m along, so walking from it along the segment (at most
+        assoc_angle_deg off) reaches a point within merge_gap_m + MERGE_PERP_M of segment i plus the
+        segment's own margin (the hash lists it in a box widened by that, see _bbox)."""
         p = self.params
         ang = math.radians(p.assoc_angle_deg)
         reach = p.merge_gap_m + MERGE_PERP_M + 1e-6
-        lo, hi, _ = self._bbox(touched)
-        k, m = self._near(lo, hi, reach, D[touched], lambda i: D[i])
+        lo, hi, _ = self._bbox(idx)
+        k, m = self._near(lo, hi, reach, D[idx], lambda j: D[j])
         self._pairs += len(k)
-        i = touched[k]
-        dot = np.abs(np.einsum("ki,ki->k", D[i], D[m]))
+        i = idx[k]
         eps = 1e-9
-        par = (dot >= math.cos(ang) - eps) & (m != i)
-        k, m, i, dot = k[par], m[par], i[par], dot[par]
+        dot = np.abs(np.einsum("ki,ki->k", D[i], D[m]))
+        ok = (dot >= math.cos(ang) - eps) & (m != i) & alive[m]
+        i, m = i[ok], m[ok]
         rel = 0.5 * (self.P[m, 0] + self.P[m, 1]) - self.P[i, 0]
         s = (rel * D[i]).sum(axis=1)
         perp = _norms(rel - s[:, None] * D[i], axis=1)
-        half = 0.5 * L[m] + self.params.merge_gap_m
+        half = 0.5 * L[m] + p.merge_gap_m
         near = (perp < MERGE_PERP_M + eps) & (s >= -half - eps) & (s <= L[i] + half + eps)
-        close = near & (dot >= math.cos(ang)) & (perp < MERGE_PERP_M) & (s >= -half) & (s <= L[i] + half)
-        queue = [int(j) for j in np.unique(i[close])]
-        # A partner passes this prefilter too (both its endpoints near i's line put its midpoint there;
-        # overlapping or within the gap puts it within the extent): while neither i nor a piece changed,
-        # i's partner is among its prefilter pairs (with a rounding margin) or the segments grown since.
-        i, m = i[near], m[near]
-        first = np.r_[0, np.nonzero(i[1:] != i[:-1])[0] + 1] if len(i) else np.zeros(0, int)
-        pieces = dict(zip(i[first].tolist(), np.split(m, first[1:])))
-        changed = np.zeros(len(self), bool)
-        grown: list = []
-        # The pieces that pass every test of _merge_partner against the map as it stands now, in one batch:
-        # most segments of a frame have none (on the loop's closing frames ~85 queued, ~20 merges), and a
-        # segment unchanged since then can only pair with what grew since (a changed piece either grew or
-        # was absorbed), so its own search is skipped when nothing grew.
-        fits = np.isfinite(self._partner_scores(i, m, D, L))
-        hopeful = set(i[fits].tolist())
-        while queue:
-            i = queue.pop()
-            if i >= len(alive) or not alive[i]:
-                continue
-            cand = None
-            if i in pieces and not changed[i]:
-                cand = _sorted_unique(np.concatenate((pieces[i], grown))) if grown else pieces[i]
-                if i not in hopeful:
-                    self._pairs += len(cand) - len(grown)
-                    if not grown:
-                        continue
-                    cand = _sorted_unique(np.asarray(grown))
-            j = self._merge_partner(i, alive, D, L, cand)
-            if j is None:
-                continue
-            keep, gone = (i, j) if self._rank(i) >= self._rank(j) else (j, i)
-            self._absorb(keep, gone)
-            d = self.P[keep, 1] - self.P[keep, 0]
-            L[keep] = np.linalg.norm(d)
-            D[keep] = d / max(L[keep], 1e-12)
-            alive[gone] = False
-            changed[keep] = changed[gone] = True
-            if keep not in grown:
-                grown.append(keep)
-            merged += 1
-            queue.append(keep)                   # the grown segment may now reach another piece
-        return merged, ~alive, grown
+        return i[near], m[near]
 
     def _partner_scores(self, i: np.ndarray, m: np.ndarray, t: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """(K,) of segment pairs (i[k], m[k]): m's Mahalanobis distances across i's line (both endpoints,
@@ -792,35 +794,6 @@ class LineMap:
 
     def _rank(self, k: int) -> tuple:
         return (bool(self.verified[k]), len(self.views[k]), int(self.support[k]))
-
-    def _merge_partner(self, i: int, alive: np.ndarray, t: np.ndarray, lengths: np.ndarray,
-                       cand: Optional[np.ndarray] = None) -> Optional[int]:
-        """The alive segment on segment i's line (direction, both endpoints within the chi-square gate of
-        both covariances across the line) that overlaps it or ends within ``merge_gap_m`` of it. cand: the
-        segments it can be (ascending), if known; else searched for."""
-        p = self.params
-        cos = math.cos(math.radians(p.assoc_angle_deg))
-        if cand is not None:
-            self._pairs += len(cand)
-            cand = cand[alive[cand]]
-            cand = cand[np.abs(t[cand] @ t[i]) >= cos]
-        elif len(self) >= self.grid_min_segments:
-            # A partner has a point within hypot(merge_gap_m, MERGE_PERP_M) of segment i (its extent along
-            # i's line meets i's, widened by the gap, and both its endpoints are that near the line).
-            lo, hi, _ = self._bbox(np.array([i]))
-            cand = self._index().near(self.serial, lo, hi, math.hypot(p.merge_gap_m, MERGE_PERP_M) + 1e-6,
-                                      classes_within(t[i:i + 1], p.assoc_angle_deg))[1]
-            self._pairs += len(cand)
-            cand = cand[alive[cand]]
-            cand = cand[np.abs(t[cand] @ t[i]) >= cos]
-        else:
-            cand = np.nonzero(alive & (np.abs(t @ t[i]) >= cos))[0]
-            self._pairs += len(cand)
-        if len(cand) == 0:
-            return None
-        score = self._partner_scores(np.full(len(cand), i), cand, t, lengths)
-        best = int(np.argmin(score))
-        return int(cand[best]) if np.isfinite(score[best]) else None
 
     def _absorb(self, i: int, j: int) -> None:
         """Segment j's information, extent, support and viewpoints into segment i (j is then removed)."""
