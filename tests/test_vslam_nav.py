@@ -7,7 +7,7 @@ import pytest
 
 from line_scenes import loop_poses
 
-from vbnav.control.runtime.interfaces import ControlContext, Estimate
+from vbnav.control.runtime.interfaces import ControlContext, Estimate, Twist
 from vbnav.control.config.vslam import GotoConfig, VslamNavConfig
 from vbnav.control.controllers.goto import GotoController, polar_coordinates
 from vbnav.control.stages.vslam import VslamFix, VslamStage, camera_to_robot, robot_to_camera_matrix
@@ -52,11 +52,12 @@ def test_polar_coordinates_signs_follow_the_package_conventions():
 class Unicycle:
     """Ideal kinematics; VSLAM fixes at 10 Hz (truth, 30 ms old); odometry with a scale and heading bias."""
 
-    def __init__(self, start: Pose2, odom_scale=1.0, odom_drift=0.0, fixes=True):
+    def __init__(self, start: Pose2, odom_scale=1.0, odom_drift=0.0, fixes=True, travel_held=False):
         self.true = start
         self.start = start
         self.odom = Pose2()
         self.odom_scale, self.odom_drift, self.fixes = odom_scale, odom_drift, fixes
+        self.travel_held = travel_held      # an obstacle stop holding the travel, a turn on the spot let through
         self.history = []
 
     def run(self, ctrl: GotoController, seconds=40.0, dt=0.01):
@@ -68,6 +69,8 @@ class Unicycle:
                 est = Estimate(t_ns, "vslam", True, VslamFix(self.start.between(truth), odom, np.eye(4), 100, 0))
             ctx = ControlContext(now, dt, self.odom, WheelState(now, (0.0, 0.0), (0.0, 0.0)), {"vslam": est}, k)
             tw = ctrl.update(ctx)
+            if self.travel_held:
+                tw = Twist(0.0, tw.w)
             v_log.append((tw.v, tw.w))
             self.true = arc_step(self.true, tw.v * dt, tw.w * dt)
             self.odom = arc_step(self.odom, tw.v * dt * self.odom_scale, tw.w * dt + self.odom_drift * abs(tw.v) * dt)
@@ -112,6 +115,28 @@ def test_goto_on_a_planned_route_drives_its_last_leg_straight_and_turns_at_the_g
 
     assert off_the_leg(True) < 0.005                         # measured 0.0 cm
     assert off_the_leg(False) > 0.1                          # the free law's swing: 15 / 32 cm
+
+
+def test_goto_on_a_planned_route_held_by_the_obstacle_stop_turns_to_its_next_waypoint():
+    """While the obstacle stop holds the travel and lets a turn on the spot through, a robot on a planned
+    route turns to face its next waypoint. Benchmarks/goto_replan.py --seed 5 from (-0.9, -1.5): re-planned
+    past box_a's corner, the robot at (-0.78, 0.91) facing the box (-114.8 deg) with the next waypoint at
+    (-2.41, 1.66) (49.5 deg to its left) and the goal at (-1.3, 1.2) beyond it; the free law's heading term
+    (toward the goal from the waypoint, 178 deg from the robot's heading) cancelled its bearing term and the
+    robot stood, held, for the rest of the run."""
+    s = Pose2(-0.78, 0.91, math.radians(-114.8))
+    goal, waypoint = Pose2(-1.3, 1.2, 0.0), Pose2(-2.41, 1.66, 0.0)
+
+    def bearing_left_deg(follow_route: bool) -> float:
+        sim = Unicycle(s, travel_held=True)
+        w = s.between(waypoint)
+        ctrl = GotoController(s.between(goal), GotoConfig(), waypoints=[(w.x, w.z)], follow_route=follow_route)
+        sim.run(ctrl, seconds=5.0)
+        to = math.atan2(waypoint.x - sim.true.x, waypoint.z - sim.true.z)
+        return abs(math.degrees(wrap_angle(to - sim.true.theta)))
+
+    assert bearing_left_deg(True) < 2.0                       # measured 0.0 deg
+    assert bearing_left_deg(False) > 30.0                     # the free law: stuck 49 deg off
 
 
 def test_goto_waits_for_vslam_and_stops_when_driving_blind():

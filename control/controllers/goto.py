@@ -63,12 +63,17 @@ class GotoController(Controller):
 
         waypoints: (x, z) points in the reference frame to pass on the way to ``goal`` (a path planned on the
         line map's grid, vision/nav_grid.py); each counts as passed within ``waypoint_tolerance_m``.
-        follow_route: the route was planned around obstacles (``goto --map``): its last leg is driven
-        straight to the goal's position and the goal heading is taken by turning on the spot there. The
-        polar law's heading term would swing the robot off the planned leg to arrive along the goal
-        heading, where the planner never checked the clearance: on seeds 5 and 7 of the room that swing
-        turned the robot's nose to a box 0.55 m beyond the goal, inside the obstacle stop's 0.8 m zone, and
-        the stop held it 0.3-0.6 m short until the time ran out (benchmarks/goto_replan.py --seed).
+        follow_route: the route was planned around obstacles (``goto --map``): each leg is driven straight
+        to its waypoint (turning on the spot toward it first when it lies off to the side) and the goal
+        heading is taken by turning on the spot at the goal. The polar law's heading term would swing the
+        robot off the planned leg to arrive along the waypoint's or the goal's heading, where the planner
+        never checked the clearance: on seeds 5 and 7 of the room that swing turned the robot's nose to a
+        box 0.55 m beyond the goal, inside the obstacle stop's 0.8 m zone, and the stop held it 0.3-0.6 m
+        short until the time ran out (benchmarks/goto_replan.py --seed). And while the obstacle stop holds
+        the travel (letting a turn on the spot through), the two terms can cancel with the robot facing the
+        obstacle: seed 5 from (-0.9, -1.5), re-planned past box_a's corner with the next waypoint 49.5 deg to
+        the robot's left and that waypoint's heading 178 deg from the robot's, w = 1.8 x 0.864 - 0.5 x 3.10
+        rad/s ~ 0, and the robot stood still, held, for the rest of the run.
         """
         self.follow_route = bool(follow_route)
         self.final_goal = goal
@@ -195,8 +200,8 @@ class GotoController(Controller):
             # centimetres do not take forever; zero while the goal is off to the side.
             v = saturate(c.k_rho * rho, c.min_drive_speed, self.v_max) * max(math.cos(alpha), 0.0)
             fade = min(1.0, rho / c.approach_radius_m)      # beta is ill-defined at the goal itself
-            if self.follow_route and not self.waypoints:
-                fade = 0.0                                  # the planned leg, then the turn on the spot
+            if self.follow_route:
+                fade = 0.0                                  # the planned legs, then the turn on the spot
             w = c.k_alpha * alpha + c.k_beta * beta * fade
             return keep_curvature(Twist(v, w), self.w_max)
         if abs(dth) > tol_th:
