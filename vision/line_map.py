@@ -647,8 +647,9 @@ class LineMap:
         (the highest row: this frame's pieces are inserted last), each segment takes its best partner
         unless one of the two merged already in this round, in which case it waits for the next; the
         segments that grew are paired with what is near them, both ways round, for the next round, until
-        no pair merges. One batch a round instead of a search per segment: on the patrol's closing frames
-        (~85 segments with a possible piece, ~20 merges) merging went from 17.8-28.3 ms at p95 to 6.8-11.4 (benchmarks/line_map.py --laps 3, lap 3, alternating runs)."""
+        no pair merges. One batch a round instead of a search per segment (~30 a frame, ~60 on the patrol's
+        closing frames): merging went from 17.8-28.3 ms at p95 to 6.8-11.4 (benchmarks/line_map.py --laps 3,
+        lap 3, runs alternating with the search)."""
         merged = 0
         alive = np.ones(len(self), bool)
         D, L = self.direction, self.length       # kept in step with the merges below
