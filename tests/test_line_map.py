@@ -517,8 +517,8 @@ def test_kitti_verified_segments_reproject_within_1_5_px(shared_data):
             a, b = pred.xy[k, :2], pred.xy[k, 2:]
             d = (b - a) / np.linalg.norm(b - a)
             errs.append(np.abs((segs.xy[n].reshape(2, 2) - a) @ np.array([-d[1], d[0]])).max())
-    assert len(errs) >= 50                               # measured 118
-    assert np.median(errs) <= 1.5                        # measured 0.93 px
+    assert len(errs) >= 50                               # measured 131 (2026-12-03)
+    assert np.median(errs) <= 1.5                        # measured 1.04 px (2026-12-03, af6bb8d and after)
 
 
 # ------------------------------------------------------------------- motion triangulation
