@@ -2,21 +2,22 @@
 argument or device, and never a traceback (issue 12, point 9).
 
 A missing device is the one exception: the documented exit code for it is 3 (hardware/device error),
-with the cause named in the run's summary. The cases run concurrently (each is a Python start-up and a
-check that fails before any real work), then each is asserted on its own.
+with the cause named in the run's summary. The cases run concurrently, each in its own process forked from
+one interpreter that has imported the command line (tests/cli_forks.py), then each is asserted on its own.
 """
+import json
 import os
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 VBNAV = [sys.executable, "-m", "vbnav.control.cli"]
-# The module fixture runs all ~150 cases (a Python start-up each, ~2 s of CPU) before the first test: on two
-# busy cores that is several minutes, more than the suite's 300 s per test. Each case keeps its own 120 s limit.
+# The module fixture runs all ~150 cases before the first test: on two busy cores that can take longer than
+# the suite's 300 s per test. Each case keeps its own 120 s limit.
 pytestmark = pytest.mark.timeout(1200)
 
 W, H = 64, 48     # the tiny test sequence's images
@@ -316,9 +317,15 @@ def make_fixtures(d) -> None:
     cv2.imwrite(str(d / "right_big.png"), _texture(1, W + 16, H + 12))
 
 
-def _run(argv: list[str]) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.run(VBNAV + argv, capture_output=True, text=True, timeout=120, env=env)
+def _run_forked(argvs: list[list[str]]) -> list[subprocess.CompletedProcess]:
+    """Each command line in its own process, forked from one interpreter that has imported the command
+    line (tests/cli_forks.py): start-up was ~1.5 s of the ~1.7 s of CPU a refused command costs."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1", VBNAV_FORK_TIMEOUT_S="120")
+    r = subprocess.run([sys.executable, str(Path(__file__).with_name("cli_forks.py"))], input=json.dumps(argvs),
+                       capture_output=True, text=True, timeout=900, env=env)
+    assert r.returncode == 0, r.stderr
+    return [subprocess.CompletedProcess(argv, o["returncode"], o["stdout"], o["stderr"])
+            for argv, o in zip(argvs, json.loads(r.stdout))]
 
 
 @pytest.fixture(scope="module")
@@ -326,8 +333,7 @@ def results(tmp_path_factory):
     d = tmp_path_factory.mktemp("bad")
     make_fixtures(d)
     argvs = {case[0]: case[1].format(d=d).split() for case in CASES}
-    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2)) as pool:
-        done = dict(zip(argvs, pool.map(_run, argvs.values())))
+    done = dict(zip(argvs, _run_forked(list(argvs.values()))))
     assert not [p for p in ("demo_out", "route", "calib", "map.json") if (d / p).exists()], \
         "a refused command wrote its output"
     return done
