@@ -307,6 +307,7 @@ class LineMap:
     frames: int = 0
     _pairs = 0                                       # work counter of the current update (UpdateStats.pairs)
     _stops = np.zeros((0, 3))                        # this update's corner feet (_corner_feet)
+    _corners = np.zeros(0, bool)                     # which of them two floor lines end at (_corner_feet)
     # The spatial hash of the segments (SegmentGrid) and the serial numbers it knows them by. Derived
     # state: rebuilt from the arrays when they were replaced from outside (a map file, a test).
     serial: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
@@ -441,7 +442,7 @@ class LineMap:
         new_gid = np.full(len(gid), -1)
         new_gid[rival] = self.next_group + np.arange(rival.sum())
         self.next_group += int(rival.sum())
-        self._stops = self._corner_feet()
+        self._stops, self._corners = self._corner_feet()
         j = self._associate_and_fuse(Pw, Cw, view, obs.left_xy, obs.stance)
         fused = j >= 0
         seen[j[fused]] = True
@@ -744,21 +745,42 @@ class LineMap:
             out[k] = np.where((m2 <= CHI2_3_99).all(axis=1), m2.sum(axis=1), np.inf)
         return out
 
-    def _corner_feet(self) -> np.ndarray:
+    def _corner_feet(self) -> tuple[np.ndarray, np.ndarray]:
         """(S, 3) the feet of the vertical segments that stand on the floor (lower end within ``ghost_error_m``
-        of it): a box's or a wall's corner, where a floor line ends. Candidates count as well as verified
-        segments (not a hypothesis no camera has seen yet): a vertical seen standing on a floor line is the
-        evidence of a corner, and a false one only keeps two pieces of a line apart. Verified ones alone
-        left seed 4's box_b foot 0.49 m past a corner whose vertical was still a candidate (60 frames)."""
+        of it): a box's or a wall's corner, where a floor line ends; and (S,) bool, the feet where two floor
+        lines end that cannot be one line (directions apart by more than ``assoc_angle_deg``): a corner
+        seen from both of its faces, past which neither face's floor line runs on.
+
+        Candidates count as well as verified segments (not a hypothesis no camera has seen yet): a vertical
+        seen standing on a floor line is the evidence of a corner, and a false one only keeps two pieces of
+        a line apart. Verified ones alone left seed 4's box_b foot 0.49 m past a corner whose vertical was
+        still a candidate (60 frames). The floor lines that make a foot a corner are the map's standing or
+        undecided ones and the abstraction's hypotheses (a box's lower edge it expects there), not a texture
+        line painted on the floor; a wall's texture vertical that reaches the floor has one floor line
+        through its foot, not two that end there."""
         p = self.params
-        V = np.nonzero(self.support >= 1)[0]
+        none = np.zeros((0, 3)), np.zeros(0, bool)
+        seen = self.support >= 1
+        V = np.nonzero(seen | self.hypothesis)[0]
         if len(V) == 0:
-            return np.zeros((0, 3))
+            return none
         P = self.P[V]
-        up = np.abs(_directions(P)[:, 1]) >= math.cos(math.radians(p.assoc_angle_deg))
+        t = _directions(P)
+        cos_par = math.cos(math.radians(p.assoc_angle_deg))
+        up = np.abs(t[:, 1]) >= cos_par
         low = np.where((P[:, 0, 1] > P[:, 1, 1])[:, None], P[:, 0], P[:, 1])      # y down: the larger y
-        on_floor = up & (np.abs(low[:, 1]) <= p.ghost_error_m)
-        return low[on_floor]
+        on_floor = seen[V] & up & (np.abs(low[:, 1]) <= p.ghost_error_m)
+        feet = low[on_floor]
+        if len(feet) == 0:
+            return none
+        lines = (np.abs(P[:, :, 1]).max(axis=1) <= p.ghost_error_m) & (self.stance(V) != FLAT)
+        ends, dirs = P[lines], t[lines]                                                # (F, 2, 3), (F, 3)
+        at = (_norms(ends[None] - feet[:, None, None], axis=3) <= p.ghost_error_m).any(axis=2)   # (S, F)
+        corner = np.zeros(len(feet), bool)
+        for s_i in np.nonzero(at.sum(axis=1) >= 2)[0]:
+            d = dirs[at[s_i]]
+            corner[s_i] = (np.abs(d @ d.T) < cos_par).any()
+        return feet, corner
 
     def _across_a_corner(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
         """(K,) bool for pairs of floor lines (A, B: (K, 2, 3), B an observation or another piece on A's line):
@@ -769,7 +791,10 @@ class LineMap:
         lies the open floor, where only a texture line can be (World.room seeds 2, 4, 7: a floor texture
         line within 2-5 cm and 6 deg of a box's foot, fused or merged into it across the gaps that join LSD's
         broken pieces, ran the foot 0.2-1.5 m past the corner). A wall's floor line ends at the room's
-        corner the same way."""
+        corner the same way. Where the corner is seen from both faces (``_corner_feet``), a line that ends
+        there and one that runs on past it by more than ``merge_gap_m`` are apart too, whichever is A: a
+        piece through box_a's corner, 6 deg off its east foot, merged into the foot, ran it 0.31 m past the
+        corner and grew the box's footprint over the goal (World.room(6), goto from (0, -2.25))."""
         p = self.params
         tol = p.ghost_error_m
         out = np.zeros(len(A), bool)
@@ -790,7 +815,13 @@ class LineMap:
         # A within [0, L]; a foot at s_c with A after it and B before it, or A before it and B after it.
         a_after = (0 >= sc - tol) & (hi_b <= sc + tol)
         a_before = (L[:, None] <= sc + tol) & (lo_b >= sc - tol)
-        out[f] = ((across <= tol) & (a_after | a_before)).any(axis=1)
+        # At a corner (two floor lines end there) one of the two ending there and the other running on past it
+        # by more than the gap that joins a line's pieces (``merge_gap_m``): a line through the corner.
+        gap = p.merge_gap_m
+        a_ends = (np.abs(L[:, None] - sc) <= tol) & (hi_b > sc + gap) | (np.abs(sc) <= tol) & (lo_b < sc - gap)
+        b_ends = (np.abs(hi_b - sc) <= tol) & (L[:, None] > sc + gap) | (np.abs(lo_b - sc) <= tol) & (sc > gap)
+        through = self._corners[None] & (a_ends | b_ends)
+        out[f] = ((across <= tol) & (a_after | a_before | through)).any(axis=1)
         return out
 
     def _rank(self, k: int) -> tuple:
