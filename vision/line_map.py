@@ -773,12 +773,20 @@ class LineMap:
         feet = low[on_floor]
         if len(feet) == 0:
             return none
-        lines = (np.abs(P[:, :, 1]).max(axis=1) <= p.ghost_error_m) & (self.stance(V) != FLAT)
-        ends, dirs = P[lines], t[lines]                                                # (F, 2, 3), (F, 3)
-        at = (_norms(ends[None] - feet[:, None, None], axis=3) <= p.ghost_error_m).any(axis=2)   # (S, F)
+        lines = np.nonzero((np.abs(P[:, :, 1]).max(axis=1) <= p.ghost_error_m) & (self.stance(V) != FLAT))[0]
+        # The line ends within ghost_error_m of each foot: candidates by x (sorted), then the distance.
+        ends = P[lines].reshape(-1, 3)
+        order = np.argsort(ends[:, 0], kind="stable")
+        xs = ends[order, 0]
+        lo = np.searchsorted(xs, feet[:, 0] - p.ghost_error_m, side="left")
+        n = np.searchsorted(xs, feet[:, 0] + p.ghost_error_m, side="right") - lo
+        foot = np.repeat(np.arange(len(feet)), n)
+        end = order[np.repeat(lo - np.cumsum(n) + n, n) + np.arange(n.sum())]
+        near = _norms(ends[end] - feet[foot], axis=1) <= p.ghost_error_m
+        foot, line = foot[near], lines[end[near] // 2]
         corner = np.zeros(len(feet), bool)
-        for s_i in np.nonzero(at.sum(axis=1) >= 2)[0]:
-            d = dirs[at[s_i]]
+        for s_i in np.nonzero(np.bincount(foot, minlength=len(feet)) >= 2)[0]:
+            d = t[line[foot == s_i]]
             corner[s_i] = (np.abs(d @ d.T) < cos_par).any()
         return feet, corner
 
