@@ -319,7 +319,7 @@ def make_fixtures(d) -> None:
 
 def _run_forked(argvs: list[list[str]]) -> list[subprocess.CompletedProcess]:
     """Each command line in its own process, forked from one interpreter that has imported the command
-    line (tests/cli_forks.py): start-up was ~1.5 s of the ~1.7 s of CPU a refused command costs."""
+    line (tests/cli_forks.py): start-up is nearly all of the CPU a refused command costs."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", VBNAV_FORK_TIMEOUT_S="120")
     r = subprocess.run([sys.executable, str(Path(__file__).with_name("cli_forks.py"))], input=json.dumps(argvs),
                        capture_output=True, text=True, timeout=900, env=env)
