@@ -174,17 +174,21 @@ def test_a_floor_line_does_not_run_on_past_a_corner_standing_on_it():
 
 def _corner_and_a_line_through_it(other_foot: bool) -> LineMap:
     """A box's corner at (0, 0, 2): its vertical edge, its foot along x from 0 to 0.6 m and (when
-    ``other_foot``) the other face's foot along z from 2 to 2.6 m, seen from three viewpoints; then, from
-    three more, a floor line along x from 0.3 to -0.3 m: through the corner, running 0.3 m past it."""
+    ``other_foot``) the other face's foot along z from 2 to 2.6 m, the feet seen standing, from three
+    viewpoints; then, from three more, a floor line along x from 0.3 to -0.3 m of unknown stance: through
+    the corner, running 0.3 m past it."""
+    from vbnav.vision.line_segments import STANDING
     m = LineMap(MapParams(view_baseline_m=0.1))
     foot = np.array([[0.0, 0.0, 2.0], [0.6, 0.0, 2.0]])
     other = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 2.6]])
     corner = np.array([[0.0, -0.5, 2.0], [0.0, 0.0, 2.0]])
     through = np.array([[0.3, 0.0, 2.0], [-0.3, 0.0, 2.0]])
     seen = [foot, corner] + ([other] if other_foot else [])
+    stance = [STANDING, 0] + ([STANDING] if other_foot else [])
     for k in range(6):
         R, t = at(0.2 * k)
-        m.update(obs([P - t for P in seen + ([through] if k >= 3 else [])], sigma=0.005), R, t)
+        m.update(obs([P - t for P in seen + ([through] if k >= 3 else [])], sigma=0.005,
+                     stance=stance + ([0] if k >= 3 else [])), R, t)
     return m
 
 
@@ -192,7 +196,7 @@ def test_a_floor_line_through_a_corner_seen_from_both_faces_stays_apart_from_the
     """Where two floor lines end at a vertical's foot (a box's corner seen from both faces), a line that runs
     on past it is not the foot that ends there (World.room(6), goto from (0, -2.25): a piece through box_a's
     corner, merged into its east foot, ran the foot 0.31 m past the corner and grew the box over the goal).
-    A vertical with one floor line ending at it may be a wall's texture reaching the floor: the line runs on."""
+    A vertical with one foot ending at it may be a wall's texture reaching the floor: the line runs on."""
     m = _corner_and_a_line_through_it(other_foot=True)
     along_x = [k for k in range(len(m)) if np.ptp(m.P[k, :, 0]) > 0.1]
     ext = sorted((round(float(m.P[k, :, 0].min()), 3), round(float(m.P[k, :, 0].max()), 3)) for k in along_x)

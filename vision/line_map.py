@@ -754,10 +754,11 @@ class LineMap:
         Candidates count as well as verified segments (not a hypothesis no camera has seen yet): a vertical
         seen standing on a floor line is the evidence of a corner, and a false one only keeps two pieces of
         a line apart. Verified ones alone left seed 4's box_b foot 0.49 m past a corner whose vertical was
-        still a candidate (60 frames). The floor lines that make a foot a corner are the map's standing or
-        undecided ones and the abstraction's hypotheses (a box's lower edge it expects there), not a texture
-        line painted on the floor; a wall's texture vertical that reaches the floor has one floor line
-        through its foot, not two that end there."""
+        still a candidate (60 frames). The floor lines that make a foot a corner are faces' feet: the map's
+        standing ones and the abstraction's hypotheses (a box's lower edge it expects there). A wall's or a
+        box's texture vertical that reaches the floor has one foot through it, not two that end there; an
+        undecided floor line ending there may be a floor texture line running into the face (World.room(2):
+        one made a texture vertical on box_b's west face a corner, and a ghost of that foot stayed apart)."""
         p = self.params
         none = np.zeros((0, 3)), np.zeros(0, bool)
         seen = self.support >= 1
@@ -773,7 +774,8 @@ class LineMap:
         feet = low[on_floor]
         if len(feet) == 0:
             return none
-        lines = np.nonzero((np.abs(P[:, :, 1]).max(axis=1) <= p.ghost_error_m) & (self.stance(V) != FLAT))[0]
+        feet_of_faces = (self.stance(V) == STANDING) | self.hypothesis[V]
+        lines = np.nonzero((np.abs(P[:, :, 1]).max(axis=1) <= p.ghost_error_m) & feet_of_faces)[0]
         # The line ends within ghost_error_m of each foot: candidates by x (sorted), then the distance.
         ends = P[lines].reshape(-1, 3)
         order = np.argsort(ends[:, 0], kind="stable")
