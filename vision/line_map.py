@@ -307,7 +307,7 @@ class LineMap:
     frames: int = 0
     _pairs = 0                                       # work counter of the current update (UpdateStats.pairs)
     _stops = np.zeros((0, 3))                        # this update's corner feet (_corner_feet)
-    _corners = np.zeros(0, bool)                     # which of them two floor lines end at (_corner_feet)
+    _corners = np.zeros(0, bool)                     # which of them two faces' feet end at (_corner_feet)
     # The spatial hash of the segments (SegmentGrid) and the serial numbers it knows them by. Derived
     # state: rebuilt from the arrays when they were replaced from outside (a map file, a test).
     serial: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
@@ -747,8 +747,8 @@ class LineMap:
 
     def _corner_feet(self) -> tuple[np.ndarray, np.ndarray]:
         """(S, 3) the feet of the vertical segments that stand on the floor (lower end within ``ghost_error_m``
-        of it): a box's or a wall's corner, where a floor line ends; and (S,) bool, the feet where two floor
-        lines end that cannot be one line (directions apart by more than ``assoc_angle_deg``): a corner
+        of it): a box's or a wall's corner, where a floor line ends; and (S,) bool, the feet where two faces'
+        feet end that cannot be one line (directions apart by more than ``assoc_angle_deg``): a corner
         seen from both of its faces, past which neither face's floor line runs on.
 
         Candidates count as well as verified segments (not a hypothesis no camera has seen yet): a vertical
@@ -825,7 +825,7 @@ class LineMap:
         # A within [0, L]; a foot at s_c with A after it and B before it, or A before it and B after it.
         a_after = (0 >= sc - tol) & (hi_b <= sc + tol)
         a_before = (L[:, None] <= sc + tol) & (lo_b >= sc - tol)
-        # At a corner (two floor lines end there) one of the two ending there and the other running on past it
+        # At a corner (two faces' feet end there) one of the two ending there and the other running on past it
         # by more than the gap that joins a line's pieces (``merge_gap_m``): a line through the corner.
         gap = p.merge_gap_m
         a_ends = (np.abs(L[:, None] - sc) <= tol) & (hi_b > sc + gap) | (np.abs(sc) <= tol) & (lo_b < sc - gap)
