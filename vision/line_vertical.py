@@ -32,9 +32,14 @@ boundary, is the same in both; the edge search's test), better there than a pixe
 wrong disparity the match is another structure's) and 2x better than 3 px to either side (the floor
 test's rule: a weakly textured side proves nothing), while the other side does not match (an
 occluding boundary: the background behind it shifts by another disparity; a line whose both sides match
-lies on a surface, where its contrast does not change sign and LSD has it); a left run with candidates at
-disparities more than a pixel apart (periodic texture) gets none, and of candidates within a pixel of one
-disparity (the right image's run broken into pieces) the one sharing most rows is kept. ``add_vertical_matches`` appends them to the pair's matches.
+lies on a surface, where its contrast does not change sign and LSD has it). A plain near side (an
+untextured face) matches as well at any disparity near the line's, so it cannot pass that test: for a left
+run without such a confirmed candidate, one whose near side matches at the noise's level (2 sigma /
+sqrt(pi), the mean |l - r| of noise alone) is taken on the lines' positions, and of such candidates at
+several disparities (the face's grey meets every background line ending on it) the one sharing 2x the
+rows of each other. A left run with candidates at disparities more than a pixel apart (periodic texture)
+gets none, and of candidates within a pixel of one disparity (the right image's run broken into pieces)
+the one sharing most rows is kept. ``add_vertical_matches`` appends them to the pair's matches.
 """
 from __future__ import annotations
 
@@ -47,6 +52,7 @@ import numpy as np
 from vbnav.vision.line_segments import LineParams, Segments2D, StereoMatches, _sample, _x_at, gradients, grey, side_means
 
 SOBEL_NOISE_GAIN = math.sqrt(12.0) / 8.0      # 3x3 Sobel / 8 of iid noise: sigma x sqrt(1+4+1+1+4+1) / 8
+PLAIN_NOISE_GAIN = 2.0 / math.sqrt(math.pi)   # E|n1 - n2| of two samples with iid noise sigma: 2 sigma / sqrt(pi)
 
 
 def noise_sigma(image: np.ndarray) -> float:
@@ -203,7 +209,7 @@ def vertical_lines(left_image: np.ndarray, right_image: np.ndarray, vertical: np
     rr = pencil_runs(R, params, noise, grads and grads[1])
     if len(rr) == 0:
         return none
-    li, ri, lo, hi = match_vertical(L, R, lr, rr, params)
+    li, ri, lo, hi = match_vertical(L, R, lr, rr, params, noise)
     if len(li) == 0:
         return none
     lseg = np.column_stack((lr[li, 0], lo, hi))
@@ -236,10 +242,11 @@ def slanted(run_xy: np.ndarray, seg_xy: np.ndarray, params: LineParams = LinePar
 
 
 def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
-                   params: LineParams = LineParams()) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   params: LineParams = LineParams(), noise: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Indices (left run, right run) of the unique candidates (see the module docstring), in the resampled
     images (columns are the pencil's lines, so a column shift is the disparity up to the row's scale), and
-    each one's first and last matched row."""
+    each one's first and last matched row. ``noise``: the images' noise sigma (``noise_sigma``), which says
+    when a plain side matches; 0: no candidate on a plain side."""
     lo = np.maximum(lr[:, None, 1], rr[None, :, 1])
     hi = np.minimum(lr[:, None, 2], rr[None, :, 2])
     shorter = np.minimum(lr[:, None, 2] - lr[:, None, 1], rr[None, :, 2] - rr[None, :, 1])
@@ -292,7 +299,24 @@ def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
     flip = len(slants) - 1 - best                                                 # slant -g (symmetric grid)
     far_differs = cost[np.array([1, 0])[:, None], flip, 2, ci[None, :]] > params.band_max_diff
     good = (side_ok & far_differs).any(axis=0)
-    a, b = a[good], b[good]
+    # A plain near side (a box's untextured face) matches as well a pixel or more either way (which one
+    # wins is the noise's draw), so the 2x rule refuses it, although the lines' positions give the
+    # disparity. It is taken when it matches at the noise's level: |l - r| on one plain surface is noise
+    # alone, 2 sigma / sqrt(pi) on average for two samples of sigma each (less after the right image's
+    # bilinear interpolation and the best slant: the room's plain faces 0.6 sigma), while a textured
+    # surface at a wrong disparity differs by its texture (2.1 sigma and up on the blob-textured walls of
+    # tests/test_line_vertical.py). Only for a left run without a confirmed candidate.
+    plain = c0 <= PLAIN_NOISE_GAIN * noise
+    confirmed = np.zeros(len(lr), bool)
+    confirmed[a[good]] = True
+    by_plain = (plain & far_differs).any(axis=0) & ~good & ~confirmed[a]
+    good |= by_plain
+    a, b, by_plain = a[good], b[good], by_plain[good]
+    # A plain face also matches any right run on its own grey (a texture line of the background ending on
+    # the face), at other disparities. The same vertical line spans the same rows in both rectified images:
+    # a plain candidate sharing 2x the rows of each plain one at another disparity is the line (a choice, as
+    # the 2x rule's), the others go; without one, the run keeps all and gets none below.
+    a, b = _longest_plain(a, b, by_plain, disp[a, b], (hi - lo)[a, b], len(lr))
     # Periodic texture gives a left run candidates at several disparities: it gets none. Candidates within a
     # pixel of one disparity are one line that the right image's run broke into pieces (a contrast sign
     # change): the one sharing most rows with the left run is kept.
@@ -317,6 +341,29 @@ def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
     np.maximum.at(bottom, a, hi[a, b])
     a, b = a[keep], b[keep]
     return a, b, top[a], bottom[a]
+
+
+def _longest_plain(a: np.ndarray, b: np.ndarray, by_plain: np.ndarray, d: np.ndarray, rows: np.ndarray,
+                   n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates (a left run, b right run) without the plain ones (``by_plain``: taken on a plain side)
+    of a left run whose plain candidate sharing most ``rows`` shares 2x as many as every plain candidate
+    more than a pixel from its disparity ``d``; the others unchanged."""
+    if not by_plain.any():
+        return a, b
+    idx = np.nonzero(by_plain)[0]
+    best = np.full(n, -1)
+    order = idx[np.lexsort((-rows[idx], a[idx]))]                  # per left run, the most shared rows first
+    first = np.ones(len(order), bool)
+    first[1:] = a[order][1:] != a[order][:-1]
+    best[a[order[first]]] = order[first]
+    k = best[a[idx]]                                              # each plain candidate's run's longest
+    other = np.abs(d[idx] - d[k]) > 1.0
+    rival = np.zeros(n)
+    np.maximum.at(rival, a[idx][other], rows[idx][other])
+    won = rows[best[a[idx]]] >= 2.0 * rival[a[idx]]
+    drop = np.zeros(len(a), bool)
+    drop[idx] = won & other
+    return a[~drop], b[~drop]
 
 
 def band_slants(params: LineParams = LineParams()) -> np.ndarray:
