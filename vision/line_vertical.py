@@ -37,7 +37,7 @@ untextured face) matches as well at any disparity near the line's, so it cannot 
 run without such a confirmed candidate, one whose near side matches at the noise's level (2 sigma /
 sqrt(pi), the mean |l - r| of noise alone) is taken on the lines' positions, and of such candidates at
 several disparities (the face's grey meets every background line ending on it) the one sharing 2x the
-rows of each other. A left run with candidates at disparities more than a pixel apart (periodic texture)
+rows of each of the others. A left run with candidates at disparities more than a pixel apart (periodic texture)
 gets none, and of candidates within a pixel of one disparity (the right image's run broken into pieces)
 the one sharing most rows is kept. ``add_vertical_matches`` appends them to the pair's matches.
 """
@@ -309,7 +309,7 @@ def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
     plain = c0 <= PLAIN_NOISE_GAIN * noise
     confirmed = np.zeros(len(lr), bool)
     confirmed[a[good]] = True
-    by_plain = (plain & far_differs).any(axis=0) & ~good & ~confirmed[a]
+    by_plain = (plain & far_differs).any(axis=0) & ~confirmed[a]
     good |= by_plain
     a, b, by_plain = a[good], b[good], by_plain[good]
     # A plain face also matches any right run on its own grey (a texture line of the background ending on
@@ -345,9 +345,9 @@ def match_vertical(L: np.ndarray, R: np.ndarray, lr: np.ndarray, rr: np.ndarray,
 
 def _longest_plain(a: np.ndarray, b: np.ndarray, by_plain: np.ndarray, d: np.ndarray, rows: np.ndarray,
                    n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The candidates (a left run, b right run) without the plain ones (``by_plain``: taken on a plain side)
-    of a left run whose plain candidate sharing most ``rows`` shares 2x as many as every plain candidate
-    more than a pixel from its disparity ``d``; the others unchanged."""
+    """The candidates (a left run, b right run) less, per left run, the plain ones (``by_plain``) more than a
+    pixel from the disparity ``d`` of its longest plain one (most shared ``rows``), when that one shares 2x
+    the rows of each of them; the others unchanged. ``n``: the number of left runs."""
     if not by_plain.any():
         return a, b
     idx = np.nonzero(by_plain)[0]
@@ -360,7 +360,7 @@ def _longest_plain(a: np.ndarray, b: np.ndarray, by_plain: np.ndarray, d: np.nda
     other = np.abs(d[idx] - d[k]) > 1.0
     rival = np.zeros(n)
     np.maximum.at(rival, a[idx][other], rows[idx][other])
-    won = rows[best[a[idx]]] >= 2.0 * rival[a[idx]]
+    won = rows[k] >= 2.0 * rival[a[idx]]
     drop = np.zeros(len(a), bool)
     drop[idx] = won & other
     return a[~drop], b[~drop]
