@@ -10,9 +10,9 @@ but an explicit ``from a.b import X`` in ``a.b.c`` is (it needs ``a/b/__init__.p
 from __future__ import annotations
 
 import ast
+import json
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -121,14 +121,16 @@ def test_layers_import_one_way():
     assert not bad, "\n".join(bad)
 
 
-def _import_alone(module: str) -> tuple[str, int, str]:
-    r = subprocess.run([sys.executable, "-c", f"import {module}"], capture_output=True, text=True, timeout=120)
-    return module, r.returncode, r.stderr.strip().splitlines()[-1] if r.returncode else ""
-
-
 def test_every_module_imports_in_a_fresh_interpreter():
-    """Each module on its own, so an import that only works after some other module loaded shows up."""
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        results = list(pool.map(_import_alone, sorted(package_modules())))
-    failed = [f"{m}: {err}" for m, code, err in results if code != 0]
+    """Each module on its own, so an import that only works after some other module loaded shows up. Each
+    module is imported in a process where no other vbnav module was (tests/cli_forks.py --imports: forked
+    from an interpreter that loaded only the heavy third-party libraries)."""
+    modules = sorted(package_modules())
+    r = subprocess.run([sys.executable, str(REPO / "tests" / "cli_forks.py"), "--imports"], input=json.dumps(modules),
+                       capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    results = json.loads(r.stdout)
+    assert len(results) == len(modules)
+    failed = [f"{m}: {(res['stderr'].strip().splitlines() or ['?'])[-1]}" for m, res in zip(modules, results)
+              if res["returncode"] != 0]
     assert not failed, "modules that fail to import alone:\n" + "\n".join(failed)
