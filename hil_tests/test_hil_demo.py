@@ -1,8 +1,9 @@
-"""The demo scenario closed-loop: real runtime, simulated base and camera, five seeds.
+"""The demo scenario closed-loop: real runtime, simulated base and camera, three seeds of five.
 
 Each seed teaches the 20 m route and repeats it twice from a 0.3 m / 10 degree start offset with motor and
 image noise; the second repeat has the camera covered for 2 s mid-route. Two seeds repeat under changed
-lighting (-40 %, +40 %) with two boxes of the taught scene moved.
+lighting (-40 %, +40 %) with two boxes of the taught scene moved. Seeds 2 and 4 (plain, other noise) run in
+``benchmarks/demo_seeds.py`` with the same bars: ~80 s each, five made this file the suite's longest by far.
 """
 import json
 
@@ -25,11 +26,19 @@ SCENARIOS = {
 }
 
 
+# Both changed-lighting scenes and the worst plain one (seed 3, 2026-12-03: RMS 1.18 cm, max 4.74 cm); all
+# five: benchmarks/demo_seeds.py.
+TEST_SEEDS = (0, 1, 3)
+
+
+def scenario_of(seed: int) -> Scenario:
+    return Scenario(seed=seed, repeats=2, occlusion=(1, 25.0, 2.0), **SCENARIOS[seed])
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", sorted(SCENARIOS))
+@pytest.mark.parametrize("seed", TEST_SEEDS)
 def test_demo_seed(seed, tmp_path):
-    scenario = Scenario(seed=seed, repeats=2, occlusion=(1, 25.0, 2.0), **SCENARIOS[seed])
-    m = run_demo(tmp_path, scenario)
+    m = run_demo(tmp_path, scenario_of(seed))
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["completed"] == m["completed"]
     assert (tmp_path / "paths.png").stat().st_size > 10_000
