@@ -54,7 +54,7 @@ def main() -> int:
                   f"after {rec}  {'ok' if ok else 'OVER THE BARS'}", flush=True)
         print(f"seed {seed}: {time.perf_counter() - t:.0f} s", flush=True)
     print(f"{len(rms)} repeats: RMS {100 * min(rms):.2f}-{100 * max(rms):.2f} cm, max {100 * min(worst):.2f}-"
-          f"{100 * max(worst):.2f} cm (bars {100 * RMS_BAR_M:.1f} / {100 * MAX_BAR_M:.1f} cm, recovery "
+          f"{100 * max(worst):.2f} cm, means {100 * sum(rms) / len(rms):.2f} / {100 * sum(worst) / len(worst):.2f} cm (bars {100 * RMS_BAR_M:.1f} / {100 * MAX_BAR_M:.1f} cm, recovery "
           f"{RECOVERY_BAR_M} m); {failed} over the bars")
     return 1 if failed else 0
 
