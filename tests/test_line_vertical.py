@@ -1,12 +1,15 @@
 """Vertical lines along the pencil through the vertical vanishing point (vision/line_vertical.py, issue 16)."""
 from __future__ import annotations
 
+import os
+
 import cv2
 import numpy as np
 import pytest
 
-from vbnav.vision.line_segments import LineParams, reconstruct_pair
+from vbnav.vision.line_segments import LineParams, gradients, reconstruct_pair
 import vbnav.vision.line_vertical as line_vertical
+import vbnav.vision.line_vertical_kernel as line_vertical_kernel
 from vbnav.vision.line_vertical import pencil_map, pencil_runs, vertical_lines
 
 F, B = 400.0, 0.1
@@ -253,6 +256,44 @@ def test_the_runs_are_those_of_the_full_image_bincounts_bit_for_bit():
         noise = line_vertical.noise_sigma(im)
         got, want = pencil_runs(im, params, noise), _runs_by_bincount(im, params, noise)
         assert len(want) > 0 and np.array_equal(got, want)
+
+
+def test_numba_is_what_the_vertical_search_uses():
+    # numba is a dependency: a silent fallback to the 4x slower numpy runs would cost the fast loop ~7 ms.
+    if os.environ.get("VBNAV_NO_JIT"):
+        pytest.skip("VBNAV_NO_JIT is set")
+    assert line_vertical_kernel.AVAILABLE, "numba did not import: pencil_runs is on its numpy path"
+
+
+@pytest.mark.skipif(not line_vertical_kernel.AVAILABLE, reason="numba disabled (VBNAV_NO_JIT) or not installed")
+def test_the_compiled_runs_are_the_numpy_reference_bit_for_bit():
+    # The rendered pairs (a textured wall behind plain and textured faces) with the defaults, then blurred
+    # noise with a vertical step under every combination of gap (0: no closing), minimum length (24.5: an
+    # even erosion element; 3: border runs shorter than the element) and tolerance.
+    cases = []
+    for pair in (_corner_pair(), _plain_corner_pair(0)):
+        for im in pair:
+            cases.append((im.astype(np.float32), None, LineParams()))
+    rng = np.random.default_rng(2)
+    for k in range(24):
+        im = cv2.GaussianBlur(rng.normal(128, 30, (120 + 7 * k, 160 + 3 * k)).astype(np.float32), (0, 0),
+                              0.8 + 0.15 * k)
+        im[:, 40 + k] += 40
+        params = LineParams(vertical_gap_px=(0, 1, 4, 7)[k % 4], min_length_px=(25.0, 24.5, 10.0, 3.0)[k // 4 % 4],
+                            vertical_tol_px=(0.75, 0.5, 1.0)[k % 3])
+        cases.append((im, 0.3 + 0.1 * k, params))
+    runs = 0
+    for im, thr, params in cases:
+        gx, gy = gradients(im)
+        M = np.abs(gx)
+        if thr is None:
+            thr = params.vertical_k_sigma * line_vertical.SOBEL_NOISE_GAIN * line_vertical.noise_sigma(im)
+        got = line_vertical_kernel.column_runs(M, gy, np.float32(thr), params.vertical_tol_px,
+                                               int(params.vertical_gap_px), params.min_length_px, params.sigma_perp_px)
+        want = line_vertical.column_runs(M, gy, thr, params)
+        assert np.array_equal(got, want), (im.shape, params)
+        runs += len(want)
+    assert runs > 500                                   # measured 800-900: the cases do exercise the runs
 
 
 def test_the_right_image_is_searched_only_when_a_left_run_remains(monkeypatch):

@@ -49,6 +49,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from vbnav.vision import line_vertical_kernel
 from vbnav.vision.line_segments import LineParams, Segments2D, StereoMatches, _sample, _x_at, gradients, grey, side_means
 
 SOBEL_NOISE_GAIN = math.sqrt(12.0) / 8.0      # 3x3 Sobel / 8 of iid noise: sigma x sqrt(1+4+1+1+4+1) / 8
@@ -84,10 +85,22 @@ def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Opt
     last row, strength (mean magnitude across the line over the supported rows). ``noise``: the image
     noise sigma (default: ``noise_sigma`` of this image); ``grad``: its ``gradients``, if the caller has them."""
     g = np.asarray(image, np.float32)
-    H, W = g.shape
     gx, gy = gradients(g) if grad is None else grad
     M = np.abs(gx)
     thr = params.vertical_k_sigma * SOBEL_NOISE_GAIN * (noise_sigma(g) if noise is None else noise)
+    if line_vertical_kernel.AVAILABLE:
+        runs = line_vertical_kernel.column_runs(M, np.asarray(gy, np.float32), np.float32(thr), params.vertical_tol_px,
+                                                int(params.vertical_gap_px), params.min_length_px, params.sigma_perp_px)
+    else:
+        runs = column_runs(M, gy, thr, params)
+    return _strongest_of_neighbours(runs)
+
+
+def column_runs(M: np.ndarray, gy: np.ndarray, thr: float, params: LineParams = LineParams()) -> np.ndarray:
+    """The numpy reference of ``line_vertical_kernel.column_runs``: (K, 4) runs (column, first row, last
+    row, strength) of |gradient across| ``M`` above ``thr``, sorted by column then row, before
+    ``_strongest_of_neighbours``."""
+    H, W = M.shape
     # Local maxima along the rows, above the noise, where the gradient points across the columns (within
     # 45 deg: the edge itself runs within 45 deg of the pencil's line).
     ridge = (M >= cv2.dilate(M, np.ones((1, 3), np.uint8))) & (M > thr)
@@ -158,7 +171,10 @@ def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Opt
     ok &= np.abs(slope) * length <= 3.0 * params.sigma_perp_px * np.sqrt(12.0 / np.maximum(n, 1))
     if not ok.any():
         return np.zeros((0, 4))
-    runs = np.column_stack((pbar, r0, r1, sw / np.maximum(n, 1)))[ok]
+    return np.column_stack((pbar, r0, r1, sw / np.maximum(n, 1)))[ok]
+
+
+def _strongest_of_neighbours(runs: np.ndarray) -> np.ndarray:
     # Of two runs within a pixel on overlapping rows (a ridge supports two columns) keep the stronger.
     near = (np.abs(runs[:, None, 0] - runs[None, :, 0]) <= 1.0) & \
         (np.minimum(runs[:, None, 2], runs[None, :, 2]) >= np.maximum(runs[:, None, 1], runs[None, :, 1]))

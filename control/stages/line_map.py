@@ -42,6 +42,7 @@ from vbnav.vision.line_floor import floor_segments
 from vbnav.vision.line_motion import motion_segments
 from vbnav.vision.line_segments import LineParams, Segments3D, reconstruct_pair
 from vbnav.vision.line_sighting import sight_hypotheses
+from vbnav.vision.line_vertical_kernel import warm_up as warm_up_vertical_kernel
 
 KEYFRAME_BASELINE_M = 0.15     # motion triangulation pairs the frame with a keyframe at least this far back
 
@@ -157,6 +158,7 @@ class LineMapStage(VisionStage):
         self._last_pass_ns: Optional[int] = None
         if abstraction_period_s is not None:
             self.abstraction = AbstractionThread(self.structure_snapshot, abstraction_period_s, sight=self.sight)
+        warm_up_vertical_kernel()     # compile now (or load numba's cache), not in the vision thread's first frame
 
     @classmethod
     def from_config(cls, cfg, lmap: Optional[LineMap] = None, **kw) -> "LineMapStage":
