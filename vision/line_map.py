@@ -1019,13 +1019,13 @@ class LineMap:
         separated); returns how many, how many rivals that drops, and the rows to remove (``gone`` and the
         rivals)."""
         p = self.params
-        nviews = np.array([len(v) for v in self.views], int)
+        nviews = np.fromiter(map(len, self.views), int, len(self.views))
         newly = (~self.verified) & (nviews >= p.verify_views) & ~gone
         pair = np.zeros(len(self), bool)
         pair[changed] = True
         pair &= (~self.verified) & ~newly & ~gone & ~self.ambiguous & (nviews >= 2) & (self.support >= p.verify_views)
-        for k in np.nonzero(pair)[0]:
-            newly[k] = self.separating_views(int(k))
+        ks = np.nonzero(pair)[0]
+        newly[ks] = self._separated(ks)
         self.verified |= newly
         if len(self.view_log) == len(self):
             for k in np.nonzero(newly)[0].tolist():
@@ -1048,21 +1048,41 @@ class LineMap:
         sqrt(chi2_3,99 % (2 u^T C u + extra^2)) in that direction u (C: the anchor's covariance, for both).
         A pair whose separation exceeds the gate has tested the candidate: a false match this far off would
         have been inserted as a new candidate instead. Rivals of a periodic texture are exempt (``ambiguous``)."""
+        return bool(self._separated(np.array([k]))[0])
+
+    def _separated(self, ks: np.ndarray) -> np.ndarray:
+        """``separating_views`` of the candidates ``ks`` at once, (len(ks),) bool: every pair of each one's
+        views in one batch (a frame tests a few tens, nearly all with two views: per candidate, the array
+        set-up cost ten times the arithmetic)."""
         p = self.params
-        if len(self.views[k]) < 2:
-            return False
-        A = self.anchor[k]
-        t = (A[1] - A[0]) / max(float(np.linalg.norm(A[1] - A[0])), 1e-12)
-        r = A.mean(axis=0) - np.array([v[:3] for v in self.views[k]])
+        out = np.zeros(len(ks), bool)
+        pair_k, pair_i, pair_j, pos = [], [], [], []
+        for n, k in enumerate(ks.tolist()):
+            v, first = self.views[k], len(pos)
+            for i in range(len(v)):
+                for j in range(i + 1, len(v)):
+                    pair_k.append(n)
+                    pair_i.append(first + i)
+                    pair_j.append(first + j)
+            pos.extend(w[:3] for w in v)
+        if not pair_k:
+            return out
+        pk = np.array(pair_k)
+        A = self.anchor[ks]                                                      # (K, 2, 3)
+        t = A[:, 1] - A[:, 0]
+        t /= np.maximum(_norms(t, axis=1, keepdims=True), 1e-12)
+        view_of = np.repeat(np.arange(len(ks)), [len(self.views[k]) for k in ks.tolist()])
+        r = A.mean(axis=1)[view_of] - np.array(pos)
         r /= _norms(r, axis=1, keepdims=True)
-        i, j = np.triu_indices(len(r), 1)
-        u = r[i] - r[j]
-        u -= np.outer(u @ t, t)
+        u = r[pair_i] - r[pair_j]
+        tk = t[pk]
+        u -= (u * tk).sum(axis=1, keepdims=True) * tk
         n = _norms(u, axis=1)
         u /= np.maximum(n, 1e-12)[:, None]
-        C = self.anchor_cov[k].mean(axis=0)
-        gate2 = CHI2_3_99 * (2.0 * np.einsum("ki,ij,kj->k", u, C, u) + p.assoc_extra_m ** 2)
-        return bool(((p.ghost_error_m * n) ** 2 >= gate2).any())
+        C = self.anchor_cov[ks].mean(axis=1)[pk]                                 # (pairs, 3, 3)
+        gate2 = CHI2_3_99 * (2.0 * np.einsum("ki,kij,kj->k", u, C, u) + p.assoc_extra_m ** 2)
+        np.logical_or.at(out, pk, (p.ghost_error_m * n) ** 2 >= gate2)
+        return out
 
     def _prune(self, drop: np.ndarray) -> int:
         """Remove the rows ``drop`` and the segments missed too often; returns how many of the latter."""
@@ -1084,11 +1104,12 @@ class LineMap:
         for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis",
                      "ambiguous", "stance_votes"):
             setattr(self, name, getattr(self, name)[keep])
+        kept = np.flatnonzero(keep).tolist()    # indices as ints: zipping a numpy bool array is 5x slower
         if len(self.view_log) == len(self.views):
-            self.view_log = [v for v, k in zip(self.view_log, keep) if k]
-        self.views = [v for v, k in zip(self.views, keep) if k]
+            self.view_log = [self.view_log[i] for i in kept]
+        self.views = [self.views[i] for i in kept]
         if len(self.ends) == len(keep):
-            self.ends = [v for v, k in zip(self.ends, keep) if k]
+            self.ends = [self.ends[i] for i in kept]
 
     # ------------------------------------------------------------- spatial hash
     def _near(self, lo: np.ndarray, hi: np.ndarray, reach: float, qdir: np.ndarray, ref_dirs) -> tuple:
