@@ -177,6 +177,59 @@ def test_a_refusal_of_a_command_whose_signature_failed_never_answers_the_ack_it_
     assert [e.get("unverified_ack") for e in refusals] == ["R1", "R1"], refusals
 
 
+def test_a_flood_of_refused_commands_makes_a_few_events_and_a_senders_answer_still_goes_out():
+    """A refusal was one command_rejected event each: 10,000 malformed, unsigned or unknown commands a second
+    filled the events' 1024 places in the telemetry queue, and the events behind them (a command's answer, a
+    safety change) were dropped (4866 of them here). A refusal that answers nobody is now reported once a
+    second per kind and reason, with the count held back; one a sender waits for (signed, with an ack) goes
+    out every time."""
+    from types import SimpleNamespace
+
+    from test_telemetry_units import ListSink
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, TeleopLimits
+    from vbnav.control.comms.telemetry import EVENT_RESERVE, TelemetryPublisher
+    from vbnav.control.runtime.mailbox import CommandMailbox
+
+    secret = b"0123456789abcdef-secret"
+    now = [10_000_000_000]
+    sink = ListSink()
+    pub = TelemetryPublisher("sim", [sink], now_ns=lambda: now[0])
+    link = SimpleNamespace(publisher=pub)
+    box = CommandMailbox(lambda: now[0], 500_000_000)
+    inbox = CommandInbox(TeleopLimits(0.5, 1.5), deliver=box.post,
+                         on_reject=lambda *a: TelemetryLink._on_reject(link, *a), now_ns=lambda: now[0])
+    subscribed = []
+    session = SimpleNamespace(declare_subscriber=lambda k, cb: subscribed.append(cb))
+    CommandSubscriber(session, "sim", inbox, verify=CommandVerifier(secret, now_ns=lambda: now[0]).verify)
+
+    def send(kind: str, body: dict, signed: bool = True):
+        key, payload = f"vbnav/sim/cmd/{kind}", json.dumps(body).encode()
+        att = sign(secret, key, payload, stamp_ns=now[0]) if signed else None
+        subscribed[0](SimpleNamespace(key_expr=key, payload=type("P", (), {"__len__": lambda s: len(payload),
+                                                                           "to_bytes": lambda s: payload})(),
+                                      attachment=None if att is None else SimpleNamespace(to_bytes=lambda: att)))
+
+    flood = 2 * EVENT_RESERVE
+    for n in range(flood):
+        send("mode", {"mode": "fly", "seq": n})                       # signed, malformed, no ack
+        send("resume", {"ack": f"x{n}"}, signed=False)                # unsigned, with an ack anyone may copy
+        send(f"junk{n}", {})                                          # a kind of the sender's choosing
+        if n == flood // 2:
+            send("mode", {"mode": "teach", "ack": "OP1"})             # an operator's, refused: its answer
+    now[0] += 1_000_000_000                                           # a second on: the count is said
+    send("mode", {"mode": "fly"})
+    pub.close()
+    assert inbox.rejected == 3 * flood + 2 and inbox.accepted == 0
+    refusals = [e for e in sink.events if e["kind"] == "command_rejected"]
+    assert sorted(e["command"] for e in refusals) == ["junk0", "mode", "mode", "mode", "resume"], refusals
+    answer = [e for e in refusals if e.get("ack") == "OP1"]
+    assert len(answer) == 1 and "needs a route" in answer[0]["reason"], refusals
+    assert not [e for e in sink.events if e["kind"] == "events_dropped"] and pub.dropped == 0
+    assert refusals[-1]["reason"].endswith(f"(and {flood - 1} more mode commands refused for this reason since "
+                                           f"the last report)"), refusals[-1]
+
+
 def test_vbnav_send_unanswered_names_a_refusal_of_its_ack_whose_signature_failed(capsys):
     import argparse
 

@@ -157,15 +157,23 @@ def test_inbox_rejects_with_events_and_the_safety_lane_refuses_loudly_but_never_
     clock = SimClock()
     mailbox = CommandMailbox(clock.now_ns, 500_000_000)
     rejected = []
-    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p, v: rejected.append((k, r)))
+    inbox = CommandInbox(LIMITS, deliver=mailbox.post, on_reject=lambda k, r, p, v: rejected.append((k, r)),
+                         now_ns=clock.now_ns)
     assert inbox.submit("teleop", b'{"linear": 5, "angular": 0}') is None
+    clock.advance(1_000_000_000)             # a refusal nobody waits for (no ack): reported once a second per kind
     assert inbox.submit("teleop", b"\xff\xfe") is None
     assert [k for k, _ in rejected] == ["teleop", "teleop"] and mailbox.drain(clock.now_ns()) == ([], [])
     assert inbox.submit("estop", b'{"reason": "first"}') is not None
     for _ in range(SAFETY_LANE_LIMIT + 5):
         inbox.submit("resume", b"{}")
     assert inbox.submit("estop", b'{"reason": "last"}') is not None       # a full lane still takes an estop
-    assert len(rejected) == 2 + 6 and rejected[-1][1].startswith("command lane full")
+    assert inbox.rejected == 2 + 6                                         # each refusal counted, one reported
+    assert len(rejected) == 2 + 1 and rejected[-1][1].startswith("command lane full")
+    clock.advance(1_000_000_000)
+    inbox.submit("resume", b"{}")
+    assert rejected[-1][1].startswith("command lane full") and \
+        rejected[-1][1].endswith("(and 5 more resume commands refused for this reason since the last report)"), \
+        rejected[-1]
     applied, refused = mailbox.drain(clock.now_ns())
     kinds = [c.kind for c in applied]
     assert not refused and len(kinds) == SAFETY_LANE_LIMIT + 1 and kinds[0] == kinds[-1] == "estop"
@@ -357,8 +365,29 @@ def test_garbage_commands_never_move_an_idle_robot():
 
     rt.cycle_observers.append(attacker)
     result = rt.run(1.5)
-    assert result.ok and len(rejected) == 100
+    # every one refused; reported once a second per kind and reason (no ack: nobody waits for the answers)
+    assert result.ok and inbox.rejected == 100 and inbox.accepted == 0
+    keys = [(k, r.split()[0]) for k, r, *_ in rejected]
+    assert len(rejected) == len(set(keys)) == 4, rejected     # teleop: 'linear' and 'not' (JSON); mode; unknown
     assert drive.last_motion_ns() == -1
+
+
+def test_a_sender_making_up_reasons_still_gets_ten_refusals_reported_a_second():
+    # A field name of the sender's own starts its refusal's reason: one key each, so 1000 of them a second
+    # would each be a first report. At most UNANSWERED_REPORTS a second are, in all; the rest are counted.
+    from vbnav.control.comms.operator_commands import UNANSWERED_REPORTS
+    clock = SimClock()
+    rejected = []
+    inbox = CommandInbox(LIMITS, deliver=lambda c: None, on_reject=lambda *a: rejected.append(a), now_ns=clock.now_ns)
+    for n in range(1000):
+        inbox.submit("mode", json.dumps({f"f{n}": 1, "mode": "idle"}).encode())
+        clock.advance(500_000)                      # 1000 in 0.5 s
+    assert inbox.rejected == 1000 and len(rejected) == UNANSWERED_REPORTS == 10
+    assert [r[1].split(":")[0] for r in rejected] == [f"f{n}" for n in range(10)]
+    clock.advance(1_000_000_000)
+    inbox.submit("mode", b'{"f999": 1, "mode": "idle"}')  # a second on: a key held back is said with its count
+    assert len(rejected) == 11 and rejected[-1][1].endswith("(and 1 more mode commands refused for this reason "
+                                                            "since the last report)"), rejected[-1]
 
 
 # ---- recording ----------------------------------------------------------------------------

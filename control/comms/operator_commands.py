@@ -24,8 +24,11 @@ newest message per sender. The loop drains the mailbox once per cycle, never blo
 Malformed, unknown, out-of-range, oversized, unsigned (with ``telemetry.shared_secret_file``),
 stale or out-of-order commands are refused with a ``command_rejected`` event (but an estop whose body
 is malformed or oversized stops the robot all the same, its trip naming the fault and its answer carrying the
-payload's ``ack`` when one is there: ``refuse_body``) (stale and
-out-of-order teleop without an ``ack`` at most once a second per reason, with a count): they
+payload's ``ack`` when one is there: ``refuse_body``). A refusal nobody waits for is reported
+at most once a second per reason, with the count held back: stale and out-of-order teleop without
+an ``ack``; any other payload without an ``ack``, or one whose signature failed, per command kind and
+reason, 10 a second in all (a flood of them filled the telemetry queue's event places:
+``CommandInbox.refuse``). They
 never raise into zenoh or the loop and never move the robot. Unauthorised peers are stopped
 earlier, by zenoh's access control (see network.py): their messages never arrive.
 
@@ -48,7 +51,8 @@ from vbnav.control.runtime.mailbox import OperatorCommand, RefusalThrottle
 from vbnav.drivers.plain_values import load_json
 
 MAX_PAYLOAD = 4096                 # bytes; larger command payloads are refused unread
-REPORT_EVERY_NS = 1_000_000_000    # teleop refusals are reported at most this often per reason
+REPORT_EVERY_NS = 1_000_000_000    # refusals nobody waits for are reported at most this often per reason
+UNANSWERED_REPORTS = 10            # and at most this many of them in all per REPORT_EVERY_NS
 ACK_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 ROUTE_MODES = ("teach", "repeat")  # the modes that take a route; idle takes none
 
@@ -198,9 +202,10 @@ class CommandInbox:
 
     ``submit`` parses a payload, turns it into an ``OperatorCommand`` and passes it to
     ``deliver`` (``Runtime.submit``: the loop's mailbox), which returns None when it took the
-    command or the reason it refused it. Refusals go to ``on_reject``; teleop without an ``ack``
-    that the mailbox refused (a flood of stale messages would flood the events) at most once per
-    second and reason, telling how many were refused since the last report.
+    command or the reason it refused it. Refusals go to ``on_reject``; those nobody waits for (a
+    flood would flood the events) at most once per second, telling how many were refused since the
+    last report: teleop without an ``ack`` that the mailbox refused per reason, any other without an
+    ``ack`` or with a failed signature per command kind and reason, 10 a second in all (``refuse``).
     """
 
     def __init__(self, limits: TeleopLimits, deliver: Callable[[OperatorCommand], Optional[str]],
@@ -214,6 +219,8 @@ class CommandInbox:
         self._on_reject = on_reject
         self._now = now_ns
         self._reports = RefusalThrottle(REPORT_EVERY_NS)   # stream refusals: once a second per reason
+        # refusals nobody waits for: once a second per kind and reason, UNANSWERED_REPORTS a second in all
+        self._unanswered = RefusalThrottle(REPORT_EVERY_NS, UNANSWERED_REPORTS)
         self.accepted = 0
         self.rejected = 0
 
@@ -274,17 +281,29 @@ class CommandInbox:
         it, a copy of an operator's command among them, so its ack is reported as not its sender's answer.
 
         stream: a teleop the mailbox refused (stale, out of order, too many senders), which a flood
-        repeats thousands of times: reported at most once a second per reason."""
+        repeats thousands of times: reported at most once a second per reason.
+
+        A refusal that answers nobody (its payload carries no ack, or failed its signature) is reported at most
+        once a second per command kind and reason (its first word), with the count held back, and at most
+        UNANSWERED_REPORTS of them a second in all (a field name of the sender's own starts a reason): a flood of
+        malformed or unsigned commands made one ``command_rejected`` event each, which filled the events' places
+        in the telemetry queue ahead of the answers and safety events behind them. A refusal a sender waits for
+        (a verified payload with an ack: ``vbnav send``) is always reported."""
         self.rejected += 1
         if self._on_reject is None:
             return
-        if stream:
-            words = reason.split(maxsplit=1)
-            key = words[0].rstrip(":") if words else ""
-            reason = self._reports.report(key, reason, self._now())
-            if reason is None:
-                return
         excerpt = payload[:200] if isinstance(payload, str) else bytes(payload[:200]).decode("utf-8", "replace")
+        words = reason.split(maxsplit=1)
+        word = words[0].rstrip(":") if words else ""
+        if stream:
+            reason = self._reports.report(word, reason, self._now())
+        elif not (verified and ACK_IN_PAYLOAD.search(excerpt)):
+            known = kind if kind in COMMAND_MODELS else "unknown"      # any key under cmd/ arrives: not one each
+            how = "" if verified else " unverified"
+            reason = self._unanswered.report(f"{known}{how}:{word}", reason, self._now(),
+                                             held=f"{known}{how} commands refused for this reason")
+        if reason is None:
+            return
         try:
             self._on_reject(kind, reason, excerpt, verified)
         except Exception:

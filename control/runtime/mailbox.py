@@ -103,24 +103,41 @@ class OperatorCommand:
 
 
 class RefusalThrottle:
-    """Refusals of a teleop stream (10-20 Hz, thousands in a flood) reported at most once per ``every_ns``
-    per reason key, the first one with a count of those held back since the last report. Any thread."""
+    """Refusals nobody waits for (a teleop stream at 10-20 Hz; a flood of malformed or unsigned commands,
+    thousands a second) reported at most once per ``every_ns`` per reason key, the first one with a count of
+    those held back since the last report; with ``max_reports``, at most that many reports of all keys
+    together per ``every_ns`` (a sender can make up keys: a field name of its own starts a reason). Any thread."""
 
-    def __init__(self, every_ns: int = 1_000_000_000):
+    MAX_KEYS = 256          # distinct keys remembered; a new one past them forgets the stalest
+    _NEVER = -(1 << 62)     # a key held back but not reported yet
+
+    def __init__(self, every_ns: int = 1_000_000_000, max_reports: Optional[int] = None):
         self.every_ns = every_ns
+        self.max_reports = max_reports
         self._lock = threading.Lock()
         self._last: dict[str, tuple[int, int]] = {}     # key -> (last report ns, held back since)
+        self._window = (self._NEVER, 0)                 # (start ns, reports in it) for max_reports
 
-    def report(self, key: str, reason: str, now_ns: int) -> Optional[str]:
-        """The reason to report now (with the count held back), or None to hold this one back."""
+    def report(self, key: str, reason: str, now_ns: int, held: str = "teleop refused for this reason") -> Optional[str]:
+        """The reason to report now (with the count of those held back, ``held`` saying what they were), or None
+        to hold this one back."""
         with self._lock:
-            last, since = self._last.get(key, (None, 0))
-            if last is not None and now_ns - last < self.every_ns:
+            if key not in self._last and len(self._last) >= self.MAX_KEYS:
+                del self._last[min(self._last, key=lambda k: self._last[k][0])]
+            last, since = self._last.get(key, (self._NEVER, 0))
+            hold = now_ns - last < self.every_ns
+            if not hold and self.max_reports is not None:
+                start, n = self._window
+                if now_ns - start >= self.every_ns:
+                    start, n = now_ns, 0
+                hold = n >= self.max_reports
+                self._window = (start, n + (not hold))
+            if hold:
                 self._last[key] = (last, since + 1)
                 return None
             self._last[key] = (now_ns, 0)
         if since:
-            reason += f" (and {since} more teleop refused for this reason in the last second)"
+            reason += f" (and {since} more {held} since the last report)"
         return reason
 
 
