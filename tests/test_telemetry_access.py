@@ -134,6 +134,49 @@ def test_signed_commands_unsigned_wrong_stale_and_replayed_are_refused():
     assert v.verify(key, payload, att).startswith("stale")
 
 
+class _SignedRobot:
+    """A robot's command path with a shared secret, on a settable clock: the zenoh subscriber's callback, the
+    inbox and the loop's mailbox, its refusals published as events into ``sink`` (``close`` flushes them)."""
+
+    SECRET = b"0123456789abcdef-secret"
+
+    def __init__(self):
+        from types import SimpleNamespace
+
+        from test_telemetry_units import ListSink
+        from vbnav.control.comms.link import TelemetryLink
+        from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, TeleopLimits
+        from vbnav.control.comms.telemetry import TelemetryPublisher
+        from vbnav.control.runtime.mailbox import CommandMailbox
+
+        self.now = [10_000_000_000]
+        self.sink = ListSink()
+        self.pub = TelemetryPublisher("sim", [self.sink], now_ns=lambda: self.now[0])
+        link = SimpleNamespace(publisher=self.pub)
+        self.inbox = CommandInbox(TeleopLimits(0.5, 1.5), deliver=CommandMailbox(lambda: self.now[0], 500_000_000).post,
+                                  on_reject=lambda *a: TelemetryLink._on_reject(link, *a), now_ns=lambda: self.now[0])
+        subscribed = []
+        session = SimpleNamespace(declare_subscriber=lambda k, cb: subscribed.append(cb))
+        CommandSubscriber(session, "sim", self.inbox,
+                          verify=CommandVerifier(self.SECRET, now_ns=lambda: self.now[0]).verify)
+        self._on_sample = subscribed[0]
+
+    def put(self, kind: str, payload: bytes, attachment: bytes = None) -> None:
+        from types import SimpleNamespace
+        self._on_sample(SimpleNamespace(key_expr=f"vbnav/sim/cmd/{kind}",
+                                        payload=type("P", (), {"__len__": lambda s: len(payload),
+                                                               "to_bytes": lambda s: payload})(),
+                                        attachment=None if attachment is None else SimpleNamespace(
+                                            to_bytes=lambda: attachment)))
+
+    def signature(self, kind: str, payload: bytes) -> bytes:
+        return sign(self.SECRET, f"vbnav/sim/cmd/{kind}", payload, stamp_ns=self.now[0])
+
+    def refusals(self) -> list:
+        self.pub.close()
+        return [e for e in self.sink.events if e["kind"] == "command_rejected"]
+
+
 def test_a_refusal_of_a_command_whose_signature_failed_never_answers_the_ack_it_carries():
     """Found by an audit: the robot echoed the ack of every refused payload in its command_rejected event, also of
     a payload whose signature failed. Any local user who saw an operator's signed resume on cmd/** could replay
@@ -141,38 +184,13 @@ def test_a_refusal_of_a_command_whose_signature_failed_never_answers_the_ack_it_
     the loop applied the genuine one, and `vbnav send`, which takes the first answer carrying its ack, said
     'robot refused resume' of a resume that was applied. The ack of an unverified payload is now reported as
     unverified_ack, which no sender takes for its answer."""
-    from types import SimpleNamespace
-
-    from test_telemetry_units import ListSink
-    from vbnav.control.comms.link import TelemetryLink
-    from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, TeleopLimits
-    from vbnav.control.comms.telemetry import TelemetryPublisher
-    from vbnav.control.runtime.mailbox import CommandMailbox
-
-    secret, key = b"0123456789abcdef-secret", "vbnav/sim/cmd/resume"
-    now = [10_000_000_000]
-    sink = ListSink()
-    pub = TelemetryPublisher("sim", [sink], now_ns=lambda: now[0])
-    link = SimpleNamespace(publisher=pub)
-    box = CommandMailbox(lambda: now[0], 500_000_000)
-    inbox = CommandInbox(TeleopLimits(0.5, 1.5), deliver=box.post,
-                         on_reject=lambda *a: TelemetryLink._on_reject(link, *a), now_ns=lambda: now[0])
-    subscribed = []
-    session = SimpleNamespace(declare_subscriber=lambda k, cb: subscribed.append(cb))
-    CommandSubscriber(session, "sim", inbox, verify=CommandVerifier(secret, now_ns=lambda: now[0]).verify)
-
-    def sample(payload: bytes, attachment):
-        return SimpleNamespace(key_expr=key, payload=type("P", (), {"__len__": lambda s: len(payload),
-                                                                     "to_bytes": lambda s: payload})(),
-                               attachment=None if attachment is None else SimpleNamespace(to_bytes=lambda: attachment))
-
+    robot = _SignedRobot()
     payload = json.dumps({"ack": "R1", "sender": "op", "latched_ns": 5}).encode()
-    att = sign(secret, key, payload, stamp_ns=now[0])
+    att = robot.signature("resume", payload)
     for args in ((payload, att), (payload, att), (payload, None)):     # the genuine one, a replay, unsigned
-        subscribed[0](sample(*args))
-    pub.close()
-    assert inbox.accepted == 1 and inbox.rejected == 2
-    refusals = [e for e in sink.events if e["kind"] == "command_rejected"]
+        robot.put("resume", *args)
+    refusals = robot.refusals()
+    assert robot.inbox.accepted == 1 and robot.inbox.rejected == 2
     assert len(refusals) == 2 and [e.get("ack") for e in refusals] == [None, None], refusals
     assert [e.get("unverified_ack") for e in refusals] == ["R1", "R1"], refusals
 
@@ -183,32 +201,12 @@ def test_a_flood_of_refused_commands_makes_a_few_events_and_a_senders_answer_sti
     safety change) were dropped (4866 of them here). A refusal that answers nobody is now reported once a
     second per kind and reason, with the count held back; one a sender waits for (signed, with an ack) goes
     out every time."""
-    from types import SimpleNamespace
-
-    from test_telemetry_units import ListSink
-    from vbnav.control.comms.link import TelemetryLink
-    from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, TeleopLimits
-    from vbnav.control.comms.telemetry import EVENT_RESERVE, TelemetryPublisher
-    from vbnav.control.runtime.mailbox import CommandMailbox
-
-    secret = b"0123456789abcdef-secret"
-    now = [10_000_000_000]
-    sink = ListSink()
-    pub = TelemetryPublisher("sim", [sink], now_ns=lambda: now[0])
-    link = SimpleNamespace(publisher=pub)
-    box = CommandMailbox(lambda: now[0], 500_000_000)
-    inbox = CommandInbox(TeleopLimits(0.5, 1.5), deliver=box.post,
-                         on_reject=lambda *a: TelemetryLink._on_reject(link, *a), now_ns=lambda: now[0])
-    subscribed = []
-    session = SimpleNamespace(declare_subscriber=lambda k, cb: subscribed.append(cb))
-    CommandSubscriber(session, "sim", inbox, verify=CommandVerifier(secret, now_ns=lambda: now[0]).verify)
+    from vbnav.control.comms.telemetry import EVENT_RESERVE
+    robot = _SignedRobot()
 
     def send(kind: str, body: dict, signed: bool = True):
-        key, payload = f"vbnav/sim/cmd/{kind}", json.dumps(body).encode()
-        att = sign(secret, key, payload, stamp_ns=now[0]) if signed else None
-        subscribed[0](SimpleNamespace(key_expr=key, payload=type("P", (), {"__len__": lambda s: len(payload),
-                                                                           "to_bytes": lambda s: payload})(),
-                                      attachment=None if att is None else SimpleNamespace(to_bytes=lambda: att)))
+        payload = json.dumps(body).encode()
+        robot.put(kind, payload, robot.signature(kind, payload) if signed else None)
 
     flood = 2 * EVENT_RESERVE
     for n in range(flood):
@@ -217,15 +215,14 @@ def test_a_flood_of_refused_commands_makes_a_few_events_and_a_senders_answer_sti
         send(f"junk{n}", {})                                          # a kind of the sender's choosing
         if n == flood // 2:
             send("mode", {"mode": "teach", "ack": "OP1"})             # an operator's, refused: its answer
-    now[0] += 1_000_000_000                                           # a second on: the count is said
+    robot.now[0] += 1_000_000_000                                     # a second on: the count is said
     send("mode", {"mode": "fly"})
-    pub.close()
-    assert inbox.rejected == 3 * flood + 2 and inbox.accepted == 0
-    refusals = [e for e in sink.events if e["kind"] == "command_rejected"]
+    refusals = robot.refusals()
+    assert robot.inbox.rejected == 3 * flood + 2 and robot.inbox.accepted == 0
     assert sorted(e["command"] for e in refusals) == ["junk0", "mode", "mode", "mode", "resume"], refusals
     answer = [e for e in refusals if e.get("ack") == "OP1"]
     assert len(answer) == 1 and "needs a route" in answer[0]["reason"], refusals
-    assert not [e for e in sink.events if e["kind"] == "events_dropped"] and pub.dropped == 0
+    assert not [e for e in robot.sink.events if e["kind"] == "events_dropped"] and robot.pub.dropped == 0
     assert refusals[-1]["reason"].endswith(f"(and {flood - 1} more mode commands refused for this reason since "
                                            f"the last report)"), refusals[-1]
 
