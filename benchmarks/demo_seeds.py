@@ -3,8 +3,8 @@ twice from a 0.3 m / 10 degree start offset with motor and image noise, the seco
 covered for 2 s mid-route; seeds 0 and 1 repeat under changed lighting (-40 %, +40 %) with two boxes of the
 taught scene moved.
 
-The test suite runs seeds 0, 1 and 3 (both changed-lighting scenes and the worst plain one, ~75 s each on
-one core); this runs all five (seeds 2-4 plain, with other noise), prints each repeat's lateral RMS and max error and
+The test suite runs seeds 0 and 1 (both changed-lighting scenes, 75-95 s each on one core); this runs all
+five (seeds 2-4 plain, with other noise), prints each repeat's lateral RMS and max error and
 where it recovered from the start offset, and checks them against the test's bars (twice the worst
 measured). The peer is the route itself: the figures are the repeated path's distance from the taught one.
 

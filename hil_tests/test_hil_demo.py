@@ -1,9 +1,10 @@
-"""The demo scenario closed-loop: real runtime, simulated base and camera, three seeds of five.
+"""The demo scenario closed-loop: real runtime, simulated base and camera, two seeds of five.
 
 Each seed teaches the 20 m route and repeats it twice from a 0.3 m / 10 degree start offset with motor and
-image noise; the second repeat has the camera covered for 2 s mid-route. Two seeds repeat under changed
-lighting (-40 %, +40 %) with two boxes of the taught scene moved. Seeds 2 and 4 (plain, other noise) run in
-``benchmarks/demo_seeds.py`` with the same bars: ~80 s each, five made this file the suite's longest by far.
+image noise; the second repeat has the camera covered for 2 s mid-route. The two seeds here repeat under
+changed lighting (-40 %, +40 %) with two boxes of the taught scene moved. Seeds 2-4 (plain, other noise) run
+in ``benchmarks/demo_seeds.py`` with the same bars: 75-95 s each on one core, five made this file the suite's
+longest by far, and three (2026-12-03) left the suite at 890 s of its 900 on a slow machine.
 """
 import json
 
@@ -26,9 +27,9 @@ SCENARIOS = {
 }
 
 
-# Both changed-lighting scenes and the worst plain one (seed 3, 2026-12-03: RMS 1.18 cm, max 4.74 cm); all
-# five: benchmarks/demo_seeds.py.
-TEST_SEEDS = (0, 1, 3)
+# Both changed-lighting scenes; all five, the worst plain one among them (seed 3, 2026-12-03: RMS 1.18 cm,
+# max 4.74 cm): benchmarks/demo_seeds.py.
+TEST_SEEDS = (0, 1)
 
 
 def scenario_of(seed: int) -> Scenario:
