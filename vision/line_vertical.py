@@ -88,9 +88,10 @@ def pencil_runs(image: np.ndarray, params: LineParams = LineParams(), noise: Opt
     gx, gy = gradients(g) if grad is None else grad
     M = np.abs(gx)
     thr = params.vertical_k_sigma * SOBEL_NOISE_GAIN * (noise_sigma(g) if noise is None else noise)
-    if line_vertical_kernel.AVAILABLE:
-        runs = line_vertical_kernel.column_runs(M, np.asarray(gy, np.float32), np.float32(thr), params.vertical_tol_px,
-                                                int(params.vertical_gap_px), params.min_length_px, params.sigma_perp_px)
+    if line_vertical_kernel.AVAILABLE:          # float32 as ``gradients`` gives them: one compiled signature
+        runs = line_vertical_kernel.column_runs(np.ascontiguousarray(M, np.float32), np.ascontiguousarray(gy, np.float32),
+                                                np.float32(thr), params.vertical_tol_px, int(params.vertical_gap_px),
+                                                params.min_length_px, params.sigma_perp_px)
     else:
         runs = column_runs(M, gy, thr, params)
     return _strongest_of_neighbours(runs)
