@@ -21,7 +21,7 @@ demo: $(STAMP)
 	$(BIN)/vbnav demo --out out/demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -ra --durations=15 -n auto --dist loadfile
+	$(BIN)/python -m pytest -q -ra --durations=15 -n auto --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
