@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -141,8 +142,6 @@ class _SignedRobot:
     SECRET = b"0123456789abcdef-secret"
 
     def __init__(self):
-        from types import SimpleNamespace
-
         from test_telemetry_units import ListSink
         from vbnav.control.comms.link import TelemetryLink
         from vbnav.control.comms.operator_commands import CommandInbox, CommandSubscriber, TeleopLimits
@@ -162,7 +161,6 @@ class _SignedRobot:
         self._on_sample = subscribed[0]
 
     def put(self, kind: str, payload: bytes, attachment: bytes = None) -> None:
-        from types import SimpleNamespace
         self._on_sample(SimpleNamespace(key_expr=f"vbnav/sim/cmd/{kind}",
                                         payload=type("P", (), {"__len__": lambda s: len(payload),
                                                                "to_bytes": lambda s: payload})(),

@@ -20,8 +20,8 @@ The arithmetic is the reference's, operation for operation, so the runs are bit-
   (L = ceil(min_length_px); at the image's border the erosion ignores rows outside it), as in the reference.
 
 ``line_vertical.pencil_runs`` uses :func:`column_runs` when numba imports and ``VBNAV_NO_JIT`` is unset;
-otherwise its numpy path, which stays as the readable reference. :func:`warm_up` compiles it (7 s on this VM
-the first time, 0.4 s from numba's disk cache afterwards) before a vision thread's first frame.
+otherwise its numpy path, which stays as the readable reference. :func:`warm_up` compiles it (7-8 s on this VM
+the first time, 0.4-0.8 s from numba's disk cache afterwards, as the machine runs) before a vision thread's first frame.
 """
 from __future__ import annotations
 
@@ -45,17 +45,22 @@ except ImportError:  # line_vertical's numpy path is used instead
 
 
 @_jit
+def _offset(M, y, x):
+    """A ridge's sub-pixel offset from column x: its parabola through M at x - 1, x, x + 1 (float32, as the
+    reference; 0 where the three do not curve down)."""
+    a, b, c = M[y, x - 1], M[y, x], M[y, x + 1]
+    curv = a - np.float32(2.0) * b + c
+    return np.float32(0.5) * (a - c) / curv if curv < 0 else np.float32(0.0)
+
+
+@_jit
 def _ridge(M, gy, y, x, thr):
     """(is a ridge, sub-pixel offset): a local maximum of M along the row above ``thr`` with the gradient
-    across the columns, and its parabola's offset (float32, as the reference)."""
+    across the columns, and its parabola's offset."""
     b = M[y, x]
-    a, c = M[y, x - 1], M[y, x + 1]
-    if not ((b >= a) & (b >= c) & (b > thr) & (abs(gy[y, x]) < b)):
+    if not ((b >= M[y, x - 1]) & (b >= M[y, x + 1]) & (b > thr) & (abs(gy[y, x]) < b)):
         return False, np.float32(0.0)
-    curv = a - np.float32(2.0) * b + c
-    if curv < 0:
-        return True, np.float32(0.5) * (a - c) / curv
-    return True, np.float32(0.0)
+    return True, _offset(M, y, x)
 
 
 @_jit
@@ -66,12 +71,12 @@ def _support(M, gy, thr, hi, lo):
     is_r = np.zeros(W, np.bool_)
     for y in range(H):
         m, g = M[y], gy[y]
-        for x in range(2, W - 2):                 # not the Sobel's border columns; branch-free, vectorised
-            b = m[x]
+        for x in range(2, W - 2):                 # not the Sobel's border columns; _ridge's test, branch-free
+            b = m[x]                              # (so it vectorises): most pixels are no ridge
             is_r[x] = (b >= m[x - 1]) & (b >= m[x + 1]) & (b > thr) & (abs(g[x]) < b)
         for x in range(2, W - 2):
             if is_r[x]:
-                o = _ridge(M, gy, y, x, thr)[1]
+                o = _offset(M, y, x)
                 S[y, x] += 1
                 if o >= hi:
                     S[y, x + 1] += 1
