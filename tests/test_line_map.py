@@ -397,6 +397,32 @@ def _drive_past_edges(m: LineMap) -> list:
     return out
 
 
+def test_every_per_segment_array_is_inserted_and_removed_row_for_row():
+    """LineMap's per-segment arrays are named once (SEGMENT_ARRAYS) and ``_insert`` / ``_remove`` go through
+    that list: a map field holding an array is either listed there or is the spatial hash's serial numbers,
+    and after a drive with merging, rivals and pruning each remaining segment's row in every array is the
+    one it had before a removal."""
+    from dataclasses import fields
+    from vbnav.vision.line_map import SEGMENT_ARRAYS
+    arrays = {f.name for f in fields(LineMap) if isinstance(getattr(LineMap(), f.name), np.ndarray)}
+    assert arrays == set(SEGMENT_ARRAYS) | {"serial"}
+    m = LineMap(MapParams(view_baseline_m=0.1))
+    stats = _drive_past_edges(m)
+    assert sum(s.merged for s in stats) >= 1 and m.verified.any() and not m.verified.all()
+    assert all(len(getattr(m, name)) == len(m) for name in SEGMENT_ARRAYS)
+    assert len(m.views) == len(m.view_log) == len(m.ends) == len(m.serial) == len(m)
+    before = {name: getattr(m, name).copy() for name in SEGMENT_ARRAYS}
+    views_before = [list(v) for v in m.views]
+    drop = np.zeros(len(m), bool)
+    drop[::2] = True
+    m._remove(drop)
+    kept = np.flatnonzero(~drop)
+    for name in SEGMENT_ARRAYS:
+        assert np.array_equal(getattr(m, name), before[name][kept]), name
+    assert all(len(a) == len(b) for a, b in zip(m.views, [views_before[i] for i in kept]))
+    assert len(m.views) == len(m.view_log) == len(m.ends) == len(m.serial) == len(m) == len(kept)
+
+
 def _far_segments(n: int) -> np.ndarray:
     """n segments of all directions 40-60 m away (another part of a long drive)."""
     rng = np.random.default_rng(4)

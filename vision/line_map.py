@@ -68,6 +68,12 @@ MERGE_PERP_M = 0.2       # merging's coarse gate: both endpoints of the other pi
 # before: 3 distinct viewpoints 0.15 m apart are 0.3 m of driving, 9 frames at 0.5 m/s and 15 Hz); past them
 # a view the same viewpoint as a logged one is not logged, so a parked robot's log stops growing.
 VIEW_LOG_EXACT = 64
+# LineMap's per-segment state: one row per map segment in each of these arrays. ``_insert`` appends to and
+# ``_remove`` drops from every one of them through this tuple, so a new per-segment array is named once here
+# (tests/test_line_map.py checks that every array field of a built map is listed). The per-segment lists
+# (``views``, and the derived ``view_log``, ``ends`` and ``serial``) have their own rules there.
+SEGMENT_ARRAYS = ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified",
+                  "group", "ids", "hypothesis", "ambiguous", "stance_votes")
 GRID_CELL_M = 0.6        # the spatial hash's cell: about the association reach (hypot(0.3, 0.5) m)
 GRID_MIN_SEGMENTS = 10000  # below this the update scans the map (boxes, then directions): cheaper (see _near)
 _CELL_OFFSET = 1 << 19   # cell coordinates are packed as 20-bit fields (+-300 km at 0.6 m), then 2 bits of class
@@ -971,21 +977,16 @@ class LineMap:
         t = t / np.maximum(_norms(t, axis=1), 1e-12)[:, None]
         info = np.linalg.inv(Cw + ALONG_VAR * np.einsum("ki,kj->kij", t, t)[:, None])    # (n, 2, 3, 3)
         vec = np.einsum("keij,kej->kei", info, Pw)
-        self.P = np.concatenate((self.P, Pw))
-        self.info = np.concatenate((self.info, info))
-        self.info_vec = np.concatenate((self.info_vec, vec))
-        self.cov = np.concatenate((self.cov, np.linalg.inv(info)))
-        self.anchor = np.concatenate((self.anchor, Pw))
-        self.anchor_cov = np.concatenate((self.anchor_cov, self.cov[len(self.cov) - n:]))
-        self.support = np.concatenate((self.support, np.ones(n, int)))
-        self.misses = np.concatenate((self.misses, np.zeros(n, int)))
-        self.verified = np.concatenate((self.verified, np.zeros(n, bool)))
-        self.group = np.concatenate((self.group, group.astype(int)))
+        cov = np.linalg.inv(info)
         new_ids = np.arange(self.next_id, self.next_id + n)
-        self.ids = np.concatenate((self.ids, new_ids))
-        self.hypothesis = np.concatenate((self.hypothesis, np.full(n, hypothesis)))
-        self.ambiguous = np.concatenate((self.ambiguous, group >= 0))
-        self.stance_votes = np.concatenate((self.stance_votes, votes))
+        rows = {"P": Pw, "info": info, "info_vec": vec, "cov": cov, "anchor": Pw, "anchor_cov": cov,
+                "support": np.ones(n, int), "misses": np.zeros(n, int), "verified": np.zeros(n, bool),
+                "group": group.astype(int), "ids": new_ids, "hypothesis": np.full(n, hypothesis),
+                "ambiguous": group >= 0, "stance_votes": votes}
+        if rows.keys() != set(SEGMENT_ARRAYS):
+            raise AssertionError(f"LineMap._insert: new rows for {sorted(rows)}, expected {SEGMENT_ARRAYS}")
+        for name in SEGMENT_ARRAYS:
+            setattr(self, name, np.concatenate((getattr(self, name), rows[name])))
         self.next_id += n
         logged = len(self.view_log) == len(self) - n
         self.views.extend([[view.copy()] if view is not None else [] for _ in range(n)])
@@ -1101,8 +1102,7 @@ class LineMap:
             self.serial = self.serial[keep]
         if indexed:
             self.grid.remove(keep)
-        for name in ("P", "info", "info_vec", "cov", "anchor", "anchor_cov", "support", "misses", "verified", "group", "ids", "hypothesis",
-                     "ambiguous", "stance_votes"):
+        for name in SEGMENT_ARRAYS:
             setattr(self, name, getattr(self, name)[keep])
         kept = np.flatnonzero(keep).tolist()    # indices as ints: zipping a numpy bool array is 5x slower
         if len(self.view_log) == len(self.views):
