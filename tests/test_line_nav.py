@@ -96,21 +96,26 @@ def test_room_map_holds_the_edges_in_view(room_drive):
 def test_rooms_the_map_was_not_developed_on():
     """World.room seeds 4-7 (the same boxes and walls, other textures; first measured 2026-12-02, after every
     threshold had been set on seeds 0-3), built and scored as the room test's: so a change fitted to seed 0
-    fails here. Measured together (benchmarks/line_room.py prints each room): 46 of the 48 edges seen from
+    fails here. Measured together (benchmarks/line_room.py prints each room): 47 of the 48 edges seen from
     >= 3 viewpoints mapped, endpoints 2.5 mm median / 1.1 cm 95 %, 13 of 1436 verified segments false, since
-    vertical lines on a plain face are matched (2026-12-03, tenth session; box_b's corners and box_a's far
-    corner on seeds 4-6). Before: 37 of 48, 2.6 mm median / 1.7 cm 95 % (the acceptance asks 2 cm / 5 cm; 2.7 mm /
+    a corner joins its box along a foot (2026-12-03, twelfth session: seed 4's box_a's lower edge from its
+    whole footprint); 46 of 48 since vertical lines on a plain face are matched (tenth session; box_b's
+    corners and box_a's far corner on seeds 4-6). Before: 37 of 48, 2.6 mm median / 1.7 cm 95 % (the acceptance asks 2 cm / 5 cm; 2.7 mm /
     2.1 cm with a line painted on seed 5's box_a 5.5 cm from its corner counted as the corner's), 13 of
     1416 verified segments false (0.9 %; 11 of 1392 before the distinct viewpoints were counted in time
     order on every view); asserted within about 2x. Before floor lines said what stands on
     them (vision/line_floor.py): 37 of 48, 2.9 mm / 5.7 cm, 20 of 1462 false."""
     mapped = verifiable = false = verified = 0
-    errs = []
+    errs, ious = [], {}
     for seed in (4, 5, 6, 7):
         world = World.room(seed)
         drive = render_drive(world, loop_poses(LOOP_FRAMES))
         lmap, _ = build_map(drive, floor=True, abstraction_every=ABSTRACTION_EVERY)
         sc = score_map(lmap, world, drive)
+        polys = [q.footprint for q in object_polygons(lmap.structure()) if len(q.footprint) >= 3]
+        for name, _, xz in world.footprints():
+            if name in ("box_a", "box_b"):
+                ious[seed, name] = max((footprint_overlap(fp, np.asarray(xz, float))[0] for fp in polys), default=0.0)
         mapped, verifiable = mapped + sc.mapped_verifiable, verifiable + sc.in_view_verifiable
         false, verified = false + round(sc.false_fraction * sc.verified), verified + sc.verified
         errs.append(sc.endpoint_err)
@@ -118,6 +123,9 @@ def test_rooms_the_map_was_not_developed_on():
     assert verifiable >= 44 and mapped >= 44, (mapped, verifiable)
     assert np.median(err) <= 0.005 and np.percentile(err, 95) <= 0.025, (np.median(err), np.percentile(err, 95))
     assert false <= 0.02 * verified, (false, verified)
+    # The two boxes inside the loop, the goto grid's obstacles: IoU 0.98-0.99 each (seed 4's box_a 0.25 before
+    # a corner joined its box along a foot, whatever its top; line_abstraction._face_between).
+    assert min(ious.values()) >= 0.9, ious
 
 
 VIEW = View(CAM.fx, CAM.fy, CAM.cx, CAM.cy, CAM.width, CAM.height, BASELINE, MOUNT)
@@ -183,6 +191,29 @@ def test_abstraction_finds_box_corners_and_hypotheses():
     lmap = LineMap()
     ids = lmap.add_hypotheses(hyp)
     assert len(ids) == len(hyp) and lmap.hypothesis.all() and not lmap.verified.any()
+
+
+def test_a_corner_whose_top_ended_early_joins_its_box_along_the_foot_of_their_face():
+    """A corner's top is where LSD's pieces of it ended (room seeds 3 and 4 at 60 frames: box_a's near corner
+    at 0.36-0.56 m of its 0.9 m, so it made an object of its own or none, IoU 0.25). A foot lying between it
+    and another corner joins them whatever their tops; a tall line beyond the box on that face's line, and
+    corners with no foot between them, are not joined."""
+    corners = np.array([[0.0, 0.0], [0.8, 0.0], [0.8, 0.6]])
+    tops = [0.9, 0.36, 0.9]                                   # the middle corner's pieces ended early
+    vertical = [[[x, 0.0, z], [x, -h, z]] for (x, z), h in zip(corners, tops)]
+    wall_line = [[[1.2, 0.0, 0.0], [1.2, -2.0, 0.0]]]         # a tall line 0.4 m past the box, on its face's line
+    feet = [[[0.15, 0.0, 0.01], [0.6, 0.0, -0.01]],           # a piece of the south face's foot
+            [[0.81, 0.0, 0.1], [0.79, 0.0, 0.45]]]            # and of the east face's
+    P = np.array(vertical + wall_line + feet, float)
+    polys = object_polygons(P)
+    box = [q for q in polys if q.corners == 3]
+    assert len(box) == 1 and np.isclose(abs(signed_area(box[0].footprint)), 0.48, atol=0.01), \
+        [(q.corners, q.footprint.round(2).tolist()) for q in polys]
+    assert all(q.footprint[:, 0].max() < 1.0 for q in polys)  # the tall line stays out of it
+    # Without the feet the low corner is an object of its own (or none): tops 0.54 m apart prove nothing
+    # either way, and nothing else joins it.
+    alone = object_polygons(np.array(vertical + wall_line, float))
+    assert not any(q.corners == 3 for q in alone)
 
 
 def test_abstraction_closes_a_box_seen_at_two_corners_and_its_foot():
