@@ -8,8 +8,9 @@ Pure functions of the map's verified segments (world frame, y down, floor y = 0)
   assumed to stand on the floor (man-made objects do): LSD rarely follows a textured edge all the way
   down, so the band is wide;
 - ``floor_lines``: horizontal segments lying on the floor (the feet of boxes and walls, vision/line_floor.py);
-- ``box_polygons``: vertical edges of similar height within ``box_max_m`` of each other are the corners of
-  one object, and a floor line is its lower edge when two of them stand on it (within ``foot_on_m``, at least
+- ``box_polygons``: vertical edges within ``box_max_m`` of each other, of similar height or joined by a
+  foot (a floor line between them: a corner's top is where LSD's pieces of it ended, often early), are the
+  corners of one object, and a floor line is its lower edge when two of them stand on it (within ``foot_on_m``, at least
   ``min_side_m`` apart along it: two edges of one corner are not two corners), or when
   it starts at the end of a face between two of them at right angles to it (``foot_angle_deg``). Boxes
   are rectangular: the footprint is the rectangle around the corners and the lower edges' ends whose sides
