@@ -288,6 +288,9 @@ def main() -> int:
         "time": timing, "laps": laps,
         "map": {**stage.map.summary(), "edges_in_view": score.in_view, "edges_mapped": score.mapped,
                 "coverage": round(score.coverage, 3),
+                # The edges seen from >= verify_views distinct viewpoints (what the verification rule can
+                # map at all; an edge glimpsed from one place cannot be verified) and how many are mapped.
+                "edges_verifiable": score.in_view_verifiable, "edges_verifiable_mapped": score.mapped_verifiable,
                 "endpoint_err_median_m": round(float(np.median(e)), 4) if len(e) else None,
                 "endpoint_err_p95_m": round(float(np.percentile(e, 95)), 4) if len(e) else None,
                 "false_fraction": round(score.false_fraction, 3)},
