@@ -828,6 +828,39 @@ def test_a_top_edge_hypothesis_is_measured_on_its_corners_lines_in_the_recent_ke
     assert not plain.verified[0]
 
 
+def test_a_hypothesis_takes_the_pieces_seen_before_it_was_posted():
+    """The slow loop posts a box's missing lines once its corners are verified, often as the robot leaves the
+    box: the stereo pieces of a line seen before that are candidates, one seen from two viewpoints, one from
+    a third, too far apart along it to merge (room seed 3: box_b's west foot, 0.41 m from two viewpoints and
+    0.17 m from three). They are observations of the line it hypothesises and merge into it on insertion,
+    their viewpoints adding up: verified, from the hypothesis's end to end. Before, it waited with no view for
+    a camera to come back. The pieces from two viewpoints alone leave it a candidate, and a piece 10 cm off
+    the line is not taken."""
+    line = np.array([[-0.3, 0.0, 2.0], [0.7, 0.0, 2.0]])
+    piece_a, piece_b = line.copy(), line.copy()
+    piece_a[1, 0], piece_b[0, 0] = -0.1, 0.3         # 0.4 m apart: more than overlap_margin_m and merge_gap_m
+    off = piece_b + [0.0, 0.0, 0.10]
+
+    def seen(pieces):
+        m = LineMap()
+        for x, P in pieces:
+            R, t = at(x)
+            m.update(obs(P[None] - t, sigma=0.003), R, t)
+        return m
+
+    m = seen([(0.0, piece_a), (0.2, piece_a), (0.4, piece_b)])
+    assert len(m) == 2 and not m.verified.any()
+    m.add_hypotheses(line[None])
+    assert len(m) == 1 and m.verified[0] and len(m.views[0]) == 3 and not m.hypothesis[0]
+    np.testing.assert_allclose(np.sort(m.P[0, :, 0]), [-0.3, 0.7], atol=0.01)
+    two = seen([(0.0, piece_a), (0.2, piece_a)])
+    two.add_hypotheses(line[None])
+    assert len(two) == 1 and not two.verified[0] and len(two.views[0]) == 2
+    apart = seen([(0.0, piece_a), (0.2, piece_a), (0.4, off)])
+    apart.add_hypotheses(line[None])
+    assert len(apart) == 2 and not apart.verified.any()
+
+
 def test_a_box_posted_again_adds_no_second_copy_of_its_lines():
     """The slow loop posts a box's hypotheses again when its footprint changes (rounded to 0.1 m); most of
     them are the lines it posted before, and the map took them twice (room seeds 1-3: 2-3 pairs each,

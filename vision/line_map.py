@@ -641,13 +641,14 @@ class LineMap:
         self._moved(j)
 
     # ------------------------------------------------------------ collinear merging
-    def _merge_collinear(self, touched: np.ndarray) -> tuple[int, np.ndarray, list]:
+    def _merge_collinear(self, touched: np.ndarray, partners: Optional[np.ndarray] = None) -> tuple[int, np.ndarray, list]:
         """Fuse map segments that lie on one 3D line and overlap or nearly meet along it (LSD breaks a
         textured edge into pieces, differently in every frame): the pieces' observations are repeated
         observations of one edge, so their information, support and viewpoints add up, and the edge is
         verified from the viewpoints of all its pieces. Only pairs with a segment ``touched`` this frame are
-        tested (the others were tested when they last changed). Returns the number of merges, the
-        segments merged into others (to be removed) and those that absorbed one.
+        tested (the others were tested when they last changed); ``partners`` (bool per segment, default all)
+        limits what they may merge with. Returns the number of merges, the segments merged into others (to
+        be removed) and those that absorbed one.
 
         In rounds, as the sequential rule it batches (the newest segment first takes its best partner):
         every pair that may merge is scored in one batch (``_partner_scores``); then, newest segment first
@@ -664,7 +665,8 @@ class LineMap:
         grown: list = []
         if len(touched) == 0 or len(self) < 2:
             return 0, ~alive, grown
-        i, m = self._merge_pairs(touched, alive, D, L)
+        allowed = np.ones(len(self), bool) if partners is None else partners
+        i, m = self._merge_pairs(touched, alive & allowed, D, L)
         while len(i):
             score = self._partner_scores(i, m, D, L)
             ok = np.isfinite(score)
@@ -691,7 +693,7 @@ class LineMap:
                 kept.append(keep)
                 merged += 1
             grown.extend(k for k in kept if k not in grown)
-            q, r = self._merge_pairs(np.array(kept), alive, D, L)    # a grown segment may reach another
+            q, r = self._merge_pairs(np.array(kept), alive & allowed, D, L)   # a grown one may reach another
             i, m = np.concatenate((q, r)), np.concatenate((r, q))
         return merged, ~alive, [k for k in grown if alive[k]]
 
@@ -1205,6 +1207,16 @@ class LineMap:
             self.support[k] = 0
             if fix is not None:
                 self._apply_fix(k, fix)
+        # A hypothesis's region may have been in view before it was posted (the slow loop posts a box's
+        # missing lines once its corners are verified, often as the robot leaves it): the stereo pieces seen
+        # there are in the map as candidates, observations of the line it hypothesises, and merge into it
+        # as pieces of one edge do (their viewpoints add up: ``_merge_collinear``). Not with another
+        # hypothesis: one the same line was dropped above, and two lines 10 cm apart are two lines.
+        new = np.arange(len(self) - len(P), len(self))
+        merged, gone, grown = self._merge_collinear(new[~self.verified[new]], partners=~self.hypothesis)
+        if merged:
+            _, _, drop = self._verify(gone, np.asarray(grown, int))
+            self._remove(drop)
         return ids
 
     def _new_hypotheses(self, P: np.ndarray, fixes: list, sigma_m: float) -> tuple[np.ndarray, list]:
