@@ -691,13 +691,15 @@ def test_a_lower_edge_hypothesis_is_verified_on_the_floor_from_the_keyframes():
     assert not split.verified[0]
 
 
-def _top_edge_images(lmap: LineMap, edge: np.ndarray, xs, stripe_px: int = 30) -> None:
+def _top_edge_images(lmap: LineMap, edge: np.ndarray, xs, stripe_px: int = 30, bands: dict = {}) -> None:
     """Keyframes as ``_top_edge_keyframes`` (cameras at height 0.25 m looking along +z at x = xs), holding an
     image and no line: below the edge a box face (grey 128 and noise), above it a wall of ``stripe_px`` wide
-    stripes alternately darker and brighter than the face, so the edge's contrast changes sign along it."""
+    stripes alternately darker and brighter than the face, so the edge's contrast changes sign along it.
+    ``bands``: keyframe number -> rows above the edge where a grey band (130) starts across the image: a
+    line as strong as the edge (its contrast with either stripe is the face's)."""
     from vbnav.vision.line_segments import Segments2D
     rng = np.random.default_rng(1)
-    for x in xs:
+    for n, x in enumerate(xs):
         t = np.array([x, -0.25, 0.0])
         pc = edge - t
         u = CAM.fx * pc[:, 0] / pc[:, 2] + CAM.cx
@@ -707,6 +709,8 @@ def _top_edge_images(lmap: LineMap, edge: np.ndarray, xs, stripe_px: int = 30) -
         rows = np.arange(CAM.height)[:, None]                 # pixel centres: the edge lies between rows
         face = (rows > v_edge) & (cols[None, :] >= u.min()) & (cols[None, :] <= u.max())
         img = np.where(face, 128.0, np.broadcast_to(wall, (CAM.height, CAM.width)))
+        if n in bands:
+            img[: int(v_edge) - bands[n]] = 130.0
         img = np.clip(img + rng.normal(0.0, 2.0, img.shape), 0, 255).astype(np.uint8)
         lmap._remember(Segments2D(np.zeros((0, 4)), np.zeros((0, 2))), np.eye(3), t, img)
 
@@ -743,6 +747,28 @@ def test_a_top_edge_whose_contrast_changes_sign_is_found_in_the_keyframes_images
     low[:, 1] = 0.0
     foot.add_hypotheses(low[None], camera=cam)
     assert not foot.verified[0]
+
+
+def test_a_keyframe_with_two_ridges_is_decided_by_the_others():
+    """A keyframe where another line as strong as the top lies in the searched heights (a grey band 20 px,
+    10 cm, above it: no ridge 1.5 x the other) sights neither alone; the two others sight the top, and the
+    one of its two ridges within their gate is taken, as another viewpoint decides between rival stereo
+    matches (room seed 0: box_b's far top, a wall line 16 cm above it in the middle one of three keyframes).
+    Before, that keyframe was dropped and two viewpoints left the top a hypothesis. With the band in every
+    keyframe nothing decides."""
+    from vbnav.vision.line_sighting import ridge_sighting, sight_hypotheses
+    true = np.array([[-0.3, -0.5, 2.0], [0.7, -0.5, 2.0]])
+    hyp = true.copy()
+    hyp[:, 1] = -0.45
+    cam = (CAM.fx, CAM.fy, CAM.cx, CAM.cy, BASELINE, CAM.width, CAM.height)
+    lmap = LineMap()
+    _top_edge_images(lmap, true, [0.0, 0.2, 0.4], bands={1: 20})
+    assert [len(ridge_sighting(hyp, kf, cam, lmap.params)) for kf in lmap.keyframes] == [1, 2, 1]
+    fix = sight_hypotheses(hyp[None], lmap.keyframes, cam, lmap.params)[0]
+    assert fix is not None and len(fix.views) == 3 and np.abs(fix.y - true[:, 1]).max() <= 0.002
+    everywhere = LineMap()
+    _top_edge_images(everywhere, true, [0.0, 0.2, 0.4], bands={0: 20, 1: 20, 2: 20})
+    assert sight_hypotheses(hyp[None], everywhere.keyframes, cam, everywhere.params)[0] is None
 
 
 def test_a_hypothesis_running_past_the_edge_to_a_footprint_corner_is_not_measured():

@@ -115,33 +115,59 @@ def measure_horizontal(A: np.ndarray, keyframes: list, camera: tuple, params: "M
     seen while driving spans one plane with every camera centre (the camera's height is fixed), so its height
     cannot be triangulated; its corners' lines fix where it is. Measured when seen from ``verify_views``
     distinct viewpoints and every frame's heights lie within the chi-square gate (1 dof, 99 %) of their
-    weighted mean: the mean is its height. A lower edge lies on the floor; measuring its height all the same
-    is the check that the lines found agree."""
+    weighted mean: the mean is its height. A keyframe with several ridges (none 1.5 x the others) counts with
+    the one within the gate of the height the keyframes with one ridge give, when exactly one is (at 0.6 m
+    the gate's 4 mm of pose is 7 px: two ridges 3 px apart can both be within it). A lower edge lies on the
+    floor; measuring its height all the same is the check that the lines found agree."""
     p = params
     fx = camera[0]
-    ys, ws, views = [], [], []
-    for n, R, t in sightings(A, keyframes, camera, params, sigma_m, pinned):
-        if abs(n[1]) < 1e-6:
+    cand = []                                       # per frame: heights (C, 2), weights (C, 2), viewpoint
+    for ns, R, t in sightings(A, keyframes, camera, params, sigma_m, pinned):
+        ns = [n for n in ns if abs(n[1]) >= 1e-6]
+        if not ns:
             continue
-        ys.append([(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)])
         ze = np.maximum((A - t) @ R[:, 2], 0.1)
-        ws.append(1.0 / ((p.sight_sigma_px * ze / (fx * abs(n[1]))) ** 2 + p.assoc_extra_m ** 2))
-        views.append(viewpoint(R, t))
-    if len(ys) < p.verify_views:
+        y = np.array([[(n @ t - n[0] * A[e, 0] - n[2] * A[e, 2]) / n[1] for e in range(2)] for n in ns])
+        w = np.array([1.0 / ((p.sight_sigma_px * ze / (fx * abs(n[1]))) ** 2 + p.assoc_extra_m ** 2) for n in ns])
+        cand.append((y, w, viewpoint(R, t)))
+    # The frames with one ridge decide; a frame with several (``ridge_sighting``: none 1.5 x the others)
+    # adds the one within the gate of their height, when exactly one is (another viewpoint decides, as
+    # for rival stereo matches: a ridge of the background moves with the viewpoint, the edge stays put).
+    one = [c for c in cand if len(c[0]) == 1]
+    fix = _agreeing(np.array([c[0][0] for c in one]).reshape(-1, 2), np.array([c[1][0] for c in one]).reshape(-1, 2),
+                    [c[2] for c in one], 1)
+    if fix is None:
         return None
-    # The frames' heights outside the gate of the others' weighted mean go, the farthest first (another
-    # line near the prediction in that frame).
-    ys, ws, keep = np.array(ys), np.array(ws), np.ones(len(ys), bool)
-    while keep.sum() >= p.verify_views:
+    ys, ws, views = [c[0][0] for c in one], [c[1][0] for c in one], [c[2] for c in one]
+    for y, w, v in (c for c in cand if len(c[0]) > 1):
+        inside = (w * (y - fix[0]) ** 2).max(axis=1) <= CHI2_1_99
+        if inside.sum() == 1:
+            k = int(np.argmax(inside))
+            ys.append(y[k])
+            ws.append(w[k])
+            views.append(v)
+    out = _agreeing(np.array(ys), np.array(ws), views, p.verify_views)
+    if out is None:
+        return None
+    y, var_y, support, kept = out
+    distinct = distinct_views(kept, params)
+    if len(distinct) < p.verify_views:
+        return None
+    return HorizontalFix(y, var_y, support, distinct)
+
+
+def _agreeing(ys: np.ndarray, ws: np.ndarray, views: list, least: int) -> Optional[tuple]:
+    """The frames' heights ys (F, 2) (weights ws) within the chi-square gate (1 dof, 99 %) of their weighted
+    mean, dropping the farthest first (another line near the prediction in that frame) while at least
+    ``least`` are left: (mean (2,), its variance (2,), how many kept, their viewpoints), or None."""
+    keep = np.ones(len(ys), bool)
+    while keep.sum() >= max(least, 1):
         y = (ws[keep] * ys[keep]).sum(axis=0) / ws[keep].sum(axis=0)
         chi = np.where(keep, (ws * (ys - y) ** 2).max(axis=1), -1.0)
         if chi.max() <= CHI2_1_99:
-            break
+            return y, 1.0 / ws[keep].sum(axis=0), int(keep.sum()), [v for v, k in zip(views, keep) if k]
         keep[int(chi.argmax())] = False
-    distinct = distinct_views([v for v, kept in zip(views, keep) if kept], params)
-    if len(distinct) < p.verify_views:
-        return None
-    return HorizontalFix(y, 1.0 / ws[keep].sum(axis=0), int(keep.sum()), distinct)
+    return None
 
 
 def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams",
@@ -150,8 +176,9 @@ def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams"
     looked for in the image's gradient (``ridge_sighting``); in the others, where it is predicted in view,
     the nearest left segment along its prediction (direction ``predict_angle_deg``, midpoint within the
     prediction and within sqrt(chi2_2,99 %) sqrt(s^2 + (fx sigma_m / z)^2) px of it, s =
-    ``sight_sigma_px``). Returns a list of (n, R, t): the unit normal (world frame) of the plane that line
-    spans with the camera centre t."""
+    ``sight_sigma_px``). Returns a list of (normals, R, t): the unit normals (world frame) of the planes the
+    line spans with the camera centre t, one per ridge or segment found there (several: the ridges of an
+    ambiguous image, ``ridge_sighting``)."""
     p = params
     fx, fy, cx, cy, _, width, height = camera
     Kinv = np.linalg.inv(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
@@ -159,9 +186,9 @@ def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams"
     for kf in keyframes:
         R, t, xy = kf.R, kf.t, kf.xy
         if kf.image is not None and is_horizontal(A):
-            n = ridge_sighting(A, kf, camera, params, sigma_m, pinned)
-            if n is not None:
-                out.append((n, R, t))
+            ns = ridge_sighting(A, kf, camera, params, sigma_m, pinned)
+            if ns:
+                out.append((ns, R, t))
             continue
         pr = project_segments(A[None], R, t, fx, fy, cx, cy, width, height, p.max_range_m,
                               p.predict_min_length_px)
@@ -183,12 +210,12 @@ def sightings(A: np.ndarray, keyframes: list, camera: tuple, params: "MapParams"
         j = np.nonzero(ok)[0][np.argmin(dist[ok])]
         n = np.cross(R @ (Kinv @ np.r_[xy[j, :2], 1.0]), R @ (Kinv @ np.r_[xy[j, 2:], 1.0]))
         n /= max(float(np.linalg.norm(n)), 1e-12)
-        out.append((n, R, t))
+        out.append(([n], R, t))
     return out
 
 
 def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParams",
-                   sigma_m: float = HYPOTHESIS_SIGMA_M, pinned: tuple = (True, True)) -> Optional[np.ndarray]:
+                   sigma_m: float = HYPOTHESIS_SIGMA_M, pinned: tuple = (True, True)) -> list:
     """A horizontal hypothesis A (2, 3) (a box's top or lower edge between its corners' vertical lines) in
     one keyframe's image: the height at which the line between the corners, projected, runs along a ridge of
     the gradient across it, in MAGNITUDE (either sign: a box's top against a textured wall changes contrast
@@ -200,7 +227,10 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     ``ridge_k_sigma`` (3) sigma of the Sobel's noise and 1.5 x the best one more than 3 px from it (a unique
     ridge; both chosen, not derived: docs/line_map.md), and for a lower edge within 3 ``assoc_extra_m`` of
     the floor; an end that is not a seen corner (``pinned``) must be reached by the edge (below). Returns the
-    unit normal of the plane through the camera centre and the line at that height, or None."""
+    unit normal of the plane through the camera centre and the line at that height, in a list; when the best
+    ridge is not unique, the normals of every ridge within 1.5 x of it that passes the same tests (the
+    peaks of the response more than 3 px from a stronger one kept), the best first, for the other
+    keyframes to decide between (``measure_horizontal``); an empty list when the best fails a test."""
     p = params
     fx, fy, cx, cy, _, width, height = camera
     R, t = kf.R, kf.t
@@ -211,7 +241,7 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     base = A[0] + (A[1] - A[0]) * s_[:, None]                                   # (T, 3) at the hypothesis height
     zc = (base - t) @ R[:, 2]
     if (zc > 0.1).sum() < T // 2:
-        return None
+        return []
     step = max(float(zc[zc > 0.1].min()), 0.1) / fy           # 1 px at the nearest point (the peak: a parabola)
     lo, hi = y0 - (3.0 * sigma_m if lower else p.sight_up_m), y0 + 3.0 * sigma_m
     # Cull: the face between the corners' lines over the searched heights is a convex quadrilateral; when
@@ -221,7 +251,7 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     if (qc[:, 2] > 0.1).all():
         qu, qv = fx * qc[:, 0] / qc[:, 2] + cx, fy * qc[:, 1] / qc[:, 2] + cy
         if (qu < 1).all() or (qu > width - 2).all() or (qv < 1).all() or (qv > height - 2).all():
-            return None
+            return []
     ys = np.arange(lo, hi + 0.5 * step, step)
     (gx, gy), noise = kf.gradient()
     pts = np.broadcast_to(base, (len(ys), T, 3)).copy()
@@ -246,7 +276,7 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     mag = np.abs(sx * nx[:, None] + sy * ny[:, None])
     enough = ok.sum(axis=1) >= T // 2
     if not enough.any():
-        return None
+        return []
     # Each height's median over its points in the image (the others sorted first as -1).
     srt = np.sort(np.where(ok, mag, -1.0), axis=1)
     nv = ok.sum(axis=1)
@@ -255,7 +285,7 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     best = int(np.argmax(resp))
     floor_resp = p.ridge_k_sigma * SOBEL_NOISE_GAIN * noise
     if resp[best] < floor_resp:
-        return None
+        return []
     # An end that is a footprint corner, not a seen corner, is where the rectangle says the box ends: the
     # edge must reach it (the median of that end quarter's points, when half of them are in the image, above
     # the noise too). The median over the whole line finds an edge the hypothesis overshoots by a third, and
@@ -263,26 +293,50 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
     # a floor line had stretched). A seen corner's end is where the corner's line is: not checked (near a
     # corner the foot's contrast often fades, room seed 3).
     q = T // 4
-    for end, part in zip(pinned, (slice(0, q), slice(T - q, T))):
-        inside = ok[best, part]
-        if not end and inside.sum() >= q // 2 and np.median(mag[best, part][inside]) < floor_resp:
-            return None
-    # The line's offset from the best one, across it, at the middle point.
     mid = T // 2
-    off = np.abs((u[:, mid] - u[best, mid]) * nx[best] + (v[:, mid] - v[best, mid]) * ny[best])
-    far = enough & (off > 3.0)
+
+    def passes(k: int) -> bool:
+        for end, part in zip(pinned, (slice(0, q), slice(T - q, T))):
+            inside = ok[k, part]
+            if not end and inside.sum() >= q // 2 and np.median(mag[k, part][inside]) < floor_resp:
+                return False
+        # A lower edge is on the floor: a ridge found higher is a line on the face (its search range is the
+        # hypothesis's, only to test that the floor's ridge is the unique one).
+        return not (lower and abs(float(ys[k])) > 3.0 * p.assoc_extra_m)
+
+    def offset(k: int) -> np.ndarray:
+        """Each height's line from height k's, across it, at the middle point (px)."""
+        return np.abs((u[:, mid] - u[k, mid]) * nx[k] + (v[:, mid] - v[k, mid]) * ny[k])
+
+    if not passes(best):
+        return []
+    far = enough & (offset(best) > 3.0)
+    ridges = [best]
     if far.any() and resp[best] < 1.5 * resp[far].max():
-        return None
-    # A lower edge is on the floor: a ridge found higher is a line on the face (its search range is the
-    # hypothesis's, only to test that the floor's ridge is the unique one).
-    if lower and abs(float(ys[best])) > 3.0 * p.assoc_extra_m:
-        return None
-    y = float(ys[best])
-    if 0 < best < len(ys) - 1 and resp[best - 1] >= 0 and resp[best + 1] >= 0:      # the ridge's parabola
-        a_, b_, c_ = resp[best - 1], resp[best], resp[best + 1]
+        # Not unique: the peaks of the response within 1.5 x of the best, strongest first, each more than
+        # 3 px from every stronger one kept, and passing the same tests.
+        inner = resp[1:-1]
+        peak = np.zeros(len(ys), bool)
+        peak[1:-1] = far[1:-1] & (inner >= resp[:-2]) & (inner >= resp[2:]) & (1.5 * inner >= resp[best])
+        for k in np.nonzero(peak)[0][np.argsort(-resp[peak], kind="stable")].tolist():
+            if all(offset(r)[k] > 3.0 for r in ridges) and passes(k):
+                ridges.append(k)
+    return [_plane(A, t, _refined(ys, resp, k, step)) for k in ridges]
+
+
+def _refined(ys: np.ndarray, resp: np.ndarray, k: int, step: float) -> float:
+    """Height k of the response's ridge, refined by the parabola through it and its two neighbours."""
+    y = float(ys[k])
+    if 0 < k < len(ys) - 1 and resp[k - 1] >= 0 and resp[k + 1] >= 0:
+        a_, b_, c_ = resp[k - 1], resp[k], resp[k + 1]
         curv = a_ - 2.0 * b_ + c_
         if curv < 0:
             y += step * 0.5 * (a_ - c_) / curv
+    return y
+
+
+def _plane(A: np.ndarray, t: np.ndarray, y: float) -> np.ndarray:
+    """The unit normal of the plane through the camera centre t and hypothesis A's line at height y."""
     P0 = np.r_[A[0, 0], y, A[0, 2]]
     P1 = np.r_[A[1, 0], y, A[1, 2]]
     n = np.cross(P0 - t, P1 - t)
