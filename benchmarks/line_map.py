@@ -157,13 +157,23 @@ def instrument(spans: Spans, last: dict) -> None:
 def instrument_map(spans: Spans, stage: LineMapStage) -> None:
     """The stage's map: predict of the verified segments and the prior are prediction; predict of all
     segments (``which=``), update and merging are the update; inserting the slow loop's hypotheses (measured
-    by the slow loop) is the hypotheses part."""
+    by the slow loop), with the merging of them into the pieces seen before, is the hypotheses part."""
     m = stage.map
-    m.add_hypotheses = spans.wrap("hypotheses", m.add_hypotheses)
+    adding = [False]
+    insert = m.add_hypotheses
+
+    def add_hypotheses(*args, **kw):
+        adding[0] = True
+        try:
+            return insert(*args, **kw)
+        finally:
+            adding[0] = False
+
+    m.add_hypotheses = spans.wrap("hypotheses", add_hypotheses)
     m.predict = spans.wrap(lambda args, kw: "update" if "which" in kw else "predict", m.predict)
     m.prior_for = spans.wrap("predict", m.prior_for)
     m.update = spans.wrap("update", m.update)
-    m._merge_collinear = spans.wrap("merge", m._merge_collinear)
+    m._merge_collinear = spans.wrap(lambda args, kw: "hypotheses" if adding[0] else "merge", m._merge_collinear)
 
 
 def make_stage(spans: Spans) -> LineMapStage:
