@@ -45,9 +45,12 @@ def room_map(room_drive):
 
 def test_room_map_holds_the_edges_in_view(room_drive):
     """Recall and precision of the loop map against the room's true edges (rules: tests/line_scenes.py).
-    Measured: 12 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 5/8),
-    11 of the 12 seen from >= 3 distinct viewpoints, endpoints 2.4 mm median / 4.4 cm 95 %, 1.9 % of 367
-    verified segments false, since vertical lines on a plain face are matched (vision/line_vertical.py,
+    Measured: 13 of 16 edges > 0.3 m in view (wall-floor 1/1, box vertical 6/7, box lower and upper edges 6/8),
+    12 of the 12 seen from >= 3 distinct viewpoints, endpoints 2.8 mm median / 4.2 cm 95 %, 1.9 % of 369
+    verified segments false, since a keyframe with two ridges is decided by the others (2026-12-03, thirteenth
+    session: box_b's far top, a wall line 16 cm above it in the third keyframe). Before: 12 of 16 (box lower
+    and upper edges 5/8), 11 of the 12, 2.4 mm / 4.4 cm, 1.9 % of 367,
+    since vertical lines on a plain face are matched (vision/line_vertical.py,
     2026-12-03, tenth session): eight rooms gain 8 edges, but here box_b's far top lost its measurement
     (sighted in 2 of the 3 keyframes it needs; the third's unique-ridge test failed by 2 %, 21.4 against
     21.9, with its hypothesis 1 cm lower), and a vertical matched on box_a's plain face lies 5.7 cm off its
@@ -78,9 +81,9 @@ def test_room_map_holds_the_edges_in_view(room_drive):
     assert lmap.hypothesis.any()
     sc = score_map(lmap, world, drive)
     assert sc.in_view >= 12 and sum(v[0] for v in sc.by_class.values()) == sc.in_view
-    assert sc.mapped >= 12, sc.missing
-    assert sc.in_view_verifiable >= 12 and sc.mapped_verifiable >= 0.9 * sc.in_view_verifiable, sc.missing
-    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 5   # floor lines, box_b's tops and feet
+    assert sc.mapped >= 13, sc.missing
+    assert sc.in_view_verifiable >= 12 and sc.mapped_verifiable == sc.in_view_verifiable, sc.missing
+    assert sc.by_class["wall_floor"][1] >= 1 and sc.by_class["box_horizontal"][1] >= 6   # floor lines, box_b's tops and feet
     assert sc.by_class["box_vertical"][1] >= 6, sc.by_class        # box_b's and box_a's far corners: vertical lines
     assert np.median(sc.endpoint_err) <= 0.005 and np.percentile(sc.endpoint_err, 95) <= 0.05     # the acceptance
     assert sc.false_fraction <= 0.035
