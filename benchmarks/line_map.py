@@ -173,7 +173,10 @@ def instrument_map(spans: Spans, stage: LineMapStage) -> None:
     m.predict = spans.wrap(lambda args, kw: "update" if "which" in kw else "predict", m.predict)
     m.prior_for = spans.wrap("predict", m.prior_for)
     m.update = spans.wrap("update", m.update)
-    m._merge_collinear = spans.wrap(lambda args, kw: "hypotheses" if adding[0] else "merge", m._merge_collinear)
+    merge = m._merge_collinear
+    timed_merge = spans.wrap("merge", merge)
+    # Inside add_hypotheses, merging is part of inserting them: not timed apart (nor counted as a call).
+    m._merge_collinear = lambda *args, **kw: (merge if adding[0] else timed_merge)(*args, **kw)
 
 
 def make_stage(spans: Spans) -> LineMapStage:
