@@ -117,6 +117,7 @@ class ODriveDrive(SerialWheelDrive):
         self.sides = {self.opt.left_axis: "left", self.opt.right_axis: "right"}
         self.ser = None
         self.vbus_voltage: Optional[float] = None   # bus voltage, V, read at bring-up
+        self._owed_s = 0.0       # a question timed out this long: its answer may still come (_settle)
         self._cycle = 0
         self._rx = b""
         self._was_up = False        # brought up once by this process (a later bring-up is a reconnect)
@@ -144,6 +145,7 @@ class ODriveDrive(SerialWheelDrive):
             # answers still queued from before (late replies that made a reconnect necessary) would be
             # taken for the answers to the bring-up's questions
             self.ser.reset_input_buffer()
+            self._owed_s = 0.0
         except (serial.SerialException, OSError, termios.error) as exc:
             raise DriveError(f"cannot open ODrive {self.opt.port}: {exc}") from exc
         try:
@@ -284,13 +286,30 @@ class ODriveDrive(SerialWheelDrive):
         line, _, self._rx = self._rx.partition(b"\n")
         return line.decode("ascii", "replace").strip()
 
+    def _settle(self) -> None:
+        """After a question went unanswered within its timeout, its answer may still come, and the ASCII
+        protocol carries nothing that tells it from the next question's answer: a late current_state (8) was
+        read as the error word that followed it (axis0 error=0x8, a fault the axis never had; a loaded CI
+        machine, 2026-12-03). Wait until the line has been quiet for that timeout, discarding what arrives
+        (at most a few lines: a babbling device does not hold the driver here). An answer later than that
+        can still be misread."""
+        quiet, self._owed_s = self._owed_s, 0.0
+        if quiet <= 0:
+            return
+        self._rx = b""
+        for _ in range(4):
+            if self._readline(quiet) is None:
+                break
+
     def _query(self, text: str, timeout_s: float) -> Optional[str]:
         """Send a line and return its answer (checksum verified), None on timeout."""
+        self._settle()
         self._rx = b""
         self.ser.reset_input_buffer()
         self._send(text)
         line = self._readline(timeout_s)
         if line is None:
+            self._owed_s = timeout_s
             return None
         if self.opt.checksum:
             body, star, given = line.rpartition("*")
@@ -301,6 +320,7 @@ class ODriveDrive(SerialWheelDrive):
 
     def _feedback(self) -> tuple[Optional[list], Optional[DriveFault]]:
         """``f`` for both axes in one write, then both answer lines: one round trip per cycle, not two."""
+        self._settle()
         self._rx = b""
         self.ser.reset_input_buffer()
         self.ser.write(b"".join(self._frame(f"f {ax}") for ax in self.axes))
@@ -310,6 +330,7 @@ class ODriveDrive(SerialWheelDrive):
             line = self._readline(max(0.0, end - time.monotonic()))
             dev = self._axis(ax)
             if line is None:
+                self._owed_s = self.opt.reply_timeout_s
                 return None, DriveFault(FaultKind.NO_REPLY, dev, f"{dev}: no answer to 'f {ax}' within "
                                                                  f"{self.opt.reply_timeout_s * 1000:.0f} ms")
             if self.opt.checksum:

@@ -165,6 +165,30 @@ def test_a_garbled_answer_while_arming_is_a_fault_and_disarms(emu):
         d.close()
 
 
+def test_an_answer_that_comes_late_is_not_read_as_the_next_questions(emu):
+    """The ASCII protocol's answers carry nothing that says which question they answer. On a loaded CI
+    machine the emulator answered current_state after the 100 ms setup timeout while arming, and that 8
+    (CLOSED_LOOP) was read as the axis error word asked next: "errors: axis0 (left): error=0x8", a fault the
+    axis never had (tests/test_drive_reconnect.py, 2026-12-03). After a question times out the driver now
+    waits for the line to be quiet for that timeout, discarding a late answer. Answers 80 ms late against a
+    50 ms timeout: arming fails as it must (no state within the timeout), naming no error word it did not
+    read; answering promptly again, it arms."""
+    d = make_drive(emu, setup_timeout_s=0.05)
+    d.connect()
+    try:
+        emu.reply_delay_s = 0.08
+        with pytest.raises(DriveError) as failed:
+            d.enable()
+        assert "state None" in str(failed.value) and "error=" not in str(failed.value), failed.value
+        emu.reply_delay_s = 0.0
+        d.clear_faults()
+        d.enable()
+        assert all(a.current_state == oe.AXIS_STATE_CLOSED_LOOP for a in emu.axes)
+    finally:
+        emu.reply_delay_s = 0.0
+        d.close()
+
+
 def test_device_disappears_then_comes_back(emu, drive):
     drive_for(drive, 2.0, 2.0)
     emu.unplug()

@@ -196,6 +196,9 @@ class ODriveEmulator(PtyDevice):
         self.log: list[tuple[float, str]] = []
         self._buf = b""
         self._t0 = time.monotonic()
+        # Answers held back (a slow or loaded device, fault injected with ``reply_delay_s``): (due, bytes).
+        self.reply_delay_s = 0.0
+        self._due: list[tuple[float, bytes]] = []
 
     def axis(self, n: int) -> EmulatedAxis:
         return self.axes[n]
@@ -213,10 +216,14 @@ class ODriveEmulator(PtyDevice):
 
     def _serve_bytes(self, data: bytes) -> None:
         out = self.handle_bytes(data)
-        if out:
+        if out and self.reply_delay_s > 0:
+            self._due.append((time.monotonic() + self.reply_delay_s, out))
+        elif out:
             self._write(out)
 
     def _step(self, now: float, dt: float) -> None:
+        while self._due and self._due[0][0] <= now:
+            self._write(self._due.pop(0)[1])
         for ax in self.axes:
             if ax.check_watchdog(now):
                 self._log(f"watchdog_expired {ax.index}")
