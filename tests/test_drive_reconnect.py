@@ -165,7 +165,8 @@ class Dxl:
     def __init__(self, tmp_path):
         self.dev = de.DynamixelBus([1, 2], "XL430-W250", link=tmp_path / "ttyDXL")
 
-    def drive(self, clock, watchdog_s: float = WATCHDOG_S):
+    def drive(self, clock, watchdog_s: float = WATCHDOG_S, setup_timeout_s: float | None = None):
+        # setup_timeout_s: the ODrive's; the Dynamixel bring-up waits as the SDK's packet timeouts say
         return DynamixelDrive(clock=clock, options=DynamixelDrive.Options(
             port=self.dev.path, bus_watchdog_s=watchdog_s, margin_ms=8.0, reconnect_interval_s=0.1,
             velocity_limit_rad_s=4.0), invert_right=True)
@@ -192,10 +193,11 @@ class ODrv:
     def __init__(self, tmp_path):
         self.dev = oe.ODriveEmulator(link=tmp_path / "ttyODRV")
 
-    def drive(self, clock, watchdog_s: float = WATCHDOG_S):
+    def drive(self, clock, watchdog_s: float = WATCHDOG_S, setup_timeout_s: float | None = None):
+        opts = {} if setup_timeout_s is None else {"setup_timeout_s": setup_timeout_s}
         return ODriveDrive(clock=clock, options=ODriveDrive.Options(
             port=self.dev.path, watchdog_s=watchdog_s, reply_timeout_s=0.02, reconnect_interval_s=0.1,
-            error_poll_every=5), invert_right=True)
+            error_poll_every=5, **opts), invert_right=True)
 
     def moving(self) -> bool:
         return all(abs(a.vel) > 0.05 for a in self.dev.axes)
@@ -227,7 +229,9 @@ def _emulated_run(device, window_s, unplug_at_s, replug_at_s, duration_s, overhe
     clock = MonotonicClock()
     # timing is not under test here: a loaded machine must not end the run on missed deadlines or stalls
     cfg = _cfg(window_s, max_missed_streak=1000, stall_periods=1000)
-    rt = Runtime(cfg, device.drive(clock), Cruise(), clock)
+    # The bring-up after the replug waits 1 s for each answer, not the ODrive's 0.1 s: on a loaded CI machine
+    # the emulator's thread answered current_state later than that, and the resume failed (2026-12-03).
+    rt = Runtime(cfg, device.drive(clock, setup_timeout_s=1.0), Cruise(), clock)
     samples = []
     phase = ["plugged"]
     back_at = [0.0]
