@@ -292,20 +292,19 @@ class ODriveDrive(SerialWheelDrive):
         read as the error word that followed it (axis0 error=0x8, a fault the axis never had; a loaded CI
         machine, 2026-12-03). Wait until the line has been quiet for that timeout, discarding what arrives
         (at most a few lines: a babbling device does not hold the driver here). An answer later than that
-        can still be misread."""
+        can still be misread. Then the input is flushed, as before every question."""
         quiet, self._owed_s = self._owed_s, 0.0
-        if quiet <= 0:
-            return
+        if quiet > 0:
+            self._rx = b""
+            for _ in range(4):
+                if self._readline(quiet) is None:
+                    break
         self._rx = b""
-        for _ in range(4):
-            if self._readline(quiet) is None:
-                break
+        self.ser.reset_input_buffer()
 
     def _query(self, text: str, timeout_s: float) -> Optional[str]:
         """Send a line and return its answer (checksum verified), None on timeout."""
         self._settle()
-        self._rx = b""
-        self.ser.reset_input_buffer()
         self._send(text)
         line = self._readline(timeout_s)
         if line is None:
@@ -321,8 +320,6 @@ class ODriveDrive(SerialWheelDrive):
     def _feedback(self) -> tuple[Optional[list], Optional[DriveFault]]:
         """``f`` for both axes in one write, then both answer lines: one round trip per cycle, not two."""
         self._settle()
-        self._rx = b""
-        self.ser.reset_input_buffer()
         self.ser.write(b"".join(self._frame(f"f {ax}") for ax in self.axes))
         end = time.monotonic() + self.opt.reply_timeout_s
         out = []

@@ -134,11 +134,10 @@ def measure_horizontal(A: np.ndarray, keyframes: list, camera: tuple, params: "M
     # adds the one within the gate of their height, when exactly one is (another viewpoint decides, as
     # for rival stereo matches: a ridge of the background moves with the viewpoint, the edge stays put).
     one = [c for c in cand if len(c[0]) == 1]
-    fix = _agreeing(np.array([c[0][0] for c in one]).reshape(-1, 2), np.array([c[1][0] for c in one]).reshape(-1, 2),
-                    [c[2] for c in one], 1)
+    ys, ws, views = [c[0][0] for c in one], [c[1][0] for c in one], [c[2] for c in one]
+    fix = _agreeing(np.reshape(ys, (-1, 2)), np.reshape(ws, (-1, 2)), views, 1)
     if fix is None:
         return None
-    ys, ws, views = [c[0][0] for c in one], [c[1][0] for c in one], [c[2] for c in one]
     for y, w, v in (c for c in cand if len(c[0]) > 1):
         inside = (w * (y - fix[0]) ** 2).max(axis=1) <= CHI2_1_99
         if inside.sum() == 1:
@@ -310,8 +309,8 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
 
     if not passes(best):
         return []
-    far = enough & (offset(best) > 3.0)
-    ridges = [best]
+    ridges, offsets = [best], [offset(best)]
+    far = enough & (offsets[0] > 3.0)
     if far.any() and resp[best] < 1.5 * resp[far].max():
         # Not unique: the peaks of the response within 1.5 x of the best, strongest first, each more than
         # 3 px from every stronger one kept, and passing the same tests.
@@ -319,8 +318,9 @@ def ridge_sighting(A: np.ndarray, kf: Keyframe, camera: tuple, params: "MapParam
         peak = np.zeros(len(ys), bool)
         peak[1:-1] = far[1:-1] & (inner >= resp[:-2]) & (inner >= resp[2:]) & (1.5 * inner >= resp[best])
         for k in np.nonzero(peak)[0][np.argsort(-resp[peak], kind="stable")].tolist():
-            if all(offset(r)[k] > 3.0 for r in ridges) and passes(k):
+            if all(off[k] > 3.0 for off in offsets) and passes(k):
                 ridges.append(k)
+                offsets.append(offset(k))
     return [_plane(A, t, _refined(ys, resp, k, step)) for k in ridges]
 
 

@@ -213,6 +213,7 @@ class ODriveEmulator(PtyDevice):
     # -- serving (the pty lifecycle is PtyDevice's, shared with the Dynamixel bus) ------------
     def _reset_input(self) -> None:
         self._buf = b""
+        self._due.clear()       # answers held back belong to the old byte stream, lost with it
 
     def _serve_bytes(self, data: bytes) -> None:
         out = self.handle_bytes(data)
