@@ -416,3 +416,25 @@ def _clip_convex(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
                 nxt.append(p + (q - p) * (sp / (sp - sq)))
         out = np.array(nxt).reshape(-1, 2)
     return out
+
+
+def map_reprojection_errors(lmap: LineMap, detections: dict, poses: np.ndarray) -> np.ndarray:
+    """The map's verified segments reprojected into each frame, against the segments detected there: for each
+    predicted segment with a detection within the prediction gate (``LineMap._support_matrix``), the nearest
+    one's larger endpoint distance to the projected line, px. detections: frame -> (left Segments2D, camera
+    args of ``LineMap.predict``); poses (F, 3, 4) camera-to-world (kitti06's issue-16 reprojection figure)."""
+    errs = []
+    for i, (segs, args) in detections.items():
+        pred = lmap.predict(poses[i][:, :3], poses[i][:, 3], *args)
+        if len(pred) == 0:
+            continue
+        ok, dist, _ = lmap._support_matrix(segs, pred)
+        for k in range(len(pred)):
+            cand = np.nonzero(ok[:, k])[0]
+            if len(cand) == 0:
+                continue
+            n = cand[np.argmin(dist[cand, k])]
+            a, b = pred.xy[k, :2], pred.xy[k, 2:]
+            d = (b - a) / np.linalg.norm(b - a)
+            errs.append(np.abs((segs.xy[n].reshape(2, 2) - a) @ np.array([-d[1], d[0]])).max())
+    return np.array(errs)

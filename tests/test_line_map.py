@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from line_scenes import BASELINE, CAM, false_matches, point_quad_distance
+from line_scenes import BASELINE, CAM, false_matches, map_reprojection_errors, point_quad_distance
 from vbnav.drivers.sim.camera import SimCamera
 from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import CameraMount, Pose2, camera_pose
@@ -563,20 +563,7 @@ def test_kitti_verified_segments_reproject_within_1_5_px(shared_data):
         lmap.update(res.segments, Rw, tw, lmap.predict(Rw, tw, *args, which=np.ones(len(lmap), bool)), res.left)
         left[i] = (res.left, args)
     assert lmap.verified.sum() >= 15                     # measured 25 (2026-12-03; 23 earlier)
-    errs = []
-    for i, (segs, args) in left.items():
-        pred = lmap.predict(T[i][:, :3], T[i][:, 3], *args)
-        if len(pred) == 0:
-            continue
-        ok, dist, _ = lmap._support_matrix(segs, pred)
-        for k in range(len(pred)):
-            cand = np.nonzero(ok[:, k])[0]
-            if len(cand) == 0:
-                continue
-            n = cand[np.argmin(dist[cand, k])]
-            a, b = pred.xy[k, :2], pred.xy[k, 2:]
-            d = (b - a) / np.linalg.norm(b - a)
-            errs.append(np.abs((segs.xy[n].reshape(2, 2) - a) @ np.array([-d[1], d[0]])).max())
+    errs = map_reprojection_errors(lmap, left, T)
     assert len(errs) >= 50                               # measured 125 (2026-12-03; 131 before the plain-face rule)
     assert np.median(errs) <= 1.5                        # measured 1.12 px (2026-12-03, 12be739; 1.04 px before it)
 
