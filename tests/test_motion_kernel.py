@@ -183,3 +183,33 @@ def test_warm_up_compiles_every_signature_the_solvers_use(rng):
     motion.recover_motion(P, rays, prior=(M[:3, :3], M[:3, 3]))              # strided prior (a 4x4's views)
     motion.recover_motion_robust(P, rays, prior=(M[:3, :3], M[:3, 3]), angular=True, rng=rng)
     assert [len(k.signatures) for k in kernels] == before
+
+
+def test_the_kernels_compile_where_no_cache_folder_can_be_written():
+    """A service account without a home, running an installation it cannot write, gives numba no place for its
+    disk cache: ``njit(cache=True)`` then raises at import ("no locator available") and every vbnav command
+    stopped with a traceback. The kernels are compiled without the cache there (vision/jit.py). numba's
+    locators are taken away here, as that user has none; root could write anywhere."""
+    import subprocess
+    import sys
+    code = ("import numba.core.caching as c\n"
+            "c.CacheImpl._locator_classes = []\n"
+            "import numpy as np\n"
+            "from vbnav.vision import motion_kernel as mk, line_vertical_kernel as lv\n"
+            "assert mk.AVAILABLE and lv.AVAILABLE\n"
+            "print(mk._det3(np.diag([1.0, 2.0, 3.0])))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "6.0"
+
+
+def test_without_the_fallback_numba_refuses_to_cache_there():
+    """The condition the test above recreates is the one numba refuses (so that test does test the fallback)."""
+    import subprocess
+    import sys
+    code = ("import numba, numba.core.caching as c\n"
+            "c.CacheImpl._locator_classes = []\n"
+            "def f(x):\n    return x\n"
+            "numba.njit(cache=True)(f)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "no locator available" in r.stderr

@@ -26,22 +26,12 @@ the first time, 0.4-0.8 s from numba's disk cache afterwards, as the machine run
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 
-try:
-    if os.environ.get("VBNAV_NO_JIT"):
-        raise ImportError("VBNAV_NO_JIT is set")
-    import numba
-
-    _jit = numba.njit(cache=True, nogil=True)
-    AVAILABLE = True
-except ImportError:  # line_vertical's numpy path is used instead
-    AVAILABLE = False
-
-    def _jit(f):
-        return f
+# Without numba (or with VBNAV_NO_JIT set) AVAILABLE is False: line_vertical uses its numpy path.
+from vbnav.vision.jit import AVAILABLE  # noqa: F401  (the callers ask the kernel module)
+from vbnav.vision.jit import kernel as _jit
 
 
 @_jit

@@ -21,22 +21,12 @@ nothing: on arrays this small an allocation costs more than the arithmetic.
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 
-try:
-    if os.environ.get("VBNAV_NO_JIT"):
-        raise ImportError("VBNAV_NO_JIT is set")
-    import numba
-
-    _jit = numba.njit(cache=True, nogil=True)
-    AVAILABLE = True
-except ImportError:  # the numpy reference path in motion.py is used instead
-    AVAILABLE = False
-
-    def _jit(f):
-        return f
+# Without numba (or with VBNAV_NO_JIT set) AVAILABLE is False: motion.py uses its numpy reference path.
+from vbnav.vision.jit import AVAILABLE  # noqa: F401  (the callers ask the kernel module)
+from vbnav.vision.jit import kernel as _jit
 
 
 @_jit
