@@ -41,17 +41,52 @@ def pair_problem(left: np.ndarray, right: np.ndarray, left_path, right_path) -> 
     return ""
 
 
-def write_png(path: str, img: np.ndarray) -> None:
+def png_name_problem(path, option: str) -> str:
+    """"" when ``path`` (or None) names a PNG file, else why not: the result images are PNG, and PNG bytes
+    under a .jpg name are a file other programs refuse or misread."""
+    if path is None or Path(path).suffix.lower() == ".png":
+        return ""
+    return f"{option} {path}: expected a file name ending in .png (the image is written as PNG)"
+
+
+def png_bytes(path, img: np.ndarray) -> bytes:
     ok, buf = cv2.imencode(".png", img)
     if not ok:
         raise ValueError(f"{path}: could not encode PNG")
-    write_atomic(path, buf.tobytes())
+    return buf.tobytes()
+
+
+def write_png(path: str, img: np.ndarray) -> None:
+    write_atomic(path, png_bytes(path, img))
+
+
+def json_text(data, indent: int = 1) -> str:
+    """``data`` as strict JSON: a NaN or infinity (a value not measured) is written as null (JSON has no
+    word for them: Python's NaN made files that jq and most readers refuse whole)."""
+    return json.dumps(_finite_or_null(data), indent=indent, allow_nan=False)
 
 
 def write_json(path: str, data, indent: int = 1) -> None:
-    """``data`` as strict JSON: a NaN or infinity (a value not measured) is written as null (JSON has no
-    word for them: Python's NaN made files that jq and most readers refuse whole)."""
-    write_atomic(path, json.dumps(_finite_or_null(data), indent=indent, allow_nan=False))
+    write_atomic(path, json_text(data, indent))
+
+
+def display_bgr(img: np.ndarray) -> np.ndarray:
+    """An image as 8-bit BGR for drawing on: grey to BGR, BGRA without its alpha (lines drawn with alpha 0
+    were invisible), 16-bit or float stretched from its lowest to its highest finite value (drawn on the
+    8-bit scale, 16-bit colours came out black)."""
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.dtype != np.uint8:
+        x = img.astype(np.float64)
+        finite = x[np.isfinite(x)]
+        lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+        x = np.nan_to_num(x, nan=lo, posinf=hi, neginf=lo)
+        img = np.clip(np.rint((x - lo) * (255.0 / (hi - lo) if hi > lo else 0.0)), 0, 255).astype(np.uint8)
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img.copy()
 
 
 def _finite_or_null(x):

@@ -60,7 +60,10 @@ def save_map(lmap: LineMap, path: str | Path, meta: dict | None = None) -> None:
     except MapFileError as exc:
         raise MapFileError(f"{path}: not saved, it could not be loaded back: "
                            f"{str(exc).removeprefix(f'{path}: ')}") from None
-    write_atomic(path, text)
+    try:
+        write_atomic(path, text)
+    except OSError as exc:                      # a folder not writable or gone, a full disk: the caller says so
+        raise MapFileError(f"{path}: not saved: {exc.strerror or exc}") from None
 
 
 def load_map(path: str | Path) -> tuple[LineMap, dict]:

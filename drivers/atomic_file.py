@@ -62,7 +62,7 @@ def write_atomic_set(files: dict, check: Optional[Callable[[dict], None]] = None
 def _write_temporary(p: Path, data: str | bytes, mode: Optional[int], suffix: str = ".tmp") -> Path:
     """``data`` in a new fsynced file ``.<name>.<random><suffix>`` beside ``p``, with ``p``'s permission bits."""
     raw = data.encode() if isinstance(data, str) else bytes(data)
-    fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=suffix)
+    fd, tmp = _mkstemp(p, suffix)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(raw)
@@ -83,8 +83,7 @@ def atomic_output(path, suffix: Optional[str] = None) -> Iterator[Path]:
     path ending in ``suffix`` (default: the target's own, so format-by-extension writers work), renamed
     over ``path`` when the block ends without an exception, removed otherwise."""
     p = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=".tmp" + (p.suffix if suffix is None
-                                                                                      else suffix))
+    fd, tmp = _mkstemp(p, ".tmp" + (p.suffix if suffix is None else suffix))
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -96,6 +95,15 @@ def atomic_output(path, suffix: Optional[str] = None) -> Iterator[Path]:
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
+
+
+def _mkstemp(p: Path, suffix: str) -> tuple[int, str]:
+    """A new temporary file beside ``p``; an OSError (a folder that is not writable, or gone) names ``p``, the
+    file the user asked for, not the temporary name nobody gave."""
+    try:
+        return tempfile.mkstemp(dir=_folder(p), prefix=f".{p.name}.", suffix=suffix)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(p)) from exc
 
 
 def replace_durably(src, dst) -> None:

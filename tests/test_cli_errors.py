@@ -26,6 +26,10 @@ P1_ROW = f"50 0 {W / 2} -5 0 50 {H / 2} 0 0 0 1 0"        # baseline 0.1 m
 STEREO = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\nbaseline: 0.1\n"
 CAMERA = f"width: {W}\nheight: {H}\nfx: 50\nfy: 50\ncx: {W / 2}\ncy: {H / 2}\n"
 
+# Configurations that a case also names as its output (each its own: the cases run concurrently).
+SELF_CONFIGS = ("self_map.yaml", "self_goto.yaml", "self_run.yaml")
+SELF_CONFIG = "sim: {seed: 3}\ncamera: {options: {stereo_baseline: 0.075}}\ntelemetry: {enabled: false}\n"
+
 OVERWRITE = "--overwrite replaces an existing --record file; without --record it has nothing to replace"
 
 # id, arguments ({d}: the fixture folder), expected exit code, text the error must contain
@@ -85,6 +89,20 @@ CASES = [
     # lines: --min-epipolar-angle 180 let horizontal segments through (its sine is 0), 95 acted as 85
     ("lines-epipolar-angle", "lines --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml --out "
      "{d}/seg.json --min-epipolar-angle 180", 2, "argument --min-epipolar-angle: expected an angle to the rows"),
+    # lines: one image as both (given twice, or two copies) reconstructed segments kilometres away, score 1.0
+    ("lines-same-file", "lines --left {d}/left.png --right {d}/left.png --calib {d}/stereo.yaml --out {d}/seg.json",
+     2, "--left and --right are the same file"),
+    ("lines-same-image", "lines --left {d}/left.png --right {d}/left_copy.png --calib {d}/stereo.yaml --out "
+     "{d}/seg.json", 2, "are the same image"),
+    # lines: a nearest depth beyond what the rig resolves left no disparity to search: a cv2 traceback
+    ("lines-min-depth-beyond-the-rig", "lines --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml "
+     "--out {d}/seg.json --min-depth 100", 2, "--min-depth 100 m: the largest disparity searched, fx B / depth"),
+    # PNG bytes were written under a .jpg name
+    ("lines-overlay-jpg", "lines --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml --out "
+     "{d}/seg.json --overlay-out {d}/o.jpg", 2, "o.jpg: expected a file name ending in .png"),
+    ("obstacles-overlay-jpg", "obstacles --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml "
+     "--overlay-out {d}/o.jpg", 2, "expected a file name ending in .png"),
+    ("map-plot-jpg", "map plot {d}/afile.txt --out {d}/p.jpg", 2, "expected a file name ending in .png"),
     # monitor
     ("monitor-timeout", "monitor --once --timeout -1", 2, "--timeout"),
     ("monitor-refresh", "monitor --refresh 0", 2, "--refresh"),
@@ -186,6 +204,13 @@ CASES = [
     ("goto-map-out-exists", "goto --map {d}/afile.txt --map-out {d}/unknown.yaml --goal 0 1 0", 2,
      "a map is already there"),
     ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out or --record it has nothing"),
+    # an output named as the run's own configuration replaced it with a map or a recording (exit 0)
+    ("map-build-out-is-config", "map build -c {d}/self_map.yaml --out {d}/self_map.yaml --overwrite", 2,
+     "self_map.yaml: is the --config file"),
+    ("goto-map-out-is-config", "goto -c {d}/self_goto.yaml --map {d}/afile.txt --map-out {d}/self_goto.yaml "
+     "--overwrite --goal 0 1 0", 2, "self_goto.yaml: is the --config file"),
+    ("run-record-is-config", "run -c {d}/self_run.yaml --no-camera --duration 0.1 --record {d}/self_run.yaml "
+     "--overwrite", 2, "self_run.yaml: is the --config file"),
     ("calibrate-out-exists", "calibrate intrinsics --images {d}/empty --out {d}/calibrated", 2,
      "a calibration is already there"),
     # a folder given as the map was 'map file not found'
@@ -286,6 +311,8 @@ def make_fixtures(d) -> None:
     (d / "cfg_inffx.yaml").write_text("camera: {fx: .inf}\n")
     (d / "cfg_cx.yaml").write_text("camera: {cx: 5000}\n")
     (d / "cfg_seed.yaml").write_text("sim: {seed: -1}\n")
+    for name in SELF_CONFIGS:
+        (d / name).write_text(SELF_CONFIG)
     (d / "teach_quiet.yaml").write_text("sim: {realtime: true}\ncontroller: {teach: teleop}\n"
                                         "telemetry: {enabled: false}\n")
     (d / "dxl.yaml").write_text("robot: {max_wheel_speed: 6.0, max_linear_speed: 0.3}\n"   # the servos' 6 rad/s
@@ -314,6 +341,8 @@ def make_fixtures(d) -> None:
     (d / "stereo_1x1.yaml").write_text("width: 1\nheight: 1\nfx: 1\nfy: 1\ncx: 0.5\ncy: 0.5\nbaseline: 0.1\n")
     cv2.imwrite(str(d / "one.png"), np.zeros((1, 1), np.uint8))
     cv2.imwrite(str(d / "left.png"), _texture(0))
+    cv2.imwrite(str(d / "left_copy.png"), _texture(0))
+    cv2.imwrite(str(d / "right.png"), _texture(1))
     cv2.imwrite(str(d / "right_big.png"), _texture(1, W + 16, H + 12))
 
 
@@ -334,8 +363,9 @@ def results(tmp_path_factory):
     make_fixtures(d)
     argvs = {case[0]: case[1].format(d=d).split() for case in CASES}
     done = dict(zip(argvs, _run_forked(list(argvs.values()))))
-    assert not [p for p in ("demo_out", "route", "calib", "map.json") if (d / p).exists()], \
+    assert not [p for p in ("demo_out", "route", "calib", "map.json", "seg.json") if (d / p).exists()], \
         "a refused command wrote its output"
+    assert all((d / name).read_text() == SELF_CONFIG for name in SELF_CONFIGS), "a configuration was replaced"
     return done
 
 

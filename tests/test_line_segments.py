@@ -275,3 +275,61 @@ def test_the_real_stereo_benchmark_gives_its_figures(shared_data, capsys):
     assert eu["ours"]["endpoints"] >= 6 and eu["ours"]["median_px"] <= 0.12 and eu["ours"]["within_1px"] == 1.0
     assert ki["guided"]["verified"] >= 15 and ki["guided"]["median_px"] <= 1.5
     assert ki["unguided"]["associated"] >= 50
+
+
+def _lines(argv):
+    from vbnav.control import cli
+    return cli.main(["lines"] + [str(a) for a in argv])
+
+
+def test_lines_says_when_the_pair_looks_swapped(tmp_path, shared_data, capsys):
+    """A swapped pair reconstructed 4 of ~115 segments without a word. Mirrored, a swapped pair is a stereo pair
+    again: many more match there, and the command asks whether --left and --right are swapped."""
+    root = shared_data / "kitti06_stereo"
+    L, R, cal = root / "image_l/000000.png", root / "image_r/000000.png", root / "calib.txt"
+    assert _lines(["--left", R, "--right", L, "--calib", cal, "--out", tmp_path / "s.json"]) == 0
+    err = capsys.readouterr().err
+    assert "are --left and --right swapped?" in err, err
+    assert _lines(["--left", L, "--right", R, "--calib", cal, "--out", tmp_path / "s.json"]) == 0
+    assert "swapped" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["16-bit", "BGRA"])
+def test_the_overlay_of_a_16_bit_or_bgra_pair_shows_the_image_and_the_lines(tmp_path, shared_data, kind):
+    """16-bit images were drawn on with 8-bit colours (the lines came out black on a 16-bit PNG) and BGRA ones
+    with alpha 0 (invisible lines): the overlay is 8-bit BGR, the image stretched, the lines coloured."""
+    root = shared_data / "kitti06_stereo"
+    paths = []
+    for side in ("l", "r"):
+        im = cv2.imread(str(root / f"image_{side}/000000.png"), cv2.IMREAD_GRAYSCALE)
+        im = im.astype(np.uint16) * 257 if kind == "16-bit" else cv2.cvtColor(im, cv2.COLOR_GRAY2BGRA)
+        paths.append(tmp_path / f"{side}.png")
+        cv2.imwrite(str(paths[-1]), im)
+    png = tmp_path / "o.png"
+    assert _lines(["--left", paths[0], "--right", paths[1], "--calib", root / "calib.txt", "--out",
+                   tmp_path / "s.json", "--overlay-out", png]) == 0
+    o = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert o.dtype == np.uint8 and o.shape[2] == 3
+    grey = cv2.imread(str(root / "image_l/000000.png"), cv2.IMREAD_GRAYSCALE).astype(float)
+    if kind == "16-bit":                     # stretched from its lowest to its highest value
+        lo, hi = 257 * grey.min(), 257 * grey.max()
+        grey = np.rint((257 * grey - lo) * 255.0 / (hi - lo))
+    plain = (o[..., 0] == o[..., 1]) & (o[..., 1] == o[..., 2])
+    assert np.abs(o[..., 0][plain].astype(int) - grey[plain]).max() <= 1        # the image, as it was
+    assert (~plain).mean() > 0.005                                              # and the coloured lines
+
+
+def test_a_failed_overlay_leaves_the_segments_file_as_it_was(tmp_path, shared_data, monkeypatch):
+    """--out was written before --overlay-out: an overlay that failed left a new --out beside the old overlay.
+    Both are written as one set now."""
+    from vbnav.control.commands import lines
+    root = shared_data / "kitti06_stereo"
+    out = tmp_path / "s.json"
+    out.write_text("the earlier result\n")
+
+    def fail(path, img):
+        raise ValueError(f"{path}: could not encode PNG")
+    monkeypatch.setattr(lines, "png_bytes", fail)
+    assert _lines(["--left", root / "image_l/000000.png", "--right", root / "image_r/000000.png", "--calib",
+                   root / "calib.txt", "--out", out, "--overlay-out", tmp_path / "o.png"]) == 1
+    assert out.read_text() == "the earlier result\n" and sorted(p.name for p in tmp_path.iterdir()) == ["s.json"]

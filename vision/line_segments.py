@@ -460,6 +460,8 @@ def match_edges(left_image: np.ndarray, right_image: np.ndarray, left: Segments2
     strength = np.abs(_sample(lgx, q[..., 0], q[..., 1]) * nrm[:, None, 0]
                       + _sample(lgy, q[..., 0], q[..., 1]) * nrm[:, None, 1]).mean(axis=1)   # (N,)
     D = np.arange(math.ceil(params.min_disparity_px), math.floor(params.max_disparity_px) + 1, dtype=np.float64)
+    if len(D) == 0:                                  # no whole disparity in range: nothing to search
+        return none
     xs = q[..., 0][..., None] - D                                                  # (N, k, nD)
     ys = np.broadcast_to(q[..., 1][..., None], xs.shape)
     E = np.abs(_sample(rgx, xs, ys) * nrm[:, None, None, 0]
@@ -513,7 +515,9 @@ def triangulate(left: Segments2D, right: Segments2D, matches: StereoMatches, fx:
     d1 = x1 - _x_at(R, y1) + doffs
     uv = np.stack((np.column_stack((x0, y0)), np.column_stack((x1, y1))), axis=1)   # (K, 2, 2)
     d = np.column_stack((d0, d1))
-    ok = (d > 0).all(axis=1)
+    # Both ends at least the smallest disparity matched (the match tests the middle's; an end can be below it):
+    # on a pair of identical images ends at 0.02 px were points kilometres away.
+    ok = (d >= params.min_disparity_px).all(axis=1)
     uv, d, L, R = uv[ok], d[ok], L[ok], R[ok]
     Z = fx * baseline / d
     X = (uv[..., 0] - cx) * Z / fx

@@ -83,7 +83,8 @@ def non_negative(text: str) -> float:
 
 def output_file(path: str | Path | None, option: str) -> None:
     """Raise InputError unless ``path`` (if given) can be written as a file: not a directory, and in a
-    folder that exists. Existing files are the caller's business (some replace them, some refuse)."""
+    folder that exists and this user can write (files are written beside their target and renamed over it).
+    Existing files are the caller's business (some replace them, some refuse)."""
     if path is None:
         return
     p = Path(path)
@@ -93,6 +94,9 @@ def output_file(path: str | Path | None, option: str) -> None:
     if not parent.is_dir():
         what = "is not a directory" if parent.exists() else "does not exist"
         raise InputError(f"{option} {p}: the folder {parent} {what}")
+    import os
+    if not os.access(parent, os.W_OK | os.X_OK):      # said now, not after a drive whose result it would lose
+        raise InputError(f"{option} {p}: the folder {parent} is not writable by this user")
 
 
 def add_overwrite_arg(p: argparse.ArgumentParser, what: str) -> None:
@@ -133,6 +137,13 @@ def distinct_files(outputs: dict, inputs: Optional[dict] = None) -> None:
         if key in seen:
             raise InputError(f"{seen[key]} and {option} name the same file {path}: one would overwrite the other")
         seen[key] = option
+
+
+def apart_from_config(cfg, outputs: dict) -> None:
+    """Raise InputError when an output (option -> path; None: not given) is the configuration file the run
+    was loaded from: the map or recording written at the end would replace the robot's configuration."""
+    if cfg.source:
+        distinct_files(outputs, {"--config": cfg.source})
 
 
 def network_closed(cfg, no_telemetry: bool = False) -> str:

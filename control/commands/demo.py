@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import add_record_overwrite_arg, output_file, record_target_error
+from vbnav.control.commands._common import add_record_overwrite_arg, apart_from_config, output_file, record_target_error
 from vbnav.drivers.errors import InputError
 
 
@@ -60,6 +60,7 @@ def run(args) -> int:
     if args.repeats < 1:
         raise InputError(f"--repeats {args.repeats}: expected at least 1")
     output_file(args.record, "--record")
+    apart_from_config(cfg, {"--record": args.record})
     seed = cfg.sim.seed if args.seed is None else args.seed
     route_start = start_pose(demo_route())
     if "start_pose" in cfg.sim.model_fields_set and not _same_pose(cfg.sim.start(), route_start):

@@ -93,13 +93,14 @@ def run(args) -> int:
         print("vbnav goto: --overwrite replaces an existing --map-out or --record file; without --map-out or "
               "--record it has nothing to replace", file=sys.stderr)
         return 2
-    from vbnav.control.commands._common import distinct_files, output_file, record_target_error
+    from vbnav.control.commands._common import apart_from_config, distinct_files, output_file, record_target_error
     output_file(args.record, "--record")
     if args.map_out:
         from vbnav.control.commands._common import not_recorded_yet
         output_file(args.map_out, "--map-out")
         distinct_files({"--map-out": args.map_out, "--record": args.record})
         not_recorded_yet([args.map_out], f"--map-out {args.map_out}", args.overwrite, "a map is")
+    apart_from_config(cfg, {"--map-out": args.map_out, "--record": args.record})
     why = record_target_error(args)
     if why:
         print(f"vbnav goto: {why}", file=sys.stderr)

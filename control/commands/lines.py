@@ -11,12 +11,14 @@ import argparse
 import dataclasses
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, output_file, positive
-from vbnav.control.image_files import pair_problem, read_image, write_json, write_png
+from vbnav.control.image_files import display_bgr, json_text, pair_problem, png_bytes, png_name_problem, read_image
+from vbnav.drivers.atomic_file import write_atomic_set
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
 
@@ -73,7 +75,7 @@ def depth_colour(z: float, z_max: float) -> tuple:
 
 
 def draw_segments(image: np.ndarray, xy: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+    base = display_bgr(image)
     z_max = float(np.percentile(depth, 95)) if len(depth) else 1.0
     for s, z in zip(xy, depth):
         cv2.line(base, (int(round(s[0])), int(round(s[1]))), (int(round(s[2])), int(round(s[3]))),
@@ -81,12 +83,41 @@ def draw_segments(image: np.ndarray, xy: np.ndarray, depth: np.ndarray) -> np.nd
     return base
 
 
+def _swapped(left: np.ndarray, right: np.ndarray, rig, params: LineParams, matched: int) -> bool:
+    """Whether the pair looks swapped: few matches, and many more once both images are mirrored. Mirrored,
+    a swapped pair is a stereo pair again (a point at x in the true left image and x - d in the true right one
+    is at W - 1 - x + d in the mirrored given left and W - 1 - x in the mirrored given right)."""
+    w = left.shape[1]
+    mirrored = reconstruct_pair(np.ascontiguousarray(left[:, ::-1]), np.ascontiguousarray(right[:, ::-1]),
+                                rig.fx, rig.fy, w - 1 - rig.cx, rig.cy, rig.baseline, params)
+    found = int(mirrored.segments.best.sum())
+    return found >= 10 and found >= 3 * max(matched, 1)
+
+
+def _max_disparity(rig, min_depth: float, width: int, given: bool) -> float:
+    """The largest disparity searched (fx B / min_depth, at most half the image); ValueError when it leaves
+    nothing to match (a very small focal length, or --min-depth beyond what the rig resolves)."""
+    d_max = min(rig.fb / min_depth, width / 2.0)
+    if d_max <= LineParams.min_disparity_px:
+        what = f"--min-depth {min_depth:g} m" if given else f"the default nearest depth, 8 baselines ({min_depth:g} m)"
+        raise ValueError(f"{what}: the largest disparity searched, fx B / depth = {rig.fb:g} / {min_depth:g} = "
+                         f"{rig.fb / min_depth:.3g} px, is not above the smallest the matcher takes "
+                         f"({LineParams.min_disparity_px:g} px): nothing could be matched (fx {rig.fx:g} px, "
+                         f"baseline {rig.baseline:g} m)")
+    return d_max
+
+
 def run(args) -> int:
     t0 = time.perf_counter()
     output_file(args.out, "--out")
     output_file(args.overlay_out, "--overlay-out")
+    why = png_name_problem(args.overlay_out, "--overlay-out")
+    if why:
+        return _bad(why)
     distinct_files({"--out": args.out, "--overlay-out": args.overlay_out},
                    {"--left": args.left, "--right": args.right, "--calib": args.calib})
+    if Path(args.left).resolve() == Path(args.right).resolve():
+        return _bad(f"--left and --right are the same file, {args.left}: a stereo pair is two cameras' images")
     try:
         calib = load_stereo_calibration(args.calib, raw_images=True)
         left = read_image(args.left, "left image")
@@ -94,15 +125,18 @@ def run(args) -> int:
         why = pair_problem(left, right, args.left, args.right)
         if why:
             return _bad(why)
+        if left.shape == right.shape and np.array_equal(left, right):
+            return _bad(f"left {args.left} and right {args.right} are the same image: a stereo pair is two "
+                        "cameras' images")
         left, right = calib.rectify(left, right)
         h, w = left.shape[:2]
         rig = calib.rig(w, h)
+        min_depth = args.min_depth if args.min_depth is not None else 8.0 * rig.baseline
+        d_max = _max_disparity(rig, min_depth, w, args.min_depth is not None)
     except (CalibrationError, ValueError, FileNotFoundError) as exc:
         return _bad(str(exc))
-    min_depth = args.min_depth if args.min_depth is not None else 8.0 * rig.baseline
     params = dataclasses.replace(LineParams(), min_length_px=args.min_length,
-                                 min_epipolar_angle_deg=args.min_epipolar_angle,
-                                 max_disparity_px=min(rig.fb / min_depth, w / 2.0))
+                                 min_epipolar_angle_deg=args.min_epipolar_angle, max_disparity_px=d_max)
     res = reconstruct_pair(left, right, rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline, params)
     seg = res.segments if args.all_hypotheses else res.segments.subset(res.segments.best)
     items = []
@@ -118,10 +152,16 @@ def run(args) -> int:
             "detected": {"left": len(res.left), "right": len(res.right)}, "segments": items}
     if calib.rectification is not None:      # image coordinates are those of the rectified pair
         data["rectified_with"] = str(args.calib)
-    write_json(args.out, data)
+    files = {args.out: json_text(data)}
     if args.overlay_out:
-        write_png(args.overlay_out, draw_segments(left, seg.left_xy, seg.P[..., 2].mean(axis=1)))
+        files[args.overlay_out] = png_bytes(args.overlay_out, draw_segments(left, seg.left_xy,
+                                                                            seg.P[..., 2].mean(axis=1)))
+    write_atomic_set(files)                  # both or neither: a failed overlay does not leave a new --out
     ambiguous = len(set(res.segments.group[~res.segments.best].tolist()))
     print(f"vbnav lines: {len(res.left)} left / {len(res.right)} right segments, {len(seg)} reconstructed "
           f"({ambiguous} ambiguous), {(time.perf_counter() - t0) * 1e3:.0f} ms -> {args.out}")
+    matched = int(res.segments.best.sum())
+    if len(res.left) >= 20 and matched < 0.1 * len(res.left) and _swapped(left, right, rig, params, matched):
+        print(f"vbnav lines: note: only {matched} of {len(res.left)} left segments matched, and many more do with "
+              f"the images mirrored: are --left and --right swapped?", file=sys.stderr)
     return EXIT_OK

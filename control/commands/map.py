@@ -8,7 +8,7 @@ import sys
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import (add_config_arg, apply_realtime, distinct_files, not_recorded_yet,
+from vbnav.control.commands._common import (add_config_arg, apart_from_config, apply_realtime, distinct_files, not_recorded_yet,
                                            output_file, positive, record_target_error, refuse_unserved_live_view)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
@@ -90,6 +90,7 @@ def run_build(args) -> int:
     if why:
         raise InputError(why)
     cfg = load_config(args.config)
+    apart_from_config(cfg, {"--out": args.out, "--record": args.record})
     apply_realtime(cfg, args.realtime)
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)
@@ -188,10 +189,12 @@ def _panel(P: np.ndarray, colours: list, project, size=(600, 600), title="") -> 
 
 
 def run_plot(args) -> int:
-    from vbnav.control.image_files import write_png
+    from vbnav.control.image_files import png_name_problem, write_png
     from vbnav.control.line_map_file import load_map
     output_file(args.out, "--out")
     distinct_files({"--out": args.out}, {"MAP": args.map})
+    if png_name_problem(args.out, "--out"):
+        raise InputError(png_name_problem(args.out, "--out"))
     lmap, meta = load_map(args.map)
     sel = np.ones(len(lmap), bool) if args.all else lmap.verified
     P = lmap.P[sel]

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, finite, non_negative, output_file, positive
-from vbnav.control.image_files import pair_problem, read_image, write_png
+from vbnav.control.image_files import display_bgr, pair_problem, png_name_problem, read_image, write_png
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.ground_model import GroundModelParams
@@ -189,9 +189,7 @@ def _read_disparity(path: str, scale_arg, calib) -> np.ndarray:
 
 def overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.45) -> np.ndarray:
     """The classes drawn over the image (BGR): ground green, obstacle red, negative blue."""
-    if image.dtype != np.uint8:
-        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    base = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+    base = display_bgr(image)
     colour = base.copy()
     for cls, bgr in COLOURS_BGR.items():
         colour[labels == cls] = bgr
@@ -221,6 +219,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     output_file(args.mask_out, "--mask-out")
     output_file(args.overlay_out, "--overlay-out")
+    for path, option in ((args.mask_out, "--mask-out"), (args.overlay_out, "--overlay-out")):
+        if png_name_problem(path, option):
+            raise InputError(png_name_problem(path, option))
     distinct_files({"--mask-out": args.mask_out, "--overlay-out": args.overlay_out},
                    {"--left": args.left, "--right": args.right, "--disparity": args.disparity, "--image": args.image,
                     "--calib": args.calib})

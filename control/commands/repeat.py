@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from vbnav.control.commands._common import (add_config_arg, add_record_overwrite_arg, output_file, positive,
+from vbnav.control.commands._common import (add_config_arg, add_record_overwrite_arg, apart_from_config, output_file, positive,
                                            record_target_error, refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
 
@@ -34,6 +34,7 @@ def run(args) -> int:
     cfg = load_config(args.config)
     refuse_unserved_live_view(cfg)
     output_file(args.record, "--record")
+    apart_from_config(cfg, {"--record": args.record})
     why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from vbnav.control.commands._common import (add_config_arg, apply_realtime, enable_live_view, output_file, positive,
+from vbnav.control.commands._common import (add_config_arg, apart_from_config, apply_realtime, enable_live_view, output_file, positive,
                                            record_target_error, refuse_network_driver_without_network,
                                            refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
@@ -73,6 +73,7 @@ def run(args) -> int:
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
     output_file(args.record, "--record")
+    apart_from_config(cfg, {"--record": args.record})
     why = record_target_error(args, overwrite_is_record_only=True)
     if why:
         raise InputError(why)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from vbnav.control.commands._common import (add_config_arg, output_file, positive, record_target_error,
+from vbnav.control.commands._common import (add_config_arg, apart_from_config, output_file, positive, record_target_error,
                                              refuse_network_driver_without_network, refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
 
@@ -47,6 +47,7 @@ def run(args) -> int:
         raise InputError(f"--out {out}: the folder {out.parent} "
                          f"{'is not a directory' if out.parent.exists() else 'does not exist'}")
     output_file(args.record, "--record")
+    apart_from_config(cfg, {"--record": args.record})
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise InputError(f"--out {out}: exists and is not empty (use --overwrite to replace it)")
     why = record_target_error(args)
