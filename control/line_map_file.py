@@ -72,7 +72,8 @@ def load_map(path: str | Path) -> tuple[LineMap, dict]:
     if path.is_dir():
         raise MapFileError(f"{path}: is a directory, expected a map file (JSON, from vbnav map build)")
     if not path.is_file():
-        raise MapFileError(f"{path}: map file not found")
+        raise MapFileError(f"{path}: " + ("is not a regular file, expected a map file" if path.exists()
+                                          else "map file not found"))
     try:
         data = load_json(path.read_text())
     except ValueError as exc:       # not JSON, not UTF-8, a key given twice
@@ -118,19 +119,26 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
     for k, o in enumerate(meta.get("objects", [])):
         try:
             fp = np.asarray(o["footprint"], float)
-            ok = fp.ndim == 2 and fp.shape[1] == 2 and np.isfinite(fp).all() and np.isfinite(float(o["height"]))
+            ok = (fp.ndim == 2 and fp.shape[1] == 2 and np.isfinite(fp).all() and _finite(o["height"])
+                  and o["height"] >= 0 and _numbers(o["footprint"], (len(fp), 2)))
         except (KeyError, TypeError, ValueError):
             ok = False
         if not ok:
-            raise MapFileError(f"{path}: meta.objects[{k}]: expected footprint (a list of [x, z] pairs) and height, "
-                               f"finite numbers")
+            raise MapFileError(f"{path}: meta.objects[{k}]: expected footprint (a list of [x, z] pairs) and height "
+                               f"(>= 0), finite numbers")
     _check_count(path, "frames", data.get("frames", 0), 0)
     try:
         params = MapParams(**given)
+    except ValueError as exc:       # finite but meaningless (a negative range, no views to verify): refused
+        raise MapFileError(f"{path}: params: {exc}") from None
+    segs = data.get("segments")
+    if not isinstance(segs, list):
+        raise MapFileError(f"{path}: segments: expected a list of segments, got {type(segs).__name__}")
+    try:
         lmap = LineMap(params)
-        segs = data["segments"]
         n = len(segs)
         for k, s in enumerate(segs):    # np.array(..., bool) made "false" True; int arrays cut 2.5 to 2
+            _check_entry(path, k, s)
             for name, low in (("support", 0), ("misses", 0), ("group", -1)):
                 _check_count(path, f"segments[{k}].{name}", s[name], low)
             # "ambiguous" is newer than the format: a map written without it was built when only
@@ -163,20 +171,59 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         raise
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFileError(f"{path}: segments: malformed entry ({type(exc).__name__}: {exc})") from None
-    for k, views in enumerate(lmap.views):     # a wrong shape was taken, and failed the first mapping frame
-        if any(v.shape != (4,) or not np.isfinite(v).all() for v in views):
-            raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
     return lmap, meta
 
 
 def _finite(v) -> bool:
-    """A JSON number (not true/false) and finite."""
-    return not isinstance(v, bool) and isinstance(v, (int, float)) and bool(np.isfinite(v))
+    """A JSON number (not true/false) and finite (a JSON integer too large for a float is not)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return bool(np.isfinite(float(v)))
+    except OverflowError:
+        return False
+
+
+# Counts and ids: what a float holds exactly (JSON's numbers), far beyond any map (2^53 frames at 15 Hz
+# are 19 million years); 10^30 overflowed numpy's integers with a traceback.
+MAX_COUNT = 2 ** 53
+# An endpoint's sigma, m: 1 nm to 1 km along every axis. 1e-300 passed as positive definite and failed the
+# information form's inverse ("Singular matrix"); 1e300 overflowed the gates.
+SIGMA_RANGE_M = (1e-9, 1e3)
+SEGMENT_FIELDS = ("id", "p0", "p1", "cov0", "cov1", "support", "misses", "verified", "group", "hypothesis",
+                  "views")
 
 
 def _check_count(path: Path, field: str, v, low: int) -> None:
     if isinstance(v, bool) or not isinstance(v, int) or v < low:
-        raise MapFileError(f"{path}: {field}: expected an integer >= {low}, got {v!r}")
+        raise MapFileError(f"{path}: {field}: expected an integer >= {low}, got {v!r:.40}")
+    if v > MAX_COUNT:
+        raise MapFileError(f"{path}: {field}: expected an integer >= {low}, at most 2^53, got {v!r:.40}")
+
+
+def _numbers(v, shape: tuple) -> bool:
+    """Whether ``v`` is nested JSON lists of finite numbers (not strings, not true/false) of this shape."""
+    if not shape:
+        return _finite(v)
+    return isinstance(v, list) and len(v) == shape[0] and all(_numbers(x, shape[1:]) for x in v)
+
+
+def _check_entry(path: Path, k: int, s) -> None:
+    """A segment entry's fields are there and their numbers are numbers: np.array(..., float) read "1" as 1
+    and true as 1.0, and a field left out said "malformed entry (KeyError: 'cov0')" without the segment."""
+    if not isinstance(s, dict):
+        raise MapFileError(f"{path}: segments[{k}]: expected an object, got {type(s).__name__}")
+    missing = [name for name in SEGMENT_FIELDS if name not in s]
+    if missing:
+        raise MapFileError(f"{path}: segments[{k}]: missing {', '.join(missing)}")
+    _check_count(path, f"segments[{k}].id", s["id"], 0)
+    for name, shape, what in (("p0", (3,), "[x, y, z]"), ("p1", (3,), "[x, y, z]"),
+                              ("cov0", (3, 3), "a 3x3 matrix"), ("cov1", (3, 3), "a 3x3 matrix")):
+        if not _numbers(s[name], shape):
+            raise MapFileError(f"{path}: segments[{k}].{name}: expected {what} of finite numbers, got "
+                               f"{s[name]!r:.60}")
+    if not (isinstance(s["views"], list) and all(_numbers(v, (4,)) for v in s["views"])):
+        raise MapFileError(f"{path}: segments[{k}].views: expected [x, y, z, heading] finite numbers per view")
 
 
 def _check_segments(path: Path, P: np.ndarray, C: np.ndarray, ids: list) -> None:
@@ -197,6 +244,11 @@ def _check_segments(path: Path, P: np.ndarray, C: np.ndarray, ids: list) -> None
             if not np.allclose(c, c.T, rtol=1e-6, atol=1e-9) or not np.linalg.eigvalsh(c).min() > 0:
                 raise MapFileError(f"{path}: segments[{k}]: cov{e} {c.tolist()} is not a symmetric positive "
                                    f"definite 3x3 matrix")
+            lo, hi = SIGMA_RANGE_M
+            sigma = np.sqrt(np.linalg.eigvalsh(c))
+            if sigma.min() < lo or sigma.max() > hi:
+                raise MapFileError(f"{path}: segments[{k}]: cov{e}: sigmas {sigma.min():.3g}-{sigma.max():.3g} m, "
+                                   f"expected between {lo:g} and {hi:g} m")
         i = int(ids[k])
         if i != ids[k]:
             raise MapFileError(f"{path}: segments[{k}]: id {ids[k]!r} is not an integer")

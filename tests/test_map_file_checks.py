@@ -108,7 +108,7 @@ GOOD_C = [[np.eye(3) * 1e-4] * 2]
 @pytest.mark.parametrize("lmap, meta, why", [
     # rounded to 10 decimals on writing, a very certain endpoint's covariance is all zeros: singular
     (lambda: _map(GOOD_P, [[np.eye(3) * 1e-12] * 2]), None, r"segments\[0\]: cov0 .*symmetric positive definite"),
-    (lambda: _map([[[0, -1, 2], [np.nan, -1, 2]]], GOOD_C), None, "endpoints must be finite numbers"),
+    (lambda: _map([[[0, -1, 2], [np.nan, -1, 2]]], GOOD_C), None, r"segments\[0\]\.p1: expected \[x, y, z\] of finite"),
     # two endpoints 1e-7 m apart are one point once rounded to the file's 6 decimals
     (lambda: _map([[[0, -1, 2], [1e-7, -1, 2]]], GOOD_C), None, r"segments\[0\]: p0 and p1 are the same point"),
     (lambda: _map(GOOD_P, GOOD_C, views=[[np.array([0, 0, np.inf, 0.0])]]), None, r"segments\[0\]\.views"),
@@ -170,3 +170,62 @@ def test_a_key_given_twice_is_refused(tmp_path):
     path.write_text(text[:-1] + ', "frames": 7}')
     with pytest.raises(MapFileError, match=r"map\.json: not a JSON map file \(duplicate key 'frames'\)"):
         load_map(path)
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("support", 10 ** 30, r"support: expected an integer >= 0, at most 2\^53"),     # numpy overflow: a traceback
+    ("id", True, r"id: expected an integer >= 0, got True"),                         # loaded as id 1
+    ("id", 2.0, r"id: expected an integer >= 0, got 2.0"),
+    ("p0", ["1", "2", "3"], r"p0: expected \[x, y, z\] of finite numbers"),          # read as 1, 2, 3
+    ("p1", [True, False, True], r"p1: expected \[x, y, z\] of finite numbers"),
+    ("cov0", [[1e-4, 0, 0], [0, 1e-4, 0], [0, 0, "1e-4"]], r"cov0: expected a 3x3 matrix of finite numbers"),
+    ("cov1", (np.eye(3) * 1e-300).tolist(), r"cov1: sigmas .* expected between 1e-09 and 1000 m"),  # Singular matrix
+    ("cov1", (np.eye(3) * 1e300).tolist(), r"cov1: sigmas .* expected between 1e-09 and 1000 m"),
+    ("views", [[0, 0, 0, "north"]], r"views: expected \[x, y, z, heading\] finite numbers per view"),
+])
+def test_segment_numbers_that_are_not_numbers_or_not_sane_are_refused(tmp_path, field, value, expected):
+    """Found by an adversarial run: numbers given as strings or true/false loaded (np.array(..., float) reads
+    them), a support of 10^30 was an OverflowError traceback, a covariance of 1e-300 a LinAlgError one."""
+    path = _saved(tmp_path)
+    _edit(path, lambda s: s[1].__setitem__(field, value))
+    with pytest.raises(MapFileError, match=rf"map\.json: segments\[1\]\.?{expected}" if field != "cov1"
+                       else rf"map\.json: segments\[1\]: {expected}"):
+        load_map(path)
+
+
+def test_a_segment_without_a_field_is_named(tmp_path):
+    path = _saved(tmp_path)
+    _edit(path, lambda s: s[1].pop("cov0"))
+    with pytest.raises(MapFileError, match=r"map\.json: segments\[1\]: missing cov0"):
+        load_map(path)
+    data = json.loads(path.read_text())
+    data["segments"] = {}
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=r"map\.json: segments: expected a list of segments, got dict"):
+        load_map(path)
+
+
+@pytest.mark.parametrize("params, expected", [
+    ({"max_range_m": -3.0}, r"max_range_m: expected > 0, got -3.0"),
+    ({"verify_views": 0}, r"verify_views: expected >= 1, got 0"),
+    ({"miss_limit": -1}, r"miss_limit: expected >= 1, got -1"),
+    ({"min_range_m": 100.0}, r"min_range_m 100.0 must be below max_range_m 3.0"),
+    ({"view_angle_deg": 0.0}, r"view_angle_deg: expected > 0 and <= 180, got 0.0"),
+])
+def test_map_parameters_the_mapping_cannot_work_with_are_refused(tmp_path, params, expected):
+    """A map's params are applied to the mapping that goes on from it (goto --map keeps mapping): max_range_m
+    -3 was taken without a word and grew another map. The values each parameter's meaning allows, or refused."""
+    path = _saved(tmp_path)
+    data = json.loads(path.read_text())
+    data["params"].update(params)
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=rf"map\.json: params: {expected}"):
+        load_map(path)
+    with pytest.raises(ValueError, match=expected):
+        MapParams(**params)
+
+
+def test_an_object_of_negative_height_is_refused(tmp_path):
+    m = LineMap(MapParams())
+    with pytest.raises(MapFileError, match=r"meta\.objects\[0\]: expected footprint .* and height \(>= 0\)"):
+        save_map(m, tmp_path / "map.json", {"objects": [{"footprint": [[0, 0], [1, 0], [1, 1]], "height": -0.5}]})

@@ -238,6 +238,36 @@ class MapParams:
     # lines, whatever the 3D gates say: a map segment takes at most one of them (``_exclusive``; 0: off).
     line_sigma_px: float = 0.3
 
+    def __post_init__(self):
+        """Refuse a value the map cannot work with (a map file's params are applied to the mapping that goes
+        on from it): ValueError naming the field and the range."""
+        for name, low, high, low_open in _PARAM_RANGES:
+            v = getattr(self, name)
+            if not (math.isfinite(v) and (v > low if low_open else v >= low) and v <= high):
+                raise ValueError(f"{name}: expected {'>' if low_open else '>='} {low:g}"
+                                 + (f" and <= {high:g}" if math.isfinite(high) else "") + f", got {v!r}")
+        if not self.min_range_m < self.max_range_m:
+            raise ValueError(f"min_range_m {self.min_range_m!r} must be below max_range_m {self.max_range_m!r}")
+        if int(self.verify_views) != self.verify_views or int(self.miss_limit) != self.miss_limit:
+            raise ValueError(f"verify_views and miss_limit are counts, got {self.verify_views!r} and "
+                             f"{self.miss_limit!r}")
+
+
+# (field, lowest, highest, lowest excluded): what each MapParams value means allows. 0 is "off" for
+# ghost_error_m, sight_sigma_px and line_sigma_px (their comments); angles to a line lie within 90 deg.
+_INF = math.inf
+_PARAM_RANGES = (
+    ("max_range_m", 0.0, _INF, True), ("min_range_m", 0.0, _INF, False), ("min_length_m", 0.0, _INF, False),
+    ("assoc_angle_deg", 0.0, 90.0, True), ("assoc_extra_m", 0.0, _INF, False),
+    ("overlap_margin_m", 0.0, _INF, False), ("merge_gap_m", 0.0, _INF, False), ("verify_views", 1, _INF, False),
+    ("view_baseline_m", 0.0, _INF, True), ("view_angle_deg", 0.0, 180.0, True), ("miss_limit", 1, _INF, False),
+    ("verified_miss_factor", 1.0, _INF, False), ("predict_angle_deg", 0.0, 90.0, True),
+    ("predict_dist_px", 0.0, _INF, True), ("predict_min_length_px", 0.0, _INF, False),
+    ("min_epipolar_angle_deg", 0.0, 90.0, True), ("prior_sigma_floor_px", 0.0, _INF, True),
+    ("ghost_error_m", 0.0, _INF, False), ("sight_sigma_px", 0.0, _INF, False), ("sight_up_m", 0.0, _INF, False),
+    ("ridge_k_sigma", 0.0, _INF, True), ("line_sigma_px", 0.0, _INF, False),
+)
+
 
 @dataclass
 class Prediction:
