@@ -15,6 +15,8 @@ from vbnav.drivers.datasets import JPEG_CUT_SHORT, jpeg_cut_short
 
 def read_image(path: str, what: str) -> np.ndarray:
     """The image at ``path`` as OpenCV reads it; FileNotFoundError / ValueError name ``what`` and the path."""
+    if Path(path).is_dir():
+        raise ValueError(f"{what} {path}: is a directory, expected an image file")
     if not Path(path).is_file():
         raise FileNotFoundError(f"{what} {path}: file not found")
     try:

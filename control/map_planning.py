@@ -162,7 +162,7 @@ def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3
     ``camera`` (vision/line_localise.py), searched around ``guess``: (Localisation, message); (None, why and
     what to do) when it cannot localise at all. The camera is opened and closed again here (the run opens it
     for itself)."""
-    from vbnav.vision.line_localise import View, localise
+    from vbnav.vision.line_localise import LocaliseParams, View, localise
     from vbnav.vision.line_segments import detect_segments
 
     problem = localise_problem(cfg)
@@ -181,8 +181,19 @@ def localise_start(cfg, camera, lmap, map_path: str, guess, timeout_s: float = 3
     view = View(model.fx, model.fy, model.cx, model.cy, model.width, model.height, baseline,
                 cfg.camera.mount.to_mount())
     r = localise(lmap, detect_segments(frame.image), view, guess)
-    say = (f"{map_path}: {r.matches} of the {r.predicted} map segments predicted in view found, "
-           f"{r.rms_px:.2f} px rms")
+    lp = LocaliseParams()
+    if r.predicted == 0:        # "0 of the 0 ... inf px rms" said nothing of why
+        say = (f"{map_path}: no map segment would be in view from the poses searched around --start "
+               f"({lp.search_m:g} m / {lp.search_deg:g} deg): the start is far from where the map was built, or "
+               f"looks away from what it holds")
+    else:
+        say = f"{map_path}: {r.matches} of the {r.predicted} map segments predicted in view found"
+        if r.matches < lp.min_matches:
+            say += f", fewer than the {lp.min_matches} a pose needs"
+        elif r.matches < lp.min_explained * r.predicted:
+            say += f", under the {lp.min_explained:.0%} a true pose explains"
+        if math.isfinite(r.rms_px):
+            say += f", {r.rms_px:.2f} px rms"
     return r, say
 
 

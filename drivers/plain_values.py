@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import types
 import typing
 
@@ -43,6 +44,13 @@ class _UniqueKeys(yaml.SafeLoader):
                                     f"silently replace it", key_node.start_mark)
                 first[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep)
+
+
+# YAML 1.1 (PyYAML) reads an exponent without a dot, ``baseline: 1e-12``, as the text "1e-12", and the
+# check below then asked to write it "without quotes" when it had none. YAML 1.2 and every other reader
+# take it as the number it is; so do vbnav's files. (Quoted, it is still text and still refused.)
+_UniqueKeys.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"),
+                                  list("-+0123456789"))
 
 
 def load_json(text: str | bytes):

@@ -154,6 +154,8 @@ def load_stereo_calibration(path: str | Path, raw_images: bool = False) -> Stere
     """KITTI calib.txt, vbnav stereo YAML or (``raw_images``: the caller rectifies with
     ``StereoCalibration.rectify``) an OpenCV stereo rectification, chosen by suffix and first line."""
     p = Path(path)
+    if p.is_dir():
+        raise CalibrationError(f"{p}: is a directory, expected a calibration file")
     if not p.is_file():
         raise CalibrationError(f"{p}: calibration file not found")
     if p.suffix.lower() in (".yaml", ".yml", ".xml"):
@@ -274,6 +276,10 @@ def read_kitti_calib(path: str | Path, need_right: bool = True) -> StereoCalibra
         try:
             vals = np.array([float(x) for x in rest.split()])
         except ValueError:
+            if re.match(r"\s*cam0\s*=\s*\[", line):       # Middlebury's calib.txt (cam0=[f 0 cx; ...], doffs=)
+                raise CalibrationError(f"{p}: a Middlebury calib.txt (cam0=[...], doffs, baseline in mm), which vbnav "
+                                       f"does not read; expected a KITTI calib.txt (P0 and P1 rows), a vbnav "
+                                       f"stereo YAML or an OpenCV stereo rectification") from None
             raise CalibrationError(f"{p}: line {n}: expected numbers, got {rest.strip()[:40]!r}") from None
         if label is None:
             bare.append((n, vals))

@@ -97,6 +97,15 @@ CASES = [
     # lines: a nearest depth beyond what the rig resolves left no disparity to search: a cv2 traceback
     ("lines-min-depth-beyond-the-rig", "lines --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml "
      "--out {d}/seg.json --min-depth 100", 2, "--min-depth 100 m: the largest disparity searched, fx B / depth"),
+    # a folder given as an image or a calibration was "file not found"; a device as a map "map file not found"
+    ("lines-left-dir", "lines --left {d}/empty --right {d}/right.png --calib {d}/stereo.yaml --out {d}/seg.json", 2,
+     "empty: is a directory, expected an image file"),
+    ("lines-calib-dir", "lines --left {d}/left.png --right {d}/right.png --calib {d}/empty --out {d}/seg.json", 2,
+     "empty: is a directory, expected a calibration file"),
+    ("map-info-device", "map info /dev/null", 2, "/dev/null: is not a regular file, expected a map file"),
+    # Middlebury's own calib.txt said "line 1: expected numbers, got 'cam0=[...'"
+    ("lines-middlebury-calib", "lines --left {d}/left.png --right {d}/right.png --calib {d}/middlebury_calib.txt "
+     "--out {d}/seg.json", 2, "a Middlebury calib.txt (cam0=[...], doffs, baseline in mm), which vbnav does not read"),
     # PNG bytes were written under a .jpg name
     ("lines-overlay-jpg", "lines --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml --out "
      "{d}/seg.json --overlay-out {d}/o.jpg", 2, "o.jpg: expected a file name ending in .png"),
@@ -342,6 +351,8 @@ def make_fixtures(d) -> None:
     cv2.imwrite(str(d / "one.png"), np.zeros((1, 1), np.uint8))
     cv2.imwrite(str(d / "left.png"), _texture(0))
     cv2.imwrite(str(d / "left_copy.png"), _texture(0))
+    (d / "middlebury_calib.txt").write_text("cam0=[50 0 32; 0 50 24; 0 0 1]\ncam1=[50 0 35; 0 50 24; 0 0 1]\n"
+                                            "doffs=3\nbaseline=100.0\nwidth=64\nheight=48\nndisp=16\n")
     cv2.imwrite(str(d / "right.png"), _texture(1))
     cv2.imwrite(str(d / "right_big.png"), _texture(1, W + 16, H + 12))
 

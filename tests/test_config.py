@@ -475,3 +475,13 @@ def test_a_camera_rate_above_the_loop_rate_on_the_simulated_clock_is_refused():
     slow = parse_config({"loop": {"rate_hz": 10}})
     assert slow.camera.rate_hz == 10
     assert parse_config(slow.model_dump(mode="json")).camera.rate_hz == 10       # loads back
+
+
+def test_an_exponent_without_a_dot_is_a_number(tmp_path):
+    """PyYAML (YAML 1.1) read ``1e-3`` as the text "1e-3"; the check then said 'write it without quotes' of a
+    value that had none. It is the number YAML 1.2 and every other reader take it for; quoted it is refused."""
+    cfg = load_config(write(tmp_path, "safety:\n  command_timeout_s: 25e-2\n"))
+    assert cfg.safety.command_timeout_s == 0.25
+    p = write(tmp_path, 'safety:\n  command_timeout_s: "25e-2"\n')
+    with pytest.raises(ConfigError, match="expected a number, not the text '25e-2'"):
+        load_config(p)

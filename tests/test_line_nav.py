@@ -486,7 +486,7 @@ def test_map_file_round_trip_and_errors(room_map, tmp_path):
     (lambda d: d["params"].update(max_range_m="far"), r"params: max_range_m: expected a finite number, got 'far'"),
     (lambda d: d["params"].update(verify_views=2.5), r"params: verify_views: expected a finite integer, got 2.5"),
     (lambda d: d["segments"][0].update(views=[[1.0, 2.0]]), r"segments\[0\].views: expected \[x, y, z, heading\]"),
-    (lambda d: d["segments"][0].update(cov0=[[float("nan")] * 3] * 3), "segments: cov0/cov1 must be finite"),
+    (lambda d: d["segments"][0].update(cov0=[[float("nan")] * 3] * 3), r"segments\[0\]\.cov0: expected a 3x3 matrix of finite numbers"),
     (lambda d: d.update(meta=[1]), "meta: expected an object with a list 'objects'"),
     (lambda d: d.update(meta={"objects": [{"footprint": "abc", "height": 1}]}), r"meta.objects\[0\]: expected"),
     (lambda d: d.update(version=True), "version must be an integer >= 1, got True"),
@@ -602,6 +602,17 @@ def test_goto_map_localises_its_start_against_the_map(room_map, tmp_path, capsys
     (tmp_path / "robot.yaml").write_text(yaml.safe_dump(cfg))
     assert main(args[:-3] + ["0.0", "0.5", "0.0"]) == 1
     assert "the map does not confirm a start pose" in capsys.readouterr().err
+    cfg["sim"]["start_pose"] = [0.0, 2.5, 0.0]                          # a metre from it: 5 mapped lines in view
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(args[:-3] + ["0.0", "2.5", "0.0"]) == 1
+    err = capsys.readouterr().err
+    # "1 of the 5 map segments predicted in view found, inf px rms" said nothing of why
+    assert "map segments predicted in view found, fewer than the 8 a pose needs" in err and "inf" not in err, err
+    cfg["sim"]["start_pose"] = [3.5, 2.5, 45.0]                         # facing the room's far corner
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(args[:-3] + ["3.5", "2.5", "45.0"]) == 1
+    err = capsys.readouterr().err
+    assert "no map segment would be in view from the poses searched around --start (0.3 m / 12 deg)" in err, err
 
 
 @pytest.mark.parametrize("bad", ["no-right", "half-size", "uint16", "nan-odometry"])

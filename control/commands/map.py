@@ -229,18 +229,16 @@ def run_view(args) -> int:
         from vbnav.control.comms import foxglove_channels as fc
         from vbnav.control.comms.live_view import SceneServer
     except ImportError as exc:
-        raise InputError(f"vbnav map view needs the foxglove-sdk package ({exc}); install vbnav's dependencies") \
-            from None
+        raise InputError(f"view needs the foxglove-sdk package ({exc}); install vbnav's dependencies") from None
     try:
         grid = map_grid(lmap, meta, args.robot_radius)
     except ValueError as exc:       # a map wider than the grid planned on
-        raise InputError(f"vbnav map view: {args.map}: {exc}") from None
+        raise InputError(f"{args.map}: {exc}") from None
     cells = np.where(grid.occupied, 100, np.where(grid.blocked, 50, 0)).astype(np.uint8)
     try:
         server = SceneServer("vbnav map", ["/vbnav/map/lines", "/vbnav/map/grid"], port=args.port)
     except Exception as exc:
-        raise InputError(f"vbnav map view: cannot start the Foxglove server on 127.0.0.1:{args.port}: {exc}") \
-            from None
+        raise InputError(f"cannot start the Foxglove server on 127.0.0.1:{args.port}: {exc}") from None
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
     try:
