@@ -78,7 +78,16 @@ def check_baseline(source: str, baseline, field: str = "baseline") -> float:
     if not math.isfinite(b) or b <= 0:
         raise CalibrationError(f"{source}: {field}: expected a finite stereo baseline > 0 m (the right camera "
                                f"at +baseline along the left camera's x), got {baseline!r}")
+    lo, hi = BASELINE_RANGE_M
+    if not lo <= b <= hi:      # 5e9 m or 5e-12 m was taken: every depth wrong by as many orders of magnitude
+        raise CalibrationError(f"{source}: {field}: {b:g} m is no stereo camera's baseline, expected between "
+                               f"{lo:g} and {hi:g} m (a length in another unit than metres?)")
     return b
+
+
+#: A stereo camera's baseline, m: from a phone's 1 cm pair down to 1 mm, up to a car's 0.54 m (KITTI) and a
+#: truck's few metres, 10 m at most. Outside it the file holds another unit, not a rig.
+BASELINE_RANGE_M = (1e-3, 10.0)
 
 
 def load_calibration(path) -> PinholeCamera | FisheyeCamera:

@@ -243,6 +243,7 @@ def _load_yaml(p: Path) -> StereoCalibration:
             parts.append(f"{loc}: {msg}")
         raise CalibrationError(f"{p}: " + "; ".join(parts)) from None
     check_intrinsics(str(p), m.fx, m.fy, m.cx, m.cy, m.width, m.height)
+    check_baseline(str(p), m.baseline)
     mount = m.mount
     K = np.array([[m.fx, 0.0, m.cx], [0.0, m.fy, m.cy], [0.0, 0.0, 1.0]])
     return StereoCalibration(K, m.baseline, (m.width, m.height),
@@ -311,4 +312,5 @@ def read_kitti_calib(path: str | Path, need_right: bool = True) -> StereoCalibra
     if baseline <= 0:
         raise CalibrationError(f"{p}: P1: baseline -(P1[0,3] - P0[0,3]) / P1[0,0] = {baseline:.4f} m, expected > 0 "
                                f"(is P1 the right camera?)")
+    check_baseline(str(p), baseline, "P1 (baseline -(P1[0,3] - P0[0,3]) / P1[0,0])")
     return StereoCalibration(K, baseline, source=str(p))

@@ -118,3 +118,17 @@ def test_kitti_reader_on_the_real_files(shared_data, folder, fx, cx, cy, tx):
     cam = c.camera(1226, 370)
     assert (cam.width, cam.height, cam.fx, cam.cy) == (1226, 370, fx, cy)
     assert c.rig(1226, 370).fb == pytest.approx(tx)
+
+
+@pytest.mark.parametrize("name, text", [
+    # KITTI's P1 with its tx in millimetre pixels: a 537 m baseline, every depth 1000 x too far
+    ("calib.txt", "P0: 707 0 601 0 0 707 183 0 0 0 1 0\nP1: 707 0 601 -379814.5 0 707 183 0 0 0 1 0\n"),
+    ("stereo.yaml", "width: 640\nheight: 480\nfx: 400\nfy: 400\ncx: 320\ncy: 240\nbaseline: 5.0e-12\n"),
+])
+def test_a_baseline_no_stereo_camera_has_is_refused(tmp_path, name, text):
+    """5e9 m and 5e-12 m were taken (only > 0 was checked): every depth wrong by as many orders of magnitude."""
+    p = tmp_path / name
+    p.write_text(text)
+    with pytest.raises(CalibrationError, match=rf"{p}: .*m is no stereo camera's baseline, expected between 0.001 "
+                                               r"and 10 m \(a length in another unit than metres\?\)"):
+        load_stereo_calibration(p)
