@@ -106,6 +106,9 @@ CASES = [
     # Middlebury's own calib.txt said "line 1: expected numbers, got 'cam0=[...'"
     ("lines-middlebury-calib", "lines --left {d}/left.png --right {d}/right.png --calib {d}/middlebury_calib.txt "
      "--out {d}/seg.json", 2, "a Middlebury calib.txt (cam0=[...], doffs, baseline in mm), which vbnav does not read"),
+    # --min-depth nearer than half the image's disparity reaches was cut to it without a word (fB 5 px m, 32 px)
+    ("lines-min-depth-nearer-than-the-search", "lines --left {d}/left.png --right {d}/right.png --calib "
+     "{d}/stereo.yaml --out {d}/seg.json --min-depth 0.1", 2, "is more than half the image width (32 px)"),
     # PNG bytes were written under a .jpg name
     ("lines-overlay-jpg", "lines --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml --out "
      "{d}/seg.json --overlay-out {d}/o.jpg", 2, "o.jpg: expected a file name ending in .png"),
@@ -213,6 +216,15 @@ CASES = [
     ("goto-map-out-exists", "goto --map {d}/afile.txt --map-out {d}/unknown.yaml --goal 0 1 0", 2,
      "a map is already there"),
     ("goto-overwrite-no-map-out", "goto --goal 0 1 0 --overwrite", 2, "without --map-out or --record it has nothing"),
+    # map build drove the (default) script whatever controller.kind said; a --duration beyond the script was cut
+    ("map-build-idle-controller", "map build -c {d}/v4l2.yaml --out {d}/map.json", 2,
+     "controller.kind is 'idle'; map build drives controller.script"),
+    ("map-build-duration-beyond-script", "map build --out {d}/map.json --duration 30", 2,
+     "sim_stereo.yaml: controller.script ends after 8 s, and the run with it"),
+    ("run-duration-beyond-script", "run --no-camera --duration 30", 2, "controller.script ends after 8 s"),
+    # teleop on the simulated clock: the network is not opened, the robot stood still until the end
+    ("run-teleop-simulated-clock", "run --controller teleop --no-camera --duration 1", 2,
+     "--controller teleop on the simulated clock (faster than real time): the network is not opened"),
     # an output named as the run's own configuration replaced it with a map or a recording (exit 0)
     ("map-build-out-is-config", "map build -c {d}/self_map.yaml --out {d}/self_map.yaml --overwrite", 2,
      "self_map.yaml: is the --config file"),

@@ -280,3 +280,19 @@ def test_blur_exposure_and_44_px_keep_tracks_by_the_per_level_bound():
     err = np.linalg.norm(p[ok] - pts[ok] - [44.0, 6.0], axis=1)
     assert strict.sum() < 15  # measured 6 of 100
     assert ok.sum() > 40 and np.median(err) < 2.1, (ok.sum(), np.median(err))  # measured 79, 1.04 px
+
+
+def test_depth_from_a_stereo_disparity_keeps_the_stereo_depth_limit(rng):
+    """A disparity-only stereo camera (an OAK) gives the VSLAM depth, not a right image: its landmarks were
+    created at any depth, so vslam.stereo_max_depth_baselines was accepted and not used there. Depth from a
+    stereo rig (a baseline) now stops at that many baselines, as a right image's landmarks do; a depth sensor
+    (no baseline) keeps every depth."""
+    from vbnav.vision.vslam import Vslam, VslamConfig
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    img = texture(rng)
+    far = np.full((480, 640), 50.0, np.float32)               # 667 baselines of 7.5 cm
+    cfg = VslamConfig(max_landmarks=300, min_landmarks=4)
+    assert Vslam(cam, cfg, stereo_baseline=0.075).initialise_depth(img, far) == 0
+    assert Vslam(cam, cfg.model_copy(update={"stereo_max_depth_baselines": 800.0}),
+                 stereo_baseline=0.075).initialise_depth(img, far) > 100
+    assert Vslam(cam, cfg).initialise_depth(img, far) > 100   # a depth sensor's

@@ -884,6 +884,8 @@ class Vslam:
         ij = np.round(px).astype(int)
         z = depth[np.clip(ij[:, 1], 0, depth.shape[0] - 1), np.clip(ij[:, 0], 0, depth.shape[1] - 1)]
         good = np.isfinite(z) & (z > max(self.cfg.min_depth, 1e-6))
+        if self.baseline is not None:    # depth from a stereo disparity (an OAK's): as far as stereo landmarks go
+            good &= z < self.cfg.stereo_max_depth_baselines * self.baseline
         n = self.camera.rays(px[good])
         X = n * (z[good] / n[:, 2])[:, None]  # depth images hold z, not the radial distance
         self.lm.add(self._to_reference(X), px[good], own, image=image, anchor=self._img_id)

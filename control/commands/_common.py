@@ -146,6 +146,15 @@ def apart_from_config(cfg, outputs: dict) -> None:
         distinct_files(outputs, {"--config": cfg.source})
 
 
+def duration_within_script(script, duration, what: str) -> None:
+    """Raise InputError when ``--duration`` outlasts the scripted drive: the run ends with its script (the
+    controller finishes), so a longer duration was accepted and cut without a word."""
+    total = sum(seg[2] for seg in script)
+    if duration is not None and duration > total + 1.0:
+        raise InputError(f"--duration {duration:g} s: {what} ends after {total:g} s, and the run with it; leave "
+                         f"--duration out, or lengthen the script")
+
+
 def network_closed(cfg, no_telemetry: bool = False) -> str:
     """What keeps the telemetry session (network commands, the live view) closed: "--no-telemetry",
     "<config>: telemetry.enabled: false", or "" when it opens."""

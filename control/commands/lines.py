@@ -96,7 +96,13 @@ def _swapped(left: np.ndarray, right: np.ndarray, rig, params: LineParams, match
 
 def _max_disparity(rig, min_depth: float, width: int, given: bool) -> float:
     """The largest disparity searched (fx B / min_depth, at most half the image); ValueError when it leaves
-    nothing to match (a very small focal length, or --min-depth beyond what the rig resolves)."""
+    nothing to match (a very small focal length, or --min-depth beyond what the rig resolves), or when a
+    --min-depth ``given`` asks for more than half the image (the default, 8 baselines, is cut to it)."""
+    if given and rig.fb / min_depth > width / 2.0:      # it was cut to half the image without a word
+        raise ValueError(f"--min-depth {min_depth:g} m: the largest disparity searched, fx B / depth = "
+                         f"{rig.fb:g} / {min_depth:g} = {rig.fb / min_depth:.0f} px, is more than half the image "
+                         f"width ({width / 2.0:g} px), the most the matcher searches: the nearest depth it can "
+                         f"search is {rig.fb / (width / 2.0):.3g} m")
     d_max = min(rig.fb / min_depth, width / 2.0)
     if d_max <= LineParams.min_disparity_px:
         what = f"--min-depth {min_depth:g} m" if given else f"the default nearest depth, 8 baselines ({min_depth:g} m)"

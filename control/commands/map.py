@@ -8,7 +8,8 @@ import sys
 import cv2
 import numpy as np
 
-from vbnav.control.commands._common import (add_config_arg, apart_from_config, apply_realtime, distinct_files, not_recorded_yet,
+from vbnav.control.commands._common import (add_config_arg, apart_from_config, apply_realtime, distinct_files,
+                                           duration_within_script, not_recorded_yet,
                                            output_file, positive, record_target_error, refuse_unserved_live_view)
 from vbnav.control.commands._net import add_telemetry_args, attach_telemetry
 from vbnav.drivers.errors import InputError
@@ -91,6 +92,10 @@ def run_build(args) -> int:
         raise InputError(why)
     cfg = load_config(args.config)
     apart_from_config(cfg, {"--out": args.out, "--record": args.record})
+    if cfg.controller.kind != "scripted":      # it drove the (default) script whatever the robot's controller was
+        raise InputError(f"{cfg.source}: controller.kind is {cfg.controller.kind!r}; map build drives "
+                         f"controller.script, so it needs controller.kind: scripted and the script to drive")
+    duration_within_script(cfg.controller.script, args.duration, f"{cfg.source}: controller.script")
     apply_realtime(cfg, args.realtime)
     if args.live_view:
         enable_live_view(cfg, args.no_telemetry)

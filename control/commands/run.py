@@ -4,7 +4,8 @@ from __future__ import annotations
 import json
 import sys
 
-from vbnav.control.commands._common import (add_config_arg, apart_from_config, apply_realtime, enable_live_view, output_file, positive,
+from vbnav.control.commands._common import (add_config_arg, apart_from_config, apply_realtime, duration_within_script,
+                                           enable_live_view, output_file, positive,
                                            record_target_error, refuse_network_driver_without_network,
                                            refuse_unserved_live_view)
 from vbnav.drivers.errors import InputError
@@ -83,9 +84,14 @@ def run(args) -> int:
     refuse_unserved_live_view(cfg, args.no_telemetry, "add --realtime")
     kind = args.controller or cfg.controller.kind
     if kind in ("teleop", "operator"):
-        refuse_network_driver_without_network(
-            cfg, f"--controller {kind}" if args.controller else f"{cfg.source}: controller.kind {kind}",
-            args.no_telemetry, "the robot would stand still until the end")
+        who = f"--controller {kind}" if args.controller else f"{cfg.source}: controller.kind {kind}"
+        refuse_network_driver_without_network(cfg, who, args.no_telemetry, "the robot would stand still until the end")
+        if cfg.on_simulated_clock():        # as teach refuses it: the network is not opened on that clock
+            raise InputError(f"{who} on the simulated clock (faster than real time): the network is not opened "
+                             f"and nobody could drive it, the robot would stand still until the end; add --realtime "
+                             f"(or sim.realtime: true)")
+    if kind == "scripted":
+        duration_within_script(cfg.controller.script, args.duration, f"{cfg.source}: controller.script")
     from vbnav.control.commands._common import refuse_no_camera_with_obstacle_stop
     refuse_no_camera_with_obstacle_stop(cfg, args.no_camera)
     robot = make_robot(cfg, with_camera=camera_wanted(cfg, kind, args))
