@@ -112,6 +112,9 @@ CASES = [
     # PNG bytes were written under a .jpg name
     ("lines-overlay-jpg", "lines --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml --out "
      "{d}/seg.json --overlay-out {d}/o.jpg", 2, "o.jpg: expected a file name ending in .png"),
+    # a --min-depth nearer than 256 disparities reach was cut to them without a word
+    ("obstacles-min-depth-beyond-sgbm", "obstacles --left {d}/left.png --right {d}/right.png --calib "
+     "{d}/stereo.yaml --min-depth 0.01", 2, "SGBM searches at most 256: the nearest depth it can cover is 0.0195 m"),
     ("obstacles-overlay-jpg", "obstacles --left {d}/left.png --right {d}/right.png --calib {d}/stereo.yaml "
      "--overlay-out {d}/o.jpg", 2, "expected a file name ending in .png"),
     ("map-plot-jpg", "map plot {d}/afile.txt --out {d}/p.jpg", 2, "expected a file name ending in .png"),

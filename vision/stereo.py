@@ -92,15 +92,25 @@ SGBM_640x480 = SgbmParams(num_disparities=80, block_size=5)
 SGBM_KITTI = SgbmParams(num_disparities=128, block_size=5)
 
 
+#: The most disparities the stereo matchers here search (SGBM's time and memory grow with the count).
+MAX_SGBM_DISPARITIES = 256
+
+
+def sgbm_disparities_for(rig: StereoRig, min_depth: float) -> int:
+    """How many disparities (a multiple of 16, at least 16) cover depths from ``min_depth`` to infinity."""
+    return max(16, int(16 * math.ceil(rig.fb / min_depth / 16)))
+
+
 def sgbm_params_for(rig: StereoRig, min_depth: float = 0.4, block_size: int = 5) -> SgbmParams:
-    """Settings that cover depths from ``min_depth`` to infinity on this rig.
+    """Settings that cover depths from ``min_depth`` to infinity on this rig, at most
+    ``MAX_SGBM_DISPARITIES`` (then the nearest depth covered is fB / 256: callers that take a depth from the
+    user check ``sgbm_disparities_for`` first and say so).
 
     For the 640x480 robot camera (fx 400, B 7.5 cm) this gives 80 disparities; for
     KITTI (fx 707, B 0.54 m) and min_depth 3 m it gives 128.
     """
-    d_max = rig.fb / min_depth
-    num = int(min(256, 16 * math.ceil(d_max / 16)))
-    return SgbmParams(num_disparities=max(16, num), block_size=block_size)
+    num = min(MAX_SGBM_DISPARITIES, sgbm_disparities_for(rig, min_depth))
+    return SgbmParams(num_disparities=num, block_size=block_size)
 
 
 @lru_cache(maxsize=8)

@@ -23,7 +23,8 @@ from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.ground_model import GroundModelParams
 from vbnav.vision.ground_plane import PlaneFitParams, expected_plane
 from vbnav.vision.obstacles import ObstacleParams, PixelClass, detect_obstacles, nearest_in_corridor
-from vbnav.vision.stereo import as_disparity, sgbm_disparity, sgbm_params_for
+from vbnav.vision.stereo import (MAX_SGBM_DISPARITIES, as_disparity, sgbm_disparities_for, sgbm_disparity,
+                                 sgbm_params_for)
 
 EXIT_OK, EXIT_BAD_INPUT = 0, 2
 
@@ -269,7 +270,16 @@ def run(args) -> int:
 
     t1 = time.perf_counter()
     if disp is None:
-        sgbm = sgbm_params_for(rig, _min_depth(args, rig, prior), args.block_size)
+        min_depth = _min_depth(args, rig, prior)
+        if sgbm_disparities_for(rig, min_depth) > MAX_SGBM_DISPARITIES:
+            nearest = rig.fb / MAX_SGBM_DISPARITIES
+            if args.min_depth:          # it was cut to what 256 disparities reach without a word
+                raise InputError(f"--min-depth {args.min_depth:g} m needs {rig.fb / args.min_depth:.0f} px of "
+                                 f"disparity (fx B {rig.fb:g} px m); SGBM searches at most {MAX_SGBM_DISPARITIES}: "
+                                 f"the nearest depth it can cover is {nearest:.3g} m")
+            print(f"vbnav obstacles: note: the floor in view comes nearer than {MAX_SGBM_DISPARITIES} disparities "
+                  f"reach: depths under {nearest:.3g} m are not matched", file=sys.stderr)
+        sgbm = sgbm_params_for(rig, min_depth, args.block_size)
         if w < sgbm.num_disparities + sgbm.block_size:
             raise InputError(f"--left {args.left}: the pair is {w}x{h}, too narrow for a search over "
                              f"{sgbm.num_disparities} disparities (needs at least "
