@@ -101,6 +101,13 @@ def sgbm_disparities_for(rig: StereoRig, min_depth: float) -> int:
     return max(16, int(16 * math.ceil(rig.fb / min_depth / 16)))
 
 
+def nearest_floor_m(rig: StereoRig, height_m: float, pitch_rad: float) -> float:
+    """Distance ahead of the nearest floor point the bottom image row sees, for a camera ``height_m`` above a
+    flat floor pitched down by ``pitch_rad``: the depth the obstacle stage's stereo matching must reach."""
+    bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + pitch_rad          # lowest ray below level
+    return height_m / max(1e-3, math.tan(bottom))
+
+
 def sgbm_params_for(rig: StereoRig, min_depth: float = 0.4, block_size: int = 5) -> SgbmParams:
     """Settings that cover depths from ``min_depth`` to infinity on this rig, at most
     ``MAX_SGBM_DISPARITIES`` (then the nearest depth covered is fB / 256: callers that take a depth from the

@@ -247,9 +247,12 @@ ROOM_WORLDS = ("room", "empty_room")
 class SimConfig(Strict):
     seed: int = Field(0, ge=0, description="random seed of the world's textures, the image noise and the wheel "
                                            "slip")
-    realtime: bool = Field(False, description="run on the wall clock instead of the simulated clock")
+    realtime: bool = Field(False, description="run on the wall clock instead of the simulated clock (a camera "
+                                              "that is not simulated runs on the wall clock anyway: written "
+                                              "there, refused)")
     world: Literal["room", "empty_room", "corridor", "corridor_step"] = Field(
-        "room", description="simulated world (drivers/sim/world.py World.by_name)")
+        "room", description="simulated world the simulated camera renders (drivers/sim/world.py World.by_name; "
+                            "written with another camera, refused)")
     motor_time_constant_s: float = Field(0.05, ge=0, description="first-order lag of the wheel speed, s")
     wheel_accel_limit: float = Field(40.0, gt=0, description="rad/s^2, motor torque limit")
     encoder_ticks_per_rev: int = Field(4096, gt=0, description="encoder resolution, ticks per wheel turn")
@@ -257,7 +260,8 @@ class SimConfig(Strict):
     vision_latency_s: float = Field(0.03, ge=0, description="simulated time from exposure to estimate, on the "
                                       "simulated clock (on the wall clock the vision's own time is the latency: "
                                       "written there, refused)")
-    image_noise_std: float = Field(2.0, ge=0, description="grey levels")
+    image_noise_std: float = Field(2.0, ge=0, description="the simulated camera's image noise, grey levels "
+                                                          "(written with another camera, refused)")
     start_pose: list[float] = Field(
         default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3,
         description="where the simulated robot starts in the world: [x m (right), z m (forward), heading deg "
@@ -489,6 +493,9 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     idle_latency = simulated_latency_not_read(cfg)
     if idle_latency:
         raise ConfigError(f"{source}: {idle_latency}")
+    idle_sim = simulated_camera_settings_not_read(cfg)
+    if idle_sim:
+        raise ConfigError(f"{source}: {idle_sim}")
     check_image_rate(cfg, camera_options, source)
     check_stale_limit(cfg, camera_options, source)
     apply_calibration_file(cfg, source)
@@ -507,6 +514,12 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage (source {cfg.obstacles.source}) needs a "
                           f"disparity or a stereo pair in every frame, and {blind}: every frame would be blind and the "
                           f"robot held for good (use a stereo camera, or set obstacles.enabled: false)")
+    idle_sgbm = sgbm_settings_not_read(cfg)
+    if idle_sgbm:
+        raise ConfigError(f"{source}: {idle_sgbm}")
+    short = sgbm_reach_problem(cfg)
+    if short:
+        raise ConfigError(f"{source}: {short}")
     check_stand_still(cfg, source)
     check_turn_when_held(cfg, source)
     return cfg
@@ -610,6 +623,55 @@ def simulated_latency_not_read(cfg: Config) -> str:
             f"(remove sim.vision_latency_s)")
 
 
+def simulated_camera_settings_not_read(cfg: Config) -> str:
+    """Why a ``sim`` setting of the simulated camera written (other than its default) is never read, "" when
+    none is: with the simulated drive and another camera (control/runtime/factory.py make_robot) no world is
+    built (``sim.world``: the simulated camera renders it), no simulated image is made (``sim.image_noise_std``)
+    and the robot runs on the wall clock whatever ``sim.realtime`` says (the simulated clock needs both drivers
+    simulated). The drive's settings (``seed``, the motor, encoder and slip ones, ``start_pose``) are read by
+    the simulated drive. With a real drive the whole section is kept, unread, as a feature switched off."""
+    s, camera = cfg.sim, cfg.camera.driver
+    if cfg.drive.driver != "sim" or camera == "sim":
+        return ""
+    if written(s, "world"):
+        return (f"sim.world {s.world!r}: the simulated world is built only for the simulated camera to film, and "
+                f"camera.driver {camera} films the real one (remove sim.world)")
+    if written(s, "image_noise_std"):
+        return (f"sim.image_noise_std {s.image_noise_std:g}: the simulated camera adds the image noise to the images "
+                f"it renders, and camera.driver {camera} gives real images (remove sim.image_noise_std)")
+    if written(s, "realtime"):
+        return (f"sim.realtime: true: the simulated clock runs only when the drive and the camera are both "
+                f"simulated, and camera.driver {camera} runs the robot on the wall clock anyway (remove "
+                f"sim.realtime)")
+    return ""
+
+
+#: Camera drivers whose frames carry their own disparity whenever they could carry a right image, so that the
+#: obstacle stage's ``source: auto`` (the frame's disparity if present, else SGBM on its pair) never runs SGBM:
+#: the simulated stereo camera sends its true disparity with every right image, the OAK never sends a right one.
+OWN_DISPARITY_CAMERAS = {"sim": "the simulated stereo camera sends its true disparity with every right image",
+                         "oak": "the OAK sends its own disparity and never a right image"}
+
+
+def sgbm_settings_not_read(cfg: Config) -> str:
+    """Why ``obstacles.sgbm_*`` written (other than its default) is never read, "" when it is or may be: with
+    ``obstacles.source: auto`` the stage takes the frame's own disparity when it has one and runs SGBM only on a
+    frame with a right image and no disparity (ObstacleStage._sgbm_pair), which the simulated camera and the
+    OAK never give. (``source: disparity`` beside them is refused in the section itself; a switched-off
+    obstacle stage keeps them.)"""
+    o, camera = cfg.obstacles, cfg.camera.driver
+    if not o.enabled or o.source != "auto" or camera not in OWN_DISPARITY_CAMERAS:
+        return ""
+    unused = [k for k in ("sgbm_block_size", "sgbm_near_margin") if written(o, k)]
+    if not unused:
+        return ""
+    keys = " and ".join(f"obstacles.{k}" for k in unused)
+    instead = ", or set obstacles.source: sgbm to match the pair with SGBM" if camera == "sim" else ""
+    return (f"{keys} {'set' if len(unused) > 1 else 'sets'} the stereo matching (SGBM), which obstacles.source: "
+            f"auto never runs with camera.driver {camera}: {OWN_DISPARITY_CAMERAS[camera]}, and auto takes the "
+            f"frame's own disparity; remove {' and '.join(unused)}{instead}")
+
+
 #: Camera drivers whose frames never carry a right image (the OAK's carry its own disparity instead).
 ONE_IMAGE_CAMERAS = ("v4l2", "oak")
 
@@ -685,6 +747,36 @@ def check_stand_still(cfg: Config, source: str) -> None:
                               f"camera's view of the floor under the band, which begins {seen_from:.3f} m ahead of the "
                               f"axle (the camera's intrinsics and camera.mount); a step down or a "
                               f"low obstacle nearer than that is out of view: set min_distance >= {seen_from:.2f}")
+
+
+def sgbm_reach_problem(cfg: Config) -> str:
+    """Why the obstacle stage's stereo matching cannot cover what ``obstacles.sgbm_near_margin`` asks, "" when
+    it can: depths down to that share of the nearest floor in view (the camera's intrinsics and mount), which
+    on a steep camera or a wide baseline needs more than the 256 disparities SGBM searches. The stage cut it
+    to 256 without a word, and obstacles standing nearer went unmatched. Only where SGBM runs (not on a
+    camera that gives its own disparity) and the baseline is configured."""
+    from vbnav.vision.stereo import MAX_SGBM_DISPARITIES, StereoRig, nearest_floor_m, sgbm_disparities_for
+    o, c = cfg.obstacles, cfg.camera
+    baseline = o.baseline or c.stereo_baseline()
+    if not o.enabled or o.source == "disparity" or not baseline:
+        return ""
+    if o.source == "auto" and c.driver in OWN_DISPARITY_CAMERAS:
+        return ""
+    rig = StereoRig(PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy), float(baseline))
+    mount = c.mount.to_mount()
+    floor = nearest_floor_m(rig, mount.height, mount.pitch)
+    depth = o.sgbm_near_margin * floor
+    need = sgbm_disparities_for(rig, depth)
+    if need <= MAX_SGBM_DISPARITIES:
+        return ""
+    reach = rig.fb / MAX_SGBM_DISPARITIES
+    fix = (f"set sgbm_near_margin to at least {math.ceil(100 * reach / floor) / 100:.2f} to accept that, or pitch "
+           f"the camera up" if reach <= floor else
+           "not even the nearest floor is reached: pitch the camera up, or use a camera with a shorter baseline")
+    return (f"obstacles.sgbm_near_margin {o.sgbm_near_margin:g}: stereo matching should cover depths down to "
+            f"{o.sgbm_near_margin:g} x the nearest floor in view ({floor:.3g} m, camera.mount and the intrinsics) "
+            f"= {depth:.3g} m, which needs {need} disparities (fx B {rig.fb:.3g} px m); SGBM searches at most "
+            f"{MAX_SGBM_DISPARITIES}, down to {reach:.3g} m: {fix}")
 
 
 def check_turn_when_held(cfg: Config, source: str) -> None:

@@ -61,6 +61,10 @@ def _default_zones() -> list[ZoneConfig]:
 
 
 
+#: The settings of the piecewise ground model, unread by ``ground_model: plane``.
+PIECEWISE_GROUND_KEYS = ("ground_band_ratio", "ground_corridor_half_width", "max_grade_change", "cross_slope_allowance")
+
+
 class ObstaclesConfig(Strict):
     enabled: bool = Field(False, description="run the obstacle stage (needs a stereo camera: refused at load for "
                                                "one whose frames carry neither a disparity nor a right image)")
@@ -88,13 +92,19 @@ class ObstaclesConfig(Strict):
     mount_tilt_tol_deg: float = Field(2.0, gt=0, le=30, description="deg: a near-band fit whose pitch or roll is "
                                       "further than this from the mounting's is rejected")
     ground_corridor_half_width: float = Field(1.0, gt=0, description="m either side of the camera's line ahead "
-                                              "where the ground is fitted")
-    ground_band_ratio: float = Field(1.414, gt=1.05, le=4, description="far / near distance of one ground band")
+                                              "where the ground is fitted (piecewise ground only: refused "
+                                              "with ground_model plane)")
+    ground_band_ratio: float = Field(1.414, gt=1.05, le=4, description="far / near distance of one ground band "
+                                     "(piecewise ground only: refused with ground_model plane)")
     max_grade_change: float = Field(0.08, ge=0, le=0.5, description="rise over run a band may bend by from the "
-                                    "one before (a ramp)")
+                                    "one before (a ramp; piecewise ground only: refused with ground_model plane)")
     cross_slope_allowance: float = Field(0.06, ge=0, le=0.5, description="beyond the corridor the thresholds grow "
-                                         "by this much per metre (camber)")
-    sgbm_block_size: int = Field(3, ge=1, le=11, description="SGBM matching block side, px, odd")
+                                         "by this much per metre (camber; piecewise ground only: refused with "
+                                         "ground_model plane)")
+    sgbm_block_size: int = Field(3, ge=1, le=11, description="SGBM matching block side, px, odd; SGBM runs with "
+                                 "source sgbm, or auto on frames with a right image and no disparity (written with "
+                                 "source disparity, or auto on the simulated camera or an OAK, which give their "
+                                 "own: refused)")
     persist_k: int = Field(2, ge=1, description="a zone must trigger in k of the last n frames")
     persist_n: int = Field(3, ge=1, description="n of k-of-n (n >= persist_k)")
     release_s: float = Field(0.5, ge=0, description="clear this long before the speed rises again")
@@ -121,6 +131,14 @@ class ObstaclesConfig(Strict):
                              f"(SGBM), which source: disparity never "
                              f"runs (it takes the frames' own disparity); remove {' and '.join(unused)}, or set "
                              f"source: auto or sgbm")
+        # the piecewise ground's shape (control/stages/obstacles.py ground_model_params: None for one plane); the
+        # words of 'vbnav obstacles' refusing its --ground-half-width etc. with --ground plane
+        flat = [k for k in PIECEWISE_GROUND_KEYS if written(self, k)]
+        if self.ground_model == "plane" and flat:
+            raise ValueError(f"{' and '.join(flat)}: {'shape' if len(flat) > 1 else 'shapes'} the piecewise ground; "
+                             f"ground_model: plane fits one plane, which never reads "
+                             f"{'them' if len(flat) > 1 else 'it'} (remove {' and '.join(flat)}, or set "
+                             f"ground_model: piecewise)")
         if not self.zones:
             raise ValueError("zones: at least one zone (the stage watches the floor of the stop zones; without "
                              "zones it could never slow or stop the robot)")

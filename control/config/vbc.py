@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 from pydantic import Field, model_validator
-from vbnav.control.config.base import Strict
+from vbnav.control.config.base import Strict, written
+
+#: What reads the tilt measurement (control/stages/repeat.py _fix, _observe_tilt), unread with tilt_sigma_deg 0.
+TILT_KEYS = ("tilt_smoothing", "tilt_threshold_pitch_deg", "tilt_threshold_roll_deg", "max_tilt_deg")
 
 
 class VBCConfig(Strict):
@@ -56,7 +59,8 @@ class VBCConfig(Strict):
                                   "the tilt repeat measures once a frame (vision/vbc.py, estimate_pose; docs/teach_repeat.md). "
                                   "1 deg of pitch or roll moves bearings by up to 7 px at the image corner, "
                                   "which a planar fix took for up to 13 cm of lateral offset; 1 deg of "
-                                  "pitch or 2 of roll stopped the repeat 1.7-2.1 m short. 0: not measured")
+                                  "pitch or 2 of roll stopped the repeat 1.7-2.1 m short. 0: not measured "
+                                  "(tilt_smoothing, the tilt thresholds and max_tilt_deg then refused)")
     tilt_smoothing: float = Field(0.1, gt=0, le=1, description="share of each fix's tilt measurement taken "
                                   "into the smoothed tilt (an exponential mean over about 10 fixes, 0.7 s at "
                                   "15 Hz): a knock is followed within a second")
@@ -113,4 +117,15 @@ class VBCConfig(Strict):
             raise ValueError(f"slow_landmarks {self.slow_landmarks} is below min_landmarks {self.min_landmarks}: the "
                              f"repeat would never slow for a weak fix (min_landmarks_speed_factor never applied); "
                              f"set slow_landmarks >= min_landmarks")
+        return self
+
+    @model_validator(mode="after")
+    def _tilt_settings_only_with_the_tilt_measured(self):
+        # tilt_sigma_deg 0: RepeatStage never solves the tilt, so nothing is smoothed, compared with its
+        # thresholds or with max_tilt_deg
+        unused = [k for k in TILT_KEYS if written(self, k)]
+        if self.tilt_sigma_deg == 0 and unused:
+            raise ValueError(f"{' and '.join(unused)}: {'act' if len(unused) > 1 else 'acts'} on the camera's tilt "
+                             f"that the repeat measures, and tilt_sigma_deg 0 switches that measurement off (remove "
+                             f"{' and '.join(unused)}, or set tilt_sigma_deg > 0 to measure the tilt)")
         return self

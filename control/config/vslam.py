@@ -15,10 +15,13 @@ class GotoConfig(Strict):
                                 "default is cut to it; a value written above it is refused)")
     k_rho: float = Field(0.6, gt=0, description="1/s, speed per metre to the goal")
     k_alpha: float = Field(1.8, gt=0, description="1/s, turn rate per rad of bearing to the goal")
-    k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error")
+    k_beta: float = Field(-0.5, lt=0, description="1/s, turn rate per rad of final-heading error; goto --map "
+                          "drives its planned legs straight and turns to the heading on the spot at the goal, "
+                          "without it")
     position_tolerance_m: float = Field(0.01, gt=0, description="goal reached within this distance (estimate)")
     heading_tolerance_deg: float = Field(0.7, gt=0, description="final heading within this (estimate)")
-    approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out")
+    approach_radius_m: float = Field(0.25, gt=0, description="inside it the heading term (beta) fades out; "
+                                     "goto --map drives its planned legs without it")
     final_turn_speed: float = Field(0.4, gt=0, description="rad/s at most for the final turn on the spot, at "
                                     "most robot.max_angular_speed (the default is cut to it; a value written "
                                     "above it is refused)")
@@ -41,6 +44,12 @@ class GotoConfig(Strict):
     final_turn_min_speed: float = Field(0.05, gt=0, description="rad/s: floor of the final turn rate, so the last "
                                         "degree does not take forever (1.5/s reaches it at 1.9 deg)")
 
+
+
+#: Front-end settings read only for landmarks a single camera triangulates from its own motion (Vslam
+#: _add_from_motion, _refine_landmarks, _confidence): a stereo VSLAM (metric_scale stereo) creates none.
+MONOCULAR_LANDMARK_KEYS = ("max_candidates", "min_parallax_px", "refine_landmarks", "weight_by_uncertainty",
+                           "min_landmark_weight")
 
 
 class VslamNavConfig(VslamConfig, Strict):
@@ -106,6 +115,11 @@ class VslamNavConfig(VslamConfig, Strict):
         # does (docs/configuration.md); a stereo VSLAM has none to switch on
         unused += [(k, "a single camera's bundle adjustment (metric_scale odometry, ba_window > 0)")
                    for k in ("ba_history", "ba_outlier_sigmas") if k in given and self.metric_scale == "stereo"]
+        # vision/vslam.py: candidates wait for parallax and become landmarks with an N-view refinement (refine set)
+        # in _add_from_motion only; a stereo pair places every landmark from its own disparity (_add_from_stereo,
+        # _add_from_depth), so no landmark is refined and every weight in the pose is 1 (_confidence)
+        unused += [(k, "a single camera's landmarks placed by its own motion (metric_scale odometry)")
+                   for k in MONOCULAR_LANDMARK_KEYS if k in given and self.metric_scale == "stereo"]
         if written(self.goto, "init_creep_speed") and self.metric_scale == "stereo":
             unused.append(("goto.init_creep_speed", "the drive while a single camera initialises (metric_scale "
                                                     "odometry)"))

@@ -54,7 +54,7 @@ from vbnav.vision.obstacles import (
     detect_obstacles,
     nearest_in_corridor,
 )
-from vbnav.vision.stereo import StereoRig, sgbm_disparity, sgbm_params_for
+from vbnav.vision.stereo import StereoRig, nearest_floor_m, sgbm_disparity, sgbm_params_for
 
 
 #: The stop's sighting of what holds the robot, one point per cell this wide (m): the planner's grid cell.
@@ -363,8 +363,9 @@ class ObstacleStage(VisionStage):
         self.rig = rig
         self.watched = watched_floor(rig.camera, self.mount, self.cfg.zones)
         self.prior = expected_plane(rig, self.mount.height, self.mount.pitch, self.mount.roll)
-        bottom = math.atan2(rig.height - 1 - rig.cy, rig.fy) + self.mount.pitch   # lowest ray below level
-        nearest_floor = self.mount.height / max(1e-3, math.tan(bottom))
+        nearest_floor = nearest_floor_m(rig, self.mount.height, self.mount.pitch)
+        # More than 256 disparities: refused at config load when the rig is configured (config
+        # sgbm_reach_problem); a rig from the frames' meta is an OAK's, whose own disparity is used.
         self.sgbm = sgbm_params_for(rig, self.cfg.sgbm_near_margin * nearest_floor, self.cfg.sgbm_block_size)
 
     def _rig_for(self, frame: Frame) -> tuple[Optional[StereoRig], str]:
