@@ -487,15 +487,8 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(format_errors(source, exc)) from None
     cfg.source = source
     camera_options = validate_driver_options(cfg, source)["camera"]
-    idle_rate = camera_rate_not_read(cfg, camera_options)
-    if idle_rate:
-        raise ConfigError(f"{source}: {idle_rate}")
-    idle_latency = simulated_latency_not_read(cfg)
-    if idle_latency:
-        raise ConfigError(f"{source}: {idle_latency}")
-    idle_sim = simulated_camera_settings_not_read(cfg)
-    if idle_sim:
-        raise ConfigError(f"{source}: {idle_sim}")
+    _refuse(source, camera_rate_not_read(cfg, camera_options), simulated_latency_not_read(cfg),
+            simulated_camera_settings_not_read(cfg))
     check_image_rate(cfg, camera_options, source)
     check_stale_limit(cfg, camera_options, source)
     apply_calibration_file(cfg, source)
@@ -514,15 +507,17 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(f"{source}: obstacles.enabled: the obstacle stage (source {cfg.obstacles.source}) needs a "
                           f"disparity or a stereo pair in every frame, and {blind}: every frame would be blind and the "
                           f"robot held for good (use a stereo camera, or set obstacles.enabled: false)")
-    idle_sgbm = sgbm_settings_not_read(cfg)
-    if idle_sgbm:
-        raise ConfigError(f"{source}: {idle_sgbm}")
-    short = sgbm_reach_problem(cfg)
-    if short:
-        raise ConfigError(f"{source}: {short}")
+    _refuse(source, sgbm_settings_not_read(cfg), sgbm_reach_problem(cfg))
     check_stand_still(cfg, source)
     check_turn_when_held(cfg, source)
     return cfg
+
+
+def _refuse(source: str, *problems: str) -> None:
+    """ConfigError for the first problem found ("" is none), naming the file."""
+    for why in problems:
+        if why:
+            raise ConfigError(f"{source}: {why}")
 
 
 def camera_rate_not_read(cfg: Config, options) -> str:
