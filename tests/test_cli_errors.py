@@ -225,6 +225,9 @@ CASES = [
     ("map-build-duration-beyond-script", "map build --out {d}/map.json --duration 30", 2,
      "sim_stereo.yaml: controller.script ends after 8 s, and the run with it"),
     ("run-duration-beyond-script", "run --no-camera --duration 30", 2, "controller.script ends after 8 s"),
+    # --realtime with a real drive passed when the config's kept sim section said realtime: true
+    ("run-realtime-real-drive", "run -c {d}/dxl_realtime.yaml --realtime --no-camera --duration 0.2", 2,
+     "dxl_realtime.yaml: drive.driver dynamixel and camera.driver v4l2 run on the wall clock anyway"),
     # teleop on the simulated clock: the network is not opened, the robot stood still until the end
     ("run-teleop-simulated-clock", "run --controller teleop --no-camera --duration 1", 2,
      "--controller teleop on the simulated clock (faster than real time): the network is not opened"),
@@ -342,6 +345,10 @@ def make_fixtures(d) -> None:
     (d / "dxl.yaml").write_text("robot: {max_wheel_speed: 6.0, max_linear_speed: 0.3}\n"   # the servos' 6 rad/s
                                 "camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                 "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n")
+    (d / "dxl_realtime.yaml").write_text("sim: {realtime: true}\n"
+                                         "camera: {driver: v4l2, options: {device: /dev/video99}}\n"
+                                         "drive: {driver: dynamixel, options: {port: /dev/ttyNOPE9}}\n"
+                                         "robot: {max_wheel_speed: 6.0, max_linear_speed: 0.3}\n")
     (d / "v4l2.yaml").write_text("camera: {driver: v4l2, options: {device: /dev/video99}}\n"
                                  "controller: {kind: idle}\n")
     _sequence(d, "good")
