@@ -358,6 +358,31 @@ def test_vbnav_run_record_is_read_back_with_every_channel_at_its_rate(tmp_path):
     assert kinds[0] == "run_start" and kinds[-1] == "run_end"
 
 
+def test_a_run_that_never_starts_keeps_the_earlier_recording(tmp_path):
+    """--overwrite promises the new recording takes the old one's place only when complete. A run whose
+    telemetry session could not open (a second robot on the port) closed its recorder, which renamed an empty
+    recording over the earlier one: the earlier recording is kept now, and no PATH.part is left."""
+    from runtime_helpers import RecordingDrive
+    from vbnav.control.config import Config
+    from vbnav.control.controllers.manual import IdleController
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.drivers.clock import SimClock
+    cfg = Config.model_validate({"telemetry": {"listen": [f"tcp/127.0.0.1:{free_port()}"]}})
+    clock = SimClock()
+    path = tmp_path / "run.mcap"
+    path.write_bytes(b"the earlier run's recording")
+    first = TelemetryLink.attach(Runtime(cfg, RecordingDrive(clock), IdleController(), clock), cfg)
+    try:
+        with pytest.raises(ConnectionError, match="cannot open the zenoh session"):
+            TelemetryLink.attach(Runtime(cfg, RecordingDrive(clock), IdleController(), clock), cfg,
+                                 record=str(path), record_overwrite=True)
+    finally:
+        first.close()
+    assert path.read_bytes() == b"the earlier run's recording"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
+
+
 def test_a_second_robot_on_the_same_port_gets_a_clear_error():
     from runtime_helpers import RecordingDrive
     from vbnav.control.config import Config

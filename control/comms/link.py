@@ -173,7 +173,7 @@ class TelemetryLink:
                 session = open_session(conf)
             except Exception as exc:
                 if recorder is not None:
-                    recorder.close()
+                    recorder.discard()          # the run never starts: an earlier recording at PATH is kept
                 raise ConnectionError(f"telemetry: cannot open the zenoh session listening on "
                                       f"{', '.join(tcfg.listen) or '(nothing)'}: {exc} (another vbnav run on the "
                                       f"same port? set telemetry.listen)") from None
@@ -190,7 +190,7 @@ class TelemetryLink:
                                      to_wall_ns=lambda t: t + wall_offset)
             except Exception as exc:
                 for s in sinks:
-                    s.close()
+                    (s.discard if s is recorder else s.close)()     # as above: the run never starts
                 session.close()
                 raise ConnectionError(f"telemetry.live_view: cannot start the Foxglove server on "
                                       f"{tcfg.live_view.host}:{tcfg.live_view.port}: {exc}") from None

@@ -201,6 +201,16 @@ class McapRecorder(Sink):
         t = self.log_time(stamp_ns)
         self._write(topic, t, fc.encode(build(t)))
 
+    def discard(self) -> None:
+        """Drop a recording whose run never started (the network or the live view failed to open): PATH.part
+        is removed and a recording already at PATH is kept, as ``--overwrite`` promises ("the new one takes
+        its place only when complete"); close() would have put an empty recording over it."""
+        if self._closed:
+            return
+        self._closed = True
+        self._file.close()
+        self.part_path.unlink(missing_ok=True)
+
     def close(self) -> None:
         """Write the summary and index, fsync, then rename PATH.part -> PATH durably (idempotent)."""
         if self._closed:
