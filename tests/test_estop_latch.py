@@ -242,3 +242,27 @@ def test_estop_clear_without_a_latch_file_names_where_the_service_keeps_it(tmp_p
     assert main(["estop", "clear", "-c", str(config)]) == 2
     err = capsys.readouterr().err
     assert "no safety.latch_file" in err and "--latch-file /var/lib/vbnav/estop.json" in err, err
+
+
+def test_a_latch_file_that_cannot_be_removed_after_a_resume_says_the_estop_is_cleared(tmp_path, monkeypatch):
+    """A removal follows a resume: the warning said 'the estop holds in memory' while the robot drove on. It
+    says the estop is cleared in this run and a restart would start latched, and how to clear the file."""
+    from pathlib import Path
+
+    from vbnav.control.runtime.estop_latch import LatchWriter
+    path = tmp_path / "estop.json"
+    w = LatchWriter(path)
+    w.write('{"reason": "operator"}')
+    real_unlink = Path.unlink
+
+    def refuse(self, *a, **kw):
+        if self == path:
+            raise PermissionError(13, "Permission denied")
+        return real_unlink(self, *a, **kw)
+    monkeypatch.setattr(Path, "unlink", refuse)
+    w.remove()
+    w.close()
+    errors = w.errors()
+    assert len(errors) == 1, errors
+    assert "could not be removed (Permission denied): the estop is cleared in this run, but a restart would " \
+           "start latched again" in errors[0] and "holds in memory" not in errors[0], errors

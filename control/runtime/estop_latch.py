@@ -204,7 +204,8 @@ class LatchWriter:
         self._thread.join(wait_s)
         if self._thread.is_alive():
             self._errors.append(f"latch file {self.path} was still being written or removed {wait_s:g} s after "
-                                f"the run ended: the estop may not hold across a restart")
+                                f"the run ended: a restart may not start as this run ended (latched after an "
+                                f"estop, free after a resume)")
 
     def _post(self, op: str) -> None:
         with self._cond:
@@ -226,7 +227,9 @@ class LatchWriter:
                     self.path.unlink(missing_ok=True)
                     fsync_folder(self.path.parent)
             except OSError as exc:
-                did = "written" if op else "removed"
-                self._errors.append(f"latch file {self.path} could not be {did} ({exc.strerror or exc}): the "
-                                    f"estop holds in memory but "
-                                    + ("not across a restart" if op else "a restart would latch it again"))
+                # A removal follows a resume: the estop is cleared (the robot drives), only the file stays.
+                self._errors.append(f"latch file {self.path} could not be written ({exc.strerror or exc}): the "
+                                    f"estop holds in memory but not across a restart" if op else
+                                    f"latch file {self.path} could not be removed ({exc.strerror or exc}): the "
+                                    f"estop is cleared in this run, but a restart would start latched again "
+                                    f"(remove the file, or 'vbnav estop clear')")
