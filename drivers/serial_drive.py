@@ -68,6 +68,9 @@ class SerialWheelDrive(WheelDrive):
     def _device_open(self) -> bool:
         """The serial device is open (it is closed when lost)."""
 
+    def _reachable(self) -> bool:
+        return self._device_open()
+
     @abc.abstractmethod
     def _watchdog_note(self) -> str:
         """What stops the wheels while the host cannot reach them (said when the device is lost)."""

@@ -204,7 +204,13 @@ class WheelDrive(abc.ABC):
             if self._state is DriveState.FINALIZED:
                 return
             if self._state is not DriveState.UNCONFIGURED:
+                pending = self.stop_failure
                 self.stop_failure = self._stop_wheels()
+                if self.stop_failure is None and pending and not self._reachable():
+                    # Released already (a reconnect that met a device fault): the stop reached nothing, and
+                    # its silence is no confirmation of the stop not taken before.
+                    self.stop_failure = f"{pending}; the device was already released, so the stop sent as the " \
+                                        f"drive closed reached nothing"
             self._release()
             self._state = DriveState.FINALIZED
 
@@ -298,6 +304,10 @@ class WheelDrive(abc.ABC):
         ``_stop_wheels``. A driver whose read-back waits (the ODrive's) reads back the stop sent before instead
         and sends this one without waiting for it, so the loop's cycle is not made late."""
         return self._stop_wheels()
+
+    def _reachable(self) -> bool:
+        """Whether a stop sent now can reach the motors (the device is open). Default: always."""
+        return True
 
     @abc.abstractmethod
     def _release(self) -> None:

@@ -172,3 +172,23 @@ def test_a_stop_a_motor_did_not_take_is_sent_again_until_it_is_taken(device):
     confirmed, = _events(result, "stop_confirmed")
     assert confirmed.stamp_ns > warning.stamp_ns and "is confirmed now" in confirmed.message, confirmed
     assert stopped_at and stopped_at[0] < 1.5, "the motor was still moving or powered when the run ended"
+
+
+def test_a_stop_not_taken_is_not_confirmed_by_a_close_that_reached_nothing(device):
+    """A motor did not take a stop; the bus was then lost and the reconnect met a device fault, which leaves the
+    port released. The drive's close sent its stop into nothing (no port: no motor named as missing it), and
+    the runtime reported 'the stop it had not taken is confirmed now'. The close keeps the stop not taken."""
+    from vbnav.drivers.clock import MonotonicClock
+    drive = device.drive(MonotonicClock(), watchdog_s=1.0)
+    drive.connect()
+    drive.enable()
+    with device.dev.lock:
+        if isinstance(device, Dxl):
+            device.dev.servo(2).drops_stops = 3
+        else:
+            device.dev.axis(1).ignores_commands = True
+    drive.disable()
+    assert drive.stop_failure, "the injected fault did not keep a motor from the stop"
+    drive._release()                 # what a reconnect that met a device fault leaves (wheels.reconnect)
+    drive.close()
+    assert drive.stop_failure and "reached nothing" in drive.stop_failure, drive.stop_failure
