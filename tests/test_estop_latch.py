@@ -266,3 +266,18 @@ def test_a_latch_file_that_cannot_be_removed_after_a_resume_says_the_estop_is_cl
     assert len(errors) == 1, errors
     assert "could not be removed (Permission denied): the estop is cleared in this run, but a restart would " \
            "start latched again" in errors[0] and "holds in memory" not in errors[0], errors
+
+
+def test_the_answer_that_a_late_estop_is_kept_waits_for_the_write(tmp_path):
+    """An estop after the run ended, while the run's latch writer was still open, was only posted to it and
+    answered 'kept in PATH' at once, even with a folder that could not be written. The answer now waits for the
+    write and says what happened."""
+    good = estop_latch.LatchWriter(tmp_path / "estop.json")
+    assert good.write_and_wait('{"message": "late"}') is None
+    assert json.loads((tmp_path / "estop.json").read_text())["message"] == "late"
+    good.close()
+    bad = estop_latch.LatchWriter(tmp_path / "missing" / "estop.json")
+    why = bad.write_and_wait('{"message": "late"}')
+    bad.close()
+    assert why and "No such file" in why, why
+    assert not (tmp_path / "missing").exists()

@@ -179,6 +179,9 @@ class LatchWriter:
         self.path = path
         self._cond = threading.Condition()
         self._pending: Optional[str] = None    # the text to write, or "" to remove
+        self._posted = 0                        # posts so far, and how many of them are done (written, removed
+        self._done = 0                          # or failed; a post replaced by a newer one is done with it)
+        self._last_error: Optional[str] = None  # the newest done op's failure
         self._closed = False
         self._errors: deque = deque()
         self._thread = threading.Thread(target=self._run, name="estop-latch-writer", daemon=True)
@@ -189,6 +192,18 @@ class LatchWriter:
 
     def remove(self) -> None:
         self._post("")
+
+    def write_and_wait(self, text: str, wait_s: float = 1.0) -> Optional[str]:
+        """Post ``text`` and wait (up to ``wait_s``) until it is written: None when it was, else why not. For an
+        answer that says the estop is kept (an estop after the run ended), which must be true when sent."""
+        with self._cond:
+            self._pending = text
+            self._posted += 1
+            mine = self._posted
+            self._cond.notify_all()
+            if not self._cond.wait_for(lambda: self._done >= mine, timeout=wait_s):
+                return f"not written within {wait_s:g} s"
+            return self._last_error
 
     def errors(self) -> list[str]:
         out = []
@@ -210,7 +225,8 @@ class LatchWriter:
     def _post(self, op: str) -> None:
         with self._cond:
             self._pending = op
-            self._cond.notify()
+            self._posted += 1
+            self._cond.notify_all()
 
     def _run(self) -> None:
         while True:
@@ -218,8 +234,10 @@ class LatchWriter:
                 while self._pending is None and not self._closed:
                     self._cond.wait()
                 op, self._pending = self._pending, None
+                upto = self._posted                  # the posts this op answers (older ones it replaced)
             if op is None:
                 return
+            error = None
             try:
                 if op:
                     write_atomic(self.path, op)
@@ -227,9 +245,13 @@ class LatchWriter:
                     self.path.unlink(missing_ok=True)
                     fsync_folder(self.path.parent)
             except OSError as exc:
+                error = str(exc.strerror or exc)
                 # A removal follows a resume: the estop is cleared (the robot drives), only the file stays.
                 self._errors.append(f"latch file {self.path} could not be written ({exc.strerror or exc}): the "
                                     f"estop holds in memory but not across a restart" if op else
                                     f"latch file {self.path} could not be removed ({exc.strerror or exc}): the "
                                     f"estop is cleared in this run, but a restart would start latched again "
                                     f"(remove the file, or 'vbnav estop clear')")
+            with self._cond:
+                self._done, self._last_error = upto, error
+                self._cond.notify_all()

@@ -282,12 +282,15 @@ class Runtime:
                               " (after the run ended)", self.clock.now_ns())
         with self._latch_lock:
             try:
-                if self._latch_writer is not None:
-                    self._latch_writer.write(record)
-                else:
+                # Through the run's writer, waited for: the answer below says the estop is kept, and it was
+                # sent while the write was only posted (and said 'kept' of a folder that could not be written).
+                why = self._latch_writer.write_and_wait(record) if self._latch_writer is not None else None
+                if self._latch_writer is None:
                     write_atomic(path, record)
             except OSError as exc:
-                return f"; it could not be kept in {path} ({exc.strerror or exc}): the next run does not start latched"
+                why = str(exc.strerror or exc)
+        if why:
+            return f"; it could not be kept in {path} ({why}): the next run does not start latched"
         return f"; the estop is kept in {path}: the next run starts latched until a resume"
 
     def request_stop(self, signum: int = signal.SIGTERM) -> None:
