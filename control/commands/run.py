@@ -70,7 +70,7 @@ def run(args) -> int:
     from vbnav.control.runtime.factory import make_robot
     from vbnav.control.runtime.finishing import finishing
     from vbnav.control.runtime.progress import EventEcho, ProgressPrinter
-    from vbnav.control.runtime.runtime import DEVICE_FAULTS, Runtime
+    from vbnav.control.runtime.runtime import DEVICE_FAULTS, ENDED_WELL, Runtime
 
     cfg = load_config(args.config)  # refuses unsafe network settings before any device opens
     output_file(args.record, "--record")
@@ -131,10 +131,15 @@ def run(args) -> int:
         result = rt.run(duration, progress)      # under systemd the runtime itself notifies (systemd_notify.py)
     finally:
         with finishing():           # a second Ctrl-C must not cut the recording or the route short
-            controller.close()      # a route being taught keeps every keyframe so far
-            link.close(result)
-            if echo is not None:
-                echo.close()
+            try:                    # a route being taught keeps every keyframe so far; complete if the run ended well
+                if kind == "operator":
+                    controller.close(complete=result is not None and result.reason in ENDED_WELL)
+                else:
+                    controller.close()
+            finally:                # a route that could not be saved does not cut the recording short
+                link.close(result)
+                if echo is not None:
+                    echo.close()
     with finishing("printing the summary"):
         printer.done()
         summary = {"reason": result.reason, "message": result.message, "cycles": result.cycles,

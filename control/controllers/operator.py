@@ -245,13 +245,14 @@ class OperatorController(Controller):
             teaching.close()
         self._close_teach()     # the route being taught when the run ended: close() left it to this thread
 
-    def _close_teach(self) -> str:
-        """Close the route being taught; what ``vbnav teach`` would print of why it ends before the last frame
-        (Teaching.note, naming the route), else ''."""
+    def _close_teach(self, complete: bool = True) -> str:
+        """Close the route being taught (``complete``: marked complete, as a run that ended well; a fault
+        leaves it incomplete, as ``vbnav teach`` does); what ``vbnav teach`` would print of why it ends before
+        the last frame (Teaching.note, naming the route), else ''."""
         teaching = self._teaching
         if teaching is None:
             return ""
-        teaching.close(vision=self.pipeline)   # after the vision thread's frame in the teach stage, if any
+        teaching.close(complete=complete, vision=self.pipeline)   # after the vision thread's frame, if any
         self._teaching = None
         return f"route {self.route_path!r} taught: {teaching.note}" if teaching.note else ""
 
@@ -306,8 +307,9 @@ class OperatorController(Controller):
         if teaching is not None:
             teaching.save()
 
-    def close(self) -> None:
-        """End of the run: a route being taught is closed with every keyframe so far."""
+    def close(self, complete: bool = True) -> None:
+        """End of the run: a route being taught is closed with every keyframe so far, marked complete when the
+        run ended well (``complete``); a run a fault ended leaves it incomplete, as ``vbnav teach`` does."""
         if self._worker is not None:
             self._worker.join(timeout=self.close_wait_s)
         with self._switch_lock:
@@ -334,6 +336,6 @@ class OperatorController(Controller):
                     rt.complete_command(cmd, CommandOutcome.refused(
                         f"mode {cmd.args[0]}: the run ended before the switch took effect"), rt.clock.now_ns())
         if not gone:      # else the worker closes the route being taught: one thread, never two at once
-            ended = self._close_teach()
+            ended = self._close_teach(complete)
             if ended and rt is not None:     # no command to answer: the run's events say it
                 rt.safety.note(rt.clock.now_ns(), "warning", "teach", ended)
