@@ -234,7 +234,7 @@ def _run_demo_phases(out_dir, scenario, cfg, progress, recorder, t_wall) -> dict
         rep = sessions[-1].repeat(route, scenario.max_repeat_s, observers, segment=f"repeat {i + 1}")
         errs = summarise_errors(trace_i, taught_xz, scenario.settle_m)
         repeats.append({"index": i + 1, "completed": rep.completed, "end": rep.reason, "message": rep.message,
-                        "keyframe_reached": rep.keyframe_reached + 1, "start_offset": offset.as_array().tolist(),
+                        "keyframes_passed": rep.keyframes_passed, "start_offset": offset.as_array().tolist(),
                         "lighting_gain": robot_i.camera.gain, "safety_stops": rep.stops,
                         "duration_s": trace_i.t[-1] - trace_i.t[0] if trace_i.t else 0.0,
                         "loop_timing": rep.timing.as_dict(), **errs})

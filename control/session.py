@@ -135,6 +135,18 @@ class RepeatResult:
     message: str
     keyframe_reached: int        # index of the keyframe the robot was heading for at the end
     keyframes: int
+
+    @property
+    def keyframes_passed(self) -> int:
+        """How many keyframes the robot reached: all of them when it completed the route, else the ones before
+        the keyframe it was heading for ('reached keyframe index + 1' said one more than it had)."""
+        return self.keyframes if self.completed else self.keyframe_reached
+
+    def progress_text(self) -> str:
+        if self.completed:
+            return f"reached keyframe {self.keyframes} of {self.keyframes}"
+        return (f"passed {self.keyframes_passed} of {self.keyframes} keyframes (heading for keyframe "
+                f"{self.keyframe_reached + 1})")
     events: list                 # safety events as dicts
     timing: object
     stops: int                   # safety holds on the way

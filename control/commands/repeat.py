@@ -48,8 +48,7 @@ def run(args) -> int:
                       record_overwrite=args.overwrite)
     result = session.repeat(route, args.duration)
     printer.done()
-    print(f"repeat ended: {result.reason} ({result.message}); reached keyframe {result.keyframe_reached + 1} of "
-          f"{result.keyframes}")
+    print(f"repeat ended: {result.reason} ({result.message}); {result.progress_text()}")
     print("timing: " + result.timing.line())
     if result.reason == "signal":
         return 130
