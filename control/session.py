@@ -196,7 +196,7 @@ class Session:
         teaching = Teaching(self.cfg, route_dir, overwrite)
         try:
             result = self._run(controller, teaching.stage, teaching.save, "teach", duration_s, observers,
-                               lambda: f"{teaching.stage.n_keyframes} keyframes")
+                               lambda: f"{teaching.stage.n_keyframes} keyframes", route=str(route_dir))
         except BaseException:
             with finishing("closing the route"):
                 teaching.close(complete=False, vision=self.robot.pipeline)
@@ -215,14 +215,15 @@ class Session:
         rep = Repeating(self.cfg, route)
         n = len(route.keyframes)
         result = self._run(rep.controller, rep.stage, None, segment, duration_s, observers,
-                           lambda: repeat_status(rep.controller.status(), rep.stage.index, n))
+                           lambda: repeat_status(rep.controller.status(), rep.stage.index, n),
+                           route=str(route.path))
         stops = result.count("hold")      # over the whole run, events left out of the report included
         return RepeatResult(result.reason == "finished", result.reason, result.message, rep.stage.index, n,
                             [e.as_dict() for e in result.events], result.timing, stops)
 
     # -- one run -------------------------------------------------------------
     def _run(self, controller, stage, frame_listener, segment: str, duration_s, observers,
-             status: Callable[[], str]) -> RunResult:
+             status: Callable[[], str], route: Optional[str] = None) -> RunResult:
         robot, pipeline = self.robot, self.robot.pipeline
         pipeline.stages = [stage, *pipeline.stages]     # the run's stage first, then the safety stages
         if frame_listener is not None:
@@ -230,6 +231,8 @@ class Session:
         rt = Runtime(self.cfg, robot.drive, controller, robot.clock, pipeline)
         rt.cycle_observers.extend(observers)
         link = self._attach_telemetry(rt, segment)
+        if link is not None:
+            link.route = route          # the state's route (vbnav monitor shows it)
         echo = None
         if not robot.clock.simulated and self.progress is not None:   # a console run in real time
             from vbnav.control.runtime.progress import EventEcho

@@ -255,3 +255,16 @@ def test_the_scripted_teacher_drives_within_the_robots_speed_limit():
     assert TwistLimiter.from_config(cfg.robot).apply(twist, 10.0) == twist       # driven as commanded
     fast = teach_driver(load_config(None, overrides={"controller": {"teach": "room_loop"}}))
     assert fast.update(still).v == pytest.approx(0.4)
+
+
+def test_the_state_names_the_route_being_taught(tmp_path):
+    """docs/telemetry.md documents the state's ``route`` as the route file of teach/repeat; the link never
+    filled it in (vbnav monitor showed none; found by the messages audit)."""
+    import json
+
+    from vbnav.control.comms.recording import iter_recording
+    cfg = load_config(None)
+    session = Session(cfg, make_robot(cfg, with_camera=True), record=str(tmp_path / "teach.mcap"))
+    session.teach(IdleController(), tmp_path / "route", duration_s=0.5)
+    routes = {json.loads(d)["route"] for t, _, _, d in iter_recording(tmp_path / "teach.mcap") if t == "/vbnav/state"}
+    assert routes == {str(tmp_path / "route")}, routes
