@@ -149,7 +149,7 @@ class RepeatResult:
                 f"{self.keyframe_reached + 1})")
     events: list                 # safety events as dicts
     timing: object
-    stops: int                   # safety holds on the way
+    stops: int                   # safety holds on the way (not the start-up waits for a first frame)
 
 
 Observer = Callable[..., None]       # (runtime, ctx, twist, wheel_command), every cycle
@@ -217,7 +217,7 @@ class Session:
         result = self._run(rep.controller, rep.stage, None, segment, duration_s, observers,
                            lambda: repeat_status(rep.controller.status(), rep.stage.index, n),
                            route=str(route.path))
-        stops = result.count("hold")      # over the whole run, events left out of the report included
+        stops = result.holds_on_the_way()
         return RepeatResult(result.reason == "finished", result.reason, result.message, rep.stage.index, n,
                             [e.as_dict() for e in result.events], result.timing, stops)
 

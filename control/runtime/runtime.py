@@ -65,7 +65,7 @@ from vbnav.control.runtime.loop import FixedRateLoop, TimingSummary
 from vbnav.control.runtime.mailbox import CommandMailbox, OperatorCommand, RefusalThrottle
 from vbnav.control.runtime.odometry import Odometry, OdometryHistory
 from vbnav.control.runtime.pipeline import VisionPipeline
-from vbnav.control.runtime.safety import SafetyMonitor
+from vbnav.control.runtime.safety import WAITING, SafetyMonitor
 from vbnav.control.runtime.systemd_notify import SystemdNotifier
 from vbnav.drivers.camera import CameraError
 from vbnav.drivers.clock import Clock
@@ -191,6 +191,13 @@ class RunResult:
         if not self.event_counts:
             return sum(1 for e in self.events if e.kind == kind and (cause is None or e.cause == cause))
         return sum(n for (k, c), n in self.event_counts.items() if k == kind and (cause is None or c == cause))
+
+    def holds_on_the_way(self) -> int:
+        """Safety holds over the whole run but the start-up waits for a first frame or estimate (causes
+        ``<what>_waiting``): every run has those, and a repeat counted them as stops on the way."""
+        if not self.event_counts:
+            return sum(1 for e in self.events if e.kind == "hold" and not str(e.cause).endswith(WAITING))
+        return sum(n for (k, c), n in self.event_counts.items() if k == "hold" and not str(c).endswith(WAITING))
 
     def event_report(self) -> list:
         """The kept events in order, with ``events_gap`` (a str) where events were left out."""
