@@ -142,7 +142,7 @@ def _estop_reason(text: str) -> str:
         fixed = fixed[:REASON_MAX_CHARS - 3] + "..."
     if fixed != text:
         print(f"vbnav send: --reason sent as {fixed!r} (the robot takes printable text of at most "
-              f"{REASON_MAX_CHARS} characters); the estop goes out", file=sys.stderr)
+              f"{REASON_MAX_CHARS} characters); that does not hold the estop back", file=sys.stderr)
     return fixed
 
 
