@@ -39,6 +39,7 @@ def test_a_teach_a_fault_ends_is_closed_incomplete(tmp_path, fault):
     rt.cycle_observers.append(teach_while_driving)
     result = rt.run(6.0)
     assert (result.reason not in ENDED_WELL) == fault, result.message
+    assert ctl.followed_route == "r1"                         # the telemetry state's route (link.py)
     ctl.close(complete=result.reason in ENDED_WELL)          # as vbnav run closes it
     manifest = json.loads((tmp_path / "routes" / "r1" / "manifest.json").read_text())
     assert len(manifest["keyframes"]) >= 3

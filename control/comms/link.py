@@ -138,7 +138,7 @@ class TelemetryLink:
         self._network_sink = None        # the ZenohSink: a put it raised means the session is gone
         self._network_lost = False
         # The route being taught or repeated, for the state's ``route`` (vbnav teach / repeat set it; an
-        # operator-mode run's controller says its own, ``route_path``). It was never filled in.
+        # operator-mode run's controller says its own, ``followed_route``). It was never filled in.
         self.route: Optional[str] = None
         self._borrowed: Optional[_Borrowed] = None   # the recording shared with other runs (not closed here)
         self.recording_error: Optional[str] = None   # the recording failed (set by close, said on stderr)
@@ -263,7 +263,7 @@ class TelemetryLink:
             ctx.odom, _estimate_pose(vbc), _estimate_pose(vslam), keyframe,
             wheel_command[0], wheel_command[1], wheels.velocity[0], wheels.velocity[1],
             twist.v, twist.w, int(timing.compute[i]), int(timing.lateness[i]), timing.overruns,
-            route=self.route if self.route is not None else getattr(rt.controller, "route_path", None),
+            route=self.route if self.route is not None else rt.controller.followed_route,
             drive_state=wheels.drive_state, drive_faults=wheels.faults, latched_ns=safety.latched_ns))
 
     def _on_command_start(self, rt, cmd, now_ns: int) -> None:

@@ -101,6 +101,10 @@ class OperatorController(Controller):
             return {"command_timeout": (False, "")}
         return self.teleop.safety_conditions()
 
+    @property
+    def followed_route(self) -> Optional[str]:
+        return self.route_path if self.mode in ("teach", "repeat") else None
+
     def status(self) -> dict:
         s = {"mode": self.name, "route": self.route_path}
         if self.active is not None:

@@ -181,6 +181,12 @@ class Controller(abc.ABC):
         a route push must not replace; None when none is."""
         return None
 
+    @property
+    def followed_route(self) -> Optional[str]:
+        """The route an operator-switched teach or repeat is on now (the telemetry state's ``route``); None
+        when none is (vbnav teach and repeat name theirs on the link)."""
+        return None
+
     def safety_conditions(self) -> dict[str, tuple[bool, str]]:
         """Held stop conditions the controller detects: cause -> (active, message).
 
