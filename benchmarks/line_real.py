@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from line_scenes import map_reprojection_errors  # noqa: E402
+from line_scenes import map_reprojection_errors, read_pfm  # noqa: E402
 
 from vbnav.drivers.stereo_calib import load_stereo_calibration, read_kitti_calib  # noqa: E402
 from vbnav.vision.line_map import LineMap, MapParams  # noqa: E402
@@ -57,18 +57,6 @@ def data_dir() -> Path:
     """$VBNAV_DATA, else ../shared/data beside the repository (as the tests' ``shared_data``)."""
     repo = Path(__file__).resolve().parents[1]
     return Path(os.environ.get("VBNAV_DATA", repo.parent / "shared" / "data")).resolve()
-
-
-def read_pfm(path: Path) -> np.ndarray:
-    with open(path, "rb") as fh:
-        if fh.readline().strip() not in (b"Pf", b"PF"):
-            raise ValueError(f"{path}: not a PFM file")
-        w, h = map(int, fh.readline().split())
-        scale = float(fh.readline())
-        a = np.frombuffer(fh.read(), dtype="<f4" if scale < 0 else ">f4")
-    if a.size != w * h:
-        raise ValueError(f"{path}: expected {w}x{h} floats, found {a.size}")
-    return np.flipud(a.reshape(h, w)).astype(np.float32)
 
 
 def cpu_ms(fn):

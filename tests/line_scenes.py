@@ -438,3 +438,17 @@ def map_reprojection_errors(lmap: LineMap, detections: dict, poses: np.ndarray) 
             d = (b - a) / np.linalg.norm(b - a)
             errs.append(np.abs((segs.xy[n].reshape(2, 2) - a) @ np.array([-d[1], d[0]])).max())
     return np.array(errs)
+
+
+def read_pfm(path) -> np.ndarray:
+    """A PFM image (Middlebury's ground-truth disparity) as float32, rows top to bottom; ValueError naming
+    the file when it is not one."""
+    with open(path, "rb") as fh:
+        if fh.readline().strip() not in (b"Pf", b"PF"):
+            raise ValueError(f"{path}: not a PFM file")
+        w, h = map(int, fh.readline().split())
+        scale = float(fh.readline())
+        a = np.frombuffer(fh.read(), dtype="<f4" if scale < 0 else ">f4")
+    if a.size != w * h:
+        raise ValueError(f"{path}: expected {w}x{h} floats, found {a.size}")
+    return np.flipud(a.reshape(h, w)).astype(np.float32)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from line_scenes import BASELINE, CAM, stereo_camera
+from line_scenes import BASELINE, CAM, read_pfm, stereo_camera
 from vbnav.drivers.sim.world import World
 from vbnav.vision.geometry import Pose2
 from vbnav.vision.line_segments import LineParams, match_stereo, reconstruct_pair, refine_lines
@@ -191,15 +191,6 @@ def test_edge_search_matches_an_occluding_boundary_at_the_near_disparity(with_ob
 
 
 # ------------------------------------------------------------------------------- Middlebury
-def read_pfm(path) -> np.ndarray:
-    with open(path, "rb") as fh:
-        fh.readline()
-        w, h = map(int, fh.readline().split())
-        scale = float(fh.readline())
-        a = np.frombuffer(fh.read(), dtype="<f4" if scale < 0 else ">f4").reshape(h, w)
-    return np.flipud(a).astype(np.float32)
-
-
 def test_middlebury_endpoints_agree_with_ground_truth_disparity(shared_data):
     import cv2
     root = shared_data / "indoor_stereo" / "middlebury"

@@ -198,8 +198,9 @@ def run_plot(args) -> int:
     from vbnav.control.line_map_file import load_map
     output_file(args.out, "--out")
     distinct_files({"--out": args.out}, {"MAP": args.map})
-    if png_name_problem(args.out, "--out"):
-        raise InputError(png_name_problem(args.out, "--out"))
+    why = png_name_problem(args.out, "--out")
+    if why:
+        raise InputError(why)
     lmap, meta = load_map(args.map)
     sel = np.ones(len(lmap), bool) if args.all else lmap.verified
     P = lmap.P[sel]

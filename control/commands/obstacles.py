@@ -221,8 +221,9 @@ def run(args) -> int:
     output_file(args.mask_out, "--mask-out")
     output_file(args.overlay_out, "--overlay-out")
     for path, option in ((args.mask_out, "--mask-out"), (args.overlay_out, "--overlay-out")):
-        if png_name_problem(path, option):
-            raise InputError(png_name_problem(path, option))
+        why = png_name_problem(path, option)
+        if why:
+            raise InputError(why)
     distinct_files({"--mask-out": args.mask_out, "--overlay-out": args.overlay_out},
                    {"--left": args.left, "--right": args.right, "--disparity": args.disparity, "--image": args.image,
                     "--calib": args.calib})
