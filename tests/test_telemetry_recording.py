@@ -106,6 +106,37 @@ def test_a_recording_that_fails_is_said_and_the_run_exits_1(tmp_path, monkeypatc
     assert "incomplete" not in capsys.readouterr().err
 
 
+def test_telemetry_lost_to_a_sink_that_raises_is_said_at_the_end_and_in_the_summary(monkeypatch, capsys):
+    """publisher.sink_errors was counted and never shown: a sink that raised on every message (a live view, a
+    viewer gone) left it empty without a word. The run's end says how many and the first error, and
+    `vbnav run --json` has the count; the run itself goes on and ends well."""
+    from vbnav.control.cli import main
+    from vbnav.control.comms import link
+    from vbnav.control.comms.telemetry import Sink, TelemetryPublisher
+
+    class Broken(Sink):
+        def state(self, *a):
+            raise OSError("viewer gone")
+
+    made = []
+
+    class WithBroken(TelemetryPublisher):
+        def __init__(self, robot, sinks, **kw):
+            super().__init__(robot, [*sinks, Broken()], **kw)
+            made.append(self)
+    monkeypatch.setattr(link, "TelemetryPublisher", WithBroken)
+    assert main(["run", "--no-camera", "--duration", "1", "--json"]) == 0
+    out, err = capsys.readouterr()
+    n = made[0].sink_errors
+    assert n > 0 and json.loads(out)["telemetry_errors"] == n
+    assert f"vbnav: telemetry: {n} errors: messages, overlays or scenes not published or recorded; the first: " \
+           f"OSError('viewer gone')" in err, err
+    monkeypatch.setattr(link, "TelemetryPublisher", TelemetryPublisher)
+    assert main(["run", "--no-camera", "--duration", "1", "--json"]) == 0      # none: nothing said, 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["telemetry_errors"] == 0 and "vbnav: telemetry:" not in err
+
+
 def test_a_failed_recording_over_an_old_one_names_the_file_that_holds_it(tmp_path, monkeypatch, capsys):
     """--record PATH --overwrite over an earlier recording, and the new one fails to close (a full disk at
     its summary): the old PATH is still there, untouched, and what this run wrote is in PATH.part. The

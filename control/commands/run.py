@@ -148,7 +148,9 @@ def run(args) -> int:
                    "events_dropped": result.events_dropped,
                    "event_counts": [{"kind": k, "cause": c, "count": n}
                                     for (k, c), n in sorted(result.event_counts.items())],
-                   "final_odometry": rt.odometry.pose.as_array().tolist()}
+                   "final_odometry": rt.odometry.pose.as_array().tolist(),
+                   # telemetry lost to errors (a sink that raised, an overlay not built): said on stderr too
+                   "telemetry_errors": link.telemetry_errors}
         if args.json:
             print(json.dumps(summary, indent=2))
         else:

@@ -142,6 +142,7 @@ class TelemetryLink:
         self.route: Optional[str] = None
         self._borrowed: Optional[_Borrowed] = None   # the recording shared with other runs (not closed here)
         self.recording_error: Optional[str] = None   # the recording failed (set by close, said on stderr)
+        self.telemetry_errors = 0        # publisher.sink_errors when the run ended (set by close, said on stderr)
 
     # ---- construction ----------------------------------------------------------------------
     @classmethod
@@ -286,11 +287,12 @@ class TelemetryLink:
         """Vision thread (loop thread on the simulated clock), right after the stages ran on ``frame``.
 
         A failure here must not become a pipeline fault (which stops the robot): what to show is telemetry,
-        so an error costs the overlay or the scene of this frame and is counted in ``publisher.sink_errors``."""
+        so an error costs the overlay or the scene of this frame and is counted in ``publisher.sink_errors``
+        (said when the run ends)."""
         try:
             self._offer_frame(frame, results)
-        except Exception:
-            self.publisher.sink_errors += 1
+        except Exception as exc:
+            self.publisher.count_error(exc)
 
     def _offer_frame(self, frame, results) -> None:
         from vbnav.control.comms import foxglove_channels as fc
@@ -377,13 +379,14 @@ class TelemetryLink:
             self.routes.close()
         try:
             self._offer_line_map(self.runtime.clock.now_ns())
-        except Exception:
-            self.publisher.sink_errors += 1
+        except Exception as exc:
+            self.publisher.count_error(exc)
         if result is not None:
             self.publisher.event("run_end", reason=result.reason, message=result.message, cycles=result.cycles,
                                  telemetry_dropped=self.publisher.dropped)
         self.publisher.close()
         self._report_recording()
+        self._report_errors()
         if self.session is not None:
             time.sleep(0.05)  # let the last express puts leave before the transport closes
             try:
@@ -411,3 +414,13 @@ class TelemetryLink:
         self.recording_error = repr(exc)
         print(f"vbnav: the recording {rec.path} is incomplete: writing it failed ({exc}); what was written before "
               f"is in {where}", file=sys.stderr)
+
+    def _report_errors(self) -> None:
+        """Telemetry lost to errors is said, not only counted: a sink that raised on every message (a live view, a
+        recording) or an overlay that could not be built left a viewer or a file without them, and nothing said so."""
+        pub = self.publisher
+        self.telemetry_errors = n = pub.sink_errors
+        if n:
+            first = f"; the first: {pub.first_error!r}" if pub.first_error is not None else ""
+            print(f"vbnav: telemetry: {n} error{'s' if n > 1 else ''}: messages, overlays or scenes not published or "
+                  f"recorded{first}", file=sys.stderr)

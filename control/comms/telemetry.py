@@ -229,7 +229,8 @@ class TelemetryPublisher:
         self.dropped = 0            # samples not queued because the queue was full
         self._lock = threading.Lock()
         self._events_unsaid: collections.Counter = collections.Counter()   # events dropped, by kind, not yet said
-        self.sink_errors = 0
+        self.sink_errors = 0        # messages, overlays or scenes lost to an error (said when the run ends)
+        self.first_error: Optional[Exception] = None    # the first of them, for the end-of-run warning
         self.sink_failures: dict = {}   # sink -> its first error (a full disk under a recording, say)
         self.published = {"state": 0, "event": 0, "image": 0}
         self._seq = {"state": 0, "event": 0, "image": 0}
@@ -370,8 +371,8 @@ class TelemetryPublisher:
                 if overlay is not None:
                     scaled = overlay.scaled(w / image.shape[1])
                     self._each_sink(lambda s: s.annotations(stamp, scaled))
-        except Exception:  # a bad sample must never kill telemetry
-            self.sink_errors += 1
+        except Exception as exc:  # a bad sample must never kill telemetry
+            self.count_error(exc)
 
     def _say_dropped_events(self) -> None:
         """Publisher thread: the events dropped for a full queue since the last time, announced."""
@@ -387,8 +388,8 @@ class TelemetryPublisher:
         try:
             self._emit("event", stamp, event_message(self.robot, self._next_seq("event"), stamp, "events_dropped",
                                                      {"count": n, "kinds": dict(unsaid), "message": message}))
-        except Exception:
-            self.sink_errors += 1
+        except Exception as exc:
+            self.count_error(exc)
 
     def _each_sink(self, call: Callable[[Sink], None]) -> None:
         """``call`` on every sink; one that raises is counted, one that blocks is named by ``close``."""
@@ -400,8 +401,15 @@ class TelemetryPublisher:
                 self._sink_failed(s, exc)
         self._busy = None
 
-    def _sink_failed(self, sink, exc: Exception) -> None:
+    def count_error(self, exc: Exception) -> None:
+        """Something lost to ``exc`` (a message, an overlay, a scene): counted, and the first error kept, so the
+        run's end can say what went wrong (``TelemetryLink.close``)."""
         self.sink_errors += 1
+        if self.first_error is None:
+            self.first_error = exc
+
+    def _sink_failed(self, sink, exc: Exception) -> None:
+        self.count_error(exc)
         self.sink_failures.setdefault(sink, exc)
 
     def _next_seq(self, kind: str) -> int:
