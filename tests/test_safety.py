@@ -669,8 +669,33 @@ def test_a_turn_only_obstacle_hold_stops_the_travel_at_once_and_lets_the_turn_th
     assert wheel_v(at(4.5)) > 0.29 / 0.05 * 0.99                         # released: driving again
     holds = [(e.kind, e.message) for e in rt.safety.events if e.cause == "obstacle"]
     assert holds[0] == ("hold", "obstacles ahead; turning on the spot allowed (obstacles.turn_when_held, a round robot)")
-    assert ("hold", "blind ahead") in holds                               # the hold changed to a full stop, and said so
+    assert ("hold_changed", "blind ahead") in holds                       # the hold changed to a full stop, and said so
     assert holds[-1][0] == "release"
+
+
+def test_one_obstacle_hold_whose_turn_only_flag_flips_is_counted_once():
+    """A turn-only obstacle hold (obstacles.turn_when_held) that became a full stop while the stage was blind,
+    and turn-only again, re-emitted a ``hold`` at each change: a repeat's stops on the way (``holds_on_the_way``)
+    counted one continuous stop three times. The changes are ``hold_changed`` events, with their messages."""
+    from vbnav.control.runtime.interfaces import Estimate
+
+    class Zone(VisionStage):
+        """Held from 1 to 3 s; the turn allowed but from 2 to 2.5 s (the stage went blind)."""
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            held = 1.0 <= t < 3.0
+            reason = "blind" if 2.0 <= t < 2.5 else "box ahead"
+            return Estimate(frame.stamp_ns, self.kind, True, None,
+                            {"speed_scale": 0.0 if held else 1.0, "reason": reason,
+                             "turn_ok": held and reason != "blind"})
+
+    result = make_runtime(ScriptedController([[0.3, 0.5, 5.0]]), stages=[Zone()])[0].run()
+    kinds = [(e.kind, e.message.split(";")[0]) for e in result.events if e.cause == "obstacle"]
+    assert kinds == [("hold", "box ahead"), ("hold_changed", "blind"), ("hold_changed", "box ahead"),
+                     ("release", "obstacle clear for 0 s")], kinds
+    assert result.holds_on_the_way() == 1 and result.count("hold", "obstacle") == 1
 
 
 def test_exception_in_the_progress_callback_stops_the_robot_and_says_where():

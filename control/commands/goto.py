@@ -254,7 +254,7 @@ def run(args) -> int:
     for e in result.event_report():
         if isinstance(e, str):
             print(f"safety: {e}")
-        elif e.kind != "hold" or result.reason != "finished":
+        elif e.kind not in ("hold", "hold_changed") or result.reason != "finished":
             print(f"safety {e.kind}: {e.cause}: {e.message}")
     if result.reason == "signal":
         return 130

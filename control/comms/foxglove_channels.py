@@ -31,8 +31,8 @@ from foxglove.messages import (Color, CompressedImage, Grid, ImageAnnotations, L
 from vbnav.vision.geometry import Pose2
 
 # Event kinds that Foxglove's log panel shows as warnings / errors.
-_LOG_LEVEL = {"safety_trip": LogLevel.Error, "safety_hold": LogLevel.Warning, "safety_warning": LogLevel.Warning,
-              "command_rejected": LogLevel.Warning}
+_LOG_LEVEL = {"safety_trip": LogLevel.Error, "safety_hold": LogLevel.Warning, "safety_hold_changed": LogLevel.Warning,
+              "safety_warning": LogLevel.Warning, "command_rejected": LogLevel.Warning}
 
 VBNAV_SCHEMAS = {
     "vbnav.state": {"title": "vbnav.state", "type": "object", "description": "robot state, see docs/telemetry.md",

@@ -49,7 +49,7 @@ WAITING = "_waiting"
 @dataclass
 class SafetyEvent:
     stamp_ns: int
-    kind: str        # "trip", "hold", "release", "reset", "rejected", "warning", "drive_reconnected"
+    kind: str        # "trip", "hold", "hold_changed", "release", "reset", "rejected", "warning", "drive_reconnected"
     cause: str
     message: str
 
@@ -151,13 +151,15 @@ class SafetyMonitor:
     def hold(self, now_ns: int, cause: str, active: bool, message: str = "", turn_only: bool = False) -> None:
         """Report the state of a held condition every cycle. ``turn_only``: it holds the robot's travel but
         lets a turn on the spot through (``may_turn``), e.g. a round robot held by an obstacle ahead; a hold
-        that changes between the two is a new hold event with the new message."""
+        that changes between the two is a ``hold_changed`` event with the new message, not a new ``hold``
+        (one stop, counted once: a repeat's stops on the way counted it twice)."""
         if active:
             self._clear_since.pop(cause, None)
             if cause not in self.holds or turn_only != (cause in self.turn_only):
+                kind = "hold_changed" if cause in self.holds else "hold"
                 self.holds[cause] = message
                 (self.turn_only.add if turn_only else self.turn_only.discard)(cause)
-                self._emit(SafetyEvent(now_ns, "hold", cause, message))
+                self._emit(SafetyEvent(now_ns, kind, cause, message))
             return
         if cause not in self.holds:
             return
