@@ -43,6 +43,17 @@ def pair_problem(left: np.ndarray, right: np.ndarray, left_path, right_path) -> 
     return ""
 
 
+def same_pair_problem(left_path, right_path, left=None, right=None) -> str:
+    """"" unless --left and --right are one file or, given the images, hold one image: a stereo pair is two
+    cameras' images (one image twice has no disparity: ``vbnav lines`` reconstructed segments kilometres away,
+    ``vbnav obstacles`` failed late with "ground plane fit failed")."""
+    if Path(left_path).resolve() == Path(right_path).resolve():
+        return f"--left and --right are the same file, {left_path}: a stereo pair is two cameras' images"
+    if left is not None and left.shape == right.shape and np.array_equal(left, right):
+        return f"left {left_path} and right {right_path} are the same image: a stereo pair is two cameras' images"
+    return ""
+
+
 def png_name_problem(path, option: str) -> str:
     """"" when ``path`` (or None) names a PNG file, else why not: the result images are PNG, and PNG bytes
     under a .jpg name are a file other programs refuse or misread."""

@@ -133,8 +133,8 @@ CASES = [
     # obstacles
     ("obstacles-1x1-kitti-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/good/calib.txt",
      2, "calib.txt: P0 cx"),
-    ("obstacles-1x1-yaml-calib", "obstacles --left {d}/one.png --right {d}/one.png --calib {d}/stereo_1x1.yaml",
-     2, "one.png"),
+    ("obstacles-1x1-yaml-calib", "obstacles --left {d}/one.png --right {d}/one_b.png --calib {d}/stereo_1x1.yaml",
+     2, "one.png: the pair is 1x1, too narrow"),   # two images: one twice is refused as such first
     ("obstacles-sizes", "obstacles --left {d}/left.png --right {d}/right_big.png --calib {d}/stereo.yaml",
      2, "right_big.png"),
     ("obstacles-calib-missing", "obstacles --left {d}/left.png --right {d}/left.png --calib {d}/nope.txt",
@@ -371,6 +371,7 @@ def make_fixtures(d) -> None:
     (d / "stereo_2bad.yaml").write_text(STEREO.replace("fx: 50", "fx: abc").replace("baseline: 0.1", "baseline: x"))
     (d / "stereo_1x1.yaml").write_text("width: 1\nheight: 1\nfx: 1\nfy: 1\ncx: 0.5\ncy: 0.5\nbaseline: 0.1\n")
     cv2.imwrite(str(d / "one.png"), np.zeros((1, 1), np.uint8))
+    cv2.imwrite(str(d / "one_b.png"), np.full((1, 1), 255, np.uint8))
     cv2.imwrite(str(d / "left.png"), _texture(0))
     cv2.imwrite(str(d / "left_copy.png"), _texture(0))
     (d / "middlebury_calib.txt").write_text("cam0=[50 0 32; 0 50 24; 0 0 1]\ncam1=[50 0 35; 0 50 24; 0 0 1]\n"

@@ -26,6 +26,7 @@ def files(tmp_path_factory):
     left, right, truth = ds.textured_pair(SCENE, RIG, rng=np.random.default_rng(2))
     cv2.imwrite(str(d / "l.png"), left)
     cv2.imwrite(str(d / "r.png"), right)
+    cv2.imwrite(str(d / "l_copy.png"), left)
     np.save(d / "d.npy", np.nan_to_num(truth.disparity))
     (d / "stereo.yaml").write_text(YAML)
     return d, truth
@@ -91,13 +92,18 @@ def test_16bit_disparity_png_uses_the_scale(files, capsys, tmp_path):
     (["--left", "l.png", "--right", "r.png", "--calib", "missing.txt"], "missing.txt: calibration file not found"),
     (["--left", "nope.png", "--right", "r.png", "--calib", "stereo.yaml"], "nope.png: file not found"),
     (["--left", "stereo.yaml", "--right", "r.png", "--calib", "stereo.yaml"], "not an image"),
+    # one image as both (given twice, or two copies) failed late, exit 1: "ground plane fit failed"
+    (["--left", "l.png", "--right", "l.png", "--calib", "stereo.yaml"],
+     "--left and --right are the same file, {d}/l.png: a stereo pair is two cameras' images"),
+    (["--left", "l.png", "--right", "l_copy.png", "--calib", "stereo.yaml"],
+     "left {d}/l.png and right {d}/l_copy.png are the same image: a stereo pair is two cameras' images"),
 ])
 def test_bad_input_exit_2(files, capsys, argv, match):
     d, _ = files
     argv = [str(d / a) if a.endswith((".png", ".yaml", ".txt", ".npy")) else a for a in argv]
     code, out, err = _run(capsys, *argv)
-    assert code == 2
-    assert match in err
+    assert code == 2, err
+    assert match.format(d=d) in err, err
 
 
 NO_MOUNT = YAML.split("mount:")[0]                                  # no camera height known

@@ -11,13 +11,13 @@ import argparse
 import dataclasses
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, output_file, positive
-from vbnav.control.image_files import display_bgr, json_text, pair_problem, png_bytes, png_name_problem, read_image
+from vbnav.control.image_files import (display_bgr, json_text, pair_problem, png_bytes, png_name_problem, read_image,
+                                      same_pair_problem)
 from vbnav.drivers.atomic_file import write_atomic_set
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.line_segments import LineParams, reconstruct_pair
@@ -122,18 +122,16 @@ def run(args) -> int:
         return _bad(why)
     distinct_files({"--out": args.out, "--overlay-out": args.overlay_out},
                    {"--left": args.left, "--right": args.right, "--calib": args.calib})
-    if Path(args.left).resolve() == Path(args.right).resolve():
-        return _bad(f"--left and --right are the same file, {args.left}: a stereo pair is two cameras' images")
+    why = same_pair_problem(args.left, args.right)      # before the calibration is read
+    if why:
+        return _bad(why)
     try:
         calib = load_stereo_calibration(args.calib, raw_images=True)
         left = read_image(args.left, "left image")
         right = read_image(args.right, "right image")
-        why = pair_problem(left, right, args.left, args.right)
+        why = pair_problem(left, right, args.left, args.right) or same_pair_problem(args.left, args.right, left, right)
         if why:
             return _bad(why)
-        if left.shape == right.shape and np.array_equal(left, right):
-            return _bad(f"left {args.left} and right {args.right} are the same image: a stereo pair is two "
-                        "cameras' images")
         left, right = calib.rectify(left, right)
         h, w = left.shape[:2]
         rig = calib.rig(w, h)

@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from vbnav.control.commands._common import DefaultsHelpFormatter, distinct_files, finite, non_negative, output_file, positive
-from vbnav.control.image_files import display_bgr, pair_problem, png_name_problem, read_image, write_png
+from vbnav.control.image_files import (display_bgr, pair_problem, png_name_problem, read_image, same_pair_problem,
+                                      write_png)
 from vbnav.drivers.errors import InputError
 from vbnav.drivers.stereo_calib import CalibrationError, load_stereo_calibration
 from vbnav.vision.ground_model import GroundModelParams
@@ -251,6 +252,10 @@ def run(args) -> int:
         if image is not None and image.shape[:2] != (h, w):
             return _bad(f"image {args.image} is {image.shape[1]}x{image.shape[0]}, disparity is {w}x{h}")
         rig = calib.rig(w, h)
+        # after the calibration's checks (as the pair's size): one image twice has no disparity, and failed late
+        why = same_pair_problem(args.left, args.right, image, right) if disp is None else ""
+        if why:
+            return _bad(why)
     except (CalibrationError, ValueError, FileNotFoundError) as exc:
         return _bad(str(exc))
 
