@@ -126,6 +126,11 @@ def map_from_data(path: Path, data) -> tuple[LineMap, dict]:
         if not ok:
             raise MapFileError(f"{path}: meta.objects[{k}]: expected footprint (a list of [x, z] pairs) and height "
                                f"(>= 0), finite numbers")
+        # Two points are a face (vision/line_abstraction.py writes one for two corners seen); fewer distinct
+        # points have no extent: a corrupt object, which the planning grid drew as one cell.
+        if not np.ptp(fp, axis=0).max() > 1e-9:
+            raise MapFileError(f"{path}: meta.objects[{k}]: footprint {o['footprint']!r:.60} is one point, expected "
+                               f"at least two distinct [x, z] points (a face between two corners, or a polygon)")
     _check_count(path, "frames", data.get("frames", 0), 0)
     try:
         params = MapParams(**given)

@@ -229,3 +229,21 @@ def test_an_object_of_negative_height_is_refused(tmp_path):
     m = LineMap(MapParams())
     with pytest.raises(MapFileError, match=r"meta\.objects\[0\]: expected footprint .* and height \(>= 0\)"):
         save_map(m, tmp_path / "map.json", {"objects": [{"footprint": [[0, 0], [1, 0], [1, 1]], "height": -0.5}]})
+
+
+@pytest.mark.parametrize("footprint", [[[1.0, 2.0]], [[1.0, 2.0], [1.0, 2.0]]])
+def test_an_object_whose_footprint_is_one_point_is_refused(tmp_path, footprint):
+    """meta.objects took a footprint of one point (or one point twice): an object of no extent, which the
+    planning grid drew as one cell. Two distinct points are a face (the abstraction writes one for two corners
+    it saw) and three or more a polygon: both load."""
+    path = _saved(tmp_path)
+    data = json.loads(path.read_text())
+    data["meta"] = {"objects": [{"footprint": footprint, "height": 0.5}]}
+    path.write_text(json.dumps(data))
+    with pytest.raises(MapFileError, match=r"map\.json: meta\.objects\[0\]: footprint .* is one point, expected "
+                                           r"at least two distinct \[x, z\] points"):
+        load_map(path)
+    for ok in ([[0.0, 2.0], [0.6, 2.0]], [[0.0, 2.0], [0.6, 2.0], [0.6, 2.5]]):
+        data["meta"] = {"objects": [{"footprint": ok, "height": 0.5}]}
+        path.write_text(json.dumps(data))
+        assert load_map(path)[1]["objects"][0]["footprint"] == ok
