@@ -707,6 +707,34 @@ def test_the_line_map_refuses_a_distorted_camera():
     LineMapStage.from_config(parse_config({"camera": {"options": {"stereo_baseline": 0.1}}}))
 
 
+@pytest.mark.parametrize("config,driver", [("sentry-dynamixel", "v4l2"), ("sentry-oak", "oak")])
+def test_the_line_map_refuses_a_camera_without_a_right_image(tmp_path, capsys, config, driver):
+    """A V4L2 or OAK camera with a stereo calibration file (a baseline) was taken by the line map, whose every
+    frame then lacked its right image and was skipped as unusable: `map build` drove its whole script to save an
+    empty map, `goto --map` re-planned on a map that never grew. Both are refused before any device opens,
+    naming the camera; `goto --map` without `--map-out` plans once from the file, and says so."""
+    import yaml
+
+    from vbnav.control.cli import main
+    from vbnav.control.config import CONFIG_DIR
+    data = yaml.safe_load((CONFIG_DIR / f"{config}.yaml").read_text())
+    w, h = data["camera"]["width"], data["camera"]["height"]
+    (tmp_path / "rig.yaml").write_text(f"width: {w}\nheight: {h}\nfx: 400\nfy: 400\ncx: {w / 2}\ncy: {h / 2}\n"
+                                       "baseline: 0.075\n")
+    data["camera"]["calibration_file"] = "rig.yaml"
+    data["controller"] = {"kind": "scripted"}
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(data))
+    said = f"both images of a stereo pair, and camera.driver {driver} gives one image per frame, no right image"
+    assert main(["map", "build", "-c", str(tmp_path / "robot.yaml"), "--out", str(tmp_path / "m.json")]) == 2
+    assert said in capsys.readouterr().err
+    save_map(LineMap(), tmp_path / "room.json")
+    assert main(["goto", "-c", str(tmp_path / "robot.yaml"), "--map", str(tmp_path / "room.json"), "--map-out",
+                 str(tmp_path / "grown.json"), "--goal", "0", "1", "0"]) == 2
+    out = capsys.readouterr()
+    assert "--map-out" in out.err and said in out.err and "planning once" in out.out, out
+    assert not (tmp_path / "m.json").exists() and not (tmp_path / "grown.json").exists()
+
+
 @pytest.mark.parametrize("why", ["no-baseline", "distorted"])
 def test_goto_localise_refused_says_what_to_do_for_its_reason(tmp_path, capsys, why):
     """`goto --localise` refused for a camera it cannot localise with (no stereo baseline) said "the map does not

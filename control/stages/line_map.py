@@ -32,6 +32,7 @@ from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 
+from vbnav.control.config import ONE_IMAGE_CAMERAS, no_right_image
 from vbnav.control.runtime.interfaces import Estimate, StageOverlay, VisionStage
 from vbnav.control.stages.frame_input import odometry_problem, stage_image
 from vbnav.drivers.camera import Frame
@@ -168,6 +169,14 @@ class LineMapStage(VisionStage):
         if refusal:
             raise ValueError(refusal)
         baseline = cfg.camera.stereo_baseline()    # the calibration file's, else camera.options.stereo_baseline
+        if cfg.camera.driver in ONE_IMAGE_CAMERAS:
+            # Its frames were each skipped as unusable: `map build` drove its whole script to save an empty map,
+            # `goto --map` re-planned on a map that never grew (and a stereo baseline, as the message below
+            # asks, would not have helped)
+            oak = " (the OAK sends its own disparity instead)" if cfg.camera.driver == "oak" else ""
+            raise ValueError(f"the line map matches segments in both images of a stereo pair, and "
+                             f"{no_right_image(cfg)}{oak}: map with a camera that gives the pair (camera.driver "
+                             f"sim with a stereo baseline, or replay with a recording that has right images)")
         if not baseline:
             raise ValueError("the line map needs a stereo pair: neither camera.calibration_file nor "
                              "camera.options.stereo_baseline gives a stereo baseline")
