@@ -1,4 +1,5 @@
-"""Luxonis OAK cameras through depthai 3.x: a mono or colour stream plus on-device stereo disparity.
+"""Luxonis OAK cameras through depthai 3.x: a mono or colour stream plus on-device stereo disparity, and with
+``right_image`` the rectified right image of the pair (the line map matches segments in both images).
 
 Start-up never lets depthai wait for an implicit device (``dai.Pipeline()``
 with no device blocks ~11 s before failing): devices are listed first
@@ -6,8 +7,8 @@ with no device blocks ~11 s before failing): devices are listed first
 with none, or not the one asked for, ``connect()`` fails within
 ``discovery_timeout_s`` naming what it found.
 
-Images and disparity come from non-blocking output queues of size 1 (latest
-only) and are paired by sequence number. The calibration stored on the device
+Images and disparity (and right images) come from non-blocking output queues
+and are paired by sequence number (``take_matching``). The calibration stored on the device
 (``readCalibration``) is checked against the configured intrinsics and baseline,
 which the stages were built from (``use_device_calibration``), and rides along in
 each frame's meta.
@@ -62,11 +63,22 @@ def disparity_px(frame: "dai.ImgFrame", subpixel_bits: int = 3) -> np.ndarray:
 
 
 def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = None, seq: int = 0,
-                         grey: bool = True, subpixel_bits: int = 3, meta: Optional[dict] = None) -> Frame:
-    """Host-side conversion of depthai messages into our Frame."""
+                         grey: bool = True, subpixel_bits: int = 3, meta: Optional[dict] = None,
+                         right: Optional["dai.ImgFrame"] = None) -> Frame:
+    """Host-side conversion of depthai messages into our Frame (``right``: the pair's rectified right image)."""
     image = img.getCvFrame()
     if grey and image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    right_image = None
+    if right is not None:
+        right_image = right.getCvFrame()
+        if right_image.ndim == 3:
+            right_image = cv2.cvtColor(right_image, cv2.COLOR_BGR2GRAY)
+        if right_image.shape[:2] != image.shape[:2]:
+            raise CameraError(f"right image {right_image.shape[1]}x{right_image.shape[0]} is not the size of the "
+                              f"left image {image.shape[1]}x{image.shape[0]} (camera.options.right_image takes the "
+                              f"mono stream's rectified pair)")
+        right_image = np.ascontiguousarray(right_image)
     disparity = None
     if disp is not None:
         disparity = disparity_px(disp, subpixel_bits)
@@ -75,7 +87,18 @@ def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = N
                               f"{image.shape[1]}x{image.shape[0]} (set the stereo depth alignment and output size)")
     m = {"device_seq": img.getSequenceNum()}
     m.update(meta or {})
-    return Frame(np.ascontiguousarray(image), timedelta_ns(img.getTimestamp()), seq, disparity=disparity, meta=m)
+    return Frame(np.ascontiguousarray(image), timedelta_ns(img.getTimestamp()), seq, right=right_image,
+                 disparity=disparity, meta=m)
+
+
+def take_matching(pending: dict, seq: int):
+    """The message of device sequence number ``seq`` from ``pending`` (seq -> message; None when it has not
+    come), dropping it and every older one: an image's disparity and right image share its sequence number,
+    and one that came too late for its image is never used."""
+    found = pending.pop(seq, None)
+    for k in [k for k in pending if k < seq]:
+        del pending[k]
+    return found
 
 
 # Searches still running when the process exits are waited for, this long in all, before the interpreter
@@ -154,6 +177,9 @@ class OakCamera(GrabbingCamera):
         stream: Literal["mono", "color"] = Field("mono", description="mono: the left mono camera (CAM_B), "
                                                  "rectified with disparity on, its raw image without; color: CAM_A")
         disparity: bool = Field(True, description="on-device stereo disparity aligned with the stream")
+        right_image: bool = Field(False, description="also deliver the rectified right image with each frame (the "
+                                  "line map of `vbnav map build` and `goto --map` matches segments in both images of "
+                                  "the pair); needs stream mono and disparity true; twice the images over USB")
         subpixel: bool = Field(False, description="subpixel disparity (finer depth far away)")
         subpixel_bits: int = Field(3, ge=3, le=5, description="fractional bits of subpixel disparity")
         extended_disparity: bool = Field(False, description="twice the disparity search range: nearer "
@@ -178,9 +204,12 @@ class OakCamera(GrabbingCamera):
             for names, mode, off in ((("subpixel", "subpixel_bits", "extended_disparity", "lr_check"),
                                       "disparity: true", not self.disparity),
                                      (("subpixel_bits",), "subpixel: true", not self.subpixel),
+                                     # the stereo node's rectified right image, the pair of the mono stream's left
+                                     (("right_image",), "disparity: true", not self.disparity),
+                                     (("right_image",), "stream: mono", self.stream != "mono"),
                                      (("replay_fps",), "replay_file", self.replay_file is None),
                                      (("device_id", "stream", "subpixel", "subpixel_bits", "extended_disparity",
-                                       "lr_check", "use_device_calibration", "discovery_timeout_s"),
+                                       "lr_check", "use_device_calibration", "discovery_timeout_s", "right_image"),
                                       "replay_file: null (a device)", self.replay_file is not None)):
                 idle = [n for n in names if n in changed]
                 if off and idle:
@@ -207,8 +236,9 @@ class OakCamera(GrabbingCamera):
         self.device_id: Optional[str] = None
         self._device = None
         self._pipeline = None
-        self._img_q = self._disp_q = None
+        self._img_q = self._disp_q = self._right_q = None
         self._pending_disp: dict[int, Any] = {}
+        self._pending_right: dict[int, Any] = {}
 
     @staticmethod
     def find(timeout_s: float = 2.0) -> list[str]:
@@ -282,7 +312,7 @@ class OakCamera(GrabbingCamera):
         replay.setLoop(False)
         self._pipeline = p
         self._img_q = replay.out.createOutputQueue(maxSize=1, blocking=False)
-        self._disp_q = None
+        self._disp_q = self._right_q = None
 
     def _select_device(self):
         t0 = time.monotonic()
@@ -348,6 +378,8 @@ class OakCamera(GrabbingCamera):
         self._pipeline = p
         self._img_q = img_out.createOutputQueue(maxSize=1, blocking=False)
         self._disp_q = stereo.disparity.createOutputQueue(maxSize=4, blocking=False) if stereo is not None else None
+        self._right_q = (stereo.rectifiedRight.createOutputQueue(maxSize=4, blocking=False) if self.opt.right_image
+                         else None)      # the Options refuse right_image without the stereo node's mono pair
 
     def read_calibration(self, calib: "dai.CalibrationHandler", socket: "dai.CameraBoardSocket") -> None:
         """The device's intrinsics of the stream (at its size), distortion and stereo baseline, checked
@@ -391,21 +423,19 @@ class OakCamera(GrabbingCamera):
                     self.finished = bool(self.opt.replay_file)
                     return
                 img = self._img_q.tryGet()
-                if self._disp_q is not None:
-                    for d in self._disp_q.tryGetAll():
-                        self._pending_disp[d.getSequenceNum()] = d
+                for q, pending in ((self._disp_q, self._pending_disp), (self._right_q, self._pending_right)):
+                    if q is not None:
+                        for d in q.tryGetAll():
+                            pending[d.getSequenceNum()] = d
                 if img is None:
                     time.sleep(0.002)
                     continue
-                disp = None
-                if self._disp_q is not None:
-                    # disparity and its rectified image share the device sequence number
-                    disp = self._pending_disp.pop(img.getSequenceNum(), None)
-                    for k in [k for k in self._pending_disp if k < img.getSequenceNum()]:
-                        del self._pending_disp[k]
+                # disparity, the right image and their rectified left image share the device sequence number
+                disp = take_matching(self._pending_disp, img.getSequenceNum()) if self._disp_q is not None else None
+                right = take_matching(self._pending_right, img.getSequenceNum()) if self._right_q is not None else None
                 meta = self._meta()
                 self._frames.publish(lambda seq: frame_from_imgframes(img, disp, seq, self.opt.grey,
-                                                                      self.opt.subpixel_bits, meta))
+                                                                      self.opt.subpixel_bits, meta, right))
             except Exception as exc:  # device unplugged mid-stream: report, the runtime sees stale frames
                 if self._stop.is_set():
                     return

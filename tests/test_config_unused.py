@@ -40,11 +40,11 @@ def test_sgbm_settings_beside_the_simulated_cameras_own_disparity_are_refused(tm
 
 
 def test_sgbm_settings_on_an_oak_are_refused(tmp_path):
-    """An OAK sends its own disparity and never a right image: SGBM never runs on its frames."""
+    """An OAK sends its own disparity with every image: SGBM never runs on its frames (source auto takes it)."""
     pytest.importorskip("depthai")
     refused(tmp_path, "camera: {driver: oak}\nobstacles: {enabled: true, sgbm_near_margin: 0.7}\n",
             "obstacles.sgbm_near_margin sets the stereo matching (SGBM)", "camera.driver oak",
-            "never a right image", "remove sgbm_near_margin")
+            "its own disparity with every image", "remove sgbm_near_margin")
 
 
 @pytest.mark.parametrize("key, value", [("ground_band_ratio", 2.0), ("ground_corridor_half_width", 0.5),

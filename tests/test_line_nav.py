@@ -712,7 +712,8 @@ def test_the_line_map_refuses_a_camera_without_a_right_image(tmp_path, capsys, c
     """A V4L2 or OAK camera with a stereo calibration file (a baseline) was taken by the line map, whose every
     frame then lacked its right image and was skipped as unusable: `map build` drove its whole script to save an
     empty map, `goto --map` re-planned on a map that never grew. Both are refused before any device opens,
-    naming the camera; `goto --map` without `--map-out` plans once from the file, and says so."""
+    naming the camera; `goto --map` without `--map-out` plans once from the file, and says so. An OAK gives its
+    rectified pair with camera.options.right_image (tests/test_oak_camera.py), which the line map takes."""
     import yaml
 
     from vbnav.control.cli import main
@@ -733,6 +734,13 @@ def test_the_line_map_refuses_a_camera_without_a_right_image(tmp_path, capsys, c
     out = capsys.readouterr()
     assert "--map-out" in out.err and said in out.err and "planning once" in out.out, out
     assert not (tmp_path / "m.json").exists() and not (tmp_path / "grown.json").exists()
+    if driver == "oak":       # its rectified pair (camera.options.right_image): the line map takes it
+        from vbnav.control.config import load_config
+        from vbnav.control.stages.line_map import LineMapStage
+        assert "camera.options.right_image: true" in out.err
+        data["camera"]["options"]["right_image"] = True
+        (tmp_path / "robot.yaml").write_text(yaml.safe_dump(data))
+        assert LineMapStage.from_config(load_config(str(tmp_path / "robot.yaml"))).baseline == 0.075
 
 
 @pytest.mark.parametrize("why", ["no-baseline", "distorted"])

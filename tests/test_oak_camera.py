@@ -14,7 +14,7 @@ from conftest import import_extra
 dai = import_extra("depthai", "oak")  # CI installs the extra: there a missing depthai fails
 
 from vbnav.drivers.camera import CameraError  # noqa: E402
-from vbnav.drivers.oak_camera import OakCamera, frame_from_imgframes, timedelta_ns  # noqa: E402
+from vbnav.drivers.oak_camera import OakCamera, frame_from_imgframes, take_matching, timedelta_ns  # noqa: E402
 
 
 def grey_frame(img: np.ndarray, seq: int, stamp: timedelta) -> "dai.ImgFrame":
@@ -304,6 +304,8 @@ def test_a_distorted_camera_on_the_rectified_mono_stream_is_refused(camera, says
      r"subpixel: True, extended_disparity: True: .*only with disparity: true"),
     ({"subpixel_bits": 5}, r"subpixel_bits: 5: .*only with subpixel: true"),
     ({"replay_fps": 10.0}, r"replay_fps: 10\.0: .*only with replay_file"),
+    ({"right_image": True, "disparity": False}, r"right_image: True: .*only with disparity: true"),
+    ({"right_image": True, "stream": "color"}, r"right_image: True: .*only with stream: mono"),
     ({"replay_file": "x.mp4", "device_id": "1844", "use_device_calibration": False},
      r"device_id: 1844, use_device_calibration: False: .*only with replay_file: null \(a device\)"),
 ])
@@ -320,3 +322,108 @@ def test_oak_options_of_a_mode_that_is_off_are_refused(options, says):
     OakCamera.Options(disparity=False, subpixel=False, lr_check=True)        # the defaults, written out
     OakCamera.Options(subpixel=True, subpixel_bits=5, extended_disparity=True)
     OakCamera.Options(replay_file="x.mp4", replay_fps=10.0, disparity=False)   # a replay has no disparity
+    OakCamera.Options(right_image=True)                                         # the mono stream's pair
+
+
+def test_the_rectified_right_image_rides_with_its_left_image_and_disparity(monkeypatch, rng):
+    """camera.options.right_image (the line map matches segments in both images of the pair): the stereo node's
+    rectifiedRight is the frame's right image, paired with the rectified left image and the disparity by the
+    device's sequence number; one whose left image never came is dropped. Before, an OAK never gave a right
+    image, so the line map skipped every frame. depthai's device side is faked here (no device, no emulator);
+    the messages are real dai.ImgFrames."""
+    import vbnav.drivers.oak_camera as oak
+    left, right = (rng.integers(0, 256, (40, 64), dtype=np.uint8) for _ in range(2))
+    raw = rng.integers(1, 64 * 8, (40, 64)).astype(np.uint16)
+    stamp = timedelta(seconds=3)
+    sent = {"rectifiedLeft": [grey_frame(left, 7, stamp)], "disparity": [raw16_frame(raw, 7)],
+            "rectifiedRight": [grey_frame(255 - right, 6, stamp), grey_frame(right, 7, stamp)]}
+    asked = []
+
+    class Queue:
+        def __init__(self, msgs):
+            self.msgs = msgs
+
+        def tryGet(self):
+            return self.msgs.pop(0) if self.msgs else None
+
+        def tryGetAll(self):
+            out, self.msgs[:] = list(self.msgs), []
+            return out
+
+    class Output:
+        def __init__(self, name):
+            self.name = name
+
+        def createOutputQueue(self, maxSize, blocking):
+            asked.append(self.name)
+            return Queue(sent[self.name])
+
+        def link(self, other):
+            pass
+
+    class Node:
+        def build(self, socket):
+            return self
+
+        def requestOutput(self, size, typ, fps):
+            return Output("sensor")
+
+        def __getattr__(self, name):        # the stereo node's outputs by name; its setters and inputs
+            return Output(name) if name in sent else (lambda *args, **kwargs: None)
+
+    class Pipeline:
+        def __init__(self, device):
+            pass
+
+        def create(self, node):
+            return Node()
+
+        def start(self):
+            pass
+
+        def isRunning(self):
+            return True
+
+        def stop(self):
+            pass
+
+    class Device:
+        def __init__(self, info):
+            pass
+
+        def readCalibration(self):
+            return device_calibration(450.0, 7.5)
+
+        def close(self):
+            pass
+
+    fake = type("FakeDai", (), {})()
+    for name in ("CameraBoardSocket", "ImgFrame", "node", "StereoDepthConfig"):
+        setattr(fake, name, getattr(dai, name))
+    fake.Device, fake.Pipeline = Device, Pipeline
+    monkeypatch.setattr(oak, "dai", fake)
+    monkeypatch.setattr(oak, "list_devices", lambda timeout_s: [dai.DeviceInfo("14442C10D13EABCE00")])
+    cam = OakCamera(options=OakCamera.Options(right_image=True, use_device_calibration=False), width=64, height=40)
+    cam.connect()
+    try:
+        frame = cam.read(timeout_s=5.0)
+    finally:
+        cam.disconnect()
+    assert sorted(asked) == ["disparity", "rectifiedLeft", "rectifiedRight"], asked
+    assert frame is not None and frame.meta["device_seq"] == 7
+    np.testing.assert_array_equal(frame.image, left)
+    np.testing.assert_array_equal(frame.right, right)       # seq 7's, not the older seq 6 (255 - right)
+    np.testing.assert_allclose(frame.disparity, raw / 8.0)
+
+
+def test_a_right_image_of_another_size_is_refused(rng):
+    img = grey_frame(rng.integers(0, 256, (40, 64), dtype=np.uint8), 3, timedelta(0))
+    other = grey_frame(rng.integers(0, 256, (20, 32), dtype=np.uint8), 3, timedelta(0))
+    with pytest.raises(CameraError, match=r"right image 32x20 is not the size of the left image 64x40"):
+        frame_from_imgframes(img, right=other)
+
+
+def test_take_matching_pairs_by_sequence_number_and_drops_the_older():
+    pending = {5: "five", 6: "six", 8: "eight"}
+    assert take_matching(pending, 6) == "six" and pending == {8: "eight"}
+    assert take_matching(pending, 7) is None and pending == {8: "eight"}     # not come yet: the newer kept

@@ -643,9 +643,10 @@ def simulated_camera_settings_not_read(cfg: Config) -> str:
 
 #: Camera drivers whose frames carry their own disparity whenever they could carry a right image, so that the
 #: obstacle stage's ``source: auto`` (the frame's disparity if present, else SGBM on its pair) never runs SGBM:
-#: the simulated stereo camera sends its true disparity with every right image, the OAK never sends a right one.
+#: the simulated stereo camera sends its true disparity with every right image, the OAK its own with every image.
 OWN_DISPARITY_CAMERAS = {"sim": "the simulated stereo camera sends its true disparity with every right image",
-                         "oak": "the OAK sends its own disparity and never a right image"}
+                         "oak": "the OAK sends its own disparity with every image (and its right image only with "
+                                "camera.options.right_image)"}
 
 
 def sgbm_settings_not_read(cfg: Config) -> str:
@@ -667,16 +668,20 @@ def sgbm_settings_not_read(cfg: Config) -> str:
             f"frame's own disparity; remove {' and '.join(unused)}{instead}")
 
 
-#: Camera drivers whose frames never carry a right image (the OAK's carry its own disparity instead).
+#: Camera drivers whose frames carry no right image (the OAK's only with camera.options.right_image).
 ONE_IMAGE_CAMERAS = ("v4l2", "oak")
 
 
 def no_right_image(cfg: Config) -> str:
     """Why the configured camera's frames carry no right image of a stereo pair, "" when they do or may (a
-    replayed recording has one when its folder does)."""
+    replayed recording has one when its folder does; an OAK with ``camera.options.right_image``, which its
+    Options allow only with its stereo node's mono pair)."""
     c = cfg.camera
+    if c.driver == "oak" and c.options.get("right_image") is True:
+        return ""
     if c.driver in ONE_IMAGE_CAMERAS:
-        return f"camera.driver {c.driver} gives one image per frame, no right image"
+        oak = " (set camera.options.right_image: true for the OAK's rectified pair)" if c.driver == "oak" else ""
+        return f"camera.driver {c.driver} gives one image per frame, no right image{oak}"
     if c.driver == "sim" and not c.stereo_baseline():
         return ("the simulated camera renders a right image only with a stereo baseline (camera.options."
                 "stereo_baseline or a stereo camera.calibration_file), and it has none")

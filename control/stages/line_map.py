@@ -169,15 +169,16 @@ class LineMapStage(VisionStage):
         if refusal:
             raise ValueError(refusal)
         baseline = cfg.camera.stereo_baseline()    # the calibration file's, else camera.options.stereo_baseline
-        if cfg.camera.driver in ONE_IMAGE_CAMERAS:
+        one_image = no_right_image(cfg) if cfg.camera.driver in ONE_IMAGE_CAMERAS else ""
+        if one_image:
             # Its frames were each skipped as unusable: `map build` drove its whole script to save an empty map,
             # `goto --map` re-planned on a map that never grew (and a stereo baseline, as the message below
             # asks, would not have helped)
-            oak = " (the OAK sends its own disparity instead)" if cfg.camera.driver == "oak" else ""
-            raise ValueError(f"the line map matches segments in both images of a stereo pair, and "
-                             f"{no_right_image(cfg)}{oak}: map with a camera that gives the pair (camera.driver "
-                             f"sim with a stereo baseline, or replay with a recording that has right images)")
+            raise ValueError(f"the line map matches segments in both images of a stereo pair, and {one_image}")
         if not baseline:
+            if cfg.camera.driver == "oak":     # its options have no baseline: the device's is checked against it
+                raise ValueError("the line map needs the stereo baseline, and no camera.calibration_file gives one: "
+                                 "give it a stereo calibration (the OAK checks it against its own at start-up)")
             raise ValueError("the line map needs a stereo pair: neither camera.calibration_file nor "
                              "camera.options.stereo_baseline gives a stereo baseline")
         return cls(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, float(baseline),
