@@ -832,6 +832,44 @@ def test_an_estop_stops_the_wheels_in_its_cycle_even_when_a_resume_and_a_teleop_
     moving = [t for t, l, r, p in drive.log if p and (l or r)]
     assert not [t for t in moving if estop_cycle <= t < T0 + 800_000_000], "the estop did not hold"
     assert [t for t in moving if t > T0 + 800_000_000], "the later resume and a fresh teleop drive"
+def test_an_estop_and_a_resume_arriving_between_the_tick_and_the_drain_do_not_both_apply_in_one_cycle():
+    """On the real clock commands also reach the mailbox after the cycle's tick and before its drain (the wheels'
+    serial read takes milliseconds). A resume that arrived behind an estop there came after the cycle's time, so
+    the rule 'a resume that arrived before the estop took effect' let it clear the estop in the cycle the estop
+    was answered applied, and a fresh teleop behind both drove the wheels of that cycle. Simulated here by a read
+    that takes 3 ms, during which the three commands arrive."""
+    rt, drive, clock, inbox, rejected = sim_teleop_runtime()
+    events = []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: events.append(("applied", cmd.kind, cmd.ack)))
+    rt.safety.listeners.append(lambda ev: events.append((ev.kind, ev.cause, ev.message)))
+    read, seq = drive.read, [0]
+
+    def slow_read():                   # the zenoh thread posts while the loop reads the wheels
+        state = read()
+        t = clock.now_ns() - T0
+        arrivals = [("teleop", "C")] if t % 50_000_000 == 0 and t < 800_000_000 else []
+        if t == 500_000_000:
+            arrivals = [("estop", json.dumps({"sender": "A", "ack": "E1"})),
+                        ("resume", json.dumps({"sender": "B", "ack": "R1"})), ("teleop", "C")]
+        for kind, payload in arrivals:
+            clock.advance(1_000_000)
+            if kind == "teleop":
+                seq[0] += 1
+                payload = teleop(seq[0], clock.now_ns(), sender=payload)
+            inbox.submit(kind, payload)
+        return state
+
+    drive.read = slow_read
+    rt.run(1.0)
+    estop_cycle = T0 + 500_000_000
+    assert ("applied", "estop", "E1") in events and ("applied", "resume", "R1") not in events, events
+    refused = [m for kind, cause, m in events if (kind, cause) == ("rejected", "resume")]
+    assert len(refused) == 1 and "estop from zenoh:A" in refused[0], refused
+    assert drive.last_motion_ns() > T0, "the stream drove before the estop"
+    assert drive.stopped_since(estop_cycle), "the wheels drove in the estop's cycle, or after it"
+    assert "estop" in rt.safety.latched
+
+
 @pytest.mark.parametrize("payload", ['{"reason": null}', '{"reason": "' + "x" * 201 + '"}', '{"reason": 5}',
                                      '{"why": "cable"}', "not json", '["estop"]', '{"ack": "not an ack!"}'])
 def test_an_estop_whose_payload_is_malformed_still_stops_the_robot(payload):
@@ -935,3 +973,77 @@ def test_a_resume_naming_a_latched_ns_ahead_of_the_robots_clock_clears_nothing()
     assert "estop" in rt.safety.latched, "a resume naming a latched_ns the robot never showed cleared the estop"
     refused = [e.message for e in rt.safety.events if (e.kind, e.cause) == ("rejected", "resume")]
     assert len(refused) == 1 and "ahead of this robot's clock" in refused[0], refused
+
+
+def test_a_mode_already_running_is_answered_as_such_not_as_a_switch(capsys):
+    """'mode idle' to a run already idle (or 'mode repeat --route hall' to the run repeating hall) was answered
+    'command' without a note, and vbnav send printed 'mode applied by robot at cycle N', as for a switch done (in an
+    operator run the same repeat command restarts the route); only the mode_unchanged event, which vbnav send does
+    not read, said nothing changed."""
+    import argparse
+
+    from test_operator_modes import _Events
+    from vbnav.control.commands.send import _report
+    from vbnav.control.comms.link import TelemetryLink
+    from vbnav.control.controllers.manual import IdleController
+
+    cfg = Config.model_validate({"telemetry": {"enabled": False}})
+    rt, drive, clock = make_runtime(IdleController(), camera=False, cfg=cfg)
+    sink = _Events()
+    link = TelemetryLink.attach(rt, cfg, recorder=sink, network=False)
+    rt.submit(OperatorCommand("mode", ("idle",), "op", ack="M1"))
+    link.close(rt.run(0.05))
+    (answer,) = [e for e in sink.events if e["kind"] == "command"]
+    assert answer["ack"] == "M1" and "already running: nothing changed" in answer.get("note", ""), answer
+    _report(argparse.Namespace(wait=1.0, user=None, tls_cert=None), "sim", "mode", answer, 1)
+    assert "mode idle was already running: nothing changed" in capsys.readouterr().out
+
+
+def test_vbnav_send_teleop_stream_refused_after_its_first_answer_ends_and_says_so(monkeypatch, capsys):
+    """send teleop V W --for S took the robot's answer to its first message for the whole stream: the later
+    messages carried no ack, and the robot summarises refusals of a stream without one, so an estop latched a
+    moment later refused the other 59 unheard and vbnav send printed 'teleop applied ... (60 messages sent)', exit
+    0. One message a second now asks again; its refusal ends the stream, with its stop, and exit 1. On a fake
+    clock: no sleeping."""
+    from test_telemetry_units import _Robot
+    from vbnav.control import cli
+    from vbnav.control.commands import send
+
+    class EstoppedAfterTheFirst(_Robot):
+        """Applies the first message, then (another operator's estop) refuses every teleop."""
+
+        def declare_publisher(self, key, **kw):
+            robot = self
+
+            class Pub:
+                matching_status = type("M", (), {"matching": True})()
+
+                def put(self, payload, attachment=None):
+                    msg = json.loads(payload)
+                    robot.sent.append(msg)
+                    if "ack" in msg:
+                        answer = {"ack": msg["ack"], "kind": "command", "cycle": 7} if len(robot.sent) == 1 else \
+                            {"ack": msg["ack"], "kind": "command_rejected", "reason": "stopped by estop (latched)"}
+                        data = json.dumps(answer).encode()
+                        robot.events(type("S", (), {"payload": type("P", (), {"to_bytes": lambda s: data})()})())
+            return Pub()
+
+    class FakeTime:
+        now = 0.0
+
+        def monotonic(self):
+            return self.now
+
+        def sleep(self, dt):
+            self.now += dt
+
+    robot = EstoppedAfterTheFirst()
+    monkeypatch.setattr(send, "open_client", lambda args: robot)
+    monkeypatch.setattr(send, "time", FakeTime())
+    assert cli.main(["send", "teleop", "0.2", "0", "--for", "3", "--rate", "20", "--robot", "sim"]) == send.REFUSED
+    asked = [m for m in robot.sent if "ack" in m]
+    assert len(asked) == 2 and asked[0]["ack"] != asked[1]["ack"], asked     # the first, then one a second later
+    assert len(robot.sent) == 22 and (robot.sent[-1]["linear"], robot.sent[-1]["angular"]) == (0.0, 0.0)
+    captured = capsys.readouterr()
+    assert "applied teleop at cycle 7, then refused a later message of the stream: stopped by estop" in captured.err
+    assert "teleop applied" not in captured.out, captured.out

@@ -16,6 +16,7 @@ from vbnav.control.commands._net import (CommandPublisher, StateWatch, add_net_a
 _LOCAL_LIMIT = 1e3
 RATE_HZ = 20.0      # teleop --for stream rate when --rate is not given (it defaults to None: without --for it
                     # is refused, one message has no rate)
+CHECK_EVERY_S = 1.0  # a teleop --for stream asks the robot for an answer again this often after its first one
 
 OK, REFUSED, BAD_INPUT, UNREACHABLE = 0, 1, 2, 3
 
@@ -69,7 +70,8 @@ def register(sub) -> None:
                                     "safety.command_timeout_s (and only a run with controller teleop or operator follows "
                                     "it). Without --for one message is sent (the robot drives up to the timeout); "
                                     "`vbnav send teleop 0.1 0 --for 3` drives 3 s, then sends a stop (V and W 0). The "
-                                    "exit code is the robot's answer to the first message it applies or refuses; a "
+                                    "exit code is the robot's answer to the first message it applies or refuses, "
+                                    "and to one message a second after it (an estop or a hold meanwhile); a "
                                     "refusal stops the stream.")
     t.add_argument("v", type=finite, metavar="V", help="linear velocity, m/s")
     t.add_argument("w", type=finite, metavar="W", help="angular velocity, rad/s")
@@ -245,14 +247,23 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     rate = (args.rate or RATE_HZ) if stream else None
     n = max(1, int(args.duration * rate)) if stream else 1
     answer, sent = None, 0
+    check_every = max(1, round((rate or RATE_HZ) * CHECK_EVERY_S))
     first = time.monotonic()
     try:
         for i in range(n):
-            put(i, with_ack=answer is None)   # ack until answered: a coalesced or lost one cannot hide the answer
+            if answer is None:      # ack until answered: a coalesced or lost one cannot hide the answer
+                put(i, with_ack=True)
+            elif i % check_every == 0:
+                # Once applied, the stream's later messages carried no ack, and the robot summarises refusals of
+                # a stream without one: an estop or a hold meanwhile refused the rest unheard, and this printed
+                # 'applied'. One message a second asks again, under an ack of its own.
+                out.put(what, {**body, "ack": heard.check()})
+            else:
+                put(i, with_ack=False)
             sent += 1
             if answer is None:
                 answer = _poll(heard.answers)
-            if answer is not None and answer["kind"] == "command_rejected":
+            if answer is not None and answer["kind"] == "command_rejected" or heard.later_refusal():
                 break
             if answer is None and time.monotonic() - first > args.wait:
                 break
@@ -260,7 +271,8 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
                 time.sleep(1.0 / rate)
     finally:
         # however the stream ends (its time up, Ctrl-C, SIGTERM or SIGHUP, an error): the robot would drive on
-        # with the last command until its command timeout
+        # with the last command until its command timeout (also after a later message was refused: the ones before
+        # it drove)
         stopped = stream and sent > 0 and not (answer is not None and answer["kind"] == "command_rejected")
         if stopped:
             out.put(what, {"linear": 0.0, "angular": 0.0})
@@ -269,6 +281,12 @@ def _exchange(session, args, what: str, body: dict, secret: bytes | None) -> int
     if answer is None:      # an answer the network dropped (congestion control DROP) is in the robot's history
         heard.recall(session, robot)
         answer = _poll(heard.answers)
+    later = heard.later_refusal()
+    if answer is not None and answer["kind"] == "command" and later is not None:
+        print(f"vbnav send: robot {robot} applied {what} at cycle {answer.get('cycle', '?')}, then refused a later "
+              f"message of the stream: {later.get('reason', '?')} ({sent} messages sent"
+              f"{', then a stop' if stopped else ''})", file=sys.stderr)
+        return REFUSED
     return _report(args, robot, what, answer, sent, stopped, heard.pending[0] if heard.pending else None,
                    heard.dropped[-1] if heard.dropped else None, heard.unverified[0] if heard.unverified else None)
 
@@ -282,11 +300,26 @@ class _Heard:
         self.pending: list = []      # command_pending: the robot took the command and finishes it later
         self.dropped: list = []      # events_dropped: the robot's telemetry queue was full, an answer may be lost
         self.unverified: list = []   # refusals of a payload with this ack whose signature failed (a copy's?)
+        self._checks: set = set()    # the acks of a stream's later messages (``check``)
+        self.later: list = []        # command_rejected answering one of them
+
+    def check(self) -> str:
+        """A new ack for a stream's later message: a refusal of it is ``later_refusal``."""
+        ack = uuid.uuid4().hex
+        self._checks.add(ack)
+        return ack
+
+    def later_refusal(self):
+        """The robot's first refusal of a stream's later message (``check``), else None."""
+        return self.later[0] if self.later else None
 
     def take(self, msg: dict) -> None:
         kind = msg.get("kind")
         if kind == "events_dropped":             # carries no ack: any command's answer may be among them
             self.dropped.append(msg)
+        elif msg.get("ack") in self._checks:
+            if kind == "command_rejected":
+                self.later.append(msg)
         elif msg.get("unverified_ack") == self.ack:
             # unsigned, this command is refused whoever else sent it too: the answer; signed, it may be a copy's
             if self.signed:

@@ -355,6 +355,10 @@ class TelemetryLink:
                       arrival_ns=cmd.arrival_ns)
         if outcome.reason:
             fields["note"] = outcome.reason
+        elif cmd.kind == "mode" and outcome.unchanged:
+            # 'applied' alone reads as a switch done (a repeat restarted): vbnav send prints the note, not the
+            # mode_unchanged event
+            fields["note"] = f"mode {rt.controller.name} was already running: nothing changed"
         if cmd.ack:
             fields["ack"] = cmd.ack
         self.publisher.event("command", stamp_ns=now_ns, **fields)

@@ -260,9 +260,11 @@ class Runtime:
         self._refused_told_ns: Optional[int] = None      # when the last camera_frames_refused warning was
         self._controller_holds: set[str] = set()         # causes of the controller's safety_conditions
         self._estimate_kinds: set[str] = set()           # estimate kinds checked for freshness, or still held
-        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back, an estop taken)
-        # was sent before anyone could know of it, and does not clear it
+        # (time, what): a resume that arrived before this time (a stall detected, the lost drive back) was sent
+        # before anyone could know of it, and does not clear it
         self._resume_after: Optional[tuple[int, str]] = None
+        # the estop taken in the drain being applied (_apply_commands): a resume behind it in that drain is refused
+        self._estop_in_drain: Optional[str] = None
         self.fault_traceback: Optional[str] = None
         # sd_notify when started by systemd ($NOTIFY_SOCKET): READY, watchdog pings per cycle, STOPPING
         self.notifier: Optional[SystemdNotifier] = SystemdNotifier.from_environ()
@@ -729,6 +731,7 @@ class Runtime:
         # Held until answered: a command that raises ends the run, and it and the rest of the drain (an
         # estop among them) are then answered by _refuse_waiting_commands, not left to time out.
         self._in_hand = commands
+        self._estop_in_drain = None
         while self._in_hand:
             cmd = self._in_hand[0]
             for fn in self.command_observers:
@@ -766,8 +769,10 @@ class Runtime:
             self.safety.trip(now, "estop", f"estop from {cmd.source}" + (f": {cmd.args[0]}" if cmd.args else ""))
             self._forget_teleop(now if cmd.arrival_ns is None else cmd.arrival_ns, "the estop")
             # a resume drained with it arrived before anyone could see it (the state showing it goes out after
-            # this cycle): taken, it cleared the estop in the cycle it was applied, and the wheels drove on
-            self._resume_after = (now, f"the estop from {cmd.source} took effect")
+            # this cycle): taken, it cleared the estop in the cycle it was applied, and the wheels drove on. By the
+            # drain, not by the cycle's time: on the real clock commands also arrive between the tick and the drain
+            # (a serial read takes milliseconds), later than `now` and still in this drain
+            self._estop_in_drain = f"the estop from {cmd.source}"
             if self._latch_writer is not None:     # kept across a restart; written off the loop thread
                 self._latch_writer.write(latch_record(self.safety.latched["estop"], now))
             return APPLIED
@@ -777,6 +782,10 @@ class Runtime:
         if cmd.kind == "resume" and self._recovery is not None:
             return CommandOutcome.refused(f"the drive is still lost: {self.drive.drive_name} has not come back yet; "
                                           f"resume once a drive_reconnected event says so")
+        if cmd.kind == "resume" and self._estop_in_drain is not None:
+            return CommandOutcome.refused(f"stale: this resume was taken in the cycle {self._estop_in_drain} took "
+                                          f"effect, behind it, before any state could show that estop, so it was "
+                                          f"not meant to clear it; resume again")
         if cmd.kind == "resume" and self._resume_after is not None and cmd.arrival_ns is not None \
                 and cmd.arrival_ns < self._resume_after[0]:
             t, what = self._resume_after
