@@ -1012,21 +1012,10 @@ def test_vbnav_send_teleop_stream_refused_after_its_first_answer_ends_and_says_s
     class EstoppedAfterTheFirst(_Robot):
         """Applies the first message, then (another operator's estop) refuses every teleop."""
 
-        def declare_publisher(self, key, **kw):
-            robot = self
-
-            class Pub:
-                matching_status = type("M", (), {"matching": True})()
-
-                def put(self, payload, attachment=None):
-                    msg = json.loads(payload)
-                    robot.sent.append(msg)
-                    if "ack" in msg:
-                        answer = {"ack": msg["ack"], "kind": "command", "cycle": 7} if len(robot.sent) == 1 else \
-                            {"ack": msg["ack"], "kind": "command_rejected", "reason": "stopped by estop (latched)"}
-                        data = json.dumps(answer).encode()
-                        robot.events(type("S", (), {"payload": type("P", (), {"to_bytes": lambda s: data})()})())
-            return Pub()
+        def answer(self, msg):
+            if len(self.sent) == 1:
+                return super().answer(msg)
+            return {"ack": msg["ack"], "kind": "command_rejected", "reason": "stopped by estop (latched)"}
 
     class FakeTime:
         now = 0.0

@@ -570,9 +570,13 @@ class _Robot:
                 msg = json.loads(payload)
                 robot.sent.append(msg)
                 if "ack" in msg:
-                    answer = json.dumps({"ack": msg["ack"], "kind": "command", "cycle": 7}).encode()
+                    answer = json.dumps(robot.answer(msg)).encode()
                     robot.events(type("S", (), {"payload": type("P", (), {"to_bytes": lambda s: answer})()})())
         return Pub()
+
+    def answer(self, msg: dict) -> dict:
+        """The robot's answer to a message with an ack: applied."""
+        return {"ack": msg["ack"], "kind": "command", "cycle": 7}
 
     def get(self, key, timeout=None):
         return [type("R", (), {"ok": object()})()]
