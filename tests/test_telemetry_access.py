@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import pytest
 
 from test_telemetry_net import Operator, finish, free_port, start_robot   # same directory
-from vbnav.control.comms.command_auth import CommandVerifier, read_secret, sign
+from vbnav.control.comms.command_auth import CommandVerifier, _mac, read_secret, sign
 from vbnav.control.comms.network import robot_session_config
 from vbnav.control.config import ConfigError, parse_config
 
@@ -133,6 +133,10 @@ def test_signed_commands_unsigned_wrong_stale_and_replayed_are_refused():
     assert v.verify(key, payload, sign(secret, key, payload, stamp_ns=now[0] - 6_000_000_000)).startswith("stale")
     now[0] += 6_000_000_000     # the first one left the window: still refused, now as stale
     assert v.verify(key, payload, att).startswith("stale")
+    # a stamp of 5000 digits under a valid MAC (a secret holder's): int() raised past Python's 4300-digit limit
+    stamp, nonce = b"9" * 5000, b"0123456789abcdef"
+    long_stamp = b" ".join((b"vbnav-hmac1", stamp, nonce, _mac(secret, key, stamp, nonce, payload).encode()))
+    assert v.verify(key, payload, long_stamp).startswith("malformed")
 
 
 class _SignedRobot:

@@ -108,7 +108,10 @@ class CommandVerifier:
             return ("unsigned: this robot accepts only commands signed with its shared secret "
                     "(telemetry.shared_secret_file; vbnav send --secret-file)")
         parts = bytes(attachment).split(b" ")
-        if len(parts) != 4 or parts[0] != SCHEME or not parts[1].isdigit() or len(parts[2]) < 16:
+        # A monotonic_ns stamp has at most 20 digits (2^64); a longer one failed int() past Python's 4300-digit
+        # limit after a valid MAC, an internal error instead of this refusal
+        if (len(parts) != 4 or parts[0] != SCHEME or not parts[1].isdigit() or len(parts[1]) > 20
+                or len(parts[2]) < 16):
             return f"malformed signature: expected '{SCHEME.decode()} <stamp_ns> <nonce> <mac>'"
         _, stamp, nonce, mac = parts
         if not hmac.compare_digest(_mac(self._secret, key, stamp, nonce, payload).encode(), mac):
