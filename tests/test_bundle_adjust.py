@@ -99,7 +99,7 @@ def test_outliers_do_not_pull_the_solution():
     fixed[:2] = True
     res = bundle_adjust(poses, fixed, X, np.zeros(len(X), bool), f, p, rays, F, sigma_px=0.5)
     pos_err = [np.linalg.norm(-a[:3, :3].T @ a[:3, 3] + b[:3, :3].T @ b[:3, 3]) for a, b in zip(res.poses_cw, poses)]
-    assert max(pos_err) < 0.05, pos_err
+    assert max(pos_err) < 0.03, pos_err  # measured 14 mm on 2026-12-04, bar 2x
     assert np.median(res.residual_px[bad]) > 20  # the outliers stay outliers, to be rejected by the caller
 
 

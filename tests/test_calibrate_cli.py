@@ -226,10 +226,11 @@ def test_mount_from_a_board_on_the_floor(tmp_path, capsys, pitch_deg, roll_deg):
     out = capsys.readouterr()
     assert code == 0, out.err
     m = load_config(str(tmp_path / "robot.yaml")).camera.mount
-    # measured: up to 2.4 mm and 0.24 deg off (corners ~8 px apart across the rendered board at a grazing
-    # angle, 0.1-0.3 px RMS); the bounds are twice that
-    assert abs(m.height - 0.32) < 0.005, m
-    assert abs(m.pitch_deg - pitch_deg) < 0.5 and abs(m.roll_deg - roll_deg) < 0.5, m
+    # measured on 2026-12-04 (both cases): 0.4 mm, 0.035-0.038 deg pitch, 0.011-0.014 deg roll off (corners
+    # ~8 px apart across the rendered board at a grazing angle; 2.4 mm and 0.24 deg were claimed before);
+    # the bounds are about twice that
+    assert abs(m.height - 0.32) < 0.001, m
+    assert abs(m.pitch_deg - pitch_deg) < 0.08 and abs(m.roll_deg - roll_deg) < 0.03, m
     assert (m.forward, m.yaw_deg) == (0.1, 0.0)          # the rest of the mount kept
     new = (tmp_path / "robot.yaml").read_text()
     changed = [(a, b) for a, b in zip(text.splitlines(), new.splitlines()) if a != b]
@@ -291,9 +292,10 @@ def test_mount_from_the_stereo_ground_plane(tmp_path, capsys, pitch_deg, roll_de
     code = cli.main(["calibrate", "mount", *render_floor_pair(tmp_path, pitch_deg, roll_deg)])
     assert code == 0, capsys.readouterr().err
     m = load_config(str(tmp_path / "robot.yaml")).camera.mount
-    # measured (pitch 15 or 25 deg, roll 2 or -4 deg): within 1.6 mm, 0.11 deg pitch, 0.2 deg roll (SGBM on the rendered room floor); bounds twice that
-    assert abs(m.height - 0.25) < 0.004, m
-    assert abs(m.pitch_deg - pitch_deg) < 0.3 and abs(m.roll_deg - roll_deg) < 0.5, m
+    # measured (pitch 15 or 25 deg, roll 2 or -4 deg): within 1.6 mm, 0.11 deg pitch, 0.2 deg roll (SGBM on the rendered room floor);
+    # the case run here (25, -4) measured 1.5 mm, 0.115 deg pitch, 0.120 deg roll on 2026-12-04; bounds about twice that
+    assert abs(m.height - 0.25) < 0.003, m
+    assert abs(m.pitch_deg - pitch_deg) < 0.25 and abs(m.roll_deg - roll_deg) < 0.25, m
 
 
 @pytest.mark.parametrize("given", [["--board-thickness", "0.01"], ["--square", "0.04"], ["--cols", "9"],

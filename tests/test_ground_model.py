@@ -69,7 +69,8 @@ def test_kerb_taller_than_the_threshold_is_an_obstacle(rng):
     road = _road(r, 2.0)
     assert _share(s.labels, road, PixelClass.GROUND) >= 0.99
     fl = s.fit.floor                                 # the pavement does not tilt the fit
-    assert abs(math.degrees(fl.roll)) < 0.3 and fl.height == pytest.approx(H, abs=0.03)
+    # measured 0.0034 deg and 2.8 mm on 2026-12-04, bars about 2x
+    assert abs(math.degrees(fl.roll)) < 0.008 and fl.height == pytest.approx(H, abs=0.006)
 
 
 def test_camber_is_ground(rng):

@@ -55,7 +55,7 @@ def test_2cm_box_at_3m_found_and_floor_clean(rng):
     box = r.surface == ds.BOX0
     assert box.sum() > 60                           # ~3 rows x 27 columns are visible
     assert _flagged(s.labels, box) >= 0.95
-    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 0.001  # measured 4e-5 (4 px) on 2026-11-30; bar 0.1 %
+    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 1e-4  # measured 4.0e-5 (6 px) on 2026-12-04, bar 2.5x
     assert _flagged(s.labels, r.surface == ds.BOX0 + 1) <= 0.01          # the flat sheet is ground
     assert _flagged(s.labels, r.surface == ds.BOX0 + 1, PixelClass.GROUND) >= 0.99
 
@@ -67,7 +67,7 @@ def test_1cm_box_with_a_5mm_threshold(rng):
     s = detect_obstacles(D, RIG, PRIOR, params=ObstacleParams(obstacle_height=0.005, noise_px=0.1))
     assert _flagged(s.labels, r.surface == ds.BOX0 + 2) >= 0.95
     assert _flagged(s.labels, r.surface == ds.BOX0) >= 0.95
-    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 0.001  # measured 5e-5 on 2026-11-30; bar 0.1 %
+    assert _flagged(s.labels, r.surface == ds.FLOOR) <= 1e-4  # measured 4.6e-5 (7 px) on 2026-12-04, bar 2x
 
 
 def test_step_down_is_a_negative_obstacle(rng):

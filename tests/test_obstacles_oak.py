@@ -55,8 +55,8 @@ def test_oak_disparity_frames_drive_the_stop_zone():
     assert e.ok and e.info["speed_scale"] == 1.0
     box = r.surface == ds.BOX0
     assert np.mean(e.value.labels[box] == PixelClass.OBSTACLE) >= 0.95
-    # measured 2.5e-4 on 2026-11-30
-    assert np.mean(e.value.labels[r.surface == ds.FLOOR] == PixelClass.OBSTACLE) <= 0.001
+    # measured 2.3e-4 on 2026-12-04, bar 2x
+    assert np.mean(e.value.labels[r.surface == ds.FLOOR] == PixelClass.OBSTACLE) <= 5e-4
     assert e.value.nearest[0] == pytest.approx(3.1, abs=0.05)          # 3.0 m + the camera's 0.1 m
     scales = [stage.process(oak_frame(near, s)[0], Pose2()).info["speed_scale"] for s in (2, 3)]
     assert scales == [1.0, 0.0]                 # 2 of 3 frames: stopped on the second

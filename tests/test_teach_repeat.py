@@ -265,7 +265,8 @@ def test_the_same_knocked_frame_twice_does_not_confirm_itself(scene):
         ids, px = observe(start, pts, np.random.default_rng(60 + i))
         est = stage.localise(ids, px, Pose2(), i)
         oks.append(est.ok)
-    assert oks[-1] and abs(est.value.pose.theta) < 0.01 and abs(est.value.pose.z + 0.3) < 0.03, (oks, est.info)
+    # measured 0.0005 rad and 4.1 mm on 2026-12-04 (the knocked frame was 0.1 rad off), bars about 2x
+    assert oks[-1] and abs(est.value.pose.theta) < 0.001 and abs(est.value.pose.z + 0.3) < 0.01, (oks, est.info)
 
 def test_repeat_skips_a_keyframe_whose_landmarks_cannot_be_found(scene):
     """A keyframe none of whose landmarks are found again (taught from a blurred frame: its image and

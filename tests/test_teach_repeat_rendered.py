@@ -246,9 +246,10 @@ def test_a_camera_tilted_on_its_mount_since_teaching(world, taught, pitch_deg, r
     assert ctl.finished
     assert lat[t > 8].max() < 0.03          # measured 1.4 cm (1.4 untilted); 10-13 cm or stopped before
     assert math.hypot(end.x - path[-1, 0], end.z - path[-1, 1]) < 0.08         # measured 3.6-3.8 cm
-    # the tilt is found: pitch and roll within 0.3 deg over the second half of the route (measured < 0.1)
+    # the tilt is found: pitch and roll over the second half of the route within 0.048-0.053 deg of the
+    # truth (measured on 2026-12-04 over the three cases), bar 2x
     half = tilt[len(tilt) // 2:]
-    assert np.max(np.abs(half - [pitch_deg, roll_deg])) < 0.3, half
+    assert np.max(np.abs(half - [pitch_deg, roll_deg])) < 0.11, half
 
 
 def test_a_camera_knocked_while_repeating_is_followed(world, taught):
@@ -268,7 +269,7 @@ def test_a_camera_knocked_while_repeating_is_followed(world, taught):
     assert lat[t > 8].max() < 0.03                # measured 1.4 cm
     assert math.hypot(end.x - path[-1, 0], end.z - path[-1, 1]) < 0.08   # measured 3.7 cm
     assert not any(e.info["camera_tilt_deg"][0] for e in ests[:60])     # nothing applied before the knock
-    assert abs(ests[-1].info["camera_tilt_deg"][0] - 2.0) < 0.3         # measured 2.00
+    assert abs(ests[-1].info["camera_tilt_deg"][0] - 2.0) < 0.012       # measured 2.005 on 2026-12-04, bar ~2x
 
 
 def test_a_camera_tilted_beyond_max_tilt_deg_stops_the_repeat_naming_the_mount(world, taught):

@@ -62,9 +62,10 @@ def test_blind_frames_are_lost_and_the_run_rejoins_after_them(blinded_run):
     assert state[after] == "reinit" and state[len(state) - 1] in ("tracked", "reinit"), state
     assert len(np.loadtxt(traj)) == len(seen)
     assert re.search(rf"{len(seen)} frames .*, {len(blank)} lost", out) or f"{len(blank)} lost" in out, out
-    # Sim(3) APE over the turn, restarts included: measured 0.115-0.125 m over these 19 poses (bar 2x)
+    # Sim(3) APE over the turn, restarts included: measured 0.102 m over these 19 poses on 2026-12-04
+    # (0.115-0.125 m earlier), bar 2x
     ate = float(re.search(r"ATE RMSE ([0-9.]+) m", out).group(1))
-    assert ate < 0.25, out
+    assert ate < 0.2, out
 
 
 def test_more_lost_frames_than_max_lost_exit_1(blinded_run):

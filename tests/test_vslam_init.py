@@ -101,6 +101,6 @@ def test_tag_grid_gives_the_camera_pose(rng):
     R_cw = out.pose_wc[:3, :3].T
     assert rotation_angle(R_cw.T @ R) < np.deg2rad(0.13)  # measured 0.063 deg on 2026-11-30, bar 2x
     assert np.linalg.norm(-R_cw @ out.pose_wc[:3, 3] - T) < 0.0013  # measured 0.62 mm on 2026-11-30, bar 2x
-    # the two extra pixels got their depth from the grid plane
+    # the two extra pixels got their depth from the grid plane (measured 0.61 mm off on 2026-12-04, bar 2x)
     np.testing.assert_allclose(out.points_cam[-2:], np.array([[0.05, 0.05, 0.0], [0.15, 0.02, 0.0]]) @ R.T + T,
-                               atol=0.005)
+                               atol=0.0013)

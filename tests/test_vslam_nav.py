@@ -182,9 +182,9 @@ def test_stage_follows_a_drive_in_the_rendered_room(disparity_only):
         assert est.ok and est.kind == "vslam"
     truth = start.between(poses[-1])
     got = est.value.pose
-    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
-    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.15  # measured 0.068 deg on 2026-11-30, bar 2x
-    assert abs(est.value.quality["height_error_m"]) < 0.0015  # measured 0.71 mm on 2026-11-30, bar 2x
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02  # measured 1.65-1.77 cm on 2026-12-04
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.12  # measured 0.058-0.060 deg on 2026-12-04, bar 2x
+    assert abs(est.value.quality["height_error_m"]) < 0.001  # measured 0.38-0.50 mm on 2026-12-04, bar 2x
 
 
 def test_stage_needs_stereo():
@@ -228,8 +228,9 @@ def test_a_frame_without_disparity_is_not_ok_and_the_stage_carries_on(late):
             assert r.ok, (i, r.info)
     assert stage.stats["unusable"] == len(late)
     truth, got = start.between(poses[-1]), results[-1].value.pose
-    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.03
-    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.5
+    # measured 0.23-0.46 cm and 0.003-0.037 deg over the three cases on 2026-12-04, bars about 2x
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.01
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.08
 
 
 @pytest.mark.parametrize("first", ["dark", "grey"])
@@ -261,8 +262,9 @@ def test_a_first_frame_without_landmarks_is_not_a_start(first, disparity_only):
     assert all(r.ok for r in results[2:]), [r.info for r in results]
     assert stage.stats["lost"] == 2 and stage.stats["restarts"] == 0
     truth, got = start.between(poses[-1]), results[-1].value.pose
-    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
-    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.3
+    # measured 0.32-0.56 cm and 0.012-0.013 deg over the four cases on 2026-12-04, bars about 2x
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.012
+    assert abs(math.degrees(wrap_angle(got.theta - truth.theta))) < 0.03
 
 
 VSLAM_BAD_FRAMES = {
@@ -314,7 +316,7 @@ def test_a_frame_of_another_format_is_not_ok_and_the_stage_carries_on(kind):
     assert all(r.ok for i, r in enumerate(results) if i not in (0, 6))
     assert stage.stats["unusable"] == 2 and stage.stats["restarts"] == 0
     truth, got = start.between(poses[-1]), results[-1].value.pose
-    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.009  # measured 0.19-0.44 cm on 2026-12-04, bar 2x
 
 
 def test_monocular_stage_takes_its_scale_from_the_wheels():
@@ -410,7 +412,7 @@ def test_stage_restarts_after_the_lens_was_covered_and_still_closes_the_loop_lat
     truth = start.between(poses[-1])
     got = results[-1].value.pose
     # 0.15 m bridged on odometry with 2 % error: a few mm, plus the VSLAM's own error
-    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.008  # measured 0.37 cm on 2026-12-04, bar 2x
 
 
 def test_anchors_grow_with_the_area_seen_not_the_distance_driven():
@@ -432,7 +434,7 @@ def test_anchors_grow_with_the_area_seen_not_the_distance_driven():
         if (i + 1) % len(lap) == 0:
             kept.append(len(stage.anchors))
             truth, got = start.between(p), est.value.pose
-            assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.01   # measured 0.27-0.43 cm, bar 2x
+            assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.01   # measured 0.27-0.46 cm on 2026-12-04, bar 2x
     assert kept[0] >= 8, kept                       # a lap is anchored all round (14 measured)
     assert kept[2] <= kept[0] + 2, kept             # measured 14, 14, 15 (without the rule 14, 28, 42)
     assert sum(relocalised[len(lap):]) > len(lap)   # laps 2-3 are posed against lap 1's anchors (144 of 144)
@@ -483,7 +485,7 @@ def test_a_frame_with_non_finite_odometry_is_not_ok_and_the_stage_carries_on():
     assert all(r.ok for i, r in enumerate(results) if i not in (0, 5))
     assert math.isfinite(stage._travelled)
     truth, got = start.between(poses[-1]), results[-1].value.pose
-    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.02
+    assert math.hypot(got.x - truth.x, got.z - truth.z) < 0.006  # measured 0.29 cm on 2026-12-04, bar 2x
 
 
 @pytest.mark.parametrize("baseline", [float("nan"), float("inf"), -0.12, "0.12"])
