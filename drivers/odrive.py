@@ -199,6 +199,28 @@ class ODriveDrive(SerialWheelDrive):
                     self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
                                                   f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
                     raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
+                # The axis watchdog is what stops the wheels when the host cannot (a lost bus, a killed process),
+                # and the ASCII protocol acknowledges no write: a line lost on its way (a noisy UART) left it off,
+                # and the wheels ran on after the host went silent. Read back, as the control mode.
+                on = self._query(f"r axis{ax}.config.enable_watchdog", t)
+                timeout = self._query(f"r axis{ax}.config.watchdog_timeout", t)
+                if _integer(on) != 1 or not _close_to(timeout, self.opt.watchdog_s):
+                    why = (f"ODrive {self._axis(ax)}: the axis watchdog did not take (enable_watchdog {on!r}, "
+                           f"watchdog_timeout {timeout!r}, expected 1 and {self.opt.watchdog_s:g} s): nothing would "
+                           f"stop this wheel if the host went silent")
+                    self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax), why))
+                    raise DriveError(why)
+                # The bring-up leaves the wheels unpowered (a reconnect's drive_reconnected says so): an axis that
+                # did not take the IDLE request (its line lost, a hung axis) drove on at its last velocity.
+                # Read after the questions above: its state machine has had its time to leave closed loop.
+                state = self._query(f"r axis{ax}.current_state", t)
+                if state is None:
+                    raise DriveError(f"ODrive on {self.opt.port} does not answer 'r axis{ax}.current_state'")
+                if _integer(state) != AXIS_STATE_IDLE:
+                    why = (f"ODrive {self._axis(ax)}: did not take the stop: current_state {state} (not IDLE "
+                           f"{AXIS_STATE_IDLE}) after the bring-up's IDLE request; only its axis watchdog stops it")
+                    self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax), why))
+                    raise DriveError(why)
             self._was_up = True
         except (serial.SerialException, OSError, termios.error) as exc:
             # termios.error (not an OSError): the flush before a question, on a device gone mid-setup
@@ -486,6 +508,14 @@ def _integer(answer: Optional[str]) -> Optional[int]:
         return None if answer is None else int(float(answer))
     except ValueError:
         return None
+
+
+def _close_to(answer: Optional[str], value: float) -> bool:
+    """An answer that reads as ``value`` (written with 4 decimals, printed back with 6)."""
+    try:
+        return answer is not None and abs(float(answer) - value) < 1e-4
+    except ValueError:
+        return False
 
 
 class _Corrupt(Exception):

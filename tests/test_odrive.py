@@ -377,3 +377,50 @@ def test_a_stop_sent_again_does_not_wait_in_the_loop_for_its_read_back(emu, driv
     assert wait_until(lambda: stopped_or_idle(emu))
     drive.disable()                                  # ... confirmed by the next resend's read-back
     assert drive.stop_failure is None and stopped_or_idle(emu)
+
+
+@pytest.mark.parametrize("lost", ["enable_watchdog", "watchdog_timeout"])
+def test_a_watchdog_setting_lost_on_its_way_is_refused_at_bring_up(emu, lost):
+    """The axis watchdog is what stops the wheels when the host cannot (a lost bus, a killed process), and the
+    ASCII protocol acknowledges no write. A write lost on its way (a noisy UART) left it off: the bring-up went
+    on, the lost-bus message said the watchdog disarms the motors, and a host gone silent left the wheels
+    running. It is read back, as the control mode, and a watchdog that did not take refuses the bring-up."""
+    serve = emu._line
+
+    def lossy(text):
+        return None if text.startswith("w ") and f"config.{lost}" in text else serve(text)
+
+    emu._line = lossy
+    d = make_drive(emu)
+    try:
+        with pytest.raises(DriveError, match="the axis watchdog did not take") as err:
+            d.connect()
+        assert "axis0 (left)" in str(err.value) and f"{lost}" in str(err.value)
+        assert [f.kind.value for f in d.faults] == ["setup"], d.faults
+        with pytest.raises(DriveError):
+            d.enable()                               # never armed: nothing would stop it
+        assert all(a.current_state == oe.AXIS_STATE_IDLE for a in emu.axes)
+    finally:
+        d.close()
+
+
+def test_a_reconnect_whose_axis_does_not_go_idle_is_not_back(emu):
+    """The reconnect's bring-up requests IDLE (the runtime then says 'ran its safe bring-up (wheels unpowered)'),
+    and the ASCII protocol acknowledges no write: an axis that did not take the request (its line lost, a hung
+    axis) was called back while it still drove at its last velocity. Its state is read back."""
+    d = make_drive(emu, reconnect_interval_s=0.01)
+    d.connect()
+    d.enable()
+    try:
+        drive_for(d, 3.0, 3.0)
+        with emu.lock:
+            emu.axis(1).ignores_commands = True
+        emu.unplug()
+        with pytest.raises(DriveError, match="lost"):
+            d.read()
+        emu.replug()
+        with pytest.raises(DriveError, match="axis1 \\(right\\): did not take the stop: current_state 8 .* bring-up's IDLE request"):
+            assert wait_until(d.reconnect, timeout=5.0)
+        assert [f.kind.value for f in d.faults] == ["setup"], d.faults
+    finally:
+        d.close()
