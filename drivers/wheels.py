@@ -123,7 +123,8 @@ class WheelDrive(abc.ABC):
         self._lock = threading.RLock()   # lifecycle and I/O; a reconnect may run on another thread
         self.reconnect_note = ""         # why the last reconnect attempt failed ("" when none failed)
         # what the last disable() or close() could not stop (a motor that did not answer), None when it stopped
-        # all: they never raise, so this is where the caller learns that only the device's watchdog is left
+        # all (or an enable armed the motors since): they never raise, so this is where the caller learns that
+        # only the device's watchdog is left
         self.stop_failure: Optional[str] = None
         # errors the bring-up at start-up found and cleared on its own (an ODrive's expired axis watchdog with
         # drive.options.clear_watchdog_error_at_start), one sentence each naming the device, the error and the
@@ -184,6 +185,7 @@ class WheelDrive(abc.ABC):
                 self._stop_wheels()
                 raise
             self._state = DriveState.ACTIVE
+            self.stop_failure = None     # armed again: a stop not taken before is moot
 
     def disable(self) -> None:
         """ACTIVE -> INACTIVE: command zero and remove power. In any other state it only stops what it can
@@ -191,7 +193,12 @@ class WheelDrive(abc.ABC):
         with self._lock:
             if self._state in (DriveState.UNCONFIGURED, DriveState.FINALIZED):
                 return
-            if self._state is not DriveState.ACTIVE and self.stop_failure:
+            if not self._reachable():
+                # Released (a lost bus, a reconnect that met a device fault): the stop reaches nothing, and its
+                # silence is no confirmation of a stop not taken before, which stays said (a close then reported
+                # it taken: "the drive reported every motor stopped").
+                pass
+            elif self._state is not DriveState.ACTIVE and self.stop_failure:
                 self.stop_failure = self._stop_again()      # the runtime's resend of a stop not taken
             else:
                 self.stop_failure = self._stop_wheels()

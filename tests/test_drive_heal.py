@@ -192,3 +192,56 @@ def test_a_stop_not_taken_is_not_confirmed_by_a_close_that_reached_nothing(devic
     drive._release()                 # what a reconnect that met a device fault leaves (wheels.reconnect)
     drive.close()
     assert drive.stop_failure and "reached nothing" in drive.stop_failure, drive.stop_failure
+
+
+def test_a_stop_not_taken_stays_said_through_a_stop_sent_while_the_device_is_released(device):
+    """A motor did not take an estop's stop; the bus was then lost (the port released) and the reconnect met a
+    device fault. Every stop the runtime sent meanwhile (the loss's, the run's end) reached no port, and the
+    drive's disable() called that silence 'every motor stopped': the stop not taken was forgotten, and the run
+    ended saying 'the stop it had not taken is confirmed now: sent again as the drive closed'. A disable that
+    reaches nothing keeps the stop not taken; the close says it reached nothing."""
+    from vbnav.drivers.clock import MonotonicClock
+    from vbnav.drivers.wheels import DriveError, DriveState
+    drive = device.drive(MonotonicClock(), watchdog_s=1.0)
+    drive.connect()
+    drive.enable()
+    with device.dev.lock:
+        if isinstance(device, Dxl):
+            device.dev.servo(2).drops_stops = 10 ** 6
+        else:
+            device.dev.axis(1).ignores_commands = True
+    drive.disable()                  # the estop's stop: one motor does not take it
+    missed = drive.stop_failure
+    assert missed and "(right)" in missed, missed
+    device.dev.unplug()
+    with pytest.raises(DriveError, match="lost"):
+        drive.read()                 # the loss: the port is released
+    assert drive.state is DriveState.ERROR
+    drive.disable()                  # the runtime's stop at the loss, and at the end of the run
+    assert drive.stop_failure == missed, drive.stop_failure
+    drive.close()
+    assert drive.stop_failure and missed in drive.stop_failure and "reached nothing" in drive.stop_failure, \
+        drive.stop_failure
+    device.dev.replug()
+
+
+def test_an_enable_makes_a_stop_not_taken_before_moot(device):
+    """The drive armed again (a resume) is no longer stopped: a stop not taken before is not reported as the
+    stop of a later loss, which reached nothing."""
+    from vbnav.drivers.clock import MonotonicClock
+    drive = device.drive(MonotonicClock(), watchdog_s=1.0)
+    drive.connect()
+    drive.enable()
+    with device.dev.lock:
+        if isinstance(device, Dxl):
+            device.dev.servo(2).drops_stops = 2     # the disable's Goal Velocity 0 and torque off
+        else:
+            device.dev.axis(1).ignores_commands = True
+    drive.disable()
+    assert drive.stop_failure
+    with device.dev.lock:
+        if not isinstance(device, Dxl):
+            device.dev.axis(1).ignores_commands = False
+    drive.enable()
+    assert drive.stop_failure is None
+    drive.close()

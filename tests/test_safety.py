@@ -769,15 +769,7 @@ def test_an_exception_in_the_vision_thread_outside_the_stages_ends_the_run_and_s
     pipeline.frozen = BrokenWatch()
     seen = []
 
-    def hook(ctx):   # hold simulated time once the watch is broken until the thread has met it
-        if ctx.now_ns >= T0 + 1_500_000_000 and not seen:
-            broken.set()
-            for _ in range(300):
-                if pipeline.fault is not None or not pipeline._thread.is_alive():
-                    seen.append(ctx.now_ns)
-                    return
-                threading.Event().wait(0.01)
-
+    hook = break_at_1_5_s(broken, pipeline, seen)
     rt = Runtime(Config(camera={"stale_after_s": 5.0}), drive, Cruise(hook), clock, pipeline)
     result = rt.run(duration_s=5)
     assert seen
@@ -786,6 +778,68 @@ def test_an_exception_in_the_vision_thread_outside_the_stages_ends_the_run_and_s
     assert rt.fault_traceback and "ValueError" in rt.fault_traceback
     assert drive.last_motion_ns() < seen[0] + 2 * PERIOD_NS
     assert drive.stopped_since(seen[0] + 2 * PERIOD_NS) and drive.log[-1][3] is False
+
+
+def break_at_1_5_s(broken, pipeline, seen: list):
+    """A loop hook that sets ``broken`` at 1.5 s and holds simulated time there until the vision thread has met
+    it (a fault, or the thread ended), appending that cycle's time to ``seen``."""
+    import threading
+
+    def hook(ctx):
+        if ctx.now_ns >= T0 + 1_500_000_000 and not seen:
+            broken.set()
+            for _ in range(300):
+                if pipeline.fault is not None or not pipeline._thread.is_alive():
+                    seen.append(ctx.now_ns)
+                    return
+                threading.Event().wait(0.01)
+    return hook
+
+
+@pytest.mark.parametrize("where", ["stage", "camera"])
+def test_a_system_exit_on_the_vision_thread_ends_the_run_and_says_why(where):
+    """A library's sys.exit() on the vision thread (in a stage, or in the camera's read) is a SystemExit, which
+    ends a thread without a word: the pipeline had no fault, the run went on to 'duration reached', and the robot
+    drove on until the stale-camera hold (camera.stale_after_s later) stopped it, saying only that the frames
+    were old. It is the pipeline's fault now, as any exception there."""
+    import sys
+    import threading
+
+    from runtime_helpers import RecordingDrive, TickCamera
+    from vbnav.control.config import Config
+    from vbnav.control.runtime.pipeline import VisionPipeline
+    from vbnav.control.runtime.runtime import Runtime
+    from vbnav.drivers.clock import SimClock
+
+    broken = threading.Event()          # set by the loop at 1.5 s
+
+    class Exiting(VisionStage):
+        kind = "probe"
+
+        def process(self, frame, odom):
+            if broken.is_set() and where == "stage":
+                sys.exit("a library gave up")
+            threading.Event().wait(0.001)
+            return None
+
+    class ExitingCamera(TickCamera):
+        def read(self, timeout_s=0.0):
+            if broken.is_set() and where == "camera":
+                sys.exit("a library gave up")
+            return super().read(timeout_s)
+
+    clock = SimClock()
+    drive = RecordingDrive(clock)
+    pipeline = VisionPipeline(ExitingCamera(clock), [Exiting()], clock, inline=False)
+    seen = []
+
+    hook = break_at_1_5_s(broken, pipeline, seen)
+    rt = Runtime(Config(camera={"stale_after_s": 5.0}), drive, Cruise(hook), clock, pipeline)
+    result = rt.run(duration_s=5)
+    assert seen
+    assert result.reason == "exception" and "SystemExit" in result.message and "gave up" in result.message, \
+        result.message
+    assert_stopped_within_two_periods(drive, seen[0])
 
 
 def test_a_non_finite_wheel_position_ends_the_run_and_never_reaches_the_odometry():

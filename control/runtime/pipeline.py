@@ -160,7 +160,7 @@ class VisionPipeline:
         while not self._stop.is_set():
             try:
                 frame = self.camera.read(0.05)
-            except Exception as exc:
+            except BaseException as exc:    # a SystemExit too: it ends a thread without a word
                 self._read_failed(exc)
                 return
             if frame is None:
@@ -173,10 +173,10 @@ class VisionPipeline:
                 if self._take(frame, received_ns):
                     fresh, results = self._process(frame)
                     self._publish(frame, fresh, results, received_ns)
-            except Exception as exc:
-                # Beyond the stages (the frozen-image check, the odometry at the frame's stamp): uncaught, it
-                # would end this thread with a line on stderr only, and the robot would wait for the
-                # stale-camera hold without a word of why.
+            except BaseException as exc:
+                # Beyond the stages (the frozen-image check, the odometry at the frame's stamp), or a SystemExit
+                # from anywhere (a library's sys.exit): uncaught, it would end this thread with a line on stderr
+                # at most, and the robot would wait for the stale-camera hold without a word of why.
                 self.fault_traceback = traceback.format_exc()
                 self.fault = f"vision thread: {exc!r}"
                 return
@@ -185,7 +185,7 @@ class VisionPipeline:
                     self._frames_ended += 1
                     self._frame_done.notify_all()
 
-    def _read_failed(self, exc: Exception) -> None:
+    def _read_failed(self, exc: BaseException) -> None:
         """The camera's read raised (on either path): the fault names the camera; a ``CameraError`` is the
         device's failure, anything else a bug whose traceback the run result keeps."""
         if isinstance(exc, CameraError):
