@@ -698,6 +698,51 @@ def test_one_obstacle_hold_whose_turn_only_flag_flips_is_counted_once():
     assert result.holds_on_the_way() == 1 and result.count("hold", "obstacle") == 1
 
 
+def test_a_teleop_that_only_turns_is_taken_under_a_turn_only_hold():
+    """A round robot held by an obstacle ahead may turn on the spot (obstacles.turn_when_held), but every teleop
+    was refused while the hold lasted: an operator could not turn the robot away from what held it. A teleop
+    with linear 0 is taken and turns the robot; one that also drives forward is refused, saying what is taken;
+    under a full hold (the stage blind) every teleop is refused, as before."""
+    from vbnav.control.runtime.interfaces import Estimate
+
+    class Zone(VisionStage):
+        """Held from 1 s on; the turn allowed but from 2 to 2.5 s (the stage went blind)."""
+        kind = "obstacles"
+
+        def process(self, frame, odom):
+            t = (frame.stamp_ns - T0) * 1e-9
+            blind = 2.0 <= t < 2.5
+            return Estimate(frame.stamp_ns, self.kind, True, None,
+                            {"speed_scale": 0.0 if t >= 1.0 else 1.0, "reason": "blind" if blind else "box ahead",
+                             "turn_ok": t >= 1.0 and not blind})
+
+    def feed(r, ctx, twist, wheels):       # forward and turning before 1.5 s, then a turn on the spot
+        t = (ctx.now_ns - T0) * 1e-9
+        linear = 0.2 if t < 1.5 or 2.8 <= t < 2.9 else 0.0
+        r.submit(OperatorCommand("teleop", (linear, 0.5), "test", ack=f"t{ctx.cycle}"))
+
+    rt, drive, clock = make_runtime(TeleopController(timeout_s=0.5), stages=[Zone()])
+    rt.cycle_observers.append(feed)
+    applied, refused = [], []
+    rt.command_listeners.append(lambda r, cmd, outcome, now: applied.append(((now - T0) * 1e-9, cmd.args[0])))
+    rt.safety.listeners.append(lambda ev: refused.append(((ev.stamp_ns - T0) * 1e-9, ev.message))
+                               if ev.kind == "rejected" else None)
+    rt.run(duration_s=3.0)
+    at = lambda s: [e for e in drive.log if e[0] <= T0 + int(s * 1e9)][-1]      # the drive's state at s
+    for s in (1.8, 1.95, 2.7):
+        e = at(s)
+        assert e[3] and e[1] == pytest.approx(-e[2]) and abs(e[1]) > 1.0, (s, e)   # turning on the spot, powered
+    assert at(2.25)[1:] == (0.0, 0.0, False)                                  # blind: everything stops
+    within = lambda events, lo, hi: [e for e in events if lo <= e[0] < hi]
+    assert len(within(applied, 1.6, 2.0)) >= 30 and len(within(applied, 2.55, 2.8)) >= 20   # the turns taken
+    assert not within(refused, 1.6, 2.0) and not within(refused, 2.55, 2.8)
+    assert not within(applied, 2.1, 2.45)                                   # blind from the frame after 2 s
+    assert not [e for e in applied if e[0] >= 1.1 and e[1] != 0.0]          # held: nothing forward taken
+    assert "does not move the robot" in within(refused, 2.1, 2.45)[0][1]              # blind: refused
+    forward = within(refused, 2.8, 2.9)
+    assert forward and "only a turn on the spot (linear 0) is taken" in forward[0][1], forward
+
+
 def test_exception_in_the_progress_callback_stops_the_robot_and_says_where():
     rt, drive, clock = make_runtime(Cruise())
 

@@ -823,12 +823,23 @@ class Runtime:
                                           f"not move the robot until a resume")
         holds = [c for c in self.safety.holds if c not in self._controller_holds]
         if cmd.kind == "teleop" and holds:
-            # A hold (obstacle, stale camera or estimate) keeps the wheels stopped while it lasts: 'applied'
-            # would be untrue, and a teleop held through it would drive the robot the moment it clears.
-            # The controller's own holds (command_timeout) are what a teleop clears.
-            return CommandOutcome.refused(f"stopped by {', '.join(holds)} (held while it lasts): teleop does "
-                                          f"not move the robot until it clears")
+            return self._teleop_while_held(cmd, holds, now)
         return self.controller.handle_command(cmd, now)
+
+    def _teleop_while_held(self, cmd: OperatorCommand, holds: list, now: int) -> CommandOutcome:
+        """A hold (obstacle, stale camera or estimate) keeps the wheels stopped while it lasts: 'applied' would
+        be untrue, and a teleop held through it would drive the robot the moment it clears. The controller's own
+        holds (command_timeout) are what a teleop clears. Holds that all let a turn on the spot through (a round
+        robot held by an obstacle ahead) take a teleop that only turns (linear 0): the loop drives it as such,
+        and it is how an operator turns the robot away from what holds it."""
+        turn_only = all(c in self.safety.turn_only for c in holds)
+        if turn_only and cmd.args and float(cmd.args[0]) == 0.0:
+            return self.controller.handle_command(cmd, now)
+        if turn_only:
+            return CommandOutcome.refused(f"stopped by {', '.join(holds)} (held while it lasts): only a turn on "
+                                          f"the spot (linear 0) is taken until it clears")
+        return CommandOutcome.refused(f"stopped by {', '.join(holds)} (held while it lasts): teleop does not move "
+                                      f"the robot until it clears")
 
     def _refuse_waiting_commands(self) -> None:
         """Commands that arrived in the last cycle or after it are answered, not left unanswered; later
