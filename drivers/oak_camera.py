@@ -66,14 +66,10 @@ def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = N
                          grey: bool = True, subpixel_bits: int = 3, meta: Optional[dict] = None,
                          right: Optional["dai.ImgFrame"] = None) -> Frame:
     """Host-side conversion of depthai messages into our Frame (``right``: the pair's rectified right image)."""
-    image = img.getCvFrame()
-    if grey and image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    image = _cv_image(img, grey)
     right_image = None
     if right is not None:
-        right_image = right.getCvFrame()
-        if right_image.ndim == 3:
-            right_image = cv2.cvtColor(right_image, cv2.COLOR_BGR2GRAY)
+        right_image = _cv_image(right, grey=True)
         if right_image.shape[:2] != image.shape[:2]:
             raise CameraError(f"right image {right_image.shape[1]}x{right_image.shape[0]} is not the size of the "
                               f"left image {image.shape[1]}x{image.shape[0]} (camera.options.right_image takes the "
@@ -89,6 +85,12 @@ def frame_from_imgframes(img: "dai.ImgFrame", disp: Optional["dai.ImgFrame"] = N
     m.update(meta or {})
     return Frame(np.ascontiguousarray(image), timedelta_ns(img.getTimestamp()), seq, right=right_image,
                  disparity=disparity, meta=m)
+
+
+def _cv_image(msg: "dai.ImgFrame", grey: bool) -> np.ndarray:
+    """The message's image, colour made grey when ``grey``."""
+    image = msg.getCvFrame()
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if grey and image.ndim == 3 else image
 
 
 def take_matching(pending: dict, seq: int):
@@ -431,8 +433,9 @@ class OakCamera(GrabbingCamera):
                     time.sleep(0.002)
                     continue
                 # disparity, the right image and their rectified left image share the device sequence number
-                disp = take_matching(self._pending_disp, img.getSequenceNum()) if self._disp_q is not None else None
-                right = take_matching(self._pending_right, img.getSequenceNum()) if self._right_q is not None else None
+                # (a queue that is off leaves its pending dict empty: None)
+                disp = take_matching(self._pending_disp, img.getSequenceNum())
+                right = take_matching(self._pending_right, img.getSequenceNum())
                 meta = self._meta()
                 self._frames.publish(lambda seq: frame_from_imgframes(img, disp, seq, self.opt.grey,
                                                                       self.opt.subpixel_bits, meta, right))

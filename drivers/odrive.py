@@ -194,33 +194,7 @@ class ODriveDrive(SerialWheelDrive):
                 self._send(f"w axis{ax}.controller.input_vel 0")
                 self._send(f"w axis{ax}.config.watchdog_timeout {self.opt.watchdog_s:.4f}")
                 self._send(f"w axis{ax}.config.enable_watchdog 1")
-                got = self._query(f"r axis{ax}.controller.config.control_mode", t)
-                if _integer(got) != CONTROL_MODE_VELOCITY:
-                    self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
-                                                  f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
-                    raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
-                # The axis watchdog is what stops the wheels when the host cannot (a lost bus, a killed process),
-                # and the ASCII protocol acknowledges no write: a line lost on its way (a noisy UART) left it off,
-                # and the wheels ran on after the host went silent. Read back, as the control mode.
-                on = self._query(f"r axis{ax}.config.enable_watchdog", t)
-                timeout = self._query(f"r axis{ax}.config.watchdog_timeout", t)
-                if _integer(on) != 1 or not _close_to(timeout, self.opt.watchdog_s):
-                    why = (f"ODrive {self._axis(ax)}: the axis watchdog did not take (enable_watchdog {on!r}, "
-                           f"watchdog_timeout {timeout!r}, expected 1 and {self.opt.watchdog_s:g} s): nothing would "
-                           f"stop this wheel if the host went silent")
-                    self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax), why))
-                    raise DriveError(why)
-                # The bring-up leaves the wheels unpowered (a reconnect's drive_reconnected says so): an axis that
-                # did not take the IDLE request (its line lost, a hung axis) drove on at its last velocity.
-                # Read after the questions above: its state machine has had its time to leave closed loop.
-                state = self._query(f"r axis{ax}.current_state", t)
-                if state is None:
-                    raise DriveError(f"ODrive on {self.opt.port} does not answer 'r axis{ax}.current_state'")
-                if _integer(state) != AXIS_STATE_IDLE:
-                    why = (f"ODrive {self._axis(ax)}: did not take the stop: current_state {state} (not IDLE "
-                           f"{AXIS_STATE_IDLE}) after the bring-up's IDLE request; only its axis watchdog stops it")
-                    self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax), why))
-                    raise DriveError(why)
+                self._check_setup_took(ax, t)
             self._was_up = True
         except (serial.SerialException, OSError, termios.error) as exc:
             # termios.error (not an OSError): the flush before a question, on a device gone mid-setup
@@ -307,6 +281,40 @@ class ODriveDrive(SerialWheelDrive):
                 raise OSError(f"{self.opt.port} disappeared")
         line, _, self._rx = self._rx.partition(b"\n")
         return line.decode("ascii", "replace").strip()
+
+    def _check_setup_took(self, ax: int, t: float) -> None:
+        """Read back what the bring-up wrote to axis ``ax`` that the wheels' safety rests on (the ASCII protocol
+        acknowledges no write): DriveError, with a setup fault noted, for what did not take."""
+        got = self._query(f"r axis{ax}.controller.config.control_mode", t)
+        if _integer(got) != CONTROL_MODE_VELOCITY:
+            self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax),
+                                          f"ODrive {self._axis(ax)}: control_mode did not take ({got!r})"))
+            raise DriveError(f"ODrive axis{ax}: control_mode did not take ({got!r})")
+        # The axis watchdog is what stops the wheels when the host cannot (a lost bus, a killed process),
+        # and the ASCII protocol acknowledges no write: a line lost on its way (a noisy UART) left it off,
+        # and the wheels ran on after the host went silent. Read back, as the control mode.
+        on = self._query(f"r axis{ax}.config.enable_watchdog", t)
+        timeout = self._query(f"r axis{ax}.config.watchdog_timeout", t)
+        if _integer(on) != 1 or not _close_to(timeout, self.opt.watchdog_s):
+            why = (f"ODrive {self._axis(ax)}: the axis watchdog did not take (enable_watchdog {on!r}, "
+                   f"watchdog_timeout {timeout!r}, expected 1 and {self.opt.watchdog_s:g} s): nothing would "
+                   f"stop this wheel if the host went silent")
+            raise self._setup_refused(ax, why)
+        # The bring-up leaves the wheels unpowered (a reconnect's drive_reconnected says so): an axis that
+        # did not take the IDLE request (its line lost, a hung axis) drove on at its last velocity.
+        # Read after the questions above: its state machine has had its time to leave closed loop.
+        state = self._query(f"r axis{ax}.current_state", t)
+        if state is None:
+            raise DriveError(f"ODrive on {self.opt.port} does not answer 'r axis{ax}.current_state'")
+        if _integer(state) != AXIS_STATE_IDLE:
+            why = (f"ODrive {self._axis(ax)}: did not take the stop: current_state {state} (not IDLE "
+                   f"{AXIS_STATE_IDLE}) after the bring-up's IDLE request; only its axis watchdog stops it")
+            raise self._setup_refused(ax, why)
+
+    def _setup_refused(self, ax: int, why: str) -> DriveError:
+        """A setup fault of axis ``ax`` noted, and the DriveError that ends the bring-up with it."""
+        self._record_fault(DriveFault(FaultKind.SETUP, self._axis(ax), why))
+        return DriveError(why)
 
     def _settle(self) -> None:
         """After a question went unanswered within its timeout, its answer may still come, and the ASCII

@@ -193,15 +193,14 @@ class WheelDrive(abc.ABC):
         with self._lock:
             if self._state in (DriveState.UNCONFIGURED, DriveState.FINALIZED):
                 return
-            if not self._reachable():
-                # Released (a lost bus, a reconnect that met a device fault): the stop reaches nothing, and its
-                # silence is no confirmation of a stop not taken before, which stays said (a close then reported
-                # it taken: "the drive reported every motor stopped").
-                pass
-            elif self._state is not DriveState.ACTIVE and self.stop_failure:
-                self.stop_failure = self._stop_again()      # the runtime's resend of a stop not taken
-            else:
-                self.stop_failure = self._stop_wheels()
+            # Released (a lost bus, a reconnect that met a device fault), the stop reaches nothing: its silence is
+            # no confirmation of a stop not taken before, which stays said (a close reported it taken: "the drive
+            # reported every motor stopped").
+            if self._reachable():
+                if self._state is not DriveState.ACTIVE and self.stop_failure:
+                    self.stop_failure = self._stop_again()      # the runtime's resend of a stop not taken
+                else:
+                    self.stop_failure = self._stop_wheels()
             if self._state is DriveState.ACTIVE:
                 self._state = DriveState.INACTIVE
 
