@@ -17,7 +17,10 @@ def test_scripted_route_odometry_matches_simulator():
     assert result.reason == "finished", result.message
     truth, odom = coupling.true_pose, rt.odometry.pose
     travelled = 0.3 * 1.5 + 0.25 * 1.5
-    assert 0.85 * travelled < rt.odometry.distance < 1.1 * travelled
+    # on failure say what stopped the wheels (a fresh clone's CI run, 2026-12-04: 0.31 m of 0.825, 'finished';
+    # not reproduced in 16 runs beside four CPU hogs)
+    events = [(e.kind, e.cause, e.message) for e in result.events]
+    assert 0.85 * travelled < rt.odometry.distance < 1.1 * travelled, (rt.odometry.distance, events)
     assert odom.z > 0.4 and odom.x > 0.05
     # measured 0.066 mm / 6e-6 rad on 2026-11-30; the run is on the real clock, so the bars keep room
     # for sampling jitter on a loaded machine
