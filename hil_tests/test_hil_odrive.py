@@ -13,7 +13,11 @@ SCRIPT = [[0.3, 0.0, 1.5], [0.25, 0.6, 1.5], [0.0, 0.0, 0.4]]
 def test_scripted_route_odometry_matches_simulator():
     result, rt, coupling = run_route(
         "sentry-odrive.yaml", lambda c: ODriveEmulator(coupling=c),
-        {"reply_timeout_s": 0.02, "watchdog_s": 0.5}, SCRIPT, channels={0: (0, 1), 1: (1, -1)})
+        # the emulator answers from a thread of this process: beside another test file's run on the other core
+        # its error-word answer came later than the poll's 4 x 20 ms (drive_lost, the robot stopped until a
+        # resume: twice in fresh clones' CI runs, 2026-12-04). This test checks odometry, not reply timeouts
+        # (tests/test_odrive.py does), so it gives the answers 0.1 s, as it gives the loop its missed deadlines.
+        {"reply_timeout_s": 0.1, "watchdog_s": 0.5}, SCRIPT, channels={0: (0, 1), 1: (1, -1)})
     assert result.reason == "finished", result.message
     truth, odom = coupling.true_pose, rt.odometry.pose
     travelled = 0.3 * 1.5 + 0.25 * 1.5
